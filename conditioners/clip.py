@@ -1,0 +1,119 @@
+"""Visual conditioner: a frozen open_clip image encoder loaded from a local file.
+
+open_clip (and with it torchvision's model code) is imported only when this conditioner
+is built, so scenes that do not condition on visual images never import it.  The CLIP
+weights are not copied into vqtouch checkpoints: the checkpoint records the architecture
+and the file path, and only the trainable projection is saved.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import torch
+import torch.nn.functional as F
+from pydantic import Field
+from torch import nn
+
+from vqtouch.core import BuildContext, Conditioner, PluginConfig, WeightsSpec, hookimpl, resolve_weights
+
+CLIP_WEIGHTS = WeightsSpec(
+    description="conditioner 'clip' (frozen open_clip image encoder)",
+    filenames=("open_clip_model.safetensors", "open_clip_pytorch_model.bin"),
+    env_var="VQTOUCH_CLIP_CKPT",
+    config_hint="--set conditioner.checkpoint=PATH (or --clip-checkpoint PATH)",
+    source_url="the model's open_clip/Hugging Face page (e.g. laion/CLIP-ViT-B-32-laion2B-s34B-b79K)",
+)
+
+
+class ClipConditionerConfig(PluginConfig):
+    """Options of the ``clip`` conditioner."""
+
+    name: Literal["clip"] = "clip"
+    architecture: str = Field("ViT-B-32", min_length=1,
+                              description="open_clip model name whose weights the checkpoint file holds.")
+    checkpoint: str | None = Field(
+        None, description="Path to the open_clip weights (.safetensors/.pt/.bin); else VQTOUCH_CLIP_CKPT or "
+                          "VQTOUCH_WEIGHTS_DIR. Never downloaded.")
+    num_tokens: int = Field(4, ge=1, le=77, description="Condition tokens projected from the image embedding.")
+    model_overrides: dict[str, Any] = Field(
+        default_factory=dict, description="Keyword overrides passed to open_clip.create_model (e.g. a small "
+                                          "vision_cfg for a custom-trained model); must match the checkpoint.")
+
+
+class ClipConditioner(Conditioner):
+    """Frozen CLIP image embedding (L2-normalised) -> trainable projection -> condition tokens."""
+
+    modality = "visual"
+
+    def __init__(self, clip_model: nn.Module, embed_dim: int, cond_dim: int, num_tokens: int) -> None:
+        super().__init__(cond_dim, num_tokens)
+        clip_model.eval().requires_grad_(False)
+        # Not a registered submodule: the frozen encoder stays out of state_dict and checkpoints.
+        object.__setattr__(self, "_clip", clip_model)
+        image_size = clip_model.visual.image_size
+        self.clip_image_size = tuple(image_size) if isinstance(image_size, (tuple, list)) else (image_size, image_size)
+        from open_clip.constants import OPENAI_DATASET_MEAN, OPENAI_DATASET_STD
+
+        mean = getattr(clip_model.visual, "image_mean", None) or OPENAI_DATASET_MEAN
+        std = getattr(clip_model.visual, "image_std", None) or OPENAI_DATASET_STD
+        self.register_buffer("mean_C", torch.tensor(mean, dtype=torch.float32), persistent=False)
+        self.register_buffer("std_C", torch.tensor(std, dtype=torch.float32), persistent=False)
+        self.project = nn.Linear(embed_dim, num_tokens * cond_dim)
+
+    def _apply(self, fn: Any, recurse: bool = True) -> ClipConditioner:
+        super()._apply(fn, recurse)
+        self._clip._apply(fn)
+        return self
+
+    def encode(self, condition: torch.Tensor) -> torch.Tensor:
+        """Visual images (B, 3, H, W) in [0, 1] to tokens (B, num_tokens, cond_dim)."""
+        images = condition
+        if images.ndim != 4 or images.shape[1] != 3:
+            raise ValueError(f"clip conditioner expects RGB images (B, 3, H, W) in [0, 1], got {tuple(images.shape)}")
+        images = F.interpolate(images.float(), size=self.clip_image_size, mode="bicubic", antialias=True,
+                               align_corners=False).clamp(0, 1)
+        images = (images - self.mean_C[:, None, None]) / self.std_C[:, None, None]
+        with torch.no_grad():
+            embedding_BE = self._clip.encode_image(images.to(next(self._clip.parameters()).dtype)).float()
+        embedding_BE = F.normalize(embedding_BE, dim=-1, eps=1e-6)
+        return self.project(embedding_BE).view(-1, self.num_tokens, self.cond_dim)
+
+
+def build_clip_conditioner(config: ClipConditionerConfig, context: BuildContext) -> ClipConditioner:
+    """Factory: resolve the local weights file (never downloads), then build the frozen encoder."""
+    path = resolve_weights(CLIP_WEIGHTS, config.checkpoint)
+    try:
+        import open_clip
+    except ImportError as exc:
+        from vqtouch.core import PluginError
+
+        raise PluginError(f"conditioner 'clip' needs open_clip_torch ({exc}); pip install open_clip_torch") from None
+    from vqtouch.core import ConfigError
+
+    if config.architecture not in open_clip.list_models():
+        from vqtouch.core.errors import unknown_name_message
+
+        raise ConfigError("conditioner 'clip': " + unknown_name_message(
+            "open_clip architecture", config.architecture, open_clip.list_models()))
+    try:
+        model = open_clip.create_model(config.architecture, pretrained=str(path), **config.model_overrides)
+    except (RuntimeError, ValueError, KeyError) as exc:
+        from vqtouch.core import MissingWeightsError
+
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise MissingWeightsError(f"conditioner 'clip': {path} does not hold {config.architecture} weights "
+                                  f"({first})") from None
+    embed_dim = getattr(model.visual, "output_dim", None)
+    if not isinstance(embed_dim, int):
+        with torch.no_grad():
+            size = model.visual.image_size
+            size = size if isinstance(size, (tuple, list)) else (size, size)
+            embed_dim = model.encode_image(torch.zeros(1, 3, *size)).shape[-1]
+    return ClipConditioner(model, embed_dim, context.cond_dim, config.num_tokens)
+
+
+@hookimpl
+def vqtouch_register_conditioners(register):
+    register("clip", build_clip_conditioner, ClipConditionerConfig,
+             description="Frozen open_clip image encoder from a local file + trainable projection (vision-to-touch).")

@@ -1,0 +1,208 @@
+"""Checkpoints: one ``.safetensors`` file per component, rebuildable from its header alone.
+
+The header metadata (strings only) carries:
+
+=========================  =====================================================
+``format``                 ``"pt"`` (safetensors convention)
+``vqtouch.format_version`` version of this layout (``FORMAT_VERSION``)
+``vqtouch.component``      registry kind (``encoder``, ``conditioner``, ...)
+``vqtouch.plugin``         registered plugin name, e.g. ``label``
+``vqtouch.plugin_source``  pluggy plugin name, distribution and its version (JSON)
+``vqtouch.config``         the component's full plugin config (compact JSON)
+``vqtouch.context``        the :class:`BuildContext` it was built with (JSON)
+``vqtouch.step``           training step the weights belong to
+=========================  =====================================================
+
+Writes are atomic (temporary file in the same folder, fsync, rename), so an interrupted
+save never replaces a good checkpoint with a broken one.  Loading is strict: every
+tensor must match the rebuilt module by name and shape.  No pickle is involved.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from pydantic import ValidationError
+from safetensors import safe_open
+from safetensors.torch import load_file, save_model
+from torch import nn
+
+from .components import BuildContext
+from .errors import CheckpointError, ConfigError, UnknownPluginError, VqtouchError
+
+FORMAT_VERSION = "1"
+RESERVED_PREFIXES = ("vqtouch.", "format")
+
+
+def _json(value: Any) -> str:
+    return json.dumps(value, sort_keys=True, separators=(",", ":"))
+
+
+def _fsync_directory(directory: Path) -> None:
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:  # some filesystems (and Windows) cannot open folders
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def atomic_write(path: str | Path, write: Any) -> Path:
+    """Call ``write(tmp_path)`` then move the finished file onto ``path`` atomically."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp_name)
+    try:
+        write(tmp_path)
+        with open(tmp_path, "rb+") as handle:
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp_path, path)
+        _fsync_directory(path.parent)
+    except BaseException:
+        tmp_path.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def checkpoint_metadata(component: nn.Module, step: int, host: Any = None) -> dict[str, str]:
+    """The header metadata for ``component`` (which must have been built by a PluginHost)."""
+    spec = getattr(component, "vqtouch_spec", None)
+    if spec is None:
+        raise CheckpointError(
+            f"{type(component).__name__} was not built through vqtouch (no vqtouch_spec); "
+            "build components with PluginHost.build so checkpoints can record how to rebuild them")
+    config = spec.config.model_dump(mode="json")
+    metadata = {
+        "format": "pt",
+        "vqtouch.format_version": FORMAT_VERSION,
+        "vqtouch.component": spec.kind,
+        "vqtouch.plugin": spec.config.name,
+        "vqtouch.plugin_source": _json({"plugin": spec.source.plugin, "distribution": spec.source.distribution,
+                                        "version": spec.source.version}),
+        "vqtouch.config": _json(config),
+        "vqtouch.context": _json(spec.context.model_dump(mode="json")),
+        "vqtouch.step": str(int(step)),
+    }
+    if host is not None:
+        for extra in host.pm.hook.vqtouch_checkpoint_metadata(kind=spec.kind, name=spec.config.name, config=config):
+            for key, value in (extra or {}).items():
+                if key.startswith(RESERVED_PREFIXES) or not isinstance(value, str):
+                    raise CheckpointError(
+                        f"checkpoint metadata {key!r} from a plugin is not allowed: keys must be namespaced by "
+                        "the plugin (not 'vqtouch.'/'format') and values must be strings")
+                metadata[key] = value
+    return metadata
+
+
+def save(component: nn.Module, path: str | Path, *, step: int = 0, host: Any = None) -> Path:
+    """Write ``component`` to ``path`` (a ``.safetensors`` file) atomically; returns the path."""
+    path = Path(path)
+    if path.suffix != ".safetensors":
+        raise CheckpointError(f"{path}: checkpoint files must end in .safetensors")
+    metadata = checkpoint_metadata(component, step, host)
+    # safetensors refuses non-contiguous tensors; save_model also de-duplicates tied weights.
+    atomic_write(path, lambda tmp: save_model(component, str(tmp), metadata=metadata))
+    return path
+
+
+def read_metadata(path: str | Path) -> dict[str, str]:
+    """The header metadata of a checkpoint, without loading its tensors."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            metadata = handle.metadata() or {}
+    except Exception as exc:  # noqa: BLE001 - safetensors raises several error types
+        raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({_first_line(exc)})") from None
+    if "vqtouch.format_version" not in metadata:
+        raise CheckpointError(f"{path}: a safetensors file, but not a vqtouch checkpoint (no vqtouch.* header)")
+    if metadata["vqtouch.format_version"] != FORMAT_VERSION:
+        raise CheckpointError(
+            f"{path}: checkpoint format version {metadata['vqtouch.format_version']!r} is not supported "
+            f"by this vqtouch (expects {FORMAT_VERSION!r}); upgrade vqtouch")
+    return metadata
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+def load(path: str | Path, *, host: Any = None, map_location: str | torch.device = "cpu") -> nn.Module:
+    """Rebuild a component from a checkpoint's header and load its weights strictly.
+
+    Fails with a one-line :class:`CheckpointError` when the file is unreadable, the plugin
+    that made it is not installed, or names/shapes disagree with the rebuilt module.
+    """
+    if host is None:
+        from .plugin_manager import default_host
+
+        host = default_host()
+    path = Path(path)
+    metadata = read_metadata(path)
+    kind = metadata.get("vqtouch.component", "")
+    plugin = metadata.get("vqtouch.plugin", "")
+    try:
+        config = json.loads(metadata["vqtouch.config"])
+        context = BuildContext.model_validate(json.loads(metadata["vqtouch.context"]))
+    except (KeyError, json.JSONDecodeError, ValidationError) as exc:
+        raise CheckpointError(f"{path}: damaged vqtouch header ({_first_line(exc)})") from None
+    try:
+        component = host.build(kind, config, context)
+    except UnknownPluginError as exc:
+        source = metadata.get("vqtouch.plugin_source", "{}")
+        raise CheckpointError(
+            f"{path}: made by {kind} plugin {plugin!r} ({source}), which is not available here: {exc}") from None
+    except ConfigError as exc:
+        raise CheckpointError(f"{path}: its stored config no longer validates: {exc}") from None
+    except VqtouchError as exc:
+        raise CheckpointError(f"{path}: cannot rebuild {kind} {plugin!r}: {exc}") from None
+    try:
+        tensors = load_file(str(path), device=str(map_location))
+    except Exception as exc:  # noqa: BLE001
+        raise CheckpointError(f"{path}: tensor data is unreadable ({_first_line(exc)})") from None
+    load_state_strict(component, tensors, path)
+    component.vqtouch_step = int(metadata.get("vqtouch.step", "0"))
+    return component.to(map_location)
+
+
+def load_state_strict(module: nn.Module, tensors: Mapping[str, torch.Tensor], path: str | Path) -> None:
+    """Load ``tensors`` into ``module``: every key present, none extra, every shape equal."""
+    expected = module.state_dict()
+    # save_model drops tied duplicates; restore them from the kept name.
+    tensors = dict(tensors)
+    for name, value in expected.items():
+        if name not in tensors:
+            for other_name, other_value in expected.items():
+                if other_name in tensors and other_value.data_ptr() == value.data_ptr() and value.numel():
+                    tensors[name] = tensors[other_name]
+                    break
+    missing = sorted(set(expected) - set(tensors))
+    unexpected = sorted(set(tensors) - set(expected))
+    if missing or unexpected:
+        parts = []
+        if missing:
+            parts.append(f"missing {len(missing)} tensor(s), first {missing[0]!r}")
+        if unexpected:
+            parts.append(f"unexpected {len(unexpected)} tensor(s), first {unexpected[0]!r}")
+        raise CheckpointError(f"{path}: does not fit the rebuilt model: " + "; ".join(parts))
+    for name, value in expected.items():
+        if tuple(tensors[name].shape) != tuple(value.shape):
+            raise CheckpointError(
+                f"{path}: tensor {name!r} has shape {tuple(tensors[name].shape)} in the file but "
+                f"{tuple(value.shape)} in the model built from its config")
+    module.load_state_dict(tensors, strict=True)

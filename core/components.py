@@ -1,0 +1,192 @@
+"""The interfaces that plugin components implement, and the context they are built with.
+
+Core depends on none of the concrete models: it only knows these contracts.  Every
+registry kind names one base class here, and :meth:`PluginHost.build` checks that a
+factory returned an instance of it.  Components with weights are ``nn.Module`` s so that
+one checkpoint writer (safetensors, no pickle) serves all of them.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+from torch import nn
+
+
+class BuildContext(BaseModel):
+    """Facts a factory needs that belong to the experiment rather than to the plugin.
+
+    It is stored in every checkpoint header next to the plugin config, so a component can
+    be rebuilt from the file alone.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    image_size: int = Field(64, ge=8, le=4096, description="Side of the square tactile images in pixels.")
+    channels: int = Field(3, ge=1, le=16, description="Image channels (3 for RGB tactile images).")
+    num_classes: int = Field(0, ge=0, description="Number of labels in the dataset (0 when unlabelled).")
+    cond_dim: int = Field(256, ge=1, description="Width of the condition tokens a conditioner must emit.")
+    codebook_size: int = Field(0, ge=0, description="Codebook size of the tokenizer (0 when not yet known).")
+
+
+@dataclass
+class ConditionTokens:
+    """A batch of condition tokens for the generator.
+
+    ``tokens_BND`` are the cross-attention tokens; ``is_null_B`` marks rows that carry the
+    learned null condition (classifier-free guidance and condition dropout).
+    """
+
+    tokens_BND: torch.Tensor
+    is_null_B: torch.Tensor
+
+
+class Conditioner(nn.Module, abc.ABC):
+    """Turns one kind of condition (label, visual image, tactile image, text) into tokens.
+
+    Subclasses set ``modality`` and implement :meth:`encode`; the learned null token used
+    for classifier-free guidance is shared by all of them.
+    """
+
+    modality: ClassVar[str] = ""
+
+    def __init__(self, cond_dim: int, num_tokens: int) -> None:
+        super().__init__()
+        self.cond_dim = cond_dim
+        self.num_tokens = num_tokens
+        # Small non-zero init: a zero null token would make guided and unguided logits equal.
+        self.null_tokens_ND = nn.Parameter(torch.randn(num_tokens, cond_dim) * 0.02)
+
+    @abc.abstractmethod
+    def encode(self, condition: Any) -> torch.Tensor:
+        """Map a batch of raw conditions to tokens of shape (B, num_tokens, cond_dim)."""
+
+    def null(self, batch_size: int) -> ConditionTokens:
+        """The learned 'no condition' tokens for ``batch_size`` rows."""
+        tokens = self.null_tokens_ND.unsqueeze(0).expand(batch_size, -1, -1)
+        return ConditionTokens(tokens, torch.ones(batch_size, dtype=torch.bool, device=tokens.device))
+
+    def forward(self, condition: Any, drop_mask_B: torch.Tensor | None = None) -> ConditionTokens:
+        """Encode ``condition``; rows where ``drop_mask_B`` is True get the null tokens instead."""
+        tokens_BND = self.encode(condition)
+        if tokens_BND.ndim != 3 or tokens_BND.shape[1:] != (self.num_tokens, self.cond_dim):
+            raise RuntimeError(
+                f"{type(self).__name__}.encode returned shape {tuple(tokens_BND.shape)}; "
+                f"expected (B, {self.num_tokens}, {self.cond_dim})")
+        batch = tokens_BND.shape[0]
+        if drop_mask_B is None:
+            drop_mask_B = torch.zeros(batch, dtype=torch.bool, device=tokens_BND.device)
+        null_BND = self.null_tokens_ND.to(tokens_BND.dtype).unsqueeze(0).expand(batch, -1, -1)
+        tokens_BND = torch.where(drop_mask_B[:, None, None], null_BND, tokens_BND)
+        return ConditionTokens(tokens_BND, drop_mask_B)
+
+
+class SensorFamily(nn.Module, abc.ABC):
+    """Renders tactile images from contact height maps for one family of sensors.
+
+    Implementations are batched, run on any device and are deterministic for a given
+    ``generator``.
+    """
+
+    @abc.abstractmethod
+    def render(self, height_mm_BHW: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Render (B, H, W) indentation depths in millimetres to RGB images (B, 3, H, W) in [0, 1]."""
+
+
+class Encoder(nn.Module, abc.ABC):
+    """The autoencoder half of a tokenizer: image -> latent grid -> image."""
+
+    downsample_factor: int = 1
+    latent_channels: int = 1
+
+    @abc.abstractmethod
+    def encode(self, images_BCHW: torch.Tensor) -> torch.Tensor:
+        """Images in [-1, 1] to latents (B, latent_channels, H/f, W/f)."""
+
+    @abc.abstractmethod
+    def decode(self, latents_BDhw: torch.Tensor) -> torch.Tensor:
+        """Latents back to images in [-1, 1]."""
+
+
+class Quantizer(nn.Module, abc.ABC):
+    """Maps continuous latents to codebook entries and integer codes (maths in fp32)."""
+
+    codebook_size: int = 0
+
+    @abc.abstractmethod
+    def forward(self, latents_BDhw: torch.Tensor) -> Any:
+        """Quantise latents; returns the plugin's output record (quantised latents, codes, loss)."""
+
+
+class Clusterer(nn.Module, abc.ABC):
+    """Groups feature vectors (e.g. per-sensor tokenizer features) into families."""
+
+    @abc.abstractmethod
+    def fit(self, features_NF: torch.Tensor) -> torch.Tensor:
+        """Fit on (N, F) features and return the (N,) cluster index of each row."""
+
+    @abc.abstractmethod
+    def predict(self, features_NF: torch.Tensor) -> torch.Tensor:
+        """Assign (N, F) features to fitted clusters; returns (N,) indices."""
+
+
+class Metric(abc.ABC):
+    """An accumulating image metric: ``update`` with batches, then ``compute``."""
+
+    higher_is_better: ClassVar[bool] = True
+
+    @abc.abstractmethod
+    def update(self, predicted_B3HW: torch.Tensor, target_B3HW: torch.Tensor) -> None:
+        """Add a batch of images in [0, 1]."""
+
+    @abc.abstractmethod
+    def compute(self) -> float:
+        """The metric over everything seen since the last reset."""
+
+    @abc.abstractmethod
+    def reset(self) -> None:
+        """Forget what was seen."""
+
+
+class PerImageMetric(Metric):
+    """A metric defined on each image pair and averaged over all pairs seen."""
+
+    def __init__(self) -> None:
+        self.reset()
+
+    @abc.abstractmethod
+    def per_image(self, predicted_B3HW: torch.Tensor, target_B3HW: torch.Tensor) -> torch.Tensor:
+        """The metric of each pair, shape (B,)."""
+
+    def update(self, predicted_B3HW: torch.Tensor, target_B3HW: torch.Tensor) -> None:
+        values_B = self.per_image(predicted_B3HW, target_B3HW)
+        self._sum += float(values_B.double().sum())
+        self._count += values_B.numel()
+
+    def compute(self) -> float:
+        if self._count == 0:
+            raise ValueError(f"{type(self).__name__}: no images were added before compute()")
+        return self._sum / self._count
+
+    def reset(self) -> None:
+        self._sum, self._count = 0.0, 0
+
+
+class Generator(nn.Module, abc.ABC):
+    """Generates code grids conditioned on condition tokens (e.g. discrete diffusion)."""
+
+
+class TactileDataset(abc.ABC):
+    """A dataset of tactile samples (tactile image, optional visual image, label, text, sensor)."""
+
+    @abc.abstractmethod
+    def __len__(self) -> int:
+        """Number of samples."""
+
+    @abc.abstractmethod
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        """One sample: ``tactile`` (3, H, W) in [0, 1] and, when known, ``visual``, ``label``, ``text``, ``sensor``."""

@@ -1,0 +1,54 @@
+"""Exceptions raised by vqtouch.
+
+Every error a user can trigger derives from :class:`VqtouchError`; the CLI prints it as
+one line (``error: ...``) and exits with status 2 instead of showing a traceback.
+"""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Iterable
+
+
+class VqtouchError(Exception):
+    """Base class of every user-facing vqtouch error (the message says how to fix it)."""
+
+
+class PluginError(VqtouchError):
+    """A plugin failed to load, registered something twice, or broke the registration contract."""
+
+
+class UnknownPluginError(VqtouchError, KeyError):
+    """A name was looked up in a registry that has no such entry."""
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return str(self.args[0]) if self.args else ""
+
+
+class ConfigError(VqtouchError):
+    """An experiment configuration is malformed or names an impossible combination."""
+
+
+class CheckpointError(VqtouchError):
+    """A checkpoint file is missing, corrupted, not safetensors, or does not fit the model."""
+
+
+class MissingWeightsError(VqtouchError):
+    """Pretrained weights that a component needs were not provided as a local file."""
+
+
+def closest_match(name: str, candidates: Iterable[str]) -> str | None:
+    """Return the candidate most similar to ``name`` (or None when nothing is close)."""
+    matches = difflib.get_close_matches(name, list(candidates), n=1, cutoff=0.5)
+    return matches[0] if matches else None
+
+
+def unknown_name_message(kind: str, name: str, available: Iterable[str]) -> str:
+    """Build the standard 'unknown X' message: what was asked, what exists, what is closest."""
+    available = sorted(available)
+    listing = ", ".join(available) if available else "(none installed)"
+    message = f"unknown {kind} {name!r}; available: {listing}"
+    suggestion = closest_match(name, available)
+    if suggestion is not None:
+        message += f"; did you mean {suggestion!r}?"
+    return message

@@ -1,0 +1,112 @@
+"""Hook specifications: the whole plugin API of vqtouch.
+
+A plugin is a module (or object) with functions decorated by ``vqtouch.core.hookimpl``
+whose names match the specs below.  Only names starting with ``vqtouch_`` are treated as
+hooks, and a misspelled one fails loudly when plugins load (pluggy ``check_pending``).
+
+Registration hooks receive a ``register`` callback::
+
+    @hookimpl
+    def vqtouch_register_conditioners(register):
+        register("label", build_label_conditioner, LabelConditionerConfig,
+                 description="Learned embedding per class label.")
+
+``register(name, factory, config, *, description="", aliases=())``: ``config`` is the
+plugin's :class:`~vqtouch.core.PluginConfig` subclass (with ``name: Literal[name]``) and
+``factory(config, context)`` builds the component from a validated config and a
+:class:`~vqtouch.core.BuildContext`.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+import pluggy
+
+if TYPE_CHECKING:
+    from .config import ExperimentConfig
+
+PROJECT_NAME = "vqtouch"
+
+hookspec = pluggy.HookspecMarker(PROJECT_NAME)
+hookimpl = pluggy.HookimplMarker(PROJECT_NAME)
+
+Register = Callable[..., None]
+
+
+@hookspec
+def vqtouch_register_encoders(register: Register) -> None:
+    """Register tokenizer autoencoders (``vqtouch.core.Encoder`` subclasses), e.g. ``vqgan``."""
+
+
+@hookspec
+def vqtouch_register_quantizers(register: Register) -> None:
+    """Register quantizers (``vqtouch.core.Quantizer`` subclasses), e.g. ``vq``, ``ema_vq``."""
+
+
+@hookspec
+def vqtouch_register_conditioners(register: Register) -> None:
+    """Register conditioners (``vqtouch.core.Conditioner`` subclasses): label, visual, tactile, text."""
+
+
+@hookspec
+def vqtouch_register_sensor_families(register: Register) -> None:
+    """Register sensor families (``vqtouch.core.SensorFamily`` subclasses) that render tactile images."""
+
+
+@hookspec
+def vqtouch_register_generators(register: Register) -> None:
+    """Register generators over code grids (``vqtouch.core.Generator`` subclasses)."""
+
+
+@hookspec
+def vqtouch_register_clusterers(register: Register) -> None:
+    """Register clusterers that group sensors into families (``vqtouch.core.Clusterer``)."""
+
+
+@hookspec
+def vqtouch_register_datasets(register: Register) -> None:
+    """Register dataset readers (``vqtouch.core.TactileDataset`` subclasses)."""
+
+
+@hookspec
+def vqtouch_register_metrics(register: Register) -> None:
+    """Register image metrics (``vqtouch.core.Metric`` subclasses)."""
+
+
+@hookspec
+def vqtouch_register_scenes(register: Callable[..., None]) -> None:
+    """Register scene presets: ``register(name, config, *, description="")``.
+
+    ``config`` is a partial experiment configuration (a nested dict) that selects the
+    stages the scene runs and the plugin for each slot it needs; the user's files and
+    ``--set`` overrides are merged on top.
+    """
+
+
+@hookspec
+def vqtouch_add_commands(subparsers: argparse._SubParsersAction) -> None:
+    """Add CLI subcommands.
+
+    Each added parser must set a handler with ``parser.set_defaults(handler=fn)``; ``fn``
+    receives the parsed ``argparse.Namespace`` and returns the exit status.
+    """
+
+
+@hookspec
+def vqtouch_validate_experiment(config: ExperimentConfig) -> None:
+    """Reject impossible plugin combinations by raising ``vqtouch.core.ConfigError``.
+
+    Called once for every resolved experiment configuration, after each slot validated.
+    """
+
+
+@hookspec
+def vqtouch_checkpoint_metadata(kind: str, name: str, config: dict[str, Any]) -> dict[str, str] | None:
+    """Return extra string metadata for a checkpoint header.
+
+    Keys must be namespaced with the plugin's name (``"myplugin.calibration_id"``); the
+    ``vqtouch.`` and ``format`` keys are reserved.
+    """

@@ -1,0 +1,305 @@
+"""Loading plugins and building components from them.
+
+``load_plugins()`` returns a fresh :class:`PluginHost` (no import-time side effects):
+
+1. hookspecs are added;
+2. built-in plugins load: the entry points of the ``vqtouch`` distribution itself, group
+   ``vqtouch``, i.e. exactly the mechanism third-party packages use;
+3. third-party entry points (group ``vqtouch``) load unless autoload is off
+   (``VQTOUCH_DISABLE_PLUGIN_AUTOLOAD=1`` or ``autoload=False``);
+4. extra plugin modules load (``extra=`` or ``VQTOUCH_PLUGINS=pkg.mod,other.mod``);
+5. ``check_pending()`` fails on any ``vqtouch_*`` function that matches no hook;
+6. every registration hook runs, one plugin at a time so each entry knows its source;
+7. the registries are frozen.
+
+Any plugin, built-in or not, can be blocked by name with ``block=`` or
+``VQTOUCH_BLOCK_PLUGINS=name,other``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.metadata as importlib_metadata
+import os
+import sys
+import threading
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import pluggy
+from pydantic import ValidationError
+
+from . import hookspecs
+from .components import (BuildContext, Clusterer, Conditioner, Encoder, Generator, Metric, Quantizer,
+                         SensorFamily, TactileDataset)
+from .errors import ConfigError, PluginError, UnknownPluginError, unknown_name_message
+from .plugin_config import PluginConfig
+from .registry import PluginEntry, PluginSource, Registry
+
+ENTRY_POINT_GROUP = "vqtouch"
+BUILTIN_DISTRIBUTION = "vqtouch"
+ENV_DISABLE_AUTOLOAD = "VQTOUCH_DISABLE_PLUGIN_AUTOLOAD"
+ENV_BLOCK = "VQTOUCH_BLOCK_PLUGINS"
+ENV_EXTRA = "VQTOUCH_PLUGINS"
+ENV_TRACE = "VQTOUCH_TRACE_PLUGINS"
+
+
+@dataclass(frozen=True)
+class RegistryKind:
+    """A kind of component: its registry name, registration hook and interface."""
+
+    name: str
+    hook: str
+    description: str
+    base_type: type
+
+
+REGISTRY_KINDS: tuple[RegistryKind, ...] = (
+    RegistryKind("encoder", "vqtouch_register_encoders", "tokenizer autoencoders", Encoder),
+    RegistryKind("quantizer", "vqtouch_register_quantizers", "latent quantizers", Quantizer),
+    RegistryKind("conditioner", "vqtouch_register_conditioners", "condition encoders", Conditioner),
+    RegistryKind("sensor_family", "vqtouch_register_sensor_families", "tactile sensor renderers", SensorFamily),
+    RegistryKind("generator", "vqtouch_register_generators", "code-grid generators", Generator),
+    RegistryKind("clusterer", "vqtouch_register_clusterers", "sensor-family clusterers", Clusterer),
+    RegistryKind("dataset", "vqtouch_register_datasets", "tactile dataset readers", TactileDataset),
+    RegistryKind("metric", "vqtouch_register_metrics", "image metrics", Metric),
+)
+KIND_NAMES = tuple(kind.name for kind in REGISTRY_KINDS)
+
+
+@dataclass(frozen=True)
+class SceneEntry:
+    """A registered scene preset: a partial experiment config and its documentation."""
+
+    name: str
+    config: dict[str, Any]
+    description: str
+    source: PluginSource
+
+
+@dataclass(frozen=True)
+class ComponentSpec:
+    """What a built component was made from; the checkpoint writer stores all of it."""
+
+    kind: str
+    config: PluginConfig
+    context: BuildContext
+    source: PluginSource
+
+
+def _env_list(variable: str) -> list[str]:
+    return [item.strip() for item in os.environ.get(variable, "").split(",") if item.strip()]
+
+
+def _is_truthy(variable: str) -> bool:
+    return os.environ.get(variable, "").strip().lower() in {"1", "true", "yes", "on"}
+
+
+class PluginHost:
+    """A loaded plugin manager with its registries and scenes.
+
+    Use :func:`load_plugins` to make one, or :func:`default_host` for the shared instance.
+    """
+
+    def __init__(self, pm: pluggy.PluginManager, sources: dict[str, PluginSource]) -> None:
+        self.pm = pm
+        self.sources = sources
+        self.registries: dict[str, Registry] = {
+            kind.name: Registry(kind.name, kind.description, kind.base_type) for kind in REGISTRY_KINDS}
+        self.scenes: dict[str, SceneEntry] = {}
+
+    # -- lookup ---------------------------------------------------------------------------
+    def registry(self, kind: str) -> Registry:
+        """The registry of one kind (``encoder``, ``conditioner``, ...)."""
+        try:
+            return self.registries[kind]
+        except KeyError:
+            raise UnknownPluginError(unknown_name_message("registry kind", kind, self.registries)) from None
+
+    def scene(self, name: str) -> SceneEntry:
+        """A scene preset by name; unknown names list the registered scenes."""
+        try:
+            return self.scenes[name]
+        except KeyError:
+            raise UnknownPluginError(unknown_name_message("scene", name, self.scenes)) from None
+
+    def entries(self) -> list[PluginEntry]:
+        """Every registered component entry, grouped by kind."""
+        return [entry for kind in KIND_NAMES for entry in self.registries[kind]]
+
+    # -- building -------------------------------------------------------------------------
+    def validate(self, kind: str, config: PluginConfig | dict[str, Any] | str) -> PluginConfig:
+        """Validate raw options for ``kind`` into the plugin's config model (ConfigError on failure)."""
+        from .config import format_validation_error
+
+        try:
+            return self.registry(kind).validate_config(config)
+        except ValidationError as exc:
+            raise ConfigError(format_validation_error(exc, prefix=kind)) from None
+
+    def build(self, kind: str, config: PluginConfig | dict[str, Any] | str,
+              context: BuildContext | None = None) -> Any:
+        """Build one component of ``kind`` from its config and the experiment context."""
+        registry = self.registry(kind)
+        config = self.validate(kind, config)
+        context = context or BuildContext()
+        entry = registry.get(config.name)
+        component = entry.factory(config, context)
+        if registry.base_type is not None and not isinstance(component, registry.base_type):
+            raise PluginError(
+                f"{entry.source.describe()}: factory of {kind} {entry.name!r} returned "
+                f"{type(component).__name__}, which is not a vqtouch.core.{registry.base_type.__name__}")
+        object.__setattr__(component, "vqtouch_spec", ComponentSpec(kind, config, context, entry.source))
+        return component
+
+    # -- reporting ------------------------------------------------------------------------
+    def describe(self) -> list[dict[str, Any]]:
+        """One row per registered component and scene: kind, name, plugin, package, version."""
+        rows = []
+        for entry in self.entries():
+            rows.append({"kind": entry.kind, "name": entry.name, "plugin": entry.source.plugin,
+                         "package": entry.source.distribution, "version": entry.source.version,
+                         "description": entry.description})
+        for scene in sorted(self.scenes.values(), key=lambda s: s.name):
+            rows.append({"kind": "scene", "name": scene.name, "plugin": scene.source.plugin,
+                         "package": scene.source.distribution, "version": scene.source.version,
+                         "description": scene.description})
+        return rows
+
+
+def _source_for(plugin_name: str, module: Any, dist: importlib_metadata.Distribution | None) -> PluginSource:
+    module_name = getattr(module, "__name__", type(module).__name__)
+    if dist is not None:
+        return PluginSource(plugin_name, module_name, dist.metadata["Name"], dist.version)
+    return PluginSource(plugin_name, module_name, None, getattr(module, "__version__", None))
+
+
+def _builtin(ep: importlib_metadata.EntryPoint) -> bool:
+    dist = getattr(ep, "dist", None)
+    return dist is not None and dist.metadata["Name"].lower().replace("_", "-") == BUILTIN_DISTRIBUTION
+
+
+def load_plugins(*, autoload: bool | None = None, extra: Iterable[str | Any] = (),
+                 block: Iterable[str] = ()) -> PluginHost:
+    """Load built-in and third-party plugins into a fresh :class:`PluginHost`.
+
+    ``autoload``: load third-party entry points (default: unless
+    ``VQTOUCH_DISABLE_PLUGIN_AUTOLOAD`` is set).  ``extra``: plugin modules (dotted names
+    or module objects) to load in addition.  ``block``: plugin names never to load.
+    """
+    if autoload is None:
+        autoload = not _is_truthy(ENV_DISABLE_AUTOLOAD)
+    blocked = set(block) | set(_env_list(ENV_BLOCK))
+
+    pm = pluggy.PluginManager(hookspecs.PROJECT_NAME)
+    pm.add_hookspecs(hookspecs)
+    if _is_truthy(ENV_TRACE):
+        pm.trace.root.setwriter(lambda message: sys.stderr.write(message))
+        pm.enable_tracing()
+    sources: dict[str, PluginSource] = {}
+
+    entry_points = sorted(importlib_metadata.entry_points(group=ENTRY_POINT_GROUP),
+                          key=lambda ep: (not _builtin(ep), ep.name))
+    for ep in entry_points:
+        if ep.name in blocked or (not autoload and not _builtin(ep)):
+            continue
+        if pm.get_plugin(ep.name) is not None:
+            previous = sources[ep.name]
+            raise PluginError(
+                f"two plugins are named {ep.name!r}: {previous.describe()} and one from "
+                f"{ep.dist.metadata['Name'] if ep.dist else ep.value}; block one with {ENV_BLOCK}={ep.name}")
+        dist = getattr(ep, "dist", None)
+        try:
+            module = ep.load()
+        except Exception as exc:  # noqa: BLE001 - any import failure is reported the same way
+            origin = f" from {dist.metadata['Name']} {dist.version}" if dist else ""
+            raise PluginError(
+                f"error loading plugin {ep.name!r}{origin}: {type(exc).__name__}: {exc}. "
+                f"Block it with {ENV_BLOCK}={ep.name}") from exc
+        pm.register(module, name=ep.name)
+        sources[ep.name] = _source_for(ep.name, module, dist)
+
+    for item in [*extra, *_env_list(ENV_EXTRA)]:
+        if isinstance(item, str):
+            name = item
+            if name in blocked:
+                continue
+            try:
+                module = importlib.import_module(item)
+            except Exception as exc:  # noqa: BLE001
+                raise PluginError(f"error loading plugin module {item!r}: {type(exc).__name__}: {exc}") from exc
+        else:
+            module = item
+            name = getattr(item, "__name__", None) or f"plugin-{id(item)}"
+        if name in blocked or pm.is_registered(module):
+            continue
+        pm.register(module, name=name)
+        sources[name] = _source_for(name, module, None)
+
+    try:
+        pm.check_pending()
+    except pluggy.PluginValidationError as exc:
+        raise PluginError(f"{exc}; hook names must match a vqtouch_* hookspec (see vqtouch.core.hookspecs)") from None
+
+    host = PluginHost(pm, sources)
+    for kind in REGISTRY_KINDS:
+        _run_registration_hook(host, kind.hook, _component_register(host.registries[kind.name]))
+        host.registries[kind.name].freeze()
+    _run_registration_hook(host, "vqtouch_register_scenes", lambda source: _scene_register(host, source))
+    return host
+
+
+def _run_registration_hook(host: PluginHost, hook_name: str, make_register: Any) -> None:
+    """Call each implementation of a registration hook with a register bound to its plugin."""
+    caller = getattr(host.pm.hook, hook_name)
+    for impl in reversed(caller.get_hookimpls()):  # pluggy stores LIFO; register in load order
+        source = host.sources[impl.plugin_name]
+        kwargs = {"register": make_register(source)} if "register" in impl.argnames else {}
+        try:
+            impl.function(**kwargs)
+        except PluginError:
+            raise
+        except Exception as exc:  # noqa: BLE001
+            raise PluginError(f"{source.describe()} failed in {hook_name}: {type(exc).__name__}: {exc}. "
+                              f"Block it with {ENV_BLOCK}={source.plugin}") from exc
+
+
+def _component_register(registry: Registry) -> Any:
+    def bind(source: PluginSource) -> Any:
+        def register(name: str, factory: Any, config: type[PluginConfig], *, description: str = "",
+                     aliases: Iterable[str] = ()) -> None:
+            registry.add(PluginEntry(registry.kind, name, factory, config, description, source, tuple(aliases)))
+        return register
+    return bind
+
+
+def _scene_register(host: PluginHost, source: PluginSource) -> Any:
+    def register(name: str, config: dict[str, Any], *, description: str = "") -> None:
+        if name in host.scenes:
+            raise PluginError(f"duplicate scene {name!r}: registered by {host.scenes[name].source.describe()} "
+                              f"and again by {source.describe()}")
+        if not isinstance(config, dict):
+            raise PluginError(f"{source.describe()}: scene {name!r} config must be a dict, got {type(config).__name__}")
+        host.scenes[name] = SceneEntry(name, config, description, source)
+    return register
+
+
+_default_lock = threading.Lock()
+_default_host: PluginHost | None = None
+
+
+def default_host() -> PluginHost:
+    """The process-wide plugin host, loaded on first use (honours the VQTOUCH_* variables)."""
+    global _default_host
+    with _default_lock:
+        if _default_host is None:
+            _default_host = load_plugins()
+        return _default_host
+
+
+def reset_default_host() -> None:
+    """Forget the process-wide host so the next :func:`default_host` reloads plugins (tests)."""
+    global _default_host
+    with _default_lock:
+        _default_host = None

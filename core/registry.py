@@ -1,0 +1,151 @@
+"""Named registries of plugin components (encoders, quantizers, conditioners, ...).
+
+A registry maps a short name to a :class:`PluginEntry`: the factory that builds the
+component, the pydantic model of its options and the plugin that registered it.  Lookups
+of unknown names fail listing what exists and the closest match (timm/open_clip style);
+registering a name twice fails naming both sources (mmengine style).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Annotated, Any, Union
+
+from pydantic import Field, TypeAdapter
+
+from .errors import PluginError, UnknownPluginError, unknown_name_message
+from .plugin_config import PluginConfig, literal_name_of
+
+
+@dataclass(frozen=True)
+class PluginSource:
+    """Where a registration came from: the pluggy plugin name and its distribution."""
+
+    plugin: str
+    module: str
+    distribution: str | None = None
+    version: str | None = None
+
+    def describe(self) -> str:
+        """Human-readable origin, e.g. ``plugin 'label' (vqtouch 0.1.0)``."""
+        dist = f" ({self.distribution} {self.version})" if self.distribution else ""
+        return f"plugin {self.plugin!r}{dist}"
+
+
+@dataclass(frozen=True)
+class PluginEntry:
+    """One registered component: how to build it and how to validate its options."""
+
+    kind: str
+    name: str
+    factory: Callable[..., Any]
+    config_model: type[PluginConfig]
+    description: str
+    source: PluginSource
+    aliases: tuple[str, ...] = ()
+
+
+@dataclass
+class Registry:
+    """All entries of one kind (e.g. every encoder), keyed by name.
+
+    ``base_type`` is the interface every built component must implement; it is checked
+    when a component is built so that a plugin returning the wrong thing fails at once.
+    """
+
+    kind: str
+    description: str
+    base_type: type | None = None
+    _entries: dict[str, PluginEntry] = field(default_factory=dict)
+    _aliases: dict[str, str] = field(default_factory=dict)
+    _frozen: bool = False
+
+    # -- registration -------------------------------------------------------------------
+    def add(self, entry: PluginEntry) -> None:
+        """Add an entry; duplicates (names or aliases) fail naming both registrants."""
+        if self._frozen:
+            raise PluginError(f"the {self.kind} registry is frozen; register plugins through hooks")
+        if not isinstance(entry.config_model, type) or not issubclass(entry.config_model, PluginConfig):
+            raise PluginError(
+                f"{entry.source.describe()} registered {self.kind} {entry.name!r} with config "
+                f"{entry.config_model!r}; it must be a subclass of vqtouch.core.PluginConfig")
+        declared = literal_name_of(entry.config_model)
+        if declared != entry.name:
+            raise PluginError(
+                f"{entry.source.describe()} registered {self.kind} {entry.name!r} but its config "
+                f"{entry.config_model.__name__} declares name {declared!r}; declare "
+                f"`name: Literal[{entry.name!r}] = {entry.name!r}`")
+        if not callable(entry.factory):
+            raise PluginError(f"{entry.source.describe()}: factory of {self.kind} {entry.name!r} is not callable")
+        for key in (entry.name, *entry.aliases):
+            existing = self._entries.get(key) or self._entries.get(self._aliases.get(key, ""))
+            if existing is not None:
+                raise PluginError(
+                    f"duplicate {self.kind} name {key!r}: registered by {existing.source.describe()} "
+                    f"and again by {entry.source.describe()}; block one with VQTOUCH_BLOCK_PLUGINS")
+        self._entries[entry.name] = entry
+        for alias in entry.aliases:
+            self._aliases[alias] = entry.name
+        self.__dict__.pop("_adapter", None)
+
+    def freeze(self) -> None:
+        """Refuse further registrations (called once every hook has run)."""
+        self._frozen = True
+
+    # -- lookup ---------------------------------------------------------------------------
+    def names(self) -> list[str]:
+        """Sorted canonical names of all entries."""
+        return sorted(self._entries)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._entries or name in self._aliases
+
+    def __iter__(self) -> Iterator[PluginEntry]:
+        return iter(self._entries[name] for name in self.names())
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def get(self, name: str) -> PluginEntry:
+        """Return the entry for ``name`` (or an alias); unknown names list what exists."""
+        canonical = self._aliases.get(name, name)
+        try:
+            return self._entries[canonical]
+        except KeyError:
+            raise UnknownPluginError(unknown_name_message(self.kind, name, self.names())) from None
+
+    # -- configs --------------------------------------------------------------------------
+    @functools.cached_property
+    def _adapter(self) -> TypeAdapter | None:
+        models = [self._entries[name].config_model for name in self.names()]
+        if not models:
+            return None
+        if len(models) == 1:
+            return TypeAdapter(models[0])
+        return TypeAdapter(Annotated[Union[tuple(models)], Field(discriminator="name")])
+
+    def validate_config(self, value: Any) -> PluginConfig:
+        """Validate a raw mapping (or a config object) into the plugin's own config model.
+
+        Raises UnknownPluginError for names nobody registered and pydantic's
+        ValidationError for bad options.
+        """
+        if isinstance(value, PluginConfig):
+            value = value.model_dump()
+        if isinstance(value, str):
+            value = {"name": value}
+        if not isinstance(value, dict) or "name" not in value:
+            raise UnknownPluginError(
+                f"a {self.kind} block needs a 'name' key choosing the plugin; available: "
+                f"{', '.join(self.names()) or '(none installed)'}")
+        name = value["name"]
+        entry = self.get(str(name))
+        value = {**value, "name": entry.name}
+        assert self._adapter is not None
+        return self._adapter.validate_python(value)
+
+    def json_schema(self) -> dict[str, Any]:
+        """JSON schema of the union of every entry's options (for `vqtouch config schema`)."""
+        return self._adapter.json_schema() if self._adapter is not None else {}
