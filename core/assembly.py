@@ -28,7 +28,10 @@ def build_components(config: ExperimentConfig, host: Any, *, slots: list[str] | 
     """
     context = context or build_context(config)
     slots = config.required_slots() if slots is None else slots
-    missing = {path: stage for stage, path in config.missing_slots() if path in slots}
+    missing: dict[str, str] = {}
+    for stage, path in config.missing_slots():
+        if path in slots:
+            missing.setdefault(path, stage)
     if missing:
         path, stage = next(iter(missing.items()))
         kind = SLOT_KINDS[path]

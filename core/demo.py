@@ -15,9 +15,10 @@ import torch
 from torch import nn
 
 from .checkpoint import load, save
-from .components import Metric
+from .components import Metric, SensorFamily
 from .config import SLOT_KINDS, ExperimentConfig
 from .errors import VqtouchError
+from .images import image_grid, save_png
 from .progress import progress
 from .runs import RunDir
 from .seeding import make_generator, seed_everything
@@ -49,6 +50,13 @@ def _metric_sanity(metric: Metric, generator: torch.Generator) -> dict[str, floa
     return scores
 
 
+def _sphere_presses(image_size: int) -> torch.Tensor:
+    """Height maps (mm) of three ball presses of growing depth: a sensor-agnostic probe."""
+    ys, xs = torch.meshgrid(torch.linspace(-1, 1, image_size), torch.linspace(-1, 1, image_size), indexing="ij")
+    radius_sq = xs**2 + ys**2
+    return torch.stack([(depth - radius_sq * 2.0).clamp_min(0) for depth in (0.1, 0.3, 0.6)])
+
+
 def run_demo(config: ExperimentConfig, host: Any, run: RunDir) -> dict[str, Any]:
     """Run the demo for ``config`` inside ``run``; returns the report (also written to disk)."""
     seed_everything(config.seed, config.deterministic)
@@ -78,6 +86,10 @@ def run_demo(config: ExperimentConfig, host: Any, run: RunDir) -> dict[str, Any]
             record["parameters"] = _parameter_count(component)
             if isinstance(component, nn.Module):
                 record["checkpoint"] = _roundtrip(component, run.checkpoints / f"{slot.replace('.', '_')}.safetensors", host)
+            if isinstance(component, SensorFamily) and "render" in config.stages:
+                with torch.no_grad():
+                    images = component.render(_sphere_presses(config.data.image_size), generator=generator)
+                record["render"] = str(save_png(image_grid(images), run.path / f"render_{slot}.png"))
             if isinstance(component, Metric):
                 record["sanity"] = _metric_sanity(component, generator)
             record["status"] = "built"

@@ -253,7 +253,7 @@ def load_plugins(*, autoload: bool | None = None, extra: Iterable[str | Any] = (
 def _run_registration_hook(host: PluginHost, hook_name: str, make_register: Any) -> None:
     """Call each implementation of a registration hook with a register bound to its plugin."""
     caller = getattr(host.pm.hook, hook_name)
-    for impl in reversed(caller.get_hookimpls()):  # pluggy stores LIFO; register in load order
+    for impl in caller.get_hookimpls():  # registration order: built-ins first
         source = host.sources[impl.plugin_name]
         kwargs = {"register": make_register(source)} if "register" in impl.argnames else {}
         try:

@@ -140,11 +140,10 @@ class Registry:
             raise UnknownPluginError(
                 f"a {self.kind} block needs a 'name' key choosing the plugin; available: "
                 f"{', '.join(self.names()) or '(none installed)'}")
-        name = value["name"]
-        entry = self.get(str(name))
-        value = {**value, "name": entry.name}
-        assert self._adapter is not None
-        return self._adapter.validate_python(value)
+        entry = self.get(str(value["name"]))
+        # The name is already resolved, so validate against that plugin's model directly:
+        # error paths then read like --set paths (conditioner.num_tokens, not conditioner.label.num_tokens).
+        return entry.config_model.model_validate({**value, "name": entry.name})
 
     def json_schema(self) -> dict[str, Any]:
         """JSON schema of the union of every entry's options (for `vqtouch config schema`)."""

@@ -1,4 +1,4 @@
-"""Pixel metrics with closed forms: PSNR and SSIM (pure torch, computed in fp32/fp64)."""
+"""Pixel metrics with closed forms: PSNR and SSIM (pure torch, computed in float64)."""
 
 from __future__ import annotations
 
@@ -39,12 +39,12 @@ class Psnr(PerImageMetric):
         super().__init__()
 
     def per_image(self, predicted: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        """PSNR of each image pair, shape (B,)."""
+        """PSNR of each image pair in dB, shape (B,), float64."""
         _check_pair(predicted, target)
         mse_B = (predicted.double() - target.double()).pow(2).flatten(1).mean(1)
         # An exact match has infinite PSNR: report the cap instead of Inf.
         floor = self.data_range**2 * 10 ** (-self.max_db / 10)
-        return (10 * torch.log10(self.data_range**2 / mse_B.clamp_min(floor))).float()
+        return 10 * torch.log10(self.data_range**2 / mse_B.clamp_min(floor))
 
 
 class SsimConfig(PluginConfig):
@@ -70,7 +70,7 @@ class Ssim(PerImageMetric):
         super().__init__()
 
     def per_image(self, predicted: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        """SSIM of each image pair, shape (B,), with 'valid' windows (no padding)."""
+        """SSIM of each image pair, shape (B,), float64, over valid windows (no padding)."""
         _check_pair(predicted, target)
         if min(predicted.shape[-2:]) < self.window_size:
             raise ValueError(f"ssim needs images of at least {self.window_size} px, got {tuple(predicted.shape[-2:])}")
@@ -91,7 +91,7 @@ class Ssim(PerImageMetric):
         var_y = blur(y * y) - mu_y**2
         cov = blur(x * y) - mu_x * mu_y
         ssim_map = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
-        return ssim_map.flatten(1).mean(1).float()
+        return ssim_map.flatten(1).mean(1)
 
 
 def build_psnr(config: PsnrConfig, context: BuildContext) -> Psnr:

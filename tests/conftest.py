@@ -1,0 +1,70 @@
+"""Shared fixtures.  The suite is hermetic: third-party plugin autoload is off unless a
+test turns it on explicitly, and progress bars are off."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+os.environ["VQTOUCH_DISABLE_PLUGIN_AUTOLOAD"] = "1"
+os.environ["VQTOUCH_NO_PROGRESS"] = "1"
+for variable in ("VQTOUCH_BLOCK_PLUGINS", "VQTOUCH_PLUGINS", "VQTOUCH_CLIP_CKPT", "VQTOUCH_WEIGHTS_DIR"):
+    os.environ.pop(variable, None)
+
+import torch  # noqa: E402
+
+from vqtouch.core import load_plugins, reset_default_host  # noqa: E402
+
+TESTS = Path(__file__).resolve().parent
+REPO = TESTS.parent
+
+
+@pytest.fixture(autouse=True)
+def _fresh_default_host():
+    reset_default_host()
+    torch.manual_seed(0)
+    yield
+    reset_default_host()
+
+
+@pytest.fixture(scope="session")
+def host():
+    """Built-in plugins only."""
+    return load_plugins(autoload=False)
+
+
+@pytest.fixture(scope="session")
+def example_plugin_site(tmp_path_factory) -> Path:
+    """The example third-party plugin, pip-installed (with its entry points) into a folder."""
+    target = tmp_path_factory.mktemp("example_site")
+    build_dir = tmp_path_factory.mktemp("example_build")
+    subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
+                    "--no-index", "--target", str(target), str(TESTS / "example_plugin")],
+                   check=True, cwd=build_dir, capture_output=True, text=True)
+    assert list(target.glob("vqtouch_example_plugin-*.dist-info"))
+    return target
+
+
+def run_cli(*args: str, env_extra: dict[str, str] | None = None, cwd: Path | None = None,
+            python_path: Path | None = None) -> subprocess.CompletedProcess:
+    """Run ``python -m vqtouch.core.cli ARGS`` in a subprocess (real entry-point discovery)."""
+    env = dict(os.environ)
+    env.update(env_extra or {})
+    if python_path is not None:
+        env["PYTHONPATH"] = str(python_path) + os.pathsep + env.get("PYTHONPATH", "")
+    return subprocess.run([sys.executable, "-m", "vqtouch.core.cli", *args], capture_output=True, text=True,
+                          env=env, cwd=cwd or REPO, timeout=300)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Skip `slow` tests unless VQTOUCH_RUN_SLOW=1 (or -m slow) and `gpu` tests without CUDA, saying why."""
+    run_slow = os.environ.get("VQTOUCH_RUN_SLOW") == "1" or "slow" in (config.getoption("-m") or "")
+    for item in items:
+        if "slow" in item.keywords and not run_slow:
+            item.add_marker(pytest.mark.skip(reason="slow: set VQTOUCH_RUN_SLOW=1 or use -m slow"))
+        if "gpu" in item.keywords and not torch.cuda.is_available():
+            item.add_marker(pytest.mark.skip(reason="gpu: no CUDA device on this machine"))

@@ -1,0 +1,94 @@
+import json
+
+import pytest
+
+from vqtouch.core.cli import main
+
+
+def test_plugins_lists_kind_package_version(capsys):
+    assert main(["plugins"]) == 0
+    out = capsys.readouterr().out
+    assert out.splitlines()[0].split()[:5] == ["KIND", "NAME", "PLUGIN", "PACKAGE", "VERSION"]
+    assert any(line.split()[:4] == ["conditioner", "label", "label", "vqtouch"] for line in out.splitlines())
+
+
+def test_plugins_json_and_kind_filter(capsys):
+    assert main(["plugins", "--json", "--kind", "metric"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert {row["name"] for row in rows} == {"psnr", "ssim"}
+    assert all(row["package"] == "vqtouch" and row["version"] for row in rows)
+
+
+def test_config_show_prints_resolved_json_and_notes_empty_slots(capsys):
+    assert main(["config", "show", "label-to-touch", "--set", "seed=5"]) == 0
+    captured = capsys.readouterr()
+    config = json.loads(captured.out)
+    assert config["seed"] == 5 and config["conditioner"]["name"] == "label"
+    assert "note: generator is empty" in captured.err
+
+
+def test_config_show_output_feeds_back_as_config_file(capsys, tmp_path):
+    assert main(["config", "show", "touch-to-touch", "--set", "conditioner.width=24"]) == 0
+    path = tmp_path / "resolved.json"
+    path.write_text(capsys.readouterr().out)
+    assert main(["config", "validate", str(path)]) == 0
+    assert capsys.readouterr().out.startswith("ok: touch-to-touch")
+
+
+def test_config_scenes_lists_paper_scenarios(capsys):
+    assert main(["config", "scenes"]) == 0
+    names = {line.split()[0] for line in capsys.readouterr().out.splitlines()}
+    assert {"few-shot", "zero-shot", "cross-sensor", "vision-to-touch", "label-to-touch", "touch-to-touch"} <= names
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["config", "show", "lable-to-touch"], "unknown scene 'lable-to-touch'; available: "),
+    (["config", "show", "label-to-touch", "--set", "conditioner.name=clipp"], "did you mean 'clip'?"),
+    (["config", "show", "label-to-touch", "--set", "train.steps=-1"], "train.steps: Input should be greater than"),
+    (["config", "show", "label-to-touch", "--set", "oops"], "bad override 'oops'"),
+    (["config", "validate", "/nonexistent.toml"], "config file '/nonexistent.toml' does not exist"),
+])
+def test_user_errors_are_one_line_with_exit_2(capsys, argv, message):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("vqtouch: error: ") and message in err
+    assert err.count("\n") == 1
+
+
+def test_broken_checkpoint_via_demo_free_api_is_one_line(tmp_path, capsys):
+    from vqtouch.core import CheckpointError, load
+
+    path = tmp_path / "broken.safetensors"
+    path.write_bytes(b"\x00" * 3)
+    with pytest.raises(CheckpointError) as info:
+        load(path)
+    assert "\n" not in str(info.value)
+
+
+def test_help_everywhere(capsys):
+    for argv in (["--help"], ["plugins", "--help"], ["config", "show", "--help"], ["demo", "--help"]):
+        with pytest.raises(SystemExit) as info:
+            main(argv)
+        assert info.value.code == 0
+    assert "--set PATH=VALUE" in capsys.readouterr().out
+
+
+def test_no_command_prints_help_and_fails(capsys):
+    assert main([]) == 2
+    assert "usage: vqtouch" in capsys.readouterr().out
+
+
+def test_demo_writes_run_directory(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["--no-progress", "demo", "--out", str(out), "--set", "conditioner.num_classes=3"]) == 0
+    for name in ("config.json", "env.json", "report.md", "report.json", "checkpoints/conditioner.safetensors"):
+        assert (out / name).is_file(), name
+    env = json.loads((out / "env.json").read_text())
+    assert env["seed"] == 0 and env["versions"]["torch"] and "label" in env["plugins"]
+    assert env["argv"][:2] == ["vqtouch", "--no-progress"]
+    report = json.loads((out / "report.json").read_text())
+    by_slot = {c["slot"]: c for c in report["components"]}
+    assert by_slot["conditioner"]["checkpoint"].startswith("ok")
+    assert by_slot["generator"]["status"].startswith("missing")
+    assert by_slot["metrics[0]"]["sanity"]["noise_sigma=0.0"] == 100.0
+    assert "| evaluate | components ready |" in (out / "report.md").read_text()

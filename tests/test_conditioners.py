@@ -1,0 +1,148 @@
+"""Contract tests over every registered conditioner, plus each built-in's own properties."""
+
+import pytest
+import torch
+
+from vqtouch.core import BuildContext, ConfigError, MissingWeightsError, load, load_plugins, save
+
+CONTEXT = BuildContext(image_size=32, num_classes=4, cond_dim=16)
+
+
+def example_condition(conditioner, batch):
+    if conditioner.modality == "label":
+        return torch.arange(batch) % conditioner.num_classes
+    return torch.rand(batch, 3, 32, 32)
+
+
+OFFLINE_CONDITIONERS = [name for name in load_plugins(autoload=False).registry("conditioner").names() if name != "clip"]
+
+
+@pytest.mark.parametrize("name", OFFLINE_CONDITIONERS)
+@pytest.mark.parametrize("batch", [1, 3])
+def test_conditioner_contract(host, name, batch):
+    conditioner = host.build("conditioner", name, CONTEXT)
+    condition = example_condition(conditioner, batch)
+    out = conditioner(condition)
+    assert out.tokens_BND.shape == (batch, conditioner.num_tokens, 16)
+    assert torch.isfinite(out.tokens_BND).all()
+    assert not out.is_null_B.any()
+
+    drop = torch.zeros(batch, dtype=torch.bool)
+    drop[0] = True
+    dropped = conditioner(condition, drop)
+    assert torch.equal(dropped.tokens_BND[0], conditioner.null_tokens_ND)
+    assert torch.equal(dropped.tokens_BND[1:], out.tokens_BND[1:])
+    assert torch.equal(conditioner.null(batch).tokens_BND[0], conditioner.null_tokens_ND)
+
+
+@pytest.mark.parametrize("name", OFFLINE_CONDITIONERS)
+def test_conditioner_gradients_reach_parameters(host, name):
+    conditioner = host.build("conditioner", name, CONTEXT)
+    conditioner(example_condition(conditioner, 2)).tokens_BND.square().sum().backward()
+    trainable = [p for n, p in conditioner.named_parameters() if n != "null_tokens_ND"]
+    assert trainable and all(p.grad is not None and torch.isfinite(p.grad).all() for p in trainable)
+
+
+@pytest.mark.parametrize("name", OFFLINE_CONDITIONERS)
+def test_conditioner_under_bf16_autocast_is_finite(host, name):
+    conditioner = host.build("conditioner", name, CONTEXT)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = conditioner(example_condition(conditioner, 2))
+    assert torch.isfinite(out.tokens_BND.float()).all()
+
+
+@pytest.mark.parametrize("value", [0.0, 1.0])
+def test_tactile_conditioner_on_constant_saturated_images(host, value):
+    conditioner = host.build("conditioner", "tactile", CONTEXT)
+    out = conditioner(torch.full((1, 3, 32, 32), value))
+    assert torch.isfinite(out.tokens_BND).all()
+
+
+def test_label_out_of_range_is_a_clear_error(host):
+    conditioner = host.build("conditioner", "label", CONTEXT)
+    with pytest.raises(ValueError, match=r"labels must be in \[0, 4\); got min 0, max 4"):
+        conditioner(torch.tensor([0, 4]))
+    with pytest.raises(ValueError, match="1-D integer tensor"):
+        conditioner(torch.tensor([0.5]))
+
+
+def test_label_needs_class_count(host):
+    with pytest.raises(ConfigError, match="set conditioner.num_classes=N"):
+        host.build("conditioner", "label", BuildContext(num_classes=0))
+    assert host.build("conditioner", {"name": "label", "num_classes": 9}, BuildContext()).num_classes == 9
+
+
+def test_tactile_rejects_wrong_shape(host):
+    conditioner = host.build("conditioner", "tactile", CONTEXT)
+    with pytest.raises(ValueError, match=r"expects images \(B, 3, H, W\)"):
+        conditioner(torch.rand(2, 32, 32))
+
+
+# -- clip: needs a local weights file; tests save a tiny open_clip model and load it back --------
+
+TINY_CLIP = {
+    "embed_dim": 32,
+    "vision_cfg": {"image_size": 64, "layers": 2, "width": 64, "patch_size": 16, "head_width": 32},
+    "text_cfg": {"context_length": 77, "vocab_size": 49408, "width": 64, "heads": 2, "layers": 2},
+}
+
+
+@pytest.fixture(scope="module")
+def tiny_clip_file(tmp_path_factory):
+    open_clip = pytest.importorskip("open_clip")
+    from safetensors.torch import save_file
+
+    torch.manual_seed(1)
+    model = open_clip.create_model("ViT-S-32", pretrained=None, **TINY_CLIP)
+    path = tmp_path_factory.mktemp("clip") / "tiny_clip.safetensors"
+    save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(path))
+    return path, model
+
+
+def test_clip_without_weights_names_file_and_ways_to_provide(host, monkeypatch):
+    monkeypatch.delenv("VQTOUCH_CLIP_CKPT", raising=False)
+    monkeypatch.delenv("VQTOUCH_WEIGHTS_DIR", raising=False)
+    with pytest.raises(MissingWeightsError) as info:
+        host.build("conditioner", "clip", CONTEXT)
+    message = str(info.value)
+    for needle in ("open_clip_model.safetensors", "conditioner.checkpoint", "VQTOUCH_CLIP_CKPT",
+                   "VQTOUCH_WEIGHTS_DIR", "never downloads"):
+        assert needle in message
+
+
+def test_clip_loads_local_weights_and_stays_frozen(host, tiny_clip_file, tmp_path):
+    path, reference = tiny_clip_file
+    config = {"name": "clip", "architecture": "ViT-S-32", "checkpoint": str(path), "model_overrides": TINY_CLIP,
+              "num_tokens": 2}
+    conditioner = host.build("conditioner", config, CONTEXT)
+    images = torch.rand(2, 3, 40, 40)
+    out = conditioner(images)
+    assert out.tokens_BND.shape == (2, 2, 16)
+    # The frozen encoder really holds the file's weights: embeddings match the reference model.
+    resized = torch.nn.functional.interpolate(images, size=(64, 64), mode="bicubic", antialias=True).clamp(0, 1)
+    normalised = (resized - conditioner.mean_C[:, None, None]) / conditioner.std_C[:, None, None]
+    expected = torch.nn.functional.normalize(reference.eval().encode_image(normalised), dim=-1)
+    got = conditioner.project(expected).view(2, 2, 16)
+    torch.testing.assert_close(out.tokens_BND, got, atol=1e-5, rtol=1e-5)
+    # Only the projection and null tokens are trainable / saved; CLIP stays out of the checkpoint.
+    assert set(conditioner.state_dict()) == {"null_tokens_ND", "project.weight", "project.bias"}
+    out.tokens_BND.sum().backward()
+    assert all(p.grad is None for p in conditioner._clip.parameters())
+    restored = load(save(conditioner, tmp_path / "clip.safetensors", host=host), host=host)
+    torch.testing.assert_close(restored(images).tokens_BND, out.tokens_BND)
+
+
+def test_clip_with_wrong_weights_file_is_a_clear_error(host, tmp_path):
+    from safetensors.torch import save_file
+
+    path = tmp_path / "wrong.safetensors"
+    save_file({"not_clip": torch.zeros(1)}, str(path))
+    with pytest.raises(MissingWeightsError, match="does not hold ViT-S-32 weights"):
+        host.build("conditioner", {"name": "clip", "architecture": "ViT-S-32", "checkpoint": str(path),
+                                   "model_overrides": TINY_CLIP}, CONTEXT)
+
+
+def test_clip_unknown_architecture(host, tiny_clip_file):
+    path, _ = tiny_clip_file
+    with pytest.raises(ConfigError, match="unknown open_clip architecture 'ViT-B-33'.*did you mean"):
+        host.build("conditioner", {"name": "clip", "architecture": "ViT-B-33", "checkpoint": str(path)}, CONTEXT)

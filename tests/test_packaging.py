@@ -1,0 +1,83 @@
+"""Packaging: one `vqtouch` namespace in site-packages, importable from outside the checkout."""
+
+import ast
+import os
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE_FOLDERS = ("core", "plugins", "conditioners", "sensors")
+
+
+def source_files() -> list[Path]:
+    return [path for folder in PACKAGE_FOLDERS for path in sorted((REPO / folder).rglob("*.py"))]
+
+
+def test_code_imports_only_through_the_vqtouch_namespace():
+    bad = []
+    for path in source_files():
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            bad += [f"{path.relative_to(REPO)}: {name}" for name in names if name.split(".")[0] in PACKAGE_FOLDERS]
+    assert not bad, bad
+
+
+def test_core_never_imports_plugins():
+    for path in (REPO / "core").rglob("*.py"):
+        text = path.read_text()
+        for other in ("vqtouch.plugins", "vqtouch.conditioners", "vqtouch.sensors"):
+            assert other not in text, f"{path} mentions {other}: core must not depend on plugins"
+
+
+def test_every_package_folder_has_an_init():
+    for folder in PACKAGE_FOLDERS:
+        for directory in [REPO / folder, *[p for p in (REPO / folder).rglob("*") if p.is_dir()]]:
+            if directory.name != "__pycache__" and any(directory.glob("*.py")):
+                assert (directory / "__init__.py").is_file(), f"{directory} is not a package (it would be left out)"
+
+
+def test_wheel_installs_one_namespace_and_imports_outside_checkout(tmp_path):
+    dist = tmp_path / "dist"
+    build = subprocess.run([sys.executable, "-m", "build", "--wheel", "--no-isolation", "--outdir", str(dist),
+                            str(REPO)], capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert build.returncode == 0, build.stderr[-2000:]
+    wheel = next(dist.glob("vqtouch-*.whl"))
+
+    env_dir = tmp_path / "venv"
+    venv.EnvBuilder(with_pip=False).create(env_dir)
+    python = env_dir / "bin" / "python"
+    site = Path(subprocess.check_output([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                                        text=True).strip())
+    install = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-index",
+                              "--target", str(site), str(wheel)], capture_output=True, text=True, timeout=600)
+    assert install.returncode == 0, install.stderr[-2000:]
+
+    top_level = sorted(p.name for p in site.iterdir() if not p.name.endswith((".dist-info", ".pth")) and p.name != "__pycache__")
+    assert top_level == ["bin", "vqtouch"] or top_level == ["vqtouch"], top_level
+    installed = {p.relative_to(site / "vqtouch").parts[0] for p in (site / "vqtouch").rglob("*.py")}
+    assert installed == set(PACKAGE_FOLDERS)
+    assert (site / "vqtouch" / "sensors" / "__init__.py").is_file()
+
+    # Dependencies (torch, pydantic, ...) come from the test environment, appended after the fresh site.
+    deps = [p for p in sys.path if p.endswith("site-packages")]
+    (site / "zz_deps.pth").write_text("\n".join(deps) + "\n")
+    code = ("import vqtouch.core, sys; from vqtouch.core import load_plugins; host = load_plugins(autoload=False); "
+            "print(vqtouch.core.__file__); print(sorted(host.registry('conditioner').names()));"
+            "import importlib.util as u; print(u.find_spec('core'), u.find_spec('plugins'))")
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in {"PYTHONPATH"}}
+    result = subprocess.run([str(python), "-c", code], capture_output=True, text=True, cwd=outside, env=env, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    lines = result.stdout.strip().splitlines()
+    assert lines[0].startswith(str(site)), lines
+    assert lines[1] == "['clip', 'label', 'tactile']"
+    assert lines[2] == "None None"
