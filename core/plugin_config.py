@@ -43,6 +43,15 @@ class PluginConfig(StrictModel):
 
     name: str = Field(description="Registered name of the plugin that this block configures.")
 
+    @classmethod
+    def __pydantic_init_subclass__(cls, **kwargs: Any) -> None:
+        # Subclasses narrow `name` to a Literal, which drops the inherited description.
+        super().__pydantic_init_subclass__(**kwargs)
+        field = cls.model_fields.get("name")
+        if field is not None and not field.description:
+            field.description = f"Plugin name; {literal_name_of(cls)!r} selects this plugin."
+            cls.model_rebuild(force=True)
+
 
 def literal_name_of(config_model: type[PluginConfig]) -> str | None:
     """Return the single string of the model's ``name: Literal[...]`` annotation, if it has one."""

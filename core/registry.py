@@ -8,12 +8,9 @@ registering a name twice fails naming both sources (mmengine style).
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import Annotated, Any, Union
-
-from pydantic import Field, TypeAdapter
+from typing import Any
 
 from .errors import PluginError, UnknownPluginError, unknown_name_message
 from .plugin_config import PluginConfig, literal_name_of
@@ -88,7 +85,6 @@ class Registry:
         self._entries[entry.name] = entry
         for alias in entry.aliases:
             self._aliases[alias] = entry.name
-        self.__dict__.pop("_adapter", None)
 
     def freeze(self) -> None:
         """Refuse further registrations (called once every hook has run)."""
@@ -117,15 +113,6 @@ class Registry:
             raise UnknownPluginError(unknown_name_message(self.kind, name, self.names())) from None
 
     # -- configs --------------------------------------------------------------------------
-    @functools.cached_property
-    def _adapter(self) -> TypeAdapter | None:
-        models = [self._entries[name].config_model for name in self.names()]
-        if not models:
-            return None
-        if len(models) == 1:
-            return TypeAdapter(models[0])
-        return TypeAdapter(Annotated[Union[tuple(models)], Field(discriminator="name")])
-
     def validate_config(self, value: Any) -> PluginConfig:
         """Validate a raw mapping (or a config object) into the plugin's own config model.
 
@@ -144,7 +131,3 @@ class Registry:
         # The name is already resolved, so validate against that plugin's model directly:
         # error paths then read like --set paths (conditioner.num_tokens, not conditioner.label.num_tokens).
         return entry.config_model.model_validate({**value, "name": entry.name})
-
-    def json_schema(self) -> dict[str, Any]:
-        """JSON schema of the union of every entry's options (for `vqtouch config schema`)."""
-        return self._adapter.json_schema() if self._adapter is not None else {}

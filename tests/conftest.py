@@ -49,15 +49,43 @@ def example_plugin_site(tmp_path_factory) -> Path:
     return target
 
 
-def run_cli(*args: str, env_extra: dict[str, str] | None = None, cwd: Path | None = None,
-            python_path: Path | None = None) -> subprocess.CompletedProcess:
+@pytest.fixture
+def make_plugin():
+    """Make an in-memory plugin module from hook functions: ``make_plugin("name", hook_fn, ...)``."""
+    import types
+
+    def make(name: str, *hooks):
+        module = types.ModuleType(name)
+        for hook in hooks:
+            setattr(module, hook.__name__, hook)
+        return module
+
+    return make
+
+
+@pytest.fixture
+def run_cli():
     """Run ``python -m vqtouch.core.cli ARGS`` in a subprocess (real entry-point discovery)."""
+    return _run_cli
+
+
+def _run_cli(*args: str, env_extra: dict[str, str] | None = None, cwd: Path | None = None,
+             python_path: Path | None = None) -> subprocess.CompletedProcess:
     env = dict(os.environ)
     env.update(env_extra or {})
     if python_path is not None:
         env["PYTHONPATH"] = str(python_path) + os.pathsep + env.get("PYTHONPATH", "")
     return subprocess.run([sys.executable, "-m", "vqtouch.core.cli", *args], capture_output=True, text=True,
                           env=env, cwd=cwd or REPO, timeout=300)
+
+
+PACKAGE_FOLDERS = ("core", "plugins", "conditioners", "sensors")
+
+
+@pytest.fixture(scope="session")
+def package_sources() -> list[Path]:
+    """Every .py file of the installable packages."""
+    return [path for folder in PACKAGE_FOLDERS for path in sorted((REPO / folder).rglob("*.py"))]
 
 
 def pytest_collection_modifyitems(config, items):

@@ -52,16 +52,12 @@ def test_header_carries_everything_needed(host, tmp_path):
     assert metadata["vqtouch.step"] == "7"
 
 
-def test_plugin_metadata_hook_adds_namespaced_keys(tmp_path):
-    import types
-
+def test_plugin_metadata_hook_adds_namespaced_keys(tmp_path, make_plugin):
     @hookimpl
     def vqtouch_checkpoint_metadata(kind, name, config):
         return {"calib.sensor_serial": "A17"} if name == "label" else None
 
-    plugin = types.ModuleType("calib")
-    plugin.vqtouch_checkpoint_metadata = vqtouch_checkpoint_metadata
-    host = load_plugins(autoload=False, extra=[plugin])
+    host = load_plugins(autoload=False, extra=[make_plugin("calib", vqtouch_checkpoint_metadata)])
     component = host.build("conditioner", "label", CONTEXT)
     metadata = read_metadata(save(component, tmp_path / "x.safetensors", host=host))
     assert metadata["calib.sensor_serial"] == "A17"
@@ -70,8 +66,7 @@ def test_plugin_metadata_hook_adds_namespaced_keys(tmp_path):
     def vqtouch_checkpoint_metadata(kind, name, config):  # noqa: F811 - reserved key is refused
         return {"vqtouch.step": "999"}
 
-    plugin.vqtouch_checkpoint_metadata = vqtouch_checkpoint_metadata
-    host = load_plugins(autoload=False, extra=[plugin])
+    host = load_plugins(autoload=False, extra=[make_plugin("calib", vqtouch_checkpoint_metadata)])
     with pytest.raises(CheckpointError, match="not allowed"):
         save(host.build("conditioner", "label", CONTEXT), tmp_path / "y.safetensors", host=host)
 
@@ -166,10 +161,8 @@ def test_wrong_suffix_is_refused(host, tmp_path):
         save(host.build("conditioner", "label", CONTEXT), tmp_path / "x.pt", host=host)
 
 
-def test_no_pickle_anywhere_in_the_package():
-    from tests.test_packaging import source_files
-
-    for path in source_files():
+def test_no_pickle_anywhere_in_the_package(package_sources):
+    for path in package_sources:
         text = path.read_text()
         assert "import pickle" not in text and "allow_pickle=True" not in text, path
         for line in text.splitlines():

@@ -121,17 +121,13 @@ def test_required_and_missing_slots(host):
     assert all(path != "conditioner" for _, path in config.missing_slots())
 
 
-def test_validate_experiment_hook_can_veto():
-    import types
-
+def test_validate_experiment_hook_can_veto(make_plugin):
     @hookimpl
     def vqtouch_validate_experiment(config):
         if config.seed == 13:
             raise ConfigError("seed 13 is unlucky")
 
-    plugin = types.ModuleType("veto")
-    plugin.vqtouch_validate_experiment = vqtouch_validate_experiment
-    host = load_plugins(autoload=False, extra=[plugin])
+    host = load_plugins(autoload=False, extra=[make_plugin("veto", vqtouch_validate_experiment)])
     assert resolve_config(None, overrides=["seed=12"], host=host).seed == 12
     with pytest.raises(ConfigError, match="unlucky"):
         resolve_config(None, overrides=["seed=13"], host=host)

@@ -4,12 +4,10 @@ CLI with no change to vqtouch itself."""
 
 import json
 
-from tests.conftest import run_cli
-
 AUTOLOAD_ON = {"VQTOUCH_DISABLE_PLUGIN_AUTOLOAD": ""}
 
 
-def test_plugins_lists_the_third_party_components(example_plugin_site):
+def test_plugins_lists_the_third_party_components(run_cli, example_plugin_site):
     result = run_cli("plugins", "--json", python_path=example_plugin_site, env_extra=AUTOLOAD_ON)
     assert result.returncode == 0, result.stderr
     rows = {(row["kind"], row["name"]): row for row in json.loads(result.stdout)}
@@ -18,7 +16,7 @@ def test_plugins_lists_the_third_party_components(example_plugin_site):
         assert rows[key]["plugin"] == "example"
 
 
-def test_autoload_off_hides_it_and_block_removes_it(example_plugin_site):
+def test_autoload_off_hides_it_and_block_removes_it(run_cli, example_plugin_site):
     off = run_cli("plugins", "--json", python_path=example_plugin_site,
                   env_extra={"VQTOUCH_DISABLE_PLUGIN_AUTOLOAD": "1"})
     blocked = run_cli("plugins", "--json", python_path=example_plugin_site,
@@ -28,7 +26,7 @@ def test_autoload_off_hides_it_and_block_removes_it(example_plugin_site):
         assert "toy_sensor" not in result.stdout and "label" in result.stdout
 
 
-def test_selectable_by_config_with_options_validated(example_plugin_site, tmp_path):
+def test_selectable_by_config_with_options_validated(run_cli, example_plugin_site, tmp_path):
     config = tmp_path / "toy.toml"
     config.write_text('[sensor]\nname = "toy_sensor"\nnoise = 0.01\n[conditioner]\nname = "mean_colour"\n')
     result = run_cli("config", "show", "touch-to-touch", "--config", str(config), python_path=example_plugin_site,
@@ -45,14 +43,14 @@ def test_selectable_by_config_with_options_validated(example_plugin_site, tmp_pa
     assert "sensor.noise: Input should be less than or equal to 0.2" in bad.stderr
 
 
-def test_plugin_validation_hook_vetoes_bad_combination(example_plugin_site):
+def test_plugin_validation_hook_vetoes_bad_combination(run_cli, example_plugin_site):
     result = run_cli("config", "show", "touch-to-touch", "--set", "conditioner.name=mean_colour",
                      "--set", "data.image_size=8", python_path=example_plugin_site, env_extra=AUTOLOAD_ON)
     assert result.returncode == 2
     assert result.stderr.strip() == "vqtouch: error: conditioner 'mean_colour' needs data.image_size >= 16"
 
 
-def test_demo_builds_and_checkpoints_the_plugin_components(example_plugin_site, tmp_path):
+def test_demo_builds_and_checkpoints_the_plugin_components(run_cli, example_plugin_site, tmp_path):
     out = tmp_path / "run"
     result = run_cli("demo", "--scene", "touch-to-touch", "--out", str(out), "--set", "conditioner.name=mean_colour",
                      "--set", "sensor.name=toy_sensor", "--set", 'stages=["render", "generator", "evaluate"]',
@@ -71,13 +69,13 @@ def test_demo_builds_and_checkpoints_the_plugin_components(example_plugin_site, 
                                          "version": "0.3.0"}
 
 
-def test_plugin_adds_a_cli_command(example_plugin_site):
+def test_plugin_adds_a_cli_command(run_cli, example_plugin_site):
     result = run_cli("example-render", "--radius", "0.5", python_path=example_plugin_site, env_extra=AUTOLOAD_ON)
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith("rendered (1, 3, 32, 32)")
 
 
-def test_broken_third_party_plugin_names_itself_and_how_to_block(example_plugin_site, tmp_path):
+def test_broken_third_party_plugin_names_itself_and_how_to_block(run_cli, example_plugin_site, tmp_path):
     broken = tmp_path / "broken_site"
     dist_info = broken / "vqtouch_broken-1.0.dist-info"
     dist_info.mkdir(parents=True)

@@ -13,13 +13,9 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGE_FOLDERS = ("core", "plugins", "conditioners", "sensors")
 
 
-def source_files() -> list[Path]:
-    return [path for folder in PACKAGE_FOLDERS for path in sorted((REPO / folder).rglob("*.py"))]
-
-
-def test_code_imports_only_through_the_vqtouch_namespace():
+def test_code_imports_only_through_the_vqtouch_namespace(package_sources):
     bad = []
-    for path in source_files():
+    for path in package_sources:
         for node in ast.walk(ast.parse(path.read_text())):
             names = []
             if isinstance(node, ast.Import):

@@ -1,5 +1,4 @@
 import inspect
-import types
 from typing import Literal
 
 import pytest
@@ -53,20 +52,13 @@ class ExtraConditioner(Conditioner):
         return condition
 
 
-def _module(name, **functions):
-    module = types.ModuleType(name)
-    for key, value in functions.items():
-        setattr(module, key, value)
-    return module
-
-
-def test_extra_module_registers_and_source_is_recorded():
+def test_extra_module_registers_and_source_is_recorded(make_plugin):
     @hookimpl
     def vqtouch_register_conditioners(register):
         register("extra_cond", lambda config, context: ExtraConditioner(context.cond_dim, 1), ExtraConfig,
                  description="extra")
 
-    host = load_plugins(autoload=False, extra=[_module("my_extra", vqtouch_register_conditioners=vqtouch_register_conditioners)])
+    host = load_plugins(autoload=False, extra=[make_plugin("my_extra", vqtouch_register_conditioners)])
     entry = host.registry("conditioner").get("extra_cond")
     assert entry.source.plugin == "my_extra" and entry.source.distribution is None
     assert isinstance(host.build("conditioner", "extra_cond"), ExtraConditioner)
@@ -79,25 +71,25 @@ def test_extra_module_by_dotted_name_from_environment(monkeypatch):
     assert host.registry("metric").get("psnr").source.plugin == "vqtouch.plugins.metrics"
 
 
-def test_misspelled_hook_fails_loudly():
+def test_misspelled_hook_fails_loudly(make_plugin):
     @hookimpl
     def vqtouch_register_conditioner(register):  # missing trailing "s"
         pass
 
     with pytest.raises(PluginError, match="vqtouch_register_conditioner"):
-        load_plugins(autoload=False, extra=[_module("typo", vqtouch_register_conditioner=vqtouch_register_conditioner)])
+        load_plugins(autoload=False, extra=[make_plugin("typo", vqtouch_register_conditioner)])
 
 
-def test_exception_in_registration_hook_names_plugin_and_block_hint():
+def test_exception_in_registration_hook_names_plugin_and_block_hint(make_plugin):
     @hookimpl
     def vqtouch_register_metrics(register):
         raise RuntimeError("boom")
 
     with pytest.raises(PluginError, match=r"plugin 'broken'.*vqtouch_register_metrics.*boom.*VQTOUCH_BLOCK_PLUGINS=broken"):
-        load_plugins(autoload=False, extra=[_module("broken", vqtouch_register_metrics=vqtouch_register_metrics)])
+        load_plugins(autoload=False, extra=[make_plugin("broken", vqtouch_register_metrics)])
 
 
-def test_duplicate_registration_across_plugins_names_both():
+def test_duplicate_registration_across_plugins_names_both(make_plugin):
     @hookimpl
     def vqtouch_register_conditioners(register):
         class LabelConfig(PluginConfig):
@@ -105,15 +97,15 @@ def test_duplicate_registration_across_plugins_names_both():
         register("label", lambda c, x: None, LabelConfig)
 
     with pytest.raises(PluginError, match=r"duplicate conditioner name 'label'.*plugin 'label' \(vqtouch .*\).*plugin 'dup'"):
-        load_plugins(autoload=False, extra=[_module("dup", vqtouch_register_conditioners=vqtouch_register_conditioners)])
+        load_plugins(autoload=False, extra=[make_plugin("dup", vqtouch_register_conditioners)])
 
 
-def test_factory_returning_wrong_type_is_rejected():
+def test_factory_returning_wrong_type_is_rejected(make_plugin):
     @hookimpl
     def vqtouch_register_conditioners(register):
         register("extra_cond", lambda config, context: object(), ExtraConfig)
 
-    host = load_plugins(autoload=False, extra=[_module("wrong", vqtouch_register_conditioners=vqtouch_register_conditioners)])
+    host = load_plugins(autoload=False, extra=[make_plugin("wrong", vqtouch_register_conditioners)])
     with pytest.raises(PluginError, match="not a vqtouch.core.Conditioner"):
         host.build("conditioner", "extra_cond")
 
@@ -182,7 +174,7 @@ MINIMAL = {
 
 
 @pytest.mark.parametrize("hook_name", sorted(MINIMAL))
-def test_each_registration_hook_registers_a_buildable_component(hook_name):
+def test_each_registration_hook_registers_a_buildable_component(hook_name, make_plugin):
     kind, cls = MINIMAL[hook_name]
 
     class MiniConfig(PluginConfig):
@@ -192,7 +184,7 @@ def test_each_registration_hook_registers_a_buildable_component(hook_name):
         register("mini", lambda config, context: cls(), MiniConfig, description="minimal")
 
     register_hook.__name__ = hook_name
-    plugin = _module("mini_plugin", **{hook_name: hookimpl(register_hook)})
+    plugin = make_plugin("mini_plugin", hookimpl(register_hook))
     host = load_plugins(autoload=False, extra=[plugin])
     component = host.build(kind, {"name": "mini"})
     assert isinstance(component, cls)
@@ -200,12 +192,12 @@ def test_each_registration_hook_registers_a_buildable_component(hook_name):
     assert host.registry(kind).get("mini").source.plugin == "mini_plugin"
 
 
-def test_scene_hook_registers_scene_and_rejects_duplicates():
+def test_scene_hook_registers_scene_and_rejects_duplicates(make_plugin):
     @hookimpl
     def vqtouch_register_scenes(register):
         register("my-scene", {"stages": ["evaluate"], "metrics": [{"name": "psnr"}]}, description="mine")
 
-    host = load_plugins(autoload=False, extra=[_module("scenes_extra", vqtouch_register_scenes=vqtouch_register_scenes)])
+    host = load_plugins(autoload=False, extra=[make_plugin("scenes_extra", vqtouch_register_scenes)])
     assert host.scene("my-scene").description == "mine"
 
     @hookimpl
@@ -213,7 +205,14 @@ def test_scene_hook_registers_scene_and_rejects_duplicates():
         register("few-shot", {}, description="again")
 
     with pytest.raises(PluginError, match="duplicate scene 'few-shot'"):
-        load_plugins(autoload=False, extra=[_module("dup_scene", vqtouch_register_scenes=vqtouch_register_scenes)])
+        load_plugins(autoload=False, extra=[make_plugin("dup_scene", vqtouch_register_scenes)])
+
+
+def test_trace_variable_traces_hook_calls(monkeypatch, capfd):
+    monkeypatch.setenv("VQTOUCH_TRACE_PLUGINS", "1")
+    host = load_plugins(autoload=False)
+    host.pm.hook.vqtouch_validate_experiment(config=None)
+    assert "vqtouch_validate_experiment" in capfd.readouterr().err
 
 
 def test_describe_rows_have_versions(host):
