@@ -23,7 +23,7 @@ from .checkpoint import atomic_write, load, read_metadata, save
 from .components import (BuildContext, Clusterer, Conditioner, ConditionTokens, Encoder, Generator, Metric,
                          PerImageMetric, Quantizer, SensorFamily, TactileDataset)
 from .config import STAGE_SLOTS, ExperimentConfig, load_config_file, resolve_config, validate_experiment
-from .errors import (CheckpointError, ConfigError, MissingWeightsError, PluginError, UnknownPluginError,
+from .errors import (CheckpointError, ConfigError, DatasetError, MissingWeightsError, PluginError, UnknownPluginError,
                      VqtouchError)
 from .hookspecs import hookimpl
 from .plugin_config import PluginConfig
@@ -38,7 +38,7 @@ except _metadata.PackageNotFoundError:  # running from an uninstalled checkout
     __version__ = "0+unknown"
 
 __all__ = [
-    "BuildContext", "CheckpointError", "Clusterer", "ConditionTokens", "Conditioner", "ConfigError", "Encoder",
+    "BuildContext", "CheckpointError", "DatasetError", "Clusterer", "ConditionTokens", "Conditioner", "ConfigError", "Encoder",
     "ExperimentConfig", "Generator", "Metric", "MissingWeightsError", "PerImageMetric", "PluginConfig",
     "PluginError", "PluginHost", "Quantizer", "RunDir", "STAGE_SLOTS", "SensorFamily", "TactileDataset",
     "UnknownPluginError", "VqtouchError", "WeightsSpec", "__version__", "atomic_write", "build_components",

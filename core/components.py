@@ -181,7 +181,25 @@ class Generator(nn.Module, abc.ABC):
 
 
 class TactileDataset(abc.ABC):
-    """A dataset of tactile samples (tactile image, optional visual image, label, text, sensor)."""
+    """A dataset of tactile samples, all readers and generators alike.
+
+    ``__getitem__`` returns one sample dict:
+
+    - ``"tactile"``: float tensor (3, S, S) in [0, 1] (S = the configured image size);
+    - ``"visual"``: float tensor (3, S, S) in [0, 1], only when the dataset pairs a visual image;
+    - ``"label"``: int class index, -1 when the sample has none;
+    - ``"text"``: str description, "" when the sample has none;
+    - ``"sensor"``: str id of the sensor that produced the tactile image;
+    - ``"id"``: str stable identifier (e.g. the relative path), used to pair results explicitly.
+    """
+
+    #: Class names indexed by label (empty for unlabelled datasets).
+    class_names: list[str] = []
+
+    @property
+    def num_classes(self) -> int:
+        """Number of labels (0 when unlabelled)."""
+        return len(self.class_names)
 
     @abc.abstractmethod
     def __len__(self) -> int:
@@ -189,4 +207,4 @@ class TactileDataset(abc.ABC):
 
     @abc.abstractmethod
     def __getitem__(self, index: int) -> dict[str, Any]:
-        """One sample: ``tactile`` (3, H, W) in [0, 1] and, when known, ``visual``, ``label``, ``text``, ``sensor``."""
+        """One sample (see the class docstring for its keys)."""

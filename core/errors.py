@@ -33,6 +33,10 @@ class CheckpointError(VqtouchError):
     """A checkpoint file is missing, corrupted, not safetensors, or does not fit the model."""
 
 
+class DatasetError(VqtouchError):
+    """A dataset folder, list or image is missing, malformed, or inconsistent (names the file)."""
+
+
 class MissingWeightsError(VqtouchError):
     """Pretrained weights that a component needs were not provided as a local file."""
 
