@@ -89,8 +89,13 @@ class SensorFamily(nn.Module, abc.ABC):
     """Renders tactile images from contact height maps for one family of sensors.
 
     Implementations are batched, run on any device and are deterministic for a given
-    ``generator``.
+    ``generator``.  A height map covers the sensor's square field of view
+    (``field_of_view_mm`` on a side) whatever its resolution, so scene generators can draw
+    objects at physical scale.
     """
+
+    #: Side of the square imaged gel area in millimetres.
+    field_of_view_mm: float = 15.0
 
     @abc.abstractmethod
     def render(self, height_mm_BHW: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:

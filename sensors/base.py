@@ -1,0 +1,74 @@
+"""What every built-in sensor family shares: a no-contact background plus a contact
+response computed from surface slopes, then the variant's perturbations."""
+
+from __future__ import annotations
+
+import abc
+
+import torch
+
+from vqtouch.core import SensorFamily
+
+from .variants import SensorVariant, apply_variant, drifted_background, gaussian_blur
+
+
+def surface_slopes(height_mm_BHW: torch.Tensor, pixel_mm: tuple[float, float]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Central-difference slopes (d height / d row, d height / d column), dimensionless."""
+    slope_row, slope_col = torch.gradient(height_mm_BHW, spacing=pixel_mm, dim=(1, 2))
+    return slope_row, slope_col
+
+
+def check_height_map(height_mm_BHW: torch.Tensor) -> torch.Tensor:
+    """Validate a batch of height maps (B, H, W) in mm and return it as float32."""
+    if not isinstance(height_mm_BHW, torch.Tensor) or height_mm_BHW.ndim != 3:
+        shape = tuple(height_mm_BHW.shape) if isinstance(height_mm_BHW, torch.Tensor) else type(height_mm_BHW)
+        raise ValueError(f"sensor render expects height maps of shape (B, H, W) in mm, got {shape}")
+    if min(height_mm_BHW.shape[-2:]) < 2:
+        raise ValueError(f"height maps must be at least 2x2 pixels, got {tuple(height_mm_BHW.shape[-2:])}")
+    height = height_mm_BHW.float()
+    if not torch.isfinite(height).all():
+        raise ValueError("height map contains NaN or Inf")
+    if (height < 0).any():
+        raise ValueError(f"height map must be >= 0 mm (indentation depth); min is {float(height.min()):.4g}")
+    return height
+
+
+class RenderedSensor(SensorFamily):
+    """A sensor rendered as background + contact response, then perturbed by its variant.
+
+    Subclasses provide :meth:`background` and :meth:`contact_response`; the flow, input
+    checks, gel smoothing and variant effects live here once.
+    """
+
+    #: Short id written into samples (``"gelsight"``, ``"digit"``, ...).
+    sensor_id: str = ""
+
+    def __init__(self, variant: SensorVariant, gel_blur_mm: float) -> None:
+        super().__init__()
+        self.variant = variant
+        self.gel_blur_mm = gel_blur_mm
+
+    def pixel_size_mm(self, height: int, width: int) -> tuple[float, float]:
+        """Size of one output pixel (row, column) in mm for an H x W render of the field of view."""
+        return self.field_of_view_mm / height, self.field_of_view_mm / width
+
+    @abc.abstractmethod
+    def background(self, height: int, width: int, device: torch.device) -> torch.Tensor:
+        """The no-contact image (3, H, W) in [0, 1]."""
+
+    @abc.abstractmethod
+    def contact_response(self, height_mm_BHW: torch.Tensor) -> torch.Tensor:
+        """Intensity change (B, 3, H, W) caused by the indentation, in [0, 1] units."""
+
+    def render(self, height_mm_BHW: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Height maps (B, H, W) in mm over the field of view -> RGB tactile images (B, 3, H, W) in [0, 1]."""
+        height = check_height_map(height_mm_BHW)
+        _, rows, cols = height.shape
+        if self.gel_blur_mm > 0:
+            # The elastomer spreads a point load: smooth the indentation before shading it.
+            sigma_px = self.gel_blur_mm / min(self.pixel_size_mm(rows, cols))
+            height = gaussian_blur(height.unsqueeze(1), sigma_px).squeeze(1)
+        response = self.contact_response(height) * self.variant.response_scale
+        background = drifted_background(self.background(rows, cols, height.device), self.variant)
+        images = apply_variant(background.unsqueeze(0) + response, self.variant, generator)
+        return images.clamp(0.0, 1.0)

@@ -1,0 +1,182 @@
+"""GelSight and GelSight Mini, rendered from their real measured calibrations.
+
+The calibration files ship in the PyPI package ``taxim`` (``taxim/calib/gelsight`` and
+``gelsight_mini``): a polynomial colour table over surface-gradient bins and a real
+no-contact frame.  Only the data files are used; the renderer is written here.
+
+Model (per RGB channel c, for an output pixel at full-resolution position (x=column, y=row)):
+``I_c = B_c + sum_m P_c[i, j, m] * psi_m(x, y)``, ``psi = (x^2, y^2, xy, x, y, 1)``, where the bin
+``i`` quantises the slope angle ``theta = atan|grad z|`` over [0, pi/2) and ``j`` the slope direction
+``phi = atan2(dz/drow, dz/dcol)`` over (-pi, pi], each into ``bins`` steps.  The contact height map
+``z`` is the shape pressed into the gel (a bump towards the camera), as in the calibration.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from pydantic import Field
+
+from vqtouch.core import BuildContext, PluginConfig, PluginError, hookimpl
+
+from .base import RenderedSensor, surface_slopes
+from .variants import SensorVariant
+
+TAXIM_FOLDERS = {"gelsight": "CALIB_GELSIGHT", "gelsight_mini": "CALIB_GELSIGHT_MINI"}
+
+
+@dataclass(frozen=True)
+class TaximCalibration:
+    """One sensor's calibration as read from taxim's files (RGB order, intensities in [0, 1])."""
+
+    background_HW3: np.ndarray
+    table_NN36: np.ndarray
+    pixel_mm: float
+    bins: int
+    folder: Path
+
+    @property
+    def native_size(self) -> tuple[int, int]:
+        """(rows, columns) of the calibration frames."""
+        return self.background_HW3.shape[0], self.background_HW3.shape[1]
+
+
+def calibration_folder(sensor: str) -> Path:
+    """Folder of taxim's calibration files for ``sensor`` (fails clearly without taxim)."""
+    try:
+        import taxim
+    except ImportError as exc:
+        raise PluginError(f"sensor family {sensor!r} reads its calibration from the taxim package ({exc}); "
+                          "pip install taxim") from None
+    return Path(getattr(taxim, TAXIM_FOLDERS[sensor]))
+
+
+@functools.lru_cache(maxsize=4)
+def load_taxim_calibration(sensor: str) -> TaximCalibration:
+    """Read and convert one sensor's taxim calibration (cached per process)."""
+    folder = calibration_folder(sensor)
+    params = json.loads((folder / "params.json").read_text())["sensor"]
+    with np.load(folder / "dataPack.npz", allow_pickle=False) as pack:
+        # Frames were captured by OpenCV in BGR order.
+        background = pack["f0"][..., ::-1].astype(np.float32) / 255.0
+    with np.load(folder / "polycalib.npz", allow_pickle=False) as poly:
+        # taxim's grad_r table holds BGR channel 0 (blue) and grad_b holds red: stack as RGB.
+        table = np.stack([poly["grad_b"], poly["grad_g"], poly["grad_r"]], axis=2).astype(np.float32) / 255.0
+        bins = int(poly["bins"])
+    return TaximCalibration(np.ascontiguousarray(background), table, float(params["pixmm"]), bins, folder)
+
+
+class GelSightConfig(PluginConfig):
+    """Options of the ``gelsight`` sensor family (real taxim calibration)."""
+
+    name: Literal["gelsight"] = "gelsight"
+    view: Literal["center_square", "full"] = Field(
+        "center_square", description="Imaged area: the centred square of the 640x480 frame, or the full frame "
+                                     "(height maps must then be 3:4).")
+    gel_blur_mm: float = Field(0.2, ge=0.0, le=2.0,
+                               description="Gaussian smoothing of the indentation (elastic spread), in mm; the "
+                                           "default fits taxim's real ball presses best (see sensors/fidelity.py).")
+    zero_slope_offset: Literal["keep", "remove"] = Field(
+        "keep", description="The table's response at zero slope: 'keep' it inside the contact (it carries signal "
+                            "for GelSight), or 'remove' it so flat gel equals the real frame (a fitting bias for "
+                            "the Mini). Defaults are the better choice on taxim's real presses.")
+    variant: SensorVariant = Field(default_factory=SensorVariant,
+                                   description="Environmental perturbations making this a derived sensor.")
+
+
+class GelSightMiniConfig(GelSightConfig):
+    """Options of the ``gelsight_mini`` sensor family (real taxim calibration)."""
+
+    name: Literal["gelsight_mini"] = "gelsight_mini"
+    gel_blur_mm: float = Field(0.5, ge=0.0, le=2.0,
+                               description="Gaussian smoothing of the indentation in mm (the Mini's thicker gel "
+                                           "spreads more); fitted on taxim's real ball presses.")
+    zero_slope_offset: Literal["keep", "remove"] = Field(
+        "remove", description="The table's response at zero slope (about +0.04/+0.05/+0.11 RGB for the Mini, a "
+                              "fitting bias): 'remove' keeps flat gel equal to the real frame.")
+
+
+class GelSightSensor(RenderedSensor):
+    """Polynomial-table renderer for a calibrated GelSight-type sensor."""
+
+    def __init__(self, calibration: TaximCalibration, sensor_id: str, view: str, gel_blur_mm: float,
+                 variant: SensorVariant, zero_slope_offset: str = "keep") -> None:
+        super().__init__(variant, gel_blur_mm)
+        self.sensor_id = sensor_id
+        self.view = view
+        rows, cols = calibration.native_size
+        self.crop_cols = (cols - rows) // 2 if view == "center_square" else 0
+        self.crop_size = (rows, rows if view == "center_square" else cols)
+        self.native_pixel_mm = calibration.pixel_mm
+        self.field_of_view_mm = self.crop_size[0] * calibration.pixel_mm
+        self.bins = calibration.bins
+        # Calibration data are not trained: non-persistent, so checkpoints stay small and
+        # always use the installed calibration.
+        self.register_buffer("background_3HW", torch.from_numpy(calibration.background_HW3.copy()).permute(2, 0, 1),
+                             persistent=False)
+        table_NN36 = torch.from_numpy(calibration.table_NN36.copy())
+        if zero_slope_offset == "remove":
+            # Response relative to the zero-slope bin: flat gel equals the real frame, and gently
+            # sloped gel around a smoothed indentation gets no spurious halo.
+            table_NN36 = table_NN36 - table_NN36[0].mean(dim=0)
+        self.register_buffer("table_K36", table_NN36.reshape(self.bins * self.bins, 3, 6), persistent=False)
+        self._background_cache: dict[tuple[int, int, str], torch.Tensor] = {}
+
+    def pixel_size_mm(self, height: int, width: int) -> tuple[float, float]:
+        return (self.native_pixel_mm * self.crop_size[0] / height, self.native_pixel_mm * self.crop_size[1] / width)
+
+    def background(self, height: int, width: int, device: torch.device) -> torch.Tensor:
+        key = (height, width, str(device))
+        if key not in self._background_cache:
+            cropped = self.background_3HW[:, :, self.crop_cols:self.crop_cols + self.crop_size[1]]
+            resized = F.interpolate(cropped.unsqueeze(0), size=(height, width), mode="bilinear", antialias=True,
+                                    align_corners=False)[0]
+            self._background_cache[key] = resized.to(device)
+        return self._background_cache[key]
+
+    def _native_coordinates(self, height: int, width: int, device: torch.device) -> torch.Tensor:
+        """psi = (x^2, y^2, xy, x, y, 1) at each output pixel's centre in full-frame pixels, (H, W, 6)."""
+        rows = (torch.arange(height, device=device) + 0.5) * self.crop_size[0] / height - 0.5
+        cols = (torch.arange(width, device=device) + 0.5) * self.crop_size[1] / width - 0.5 + self.crop_cols
+        y, x = torch.meshgrid(rows, cols, indexing="ij")
+        return torch.stack([x * x, y * y, x * y, x, y, torch.ones_like(x)], dim=-1)
+
+    def contact_response(self, height_mm_BHW: torch.Tensor) -> torch.Tensor:
+        _, rows, cols = height_mm_BHW.shape
+        slope_row, slope_col = surface_slopes(height_mm_BHW, self.pixel_size_mm(rows, cols))
+        magnitude = torch.sqrt(slope_row**2 + slope_col**2)
+        theta = torch.atan(magnitude)
+        phi = torch.atan2(slope_row, slope_col)
+        scale = self.bins - 1
+        theta_bin = (theta * scale / (math.pi / 2)).floor().long().clamp(0, scale)
+        phi_bin = ((phi + math.pi) * scale / (2 * math.pi)).floor().long().clamp(0, scale)
+        coefficients_BHW36 = self.table_K36[theta_bin * self.bins + phi_bin]
+        psi_HW6 = self._native_coordinates(rows, cols, height_mm_BHW.device)
+        response_BHW3 = torch.einsum("bhwcm,hwm->bhwc", coefficients_BHW36, psi_HW6)
+        # Flat pixels show the background: no slope direction (atan2(0, 0) would pick one bin).
+        response_BHW3 = response_BHW3 * (magnitude > 1e-6).unsqueeze(-1)
+        return response_BHW3.permute(0, 3, 1, 2)
+
+
+def _build(sensor: str):
+    def build(config: GelSightConfig, context: BuildContext) -> GelSightSensor:
+        return GelSightSensor(load_taxim_calibration(sensor), sensor, config.view, config.gel_blur_mm, config.variant,
+                              config.zero_slope_offset)
+    build.__doc__ = f"Factory for the {sensor!r} sensor family."
+    return build
+
+
+@hookimpl
+def vqtouch_register_sensor_families(register):
+    register("gelsight", _build("gelsight"), GelSightConfig,
+             description="GelSight, rendered from taxim's real measured calibration.")
+    register("gelsight_mini", _build("gelsight_mini"), GelSightMiniConfig,
+             description="GelSight Mini, rendered from taxim's real measured calibration.")
