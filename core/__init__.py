@@ -22,12 +22,12 @@ from .assembly import build_components, build_context
 from .checkpoint import atomic_write, load, read_metadata, save
 from .components import (BuildContext, Clusterer, Conditioner, ConditionTokens, Encoder, Generator, Metric,
                          PerImageMetric, Quantizer, SensorFamily, TactileDataset)
-from .config import STAGE_SLOTS, ExperimentConfig, load_config_file, resolve_config, validate_experiment
+from .config import STAGE_SLOTS, ExperimentConfig, Slot, load_config_file, resolve_config, validate_experiment
 from .errors import (CheckpointError, ConfigError, DatasetError, MissingWeightsError, PluginError, UnknownPluginError,
                      VqtouchError)
 from .hookspecs import hookimpl
 from .plugin_config import PluginConfig
-from .plugin_manager import PluginHost, default_host, load_plugins, reset_default_host
+from .plugin_manager import PluginHost, current_host, default_host, load_plugins, reset_default_host
 from .runs import RunDir
 from .seeding import make_generator, resolve_device, seed_everything
 from .weights import WeightsSpec, resolve_weights
@@ -40,9 +40,9 @@ except _metadata.PackageNotFoundError:  # running from an uninstalled checkout
 __all__ = [
     "BuildContext", "CheckpointError", "DatasetError", "Clusterer", "ConditionTokens", "Conditioner", "ConfigError", "Encoder",
     "ExperimentConfig", "Generator", "Metric", "MissingWeightsError", "PerImageMetric", "PluginConfig",
-    "PluginError", "PluginHost", "Quantizer", "RunDir", "STAGE_SLOTS", "SensorFamily", "TactileDataset",
+    "PluginError", "PluginHost", "Quantizer", "RunDir", "STAGE_SLOTS", "SensorFamily", "Slot", "TactileDataset",
     "UnknownPluginError", "VqtouchError", "WeightsSpec", "__version__", "atomic_write", "build_components",
-    "build_context", "default_host", "hookimpl", "load", "load_config_file", "load_plugins", "make_generator",
+    "build_context", "current_host", "default_host", "hookimpl", "load", "load_config_file", "load_plugins", "make_generator",
     "read_metadata", "reset_default_host", "resolve_config", "resolve_device", "resolve_weights", "save",
     "seed_everything", "validate_experiment",
 ]

@@ -77,7 +77,7 @@ def _slot_validator(kind: str) -> Any:
             registry.get(str(value["name"]))
         except UnknownPluginError as exc:
             raise PydanticCustomError("unknown_plugin", "{message}", {"message": str(exc)}) from None
-        return registry.validate_config(dict(value))
+        return registry.validate_config(dict(value), context=info.context)
     return validate
 
 

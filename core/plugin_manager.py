@@ -23,6 +23,7 @@ import importlib.metadata as importlib_metadata
 import os
 import sys
 import threading
+from contextvars import ContextVar
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -134,7 +135,7 @@ class PluginHost:
         from .config import format_validation_error
 
         try:
-            return self.registry(kind).validate_config(config)
+            return self.registry(kind).validate_config(config, context={"host": self})
         except ValidationError as exc:
             raise ConfigError(format_validation_error(exc, prefix=kind)) from None
 
@@ -145,7 +146,11 @@ class PluginHost:
         config = self.validate(kind, config)
         context = context or BuildContext()
         entry = registry.get(config.name)
-        component = entry.factory(config, context)
+        token = _building_host.set(self)
+        try:
+            component = entry.factory(config, context)
+        finally:
+            _building_host.reset(token)
         if registry.base_type is not None and not isinstance(component, registry.base_type):
             raise PluginError(
                 f"{entry.source.describe()}: factory of {kind} {entry.name!r} returned "
@@ -283,6 +288,17 @@ def _scene_register(host: PluginHost, source: PluginSource) -> Any:
             raise PluginError(f"{source.describe()}: scene {name!r} config must be a dict, got {type(config).__name__}")
         host.scenes[name] = SceneEntry(name, config, description, source)
     return register
+
+
+_building_host: ContextVar[PluginHost | None] = ContextVar("vqtouch_building_host", default=None)
+
+
+def current_host() -> PluginHost:
+    """The host whose ``build`` is running (for factories that build nested components).
+
+    Outside a build it is the process-wide :func:`default_host`.
+    """
+    return _building_host.get() or default_host()
 
 
 _default_lock = threading.Lock()

@@ -113,11 +113,12 @@ class Registry:
             raise UnknownPluginError(unknown_name_message(self.kind, name, self.names())) from None
 
     # -- configs --------------------------------------------------------------------------
-    def validate_config(self, value: Any) -> PluginConfig:
+    def validate_config(self, value: Any, context: dict[str, Any] | None = None) -> PluginConfig:
         """Validate a raw mapping (or a config object) into the plugin's own config model.
 
-        Raises UnknownPluginError for names nobody registered and pydantic's
-        ValidationError for bad options.
+        ``context`` is passed to pydantic (it carries the host, for plugin configs that
+        contain slots of their own).  Raises UnknownPluginError for names nobody
+        registered and pydantic's ValidationError for bad options.
         """
         if isinstance(value, PluginConfig):
             value = value.model_dump()
@@ -130,4 +131,4 @@ class Registry:
         entry = self.get(str(value["name"]))
         # The name is already resolved, so validate against that plugin's model directly:
         # error paths then read like --set paths (conditioner.num_tokens, not conditioner.label.num_tokens).
-        return entry.config_model.model_validate({**value, "name": entry.name})
+        return entry.config_model.model_validate({**value, "name": entry.name}, context=context)
