@@ -26,7 +26,9 @@ class ProceduralDataConfig(PluginConfig):
     sensor: Slot("sensor_family") = Field(default_factory=lambda: {"name": "gelsight"},
                                           description="Sensor family (and variant) that renders the tactile images.")
     num_samples: int = Field(1000, ge=1, le=10_000_000, description="Number of samples in the dataset.")
-    image_size: int = Field(64, ge=16, le=1024, description="Side of the square tactile and visual images.")
+    image_size: int | None = Field(None, ge=16, le=1024,
+                                   description="Side of the square tactile and visual images; null uses the "
+                                               "experiment's data.image_size.")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed; sample i depends only on (seed, i).")
     classes: list[str] = Field(default_factory=list,
                                description=f"Object classes to draw (empty: all). Known: {', '.join(CLASS_NAMES)}.")
@@ -121,6 +123,8 @@ class ProceduralTactileDataset(TactileDataset):
 
 def build_procedural(config: ProceduralDataConfig, context: BuildContext) -> ProceduralTactileDataset:
     """Factory: builds the sensor from the nested slot (same host), then the dataset."""
+    if config.image_size is None:
+        config = config.model_copy(update={"image_size": context.image_size})
     return ProceduralTactileDataset(current_host().build("sensor_family", config.sensor, context), config)
 
 
