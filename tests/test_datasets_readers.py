@@ -648,5 +648,11 @@ def test_image_folder_csv_problems(tmp_path):
     dataset, message = build_lenient({**config, "class_names": ["x", "y"]})
     assert len(dataset) == 2 and "skipped 2 bad sample" in message and "missing visual image" in message
     csv_path.write_text("file,label\ntouch/3.png,0\n")
-    with pytest.raises(DatasetError, match="header must be path,label or path,label,visual"):
+    with pytest.raises(DatasetError, match="include path and label"):
         build(config)
+    csv_path.write_text("path,label,label\ntouch/3.png,0,0\n")
+    with pytest.raises(DatasetError, match="name each column once"):
+        build(config)
+    # Extra columns are ignored and a text column becomes the sample's text.
+    csv_path.write_text("path,label,note,text\ntouch/3.png,0,anything,a soft cat\n")
+    assert build({**config, "class_names": ["x"]})[0]["text"] == "a soft cat"

@@ -5,8 +5,9 @@ Two layouts:
 - class folders (``csv`` empty): ``<root>/<class>/**/<image>``; class names are the sorted
   sub-folder names (plain string order) unless ``class_names`` fixes them; images directly in
   ``<root>`` belong to no class and are bad samples;
-- a CSV (``csv`` set) with the header ``path,label`` or ``path,label,visual`` (any column
-  order).  Paths are relative to the CSV's folder.  A label is a class name or an integer
+- a CSV (``csv`` set) whose header has ``path`` and ``label`` and optionally ``visual`` and
+  ``text`` (any column order; other columns, such as those ``vqtouch data render`` adds, are
+  ignored).  Paths are relative to the CSV's folder.  A label is a class name or an integer
   index; an empty label or -1 means "no label".  Without ``class_names``, integer labels give
   the classes "0".."max" and name labels the sorted distinct names; a column that mixes both is
   refused, since what the integers mean is then unknown (set ``class_names`` to say it).  With
@@ -32,7 +33,7 @@ from vqtouch.plugins.datasets._io import (with_context_size, FileIndex, ReaderCo
 READER = "image_folder"
 LAYOUT = "<root>/<class>/<image> (one sub-folder per class), or a CSV with header path,label[,visual]"
 REQUIRED_COLUMNS = ("path", "label")
-OPTIONAL_COLUMNS = ("visual",)
+OPTIONAL_COLUMNS = ("visual", "text")
 UNLABELLED = -1
 _INTEGER = re.compile(r"-?\d+")
 
@@ -43,8 +44,9 @@ class ImageFolderConfig(ReaderConfig):
     name: Literal["image_folder"] = "image_folder"
     root: str = Field("", description="Folder with one sub-folder of images per class, or the folder that the csv "
                                       "path is relative to. Required.")
-    csv: str = Field("", description="CSV with header path,label[,visual] (relative to root unless absolute; paths "
-                                     "inside are relative to the CSV's folder). Empty: read class sub-folders of root.")
+    csv: str = Field("", description="CSV with columns path,label and optionally visual,text (relative to root "
+                                     "unless absolute; paths inside are relative to the CSV's folder; other columns "
+                                     "are ignored). Empty: read class sub-folders of root.")
     class_names: tuple[str, ...] = Field(
         (), max_length=1_000_000, description="Fixed class order: folder and label names must be in it and integer "
                                               "labels below its length. Empty: derived from the folders or labels.")
@@ -90,9 +92,9 @@ def _build_from_folders(config: ImageFolderConfig, root: Path, skips: SkipLog) -
 # --------------------------------------------------------------------------------------------
 def _column_positions(header: list[str], csv_path: Path) -> dict[str, int]:
     names = [cell.lower() for cell in header]
-    allowed = (*REQUIRED_COLUMNS, *OPTIONAL_COLUMNS)
-    if len(set(names)) != len(names) or not set(REQUIRED_COLUMNS) <= set(names) or not set(names) <= set(allowed):
-        raise DatasetError(f"{READER}: {csv_path}: header must be path,label or path,label,visual; got {header}")
+    if len(set(names)) != len(names) or not set(REQUIRED_COLUMNS) <= set(names):
+        raise DatasetError(f"{READER}: {csv_path}: header must name each column once and include path and label "
+                           f"(optionally visual, text); got {header}")
     return {name: position for position, name in enumerate(names)}
 
 
@@ -136,11 +138,12 @@ def _csv_candidates(rows: list[tuple[int, list[str]]], columns: dict[str, int], 
     base, files = csv_path.parent, FileIndex()
     for number, cells in rows:
         where = f"{csv_path} line {number}"
-        if len(cells) != len(columns):
+        if len(cells) != len(columns):  # columns maps every header cell, used or not
             skips.reject(f"{where}: expected {len(columns)} columns, got {len(cells)}")
             continue
         tactile, label_cell = cells[columns["path"]], cells[columns["label"]]
         visual = cells[columns["visual"]] if "visual" in columns else None
+        text = cells[columns["text"]] if "text" in columns else ""
         label = label_of(label_cell)
         if label is None:
             skips.reject(f"{where}: label {label_cell!r} is not a valid class")
@@ -151,7 +154,7 @@ def _csv_candidates(rows: list[tuple[int, list[str]]], columns: dict[str, int], 
         if problems:
             skips.reject(f"{where}: {' and '.join(problems)}")
             continue
-        yield SampleRecord(id=Path(tactile).as_posix(), tactile=tactile, visual=visual, label=label)
+        yield SampleRecord(id=Path(tactile).as_posix(), tactile=tactile, visual=visual, label=label, text=text)
 
 
 def _build_from_csv(config: ImageFolderConfig, root: Path, skips: SkipLog) -> ImageFolderDataset:

@@ -1,0 +1,137 @@
+"""The embedded procedural dataset and `vqtouch data render`."""
+
+import csv
+import json
+
+import pytest
+import torch
+
+from vqtouch.core import BuildContext, ConfigError, load_plugins
+from vqtouch.core.cli import main
+from vqtouch.sensors.objects import CLASS_NAMES, OBJECT_CLASSES, sample_contact
+
+HOST = load_plugins(autoload=False)
+
+
+def dataset(**options):
+    return HOST.build("dataset", {"name": "procedural", "num_samples": 24, "image_size": 32, **options})
+
+
+def test_at_least_twelve_labelled_classes_with_materials():
+    assert len(OBJECT_CLASSES) >= 12 and len(set(CLASS_NAMES)) == len(CLASS_NAMES)
+    assert len({c.material for c in OBJECT_CLASSES}) >= 10
+
+
+@pytest.mark.parametrize("index", range(len(OBJECT_CLASSES)))
+def test_every_class_makes_a_real_contact_no_deeper_than_asked(index):
+    generator = torch.Generator().manual_seed(index)
+    contact = sample_contact(OBJECT_CLASSES[index], index, generator, 48, 14.0, (0.3, 0.6))
+    assert torch.isfinite(contact.surface_mm_HW).all()
+    assert contact.indentation_mm_HW.max() == pytest.approx(contact.depth_mm, abs=1e-4)
+    assert contact.depth_mm <= 0.6 + 1e-6
+    assert 0 < (contact.indentation_mm_HW > 0).float().mean() < 1  # touches part, not none, of the view
+
+
+def test_samples_follow_the_contract():
+    data = dataset()
+    sample = data[5]
+    assert sample["tactile"].shape == sample["visual"].shape == (3, 32, 32)
+    for key in ("tactile", "visual"):
+        assert sample[key].dtype == torch.float32 and 0 <= sample[key].min() and sample[key].max() <= 1
+    assert 0 <= sample["label"] < data.num_classes == 12
+    assert data.class_names[sample["label"]].replace("_", " ") in sample["text"] or "digit" in sample["text"]
+    assert sample["sensor"] == "gelsight" and sample["id"] == "0-0000005"
+
+
+def test_deterministic_by_seed_and_independent_of_access_order():
+    forward = [dataset(cache=False)[i]["tactile"] for i in (3, 7)]
+    backward = [dataset(cache=False)[i]["tactile"] for i in (7, 3)][::-1]
+    for a, b in zip(forward, backward):
+        assert torch.equal(a, b)
+    assert not torch.equal(dataset(seed=1, cache=False)[3]["tactile"], forward[0])
+
+
+def test_batch_render_equals_single_samples_even_with_sensor_noise():
+    data = dataset(cache=False, sensor={"name": "digit", "variant": {"noise_std": 0.05}})
+    batch = data.render_batch([2, 9, 4])
+    for row, index in enumerate([2, 9, 4]):
+        assert torch.equal(batch["tactile"][row], data[index]["tactile"])
+        assert torch.equal(batch["visual"][row], data[index]["visual"])
+
+
+def test_cache_stores_8_bit_images():
+    data = dataset(cache=True)
+    first = data[1]
+    assert torch.allclose(first["tactile"], dataset(cache=False)[1]["tactile"], atol=0.5 / 255 + 1e-6)
+    assert torch.equal(data[1]["tactile"], first["tactile"])
+
+
+def appearance(image: torch.Tensor) -> torch.Tensor:
+    """Colour (mean, spread) and texture (mean absolute neighbour differences) of an image."""
+    return torch.cat([image.mean(dim=(1, 2)), image.std(dim=(1, 2)),
+                      (image[:, :, 1:] - image[:, :, :-1]).abs().mean(dim=(1, 2)),
+                      (image[:, 1:] - image[:, :-1]).abs().mean(dim=(1, 2))])
+
+
+def test_visual_appearance_differs_by_material():
+    data = dataset(num_samples=240, image_size=32, cache=False)
+    features = {}
+    for index in range(240):
+        sample = data[index]
+        features.setdefault(sample["label"], []).append(appearance(sample["visual"]))
+    per_class = torch.stack([torch.stack(v).mean(0) for _, v in sorted(features.items())])
+    assert len(features) == 12
+    assert torch.cdist(per_class, per_class).fill_diagonal_(1).min() > 0.02
+
+
+def test_class_filter_and_errors():
+    data = dataset(classes=["sphere", "weave"])
+    assert data.class_names == ["sphere", "weave"] and {data[i]["label"] for i in range(24)} <= {0, 1}
+    with pytest.raises(ConfigError, match="unknown object classes \\['spere'\\]"):
+        dataset(classes=["spere"])
+    with pytest.raises(ConfigError, match="depth_mm"):
+        dataset(depth_mm=(1.0, 0.5))
+    with pytest.raises(IndexError, match="out of range"):
+        dataset()[24]
+
+
+def test_image_size_comes_from_the_experiment_when_unset():
+    data = HOST.build("dataset", {"name": "procedural", "num_samples": 2}, BuildContext(image_size=40))
+    assert data[0]["tactile"].shape == (3, 40, 40)
+
+
+@pytest.mark.parametrize("sensor", ["gelsight", "gelsight_mini", "digit",
+                                    '{"name": "gelsight", "variant": {"colour_gain": [1.2, 1, 0.8], "wear_blur": 0.02,'
+                                    ' "noise_std": 0.02, "seed": 5}}'])
+def test_data_render_writes_a_browsable_folder_readable_back(tmp_path, capsys, sensor):
+    out = tmp_path / "render"
+    assert main(["data", "render", "--sensor", sensor, "--n", "6", "--out", str(out), "--image-size", "32",
+                 "--batch-size", "4"]) == 0
+    assert "wrote 6 samples" in capsys.readouterr().out
+    rows = list(csv.DictReader(open(out / "index.csv")))
+    assert len(rows) == 6 and set(rows[0]) >= {"path", "label", "visual", "class_name", "text", "sensor"}
+    assert (out / "preview.png").is_file() and json.loads((out / "render.json").read_text())["samples"] == 6
+    # The export is an ordinary image-folder dataset: read it back and compare with the source samples.
+    exported = HOST.build("dataset", {"name": "image_folder", "root": str(out), "csv": "index.csv",
+                                      "image_size": 32})
+    source = HOST.build("dataset", {"name": "procedural", "num_samples": 6, "image_size": 32, "cache": False,
+                                    "sensor": json.loads(sensor) if sensor.startswith("{") else {"name": sensor}})
+    for index in range(6):
+        back, original = exported[index], source[index]
+        assert back["label"] == original["label"]
+        assert (back["tactile"] - original["tactile"]).abs().max() <= 1 / 255 + 1e-6
+        assert (back["visual"] - original["visual"]).abs().max() <= 1 / 255 + 1e-6
+
+
+def test_data_render_refuses_to_overwrite(tmp_path, capsys):
+    (tmp_path / "keep.txt").write_text("x")
+    assert main(["data", "render", "--n", "1", "--out", str(tmp_path)]) == 2
+    assert "exists and is not empty" in capsys.readouterr().err
+
+
+def test_data_fidelity_writes_pictures_and_numbers(tmp_path, capsys):
+    assert main(["data", "fidelity", "--out", str(tmp_path), "--sensors", "gelsight", "--height", "120",
+                 "--crop", "32"]) == 0
+    assert "gelsight       SSIM" in capsys.readouterr().out
+    assert (tmp_path / "real_vs_rendered_gelsight.png").is_file()
+    assert json.loads((tmp_path / "fidelity.json").read_text())[0]["sensor"] == "gelsight"
