@@ -16,7 +16,8 @@ from .errors import ConfigError
 
 def build_context(config: ExperimentConfig, **facts: Any) -> BuildContext:
     """The BuildContext of an experiment; ``facts`` (e.g. ``num_classes``) come from the data."""
-    return BuildContext(image_size=config.data.image_size, **facts)
+    sensor = config.sensor.model_dump(mode="json") if config.sensor is not None else None
+    return BuildContext(image_size=config.data.image_size, sensor=sensor, **facts)
 
 
 def build_components(config: ExperimentConfig, host: Any, *, slots: list[str] | None = None,

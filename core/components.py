@@ -31,6 +31,8 @@ class BuildContext(BaseModel):
     num_classes: int = Field(0, ge=0, description="Number of labels in the dataset (0 when unlabelled).")
     cond_dim: int = Field(256, ge=1, description="Width of the condition tokens a conditioner must emit.")
     codebook_size: int = Field(0, ge=0, description="Codebook size of the tokenizer (0 when not yet known).")
+    sensor: dict[str, Any] | None = Field(
+        None, description="The experiment's sensor-family config, for components that render data (None: unset).")
 
 
 @dataclass

@@ -29,12 +29,12 @@ Stage = Literal["render", "tokenizer", "reconstruct", "cluster", "adapt", "gener
 
 #: The plugin slots each pipeline stage needs; a run builds only these (scene minimality).
 STAGE_SLOTS: dict[str, tuple[str, ...]] = {
-    "render": ("sensor",),
-    "tokenizer": ("tokenizer.encoder", "tokenizer.quantizer"),
-    "reconstruct": ("tokenizer.encoder", "tokenizer.quantizer"),
-    "cluster": ("tokenizer.encoder", "tokenizer.quantizer", "clusterer"),
-    "adapt": ("tokenizer.encoder", "tokenizer.quantizer", "sensor", "target_sensor"),
-    "generator": ("tokenizer.encoder", "tokenizer.quantizer", "conditioner", "generator"),
+    "render": ("sensor", "data.dataset"),
+    "tokenizer": ("data.dataset", "tokenizer.encoder", "tokenizer.quantizer"),
+    "reconstruct": ("data.dataset", "tokenizer.encoder", "tokenizer.quantizer"),
+    "cluster": ("data.dataset", "tokenizer.encoder", "tokenizer.quantizer", "clusterer"),
+    "adapt": ("data.dataset", "tokenizer.encoder", "tokenizer.quantizer", "sensor", "target_sensor"),
+    "generator": ("data.dataset", "tokenizer.encoder", "tokenizer.quantizer", "conditioner", "generator"),
     "evaluate": ("metrics",),
 }
 
@@ -94,11 +94,11 @@ class DataConfig(Section):
     """Where the training and evaluation images come from and how they are shaped."""
 
     dataset: Slot("dataset") | None = Field(
-        None, description="Dataset reader plugin and its options; null uses the scene's procedural data.")
+        None, description="Dataset plugin and its options: a reader of real data (e.g. touch_and_go with its root) "
+                          "or the embedded procedural scenes, which render with the experiment's sensor.")
     image_size: int = Field(64, ge=8, le=4096, description="Side of the square images fed to the models, in pixels.")
     batch_size: int = Field(16, ge=1, le=65536, description="Images per optimisation step (per process).")
     num_workers: int = Field(0, ge=0, le=256, description="DataLoader worker processes (0 loads in the main process).")
-    num_samples: int = Field(1000, ge=1, description="Number of training samples to use (procedural data renders this many).")
     val_fraction: float = Field(0.1, ge=0.0, lt=1.0, description="Fraction of samples held out for evaluation.")
 
 

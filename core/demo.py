@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import json
 import time
+from pathlib import Path
 from typing import Any
 
 import torch
 from torch import nn
 
 from .checkpoint import load, save
-from .components import Metric, SensorFamily
+from .assembly import build_context
+from .components import Metric, SensorFamily, TactileDataset
 from .config import SLOT_KINDS, ExperimentConfig
 from .errors import VqtouchError
 from .images import image_grid, save_png
@@ -50,11 +52,25 @@ def _metric_sanity(metric: Metric, generator: torch.Generator) -> dict[str, floa
     return scores
 
 
-def _sphere_presses(image_size: int) -> torch.Tensor:
-    """Height maps (mm) of three ball presses of growing depth: a sensor-agnostic probe."""
-    ys, xs = torch.meshgrid(torch.linspace(-1, 1, image_size), torch.linspace(-1, 1, image_size), indexing="ij")
-    radius_sq = xs**2 + ys**2
-    return torch.stack([(depth - radius_sq * 2.0).clamp_min(0) for depth in (0.1, 0.3, 0.6)])
+def _ball_presses(image_size: int, field_of_view_mm: float, radius_mm: float = 2.0) -> torch.Tensor:
+    """Height maps (mm) of a 2 mm ball pressed 0.2, 0.5 and 1.0 mm deep: a sensor-agnostic probe."""
+    axis = (torch.arange(image_size) + 0.5) / image_size * field_of_view_mm - field_of_view_mm / 2
+    ys, xs = torch.meshgrid(axis, axis, indexing="ij")
+    ball = (radius_mm**2 - xs**2 - ys**2).clamp_min(0).sqrt()
+    return torch.stack([(ball - (radius_mm - depth)).clamp_min(0) for depth in (0.2, 0.5, 1.0)])
+
+
+def _preview_dataset(dataset: TactileDataset, run: RunDir, slot: str, count: int = 16) -> dict[str, Any]:
+    """Save the first samples (tactile | visual) and measure how fast samples come."""
+    count = min(count, len(dataset))
+    start = time.perf_counter()
+    samples = [dataset[index] for index in range(count)]
+    seconds = time.perf_counter() - start
+    images = [image for sample in samples for image in (sample["tactile"], sample.get("visual", sample["tactile"]))]
+    path = save_png(image_grid(torch.stack(images), columns=8), run.path / f"preview_{slot.replace('.', '_')}.png")
+    labels = [dataset.class_names[s["label"]] for s in samples if s["label"] >= 0 and dataset.class_names]
+    return {"samples": len(dataset), "classes": dataset.num_classes, "samples_per_second": round(count / seconds, 1),
+            "preview": str(path), "first_labels": labels[:8], "example_text": samples[0].get("text", "")}
 
 
 def run_demo(config: ExperimentConfig, host: Any, run: RunDir) -> dict[str, Any]:
@@ -64,7 +80,10 @@ def run_demo(config: ExperimentConfig, host: Any, run: RunDir) -> dict[str, Any]
     report: dict[str, Any] = {"scene": config.scene, "run_dir": str(run.path), "stages": [], "components": []}
     missing = dict((path, stage) for stage, path in config.missing_slots())
     built: dict[str, Any] = {}
-    for path in progress(config.required_slots(), desc="components", unit="slot"):
+    context = build_context(config)
+    # The data come first: their class count is part of the context the models are built with.
+    ordered = sorted(config.required_slots(), key=lambda path: path != "data.dataset")
+    for path in progress(ordered, desc="components", unit="slot"):
         value = config.slot(path)
         if path in missing:
             choices = host.registry(SLOT_KINDS[path]).names()
@@ -77,7 +96,7 @@ def run_demo(config: ExperimentConfig, host: Any, run: RunDir) -> dict[str, Any]
             record: dict[str, Any] = {"slot": slot, "plugin": item.name}
             start = time.perf_counter()
             try:
-                component = host.build(SLOT_KINDS[path], item)
+                component = host.build(SLOT_KINDS[path], item, context)
             except VqtouchError as exc:
                 record["status"] = f"skipped: {exc}"
                 report["components"].append(record)
@@ -86,12 +105,16 @@ def run_demo(config: ExperimentConfig, host: Any, run: RunDir) -> dict[str, Any]
             record["parameters"] = _parameter_count(component)
             if isinstance(component, nn.Module):
                 record["checkpoint"] = _roundtrip(component, run.checkpoints / f"{slot.replace('.', '_')}.safetensors", host)
-            if isinstance(component, SensorFamily) and "render" in config.stages:
+            if isinstance(component, SensorFamily):
                 with torch.no_grad():
-                    images = component.render(_sphere_presses(config.data.image_size), generator=generator)
+                    presses = _ball_presses(config.data.image_size, component.field_of_view_mm)
+                    images = component.render(presses, generator=generator)
                 record["render"] = str(save_png(image_grid(images), run.path / f"render_{slot}.png"))
             if isinstance(component, Metric):
                 record["sanity"] = _metric_sanity(component, generator)
+            if isinstance(component, TactileDataset):
+                record["data"] = _preview_dataset(component, run, slot)
+                context = context.model_copy(update={"num_classes": component.num_classes})
             record["status"] = "built"
             built[slot] = component
             report["components"].append(record)
@@ -114,6 +137,17 @@ def render_report(config: ExperimentConfig, report: dict[str, Any]) -> str:
     for c in report["components"]:
         lines.append(f"| {c['slot']} | {c['plugin'] or '-'} | {c['status']} | {c.get('parameters', '-')} "
                      f"| {c.get('checkpoint', '-')} |")
+    renders = [c for c in report["components"] if "render" in c]
+    if renders:
+        lines += ["", "## Sensors (a 2 mm ball pressed 0.2, 0.5 and 1.0 mm deep)", ""]
+        lines += [f"- `{c['slot']}` ({c['plugin']}): ![{c['slot']}]({Path(c['render']).name})" for c in renders]
+    for c in report["components"]:
+        if "data" in c:
+            data = c["data"]
+            lines += ["", f"## Data (`{c['slot']}`: {c['plugin']})", "",
+                      f"{data['samples']} samples, {data['classes']} classes, {data['samples_per_second']} samples/s "
+                      f"on first access. Example text: \"{data['example_text']}\"", "",
+                      f"![tactile | visual pairs]({Path(data['preview']).name})"]
     sanity = [c for c in report["components"] if "sanity" in c]
     if sanity:
         lines += ["", "## Metric sanity (synthetic 64x64 image vs noisy copies)", ""]

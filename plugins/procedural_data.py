@@ -23,8 +23,9 @@ class ProceduralDataConfig(PluginConfig):
     """Options of the ``procedural`` dataset (the embedded default data)."""
 
     name: Literal["procedural"] = "procedural"
-    sensor: Slot("sensor_family") = Field(default_factory=lambda: {"name": "gelsight"},
-                                          description="Sensor family (and variant) that renders the tactile images.")
+    sensor: Slot("sensor_family") | None = Field(
+        None, description="Sensor family (and variant) that renders the tactile images; null uses the experiment's "
+                          "sensor, else gelsight.")
     num_samples: int = Field(1000, ge=1, le=10_000_000, description="Number of samples in the dataset.")
     image_size: int | None = Field(None, ge=16, le=1024,
                                    description="Side of the square tactile and visual images; null uses the "
@@ -94,7 +95,7 @@ class ProceduralTactileDataset(TactileDataset):
             # depend on which batch it was rendered in.
             tactile = torch.cat([self.sensor.render(c.indentation_mm_HW[None], generator=g)
                                  for c, g in zip(contacts, generators)])
-        sensor_id = getattr(self.sensor, "sensor_id", "") or self.config.sensor.name
+        sensor_id = getattr(self.sensor, "sensor_id", "") or self.sensor.vqtouch_spec.config.name
         return {
             "tactile": tactile, "visual": torch.stack(visuals),
             "label": torch.tensor([c.class_index for c in contacts]),
@@ -125,7 +126,8 @@ def build_procedural(config: ProceduralDataConfig, context: BuildContext) -> Pro
     """Factory: builds the sensor from the nested slot (same host), then the dataset."""
     if config.image_size is None:
         config = config.model_copy(update={"image_size": context.image_size})
-    return ProceduralTactileDataset(current_host().build("sensor_family", config.sensor, context), config)
+    sensor_config = config.sensor if config.sensor is not None else (context.sensor or {"name": "gelsight"})
+    return ProceduralTactileDataset(current_host().build("sensor_family", sensor_config, context), config)
 
 
 @hookimpl

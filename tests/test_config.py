@@ -115,7 +115,7 @@ def test_multiple_problems_are_reported_together(host):
 
 def test_required_and_missing_slots(host):
     config = resolve_config("label-to-touch", host=host)
-    assert config.required_slots() == ["tokenizer.encoder", "tokenizer.quantizer", "conditioner", "generator",
+    assert config.required_slots() == ["data.dataset", "tokenizer.encoder", "tokenizer.quantizer", "conditioner", "generator",
                                        "metrics"]
     assert ("generator", "generator") in config.missing_slots()
     assert all(path != "conditioner" for _, path in config.missing_slots())
