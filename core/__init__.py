@@ -21,7 +21,7 @@ import importlib.metadata as _metadata
 from .assembly import build_components, build_context
 from .checkpoint import atomic_write, load, read_metadata, save
 from .components import (BuildContext, Clusterer, Conditioner, ConditionTokens, Encoder, Generator, Metric,
-                         PerImageMetric, Quantizer, SensorFamily, TactileDataset)
+                         PerImageMetric, Quantizer, QuantizerOutput, SensorFamily, TactileDataset)
 from .config import STAGE_SLOTS, ExperimentConfig, Slot, load_config_file, resolve_config, validate_experiment
 from .errors import (CheckpointError, ConfigError, DatasetError, MissingWeightsError, PluginError, UnknownPluginError,
                      VqtouchError)
@@ -40,7 +40,7 @@ except _metadata.PackageNotFoundError:  # running from an uninstalled checkout
 __all__ = [
     "BuildContext", "CheckpointError", "DatasetError", "Clusterer", "ConditionTokens", "Conditioner", "ConfigError", "Encoder",
     "ExperimentConfig", "Generator", "Metric", "MissingWeightsError", "PerImageMetric", "PluginConfig",
-    "PluginError", "PluginHost", "Quantizer", "RunDir", "STAGE_SLOTS", "SensorFamily", "Slot", "TactileDataset",
+    "PluginError", "PluginHost", "Quantizer", "QuantizerOutput", "RunDir", "STAGE_SLOTS", "SensorFamily", "Slot", "TactileDataset",
     "UnknownPluginError", "VqtouchError", "WeightsSpec", "__version__", "atomic_write", "build_components",
     "build_context", "current_host", "default_host", "hookimpl", "load", "load_config_file", "load_plugins", "make_generator",
     "read_metadata", "reset_default_host", "resolve_config", "resolve_device", "resolve_weights", "save",

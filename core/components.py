@@ -31,6 +31,8 @@ class BuildContext(BaseModel):
     num_classes: int = Field(0, ge=0, description="Number of labels in the dataset (0 when unlabelled).")
     cond_dim: int = Field(256, ge=1, description="Width of the condition tokens a conditioner must emit.")
     codebook_size: int = Field(0, ge=0, description="Codebook size of the tokenizer (0 when not yet known).")
+    latent_dim: int = Field(0, ge=0, description="Channels of the encoder's latents, which the quantizer must match "
+                                                 "(0 when not yet known).")
     sensor: dict[str, Any] | None = Field(
         None, description="The experiment's sensor-family config, for components that render data (None: unset).")
 
@@ -105,7 +107,11 @@ class SensorFamily(nn.Module, abc.ABC):
 
 
 class Encoder(nn.Module, abc.ABC):
-    """The autoencoder half of a tokenizer: image -> latent grid -> image."""
+    """The autoencoder half of a tokenizer: image -> latent grid -> image.
+
+    Images are in [-1, 1]; latents are (B, latent_channels, H/f, W/f) with
+    f = ``downsample_factor``.  The quantizer sits between :meth:`encode` and :meth:`decode`.
+    """
 
     downsample_factor: int = 1
     latent_channels: int = 1
@@ -116,17 +122,41 @@ class Encoder(nn.Module, abc.ABC):
 
     @abc.abstractmethod
     def decode(self, latents_BDhw: torch.Tensor) -> torch.Tensor:
-        """Latents back to images in [-1, 1]."""
+        """Latents back to images in [-1, 1] (not clamped: losses see the raw output)."""
+
+    def last_layer_weight(self) -> torch.Tensor | None:
+        """The decoder's output-layer weight (for the GAN's adaptive weight), or None."""
+        return None
+
+
+@dataclass
+class QuantizerOutput:
+    """What a quantizer returns for a batch of latents.
+
+    ``quantized_BDhw`` carries straight-through gradients to the encoder; ``loss`` is the
+    codebook + commitment loss (fp32 scalar); ``perplexity`` is exp(entropy) of the batch's
+    code histogram; ``codes_Bhw`` are the integer codes.
+    """
+
+    quantized_BDhw: torch.Tensor
+    codes_Bhw: torch.Tensor
+    loss: torch.Tensor
+    perplexity: torch.Tensor
 
 
 class Quantizer(nn.Module, abc.ABC):
     """Maps continuous latents to codebook entries and integer codes (maths in fp32)."""
 
     codebook_size: int = 0
+    embedding_dim: int = 0
 
     @abc.abstractmethod
-    def forward(self, latents_BDhw: torch.Tensor) -> Any:
-        """Quantise latents; returns the plugin's output record (quantised latents, codes, loss)."""
+    def forward(self, latents_BDhw: torch.Tensor) -> QuantizerOutput:
+        """Quantise latents (B, embedding_dim, h, w)."""
+
+    @abc.abstractmethod
+    def lookup(self, codes_Bhw: torch.Tensor) -> torch.Tensor:
+        """Codes (B, h, w) to quantised latents (B, embedding_dim, h, w), e.g. for generated codes."""
 
 
 class Clusterer(nn.Module, abc.ABC):

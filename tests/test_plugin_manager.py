@@ -136,6 +136,9 @@ class _Quantizer(Quantizer):
     def forward(self, latents_BDhw):
         return latents_BDhw
 
+    def lookup(self, codes_Bhw):
+        return codes_Bhw
+
 
 class _Clusterer(Clusterer):
     def fit(self, features_NF):
