@@ -118,8 +118,15 @@ class TrainConfig(Section):
     grad_clip: float | None = Field(1.0, gt=0, description="Clip the gradient norm to this value; null disables.")
     precision: Literal["fp32", "bf16"] = Field(
         "fp32", description="Autocast precision of the networks; quantizer and diffusion maths stay fp32.")
+    optimizer: Literal["adamw", "adam"] = Field("adamw", description="Optimizer of every trained module.")
+    betas: tuple[float, float] = Field((0.5, 0.9), description="Adam betas (VQGAN uses (0.5, 0.9)).")
+    ema_decay: float | None = Field(None, gt=0.0, lt=1.0,
+                                    description="Keep an exponential moving average of the weights with this decay "
+                                                "(saved next to the raw weights); null disables.")
     checkpoint_every: int = Field(500, ge=1, description="Write a checkpoint every this many steps.")
     log_every: int = Field(50, ge=1, description="Write metrics.jsonl every this many steps.")
+    max_skipped_steps: int = Field(20, ge=1, description="Abort after this many consecutive steps with a non-finite "
+                                                         "loss (each one is skipped and reported).")
 
 
 class ExperimentConfig(Section):

@@ -1,0 +1,188 @@
+"""The VQGAN autoencoder and DM-VQGAN, registered as the ``vqgan`` and ``dm_vqgan`` encoders.
+
+One network serves both: DM-VQGAN is VQGAN plus deformable convolutions in the ResNet
+blocks at low feature resolutions (encoder and decoder) and the multi-scale dilated fusion
+module at the latent end of each half.  The DM options live only in the ``dm_vqgan`` config,
+so ``--set tokenizer.encoder.name=vqgan`` is the paper's ablation, and
+``deformable_max_resolution=0`` or ``fusion=false`` ablate the two DM parts separately.
+
+Downsampling factor f = 2 ** (len(channel_multipliers) - 1); images in [-1, 1].
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from pydantic import Field, model_validator
+from torch import nn
+
+from vqtouch.core import BuildContext, ConfigError, Encoder, PluginConfig, hookimpl
+
+from .blocks import (AttentionBlock, ConvFactory, Downsample, MultiScaleFusion, ResnetBlock, Upsample, group_norm,
+                     plain_conv3x3)
+
+
+class VqganConfig(PluginConfig):
+    """Options of the ``vqgan`` autoencoder (taming-style VQGAN)."""
+
+    name: Literal["vqgan"] = "vqgan"
+    channels: int = Field(64, ge=8, le=1024, description="Base channel count (a multiple of norm_groups).")
+    channel_multipliers: tuple[int, ...] = Field(
+        (1, 2, 2), min_length=1, max_length=7,
+        description="Channel multiplier per resolution level; f = 2 ** (levels - 1) (default f = 4).")
+    num_res_blocks: int = Field(1, ge=1, le=8, description="ResNet blocks per level (the decoder uses one more).")
+    attention_resolutions: tuple[int, ...] = Field(
+        (), description="Feature resolutions (in pixels) that get an attention block after each ResNet block.")
+    mid_attention: bool = Field(True, description="Attention in the middle (bottleneck) block, as in taming.")
+    z_channels: int = Field(64, ge=1, le=4096, description="Channels at the encoder output, before quant_conv.")
+    embed_dim: int = Field(32, ge=1, le=4096, description="Latent channels fed to the quantizer (after quant_conv).")
+    dropout: float = Field(0.0, ge=0.0, lt=1.0, description="Dropout inside ResNet blocks.")
+    norm_groups: int = Field(32, ge=1, le=256, description="GroupNorm groups; must divide every channel count.")
+
+    @model_validator(mode="after")
+    def _channels_fit_groups(self) -> VqganConfig:
+        for multiplier in self.channel_multipliers:
+            if multiplier < 1 or (self.channels * multiplier) % self.norm_groups:
+                raise ValueError(f"channels * multiplier = {self.channels} * {multiplier} must be a positive "
+                                 f"multiple of norm_groups = {self.norm_groups}")
+        return self
+
+
+class DmVqganConfig(VqganConfig):
+    """Options of the ``dm_vqgan`` autoencoder: VQGAN + deformable convolutions + multi-scale fusion."""
+
+    name: Literal["dm_vqgan"] = "dm_vqgan"
+    deformable_max_resolution: int = Field(
+        32, ge=0, le=4096, description="ResNet blocks at feature resolutions <= this use a deformable second "
+                                       "convolution (0 disables them; the CPU cost grows fast above 32 px).")
+    deformable_backend: Literal["grid_sample", "torchvision"] = Field(
+        "grid_sample", description="Deformable convolution implementation (same maths; grid_sample is faster on CPU).")
+    deformable_modulation: bool = Field(True, description="DCNv2 modulation mask (False: DCNv1).")
+    max_offset: float = Field(4.0, gt=0.0, le=64.0, description="Offsets are bounded to max_offset * tanh(raw) pixels.")
+    fusion: bool = Field(True, description="Multi-scale dilated fusion at the encoder output and decoder input.")
+    fusion_dilations: tuple[int, ...] = Field((1, 2, 4), min_length=1, max_length=6,
+                                              description="Dilations of the fusion branches.")
+
+
+class VqganAutoencoder(Encoder):
+    """VQGAN encoder + decoder (with optional DM-VQGAN parts)."""
+
+    def __init__(self, config: VqganConfig, image_size: int, channels: int = 3) -> None:
+        super().__init__()
+        levels = len(config.channel_multipliers)
+        self.downsample_factor = 2 ** (levels - 1)
+        self.latent_channels = config.embed_dim
+        if image_size % self.downsample_factor:
+            raise ConfigError(f"image_size {image_size} is not divisible by the tokenizer's downsampling factor "
+                              f"f = {self.downsample_factor} (channel_multipliers {config.channel_multipliers})")
+        dm = config if isinstance(config, DmVqganConfig) else None
+        groups = config.norm_groups
+
+        def conv_at(resolution: int) -> ConvFactory:
+            if dm is None or resolution > dm.deformable_max_resolution:
+                return plain_conv3x3
+            from .deformable import DeformableConv2d
+
+            return partial(DeformableConv2d, kernel_size=3, padding=1, modulation=dm.deformable_modulation,
+                           max_offset=dm.max_offset, backend=dm.deformable_backend)
+
+        def block(in_ch: int, out_ch: int, resolution: int) -> ResnetBlock:
+            return ResnetBlock(in_ch, out_ch, groups, config.dropout, conv_at(resolution))
+
+        widths = [config.channels * m for m in config.channel_multipliers]
+        # -- encoder ------------------------------------------------------------------------
+        self.enc_in = nn.Conv2d(channels, config.channels, 3, padding=1)
+        self.enc_levels = nn.ModuleList()
+        resolution, width = image_size, config.channels
+        for level, out_width in enumerate(widths):
+            stage = nn.Module()
+            stage.blocks = nn.ModuleList()
+            stage.attentions = nn.ModuleList()
+            for _ in range(config.num_res_blocks):
+                stage.blocks.append(block(width, out_width, resolution))
+                width = out_width
+                stage.attentions.append(AttentionBlock(width, groups) if resolution in config.attention_resolutions
+                                        else nn.Identity())
+            stage.down = Downsample(width) if level < levels - 1 else nn.Identity()
+            resolution = resolution // 2 if level < levels - 1 else resolution
+            self.enc_levels.append(stage)
+        self.enc_mid = self._mid(width, resolution, block, groups, config.mid_attention)
+        self.enc_fusion = MultiScaleFusion(width, groups, dm.fusion_dilations) if dm and dm.fusion else nn.Identity()
+        self.enc_norm = group_norm(width, groups)
+        self.enc_out = nn.Conv2d(width, config.z_channels, 3, padding=1)
+        self.quant_conv = nn.Conv2d(config.z_channels, config.embed_dim, 1)
+        # -- decoder ------------------------------------------------------------------------
+        self.post_quant_conv = nn.Conv2d(config.embed_dim, config.z_channels, 1)
+        self.dec_in = nn.Conv2d(config.z_channels, width, 3, padding=1)
+        self.dec_fusion = MultiScaleFusion(width, groups, dm.fusion_dilations) if dm and dm.fusion else nn.Identity()
+        self.dec_mid = self._mid(width, resolution, block, groups, config.mid_attention)
+        self.dec_levels = nn.ModuleList()
+        for level, out_width in reversed(list(enumerate(widths))):
+            stage = nn.Module()
+            stage.blocks = nn.ModuleList()
+            stage.attentions = nn.ModuleList()
+            for _ in range(config.num_res_blocks + 1):
+                stage.blocks.append(block(width, out_width, resolution))
+                width = out_width
+                stage.attentions.append(AttentionBlock(width, groups) if resolution in config.attention_resolutions
+                                        else nn.Identity())
+            stage.up = Upsample(width) if level > 0 else nn.Identity()
+            resolution = resolution * 2 if level > 0 else resolution
+            self.dec_levels.append(stage)
+        self.dec_norm = group_norm(width, groups)
+        self.dec_out = nn.Conv2d(width, channels, 3, padding=1)
+
+    @staticmethod
+    def _mid(width: int, resolution: int, block, groups: int, attention: bool) -> nn.Sequential:
+        return nn.Sequential(block(width, width, resolution),
+                             AttentionBlock(width, groups) if attention else nn.Identity(),
+                             block(width, width, resolution))
+
+    def encode(self, images_BCHW: torch.Tensor) -> torch.Tensor:
+        if images_BCHW.ndim != 4 or images_BCHW.shape[1] != self.enc_in.in_channels:
+            raise ValueError(f"expected images (B, {self.enc_in.in_channels}, H, W) in [-1, 1], "
+                             f"got {tuple(images_BCHW.shape)}")
+        if images_BCHW.shape[-1] % self.downsample_factor or images_BCHW.shape[-2] % self.downsample_factor:
+            raise ValueError(f"image size {tuple(images_BCHW.shape[-2:])} is not divisible by f = "
+                             f"{self.downsample_factor}")
+        h = self.enc_in(images_BCHW)
+        for stage in self.enc_levels:
+            for block, attention in zip(stage.blocks, stage.attentions):
+                h = attention(block(h))
+            h = stage.down(h)
+        h = self.enc_fusion(self.enc_mid(h))
+        return self.quant_conv(self.enc_out(F.silu(self.enc_norm(h))))
+
+    def decode(self, latents_BDhw: torch.Tensor) -> torch.Tensor:
+        h = self.dec_in(self.post_quant_conv(latents_BDhw.to(self.post_quant_conv.weight.dtype)))
+        h = self.dec_mid(self.dec_fusion(h))
+        for stage in self.dec_levels:
+            for block, attention in zip(stage.blocks, stage.attentions):
+                h = attention(block(h))
+            h = stage.up(h)
+        return self.dec_out(F.silu(self.dec_norm(h)))
+
+    def last_layer_weight(self) -> torch.Tensor:
+        return self.dec_out.weight
+
+    def offset_magnitude(self) -> float | None:
+        """Mean |offset| of the deformable layers in the last forward (None without any)."""
+        values = [m.last_mean_abs_offset for m in self.modules()
+                  if getattr(m, "last_mean_abs_offset", None) is not None]
+        return sum(values) / len(values) if values else None
+
+
+def build_autoencoder(config: VqganConfig, context: BuildContext) -> VqganAutoencoder:
+    """Factory for ``vqgan`` and ``dm_vqgan``."""
+    return VqganAutoencoder(config, context.image_size, context.channels)
+
+
+@hookimpl
+def vqtouch_register_encoders(register):
+    register("vqgan", build_autoencoder, VqganConfig,
+             description="VQGAN autoencoder (ResNet + GroupNorm + attention), the baseline tokenizer.")
+    register("dm_vqgan", build_autoencoder, DmVqganConfig,
+             description="DM-VQGAN: VQGAN + deformable convolutions + multi-scale dilated fusion.")

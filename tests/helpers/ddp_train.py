@@ -1,0 +1,41 @@
+"""Launched by test_training under torchrun: trains the toy task on 2 gloo processes and saves
+each rank's final parameters."""
+
+import sys
+from pathlib import Path
+
+import torch
+
+from vqtouch.core import BuildContext, hookimpl, load_plugins
+from vqtouch.core.config import TrainConfig
+from vqtouch.core.training import Trainer
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def main() -> None:
+    import importlib.util
+    import types
+
+    spec = importlib.util.spec_from_file_location("toy_training", Path(__file__).resolve().parents[1] / "test_training.py")
+    toy = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(toy)
+    plugin = types.ModuleType("toy")
+    plugin.vqtouch_register_conditioners = toy.vqtouch_register_conditioners
+    host = load_plugins(autoload=False, extra=[plugin])
+    out = Path(sys.argv[1])
+    rank = int(__import__("os").environ["RANK"])
+    torch.manual_seed(100 + rank)  # different initial weights per rank: the trainer must broadcast rank 0's
+    task = toy.ToyTask(host)
+    if rank == 0:
+        torch.save(torch.cat([p.detach().flatten() for p in task.modules["model"].parameters()]), out / "initial.pt")
+    trainer = Trainer(task, toy.ToyDataset(), TrainConfig(steps=10, learning_rate=0.05, log_every=5,
+                      checkpoint_every=100), batch_size=2, seed=1, device=torch.device("cpu"),
+                      checkpoint_dir=out / "checkpoints", host=host)
+    trainer.fit()
+    params = torch.cat([p.detach().flatten() for p in task.modules["model"].parameters()])
+    torch.save(params, out / f"rank{rank}.pt")
+
+
+if __name__ == "__main__":
+    main()

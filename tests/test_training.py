@@ -1,0 +1,200 @@
+"""The generic trainer: exact resume, Ctrl-C, non-finite steps, EMA, bf16, data parallel."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Literal
+
+import pytest
+import torch
+from torch import nn
+
+from vqtouch.core import BuildContext, Conditioner, PluginConfig, hookimpl, load_plugins
+from vqtouch.core.config import TrainConfig
+from vqtouch.core.training import NonFiniteLossError, Trainer, batch_indices, latest_checkpoint
+
+
+class ToyDataset:
+    """y = 3x - 1 with noise; x in the 'tactile' slot to look like a real sample."""
+
+    def __init__(self, size: int = 40) -> None:
+        generator = torch.Generator().manual_seed(0)
+        self.x = torch.randn(size, 4, generator=generator)
+        self.y = self.x @ torch.tensor([3.0, -1.0, 0.5, 2.0]) - 1
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    def __getitem__(self, index: int):
+        return {"tactile": self.x[index], "label": float(self.y[index])}
+
+
+class RegressorConfig(PluginConfig):
+    name: Literal["toy_regressor"] = "toy_regressor"
+
+
+class Regressor(Conditioner):
+    """A trainable module built through the host, so checkpoints can record how to rebuild it."""
+
+    def __init__(self) -> None:
+        super().__init__(cond_dim=1, num_tokens=1)
+        self.linear = nn.Linear(4, 1)
+        self.dropout = nn.Dropout(0.2)  # consumes the global RNG: resume must restore it
+
+    def encode(self, condition):
+        return self.linear(self.dropout(condition)).view(-1, 1, 1)
+
+
+@hookimpl
+def vqtouch_register_conditioners(register):
+    register("toy_regressor", lambda config, context: Regressor(), RegressorConfig)
+
+
+class ToyTask:
+    def __init__(self, host, poison_steps=(), interrupt_at=None):
+        self.modules = {"model": host.build("conditioner", "toy_regressor", BuildContext())}
+        self.poison_steps = set(poison_steps)
+        self.interrupt_at = interrupt_at
+        self.losses = []
+
+    def parameter_groups(self):
+        return {"main": list(self.modules["model"].parameters())}
+
+    def training_step(self, batch, step, trainer):
+        if step == self.interrupt_at:
+            raise KeyboardInterrupt
+        with trainer.autocast():
+            prediction = self.modules["model"].encode(batch["tactile"]).view(-1)
+        loss = (prediction.float() - batch["label"].float()).pow(2).mean()
+        if step in self.poison_steps:
+            loss = loss * float("nan")
+        trainer.optimize("main", loss)
+        self.losses.append(float(loss.detach()))
+        return {"loss": float(loss.detach())}
+
+
+@pytest.fixture
+def host(make_plugin):
+    return load_plugins(autoload=False, extra=[make_plugin("toy", vqtouch_register_conditioners)])
+
+
+def make_trainer(host, tmp_path, steps=12, task_options=None, **config):
+    torch.manual_seed(0)  # same initial weights for every trainer a test makes
+    task = ToyTask(host, **(task_options or {}))
+    options = {"steps": steps, "learning_rate": 0.05, "checkpoint_every": 4, "log_every": 1, **config}
+    return Trainer(task, ToyDataset(), TrainConfig(**options), batch_size=4, seed=3, device=torch.device("cpu"),
+                   checkpoint_dir=tmp_path / "checkpoints", host=host), task
+
+
+def test_training_reduces_the_loss_and_writes_checkpoints(host, tmp_path):
+    trainer, task = make_trainer(host, tmp_path, steps=40)
+    trainer.fit()
+    assert task.losses[-1] < task.losses[0] / 5
+    assert latest_checkpoint(tmp_path / "checkpoints").name == "step-00000040"
+    assert (tmp_path / "checkpoints" / "latest").read_text().strip() == "step-00000040"
+    assert {p.name for p in (tmp_path / "checkpoints" / "step-00000004").iterdir()} == {
+        "model.safetensors", "trainer_state.safetensors"}
+
+
+def test_resume_reproduces_the_uninterrupted_run_exactly(host, tmp_path):
+    full, full_task = make_trainer(host, tmp_path / "full")
+    full.fit()
+    first, first_task = make_trainer(host, tmp_path / "split", task_options={"interrupt_at": 6})
+    with pytest.raises(KeyboardInterrupt):
+        first.fit()  # Ctrl-C at step 6: a checkpoint of step 6 is written first
+    assert latest_checkpoint(tmp_path / "split" / "checkpoints").name == "step-00000006"
+    torch.manual_seed(12345)  # whatever happened in between must not matter
+    second, second_task = make_trainer(host, tmp_path / "split")
+    assert second.resume(tmp_path / "split" / "checkpoints") and second.state.step == 6
+    second.fit()
+    assert first_task.losses + second_task.losses == full_task.losses
+    for a, b in zip(full.task.modules["model"].parameters(), second.task.modules["model"].parameters()):
+        assert torch.equal(a, b)
+
+
+def test_resume_without_checkpoint_returns_false(host, tmp_path):
+    trainer, _ = make_trainer(host, tmp_path)
+    assert trainer.resume(tmp_path / "nothing") is False
+
+
+def test_incomplete_checkpoint_folder_is_ignored(host, tmp_path):
+    trainer, _ = make_trainer(host, tmp_path, steps=8)
+    trainer.fit()
+    (tmp_path / "checkpoints" / "step-00000099").mkdir()  # a save that died before its trainer state
+    assert latest_checkpoint(tmp_path / "checkpoints").name == "step-00000008"
+
+
+def test_resume_with_different_batch_size_is_refused(host, tmp_path):
+    from vqtouch.core import CheckpointError
+
+    trainer, _ = make_trainer(host, tmp_path, steps=4)
+    trainer.fit()
+    other = Trainer(ToyTask(host), ToyDataset(), TrainConfig(steps=8), batch_size=8, seed=3,
+                    device=torch.device("cpu"), checkpoint_dir=tmp_path / "checkpoints", host=host)
+    with pytest.raises(CheckpointError, match="batch_size=4"):
+        other.resume(tmp_path / "checkpoints")
+
+
+def test_non_finite_loss_skips_the_step_and_is_reported(host, tmp_path):
+    trainer, task = make_trainer(host, tmp_path, steps=8, task_options={"poison_steps": {2, 5}})
+    state = trainer.fit()
+    assert state.skipped_steps == 2
+    assert all(torch.isfinite(p).all() for p in task.modules["model"].parameters())
+    assert [h["skipped_steps"] for h in state.history][-1] == 2.0
+
+
+def test_too_many_consecutive_non_finite_steps_abort(host, tmp_path):
+    trainer, _ = make_trainer(host, tmp_path, steps=30, task_options={"poison_steps": set(range(3, 30))},
+                              max_skipped_steps=5)
+    with pytest.raises(NonFiniteLossError, match="5 consecutive steps"):
+        trainer.fit()
+
+
+def test_extreme_learning_rate_never_writes_non_finite_weights(host, tmp_path):
+    trainer, task = make_trainer(host, tmp_path, steps=30, learning_rate=10.0, grad_clip=None,
+                                 max_skipped_steps=30)
+    try:
+        trainer.fit()
+    except NonFiniteLossError:
+        pass
+    assert all(torch.isfinite(p).all() for p in task.modules["model"].parameters())
+
+
+def test_ema_weights_are_kept_and_saved(host, tmp_path):
+    trainer, task = make_trainer(host, tmp_path, steps=8, ema_decay=0.9)
+    trainer.fit()
+    shadow = trainer.ema["model"]["linear.weight"]
+    assert not torch.equal(shadow, task.modules["model"].linear.weight)
+    resumed, _ = make_trainer(host, tmp_path, steps=8, ema_decay=0.9)
+    resumed.resume(tmp_path / "checkpoints")
+    assert torch.equal(resumed.ema["model"]["linear.weight"], shadow)
+
+
+def test_bf16_autocast_trains(host, tmp_path):
+    trainer, task = make_trainer(host, tmp_path, steps=20, precision="bf16")
+    trainer.fit()
+    assert task.losses[-1] < task.losses[0] and all(torch.isfinite(torch.tensor(task.losses)))
+
+
+def test_batch_indices_cover_each_epoch_once_and_split_across_ranks():
+    size, batch = 20, 5
+    epoch = sorted(i for step in range(4) for i in batch_indices(7, step, batch, size))
+    assert epoch == list(range(20))
+    global_batch = batch_indices(7, 1, 2 * batch, size, 0, 1)
+    shares = [batch_indices(7, 1, batch, size, rank, 2) for rank in range(2)]
+    assert sorted(shares[0] + shares[1]) == sorted(global_batch)
+
+
+DDP_SCRIPT = Path(__file__).parent / "helpers" / "ddp_train.py"
+
+
+def test_two_process_data_parallel_keeps_parameters_identical(tmp_path):
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).parent / "helpers")}
+    result = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
+                             "--master_port", "29517", str(DDP_SCRIPT), str(tmp_path)],
+                            capture_output=True, text=True, timeout=240, env=env)
+    assert result.returncode == 0, result.stderr[-3000:]
+    params = [torch.load(tmp_path / f"rank{rank}.pt", weights_only=True) for rank in range(2)]
+    assert torch.equal(params[0], params[1])
+    assert not torch.equal(params[0], torch.load(tmp_path / "initial.pt", weights_only=True))
