@@ -20,7 +20,7 @@ import importlib.metadata as _metadata
 
 from .assembly import build_components, build_context
 from .checkpoint import atomic_write, load, read_metadata, save
-from .components import (BuildContext, Clusterer, Conditioner, ConditionTokens, Encoder, Generator, Metric,
+from .components import (BuildContext, Clusterer, Conditioner, ConditionTokens, Discriminator, Encoder, Generator, Metric,
                          PerImageMetric, Quantizer, QuantizerOutput, SensorFamily, TactileDataset)
 from .config import STAGE_SLOTS, ExperimentConfig, Slot, load_config_file, resolve_config, validate_experiment
 from .errors import (CheckpointError, ConfigError, DatasetError, MissingWeightsError, PluginError, UnknownPluginError,
@@ -38,7 +38,7 @@ except _metadata.PackageNotFoundError:  # running from an uninstalled checkout
     __version__ = "0+unknown"
 
 __all__ = [
-    "BuildContext", "CheckpointError", "DatasetError", "Clusterer", "ConditionTokens", "Conditioner", "ConfigError", "Encoder",
+    "BuildContext", "CheckpointError", "DatasetError", "Clusterer", "ConditionTokens", "Conditioner", "ConfigError", "Discriminator", "Encoder",
     "ExperimentConfig", "Generator", "Metric", "MissingWeightsError", "PerImageMetric", "PluginConfig",
     "PluginError", "PluginHost", "Quantizer", "QuantizerOutput", "RunDir", "STAGE_SLOTS", "SensorFamily", "Slot", "TactileDataset",
     "UnknownPluginError", "VqtouchError", "WeightsSpec", "__version__", "atomic_write", "build_components",

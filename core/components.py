@@ -159,6 +159,14 @@ class Quantizer(nn.Module, abc.ABC):
         """Codes (B, h, w) to quantised latents (B, embedding_dim, h, w), e.g. for generated codes."""
 
 
+class Discriminator(nn.Module, abc.ABC):
+    """Scores images (B, C, H, W) in [-1, 1] as real or generated (logits of any shape, e.g. patches)."""
+
+    @abc.abstractmethod
+    def forward(self, images_BCHW: torch.Tensor) -> torch.Tensor:
+        """Real/fake logits for each image (or patch)."""
+
+
 class Clusterer(nn.Module, abc.ABC):
     """Groups feature vectors (e.g. per-sensor tokenizer features) into families."""
 

@@ -30,13 +30,16 @@ Stage = Literal["render", "tokenizer", "reconstruct", "cluster", "adapt", "gener
 #: The plugin slots each pipeline stage needs; a run builds only these (scene minimality).
 STAGE_SLOTS: dict[str, tuple[str, ...]] = {
     "render": ("sensor", "data.dataset"),
-    "tokenizer": ("data.dataset", "tokenizer.encoder", "tokenizer.quantizer"),
+    "tokenizer": ("data.dataset", "tokenizer.encoder", "tokenizer.quantizer", "tokenizer.discriminator"),
     "reconstruct": ("data.dataset", "tokenizer.encoder", "tokenizer.quantizer"),
     "cluster": ("data.dataset", "tokenizer.encoder", "tokenizer.quantizer", "clusterer"),
     "adapt": ("data.dataset", "tokenizer.encoder", "tokenizer.quantizer", "sensor", "target_sensor"),
     "generator": ("data.dataset", "tokenizer.encoder", "tokenizer.quantizer", "conditioner", "generator"),
     "evaluate": ("metrics",),
 }
+
+#: Slots a stage uses when they are set but can run without.
+OPTIONAL_SLOTS = frozenset({"tokenizer.discriminator"})
 
 #: Registry kind behind every slot path.
 SLOT_KINDS: dict[str, str] = {
@@ -45,6 +48,7 @@ SLOT_KINDS: dict[str, str] = {
     "data.dataset": "dataset",
     "tokenizer.encoder": "encoder",
     "tokenizer.quantizer": "quantizer",
+    "tokenizer.discriminator": "discriminator",
     "conditioner": "conditioner",
     "generator": "generator",
     "clusterer": "clusterer",
@@ -102,11 +106,33 @@ class DataConfig(Section):
     val_fraction: float = Field(0.1, ge=0.0, lt=1.0, description="Fraction of samples held out for evaluation.")
 
 
+class TokenizerLossConfig(Section):
+    """The tokenizer objective: L1 + VQ + perceptual + adversarial (VQGAN's, with its safeguards)."""
+
+    l1_weight: float = Field(1.0, ge=0.0, le=100.0, description="Weight of the L1 reconstruction loss.")
+    codebook_weight: float = Field(1.0, ge=0.0, le=100.0, description="Weight of the quantizer's loss.")
+    perceptual: Literal["none", "effnet_lite0", "lpips"] = Field(
+        "effnet_lite0", description="Perceptual loss: 'lpips' needs user-supplied AlexNet and head weights; "
+                                    "'effnet_lite0' is an offline feature loss on a real ImageNet network (not LPIPS).")
+    perceptual_weight: float = Field(0.1, ge=0.0, le=100.0, description="Weight of the perceptual loss.")
+    perceptual_image_size: int = Field(96, ge=32, le=512,
+                                       description="Side the images are resized to for the perceptual network.")
+    lpips_backbone: str | None = Field(None, description="Path of alexnet-owt-7be5be79.pth (or VQTOUCH_LPIPS_BACKBONE).")
+    lpips_heads: str | None = Field(None, description="Path of LPIPS v0.1 alex.pth heads (or VQTOUCH_LPIPS_HEADS).")
+    adversarial_weight: float = Field(0.8, ge=0.0, le=100.0, description="Weight of the hinge GAN loss (times the "
+                                                                         "adaptive weight); 0 disables it.")
+    disc_start: int = Field(2000, ge=0, description="Step at which the discriminator starts (it is not trained before).")
+    adaptive_weight_max: float = Field(1e4, gt=0.0, description="Upper clamp of the adaptive GAN weight.")
+
+
 class TokenizerConfig(Section):
-    """The tactile tokenizer: an autoencoder plugin plus a quantizer plugin."""
+    """The tactile tokenizer: an autoencoder plugin plus a quantizer plugin, and how it is trained."""
 
     encoder: Slot("encoder") | None = Field(None, description="Autoencoder plugin (e.g. dm_vqgan, vqgan).")
     quantizer: Slot("quantizer") | None = Field(None, description="Quantizer plugin (e.g. vq, ema_vq).")
+    discriminator: Slot("discriminator") | None = Field(
+        None, description="Discriminator plugin for the adversarial loss (e.g. patchgan); null trains without one.")
+    loss: TokenizerLossConfig = Field(default_factory=TokenizerLossConfig, description="Training objective.")
 
 
 class TrainConfig(Section):
@@ -173,10 +199,12 @@ class ExperimentConfig(Section):
         return list(seen)
 
     def missing_slots(self) -> list[tuple[str, str]]:
-        """(stage, slot) pairs that a stage needs but the config leaves empty."""
+        """(stage, slot) pairs that a stage needs but the config leaves empty (optional slots excepted)."""
         missing = []
         for stage in self.stages:
             for path in STAGE_SLOTS[stage]:
+                if path in OPTIONAL_SLOTS:
+                    continue
                 value = self.slot(path)
                 if value is None or value == []:
                     missing.append((stage, path))

@@ -85,6 +85,8 @@ def run_demo(config: ExperimentConfig, host: Any, run: RunDir) -> dict[str, Any]
     ordered = sorted(config.required_slots(), key=lambda path: path != "data.dataset")
     for path in progress(ordered, desc="components", unit="slot"):
         value = config.slot(path)
+        if value is None and path not in missing:  # an optional slot left empty
+            continue
         if path in missing:
             choices = host.registry(SLOT_KINDS[path]).names()
             reason = (f"no plugin selected; installed: {', '.join(choices)}" if choices

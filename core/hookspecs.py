@@ -47,6 +47,11 @@ def vqtouch_register_quantizers(register: Register) -> None:
 
 
 @hookspec
+def vqtouch_register_discriminators(register: Register) -> None:
+    """Register GAN discriminators for tokenizer training (``vqtouch.core.Discriminator``), e.g. ``patchgan``."""
+
+
+@hookspec
 def vqtouch_register_conditioners(register: Register) -> None:
     """Register conditioners (``vqtouch.core.Conditioner`` subclasses): label, visual, tactile, text."""
 

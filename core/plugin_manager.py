@@ -32,8 +32,8 @@ import pluggy
 from pydantic import ValidationError
 
 from . import hookspecs
-from .components import (BuildContext, Clusterer, Conditioner, Encoder, Generator, Metric, Quantizer,
-                         SensorFamily, TactileDataset)
+from .components import (BuildContext, Clusterer, Conditioner, Discriminator, Encoder, Generator, Metric,
+                         Quantizer, SensorFamily, TactileDataset)
 from .errors import ConfigError, PluginError, UnknownPluginError, unknown_name_message
 from .plugin_config import PluginConfig
 from .registry import PluginEntry, PluginSource, Registry
@@ -59,6 +59,7 @@ class RegistryKind:
 REGISTRY_KINDS: tuple[RegistryKind, ...] = (
     RegistryKind("encoder", "vqtouch_register_encoders", "tokenizer autoencoders", Encoder),
     RegistryKind("quantizer", "vqtouch_register_quantizers", "latent quantizers", Quantizer),
+    RegistryKind("discriminator", "vqtouch_register_discriminators", "GAN discriminators", Discriminator),
     RegistryKind("conditioner", "vqtouch_register_conditioners", "condition encoders", Conditioner),
     RegistryKind("sensor_family", "vqtouch_register_sensor_families", "tactile sensor renderers", SensorFamily),
     RegistryKind("generator", "vqtouch_register_generators", "code-grid generators", Generator),

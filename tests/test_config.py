@@ -115,10 +115,13 @@ def test_multiple_problems_are_reported_together(host):
 
 def test_required_and_missing_slots(host):
     config = resolve_config("label-to-touch", host=host)
-    assert config.required_slots() == ["data.dataset", "tokenizer.encoder", "tokenizer.quantizer", "conditioner", "generator",
-                                       "metrics"]
+    assert config.required_slots() == ["data.dataset", "tokenizer.encoder", "tokenizer.quantizer",
+                                       "tokenizer.discriminator", "conditioner", "generator", "metrics"]
     assert ("generator", "generator") in config.missing_slots()
     assert all(path != "conditioner" for _, path in config.missing_slots())
+    # The discriminator is optional: an empty one is never "missing".
+    no_disc = resolve_config("label-to-touch", overrides=["tokenizer.discriminator=null"], host=host)
+    assert all(path != "tokenizer.discriminator" for _, path in no_disc.missing_slots())
 
 
 def test_validate_experiment_hook_can_veto(make_plugin):

@@ -5,7 +5,7 @@ import pytest
 
 import torch
 
-from vqtouch.core import (Clusterer, Conditioner, Encoder, Generator, PluginConfig, PluginError, Quantizer,
+from vqtouch.core import (Clusterer, Conditioner, Discriminator, Encoder, Generator, PluginConfig, PluginError, Quantizer,
                           SensorFamily, TactileDataset, hookimpl, hookspecs, load_plugins)
 from vqtouch.core.plugin_manager import REGISTRY_KINDS
 from pathlib import Path
@@ -165,6 +165,11 @@ class _Generator(Generator):
     pass
 
 
+class _Discriminator(Discriminator):
+    def forward(self, images_BCHW):
+        return images_BCHW.mean(dim=(1, 2, 3))
+
+
 # One minimal implementation per registration hook, registered through that hook by name.
 MINIMAL = {
     "vqtouch_register_encoders": ("encoder", _Encoder),
@@ -173,6 +178,7 @@ MINIMAL = {
     "vqtouch_register_datasets": ("dataset", _Dataset),
     "vqtouch_register_sensor_families": ("sensor_family", _Sensor),
     "vqtouch_register_generators": ("generator", _Generator),
+    "vqtouch_register_discriminators": ("discriminator", _Discriminator),
 }
 
 

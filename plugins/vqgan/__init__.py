@@ -1,0 +1,1 @@
+"""VQGAN and DM-VQGAN tokenizer autoencoders."""
