@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from .components import BuildContext
+from .components import BuildContext, Encoder, Quantizer, TactileDataset
 from .config import SLOT_KINDS, ExperimentConfig
 from .errors import ConfigError
 
@@ -18,6 +18,21 @@ def build_context(config: ExperimentConfig, **facts: Any) -> BuildContext:
     """The BuildContext of an experiment; ``facts`` (e.g. ``num_classes``) come from the data."""
     sensor = config.sensor.model_dump(mode="json") if config.sensor is not None else None
     return BuildContext(image_size=config.data.image_size, sensor=sensor, **facts)
+
+
+def enrich_context(context: BuildContext, component: Any) -> BuildContext:
+    """The context after ``component`` is built: later components see what it determines.
+
+    A dataset fixes the number of classes, an encoder the latent width the quantizer must
+    match, and a quantizer the codebook size the generator works with.
+    """
+    if isinstance(component, TactileDataset):
+        return context.model_copy(update={"num_classes": component.num_classes})
+    if isinstance(component, Encoder):
+        return context.model_copy(update={"latent_dim": component.latent_channels})
+    if isinstance(component, Quantizer):
+        return context.model_copy(update={"codebook_size": component.codebook_size})
+    return context
 
 
 def build_components(config: ExperimentConfig, host: Any, *, slots: list[str] | None = None,
@@ -40,11 +55,13 @@ def build_components(config: ExperimentConfig, host: Any, *, slots: list[str] | 
         raise ConfigError(f"stage {stage!r} needs {path} but the config leaves it empty; "
                           f"set {path}.name to one of: {choices}")
     built: dict[str, Any] = {}
-    for path in slots:
+    # Data first, then the encoder, then the rest: each may fix facts the next ones need.
+    for path in sorted(slots, key=lambda p: (p != "data.dataset", p != "tokenizer.encoder")):
         value = config.slot(path)
         kind = SLOT_KINDS[path]
         if isinstance(value, list):
             built[path] = [host.build(kind, item, context) for item in value]
         elif value is not None:
             built[path] = host.build(kind, value, context)
-    return built
+            context = enrich_context(context, built[path])
+    return {path: built[path] for path in slots if path in built}

@@ -32,6 +32,19 @@ def add_config_arguments(parser: argparse.ArgumentParser, *, scene_required: boo
                         help="override one value, e.g. --set train.steps=200 (JSON values; repeatable)")
 
 
+def command_group(subparsers: argparse._SubParsersAction, name: str, help: str) -> argparse._SubParsersAction:
+    """The sub-commands of group ``name`` (``train``, ``evaluate``, ...), created on first use.
+
+    Several plugins add actions to one group: ``vqtouch train tokenizer`` and ``vqtouch train
+    generator`` come from different plugins.
+    """
+    groups = subparsers.__dict__.setdefault("_vqtouch_groups", {})
+    if name not in groups:
+        parser = subparsers.add_parser(name, help=help)
+        groups[name] = parser.add_subparsers(dest=f"{name}_command", metavar="WHAT", required=True)
+    return groups[name]
+
+
 def config_from_args(args: argparse.Namespace, host: PluginHost) -> Any:
     """Resolve the experiment config from parsed ``--scene/--config/--set`` arguments."""
     return resolve_config(args.scene, args.config, args.overrides, host=host)

@@ -16,7 +16,7 @@ import torch
 from torch import nn
 
 from .checkpoint import load, save
-from .assembly import build_context
+from .assembly import build_context, enrich_context
 from .components import Metric, SensorFamily, TactileDataset
 from .config import SLOT_KINDS, ExperimentConfig
 from .errors import VqtouchError
@@ -82,7 +82,7 @@ def run_demo(config: ExperimentConfig, host: Any, run: RunDir) -> dict[str, Any]
     built: dict[str, Any] = {}
     context = build_context(config)
     # The data come first: their class count is part of the context the models are built with.
-    ordered = sorted(config.required_slots(), key=lambda path: path != "data.dataset")
+    ordered = sorted(config.required_slots(), key=lambda p: (p != "data.dataset", p != "tokenizer.encoder"))
     for path in progress(ordered, desc="components", unit="slot"):
         value = config.slot(path)
         if value is None and path not in missing:  # an optional slot left empty
@@ -116,7 +116,7 @@ def run_demo(config: ExperimentConfig, host: Any, run: RunDir) -> dict[str, Any]
                 record["sanity"] = _metric_sanity(component, generator)
             if isinstance(component, TactileDataset):
                 record["data"] = _preview_dataset(component, run, slot)
-                context = context.model_copy(update={"num_classes": component.num_classes})
+            context = enrich_context(context, component)
             record["status"] = "built"
             built[slot] = component
             report["components"].append(record)

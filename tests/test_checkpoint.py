@@ -8,7 +8,7 @@ from torch import nn
 from vqtouch.core import BuildContext, CheckpointError, hookimpl, load, load_plugins, read_metadata, save
 from vqtouch.core.checkpoint import FORMAT_VERSION, atomic_write
 
-CONTEXT = BuildContext(image_size=32, num_classes=5, cond_dim=16)
+CONTEXT = BuildContext(image_size=32, num_classes=5, cond_dim=16, latent_dim=8)
 
 
 def _nn_components(host):

@@ -1,0 +1,156 @@
+"""Training and evaluating a tactile tokenizer (any encoder plugin + any quantizer plugin).
+
+Objective (VQGAN's, with its safeguards)::
+
+    nll   = l1_weight * |x - x_hat| + perceptual_weight * P(x_hat, x)
+    g     = -mean D(x_hat)                                   (from disc_start on)
+    L_G   = nll + lambda * adversarial_weight * g + codebook_weight * L_vq
+    L_D   = 0.5 * (mean relu(1 - D(x)) + mean relu(1 + D(x_hat)))   (hinge)
+
+``lambda`` is the adaptive weight at the decoder's last layer (fp32, clamped, 0 when not
+finite).  The discriminator is not trained before ``disc_start``.  Images enter in [-1, 1].
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import nn
+
+from vqtouch.core import BuildContext, Encoder, Metric, Quantizer
+from vqtouch.core.assembly import enrich_context
+from vqtouch.core.config import ExperimentConfig, TokenizerLossConfig
+from vqtouch.core.training import collate_samples
+
+from .vqgan.discriminator import adaptive_weight, hinge_discriminator_loss
+
+
+@dataclass
+class Tokenizer:
+    """An encoder plugin and a quantizer plugin used together."""
+
+    encoder: Encoder
+    quantizer: Quantizer
+
+    def reconstruct(self, images_B3HW: torch.Tensor) -> tuple[torch.Tensor, Any]:
+        """Images in [0, 1] -> reconstructions in [0, 1] (clamped) and the quantizer output."""
+        output = self.quantizer(self.encoder.encode(images_B3HW * 2 - 1))
+        return ((self.encoder.decode(output.quantized_BDhw).float() + 1) / 2).clamp(0, 1), output
+
+    def eval(self) -> Tokenizer:
+        """Both parts in eval mode."""
+        self.encoder.eval()
+        self.quantizer.eval()
+        return self
+
+
+def build_tokenizer(config: ExperimentConfig, host: Any, context: BuildContext) -> tuple[Tokenizer, BuildContext]:
+    """Build encoder then quantizer (which takes the encoder's latent width from the context)."""
+    encoder = host.build("encoder", config.tokenizer.encoder, context)
+    context = enrich_context(context, encoder)
+    quantizer = host.build("quantizer", config.tokenizer.quantizer, context)
+    return Tokenizer(encoder, quantizer), enrich_context(context, quantizer)
+
+
+class TokenizerTask:
+    """The tokenizer objective as a :class:`vqtouch.core.training.TrainingTask`."""
+
+    def __init__(self, tokenizer: Tokenizer, loss: TokenizerLossConfig, discriminator: nn.Module | None = None,
+                 perceptual: nn.Module | None = None) -> None:
+        self.tokenizer = tokenizer
+        self.loss = loss
+        self.discriminator = discriminator if loss.adversarial_weight > 0 else None
+        self.perceptual = perceptual if loss.perceptual_weight > 0 else None
+        self.modules: dict[str, nn.Module] = {"encoder": tokenizer.encoder, "quantizer": tokenizer.quantizer}
+        if self.discriminator is not None:
+            self.modules["discriminator"] = self.discriminator
+
+    def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
+        """The generator (encoder + quantizer) and, when used, the discriminator."""
+        groups = {"generator": [p for name in ("encoder", "quantizer")
+                                for p in self.modules[name].parameters() if p.requires_grad]}
+        if self.discriminator is not None:
+            groups["discriminator"] = list(self.discriminator.parameters())
+        return groups
+
+    def training_step(self, batch: dict[str, Any], step: int, trainer: Any) -> dict[str, float]:
+        """One generator step, then (from disc_start) one discriminator step."""
+        images = batch["tactile"] * 2 - 1
+        encoder, quantizer = self.tokenizer.encoder, self.tokenizer.quantizer
+        encoder.train()
+        quantizer.train()
+        with trainer.autocast():
+            latents = encoder.encode(images)
+        output = quantizer(latents)  # fp32 inside, whatever the autocast
+        with trainer.autocast():
+            reconstruction = encoder.decode(output.quantized_BDhw)
+        reconstruction = reconstruction.float()
+        l1 = (images - reconstruction).abs().mean()
+        nll = self.loss.l1_weight * l1
+        scalars = {"l1": float(l1.detach()), "vq_loss": float(output.loss.detach()),
+                   "perplexity": float(output.perplexity)}
+        if self.perceptual is not None:
+            perceptual = self.perceptual(reconstruction, images).mean()
+            nll = nll + self.loss.perceptual_weight * perceptual
+            scalars["perceptual"] = float(perceptual.detach())
+        total = nll + self.loss.codebook_weight * output.loss
+        adversarial_on = self.discriminator is not None and step >= self.loss.disc_start
+        if adversarial_on:
+            with trainer.autocast():
+                generator_loss = -self.discriminator(reconstruction).float().mean()
+            weight = adaptive_weight(nll, generator_loss, encoder.last_layer_weight(), self.loss.adaptive_weight_max)
+            total = total + weight * self.loss.adversarial_weight * generator_loss
+            scalars |= {"g_loss": float(generator_loss.detach()), "adaptive_weight": float(weight)}
+        trainer.optimize("generator", total)
+        scalars["loss"] = float(total.detach())
+        if adversarial_on:
+            with trainer.autocast():
+                logits_real = self.discriminator(images)
+                logits_fake = self.discriminator(reconstruction.detach())
+            disc_loss = hinge_discriminator_loss(logits_real, logits_fake)
+            trainer.optimize("discriminator", disc_loss)
+            scalars["d_loss"] = float(disc_loss.detach())
+        offsets = getattr(encoder, "offset_magnitude", lambda: None)()
+        if offsets is not None:
+            scalars["mean_abs_offset"] = offsets
+        return scalars
+
+
+@torch.no_grad()
+def evaluate_reconstruction(tokenizer: Tokenizer, dataset: Any, metrics: dict[str, Metric], *, batch_size: int = 32,
+                            device: torch.device | str = "cpu", keep: int = 8) -> dict[str, Any]:
+    """Reconstruct every sample of ``dataset``; metrics, codebook usage, perplexity and speed.
+
+    Returns the scores and, under ``"examples"``, the first ``keep`` (original, reconstruction)
+    pairs for a picture.
+    """
+    tokenizer.eval()
+    for metric in metrics.values():
+        metric.reset()
+    codebook = torch.zeros(tokenizer.quantizer.codebook_size, dtype=torch.long)
+    originals, reconstructions = [], []
+    seconds, count = 0.0, 0
+    for start in range(0, len(dataset), batch_size):
+        batch = collate_samples([dataset[i] for i in range(start, min(start + batch_size, len(dataset)))])
+        images = batch["tactile"].to(device)
+        tic = time.perf_counter()
+        reconstruction, output = tokenizer.reconstruct(images)
+        seconds += time.perf_counter() - tic
+        count += len(images)
+        for metric in metrics.values():
+            metric.update(reconstruction.cpu(), images.cpu())
+        codebook += torch.bincount(output.codes_Bhw.flatten().cpu(), minlength=codebook.numel())
+        if len(originals) < keep:
+            originals.extend(images[: keep - len(originals)].cpu())
+            reconstructions.extend(reconstruction[: keep - len(reconstructions)].cpu())
+    probabilities = codebook.double() / codebook.sum()
+    entropy = -(probabilities[probabilities > 0] * probabilities[probabilities > 0].log()).sum()
+    scores: dict[str, Any] = {name: metric.compute() for name, metric in metrics.items()}
+    scores |= {"codebook_usage": float((codebook > 0).double().mean()), "codes_used": int((codebook > 0).sum()),
+               "perplexity": float(entropy.exp()), "samples": count,
+               "reconstructions_per_second": count / max(seconds, 1e-9),
+               "examples": (torch.stack(originals), torch.stack(reconstructions))}
+    return scores

@@ -1,0 +1,317 @@
+"""Deformable convolution: torchvision parity, identity at init, gradients, bounds and dtypes."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from vqtouch.plugins.vqgan.deformable import (DeformableConv2d, deform_conv2d_grid_sample,
+                                              deform_conv2d_torchvision)
+
+torchvision_ops = pytest.importorskip("torchvision.ops")
+
+HEIGHT, WIDTH = 9, 11  # non-square on purpose: catches (dy, dx) / (x, y) swaps
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Tiny tensors gain nothing from intra-op threads, and on a shared 2-core machine OpenMP
+    with busy cores made single calls 10-100x slower; restored for the rest of the session."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def out_size(size: int, kernel: int, stride: int, padding: int, dilation: int) -> int:
+    return (size + 2 * padding - dilation * (kernel - 1) - 1) // stride + 1
+
+
+def random_problem(kernel=3, stride=1, padding=1, dilation=1, with_mask=True, offset_groups=1, in_channels=4,
+                   out_channels=6, batch=2, offset_scale=3.0, dtype=torch.float32, seed=0):
+    """Input, offset, weight, bias, mask with random non-integer offsets, some far outside the image."""
+    generator = torch.Generator().manual_seed(seed)
+    out_h = out_size(HEIGHT, kernel, stride, padding, dilation)
+    out_w = out_size(WIDTH, kernel, stride, padding, dilation)
+    taps = kernel * kernel
+    x = torch.randn(batch, in_channels, HEIGHT, WIDTH, generator=generator, dtype=dtype)
+    offset = offset_scale * torch.randn(batch, 2 * offset_groups * taps, out_h, out_w, generator=generator,
+                                        dtype=dtype)
+    weight = torch.randn(out_channels, in_channels, kernel, kernel, generator=generator, dtype=dtype)
+    bias = torch.randn(out_channels, generator=generator, dtype=dtype)
+    mask = torch.rand(batch, offset_groups * taps, out_h, out_w, generator=generator, dtype=dtype) \
+        if with_mask else None
+    return x, offset, weight, bias, mask
+
+
+# -- forward parity with torchvision --------------------------------------------------------
+
+
+@pytest.mark.parametrize("kernel", [3, 1])
+@pytest.mark.parametrize("stride", [1, 2])
+@pytest.mark.parametrize("padding", [0, 1, 2])
+@pytest.mark.parametrize("dilation", [1, 2])
+@pytest.mark.parametrize("with_mask", [True, False])
+def test_grid_sample_matches_torchvision(kernel, stride, padding, dilation, with_mask):
+    x, offset, weight, bias, mask = random_problem(kernel, stride, padding, dilation, with_mask)
+    # The offsets must exercise the boundary: some taps land outside the image.
+    assert offset.abs().max() > WIDTH / 2
+    assert not torch.equal(offset, offset.round())
+    ours = deform_conv2d_grid_sample(x, offset, weight, bias, stride, padding, dilation, mask)
+    reference = torchvision_ops.deform_conv2d(x, offset, weight, bias, stride=stride, padding=padding,
+                                              dilation=dilation, mask=mask)
+    assert ours.shape == reference.shape
+    torch.testing.assert_close(ours, reference, atol=1e-4, rtol=1e-4)
+
+
+def test_offset_groups_weight_groups_and_pair_arguments_match_torchvision():
+    generator = torch.Generator().manual_seed(1)
+    out_h, out_w = out_size(HEIGHT, 3, 1, 1, 1), out_size(WIDTH, 3, 2, 2, 1)
+    x = torch.randn(2, 4, HEIGHT, WIDTH, generator=generator)
+    offset = 2.5 * torch.randn(2, 2 * 2 * 9, out_h, out_w, generator=generator)  # 2 offset groups
+    mask = torch.rand(2, 2 * 9, out_h, out_w, generator=generator)
+    grouped_weight = torch.randn(6, 2, 3, 3, generator=generator)  # 2 weight groups of 2 input channels
+    bias = torch.randn(6, generator=generator)
+    ours = deform_conv2d_grid_sample(x, offset, grouped_weight, bias, (1, 2), (1, 2), (1, 1), mask)
+    reference = torchvision_ops.deform_conv2d(x, offset, grouped_weight, bias, stride=(1, 2), padding=(1, 2),
+                                              mask=mask)
+    torch.testing.assert_close(ours, reference, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize("stride,padding,dilation", [(1, 1, 1), (2, 0, 1), (1, 2, 2), (2, 1, 2)])
+def test_zero_offsets_and_unit_mask_equal_conv2d(stride, padding, dilation):
+    x, offset, weight, bias, mask = random_problem(3, stride, padding, dilation)
+    offset, mask = torch.zeros_like(offset), torch.ones_like(mask)
+    expected = F.conv2d(x, weight, bias, stride=stride, padding=padding, dilation=dilation)
+    for function in (deform_conv2d_grid_sample, deform_conv2d_torchvision):
+        torch.testing.assert_close(function(x, offset, weight, bias, stride, padding, dilation, mask), expected,
+                                   atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(function(x, offset, weight, bias, stride, padding, dilation, None), expected,
+                                   atol=1e-5, rtol=1e-5)
+
+
+# -- the layer ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("modulation", [True, False])
+@pytest.mark.parametrize("backend", ["grid_sample", "torchvision"])
+@pytest.mark.parametrize("stride,padding", [(1, 1), (2, 0)])
+def test_layer_at_init_equals_plain_conv(modulation, backend, stride, padding):
+    layer = DeformableConv2d(5, 8, stride=stride, padding=padding, modulation=modulation, backend=backend)
+    x = torch.randn(2, 5, HEIGHT, WIDTH)
+    expected = F.conv2d(x, layer.weight, layer.bias, stride=stride, padding=padding)
+    torch.testing.assert_close(layer(x), expected, atol=1e-5, rtol=1e-5)
+    offset, mask = layer.offsets_and_mask(x)
+    assert torch.count_nonzero(offset) == 0
+    assert (mask is None) == (not modulation)
+    if mask is not None:
+        assert torch.equal(mask, torch.ones_like(mask))  # 2 * sigmoid(0) == 1 exactly
+    assert layer.last_mean_abs_offset == 0.0
+
+
+def test_layer_without_bias_and_offset_groups():
+    layer = DeformableConv2d(4, 6, groups=2, bias=False)
+    x = torch.randn(2, 4, HEIGHT, WIDTH)
+    torch.testing.assert_close(layer(x), F.conv2d(x, layer.weight, None, padding=1), atol=1e-5, rtol=1e-5)
+    with torch.no_grad():
+        layer.offset_conv.weight.normal_(0, 0.3)
+    offset, mask = layer.offsets_and_mask(x)
+    assert offset.shape == (2, 2 * 2 * 9, HEIGHT, WIDTH) and mask.shape == (2, 2 * 9, HEIGHT, WIDTH)
+    reference = torchvision_ops.deform_conv2d(x, offset, layer.weight, None, padding=1, mask=mask)
+    torch.testing.assert_close(layer(x), reference, atol=1e-4, rtol=1e-4)
+
+
+def test_last_mean_abs_offset_reports_detached_float():
+    layer = DeformableConv2d(4, 4)
+    assert layer.last_mean_abs_offset is None
+    with torch.no_grad():
+        layer.offset_conv.bias.uniform_(-1, 1)
+    x = torch.randn(2, 4, HEIGHT, WIDTH)
+    layer(x).sum().backward()
+    offset, _ = layer.offsets_and_mask(x)
+    value = layer.last_mean_abs_offset
+    assert isinstance(value, float)
+    assert value == pytest.approx(offset.abs().mean().item(), rel=1e-6)
+    assert not layer._last_mean_abs_offset.requires_grad
+
+
+def test_trained_offsets_get_gradients():
+    """Zero-init must not freeze the branch: the offset conv gets a non-zero gradient at init."""
+    layer = DeformableConv2d(4, 4)
+    x = torch.randn(2, 4, HEIGHT, WIDTH)
+    (layer(x) ** 2).sum().backward()
+    assert layer.offset_conv.weight.grad.abs().sum() > 0
+    assert all(p is layer.offset_conv.weight or p is layer.offset_conv.bias for p in layer.offset_parameters())
+
+
+# -- gradients ---------------------------------------------------------------------------------
+
+
+def off_integer_problem(stride: int, with_mask: bool):
+    """Float64 problem whose sample positions all sit 0.2-0.8 px from any integer (bilinear
+    interpolation has kinks at integer positions, where finite differences disagree with autograd)."""
+    generator = torch.Generator().manual_seed(3)
+    height, width, kernel = 4, 5, 3
+    out_h, out_w = out_size(height, kernel, stride, 1, 1), out_size(width, kernel, stride, 1, 1)
+    x = torch.randn(1, 2, height, width, generator=generator, dtype=torch.float64)
+    whole = torch.randint(-2, 3, (1, 18, out_h, out_w), generator=generator).double()
+    fraction = 0.2 + 0.6 * torch.rand(1, 18, out_h, out_w, generator=generator, dtype=torch.float64)
+    offset = whole + fraction
+    weight = torch.randn(2, 2, kernel, kernel, generator=generator, dtype=torch.float64)
+    bias = torch.randn(2, generator=generator, dtype=torch.float64)
+    mask = torch.rand(1, 9, out_h, out_w, generator=generator, dtype=torch.float64) if with_mask else None
+    return x, offset, weight, bias, mask
+
+
+@pytest.mark.parametrize("stride", [1, 2])
+@pytest.mark.parametrize("with_mask", [True, False])
+def test_gradcheck_grid_sample_path(stride, with_mask):
+    x, offset, weight, bias, mask = off_integer_problem(stride, with_mask)
+    inputs = [t.requires_grad_() for t in (x, offset, weight, bias) + ((mask,) if with_mask else ())]
+
+    def function(x, offset, weight, bias, mask=None):
+        return deform_conv2d_grid_sample(x, offset, weight, bias, stride=stride, padding=1, mask=mask)
+
+    assert torch.autograd.gradcheck(function, inputs, eps=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("with_mask", [True, False])
+@pytest.mark.parametrize("stride,padding,dilation", [(1, 1, 1), (2, 0, 2)])
+def test_backends_agree_on_gradients(with_mask, stride, padding, dilation):
+    x, offset, weight, bias, mask = random_problem(3, stride, padding, dilation, with_mask, seed=5)
+    gradients = []
+    for function in (deform_conv2d_grid_sample, deform_conv2d_torchvision):
+        leaves = [t.detach().clone().requires_grad_() for t in (x, offset, weight, bias)]
+        leaf_mask = mask.detach().clone().requires_grad_() if with_mask else None
+        out = function(*leaves, stride=stride, padding=padding, dilation=dilation, mask=leaf_mask)
+        upstream = torch.linspace(-1, 1, out.numel()).view_as(out)
+        (out * upstream).sum().backward()
+        gradients.append([t.grad for t in leaves] + ([leaf_mask.grad] if with_mask else []))
+    for ours, reference in zip(*gradients):
+        torch.testing.assert_close(ours, reference, atol=1e-4, rtol=1e-4)
+
+
+# -- stability ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("backend", ["grid_sample", "torchvision"])
+@pytest.mark.parametrize("modulation", [True, False])
+def test_huge_raw_offsets_stay_bounded_and_finite(backend, modulation):
+    layer = DeformableConv2d(4, 4, modulation=modulation, max_offset=3.0, backend=backend)
+    with torch.no_grad():
+        layer.offset_conv.bias.fill_(1e6)
+    x = torch.randn(2, 4, HEIGHT, WIDTH, requires_grad=True)
+    out = layer(x)
+    assert torch.isfinite(out).all()
+    offset, mask = layer.offsets_and_mask(x)
+    assert offset.abs().max() <= 3.0
+    assert layer.last_mean_abs_offset == pytest.approx(3.0)
+    if mask is not None:
+        assert mask.max() <= 2.0
+    out.square().mean().backward()
+    assert torch.isfinite(x.grad).all() and torch.isfinite(layer.weight.grad).all()
+    assert torch.isfinite(layer.offset_conv.weight.grad).all()
+
+
+def scrambled_layer(backend: str, modulation: bool = True) -> DeformableConv2d:
+    """A layer whose offset branch is no longer at its zero init (as after some training)."""
+    torch.manual_seed(7)
+    layer = DeformableConv2d(4, 6, modulation=modulation, backend=backend)
+    with torch.no_grad():
+        layer.offset_conv.weight.normal_(0, 0.5)
+        layer.offset_conv.bias.normal_(0, 1.0)
+    return layer
+
+
+@pytest.mark.parametrize("backend", ["grid_sample", "torchvision"])
+@pytest.mark.parametrize("fill", [0.0, 1.0, -1.0])
+def test_constant_and_saturated_inputs_batch_one(backend, fill):
+    layer = scrambled_layer(backend)
+    x = torch.full((1, 4, HEIGHT, WIDTH), fill, requires_grad=True)
+    out = layer(x)
+    assert out.shape == (1, 6, HEIGHT, WIDTH)
+    assert torch.isfinite(out).all()
+    out.sum().backward()
+    assert torch.isfinite(x.grad).all() and torch.isfinite(layer.offset_conv.weight.grad).all()
+
+
+@pytest.mark.parametrize("backend", ["grid_sample", "torchvision"])
+def test_bfloat16_autocast_on_cpu(backend):
+    layer = scrambled_layer(backend)
+    x = torch.randn(2, 4, HEIGHT, WIDTH)
+    reference = layer(x)
+    x_leaf = x.clone().requires_grad_()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = layer(x_leaf)
+    assert out.dtype == torch.bfloat16
+    assert torch.isfinite(out).all()
+    scale = reference.abs().max().item()
+    torch.testing.assert_close(out.float(), reference, atol=1.5e-2 * scale, rtol=1.5e-2)
+    out.float().square().mean().backward()
+    assert torch.isfinite(x_leaf.grad).all() and torch.isfinite(layer.offset_conv.weight.grad).all()
+
+
+@pytest.mark.parametrize("backend", ["grid_sample", "torchvision"])
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float64])
+def test_layer_cast_to_other_dtypes(backend, dtype):
+    layer = scrambled_layer(backend)
+    x = torch.randn(2, 4, HEIGHT, WIDTH)
+    reference = layer(x)
+    layer = layer.to(dtype)
+    out = layer(x.to(dtype))
+    assert out.dtype == dtype and torch.isfinite(out).all()
+    tolerance = 5e-2 * reference.abs().max().item() if dtype == torch.bfloat16 else 1e-5
+    torch.testing.assert_close(out.float(), reference, atol=tolerance, rtol=5e-2)
+
+
+# -- errors and imports ------------------------------------------------------------------------
+
+
+def test_layer_rejects_bad_inputs():
+    layer = DeformableConv2d(4, 6)
+    with pytest.raises(ValueError, match="4-D input"):
+        layer(torch.randn(4, HEIGHT, WIDTH))
+    with pytest.raises(ValueError, match="expected 4 input channels, got 3"):
+        layer(torch.randn(2, 3, HEIGHT, WIDTH))
+    with pytest.raises(ValueError, match="too small"):
+        DeformableConv2d(4, 6, padding=0, dilation=4)(torch.randn(1, 4, 5, 5))
+
+
+def test_constructor_rejects_bad_arguments():
+    with pytest.raises(ValueError, match="backend"):
+        DeformableConv2d(4, 4, backend="cuda_magic")
+    with pytest.raises(ValueError, match="max_offset"):
+        DeformableConv2d(4, 4, max_offset=0.0)
+    with pytest.raises(ValueError, match="max_offset"):
+        DeformableConv2d(4, 4, max_offset=float("inf"))
+    with pytest.raises(ValueError, match="offset groups"):
+        DeformableConv2d(4, 4, groups=3)
+    with pytest.raises(ValueError, match="kernel_size"):
+        DeformableConv2d(4, 4, kernel_size=(3, 3, 3))
+
+
+@pytest.mark.parametrize("function", [deform_conv2d_grid_sample, deform_conv2d_torchvision])
+def test_functions_reject_bad_shapes(function):
+    x, offset, weight, bias, mask = random_problem()
+    with pytest.raises(ValueError, match="input must be"):
+        function(x[0], offset, weight, bias, mask=mask)
+    with pytest.raises(ValueError, match="offset spatial size"):
+        function(x, offset[..., :-1], weight, bias, padding=1, mask=mask)
+    with pytest.raises(ValueError, match="offset must be"):
+        function(x, offset[:, :-1], weight, bias, padding=1, mask=mask)
+    with pytest.raises(ValueError, match="mask must be"):
+        function(x, offset, weight, bias, padding=1, mask=mask[:, :-1])
+    with pytest.raises(ValueError, match="not a multiple"):
+        function(x, offset, weight[:, :3], bias, padding=1, mask=mask)
+    with pytest.raises(ValueError, match="bias must be"):
+        function(x, offset, weight, bias[:-1], padding=1, mask=mask)
+
+
+def test_importing_the_module_does_not_import_torchvision():
+    code = ("import sys, vqtouch.plugins.vqgan.deformable as d; "
+            "assert 'torchvision' not in sys.modules, sorted(m for m in sys.modules if 'torchvision' in m)[:5]")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
