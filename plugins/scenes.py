@@ -11,6 +11,9 @@ from vqtouch.core import hookimpl
 
 _METRICS = [{"name": "psnr"}, {"name": "ssim"}]
 _DATA = {"dataset": {"name": "procedural"}}
+#: The paper's tokenizer: DM-VQGAN + nearest-neighbour VQ, trained with a PatchGAN.
+_TOKENIZER = {"encoder": {"name": "dm_vqgan"}, "quantizer": {"name": "vq", "codebook_size": 512},
+              "discriminator": {"name": "patchgan"}}
 #: An unseen "derivative" GelSight: same family, drifted illumination and a slightly worn gel.
 GELSIGHT_DERIVATIVE_I = {"name": "gelsight", "variant": {
     "colour_gain": [1.08, 0.95, 0.9], "illumination_shift": 0.03, "background_drift": 0.05, "wear_blur": 0.008,
@@ -22,38 +25,38 @@ GELSIGHT_DERIVATIVE_II = {"name": "gelsight", "variant": {
 SCENES: dict[str, tuple[str, dict]] = {
     "reconstruction": (
         "Train a tactile tokenizer and measure how well it reconstructs held-out images.",
-        {"stages": ["tokenizer", "reconstruct", "evaluate"], "metrics": _METRICS, "sensor": {"name": "gelsight"},
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "reconstruct", "evaluate"], "metrics": _METRICS, "sensor": {"name": "gelsight"},
          "data": _DATA},
     ),
     "few-shot": (
         "Adapt to an unseen sensor from a few images mixed 1:5 with its family's data, then generate for it.",
-        {"stages": ["tokenizer", "cluster", "adapt", "generator", "evaluate"], "metrics": _METRICS,
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "cluster", "adapt", "generator", "evaluate"], "metrics": _METRICS,
          "conditioner": {"name": "label"}, "sensor": {"name": "gelsight"}, "target_sensor": GELSIGHT_DERIVATIVE_I,
          "data": {"dataset": {"name": "procedural", "num_samples": 500}}},
     ),
     "zero-shot": (
         "Assign an unseen sensor to its family without any of its images and reuse the family tokenizer.",
-        {"stages": ["tokenizer", "cluster", "reconstruct", "evaluate"], "metrics": _METRICS,
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "cluster", "reconstruct", "evaluate"], "metrics": _METRICS,
          "sensor": {"name": "gelsight"}, "target_sensor": GELSIGHT_DERIVATIVE_II, "data": _DATA},
     ),
     "cross-sensor": (
         "Train on one sensor, adapt and evaluate on another (e.g. GelSight -> GelSight Mini).",
-        {"stages": ["tokenizer", "adapt", "reconstruct", "evaluate"], "metrics": _METRICS,
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "adapt", "reconstruct", "evaluate"], "metrics": _METRICS,
          "sensor": {"name": "gelsight"}, "target_sensor": {"name": "gelsight_mini"}, "data": _DATA},
     ),
     "vision-to-touch": (
         "Generate the tactile image of a contact from a visual image of it (frozen CLIP condition).",
-        {"stages": ["tokenizer", "generator", "evaluate"], "metrics": _METRICS,
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator", "evaluate"], "metrics": _METRICS,
          "conditioner": {"name": "clip"}, "sensor": {"name": "gelsight"}, "data": _DATA},
     ),
     "label-to-touch": (
         "Generate tactile images of a given object class (label condition).",
-        {"stages": ["tokenizer", "generator", "evaluate"], "metrics": _METRICS,
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator", "evaluate"], "metrics": _METRICS,
          "conditioner": {"name": "label"}, "sensor": {"name": "gelsight"}, "data": _DATA},
     ),
     "touch-to-touch": (
         "Generate a tactile image for a target sensor from another tactile image (tactile condition).",
-        {"stages": ["tokenizer", "generator", "evaluate"], "metrics": _METRICS,
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator", "evaluate"], "metrics": _METRICS,
          "conditioner": {"name": "tactile"}, "sensor": {"name": "gelsight"}, "target_sensor": {"name": "digit"},
          "data": _DATA},
     ),

@@ -1,0 +1,188 @@
+"""Tokenizer autoencoders (every registered encoder), the tokenizer objective and its commands."""
+
+import json
+
+import pytest
+import torch
+
+from vqtouch.core import BuildContext, ConfigError, Encoder, load_plugins, resolve_config
+from vqtouch.core.assembly import build_components
+
+HOST = load_plugins(autoload=False)
+ENCODERS = HOST.registry("encoder").names()
+TINY = {"channels": 16, "norm_groups": 8, "channel_multipliers": [1, 2], "z_channels": 16, "embed_dim": 8}
+CONTEXT = BuildContext(image_size=32)
+
+
+def tiny_encoder(name, **options):
+    torch.manual_seed(0)
+    return HOST.build("encoder", {"name": name, **TINY, **options}, CONTEXT)
+
+
+def test_both_paper_tokenizers_are_registered():
+    assert {"vqgan", "dm_vqgan"} <= set(ENCODERS)
+
+
+@pytest.mark.parametrize("name", ENCODERS)
+def test_encoder_contract(name):
+    encoder = tiny_encoder(name)
+    assert isinstance(encoder, Encoder) and encoder.downsample_factor == 2 and encoder.latent_channels == 8
+    images = torch.rand(2, 3, 32, 32) * 2 - 1
+    latents = encoder.encode(images)
+    assert latents.shape == (2, 8, 16, 16)
+    assert encoder.decode(latents).shape == (2, 3, 32, 32)
+    assert encoder.last_layer_weight() is encoder.dec_out.weight
+
+
+@pytest.mark.parametrize("name", ENCODERS)
+@pytest.mark.parametrize("value", [-1.0, 1.0, 0.0])
+def test_black_white_constant_images_and_batch_one_stay_finite(name, value):
+    encoder = tiny_encoder(name)
+    images = torch.full((1, 3, 32, 32), value)
+    output = encoder.decode(encoder.encode(images))
+    assert torch.isfinite(output).all()
+    output.abs().mean().backward()
+    assert all(torch.isfinite(p.grad).all() for p in encoder.parameters() if p.grad is not None)
+
+
+@pytest.mark.parametrize("name", ENCODERS)
+def test_bf16_autocast_is_finite_and_close_to_fp32(name):
+    encoder = tiny_encoder(name).eval()
+    images = torch.rand(2, 3, 32, 32) * 2 - 1
+    with torch.no_grad():
+        reference = encoder.decode(encoder.encode(images))
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            low = encoder.decode(encoder.encode(images)).float()
+    assert torch.isfinite(low).all()
+    assert (low - reference).abs().mean() < 0.05 * reference.abs().mean() + 1e-3
+
+
+def test_dm_vqgan_starts_close_to_vqgan_and_bounds_huge_offsets():
+    dm = tiny_encoder("dm_vqgan")
+    deformable = [m for m in dm.modules() if type(m).__name__ == "DeformableConv2d"]
+    assert deformable, "dm_vqgan must contain deformable convolutions"
+    fusion = [m for m in dm.modules() if type(m).__name__ == "MultiScaleFusion"]
+    assert len(fusion) == 2 and all(torch.count_nonzero(f.fuse.weight) == 0 for f in fusion)
+    for layer in deformable:  # push the offset branch to absurd raw offsets
+        torch.nn.init.constant_(layer.offset_conv.bias, 1e6)
+    output = dm.decode(dm.encode(torch.rand(1, 3, 32, 32) * 2 - 1))
+    assert torch.isfinite(output).all()
+    assert dm.offset_magnitude() is not None and dm.offset_magnitude() <= 4.0 + 1e-4
+
+
+def test_dm_options_ablate_each_part():
+    plain = tiny_encoder("dm_vqgan", deformable_max_resolution=0, fusion=False)
+    assert not any(type(m).__name__ in {"DeformableConv2d", "MultiScaleFusion"} for m in plain.modules())
+    vanilla = tiny_encoder("vqgan")
+    assert sum(p.numel() for p in plain.parameters()) == sum(p.numel() for p in vanilla.parameters())
+
+
+def test_bad_configs_are_clear():
+    with pytest.raises(ConfigError, match="multiple of norm_groups"):
+        HOST.build("encoder", {"name": "vqgan", "channels": 20, "norm_groups": 8}, CONTEXT)
+    with pytest.raises(ConfigError, match="not divisible by the tokenizer's downsampling factor"):
+        HOST.build("encoder", {"name": "vqgan", **TINY, "channel_multipliers": [1, 1, 1, 1, 1, 1]},
+                   BuildContext(image_size=48))
+    with pytest.raises(ConfigError, match="unknown option 'max_offset'"):
+        HOST.build("encoder", {"name": "vqgan", "max_offset": 2.0}, CONTEXT)  # a DM option on vanilla VQGAN
+
+
+def test_reconstruction_never_builds_a_discriminator_or_generator():
+    config = resolve_config("reconstruction", host=HOST)
+    assert config.tokenizer.discriminator is not None  # the training stage would use it ...
+    built = build_components(config, HOST, slots=[s for s in ("tokenizer.encoder", "tokenizer.quantizer")],
+                             context=BuildContext(image_size=64))
+    assert "reconstruct" in config.stages
+    from vqtouch.core.config import STAGE_SLOTS
+
+    assert "tokenizer.discriminator" not in STAGE_SLOTS["reconstruct"]  # ... reconstructing never does
+    assert set(built) == {"tokenizer.encoder", "tokenizer.quantizer"}
+
+
+# -- the objective ----------------------------------------------------------------------------
+
+def test_adaptive_weight_is_guarded_against_non_finite_values():
+    from vqtouch.plugins.vqgan.discriminator import adaptive_weight
+
+    layer = torch.nn.Parameter(torch.ones(3))
+    good = adaptive_weight((layer * 2).sum(), (layer * 4).sum(), layer)
+    assert good == pytest.approx(0.5, rel=1e-3)  # ||grad nll|| / ||grad g|| = 2 / 4
+    nan = adaptive_weight((layer * float("nan")).sum(), (layer * 4).sum(), layer)
+    assert nan == 0.0
+    huge = adaptive_weight((layer * 1e12).sum(), (layer * 1e-12).sum(), layer, maximum=10.0)
+    assert huge == 10.0
+
+
+def test_hinge_loss_closed_form():
+    from vqtouch.plugins.vqgan.discriminator import hinge_discriminator_loss
+
+    real, fake = torch.tensor([2.0, 0.5]), torch.tensor([-2.0, 0.0])
+    # relu(1 - real) = [0, 0.5] -> 0.25; relu(1 + fake) = [0, 1] -> 0.5; half their sum = 0.375
+    assert float(hinge_discriminator_loss(real, fake)) == pytest.approx(0.375)
+
+
+TRAIN_OVERRIDES = ["tokenizer.encoder.channels=16", "tokenizer.encoder.norm_groups=8",
+                   "tokenizer.encoder.channel_multipliers=[1,2]", "tokenizer.encoder.z_channels=16",
+                   "tokenizer.encoder.embed_dim=8", "tokenizer.quantizer.codebook_size=32",
+                   "data.image_size=32", "data.batch_size=4", "data.dataset.num_samples=24", "train.steps=4",
+                   "train.log_every=1", "train.checkpoint_every=2", "tokenizer.loss.perceptual=none",
+                   "tokenizer.loss.disc_start=2", "metrics=[{\"name\": \"psnr\"}, {\"name\": \"ssim\"}]"]
+
+
+@pytest.mark.parametrize("encoder", ["vqgan", "dm_vqgan"])
+def test_train_tokenizer_end_to_end_then_reconstruct_and_evaluate(tmp_path, capsys, encoder):
+    from vqtouch.core.cli import main
+
+    run = tmp_path / "run"
+    args = ["--no-progress", "train", "tokenizer", "--out", str(run), "--set", f"tokenizer.encoder.name={encoder}"]
+    for override in TRAIN_OVERRIDES:
+        args += ["--set", override]
+    assert main(args) == 0
+    result = json.loads((run / "eval.json").read_text())
+    assert result["step"] == 4 and result["val_samples"] == 2 and 0 <= result["ssim"] <= 1
+    assert 0 < result["codebook_usage"] <= 1 and result["perplexity"] >= 1
+    lines = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert "d_loss" not in lines[1] and "d_loss" in lines[2]  # the discriminator starts at disc_start=2
+    assert {p.name for p in (run / "checkpoints" / "step-00000004").iterdir()} == {
+        "encoder.safetensors", "quantizer.safetensors", "discriminator.safetensors", "trainer_state.safetensors"}
+    capsys.readouterr()
+    assert main(["reconstruct", "--run", str(run), "--taxim", "gelsight", "--out", str(tmp_path / "rec")]) == 0
+    assert "48 images from taxim gelsight real frames" in capsys.readouterr().out
+    assert json.loads((tmp_path / "rec" / "reconstruct.json").read_text())["images"] == 48
+    assert main(["evaluate", "reconstruction", "--run", str(run)]) == 0
+    evaluation = json.loads(capsys.readouterr().out)
+    assert evaluation["ssim"] == pytest.approx(result["ssim"], abs=1e-6)  # same weights, same split
+
+
+def test_train_tokenizer_resume_continues_the_run(tmp_path, capsys):
+    from vqtouch.core.cli import main
+
+    run = tmp_path / "run"
+    base = ["--no-progress", "train", "tokenizer", "--set", "tokenizer.encoder.name=vqgan"]
+    for override in TRAIN_OVERRIDES:
+        base += ["--set", override]
+    assert main(base + ["--out", str(run)]) == 0
+    config = json.loads((run / "config.json").read_text())
+    config["train"]["steps"] = 6
+    (run / "config.json").write_text(json.dumps(config))
+    assert main(["--no-progress", "train", "tokenizer", "--resume", str(run)]) == 0
+    assert "resumed" in capsys.readouterr().out
+    assert json.loads((run / "eval.json").read_text())["step"] == 6
+    assert main(["train", "tokenizer", "--resume", str(run), "--set", "seed=2"]) == 2
+
+
+@pytest.mark.parametrize("codebook_size", [2, 16384])
+def test_tiny_and_huge_codebooks_train_without_nan(tmp_path, codebook_size):
+    from vqtouch.core.cli import main
+
+    run = tmp_path / "run"
+    args = ["--no-progress", "train", "tokenizer", "--out", str(run), "--set", "tokenizer.encoder.name=vqgan",
+            "--set", "train.precision=bf16"]
+    for override in TRAIN_OVERRIDES:
+        args += ["--set", override]
+    args += ["--set", f"tokenizer.quantizer.codebook_size={codebook_size}"]
+    assert main(args) == 0
+    lines = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert all(all(value == value and abs(value) != float("inf") for value in line.values()
+                   if isinstance(value, float)) for line in lines)
+    assert lines[-1]["skipped_steps"] == 0.0
