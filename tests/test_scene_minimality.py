@@ -63,5 +63,9 @@ def test_missing_required_slot_names_stage_and_choices():
 
     host = load_plugins(autoload=False)
     config = resolve_config("label-to-touch", host=host)
-    with pytest.raises(ConfigError, match=r"stage 'tokenizer' needs tokenizer.encoder .* set tokenizer.encoder.name"):
+    with pytest.raises(ConfigError, match=r"stage 'generator' needs generator .* set generator.name to one of: "
+                                          r"none installed yet"):
         build_components(config, host)
+    emptied = resolve_config("label-to-touch", overrides=["tokenizer.encoder=null"], host=host)
+    with pytest.raises(ConfigError, match=r"stage 'tokenizer' needs tokenizer.encoder .* dm_vqgan, vqgan"):
+        build_components(emptied, host)
