@@ -175,15 +175,25 @@ def _evaluate_command(args: argparse.Namespace) -> int:
     config = validate_experiment(json.loads((run_path / "config.json").read_text()), host)
     tokenizer, folder = load_tokenizer(run_path, host, args.step)
     context = enrich_context(build_context(config), tokenizer.encoder)
-    dataset = host.build("dataset", config.data.dataset, context)
-    _, val_set = split_dataset(dataset, config.data.val_fraction, config.seed)
-    evaluated = dataset if args.split == "all" else val_set
+    if args.dataset:
+        # A separate held-out dataset (e.g. another seed), evaluated whole: runs trained on
+        # different amounts of data are then compared on the very same images.
+        try:
+            dataset_config = json.loads(args.dataset)
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"--dataset is not valid JSON: {exc}") from None
+        evaluated = host.build("dataset", dataset_config, context)
+    else:
+        dataset = host.build("dataset", config.data.dataset, context)
+        _, val_set = split_dataset(dataset, config.data.val_fraction, config.seed)
+        evaluated = dataset if args.split == "all" else val_set
     names = args.metrics.split(",") if args.metrics else [m.name for m in config.metrics]
     metrics = {name: host.build("metric", name, context) for name in names}
     scores = evaluate_reconstruction(tokenizer, evaluated, metrics, batch_size=config.data.batch_size)
     _save_examples(run_path, scores["examples"], f"reconstructions_{folder.name}.png")
-    result = {"checkpoint": str(folder), "split": args.split, **_printable(scores)}
-    (run_path / f"evaluation_{folder.name}.json").write_text(json.dumps(result, indent=2) + "\n")
+    result = {"checkpoint": str(folder), "split": "dataset" if args.dataset else args.split, **_printable(scores)}
+    suffix = "_dataset" if args.dataset else ""
+    (run_path / f"evaluation_{folder.name}{suffix}.json").write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result, indent=2))
     return 0
 
@@ -212,4 +222,6 @@ def vqtouch_add_commands(subparsers):
     recon.add_argument("--step", type=int, help="checkpoint step (default: latest)")
     recon.add_argument("--split", choices=["val", "all"], default="val", help="held-out split or all samples")
     recon.add_argument("--metrics", help="comma-separated metric plugins (default: the run's metrics)")
+    recon.add_argument("--dataset", help="evaluate on this dataset (JSON config, used whole) instead of the run's "
+                                         "held-out split, e.g. '{\"name\": \"procedural\", \"seed\": 999}'")
     recon.set_defaults(handler=_evaluate_command)
