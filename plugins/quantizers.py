@@ -37,14 +37,19 @@ CodebookInit = Literal["uniform", "normal"]
 
 # -- configs ------------------------------------------------------------------------------------
 
-class VectorQuantizerConfig(PluginConfig):
-    """Options of the ``vq`` quantizer: nearest-neighbour lookup, codebook trained by the VQ loss."""
+class _CodebookConfig(PluginConfig):
+    """Options every codebook quantizer has."""
 
-    name: Literal["vq"] = "vq"
     codebook_size: int = Field(1024, ge=2, le=65536, description="Number of codebook entries K.")
     embedding_dim: int = Field(
         0, ge=0, le=65536,
         description="Channels D of the latents; 0 takes the encoder's latent width from the build context.")
+
+
+class VectorQuantizerConfig(_CodebookConfig):
+    """Options of the ``vq`` quantizer: nearest-neighbour lookup, codebook trained by the VQ loss."""
+
+    name: Literal["vq"] = "vq"
     beta: float = Field(
         0.25, ge=0.0, le=100.0,
         description="Commitment weight: L = ||sg[z] - e||^2 + beta * ||z - sg[e]||^2 (codebook term weight 1).")
@@ -61,14 +66,10 @@ class VectorQuantizerConfig(PluginConfig):
         "uniform", description="Codebook init: 'uniform' = U(-1/K, 1/K) as in taming, 'normal' = N(0, 1).")
 
 
-class EmaVectorQuantizerConfig(PluginConfig):
+class EmaVectorQuantizerConfig(_CodebookConfig):
     """Options of the ``ema_vq`` quantizer: codebook = EMA of assigned latents, dead codes restarted."""
 
     name: Literal["ema_vq"] = "ema_vq"
-    codebook_size: int = Field(1024, ge=2, le=65536, description="Number of codebook entries K.")
-    embedding_dim: int = Field(
-        0, ge=0, le=65536,
-        description="Channels D of the latents; 0 takes the encoder's latent width from the build context.")
     beta: float = Field(
         0.25, ge=0.0, le=100.0,
         description="Commitment weight; the loss is beta * ||z - sg[e]||^2 only (the EMA moves the codebook).")
