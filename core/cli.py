@@ -97,16 +97,19 @@ def _cmd_config_scenes(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import run_demo
+    from .demo import run_demo, scale_for_demo
     from .runs import RunDir
 
     host = default_host()
     config = config_from_args(args, host)
+    if not args.full:
+        config = scale_for_demo(config, host)
     run = RunDir.create(config, argv=args.argv, host=host, path=args.out)
     report = run_demo(config, host, run)
     print(f"report: {run.path / 'report.md'}")
-    ready = sum(stage["status"] == "components ready" for stage in report["stages"])
-    print(f"scene {config.scene}: {ready}/{len(report['stages'])} stages have all their components")
+    ran = sum(stage["status"].startswith("ran") for stage in report["stages"])
+    waiting = sum(stage["status"].startswith("waiting") for stage in report["stages"])
+    print(f"scene {config.scene}: {ran} of {len(report['stages'])} stages ran, {waiting} wait for plugins")
     return 0
 
 
@@ -139,8 +142,10 @@ def build_parser(host: PluginHost | None = None) -> argparse.ArgumentParser:
     scenes.set_defaults(handler=_cmd_config_scenes)
 
     demo = sub.add_parser("demo", help="run a scene end to end on the embedded data and write a report")
-    add_config_arguments(demo, default_scene="label-to-touch")
+    add_config_arguments(demo, default_scene="reconstruction")
     demo.add_argument("--out", help="run directory (default: <output_dir>/<name>-<time>-<hash>)")
+    demo.add_argument("--full", action="store_true",
+                      help="run the scene at its configured size (default: scaled down to minutes on a CPU)")
     demo.set_defaults(handler=_cmd_demo)
 
     (host or default_host()).pm.hook.vqtouch_add_commands(subparsers=sub)

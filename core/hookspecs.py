@@ -100,6 +100,16 @@ def vqtouch_add_commands(subparsers: argparse._SubParsersAction) -> None:
     """
 
 
+@hookspec(firstresult=True)
+def vqtouch_run_stage(stage: str, config: ExperimentConfig, host: Any, run: Any) -> dict[str, Any] | None:
+    """Run pipeline stage ``stage`` (``"tokenizer"``, ``"reconstruct"``, ...) of ``config`` in ``run``.
+
+    Return a JSON-ready report of what was done (scores, ``"picture"``: a file name inside the
+    run), or None when this plugin does not run that stage.  firstresult: the first plugin
+    that answers runs it.
+    """
+
+
 @hookspec
 def vqtouch_validate_experiment(config: ExperimentConfig) -> None:
     """Reject impossible plugin combinations by raising ``vqtouch.core.ConfigError``.

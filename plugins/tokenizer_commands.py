@@ -199,6 +199,31 @@ def _evaluate_command(args: argparse.Namespace) -> int:
 
 
 @hookimpl
+def vqtouch_run_stage(stage, config, host, run):
+    """The demo's tokenizer stage (train + held-out scores) and reconstruct stage (real frames)."""
+    if stage == "tokenizer":
+        scores = train_tokenizer(config, host, run)
+        return {"steps": config.train.steps, **{k: v for k, v in _printable(scores).items()
+                                                   if k in ("ssim", "psnr", "codebook_usage", "samples")},
+                "picture": "reconstructions.png"}
+    if stage == "reconstruct":
+        tokenizer, _ = load_tokenizer(run.path, host)
+        sensor = config.sensor.name if config.sensor is not None else ""
+        if sensor not in ("gelsight", "gelsight_mini"):
+            return None
+        images = taxim_frames(sensor, tokenizer.encoder.vqtouch_spec.context.image_size)
+        metrics = {name: host.build("metric", name) for name in ("ssim", "psnr")}
+        with torch.no_grad():
+            reconstructions = torch.cat([tokenizer.reconstruct(images[i:i + 16])[0] for i in range(0, len(images), 16)])
+        for metric in metrics.values():
+            metric.update(reconstructions, images)
+        save_png(image_grid(torch.cat([images[:8], reconstructions[:8]]), columns=8), run.path / "real_frames.png")
+        return {"source": f"{len(images)} real {sensor} frames (taxim)",
+                **{name: round(metric.compute(), 4) for name, metric in metrics.items()}, "picture": "real_frames.png"}
+    return None
+
+
+@hookimpl
 def vqtouch_add_commands(subparsers):
     train = command_group(subparsers, "train", "train a component (tokenizer, ...)")
     tokenizer = train.add_parser("tokenizer", help="train a tactile tokenizer (encoder + quantizer [+ GAN])")

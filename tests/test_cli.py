@@ -15,7 +15,7 @@ def test_plugins_lists_kind_package_version(capsys):
 def test_plugins_json_and_kind_filter(capsys):
     assert main(["plugins", "--json", "--kind", "metric"]) == 0
     rows = json.loads(capsys.readouterr().out)
-    assert {row["name"] for row in rows} == {"psnr", "ssim"}
+    assert {row["name"] for row in rows} == {"fd_effnetlite0", "psnr", "ssim"}
     assert all(row["package"] == "vqtouch" and row["version"] for row in rows)
 
 
@@ -78,9 +78,16 @@ def test_no_command_prints_help_and_fails(capsys):
     assert "usage: vqtouch" in capsys.readouterr().out
 
 
+TINY_DEMO = ["--set", "train.steps=2", "--set", "data.dataset.num_samples=12", "--set", "data.image_size=32",
+             "--set", "tokenizer.loss.perceptual=none", "--set", "tokenizer.encoder.channels=16",
+             "--set", "tokenizer.encoder.norm_groups=8", "--set", "tokenizer.encoder.channel_multipliers=[1,2]",
+             "--set", "tokenizer.quantizer.codebook_size=32"]
+
+
 def test_demo_writes_run_directory(tmp_path, capsys):
     out = tmp_path / "run"
-    assert main(["--no-progress", "demo", "--out", str(out), "--set", "conditioner.num_classes=3"]) == 0
+    assert main(["--no-progress", "demo", "--scene", "label-to-touch", "--out", str(out),
+                 "--set", "conditioner.num_classes=3", *TINY_DEMO]) == 0
     for name in ("config.json", "env.json", "report.md", "report.json", "checkpoints/conditioner.safetensors"):
         assert (out / name).is_file(), name
     env = json.loads((out / "env.json").read_text())
@@ -91,4 +98,28 @@ def test_demo_writes_run_directory(tmp_path, capsys):
     assert by_slot["conditioner"]["checkpoint"].startswith("ok")
     assert by_slot["generator"]["status"].startswith("missing")
     assert by_slot["metrics[0]"]["sanity"]["noise_sigma=0.0"] == 100.0
-    assert "| evaluate | components ready |" in (out / "report.md").read_text()
+    stages = {s["stage"]: s for s in report["stages"]}
+    assert stages["generator"]["status"] == "waiting for: generator"
+    assert stages["tokenizer"]["status"].startswith("ran") and stages["tokenizer"]["result"]["steps"] == 2
+
+
+def test_demo_runs_the_reconstruction_scene_through_the_stage_hook(tmp_path):
+    """The tokenizer plugin answers vqtouch_run_stage for 'tokenizer' and 'reconstruct'."""
+    out = tmp_path / "run"
+    assert main(["--no-progress", "demo", "--out", str(out), *TINY_DEMO]) == 0  # default scene: reconstruction
+    stages = {s["stage"]: s for s in json.loads((out / "report.json").read_text())["stages"]}
+    assert stages["reconstruct"]["result"]["source"] == "48 real gelsight frames (taxim)"
+    assert 0 < stages["reconstruct"]["result"]["ssim"] <= 1
+    assert (out / "real_frames.png").is_file() and (out / "reconstructions.png").is_file()
+    assert "![reconstruct](real_frames.png)" in (out / "report.md").read_text()
+
+
+def test_demo_scales_the_scene_down_unless_full():
+    from vqtouch.core import load_plugins, resolve_config
+    from vqtouch.core.demo import scale_for_demo
+
+    host = load_plugins(autoload=False)
+    config = resolve_config("reconstruction", overrides=["train.steps=5000"], host=host)
+    scaled = scale_for_demo(config, host)
+    assert (scaled.train.steps, scaled.data.batch_size, scaled.data.dataset.num_samples) == (40, 8, 240)
+    assert scaled.tokenizer.encoder.channels == 32 and config.tokenizer.encoder.channels == 64
