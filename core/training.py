@@ -24,6 +24,7 @@ each batch and gradients are all-reduced (gloo on CPU, nccl on GPU); rank 0 writ
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import math
 import os
@@ -76,9 +77,11 @@ def collate_samples(samples: list[dict[str, Any]]) -> dict[str, Any]:
     return batch
 
 
-def epoch_order(seed: int, epoch: int, size: int) -> torch.Tensor:
-    """The sample order of one epoch: a pure function of (seed, epoch)."""
-    return torch.randperm(size, generator=torch.Generator().manual_seed(seed * 100_003 + epoch))
+@functools.lru_cache(maxsize=4)
+def epoch_order(seed: int, epoch: int, size: int) -> tuple[int, ...]:
+    """The sample order of one epoch: a pure function of (seed, epoch) (cached: every step of an
+    epoch asks for it)."""
+    return tuple(torch.randperm(size, generator=torch.Generator().manual_seed(seed * 100_003 + epoch)).tolist())
 
 
 def batch_indices(seed: int, step: int, batch_size: int, size: int, rank: int = 0, world: int = 1) -> list[int]:
@@ -88,7 +91,7 @@ def batch_indices(seed: int, step: int, batch_size: int, size: int, rank: int = 
     epoch, position = divmod(step, per_epoch)
     order = epoch_order(seed, epoch, size)
     start = position * global_batch
-    return order[start:start + global_batch][rank::world].tolist()
+    return list(order[start:start + global_batch][rank::world])
 
 
 @dataclass
