@@ -128,6 +128,9 @@ class Encoder(nn.Module, abc.ABC):
         """The decoder's output-layer weight (for the GAN's adaptive weight), or None."""
         return None
 
+    def reset_randomness(self) -> None:
+        """Restart any evaluation-time randomness (e.g. MAE masks) so evaluations repeat exactly."""
+
 
 @dataclass
 class QuantizerOutput:

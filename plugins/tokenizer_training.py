@@ -128,6 +128,7 @@ def evaluate_reconstruction(tokenizer: Tokenizer, dataset: Any, metrics: dict[st
     pairs for a picture.
     """
     tokenizer.eval()
+    tokenizer.encoder.reset_randomness()
     for metric in metrics.values():
         metric.reset()
     codebook = torch.zeros(tokenizer.quantizer.codebook_size, dtype=torch.long)

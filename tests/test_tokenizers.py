@@ -11,12 +11,14 @@ from vqtouch.core.assembly import build_components
 HOST = load_plugins(autoload=False)
 ENCODERS = HOST.registry("encoder").names()
 TINY = {"channels": 16, "norm_groups": 8, "channel_multipliers": [1, 2], "z_channels": 16, "embed_dim": 8}
+TINY_OPTIONS = {"vqgan": TINY, "dm_vqgan": TINY,
+                "mae": {"patch_size": 8, "width": 32, "heads": 2, "decoder_width": 16, "depth": 1, "decoder_depth": 1}}
 CONTEXT = BuildContext(image_size=32)
 
 
 def tiny_encoder(name, **options):
     torch.manual_seed(0)
-    return HOST.build("encoder", {"name": name, **TINY, **options}, CONTEXT)
+    return HOST.build("encoder", {"name": name, **TINY_OPTIONS.get(name, {}), **options}, CONTEXT)
 
 
 def test_both_paper_tokenizers_are_registered():
@@ -26,12 +28,13 @@ def test_both_paper_tokenizers_are_registered():
 @pytest.mark.parametrize("name", ENCODERS)
 def test_encoder_contract(name):
     encoder = tiny_encoder(name)
-    assert isinstance(encoder, Encoder) and encoder.downsample_factor == 2 and encoder.latent_channels == 8
+    assert isinstance(encoder, Encoder)
     images = torch.rand(2, 3, 32, 32) * 2 - 1
     latents = encoder.encode(images)
-    assert latents.shape == (2, 8, 16, 16)
+    grid = 32 // encoder.downsample_factor
+    assert latents.shape == (2, encoder.latent_channels, grid, grid)
     assert encoder.decode(latents).shape == (2, 3, 32, 32)
-    assert encoder.last_layer_weight() is encoder.dec_out.weight
+    assert any(encoder.last_layer_weight() is p for p in encoder.parameters())
 
 
 @pytest.mark.parametrize("name", ENCODERS)
@@ -51,6 +54,7 @@ def test_bf16_autocast_is_finite_and_close_to_fp32(name):
     images = torch.rand(2, 3, 32, 32) * 2 - 1
     with torch.no_grad():
         reference = encoder.decode(encoder.encode(images))
+        encoder.reset_randomness()  # MAE: the same evaluation mask for both passes
         with torch.autocast("cpu", dtype=torch.bfloat16):
             low = encoder.decode(encoder.encode(images)).float()
     assert torch.isfinite(low).all()
@@ -129,6 +133,39 @@ TRAIN_OVERRIDES = ["tokenizer.encoder.channels=16", "tokenizer.encoder.norm_grou
                    "tokenizer.loss.disc_start=2", "metrics=[{\"name\": \"psnr\"}, {\"name\": \"ssim\"}]"]
 
 
+# -- MAE baseline -------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("ratio", [0.25, 0.5, 0.75])
+def test_mae_hides_the_configured_fraction_and_pastes_visible_patches(ratio):
+    mae = tiny_encoder("mae", mask_ratio=ratio).eval()
+    images = torch.rand(3, 3, 32, 32) * 2 - 1
+    with torch.no_grad():
+        reconstruction = mae.decode(mae.encode(images))
+    visible = mae._last_visible_BL
+    assert visible.float().mean().item() == pytest.approx(1 - ratio, abs=1 / 16)
+    assert torch.equal(mae.patchify(reconstruction)[visible], mae.patchify(images)[visible])
+
+
+def test_mae_patchify_round_trip_and_repeatable_eval_masks():
+    mae = tiny_encoder("mae")
+    images = torch.rand(2, 3, 32, 32)
+    assert torch.equal(mae.unpatchify(mae.patchify(images)), images)
+    first, second = tiny_encoder("mae").eval(), tiny_encoder("mae").eval()
+    first.encode(images)
+    second.encode(images)
+    assert torch.equal(first._last_visible_BL, second._last_visible_BL)
+
+
+def test_identity_quantizer_passes_latents_through():
+    quantizer = HOST.build("quantizer", "identity", BuildContext(latent_dim=4))
+    latents = torch.randn(2, 4, 3, 3, dtype=torch.bfloat16)
+    output = quantizer(latents)
+    assert torch.equal(output.quantized_BDhw, latents.float()) and float(output.loss) == 0.0
+    assert float(output.perplexity) == 1.0
+    with pytest.raises(ValueError, match="no codebook"):
+        quantizer.lookup(output.codes_Bhw)
+
+
 @pytest.mark.parametrize("encoder", ["vqgan", "dm_vqgan"])
 def test_train_tokenizer_end_to_end_then_reconstruct_and_evaluate(tmp_path, capsys, encoder):
     from vqtouch.core.cli import main
@@ -152,6 +189,22 @@ def test_train_tokenizer_end_to_end_then_reconstruct_and_evaluate(tmp_path, caps
     assert main(["evaluate", "reconstruction", "--run", str(run)]) == 0
     evaluation = json.loads(capsys.readouterr().out)
     assert evaluation["ssim"] == pytest.approx(result["ssim"], abs=1e-6)  # same weights, same split
+
+
+def test_mae_trains_through_the_tokenizer_pipeline(tmp_path):
+    from vqtouch.core.cli import main
+
+    run = tmp_path / "run"
+    args = ["--no-progress", "train", "tokenizer", "--out", str(run)]
+    for override in TRAIN_OVERRIDES:
+        if not override.startswith(("tokenizer.encoder", "tokenizer.quantizer")):
+            args += ["--set", override]
+    args += ["--set", "tokenizer.encoder={\"name\": \"mae\", \"patch_size\": 8, \"width\": 32, \"heads\": 2, "
+                      "\"decoder_width\": 16, \"depth\": 1, \"decoder_depth\": 1, \"mask_ratio\": 0.75}",
+             "--set", "tokenizer.quantizer=identity", "--set", "tokenizer.discriminator=null"]
+    assert main(args) == 0
+    result = json.loads((run / "eval.json").read_text())
+    assert result["step"] == 4 and 0 <= result["ssim"] <= 1 and result["codes_used"] == 1
 
 
 def test_train_tokenizer_resume_continues_the_run(tmp_path, capsys):

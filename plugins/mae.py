@@ -1,0 +1,180 @@
+"""MAE baseline (He et al. 2022): a small ViT masked autoencoder, for the paper's Table 1.
+
+It plugs into the tokenizer pipeline as an ``encoder`` with the ``identity`` quantizer:
+
+- ``encode`` patchifies the image, hides a random ``mask_ratio`` of the patches, runs the ViT
+  encoder on the visible ones only, and returns a (B, D, h, w) grid with the visible tokens in
+  place and a learned mask token at every hidden patch (the MAE decoder's input);
+- ``decode`` runs the light decoder over the full grid and predicts every patch's pixels.
+
+Masking also happens in evaluation: the reported reconstruction is the image rebuilt from a
+``mask_ratio`` fraction of hidden patches (visible patches pasted back unless
+``paste_visible=false``), which is what MAE at 0.25 / 0.5 / 0.75 measures.  The masks come
+from a generator seeded per call count in eval mode, so evaluations are repeatable.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from pydantic import Field
+from torch import nn
+
+from vqtouch.core import BuildContext, ConfigError, Encoder, PluginConfig, Quantizer, QuantizerOutput, hookimpl
+
+
+class MaeConfig(PluginConfig):
+    """Options of the ``mae`` baseline encoder."""
+
+    name: Literal["mae"] = "mae"
+    patch_size: int = Field(8, ge=2, le=64, description="Side of the square patches (image_size must divide).")
+    mask_ratio: float = Field(0.5, ge=0.0, lt=1.0, description="Fraction of patches hidden from the encoder.")
+    width: int = Field(128, ge=16, le=2048, description="Width of the ViT encoder tokens.")
+    depth: int = Field(4, ge=1, le=24, description="Transformer blocks in the encoder.")
+    heads: int = Field(4, ge=1, le=32, description="Attention heads (must divide width).")
+    decoder_width: int = Field(96, ge=16, le=2048, description="Width of the decoder tokens (the latent channels).")
+    decoder_depth: int = Field(2, ge=1, le=12, description="Transformer blocks in the decoder.")
+    paste_visible: bool = Field(True, description="In eval mode, copy visible patches into the reconstruction.")
+
+
+def _blocks(width: int, heads: int, depth: int) -> nn.TransformerEncoder:
+    layer = nn.TransformerEncoderLayer(width, heads, 4 * width, dropout=0.0, activation="gelu", batch_first=True,
+                                       norm_first=True)
+    return nn.TransformerEncoder(layer, depth, enable_nested_tensor=False)
+
+
+class MaskedAutoencoder(Encoder):
+    """ViT masked autoencoder exposing the Encoder contract (see the module docstring)."""
+
+    def __init__(self, config: MaeConfig, image_size: int, channels: int = 3) -> None:
+        super().__init__()
+        if image_size % config.patch_size:
+            raise ConfigError(f"mae: image_size {image_size} is not divisible by patch_size {config.patch_size}")
+        if config.width % config.heads or config.decoder_width % config.heads:
+            raise ConfigError(f"mae: heads {config.heads} must divide width {config.width} and decoder_width "
+                              f"{config.decoder_width}")
+        self.config = config
+        self.channels = channels
+        self.grid = image_size // config.patch_size
+        self.downsample_factor = config.patch_size
+        self.latent_channels = config.decoder_width
+        patch_dim = channels * config.patch_size**2
+        tokens = self.grid * self.grid
+        self.embed = nn.Linear(patch_dim, config.width)
+        self.position_LD = nn.Parameter(torch.randn(tokens, config.width) * 0.02)
+        self.encoder = _blocks(config.width, config.heads, config.depth)
+        self.encoder_norm = nn.LayerNorm(config.width)
+        self.to_decoder = nn.Linear(config.width, config.decoder_width)
+        self.mask_token_D = nn.Parameter(torch.zeros(config.decoder_width))
+        self.decoder_position_LD = nn.Parameter(torch.randn(tokens, config.decoder_width) * 0.02)
+        self.decoder = _blocks(config.decoder_width, config.heads, config.decoder_depth)
+        self.decoder_norm = nn.LayerNorm(config.decoder_width)
+        self.to_pixels = nn.Linear(config.decoder_width, patch_dim)
+        self._eval_calls = 0
+        self._last_images: torch.Tensor | None = None
+        self._last_visible_BL: torch.Tensor | None = None
+
+    def patchify(self, images_BCHW: torch.Tensor) -> torch.Tensor:
+        """(B, C, H, W) -> (B, L, C*p*p) in row-major patch order."""
+        batch, p, g = images_BCHW.shape[0], self.config.patch_size, self.grid
+        patches = images_BCHW.reshape(batch, self.channels, g, p, g, p).permute(0, 2, 4, 1, 3, 5)
+        return patches.reshape(batch, g * g, self.channels * p * p)
+
+    def unpatchify(self, patches_BLP: torch.Tensor) -> torch.Tensor:
+        """(B, L, C*p*p) -> (B, C, H, W)."""
+        batch, p, g = patches_BLP.shape[0], self.config.patch_size, self.grid
+        images = patches_BLP.reshape(batch, g, g, self.channels, p, p).permute(0, 3, 1, 4, 2, 5)
+        return images.reshape(batch, self.channels, g * p, g * p)
+
+    def _visible_mask(self, batch: int, device: torch.device) -> torch.Tensor:
+        tokens = self.grid * self.grid
+        keep = max(1, round(tokens * (1 - self.config.mask_ratio)))
+        generator = None
+        if not self.training:  # repeatable evaluation masks
+            generator = torch.Generator().manual_seed(1234 + self._eval_calls)
+            self._eval_calls += 1
+        scores = torch.rand(batch, tokens, generator=generator).to(device)
+        visible_BL = torch.zeros(batch, tokens, dtype=torch.bool, device=device)
+        visible_BL.scatter_(1, scores.argsort(dim=1)[:, :keep], True)
+        return visible_BL
+
+    def encode(self, images_BCHW: torch.Tensor) -> torch.Tensor:
+        if images_BCHW.ndim != 4 or images_BCHW.shape[1] != self.channels or \
+                images_BCHW.shape[-1] != self.grid * self.config.patch_size:
+            raise ValueError(f"mae expects images (B, {self.channels}, {self.grid * self.config.patch_size}, "
+                             f"{self.grid * self.config.patch_size}), got {tuple(images_BCHW.shape)}")
+        batch = images_BCHW.shape[0]
+        visible_BL = self._visible_mask(batch, images_BCHW.device)
+        tokens_BLD = self.embed(self.patchify(images_BCHW)) + self.position_LD
+        keep = int(visible_BL[0].sum())
+        visible_tokens = tokens_BLD[visible_BL].view(batch, keep, -1)
+        encoded = self.to_decoder(self.encoder_norm(self.encoder(visible_tokens)))
+        grid_BLD = self.mask_token_D.to(encoded.dtype).expand(batch, self.grid * self.grid, -1).clone()
+        grid_BLD[visible_BL] = encoded.reshape(-1, encoded.shape[-1])
+        self._last_images, self._last_visible_BL = images_BCHW.detach(), visible_BL
+        return grid_BLD.transpose(1, 2).reshape(batch, -1, self.grid, self.grid)
+
+    def decode(self, latents_BDhw: torch.Tensor) -> torch.Tensor:
+        batch = latents_BDhw.shape[0]
+        tokens_BLD = latents_BDhw.flatten(2).transpose(1, 2).to(self.decoder_position_LD.dtype)
+        decoded = self.decoder_norm(self.decoder(tokens_BLD + self.decoder_position_LD))
+        patches_BLP = self.to_pixels(decoded)
+        if (not self.training and self.config.paste_visible and self._last_visible_BL is not None
+                and self._last_images is not None and self._last_images.shape[0] == batch):
+            original = self.patchify(self._last_images).to(patches_BLP.dtype)
+            patches_BLP = torch.where(self._last_visible_BL[..., None], original, patches_BLP)
+        return self.unpatchify(patches_BLP)
+
+    def last_layer_weight(self) -> torch.Tensor:
+        return self.to_pixels.weight
+
+    def reset_randomness(self) -> None:
+        self._eval_calls = 0
+
+
+class IdentityConfig(PluginConfig):
+    """Options of the ``identity`` quantizer (continuous latents, for baselines such as MAE)."""
+
+    name: Literal["identity"] = "identity"
+
+
+class IdentityQuantizer(Quantizer):
+    """Passes latents through unchanged: zero loss, a single 'code', perplexity 1."""
+
+    codebook_size = 1
+
+    def __init__(self, embedding_dim: int) -> None:
+        super().__init__()
+        self.embedding_dim = embedding_dim
+
+    def forward(self, latents_BDhw: torch.Tensor) -> QuantizerOutput:
+        batch, _, height, width = latents_BDhw.shape
+        zero = latents_BDhw.new_zeros((), dtype=torch.float32)
+        codes = torch.zeros(batch, height, width, dtype=torch.long, device=latents_BDhw.device)
+        return QuantizerOutput(latents_BDhw.float(), codes, zero, zero + 1)
+
+    def lookup(self, codes_Bhw: torch.Tensor) -> torch.Tensor:
+        raise ValueError("the identity quantizer has no codebook: its latents cannot be rebuilt from codes")
+
+
+def build_mae(config: MaeConfig, context: BuildContext) -> MaskedAutoencoder:
+    """Factory for ``mae``."""
+    return MaskedAutoencoder(config, context.image_size, context.channels)
+
+
+def build_identity(config: IdentityConfig, context: BuildContext) -> IdentityQuantizer:
+    """Factory for ``identity`` (its width comes from the encoder via the context)."""
+    return IdentityQuantizer(context.latent_dim)
+
+
+@hookimpl
+def vqtouch_register_encoders(register):
+    register("mae", build_mae, MaeConfig, description="Masked-autoencoder ViT baseline (use with the identity "
+                                                      "quantizer; Table 1 at mask ratios 0.25/0.5/0.75).")
+
+
+@hookimpl
+def vqtouch_register_quantizers(register):
+    register("identity", build_identity, IdentityConfig,
+             description="No quantization (continuous latents), for baselines such as MAE.")
