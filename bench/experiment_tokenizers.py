@@ -21,6 +21,11 @@ HELD_OUT = {"name": "procedural", "sensor": {"name": "gelsight"}, "seed": 999, "
             "image_size": 64}
 
 
+def json_override(path: str, value: dict) -> str:
+    """A ``--set`` argument that replaces a whole slot with a JSON object."""
+    return f"{path}={json.dumps(value)}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True)
@@ -28,17 +33,27 @@ def main() -> None:
     parser.add_argument("--channels", type=int, default=32, help="base channels of both encoders")
     parser.add_argument("--batch", type=int, default=8)
     parser.add_argument("--samples", type=int, nargs="+", default=[100, 1000])
-    parser.add_argument("--encoders", nargs="+", default=["vqgan", "dm_vqgan"])
+    parser.add_argument("--encoders", nargs="*", default=["vqgan", "dm_vqgan"])
+    parser.add_argument("--mae-ratios", type=float, nargs="*", default=[],
+                        help="also train the MAE baseline (identity quantizer, no GAN) at these mask ratios")
     args = parser.parse_args()
     out = Path(args.out)
     results = []
+    runs = [(encoder, None) for encoder in args.encoders] + [("mae", ratio) for ratio in args.mae_ratios]
     for samples in args.samples:
-        for encoder in args.encoders:
-            run = out / f"{encoder}-{samples}"
+        for encoder, ratio in runs:
+            if ratio is None:
+                model = ["--set", f"tokenizer.encoder.name={encoder}",
+                         "--set", f"tokenizer.encoder.channels={args.channels}"]
+                label = encoder
+            else:
+                model = ["--set", json_override("tokenizer.encoder", {"name": "mae", "mask_ratio": ratio}),
+                         "--set", "tokenizer.quantizer=identity", "--set", "tokenizer.discriminator=null"]
+                label = f"mae-{ratio:g}"
+            run = out / f"{label}-{samples}"
             tic = time.perf_counter()
             status = vqtouch(["--no-progress", "train", "tokenizer", "--scene", "reconstruction", "--out", str(run),
-                              "--set", f"tokenizer.encoder.name={encoder}",
-                              "--set", f"tokenizer.encoder.channels={args.channels}",
+                              *model,
                               "--set", f"data.dataset.num_samples={samples}", "--set", "data.val_fraction=0.1",
                               "--set", f"data.batch_size={args.batch}", "--set", f"train.steps={args.steps}",
                               "--set", f"train.checkpoint_every={args.steps}", "--set", "train.learning_rate=0.0002",
@@ -49,7 +64,7 @@ def main() -> None:
             vqtouch(["evaluate", "reconstruction", "--run", str(run), "--metrics", "ssim,psnr,fd_effnetlite0",
                      "--dataset", json.dumps(HELD_OUT)])
             scores = json.loads(next(run.glob("evaluation_*_dataset.json")).read_text())
-            results.append({"encoder": encoder, "train_samples": samples, "steps": args.steps,
+            results.append({"encoder": label, "train_samples": samples, "steps": args.steps,
                             "train_seconds": round(seconds, 1), **{k: scores[k] for k in (
                                 "ssim", "psnr", "fd_effnetlite0", "codebook_usage", "codes_used", "perplexity")}})
             print(json.dumps(results[-1]), flush=True)
