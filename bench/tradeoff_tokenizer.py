@@ -1,0 +1,69 @@
+"""Speed/accuracy trade of the tokenizer, every knob in one run.
+
+Run:  .venv/bin/python bench/tradeoff_tokenizer.py --out runs/tradeoff [--steps 150]
+
+From one baseline (VQGAN, base channels 32, f = 4, 512 codes, fp32, 64x64 GelSight scenes,
+1000 training samples, batch 8) it changes one knob at a time: DM-VQGAN (deformable layers +
+fusion), codebook size 128 / 2048, f = 8, bf16 autocast, and DM-VQGAN in bf16.  Every
+configuration trains for the same number of steps and is scored on the same 200 held-out
+samples; the table gives training seconds per step, encode+decode images per second, SSIM,
+PSNR and codes used, all measured in this one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from experiment_tokenizers import HELD_OUT
+
+from vqtouch.core.cli import main as vqtouch
+
+KNOBS: dict[str, list[str]] = {
+    "baseline (vqgan, f4, K512, fp32)": [],
+    "dm_vqgan": ["tokenizer.encoder.name=dm_vqgan"],
+    "codebook 128": ["tokenizer.quantizer.codebook_size=128"],
+    "codebook 2048": ["tokenizer.quantizer.codebook_size=2048"],
+    "f = 8": ["tokenizer.encoder.channel_multipliers=[1,2,2,4]"],
+    "bf16": ["train.precision=bf16"],
+    "dm_vqgan + bf16": ["tokenizer.encoder.name=dm_vqgan", "train.precision=bf16"],
+}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--steps", type=int, default=150)
+    args = parser.parse_args()
+    out = Path(args.out)
+    base = ["tokenizer.encoder.name=vqgan", "tokenizer.encoder.channels=32", "data.dataset.num_samples=1000",
+            "data.batch_size=8", f"train.steps={args.steps}", f"train.checkpoint_every={args.steps}",
+            "train.learning_rate=0.0002", "tokenizer.loss.disc_start=100000", "seed=0"]
+    rows = []
+    for label, changes in KNOBS.items():
+        run = out / label.split(" (")[0].replace(" ", "_").replace("+", "plus").replace("=", "")
+        overrides = [item for override in base + changes for item in ("--set", override)]
+        tic = time.perf_counter()
+        if vqtouch(["--no-progress", "train", "tokenizer", "--scene", "reconstruction", "--out", str(run),
+                    *overrides]) != 0:
+            raise SystemExit(f"training {label} failed")
+        seconds = time.perf_counter() - tic
+        vqtouch(["evaluate", "reconstruction", "--run", str(run), "--metrics", "ssim,psnr",
+                 "--dataset", json.dumps(HELD_OUT)])
+        scores = json.loads(next(run.glob("evaluation_*_dataset.json")).read_text())
+        rows.append({"knob": label, "seconds_per_step": seconds / args.steps,
+                     "reconstructions_per_second": scores["reconstructions_per_second"], "ssim": scores["ssim"],
+                     "psnr": scores["psnr"], "codes_used": scores["codes_used"]})
+        print(json.dumps(rows[-1]), flush=True)
+    (out / "tradeoff.json").write_text(json.dumps(rows, indent=2) + "\n")
+    base_row = rows[0]
+    print(f"\n{'knob':34s} {'s/step':>7s} {'x base':>7s} {'rec img/s':>9s} {'SSIM':>7s} {'PSNR':>7s} {'codes':>6s}")
+    for r in rows:
+        print(f"{r['knob']:34s} {r['seconds_per_step']:7.3f} {r['seconds_per_step'] / base_row['seconds_per_step']:7.2f}"
+              f" {r['reconstructions_per_second']:9.1f} {r['ssim']:7.4f} {r['psnr']:7.2f} {r['codes_used']:6d}")
+
+
+if __name__ == "__main__":
+    main()
