@@ -21,6 +21,19 @@ HELD_OUT = {"name": "procedural", "sensor": {"name": "gelsight"}, "seed": 999, "
             "image_size": 64}
 
 
+def train_and_score(run: Path, overrides: list[str], metrics: str) -> tuple[float, dict]:
+    """Train a tokenizer in ``run`` with ``--set`` overrides over the reconstruction scene, then
+    score it on HELD_OUT; returns (training wall seconds, the evaluation record)."""
+    tic = time.perf_counter()
+    status = vqtouch(["--no-progress", "train", "tokenizer", "--scene", "reconstruction", "--out", str(run),
+                      *[item for override in overrides for item in ("--set", override)]])
+    seconds = time.perf_counter() - tic
+    if status != 0:
+        raise SystemExit(f"training {run} failed with status {status}")
+    vqtouch(["evaluate", "reconstruction", "--run", str(run), "--metrics", metrics, "--dataset", json.dumps(HELD_OUT)])
+    return seconds, json.loads(next(run.glob("evaluation_*_dataset.json")).read_text())
+
+
 def json_override(path: str, value: dict) -> str:
     """A ``--set`` argument that replaces a whole slot with a JSON object."""
     return f"{path}={json.dumps(value)}"
@@ -43,27 +56,17 @@ def main() -> None:
     for samples in args.samples:
         for encoder, ratio in runs:
             if ratio is None:
-                model = ["--set", f"tokenizer.encoder.name={encoder}",
-                         "--set", f"tokenizer.encoder.channels={args.channels}"]
+                model = [f"tokenizer.encoder.name={encoder}", f"tokenizer.encoder.channels={args.channels}"]
                 label = encoder
             else:
-                model = ["--set", json_override("tokenizer.encoder", {"name": "mae", "mask_ratio": ratio}),
-                         "--set", "tokenizer.quantizer=identity", "--set", "tokenizer.discriminator=null"]
+                model = [json_override("tokenizer.encoder", {"name": "mae", "mask_ratio": ratio}),
+                         "tokenizer.quantizer=identity", "tokenizer.discriminator=null"]
                 label = f"mae-{ratio:g}"
             run = out / f"{label}-{samples}"
-            tic = time.perf_counter()
-            status = vqtouch(["--no-progress", "train", "tokenizer", "--scene", "reconstruction", "--out", str(run),
-                              *model,
-                              "--set", f"data.dataset.num_samples={samples}", "--set", "data.val_fraction=0.1",
-                              "--set", f"data.batch_size={args.batch}", "--set", f"train.steps={args.steps}",
-                              "--set", f"train.checkpoint_every={args.steps}", "--set", "train.learning_rate=0.0002",
-                              "--set", "tokenizer.loss.disc_start=300", "--set", "seed=0"])
-            seconds = time.perf_counter() - tic
-            if status != 0:
-                raise SystemExit(f"training {run} failed with status {status}")
-            vqtouch(["evaluate", "reconstruction", "--run", str(run), "--metrics", "ssim,psnr,fd_effnetlite0",
-                     "--dataset", json.dumps(HELD_OUT)])
-            scores = json.loads(next(run.glob("evaluation_*_dataset.json")).read_text())
+            seconds, scores = train_and_score(run, [
+                *model, f"data.dataset.num_samples={samples}", "data.val_fraction=0.1", f"data.batch_size={args.batch}",
+                f"train.steps={args.steps}", f"train.checkpoint_every={args.steps}", "train.learning_rate=0.0002",
+                "tokenizer.loss.disc_start=300", "seed=0"], "ssim,psnr,fd_effnetlite0")
             results.append({"encoder": label, "train_samples": samples, "steps": args.steps,
                             "train_seconds": round(seconds, 1), **{k: scores[k] for k in (
                                 "ssim", "psnr", "fd_effnetlite0", "codebook_usage", "codes_used", "perplexity")}})

@@ -14,12 +14,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 from pathlib import Path
 
-from experiment_tokenizers import HELD_OUT
-
-from vqtouch.core.cli import main as vqtouch
+from experiment_tokenizers import train_and_score
 
 KNOBS: dict[str, list[str]] = {
     "baseline (vqgan, f4, K512, fp32)": [],
@@ -44,15 +41,7 @@ def main() -> None:
     rows = []
     for label, changes in KNOBS.items():
         run = out / label.split(" (")[0].replace(" ", "_").replace("+", "plus").replace("=", "")
-        overrides = [item for override in base + changes for item in ("--set", override)]
-        tic = time.perf_counter()
-        if vqtouch(["--no-progress", "train", "tokenizer", "--scene", "reconstruction", "--out", str(run),
-                    *overrides]) != 0:
-            raise SystemExit(f"training {label} failed")
-        seconds = time.perf_counter() - tic
-        vqtouch(["evaluate", "reconstruction", "--run", str(run), "--metrics", "ssim,psnr",
-                 "--dataset", json.dumps(HELD_OUT)])
-        scores = json.loads(next(run.glob("evaluation_*_dataset.json")).read_text())
+        seconds, scores = train_and_score(run, base + changes, "ssim,psnr")
         rows.append({"knob": label, "seconds_per_step": seconds / args.steps,
                      "reconstructions_per_second": scores["reconstructions_per_second"], "ssim": scores["ssim"],
                      "psnr": scores["psnr"], "codes_used": scores["codes_used"]})

@@ -6,11 +6,9 @@ from pathlib import Path
 
 import torch
 
-from vqtouch.core import BuildContext, hookimpl, load_plugins
+from vqtouch.core import load_plugins
 from vqtouch.core.config import TrainConfig
 from vqtouch.core.training import Trainer
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def main() -> None:

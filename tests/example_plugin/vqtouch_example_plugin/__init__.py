@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from pydantic import Field
 from torch import nn
 
-from vqtouch.core import BuildContext, Conditioner, ConfigError, PluginConfig, SensorFamily, hookimpl
+from vqtouch.core import Conditioner, ConfigError, PluginConfig, SensorFamily, hookimpl
 
 
 class ToySensorConfig(PluginConfig):
