@@ -128,6 +128,11 @@ class Encoder(nn.Module, abc.ABC):
         """The decoder's output-layer weight (for the GAN's adaptive weight), or None."""
         return None
 
+    def learning_rate_scales(self) -> list[tuple[float, list[nn.Parameter]]]:
+        """Parameter subsets that should train at ``scale`` times the base learning rate, as
+        ``[(scale, params), ...]``; parameters not listed train at the base rate (the default: all)."""
+        return []
+
     def reset_randomness(self) -> None:
         """Restart any evaluation-time randomness (e.g. MAE masks) so evaluations repeat exactly."""
 

@@ -4,7 +4,8 @@ A *task* (e.g. tokenizer training) owns the models and the losses; the trainer o
 everything else.  The task implements::
 
     modules: dict[str, nn.Module]             # trained components, checkpointed one file each
-    parameter_groups() -> dict[str, list]     # optimizer name -> parameters it updates
+    parameter_groups() -> dict[str, list]     # optimizer name -> parameters it updates, or
+                                              # param-group dicts {"params": [...], "lr_scale": x}
     training_step(batch, step, trainer) -> dict[str, float]
 
 and calls ``trainer.optimize(name, loss)`` for each optimizer, in the order it wants (a GAN
@@ -52,8 +53,12 @@ class TrainingTask(Protocol):
 
     modules: dict[str, nn.Module]
 
-    def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
-        """Optimizer name -> the parameters it updates."""
+    def parameter_groups(self) -> dict[str, list[nn.Parameter] | list[dict[str, Any]]]:
+        """Optimizer name -> the parameters it updates.
+
+        A list of dicts ``{"params": [...], "lr_scale": x}`` instead gives each subset its own
+        learning rate, ``x`` times ``TrainConfig.learning_rate`` (``lr_scale`` defaults to 1).
+        """
 
     def training_step(self, batch: dict[str, Any], step: int, trainer: Trainer) -> dict[str, float]:
         """One optimisation step on ``batch``; returns scalars to log."""
@@ -150,7 +155,7 @@ class Trainer:
         for module in task.modules.values():
             module.to(device)
         self._broadcast_parameters()
-        self.optimizers = {name: self._make_optimizer(params) for name, params in task.parameter_groups().items()}
+        self.optimizers = {name: self._make_optimizer(name, params) for name, params in task.parameter_groups().items()}
         self.ema: dict[str, dict[str, torch.Tensor]] = {}
         if config.ema_decay is not None:
             self.ema = {name: {k: v.detach().clone() for k, v in module.state_dict().items()
@@ -158,9 +163,22 @@ class Trainer:
         self._interrupted = False
 
     # -- optimisation ---------------------------------------------------------------------
-    def _make_optimizer(self, params: list[nn.Parameter]) -> torch.optim.Optimizer:
+    def _make_optimizer(self, name: str, params: list[nn.Parameter] | list[dict[str, Any]]) -> torch.optim.Optimizer:
         kind = torch.optim.AdamW if self.config.optimizer == "adamw" else torch.optim.Adam
-        return kind(params, lr=self.config.learning_rate, betas=self.config.betas,
+        groups = params if params and isinstance(params[0], dict) else [{"params": list(params)}]
+        param_groups = []
+        for group in groups:
+            unknown = set(group) - {"params", "lr_scale"}
+            if unknown:
+                raise ValueError(f"parameter group of optimizer {name!r} has unknown keys {sorted(unknown)}; "
+                                 "allowed: 'params' and 'lr_scale'")
+            scale = float(group.get("lr_scale", 1.0))
+            if not (math.isfinite(scale) and scale > 0):
+                raise ValueError(f"optimizer {name!r}: lr_scale must be a positive finite number, got {scale}")
+            # lr_scale stays in the group (and so in checkpoints) to show why its lr differs.
+            param_groups.append({"params": list(group["params"]), "lr": self.config.learning_rate * scale,
+                                 "lr_scale": scale})
+        return kind(param_groups, lr=self.config.learning_rate, betas=self.config.betas,
                     weight_decay=self.config.weight_decay)
 
     def autocast(self) -> contextlib.AbstractContextManager:

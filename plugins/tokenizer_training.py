@@ -68,10 +68,16 @@ class TokenizerTask:
         if self.discriminator is not None:
             self.modules["discriminator"] = self.discriminator
 
-    def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
-        """The generator (encoder + quantizer) and, when used, the discriminator."""
-        groups = {"generator": [p for name in ("encoder", "quantizer")
-                                for p in self.modules[name].parameters() if p.requires_grad]}
+    def parameter_groups(self) -> dict[str, list[nn.Parameter] | list[dict[str, Any]]]:
+        """The generator (encoder + quantizer, with the encoder's learning-rate scales, e.g. the
+        deformable offset branches) and, when used, the discriminator."""
+        scaled = [(scale, [p for p in params if p.requires_grad])
+                  for scale, params in self.tokenizer.encoder.learning_rate_scales()]
+        scaled_ids = {id(p) for _, params in scaled for p in params}
+        base = [p for name in ("encoder", "quantizer") for p in self.modules[name].parameters()
+                if p.requires_grad and id(p) not in scaled_ids]
+        groups: dict[str, list] = {"generator": [{"params": base}] + [
+            {"params": params, "lr_scale": scale} for scale, params in scaled if params]}
         if self.discriminator is not None:
             groups["discriminator"] = list(self.discriminator.parameters())
         return groups

@@ -81,6 +81,24 @@ def test_dm_options_ablate_each_part():
     assert sum(p.numel() for p in plain.parameters()) == sum(p.numel() for p in vanilla.parameters())
 
 
+@pytest.mark.parametrize("scale", [0.1, 1.0])
+def test_dm_vqgan_offset_branches_train_at_their_own_learning_rate(scale):
+    from vqtouch.core.config import TokenizerLossConfig
+    from vqtouch.plugins.tokenizer_training import Tokenizer, TokenizerTask
+
+    dm = tiny_encoder("dm_vqgan", offset_lr_scale=scale)
+    [(got_scale, offsets)] = dm.learning_rate_scales()
+    offset_ids = {id(p) for m in dm.modules() if hasattr(m, "offset_conv") for p in m.offset_conv.parameters()}
+    assert got_scale == scale and {id(p) for p in offsets} == offset_ids and offset_ids
+    assert tiny_encoder("vqgan").learning_rate_scales() == []
+    quantizer = HOST.build("quantizer", {"name": "vq", "codebook_size": 8}, BuildContext(latent_dim=8))
+    task = TokenizerTask(Tokenizer(dm, quantizer), TokenizerLossConfig(adversarial_weight=0))
+    base, scaled = task.parameter_groups()["generator"]
+    assert scaled["lr_scale"] == scale and {id(p) for p in scaled["params"]} == offset_ids
+    everything = {id(p) for m in (dm, quantizer) for p in m.parameters()}
+    assert {id(p) for p in base["params"]} == everything - offset_ids
+
+
 def test_bad_configs_are_clear():
     with pytest.raises(ConfigError, match="multiple of norm_groups"):
         HOST.build("encoder", {"name": "vqgan", "channels": 20, "norm_groups": 8}, CONTEXT)

@@ -52,13 +52,17 @@ def vqtouch_register_conditioners(register):
 
 
 class ToyTask:
-    def __init__(self, host, poison_steps=(), interrupt_at=None):
+    def __init__(self, host, poison_steps=(), interrupt_at=None, bias_lr_scale=None):
         self.modules = {"model": host.build("conditioner", "toy_regressor", BuildContext())}
         self.poison_steps = set(poison_steps)
         self.interrupt_at = interrupt_at
+        self.bias_lr_scale = bias_lr_scale
         self.losses = []
 
     def parameter_groups(self):
+        linear = self.modules["model"].linear
+        if self.bias_lr_scale is not None:
+            return {"main": [{"params": [linear.weight]}, {"params": [linear.bias], "lr_scale": self.bias_lr_scale}]}
         return {"main": list(self.modules["model"].parameters())}
 
     def training_step(self, batch, step, trainer):
@@ -111,6 +115,38 @@ def test_resume_reproduces_the_uninterrupted_run_exactly(host, tmp_path):
     assert first_task.losses + second_task.losses == full_task.losses
     for a, b in zip(full.task.modules["model"].parameters(), second.task.modules["model"].parameters()):
         assert torch.equal(a, b)
+
+
+def test_lr_scale_gives_a_parameter_group_its_own_learning_rate(host, tmp_path):
+    trainer, _ = make_trainer(host, tmp_path, steps=1, task_options={"bias_lr_scale": 0.1}, grad_clip=None)
+    weight_groups = trainer.optimizers["main"].param_groups
+    assert [g["lr"] for g in weight_groups] == pytest.approx([0.05, 0.005])
+    linear = trainer.task.modules["model"].linear
+    before = linear.weight.detach().clone(), linear.bias.detach().clone()
+    trainer.fit()
+    # Adam's first step moves every parameter with a non-zero gradient by lr * g/(|g| + eps) ~ lr.
+    assert (linear.weight - before[0]).abs().flatten().tolist() == pytest.approx([0.05] * 4, rel=1e-3)
+    assert (linear.bias - before[1]).abs().item() == pytest.approx(0.005, rel=1e-3)
+
+
+def test_resume_keeps_scaled_learning_rates(host, tmp_path):
+    first, _ = make_trainer(host, tmp_path, steps=4, task_options={"bias_lr_scale": 0.1})
+    first.fit()
+    second, _ = make_trainer(host, tmp_path, steps=8, task_options={"bias_lr_scale": 0.1})
+    assert second.resume(tmp_path / "checkpoints")
+    assert [g["lr"] for g in second.optimizers["main"].param_groups] == pytest.approx([0.05, 0.005])
+
+
+def test_bad_parameter_groups_are_refused(host, tmp_path):
+    task = ToyTask(host)
+    task.parameter_groups = lambda: {"main": [{"params": list(task.modules["model"].parameters()), "lr": 1.0}]}
+    with pytest.raises(ValueError, match="unknown keys \\['lr'\\].*'lr_scale'"):
+        Trainer(task, ToyDataset(), TrainConfig(steps=1), batch_size=4, seed=0, device=torch.device("cpu"),
+                checkpoint_dir=None)
+    task.parameter_groups = lambda: {"main": [{"params": list(task.modules["model"].parameters()), "lr_scale": 0}]}
+    with pytest.raises(ValueError, match="lr_scale must be a positive finite number"):
+        Trainer(task, ToyDataset(), TrainConfig(steps=1), batch_size=4, seed=0, device=torch.device("cpu"),
+                checkpoint_dir=None)
 
 
 def test_resume_without_checkpoint_returns_false(host, tmp_path):

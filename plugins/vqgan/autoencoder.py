@@ -62,6 +62,11 @@ class DmVqganConfig(VqganConfig):
         "grid_sample", description="Deformable convolution implementation (same maths; grid_sample is faster on CPU).")
     deformable_modulation: bool = Field(True, description="DCNv2 modulation mask (False: DCNv1).")
     max_offset: float = Field(4.0, gt=0.0, le=64.0, description="Offsets are bounded to max_offset * tanh(raw) pixels.")
+    offset_lr_scale: float = Field(
+        0.1, gt=0.0, le=10.0,
+        description="Learning rate of the deformable offset/mask branches as a multiple of train.learning_rate. "
+                    "The offsets are amplified by max_offset, so the usual x0.1 (mmcv/mmengine) keeps early "
+                    "offsets from jumping; 1.0 trains them like every other weight.")
     fusion: bool = Field(True, description="Multi-scale dilated fusion at the encoder output and decoder input.")
     fusion_dilations: tuple[int, ...] = Field((1, 2, 4), min_length=1, max_length=6,
                                               description="Dilations of the fusion branches.")
@@ -79,6 +84,7 @@ class VqganAutoencoder(Encoder):
             raise ConfigError(f"image_size {image_size} is not divisible by the tokenizer's downsampling factor "
                               f"f = {self.downsample_factor} (channel_multipliers {config.channel_multipliers})")
         dm = config if isinstance(config, DmVqganConfig) else None
+        self.offset_lr_scale = dm.offset_lr_scale if dm else 1.0
         groups = config.norm_groups
 
         def conv_at(resolution: int) -> ConvFactory:
@@ -167,6 +173,11 @@ class VqganAutoencoder(Encoder):
 
     def last_layer_weight(self) -> torch.Tensor:
         return self.dec_out.weight
+
+    def learning_rate_scales(self) -> list[tuple[float, list[nn.Parameter]]]:
+        """DM-VQGAN: every deformable layer's offset/mask branch at ``offset_lr_scale``; VQGAN: none."""
+        offsets = [p for m in self.modules() if hasattr(m, "offset_parameters") for p in m.offset_parameters()]
+        return [(self.offset_lr_scale, offsets)] if offsets else []
 
     def offset_magnitude(self) -> float | None:
         """Mean |offset| of the deformable layers in the last forward (None without any)."""
