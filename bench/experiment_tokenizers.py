@@ -21,16 +21,16 @@ HELD_OUT = {"name": "procedural", "sensor": {"name": "gelsight"}, "seed": 999, "
             "image_size": 64}
 
 
-def train_and_score(run: Path, overrides: list[str], metrics: str) -> tuple[float, dict]:
+def train_and_score(run: Path, overrides: list[str], metrics: str, image_size: int = 64) -> tuple[float, dict]:
     """Train a tokenizer in ``run`` with ``--set`` overrides over the reconstruction scene, then
-    score it on HELD_OUT; returns (training wall seconds, the evaluation record)."""
+    score it on HELD_OUT rendered at ``image_size``; returns (training wall seconds, the evaluation record)."""
     tic = time.perf_counter()
     status = vqtouch(["--no-progress", "train", "tokenizer", "--scene", "reconstruction", "--out", str(run),
                       *[item for override in overrides for item in ("--set", override)]])
     seconds = time.perf_counter() - tic
     if status != 0:
         raise SystemExit(f"training {run} failed with status {status}")
-    vqtouch(["evaluate", "reconstruction", "--run", str(run), "--metrics", metrics, "--dataset", json.dumps(HELD_OUT)])
+    vqtouch(["evaluate", "reconstruction", "--run", str(run), "--metrics", metrics, "--dataset", json.dumps({**HELD_OUT, "image_size": image_size})])
     return seconds, json.loads(next(run.glob("evaluation_*_dataset.json")).read_text())
 
 

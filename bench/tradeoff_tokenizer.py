@@ -2,18 +2,20 @@
 
 Run:  .venv/bin/python bench/tradeoff_tokenizer.py --out runs/tradeoff [--steps 150]
 
-From one baseline (VQGAN, base channels 32, f = 4, 512 codes, fp32, 64x64 GelSight scenes,
-1000 training samples, batch 8) it changes one knob at a time: DM-VQGAN (deformable layers +
-fusion), codebook size 128 / 2048, f = 8, bf16 autocast, and DM-VQGAN in bf16.  Every
+From one baseline (VQGAN, base channels 32, f = 4, 512 codes with the scene's cosine 8-d lookup,
+fp32, 64x64 GelSight scenes, 1000 training samples, batch 8) it changes one knob at a time:
+DM-VQGAN (deformable layers + fusion), codebook size 128 / 2048, the plain full-width lookup,
+the EMA codebook, f = 8, bf16 autocast, DM-VQGAN in bf16 and 128x128 images.  Every
 configuration trains for the same number of steps and is scored on the same 200 held-out
-samples; the table gives training seconds per step, encode+decode images per second, SSIM,
-PSNR and codes used, all measured in this one run.
+samples (rendered at the configuration's resolution); the table gives training seconds per
+step, encode+decode images per second, SSIM, PSNR and codes used, all measured in this one run.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 from pathlib import Path
 
 from experiment_tokenizers import train_and_score
@@ -23,10 +25,25 @@ KNOBS: dict[str, list[str]] = {
     "dm_vqgan": ["tokenizer.encoder.name=dm_vqgan"],
     "codebook 128": ["tokenizer.quantizer.codebook_size=128"],
     "codebook 2048": ["tokenizer.quantizer.codebook_size=2048"],
+    "plain lookup (full width, no cosine)": ["tokenizer.quantizer.l2_normalize=false",
+                                             "tokenizer.quantizer.lookup_dim=0"],
+    "ema_vq (K512)": ['tokenizer.quantizer={"name": "ema_vq", "codebook_size": 512}'],
     "f = 8": ["tokenizer.encoder.channel_multipliers=[1,2,2,4]"],
     "bf16": ["train.precision=bf16"],
     "dm_vqgan + bf16": ["tokenizer.encoder.name=dm_vqgan", "train.precision=bf16"],
+    "128 px": ["data.image_size=128"],
 }
+
+
+def run_name(label: str) -> str:
+    """A folder name for a knob's label."""
+    return re.sub(r"[^A-Za-z0-9]+", "_", label.split(" (")[0].replace("+", "plus")).strip("_")
+
+
+def image_size_of(changes: list[str]) -> int:
+    """The training resolution a knob sets (64 unless it sets data.image_size)."""
+    sizes = [int(c.split("=", 1)[1]) for c in changes if c.startswith("data.image_size=")]
+    return sizes[-1] if sizes else 64
 
 
 def main() -> None:
@@ -40,17 +57,16 @@ def main() -> None:
             "train.learning_rate=0.0002", "tokenizer.loss.disc_start=100000", "seed=0"]
     rows = []
     for label, changes in KNOBS.items():
-        run = out / label.split(" (")[0].replace(" ", "_").replace("+", "plus").replace("=", "")
-        seconds, scores = train_and_score(run, base + changes, "ssim,psnr")
+        seconds, scores = train_and_score(out / run_name(label), base + changes, "ssim,psnr", image_size_of(changes))
         rows.append({"knob": label, "seconds_per_step": seconds / args.steps,
                      "reconstructions_per_second": scores["reconstructions_per_second"], "ssim": scores["ssim"],
                      "psnr": scores["psnr"], "codes_used": scores["codes_used"]})
         print(json.dumps(rows[-1]), flush=True)
     (out / "tradeoff.json").write_text(json.dumps(rows, indent=2) + "\n")
     base_row = rows[0]
-    print(f"\n{'knob':34s} {'s/step':>7s} {'x base':>7s} {'rec img/s':>9s} {'SSIM':>7s} {'PSNR':>7s} {'codes':>6s}")
+    print(f"\n{'knob':38s} {'s/step':>7s} {'x base':>7s} {'rec img/s':>9s} {'SSIM':>7s} {'PSNR':>7s} {'codes':>6s}")
     for r in rows:
-        print(f"{r['knob']:34s} {r['seconds_per_step']:7.3f} {r['seconds_per_step'] / base_row['seconds_per_step']:7.2f}"
+        print(f"{r['knob']:38s} {r['seconds_per_step']:7.3f} {r['seconds_per_step'] / base_row['seconds_per_step']:7.2f}"
               f" {r['reconstructions_per_second']:9.1f} {r['ssim']:7.4f} {r['psnr']:7.2f} {r['codes_used']:6d}")
 
 
