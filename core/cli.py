@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from .config import SLOT_KINDS, resolve_config
-from .errors import VqtouchError
+from .errors import ConfigError, VqtouchError
 from .plugin_manager import PluginHost, default_host
 from .progress import disable_progress
 
@@ -23,7 +23,10 @@ def add_config_arguments(parser: argparse.ArgumentParser, *, scene_required: boo
                          default_scene: str | None = None) -> None:
     """Add ``SCENE``/``--scene``, ``--config`` and ``--set`` to a subcommand (for plugin commands too)."""
     if scene_required:
-        parser.add_argument("scene", help="scene preset name (see `vqtouch config scenes`)")
+        parser.add_argument("scene_positional", nargs="?", metavar="SCENE",
+                            help="scene preset name (see `vqtouch config scenes`)")
+        parser.add_argument("--scene", help="the scene as an option, as the other commands take it")
+        parser.set_defaults(scene_required=True)
     else:
         parser.add_argument("--scene", default=default_scene, help=f"scene preset (default: {default_scene})")
     parser.add_argument("--config", action="append", default=[], metavar="FILE",
@@ -46,8 +49,14 @@ def command_group(subparsers: argparse._SubParsersAction, name: str, help: str) 
 
 
 def config_from_args(args: argparse.Namespace, host: PluginHost) -> Any:
-    """Resolve the experiment config from parsed ``--scene/--config/--set`` arguments."""
-    return resolve_config(args.scene, args.config, args.overrides, host=host)
+    """Resolve the experiment config from parsed ``SCENE/--scene/--config/--set`` arguments."""
+    scene, positional = args.scene, getattr(args, "scene_positional", None)
+    if positional and scene and positional != scene:
+        raise ConfigError(f"two different scenes given: {positional!r} and --scene {scene!r}; give one")
+    scene = positional or scene
+    if getattr(args, "scene_required", False) and not scene:
+        raise ConfigError("name a scene, e.g. `vqtouch config show reconstruction` (list: `vqtouch config scenes`)")
+    return resolve_config(scene, args.config, args.overrides, host=host)
 
 
 def _cmd_plugins(args: argparse.Namespace) -> int:

@@ -41,12 +41,21 @@ def test_config_scenes_lists_paper_scenarios(capsys):
     assert {"few-shot", "zero-shot", "cross-sensor", "vision-to-touch", "label-to-touch", "touch-to-touch"} <= names
 
 
+def test_config_show_takes_the_scene_as_argument_or_option(capsys):
+    assert main(["config", "show", "few-shot"]) == 0
+    positional = capsys.readouterr().out
+    assert main(["config", "show", "--scene", "few-shot"]) == 0
+    assert capsys.readouterr().out == positional and '"scene": "few-shot"' in positional
+
+
 @pytest.mark.parametrize("argv, message", [
     (["config", "show", "lable-to-touch"], "unknown scene 'lable-to-touch'; available: "),
     (["config", "show", "label-to-touch", "--set", "conditioner.name=clipp"], "did you mean 'clip'?"),
     (["config", "show", "label-to-touch", "--set", "train.steps=-1"], "train.steps: Input should be greater than"),
     (["config", "show", "label-to-touch", "--set", "oops"], "bad override 'oops'"),
     (["config", "validate", "/nonexistent.toml"], "config file '/nonexistent.toml' does not exist"),
+    (["config", "show"], "name a scene, e.g. `vqtouch config show reconstruction`"),
+    (["config", "show", "few-shot", "--scene", "zero-shot"], "two different scenes given: 'few-shot' and --scene"),
 ])
 def test_user_errors_are_one_line_with_exit_2(capsys, argv, message):
     assert main(argv) == 2
