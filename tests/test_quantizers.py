@@ -266,19 +266,21 @@ EXTREMES = [
     pytest.param(2, (4, 4, 4), 1.0, id="codebook-of-2"),
     pytest.param(16384, (2, 8, 8), 1.0, id="codebook-of-16384"),
     pytest.param(64, (1, 4, 4), 1.0, id="batch-of-1"),
-    pytest.param(64, (2, 4, 4), 0.0, id="constant-latents"),
+    pytest.param(64, (2, 4, 4), "constant", id="constant-latents"),
+    pytest.param(64, (2, 4, 4), "zeros", id="zero-latents"),  # a zero vector has no direction to normalise
     pytest.param(64, (2, 4, 4), 1e4, id="huge-latents"),
 ]
 
 
-@pytest.mark.parametrize("name", QUANTIZERS)
+@pytest.mark.parametrize("name, options", LOOKUP_VARIANTS)
 @pytest.mark.parametrize("codebook_size, grid, scale", EXTREMES)
 @pytest.mark.parametrize("training", [True, False], ids=["train", "eval"])
-def test_numerical_extremes_stay_finite(name, codebook_size, grid, scale, training):
-    quantizer = build(name, codebook_size=codebook_size).train(training)
+def test_numerical_extremes_stay_finite(name, options, codebook_size, grid, scale, training):
+    quantizer = build(name, codebook_size=codebook_size, **options).train(training)
     batch, height, width = grid
-    latents_BDhw = (torch.full((batch, LATENT_DIM, height, width), 0.5) if scale == 0.0
-                    else scale * randn(batch, LATENT_DIM, height, width)).requires_grad_()
+    shape = (batch, LATENT_DIM, height, width)
+    latents_BDhw = {"constant": lambda: torch.full(shape, 0.5), "zeros": lambda: torch.zeros(shape)}.get(
+        scale, lambda: scale * randn(*shape))().requires_grad_()
     for _ in range(2):  # the second call sees the EMA update / restarts of the first
         output = quantizer(latents_BDhw)
     output.loss.backward()
@@ -289,7 +291,7 @@ def test_numerical_extremes_stay_finite(name, codebook_size, grid, scale, traini
     assert int(output.codes_Bhw.min()) >= 0 and int(output.codes_Bhw.max()) < codebook_size
 
 
-@pytest.mark.parametrize("name, options", [("vq", {}), ("vq", {"lookup_dim": 4}), ("ema_vq", {})])
+@pytest.mark.parametrize("name, options", LOOKUP_VARIANTS)
 def test_bf16_autocast_input_is_quantized_in_fp32(name, options):
     # 512 codes in 8 dimensions: many near-ties, which bf16 distances would resolve differently.
     quantizer = build(name, codebook_size=512, init="normal", **options).eval()
