@@ -44,6 +44,13 @@ def run_name(label: str) -> str:
     return re.sub(r"[^A-Za-z0-9]+", "_", label.split(" (")[0].replace("+", "plus")).strip("_")
 
 
+def with_encoder_first(base: list[str], changes: list[str]) -> list[str]:
+    """The overrides of one configuration, the encoder's name first: setting a slot's name resets
+    its options, so a later ``tokenizer.encoder.name=`` would undo ``tokenizer.encoder.channels=32``."""
+    names = [c for c in changes if c.startswith("tokenizer.encoder.name=")] or ["tokenizer.encoder.name=vqgan"]
+    return names[-1:] + base + [c for c in changes if not c.startswith("tokenizer.encoder.name=")]
+
+
 def image_size_of(changes: list[str]) -> int:
     """The training resolution a knob sets (64 unless it sets data.image_size)."""
     sizes = [int(c.split("=", 1)[1]) for c in changes if c.startswith("data.image_size=")]
@@ -71,12 +78,13 @@ def main() -> None:
     if args.table_only:
         print_table(json.loads((out / "tradeoff.json").read_text()))
         return
-    base = ["tokenizer.encoder.name=vqgan", "tokenizer.encoder.channels=32", "data.dataset.num_samples=1000",
+    base = ["tokenizer.encoder.channels=32", "data.dataset.num_samples=1000",
             "data.batch_size=8", f"train.steps={args.steps}", f"train.checkpoint_every={args.steps}",
             "train.learning_rate=0.0002", "tokenizer.loss.disc_start=100000", "seed=0"]
     rows = []
     for label, changes in KNOBS.items():
-        seconds, scores = train_and_score(out / run_name(label), base + changes, "ssim,psnr", image_size_of(changes))
+        seconds, scores = train_and_score(out / run_name(label), with_encoder_first(base, changes), "ssim,psnr",
+                                          image_size_of(changes))
         rows.append({"knob": label, "seconds_per_step": seconds / args.steps,
                      "reconstructions_per_second": scores["reconstructions_per_second"], "ssim": scores["ssim"],
                      "psnr": scores["psnr"], "codes_used": scores["codes_used"]})
