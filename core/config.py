@@ -357,7 +357,36 @@ def resolve_config(scene: str | None = None, files: Iterable[str | Path] = (), o
         data = merge_configs({"name": scene, "scene": scene, "description": entry.description}, entry.config)
     for path in files:
         data = merge_configs(data, load_config_file(path))
+    applied: list[tuple[str, list[str]]] = []
     for text in overrides:
         key_path, value = parse_override(text)
+        _refuse_lost_overrides(data, key_path, value, applied, text)
         data = apply_override(data, key_path, value)
+        applied.append((text, key_path))
     return validate_experiment(data, host)
+
+
+def _refuse_lost_overrides(data: dict[str, Any], path: list[str], value: Any,
+                           applied: list[tuple[str, list[str]]], text: str) -> None:
+    """ConfigError when ``path=value`` selects another plugin for a slot whose options an earlier
+    ``--set`` changed: the reset would silently drop them (and run something the user did not ask for)."""
+    if path[-1] == "name" and len(path) > 1:
+        slot, new_name = path[:-1], value
+    elif isinstance(value, Mapping) and "name" in value:
+        slot, new_name = path, value["name"]
+    elif isinstance(value, str):  # `--set slot=plugin`
+        slot, new_name = path, value
+    else:
+        return
+    node: Any = data
+    for part in slot:
+        node = node.get(part) if isinstance(node, dict) else None
+    if not isinstance(node, dict) or node.get("name") in (None, new_name):
+        return
+    depth = len(slot)
+    lost = [earlier for earlier, earlier_path in applied
+            if len(earlier_path) > depth and earlier_path[:depth] == slot and earlier_path[depth] != "name"]
+    if lost:
+        where = ".".join(slot)
+        raise ConfigError(f"--set {text} selects another plugin for {where}, which resets its options and would "
+                          f"drop the earlier {', '.join('--set ' + t for t in lost)}; put --set {text} before them")

@@ -40,8 +40,8 @@ def test_literal_error_lists_allowed_values(host):
 
 
 def test_changing_slot_name_resets_its_options(host):
-    config = resolve_config("label-to-touch", overrides=["conditioner.num_tokens=3", "conditioner.name=tactile",
-                                                         "conditioner.width=16"], host=host)
+    config = resolve_config("label-to-touch", overrides=["conditioner.name=tactile", "conditioner.width=16"],
+                            host=host)
     assert config.conditioner.model_dump() == {"name": "tactile", "width": 16, "depth": 3, "token_grid": 4}
 
 
@@ -140,3 +140,20 @@ def test_config_is_frozen(host):
     config = resolve_config("label-to-touch", host=host)
     with pytest.raises(Exception):
         config.seed = 3
+
+
+def test_switching_a_slots_plugin_after_setting_its_options_is_refused(host):
+    # The reset would silently drop channels=32 and train the default width instead.
+    with pytest.raises(ConfigError, match=r"--set tokenizer.encoder.name=vqgan selects another plugin for "
+                                          r"tokenizer.encoder.*--set tokenizer.encoder.channels=32; put"):
+        resolve_config("reconstruction", overrides=["tokenizer.encoder.channels=32",
+                                                    "tokenizer.encoder.name=vqgan"], host=host)
+    with pytest.raises(ConfigError, match="drop the earlier --set conditioner.width=16"):
+        resolve_config("touch-to-touch", overrides=["conditioner.width=16", "conditioner=label"], host=host)
+    with pytest.raises(ConfigError, match="drop the earlier --set tokenizer.quantizer.codebook_size=8"):
+        resolve_config("reconstruction", overrides=["tokenizer.quantizer.codebook_size=8",
+                                                    'tokenizer.quantizer={"name": "ema_vq"}'], host=host)
+    # Name first, options after: both kept.  Re-stating the same plugin resets nothing, so it is allowed.
+    config = resolve_config("reconstruction", overrides=["tokenizer.encoder.name=vqgan", "tokenizer.encoder.channels=32",
+                                                         "tokenizer.encoder.name=vqgan"], host=host)
+    assert config.tokenizer.encoder.name == "vqgan" and config.tokenizer.encoder.channels == 32
