@@ -19,7 +19,7 @@ from typing import Callable
 import torch
 import torch.nn.functional as F
 
-from vqtouch.plugins.vqgan.deformable import deform_conv2d_grid_sample, deform_conv2d_torchvision
+from vqtouch.plugins.tokenizer.deformable import deform_conv2d_grid_sample, deform_conv2d_torchvision
 
 # (batch, channels, height, width); channels in = channels out, as in a ResNet block's second conv.
 SHAPES = [(8, 64, 32, 32), (8, 128, 32, 32), (8, 64, 16, 16), (8, 128, 16, 16), (8, 64, 8, 8), (8, 128, 8, 8)]

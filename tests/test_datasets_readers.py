@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from vqtouch.core import ConfigError, DatasetError, TactileDataset, load_plugins
-from vqtouch.plugins.datasets._io import ImageLoader, SkippedSamplesWarning
+from vqtouch.plugins.data.readers._io import ImageLoader, SkippedSamplesWarning
 
 
 def _load_layout_builders():

@@ -9,7 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from vqtouch.plugins.vqgan.deformable import (DeformableConv2d, deform_conv2d_grid_sample,
+from vqtouch.plugins.tokenizer.deformable import (DeformableConv2d, deform_conv2d_grid_sample,
                                               deform_conv2d_torchvision)
 
 torchvision_ops = pytest.importorskip("torchvision.ops")
@@ -312,6 +312,6 @@ def test_functions_reject_bad_shapes(function):
 
 
 def test_importing_the_module_does_not_import_torchvision():
-    code = ("import sys, vqtouch.plugins.vqgan.deformable as d; "
+    code = ("import sys, vqtouch.plugins.tokenizer.deformable as d; "
             "assert 'torchvision' not in sys.modules, sorted(m for m in sys.modules if 'torchvision' in m)[:5]")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)

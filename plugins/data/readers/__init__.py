@@ -1,4 +1,4 @@
-"""Dataset readers for public tactile datasets, each a ``vqtouch_register_datasets`` plugin.
+"""Readers of public tactile datasets, each a `dataset` plugin.
 
 One module per dataset layout: Touch and Go (``touch_and_go``), VisGel (``visgel``), TVL's HCT
 and SSVTP parts (``tvl_hct``, ``tvl_ssvtp``), ObjectFolder-Real and the ObjectFolder
@@ -7,5 +7,5 @@ cross-generation benchmark (``objectfolder_real``, ``objectfolder_cross``), Fabr
 the lists and CSVs that ship with its dataset, indexes and checks all samples when it is built
 (files exist, pairs are consistent, labels are in range, the split is not empty) and decodes
 images only in ``__getitem__``; shared image decoding, file checks and the lenient
-skip-and-warn policy live in :mod:`vqtouch.plugins.datasets._io`.
+skip-and-warn policy live in :mod:`vqtouch.plugins.data.readers._io`.
 """

@@ -30,7 +30,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from vqtouch.core import BuildContext, DatasetError, hookimpl
-from vqtouch.plugins.datasets._io import (with_context_size, FileIndex, ReaderConfig, RecordDataset, SampleRecord, SkipLog,
+from vqtouch.plugins.data.readers._io import (with_context_size, FileIndex, ReaderConfig, RecordDataset, SampleRecord, SkipLog,
                                           collect_records, loader_for, read_list_lines, require_file,
                                           require_folder, require_root)
 

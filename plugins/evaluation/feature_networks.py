@@ -1,7 +1,7 @@
 """Frozen, pretrained feature extractors for perceptual losses and distribution metrics.
 
-These are building blocks, not plugins: :mod:`vqtouch.plugins.perceptual` and
-:mod:`vqtouch.plugins.fd_metric` own them.
+These are building blocks, not plugins: :mod:`vqtouch.plugins.tokenizer.perceptual` and
+:mod:`vqtouch.plugins.evaluation.fd_metric` own them.
 
 Two networks:
 
@@ -283,7 +283,7 @@ class AlexNetFeatures(FrozenFeatureNetwork):
     ``VQTOUCH_WEIGHTS_DIR``), sha256-prefix checked and loaded strictly (only the
     ``features.*`` keys).  Nothing is downloaded; a missing file raises
     :class:`MissingWeightsError` with the download URL.  Input scaling is the caller's
-    job (LPIPS applies its own shift/scale, see :class:`vqtouch.plugins.perceptual.LpipsLoss`).
+    job (LPIPS applies its own shift/scale, see :class:`vqtouch.plugins.tokenizer.perceptual.LpipsLoss`).
     """
 
     def __init__(self, weights_path: str | None = None) -> None:

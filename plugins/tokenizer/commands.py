@@ -19,7 +19,7 @@ from vqtouch.core.data import split_dataset
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.training import Trainer, latest_checkpoint
 
-from .tokenizer_training import Tokenizer, TokenizerTask, build_tokenizer, evaluate_reconstruction
+from .training import Tokenizer, TokenizerTask, build_tokenizer, evaluate_reconstruction
 
 
 def _require(config: ExperimentConfig, host: Any, *paths: str) -> None:

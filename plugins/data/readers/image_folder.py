@@ -25,7 +25,7 @@ from typing import Literal
 from pydantic import Field
 
 from vqtouch.core import BuildContext, DatasetError, hookimpl
-from vqtouch.plugins.datasets._io import (with_context_size, FileIndex, ReaderConfig, RecordDataset, SampleRecord, SkipLog,
+from vqtouch.plugins.data.readers._io import (with_context_size, FileIndex, ReaderConfig, RecordDataset, SampleRecord, SkipLog,
                                           collect_records, is_image_file, list_images, loader_for, read_csv_rows,
                                           relative_posix, require_file, require_root, resolve_under,
                                           visible_subfolders)

@@ -31,7 +31,7 @@ from typing import Any, Literal
 from pydantic import Field
 
 from vqtouch.core import BuildContext, DatasetError, hookimpl
-from vqtouch.plugins.datasets._io import (with_context_size, FileIndex, ReaderConfig, RecordDataset, SampleRecord, SkipLog,
+from vqtouch.plugins.data.readers._io import (with_context_size, FileIndex, ReaderConfig, RecordDataset, SampleRecord, SkipLog,
                                           collect_records, list_images, loader_for, natural_key, read_csv_rows,
                                           read_json, relative_posix, require_file, require_root, resolve_under,
                                           visible_subfolders)

@@ -25,7 +25,7 @@ from vqtouch.core.assembly import enrich_context
 from vqtouch.core.config import ExperimentConfig, TokenizerLossConfig
 from vqtouch.core.training import collate_samples
 
-from .vqgan.discriminator import adaptive_weight, hinge_discriminator_loss
+from .discriminator import adaptive_weight, hinge_discriminator_loss
 
 
 @dataclass

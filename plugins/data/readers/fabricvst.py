@@ -31,7 +31,7 @@ from typing import Literal
 from pydantic import Field
 
 from vqtouch.core import BuildContext, DatasetError, hookimpl
-from vqtouch.plugins.datasets._io import (with_context_size, ReaderConfig, RecordDataset, SampleRecord, SkipLog, collect_records,
+from vqtouch.plugins.data.readers._io import (with_context_size, ReaderConfig, RecordDataset, SampleRecord, SkipLog, collect_records,
                                           list_images, loader_for, read_csv_rows, relative_posix,
                                           require_folder, require_root, resolve_under, visible_subfolders)
 

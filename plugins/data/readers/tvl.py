@@ -51,7 +51,7 @@ import numpy as np
 from pydantic import Field
 
 from vqtouch.core import BuildContext, DatasetError, hookimpl
-from vqtouch.plugins.datasets._io import (with_context_size, FileIndex, ReaderConfig, RecordDataset, SampleRecord, SkipLog,
+from vqtouch.plugins.data.readers._io import (with_context_size, FileIndex, ReaderConfig, RecordDataset, SampleRecord, SkipLog,
                                           collect_records, loader_for, read_csv_rows, read_image_size, read_json,
                                           read_list_lines, require_file, require_folder, require_root)
 

@@ -23,7 +23,7 @@ from torch import nn
 
 from vqtouch.core import MissingWeightsError, WeightsSpec
 
-from .feature_networks import (ALEXNET_RELU_CHANNELS, AlexNetFeatures, EfficientNetLite0Features,
+from vqtouch.plugins.evaluation.feature_networks import (ALEXNET_RELU_CHANNELS, AlexNetFeatures, EfficientNetLite0Features,
                                resolve_weights_or_explain)
 
 LPIPS_HEADS_WEIGHTS = WeightsSpec(

@@ -24,7 +24,7 @@ from typing import Literal
 from pydantic import Field
 
 from vqtouch.core import BuildContext, hookimpl
-from vqtouch.plugins.datasets._io import (with_context_size, FileIndex, ReaderConfig, RecordDataset, SampleRecord, SkipLog,
+from vqtouch.plugins.data.readers._io import (with_context_size, FileIndex, ReaderConfig, RecordDataset, SampleRecord, SkipLog,
                                           collect_records, loader_for, read_list_lines, require_file, require_root)
 
 READER = "visgel"

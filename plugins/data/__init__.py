@@ -1,0 +1,1 @@
+"""Data stage: the embedded procedural dataset, readers of public datasets and `vqtouch data` commands."""

@@ -1,0 +1,1 @@
+"""Evaluation: image metrics and the frozen feature networks behind them."""

@@ -1,1 +1,0 @@
-"""VQGAN and DM-VQGAN tokenizer autoencoders."""
