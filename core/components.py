@@ -95,15 +95,29 @@ class SensorFamily(nn.Module, abc.ABC):
     Implementations are batched, run on any device and are deterministic for a given
     ``generator``.  A height map covers the sensor's square field of view
     (``field_of_view_mm`` on a side) whatever its resolution, so scene generators can draw
-    objects at physical scale.
+    objects at physical scale.  For a family with calibration tables, shading and
+    per-sensor variants, subclass :class:`vqtouch.sensors.RenderedSensor` instead.
     """
 
-    #: Side of the square imaged gel area in millimetres.
+    #: Side of the square imaged gel area in millimetres.  Scene generators draw objects at
+    #: this physical scale, so a height map of any resolution covers exactly this area.
     field_of_view_mm: float = 15.0
+    #: Short id of the physical sensor written into every sample's ``"sensor"`` field (e.g.
+    #: ``"gelsight"``); empty means "use the registered plugin name".
+    sensor_id: str = ""
 
     @abc.abstractmethod
     def render(self, height_mm_BHW: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """Render (B, H, W) indentation depths in millimetres to RGB images (B, 3, H, W) in [0, 1]."""
+
+    def reference_frames(self, height: int, width: int) -> torch.Tensor | None:
+        """Real frames captured with the physical sensor this family models, as (N, 3, height, width)
+        RGB in [0, 1] over the same imaged area as :meth:`render`, or None when the family ships none.
+
+        Stages that check a tokenizer on real data (``reconstruct``) use these; a variant's
+        perturbations are not applied (they are frames of the calibrated sensor itself).
+        """
+        return None
 
 
 class Encoder(nn.Module, abc.ABC):
