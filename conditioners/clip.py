@@ -1,9 +1,11 @@
 """Visual conditioner: a frozen open_clip image encoder loaded from a local file.
 
 open_clip (and with it torchvision's model code) is imported only when this conditioner
-is built, so scenes that do not condition on visual images never import it.  The CLIP
-weights are not copied into vqtouch checkpoints: the checkpoint records the architecture
-and the file path, and only the trainable projection is saved.
+is built, so scenes that do not condition on visual images never import it; it is the
+optional extra ``clip`` (``pip install 'vqtouch[clip]'``).  The CLIP weights are held in a
+:class:`vqtouch.core.frozen.FrozenModule`, so they are not copied into vqtouch checkpoints:
+the checkpoint records the architecture and the file path, and only the trainable
+projection is saved.
 """
 
 from __future__ import annotations
@@ -15,13 +17,14 @@ import torch.nn.functional as F
 from pydantic import Field
 from torch import nn
 
-from vqtouch.core import BuildContext, Conditioner, PluginConfig, WeightsSpec, hookimpl, resolve_weights
+from vqtouch.core import BuildContext, Conditioner, PluginConfig, PluginError, WeightsSpec, hookimpl, resolve_weights
+from vqtouch.core.frozen import FrozenModule
 
 CLIP_WEIGHTS = WeightsSpec(
     description="conditioner 'clip' (frozen open_clip image encoder)",
     filenames=("open_clip_model.safetensors", "open_clip_pytorch_model.bin"),
     env_var="VQTOUCH_CLIP_CKPT",
-    config_hint="--set conditioner.checkpoint=PATH (or --clip-checkpoint PATH)",
+    config_hint="the clip conditioner's checkpoint option (e.g. --set generator.conditioners.0.checkpoint=PATH)",
     source_url="the model's open_clip/Hugging Face page (e.g. laion/CLIP-ViT-B-32-laion2B-s34B-b79K)",
 )
 
@@ -44,13 +47,12 @@ class ClipConditionerConfig(PluginConfig):
 class ClipConditioner(Conditioner):
     """Frozen CLIP image embedding (L2-normalised) -> trainable projection -> condition tokens."""
 
-    modality = "visual"
+    sample_key = "visual"
 
     def __init__(self, clip_model: nn.Module, embed_dim: int, cond_dim: int, num_tokens: int) -> None:
         super().__init__(cond_dim, num_tokens)
-        clip_model.eval().requires_grad_(False)
-        # Not a registered submodule: the frozen encoder stays out of state_dict and checkpoints.
-        object.__setattr__(self, "_clip", clip_model)
+        # Frozen, always in eval mode, out of state_dict and checkpoints, moved by .to() (see FrozenModule).
+        self.encoder = FrozenModule(clip_model)
         image_size = clip_model.visual.image_size
         self.clip_image_size = tuple(image_size) if isinstance(image_size, (tuple, list)) else (image_size, image_size)
         from open_clip.constants import OPENAI_DATASET_MEAN, OPENAI_DATASET_STD
@@ -61,11 +63,6 @@ class ClipConditioner(Conditioner):
         self.register_buffer("std_C", torch.tensor(std, dtype=torch.float32), persistent=False)
         self.project = nn.Linear(embed_dim, num_tokens * cond_dim)
 
-    def _apply(self, fn: Any, recurse: bool = True) -> ClipConditioner:
-        super()._apply(fn, recurse)
-        self._clip._apply(fn)
-        return self
-
     def encode(self, condition: torch.Tensor) -> torch.Tensor:
         """Visual images (B, 3, H, W) in [0, 1] to tokens (B, num_tokens, cond_dim)."""
         images = condition
@@ -75,20 +72,33 @@ class ClipConditioner(Conditioner):
                                align_corners=False).clamp(0, 1)
         images = (images - self.mean_C[:, None, None]) / self.std_C[:, None, None]
         with torch.no_grad():
-            embedding_BE = self._clip.encode_image(images.to(next(self._clip.parameters()).dtype)).float()
+            embedding_BE = self.encoder.network.encode_image(images.to(self.encoder.dtype)).float()
         embedding_BE = F.normalize(embedding_BE, dim=-1, eps=1e-6)
         return self.project(embedding_BE).view(-1, self.num_tokens, self.cond_dim)
 
 
-def build_clip_conditioner(config: ClipConditionerConfig, context: BuildContext) -> ClipConditioner:
-    """Factory: resolve the local weights file (never downloads), then build the frozen encoder."""
-    path = resolve_weights(CLIP_WEIGHTS, config.checkpoint)
+def import_open_clip() -> Any:
+    """Import open_clip, or raise :class:`PluginError` naming the extra that installs it.
+
+    open_clip is an optional dependency (the ``clip`` extra): only this conditioner needs it.
+    """
     try:
         import open_clip
     except ImportError as exc:
-        from vqtouch.core import PluginError
+        if isinstance(exc, ModuleNotFoundError) and exc.name == "open_clip":
+            raise PluginError("conditioner 'clip' needs open_clip_torch: pip install 'vqtouch[clip]'") from None
+        # Installed but broken, typically a torchvision that does not match torch: say so, not "install it".
+        first_line = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise PluginError(f"conditioner 'clip': open_clip_torch is installed but does not import ({first_line}); reinstall "
+                          "it with a torchvision that matches torch: pip install 'vqtouch[clip]'") from None
+    return open_clip
 
-        raise PluginError(f"conditioner 'clip' needs open_clip_torch ({exc}); pip install open_clip_torch") from None
+
+def build_clip_conditioner(config: ClipConditionerConfig, context: BuildContext) -> ClipConditioner:
+    """Factory: import open_clip (the ``clip`` extra), resolve the local weights file (never downloads), then
+    build the frozen encoder."""
+    open_clip = import_open_clip()
+    path = resolve_weights(CLIP_WEIGHTS, config.checkpoint)
     from vqtouch.core import ConfigError
 
     if config.architecture not in open_clip.list_models():

@@ -23,7 +23,7 @@ class LabelConditionerConfig(PluginConfig):
 class LabelConditioner(Conditioner):
     """Embeds integer class labels (B,) into (B, num_tokens, cond_dim) tokens."""
 
-    modality = "label"
+    sample_key = "label"
 
     def __init__(self, num_classes: int, cond_dim: int, num_tokens: int = 1) -> None:
         super().__init__(cond_dim, num_tokens)

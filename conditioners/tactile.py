@@ -24,7 +24,7 @@ class TactileConditionerConfig(PluginConfig):
 class TactileConditioner(Conditioner):
     """Encodes tactile images (B, 3, H, W) in [0, 1] into token_grid**2 condition tokens."""
 
-    modality = "tactile"
+    sample_key = "tactile"
 
     def __init__(self, cond_dim: int, width: int, depth: int, token_grid: int, channels: int = 3) -> None:
         super().__init__(cond_dim, token_grid * token_grid)

@@ -1,67 +1,128 @@
-"""Building the components an experiment needs, and nothing more.
+"""The one assembly path: an experiment's components, each built once, in dependency order.
 
-A scene's stages decide which slots are required (``STAGE_SLOTS``); only those slots
-are built, so a label-conditioned run never imports CLIP and a reconstruction run never
-builds a generator.
+The CLI, the demo, stages and tests all build through an :class:`Assembly`:
+
+- it resolves the experiment's sensors in one place (``sensor``, and ``target_sensor``
+  where a scene has two) and hands them to the factories that declared they need one
+  (``inputs=("sensor",)``, e.g. the procedural dataset);
+- it keeps one :class:`BuildContext` and enriches it with the facts each built component
+  fixes (classes, latent width, codebook size), building a fact's provider before any
+  component whose kind reads it;
+- it caches components by slot path, so a stage asking for ``data.dataset`` twice gets the
+  same object, and a run builds only the slots its stages ask for.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
-from .components import BuildContext, Encoder, Quantizer, TactileDataset
-from .config import SLOT_KINDS, ExperimentConfig
+from .components import BuildContext, SensorFamily
+from .config import ExperimentConfig
 from .errors import ConfigError
+from .plugin_config import PluginConfig
+from .plugin_manager import KINDS_BY_NAME
+
+SensorRole = Literal["source", "target"]
+SENSOR_SLOTS: dict[str, str] = {"source": "sensor", "target": "target_sensor"}
 
 
-def build_context(config: ExperimentConfig, **facts: Any) -> BuildContext:
-    """The BuildContext of an experiment; ``facts`` (e.g. ``num_classes``) come from the data."""
-    sensor = config.sensor.model_dump(mode="json") if config.sensor is not None else None
-    return BuildContext(image_size=config.data.image_size, sensor=sensor, **facts)
+class Assembly:
+    """Builds the components of one experiment for one host (see the module docstring)."""
 
+    def __init__(self, config: ExperimentConfig, host: Any, *, context: BuildContext | None = None) -> None:
+        self.config = config
+        self.host = host
+        self.context = context or BuildContext(image_size=config.data.image_size)
+        self._built: dict[str, Any] = {}
 
-def enrich_context(context: BuildContext, component: Any) -> BuildContext:
-    """The context after ``component`` is built: later components see what it determines.
+    # -- the experiment's sensors ----------------------------------------------------------------
+    def sensor_config(self, role: SensorRole = "source") -> PluginConfig:
+        """The config of the experiment's source or target sensor; ConfigError when it is not set."""
+        path = SENSOR_SLOTS[role]
+        value = self.config.slot(path)
+        if value is None:
+            choices = "|".join(self.host.registry("sensor_family").names())
+            raise ConfigError(f"this experiment needs its {role} sensor but {path} is not set; "
+                              f"choose one with --set {path}.name=<{choices}>")
+        return value
 
-    A dataset fixes the number of classes, an encoder the latent width the quantizer must
-    match, and a quantizer the codebook size the generator works with.
-    """
-    if isinstance(component, TactileDataset):
-        return context.model_copy(update={"num_classes": component.num_classes})
-    if isinstance(component, Encoder):
-        return context.model_copy(update={"latent_dim": component.latent_channels})
-    if isinstance(component, Quantizer):
-        return context.model_copy(update={"codebook_size": component.codebook_size})
-    return context
+    def sensor(self, role: SensorRole = "source") -> SensorFamily:
+        """The experiment's source (``sensor``) or target (``target_sensor``) sensor, built once."""
+        return self.component(SENSOR_SLOTS[role])
 
+    # -- components ------------------------------------------------------------------------------
+    @property
+    def built(self) -> dict[str, Any]:
+        """The components built so far, by slot path (list slots map to lists)."""
+        return dict(self._built)
 
-def build_components(config: ExperimentConfig, host: Any, *, slots: list[str] | None = None,
-                     context: BuildContext | None = None) -> dict[str, Any]:
-    """Build the components of ``slots`` (default: the slots the config's stages require).
+    def component(self, path: str) -> Any:
+        """The component in slot ``path`` (a list for list slots), built on first use.
 
-    Returns ``{slot_path: component}``; list slots (``metrics``) map to a list.  A
-    required slot left empty raises ConfigError naming the stage and the choices.
-    """
-    context = context or build_context(config)
-    slots = config.required_slots() if slots is None else slots
-    missing: dict[str, str] = {}
-    for stage, path in config.missing_slots():
-        if path in slots:
-            missing.setdefault(path, stage)
-    if missing:
-        path, stage = next(iter(missing.items()))
-        kind = SLOT_KINDS[path]
-        choices = ", ".join(host.registry(kind).names()) or f"none installed yet (no {kind} plugin)"
-        raise ConfigError(f"stage {stage!r} needs {path} but the config leaves it empty; "
-                          f"set {path}.name to one of: {choices}")
-    built: dict[str, Any] = {}
-    # Data first, then the encoder, then the rest: each may fix facts the next ones need.
-    for path in sorted(slots, key=lambda p: (p != "data.dataset", p != "tokenizer.encoder")):
-        value = config.slot(path)
-        kind = SLOT_KINDS[path]
-        if isinstance(value, list):
-            built[path] = [host.build(kind, item, context) for item in value]
-        elif value is not None:
-            built[path] = host.build(kind, value, context)
-            context = enrich_context(context, built[path])
-    return {path: built[path] for path in slots if path in built}
+        An empty slot raises ConfigError naming the slot and the plugins that could fill it.
+        """
+        if path in self._built:
+            return self._built[path]
+        info = self._slot_info(path)
+        value = self.config.slot(path)
+        if value is None:
+            names = self.host.registry(info.kind).names()
+            choices = f"one of: {', '.join(names)}" if names else f"none installed yet (no {info.kind} plugin)"
+            raise ConfigError(f"{path} is empty but this run needs it; set {path}.name to {choices}")
+        self._build_fact_providers(info.kind)
+        if info.many:
+            built: Any = [self.build(info.kind, item) for item in value]
+        else:
+            built = self.build(info.kind, value)
+        self._built[path] = built
+        return built
+
+    def build(self, kind: str, config: PluginConfig | dict[str, Any] | str, *,
+              sensor_role: SensorRole = "source") -> Any:
+        """Build one (uncached) component of ``kind`` in this experiment's context: the inputs its
+        plugin declares are supplied (``sensor``: the experiment's ``sensor_role`` sensor) and the
+        facts it fixes are added to the context."""
+        config = self.host.validate(kind, config)
+        entry = self.host.registry(kind).get(config.name)
+        inputs = {name: self._input(name, sensor_role) for name in entry.inputs}
+        component = self.host.build(kind, config, self.context, **inputs)
+        facts = component.context_facts() if hasattr(component, "context_facts") else {}
+        if facts:
+            self.context = self.context.model_copy(update=facts)
+        return component
+
+    def dataset(self, config: PluginConfig | dict[str, Any] | None = None, *,
+                sensor_role: SensorRole = "source") -> Any:
+        """A dataset other than ``data.dataset`` (e.g. a common held-out set, or the same scenes
+        rendered by the target sensor), built in this experiment's context; not cached."""
+        if config is None:
+            config = self.config.slot("data.dataset")
+            if config is None:
+                self.component("data.dataset")  # raises the standard empty-slot error
+        return self.build("dataset", config, sensor_role=sensor_role)
+
+    def build_slots(self, paths: list[str]) -> dict[str, Any]:
+        """Build (or fetch) each configured slot of ``paths``; empty ones are skipped."""
+        return {path: self.component(path) for path in paths if self.config.slot(path) not in (None, [])}
+
+    # -- internals -------------------------------------------------------------------------------
+    def _slot_info(self, path: str) -> Any:
+        try:
+            return self.host.slots[path]
+        except KeyError:
+            raise ConfigError(f"{path!r} is not a slot of this experiment config; slots: "
+                              f"{', '.join(self.host.slots)}") from None
+
+    def _input(self, name: str, sensor_role: SensorRole) -> Any:
+        if name == "sensor":
+            return self.sensor(sensor_role)
+        raise ConfigError(f"no component can be supplied for input {name!r}; the assembly supplies: sensor")
+
+    def _build_fact_providers(self, kind: str) -> None:
+        """Build the configured slots whose kind provides a fact ``kind`` reads (data before models)."""
+        for fact in KINDS_BY_NAME[kind].reads:
+            for path, info in self.host.slots.items():
+                if (fact in KINDS_BY_NAME[info.kind].provides and path not in self._built
+                        and not info.many and self.config.slot(path) is not None):
+                    self.component(path)
+                    break

@@ -142,16 +142,14 @@ def _first_line(exc: BaseException) -> str:
     return text[0] if text else type(exc).__name__
 
 
-def load(path: str | Path, *, host: Any = None, map_location: str | torch.device = "cpu") -> nn.Module:
-    """Rebuild a component from a checkpoint's header and load its weights strictly.
+def load(path: str | Path, *, host: Any, map_location: str | torch.device = "cpu") -> nn.Module:
+    """Rebuild a component from a checkpoint's header with ``host``'s plugins and load its weights
+    strictly.
 
     Fails with a one-line :class:`CheckpointError` when the file is unreadable, the plugin
-    that made it is not installed, or names/shapes disagree with the rebuilt module.
+    that made it is not installed (naming its distribution), or names/shapes disagree with
+    the rebuilt module.
     """
-    if host is None:
-        from .plugin_manager import default_host
-
-        host = default_host()
     path = Path(path)
     metadata = read_metadata(path)
     kind = metadata.get("vqtouch.component", "")
@@ -162,11 +160,20 @@ def load(path: str | Path, *, host: Any = None, map_location: str | torch.device
     except (KeyError, json.JSONDecodeError, ValidationError) as exc:
         raise CheckpointError(f"{path}: damaged vqtouch header ({_first_line(exc)})") from None
     try:
-        component = host.build(kind, config, context)
+        installed = plugin in host.registry(kind)
     except UnknownPluginError as exc:
-        source = metadata.get("vqtouch.plugin_source", "{}")
-        raise CheckpointError(
-            f"{path}: made by {kind} plugin {plugin!r} ({source}), which is not available here: {exc}") from None
+        raise CheckpointError(f"{path}: holds a {kind!r} component, which this vqtouch does not know: {exc}") from None
+    if not installed:
+        try:
+            source = json.loads(metadata.get("vqtouch.plugin_source", "{}"))
+        except json.JSONDecodeError:
+            source = {}
+        package = source.get("distribution") or source.get("plugin") or "the plugin that made it"
+        version = f" {source['version']}" if source.get("version") else ""
+        raise CheckpointError(f"{path}: made by {kind} {plugin!r} from {package}{version}, which is not installed "
+                              f"here; pip install {package}")
+    try:
+        component = host.build(kind, config, context)
     except ConfigError as exc:
         raise CheckpointError(f"{path}: its stored config no longer validates: {exc}") from None
     except VqtouchError as exc:

@@ -13,10 +13,11 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
-from .config import SLOT_KINDS, resolve_config
+from .config import resolve_config
 from .errors import ConfigError, VqtouchError
-from .plugin_manager import PluginHost, default_host
+from .plugin_manager import PluginHost, load_plugins
 from .progress import disable_progress
+from .stages import StageOutcome, missing_slots
 
 
 def add_config_arguments(parser: argparse.ArgumentParser, *, scene_required: bool = False,
@@ -49,7 +50,10 @@ def command_group(subparsers: argparse._SubParsersAction, name: str, help: str) 
 
 
 def config_from_args(args: argparse.Namespace, host: PluginHost) -> Any:
-    """Resolve the experiment config from parsed ``SCENE/--scene/--config/--set`` arguments."""
+    """Resolve the experiment config from parsed ``SCENE/--scene/--config/--set`` arguments.
+
+    Command handlers get the command's plugin host as ``args.host``.
+    """
     scene, positional = args.scene, getattr(args, "scene_positional", None)
     if positional and scene and positional != scene:
         raise ConfigError(f"two different scenes given: {positional!r} and --scene {scene!r}; give one")
@@ -60,7 +64,7 @@ def config_from_args(args: argparse.Namespace, host: PluginHost) -> Any:
 
 
 def _cmd_plugins(args: argparse.Namespace) -> int:
-    host = default_host()
+    host = args.host
     rows = host.describe()
     if args.kind:
         rows = [row for row in rows if row["kind"] == args.kind]
@@ -77,39 +81,56 @@ def _cmd_plugins(args: argparse.Namespace) -> int:
 
 
 def _cmd_config_show(args: argparse.Namespace) -> int:
-    host = default_host()
+    host = args.host
     config = config_from_args(args, host)
     print(json.dumps(config.to_dict(), indent=2))
     stages_by_slot: dict[str, list[str]] = {}
-    for stage, path in config.missing_slots():
+    for stage, path in missing_slots(config, host):
         stages_by_slot.setdefault(path, []).append(stage)
     for path, stages in stages_by_slot.items():
-        choices = ", ".join(host.registry(SLOT_KINDS[path]).names()) or "none installed yet"
+        choices = ", ".join(host.registry(host.slots[path].kind).names()) or "none installed yet"
         print(f"note: {path} is empty but stage(s) {', '.join(stages)} need it (choices: {choices})",
               file=sys.stderr)
     return 0
 
 
 def _cmd_config_validate(args: argparse.Namespace) -> int:
-    host = default_host()
+    host = args.host
     config = resolve_config(args.scene, args.files, args.overrides, host=host)
     print(f"ok: {config.name} (stages: {', '.join(config.stages) or 'none'})")
     return 0
 
 
 def _cmd_config_scenes(args: argparse.Namespace) -> int:
-    host = default_host()
+    host = args.host
     for name in sorted(host.scenes):
         scene = host.scenes[name]
         print(f"{name:16s} {scene.description}")
     return 0
 
 
+def _cmd_config_stages(args: argparse.Namespace) -> int:
+    host = args.host
+    for name in sorted(host.stages):
+        stage = host.stages[name]
+        section = f"[{name}]" if stage.section else "-"
+        print(f"{name:12s} {stage.description}")
+        print(f"{'':12s}   section: {section}; needs: {', '.join(stage.needs) or '-'}; "
+              f"uses: {', '.join(p for p in stage.uses if p not in stage.needs) or '-'}; "
+              f"from {stage.source.describe()}")
+    return 0
+
+
+def stage_failure(outcome: StageOutcome) -> VqtouchError:
+    """The one-line error for a stage that a command asked for but that did not run."""
+    return VqtouchError(f"stage {outcome.stage!r} {outcome.describe()}")
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo, scale_for_demo
     from .runs import RunDir
 
-    host = default_host()
+    host = args.host
     config = config_from_args(args, host)
     if not args.full:
         config = scale_for_demo(config, host)
@@ -117,13 +138,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     report = run_demo(config, host, run)
     print(f"report: {run.path / 'report.md'}")
     ran = sum(stage["status"].startswith("ran") for stage in report["stages"])
-    waiting = sum(stage["status"].startswith("waiting") for stage in report["stages"])
-    print(f"scene {config.scene}: {ran} of {len(report['stages'])} stages ran, {waiting} wait for plugins")
+    blocked = sum(stage["status"].startswith("cannot run") for stage in report["stages"])
+    failed = sum(stage["status"].startswith("failed") for stage in report["stages"])
+    print(f"scene {config.scene}: {ran} of {len(report['stages'])} stages ran, {blocked} cannot run, {failed} failed "
+          "(reasons in the report)")
     return 0
 
 
-def build_parser(host: PluginHost | None = None) -> argparse.ArgumentParser:
-    """The full parser, including subcommands contributed by plugins."""
+def build_parser(host: PluginHost) -> argparse.ArgumentParser:
+    """The full parser, including subcommands contributed by ``host``'s plugins."""
     from . import __version__
 
     parser = argparse.ArgumentParser(
@@ -149,6 +172,8 @@ def build_parser(host: PluginHost | None = None) -> argparse.ArgumentParser:
     validate.set_defaults(handler=_cmd_config_validate)
     scenes = config_sub.add_parser("scenes", help="list the scene presets")
     scenes.set_defaults(handler=_cmd_config_scenes)
+    stages = config_sub.add_parser("stages", help="list the pipeline stages: section, slots, plugin")
+    stages.set_defaults(handler=_cmd_config_stages)
 
     demo = sub.add_parser("demo", help="run a scene end to end on the embedded data and write a report")
     add_config_arguments(demo, default_scene="reconstruction")
@@ -157,7 +182,8 @@ def build_parser(host: PluginHost | None = None) -> argparse.ArgumentParser:
                       help="run the scene at its configured size (default: scaled down to minutes on a CPU)")
     demo.set_defaults(handler=_cmd_demo)
 
-    (host or default_host()).pm.hook.vqtouch_add_commands(subparsers=sub)
+    host.pm.hook.vqtouch_add_commands(subparsers=sub)
+    parser.set_defaults(host=host)
     return parser
 
 
@@ -165,7 +191,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``vqtouch`` command; returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        parser = build_parser()
+        parser = build_parser(load_plugins())
         args = parser.parse_args(argv)
         if args.no_progress:
             disable_progress()

@@ -31,10 +31,21 @@ class BuildContext(BaseModel):
     num_classes: int = Field(0, ge=0, description="Number of labels in the dataset (0 when unlabelled).")
     cond_dim: int = Field(256, ge=1, description="Width of the condition tokens a conditioner must emit.")
     codebook_size: int = Field(0, ge=0, description="Codebook size of the tokenizer (0 when not yet known).")
-    latent_dim: int = Field(0, ge=0, description="Channels of the encoder's latents, which the quantizer must match "
-                                                 "(0 when not yet known).")
-    sensor: dict[str, Any] | None = Field(
-        None, description="The experiment's sensor-family config, for components that render data (None: unset).")
+    latent_dim: int = Field(0, ge=0, description="Channels of the autoencoder's latents, which the quantizer must "
+                                                 "match (0 when not yet known).")
+
+
+class ProvidesContext:
+    """Mixin of components that fix facts later components are built with.
+
+    A dataset fixes the number of classes, an autoencoder the latent width a quantizer must
+    match, a quantizer the codebook size a generator works with.  The assembly builds a
+    provider before any component whose kind reads the fact (``RegistryKind.reads``).
+    """
+
+    def context_facts(self) -> dict[str, Any]:
+        """``BuildContext`` fields this component determines, e.g. ``{"latent_dim": 32}``."""
+        return {}
 
 
 @dataclass
@@ -52,11 +63,14 @@ class ConditionTokens:
 class Conditioner(nn.Module, abc.ABC):
     """Turns one kind of condition (label, visual image, tactile image, text) into tokens.
 
-    Subclasses set ``modality`` and implement :meth:`encode`; the learned null token used
-    for classifier-free guidance is shared by all of them.
+    Subclasses set ``sample_key`` (the key of a dataset sample they read, see
+    :class:`TactileDataset`) and implement :meth:`encode`; the learned null token used for
+    classifier-free guidance is shared by all of them.
     """
 
-    modality: ClassVar[str] = ""
+    #: Which entry of a sample (and so of a collated batch) this conditioner encodes:
+    #: ``"label"``, ``"visual"``, ``"tactile"`` or ``"text"``.
+    sample_key: ClassVar[str] = ""
 
     def __init__(self, cond_dim: int, num_tokens: int) -> None:
         super().__init__()
@@ -73,6 +87,13 @@ class Conditioner(nn.Module, abc.ABC):
         """The learned 'no condition' tokens for ``batch_size`` rows."""
         tokens = self.null_tokens_ND.unsqueeze(0).expand(batch_size, -1, -1)
         return ConditionTokens(tokens, torch.ones(batch_size, dtype=torch.bool, device=tokens.device))
+
+    def condition_of(self, batch: dict[str, Any]) -> Any:
+        """This conditioner's raw condition in a collated batch of samples (``batch[sample_key]``)."""
+        if self.sample_key not in batch:
+            raise KeyError(f"{type(self).__name__} reads samples' {self.sample_key!r}, which this batch lacks "
+                           f"(keys: {', '.join(sorted(batch))}); use a dataset that provides it")
+        return batch[self.sample_key]
 
     def forward(self, condition: Any, drop_mask_B: torch.Tensor | None = None) -> ConditionTokens:
         """Encode ``condition``; rows where ``drop_mask_B`` is True get the null tokens instead."""
@@ -120,11 +141,12 @@ class SensorFamily(nn.Module, abc.ABC):
         return None
 
 
-class Encoder(nn.Module, abc.ABC):
-    """The autoencoder half of a tokenizer: image -> latent grid -> image.
+class Autoencoder(nn.Module, ProvidesContext, abc.ABC):
+    """The autoencoder of a tokenizer: image -> latent grid -> image.
 
     Images are in [-1, 1]; latents are (B, latent_channels, H/f, W/f) with
-    f = ``downsample_factor``.  The quantizer sits between :meth:`encode` and :meth:`decode`.
+    f = ``downsample_factor``.  The quantizer sits between :meth:`encode` and :meth:`decode`;
+    :meth:`decode` is a pure function of its input.
     """
 
     downsample_factor: int = 1
@@ -150,6 +172,10 @@ class Encoder(nn.Module, abc.ABC):
     def reset_randomness(self) -> None:
         """Restart any evaluation-time randomness (e.g. MAE masks) so evaluations repeat exactly."""
 
+    def context_facts(self) -> dict[str, Any]:
+        """The latent width a quantizer must match."""
+        return {"latent_dim": self.latent_channels}
+
 
 @dataclass
 class QuantizerOutput:
@@ -166,7 +192,7 @@ class QuantizerOutput:
     perplexity: torch.Tensor
 
 
-class Quantizer(nn.Module, abc.ABC):
+class Quantizer(nn.Module, ProvidesContext, abc.ABC):
     """Maps continuous latents to codebook entries and integer codes (maths in fp32)."""
 
     codebook_size: int = 0
@@ -179,6 +205,18 @@ class Quantizer(nn.Module, abc.ABC):
     @abc.abstractmethod
     def lookup(self, codes_Bhw: torch.Tensor) -> torch.Tensor:
         """Codes (B, h, w) to quantised latents (B, embedding_dim, h, w), e.g. for generated codes."""
+
+    def usage_counts(self) -> torch.Tensor | None:
+        """How often each of the ``codebook_size`` codes was chosen since :meth:`reset_usage`, shape
+        (K,), or None for quantizers without a codebook (e.g. ``identity``)."""
+        return None
+
+    def reset_usage(self) -> None:
+        """Forget the code usage counted so far (before a pass that is reported on)."""
+
+    def context_facts(self) -> dict[str, Any]:
+        """The codebook size a generator over the codes works with."""
+        return {"codebook_size": self.codebook_size}
 
 
 class Discriminator(nn.Module, abc.ABC):
@@ -247,7 +285,7 @@ class Generator(nn.Module, abc.ABC):
     """Generates code grids conditioned on condition tokens (e.g. discrete diffusion)."""
 
 
-class TactileDataset(abc.ABC):
+class TactileDataset(ProvidesContext, abc.ABC):
     """A dataset of tactile samples, all readers and generators alike.
 
     ``__getitem__`` returns one sample dict:
@@ -267,6 +305,10 @@ class TactileDataset(abc.ABC):
     def num_classes(self) -> int:
         """Number of labels (0 when unlabelled)."""
         return len(self.class_names)
+
+    def context_facts(self) -> dict[str, Any]:
+        """The number of labels a label conditioner must embed."""
+        return {"num_classes": self.num_classes}
 
     @abc.abstractmethod
     def __len__(self) -> int:

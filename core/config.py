@@ -17,52 +17,41 @@ import json
 import tomllib
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Annotated, Any, Literal
+import types
+import typing
+from dataclasses import dataclass
+from typing import Annotated, Any, Literal, Union
 
-from pydantic import Field, SerializeAsAny, ValidationError, ValidationInfo, WrapValidator
+from pydantic import AfterValidator, BaseModel, Field, SerializeAsAny, ValidationError, ValidationInfo, WrapValidator
 from pydantic_core import PydanticCustomError
 
-from .errors import ConfigError, UnknownPluginError
+from .errors import ConfigError, UnknownPluginError, format_validation_error, unknown_name_message
 from .plugin_config import PluginConfig, StrictModel
 
-Stage = Literal["render", "tokenizer", "reconstruct", "cluster", "adapt", "generator", "evaluate"]
+@dataclass(frozen=True)
+class SlotMarker:
+    """Annotation metadata marking a config field as a plugin slot of registry ``kind``."""
 
-#: The plugin slots each pipeline stage needs; a run builds only these (scene minimality).
-STAGE_SLOTS: dict[str, tuple[str, ...]] = {
-    "render": ("sensor", "data.dataset"),
-    "tokenizer": ("data.dataset", "tokenizer.encoder", "tokenizer.quantizer", "tokenizer.discriminator"),
-    "reconstruct": ("data.dataset", "tokenizer.encoder", "tokenizer.quantizer"),
-    "cluster": ("data.dataset", "tokenizer.encoder", "tokenizer.quantizer", "clusterer"),
-    "adapt": ("data.dataset", "tokenizer.encoder", "tokenizer.quantizer", "sensor", "target_sensor"),
-    "generator": ("data.dataset", "tokenizer.encoder", "tokenizer.quantizer", "conditioner", "generator"),
-    "evaluate": ("metrics",),
-}
+    kind: str
 
-#: Slots a stage uses when they are set but can run without.
-OPTIONAL_SLOTS = frozenset({"tokenizer.discriminator"})
 
-#: Registry kind behind every slot path.
-SLOT_KINDS: dict[str, str] = {
-    "sensor": "sensor_family",
-    "target_sensor": "sensor_family",
-    "data.dataset": "dataset",
-    "tokenizer.encoder": "encoder",
-    "tokenizer.quantizer": "quantizer",
-    "tokenizer.discriminator": "discriminator",
-    "conditioner": "conditioner",
-    "generator": "generator",
-    "clusterer": "clusterer",
-    "metrics": "metric",
-}
+@dataclass(frozen=True)
+class SlotInfo:
+    """One slot of the experiment config: its dotted path, registry kind and whether it is a list."""
+
+    path: str
+    kind: str
+    many: bool
 
 
 def _host_from(info: ValidationInfo) -> Any:
     context = info.context if isinstance(info.context, Mapping) else {}
     host = context.get("host")
     if host is None:
-        from .plugin_manager import default_host
-
-        host = default_host()
+        # No hidden global host: which plugins exist must be decided by the caller.
+        raise PydanticCustomError(
+            "no_plugin_host", "validating a plugin slot needs the PluginHost whose registries to use: "
+                              "validate with context={{'host': host}} (see vqtouch.core.validate_experiment)")
     return host
 
 
@@ -86,12 +75,58 @@ def _slot_validator(kind: str) -> Any:
 
 
 def Slot(kind: str) -> Any:  # noqa: N802 - reads like a type in annotations
-    """Annotation for a field holding the options of one plugin of registry ``kind``."""
-    return Annotated[SerializeAsAny[PluginConfig], WrapValidator(_slot_validator(kind))]
+    """Annotation for a field holding the options of one plugin of registry ``kind``.
+
+    Use ``Slot("quantizer") | None`` for a single slot and ``list[Slot("metric")]`` for a
+    list slot; the config machinery finds slots through this annotation, so a stage's
+    section declares its slots simply by having such fields.
+    """
+    return Annotated[SerializeAsAny[PluginConfig], WrapValidator(_slot_validator(kind)), SlotMarker(kind)]
+
+
+def _slot_in(annotation: Any) -> tuple[str, bool] | None:
+    """(kind, many) when ``annotation`` is a Slot, an optional Slot or a list of Slots."""
+    origin = typing.get_origin(annotation)
+    if origin is Annotated:
+        for meta in annotation.__metadata__:
+            if isinstance(meta, SlotMarker):
+                return meta.kind, False
+        return _slot_in(typing.get_args(annotation)[0])
+    if origin in (list, tuple):
+        inner = _slot_in(typing.get_args(annotation)[0])
+        return (inner[0], True) if inner else None
+    if origin in (Union, types.UnionType):
+        for arg in typing.get_args(annotation):
+            found = _slot_in(arg)
+            if found:
+                return found
+    return None
+
+
+def slots_of(model: type[BaseModel], prefix: str = "") -> dict[str, SlotInfo]:
+    """Every slot of a config model, by dotted path, found from the fields' annotations.
+
+    Sections nested in sections are searched; plugin configs are not (their own slots, if
+    any, belong to the plugin).
+    """
+    found: dict[str, SlotInfo] = {}
+    for name, field in model.model_fields.items():
+        path = f"{prefix}{name}"
+        slot = _slot_in(field.annotation) or next(
+            ((meta.kind, False) for meta in field.metadata if isinstance(meta, SlotMarker)), None)
+        if slot is not None:
+            found[path] = SlotInfo(path, *slot)
+        elif isinstance(field.annotation, type) and issubclass(field.annotation, Section):
+            found.update(slots_of(field.annotation, prefix=f"{path}."))
+    return found
 
 
 class Section(StrictModel):
-    """Base of every config section (strict: unknown keys list the allowed ones)."""
+    """Base of every config section (strict: unknown keys list the allowed ones).
+
+    A stage plugin's own section (``tokenizer``, ``generator``, ...) subclasses it; its
+    fields may be plain options, nested sections or slots (:func:`Slot`).
+    """
 
 
 class DataConfig(Section):
@@ -106,60 +141,27 @@ class DataConfig(Section):
     val_fraction: float = Field(0.1, ge=0.0, lt=1.0, description="Fraction of samples held out for evaluation.")
 
 
-class TokenizerLossConfig(Section):
-    """The tokenizer objective: L1 + VQ + perceptual + adversarial (VQGAN's, with its safeguards)."""
-
-    l1_weight: float = Field(1.0, ge=0.0, le=100.0, description="Weight of the L1 reconstruction loss.")
-    codebook_weight: float = Field(1.0, ge=0.0, le=100.0, description="Weight of the quantizer's loss.")
-    perceptual: Literal["none", "effnet_lite0", "lpips"] = Field(
-        "effnet_lite0", description="Perceptual loss: 'lpips' needs user-supplied AlexNet and head weights; "
-                                    "'effnet_lite0' is an offline feature loss on a real ImageNet network (not LPIPS).")
-    perceptual_weight: float = Field(0.1, ge=0.0, le=100.0, description="Weight of the perceptual loss.")
-    perceptual_image_size: int = Field(96, ge=32, le=512,
-                                       description="Side the images are resized to for the perceptual network.")
-    lpips_backbone: str | None = Field(None, description="Path of alexnet-owt-7be5be79.pth (or VQTOUCH_LPIPS_BACKBONE).")
-    lpips_heads: str | None = Field(None, description="Path of LPIPS v0.1 alex.pth heads (or VQTOUCH_LPIPS_HEADS).")
-    adversarial_weight: float = Field(0.8, ge=0.0, le=100.0, description="Weight of the hinge GAN loss (times the "
-                                                                         "adaptive weight); 0 disables it.")
-    disc_start: int = Field(2000, ge=0, description="Step at which the discriminator starts (it is not trained before).")
-    adaptive_weight_max: float = Field(1e4, gt=0.0, description="Upper clamp of the adaptive GAN weight.")
-
-
-class TokenizerConfig(Section):
-    """The tactile tokenizer: an autoencoder plugin plus a quantizer plugin, and how it is trained."""
-
-    encoder: Slot("encoder") | None = Field(None, description="Autoencoder plugin (e.g. dm_vqgan, vqgan).")
-    quantizer: Slot("quantizer") | None = Field(None, description="Quantizer plugin (e.g. vq, ema_vq).")
-    discriminator: Slot("discriminator") | None = Field(
-        None, description="Discriminator plugin for the adversarial loss (e.g. patchgan); null trains without one.")
-    loss: TokenizerLossConfig = Field(default_factory=TokenizerLossConfig, description="Training objective.")
-
-
-class TrainConfig(Section):
-    """Optimisation settings shared by every training stage."""
-
-    steps: int = Field(1000, ge=0, description="Optimisation steps for each trained stage.")
-    learning_rate: float = Field(1e-4, gt=0, le=10, description="Peak learning rate.")
-    weight_decay: float = Field(0.0, ge=0, le=1, description="Decoupled weight decay (AdamW).")
-    grad_clip: float | None = Field(1.0, gt=0, description="Clip the gradient norm to this value; null disables.")
-    precision: Literal["fp32", "bf16"] = Field(
-        "fp32", description="Autocast precision of the networks; quantizer and diffusion maths stay fp32.")
-    optimizer: Literal["adamw", "adam"] = Field("adamw", description="Optimizer of every trained module.")
-    betas: tuple[float, float] = Field((0.5, 0.9), description="Adam betas (VQGAN uses (0.5, 0.9)).")
-    ema_decay: float | None = Field(None, gt=0.0, lt=1.0,
-                                    description="Keep an exponential moving average of the weights with this decay "
-                                                "(saved next to the raw weights); null disables.")
-    checkpoint_every: int = Field(500, ge=1, description="Write a checkpoint every this many steps.")
-    log_every: int = Field(50, ge=1, description="Write metrics.jsonl every this many steps.")
-    max_skipped_steps: int = Field(20, ge=1, description="Abort after this many consecutive steps with a non-finite "
-                                                         "loss (each one is skipped and reported).")
+def _known_stages(stages: list[str], info: ValidationInfo) -> list[str]:
+    host = (info.context or {}).get("host") if isinstance(info.context, Mapping) else None
+    if host is None:
+        return stages
+    for name in stages:
+        if name not in host.stages:
+            raise PydanticCustomError("unknown_plugin", "{message}",
+                                      {"message": unknown_name_message("stage", name, host.stages)})
+    if len(set(stages)) != len(stages):
+        raise PydanticCustomError("repeated_stage", "a stage is listed twice: {stages}", {"stages": stages})
+    return stages
 
 
 class ExperimentConfig(Section):
-    """One experiment: which stages run, which plugin fills each slot, and how to train.
+    """One experiment: which stages run, the experiment's sensors, data and metrics.
 
-    Every slot is a mapping ``{"name": <plugin>, ...options}``; only the slots needed by
-    ``stages`` are built (see ``STAGE_SLOTS``).
+    This base holds what every stage shares.  Each registered stage with a config section
+    adds a field of that name (``tokenizer``, ``generator``, ...): the model a host
+    validates with is :attr:`PluginHost.experiment_model`, a subclass of this one.  Every
+    slot is a mapping ``{"name": <plugin>, ...options}``; a run builds only the slots its
+    stages need.
     """
 
     schema_version: Literal[1] = Field(1, description="Version of this configuration schema.")
@@ -167,48 +169,28 @@ class ExperimentConfig(Section):
                       description="Experiment name, used in the run directory name.")
     scene: str | None = Field(None, description="Scene preset this config started from (informational).")
     description: str = Field("", description="Free text describing the experiment.")
-    stages: list[Stage] = Field(default_factory=list, description="Pipeline stages this experiment runs, in order.")
+    stages: Annotated[list[str], AfterValidator(_known_stages)] = Field(
+        default_factory=list, description="Pipeline stages this experiment runs, in order (see `vqtouch config "
+                                          "stages`).")
     seed: int = Field(0, ge=0, lt=2**63, description="Seed for every random number generator.")
     deterministic: bool = Field(False, description="Ask PyTorch for deterministic algorithms (slower).")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Compute device; auto picks CUDA when present.")
     output_dir: str = Field("runs", min_length=1, description="Folder under which run directories are created.")
-    sensor: Slot("sensor_family") | None = Field(None, description="Sensor family (and variant) of the training data.")
+    sensor: Slot("sensor_family") | None = Field(
+        None, description="The experiment's sensor: the family (and variant) whose images the data are, or that "
+                          "renders them (procedural scenes). The one source of truth for the source sensor.")
     target_sensor: Slot("sensor_family") | None = Field(
-        None, description="Unseen sensor to adapt to (cross-sensor and few-shot scenes).")
+        None, description="The unseen sensor a cross-sensor scene adapts to (few-shot, zero-shot, cross-sensor).")
     data: DataConfig = Field(default_factory=DataConfig, description="Data source and shapes.")
-    tokenizer: TokenizerConfig = Field(default_factory=TokenizerConfig, description="Tactile tokenizer.")
-    clusterer: Slot("clusterer") | None = Field(None, description="Sensor-family clustering plugin.")
-    conditioner: Slot("conditioner") | None = Field(None, description="Condition encoder for the generator.")
-    generator: Slot("generator") | None = Field(None, description="Generator over the code grid.")
-    metrics: list[Slot("metric")] = Field(default_factory=list, description="Metrics reported by the evaluate stage.")
-    train: TrainConfig = Field(default_factory=TrainConfig, description="Optimisation settings.")
+    metrics: list[Slot("metric")] = Field(default_factory=list,
+                                          description="Image metrics that stages report (e.g. psnr, ssim).")
 
     def slot(self, path: str) -> PluginConfig | list[PluginConfig] | None:
-        """The config in slot ``path`` (e.g. ``"tokenizer.encoder"``)."""
+        """The config in slot ``path`` (e.g. ``"tokenizer.quantizer"``)."""
         value: Any = self
         for part in path.split("."):
             value = getattr(value, part)
         return value
-
-    def required_slots(self) -> list[str]:
-        """Slot paths the configured stages need, in stage order without repeats."""
-        seen: dict[str, None] = {}
-        for stage in self.stages:
-            for path in STAGE_SLOTS[stage]:
-                seen.setdefault(path, None)
-        return list(seen)
-
-    def missing_slots(self) -> list[tuple[str, str]]:
-        """(stage, slot) pairs that a stage needs but the config leaves empty (optional slots excepted)."""
-        missing = []
-        for stage in self.stages:
-            for path in STAGE_SLOTS[stage]:
-                if path in OPTIONAL_SLOTS:
-                    continue
-                value = self.slot(path)
-                if value is None or value == []:
-                    missing.append((stage, path))
-        return missing
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready dict (plugin options included)."""
@@ -312,45 +294,23 @@ def _list_index(part: str, node: list[Any], where: Sequence[str]) -> int:
     return int(part)
 
 
-def format_validation_error(exc: ValidationError, prefix: str = "") -> str:
-    """One line per problem: the dotted path, what is wrong and the offending value."""
-    problems = []
-    for error in exc.errors(include_url=False):
-        loc = ".".join(str(part) for part in (prefix, *error["loc"]) if part != "")
-        message = error["msg"]
-        if error["type"] not in {"unknown_plugin", "unknown_option", "missing_plugin_name", "missing"}:
-            shown = repr(error.get("input"))
-            message += f" (got {shown if len(shown) <= 60 else shown[:57] + '...'})"
-        problems.append(f"{loc or '<root>'}: {message}")
-    if len(problems) == 1:
-        return f"invalid configuration: {problems[0]}"
-    return f"invalid configuration ({len(problems)} problems): " + "; ".join(problems)
-
-
-def validate_experiment(data: Mapping[str, Any], host: Any = None) -> ExperimentConfig:
-    """Validate a raw dict into an :class:`ExperimentConfig` against ``host``'s registries.
+def validate_experiment(data: Mapping[str, Any], host: Any) -> ExperimentConfig:
+    """Validate a raw dict into the host's experiment model (its stages' sections included)
+    against ``host``'s registries.
 
     Afterwards every plugin's ``vqtouch_validate_experiment`` hook may veto the combination.
     """
-    if host is None:
-        from .plugin_manager import default_host
-
-        host = default_host()
     try:
-        config = ExperimentConfig.model_validate(dict(data), context={"host": host})
+        config = host.experiment_model.model_validate(dict(data), context={"host": host})
     except ValidationError as exc:
         raise ConfigError(format_validation_error(exc)) from None
     host.pm.hook.vqtouch_validate_experiment(config=config)
     return config
 
 
-def resolve_config(scene: str | None = None, files: Iterable[str | Path] = (), overrides: Iterable[str] = (),
-                   host: Any = None) -> ExperimentConfig:
+def resolve_config(scene: str | None = None, files: Iterable[str | Path] = (), overrides: Iterable[str] = (), *,
+                   host: Any) -> ExperimentConfig:
     """Build the experiment config from a scene preset, config files and ``--set`` overrides."""
-    if host is None:
-        from .plugin_manager import default_host
-
-        host = default_host()
     data: dict[str, Any] = {}
     if scene is not None:
         entry = host.scene(scene)

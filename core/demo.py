@@ -1,29 +1,30 @@
 """``vqtouch demo``: run a scene end to end with what is installed and write a report.
 
-For each stage of the scene the demo builds the selected components, checks that each
-survives a checkpoint round trip bit for bit, and runs the stage's work where a plugin
-provides it.  Stages whose plugins are not installed are reported as such, never faked.
+The demo runs each stage of the scene (scaled down unless ``--full``), then reports on
+every component the stages need: its size, a bit-for-bit checkpoint round trip, and what
+it does (a sensor's render, a metric's sanity scores, a dataset's preview).  A stage that
+cannot run says why; nothing is faked.
 """
 
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import nn
 
+from .assembly import Assembly
 from .checkpoint import load, save
-from .assembly import build_context, enrich_context
 from .components import Metric, SensorFamily, TactileDataset
-from .config import SLOT_KINDS, ExperimentConfig
+from .config import ExperimentConfig, validate_experiment
 from .errors import VqtouchError
 from .images import image_grid, save_png
 from .progress import progress
 from .runs import RunDir
-from .seeding import make_generator, seed_everything
+from .seeding import make_generator
+from .stages import empty_slot_reason, missing_slots, required_slots, run_stage
 
 
 def _parameter_count(component: Any) -> int:
@@ -61,72 +62,91 @@ def _ball_presses(image_size: int, field_of_view_mm: float, radius_mm: float = 2
 
 
 def _preview_dataset(dataset: TactileDataset, run: RunDir, slot: str, count: int = 16) -> dict[str, Any]:
-    """Save the first samples (tactile | visual) and measure how fast samples come."""
+    """Save the first samples (tactile | visual) and describe the dataset (speed is measured by bench/)."""
     count = min(count, len(dataset))
-    start = time.perf_counter()
     samples = [dataset[index] for index in range(count)]
-    seconds = time.perf_counter() - start
     images = [image for sample in samples for image in (sample["tactile"], sample.get("visual", sample["tactile"]))]
     path = save_png(image_grid(torch.stack(images), columns=8), run.path / f"preview_{slot.replace('.', '_')}.png")
     labels = [dataset.class_names[s["label"]] for s in samples if s["label"] >= 0 and dataset.class_names]
-    return {"samples": len(dataset), "classes": dataset.num_classes, "samples_per_second": round(count / seconds, 1),
-            "preview": str(path), "first_labels": labels[:8], "example_text": samples[0].get("text", "")}
+    return {"samples": len(dataset), "classes": dataset.num_classes, "preview": str(path), "first_labels": labels[:8], "example_text": samples[0].get("text", "")}
 
 
-#: How ``vqtouch demo`` scales a scene down to minutes on a laptop CPU (``--full`` skips it).
-DEMO_SCALE = {"train.steps": 40, "train.checkpoint_every": 40, "train.log_every": 10, "data.batch_size": 8,
-              "data.dataset.num_samples": 240, "tokenizer.encoder.channels": 32}
+#: Caps on core's own options for ``vqtouch demo`` (plugins and stages declare their own caps
+#: when they register: ``demo={...}``).
+CORE_DEMO_CAPS = {"data.batch_size": 8}
+
+
+def _capped(data: dict[str, Any], path: str, cap: Any) -> None:
+    """Lower the number at ``path`` of the nested dict ``data`` to ``cap`` (other values are left alone)."""
+    node: Any = data
+    *parents, last = path.split(".")
+    for part in parents:
+        node = node.get(part) if isinstance(node, dict) else None
+    if isinstance(node, dict) and isinstance(node.get(last), (int, float)) and not isinstance(node.get(last), bool):
+        node[last] = min(node[last], cap)
 
 
 def scale_for_demo(config: ExperimentConfig, host: Any) -> ExperimentConfig:
-    """``config`` with the DEMO_SCALE caps applied wherever the config has such a value."""
-    from .config import validate_experiment
-
+    """``config`` scaled down to minutes on a laptop CPU: core's caps, each stage's ``demo`` caps on
+    its section and each selected plugin's ``demo`` caps on its options."""
     data = config.to_dict()
-    for path, cap in DEMO_SCALE.items():
-        node = data
-        *parents, last = path.split(".")
-        for part in parents:
-            node = node.get(part) if isinstance(node, dict) else None
-        if isinstance(node, dict) and isinstance(node.get(last), int):
-            node[last] = min(node[last], cap) if "every" not in last else cap
+    for path, cap in CORE_DEMO_CAPS.items():
+        _capped(data, path, cap)
+    for name in config.stages:
+        for path, cap in host.stage(name).demo.items():
+            _capped(data, f"{name}.{path}", cap)
+    for path, info in host.slots.items():
+        value = config.slot(path)
+        for index, item in (enumerate(value) if info.many else [(None, value)]):
+            if item is None:
+                continue
+            prefix = path if index is None else f"{path}.{index}"
+            for option, cap in host.registry(info.kind).get(item.name).demo.items():
+                node = data
+                for part in prefix.split("."):
+                    node = node[int(part)] if isinstance(node, list) else node[part]
+                _capped(node, option, cap)
     return validate_experiment(data, host)
 
 
 def run_demo(config: ExperimentConfig, host: Any, run: RunDir) -> dict[str, Any]:
-    """Run the demo for ``config`` inside ``run``; returns the report (also written to disk)."""
-    seed_everything(config.seed, config.deterministic)
-    generator = make_generator(config.seed)
+    """Run every stage of ``config`` in ``run``, then describe each component the stages need.
+
+    Stages run through :func:`run_stage` with one shared :class:`Assembly`, so every component
+    is built once.  Afterwards each required slot is reported: parameters, a bit-for-bit
+    checkpoint round trip, a sensor's render of a ball press, a metric's sanity scores, a
+    dataset's preview.  Returns the report (also written as report.json and report.md).
+    """
+    assembly = Assembly(config, host)
     report: dict[str, Any] = {"scene": config.scene, "run_dir": str(run.path), "stages": [], "components": []}
-    missing = dict((path, stage) for stage, path in config.missing_slots())
-    built: dict[str, Any] = {}
-    context = build_context(config)
-    # The data come first: their class count is part of the context the models are built with.
-    ordered = sorted(config.required_slots(), key=lambda p: (p != "data.dataset", p != "tokenizer.encoder"))
-    for path in progress(ordered, desc="components", unit="slot"):
+    for stage in progress(config.stages, desc="stages", unit="stage"):
+        outcome = run_stage(stage, assembly, run)
+        entry: dict[str, Any] = {"stage": stage, "status": outcome.describe()}
+        if outcome.result is not None:
+            entry["result"] = outcome.result
+        report["stages"].append(entry)
+    generator = make_generator(config.seed)
+    for path in required_slots(config, host):
+        info = host.slots[path]
         value = config.slot(path)
-        if value is None and path not in missing:  # an optional slot left empty
+        if value is None or value == []:
+            if path in dict((p, s) for s, p in missing_slots(config, host)):
+                report["components"].append({"slot": path, "plugin": None,
+                                              "status": f"missing: {empty_slot_reason(path, host)}"})
             continue
-        if path in missing:
-            choices = host.registry(SLOT_KINDS[path]).names()
-            reason = (f"no plugin selected; installed: {', '.join(choices)}" if choices
-                      else f"no {SLOT_KINDS[path]} plugin installed yet")
-            report["components"].append({"slot": path, "plugin": None, "status": f"missing: {reason}"})
+        try:
+            built = assembly.component(path)
+        except VqtouchError as exc:
+            report["components"].append({"slot": path, "plugin": None, "status": f"skipped: {exc}"})
             continue
-        for index, item in enumerate(value if isinstance(value, list) else [value]):
-            slot = f"{path}[{index}]" if isinstance(value, list) else path
-            record: dict[str, Any] = {"slot": slot, "plugin": item.name}
-            start = time.perf_counter()
-            try:
-                component = host.build(SLOT_KINDS[path], item, context)
-            except VqtouchError as exc:
-                record["status"] = f"skipped: {exc}"
-                report["components"].append(record)
-                continue
-            record["build_seconds"] = round(time.perf_counter() - start, 3)
-            record["parameters"] = _parameter_count(component)
+        items = list(zip(value, built)) if info.many else [(value, built)]
+        for index, (item, component) in enumerate(items):
+            slot = f"{path}[{index}]" if info.many else path
+            record: dict[str, Any] = {"slot": slot, "plugin": item.name, "status": "built",
+                                      "parameters": _parameter_count(component)}
             if isinstance(component, nn.Module):
-                record["checkpoint"] = _roundtrip(component, run.checkpoints / f"{slot.replace('.', '_')}.safetensors", host)
+                record["checkpoint"] = _roundtrip(component, run.checkpoints / f"{slot.replace('.', '_')}.safetensors",
+                                                  host)
             if isinstance(component, SensorFamily):
                 with torch.no_grad():
                     presses = _ball_presses(config.data.image_size, component.field_of_view_mm)
@@ -136,25 +156,7 @@ def run_demo(config: ExperimentConfig, host: Any, run: RunDir) -> dict[str, Any]
                 record["sanity"] = _metric_sanity(component, generator)
             if isinstance(component, TactileDataset):
                 record["data"] = _preview_dataset(component, run, slot)
-            context = enrich_context(context, component)
-            record["status"] = "built"
-            built[slot] = component
             report["components"].append(record)
-    for stage in config.stages:
-        needs = [path for s, path in config.missing_slots() if s == stage]
-        entry: dict[str, Any] = {"stage": stage}
-        if needs:
-            entry["status"] = f"waiting for: {', '.join(needs)}"
-        else:
-            start = time.perf_counter()
-            try:
-                result = host.pm.hook.vqtouch_run_stage(stage=stage, config=config, host=host, run=run)
-            except VqtouchError as exc:
-                result, entry["status"] = None, f"failed: {exc}"
-            if result is not None:
-                entry |= {"status": f"ran ({time.perf_counter() - start:.0f} s)", "result": result}
-            entry.setdefault("status", "components ready (no plugin runs this stage yet)")
-        report["stages"].append(entry)
     run.write_json("report.json", report)
     run.write_text("report.md", render_report(config, report))
     return report
@@ -186,8 +188,8 @@ def render_report(config: ExperimentConfig, report: dict[str, Any]) -> str:
         if "data" in c:
             data = c["data"]
             lines += ["", f"## Data (`{c['slot']}`: {c['plugin']})", "",
-                      f"{data['samples']} samples, {data['classes']} classes, {data['samples_per_second']} samples/s "
-                      f"on first access. Example text: \"{data['example_text']}\"", "",
+                      f"{data['samples']} samples, {data['classes']} classes. "
+                      f"Example text: \"{data['example_text']}\"", "",
                       f"![tactile | visual pairs]({Path(data['preview']).name})"]
     sanity = [c for c in report["components"] if "sanity" in c]
     if sanity:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import difflib
 from collections.abc import Iterable
+from typing import Any
 
 
 class VqtouchError(Exception):
@@ -56,3 +57,18 @@ def unknown_name_message(kind: str, name: str, available: Iterable[str]) -> str:
     if suggestion is not None:
         message += f"; did you mean {suggestion!r}?"
     return message
+
+
+def format_validation_error(exc: Any, prefix: str = "") -> str:
+    """One line per problem: the dotted path, what is wrong and the offending value."""
+    problems = []
+    for error in exc.errors(include_url=False):
+        loc = ".".join(str(part) for part in (prefix, *error["loc"]) if part != "")
+        message = error["msg"]
+        if error["type"] not in {"unknown_plugin", "unknown_option", "missing_plugin_name", "missing"}:
+            shown = repr(error.get("input"))
+            message += f" (got {shown if len(shown) <= 60 else shown[:57] + '...'})"
+        problems.append(f"{loc or '<root>'}: {message}")
+    if len(problems) == 1:
+        return f"invalid configuration: {problems[0]}"
+    return f"invalid configuration ({len(problems)} problems): " + "; ".join(problems)

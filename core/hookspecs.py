@@ -11,10 +11,13 @@ Registration hooks receive a ``register`` callback::
         register("label", build_label_conditioner, LabelConditionerConfig,
                  description="Learned embedding per class label.")
 
-``register(name, factory, config, *, description="", aliases=())``: ``config`` is the
-plugin's :class:`~vqtouch.core.PluginConfig` subclass (with ``name: Literal[name]``) and
-``factory(config, context)`` builds the component from a validated config and a
-:class:`~vqtouch.core.BuildContext`.
+``register(name, factory, config, *, description="", aliases=(), inputs=(), demo=None)``:
+``config`` is the plugin's :class:`~vqtouch.core.PluginConfig` subclass (with
+``name: Literal[name]``) and ``factory(config, context, **inputs)`` builds the component from a
+validated config and a :class:`~vqtouch.core.BuildContext`.  ``inputs`` names built
+components the factory needs (``("sensor",)`` for a dataset that renders with the
+experiment's sensor); the assembly supplies them.  ``demo`` caps options for ``vqtouch demo``
+(e.g. ``{"num_samples": 240}``).
 """
 
 from __future__ import annotations
@@ -37,8 +40,8 @@ Register = Callable[..., None]
 
 
 @hookspec
-def vqtouch_register_encoders(register: Register) -> None:
-    """Register tokenizer autoencoders (``vqtouch.core.Encoder`` subclasses), e.g. ``vqgan``."""
+def vqtouch_register_autoencoders(register: Register) -> None:
+    """Register tokenizer autoencoders (``vqtouch.core.Autoencoder`` subclasses), e.g. ``vqgan``."""
 
 
 @hookspec
@@ -100,13 +103,14 @@ def vqtouch_add_commands(subparsers: argparse._SubParsersAction) -> None:
     """
 
 
-@hookspec(firstresult=True)
-def vqtouch_run_stage(stage: str, config: ExperimentConfig, host: Any, run: Any) -> dict[str, Any] | None:
-    """Run pipeline stage ``stage`` (``"tokenizer"``, ``"reconstruct"``, ...) of ``config`` in ``run``.
+@hookspec
+def vqtouch_register_stages(register: Callable[..., None]) -> None:
+    """Register pipeline stages: ``register(name, run, *, section=None, needs=(), uses=(),
+    description="", demo=None)``.
 
-    Return a JSON-ready report of what was done (scores, ``"picture"``: a file name inside the
-    run), or None when this plugin does not run that stage.  firstresult: the first plugin
-    that answers runs it.
+    ``run(job: vqtouch.core.StageJob) -> dict | None`` does the stage's work; ``section`` is the
+    stage's own config model (validated at ``config.<name>``); ``needs``/``uses`` are the slot
+    paths it requires / uses when set.  See :mod:`vqtouch.core.stages`.
     """
 
 

@@ -9,8 +9,13 @@
    (``VQTOUCH_DISABLE_PLUGIN_AUTOLOAD=1`` or ``autoload=False``);
 4. extra plugin modules load (``extra=`` or ``VQTOUCH_PLUGINS=pkg.mod,other.mod``);
 5. ``check_pending()`` fails on any ``vqtouch_*`` function that matches no hook;
-6. every registration hook runs, one plugin at a time so each entry knows its source;
-7. the registries are frozen.
+6. every registration hook runs, one plugin at a time so each entry knows its source
+   (components, then stages, then scenes);
+7. the registries are frozen and the experiment model is assembled from core's sections
+   and every stage's own section; each stage's slot paths are checked against it.
+
+There is no process-wide host: whoever validates a config, builds a component or loads a
+checkpoint passes the host whose plugins to use (the CLI makes one per command).
 
 Any plugin, built-in or not, can be blocked by name with ``block=`` or
 ``VQTOUCH_BLOCK_PLUGINS=name,other``.
@@ -22,21 +27,21 @@ import importlib
 import importlib.metadata as importlib_metadata
 import os
 import sys
-import threading
-from contextvars import ContextVar
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import pluggy
-from pydantic import ValidationError
+from pydantic import Field, ValidationError, create_model
 
 from . import hookspecs
-from .components import (BuildContext, Clusterer, Conditioner, Discriminator, Encoder, Generator, Metric,
+from .components import (Autoencoder, BuildContext, Clusterer, Conditioner, Discriminator, Generator, Metric,
                          Quantizer, SensorFamily, TactileDataset)
-from .errors import ConfigError, PluginError, UnknownPluginError, unknown_name_message
+from .config import ExperimentConfig, Section, SlotInfo, slots_of
+from .errors import ConfigError, PluginError, UnknownPluginError, format_validation_error, unknown_name_message
 from .plugin_config import PluginConfig
 from .registry import PluginEntry, PluginSource, Registry
+from .stages import StageEntry
 
 ENTRY_POINT_GROUP = "vqtouch"
 BUILTIN_DISTRIBUTION = "vqtouch"
@@ -48,25 +53,38 @@ ENV_TRACE = "VQTOUCH_TRACE_PLUGINS"
 
 @dataclass(frozen=True)
 class RegistryKind:
-    """A kind of component: its registry name, registration hook and interface."""
+    """A kind of component: its registry name, registration hook and interface.
+
+    ``provides`` are the :class:`BuildContext` facts its components fix (see
+    ``ProvidesContext``) and ``reads`` the facts its factories read, so the assembly builds
+    providers first.
+    """
 
     name: str
     hook: str
     description: str
     base_type: type
+    provides: tuple[str, ...] = ()
+    reads: tuple[str, ...] = ()
 
 
 REGISTRY_KINDS: tuple[RegistryKind, ...] = (
-    RegistryKind("encoder", "vqtouch_register_encoders", "tokenizer autoencoders", Encoder),
-    RegistryKind("quantizer", "vqtouch_register_quantizers", "latent quantizers", Quantizer),
+    RegistryKind("autoencoder", "vqtouch_register_autoencoders", "tokenizer autoencoders", Autoencoder,
+                 provides=("latent_dim",)),
+    RegistryKind("quantizer", "vqtouch_register_quantizers", "latent quantizers", Quantizer,
+                 provides=("codebook_size",), reads=("latent_dim",)),
     RegistryKind("discriminator", "vqtouch_register_discriminators", "GAN discriminators", Discriminator),
-    RegistryKind("conditioner", "vqtouch_register_conditioners", "condition encoders", Conditioner),
+    RegistryKind("conditioner", "vqtouch_register_conditioners", "condition encoders", Conditioner,
+                 reads=("num_classes",)),
     RegistryKind("sensor_family", "vqtouch_register_sensor_families", "tactile sensor renderers", SensorFamily),
-    RegistryKind("generator", "vqtouch_register_generators", "code-grid generators", Generator),
+    RegistryKind("generator", "vqtouch_register_generators", "code-grid generators", Generator,
+                 reads=("codebook_size", "num_classes")),
     RegistryKind("clusterer", "vqtouch_register_clusterers", "sensor-family clusterers", Clusterer),
-    RegistryKind("dataset", "vqtouch_register_datasets", "tactile dataset readers", TactileDataset),
+    RegistryKind("dataset", "vqtouch_register_datasets", "tactile dataset readers", TactileDataset,
+                 provides=("num_classes",)),
     RegistryKind("metric", "vqtouch_register_metrics", "image metrics", Metric),
 )
+KINDS_BY_NAME = {kind.name: kind for kind in REGISTRY_KINDS}
 KIND_NAMES = tuple(kind.name for kind in REGISTRY_KINDS)
 
 
@@ -99,9 +117,9 @@ def _is_truthy(variable: str) -> bool:
 
 
 class PluginHost:
-    """A loaded plugin manager with its registries and scenes.
+    """A loaded plugin manager with its registries, stages, scenes and experiment model.
 
-    Use :func:`load_plugins` to make one, or :func:`default_host` for the shared instance.
+    Make one with :func:`load_plugins` and pass it to whatever validates, builds or loads.
     """
 
     def __init__(self, pm: pluggy.PluginManager, sources: dict[str, PluginSource]) -> None:
@@ -109,7 +127,12 @@ class PluginHost:
         self.sources = sources
         self.registries: dict[str, Registry] = {
             kind.name: Registry(kind.name, kind.description, kind.base_type) for kind in REGISTRY_KINDS}
+        self.stages: dict[str, StageEntry] = {}
         self.scenes: dict[str, SceneEntry] = {}
+        #: The experiment config model: core's fields plus one section per stage that has one.
+        self.experiment_model: type[ExperimentConfig] = ExperimentConfig
+        #: Every slot of :attr:`experiment_model` by dotted path.
+        self.slots: dict[str, SlotInfo] = slots_of(ExperimentConfig)
 
     # -- lookup ---------------------------------------------------------------------------
     def registry(self, kind: str) -> Registry:
@@ -118,6 +141,13 @@ class PluginHost:
             return self.registries[kind]
         except KeyError:
             raise UnknownPluginError(unknown_name_message("registry kind", kind, self.registries)) from None
+
+    def stage(self, name: str) -> StageEntry:
+        """A stage by name; unknown names list the registered stages."""
+        try:
+            return self.stages[name]
+        except KeyError:
+            raise UnknownPluginError(unknown_name_message("stage", name, self.stages)) from None
 
     def scene(self, name: str) -> SceneEntry:
         """A scene preset by name; unknown names list the registered scenes."""
@@ -133,25 +163,30 @@ class PluginHost:
     # -- building -------------------------------------------------------------------------
     def validate(self, kind: str, config: PluginConfig | dict[str, Any] | str) -> PluginConfig:
         """Validate raw options for ``kind`` into the plugin's config model (ConfigError on failure)."""
-        from .config import format_validation_error
-
         try:
             return self.registry(kind).validate_config(config, context={"host": self})
         except ValidationError as exc:
             raise ConfigError(format_validation_error(exc, prefix=kind)) from None
 
     def build(self, kind: str, config: PluginConfig | dict[str, Any] | str,
-              context: BuildContext | None = None) -> Any:
-        """Build one component of ``kind`` from its config and the experiment context."""
+              context: BuildContext | None = None, **inputs: Any) -> Any:
+        """Build one component of ``kind`` from its config, the experiment context and the built
+        ``inputs`` its plugin declared (e.g. ``sensor=...`` for a dataset that renders).
+
+        Inside an experiment use :class:`vqtouch.core.Assembly`, which supplies the inputs.
+        """
         registry = self.registry(kind)
         config = self.validate(kind, config)
         context = context or BuildContext()
         entry = registry.get(config.name)
-        token = _building_host.set(self)
-        try:
-            component = entry.factory(config, context)
-        finally:
-            _building_host.reset(token)
+        missing = [name for name in entry.inputs if inputs.get(name) is None]
+        if missing:
+            raise ConfigError(f"{kind} {entry.name!r} needs {', '.join(missing)}: build it through the experiment's "
+                              f"Assembly (which supplies the experiment's {missing[0]}) or pass {missing[0]}=...")
+        extra = sorted(set(inputs) - set(entry.inputs))
+        if extra:
+            raise PluginError(f"{kind} {entry.name!r} takes no input {extra[0]!r} (it declares {list(entry.inputs)})")
+        component = entry.factory(config, context, **inputs)
         if registry.base_type is not None and not isinstance(component, registry.base_type):
             raise PluginError(
                 f"{entry.source.describe()}: factory of {kind} {entry.name!r} returned "
@@ -167,6 +202,10 @@ class PluginHost:
             rows.append({"kind": entry.kind, "name": entry.name, "plugin": entry.source.plugin,
                          "package": entry.source.distribution, "version": entry.source.version,
                          "description": entry.description})
+        for stage in sorted(self.stages.values(), key=lambda s: s.name):
+            rows.append({"kind": "stage", "name": stage.name, "plugin": stage.source.plugin,
+                         "package": stage.source.distribution, "version": stage.source.version,
+                         "description": stage.description})
         for scene in sorted(self.scenes.values(), key=lambda s: s.name):
             rows.append({"kind": "scene", "name": scene.name, "plugin": scene.source.plugin,
                          "package": scene.source.distribution, "version": scene.source.version,
@@ -252,8 +291,48 @@ def load_plugins(*, autoload: bool | None = None, extra: Iterable[str | Any] = (
     for kind in REGISTRY_KINDS:
         _run_registration_hook(host, kind.hook, _component_register(host.registries[kind.name]))
         host.registries[kind.name].freeze()
+    _run_registration_hook(host, "vqtouch_register_stages", lambda source: _stage_register(host, source))
     _run_registration_hook(host, "vqtouch_register_scenes", lambda source: _scene_register(host, source))
+    _assemble_experiment_model(host)
     return host
+
+
+def _assemble_experiment_model(host: PluginHost) -> None:
+    """Core's ExperimentConfig plus one field per stage section; every stage's slot paths checked."""
+    sections: dict[str, Any] = {}
+    for stage in host.stages.values():
+        if stage.section is None:
+            continue
+        if stage.name in ExperimentConfig.model_fields:
+            raise PluginError(f"{stage.source.describe()} registered stage {stage.name!r}, whose section would "
+                              f"replace core's {stage.name!r} field; rename the stage")
+        sections[stage.name] = (stage.section, Field(default_factory=stage.section,
+                                                     description=stage.description or f"The {stage.name} stage."))
+    if sections:
+        host.experiment_model = create_model("ExperimentConfig", __base__=ExperimentConfig,
+                                             __module__=ExperimentConfig.__module__, **sections)
+    host.slots = slots_of(host.experiment_model)
+    for stage in host.stages.values():
+        for path in stage.slots:
+            if path not in host.slots:
+                raise PluginError(f"{stage.source.describe()}: stage {stage.name!r} declares slot {path!r}, which "
+                                  f"the experiment config does not have; slots: {', '.join(host.slots)}")
+
+
+def _stage_register(host: PluginHost, source: PluginSource) -> Any:
+    def register(name: str, run: Any, *, section: type[Section] | None = None, needs: Iterable[str] = (),
+                 uses: Iterable[str] = (), description: str = "", demo: Mapping[str, Any] | None = None) -> None:
+        if name in host.stages:
+            raise PluginError(f"duplicate stage {name!r}: registered by {host.stages[name].source.describe()} "
+                              f"and again by {source.describe()}; block one with {ENV_BLOCK}")
+        if not callable(run):
+            raise PluginError(f"{source.describe()}: stage {name!r} must be registered with a callable run(job)")
+        if section is not None and not (isinstance(section, type) and issubclass(section, Section)):
+            raise PluginError(f"{source.describe()}: stage {name!r} section must subclass vqtouch.core.Section, "
+                              f"got {section!r}")
+        host.stages[name] = StageEntry(name, run, section, tuple(needs), tuple(uses), description, source,
+                                       dict(demo or {}))
+    return register
 
 
 def _run_registration_hook(host: PluginHost, hook_name: str, make_register: Any) -> None:
@@ -274,8 +353,10 @@ def _run_registration_hook(host: PluginHost, hook_name: str, make_register: Any)
 def _component_register(registry: Registry) -> Any:
     def bind(source: PluginSource) -> Any:
         def register(name: str, factory: Any, config: type[PluginConfig], *, description: str = "",
-                     aliases: Iterable[str] = ()) -> None:
-            registry.add(PluginEntry(registry.kind, name, factory, config, description, source, tuple(aliases)))
+                     aliases: Iterable[str] = (), inputs: Iterable[str] = (),
+                     demo: Mapping[str, Any] | None = None) -> None:
+            registry.add(PluginEntry(registry.kind, name, factory, config, description, source, tuple(aliases),
+                                     tuple(inputs), dict(demo or {})))
         return register
     return bind
 
@@ -289,34 +370,3 @@ def _scene_register(host: PluginHost, source: PluginSource) -> Any:
             raise PluginError(f"{source.describe()}: scene {name!r} config must be a dict, got {type(config).__name__}")
         host.scenes[name] = SceneEntry(name, config, description, source)
     return register
-
-
-_building_host: ContextVar[PluginHost | None] = ContextVar("vqtouch_building_host", default=None)
-
-
-def current_host() -> PluginHost:
-    """The host whose ``build`` is running (for factories that build nested components).
-
-    Outside a build it is the process-wide :func:`default_host`.
-    """
-    return _building_host.get() or default_host()
-
-
-_default_lock = threading.Lock()
-_default_host: PluginHost | None = None
-
-
-def default_host() -> PluginHost:
-    """The process-wide plugin host, loaded on first use (honours the VQTOUCH_* variables)."""
-    global _default_host
-    with _default_lock:
-        if _default_host is None:
-            _default_host = load_plugins()
-        return _default_host
-
-
-def reset_default_host() -> None:
-    """Forget the process-wide host so the next :func:`default_host` reloads plugins (tests)."""
-    global _default_host
-    with _default_lock:
-        _default_host = None

@@ -8,7 +8,7 @@ registering a name twice fails naming both sources (mmengine style).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -42,6 +42,10 @@ class PluginEntry:
     description: str
     source: PluginSource
     aliases: tuple[str, ...] = ()
+    #: Built components the factory takes as keyword arguments (e.g. ``("sensor",)``).
+    inputs: tuple[str, ...] = ()
+    #: Caps on this plugin's options for ``vqtouch demo`` (e.g. ``{"num_samples": 240}``).
+    demo: Mapping[str, Any] = field(default_factory=dict)
 
 
 @dataclass

@@ -23,7 +23,8 @@ from pathlib import Path
 from typing import Any
 
 from .checkpoint import atomic_write
-from .config import ExperimentConfig
+from .config import ExperimentConfig, validate_experiment
+from .errors import ConfigError
 
 
 def config_hash(config: ExperimentConfig) -> str:
@@ -52,10 +53,11 @@ def environment_record(config: ExperimentConfig, argv: Sequence[str] | None, hos
     """What env.json holds: enough to say later exactly what produced a run."""
     import torch
 
-    plugins = {}
+    plugins, components = {}, {}
     if host is not None:
         for name, source in sorted(host.sources.items()):
             plugins[name] = {"module": source.module, "package": source.distribution, "version": source.version}
+        components = component_sources(config, host)
     return {
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "argv": list(argv) if argv is not None else list(sys.argv),
@@ -69,7 +71,25 @@ def environment_record(config: ExperimentConfig, argv: Sequence[str] | None, hos
         "device_name": torch.cuda.get_device_name(0) if torch.cuda.is_available() else platform.processor() or "cpu",
         "git_revision": _git_revision(),
         "plugins": plugins,
+        "components": components,
     }
+
+
+def component_sources(config: ExperimentConfig, host: Any) -> dict[str, dict[str, Any]]:
+    """For every filled slot (``metrics.0`` for list items): the plugin name and where it came from,
+    so a later reader of the run can name a distribution that has since been uninstalled."""
+    sources: dict[str, dict[str, Any]] = {}
+    for path, info in host.slots.items():
+        value = config.slot(path)
+        items = list(enumerate(value)) if info.many else [(None, value)]
+        for index, item in items:
+            if item is None:
+                continue
+            source = host.registry(info.kind).get(item.name).source
+            key = path if index is None else f"{path}.{index}"
+            sources[key] = {"kind": info.kind, "name": item.name, "plugin": source.plugin,
+                            "package": source.distribution, "version": source.version}
+    return sources
 
 
 class RunDir:
@@ -92,6 +112,31 @@ class RunDir:
         run.write_json("config.json", config.to_dict())
         run.write_json("env.json", environment_record(config, argv, host))
         return run
+
+    @classmethod
+    def open(cls, path: str | Path) -> RunDir:
+        """An existing run directory (one with a config.json); ConfigError otherwise."""
+        run = cls(Path(path))
+        if not (run.path / "config.json").is_file():
+            raise ConfigError(f"{run.path}: not a run directory (no config.json)")
+        return run
+
+    def load_config(self, host: Any) -> ExperimentConfig:
+        """The run's resolved config, validated against ``host``.
+
+        A plugin the run used that is no longer installed is named with its distribution (from
+        env.json), rather than answered with the closest installed name.
+        """
+        data = json.loads((self.path / "config.json").read_text(encoding="utf-8"))
+        env_path = self.path / "env.json"
+        recorded = json.loads(env_path.read_text(encoding="utf-8")).get("components", {}) if env_path.is_file() else {}
+        for key, source in recorded.items():
+            if source["name"] not in host.registry(source["kind"]):
+                package = source.get("package") or source.get("plugin")
+                version = f" {source['version']}" if source.get("version") else ""
+                raise ConfigError(f"{self.path}: {key} uses {source['kind']} {source['name']!r} from {package}{version} "
+                                  f"(plugin {source['plugin']!r}), which is not installed here; pip install {package}")
+        return validate_experiment(data, host)
 
     def write_json(self, name: str, data: Any) -> Path:
         """Write ``data`` as indented JSON to ``name`` inside the run, atomically."""

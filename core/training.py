@@ -33,19 +33,45 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import torch
+from pydantic import Field
 from safetensors import safe_open
 from safetensors.torch import save_file
 from torch import nn
 
 from .checkpoint import atomic_write, load_state_strict, save
-from .config import TrainConfig
+from .config import Section
 from .errors import CheckpointError, VqtouchError
 from .progress import progress
 
 TRAINER_STATE = "trainer_state.safetensors"
+
+
+class TrainConfig(Section):
+    """How the trainer optimises one stage's task.
+
+    Each training stage owns one of these in its own section (``tokenizer.train``, ...) and
+    may subclass it to change defaults (VQGAN trains with Adam betas (0.5, 0.9)); these
+    defaults are the usual AdamW ones.
+    """
+
+    steps: int = Field(1000, ge=0, description="Optimisation steps.")
+    learning_rate: float = Field(1e-4, gt=0, le=10, description="Peak learning rate.")
+    weight_decay: float = Field(0.0, ge=0, le=1, description="Decoupled weight decay (AdamW).")
+    grad_clip: float | None = Field(1.0, gt=0, description="Clip the gradient norm to this value; null disables.")
+    precision: Literal["fp32", "bf16"] = Field(
+        "fp32", description="Autocast precision of the networks; quantizer and diffusion maths stay fp32.")
+    optimizer: Literal["adamw", "adam"] = Field("adamw", description="Optimizer of every trained module.")
+    betas: tuple[float, float] = Field((0.9, 0.999), description="Adam betas.")
+    ema_decay: float | None = Field(None, gt=0.0, lt=1.0,
+                                    description="Keep an exponential moving average of the weights with this decay "
+                                                "(saved next to the raw weights); null disables.")
+    checkpoint_every: int = Field(500, ge=1, description="Write a checkpoint every this many steps.")
+    log_every: int = Field(50, ge=1, description="Write metrics.jsonl every this many steps.")
+    max_skipped_steps: int = Field(20, ge=1, description="Abort after this many consecutive steps with a non-finite "
+                                                         "loss (each one is skipped and reported).")
 
 
 class TrainingTask(Protocol):
@@ -160,7 +186,6 @@ class Trainer:
         if config.ema_decay is not None:
             self.ema = {name: {k: v.detach().clone() for k, v in module.state_dict().items()
                                if v.dtype.is_floating_point} for name, module in task.modules.items()}
-        self._interrupted = False
 
     # -- optimisation ---------------------------------------------------------------------
     def _make_optimizer(self, name: str, params: list[nn.Parameter] | list[dict[str, Any]]) -> torch.optim.Optimizer:
@@ -275,7 +300,8 @@ class Trainer:
                     if self.state.consecutive_skips >= self.config.max_skipped_steps:
                         raise NonFiniteLossError(
                             f"{self.state.consecutive_skips} consecutive steps had a non-finite loss (last at step "
-                            f"{step}); lower train.learning_rate or check the data. The last good checkpoint is kept")
+                            f"{step}); lower the stage's train.learning_rate or check the data. The last good "
+                            "checkpoint is kept")
                 else:
                     self.state.consecutive_skips = 0
                 if self.ema:
@@ -295,7 +321,6 @@ class Trainer:
                                     refresh=False)
                     bar.update(1)
         except KeyboardInterrupt:
-            self._interrupted = True
             self.save_checkpoint()
             raise
         finally:
@@ -319,7 +344,6 @@ class Trainer:
                      lambda tmp: save_file(tensors, str(tmp), metadata={
                          "format": "pt", "vqtouch.format_version": "1", "vqtouch.component": "trainer_state",
                          "vqtouch.trainer": json.dumps(meta, sort_keys=True)}))
-        atomic_write(self.checkpoint_dir / "latest", lambda tmp: tmp.write_text(folder.name + "\n"))
         return folder
 
     def _trainer_tensors(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:

@@ -2,7 +2,8 @@
 
 A scene is a partial experiment config: the stages it runs and the plugin chosen for
 each slot.  Slots whose plugins are not installed yet are left empty, and ``vqtouch
-config show`` reports them; users fill them with ``--set`` or a config file.
+config show`` reports them; users fill them with ``--set`` or a config file.  A scene
+names stages and plugins only: what each stage needs is declared by the stage itself.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ _DATA = {"dataset": {"name": "procedural"}}
 #: The paper's tokenizer: DM-VQGAN + nearest-neighbour VQ, trained with a PatchGAN.  The lookup is
 #: cosine in 8 dimensions (ViT-VQGAN): with the plain lookup, 512 codes collapsed to ~10 in use on
 #: our 64-px GelSight scenes; with it ~400 are used and PSNR is ~3.5 dB higher at equal steps (README).
-_TOKENIZER = {"encoder": {"name": "dm_vqgan"},
+_TOKENIZER = {"autoencoder": {"name": "dm_vqgan"},
               "quantizer": {"name": "vq", "codebook_size": 512, "l2_normalize": True, "lookup_dim": 8},
               "discriminator": {"name": "patchgan"}}
 #: An unseen "derivative" GelSight: same family, drifted illumination and a slightly worn gel.
@@ -28,39 +29,39 @@ GELSIGHT_DERIVATIVE_II = {"name": "gelsight", "variant": {
 SCENES: dict[str, tuple[str, dict]] = {
     "reconstruction": (
         "Train a tactile tokenizer and measure how well it reconstructs held-out images.",
-        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "reconstruct", "evaluate"], "metrics": _METRICS, "sensor": {"name": "gelsight"},
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "reconstruct"], "metrics": _METRICS, "sensor": {"name": "gelsight"},
          "data": _DATA},
     ),
     "few-shot": (
         "Adapt to an unseen sensor from a few images mixed 1:5 with its family's data, then generate for it.",
-        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "cluster", "adapt", "generator", "evaluate"], "metrics": _METRICS,
-         "conditioner": {"name": "label"}, "sensor": {"name": "gelsight"}, "target_sensor": GELSIGHT_DERIVATIVE_I,
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "cluster", "adapt", "generator"], "metrics": _METRICS,
+         "generator": {"conditioners": [{"name": "label"}]}, "sensor": {"name": "gelsight"}, "target_sensor": GELSIGHT_DERIVATIVE_I,
          "data": {"dataset": {"name": "procedural", "num_samples": 500}}},
     ),
     "zero-shot": (
         "Assign an unseen sensor to its family without any of its images and reuse the family tokenizer.",
-        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "cluster", "reconstruct", "evaluate"], "metrics": _METRICS,
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "cluster", "reconstruct"], "metrics": _METRICS,
          "sensor": {"name": "gelsight"}, "target_sensor": GELSIGHT_DERIVATIVE_II, "data": _DATA},
     ),
     "cross-sensor": (
         "Train on one sensor, adapt and evaluate on another (e.g. GelSight -> GelSight Mini).",
-        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "adapt", "reconstruct", "evaluate"], "metrics": _METRICS,
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "adapt", "reconstruct"], "metrics": _METRICS,
          "sensor": {"name": "gelsight"}, "target_sensor": {"name": "gelsight_mini"}, "data": _DATA},
     ),
     "vision-to-touch": (
         "Generate the tactile image of a contact from a visual image of it (frozen CLIP condition).",
-        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator", "evaluate"], "metrics": _METRICS,
-         "conditioner": {"name": "clip"}, "sensor": {"name": "gelsight"}, "data": _DATA},
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator"], "metrics": _METRICS,
+         "generator": {"conditioners": [{"name": "clip"}]}, "sensor": {"name": "gelsight"}, "data": _DATA},
     ),
     "label-to-touch": (
         "Generate tactile images of a given object class (label condition).",
-        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator", "evaluate"], "metrics": _METRICS,
-         "conditioner": {"name": "label"}, "sensor": {"name": "gelsight"}, "data": _DATA},
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator"], "metrics": _METRICS,
+         "generator": {"conditioners": [{"name": "label"}]}, "sensor": {"name": "gelsight"}, "data": _DATA},
     ),
     "touch-to-touch": (
         "Generate a tactile image for a target sensor from another tactile image (tactile condition).",
-        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator", "evaluate"], "metrics": _METRICS,
-         "conditioner": {"name": "tactile"}, "sensor": {"name": "gelsight"}, "target_sensor": {"name": "digit"},
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator"], "metrics": _METRICS,
+         "generator": {"conditioners": [{"name": "tactile"}]}, "sensor": {"name": "gelsight"}, "target_sensor": {"name": "digit"},
          "data": _DATA},
     ),
 }

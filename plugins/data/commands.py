@@ -11,9 +11,7 @@
 from __future__ import annotations
 
 import argparse
-import csv
 import json
-import time
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +20,8 @@ import torch
 from vqtouch.core import ConfigError, hookimpl
 from vqtouch.core.checkpoint import atomic_write
 from vqtouch.core.images import image_grid, save_png
-from vqtouch.core.progress import progress
+
+from .export import export_samples
 
 
 def _sensor_argument(text: str) -> Any:
@@ -37,59 +36,28 @@ def _sensor_argument(text: str) -> Any:
 
 
 def _render_command(args: argparse.Namespace) -> int:
-    from vqtouch.core import default_host
-
-    host = default_host()
+    host = args.host
     out = Path(args.out)
     if out.exists() and any(out.iterdir()) and not args.overwrite:
         raise ConfigError(f"{out} exists and is not empty; choose another --out or pass --overwrite")
-    config = {"name": "procedural", "sensor": args.sensor, "num_samples": args.n, "image_size": args.image_size,
-              "seed": args.seed, "cache": False}
+    config = {"name": "procedural", "num_samples": args.n, "image_size": args.image_size, "seed": args.seed,
+              "cache": False}
     if args.classes:
         config["classes"] = [name.strip() for name in args.classes.split(",") if name.strip()]
-    dataset = host.build("dataset", config)
-    (out / "tactile").mkdir(parents=True, exist_ok=True)
-    (out / "visual").mkdir(exist_ok=True)
-    rows, previews = [], []
-    start = time.perf_counter()
-    bar = progress(total=len(dataset), desc="rendering", unit="img")
-    for first in range(0, len(dataset), args.batch_size):
-        batch = dataset.render_batch(list(range(first, min(first + args.batch_size, len(dataset)))))
-        for k, sample_id in enumerate(batch["id"]):
-            save_png(batch["tactile"][k], out / "tactile" / f"{sample_id}.png")
-            save_png(batch["visual"][k], out / "visual" / f"{sample_id}.png")
-            label = int(batch["label"][k])
-            rows.append({"path": f"tactile/{sample_id}.png", "label": label, "visual": f"visual/{sample_id}.png",
-                         "class_name": dataset.class_names[label], "text": batch["text"][k],
-                         "sensor": batch["sensor"][k], "depth_mm": f"{float(batch['depth_mm'][k]):.4f}"})
-            if len(previews) < 16:
-                previews.append((batch["tactile"][k], batch["visual"][k]))
-        bar.update(len(batch["id"]))
-    bar.close()
-    seconds = time.perf_counter() - start
-
-    def write_index(tmp: Path) -> None:
-        with open(tmp, "w", newline="", encoding="utf-8") as handle:
-            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
-
-    atomic_write(out / "index.csv", write_index)
-    atomic_write(out / "classes.txt", lambda tmp: tmp.write_text("\n".join(dataset.class_names) + "\n"))
-    pairs = torch.stack([image for pair in previews for image in pair])
-    save_png(image_grid(pairs, columns=8), out / "preview.png")
-    record = {"dataset": dataset.config.model_dump(mode="json"), "samples": len(rows), "seconds": round(seconds, 2),
-              "images_per_second": round(len(rows) / seconds, 1)}
+    sensor_config = host.validate("sensor_family", args.sensor)
+    dataset = host.build("dataset", config, sensor=host.build("sensor_family", sensor_config))
+    record = export_samples(dataset, range(len(dataset)), out, batch_size=args.batch_size)
+    record["sensor"] = sensor_config.model_dump(mode="json")
     atomic_write(out / "render.json", lambda tmp: tmp.write_text(json.dumps(record, indent=2) + "\n"))
-    print(f"wrote {len(rows)} samples to {out} ({record['images_per_second']} samples/s); index: {out / 'index.csv'}")
+    print(f"wrote {record['samples']} samples to {out} ({record['images_per_second']} samples/s); "
+          f"index: {out / 'index.csv'}")
     return 0
 
 
 def _fidelity_command(args: argparse.Namespace) -> int:
-    from vqtouch.core import default_host
     from vqtouch.sensors.fidelity import evaluate_fidelity
 
-    host = default_host()
+    host = args.host
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results = []

@@ -1,7 +1,7 @@
 """The embedded default dataset: procedural paired scenes rendered on demand.
 
 Sample ``i`` is a pure function of ``(seed, i)``: an object of the scene library pressed into
-the configured sensor (tactile image), the camera view of the same region (visual image),
+the experiment's sensor (tactile image), the camera view of the same region (visual image),
 its class label and a short text description.  Samples are rendered lazily and kept in
 memory as 8-bit images once rendered (``cache``).  Export a browsable copy with
 ``vqtouch data render``.
@@ -14,7 +14,7 @@ from typing import Any, Literal
 import torch
 from pydantic import Field, field_validator
 
-from vqtouch.core import BuildContext, PluginConfig, Slot, TactileDataset, current_host, hookimpl
+from vqtouch.core import BuildContext, PluginConfig, SensorFamily, TactileDataset, hookimpl
 from vqtouch.sensors.camera import render_visual
 from vqtouch.sensors.objects import CLASS_NAMES, OBJECT_CLASSES, sample_contact
 
@@ -23,9 +23,6 @@ class ProceduralDataConfig(PluginConfig):
     """Options of the ``procedural`` dataset (the embedded default data)."""
 
     name: Literal["procedural"] = "procedural"
-    sensor: Slot("sensor_family") | None = Field(
-        None, description="Sensor family (and variant) that renders the tactile images; null uses the experiment's "
-                          "sensor, else gelsight.")
     num_samples: int = Field(1000, ge=1, le=10_000_000, description="Number of samples in the dataset.")
     image_size: int | None = Field(None, ge=16, le=1024,
                                    description="Side of the square tactile and visual images; null uses the "
@@ -95,7 +92,8 @@ class ProceduralTactileDataset(TactileDataset):
             # depend on which batch it was rendered in.
             tactile = torch.cat([self.sensor.render(c.indentation_mm_HW[None], generator=g)
                                  for c, g in zip(contacts, generators)])
-        sensor_id = getattr(self.sensor, "sensor_id", "") or self.sensor.vqtouch_spec.config.name
+        spec = getattr(self.sensor, "vqtouch_spec", None)
+        sensor_id = self.sensor.sensor_id or (spec.config.name if spec else type(self.sensor).__name__)
         return {
             "tactile": tactile, "visual": torch.stack(visuals),
             "label": torch.tensor([c.class_index for c in contacts]),
@@ -122,16 +120,17 @@ class ProceduralTactileDataset(TactileDataset):
         return sample
 
 
-def build_procedural(config: ProceduralDataConfig, context: BuildContext) -> ProceduralTactileDataset:
-    """Factory: builds the sensor from the nested slot (same host), then the dataset."""
+def build_procedural(config: ProceduralDataConfig, context: BuildContext,
+                     sensor: SensorFamily) -> ProceduralTactileDataset:
+    """Factory: the scenes rendered by ``sensor``, which the assembly supplies (the experiment's
+    sensor, or its target sensor where a stage asks for that)."""
     if config.image_size is None:
         config = config.model_copy(update={"image_size": context.image_size})
-    sensor_config = config.sensor if config.sensor is not None else (context.sensor or {"name": "gelsight"})
-    return ProceduralTactileDataset(current_host().build("sensor_family", sensor_config, context), config)
+    return ProceduralTactileDataset(sensor, config)
 
 
 @hookimpl
 def vqtouch_register_datasets(register):
-    register("procedural", build_procedural, ProceduralDataConfig,
+    register("procedural", build_procedural, ProceduralDataConfig, inputs=("sensor",), demo={"num_samples": 240},
              description="Embedded procedural scenes: 12 object classes x any sensor family (tactile, visual, "
                          "label, text).")

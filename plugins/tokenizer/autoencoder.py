@@ -1,10 +1,11 @@
 """The VQGAN autoencoder and DM-VQGAN, registered as the ``vqgan`` and ``dm_vqgan`` encoders.
 
 One network serves both: DM-VQGAN is VQGAN plus deformable convolutions in the ResNet
-blocks at low feature resolutions (encoder and decoder) and the multi-scale dilated fusion
-module at the latent end of each half.  The DM options live only in the ``dm_vqgan`` config,
-so ``--set tokenizer.encoder.name=vqgan`` is the paper's ablation, and
-``deformable_max_resolution=0`` or ``fusion=false`` ablate the two DM parts separately.
+blocks of the lowest-resolution feature levels (encoder and decoder; ``deformable_levels``
+counts them from the latent end, so the same layers are deformable at every image size) and
+the multi-scale dilated fusion module at the latent end of each half.  The DM options live
+only in the ``dm_vqgan`` config, so ``--set tokenizer.encoder.name=vqgan`` is the paper's
+ablation, and ``deformable_levels=0`` or ``fusion=false`` ablate the two DM parts separately.
 
 Downsampling factor f = 2 ** (len(channel_multipliers) - 1); images in [-1, 1].
 """
@@ -19,7 +20,7 @@ import torch.nn.functional as F
 from pydantic import Field, model_validator
 from torch import nn
 
-from vqtouch.core import BuildContext, ConfigError, Encoder, PluginConfig, hookimpl
+from vqtouch.core import Autoencoder, BuildContext, ConfigError, PluginConfig, hookimpl
 
 from .blocks import (AttentionBlock, ConvFactory, Downsample, MultiScaleFusion, ResnetBlock, Upsample, group_norm,
                      plain_conv3x3)
@@ -55,9 +56,14 @@ class DmVqganConfig(VqganConfig):
     """Options of the ``dm_vqgan`` autoencoder: VQGAN + deformable convolutions + multi-scale fusion."""
 
     name: Literal["dm_vqgan"] = "dm_vqgan"
-    deformable_max_resolution: int = Field(
-        32, ge=0, le=4096, description="ResNet blocks at feature resolutions <= this use a deformable second "
-                                       "convolution (0 disables them; the CPU cost grows fast above 32 px).")
+    deformable_levels: int = Field(
+        2, ge=0,
+        description="How many feature levels, counted from the latent (lowest-resolution) end, have ResNet "
+                    "blocks with a deformable second convolution; the middle (bottleneck) blocks belong to the "
+                    "lowest level.  Relative to the image, so the network is the same at every image_size: with "
+                    "the default channel_multipliers (1, 2, 2) and 2, the levels at 1/2 and 1/4 of the image "
+                    "side plus the middle blocks (10 deformable layers).  0 disables them (the ablation); at "
+                    "most len(channel_multipliers) (every level); each level further up costs ~4x more on CPU.")
     deformable_backend: Literal["grid_sample", "torchvision"] = Field(
         "grid_sample", description="Deformable convolution implementation (same maths; grid_sample is faster on CPU).")
     deformable_modulation: bool = Field(True, description="DCNv2 modulation mask (False: DCNv1).")
@@ -71,8 +77,16 @@ class DmVqganConfig(VqganConfig):
     fusion_dilations: tuple[int, ...] = Field((1, 2, 4), min_length=1, max_length=6,
                                               description="Dilations of the fusion branches.")
 
+    @model_validator(mode="after")
+    def _deformable_levels_exist(self) -> DmVqganConfig:
+        levels = len(self.channel_multipliers)
+        if self.deformable_levels > levels:
+            raise ValueError(f"deformable_levels = {self.deformable_levels} exceeds the {levels} feature level(s) "
+                             f"of channel_multipliers {tuple(self.channel_multipliers)}: allowed 0 to {levels}")
+        return self
 
-class VqganAutoencoder(Encoder):
+
+class VqganAutoencoder(Autoencoder):
     """VQGAN encoder + decoder (with optional DM-VQGAN parts)."""
 
     def __init__(self, config: VqganConfig, image_size: int, channels: int = 3) -> None:
@@ -87,16 +101,19 @@ class VqganAutoencoder(Encoder):
         self.offset_lr_scale = dm.offset_lr_scale if dm else 1.0
         groups = config.norm_groups
 
-        def conv_at(resolution: int) -> ConvFactory:
-            if dm is None or resolution > dm.deformable_max_resolution:
+        # Levels 0 .. levels-1 run from the image to the latent end; the middle blocks are at the last.
+        first_deformable_level = levels - dm.deformable_levels if dm else levels
+
+        def conv_at(level: int) -> ConvFactory:
+            if level < first_deformable_level:
                 return plain_conv3x3
             from .deformable import DeformableConv2d
 
             return partial(DeformableConv2d, kernel_size=3, padding=1, modulation=dm.deformable_modulation,
                            max_offset=dm.max_offset, backend=dm.deformable_backend)
 
-        def block(in_ch: int, out_ch: int, resolution: int) -> ResnetBlock:
-            return ResnetBlock(in_ch, out_ch, groups, config.dropout, conv_at(resolution))
+        def block(in_ch: int, out_ch: int, level: int) -> ResnetBlock:
+            return ResnetBlock(in_ch, out_ch, groups, config.dropout, conv_at(level))
 
         widths = [config.channels * m for m in config.channel_multipliers]
         # -- encoder ------------------------------------------------------------------------
@@ -108,14 +125,14 @@ class VqganAutoencoder(Encoder):
             stage.blocks = nn.ModuleList()
             stage.attentions = nn.ModuleList()
             for _ in range(config.num_res_blocks):
-                stage.blocks.append(block(width, out_width, resolution))
+                stage.blocks.append(block(width, out_width, level))
                 width = out_width
                 stage.attentions.append(AttentionBlock(width, groups) if resolution in config.attention_resolutions
                                         else nn.Identity())
             stage.down = Downsample(width) if level < levels - 1 else nn.Identity()
             resolution = resolution // 2 if level < levels - 1 else resolution
             self.enc_levels.append(stage)
-        self.enc_mid = self._mid(width, resolution, block, groups, config.mid_attention)
+        self.enc_mid = self._mid(width, levels - 1, block, groups, config.mid_attention)
         self.enc_fusion = MultiScaleFusion(width, groups, dm.fusion_dilations) if dm and dm.fusion else nn.Identity()
         self.enc_norm = group_norm(width, groups)
         self.enc_out = nn.Conv2d(width, config.z_channels, 3, padding=1)
@@ -124,14 +141,14 @@ class VqganAutoencoder(Encoder):
         self.post_quant_conv = nn.Conv2d(config.embed_dim, config.z_channels, 1)
         self.dec_in = nn.Conv2d(config.z_channels, width, 3, padding=1)
         self.dec_fusion = MultiScaleFusion(width, groups, dm.fusion_dilations) if dm and dm.fusion else nn.Identity()
-        self.dec_mid = self._mid(width, resolution, block, groups, config.mid_attention)
+        self.dec_mid = self._mid(width, levels - 1, block, groups, config.mid_attention)
         self.dec_levels = nn.ModuleList()
         for level, out_width in reversed(list(enumerate(widths))):
             stage = nn.Module()
             stage.blocks = nn.ModuleList()
             stage.attentions = nn.ModuleList()
             for _ in range(config.num_res_blocks + 1):
-                stage.blocks.append(block(width, out_width, resolution))
+                stage.blocks.append(block(width, out_width, level))
                 width = out_width
                 stage.attentions.append(AttentionBlock(width, groups) if resolution in config.attention_resolutions
                                         else nn.Identity())
@@ -142,10 +159,10 @@ class VqganAutoencoder(Encoder):
         self.dec_out = nn.Conv2d(width, channels, 3, padding=1)
 
     @staticmethod
-    def _mid(width: int, resolution: int, block, groups: int, attention: bool) -> nn.Sequential:
-        return nn.Sequential(block(width, width, resolution),
+    def _mid(width: int, level: int, block, groups: int, attention: bool) -> nn.Sequential:
+        return nn.Sequential(block(width, width, level),
                              AttentionBlock(width, groups) if attention else nn.Identity(),
-                             block(width, width, resolution))
+                             block(width, width, level))
 
     def encode(self, images_BCHW: torch.Tensor) -> torch.Tensor:
         if images_BCHW.ndim != 4 or images_BCHW.shape[1] != self.enc_in.in_channels:
@@ -192,8 +209,9 @@ def build_autoencoder(config: VqganConfig, context: BuildContext) -> VqganAutoen
 
 
 @hookimpl
-def vqtouch_register_encoders(register):
-    register("vqgan", build_autoencoder, VqganConfig,
+def vqtouch_register_autoencoders(register):
+    # The demo trains at half the base width so it finishes in minutes on a CPU.
+    register("vqgan", build_autoencoder, VqganConfig, demo={"channels": 32},
              description="VQGAN autoencoder (ResNet + GroupNorm + attention), the baseline tokenizer.")
-    register("dm_vqgan", build_autoencoder, DmVqganConfig,
+    register("dm_vqgan", build_autoencoder, DmVqganConfig, demo={"channels": 32},
              description="DM-VQGAN: VQGAN + deformable convolutions + multi-scale dilated fusion.")

@@ -1,4 +1,8 @@
-"""``vqtouch train tokenizer``, ``vqtouch reconstruct`` and ``vqtouch evaluate reconstruction``."""
+"""``vqtouch train tokenizer``, ``vqtouch reconstruct`` and ``vqtouch evaluate reconstruction``.
+
+``train tokenizer`` runs the ``tokenizer`` stage (see :mod:`.stages`) through the same path as
+``vqtouch demo``; the other two read a trained run.
+"""
 
 from __future__ import annotations
 
@@ -7,157 +11,71 @@ import json
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
-import torch.nn.functional as F
 
-from vqtouch.core import ConfigError, CheckpointError, RunDir, hookimpl, load, resolve_device, seed_everything
-from vqtouch.core.assembly import build_context, enrich_context
-from vqtouch.core.cli import add_config_arguments, command_group, config_from_args
-from vqtouch.core.config import SLOT_KINDS, ExperimentConfig, validate_experiment
+from vqtouch.core import Assembly, ConfigError, RunDir, hookimpl, run_stage
+from vqtouch.core.cli import add_config_arguments, command_group, config_from_args, stage_failure
 from vqtouch.core.data import split_dataset
-from vqtouch.core.images import image_grid, save_png
-from vqtouch.core.training import Trainer, latest_checkpoint
 
-from .training import Tokenizer, TokenizerTask, build_tokenizer, evaluate_reconstruction
-
-
-def _require(config: ExperimentConfig, host: Any, *paths: str) -> None:
-    for path in paths:
-        if config.slot(path) is None:
-            choices = ", ".join(host.registry(SLOT_KINDS[path]).names()) or "none installed"
-            raise ConfigError(f"{path} is not set; choose one with --set {path}.name=<{choices}>")
-
-
-def _metrics(config: ExperimentConfig, host: Any, context: Any) -> dict[str, Any]:
-    return {item.name: host.build("metric", item, context) for item in config.metrics}
-
-
-def _save_examples(run_path: Path, examples: tuple[torch.Tensor, torch.Tensor], name: str) -> Path:
-    originals, reconstructions = examples
-    return save_png(image_grid(torch.cat([originals, reconstructions]), columns=len(originals)), run_path / name)
-
-
-def _printable(scores: dict[str, Any]) -> dict[str, Any]:
-    return {key: (round(value, 4) if isinstance(value, float) else value) for key, value in scores.items()
-            if key != "examples"}
-
-
-def train_tokenizer(config: ExperimentConfig, host: Any, run: RunDir, *, resume: bool = False) -> dict[str, Any]:
-    """Train the configured tokenizer in ``run`` and evaluate it on the held-out split."""
-    from .perceptual import build_perceptual_loss
-
-    _require(config, host, "data.dataset", "tokenizer.encoder", "tokenizer.quantizer")
-    device = resolve_device(config.device)
-    seed_everything(config.seed, config.deterministic)
-    context = build_context(config)
-    dataset = host.build("dataset", config.data.dataset, context)
-    context = enrich_context(context, dataset)
-    train_set, val_set = split_dataset(dataset, config.data.val_fraction, config.seed)
-    tokenizer, context = build_tokenizer(config, host, context)
-    loss = config.tokenizer.loss
-    discriminator = None
-    if config.tokenizer.discriminator is not None and loss.adversarial_weight > 0:
-        discriminator = host.build("discriminator", config.tokenizer.discriminator, context)
-    perceptual = None
-    if loss.perceptual != "none" and loss.perceptual_weight > 0:
-        perceptual = build_perceptual_loss(loss.perceptual, loss.lpips_backbone, loss.lpips_heads,
-                                           effnet_image_size=loss.perceptual_image_size).to(device)
-    task = TokenizerTask(tokenizer, loss, discriminator, perceptual)
-    trainer = Trainer(task, train_set, config.train, batch_size=config.data.batch_size, seed=config.seed,
-                      device=device, checkpoint_dir=run.checkpoints, run=run, num_workers=config.data.num_workers,
-                      host=host)
-    if resume and trainer.resume(run.checkpoints):
-        print(f"resumed {run.path} at step {trainer.state.step}")
-    state = trainer.fit()
-    scores = evaluate_reconstruction(tokenizer, val_set, _metrics(config, host, context), device=device,
-                                     batch_size=config.data.batch_size)
-    if trainer.dist.is_main:
-        _save_examples(run.path, scores["examples"], "reconstructions.png")
-        result = {"step": state.step, "skipped_steps": state.skipped_steps, "train_samples": len(train_set),
-                  "val_samples": len(val_set), **_printable(scores)}
-        run.write_json("eval.json", result)
-    return scores
+from .stages import load_tokenizer, printable, reconstruct_all, save_pairs
+from .training import evaluate_reconstruction
 
 
 def _train_tokenizer_command(args: argparse.Namespace) -> int:
-    from vqtouch.core import default_host
-
-    host = default_host()
+    host = args.host
     if args.resume:
-        run_path = Path(args.resume)
-        if not (run_path / "config.json").is_file():
-            raise ConfigError(f"--resume {run_path}: not a run directory (no config.json)")
         if args.overrides or args.config:
             raise ConfigError("--resume continues a run with its saved config; drop --set/--config")
-        config = validate_experiment(json.loads((run_path / "config.json").read_text()), host)
-        run = RunDir(run_path)
+        run = RunDir.open(args.resume)
+        config = run.load_config(host)
     else:
         config = config_from_args(args, host)
         run = RunDir.create(config, argv=args.argv, host=host, path=args.out)
     try:
-        scores = train_tokenizer(config, host, run, resume=bool(args.resume))
+        outcome = run_stage("tokenizer", Assembly(config, host), run, resume=bool(args.resume))
     except KeyboardInterrupt:
         print(f"\ninterrupted; the checkpoint is saved. Resume with: vqtouch train tokenizer --resume {run.path}")
         return 130
-    print(json.dumps(_printable(scores), indent=2))
+    if outcome.status != "ran":
+        raise stage_failure(outcome)
+    print(json.dumps(json.loads((run.path / "eval.json").read_text()), indent=2))
     print(f"run: {run.path}  (reconstructions.png, eval.json, checkpoints/)")
     return 0
 
 
-def load_tokenizer(run_or_folder: str | Path, host: Any, step: int | None = None,
-                   device: str = "cpu") -> tuple[Tokenizer, Path]:
-    """Load the encoder and quantizer of a run (latest or given step) or of a checkpoint folder."""
-    path = Path(run_or_folder)
-    if (path / "encoder.safetensors").is_file():
-        folder = path
-    else:
-        checkpoints = path / "checkpoints"
-        folder = checkpoints / f"step-{step:08d}" if step is not None else latest_checkpoint(checkpoints)
-        if folder is None or not (folder / "encoder.safetensors").is_file():
-            raise CheckpointError(f"{path}: no tokenizer checkpoint found (expected checkpoints/step-*/"
-                                  f"encoder.safetensors); train one with `vqtouch train tokenizer`")
-    encoder = load(folder / "encoder.safetensors", host=host, map_location=device)
-    quantizer = load(folder / "quantizer.safetensors", host=host, map_location=device)
-    return Tokenizer(encoder, quantizer).eval(), folder
-
-
-def taxim_frames(sensor: str, image_size: int) -> torch.Tensor:
-    """taxim's real frames of ``sensor`` as (N, 3, S, S) in [0, 1]: centre square, resized."""
-    from vqtouch.sensors.gelsight import load_taxim_calibration
-
-    calibration = load_taxim_calibration(sensor)
-    with np.load(calibration.folder / "dataPack.npz", allow_pickle=False) as pack:
-        frames = torch.from_numpy(pack["imgs"][..., ::-1].copy()).permute(0, 3, 1, 2).float() / 255
-    rows, cols = frames.shape[-2:]
-    left = (cols - rows) // 2
-    square = frames[:, :, :, left:left + rows]
-    return F.interpolate(square, size=(image_size, image_size), mode="bilinear", antialias=True, align_corners=False)
+def _json_option(text: str, flag: str) -> Any:
+    """A plugin block given on the command line: a plugin name or a JSON object."""
+    text = text.strip()
+    if not text.startswith("{"):
+        return {"name": text}
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{flag} is not valid JSON: {exc}") from None
 
 
 def _reconstruct_command(args: argparse.Namespace) -> int:
-    from vqtouch.core import default_host
-
-    host = default_host()
+    host = args.host
     tokenizer, folder = load_tokenizer(args.run, host, args.step)
-    image_size = tokenizer.encoder.vqtouch_spec.context.image_size
-    if args.taxim:
-        images = taxim_frames(args.taxim, image_size)
-        source = f"taxim {args.taxim} real frames"
+    image_size = tokenizer.autoencoder.vqtouch_spec.context.image_size
+    if args.real_frames:
+        sensor_config = host.validate("sensor_family", _json_option(args.real_frames, "--real-frames"))
+        images = host.build("sensor_family", sensor_config).reference_frames(image_size, image_size)
+        if images is None:
+            raise ConfigError(f"sensor family {sensor_config.name!r} declares no real reference frames; "
+                              "reconstruct your own with --images FOLDER")
+        source = f"real {sensor_config.name} frames"
     else:
         dataset = host.build("dataset", {"name": "image_folder", "root": args.images, "image_size": image_size})
         images = torch.stack([dataset[i]["tactile"] for i in range(len(dataset))])
         source = args.images
     metrics = {name: host.build("metric", name) for name in ("ssim", "psnr")}
-    with torch.no_grad():
-        reconstructions = torch.cat([tokenizer.reconstruct(images[i:i + 32])[0] for i in range(0, len(images), 32)])
+    reconstructions = reconstruct_all(tokenizer, images, batch_size=32)
     for metric in metrics.values():
         metric.update(reconstructions, images)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    count = min(8, len(images))
-    save_png(image_grid(torch.cat([images[:count], reconstructions[:count]]), columns=count),
-             out / "reconstructions.png")
+    save_pairs(images, reconstructions, out / "reconstructions.png")
     scores = {name: round(metric.compute(), 4) for name, metric in metrics.items()}
     (out / "reconstruct.json").write_text(json.dumps({"checkpoint": str(folder), "source": source,
                                                      "images": len(images), "image_size": image_size,
@@ -168,65 +86,34 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
 
 
 def _evaluate_command(args: argparse.Namespace) -> int:
-    from vqtouch.core import default_host
-
-    host = default_host()
-    run_path = Path(args.run)
-    config = validate_experiment(json.loads((run_path / "config.json").read_text()), host)
-    tokenizer, folder = load_tokenizer(run_path, host, args.step)
-    context = enrich_context(build_context(config), tokenizer.encoder)
+    host = args.host
+    run = RunDir.open(args.run)
+    config = run.load_config(host)
+    tokenizer, folder = load_tokenizer(run.path, host, args.step)
+    assembly = Assembly(config, host)
     if args.dataset:
         # A separate held-out dataset (e.g. another seed), evaluated whole: runs trained on
         # different amounts of data are then compared on the very same images.
-        try:
-            dataset_config = json.loads(args.dataset)
-        except json.JSONDecodeError as exc:
-            raise ConfigError(f"--dataset is not valid JSON: {exc}") from None
-        evaluated = host.build("dataset", dataset_config, context)
+        evaluated = assembly.dataset(_json_option(args.dataset, "--dataset"))
     else:
-        dataset = host.build("dataset", config.data.dataset, context)
+        dataset = assembly.component("data.dataset")
         _, val_set = split_dataset(dataset, config.data.val_fraction, config.seed)
         evaluated = dataset if args.split == "all" else val_set
     names = args.metrics.split(",") if args.metrics else [m.name for m in config.metrics]
-    metrics = {name: host.build("metric", name, context) for name in names}
+    metrics = {name: assembly.build("metric", name) for name in names}
     scores = evaluate_reconstruction(tokenizer, evaluated, metrics, batch_size=config.data.batch_size)
-    _save_examples(run_path, scores["examples"], f"reconstructions_{folder.name}.png")
-    result = {"checkpoint": str(folder), "split": "dataset" if args.dataset else args.split, **_printable(scores)}
+    save_pairs(*scores["examples"], run.path / f"reconstructions_{folder.name}.png")
+    result = {"checkpoint": str(folder), "split": "dataset" if args.dataset else args.split, **printable(scores)}
     suffix = "_dataset" if args.dataset else ""
-    (run_path / f"evaluation_{folder.name}{suffix}.json").write_text(json.dumps(result, indent=2) + "\n")
+    run.write_json(f"evaluation_{folder.name}{suffix}.json", result)
     print(json.dumps(result, indent=2))
     return 0
 
 
 @hookimpl
-def vqtouch_run_stage(stage, config, host, run):
-    """The demo's tokenizer stage (train + held-out scores) and reconstruct stage (real frames)."""
-    if stage == "tokenizer":
-        scores = train_tokenizer(config, host, run)
-        return {"steps": config.train.steps, **{k: v for k, v in _printable(scores).items()
-                                                   if k in ("ssim", "psnr", "codebook_usage", "samples")},
-                "picture": "reconstructions.png"}
-    if stage == "reconstruct":
-        tokenizer, _ = load_tokenizer(run.path, host)
-        sensor = config.sensor.name if config.sensor is not None else ""
-        if sensor not in ("gelsight", "gelsight_mini"):
-            return None
-        images = taxim_frames(sensor, tokenizer.encoder.vqtouch_spec.context.image_size)
-        metrics = {name: host.build("metric", name) for name in ("ssim", "psnr")}
-        with torch.no_grad():
-            reconstructions = torch.cat([tokenizer.reconstruct(images[i:i + 16])[0] for i in range(0, len(images), 16)])
-        for metric in metrics.values():
-            metric.update(reconstructions, images)
-        save_png(image_grid(torch.cat([images[:8], reconstructions[:8]]), columns=8), run.path / "real_frames.png")
-        return {"source": f"{len(images)} real {sensor} frames (taxim)",
-                **{name: round(metric.compute(), 4) for name, metric in metrics.items()}, "picture": "real_frames.png"}
-    return None
-
-
-@hookimpl
 def vqtouch_add_commands(subparsers):
     train = command_group(subparsers, "train", "train a component (tokenizer, ...)")
-    tokenizer = train.add_parser("tokenizer", help="train a tactile tokenizer (encoder + quantizer [+ GAN])")
+    tokenizer = train.add_parser("tokenizer", help="train a tactile tokenizer (autoencoder + quantizer [+ GAN])")
     add_config_arguments(tokenizer, default_scene="reconstruction")
     tokenizer.add_argument("--out", help="run directory (default: <output_dir>/<name>-<time>-<hash>)")
     tokenizer.add_argument("--resume", metavar="RUN", help="continue an interrupted run from its last checkpoint")
@@ -236,7 +123,8 @@ def vqtouch_add_commands(subparsers):
     reconstruct.add_argument("--run", required=True, help="run directory (or a checkpoint folder)")
     reconstruct.add_argument("--step", type=int, help="checkpoint step (default: latest)")
     source = reconstruct.add_mutually_exclusive_group(required=True)
-    source.add_argument("--taxim", choices=["gelsight", "gelsight_mini"], help="taxim's real frames of this sensor")
+    source.add_argument("--real-frames", metavar="SENSOR",
+                        help="the real reference frames of this sensor family (name or JSON), e.g. gelsight")
     source.add_argument("--images", help="an image folder (one sub-folder per class) to reconstruct")
     reconstruct.add_argument("--out", required=True, help="folder for reconstructions.png and reconstruct.json")
     reconstruct.set_defaults(handler=_reconstruct_command)

@@ -1,16 +1,22 @@
 """MAE baseline (He et al. 2022): a small ViT masked autoencoder, for the paper's Table 1.
 
-It plugs into the tokenizer pipeline as an ``encoder`` with the ``identity`` quantizer:
+It plugs into the tokenizer pipeline as an ``autoencoder`` with the ``identity`` quantizer:
 
 - ``encode`` patchifies the image, hides a random ``mask_ratio`` of the patches, runs the ViT
-  encoder on the visible ones only, and returns a (B, D, h, w) grid with the visible tokens in
-  place and a learned mask token at every hidden patch (the MAE decoder's input);
-- ``decode`` runs the light decoder over the full grid and predicts every patch's pixels.
+  encoder on the visible ones only, and returns a (B, latent_channels, h, w) grid, one cell per
+  patch, whose channels are
+  ``[decoder tokens (decoder_width) | visible flag (1) | visible pixels (C*p*p, paste_visible only)]``:
+  the visible tokens in place and a learned mask token at every hidden patch (the MAE decoder's
+  input), 1 / 0 for visible / hidden, and the patch's own pixels where visible (0 where hidden);
+- ``decode`` runs the light decoder over the token channels and predicts every patch's pixels.
 
 Masking also happens in evaluation: the reported reconstruction is the image rebuilt from a
 ``mask_ratio`` fraction of hidden patches (visible patches pasted back unless
-``paste_visible=false``), which is what MAE at 0.25 / 0.5 / 0.75 measures.  The masks come
-from a generator seeded per call count in eval mode, so evaluations are repeatable.
+``paste_visible=false``), which is what MAE at 0.25 / 0.5 / 0.75 measures.  The pasted pixels
+and the mask travel in the latents, so ``decode`` is a pure function of its input (it never
+reads what an earlier ``encode`` saw); the extra channels carry no learned information and
+need the ``identity`` quantizer.  The masks come from a generator seeded per call count in
+eval mode, so evaluations are repeatable (``reset_randomness`` restarts the sequence).
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ import torch
 from pydantic import Field
 from torch import nn
 
-from vqtouch.core import BuildContext, ConfigError, Encoder, PluginConfig, Quantizer, QuantizerOutput, hookimpl
+from vqtouch.core import Autoencoder, BuildContext, ConfigError, PluginConfig, Quantizer, QuantizerOutput, hookimpl
 
 
 class MaeConfig(PluginConfig):
@@ -33,9 +39,12 @@ class MaeConfig(PluginConfig):
     width: int = Field(128, ge=16, le=2048, description="Width of the ViT encoder tokens.")
     depth: int = Field(4, ge=1, le=24, description="Transformer blocks in the encoder.")
     heads: int = Field(4, ge=1, le=32, description="Attention heads (must divide width).")
-    decoder_width: int = Field(96, ge=16, le=2048, description="Width of the decoder tokens (the latent channels).")
+    decoder_width: int = Field(96, ge=16, le=2048,
+                               description="Width of the decoder tokens (the first latent channels; the latents add "
+                                           "a visible flag and, with paste_visible, the visible patches' pixels).")
     decoder_depth: int = Field(2, ge=1, le=12, description="Transformer blocks in the decoder.")
-    paste_visible: bool = Field(True, description="In eval mode, copy visible patches into the reconstruction.")
+    paste_visible: bool = Field(True, description="In eval mode, copy visible patches into the reconstruction "
+                                                  "(the latents then carry the visible patches' pixels).")
 
 
 def _blocks(width: int, heads: int, depth: int) -> nn.TransformerEncoder:
@@ -44,8 +53,8 @@ def _blocks(width: int, heads: int, depth: int) -> nn.TransformerEncoder:
     return nn.TransformerEncoder(layer, depth, enable_nested_tensor=False)
 
 
-class MaskedAutoencoder(Encoder):
-    """ViT masked autoencoder exposing the Encoder contract (see the module docstring)."""
+class MaskedAutoencoder(Autoencoder):
+    """ViT masked autoencoder exposing the Autoencoder contract (see the module docstring)."""
 
     def __init__(self, config: MaeConfig, image_size: int, channels: int = 3) -> None:
         super().__init__()
@@ -58,8 +67,9 @@ class MaskedAutoencoder(Encoder):
         self.channels = channels
         self.grid = image_size // config.patch_size
         self.downsample_factor = config.patch_size
-        self.latent_channels = config.decoder_width
         patch_dim = channels * config.patch_size**2
+        # Latent channels: decoder tokens | visible flag | visible pixels (only when pasting them back).
+        self.latent_channels = config.decoder_width + 1 + (patch_dim if config.paste_visible else 0)
         tokens = self.grid * self.grid
         self.embed = nn.Linear(patch_dim, config.width)
         self.position_LD = nn.Parameter(torch.randn(tokens, config.width) * 0.02)
@@ -71,9 +81,7 @@ class MaskedAutoencoder(Encoder):
         self.decoder = _blocks(config.decoder_width, config.heads, config.decoder_depth)
         self.decoder_norm = nn.LayerNorm(config.decoder_width)
         self.to_pixels = nn.Linear(config.decoder_width, patch_dim)
-        self._eval_calls = 0
-        self._last_images: torch.Tensor | None = None
-        self._last_visible_BL: torch.Tensor | None = None
+        self._eval_calls = 0  # the only state: which repeatable eval mask encode draws next
 
     def patchify(self, images_BCHW: torch.Tensor) -> torch.Tensor:
         """(B, C, H, W) -> (B, L, C*p*p) in row-major patch order."""
@@ -112,18 +120,38 @@ class MaskedAutoencoder(Encoder):
         encoded = self.to_decoder(self.encoder_norm(self.encoder(visible_tokens)))
         grid_BLD = self.mask_token_D.to(encoded.dtype).expand(batch, self.grid * self.grid, -1).clone()
         grid_BLD[visible_BL] = encoded.reshape(-1, encoded.shape[-1])
-        self._last_images, self._last_visible_BL = images_BCHW.detach(), visible_BL
-        return grid_BLD.transpose(1, 2).reshape(batch, -1, self.grid, self.grid)
+        # One dtype for every channel, wide enough for the tokens (bf16 under autocast) and the pixels
+        # exactly: the identity quantizer and decode read them back unchanged.
+        dtype = torch.promote_types(grid_BLD.dtype, images_BCHW.dtype)
+        parts = [grid_BLD.to(dtype), visible_BL[..., None].to(dtype)]
+        if self.config.paste_visible:
+            pixels_BLP = self.patchify(images_BCHW.detach()).to(dtype)
+            parts.append(torch.where(visible_BL[..., None], pixels_BLP, torch.zeros((), dtype=dtype,
+                                                                                 device=pixels_BLP.device)))
+        return torch.cat(parts, dim=-1).transpose(1, 2).reshape(batch, -1, self.grid, self.grid)
+
+    def _check_latents(self, latents_BDhw: torch.Tensor) -> None:
+        expected = (self.latent_channels, self.grid, self.grid)
+        if latents_BDhw.ndim != 4 or tuple(latents_BDhw.shape[1:]) != expected:
+            raise ValueError(f"mae expects latents (B, {', '.join(map(str, expected))}) as encode returns them "
+                             f"(tokens | visible flag | visible pixels), got {tuple(latents_BDhw.shape)}")
+
+    def visible_mask(self, latents_BDhw: torch.Tensor) -> torch.Tensor:
+        """(B, L) bool: which patches the encoder saw, read from the latents' visible-flag channel."""
+        self._check_latents(latents_BDhw)
+        return latents_BDhw[:, self.config.decoder_width].flatten(1) > 0.5
 
     def decode(self, latents_BDhw: torch.Tensor) -> torch.Tensor:
-        batch = latents_BDhw.shape[0]
-        tokens_BLD = latents_BDhw.flatten(2).transpose(1, 2).to(self.decoder_position_LD.dtype)
+        """Latents from :meth:`encode` -> images; depends on nothing but ``latents_BDhw`` (and train/eval mode)."""
+        self._check_latents(latents_BDhw)
+        width = self.config.decoder_width
+        tokens_BLD = latents_BDhw[:, :width].flatten(2).transpose(1, 2).to(self.decoder_position_LD.dtype)
         decoded = self.decoder_norm(self.decoder(tokens_BLD + self.decoder_position_LD))
         patches_BLP = self.to_pixels(decoded)
-        if (not self.training and self.config.paste_visible and self._last_visible_BL is not None
-                and self._last_images is not None and self._last_images.shape[0] == batch):
-            original = self.patchify(self._last_images).to(patches_BLP.dtype)
-            patches_BLP = torch.where(self._last_visible_BL[..., None], original, patches_BLP)
+        if not self.training and self.config.paste_visible:
+            visible_BL = self.visible_mask(latents_BDhw)
+            original = latents_BDhw[:, width + 1:].flatten(2).transpose(1, 2).to(patches_BLP.dtype)
+            patches_BLP = torch.where(visible_BL[..., None], original, patches_BLP)
         return self.unpatchify(patches_BLP)
 
     def last_layer_weight(self) -> torch.Tensor:
@@ -169,7 +197,7 @@ def build_identity(config: IdentityConfig, context: BuildContext) -> IdentityQua
 
 
 @hookimpl
-def vqtouch_register_encoders(register):
+def vqtouch_register_autoencoders(register):
     register("mae", build_mae, MaeConfig, description="Masked-autoencoder ViT baseline (use with the identity "
                                                       "quantizer; Table 1 at mask ratios 0.25/0.5/0.75).")
 

@@ -30,7 +30,7 @@ LPIPS_HEADS_WEIGHTS = WeightsSpec(
     description="LPIPS v0.1 linear heads for AlexNet (lpips package file weights/v0.1/alex.pth, 6 KB)",
     filenames=("alex.pth",),
     env_var="VQTOUCH_LPIPS_HEADS",
-    config_hint="--lpips-heads PATH (config key evaluate.weights.lpips_heads)",
+    config_hint="--set tokenizer.loss.lpips_heads=PATH",
     source_url="https://raw.githubusercontent.com/richzhang/PerceptualSimilarity/master/lpips/weights/v0.1/alex.pth "
                "(identical copy in torchmetrics: torchmetrics/functional/image/lpips_models/alex.pth)",
 )

@@ -119,9 +119,12 @@ def nearest_codes(vectors_NC: torch.Tensor, codebook_KC: torch.Tensor) -> torch.
     return torch.cat(codes) if len(codes) > 1 else codes[0]
 
 
-def perplexity_of_counts(counts_K: torch.Tensor) -> torch.Tensor:
-    """exp(entropy) of a code histogram: 1 when one code is used, K when K codes are used equally."""
-    probabilities_K = counts_K.float() / counts_K.sum().clamp_min(1).float()
+def perplexity_of_counts(counts_K: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """exp(entropy) of a code histogram: 1 when one code is used, K when K codes are used equally.
+
+    ``dtype``: float64 for a report over a whole evaluation set (counts can exceed 2**24).
+    """
+    probabilities_K = counts_K.to(dtype) / counts_K.sum().clamp_min(1).to(dtype)
     entropy = -torch.special.xlogy(probabilities_K, probabilities_K).sum()  # 0 log 0 = 0
     return entropy.exp()
 
@@ -209,6 +212,10 @@ class _NearestNeighbourQuantizer(Quantizer):
             selected_NC = F.embedding(codes_Bhw.to(device=device, dtype=torch.long).reshape(-1),
                                       self._lookup_codebook())
             return self._from_lookup_space(selected_NC, batch, height, width)
+
+    def usage_counts(self) -> torch.Tensor:
+        """(K,) how often each code was chosen since :meth:`reset_usage` (every forward call counts)."""
+        return self.usage_counts_K
 
     def usage_fraction(self) -> float:
         """Fraction of the K codes chosen at least once since the last :meth:`reset_usage`.

@@ -1,4 +1,4 @@
-"""Training and evaluating a tactile tokenizer (any encoder plugin + any quantizer plugin).
+"""Training and evaluating a tactile tokenizer (any autoencoder plugin + any quantizer plugin).
 
 Objective (VQGAN's, with its safeguards)::
 
@@ -15,44 +15,73 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import torch
+from pydantic import Field
 from torch import nn
 
-from vqtouch.core import BuildContext, Encoder, Metric, Quantizer
-from vqtouch.core.assembly import enrich_context
-from vqtouch.core.config import ExperimentConfig, TokenizerLossConfig
+from vqtouch.core import Autoencoder, Metric, Quantizer, Section, Slot, TrainConfig
 from vqtouch.core.training import collate_samples
 
 from .discriminator import adaptive_weight, hinge_discriminator_loss
+from .quantizers import perplexity_of_counts
+
+
+class TokenizerLossConfig(Section):
+    """The tokenizer objective: L1 + VQ + perceptual + adversarial (VQGAN's, with its safeguards)."""
+
+    l1_weight: float = Field(1.0, ge=0.0, le=100.0, description="Weight of the L1 reconstruction loss.")
+    codebook_weight: float = Field(1.0, ge=0.0, le=100.0, description="Weight of the quantizer's loss.")
+    perceptual: Literal["none", "effnet_lite0", "lpips"] = Field(
+        "effnet_lite0", description="Perceptual loss: 'lpips' needs user-supplied AlexNet and head weights; "
+                                    "'effnet_lite0' is an offline feature loss on a real ImageNet network (not LPIPS).")
+    perceptual_weight: float = Field(0.1, ge=0.0, le=100.0, description="Weight of the perceptual loss.")
+    perceptual_image_size: int = Field(96, ge=32, le=512,
+                                       description="Side the images are resized to for the perceptual network.")
+    lpips_backbone: str | None = Field(None, description="Path of alexnet-owt-7be5be79.pth (or VQTOUCH_LPIPS_BACKBONE).")
+    lpips_heads: str | None = Field(None, description="Path of LPIPS v0.1 alex.pth heads (or VQTOUCH_LPIPS_HEADS).")
+    adversarial_weight: float = Field(0.8, ge=0.0, le=100.0, description="Weight of the hinge GAN loss (times the "
+                                                                         "adaptive weight); 0 disables it.")
+    disc_start: int = Field(2000, ge=0, description="Step at which the discriminator starts (it is not trained before).")
+    adaptive_weight_max: float = Field(1e4, gt=0.0, description="Upper clamp of the adaptive GAN weight.")
+
+
+class TokenizerTrainConfig(TrainConfig):
+    """How the tokenizer is optimised: the trainer's settings with VQGAN's Adam betas."""
+
+    betas: tuple[float, float] = Field((0.5, 0.9), description="Adam betas (VQGAN uses (0.5, 0.9)).")
+
+
+class TokenizerSection(Section):
+    """The ``tokenizer`` stage's section: an autoencoder plugin plus a quantizer plugin, the
+    objective and the optimiser settings."""
+
+    autoencoder: Slot("autoencoder") | None = Field(None, description="Autoencoder plugin (e.g. dm_vqgan, vqgan).")
+    quantizer: Slot("quantizer") | None = Field(None, description="Quantizer plugin (e.g. vq, ema_vq).")
+    discriminator: Slot("discriminator") | None = Field(
+        None, description="Discriminator plugin for the adversarial loss (e.g. patchgan); null trains without one.")
+    loss: TokenizerLossConfig = Field(default_factory=TokenizerLossConfig, description="Training objective.")
+    train: TokenizerTrainConfig = Field(default_factory=TokenizerTrainConfig, description="Optimisation settings.")
 
 
 @dataclass
 class Tokenizer:
-    """An encoder plugin and a quantizer plugin used together."""
+    """An autoencoder plugin and a quantizer plugin used together."""
 
-    encoder: Encoder
+    autoencoder: Autoencoder
     quantizer: Quantizer
 
     def reconstruct(self, images_B3HW: torch.Tensor) -> tuple[torch.Tensor, Any]:
         """Images in [0, 1] -> reconstructions in [0, 1] (clamped) and the quantizer output."""
-        output = self.quantizer(self.encoder.encode(images_B3HW * 2 - 1))
-        return ((self.encoder.decode(output.quantized_BDhw).float() + 1) / 2).clamp(0, 1), output
+        output = self.quantizer(self.autoencoder.encode(images_B3HW * 2 - 1))
+        return ((self.autoencoder.decode(output.quantized_BDhw).float() + 1) / 2).clamp(0, 1), output
 
     def eval(self) -> Tokenizer:
         """Both parts in eval mode."""
-        self.encoder.eval()
+        self.autoencoder.eval()
         self.quantizer.eval()
         return self
-
-
-def build_tokenizer(config: ExperimentConfig, host: Any, context: BuildContext) -> tuple[Tokenizer, BuildContext]:
-    """Build encoder then quantizer (which takes the encoder's latent width from the context)."""
-    encoder = host.build("encoder", config.tokenizer.encoder, context)
-    context = enrich_context(context, encoder)
-    quantizer = host.build("quantizer", config.tokenizer.quantizer, context)
-    return Tokenizer(encoder, quantizer), enrich_context(context, quantizer)
 
 
 class TokenizerTask:
@@ -64,17 +93,17 @@ class TokenizerTask:
         self.loss = loss
         self.discriminator = discriminator if loss.adversarial_weight > 0 else None
         self.perceptual = perceptual if loss.perceptual_weight > 0 else None
-        self.modules: dict[str, nn.Module] = {"encoder": tokenizer.encoder, "quantizer": tokenizer.quantizer}
+        self.modules: dict[str, nn.Module] = {"autoencoder": tokenizer.autoencoder, "quantizer": tokenizer.quantizer}
         if self.discriminator is not None:
             self.modules["discriminator"] = self.discriminator
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter] | list[dict[str, Any]]]:
-        """The generator (encoder + quantizer, with the encoder's learning-rate scales, e.g. the
-        deformable offset branches) and, when used, the discriminator."""
+        """The generator (autoencoder + quantizer, with the autoencoder's learning-rate scales, e.g.
+        the deformable offset branches) and, when used, the discriminator."""
         scaled = [(scale, [p for p in params if p.requires_grad])
-                  for scale, params in self.tokenizer.encoder.learning_rate_scales()]
+                  for scale, params in self.tokenizer.autoencoder.learning_rate_scales()]
         scaled_ids = {id(p) for _, params in scaled for p in params}
-        base = [p for name in ("encoder", "quantizer") for p in self.modules[name].parameters()
+        base = [p for name in ("autoencoder", "quantizer") for p in self.modules[name].parameters()
                 if p.requires_grad and id(p) not in scaled_ids]
         groups: dict[str, list] = {"generator": [{"params": base}] + [
             {"params": params, "lr_scale": scale} for scale, params in scaled if params]}
@@ -85,7 +114,7 @@ class TokenizerTask:
     def training_step(self, batch: dict[str, Any], step: int, trainer: Any) -> dict[str, float]:
         """One generator step, then (from disc_start) one discriminator step."""
         images = batch["tactile"] * 2 - 1
-        encoder, quantizer = self.tokenizer.encoder, self.tokenizer.quantizer
+        encoder, quantizer = self.tokenizer.autoencoder, self.tokenizer.quantizer
         encoder.train()
         quantizer.train()
         with trainer.autocast():
@@ -134,10 +163,10 @@ def evaluate_reconstruction(tokenizer: Tokenizer, dataset: Any, metrics: dict[st
     pairs for a picture.
     """
     tokenizer.eval()
-    tokenizer.encoder.reset_randomness()
+    tokenizer.autoencoder.reset_randomness()
+    tokenizer.quantizer.reset_usage()
     for metric in metrics.values():
         metric.reset()
-    codebook = torch.zeros(tokenizer.quantizer.codebook_size, dtype=torch.long)
     originals, reconstructions = [], []
     seconds, count = 0.0, 0
     for start in range(0, len(dataset), batch_size):
@@ -149,15 +178,15 @@ def evaluate_reconstruction(tokenizer: Tokenizer, dataset: Any, metrics: dict[st
         count += len(images)
         for metric in metrics.values():
             metric.update(reconstruction.cpu(), images.cpu())
-        codebook += torch.bincount(output.codes_Bhw.flatten().cpu(), minlength=codebook.numel())
         if len(originals) < keep:
             originals.extend(images[: keep - len(originals)].cpu())
             reconstructions.extend(reconstruction[: keep - len(reconstructions)].cpu())
-    probabilities = codebook.double() / codebook.sum()
-    entropy = -(probabilities[probabilities > 0] * probabilities[probabilities > 0].log()).sum()
     scores: dict[str, Any] = {name: metric.compute() for name, metric in metrics.items()}
-    scores |= {"codebook_usage": float((codebook > 0).double().mean()), "codes_used": int((codebook > 0).sum()),
-               "perplexity": float(entropy.exp()), "samples": count,
-               "reconstructions_per_second": count / max(seconds, 1e-9),
+    counts_K = tokenizer.quantizer.usage_counts()
+    if counts_K is not None:  # a codebook: how much of it the held-out images use
+        counts_K = counts_K.cpu()
+        scores |= {"codebook_usage": float((counts_K > 0).double().mean()), "codes_used": int((counts_K > 0).sum()),
+                   "perplexity": float(perplexity_of_counts(counts_K, dtype=torch.float64))}
+    scores |= {"samples": count, "reconstructions_per_second": count / max(seconds, 1e-9),
                "examples": (torch.stack(originals), torch.stack(reconstructions))}
     return scores

@@ -1,0 +1,164 @@
+"""Pipeline stages: a registry kind like the others, owned by plugins.
+
+A stage plugin registers, through ``vqtouch_register_stages``::
+
+    register("tokenizer", run_tokenizer_stage, section=TokenizerSection,
+             needs=("data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer"),
+             uses=("tokenizer.discriminator", "metrics"),
+             description="Train the tactile tokenizer ...", demo={"train.steps": 40})
+
+- ``section``: the stage's own config model (a :class:`~vqtouch.core.config.Section`),
+  validated at ``config.<stage name>``; it holds the stage's slots and options, its
+  optimiser settings included.  ``None`` for stages without options.
+- ``needs``: slot paths the stage cannot run without; ``uses``: slots it uses when set.
+  Both may name slots of any section (core's ``sensor``, ``data.dataset``, ``metrics``, or
+  another stage's).  Unknown paths fail when plugins load.
+- ``run(job)`` does the work and returns a JSON-ready report (scores; ``"picture"``: a file
+  name inside the run), or raises :class:`StageUnavailable` saying why it cannot run.
+- ``demo``: caps applied to the section's options by ``vqtouch demo`` (paths inside the
+  section), so the demo runs in minutes on a CPU.
+
+Scenes list stages by name; an unknown stage fails listing what exists.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from .errors import VqtouchError
+from .seeding import seed_everything
+
+if TYPE_CHECKING:
+    from .assembly import Assembly
+    from .config import ExperimentConfig, Section
+    from .plugin_manager import PluginHost
+    from .registry import PluginSource
+    from .runs import RunDir
+
+
+class StageUnavailable(VqtouchError):
+    """A stage cannot run for this experiment; the message says why and what would fix it."""
+
+
+@dataclass(frozen=True)
+class StageEntry:
+    """A registered stage: its config section, the slots it needs and how it runs."""
+
+    name: str
+    run: Callable[[StageJob], dict[str, Any] | None]
+    section: type[Section] | None
+    needs: tuple[str, ...]
+    uses: tuple[str, ...]
+    description: str
+    source: PluginSource
+    demo: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def slots(self) -> tuple[str, ...]:
+        """Every slot the stage builds: needed ones first, then optional ones."""
+        return self.needs + tuple(path for path in self.uses if path not in self.needs)
+
+
+@dataclass
+class StageJob:
+    """Everything a stage's ``run`` receives.
+
+    ``assembly`` builds (once) every component of the experiment; ``section`` is the stage's
+    own validated config section (``config.<stage>``), None for stages without one;
+    ``resume`` asks a training stage to continue from the run's latest checkpoint.
+    """
+
+    stage: str
+    config: ExperimentConfig
+    host: PluginHost
+    run: RunDir
+    assembly: Assembly
+    section: Any = None
+    resume: bool = False
+
+
+@dataclass
+class StageOutcome:
+    """What happened when a stage was asked to run: ``status`` is ``ran``, ``unavailable`` or ``failed``."""
+
+    stage: str
+    status: str
+    reason: str = ""
+    result: dict[str, Any] | None = None
+    seconds: float = 0.0
+
+    def describe(self) -> str:
+        """One line for reports, e.g. ``ran (23 s)`` or ``cannot run: ...``."""
+        if self.status == "ran":
+            return f"ran ({self.seconds:.0f} s)"
+        if self.status == "unavailable":
+            return f"cannot run: {self.reason}"
+        return f"failed: {self.reason}"
+
+
+def required_slots(config: ExperimentConfig, host: PluginHost) -> list[str]:
+    """Slot paths the configured stages build (needed and used ones), in stage order without repeats."""
+    seen: dict[str, None] = {}
+    for stage in config.stages:
+        for path in host.stage(stage).slots:
+            seen.setdefault(path, None)
+    return list(seen)
+
+
+def missing_slots(config: ExperimentConfig, host: PluginHost) -> list[tuple[str, str]]:
+    """(stage, slot) pairs that a stage needs but the config leaves empty."""
+    missing = []
+    for stage in config.stages:
+        for path in host.stage(stage).needs:
+            value = config.slot(path)
+            if value is None or value == []:
+                missing.append((stage, path))
+    return missing
+
+
+def empty_slot_reason(path: str, host: PluginHost) -> str:
+    """Why an empty required slot blocks a stage, with the choices that would fill it."""
+    info = host.slots[path]
+    names = host.registry(info.kind).names()
+    if not names:
+        return f"needs {path}, and no {info.kind} plugin is installed"
+    how = f"--set {path}='[{{\"name\": \"{names[0]}\"}}]'" if info.many else f"--set {path}.name=<{'|'.join(names)}>"
+    return f"needs {path}, which the config leaves empty; choose with {how}"
+
+
+def unavailable_reason(stage: str, config: ExperimentConfig, host: PluginHost) -> str | None:
+    """Why ``stage`` cannot run with ``config`` before trying (empty needed slots), or None."""
+    for missing_stage, path in missing_slots(config, host):
+        if missing_stage == stage:
+            return empty_slot_reason(path, host)
+    return None
+
+
+def run_stage(stage: str, assembly: Assembly, run: RunDir, *, resume: bool = False) -> StageOutcome:
+    """Run one stage of ``assembly``'s experiment in ``run``: the one path the CLI, the demo and
+    tests share.
+
+    Every random number generator is seeded with the experiment's seed first, so a stage's
+    result does not depend on what ran before it in the same process.  A stage that cannot
+    run says why (``unavailable``); a user error while running is ``failed`` with its
+    one-line message.  Other exceptions propagate.
+    """
+    config, host = assembly.config, assembly.host
+    entry = host.stage(stage)
+    reason = unavailable_reason(stage, config, host)
+    if reason is not None:
+        return StageOutcome(stage, "unavailable", reason)
+    seed_everything(config.seed, config.deterministic)
+    job = StageJob(stage, config, host, run, assembly, getattr(config, stage, None) if entry.section else None,
+                   resume)
+    start = time.perf_counter()
+    try:
+        result = entry.run(job)
+    except StageUnavailable as exc:
+        return StageOutcome(stage, "unavailable", str(exc), seconds=time.perf_counter() - start)
+    except VqtouchError as exc:
+        return StageOutcome(stage, "failed", str(exc), seconds=time.perf_counter() - start)
+    return StageOutcome(stage, "ran", result=result or {}, seconds=time.perf_counter() - start)

@@ -1,0 +1,1 @@
+"""Cross-sensor stages: sensor-family clustering, unseen-sensor assignment and few-shot adaptation."""

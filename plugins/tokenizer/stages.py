@@ -1,0 +1,143 @@
+"""The ``tokenizer`` and ``reconstruct`` stages.
+
+- ``tokenizer`` trains the configured autoencoder + quantizer (+ discriminator) on the
+  experiment's data with the tokenizer objective, then scores the held-out split with the
+  experiment's metrics (``eval.json``, ``reconstructions.png``).
+- ``reconstruct`` runs the run's latest trained tokenizer on the real reference frames that
+  the experiment's sensor family declares (``real_frames.png``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from vqtouch.core import CheckpointError, StageJob, StageUnavailable, hookimpl, load, resolve_device
+from vqtouch.core.data import split_dataset
+from vqtouch.core.images import image_grid, save_png
+from vqtouch.core.training import Trainer, latest_checkpoint
+
+from .training import Tokenizer, TokenizerSection, TokenizerTask, evaluate_reconstruction
+
+#: The files a tokenizer checkpoint folder holds, one per trained module.
+TOKENIZER_FILES = ("autoencoder.safetensors", "quantizer.safetensors")
+
+
+def printable(scores: dict[str, Any]) -> dict[str, Any]:
+    """Scores rounded for people and JSON (the example images left out)."""
+    return {key: (round(value, 4) if isinstance(value, float) else value) for key, value in scores.items()
+            if key != "examples"}
+
+
+def save_pairs(originals: torch.Tensor, reconstructions: torch.Tensor, path: Path, count: int = 8) -> Path:
+    """A picture of the first ``count`` originals (top row) above their reconstructions."""
+    count = min(count, len(originals))
+    return save_png(image_grid(torch.cat([originals[:count], reconstructions[:count]]), columns=count), path)
+
+
+def train_tokenizer(job: StageJob) -> dict[str, Any]:
+    """Train the configured tokenizer in ``job.run`` and evaluate it on the held-out split."""
+    from .perceptual import build_perceptual_loss
+
+    config, section, assembly = job.config, job.section, job.assembly
+    device = resolve_device(config.device)
+    dataset = assembly.component("data.dataset")
+    train_set, val_set = split_dataset(dataset, config.data.val_fraction, config.seed)
+    tokenizer = Tokenizer(assembly.component("tokenizer.autoencoder"), assembly.component("tokenizer.quantizer"))
+    loss = section.loss
+    discriminator = None
+    if section.discriminator is not None and loss.adversarial_weight > 0:
+        discriminator = assembly.component("tokenizer.discriminator")
+    perceptual = None
+    if loss.perceptual != "none" and loss.perceptual_weight > 0:
+        perceptual = build_perceptual_loss(loss.perceptual, loss.lpips_backbone, loss.lpips_heads,
+                                           effnet_image_size=loss.perceptual_image_size).to(device)
+    task = TokenizerTask(tokenizer, loss, discriminator, perceptual)
+    trainer = Trainer(task, train_set, section.train, batch_size=config.data.batch_size, seed=config.seed,
+                      device=device, checkpoint_dir=job.run.checkpoints, run=job.run,
+                      num_workers=config.data.num_workers, host=job.host)
+    if job.resume and trainer.resume(job.run.checkpoints):
+        print(f"resumed {job.run.path} at step {trainer.state.step}")
+    state = trainer.fit()
+    metrics = dict(zip((item.name for item in config.metrics), assembly.build_slots(["metrics"]).get("metrics", [])))
+    scores = evaluate_reconstruction(tokenizer, val_set, metrics, device=device, batch_size=config.data.batch_size)
+    if trainer.dist.is_main:
+        save_pairs(*scores["examples"], job.run.path / "reconstructions.png")
+        job.run.write_json("eval.json", {"step": state.step, "skipped_steps": state.skipped_steps,
+                                         "train_samples": len(train_set), "val_samples": len(val_set),
+                                         **printable(scores)})
+    return scores
+
+
+def run_tokenizer_stage(job: StageJob) -> dict[str, Any]:
+    """The ``tokenizer`` stage: train, then the held-out scores for the report."""
+    scores = printable(train_tokenizer(job))
+    return {"steps": job.section.train.steps,
+            **{k: v for k, v in scores.items() if k in ("ssim", "psnr", "codebook_usage", "samples")},
+            "picture": "reconstructions.png"}
+
+
+def load_tokenizer(run_or_folder: str | Path, host: Any, step: int | None = None,
+                   device: str = "cpu") -> tuple[Tokenizer, Path]:
+    """Load the autoencoder and quantizer of a run (its latest complete checkpoint, or ``step``) or
+    of a checkpoint folder."""
+    path = Path(run_or_folder)
+    if all((path / name).is_file() for name in TOKENIZER_FILES):
+        folder = path
+    else:
+        checkpoints = path / "checkpoints"
+        folder = checkpoints / f"step-{step:08d}" if step is not None else latest_checkpoint(checkpoints)
+        if folder is None or not all((folder / name).is_file() for name in TOKENIZER_FILES):
+            where = f"checkpoints/step-{step:08d}" if step is not None else "checkpoints/step-*"
+            raise CheckpointError(f"{path}: no tokenizer checkpoint found (expected {where}/{TOKENIZER_FILES[0]}); "
+                                  "train one with `vqtouch train tokenizer`")
+    autoencoder = load(folder / TOKENIZER_FILES[0], host=host, map_location=device)
+    quantizer = load(folder / TOKENIZER_FILES[1], host=host, map_location=device)
+    return Tokenizer(autoencoder, quantizer).eval(), folder
+
+
+@torch.no_grad()
+def reconstruct_all(tokenizer: Tokenizer, images_B3HW: torch.Tensor, batch_size: int = 16) -> torch.Tensor:
+    """Reconstructions in [0, 1] of a stack of images in [0, 1], ``batch_size`` at a time."""
+    return torch.cat([tokenizer.reconstruct(images_B3HW[i:i + batch_size])[0]
+                      for i in range(0, len(images_B3HW), batch_size)])
+
+
+def run_reconstruct_stage(job: StageJob) -> dict[str, Any]:
+    """The ``reconstruct`` stage: the run's tokenizer on the sensor family's real reference frames."""
+    try:
+        tokenizer, folder = load_tokenizer(job.run.path, job.host)
+    except CheckpointError as exc:
+        raise StageUnavailable(f"no trained tokenizer in this run ({exc}); run the tokenizer stage first") from None
+    sensor_config = job.assembly.sensor_config("source")
+    sensor = job.assembly.sensor("source")
+    image_size = tokenizer.autoencoder.vqtouch_spec.context.image_size
+    frames = sensor.reference_frames(image_size, image_size)
+    if frames is None:
+        raise StageUnavailable(f"sensor family {sensor_config.name!r} declares no real reference frames "
+                               "(SensorFamily.reference_frames) to reconstruct")
+    reconstructions = reconstruct_all(tokenizer, frames)
+    scores: dict[str, Any] = {"source": f"{len(frames)} real {sensor.sensor_id or sensor_config.name} frames",
+                              "checkpoint": folder.name}
+    for item, metric in zip(job.config.metrics, job.assembly.build_slots(["metrics"]).get("metrics", [])):
+        metric.reset()
+        metric.update(reconstructions, frames)
+        scores[item.name] = round(metric.compute(), 4)
+    save_pairs(frames, reconstructions, job.run.path / "real_frames.png")
+    return {**scores, "picture": "real_frames.png"}
+
+
+@hookimpl
+def vqtouch_register_stages(register):
+    register("tokenizer", run_tokenizer_stage, section=TokenizerSection,
+             needs=("data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer"),
+             uses=("tokenizer.discriminator", "metrics"),
+             demo={"train.steps": 40, "train.checkpoint_every": 40, "train.log_every": 10},
+             description="Train the tactile tokenizer (autoencoder + quantizer [+ GAN]) and score the held-out "
+                         "split.")
+    register("reconstruct", run_reconstruct_stage,
+             needs=("sensor", "tokenizer.autoencoder", "tokenizer.quantizer"), uses=("metrics",),
+             description="Reconstruct the real reference frames of the experiment's sensor with the run's latest "
+                         "tokenizer.")
