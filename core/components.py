@@ -116,8 +116,9 @@ class SensorFamily(nn.Module, abc.ABC):
     Implementations are batched, run on any device and are deterministic for a given
     ``generator``.  A height map covers the sensor's square field of view
     (``field_of_view_mm`` on a side) whatever its resolution, so scene generators can draw
-    objects at physical scale.  For a family with calibration tables, shading and
-    per-sensor variants, subclass :class:`vqtouch.sensors.RenderedSensor` instead.
+    objects at physical scale.  A family with a background, a shaded contact response and
+    per-sensor variants can subclass ``RenderedSensor`` from the built-in sensors package,
+    which does that common work.
     """
 
     #: Side of the square imaged gel area in millimetres.  Scene generators draw objects at

@@ -17,18 +17,15 @@ for variable in ("VQTOUCH_BLOCK_PLUGINS", "VQTOUCH_PLUGINS", "VQTOUCH_CLIP_CKPT"
 
 import torch  # noqa: E402
 
-from vqtouch.core import load_plugins, reset_default_host  # noqa: E402
+from vqtouch.core import load_plugins  # noqa: E402
 
 TESTS = Path(__file__).resolve().parent
 REPO = TESTS.parent
 
 
 @pytest.fixture(autouse=True)
-def _fresh_default_host():
-    reset_default_host()
+def _seeded():
     torch.manual_seed(0)
-    yield
-    reset_default_host()
 
 
 @pytest.fixture(scope="session")
