@@ -1,7 +1,8 @@
-"""Example third-party plugin: one sensor family, one conditioner, one CLI command.
+"""Example third-party plugin: a sensor family, a conditioner, a pipeline stage, a CLI command.
 
-Everything a plugin can do is here in about a hundred lines; see the README section
-"Adding a sensor family plugin".
+Everything a plugin can do is here in under two hundred lines; see the README section
+"Extending vqtouch".  (``marker_sensor.py`` beside it shows a sensor family built on the
+public ``RenderedSensor`` base class, registered through its own entry point.)
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ import torch.nn.functional as F
 from pydantic import Field
 from torch import nn
 
-from vqtouch.core import Conditioner, ConfigError, PluginConfig, SensorFamily, hookimpl
+from vqtouch.core import Conditioner, ConfigError, PluginConfig, Section, SensorFamily, StageJob, hookimpl
+from vqtouch.core.images import image_grid, save_png
 
 
 class ToySensorConfig(PluginConfig):
@@ -52,7 +54,7 @@ class MeanColourConfig(PluginConfig):
 
 
 class MeanColourConditioner(Conditioner):
-    modality = "tactile"
+    sample_key = "tactile"
 
     def __init__(self, cond_dim: int, hidden: int) -> None:
         super().__init__(cond_dim, num_tokens=1)
@@ -74,10 +76,40 @@ def vqtouch_register_conditioners(register):
              MeanColourConfig, description="Example: mean image colour as the condition.")
 
 
+class GallerySection(Section):
+    """Options of the ``gallery`` stage (its own section of the experiment config: ``gallery.*``)."""
+
+    depths_mm: list[float] = Field([0.2, 0.5, 1.0], min_length=1, max_length=16,
+                                   description="Press depths of the ball, in mm, one picture column each.")
+    radius_mm: float = Field(2.0, gt=0, le=10, description="Radius of the pressed ball in mm.")
+
+
+def run_gallery(job: StageJob) -> dict:
+    """Press a ball into the experiment's sensor at each depth; save the row and report mean intensities."""
+    sensor = job.assembly.sensor()
+    size = job.config.data.image_size
+    axis = (torch.arange(size) + 0.5) / size * sensor.field_of_view_mm - sensor.field_of_view_mm / 2
+    ys, xs = torch.meshgrid(axis, axis, indexing="ij")
+    cap = (job.section.radius_mm**2 - xs**2 - ys**2).clamp_min(0).sqrt()
+    heights = torch.stack([(cap - (job.section.radius_mm - depth)).clamp_min(0) for depth in job.section.depths_mm])
+    with torch.no_grad():
+        images = sensor.render(heights)
+    save_png(image_grid(images, columns=len(images)), job.run.path / "gallery.png")
+    return {"mean_intensity": [round(float(image.mean()), 4) for image in images], "picture": "gallery.png"}
+
+
+@hookimpl
+def vqtouch_register_stages(register):
+    # A stage from a third-party package: its section, the slots it needs and how it runs.
+    register("gallery", run_gallery, section=GallerySection, needs=("sensor",),
+             description="Example: a ball pressed at several depths into the experiment's sensor.")
+
+
 @hookimpl
 def vqtouch_validate_experiment(config):
     # A plugin may veto combinations it cannot serve.
-    if config.conditioner is not None and config.conditioner.name == "mean_colour" and config.data.image_size < 16:
+    uses_mean_colour = any(c.name == "mean_colour" for c in config.generator.conditioners)
+    if uses_mean_colour and config.data.image_size < 16:
         raise ConfigError("conditioner 'mean_colour' needs data.image_size >= 16")
 
 
@@ -96,9 +128,7 @@ def vqtouch_add_commands(subparsers):
 
 
 def _render_command(args: argparse.Namespace) -> int:
-    from vqtouch.core import default_host
-
-    sensor = default_host().build("sensor_family", {"name": "toy_sensor"})
+    sensor = args.host.build("sensor_family", {"name": "toy_sensor"})
     ys, xs = torch.meshgrid(torch.linspace(-1, 1, 32), torch.linspace(-1, 1, 32), indexing="ij")
     height = (args.radius**2 - xs**2 - ys**2).clamp_min(0).sqrt()[None]
     image = sensor.render(height)
