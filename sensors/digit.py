@@ -47,7 +47,11 @@ class DigitConfig(PluginConfig):
 
 
 class DigitSensor(RenderedSensor):
-    """Three-LED Lambertian renderer of a DIGIT-style sensor."""
+    """Three-LED Lambertian renderer of a DIGIT-style sensor.
+
+    ``field_of_view_mm`` comes from the config; ``sensor_id`` is ``"digit"``.  No real DIGIT
+    frames ship, so :meth:`reference_frames` is the contract's default (None).
+    """
 
     sensor_id = "digit"
 

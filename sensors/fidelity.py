@@ -18,7 +18,6 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from .gelsight import load_taxim_calibration
 
@@ -82,11 +81,11 @@ def evaluate_fidelity(sensor_name: str, host: Any, resolution: tuple[int, int] =
     """Render every real press of ``sensor_name`` and score it against the real frames."""
     calibration = load_taxim_calibration(sensor_name)
     sensor = host.build("sensor_family", {"name": sensor_name, **(sensor_options or {}), "view": "full"})
+    # The real presses over the whole frame (the same reader as the renderer's background).
+    real = sensor.reference_frames(*resolution)
     with np.load(calibration.folder / "dataPack.npz", allow_pickle=False) as pack:
-        frames = torch.from_numpy(pack["imgs"][..., ::-1].copy()).permute(0, 3, 1, 2).float() / 255.0
         centres = pack["touch_center"].astype(np.float64)  # (column, row); uint16 in the Mini's file
         radii = pack["touch_radius"].astype(np.float64)
-    real = F.interpolate(frames, size=resolution, mode="bilinear", antialias=True, align_corners=False)
     radius = BALL_RADIUS_MM[sensor_name] if ball_radius_mm is None else ball_radius_mm
     heights = ball_press_heights(centres, radii, radius, calibration.pixel_mm, calibration.native_size, resolution)
     with torch.no_grad():
@@ -102,6 +101,6 @@ def evaluate_fidelity(sensor_name: str, host: Any, resolution: tuple[int, int] =
             metric.reset()
             metric.update(crops, real_crops)
             scores[(metric_name, label)] = metric.compute()
-    return FidelityResult(sensor_name, len(frames), crop_px, resolution, scores[("ssim", "render")],
+    return FidelityResult(sensor_name, len(real), crop_px, resolution, scores[("ssim", "render")],
                           scores[("psnr", "render")], scores[("ssim", "background")], scores[("psnr", "background")],
                           real_crops, rendered_crops)

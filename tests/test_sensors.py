@@ -1,12 +1,15 @@
 """Sensor families: contract over the registry, numerical extremes, variants, sim-vs-real fidelity."""
 
 import sys
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from vqtouch.core import PluginError, SensorFamily, load_plugins
-from vqtouch.sensors.variants import SensorVariant, apply_variant
+from vqtouch.sensors import SensorVariant, apply_variant, check_height_map, drifted_background, gaussian_blur
 
 HOST = load_plugins(autoload=False)
 FAMILIES = HOST.registry("sensor_family").names()
@@ -83,6 +86,32 @@ def test_resolution_independent_physical_scale(name):
     assert (coarse - fine_down).abs().mean() < 0.03
 
 
+BUILTIN = ["gelsight", "gelsight_mini", "digit"]
+EVERY_FACTOR = {"illumination_shift": 0.05, "colour_gain": (1.1, 0.9, 0.95), "background_drift": 0.1,
+                "response_scale": 1.4, "wear_blur": 0.02, "damage_spots": 3, "noise_std": 0.05,
+                "shift": (0.03, -0.02), "rotation_deg": 4.0, "seed": 5}
+
+
+@pytest.mark.parametrize("variant", [{}, EVERY_FACTOR], ids=["plain", "every_factor"])
+@pytest.mark.parametrize("name", BUILTIN)
+def test_builtin_render_is_background_plus_response_then_variant(name, variant):
+    """The built-in families add no surface effects: ``render`` is exactly the composition below,
+    written out here from the public pieces (the pipeline as it was before the surface-effects
+    step existed), bit for bit."""
+    sensor = HOST.build("sensor_family", {"name": name, "variant": variant})
+    heights = torch.rand(3, 40, 48, generator=torch.Generator().manual_seed(123)) * 0.8
+    heights = F.avg_pool2d(heights[:, None], 5, stride=1, padding=2)[:, 0]
+    rendered = sensor.render(heights, generator=torch.Generator().manual_seed(7))
+
+    smoothed = check_height_map(heights)
+    sigma_px = sensor.gel_blur_mm / min(sensor.pixel_size_mm(40, 48))
+    smoothed = gaussian_blur(smoothed.unsqueeze(1), sigma_px).squeeze(1)
+    shaded = (drifted_background(sensor.background(40, 48, torch.device("cpu")), sensor.variant).unsqueeze(0)
+              + sensor.contact_response(smoothed) * sensor.variant.response_scale)
+    expected = apply_variant(shaded, sensor.variant, torch.Generator().manual_seed(7)).clamp(0, 1)
+    assert sensor.gel_blur_mm > 0 and torch.equal(rendered, expected)
+
+
 @pytest.mark.gpu
 @pytest.mark.parametrize("name", FAMILIES)
 def test_render_on_gpu_matches_cpu(name):
@@ -135,6 +164,53 @@ def test_missing_taxim_is_a_clear_error(monkeypatch):
     monkeypatch.setitem(sys.modules, "taxim", None)
     with pytest.raises(PluginError, match="pip install taxim"):
         calibration_folder("gelsight")
+
+
+# -- taxim's real frames -----------------------------------------------------------------------
+
+def _taxim_presses_from_the_file(name: str) -> torch.Tensor:
+    """taxim's ball-press frames decoded here, independently of vqtouch: BGR uint8 -> RGB float."""
+    import taxim
+
+    folder = {"gelsight": taxim.CALIB_GELSIGHT, "gelsight_mini": taxim.CALIB_GELSIGHT_MINI}[name]
+    with np.load(Path(folder) / "dataPack.npz", allow_pickle=False) as pack:
+        bgr_NHW3 = pack["imgs"]
+    rgb_NHW3 = bgr_NHW3[..., [2, 1, 0]].astype(np.float32) / np.float32(255)
+    return torch.from_numpy(rgb_NHW3).permute(0, 3, 1, 2)
+
+
+@pytest.mark.parametrize("name, count", [("gelsight", 48), ("gelsight_mini", 24)])
+def test_reference_frames_are_taxims_real_presses_over_the_imaged_area(name, count):
+    frames = _taxim_presses_from_the_file(name)
+    rows, cols = frames.shape[-2:]
+    left = (cols - rows) // 2
+
+    def resize(images, size):
+        return F.interpolate(images, size=size, mode="bilinear", antialias=True, align_corners=False)
+
+    square = HOST.build("sensor_family", name).reference_frames(64, 64)
+    assert square.shape == (count, 3, 64, 64) and square.dtype == torch.float32
+    assert torch.equal(square, resize(frames[..., left:left + rows], (64, 64)))
+    full = HOST.build("sensor_family", {"name": name, "view": "full"}).reference_frames(48, 64)
+    assert torch.equal(full, resize(frames, (48, 64)))
+    assert square.min() >= 0 and square.max() <= 1
+
+
+def test_reference_frames_ignore_the_variant_and_digit_has_none():
+    plain = HOST.build("sensor_family", "gelsight").reference_frames(16, 16)
+    derived = HOST.build("sensor_family", {"name": "gelsight", "variant": {"colour_gain": (1.2, 1.0, 0.8)}})
+    assert torch.equal(derived.reference_frames(16, 16), plain)
+    assert HOST.build("sensor_family", "digit").reference_frames(16, 16) is None
+
+
+def test_gelsight_background_is_taxims_no_contact_frame():
+    import taxim
+
+    with np.load(Path(taxim.CALIB_GELSIGHT) / "dataPack.npz", allow_pickle=False) as pack:
+        f0 = torch.from_numpy(pack["f0"][..., [2, 1, 0]].astype(np.float32) / np.float32(255)).permute(2, 0, 1)
+    sensor = HOST.build("sensor_family", {"name": "gelsight", "view": "full"})
+    assert torch.equal(sensor.background_3HW, f0)
+    assert sensor.sensor_id == "gelsight" and HOST.build("sensor_family", "digit").sensor_id == "digit"
 
 
 # -- fidelity against taxim's real frames -------------------------------------------------------
