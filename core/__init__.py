@@ -28,6 +28,7 @@ from .components import (Autoencoder, BuildContext, Clusterer, Conditioner, Cond
 from .config import ExperimentConfig, Section, Slot, load_config_file, resolve_config, validate_experiment
 from .errors import (CheckpointError, ConfigError, DatasetError, MissingWeightsError, PluginError, UnknownPluginError,
                      VqtouchError)
+from .frozen import FrozenModule
 from .hookspecs import hookimpl
 from .plugin_config import PluginConfig
 from .plugin_manager import PluginHost, load_plugins
@@ -44,7 +45,7 @@ except _metadata.PackageNotFoundError:  # running from an uninstalled checkout
 
 __all__ = [
     "Assembly", "Autoencoder", "BuildContext", "CheckpointError", "Clusterer", "ConditionTokens", "Conditioner",
-    "ConfigError", "DatasetError", "Discriminator", "ExperimentConfig", "Generator", "Metric",
+    "ConfigError", "DatasetError", "Discriminator", "ExperimentConfig", "FrozenModule", "Generator", "Metric",
     "MissingWeightsError", "PerImageMetric", "PluginConfig", "PluginError", "PluginHost", "ProvidesContext",
     "Quantizer", "QuantizerOutput", "RunDir", "Section", "SensorFamily", "Slot", "StageJob", "StageOutcome",
     "StageUnavailable", "TactileDataset", "TrainConfig", "UnknownPluginError", "VqtouchError", "WeightsSpec",

@@ -145,12 +145,15 @@ class MaskedAutoencoder(Autoencoder):
         """Latents from :meth:`encode` -> images; depends on nothing but ``latents_BDhw`` (and train/eval mode)."""
         self._check_latents(latents_BDhw)
         width = self.config.decoder_width
-        tokens_BLD = latents_BDhw[:, :width].flatten(2).transpose(1, 2).to(self.decoder_position_LD.dtype)
+        # Split the channels in the (B, L, C) layout encode concatenated them in: the gradients then reach
+        # the mask token with the same memory layout (and rounding) as before the latents carried pixels.
+        cells_BLC = latents_BDhw.flatten(2).transpose(1, 2)
+        tokens_BLD = cells_BLC[..., :width].to(self.decoder_position_LD.dtype)
         decoded = self.decoder_norm(self.decoder(tokens_BLD + self.decoder_position_LD))
         patches_BLP = self.to_pixels(decoded)
         if not self.training and self.config.paste_visible:
             visible_BL = self.visible_mask(latents_BDhw)
-            original = latents_BDhw[:, width + 1:].flatten(2).transpose(1, 2).to(patches_BLP.dtype)
+            original = cells_BLC[..., width + 1:].to(patches_BLP.dtype)
             patches_BLP = torch.where(visible_BL[..., None], original, patches_BLP)
         return self.unpatchify(patches_BLP)
 
