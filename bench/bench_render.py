@@ -66,8 +66,8 @@ def main() -> None:
             with torch.no_grad():
                 single = best_rate(lambda: [sensor.render(h[None]) for h in heights], count, args.repeats)
                 batched = best_rate(lambda: sensor.render(heights), count, args.repeats)
-            dataset = host.build("dataset", {"name": "procedural", "sensor": {"name": sensor_name},
-                                             "num_samples": count, "image_size": size, "cache": False})
+            dataset = host.build("dataset", {"name": "procedural", "num_samples": count, "image_size": size,
+                                             "cache": False}, sensor=sensor)
             whole = best_rate(lambda: dataset.render_batch(list(range(count))), count, args.repeats)
             baseline = baseline or whole
             print(f"{sensor_name:14s} {size:5d} {geometry:11.1f} {visual:9.1f} {single:10.1f} {batched:10.1f} "

@@ -23,7 +23,7 @@ torch.manual_seed(0)
 device = torch.device(args["device"])
 host = load_plugins(autoload=False)
 context = BuildContext(image_size=args["size"])
-encoder = host.build("encoder", {"name": args["encoder"], "channels": args["channels"]}, context).to(device)
+encoder = host.build("autoencoder", {"name": args["encoder"], "channels": args["channels"]}, context).to(device)
 quantizer = host.build("quantizer", {"name": "vq", "codebook_size": 512},
                        context.model_copy(update={"latent_dim": encoder.latent_channels})).to(device)
 params = list(encoder.parameters()) + list(quantizer.parameters())

@@ -19,8 +19,8 @@ from pathlib import Path
 
 from vqtouch.core.cli import main as vqtouch
 
-HELD_OUT = {"name": "procedural", "sensor": {"name": "gelsight"}, "seed": 999, "num_samples": 200,
-            "image_size": 64}
+#: Rendered by the run's own sensor (the reconstruction scene's gelsight).
+HELD_OUT = {"name": "procedural", "seed": 999, "num_samples": 200, "image_size": 64}
 
 
 def train_and_score(run: Path, overrides: list[str], metrics: str, image_size: int = 64) -> tuple[float, dict]:
@@ -60,16 +60,16 @@ def main() -> None:
     for seed, samples in ((seed, samples) for seed in args.seeds for samples in args.samples):
         for encoder, ratio in runs:
             if ratio is None:
-                model = [f"tokenizer.encoder.name={encoder}", f"tokenizer.encoder.channels={args.channels}"]
+                model = [f"tokenizer.autoencoder.name={encoder}", f"tokenizer.autoencoder.channels={args.channels}"]
                 label = encoder
             else:
-                model = [json_override("tokenizer.encoder", {"name": "mae", "mask_ratio": ratio}),
+                model = [json_override("tokenizer.autoencoder", {"name": "mae", "mask_ratio": ratio}),
                          "tokenizer.quantizer=identity", "tokenizer.discriminator=null"]
                 label = f"mae-{ratio:g}"
             run = out / (f"{label}-{samples}" if args.seeds == [0] else f"{label}-{samples}-seed{seed}")
             seconds, scores = train_and_score(run, [
                 *model, f"data.dataset.num_samples={samples}", "data.val_fraction=0.1", f"data.batch_size={args.batch}",
-                f"train.steps={args.steps}", f"train.checkpoint_every={args.steps}", "train.learning_rate=0.0002",
+                f"tokenizer.train.steps={args.steps}", f"tokenizer.train.checkpoint_every={args.steps}", "tokenizer.train.learning_rate=0.0002",
                 "tokenizer.loss.disc_start=300", f"seed={seed}"], "ssim,psnr,fd_effnetlite0")
             results.append({"encoder": label, "train_samples": samples, "steps": args.steps, "seed": seed,
                             "train_seconds": round(seconds, 1), **{k: scores[k] for k in (

@@ -24,15 +24,15 @@ from experiment_tokenizers import train_and_score
 
 KNOBS: dict[str, list[str]] = {
     "baseline (vqgan, f4, K512, fp32)": [],
-    "dm_vqgan": ["tokenizer.encoder.name=dm_vqgan"],
+    "dm_vqgan": ["tokenizer.autoencoder.name=dm_vqgan"],
     "codebook 128": ["tokenizer.quantizer.codebook_size=128"],
     "codebook 2048": ["tokenizer.quantizer.codebook_size=2048"],
     "plain lookup (full width, no cosine)": ["tokenizer.quantizer.l2_normalize=false",
                                              "tokenizer.quantizer.lookup_dim=0"],
     "ema_vq (K512)": ['tokenizer.quantizer={"name": "ema_vq", "codebook_size": 512}'],
-    "f = 8": ["tokenizer.encoder.channel_multipliers=[1,2,2,4]"],
-    "bf16": ["train.precision=bf16"],
-    "dm_vqgan + bf16": ["tokenizer.encoder.name=dm_vqgan", "train.precision=bf16"],
+    "f = 8": ["tokenizer.autoencoder.channel_multipliers=[1,2,2,4]"],
+    "bf16": ["tokenizer.train.precision=bf16"],
+    "dm_vqgan + bf16": ["tokenizer.autoencoder.name=dm_vqgan", "tokenizer.train.precision=bf16"],
     "128 px": ["data.image_size=128"],
     # The machine's speed drifts (shared cores): the baseline again, last, shows by how much.
     "baseline, repeated last": [],
@@ -46,9 +46,9 @@ def run_name(label: str) -> str:
 
 def with_encoder_first(base: list[str], changes: list[str]) -> list[str]:
     """The overrides of one configuration, the encoder's name first: setting a slot's name resets
-    its options, so a later ``tokenizer.encoder.name=`` would undo ``tokenizer.encoder.channels=32``."""
-    names = [c for c in changes if c.startswith("tokenizer.encoder.name=")] or ["tokenizer.encoder.name=vqgan"]
-    return names[-1:] + base + [c for c in changes if not c.startswith("tokenizer.encoder.name=")]
+    its options, so a later ``tokenizer.autoencoder.name=`` would undo ``tokenizer.autoencoder.channels=32``."""
+    names = [c for c in changes if c.startswith("tokenizer.autoencoder.name=")] or ["tokenizer.autoencoder.name=vqgan"]
+    return names[-1:] + base + [c for c in changes if not c.startswith("tokenizer.autoencoder.name=")]
 
 
 def image_size_of(changes: list[str]) -> int:
@@ -78,9 +78,9 @@ def main() -> None:
     if args.table_only:
         print_table(json.loads((out / "tradeoff.json").read_text()))
         return
-    base = ["tokenizer.encoder.channels=32", "data.dataset.num_samples=1000",
-            "data.batch_size=8", f"train.steps={args.steps}", f"train.checkpoint_every={args.steps}",
-            "train.learning_rate=0.0002", "tokenizer.loss.disc_start=100000", "seed=0"]
+    base = ["tokenizer.autoencoder.channels=32", "data.dataset.num_samples=1000",
+            "data.batch_size=8", f"tokenizer.train.steps={args.steps}", f"tokenizer.train.checkpoint_every={args.steps}",
+            "tokenizer.train.learning_rate=0.0002", "tokenizer.loss.disc_start=100000", "seed=0"]
     rows = []
     for label, changes in KNOBS.items():
         seconds, scores = train_and_score(out / run_name(label), with_encoder_first(base, changes), "ssim,psnr",

@@ -5,11 +5,10 @@ import json
 import pytest
 import torch
 
-from vqtouch.core import BuildContext, ConfigError, Encoder, load_plugins, resolve_config
-from vqtouch.core.assembly import build_components
+from vqtouch.core import Autoencoder, BuildContext, ConfigError, load_plugins, resolve_config
 
 HOST = load_plugins(autoload=False)
-ENCODERS = HOST.registry("encoder").names()
+ENCODERS = HOST.registry("autoencoder").names()
 TINY = {"channels": 16, "norm_groups": 8, "channel_multipliers": [1, 2], "z_channels": 16, "embed_dim": 8}
 TINY_OPTIONS = {"vqgan": TINY, "dm_vqgan": TINY,
                 "mae": {"patch_size": 8, "width": 32, "heads": 2, "decoder_width": 16, "depth": 1, "decoder_depth": 1}}
@@ -18,7 +17,7 @@ CONTEXT = BuildContext(image_size=32)
 
 def tiny_encoder(name, **options):
     torch.manual_seed(0)
-    return HOST.build("encoder", {"name": name, **TINY_OPTIONS.get(name, {}), **options}, CONTEXT)
+    return HOST.build("autoencoder", {"name": name, **TINY_OPTIONS.get(name, {}), **options}, CONTEXT)
 
 
 def test_both_paper_tokenizers_are_registered():
@@ -28,7 +27,7 @@ def test_both_paper_tokenizers_are_registered():
 @pytest.mark.parametrize("name", ENCODERS)
 def test_encoder_contract(name):
     encoder = tiny_encoder(name)
-    assert isinstance(encoder, Encoder)
+    assert isinstance(encoder, Autoencoder)
     images = torch.rand(2, 3, 32, 32) * 2 - 1
     latents = encoder.encode(images)
     grid = 32 // encoder.downsample_factor
@@ -75,15 +74,48 @@ def test_dm_vqgan_starts_close_to_vqgan_and_bounds_huge_offsets():
 
 
 def test_dm_options_ablate_each_part():
-    plain = tiny_encoder("dm_vqgan", deformable_max_resolution=0, fusion=False)
+    plain = tiny_encoder("dm_vqgan", deformable_levels=0, fusion=False)
     assert not any(type(m).__name__ in {"DeformableConv2d", "MultiScaleFusion"} for m in plain.modules())
     vanilla = tiny_encoder("vqgan")
     assert sum(p.numel() for p in plain.parameters()) == sum(p.numel() for p in vanilla.parameters())
 
 
+def deformable_layers(image_size, **options):
+    """Names of the DeformableConv2d modules of a narrow dm_vqgan (default channel_multipliers (1, 2, 2))."""
+    torch.manual_seed(0)
+    model = HOST.build("autoencoder", {"name": "dm_vqgan", "channels": 8, "norm_groups": 8, "z_channels": 8,
+                                       "embed_dim": 8, **options}, BuildContext(image_size=image_size))
+    return [name for name, module in model.named_modules() if type(module).__name__ == "DeformableConv2d"]
+
+
+def test_dm_vqgan_deformable_layers_do_not_depend_on_the_image_size():
+    """The default must not thin out at larger images (it once counted 10 / 7 / 0 at 64 / 128 / 256 px)."""
+    layers = {size: deformable_layers(size) for size in (32, 64, 128)}
+    assert len(layers[64]) == 10 and layers[32] == layers[64] == layers[128]
+
+
+def test_deformable_levels_count_from_the_latent_end():
+    counts = [len(deformable_layers(32, deformable_levels=levels)) for levels in range(4)]
+    # Lowest level: 1 encoder + 2 x 2 middle + 2 decoder blocks; each level above: 1 + 2 more.
+    assert counts == [0, 7, 10, 13]
+    # One level: the lowest one only (dec_levels runs from the latent end, so its index 0 is the lowest).
+    assert deformable_layers(32, deformable_levels=1) == [
+        "enc_levels.2.blocks.0.conv2", "enc_mid.0.conv2", "enc_mid.2.conv2", "dec_mid.0.conv2", "dec_mid.2.conv2",
+        "dec_levels.0.blocks.0.conv2", "dec_levels.0.blocks.1.conv2"]
+
+
+def test_too_many_deformable_levels_is_an_error_not_a_clamp():
+    with pytest.raises(ConfigError, match=r"deformable_levels = 4 exceeds the 3 feature level\(s\).*allowed 0 to 3") \
+            as error:
+        deformable_layers(64, deformable_levels=4)
+    assert "\n" not in str(error.value)
+    with pytest.raises(ConfigError, match="allowed 0 to 2"):
+        tiny_encoder("dm_vqgan", deformable_levels=3)  # TINY has 2 levels
+
+
 @pytest.mark.parametrize("scale", [0.1, 1.0])
 def test_dm_vqgan_offset_branches_train_at_their_own_learning_rate(scale):
-    from vqtouch.core.config import TokenizerLossConfig
+    from vqtouch.plugins.tokenizer.training import TokenizerLossConfig
     from vqtouch.plugins.tokenizer.training import Tokenizer, TokenizerTask
 
     dm = tiny_encoder("dm_vqgan", offset_lr_scale=scale)
@@ -101,24 +133,47 @@ def test_dm_vqgan_offset_branches_train_at_their_own_learning_rate(scale):
 
 def test_bad_configs_are_clear():
     with pytest.raises(ConfigError, match="multiple of norm_groups"):
-        HOST.build("encoder", {"name": "vqgan", "channels": 20, "norm_groups": 8}, CONTEXT)
+        HOST.build("autoencoder", {"name": "vqgan", "channels": 20, "norm_groups": 8}, CONTEXT)
     with pytest.raises(ConfigError, match="not divisible by the tokenizer's downsampling factor"):
-        HOST.build("encoder", {"name": "vqgan", **TINY, "channel_multipliers": [1, 1, 1, 1, 1, 1]},
+        HOST.build("autoencoder", {"name": "vqgan", **TINY, "channel_multipliers": [1, 1, 1, 1, 1, 1]},
                    BuildContext(image_size=48))
     with pytest.raises(ConfigError, match="unknown option 'max_offset'"):
-        HOST.build("encoder", {"name": "vqgan", "max_offset": 2.0}, CONTEXT)  # a DM option on vanilla VQGAN
+        HOST.build("autoencoder", {"name": "vqgan", "max_offset": 2.0}, CONTEXT)  # a DM option on vanilla VQGAN
 
 
-def test_reconstruction_never_builds_a_discriminator_or_generator():
-    config = resolve_config("reconstruction", host=HOST)
-    assert config.tokenizer.discriminator is not None  # the training stage would use it ...
-    built = build_components(config, HOST, slots=[s for s in ("tokenizer.encoder", "tokenizer.quantizer")],
-                             context=BuildContext(image_size=64))
-    assert "reconstruct" in config.stages
-    from vqtouch.core.config import STAGE_SLOTS
+def test_reconstruct_stage_never_builds_a_discriminator_dataset_or_generator(tmp_path, monkeypatch):
+    from vqtouch.core import Assembly, RunDir, run_stage
 
-    assert "tokenizer.discriminator" not in STAGE_SLOTS["reconstruct"]  # ... reconstructing never does
-    assert set(built) == {"tokenizer.encoder", "tokenizer.quantizer"}
+    config = resolve_config("reconstruction", overrides=[*TRAIN_OVERRIDES, 'stages=["tokenizer"]'], host=HOST)
+    assert config.tokenizer.discriminator is not None  # the training stage uses it ...
+    run = RunDir.create(config, host=HOST, path=tmp_path / "run")
+    assert run_stage("tokenizer", Assembly(config, HOST), run).status == "ran"
+    built_kinds: list[str] = []
+    original = type(HOST).build
+
+    def recording_build(self, kind, *args, **kwargs):
+        built_kinds.append(kind)
+        return original(self, kind, *args, **kwargs)
+
+    monkeypatch.setattr(type(HOST), "build", recording_build)
+    outcome = run_stage("reconstruct", Assembly(config, HOST), run)
+    assert outcome.status == "ran", outcome.describe()
+    # ... reconstructing loads the trained tokenizer and renders nothing: no discriminator, no data.
+    assert sorted(set(built_kinds)) == ["autoencoder", "metric", "quantizer", "sensor_family"]
+
+
+def test_reconstruct_stage_says_why_when_the_sensor_has_no_real_frames(tmp_path):
+    from vqtouch.core import Assembly, RunDir, run_stage
+
+    config = resolve_config("reconstruction", overrides=[*TRAIN_OVERRIDES, 'stages=["tokenizer"]', "sensor=digit"],
+                            host=HOST)
+    run = RunDir.create(config, host=HOST, path=tmp_path / "run")
+    before = run_stage("reconstruct", Assembly(config, HOST), run)
+    assert before.describe().startswith("cannot run: no trained tokenizer in this run")
+    assert run_stage("tokenizer", Assembly(config, HOST), run).status == "ran"
+    after = run_stage("reconstruct", Assembly(config, HOST), run)
+    assert after.describe() == ("cannot run: sensor family 'digit' declares no real reference frames "
+                                "(SensorFamily.reference_frames) to reconstruct")
 
 
 # -- the objective ----------------------------------------------------------------------------
@@ -143,11 +198,11 @@ def test_hinge_loss_closed_form():
     assert float(hinge_discriminator_loss(real, fake)) == pytest.approx(0.375)
 
 
-TRAIN_OVERRIDES = ["tokenizer.encoder.channels=16", "tokenizer.encoder.norm_groups=8",
-                   "tokenizer.encoder.channel_multipliers=[1,2]", "tokenizer.encoder.z_channels=16",
-                   "tokenizer.encoder.embed_dim=8", "tokenizer.quantizer.codebook_size=32",
-                   "data.image_size=32", "data.batch_size=4", "data.dataset.num_samples=24", "train.steps=4",
-                   "train.log_every=1", "train.checkpoint_every=2", "tokenizer.loss.perceptual=none",
+TRAIN_OVERRIDES = ["tokenizer.autoencoder.channels=16", "tokenizer.autoencoder.norm_groups=8",
+                   "tokenizer.autoencoder.channel_multipliers=[1,2]", "tokenizer.autoencoder.z_channels=16",
+                   "tokenizer.autoencoder.embed_dim=8", "tokenizer.quantizer.codebook_size=32",
+                   "data.image_size=32", "data.batch_size=4", "data.dataset.num_samples=24", "tokenizer.train.steps=4",
+                   "tokenizer.train.log_every=1", "tokenizer.train.checkpoint_every=2", "tokenizer.loss.perceptual=none",
                    "tokenizer.loss.disc_start=2", "metrics=[{\"name\": \"psnr\"}, {\"name\": \"ssim\"}]"]
 
 
@@ -158,10 +213,26 @@ def test_mae_hides_the_configured_fraction_and_pastes_visible_patches(ratio):
     mae = tiny_encoder("mae", mask_ratio=ratio).eval()
     images = torch.rand(3, 3, 32, 32) * 2 - 1
     with torch.no_grad():
-        reconstruction = mae.decode(mae.encode(images))
-    visible = mae._last_visible_BL
+        latents = mae.encode(images)
+        reconstruction = mae.decode(latents)
+    visible = mae.visible_mask(latents)
     assert visible.float().mean().item() == pytest.approx(1 - ratio, abs=1 / 16)
     assert torch.equal(mae.patchify(reconstruction)[visible], mae.patchify(images)[visible])
+    assert not torch.equal(mae.patchify(reconstruction)[~visible], mae.patchify(images)[~visible])
+
+
+@pytest.mark.parametrize("paste_visible", [True, False])
+def test_mae_decode_depends_only_on_its_latents(paste_visible):
+    """decode(latents) must not read what the last encode saw (it once pasted that call's pixels)."""
+    mae = tiny_encoder("mae", paste_visible=paste_visible).eval()
+    first, second = torch.rand(2, 2, 3, 32, 32) * 2 - 1
+    with torch.no_grad():
+        latents = mae.encode(first)
+        right_after = mae.decode(latents)
+        mae.encode(second)  # same batch size: another call's images and mask in between
+        later = mae.decode(latents)
+    assert torch.equal(later, right_after)
+    assert latents.shape[1] == mae.latent_channels == 16 + 1 + (3 * 8 * 8 if paste_visible else 0)
 
 
 def test_mae_patchify_round_trip_and_repeatable_eval_masks():
@@ -169,9 +240,7 @@ def test_mae_patchify_round_trip_and_repeatable_eval_masks():
     images = torch.rand(2, 3, 32, 32)
     assert torch.equal(mae.unpatchify(mae.patchify(images)), images)
     first, second = tiny_encoder("mae").eval(), tiny_encoder("mae").eval()
-    first.encode(images)
-    second.encode(images)
-    assert torch.equal(first._last_visible_BL, second._last_visible_BL)
+    assert torch.equal(first.visible_mask(first.encode(images)), second.visible_mask(second.encode(images)))
 
 
 def test_identity_quantizer_passes_latents_through():
@@ -189,7 +258,7 @@ def test_train_tokenizer_end_to_end_then_reconstruct_and_evaluate(tmp_path, caps
     from vqtouch.core.cli import main
 
     run = tmp_path / "run"
-    args = ["--no-progress", "train", "tokenizer", "--out", str(run), "--set", f"tokenizer.encoder.name={encoder}"]
+    args = ["--no-progress", "train", "tokenizer", "--out", str(run), "--set", f"tokenizer.autoencoder.name={encoder}"]
     for override in TRAIN_OVERRIDES:
         args += ["--set", override]
     assert main(args) == 0
@@ -199,10 +268,10 @@ def test_train_tokenizer_end_to_end_then_reconstruct_and_evaluate(tmp_path, caps
     lines = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert "d_loss" not in lines[1] and "d_loss" in lines[2]  # the discriminator starts at disc_start=2
     assert {p.name for p in (run / "checkpoints" / "step-00000004").iterdir()} == {
-        "encoder.safetensors", "quantizer.safetensors", "discriminator.safetensors", "trainer_state.safetensors"}
+        "autoencoder.safetensors", "quantizer.safetensors", "discriminator.safetensors", "trainer_state.safetensors"}
     capsys.readouterr()
-    assert main(["reconstruct", "--run", str(run), "--taxim", "gelsight", "--out", str(tmp_path / "rec")]) == 0
-    assert "48 images from taxim gelsight real frames" in capsys.readouterr().out
+    assert main(["reconstruct", "--run", str(run), "--real-frames", "gelsight", "--out", str(tmp_path / "rec")]) == 0
+    assert "48 images from real gelsight frames" in capsys.readouterr().out
     assert json.loads((tmp_path / "rec" / "reconstruct.json").read_text())["images"] == 48
     assert main(["evaluate", "reconstruction", "--run", str(run)]) == 0
     evaluation = json.loads(capsys.readouterr().out)
@@ -215,26 +284,27 @@ def test_mae_trains_through_the_tokenizer_pipeline(tmp_path):
     run = tmp_path / "run"
     args = ["--no-progress", "train", "tokenizer", "--out", str(run)]
     for override in TRAIN_OVERRIDES:
-        if not override.startswith(("tokenizer.encoder", "tokenizer.quantizer")):
+        if not override.startswith(("tokenizer.autoencoder", "tokenizer.quantizer")):
             args += ["--set", override]
-    args += ["--set", "tokenizer.encoder={\"name\": \"mae\", \"patch_size\": 8, \"width\": 32, \"heads\": 2, "
+    args += ["--set", "tokenizer.autoencoder={\"name\": \"mae\", \"patch_size\": 8, \"width\": 32, \"heads\": 2, "
                       "\"decoder_width\": 16, \"depth\": 1, \"decoder_depth\": 1, \"mask_ratio\": 0.75}",
              "--set", "tokenizer.quantizer=identity", "--set", "tokenizer.discriminator=null"]
     assert main(args) == 0
     result = json.loads((run / "eval.json").read_text())
-    assert result["step"] == 4 and 0 <= result["ssim"] <= 1 and result["codes_used"] == 1
+    # Continuous latents: no codebook, so no codebook usage is reported (not a fake "1 code used").
+    assert result["step"] == 4 and 0 <= result["ssim"] <= 1 and "codes_used" not in result
 
 
 def test_train_tokenizer_resume_continues_the_run(tmp_path, capsys):
     from vqtouch.core.cli import main
 
     run = tmp_path / "run"
-    base = ["--no-progress", "train", "tokenizer", "--set", "tokenizer.encoder.name=vqgan"]
+    base = ["--no-progress", "train", "tokenizer", "--set", "tokenizer.autoencoder.name=vqgan"]
     for override in TRAIN_OVERRIDES:
         base += ["--set", override]
     assert main(base + ["--out", str(run)]) == 0
     config = json.loads((run / "config.json").read_text())
-    config["train"]["steps"] = 6
+    config["tokenizer"]["train"]["steps"] = 6
     (run / "config.json").write_text(json.dumps(config))
     assert main(["--no-progress", "train", "tokenizer", "--resume", str(run)]) == 0
     assert "resumed" in capsys.readouterr().out
@@ -247,8 +317,8 @@ def test_tiny_and_huge_codebooks_train_without_nan(tmp_path, codebook_size):
     from vqtouch.core.cli import main
 
     run = tmp_path / "run"
-    args = ["--no-progress", "train", "tokenizer", "--out", str(run), "--set", "tokenizer.encoder.name=vqgan",
-            "--set", "train.precision=bf16"]
+    args = ["--no-progress", "train", "tokenizer", "--out", str(run), "--set", "tokenizer.autoencoder.name=vqgan",
+            "--set", "tokenizer.train.precision=bf16"]
     for override in TRAIN_OVERRIDES:
         args += ["--set", override]
     args += ["--set", f"tokenizer.quantizer.codebook_size={codebook_size}"]
