@@ -1,15 +1,17 @@
 """Contract tests over every registered conditioner, plus each built-in's own properties."""
 
+import sys
+
 import pytest
 import torch
 
-from vqtouch.core import BuildContext, ConfigError, MissingWeightsError, load, load_plugins, save
+from vqtouch.core import BuildContext, ConfigError, MissingWeightsError, PluginError, load, load_plugins, save
 
 CONTEXT = BuildContext(image_size=32, num_classes=4, cond_dim=16)
 
 
 def example_condition(conditioner, batch):
-    if conditioner.modality == "label":
+    if conditioner.sample_key == "label":
         return torch.arange(batch) % conditioner.num_classes
     return torch.rand(batch, 3, 32, 32)
 
@@ -105,7 +107,7 @@ def test_clip_without_weights_names_file_and_ways_to_provide(host, monkeypatch):
     with pytest.raises(MissingWeightsError) as info:
         host.build("conditioner", "clip", CONTEXT)
     message = str(info.value)
-    for needle in ("open_clip_model.safetensors", "conditioner.checkpoint", "VQTOUCH_CLIP_CKPT",
+    for needle in ("open_clip_model.safetensors", "checkpoint option", "VQTOUCH_CLIP_CKPT",
                    "VQTOUCH_WEIGHTS_DIR", "never downloads"):
         assert needle in message
 
@@ -127,9 +129,42 @@ def test_clip_loads_local_weights_and_stays_frozen(host, tiny_clip_file, tmp_pat
     # Only the projection and null tokens are trainable / saved; CLIP stays out of the checkpoint.
     assert set(conditioner.state_dict()) == {"null_tokens_ND", "project.weight", "project.bias"}
     out.tokens_BND.sum().backward()
-    assert all(p.grad is None for p in conditioner._clip.parameters())
+    assert all(p.grad is None for p in conditioner.encoder.network.parameters())
+    # The encoder is held by vqtouch.core.frozen.FrozenModule: training the conditioner leaves it frozen, in eval.
+    conditioner.train().requires_grad_(True)
+    assert not conditioner.encoder.network.training
+    assert not any(p.requires_grad for p in conditioner.encoder.network.parameters())
     restored = load(save(conditioner, tmp_path / "clip.safetensors", host=host), host=host)
     torch.testing.assert_close(restored(images).tokens_BND, out.tokens_BND)
+
+
+def test_clip_without_open_clip_names_the_extra(host, monkeypatch, tmp_path):
+    weights = tmp_path / "open_clip_model.safetensors"
+    weights.write_bytes(b"unused")  # the weights are found; only the package is missing
+    monkeypatch.setitem(sys.modules, "open_clip", None)  # makes `import open_clip` raise ModuleNotFoundError
+    with pytest.raises(PluginError) as info:
+        host.build("conditioner", {"name": "clip", "checkpoint": str(weights)}, CONTEXT)
+    assert str(info.value) == "conditioner 'clip' needs open_clip_torch: pip install 'vqtouch[clip]'"
+
+
+def test_clip_with_a_broken_open_clip_says_it_is_installed(host, monkeypatch, tmp_path):
+    import builtins
+
+    weights = tmp_path / "open_clip_model.safetensors"
+    weights.write_bytes(b"unused")
+    real_import = builtins.__import__
+
+    def failing_import(name, *args, **kwargs):
+        if name == "open_clip":  # what a torchvision built for another torch does to open_clip
+            raise ImportError("operator torchvision::nms does not exist")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.delitem(sys.modules, "open_clip", raising=False)
+    monkeypatch.setattr(builtins, "__import__", failing_import)
+    with pytest.raises(PluginError, match=r"installed but does not import \(operator torchvision::nms does not "
+                                          r"exist\).*pip install 'vqtouch\[clip\]'") as info:
+        host.build("conditioner", {"name": "clip", "checkpoint": str(weights)}, CONTEXT)
+    assert "\n" not in str(info.value)
 
 
 def test_clip_with_wrong_weights_file_is_a_clear_error(host, tmp_path):

@@ -76,3 +76,68 @@ def test_wheel_installs_one_namespace_and_imports_outside_checkout(tmp_path):
     assert lines[0].startswith(str(site)), lines
     assert lines[1] == "['clip', 'label', 'tactile']"
     assert lines[2] == "None None"
+
+
+# -- dependencies: lower bounds in the library, the verified pair in constraints.txt ---------------
+
+def _project():
+    import tomllib
+
+    return tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+
+
+def _requirements(lines):
+    from packaging.requirements import Requirement
+
+    return [Requirement(line) for line in lines]
+
+
+def test_library_dependencies_have_lower_bounds_not_exact_pins():
+    project = _project()
+    everything = [*project["dependencies"], *(r for extra in project["optional-dependencies"].values() for r in extra)]
+    pinned = [str(r) for r in _requirements(everything) if any(s.operator in ("==", "===") for s in r.specifier)]
+    assert not pinned, f"exact pins belong in constraints.txt, not in the library's dependencies: {pinned}"
+    torch = next(r for r in _requirements(project["dependencies"]) if r.name == "torch")
+    assert any(s.operator == ">=" for s in torch.specifier), torch
+
+
+def test_constraints_pin_exactly_the_verified_torch_pair():
+    lines = [line.split("#")[0].strip() for line in (REPO / "constraints.txt").read_text().splitlines()]
+    pins = {r.name: str(r.specifier) for r in _requirements(line for line in lines if line)}
+    assert pins == {"torch": "==2.15.0", "torchvision": "==0.29.2"}
+    # The pinned versions satisfy the library's own bounds (else pip could not resolve with the file).
+    project = _project()
+    bounds = _requirements([*project["dependencies"], *project["optional-dependencies"]["clip"]])
+    for requirement in bounds:
+        if requirement.name in pins:
+            assert requirement.specifier.contains(pins[requirement.name].removeprefix("==")), requirement
+
+
+def test_open_clip_is_only_in_the_clip_extra_and_imported_only_lazily(package_sources):
+    project = _project()
+    owners = [group for group, lines in [("dependencies", project["dependencies"]),
+                                         *project["optional-dependencies"].items()]
+              if any(r.name == "open_clip_torch" for r in _requirements(lines))]
+    assert owners == ["clip"]
+    # Only the clip conditioner imports open_clip, and only inside a function (importing vqtouch never needs it).
+    importers = []
+    for path in package_sources:
+        tree = ast.parse(path.read_text())
+        in_functions = {id(inner) for node in ast.walk(tree) if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+                        for inner in ast.walk(node)}
+        for node in ast.walk(tree):
+            names = ([alias.name for alias in node.names] if isinstance(node, ast.Import) else
+                     [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            if any(name.split(".")[0] == "open_clip" for name in names):
+                importers.append((path.relative_to(REPO).as_posix(), id(node) not in in_functions))
+    assert importers and {path for path, _ in importers} == {"conditioners/clip.py"}, importers
+    assert not any(at_module_level for _, at_module_level in importers), importers
+
+
+def test_makefile_installs_with_the_constraints_and_the_clip_extra():
+    makefile = (REPO / "Makefile").read_text()
+    installs = [line for line in makefile.splitlines() if "pip install" in line and " -e " in line]
+    assert len(installs) == 1, installs
+    assert "-c constraints.txt" in installs[0] and "'.[test,clip]'" in installs[0], installs[0]
+    stamp_rule = next(line for line in makefile.splitlines() if line.startswith("$(STAMP):"))
+    assert "constraints.txt" in stamp_rule, "editing constraints.txt must trigger a reinstall"
