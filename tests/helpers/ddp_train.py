@@ -7,8 +7,7 @@ from pathlib import Path
 import torch
 
 from vqtouch.core import load_plugins
-from vqtouch.core.config import TrainConfig
-from vqtouch.core.training import Trainer
+from vqtouch.core.training import TrainConfig, Trainer
 
 
 def main() -> None:
