@@ -5,7 +5,7 @@ The header metadata (strings only) carries:
 =========================  =====================================================
 ``format``                 ``"pt"`` (safetensors convention)
 ``vqtouch.format_version`` version of this layout (``FORMAT_VERSION``)
-``vqtouch.component``      registry kind (``encoder``, ``conditioner``, ...)
+``vqtouch.component``      registry kind (``autoencoder``, ``conditioner``, ...)
 ``vqtouch.plugin``         registered plugin name, e.g. ``label``
 ``vqtouch.plugin_source``  pluggy plugin name, distribution and its version (JSON)
 ``vqtouch.config``         the component's full plugin config (compact JSON)

@@ -33,7 +33,7 @@ def add_config_arguments(parser: argparse.ArgumentParser, *, scene_required: boo
     parser.add_argument("--config", action="append", default=[], metavar="FILE",
                         help="TOML or JSON config merged over the scene (repeatable, in order)")
     parser.add_argument("--set", action="append", default=[], dest="overrides", metavar="PATH=VALUE",
-                        help="override one value, e.g. --set train.steps=200 (JSON values; repeatable)")
+                        help="override one value, e.g. --set tokenizer.train.steps=200 (JSON values; repeatable)")
 
 
 def command_group(subparsers: argparse._SubParsersAction, name: str, help: str) -> argparse._SubParsersAction:
@@ -156,7 +156,7 @@ def build_parser(host: PluginHost) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     plugins = sub.add_parser("plugins", help="list every registered plugin, its kind, package and version")
-    plugins.add_argument("--kind", help="only this kind (encoder, conditioner, scene, ...)")
+    plugins.add_argument("--kind", help="only this kind (autoencoder, conditioner, stage, scene, ...)")
     plugins.add_argument("--json", action="store_true", help="machine-readable output")
     plugins.set_defaults(handler=_cmd_plugins)
 

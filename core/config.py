@@ -50,8 +50,8 @@ def _host_from(info: ValidationInfo) -> Any:
     if host is None:
         # No hidden global host: which plugins exist must be decided by the caller.
         raise PydanticCustomError(
-            "no_plugin_host", "validating a plugin slot needs the PluginHost whose registries to use: "
-                              "validate with context={{'host': host}} (see vqtouch.core.validate_experiment)")
+            "no_plugin_host", "validating a plugin slot needs the PluginHost whose registries to use: pass it in the "
+                              "validation context under the key 'host' (see vqtouch.core.validate_experiment)")
     return host
 
 
@@ -251,7 +251,7 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     key, sep, raw = text.partition("=")
     key = key.strip()
     if not sep or not key or any(not part for part in key.split(".")):
-        raise ConfigError(f"bad override {text!r}: expected PATH=VALUE, e.g. --set train.steps=200")
+        raise ConfigError(f"bad override {text!r}: expected PATH=VALUE, e.g. --set tokenizer.train.steps=200")
     try:
         value = json.loads(raw)
     except json.JSONDecodeError:
@@ -340,7 +340,12 @@ def _refuse_lost_overrides(data: dict[str, Any], path: list[str], value: Any,
         return
     node: Any = data
     for part in slot:
-        node = node.get(part) if isinstance(node, dict) else None
+        if isinstance(node, dict):
+            node = node.get(part)
+        elif isinstance(node, list) and part.isdigit() and int(part) < len(node):  # an item of a list slot
+            node = node[int(part)]
+        else:
+            node = None
     if not isinstance(node, dict) or node.get("name") in (None, new_name):
         return
     depth = len(slot)

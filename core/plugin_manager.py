@@ -136,7 +136,7 @@ class PluginHost:
 
     # -- lookup ---------------------------------------------------------------------------
     def registry(self, kind: str) -> Registry:
-        """The registry of one kind (``encoder``, ``conditioner``, ...)."""
+        """The registry of one kind (``autoencoder``, ``conditioner``, ...)."""
         try:
             return self.registries[kind]
         except KeyError:

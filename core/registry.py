@@ -1,4 +1,4 @@
-"""Named registries of plugin components (encoders, quantizers, conditioners, ...).
+"""Named registries of plugin components (autoencoders, quantizers, conditioners, ...).
 
 A registry maps a short name to a :class:`PluginEntry`: the factory that builds the
 component, the pydantic model of its options and the plugin that registered it.  Lookups
@@ -50,7 +50,7 @@ class PluginEntry:
 
 @dataclass
 class Registry:
-    """All entries of one kind (e.g. every encoder), keyed by name.
+    """All entries of one kind (e.g. every autoencoder), keyed by name.
 
     ``base_type`` is the interface every built component must implement; it is checked
     when a component is built so that a plugin returning the wrong thing fails at once.

@@ -165,7 +165,7 @@ class Trainer:
 
     def __init__(self, task: TrainingTask, dataset: Any, config: TrainConfig, *, batch_size: int, seed: int,
                  device: torch.device, checkpoint_dir: Path | None, run: Any = None, num_workers: int = 0,
-                 host: Any = None) -> None:
+                 host: Any = None, stage: str = "train") -> None:
         self.task = task
         self.dataset = dataset
         self.config = config
@@ -176,6 +176,8 @@ class Trainer:
         self.run = run
         self.num_workers = num_workers
         self.host = host
+        #: Written as the "stage" of every metrics.jsonl line (the stage that trains).
+        self.stage = stage
         self.dist = DistributedContext.from_environment(device)
         self.state = TrainerState()
         for module in task.modules.values():
@@ -312,7 +314,7 @@ class Trainer:
                 if self.state.step % self.config.log_every == 0 or self.state.step == self.config.steps:
                     self.state.history.append({"step": self.state.step, **scalars})
                     if self.run is not None and self.dist.is_main:
-                        self.run.log_metrics("train", self.state.step, scalars)
+                        self.run.log_metrics(self.stage, self.state.step, scalars)
                 if self.state.step % self.config.checkpoint_every == 0:
                     self.save_checkpoint()
                 if bar is not None:

@@ -1,8 +1,12 @@
 import json
+from typing import Literal
 
 import pytest
+from pydantic import Field
 
-from vqtouch.core.cli import main
+from vqtouch.core import PluginConfig, Section, hookimpl, load_plugins, resolve_config
+from vqtouch.core.cli import build_parser, main
+from vqtouch.core.demo import scale_for_demo
 
 
 def test_plugins_lists_kind_package_version(capsys):
@@ -10,6 +14,8 @@ def test_plugins_lists_kind_package_version(capsys):
     out = capsys.readouterr().out
     assert out.splitlines()[0].split()[:5] == ["KIND", "NAME", "PLUGIN", "PACKAGE", "VERSION"]
     assert any(line.split()[:4] == ["conditioner", "label", "label", "vqtouch"] for line in out.splitlines())
+    assert any(line.split()[:4] == ["autoencoder", "dm_vqgan", "vqgan", "vqtouch"] for line in out.splitlines())
+    assert any(line.split()[:4] == ["stage", "tokenizer", "tokenizer-stages", "vqtouch"] for line in out.splitlines())
 
 
 def test_plugins_json_and_kind_filter(capsys):
@@ -17,28 +23,61 @@ def test_plugins_json_and_kind_filter(capsys):
     rows = json.loads(capsys.readouterr().out)
     assert {row["name"] for row in rows} == {"fd_effnetlite0", "psnr", "ssim"}
     assert all(row["package"] == "vqtouch" and row["version"] for row in rows)
+    assert main(["plugins", "--json", "--kind", "stage"]) == 0
+    assert {row["name"] for row in json.loads(capsys.readouterr().out)} == {
+        "render", "tokenizer", "reconstruct", "cluster", "adapt", "generator"}
 
 
 def test_config_show_prints_resolved_json_and_notes_empty_slots(capsys):
     assert main(["config", "show", "label-to-touch", "--set", "seed=5"]) == 0
     captured = capsys.readouterr()
     config = json.loads(captured.out)
-    assert config["seed"] == 5 and config["conditioner"]["name"] == "label"
-    assert "note: generator is empty" in captured.err
+    assert config["seed"] == 5 and config["generator"]["conditioners"][0]["name"] == "label"
+    assert "note: generator.model is empty but stage(s) generator need it" in captured.err
+    assert "generator.conditioners is empty" not in captured.err
 
 
 def test_config_show_output_feeds_back_as_config_file(capsys, tmp_path):
-    assert main(["config", "show", "touch-to-touch", "--set", "conditioner.width=24"]) == 0
+    assert main(["config", "show", "touch-to-touch", "--set", "generator.conditioners.0.width=24"]) == 0
     path = tmp_path / "resolved.json"
     path.write_text(capsys.readouterr().out)
+    assert json.loads(path.read_text())["generator"]["conditioners"][0]["width"] == 24
     assert main(["config", "validate", str(path)]) == 0
-    assert capsys.readouterr().out.startswith("ok: touch-to-touch")
+    assert capsys.readouterr().out.startswith("ok: touch-to-touch (stages: tokenizer, generator)")
 
 
 def test_config_scenes_lists_paper_scenarios(capsys):
     assert main(["config", "scenes"]) == 0
     names = {line.split()[0] for line in capsys.readouterr().out.splitlines()}
     assert {"few-shot", "zero-shot", "cross-sensor", "vision-to-touch", "label-to-touch", "touch-to-touch"} <= names
+
+
+def test_config_stages_lists_each_stage_with_its_section_and_slots(capsys, host):
+    assert main(["config", "stages"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2 * len(host.stages)
+    listed = {}
+    for head, detail in zip(lines[::2], lines[1::2]):
+        name = head.split()[0]
+        listed[name] = detail.strip()
+        assert head[len(name):].strip() == host.stage(name).description
+    assert sorted(listed) == ["adapt", "cluster", "generator", "reconstruct", "render", "tokenizer"]
+    for name, detail in listed.items():
+        stage = host.stage(name)
+        fields = dict(part.split(": ", 1) for part in detail.split("; from ")[0].split("; "))
+        assert fields["section"] == (f"[{name}]" if stage.section else "-")
+        assert fields["needs"].split(", ") == list(stage.needs)
+        optional = [path for path in stage.uses if path not in stage.needs]
+        assert fields["uses"] == (", ".join(optional) or "-")
+        assert detail.endswith(f"from {stage.source.describe()}")
+    assert listed["tokenizer"].startswith("section: [tokenizer]; needs: data.dataset, tokenizer.autoencoder, "
+                                          "tokenizer.quantizer; uses: tokenizer.discriminator, metrics; "
+                                          "from plugin 'tokenizer-stages'")
+    assert listed["reconstruct"].startswith("section: -; needs: sensor, tokenizer.autoencoder, tokenizer.quantizer; "
+                                            "uses: metrics;")
+    assert "needs: data.dataset; uses: sensor;" in listed["render"]
+    assert "generator.model, generator.conditioners;" in listed["generator"]
+    assert "cluster.clusterer" in listed["cluster"] and "target_sensor" in listed["adapt"]
 
 
 def test_config_show_takes_the_scene_as_argument_or_option(capsys):
@@ -50,8 +89,12 @@ def test_config_show_takes_the_scene_as_argument_or_option(capsys):
 
 @pytest.mark.parametrize("argv, message", [
     (["config", "show", "lable-to-touch"], "unknown scene 'lable-to-touch'; available: "),
-    (["config", "show", "label-to-touch", "--set", "conditioner.name=clipp"], "did you mean 'clip'?"),
-    (["config", "show", "label-to-touch", "--set", "train.steps=-1"], "train.steps: Input should be greater than"),
+    (["config", "show", "label-to-touch", "--set", "generator.conditioners.0.name=clipp"], "did you mean 'clip'?"),
+    (["config", "show", "label-to-touch", "--set", "tokenizer.train.steps=-1"],
+     "tokenizer.train.steps: Input should be greater than or equal to 0 (got -1)"),
+    (["config", "show", "label-to-touch", "--set", "train.steps=3"], "<root>: unknown option 'train'"),
+    (["config", "show", "label-to-touch", "--set", 'stages=["evaluate"]'],
+     "stages: unknown stage 'evaluate'; available: adapt, cluster, generator, reconstruct, render, tokenizer"),
     (["config", "show", "label-to-touch", "--set", "oops"], "bad override 'oops'"),
     (["config", "validate", "/nonexistent.toml"], "config file '/nonexistent.toml' does not exist"),
     (["config", "show"], "name a scene, e.g. `vqtouch config show reconstruction`"),
@@ -64,18 +107,21 @@ def test_user_errors_are_one_line_with_exit_2(capsys, argv, message):
     assert err.count("\n") == 1
 
 
-def test_broken_checkpoint_via_demo_free_api_is_one_line(tmp_path, capsys):
+def test_broken_checkpoint_via_demo_free_api_is_one_line(tmp_path, host):
     from vqtouch.core import CheckpointError, load
 
     path = tmp_path / "broken.safetensors"
     path.write_bytes(b"\x00" * 3)
     with pytest.raises(CheckpointError) as info:
-        load(path)
+        load(path, host=host)
     assert "\n" not in str(info.value)
+    with pytest.raises(TypeError, match="host"):
+        load(path)  # no hidden host: the caller says whose plugins rebuild the component
 
 
 def test_help_everywhere(capsys):
-    for argv in (["--help"], ["plugins", "--help"], ["config", "show", "--help"], ["demo", "--help"]):
+    for argv in (["--help"], ["plugins", "--help"], ["config", "show", "--help"], ["config", "stages", "--help"],
+                 ["demo", "--help"]):
         with pytest.raises(SystemExit) as info:
             main(argv)
         assert info.value.code == 0
@@ -87,48 +133,132 @@ def test_no_command_prints_help_and_fails(capsys):
     assert "usage: vqtouch" in capsys.readouterr().out
 
 
-TINY_DEMO = ["--set", "train.steps=2", "--set", "data.dataset.num_samples=12", "--set", "data.image_size=32",
-             "--set", "tokenizer.loss.perceptual=none", "--set", "tokenizer.encoder.channels=16",
-             "--set", "tokenizer.encoder.norm_groups=8", "--set", "tokenizer.encoder.channel_multipliers=[1,2]",
+def test_handlers_get_the_parsers_host(host):
+    args = build_parser(host).parse_args(["config", "stages"])
+    assert args.host is host
+    with pytest.raises(TypeError):
+        build_parser()
+
+
+TINY_DEMO = ["--set", "tokenizer.train.steps=2", "--set", "data.dataset.num_samples=12", "--set", "data.image_size=32",
+             "--set", "tokenizer.loss.perceptual=none", "--set", "tokenizer.autoencoder.channels=16",
+             "--set", "tokenizer.autoencoder.norm_groups=8", "--set", "tokenizer.autoencoder.channel_multipliers=[1,2]",
              "--set", "tokenizer.quantizer.codebook_size=32"]
 
 
 def test_demo_writes_run_directory(tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["--no-progress", "demo", "--scene", "label-to-touch", "--out", str(out),
-                 "--set", "conditioner.num_classes=3", *TINY_DEMO]) == 0
-    for name in ("config.json", "env.json", "report.md", "report.json", "checkpoints/conditioner.safetensors"):
+                 "--set", "generator.conditioners.0.num_classes=3", *TINY_DEMO]) == 0
+    printed = capsys.readouterr().out
+    assert "scene label-to-touch: 1 of 2 stages ran, 1 cannot run, 0 failed (reasons in the report)" in printed
+    for name in ("config.json", "env.json", "report.md", "report.json",
+                 "checkpoints/generator_conditioners[0].safetensors"):
         assert (out / name).is_file(), name
+    assert not (out / "checkpoints" / "latest").exists()  # the trainer no longer writes a `latest` file
     env = json.loads((out / "env.json").read_text())
     assert env["seed"] == 0 and env["versions"]["torch"] and "label" in env["plugins"]
     assert env["argv"][:2] == ["vqtouch", "--no-progress"]
+    assert env["components"]["generator.conditioners.0"] == {
+        "kind": "conditioner", "name": "label", "plugin": "label", "package": "vqtouch",
+        "version": env["plugins"]["label"]["version"]}
+    assert env["components"]["tokenizer.autoencoder"]["kind"] == "autoencoder"
+    assert env["components"]["sensor"]["name"] == "gelsight"
     report = json.loads((out / "report.json").read_text())
     by_slot = {c["slot"]: c for c in report["components"]}
-    assert by_slot["conditioner"]["checkpoint"].startswith("ok")
-    assert by_slot["generator"]["status"].startswith("missing")
+    assert by_slot["generator.conditioners[0]"]["checkpoint"].startswith("ok")
+    assert by_slot["generator.model"]["status"].startswith("missing: needs generator.model")
     assert by_slot["metrics[0]"]["sanity"]["noise_sigma=0.0"] == 100.0
     stages = {s["stage"]: s for s in report["stages"]}
-    assert stages["generator"]["status"] == "waiting for: generator"
-    assert stages["tokenizer"]["status"].startswith("ran") and stages["tokenizer"]["result"]["steps"] == 2
+    assert stages["generator"]["status"] == "cannot run: needs generator.model, and no generator plugin is installed"
+    assert stages["tokenizer"]["status"].startswith("ran (") and stages["tokenizer"]["result"]["steps"] == 2
+    assert "evaluate" not in stages
 
 
-def test_demo_runs_the_reconstruction_scene_through_the_stage_hook(tmp_path):
-    """The tokenizer plugin answers vqtouch_run_stage for 'tokenizer' and 'reconstruct'."""
+def test_demo_runs_the_reconstruction_scene_through_the_registered_stages(tmp_path, capsys):
+    """The tokenizer-stages plugin registers 'tokenizer' and 'reconstruct'; the demo runs both via run_stage."""
     out = tmp_path / "run"
     assert main(["--no-progress", "demo", "--out", str(out), *TINY_DEMO]) == 0  # default scene: reconstruction
+    assert "scene reconstruction: 2 of 2 stages ran, 0 cannot run, 0 failed" in capsys.readouterr().out
     stages = {s["stage"]: s for s in json.loads((out / "report.json").read_text())["stages"]}
-    assert stages["reconstruct"]["result"]["source"] == "48 real gelsight frames (taxim)"
+    assert list(stages) == ["tokenizer", "reconstruct"]
+    assert stages["reconstruct"]["status"].startswith("ran (")
+    assert stages["reconstruct"]["result"]["source"] == "48 real gelsight frames"
     assert 0 < stages["reconstruct"]["result"]["ssim"] <= 1
     assert (out / "real_frames.png").is_file() and (out / "reconstructions.png").is_file()
     assert "![reconstruct](real_frames.png)" in (out / "report.md").read_text()
 
 
-def test_demo_scales_the_scene_down_unless_full():
-    from vqtouch.core import load_plugins, resolve_config
-    from vqtouch.core.demo import scale_for_demo
-
-    host = load_plugins(autoload=False)
-    config = resolve_config("reconstruction", overrides=["train.steps=5000"], host=host)
+def test_demo_scales_the_scene_down_unless_full(host):
+    config = resolve_config("reconstruction", overrides=["tokenizer.train.steps=5000"], host=host)
     scaled = scale_for_demo(config, host)
-    assert (scaled.train.steps, scaled.data.batch_size, scaled.data.dataset.num_samples) == (40, 8, 240)
-    assert scaled.tokenizer.encoder.channels == 32 and config.tokenizer.encoder.channels == 64
+    assert (scaled.tokenizer.train.steps, scaled.data.batch_size, scaled.data.dataset.num_samples) == (40, 8, 240)
+    assert (scaled.tokenizer.train.checkpoint_every, scaled.tokenizer.train.log_every) == (40, 10)
+    assert scaled.tokenizer.autoencoder.channels == 32 and config.tokenizer.autoencoder.channels == 64
+    assert config.tokenizer.train.steps == 5000  # the input config is untouched
+    # Caps only lower values: an option already below its cap is kept.
+    small = resolve_config("reconstruction", overrides=["tokenizer.train.steps=3"], host=host)
+    assert scale_for_demo(small, host).tokenizer.train.steps == 3
+
+
+def test_demo_caps_come_from_the_registrations(host, make_plugin):
+    # The built-in caps are the ones the plugins declared when they registered.
+    config = resolve_config("reconstruction", overrides=["tokenizer.train.steps=5000"], host=host)
+    scaled = scale_for_demo(config, host)
+    tokenizer_caps = host.stage("tokenizer").demo
+    assert tokenizer_caps == {"train.steps": 40, "train.checkpoint_every": 40, "train.log_every": 10}
+    assert scaled.tokenizer.train.steps == tokenizer_caps["train.steps"]
+    assert scaled.tokenizer.autoencoder.channels == host.registry("autoencoder").get("dm_vqgan").demo["channels"]
+    assert scaled.data.dataset.num_samples == host.registry("dataset").get("procedural").demo["num_samples"]
+    # A stage's caps apply only when the stage is listed: reconstruction does not render.
+    assert scaled.render.num_samples == config.render.num_samples == 64
+    rendering = resolve_config("reconstruction", overrides=['stages=["render"]'], host=host)
+    assert scale_for_demo(rendering, host).render.num_samples == host.stage("render").demo["num_samples"] == 32
+
+    # A third-party stage and component declare their own caps the same way.
+    class ProbeSection(Section):
+        width: int = Field(100, ge=1)
+
+    class ProbeMetricConfig(PluginConfig):
+        name: Literal["probe_metric"] = "probe_metric"
+        window: int = Field(99, ge=1)
+
+    @hookimpl
+    def vqtouch_register_stages(register):
+        register("probe", lambda job: {}, section=ProbeSection, demo={"width": 3})
+
+    @hookimpl
+    def vqtouch_register_metrics(register):
+        register("probe_metric", lambda config, context: None, ProbeMetricConfig, demo={"window": 5})
+
+    extended = load_plugins(autoload=False, extra=[make_plugin("probe_plugin", vqtouch_register_stages,
+                                                               vqtouch_register_metrics)])
+    probe = resolve_config(None, overrides=['stages=["probe"]', 'metrics=["psnr", "probe_metric"]'], host=extended)
+    scaled = scale_for_demo(probe, extended)
+    assert (probe.probe.width, probe.metrics[1].window) == (100, 99)
+    assert (scaled.probe.width, scaled.metrics[1].window) == (3, 5)
+
+
+DEMO_SIZE_PROBE = ['stages=["tokenizer"]', "tokenizer.quantizer=null", "tokenizer.discriminator=null",
+                   "tokenizer.train.steps=500", "tokenizer.train.checkpoint_every=500", "tokenizer.train.log_every=50",
+                   "data.image_size=16", "tokenizer.autoencoder.channels=48", "tokenizer.autoencoder.norm_groups=8",
+                   "tokenizer.autoencoder.channel_multipliers=[1,2]", "tokenizer.autoencoder.z_channels=8",
+                   "tokenizer.autoencoder.embed_dim=4"]
+
+
+@pytest.mark.parametrize("full", [True, False])
+def test_demo_full_keeps_the_configured_size_and_scaled_uses_the_caps(tmp_path, capsys, full):
+    # The tokenizer stage cannot run here (no quantizer), so only the resolved sizes are compared.
+    out = tmp_path / "run"
+    argv = ["--no-progress", "demo", "--out", str(out), *(["--full"] if full else [])]
+    for override in DEMO_SIZE_PROBE:
+        argv += ["--set", override]
+    assert main(argv) == 0
+    assert "scene reconstruction: 0 of 1 stages ran, 1 cannot run, 0 failed" in capsys.readouterr().out
+    config = json.loads((out / "config.json").read_text())
+    train = config["tokenizer"]["train"]
+    sizes = (train["steps"], train["checkpoint_every"], train["log_every"], config["data"]["batch_size"],
+             config["data"]["dataset"]["num_samples"], config["tokenizer"]["autoencoder"]["channels"])
+    assert sizes == ((500, 500, 50, 16, 1000, 48) if full else (40, 40, 10, 8, 240, 32))
+    (stage,) = json.loads((out / "report.json").read_text())["stages"]
+    assert stage["status"].startswith("cannot run: needs tokenizer.quantizer, which the config leaves empty")

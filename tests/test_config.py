@@ -1,37 +1,164 @@
 import json
 
 import pytest
+from pydantic import Field, ValidationError
 
-from vqtouch.core import ConfigError, ExperimentConfig, hookimpl, load_plugins, resolve_config
+from vqtouch.core import (ConfigError, ExperimentConfig, Section, UnknownPluginError, hookimpl, load_plugins,
+                          resolve_config, validate_experiment)
 from vqtouch.core.config import apply_override, merge_configs, parse_override
+from vqtouch.core.stages import missing_slots, required_slots
+
+SCENES = ["reconstruction", "few-shot", "zero-shot", "cross-sensor", "vision-to-touch", "label-to-touch",
+          "touch-to-touch"]
+BUILTIN_STAGES = ["adapt", "cluster", "generator", "reconstruct", "render", "tokenizer"]
 
 
-@pytest.mark.parametrize("scene", ["reconstruction", "few-shot", "zero-shot", "cross-sensor", "vision-to-touch",
-                                   "label-to-touch", "touch-to-touch"])
+@pytest.mark.parametrize("scene", SCENES)
 def test_every_scene_resolves(host, scene):
     config = resolve_config(scene, host=host)
     assert config.scene == scene and config.stages
-    assert config.required_slots()  # every scene needs something
-    again = ExperimentConfig.model_validate(config.to_dict(), context={"host": host})
+    assert required_slots(config, host)  # every scene needs something
+    again = host.experiment_model.model_validate(config.to_dict(), context={"host": host})
     assert again == config  # dump -> validate round trip keeps plugin options
+    assert validate_experiment(config.to_dict(), host) == config
+
+
+@pytest.mark.parametrize("scene", SCENES)
+def test_every_scene_lists_only_registered_stages(host, scene):
+    config = resolve_config(scene, host=host)
+    assert set(config.stages) <= set(host.stages)
+    assert "evaluate" not in config.stages  # the evaluate stage is gone; scoring is part of each stage
+    for stage in config.stages:
+        entry = host.stage(stage)
+        # Each slot a stage declares is a slot of the experiment model; a stage with a section is a field.
+        assert all(path in host.slots for path in entry.slots)
+        if entry.section is not None:
+            assert isinstance(getattr(config, stage), entry.section)
+
+
+def test_builtin_stages_and_their_sections(host):
+    assert sorted(host.stages) == BUILTIN_STAGES
+    sections = {name: entry.section.__name__ if entry.section else None for name, entry in host.stages.items()}
+    assert sections == {"render": "RenderSection", "tokenizer": "TokenizerSection", "reconstruct": None,
+                        "cluster": "ClusterSection", "adapt": None, "generator": "GeneratorSection"}
+    fields = set(host.experiment_model.model_fields)
+    assert {"render", "tokenizer", "cluster", "generator"} <= fields
+    assert not {"reconstruct", "adapt", "train", "conditioner", "clusterer", "evaluate"} & fields
+    # The base model holds only core's fields: stage sections come from the registrations.
+    assert not {"render", "tokenizer", "cluster", "generator"} & set(ExperimentConfig.model_fields)
+    assert set(host.slots) == {"sensor", "target_sensor", "data.dataset", "metrics", "tokenizer.autoencoder",
+                               "tokenizer.quantizer", "tokenizer.discriminator", "cluster.clusterer",
+                               "generator.model", "generator.conditioners"}
+    assert (host.slots["generator.conditioners"].kind, host.slots["generator.conditioners"].many) == (
+        "conditioner", True)
+    assert (host.slots["tokenizer.autoencoder"].kind, host.slots["tokenizer.autoencoder"].many) == (
+        "autoencoder", False)
+
+
+def test_unknown_stage_lists_the_registered_stages(host):
+    with pytest.raises(ConfigError) as info:
+        resolve_config(None, overrides=['stages=["tokenizer", "evaluate"]'], host=host)
+    assert str(info.value).startswith("invalid configuration: stages: unknown stage 'evaluate'; available: "
+                                      "adapt, cluster, generator, reconstruct, render, tokenizer")
+    with pytest.raises(UnknownPluginError, match="unknown stage 'evaluate'; available: adapt, cluster, generator, "
+                                                 "reconstruct, render, tokenizer"):
+        host.stage("evaluate")
+    with pytest.raises(ConfigError, match="a stage is listed twice"):
+        resolve_config(None, overrides=['stages=["tokenizer", "tokenizer"]'], host=host)
+
+
+def test_a_scene_validates_against_the_stages_its_host_registered(make_plugin):
+    # Without the plugin that registers the cluster and adapt stages, a scene that runs them does not
+    # validate, and the error lists the stages that are registered.
+    without = load_plugins(autoload=False, block=["adaptation"])
+    assert "cluster" not in without.stages and "adapt" not in without.stages
+    for scene in ("few-shot", "zero-shot"):
+        with pytest.raises(ConfigError, match=r"stages: unknown stage 'cluster'; available: generator, "
+                                              r"reconstruct, render, tokenizer"):
+            resolve_config(scene, host=without)
+    with pytest.raises(ConfigError, match=r"stages: unknown stage 'adapt'; available: generator, reconstruct, "
+                                          r"render, tokenizer"):
+        resolve_config("cross-sensor", host=without)
+    assert resolve_config("reconstruction", host=without).stages == ["tokenizer", "reconstruct"]
+
+    # A stage registered by a plugin is listed like the built-ins and brings its own section.
+    class ProbeSection(Section):
+        width: int = Field(4, ge=1)
+
+    @hookimpl
+    def vqtouch_register_stages(register):
+        register("probe", lambda job: {}, section=ProbeSection, needs=("data.dataset",))
+
+    extended = load_plugins(autoload=False, extra=[make_plugin("probe_plugin", vqtouch_register_stages)])
+    config = resolve_config(None, overrides=['stages=["probe"]', "probe.width=7"], host=extended)
+    assert config.stages == ["probe"] and config.probe.width == 7
+    with pytest.raises(ConfigError, match=r"invalid configuration: probe.width: Input should be greater than or "
+                                          r"equal to 1 \(got 0\)"):
+        resolve_config(None, overrides=['stages=["probe"]', "probe.width=0"], host=extended)
+    with pytest.raises(ConfigError, match=r"unknown stage 'probe'; available: adapt, cluster, generator"):
+        resolve_config(None, overrides=['stages=["probe"]'], host=load_plugins(autoload=False))
+
+
+def test_resolve_config_needs_the_host_keyword(host):
+    with pytest.raises(TypeError, match="host"):
+        resolve_config("reconstruction")
+    with pytest.raises(TypeError, match="positional"):
+        resolve_config("reconstruction", (), (), host)  # the host is keyword-only
+
+
+def test_validating_a_slot_without_a_host_says_to_pass_it():
+    with pytest.raises(ValidationError) as info:
+        ExperimentConfig.model_validate({"sensor": {"name": "gelsight"}})
+    (error,) = info.value.errors(include_url=False)
+    assert error["loc"] == ("sensor",) and error["type"] == "no_plugin_host"
+    assert error["msg"].startswith("validating a plugin slot needs the PluginHost whose registries to use: "
+                                   "pass it in the validation context under the key 'host'")
+    assert "vqtouch.core.validate_experiment" in error["msg"]
+    # Fields that are not slots need no host.
+    assert ExperimentConfig.model_validate({"seed": 3}).seed == 3
 
 
 def test_slot_options_are_validated_at_load_with_exact_path(host):
     with pytest.raises(ConfigError) as info:
-        resolve_config("label-to-touch", overrides=["conditioner.num_tokens=0"], host=host)
-    assert str(info.value) == ("invalid configuration: conditioner.num_tokens: "
+        resolve_config("label-to-touch", overrides=["generator.conditioners.0.num_tokens=0"], host=host)
+    assert str(info.value) == ("invalid configuration: generator.conditioners.0.num_tokens: "
                                "Input should be greater than or equal to 1 (got 0)")
 
 
+def test_stage_section_options_are_validated_with_exact_path(host):
+    with pytest.raises(ConfigError) as info:
+        resolve_config("reconstruction", overrides=["tokenizer.train.steps=-1"], host=host)
+    assert str(info.value) == ("invalid configuration: tokenizer.train.steps: "
+                               "Input should be greater than or equal to 0 (got -1)")
+    with pytest.raises(ConfigError) as info:
+        resolve_config("reconstruction", overrides=["render.num_samples=0"], host=host)
+    assert str(info.value) == ("invalid configuration: render.num_samples: "
+                               "Input should be greater than or equal to 1 (got 0)")
+    # The old top-level paths are gone.
+    for old in ("train.steps=3", "conditioner.name=label", "clusterer.name=x"):
+        with pytest.raises(ConfigError, match=f"<root>: unknown option '{old.split('.')[0]}'"):
+            resolve_config("reconstruction", overrides=[old], host=host)
+
+
+def test_tokenizer_train_keeps_vqgan_betas_while_core_defaults_to_adamw(host):
+    from vqtouch.core import TrainConfig
+
+    config = resolve_config("reconstruction", host=host)
+    assert config.tokenizer.train.betas == (0.5, 0.9)
+    assert isinstance(config.tokenizer.train, TrainConfig)
+    assert TrainConfig().betas == (0.9, 0.999)
+
+
 def test_unknown_plugin_lists_choices_and_closest(host):
-    with pytest.raises(ConfigError, match=r"conditioner: unknown conditioner 'lable'; available: clip, label, "
-                                          r"tactile; did you mean 'label'\?"):
-        resolve_config("label-to-touch", overrides=["conditioner.name=lable"], host=host)
+    with pytest.raises(ConfigError, match=r"generator.conditioners.0: unknown conditioner 'lable'; available: clip, "
+                                          r"label, tactile; did you mean 'label'\?"):
+        resolve_config("label-to-touch", overrides=["generator.conditioners.0.name=lable"], host=host)
 
 
 def test_unknown_option_lists_allowed(host):
-    with pytest.raises(ConfigError, match=r"train: unknown option 'step'; allowed: .*steps.*did you mean 'steps'"):
-        resolve_config("label-to-touch", overrides=["train.step=3"], host=host)
+    with pytest.raises(ConfigError, match=r"tokenizer.train: unknown option 'step'; allowed: .*steps.*"
+                                          r"did you mean 'steps'"):
+        resolve_config("label-to-touch", overrides=["tokenizer.train.step=3"], host=host)
 
 
 def test_literal_error_lists_allowed_values(host):
@@ -40,21 +167,34 @@ def test_literal_error_lists_allowed_values(host):
 
 
 def test_changing_slot_name_resets_its_options(host):
-    config = resolve_config("label-to-touch", overrides=["conditioner.name=tactile", "conditioner.width=16"],
-                            host=host)
-    assert config.conditioner.model_dump() == {"name": "tactile", "width": 16, "depth": 3, "token_grid": 4}
+    config = resolve_config("label-to-touch", overrides=["generator.conditioners.0.name=tactile",
+                                                         "generator.conditioners.0.width=16"], host=host)
+    assert config.generator.conditioners[0].model_dump() == {"name": "tactile", "width": 16, "depth": 3,
+                                                             "token_grid": 4}
+    config = resolve_config("reconstruction", overrides=["tokenizer.quantizer.name=ema_vq"], host=host)
+    assert "lookup_dim" not in config.tokenizer.quantizer.model_dump()  # the scene's vq options are dropped
 
 
 def test_slot_given_as_string(host):
-    config = resolve_config("label-to-touch", overrides=["conditioner=tactile"], host=host)
-    assert config.conditioner.name == "tactile"
+    config = resolve_config("label-to-touch", overrides=["generator.conditioners.0=tactile"], host=host)
+    assert config.generator.conditioners[0].name == "tactile"
+    config = resolve_config("reconstruction", overrides=["cluster.clusterer=null", "tokenizer.quantizer=ema_vq"],
+                            host=host)
+    assert config.tokenizer.quantizer.name == "ema_vq" and config.cluster.clusterer is None
+
+
+def test_list_slot_set_whole_as_json(host):
+    config = resolve_config("reconstruction", overrides=['generator.conditioners=[{"name": "label"}, "tactile"]',
+                                                         "generator.conditioners.0.num_tokens=2"], host=host)
+    assert [item.name for item in config.generator.conditioners] == ["label", "tactile"]
+    assert config.generator.conditioners[0].num_tokens == 2
 
 
 def test_override_values_are_json_or_string():
-    assert parse_override("train.steps=5") == (["train", "steps"], 5)
+    assert parse_override("tokenizer.train.steps=5") == (["tokenizer", "train", "steps"], 5)
     assert parse_override("name=my-run") == (["name"], "my-run")
     assert parse_override("metrics=[{\"name\": \"psnr\"}]") == (["metrics"], [{"name": "psnr"}])
-    for bad in ("train.steps", "=3", "a..b=1"):
+    for bad in ("tokenizer.train.steps", "=3", "a..b=1"):
         with pytest.raises(ConfigError, match="bad override"):
             parse_override(bad)
 
@@ -64,11 +204,13 @@ def test_list_index_overrides(host):
     assert config.metrics[1].window_size == 7
     with pytest.raises(ConfigError, match="index '5' is not within a list of 2"):
         resolve_config("label-to-touch", overrides=["metrics.5.name=psnr"], host=host)
+    with pytest.raises(ConfigError, match="index '1' is not within a list of 1"):
+        resolve_config("label-to-touch", overrides=["generator.conditioners.1.num_tokens=2"], host=host)
 
 
 def test_cannot_descend_into_a_scalar():
-    with pytest.raises(ConfigError, match="train.steps is int 3, not a section"):
-        apply_override({"train": {"steps": 3}}, ["train", "steps", "x"], 1)
+    with pytest.raises(ConfigError, match="tokenizer.train.steps is int 3, not a section"):
+        apply_override({"tokenizer": {"train": {"steps": 3}}}, ["tokenizer", "train", "steps", "x"], 1)
 
 
 def test_top_level_name_is_not_a_slot_reset():
@@ -76,20 +218,24 @@ def test_top_level_name_is_not_a_slot_reset():
 
 
 def test_merge_replaces_block_when_plugin_changes():
-    base = {"conditioner": {"name": "label", "num_tokens": 2}, "train": {"steps": 1, "learning_rate": 0.1}}
-    merged = merge_configs(base, {"conditioner": {"name": "tactile"}, "train": {"steps": 2}})
-    assert merged == {"conditioner": {"name": "tactile"}, "train": {"steps": 2, "learning_rate": 0.1}}
-    assert base["train"]["steps"] == 1  # inputs untouched
+    base = {"tokenizer": {"quantizer": {"name": "vq", "codebook_size": 2},
+                          "train": {"steps": 1, "learning_rate": 0.1}}}
+    merged = merge_configs(base, {"tokenizer": {"quantizer": {"name": "ema_vq"}, "train": {"steps": 2}}})
+    assert merged == {"tokenizer": {"quantizer": {"name": "ema_vq"}, "train": {"steps": 2, "learning_rate": 0.1}}}
+    assert base["tokenizer"]["train"]["steps"] == 1  # inputs untouched
 
 
 def test_toml_and_json_files_merge_in_order(host, tmp_path):
     toml_file = tmp_path / "a.toml"
-    toml_file.write_text('seed = 7\n[train]\nsteps = 11\n[conditioner]\nname = "tactile"\nwidth = 32\n')
+    toml_file.write_text('seed = 7\n[tokenizer.train]\nsteps = 11\n'
+                         '[[generator.conditioners]]\nname = "tactile"\nwidth = 32\n')
     json_file = tmp_path / "b.json"
-    json_file.write_text(json.dumps({"train": {"learning_rate": 0.01}}))
-    config = resolve_config("label-to-touch", [toml_file, json_file], ["train.steps=12"], host=host)
-    assert (config.seed, config.train.steps, config.train.learning_rate) == (7, 12, 0.01)
-    assert config.conditioner.name == "tactile" and config.conditioner.width == 32
+    json_file.write_text(json.dumps({"tokenizer": {"train": {"learning_rate": 0.01}}}))
+    config = resolve_config("label-to-touch", [toml_file, json_file], ["tokenizer.train.steps=12"], host=host)
+    assert (config.seed, config.tokenizer.train.steps, config.tokenizer.train.learning_rate) == (7, 12, 0.01)
+    assert [c.name for c in config.generator.conditioners] == ["tactile"]
+    assert config.generator.conditioners[0].width == 32
+    assert config.tokenizer.autoencoder.name == "dm_vqgan"  # the scene's other tokenizer options are kept
 
 
 @pytest.mark.parametrize("name, text, message", [
@@ -109,19 +255,23 @@ def test_config_file_errors_name_the_file(host, tmp_path, name, text, message):
 
 
 def test_multiple_problems_are_reported_together(host):
-    with pytest.raises(ConfigError, match=r"\(2 problems\): seed: .*; train.steps: "):
-        resolve_config(None, overrides=["seed=-1", "train.steps=-1"], host=host)
+    with pytest.raises(ConfigError, match=r"\(2 problems\): seed: .*; tokenizer.train.steps: "):
+        resolve_config(None, overrides=["seed=-1", "tokenizer.train.steps=-1"], host=host)
 
 
 def test_required_and_missing_slots(host):
     config = resolve_config("label-to-touch", host=host)
-    assert config.required_slots() == ["data.dataset", "tokenizer.encoder", "tokenizer.quantizer",
-                                       "tokenizer.discriminator", "conditioner", "generator", "metrics"]
-    assert ("generator", "generator") in config.missing_slots()
-    assert all(path != "conditioner" for _, path in config.missing_slots())
+    assert required_slots(config, host) == ["data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer",
+                                            "tokenizer.discriminator", "metrics", "generator.model",
+                                            "generator.conditioners"]
+    assert ("generator", "generator.model") in missing_slots(config, host)
+    assert all(path != "generator.conditioners" for _, path in missing_slots(config, host))
     # The discriminator is optional: an empty one is never "missing".
     no_disc = resolve_config("label-to-touch", overrides=["tokenizer.discriminator=null"], host=host)
-    assert all(path != "tokenizer.discriminator" for _, path in no_disc.missing_slots())
+    assert all(path != "tokenizer.discriminator" for _, path in missing_slots(no_disc, host))
+    # An empty list slot that a stage needs is missing.
+    no_conditioner = resolve_config("label-to-touch", overrides=["generator.conditioners=[]"], host=host)
+    assert ("generator", "generator.conditioners") in missing_slots(no_conditioner, host)
 
 
 def test_validate_experiment_hook_can_veto(make_plugin):
@@ -140,20 +290,29 @@ def test_config_is_frozen(host):
     config = resolve_config("label-to-touch", host=host)
     with pytest.raises(Exception):
         config.seed = 3
+    with pytest.raises(Exception):
+        config.tokenizer.train.steps = 3
 
 
 def test_switching_a_slots_plugin_after_setting_its_options_is_refused(host):
     # The reset would silently drop channels=32 and train the default width instead.
-    with pytest.raises(ConfigError, match=r"--set tokenizer.encoder.name=vqgan selects another plugin for "
-                                          r"tokenizer.encoder.*--set tokenizer.encoder.channels=32; put"):
-        resolve_config("reconstruction", overrides=["tokenizer.encoder.channels=32",
-                                                    "tokenizer.encoder.name=vqgan"], host=host)
-    with pytest.raises(ConfigError, match="drop the earlier --set conditioner.width=16"):
-        resolve_config("touch-to-touch", overrides=["conditioner.width=16", "conditioner=label"], host=host)
+    with pytest.raises(ConfigError, match=r"--set tokenizer.autoencoder.name=vqgan selects another plugin for "
+                                          r"tokenizer.autoencoder.*--set tokenizer.autoencoder.channels=32; put"):
+        resolve_config("reconstruction", overrides=["tokenizer.autoencoder.channels=32",
+                                                    "tokenizer.autoencoder.name=vqgan"], host=host)
     with pytest.raises(ConfigError, match="drop the earlier --set tokenizer.quantizer.codebook_size=8"):
         resolve_config("reconstruction", overrides=["tokenizer.quantizer.codebook_size=8",
                                                     'tokenizer.quantizer={"name": "ema_vq"}'], host=host)
     # Name first, options after: both kept.  Re-stating the same plugin resets nothing, so it is allowed.
-    config = resolve_config("reconstruction", overrides=["tokenizer.encoder.name=vqgan", "tokenizer.encoder.channels=32",
-                                                         "tokenizer.encoder.name=vqgan"], host=host)
-    assert config.tokenizer.encoder.name == "vqgan" and config.tokenizer.encoder.channels == 32
+    config = resolve_config("reconstruction", overrides=["tokenizer.autoencoder.name=vqgan",
+                                                         "tokenizer.autoencoder.channels=32",
+                                                         "tokenizer.autoencoder.name=vqgan"], host=host)
+    assert config.tokenizer.autoencoder.name == "vqgan" and config.tokenizer.autoencoder.channels == 32
+
+
+@pytest.mark.parametrize("switch", ["generator.conditioners.0=label", "generator.conditioners.0.name=label"])
+def test_switching_a_list_slot_items_plugin_after_setting_its_options_is_refused(host, switch):
+    # The item of a list slot (the old top-level `conditioner`) is protected like a single slot.
+    with pytest.raises(ConfigError, match=f"--set {switch} selects another plugin for generator.conditioners.0.*"
+                                          "drop the earlier --set generator.conditioners.0.width=16"):
+        resolve_config("touch-to-touch", overrides=["generator.conditioners.0.width=16", switch], host=host)

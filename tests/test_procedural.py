@@ -6,15 +6,21 @@ import json
 import pytest
 import torch
 
-from vqtouch.core import BuildContext, ConfigError, load_plugins
+from vqtouch.core import Assembly, BuildContext, ConfigError, load_plugins, resolve_config
 from vqtouch.core.cli import main
 from vqtouch.sensors.objects import CLASS_NAMES, OBJECT_CLASSES, sample_contact
 
 HOST = load_plugins(autoload=False)
 
 
-def dataset(**options):
-    return HOST.build("dataset", {"name": "procedural", "num_samples": 24, "image_size": 32, **options})
+def make_sensor(config="gelsight"):
+    return HOST.build("sensor_family", config)
+
+
+def dataset(sensor_config="gelsight", context=None, **options):
+    """The procedural dataset outside an experiment: the caller supplies the sensor that renders it."""
+    return HOST.build("dataset", {"name": "procedural", "num_samples": 24, "image_size": 32, **options},
+                      context or BuildContext(), sensor=make_sensor(sensor_config))
 
 
 def test_at_least_twelve_labelled_classes_with_materials():
@@ -52,7 +58,7 @@ def test_deterministic_by_seed_and_independent_of_access_order():
 
 
 def test_batch_render_equals_single_samples_even_with_sensor_noise():
-    data = dataset(cache=False, sensor={"name": "digit", "variant": {"noise_std": 0.05}})
+    data = dataset({"name": "digit", "variant": {"noise_std": 0.05}}, cache=False)
     batch = data.render_batch([2, 9, 4])
     for row, index in enumerate([2, 9, 4]):
         assert torch.equal(batch["tactile"][row], data[index]["tactile"])
@@ -96,8 +102,71 @@ def test_class_filter_and_errors():
 
 
 def test_image_size_comes_from_the_experiment_when_unset():
-    data = HOST.build("dataset", {"name": "procedural", "num_samples": 2}, BuildContext(image_size=40))
+    data = dataset(context=BuildContext(image_size=40), num_samples=2, image_size=None)
     assert data[0]["tactile"].shape == (3, 40, 40)
+    # Inside an experiment the context comes from data.image_size.
+    config = resolve_config("reconstruction", overrides=["data.image_size=24", "data.dataset.num_samples=2"],
+                            host=HOST)
+    assert Assembly(config, HOST).component("data.dataset")[0]["tactile"].shape == (3, 24, 24)
+
+
+def test_the_sensor_is_an_input_not_an_option():
+    with pytest.raises(ConfigError, match=r"dataset: unknown option 'sensor'; allowed: cache, classes, depth_mm, "
+                                          r"image_size, name, num_samples, seed"):
+        HOST.build("dataset", {"name": "procedural", "sensor": {"name": "digit"}}, sensor=make_sensor())
+    with pytest.raises(ConfigError, match=r"dataset 'procedural' needs sensor: build it through the experiment's "
+                                          r"Assembly .* or pass sensor=\.\.\."):
+        HOST.build("dataset", {"name": "procedural", "num_samples": 2})
+    assert HOST.registry("dataset").get("procedural").inputs == ("sensor",)
+
+
+def test_an_experiment_renders_with_its_own_sensor():
+    config = resolve_config(None, overrides=['data.dataset={"name": "procedural", "num_samples": 3}',
+                                             "data.image_size=16", "sensor=digit", "target_sensor=gelsight_mini"],
+                            host=HOST)
+    assembly = Assembly(config, HOST)
+    data = assembly.component("data.dataset")
+    assert data is assembly.component("data.dataset")  # built once per experiment
+    assert data.sensor is assembly.sensor("source") and data[0]["sensor"] == "digit"
+    # The same scenes rendered by the target sensor (a separate, uncached dataset).
+    target = assembly.dataset(sensor_role="target")
+    assert target is not data and target.sensor is assembly.sensor("target")
+    assert target[0]["sensor"] == "gelsight_mini" and target[0]["label"] == data[0]["label"]
+    assert target[0]["tactile"].shape == data[0]["tactile"].shape == (3, 16, 16)
+
+
+def test_an_experiment_without_a_sensor_fails_in_one_line():
+    config = resolve_config(None, overrides=['data.dataset={"name": "procedural", "num_samples": 3}'], host=HOST)
+    assert config.sensor is None
+    with pytest.raises(ConfigError) as info:
+        Assembly(config, HOST).component("data.dataset")
+    message = str(info.value)
+    assert "\n" not in message and message.startswith("sensor is empty but this run needs it; set sensor.name to "
+                                                        "one of: digit, gelsight, gelsight_mini")
+    with pytest.raises(ConfigError, match=r"needs its target sensor but target_sensor is not set; choose one with "
+                                          r"--set target_sensor.name=<digit\|gelsight\|gelsight_mini>"):
+        Assembly(config, HOST).sensor_config("target")
+
+
+def test_render_stage_writes_the_experiments_data_rendered_by_its_sensor(tmp_path):
+    from vqtouch.core import RunDir, run_stage
+
+    config = resolve_config(None, overrides=['stages=["render"]', "sensor=digit", "data.image_size=16",
+                                             'data.dataset={"name": "procedural", "num_samples": 5}',
+                                             "render.num_samples=3", "render.folder=scenes"], host=HOST)
+    run = RunDir.create(config, host=HOST, path=tmp_path / "run")
+    outcome = run_stage("render", Assembly(config, HOST), run)
+    assert outcome.status == "ran", outcome.describe()
+    assert outcome.result["samples"] == 3 and outcome.result["picture"] == "scenes/preview.png"
+    rows = list(csv.DictReader(open(run.path / "scenes" / "index.csv")))
+    assert len(rows) == 3 and {row["sensor"] for row in rows} == {"digit"}
+    assert json.loads((run.path / "scenes" / "render.json").read_text())["dataset"]["num_samples"] == 5
+    # Without a dataset the stage cannot run, and says which slot to fill.
+    empty = resolve_config(None, overrides=['stages=["render"]', "sensor=digit"], host=HOST)
+    outcome = run_stage("render", Assembly(empty, HOST), RunDir.create(empty, host=HOST, path=tmp_path / "empty"))
+    assert outcome.status == "unavailable"
+    assert outcome.describe().startswith("cannot run: needs data.dataset, which the config leaves empty; choose with "
+                                         "--set data.dataset.name=<")
 
 
 @pytest.mark.parametrize("sensor", ["gelsight", "gelsight_mini", "digit",
@@ -110,12 +179,17 @@ def test_data_render_writes_a_browsable_folder_readable_back(tmp_path, capsys, s
     assert "wrote 6 samples" in capsys.readouterr().out
     rows = list(csv.DictReader(open(out / "index.csv")))
     assert len(rows) == 6 and set(rows[0]) >= {"path", "label", "visual", "class_name", "text", "sensor"}
-    assert (out / "preview.png").is_file() and json.loads((out / "render.json").read_text())["samples"] == 6
+    sensor_config = json.loads(sensor) if sensor.startswith("{") else {"name": sensor}
+    record = json.loads((out / "render.json").read_text())
+    assert (out / "preview.png").is_file() and record["samples"] == 6
+    # render.json records the sensor on its own (the dataset's options no longer name one).
+    assert record["sensor"] == HOST.validate("sensor_family", sensor_config).model_dump(mode="json")
+    assert record["dataset"]["name"] == "procedural" and "sensor" not in record["dataset"]
+    assert {row["sensor"] for row in rows} == {sensor_config["name"]}
     # The export is an ordinary image-folder dataset: read it back and compare with the source samples.
     exported = HOST.build("dataset", {"name": "image_folder", "root": str(out), "csv": "index.csv",
                                       "image_size": 32})
-    source = HOST.build("dataset", {"name": "procedural", "num_samples": 6, "image_size": 32, "cache": False,
-                                    "sensor": json.loads(sensor) if sensor.startswith("{") else {"name": sensor}})
+    source = dataset(sensor_config, num_samples=6, cache=False)
     for index in range(6):
         back, original = exported[index], source[index]
         assert back["label"] == original["label"]

@@ -57,7 +57,7 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
     task = TokenizerTask(tokenizer, loss, discriminator, perceptual)
     trainer = Trainer(task, train_set, section.train, batch_size=config.data.batch_size, seed=config.seed,
                       device=device, checkpoint_dir=job.run.checkpoints, run=job.run,
-                      num_workers=config.data.num_workers, host=job.host)
+                      num_workers=config.data.num_workers, host=job.host, stage=job.stage)
     if job.resume and trainer.resume(job.run.checkpoints):
         print(f"resumed {job.run.path} at step {trainer.state.step}")
     state = trainer.fit()
