@@ -21,6 +21,7 @@ from .config import ExperimentConfig
 from .errors import ConfigError
 from .plugin_config import PluginConfig
 from .plugin_manager import KINDS_BY_NAME
+from .stages import empty_slot_reason
 
 SensorRole = Literal["source", "target"]
 SENSOR_SLOTS: dict[str, str] = {"source": "sensor", "target": "target_sensor"}
@@ -41,9 +42,7 @@ class Assembly:
         path = SENSOR_SLOTS[role]
         value = self.config.slot(path)
         if value is None:
-            choices = "|".join(self.host.registry("sensor_family").names())
-            raise ConfigError(f"this experiment needs its {role} sensor but {path} is not set; "
-                              f"choose one with --set {path}.name=<{choices}>")
+            raise ConfigError(f"this run {empty_slot_reason(path, self.host)}")
         return value
 
     def sensor(self, role: SensorRole = "source") -> SensorFamily:
@@ -66,9 +65,7 @@ class Assembly:
         info = self._slot_info(path)
         value = self.config.slot(path)
         if value is None:
-            names = self.host.registry(info.kind).names()
-            choices = f"one of: {', '.join(names)}" if names else f"none installed yet (no {info.kind} plugin)"
-            raise ConfigError(f"{path} is empty but this run needs it; set {path}.name to {choices}")
+            raise ConfigError(f"this run {empty_slot_reason(path, self.host)}")
         self._build_fact_providers(info.kind)
         if info.many:
             built: Any = [self.build(info.kind, item) for item in value]

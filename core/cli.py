@@ -17,7 +17,7 @@ from .config import resolve_config
 from .errors import ConfigError, VqtouchError
 from .plugin_manager import PluginHost, load_plugins
 from .progress import disable_progress
-from .stages import StageOutcome, missing_slots
+from .stages import StageOutcome, empty_slot_reason, missing_slots
 
 
 def add_config_arguments(parser: argparse.ArgumentParser, *, scene_required: bool = False,
@@ -88,9 +88,7 @@ def _cmd_config_show(args: argparse.Namespace) -> int:
     for stage, path in missing_slots(config, host):
         stages_by_slot.setdefault(path, []).append(stage)
     for path, stages in stages_by_slot.items():
-        choices = ", ".join(host.registry(host.slots[path].kind).names()) or "none installed yet"
-        print(f"note: {path} is empty but stage(s) {', '.join(stages)} need it (choices: {choices})",
-              file=sys.stderr)
+        print(f"note: stage(s) {', '.join(stages)} cannot run yet: {empty_slot_reason(path, host)}", file=sys.stderr)
     return 0
 
 

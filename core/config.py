@@ -57,20 +57,11 @@ def _host_from(info: ValidationInfo) -> Any:
 
 def _slot_validator(kind: str) -> Any:
     def validate(value: Any, handler: Any, info: ValidationInfo) -> PluginConfig:
-        registry = _host_from(info).registry(kind)
-        if isinstance(value, str):
-            value = {"name": value}
-        if isinstance(value, PluginConfig):
-            value = value.model_dump()
-        if not isinstance(value, Mapping) or "name" not in value:
-            raise PydanticCustomError(
-                "missing_plugin_name", "a {kind} block needs a 'name' key choosing the plugin; available: {available}",
-                {"kind": kind, "available": ", ".join(registry.names()) or "(none installed)"})
+        # The registry normalises the block (a name, a mapping or a config object) and picks the model.
         try:
-            registry.get(str(value["name"]))
+            return _host_from(info).registry(kind).validate_config(value, context=info.context)
         except UnknownPluginError as exc:
             raise PydanticCustomError("unknown_plugin", "{message}", {"message": str(exc)}) from None
-        return registry.validate_config(dict(value), context=info.context)
     return validate
 
 

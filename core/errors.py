@@ -65,7 +65,7 @@ def format_validation_error(exc: Any, prefix: str = "") -> str:
     for error in exc.errors(include_url=False):
         loc = ".".join(str(part) for part in (prefix, *error["loc"]) if part != "")
         message = error["msg"]
-        if error["type"] not in {"unknown_plugin", "unknown_option", "missing_plugin_name", "missing", "repeated_stage",
+        if error["type"] not in {"unknown_plugin", "unknown_option", "missing", "repeated_stage",
                                  "no_plugin_host"}:
             shown = repr(error.get("input"))
             message += f" (got {shown if len(shown) <= 60 else shown[:57] + '...'})"

@@ -128,6 +128,8 @@ class Registry:
             value = value.model_dump()
         if isinstance(value, str):
             value = {"name": value}
+        if isinstance(value, Mapping):
+            value = dict(value)
         if not isinstance(value, dict) or "name" not in value:
             raise UnknownPluginError(
                 f"a {self.kind} block needs a 'name' key choosing the plugin; available: "

@@ -33,8 +33,9 @@ def test_config_show_prints_resolved_json_and_notes_empty_slots(capsys):
     captured = capsys.readouterr()
     config = json.loads(captured.out)
     assert config["seed"] == 5 and config["generator"]["conditioners"][0]["name"] == "label"
-    assert "note: generator.model is empty but stage(s) generator need it" in captured.err
-    assert "generator.conditioners is empty" not in captured.err
+    assert ("note: stage(s) generator cannot run yet: needs generator.model, and no generator plugin is installed"
+            in captured.err)
+    assert "generator.conditioners" not in captured.err
 
 
 def test_config_show_output_feeds_back_as_config_file(capsys, tmp_path):

@@ -141,9 +141,9 @@ def test_an_experiment_without_a_sensor_fails_in_one_line():
     with pytest.raises(ConfigError) as info:
         Assembly(config, HOST).component("data.dataset")
     message = str(info.value)
-    assert "\n" not in message and message.startswith("sensor is empty but this run needs it; set sensor.name to "
-                                                        "one of: digit, gelsight, gelsight_mini")
-    with pytest.raises(ConfigError, match=r"needs its target sensor but target_sensor is not set; choose one with "
+    assert "\n" not in message and message == ("this run needs sensor, which the config leaves empty; choose with "
+                                               "--set sensor.name=<digit|gelsight|gelsight_mini>")
+    with pytest.raises(ConfigError, match=r"this run needs target_sensor, which the config leaves empty; choose with "
                                           r"--set target_sensor.name=<digit\|gelsight\|gelsight_mini>"):
         Assembly(config, HOST).sensor_config("target")
 

@@ -142,6 +142,6 @@ def test_a_stage_with_an_empty_needed_slot_says_which_and_the_choices(tmp_path):
 
 def test_an_empty_slot_asked_for_directly_names_the_choices():
     config = resolve_config("label-to-touch", overrides=["tokenizer.quantizer=null"], host=HOST)
-    with pytest.raises(ConfigError, match=r"tokenizer.quantizer is empty but this run needs it; set "
-                                          r"tokenizer.quantizer.name to one of: ema_vq, identity, vq"):
+    with pytest.raises(ConfigError, match=r"^this run needs tokenizer.quantizer, which the config leaves empty; "
+                                          r"choose with --set tokenizer.quantizer.name=<ema_vq\|identity\|vq>$"):
         Assembly(config, HOST).component("tokenizer.quantizer")
