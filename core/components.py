@@ -297,6 +297,9 @@ class TactileDataset(ProvidesContext, abc.ABC):
     - ``"text"``: str description, "" when the sample has none;
     - ``"sensor"``: str id of the sensor that produced the tactile image;
     - ``"id"``: str stable identifier (e.g. the relative path), used to pair results explicitly.
+
+    A dataset may add keys of its own (the procedural scenes add ``"depth_mm"``, the press
+    depth); stages rely only on the keys above.
     """
 
     #: Class names indexed by label (empty for unlabelled datasets).

@@ -309,7 +309,7 @@ def _assemble_experiment_model(host: PluginHost) -> None:
         sections[stage.name] = (stage.section, Field(default_factory=stage.section,
                                                      description=stage.description or f"The {stage.name} stage."))
     if sections:
-        host.experiment_model = create_model("ExperimentConfig", __base__=ExperimentConfig,
+        host.experiment_model = create_model("ExperimentConfig", __base__=ExperimentConfig, __doc__=ExperimentConfig.__doc__,
                                              __module__=ExperimentConfig.__module__, **sections)
     host.slots = slots_of(host.experiment_model)
     for stage in host.stages.values():

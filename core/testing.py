@@ -328,6 +328,12 @@ def check_conditioner(conditioner: Conditioner, context: BuildContext | None = N
              "dropping row 0 changed the tokens of the rows that were not dropped")
     _require(bool(null.is_null_B.all()) and all(torch.equal(row, null_ND) for row in null.tokens_BND), label,
              "null(B) must return the learned null tokens for every row, all flagged in is_null_B")
+    single = example_condition(conditioner, 1, context)
+    if single is not None:  # batch 1 (a single condition at generation time) must work too
+        with torch.no_grad():
+            one = _call(label, "forward(condition of batch 1)", lambda: conditioner(single))
+        _require(tuple(one.tokens_BND.shape) == (1, *shape[1:]) and bool(torch.isfinite(one.tokens_BND).all()), label,
+                 f"a batch of 1 gave tokens of shape {tuple(one.tokens_BND.shape)} (or non-finite ones)")
 
 
 def check_autoencoder(autoencoder: Autoencoder, context: BuildContext | None = None, *,

@@ -86,10 +86,7 @@ def package_sources() -> list[Path]:
 
 
 def pytest_collection_modifyitems(config, items):
-    """Skip `slow` tests unless VQTOUCH_RUN_SLOW=1 (or -m slow) and `gpu` tests without CUDA, saying why."""
-    run_slow = os.environ.get("VQTOUCH_RUN_SLOW") == "1" or "slow" in (config.getoption("-m") or "")
+    """Skip `gpu` tests without CUDA, saying why (every other test runs on every `make test`)."""
     for item in items:
-        if "slow" in item.keywords and not run_slow:
-            item.add_marker(pytest.mark.skip(reason="slow: set VQTOUCH_RUN_SLOW=1 or use -m slow"))
         if "gpu" in item.keywords and not torch.cuda.is_available():
             item.add_marker(pytest.mark.skip(reason="gpu: no CUDA device on this machine"))

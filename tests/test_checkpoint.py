@@ -1,42 +1,101 @@
+import importlib.util
 import json
 import struct
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 from torch import nn
 
+import vqtouch.core.checkpoint as checkpoint_module
 from vqtouch.core import BuildContext, CheckpointError, hookimpl, load, load_plugins, read_metadata, save
 from vqtouch.core.checkpoint import FORMAT_VERSION, atomic_write
+from vqtouch.core.plugin_manager import REGISTRY_KINDS
+from vqtouch.core.testing import build_for_check, check_round_trip
 
 CONTEXT = BuildContext(image_size=32, num_classes=5, cond_dim=16, latent_dim=8)
 
 
-def _nn_components(host):
-    """(kind, name) of every registered component that is a module and builds offline."""
-    pairs = []
-    for kind in ("conditioner", "encoder", "quantizer", "sensor_family", "generator", "clusterer"):
-        for name in host.registry(kind).names():
-            if (kind, name) != ("conditioner", "clip"):  # needs a weights file: tested in test_conditioners
-                pairs.append((kind, name))
-    return pairs
+def _load_contract_cases():
+    # The built-ins' tiny options live with their contract tests; test modules cannot import each
+    # other under --import-mode=importlib, so load that module by path.
+    path = Path(__file__).with_name("test_plugin_contracts.py")
+    spec = importlib.util.spec_from_file_location("plugin_contract_cases", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # pydantic resolves the module's annotations through sys.modules
+    spec.loader.exec_module(module)
+    return module
 
 
-@pytest.mark.parametrize("kind, name", _nn_components(load_plugins(autoload=False)))
-def test_every_module_component_round_trips(host, tmp_path, kind, name):
-    component = host.build(kind, {"name": name}, CONTEXT)
-    with torch.no_grad():
-        for parameter in component.parameters():
-            parameter.add_(torch.randn_like(parameter))  # make sure weights are not just the init
-    path = save(component, tmp_path / f"{name}.safetensors", step=42, host=host)
-    restored = load(path, host=host)
-    assert type(restored) is type(component)
-    assert restored.vqtouch_step == 42
-    assert restored.vqtouch_spec.config == component.vqtouch_spec.config
-    assert restored.vqtouch_spec.context == CONTEXT
-    original, loaded = component.state_dict(), restored.state_dict()
-    assert original.keys() == loaded.keys()
-    for key in original:
-        assert torch.equal(original[key], loaded[key]), key
+CASES = _load_contract_cases()
+MODULE_KINDS = [kind.name for kind in REGISTRY_KINDS if issubclass(kind.base_type, nn.Module)]
+MODULE_ENTRIES = [(kind, name) for kind in MODULE_KINDS for name in load_plugins(autoload=False).registry(kind).names()]
+
+
+def test_every_module_kind_is_round_tripped():
+    assert set(MODULE_KINDS) == {"autoencoder", "quantizer", "discriminator", "conditioner", "sensor_family",
+                                 "generator", "clusterer"}
+    assert {kind for kind, _ in MODULE_ENTRIES} >= {"autoencoder", "quantizer", "discriminator", "conditioner",
+                                                    "sensor_family"}
+
+
+@pytest.mark.parametrize("kind, name", MODULE_ENTRIES)
+def test_every_module_component_round_trips(host, tmp_path, tmp_path_factory, kind, name):
+    """Built with tiny options, its weights moved off their initial values, saved and loaded: the reloaded
+    component has the same state and computes the same outputs (vqtouch.core.testing.check_round_trip)."""
+    case = CASES.builtin_case(kind, name, tmp_path_factory)
+    component = build_for_check(host, kind, name, case["options"], CONTEXT, inputs=case.get("inputs"))
+    restored = check_round_trip(host, component, tmp_path, step=42)
+    assert restored.vqtouch_step == 42 and restored.vqtouch_spec.context == CONTEXT
+
+
+# A checker that cannot fail proves nothing: break the round trip and watch it fail.
+STATEFUL = [("autoencoder", "vqgan"), ("quantizer", "ema_vq"), ("discriminator", "patchgan"),
+            ("conditioner", "label")]
+
+
+@pytest.mark.parametrize("kind, name", STATEFUL)
+def test_round_trip_check_fails_when_load_skips_the_weights(host, tmp_path, tmp_path_factory, monkeypatch, kind,
+                                                            name):
+    monkeypatch.setattr(checkpoint_module, "load_state_strict", lambda module, tensors, path: None)
+    component = build_for_check(host, kind, name, CASES.builtin_case(kind, name, tmp_path_factory)["options"],
+                                CONTEXT)
+    with pytest.raises(AssertionError, match=f"{kind} '{name}': tensor .* changed in the checkpoint round trip"):
+        check_round_trip(host, component, tmp_path)
+
+
+@pytest.mark.parametrize("kind, name", STATEFUL)
+def test_round_trip_check_fails_when_save_drops_a_tensor(host, tmp_path, tmp_path_factory, monkeypatch, kind, name):
+    from safetensors.torch import save_file
+
+    def save_all_but_one(model, filename, metadata=None):
+        tensors = {key: value.contiguous() for key, value in model.state_dict().items()}
+        tensors.pop(sorted(tensors)[-1])
+        save_file(tensors, filename, metadata=metadata)
+
+    monkeypatch.setattr(checkpoint_module, "save_model", save_all_but_one)
+    component = build_for_check(host, kind, name, CASES.builtin_case(kind, name, tmp_path_factory)["options"],
+                                CONTEXT)
+    with pytest.raises(AssertionError, match=r"round trip failed: CheckpointError: .*missing 1 tensor"):
+        check_round_trip(host, component, tmp_path)
+
+
+def test_round_trip_check_fails_when_the_header_loses_an_option(host, tmp_path, monkeypatch):
+    """A sensor has no tensors: what it is lives in its options, so losing one must show."""
+    original = checkpoint_module.checkpoint_metadata
+
+    def forgetful(component, step, host=None):
+        metadata = original(component, step, host)
+        config = json.loads(metadata["vqtouch.config"])
+        config.pop("variant", None)
+        return {**metadata, "vqtouch.config": json.dumps(config)}
+
+    monkeypatch.setattr(checkpoint_module, "checkpoint_metadata", forgetful)
+    variant = {"response_scale": 0.5, "noise_std": 0.05}
+    component = build_for_check(host, "sensor_family", "gelsight", {"variant": variant}, CONTEXT)
+    with pytest.raises(AssertionError, match="reloaded config .* differs"):
+        check_round_trip(host, component, tmp_path)
 
 
 def test_header_carries_everything_needed(host, tmp_path):
@@ -121,12 +180,51 @@ def test_missing_file(host, tmp_path):
         load(tmp_path / "nope.safetensors", host=host)
 
 
-def test_missing_plugin_is_named(tmp_path):
+def test_missing_plugin_is_named_with_its_distribution(tmp_path):
+    from vqtouch.core import __version__
+
     full = load_plugins(autoload=False)
     path = save(full.build("conditioner", "tactile", CONTEXT), tmp_path / "t.safetensors", host=full)
     without = load_plugins(autoload=False, block=["tactile"])
-    with pytest.raises(CheckpointError, match=r"made by conditioner plugin 'tactile'.*not available here"):
+    with pytest.raises(CheckpointError) as info:
         load(path, host=without)
+    assert str(info.value) == (f"{path}: made by conditioner 'tactile' from vqtouch {__version__}, which is not "
+                               "installed here; pip install vqtouch")
+
+
+def test_missing_third_party_plugin_names_the_distribution_from_the_header(tmp_path, make_plugin):
+    from typing import Literal
+
+    from safetensors.torch import save_model
+
+    from vqtouch.core import Conditioner, PluginConfig
+
+    class ExtraConfig(PluginConfig):
+        """Options of a third-party conditioner."""
+
+        name: Literal["x"] = "x"
+
+    class Extra(Conditioner):
+        sample_key = "label"
+
+        def encode(self, condition):
+            return self.null_tokens_ND.expand(len(condition), -1, -1)
+
+    @hookimpl
+    def vqtouch_register_conditioners(register):
+        register("x", lambda config, context: Extra(context.cond_dim, 1), ExtraConfig)
+
+    with_plugin = load_plugins(autoload=False, extra=[make_plugin("pkg_plugin", vqtouch_register_conditioners)])
+    component = with_plugin.build("conditioner", "x", CONTEXT)
+    metadata = read_metadata(save(component, tmp_path / "ok.safetensors", host=with_plugin))
+    # What an installed distribution records (an in-memory module has none).
+    metadata["vqtouch.plugin_source"] = json.dumps({"plugin": "pkg_plugin", "distribution": "pkg", "version": "1.0"})
+    save_model(component, str(tmp_path / "x.safetensors"), metadata=metadata)
+    with pytest.raises(CheckpointError) as info:
+        load(tmp_path / "x.safetensors", host=load_plugins(autoload=False))
+    assert str(info.value).endswith("made by conditioner 'x' from pkg 1.0, which is not installed here; "
+                                    "pip install pkg")
+    assert isinstance(load(tmp_path / "x.safetensors", host=with_plugin), Extra)
 
 
 def test_shape_mismatch_names_tensor(host, tmp_path):

@@ -19,22 +19,8 @@ def example_condition(conditioner, batch):
 OFFLINE_CONDITIONERS = [name for name in load_plugins(autoload=False).registry("conditioner").names() if name != "clip"]
 
 
-@pytest.mark.parametrize("name", OFFLINE_CONDITIONERS)
-@pytest.mark.parametrize("batch", [1, 3])
-def test_conditioner_contract(host, name, batch):
-    conditioner = host.build("conditioner", name, CONTEXT)
-    condition = example_condition(conditioner, batch)
-    out = conditioner(condition)
-    assert out.tokens_BND.shape == (batch, conditioner.num_tokens, 16)
-    assert torch.isfinite(out.tokens_BND).all()
-    assert not out.is_null_B.any()
-
-    drop = torch.zeros(batch, dtype=torch.bool)
-    drop[0] = True
-    dropped = conditioner(condition, drop)
-    assert torch.equal(dropped.tokens_BND[0], conditioner.null_tokens_ND)
-    assert torch.equal(dropped.tokens_BND[1:], out.tokens_BND[1:])
-    assert torch.equal(conditioner.null(batch).tokens_BND[0], conditioner.null_tokens_ND)
+# The shape / null-token / drop-mask contract of every conditioner is checked by
+# vqtouch.core.testing.check_plugin in test_plugin_contracts.py.
 
 
 @pytest.mark.parametrize("name", OFFLINE_CONDITIONERS)
@@ -181,3 +167,21 @@ def test_clip_unknown_architecture(host, tiny_clip_file):
     path, _ = tiny_clip_file
     with pytest.raises(ConfigError, match="unknown open_clip architecture 'ViT-B-33'.*did you mean"):
         host.build("conditioner", {"name": "clip", "architecture": "ViT-B-33", "checkpoint": str(path)}, CONTEXT)
+
+
+@pytest.mark.parametrize("name", OFFLINE_CONDITIONERS)
+def test_each_conditioner_reads_its_own_entry_of_a_dataset_batch(host, name):
+    """`sample_key` routes a collated batch of procedural samples to the right conditioner input."""
+    from vqtouch.core.training import collate_samples
+
+    sensor = host.build("sensor_family", "gelsight")
+    dataset = host.build("dataset", {"name": "procedural", "num_samples": 3, "image_size": 32},
+                         BuildContext(image_size=32), sensor=sensor)
+    batch = collate_samples([dataset[i] for i in range(3)])
+    conditioner = host.build("conditioner", name, BuildContext(image_size=32, num_classes=dataset.num_classes,
+                                                               cond_dim=16))
+    condition = conditioner.condition_of(batch)
+    assert condition is batch[conditioner.sample_key]
+    assert conditioner(condition).tokens_BND.shape == (3, conditioner.num_tokens, 16)
+    with pytest.raises(KeyError, match=rf"reads samples' '{conditioner.sample_key}', which this batch lacks"):
+        conditioner.condition_of({key: value for key, value in batch.items() if key != conditioner.sample_key})

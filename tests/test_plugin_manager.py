@@ -1,18 +1,21 @@
 import inspect
+from pathlib import Path
 from typing import Literal
 
 import pytest
-
 import torch
+from pydantic import Field
 
-from vqtouch.core import (Clusterer, Conditioner, Discriminator, Encoder, Generator, PluginConfig, PluginError, Quantizer,
-                          SensorFamily, TactileDataset, hookimpl, hookspecs, load_plugins)
+from vqtouch.core import (Autoencoder, Clusterer, Conditioner, ConfigError, Discriminator, Generator, PluginConfig,
+                          PluginError, Quantizer, Section, SensorFamily, Slot, StageUnavailable, TactileDataset,
+                          UnknownPluginError, hookimpl, hookspecs, load_plugins, resolve_config)
 from vqtouch.core.plugin_manager import REGISTRY_KINDS
-from pathlib import Path
 
 TESTS = Path(__file__).resolve().parent
 
-BUILTIN_PLUGINS = {"label", "tactile", "clip", "metrics", "scenes"}
+BUILTIN_PLUGINS = {"label", "tactile", "clip", "metrics", "scenes", "tokenizer-stages", "data-stages", "generator",
+                   "adaptation"}
+BUILTIN_STAGES = {"render", "tokenizer", "reconstruct", "cluster", "adapt", "generator"}
 
 
 def test_builtins_load_through_entry_points_with_autoload_off(host):
@@ -23,6 +26,33 @@ def test_builtins_load_through_entry_points_with_autoload_off(host):
     assert {"psnr", "ssim", "fd_effnetlite0"} <= set(host.registry("metric").names())
     assert {"few-shot", "zero-shot", "cross-sensor", "vision-to-touch", "label-to-touch",
             "touch-to-touch"} <= set(host.scenes)
+    assert set(host.stages) == BUILTIN_STAGES
+    for stage in host.stages.values():
+        assert stage.source.distribution == "vqtouch" and stage.description
+
+
+def test_there_is_no_process_wide_host(make_plugin):
+    """Each load_plugins() is its own host: what one loads, another does not see."""
+    import vqtouch.core as core
+    from vqtouch.core import config as config_module, plugin_manager
+
+    for module in (core, plugin_manager, config_module):
+        for name in ("default_host", "current_host", "reset_default_host"):
+            assert not hasattr(module, name), f"{module.__name__}.{name}"
+
+    @hookimpl
+    def vqtouch_register_conditioners(register):
+        register("extra_cond", lambda config, context: ExtraConditioner(context.cond_dim, 1), ExtraConfig,
+                 description="extra")
+
+    with_extra = load_plugins(autoload=False, extra=[make_plugin("my_extra", vqtouch_register_conditioners)])
+    plain = load_plugins(autoload=False)
+    assert "extra_cond" in with_extra.registry("conditioner") and "extra_cond" not in plain.registry("conditioner")
+    overrides = ['generator.conditioners=[{"name": "extra_cond"}]']
+    chosen = resolve_config("label-to-touch", overrides=overrides, host=with_extra).generator.conditioners
+    assert [item.name for item in chosen] == ["extra_cond"]
+    with pytest.raises(ConfigError, match="unknown conditioner 'extra_cond'"):
+        resolve_config("label-to-touch", overrides=overrides, host=plain)
 
 
 def test_every_registry_kind_has_a_hookspec():
@@ -124,7 +154,7 @@ def test_every_hookspec_is_exercised_by_some_test():
     assert not untested, f"hooks without a test implementation: {untested}"
 
 
-class _Encoder(Encoder):
+class _Autoencoder(Autoencoder):
     def encode(self, images_BCHW):
         return images_BCHW
 
@@ -172,7 +202,7 @@ class _Discriminator(Discriminator):
 
 # One minimal implementation per registration hook, registered through that hook by name.
 MINIMAL = {
-    "vqtouch_register_encoders": ("encoder", _Encoder),
+    "vqtouch_register_autoencoders": ("autoencoder", _Autoencoder),
     "vqtouch_register_quantizers": ("quantizer", _Quantizer),
     "vqtouch_register_clusterers": ("clusterer", _Clusterer),
     "vqtouch_register_datasets": ("dataset", _Dataset),
@@ -204,10 +234,12 @@ def test_each_registration_hook_registers_a_buildable_component(hook_name, make_
 def test_scene_hook_registers_scene_and_rejects_duplicates(make_plugin):
     @hookimpl
     def vqtouch_register_scenes(register):
-        register("my-scene", {"stages": ["evaluate"], "metrics": [{"name": "psnr"}]}, description="mine")
+        register("my-scene", {"stages": ["render"], "metrics": [{"name": "psnr"}]}, description="mine")
 
     host = load_plugins(autoload=False, extra=[make_plugin("scenes_extra", vqtouch_register_scenes)])
     assert host.scene("my-scene").description == "mine"
+    config = resolve_config("my-scene", host=host)
+    assert config.stages == ["render"] and config.metrics[0].name == "psnr"
 
     @hookimpl
     def vqtouch_register_scenes(register):  # noqa: F811 - a second plugin reusing a built-in name
@@ -226,5 +258,131 @@ def test_trace_variable_traces_hook_calls(monkeypatch, capfd):
 
 def test_describe_rows_have_versions(host):
     rows = host.describe()
-    assert {row["kind"] for row in rows} >= {"conditioner", "metric", "scene"}
+    assert {row["kind"] for row in rows} >= {"conditioner", "metric", "scene", "stage", "autoencoder"}
+    assert {row["name"] for row in rows if row["kind"] == "stage"} == BUILTIN_STAGES
     assert all(row["version"] for row in rows if row["package"] == "vqtouch")
+
+
+# -- inputs and demo caps of a registration -----------------------------------------------------------
+
+class _RenderedDataset(_Dataset):
+    def __init__(self, sensor):
+        self.sensor = sensor
+
+
+class RenderedConfig(PluginConfig):
+    """A dataset rendered by the experiment's sensor."""
+
+    name: Literal["rendered"] = "rendered"
+    num_samples: int = Field(8, ge=1, description="Samples.")
+
+
+def test_declared_inputs_are_supplied_by_the_caller(make_plugin, host):
+    @hookimpl
+    def vqtouch_register_datasets(register):
+        register("rendered", lambda config, context, sensor: _RenderedDataset(sensor), RenderedConfig,
+                 description="rendered", inputs=("sensor",), demo={"num_samples": 2})
+
+    with_plugin = load_plugins(autoload=False, extra=[make_plugin("rendered_plugin", vqtouch_register_datasets)])
+    entry = with_plugin.registry("dataset").get("rendered")
+    assert entry.inputs == ("sensor",) and entry.demo == {"num_samples": 2}
+    with pytest.raises(ConfigError, match=r"dataset 'rendered' needs sensor: build it through the experiment's "
+                                          r"Assembly .* or pass sensor=\.\.\."):
+        with_plugin.build("dataset", "rendered")
+    sensor = with_plugin.build("sensor_family", "gelsight")
+    assert with_plugin.build("dataset", "rendered", sensor=sensor).sensor is sensor
+    with pytest.raises(PluginError, match="takes no input 'camera'"):
+        with_plugin.build("dataset", "rendered", sensor=sensor, camera=sensor)
+    # The built-in procedural dataset renders with the sensor it is given (it has no sensor option).
+    assert "sensor" not in host.registry("dataset").get("procedural").config_model.model_fields
+    digit = host.build("sensor_family", "digit")
+    procedural = host.build("dataset", {"name": "procedural", "num_samples": 2}, sensor=digit)
+    assert procedural.sensor is digit and procedural[0]["sensor"] == (digit.sensor_id or "digit")
+
+
+# -- stages are a registry kind owned by plugins ----------------------------------------------------
+
+class GallerySection(Section):
+    """Options of the test's ``gallery`` stage."""
+
+    columns: int = Field(3, ge=1, description="Pictures per row.")
+    backdrop: Slot("sensor_family") | None = Field(None, description="A second sensor to compare with.")
+
+
+def _run_gallery(job):
+    if job.section.columns > 10:
+        raise StageUnavailable("too many columns")
+    return {"columns": job.section.columns, "sensor": job.config.sensor.name,
+            "renders": isinstance(job.assembly.sensor(), SensorFamily)}
+
+
+def _stage_plugin(make_plugin, name="gallery", **options):
+    options = {"section": GallerySection, "needs": ("sensor",), "uses": ("gallery.backdrop",),
+               "description": "A test stage.", **options}
+
+    @hookimpl
+    def vqtouch_register_stages(register):
+        register(name, _run_gallery, **options)
+
+    return make_plugin(f"stage_{name}", vqtouch_register_stages)
+
+
+def test_stage_registers_its_section_and_slots_and_runs(make_plugin, tmp_path):
+    from vqtouch.core import Assembly, RunDir, run_stage
+
+    host = load_plugins(autoload=False, extra=[_stage_plugin(make_plugin, demo={"columns": 2})])
+    stage = host.stage("gallery")
+    assert stage.needs == ("sensor",) and stage.slots == ("sensor", "gallery.backdrop") and stage.demo == {"columns": 2}
+    assert stage.source.plugin == "stage_gallery"
+    assert host.slots["gallery.backdrop"].kind == "sensor_family"
+    assert host.experiment_model.model_fields["gallery"].description == "A test stage."
+    config = resolve_config(overrides=['stages=["gallery"]', "gallery.columns=4", "sensor.name=digit"], host=host)
+    assert config.gallery.columns == 4
+    with pytest.raises(ConfigError, match=r"gallery: unknown option 'colums'; allowed: backdrop, columns; did you mean 'columns'"):
+        resolve_config(overrides=["gallery.colums=4"], host=host)
+
+    def run(overrides, folder):
+        config = resolve_config(overrides=['stages=["gallery"]', *overrides], host=host)
+        return run_stage("gallery", Assembly(config, host), RunDir.create(config, host=host, path=tmp_path / folder))
+
+    outcome = run(["gallery.columns=4", "sensor.name=digit"], "ran")
+    assert outcome.status == "ran" and outcome.result == {"columns": 4, "sensor": "digit", "renders": True}
+    outcome = run([], "no-sensor")
+    assert outcome.status == "unavailable" and "needs sensor" in outcome.reason
+    outcome = run(["gallery.columns=11", "sensor.name=digit"], "wide")
+    assert outcome.status == "unavailable" and outcome.reason == "too many columns"
+    # A host without the plugin knows neither the stage nor its section.
+    plain = load_plugins(autoload=False)
+    assert "gallery" not in plain.stages and "gallery" not in plain.experiment_model.model_fields
+    with pytest.raises(UnknownPluginError, match="unknown stage 'gallery'; available: adapt, cluster"):
+        plain.stage("gallery")
+    with pytest.raises(ConfigError, match="unknown stage 'gallery'"):
+        resolve_config(overrides=['stages=["gallery"]'], host=plain)
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"name": "tokenizer"}, r"duplicate stage 'tokenizer'.*plugin 'tokenizer-stages'.*plugin 'stage_tokenizer'"),
+    ({"name": "seed"}, "section would replace core's 'seed' field"),
+    ({"needs": ("gallery.nothing",)}, "declares slot 'gallery.nothing', which the experiment config does not have"),
+    ({"section": dict}, "section must subclass vqtouch.core.Section"),
+], ids=["duplicate", "core-field", "unknown-slot", "bad-section"])
+def test_bad_stage_registrations_fail_when_plugins_load(make_plugin, options, message):
+    with pytest.raises(PluginError, match=message):
+        load_plugins(autoload=False, extra=[_stage_plugin(make_plugin, **options)])
+
+
+def test_removed_hooks_fail_loudly(make_plugin):
+    """vqtouch_run_stage and vqtouch_register_encoders are gone: a plugin still using them fails to load."""
+    @hookimpl
+    def vqtouch_run_stage(stage, config, run):
+        return None
+
+    with pytest.raises(PluginError, match="vqtouch_run_stage"):
+        load_plugins(autoload=False, extra=[make_plugin("old_stage", vqtouch_run_stage)])
+
+    @hookimpl
+    def vqtouch_register_encoders(register):
+        pass
+
+    with pytest.raises(PluginError, match="vqtouch_register_encoders"):
+        load_plugins(autoload=False, extra=[make_plugin("old_encoder", vqtouch_register_encoders)])

@@ -21,18 +21,18 @@ SOURCE_B = PluginSource("plug_b", "plug_b", "pkg-b", "2.0")
 
 
 def make_registry() -> Registry:
-    registry = Registry("encoder", "test encoders")
-    registry.add(PluginEntry("encoder", "alpha", lambda c, x: None, AlphaConfig, "", SOURCE_A, aliases=("a",)))
-    registry.add(PluginEntry("encoder", "beta", lambda c, x: None, BetaConfig, "", SOURCE_A))
+    registry = Registry("autoencoder", "test autoencoders")
+    registry.add(PluginEntry("autoencoder", "alpha", lambda c, x: None, AlphaConfig, "", SOURCE_A, aliases=("a",)))
+    registry.add(PluginEntry("autoencoder", "beta", lambda c, x: None, BetaConfig, "", SOURCE_A))
     return registry
 
 
 def test_duplicate_name_names_both_sources():
     registry = make_registry()
     with pytest.raises(PluginError) as info:
-        registry.add(PluginEntry("encoder", "alpha", lambda c, x: None, AlphaConfig, "", SOURCE_B))
+        registry.add(PluginEntry("autoencoder", "alpha", lambda c, x: None, AlphaConfig, "", SOURCE_B))
     message = str(info.value)
-    assert "duplicate encoder name 'alpha'" in message
+    assert "duplicate autoencoder name 'alpha'" in message
     assert "plug_a" in message and "pkg-a" in message and "plug_b" in message and "pkg-b" in message
 
 
@@ -42,14 +42,14 @@ def test_duplicate_alias_is_rejected():
     class GammaConfig(PluginConfig):
         name: Literal["gamma"] = "gamma"
 
-    with pytest.raises(PluginError, match="duplicate encoder name 'a'"):
-        registry.add(PluginEntry("encoder", "gamma", lambda c, x: None, GammaConfig, "", SOURCE_B, aliases=("a",)))
+    with pytest.raises(PluginError, match="duplicate autoencoder name 'a'"):
+        registry.add(PluginEntry("autoencoder", "gamma", lambda c, x: None, GammaConfig, "", SOURCE_B, aliases=("a",)))
 
 
 def test_unknown_name_lists_available_and_closest():
     with pytest.raises(UnknownPluginError) as info:
         make_registry().get("alpah")
-    assert str(info.value) == "unknown encoder 'alpah'; available: alpha, beta; did you mean 'alpha'?"
+    assert str(info.value) == "unknown autoencoder 'alpah'; available: alpha, beta; did you mean 'alpha'?"
 
 
 def test_alias_resolves_to_canonical_entry():
@@ -59,15 +59,15 @@ def test_alias_resolves_to_canonical_entry():
 
 
 def test_config_name_must_match_registered_name():
-    registry = Registry("encoder", "x")
+    registry = Registry("autoencoder", "x")
     with pytest.raises(PluginError, match=r"declares name 'alpha'.*Literal\['other'\]"):
-        registry.add(PluginEntry("encoder", "other", lambda c, x: None, AlphaConfig, "", SOURCE_A))
+        registry.add(PluginEntry("autoencoder", "other", lambda c, x: None, AlphaConfig, "", SOURCE_A))
 
 
 def test_config_must_be_plugin_config_subclass():
-    registry = Registry("encoder", "x")
+    registry = Registry("autoencoder", "x")
     with pytest.raises(PluginError, match="subclass of vqtouch.core.PluginConfig"):
-        registry.add(PluginEntry("encoder", "alpha", lambda c, x: None, dict, "", SOURCE_A))
+        registry.add(PluginEntry("autoencoder", "alpha", lambda c, x: None, dict, "", SOURCE_A))
 
 
 def test_frozen_registry_refuses_registration():
@@ -78,7 +78,7 @@ def test_frozen_registry_refuses_registration():
         name: Literal["gamma"] = "gamma"
 
     with pytest.raises(PluginError, match="frozen"):
-        registry.add(PluginEntry("encoder", "gamma", lambda c, x: None, GammaConfig, "", SOURCE_A))
+        registry.add(PluginEntry("autoencoder", "gamma", lambda c, x: None, GammaConfig, "", SOURCE_A))
 
 
 def test_validate_config_uses_the_plugin_model():
@@ -94,8 +94,8 @@ def test_validate_config_uses_the_plugin_model():
 
 
 def test_single_entry_registry_validates_without_union():
-    registry = Registry("encoder", "x")
-    registry.add(PluginEntry("encoder", "alpha", lambda c, x: None, AlphaConfig, "", SOURCE_A))
+    registry = Registry("autoencoder", "x")
+    registry.add(PluginEntry("autoencoder", "alpha", lambda c, x: None, AlphaConfig, "", SOURCE_A))
     assert registry.validate_config({"name": "alpha"}).width == 8
 
 

@@ -1,5 +1,7 @@
 import json
 
+import pytest
+
 from vqtouch.core import RunDir, resolve_config, seed_everything
 from vqtouch.core.runs import config_hash
 
@@ -33,3 +35,81 @@ def test_seed_everything_is_reproducible():
     first = torch.rand(3)
     seed_everything(123)
     assert torch.equal(first, torch.rand(3))
+
+
+def test_env_records_where_every_component_came_from(host, tmp_path):
+    from vqtouch.core import __version__
+
+    config = resolve_config("label-to-touch", overrides=[f"output_dir={tmp_path}"], host=host)
+    env = json.loads((RunDir.create(config, host=host).path / "env.json").read_text())
+    components = env["components"]
+    assert components["generator.conditioners.0"] == {"kind": "conditioner", "name": "label", "plugin": "label",
+                                                      "package": "vqtouch", "version": __version__}
+    assert components["metrics.1"]["name"] == "ssim" and components["tokenizer.autoencoder"]["kind"] == "autoencoder"
+    filled = {path for path, info in host.slots.items() if config.slot(path) not in (None, [])}
+    assert {key.rsplit(".", 1)[0] if key.rsplit(".", 1)[-1].isdigit() else key for key in components} == filled
+    assert env["plugins"]["label"]["package"] == "vqtouch"
+
+
+def test_open_run_and_reload_its_config(host, tmp_path):
+    from vqtouch.core import ConfigError
+
+    config = resolve_config("label-to-touch", overrides=[f"output_dir={tmp_path}", "seed=5"], host=host)
+    run = RunDir.create(config, host=host)
+    reopened = RunDir.open(run.path)
+    assert reopened.checkpoints == run.path / "checkpoints"
+    assert reopened.load_config(host) == config
+    with pytest.raises(ConfigError, match="not a run directory"):
+        RunDir.open(tmp_path / "nothing-here")
+
+
+def test_reloading_a_run_whose_plugin_is_gone_names_its_distribution(host, tmp_path):
+    from vqtouch.core import ConfigError, __version__, load_plugins
+
+    config = resolve_config("label-to-touch", overrides=[f"output_dir={tmp_path}"], host=host)
+    run = RunDir.create(config, host=host)
+    without = load_plugins(autoload=False, block=["label"])
+    with pytest.raises(ConfigError) as info:
+        run.load_config(without)
+    assert str(info.value) == (f"{run.path}: generator.conditioners.0 uses conditioner 'label' from vqtouch "
+                               f"{__version__} (plugin 'label'), which is not installed here; pip install vqtouch")
+
+
+def test_third_party_run_component_is_named_from_env(make_plugin, tmp_path):
+    from typing import Literal
+
+    from vqtouch.core import Conditioner, ConfigError, PluginConfig, hookimpl, load_plugins
+
+    class XConfig(PluginConfig):
+        """Options of a third-party conditioner."""
+
+        name: Literal["x"] = "x"
+
+    class X(Conditioner):
+        sample_key = "label"
+
+        def encode(self, condition):
+            return self.null_tokens_ND.expand(len(condition), -1, -1)
+
+    @hookimpl
+    def vqtouch_register_conditioners(register):
+        register("x", lambda config, context: X(context.cond_dim, 1), XConfig)
+
+    with_plugin = load_plugins(autoload=False, extra=[make_plugin("pkg_plugin", vqtouch_register_conditioners)])
+    config = resolve_config("label-to-touch", overrides=[f"output_dir={tmp_path}",
+                                                         'generator.conditioners=[{"name": "x"}]'], host=with_plugin)
+    run = RunDir.create(config, host=with_plugin)
+    assert run.load_config(with_plugin) == config
+    plain = load_plugins(autoload=False)
+    # An in-memory module has no distribution: the plugin name is all there is to name.
+    with pytest.raises(ConfigError, match=r"uses conditioner 'x' from pkg_plugin \(plugin 'pkg_plugin'\), which is "
+                                          r"not installed here; pip install pkg_plugin"):
+        run.load_config(plain)
+    # What an installed distribution records in env.json.
+    env = json.loads((run.path / "env.json").read_text())
+    env["components"]["generator.conditioners.0"].update(package="pkg", version="1.0")
+    run.write_json("env.json", env)
+    with pytest.raises(ConfigError) as info:
+        run.load_config(plain)
+    assert str(info.value).endswith("generator.conditioners.0 uses conditioner 'x' from pkg 1.0 (plugin 'pkg_plugin'), "
+                                    "which is not installed here; pip install pkg")

@@ -327,3 +327,28 @@ def test_tiny_and_huge_codebooks_train_without_nan(tmp_path, codebook_size):
     assert all(all(value == value and abs(value) != float("inf") for value in line.values()
                    if isinstance(value, float)) for line in lines)
     assert lines[-1]["skipped_steps"] == 0.0
+
+
+def test_evaluation_reports_the_codes_the_held_out_images_use(host):
+    """Codebook usage in the evaluation is the quantizer's own count over exactly the evaluated
+    images: checked against the distinct codes of an independent pass over the same images."""
+    from vqtouch.plugins.tokenizer.training import Tokenizer, evaluate_reconstruction
+
+    sensor = host.build("sensor_family", "gelsight")
+    dataset = host.build("dataset", {"name": "procedural", "num_samples": 10, "image_size": 32}, CONTEXT,
+                         sensor=sensor)
+    autoencoder = tiny_encoder("vqgan")
+    quantizer = host.build("quantizer", {"name": "vq", "codebook_size": 64},
+                           CONTEXT.model_copy(update={"latent_dim": autoencoder.latent_channels}))
+    tokenizer = Tokenizer(autoencoder, quantizer)
+    tokenizer.quantizer(torch.randn(4, autoencoder.latent_channels, 8, 8))  # usage from before must not count
+    scores = evaluate_reconstruction(tokenizer, dataset, {}, batch_size=4)
+    images = torch.stack([dataset[i]["tactile"] for i in range(len(dataset))])
+    with torch.no_grad():
+        codes = tokenizer.reconstruct(images)[1].codes_Bhw
+    counts = torch.bincount(codes.flatten(), minlength=64).double()
+    probabilities = counts[counts > 0] / counts.sum()
+    assert scores["codes_used"] == int((counts > 0).sum())
+    assert scores["codebook_usage"] == pytest.approx(scores["codes_used"] / 64)
+    assert scores["perplexity"] == pytest.approx(float(torch.exp(-(probabilities * probabilities.log()).sum())),
+                                                 rel=1e-9)

@@ -10,9 +10,8 @@ import pytest
 import torch
 from torch import nn
 
-from vqtouch.core import BuildContext, Conditioner, PluginConfig, hookimpl, load_plugins
-from vqtouch.core.config import TrainConfig
-from vqtouch.core.training import NonFiniteLossError, Trainer, batch_indices, latest_checkpoint
+from vqtouch.core import BuildContext, Conditioner, PluginConfig, TrainConfig, hookimpl, load_plugins
+from vqtouch.core.training import TRAINER_STATE, NonFiniteLossError, Trainer, batch_indices, latest_checkpoint
 
 
 class ToyDataset:
@@ -96,7 +95,9 @@ def test_training_reduces_the_loss_and_writes_checkpoints(host, tmp_path):
     trainer.fit()
     assert task.losses[-1] < task.losses[0] / 5
     assert latest_checkpoint(tmp_path / "checkpoints").name == "step-00000040"
-    assert (tmp_path / "checkpoints" / "latest").read_text().strip() == "step-00000040"
+    # The newest complete step-* folder is the one source of truth: no pointer file to fall out of date.
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == [
+        f"step-{step:08d}" for step in range(4, 41, 4)]
     assert {p.name for p in (tmp_path / "checkpoints" / "step-00000004").iterdir()} == {
         "model.safetensors", "trainer_state.safetensors"}
 
@@ -157,8 +158,34 @@ def test_resume_without_checkpoint_returns_false(host, tmp_path):
 def test_incomplete_checkpoint_folder_is_ignored(host, tmp_path):
     trainer, _ = make_trainer(host, tmp_path, steps=8)
     trainer.fit()
-    (tmp_path / "checkpoints" / "step-00000099").mkdir()  # a save that died before its trainer state
-    assert latest_checkpoint(tmp_path / "checkpoints").name == "step-00000008"
+    checkpoints = tmp_path / "checkpoints"
+    (checkpoints / "step-00000099").mkdir()  # a save that died before writing anything
+    # A save that died after the module files but before its trainer state (written last).
+    newer = checkpoints / "step-00000012"
+    newer.mkdir()
+    (newer / "model.safetensors").write_bytes((checkpoints / "step-00000008" / "model.safetensors").read_bytes())
+    assert latest_checkpoint(checkpoints).name == "step-00000008"
+    resumed, _ = make_trainer(host, tmp_path, steps=12)
+    assert resumed.resume(checkpoints) and resumed.state.step == 8
+    # Once the newer folder is complete, it is the latest.
+    (newer / TRAINER_STATE).write_bytes((checkpoints / "step-00000008" / TRAINER_STATE).read_bytes())
+    assert latest_checkpoint(checkpoints).name == "step-00000012"
+    assert latest_checkpoint(tmp_path / "no-such-folder") is None
+
+
+def test_train_config_defaults_are_generic_and_stages_subclass_them(host, tmp_path):
+    from vqtouch.core import resolve_config
+
+    assert TrainConfig().betas == (0.9, 0.999) and TrainConfig().optimizer == "adamw"
+    trainer, _ = make_trainer(host, tmp_path, steps=1)
+    assert trainer.optimizers["main"].defaults["betas"] == (0.9, 0.999)
+    trainer, _ = make_trainer(host, tmp_path, steps=1, betas=(0.5, 0.9))
+    assert trainer.optimizers["main"].defaults["betas"] == (0.5, 0.9)
+    # The tokenizer stage owns its TrainConfig (tokenizer.train.*), with VQGAN's betas.
+    config = resolve_config("label-to-touch", overrides=["tokenizer.train.steps=7"], host=load_plugins(autoload=False))
+    assert isinstance(config.tokenizer.train, TrainConfig)
+    assert config.tokenizer.train.steps == 7 and config.tokenizer.train.betas == (0.5, 0.9)
+    assert "train" not in type(config).model_fields
 
 
 def test_resume_with_different_batch_size_is_refused(host, tmp_path):
