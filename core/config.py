@@ -1,9 +1,10 @@
 """Experiment configuration: strict sections, plugin slots and how configs are resolved.
 
-An experiment is described by one :class:`ExperimentConfig`.  Wherever a plugin is chosen
-(a *slot*: ``sensor``, ``tokenizer.encoder``, ``conditioner``, ...), the block is a
-mapping with a ``name`` key; the rest of the block is validated against that plugin's own
-options model, taken from the live registries, as soon as the config is loaded.
+An experiment is described by one config: core's :class:`ExperimentConfig` plus one section
+per registered stage (``PluginHost.experiment_model``).  Wherever a plugin is chosen (a
+*slot*: ``sensor``, ``tokenizer.autoencoder``, ``generator.conditioners``, ...), the block is
+a mapping with a ``name`` key; the rest of the block is validated against that plugin's own
+options model, taken from the host's registries, as soon as the config is loaded.
 
 Resolution order (later wins): scene preset -> config files (TOML or JSON, in order) ->
 ``--set path=value`` overrides.  Selecting another plugin for a slot (changing its
