@@ -3,6 +3,7 @@ test turns it on explicitly, and progress bars are off."""
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import subprocess
 import sys
@@ -21,6 +22,18 @@ from vqtouch.core import load_plugins  # noqa: E402
 
 TESTS = Path(__file__).resolve().parent
 REPO = TESTS.parent
+
+
+def _register_helper_module(name: str) -> None:
+    """Make ``tests/<name>.py`` importable as ``import <name>``: test modules cannot import each
+    other under --import-mode=importlib, and conftest is loaded before any of them."""
+    spec = importlib.util.spec_from_file_location(name, TESTS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+
+
+_register_helper_module("dataset_fixtures")
 
 
 @pytest.fixture(autouse=True)
@@ -58,6 +71,49 @@ def make_plugin():
         return module
 
     return make
+
+
+@pytest.fixture
+def built_kinds(monkeypatch) -> list[str]:
+    """The registry kind of every component any PluginHost builds during the test, in order."""
+    from vqtouch.core import PluginHost
+
+    kinds: list[str] = []
+    original = PluginHost.build
+
+    def recording_build(self, kind, *args, **kwargs):
+        kinds.append(kind)
+        return original(self, kind, *args, **kwargs)
+
+    monkeypatch.setattr(PluginHost, "build", recording_build)
+    return kinds
+
+
+@pytest.fixture
+def third_party_conditioner(make_plugin):
+    """An in-memory plugin module registering conditioner ``x`` (class ``plugin.Extra``)."""
+    from typing import Literal
+
+    from vqtouch.core import Conditioner, PluginConfig, hookimpl
+
+    class ExtraConfig(PluginConfig):
+        """Options of a third-party conditioner."""
+
+        name: Literal["x"] = "x"
+
+    class Extra(Conditioner):
+        sample_key = "label"
+
+        def encode(self, condition):
+            return self.null_tokens_ND.expand(len(condition), -1, -1)
+
+    @hookimpl
+    def vqtouch_register_conditioners(register):
+        register("x", lambda config, context: Extra(context.cond_dim, 1), ExtraConfig)
+
+    plugin = make_plugin("pkg_plugin", vqtouch_register_conditioners)
+    plugin.Extra = Extra
+    return plugin
 
 
 @pytest.fixture

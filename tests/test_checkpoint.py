@@ -192,29 +192,10 @@ def test_missing_plugin_is_named_with_its_distribution(tmp_path):
                                "installed here; pip install vqtouch")
 
 
-def test_missing_third_party_plugin_names_the_distribution_from_the_header(tmp_path, make_plugin):
-    from typing import Literal
-
+def test_missing_third_party_plugin_names_the_distribution_from_the_header(tmp_path, third_party_conditioner):
     from safetensors.torch import save_model
 
-    from vqtouch.core import Conditioner, PluginConfig
-
-    class ExtraConfig(PluginConfig):
-        """Options of a third-party conditioner."""
-
-        name: Literal["x"] = "x"
-
-    class Extra(Conditioner):
-        sample_key = "label"
-
-        def encode(self, condition):
-            return self.null_tokens_ND.expand(len(condition), -1, -1)
-
-    @hookimpl
-    def vqtouch_register_conditioners(register):
-        register("x", lambda config, context: Extra(context.cond_dim, 1), ExtraConfig)
-
-    with_plugin = load_plugins(autoload=False, extra=[make_plugin("pkg_plugin", vqtouch_register_conditioners)])
+    with_plugin = load_plugins(autoload=False, extra=[third_party_conditioner])
     component = with_plugin.build("conditioner", "x", CONTEXT)
     metadata = read_metadata(save(component, tmp_path / "ok.safetensors", host=with_plugin))
     # What an installed distribution records (an in-memory module has none).
@@ -224,7 +205,7 @@ def test_missing_third_party_plugin_names_the_distribution_from_the_header(tmp_p
         load(tmp_path / "x.safetensors", host=load_plugins(autoload=False))
     assert str(info.value).endswith("made by conditioner 'x' from pkg 1.0, which is not installed here; "
                                     "pip install pkg")
-    assert isinstance(load(tmp_path / "x.safetensors", host=with_plugin), Extra)
+    assert isinstance(load(tmp_path / "x.safetensors", host=with_plugin), third_party_conditioner.Extra)
 
 
 def test_shape_mismatch_names_tensor(host, tmp_path):

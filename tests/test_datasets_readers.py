@@ -7,11 +7,9 @@ not just from shapes.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import pickle
 import shutil
-import sys
 import warnings
 from pathlib import Path
 
@@ -22,17 +20,7 @@ from vqtouch.core import ConfigError, DatasetError, TactileDataset, load_plugins
 from vqtouch.plugins.data.readers._io import ImageLoader, SkippedSamplesWarning
 
 
-def _load_layout_builders():
-    # Test modules cannot import each other under --import-mode=importlib: load the helper by path.
-    path = Path(__file__).with_name("dataset_fixtures.py")
-    spec = importlib.util.spec_from_file_location("dataset_fixtures", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-layouts = _load_layout_builders()
+import dataset_fixtures as layouts  # noqa: E402  (registered by conftest)
 CASES = layouts.READER_CASES
 HOST = load_plugins(autoload=False, extra=sorted({case.module for case in CASES}))
 SIZE = 16

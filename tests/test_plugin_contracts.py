@@ -7,8 +7,6 @@ readers need) and checks that the helpers catch broken plugins.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 from typing import Any, Literal
 
@@ -56,17 +54,9 @@ TINY_CLIP = {
 }
 
 
-def _load_layout_builders():
-    # Test modules cannot import each other under --import-mode=importlib: load the helper by path.
-    path = Path(__file__).with_name("dataset_fixtures.py")
-    spec = importlib.util.spec_from_file_location("dataset_fixtures", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+import dataset_fixtures  # noqa: E402  (registered by conftest)
 
-
-READER_CASES = {case.name: case for case in _load_layout_builders().READER_CASES}
+READER_CASES = {case.name: case for case in dataset_fixtures.READER_CASES}
 
 
 def tiny_clip_weights(folder: Path) -> Path:

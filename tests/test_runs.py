@@ -75,27 +75,10 @@ def test_reloading_a_run_whose_plugin_is_gone_names_its_distribution(host, tmp_p
                                f"{__version__} (plugin 'label'), which is not installed here; pip install vqtouch")
 
 
-def test_third_party_run_component_is_named_from_env(make_plugin, tmp_path):
-    from typing import Literal
+def test_third_party_run_component_is_named_from_env(third_party_conditioner, tmp_path):
+    from vqtouch.core import ConfigError, load_plugins
 
-    from vqtouch.core import Conditioner, ConfigError, PluginConfig, hookimpl, load_plugins
-
-    class XConfig(PluginConfig):
-        """Options of a third-party conditioner."""
-
-        name: Literal["x"] = "x"
-
-    class X(Conditioner):
-        sample_key = "label"
-
-        def encode(self, condition):
-            return self.null_tokens_ND.expand(len(condition), -1, -1)
-
-    @hookimpl
-    def vqtouch_register_conditioners(register):
-        register("x", lambda config, context: X(context.cond_dim, 1), XConfig)
-
-    with_plugin = load_plugins(autoload=False, extra=[make_plugin("pkg_plugin", vqtouch_register_conditioners)])
+    with_plugin = load_plugins(autoload=False, extra=[third_party_conditioner])
     config = resolve_config("label-to-touch", overrides=[f"output_dir={tmp_path}",
                                                          'generator.conditioners=[{"name": "x"}]'], host=with_plugin)
     run = RunDir.create(config, host=with_plugin)

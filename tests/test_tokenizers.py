@@ -141,21 +141,14 @@ def test_bad_configs_are_clear():
         HOST.build("autoencoder", {"name": "vqgan", "max_offset": 2.0}, CONTEXT)  # a DM option on vanilla VQGAN
 
 
-def test_reconstruct_stage_never_builds_a_discriminator_dataset_or_generator(tmp_path, monkeypatch):
+def test_reconstruct_stage_never_builds_a_discriminator_dataset_or_generator(tmp_path, request):
     from vqtouch.core import Assembly, RunDir, run_stage
 
     config = resolve_config("reconstruction", overrides=[*TRAIN_OVERRIDES, 'stages=["tokenizer"]'], host=HOST)
     assert config.tokenizer.discriminator is not None  # the training stage uses it ...
     run = RunDir.create(config, host=HOST, path=tmp_path / "run")
     assert run_stage("tokenizer", Assembly(config, HOST), run).status == "ran"
-    built_kinds: list[str] = []
-    original = type(HOST).build
-
-    def recording_build(self, kind, *args, **kwargs):
-        built_kinds.append(kind)
-        return original(self, kind, *args, **kwargs)
-
-    monkeypatch.setattr(type(HOST), "build", recording_build)
+    built_kinds = request.getfixturevalue("built_kinds")  # record from here on
     outcome = run_stage("reconstruct", Assembly(config, HOST), run)
     assert outcome.status == "ran", outcome.describe()
     # ... reconstructing loads the trained tokenizer and renders nothing: no discriminator, no data.
