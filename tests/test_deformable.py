@@ -377,3 +377,19 @@ def test_without_torchvision_only_the_torchvision_tests_skip():
     # Every grid_sample case runs and passes; exactly its torchvision twin skips, with the reason.
     assert counts.get("passed", 0) == counts.get("skipped", 0) > 0 and set(counts) == {"passed", "skipped"}, counts
     assert "torchvision.ops is not importable" in completed.stdout
+
+
+def test_torchvision_backend_without_torchvision_fails_when_built(monkeypatch):
+    """A missing torchvision is reported when the model is built, with the fix, not mid-training."""
+    import importlib.util
+
+    from vqtouch.core import ConfigError
+    from vqtouch.plugins.tokenizer.deformable import DeformableConv2d
+
+    real_find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "torchvision" else real_find_spec(name, *a))
+    with pytest.raises(ConfigError, match=r"deformable_backend 'torchvision' needs torchvision, which is not "
+                                          r"installed: pip install torchvision"):
+        DeformableConv2d(4, 4, 3, padding=1, backend="torchvision")
+    DeformableConv2d(4, 4, 3, padding=1, backend="grid_sample")  # the default needs nothing

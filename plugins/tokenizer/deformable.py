@@ -26,12 +26,15 @@ layer computes exactly the plain convolution.
 
 from __future__ import annotations
 
+import importlib.util
 import math
 from typing import Literal
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from vqtouch.core import ConfigError
 
 __all__ = ["DeformableConv2d", "deform_conv2d_grid_sample", "deform_conv2d_torchvision"]
 
@@ -261,6 +264,11 @@ class DeformableConv2d(nn.Module):
                              f"got {max_offset!r}")
         if backend not in BACKENDS:
             raise ValueError(f"DeformableConv2d: backend must be one of {BACKENDS}, got {backend!r}")
+        if backend == "torchvision" and importlib.util.find_spec("torchvision") is None:
+            # Fail when the model is built, not at its first forward pass deep inside training.
+            raise ConfigError("deformable_backend 'torchvision' needs torchvision, which is not installed: "
+                              "pip install torchvision (it comes with vqtouch[clip]), or use the default "
+                              "'grid_sample' backend (same maths, no extra package)")
         self.in_channels, self.out_channels = in_channels, out_channels
         self.kernel_size = _pair(kernel_size, "kernel_size")
         self.stride, self.padding = _pair(stride, "stride"), _pair(padding, "padding")
