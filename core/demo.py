@@ -137,7 +137,8 @@ def run_demo(config: ExperimentConfig, host: Any, run: RunDir) -> dict[str, Any]
         try:
             built = assembly.component(path)
         except VqtouchError as exc:
-            report["components"].append({"slot": path, "plugin": None, "status": f"skipped: {exc}"})
+            names = ", ".join(item.name for item in value) if info.many else value.name
+            report["components"].append({"slot": path, "plugin": names, "status": f"skipped: {exc}"})
             continue
         items = list(zip(value, built)) if info.many else [(value, built)]
         for index, (item, component) in enumerate(items):
