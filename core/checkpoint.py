@@ -14,14 +14,18 @@ The header metadata (strings only) carries:
 =========================  =====================================================
 
 Writes are atomic (temporary file in the same folder, fsync, rename), so an interrupted
-save never replaces a good checkpoint with a broken one.  Loading is strict: every
+save never replaces a good checkpoint with a broken one; a write that fails (a full disk,
+a read-only folder) is a one-line :class:`CheckpointError` naming the file, the cause and the
+fix.  Finished files get the mode the user's umask asks for.  Loading is strict: every
 tensor must match the rebuilt module by name and shape.  No pickle is involved.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import re
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -29,7 +33,7 @@ from typing import Any
 
 import torch
 from pydantic import ValidationError
-from safetensors import safe_open
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_model
 from torch import nn
 
@@ -57,8 +61,33 @@ def _fsync_directory(directory: Path) -> None:
         os.close(fd)
 
 
+#: The temporaries of :func:`atomic_write` (``tempfile.mkstemp``: ``.<name>.<8 characters>.tmp``).
+TEMPORARY_FILE = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
+#: The temporary safetensors writes next to the file it is asked for (Rust ``tempfile``:
+#: ``.tmp<6 characters>``); in a checkpoint folder it is the full-size leftover of a killed save.
+SAFETENSORS_TEMPORARY_FILE = re.compile(r"\.tmp[A-Za-z0-9]{6}")
+
+
+def _umask() -> int:
+    # Read without changing it where possible: os.umask() sets the mask for every thread.
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write(path: str | Path, write: Any) -> Path:
-    """Call ``write(tmp_path)`` then move the finished file onto ``path`` atomically."""
+    """Call ``write(tmp_path)`` then move the finished file onto ``path`` atomically.
+
+    The file gets mode ``0o666 & ~umask`` like any file the user creates (mkstemp, and
+    safetensors' own temporary, would leave it readable by its owner only).
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -66,6 +95,7 @@ def atomic_write(path: str | Path, write: Any) -> Path:
     tmp_path = Path(tmp_name)
     try:
         write(tmp_path)
+        os.chmod(tmp_path, 0o666 & ~_umask())
         with open(tmp_path, "rb+") as handle:
             handle.flush()
             os.fsync(handle.fileno())
@@ -75,6 +105,67 @@ def atomic_write(path: str | Path, write: Any) -> Path:
         tmp_path.unlink(missing_ok=True)
         raise
     return path
+
+
+def remove_stale_temporaries(folder: Path, *, safetensors_temporaries: bool = False) -> list[Path]:
+    """Delete the leftovers of interrupted :func:`atomic_write` calls in ``folder`` (not below it).
+
+    Only names of atomic_write's pattern are touched, and with ``safetensors_temporaries`` also
+    the ``.tmpXXXXXX`` files safetensors writes (pass it only for folders that nothing but
+    vqtouch writes to, such as ``checkpoints/step-*``).  Call it only when no other process is
+    writing there: a temporary being written looks the same as a stale one.
+    """
+    removed = []
+    try:
+        entries = list(folder.iterdir())
+    except OSError:
+        return removed
+    for entry in entries:
+        stale = TEMPORARY_FILE.fullmatch(entry.name) or (
+            safetensors_temporaries and SAFETENSORS_TEMPORARY_FILE.fullmatch(entry.name))
+        if stale and entry.is_file() and not entry.is_symlink():
+            try:
+                entry.unlink()
+            except OSError:
+                continue
+            removed.append(entry)
+    return removed
+
+
+#: What to do about a write that failed, by errno.
+_WRITE_FIXES = {errno.ENOSPC: "free disk space and run again", errno.EDQUOT: "free disk space and run again",
+                errno.EACCES: "make {folder} writable or write elsewhere",
+                errno.EPERM: "make {folder} writable or write elsewhere",
+                errno.EROFS: "make {folder} writable or write elsewhere"}
+
+
+class CheckpointWriteError(CheckpointError):
+    """Writing a checkpoint file failed (full disk, read-only folder, ...); nothing was replaced."""
+
+    def __init__(self, path: Path, cause: str, fix: str, kept: str = "nothing was replaced") -> None:
+        super().__init__(f"{path}: could not write the checkpoint file: {cause}; {fix} ({kept})")
+        self.path, self.cause, self.fix = path, cause, fix
+
+    def keeping(self, kept: str) -> CheckpointWriteError:
+        """The same error, saying what the caller kept (e.g. the run's last complete checkpoint)."""
+        return CheckpointWriteError(self.path, self.cause, self.fix, kept)
+
+
+def write_checkpoint_file(path: str | Path, write: Any) -> Path:
+    """:func:`atomic_write` for checkpoint files: an OSError or safetensors error while writing
+    becomes a one-line :class:`CheckpointWriteError` naming the file, the cause and the fix."""
+    path = Path(path)
+    try:
+        return atomic_write(path, write)
+    except OSError as exc:
+        cause, code = exc.strerror or _first_line(exc), exc.errno
+    except SafetensorError as exc:
+        # e.g. "Error while serializing: I/O error: No space left on device (os error 28) at path ..."
+        text = _first_line(exc)
+        found = re.search(r"I/O error: (.+?) \(os error (\d+)\)", text)
+        cause, code = (found.group(1), int(found.group(2))) if found else (text, None)
+    fix = _WRITE_FIXES.get(code, "check the disk and run again").format(folder=path.parent)
+    raise CheckpointWriteError(path, cause, fix) from None
 
 
 def checkpoint_metadata(component: nn.Module, step: int, host: Any = None) -> dict[str, str]:
@@ -108,13 +199,17 @@ def checkpoint_metadata(component: nn.Module, step: int, host: Any = None) -> di
 
 
 def save(component: nn.Module, path: str | Path, *, step: int = 0, host: Any = None) -> Path:
-    """Write ``component`` to ``path`` (a ``.safetensors`` file) atomically; returns the path."""
+    """Write ``component`` to ``path`` (a ``.safetensors`` file) atomically; returns the path.
+
+    A failed write (full disk, ...) raises :class:`CheckpointWriteError`; the file that was at
+    ``path`` is untouched.
+    """
     path = Path(path)
     if path.suffix != ".safetensors":
         raise CheckpointError(f"{path}: checkpoint files must end in .safetensors")
     metadata = checkpoint_metadata(component, step, host)
     # safetensors refuses non-contiguous tensors; save_model also de-duplicates tied weights.
-    atomic_write(path, lambda tmp: save_model(component, str(tmp), metadata=metadata))
+    write_checkpoint_file(path, lambda tmp: save_model(component, str(tmp), metadata=metadata))
     return path
 
 

@@ -8,13 +8,17 @@ errors print one line, ``vqtouch: error: ...``, and exit with status 2.
 from __future__ import annotations
 
 import argparse
+import errno
 import json
+import os
+import stat
 import sys
+import traceback
 from collections.abc import Sequence
 from typing import Any
 
 from .config import resolve_config
-from .errors import ConfigError, VqtouchError
+from .errors import ConfigError, VqtouchError, one_line
 from .plugin_manager import PluginHost, load_plugins
 from .progress import disable_progress
 from .stages import StageOutcome, empty_slot_reason, missing_slots
@@ -132,8 +136,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     config = config_from_args(args, host)
     if not args.full:
         config = scale_for_demo(config, host)
-    run = RunDir.create(config, argv=args.argv, host=host, path=args.out)
-    report = run_demo(config, host, run)
+    run = RunDir.create(config, argv=args.argv, host=host, path=args.out, overwrite=args.overwrite)
+    with run:  # releases the run's lock however the demo ends
+        report = run_demo(config, host, run)
     print(f"report: {run.path / 'report.md'}")
     ran = sum(stage["status"].startswith("ran") for stage in report["stages"])
     blocked = sum(stage["status"].startswith("cannot run") for stage in report["stages"])
@@ -176,6 +181,8 @@ def build_parser(host: PluginHost) -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="run a scene end to end on the embedded data and write a report")
     add_config_arguments(demo, default_scene="reconstruction")
     demo.add_argument("--out", help="run directory (default: <output_dir>/<name>-<time>-<hash>)")
+    demo.add_argument("--overwrite", action="store_true",
+                      help="empty the --out run directory first (refused for a folder that holds no run)")
     demo.add_argument("--full", action="store_true",
                       help="run the scene at its configured size (default: scaled down to minutes on a CPU)")
     demo.set_defaults(handler=_cmd_demo)
@@ -185,11 +192,92 @@ def build_parser(host: PluginHost) -> argparse.ArgumentParser:
     return parser
 
 
+ENV_DEBUG = "VQTOUCH_DEBUG"
+
+#: What to do about an OSError, by errno; the message already names the file and the error.
+#: Most come from creating a run's folder, hence the pointers to --out and output_dir.
+_WRITE_ELSEWHERE = "write the run elsewhere (--out or output_dir)"
+_OS_ERROR_HINTS = {
+    errno.EACCES: f"fix its permissions, or {_WRITE_ELSEWHERE}",
+    errno.EPERM: f"fix its permissions, or {_WRITE_ELSEWHERE}",
+    errno.EROFS: f"the file system is read-only: {_WRITE_ELSEWHERE}",
+    errno.ENOSPC: f"the disk is full: free space, or {_WRITE_ELSEWHERE}",
+    errno.EDQUOT: f"the disk quota is used up: free space, or {_WRITE_ELSEWHERE}",
+    errno.EEXIST: "a file is in the way where a folder is needed: remove it or choose another path",
+    errno.ENOTDIR: "part of the path is a file, not a folder: choose another path",
+    errno.EISDIR: "it is a folder where a file is needed: give the path of a file",
+    errno.ENOENT: "check the path: a part of it does not exist",
+}
+
+
+def _debug_requested(argv: Sequence[str]) -> bool:
+    """``--debug`` among the global options (before the command), or ``VQTOUCH_DEBUG`` set and not 0.
+
+    Read from argv rather than the parsed arguments: loading plugins, which may fail, comes
+    before parsing.
+    """
+    if os.environ.get(ENV_DEBUG, "").strip() not in {"", "0"}:
+        return True
+    for token in argv:
+        if not token.startswith("-"):  # the command: what follows belongs to it
+            return False
+        if token == "--debug":
+            return True
+    return False
+
+
+def _os_error_message(exc: OSError) -> str:
+    """``FILE: strerror; what to do`` for an OSError (creating a run, reading a file, ...)."""
+    if exc.filename is None:  # no file to name (e.g. one carried out of a DataLoader worker)
+        return one_line(str(exc)) + " (run with --debug for the traceback)"
+    where = str(exc.filename) + (f" -> {exc.filename2}" if exc.filename2 is not None else "")
+    hint = _OS_ERROR_HINTS.get(exc.errno, "run with --debug for the traceback")
+    return f"{where}: {exc.strerror or one_line(str(exc))}; {hint}"
+
+
+def user_error_message(exc: BaseException) -> str | None:
+    """The one-line message of an error the user can fix, or None for a bug (which keeps its traceback).
+
+    Besides :class:`VqtouchError`: OSError (an output folder that cannot be created, a file that
+    cannot be read) and a JSON file that does not parse (e.g. a run's damaged config.json).
+    """
+    if isinstance(exc, VqtouchError):
+        return one_line(str(exc))
+    if isinstance(exc, OSError):
+        return _os_error_message(exc)
+    if isinstance(exc, json.JSONDecodeError):
+        # The decoder does not know the file; the callers that read run files name it themselves.
+        return (f"a JSON file is not valid JSON ({exc.msg}: line {exc.lineno} column {exc.colno}); if it is a run's "
+                "config.json or env.json, restore it from a copy (run with --debug to see which file)")
+    return None
+
+
+def _silence_stdout() -> None:
+    """After a closed pipe on stdout: point stdout at /dev/null so that flushing it at exit does not
+    fail again (the recipe of Python's documentation on SIGPIPE)."""
+    try:
+        fd = sys.stdout.fileno()
+        # Only a pipe: main() may run inside a process whose stdout is a file or a terminal, which a
+        # BrokenPipeError from elsewhere must not silence for good.
+        if stat.S_ISFIFO(os.fstat(fd).st_mode):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), fd)
+    except (OSError, ValueError, AttributeError):  # stdout replaced by an object without a descriptor
+        pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``vqtouch`` command; returns the exit status."""
+    """Entry point of the ``vqtouch`` command; returns the exit status.
+
+    A user error prints one line, ``vqtouch: error: ...``, and returns 2 (``--debug`` or
+    ``VQTOUCH_DEBUG=1`` print the traceback first); Ctrl-C returns 130; a closed stdout
+    (``vqtouch plugins | head``) returns 141 quietly, as SIGPIPE would.
+    """
     argv = list(sys.argv[1:] if argv is None else argv)
+    debug = _debug_requested(argv)
     try:
         parser = build_parser(load_plugins())
+        parser.add_argument("--debug", action="store_true",
+                            help=f"on an error, show the full traceback (also {ENV_DEBUG}=1)")
         args = parser.parse_args(argv)
         if args.no_progress:
             disable_progress()
@@ -197,13 +285,25 @@ def main(argv: Sequence[str] | None = None) -> int:
             parser.print_help()
             return 2
         args.argv = ["vqtouch", *argv]
-        return int(args.handler(args) or 0)
-    except VqtouchError as exc:
-        print(f"vqtouch: error: {exc}", file=sys.stderr)
-        return 2
+        status = int(args.handler(args) or 0)
+        sys.stdout.flush()  # a reader that went away shows here, not in the flush at exit
+        return status
+    except BrokenPipeError:
+        _silence_stdout()
+        return 141  # 128 + SIGPIPE: what a shell reports for a command stopped by a closed pipe
     except KeyboardInterrupt:
+        if debug:
+            traceback.print_exc()
         print("vqtouch: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # noqa: BLE001 - only user errors are caught; the rest is re-raised
+        message = user_error_message(exc)
+        if message is None:
+            raise
+        if debug:
+            traceback.print_exc()
+        print(f"vqtouch: error: {message}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

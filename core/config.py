@@ -127,10 +127,17 @@ class DataConfig(Section):
     dataset: Slot("dataset") | None = Field(
         None, description="Dataset plugin and its options: a reader of real data (e.g. touch_and_go with its root) "
                           "or the embedded procedural scenes, which render with the experiment's sensor.")
-    image_size: int = Field(64, ge=8, le=4096, description="Side of the square images fed to the models, in pixels.")
-    batch_size: int = Field(16, ge=1, le=65536, description="Images per optimisation step (per process).")
-    num_workers: int = Field(0, ge=0, le=256, description="DataLoader worker processes (0 loads in the main process).")
-    val_fraction: float = Field(0.1, ge=0.0, lt=1.0, description="Fraction of samples held out for evaluation.")
+    # Strict: in lax mode `true` would validate as 1 (and `false` as val_fraction 0) or "16" as
+    # 16, a config that runs but is not what was written.  Strict floats still take integers.
+    image_size: int = Field(64, ge=8, le=4096, strict=True,
+                            description="Side of the square images fed to the models, in pixels.")
+    batch_size: int = Field(16, ge=1, le=65536, strict=True,
+                            description="Images per optimisation step (per process).")
+    num_workers: int = Field(0, ge=0, le=256, strict=True,
+                             description="DataLoader worker processes (0 loads in the main process).")
+    val_fraction: float = Field(0.1, ge=0.0, lt=1.0, strict=True,
+                                description="Fraction of samples held out for evaluation; 0 trains on every "
+                                            "sample and skips the held-out evaluation.")
 
 
 def _known_stages(stages: list[str], info: ValidationInfo) -> list[str]:
@@ -196,7 +203,12 @@ def load_config_file(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file {str(path)!r} does not exist")
-    text = path.read_text(encoding="utf-8")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        # TOML and JSON are UTF-8 by definition; a file saved in another encoding is the usual cause.
+        raise ConfigError(f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at position {exc.start}); "
+                          "save it as UTF-8 (TOML and JSON config files are UTF-8)") from None
     suffix = path.suffix.lower()
     try:
         if suffix == ".toml":

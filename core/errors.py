@@ -1,12 +1,14 @@
 """Exceptions raised by vqtouch.
 
 Every error a user can trigger derives from :class:`VqtouchError`; the CLI prints it as
-one line (``error: ...``) and exits with status 2 instead of showing a traceback.
+one line (``vqtouch: error: ...``, see :func:`one_line`) and exits with status 2 instead of
+showing a traceback (``--debug`` or ``VQTOUCH_DEBUG=1`` show it).
 """
 
 from __future__ import annotations
 
 import difflib
+import re
 from collections.abc import Iterable
 from typing import Any
 
@@ -40,6 +42,32 @@ class DatasetError(VqtouchError):
 
 class MissingWeightsError(VqtouchError):
     """Pretrained weights that a component needs were not provided as a local file."""
+
+
+class NothingToEvaluateError(VqtouchError):
+    """An evaluation was given no samples (e.g. the held-out split of ``data.val_fraction=0``).
+
+    A distinct class so that a stage can skip its evaluation and say why instead of failing
+    after the training it has done.
+    """
+
+
+# PyTorch re-raises an exception from a DataLoader worker as the same type, but with the
+# worker's whole traceback as its message; the original message is its last line.
+_WORKER_ERROR = re.compile(
+    r"Caught (?P<type>\w+) in DataLoader worker process \d+\.\s*\n"
+    r"Original Traceback \(most recent call last\):\n.*\n(?:[\w.]+\.)?(?P=type): (?P<message>[^\n]*)\s*\Z",
+    re.DOTALL)
+
+
+def one_line(message: str) -> str:
+    """``message`` as the one line a user error promises.
+
+    An error that PyTorch carried out of a DataLoader worker gets back its original message
+    (the copy of the worker's traceback is dropped); any other line breaks become ``"; "``.
+    """
+    message = _WORKER_ERROR.sub(lambda match: match["message"], message)
+    return "; ".join(line.strip() for line in message.splitlines() if line.strip())
 
 
 def closest_match(name: str, candidates: Iterable[str]) -> str | None:

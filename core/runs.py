@@ -6,7 +6,15 @@ Layout::
         config.json     the fully resolved ExperimentConfig
         env.json        versions, plugins, command line, seed, git revision
         metrics.jsonl   one JSON object per logged step
-        checkpoints/    safetensors files, one per component
+        checkpoints/    step-NNNNNNNN/ folders, one safetensors file per trained component
+        .vqtouch.lock   advisory lock of the process writing the run (holds its pid)
+
+A folder holds one run.  :meth:`RunDir.create` refuses a folder that already holds files
+(``overwrite=True`` empties a run directory first, never another folder), and one process at a
+time writes a run: :meth:`RunDir.create` and ``RunDir.open(..., for_writing=True)`` take an
+``fcntl.flock`` on ``.vqtouch.lock``, which the operating system releases when the process ends,
+however it ends.  Readers take no lock.  Whatever reads a run's weights asks :meth:`RunDir.checkpoint`,
+which also checks that the files were made with the run's own config.
 """
 
 from __future__ import annotations
@@ -15,16 +23,40 @@ import datetime as _dt
 import hashlib
 import importlib.metadata as importlib_metadata
 import json
+import os
 import platform
+import shutil
 import subprocess
 import sys
+import time
+import weakref
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from .checkpoint import atomic_write
+from .checkpoint import atomic_write, read_metadata
 from .config import ExperimentConfig, validate_experiment
-from .errors import ConfigError
+from .errors import CheckpointError, ConfigError
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - Windows has no flock; runs there are simply not locked
+    fcntl = None
+
+#: The lock file inside a run; it stays after the run (removing it would let two processes
+#: lock two different files of the same name).  Only RunDir makes it, so it also marks a run
+#: directory whose config.json is not written yet.
+LOCK_NAME = ".vqtouch.lock"
+
+
+class MissingCheckpointError(CheckpointError):
+    """A run has no (complete) checkpoint to read, as opposed to one that is wrong."""
+
+
+def is_main_process() -> bool:
+    """False in the ranks other than 0 of a ``torchrun`` launch: they share rank 0's run
+    directory, and rank 0 alone creates, locks and writes it."""
+    return int(os.environ.get("WORLD_SIZE", "1")) <= 1 or int(os.environ.get("RANK", "0")) == 0
 
 
 def config_hash(config: ExperimentConfig) -> str:
@@ -93,33 +125,170 @@ def component_sources(config: ExperimentConfig, host: Any) -> dict[str, dict[str
 
 
 class RunDir:
-    """A run's output folder; create one with :meth:`create`."""
+    """A run's output folder; create one with :meth:`create`, reopen one with :meth:`open`.
+
+    A RunDir that writes holds the run's lock until :meth:`close` (or the end of the process);
+    it is also a context manager that closes on exit.
+    """
 
     def __init__(self, path: Path) -> None:
         self.path = path
         self.checkpoints = path / "checkpoints"
+        self._unlock: weakref.finalize | None = None
 
     @classmethod
     def create(cls, config: ExperimentConfig, *, argv: Sequence[str] | None = None, host: Any = None,
-               path: str | Path | None = None) -> RunDir:
-        """Make the folder (under ``config.output_dir`` unless ``path`` is given) and write config/env."""
+               path: str | Path | None = None, overwrite: bool = False) -> RunDir:
+        """Make the folder (under ``config.output_dir`` unless ``path`` is given), lock it and write
+        config/env.
+
+        A folder that already holds files is refused (ConfigError naming ``--resume`` and
+        ``--overwrite``); with ``overwrite`` a run directory (one with a config.json or a
+        lock file) is emptied first.  A folder that holds files but no run is never emptied.
+        """
         if path is None:
             stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
             path = Path(config.output_dir) / f"{config.name}-{stamp}-{config_hash(config)}"
         run = cls(Path(path))
-        run.path.mkdir(parents=True, exist_ok=True)
-        run.checkpoints.mkdir(exist_ok=True)
-        run.write_json("config.json", config.to_dict())
-        run.write_json("env.json", environment_record(config, argv, host))
+        if not is_main_process():
+            return run
+        # Checked before locking too, so that a refused foreign folder does not get a lock file.
+        run._refuse_foreign_folder()
+        try:
+            run.path.mkdir(parents=True, exist_ok=True)
+        except (FileExistsError, NotADirectoryError):
+            raise ConfigError(f"{run.path} is a file, not a folder; choose another --out") from None
+        run._lock()
+        try:
+            # Checked again under the lock: the folder may have changed since the check above.
+            run._refuse_foreign_folder()
+            if run._contents():
+                if not overwrite:
+                    raise ConfigError(f"{run.path} already holds a run; continue it with --resume {run.path}, start it "
+                                      "afresh with --overwrite, or choose another --out")
+                for entry in run._contents():
+                    if entry.is_dir() and not entry.is_symlink():
+                        shutil.rmtree(entry)
+                    else:
+                        entry.unlink()
+            run.write_json("config.json", config.to_dict())
+            run.write_json("env.json", environment_record(config, argv, host))
+            run.checkpoints.mkdir(exist_ok=True)
+        except BaseException:
+            run.close()
+            raise
         return run
 
     @classmethod
-    def open(cls, path: str | Path) -> RunDir:
-        """An existing run directory (one with a config.json); ConfigError otherwise."""
+    def open(cls, path: str | Path, *, for_writing: bool = False) -> RunDir:
+        """An existing run directory (one with a config.json); ConfigError otherwise.
+
+        ``for_writing`` (resuming a run) takes the run's lock: a run that another process is
+        writing is refused with that process's pid.
+        """
         run = cls(Path(path))
         if not (run.path / "config.json").is_file():
             raise ConfigError(f"{run.path}: not a run directory (no config.json)")
+        if for_writing and is_main_process():
+            run._lock()
         return run
+
+    def close(self) -> None:
+        """Release the run's lock (a no-op for readers and when already released)."""
+        if self._unlock is not None:
+            self._unlock()
+            self._unlock = None
+
+    def __enter__(self) -> RunDir:
+        return self
+
+    def __exit__(self, *exc_info: Any) -> None:
+        self.close()
+
+    def _contents(self) -> list[Path]:
+        return [entry for entry in self.path.iterdir() if entry.name != LOCK_NAME] if self.path.is_dir() else []
+
+    def _refuse_foreign_folder(self) -> None:
+        # The lock file counts: a run being created holds only it and config.json's temporary file.
+        if self._contents() and not any((self.path / name).is_file() for name in ("config.json", LOCK_NAME)):
+            raise ConfigError(f"{self.path} is not empty and is not a run directory (no config.json); choose an "
+                              "empty or new --out (--overwrite only empties run directories)")
+
+    def _lock(self) -> None:
+        if fcntl is None:  # pragma: no cover
+            return
+        lock_path = self.path / LOCK_NAME
+        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _lock_holder(fd)
+            os.close(fd)
+            raise ConfigError(f"{self.path} is in use by another vqtouch process (pid {holder}); wait for it to "
+                              "finish or stop it, or choose another --out") from None
+        except BaseException:
+            os.close(fd)
+            raise
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        # Closing the descriptor releases the lock; finalize also does it when the RunDir is
+        # garbage-collected, and the OS when the process dies.
+        self._unlock = weakref.finalize(self, os.close, fd)
+
+    def checkpoint(self, host: Any, step: int | None = None) -> Path:
+        """The run's checkpoint folder to read: the newest complete ``checkpoints/step-*`` folder, or
+        the one of ``step``; the one function every reader of a run's weights goes through.
+
+        Every component file in it must have been made with the config of one of the slots of
+        the run's config.json, else CheckpointError (the folder mixes two runs).  No complete
+        checkpoint: :class:`MissingCheckpointError`.
+        """
+        from .training import TRAINER_STATE, latest_checkpoint
+
+        if step is None:
+            # TODO: switch to training.latest_good_checkpoint (skips unreadable steps with a warning)
+            # once it lands.
+            folder = latest_checkpoint(self.checkpoints)
+            if folder is None:
+                raise MissingCheckpointError(f"{self.path}: no complete checkpoint in checkpoints/ (a step-* folder "
+                                             f"with {TRAINER_STATE}); train this run first")
+        else:
+            folder = self.checkpoints / f"step-{step:08d}"
+            if not folder.is_dir():
+                steps = sorted(int(p.name[5:]) for p in self.checkpoints.glob("step-*") if p.name[5:].isdigit())
+                have = f"this run has steps {', '.join(map(str, steps))}" if steps else "this run has no checkpoint"
+                raise MissingCheckpointError(f"{folder}: no such checkpoint; {have}")
+            if not (folder / TRAINER_STATE).is_file():
+                raise MissingCheckpointError(f"{folder}: incomplete checkpoint (no {TRAINER_STATE}: its save was "
+                                             "interrupted); choose another step")
+        self._check_files(folder, host, TRAINER_STATE)
+        return folder
+
+    def _check_files(self, folder: Path, host: Any, trainer_state: str) -> None:
+        config = self.load_config(host)
+        slots: dict[str, list[tuple[str, dict[str, Any]]]] = {}  # kind -> [(slot, plugin config)]
+        for path, info in host.slots.items():
+            value = config.slot(path)
+            items = list(enumerate(value)) if info.many else [(None, value)]
+            for index, item in items:
+                if item is not None:
+                    slot = path if index is None else f"{path}.{index}"
+                    slots.setdefault(info.kind, []).append((slot, item.model_dump(mode="json")))
+        for file in sorted(folder.glob("*.safetensors")):
+            if file.name == trainer_state:
+                continue
+            metadata = read_metadata(file)
+            kind, plugin = metadata.get("vqtouch.component", ""), metadata.get("vqtouch.plugin", "")
+            try:
+                made_with = json.loads(metadata["vqtouch.config"])
+            except (KeyError, json.JSONDecodeError):
+                raise CheckpointError(f"{file}: damaged vqtouch header (no readable vqtouch.config)") from None
+            candidates = slots.get(kind, [])
+            if any(_canonical(made_with) == _canonical(slot_config) for _, slot_config in candidates):
+                continue
+            raise CheckpointError(f"{file} was made with {kind} {plugin!r}{_mismatch(made_with, candidates)}; "
+                                  "this folder mixes two runs: pick one of this run's own steps with --step, or "
+                                  "retrain into an empty --out")
 
     def load_config(self, host: Any) -> ExperimentConfig:
         """The run's resolved config, validated against ``host``.
@@ -127,9 +296,9 @@ class RunDir:
         A plugin the run used that is no longer installed is named with its distribution (from
         env.json), rather than answered with the closest installed name.
         """
-        data = json.loads((self.path / "config.json").read_text(encoding="utf-8"))
+        data = _read_json(self.path / "config.json")
         env_path = self.path / "env.json"
-        recorded = json.loads(env_path.read_text(encoding="utf-8")).get("components", {}) if env_path.is_file() else {}
+        recorded = _read_json(env_path).get("components", {}) if env_path.is_file() else {}
         for key, source in recorded.items():
             if source["name"] not in host.registry(source["kind"]):
                 package = source.get("package") or source.get("plugin")
@@ -152,3 +321,46 @@ class RunDir:
         record = {"stage": stage, "step": step, **{key: float(value) for key, value in metrics.items()}}
         with open(self.path / "metrics.jsonl", "a", encoding="utf-8") as handle:
             handle.write(json.dumps(record, sort_keys=True) + "\n")
+
+
+def _canonical(value: Any) -> str:
+    return json.dumps(value, sort_keys=True, separators=(",", ":"))
+
+
+def _lock_holder(fd: int) -> str:
+    """The pid written in a lock file that another process holds ("unknown" if unreadable)."""
+    # The holder writes its pid right after locking: give it a moment when the file is still empty.
+    for _ in range(20):
+        text = os.pread(fd, 32, 0).decode(errors="replace").strip()
+        if text:
+            return text
+        time.sleep(0.025)
+    return "unknown"
+
+
+def _mismatch(made_with: dict[str, Any], candidates: list[tuple[str, dict[str, Any]]]) -> str:
+    """`` {differing options} but the run's config.json says <slot> {its values}``, against the
+    closest slot of the same kind."""
+    if not candidates:
+        return " but the run's config.json has no such slot"
+    same_plugin = [(slot, config) for slot, config in candidates if config.get("name") == made_with.get("name")]
+    if not same_plugin:
+        said = ", ".join(f"{slot} is {config.get('name')!r}" for slot, config in candidates)
+        return f" but the run's config.json says {said}"
+
+    def differing(config: dict[str, Any]) -> list[str]:
+        return sorted(key for key in set(made_with) | set(config)
+                      if _canonical(made_with.get(key)) != _canonical(config.get(key)))
+
+    slot, config = min(same_plugin, key=lambda candidate: len(differing(candidate[1])))
+    keys = differing(config)
+    shown = lambda values: json.dumps({key: values.get(key) for key in keys}, sort_keys=True)  # noqa: E731
+    return f" {shown(made_with)} but the run's config.json says {slot} {shown(config)}"
+
+
+def _read_json(path: Path) -> Any:
+    """A run's JSON file; ConfigError naming it when it is damaged (json's own error names no file)."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{path}: not valid JSON ({exc}); restore it from a copy of the run") from None

@@ -14,9 +14,19 @@ reports them), averages gradients across processes, clips and steps.
 
 Checkpoints go to ``<run>/checkpoints/step-NNNNNNNN/``: one safetensors file per module,
 EMA weights when enabled, and ``trainer_state.safetensors`` (optimizer state flattened into
-tensors plus JSON, RNG states, step).  The trainer state is written last, so a folder
-without it is an interrupted save and is ignored on resume.  Resuming reproduces the run
-exactly: the data order is a pure function of (seed, epoch) and every RNG state is restored.
+tensors plus JSON, RNG states, step, the module names).  The trainer state is written last,
+so a folder without it is an interrupted save.  The newest complete, readable folder is the
+one source of truth (:func:`latest_good_checkpoint`; there is no ``latest`` pointer file):
+newer folders that are incomplete or damaged are skipped with a warning.  Only the newest
+``keep_last`` complete folders are kept.  Resuming reproduces the run exactly: the data order
+is a pure function of (seed, epoch) and every RNG state is restored; the run's metrics.jsonl
+loses the lines of the steps after the resumed one, which are logged again.
+
+Stopping: during :meth:`Trainer.fit`, Ctrl-C (SIGINT) and SIGTERM (what schedulers send)
+finish the current step, write its checkpoint and raise :class:`TrainingInterrupted` (a
+KeyboardInterrupt).  More signals while that happens only print a note: a checkpoint being
+written is always finished (kill -9 still stops at once; the atomic writes keep the last
+complete checkpoint intact).
 
 Data parallel: launched under ``torchrun``, each process takes every world_size-th sample of
 each batch and gradients are all-reduced (gloo on CPU, nccl on GPU); rank 0 writes files.
@@ -29,24 +39,34 @@ import functools
 import json
 import math
 import os
+import re
+import shutil
+import signal
+import threading
 import time
-from collections.abc import Iterator
+import warnings
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
 import torch
-from pydantic import Field
+from pydantic import Field, field_validator
+from pydantic_core import PydanticCustomError
 from safetensors import safe_open
 from safetensors.torch import save_file
 from torch import nn
 
-from .checkpoint import atomic_write, load_state_strict, save
+from .checkpoint import (CheckpointWriteError, atomic_write, load_state_strict, remove_stale_temporaries, save,
+                         write_checkpoint_file)
 from .config import Section
 from .errors import CheckpointError, VqtouchError
 from .progress import progress
 
 TRAINER_STATE = "trainer_state.safetensors"
+#: Checkpoint folders are named ``step-NNNNNNNN`` (8 digits): the most steps a run can have.
+MAX_STEPS = 99_999_999
+_STEP_FOLDER = re.compile(r"step-(\d+)")
 
 
 class TrainConfig(Section):
@@ -57,21 +77,51 @@ class TrainConfig(Section):
     defaults are the usual AdamW ones.
     """
 
-    steps: int = Field(1000, ge=0, description="Optimisation steps.")
-    learning_rate: float = Field(1e-4, gt=0, le=10, description="Peak learning rate.")
-    weight_decay: float = Field(0.0, ge=0, le=1, description="Decoupled weight decay (AdamW).")
-    grad_clip: float | None = Field(1.0, gt=0, description="Clip the gradient norm to this value; null disables.")
+    # Counts are strict integers (true is not 1) and floats refuse booleans and strings: a
+    # config value that validates must also train.
+    steps: int = Field(1000, ge=0, le=MAX_STEPS, strict=True,
+                       description="Optimisation steps (at most 99999999: checkpoint folders have 8 digits).")
+    learning_rate: float = Field(1e-4, gt=0, le=10, strict=True, description="Peak learning rate.")
+    weight_decay: float = Field(0.0, ge=0, le=1, strict=True, description="Decoupled weight decay (AdamW).")
+    grad_clip: float | None = Field(1.0, gt=0, strict=True,
+                                    description="Clip the gradient norm to this value; null disables.")
     precision: Literal["fp32", "bf16"] = Field(
         "fp32", description="Autocast precision of the networks; quantizer and diffusion maths stay fp32.")
     optimizer: Literal["adamw", "adam"] = Field("adamw", description="Optimizer of every trained module.")
-    betas: tuple[float, float] = Field((0.9, 0.999), description="Adam betas.")
-    ema_decay: float | None = Field(None, gt=0.0, lt=1.0,
+    betas: tuple[float, float] = Field((0.9, 0.999), description="Adam betas, each in [0, 1).")
+    ema_decay: float | None = Field(None, gt=0.0, lt=1.0, strict=True,
                                     description="Keep an exponential moving average of the weights with this decay "
                                                 "(saved next to the raw weights); null disables.")
-    checkpoint_every: int = Field(500, ge=1, description="Write a checkpoint every this many steps.")
-    log_every: int = Field(50, ge=1, description="Write metrics.jsonl every this many steps.")
-    max_skipped_steps: int = Field(20, ge=1, description="Abort after this many consecutive steps with a non-finite "
-                                                         "loss (each one is skipped and reported).")
+    checkpoint_every: int = Field(500, ge=1, le=MAX_STEPS, strict=True,
+                                  description="Write a checkpoint every this many steps.")
+    log_every: int = Field(50, ge=1, le=MAX_STEPS, strict=True, description="Write metrics.jsonl every this many steps.")
+    max_skipped_steps: int = Field(20, ge=1, le=MAX_STEPS, strict=True,
+                                   description="Abort after this many consecutive steps with a non-finite loss (each "
+                                               "one is skipped and reported).")
+    keep_last: int = Field(3, ge=1, le=1_000_000, strict=True,
+                           description="Keep the newest this many complete checkpoints of the run; older step folders "
+                                       "are deleted after each save (the one just written is always kept).")
+
+    # A validator, not a bounded type: stages redeclare ``betas`` with their own default
+    # (TokenizerTrainConfig), and field validators apply to the redeclared field too.
+    @field_validator("betas", mode="before")
+    @classmethod
+    def _no_boolean_betas(cls, value: Any) -> Any:
+        if isinstance(value, (list, tuple)) and any(isinstance(item, bool) for item in value):
+            raise _betas_error()
+        return value
+
+    @field_validator("betas")
+    @classmethod
+    def _betas_in_range(cls, value: tuple[float, float]) -> tuple[float, float]:
+        # torch's Adam refuses anything else, but only once the trainer builds it; NaN fails too.
+        if not all(0.0 <= beta < 1.0 for beta in value):
+            raise _betas_error()
+        return value
+
+
+def _betas_error() -> PydanticCustomError:
+    return PydanticCustomError("betas_range", "each Adam beta must be a number in [0, 1), e.g. [0.9, 0.999]")
 
 
 class TrainingTask(Protocol):
@@ -92,6 +142,23 @@ class TrainingTask(Protocol):
 
 class NonFiniteLossError(VqtouchError):
     """Too many consecutive steps produced NaN or Inf losses."""
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """Ctrl-C or SIGTERM stopped :meth:`Trainer.fit`; the checkpoint of the step reached is complete.
+
+    A KeyboardInterrupt, so callers that catch Ctrl-C keep working.  ``checkpoint`` is the
+    folder written (None without a checkpoint folder, and on ranks other than 0).
+    """
+
+    def __init__(self, cause: str, step: int, checkpoint: Path | None) -> None:
+        saved = f"checkpoint saved: {checkpoint}" if checkpoint is not None else "no checkpoint written by this process"
+        super().__init__(f"training stopped by {cause} after step {step}; {saved}")
+        self.cause, self.step, self.checkpoint = cause, step, checkpoint
+
+
+class SkippedCheckpointWarning(UserWarning):
+    """A checkpoint folder was skipped because it is incomplete or unreadable (the message says why)."""
 
 
 def collate_samples(samples: list[dict[str, Any]]) -> dict[str, Any]:
@@ -123,6 +190,81 @@ def batch_indices(seed: int, step: int, batch_size: int, size: int, rank: int = 
     order = epoch_order(seed, epoch, size)
     start = position * global_batch
     return list(order[start:start + global_batch][rank::world])
+
+
+class _StepBatches:
+    """The batch indices of steps ``start`` to ``stop``, made one at a time (a list of every batch of
+    a long run would not fit in memory)."""
+
+    def __init__(self, seed: int, start: int, stop: int, batch_size: int, size: int, rank: int, world: int) -> None:
+        self.seed, self.start, self.stop = seed, start, stop
+        self.batch_size, self.size, self.rank, self.world = batch_size, size, rank, world
+
+    def __len__(self) -> int:
+        return max(0, self.stop - self.start)
+
+    def __iter__(self) -> Iterator[list[int]]:
+        for step in range(self.start, self.stop):
+            yield batch_indices(self.seed, step, self.batch_size, self.size, self.rank, self.world)
+
+
+def _notice(message: str) -> None:
+    # From a signal handler: a raw write, since the handler may run in the middle of another
+    # write to sys.stderr (the progress bar) and buffered streams are not reentrant.
+    try:
+        os.write(2, f"\n{message}\n".encode())
+    except OSError:
+        pass
+
+
+class _StopSignals:
+    """SIGINT and SIGTERM as requests to stop at the end of the current step.
+
+    Installed by :meth:`Trainer.fit` (which checks :attr:`received` after every step and
+    restores the previous handlers when it returns) and, outside fit, around each checkpoint
+    save (which then re-raises the signal to the previous handler once the save is complete).
+    Nothing is installed outside the main thread (Python allows handlers only there) nor for a
+    signal that is ignored on purpose (nohup).
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+        self.saving = False
+        self._previous: dict[int, Any] = {}
+        self._pid = os.getpid()
+
+    def install(self) -> _StopSignals:
+        if threading.current_thread() is threading.main_thread():
+            for signum in self.SIGNALS:
+                previous = signal.getsignal(signum)
+                if previous is signal.SIG_IGN or previous is None:
+                    continue
+                self._previous[signum] = previous
+                signal.signal(signum, self._handle)
+        return self
+
+    def restore(self) -> None:
+        for signum, previous in self._previous.items():
+            signal.signal(signum, previous)
+        self._previous.clear()
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if os.getpid() != self._pid:
+            return  # a forked DataLoader worker: the training process decides when to stop
+        name = signal.Signals(signum).name
+        first = self.received is None
+        if first:
+            self.received = signum
+        if self.saving:
+            _notice(f"vqtouch: {name} received while writing a checkpoint; stopping once it is complete "
+                    "(kill -9 stops at once, keeping the last complete checkpoint)")
+        elif first:
+            _notice(f"vqtouch: {name} received; stopping after the current step, once its checkpoint is written")
+        else:
+            _notice(f"vqtouch: {name} received again; still finishing the current step and its checkpoint "
+                    "(kill -9 stops at once, keeping the last complete checkpoint)")
 
 
 @dataclass
@@ -180,6 +322,16 @@ class Trainer:
         self.stage = stage
         self.dist = DistributedContext.from_environment(device)
         self.state = TrainerState()
+        #: The step whose checkpoint folder is known complete (saved or resumed from), so an
+        #: interrupt right after a save does not write it twice.
+        self._saved: tuple[int, Path] | None = None
+        self._signals: _StopSignals | None = None
+        if checkpoint_dir is not None and self.dist.is_main:
+            # A new trainer is the only writer of its run's checkpoints: whatever temporaries are
+            # there were left by a killed save (full-size weights, never cleaned otherwise).
+            remove_stale_temporaries(checkpoint_dir)
+            for _, folder in step_folders(checkpoint_dir):
+                remove_stale_temporaries(folder, safetensors_temporaries=True)
         for module in task.modules.values():
             module.to(device)
         self._broadcast_parameters()
@@ -274,8 +426,8 @@ class Trainer:
         if size < self.batch_size * self.dist.world:
             raise VqtouchError(f"the dataset has {size} samples, fewer than one global batch "
                                f"({self.batch_size} x {self.dist.world} processes); lower data.batch_size")
-        index_batches = [batch_indices(self.seed, step, self.batch_size, size, self.dist.rank, self.dist.world)
-                         for step in range(start_step, self.config.steps)]
+        index_batches = _StepBatches(self.seed, start_step, self.config.steps, self.batch_size, size, self.dist.rank,
+                                     self.dist.world)
         # A private generator: creating the iterator would otherwise draw its worker seed from
         # the global RNG, and a resumed run (which creates it at another moment) would diverge.
         loader = torch.utils.data.DataLoader(self.dataset, batch_sampler=index_batches, collate_fn=collate_samples,
@@ -285,7 +437,35 @@ class Trainer:
 
     # -- the loop ---------------------------------------------------------------------------
     def fit(self) -> TrainerState:
-        """Train until ``config.steps``; Ctrl-C saves a checkpoint first, then re-raises."""
+        """Train until ``config.steps``, writing checkpoints on the way and at the end.
+
+        Ctrl-C or SIGTERM finishes the current step, writes its checkpoint and raises
+        :class:`TrainingInterrupted`; further signals meanwhile do not abort that save.  A
+        KeyboardInterrupt raised by the task itself also saves first.  The previous signal
+        handlers are back in place when fit returns or raises.
+        """
+        signals = _StopSignals().install()
+        self._signals = signals
+        interrupted: KeyboardInterrupt | None = None
+        try:
+            try:
+                self._run_steps(signals)
+            except KeyboardInterrupt as exc:  # raised by the task, or by a handler other than ours
+                interrupted = exc
+            if (interrupted is not None or signals.received is not None
+                    or self.state.step % self.config.checkpoint_every != 0):
+                self._save_unless_saved()
+        finally:
+            self._signals = None
+            signals.restore()
+        # Checked after the last save too: a signal during it still stops the caller.
+        if interrupted is not None or signals.received is not None:
+            cause = signal.Signals(signals.received).name if signals.received is not None else "KeyboardInterrupt"
+            folder = self._saved[1] if self._saved is not None and self._saved[0] == self.state.step else None
+            raise TrainingInterrupted(cause, self.state.step, folder) from interrupted
+        return self.state
+
+    def _run_steps(self, signals: _StopSignals) -> None:
         start = self.state.step
         bar = progress(total=self.config.steps, initial=start, desc="training", unit="step") if self.dist.is_main \
             else None
@@ -322,31 +502,89 @@ class Trainer:
                     bar.set_postfix({k: f"{v:.4g}" for k, v in list(scalars.items())[:3]} | {"img/s": f"{rate:.1f}"},
                                     refresh=False)
                     bar.update(1)
-        except KeyboardInterrupt:
-            self.save_checkpoint()
-            raise
+                if signals.received is not None:
+                    break
         finally:
             if bar is not None:
                 bar.close()
-        if self.state.step % self.config.checkpoint_every != 0:
-            self.save_checkpoint()
-        return self.state
 
     # -- checkpoints -------------------------------------------------------------------------
     def save_checkpoint(self) -> Path | None:
-        """Write modules, EMA weights and trainer state for the current step (rank 0 only)."""
+        """Write modules, EMA weights and trainer state for the current step (rank 0 only), then
+        delete complete checkpoints older than the newest ``config.keep_last``.
+
+        SIGINT/SIGTERM arriving meanwhile wait until the folder is complete.  A failed write
+        raises a one-line CheckpointError naming the file and the cause; the folder being
+        written is removed and the earlier checkpoints are untouched.
+        """
         if self.checkpoint_dir is None or not self.dist.is_main:
             return None
-        folder = self.checkpoint_dir / f"step-{self.state.step:08d}"
-        folder.mkdir(parents=True, exist_ok=True)
-        for name, module in self.task.modules.items():
-            save(module, folder / f"{name}.safetensors", step=self.state.step, host=self.host)
-        tensors, meta = self._trainer_tensors()
-        atomic_write(folder / TRAINER_STATE,
-                     lambda tmp: save_file(tensors, str(tmp), metadata={
-                         "format": "pt", "vqtouch.format_version": "1", "vqtouch.component": "trainer_state",
-                         "vqtouch.trainer": json.dumps(meta, sort_keys=True)}))
+        if self._signals is not None:  # inside fit: its handlers defer, fit stops afterwards
+            self._signals.saving = True
+            try:
+                return self._write_checkpoint()
+            finally:
+                self._signals.saving = False
+        deferred = _StopSignals().install()
+        deferred.saving = True
+        try:
+            return self._write_checkpoint()
+        finally:
+            deferred.restore()
+            if deferred.received is not None:
+                signal.raise_signal(deferred.received)  # now to the handler it was meant for
+
+    def _save_unless_saved(self) -> Path | None:
+        if self._saved is not None and self._saved[0] == self.state.step and self._saved[1].is_dir():
+            return self._saved[1]
+        return self.save_checkpoint()
+
+    def _write_checkpoint(self) -> Path:
+        step = self.state.step
+        folder = self.checkpoint_dir / f"step-{step:08d}"
+        created = not folder.exists()
+        try:
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise CheckpointError(f"{folder}: cannot create the checkpoint folder ({exc.strerror or exc}); make "
+                                      f"{self.checkpoint_dir} writable") from None
+            for name, module in self.task.modules.items():
+                save(module, folder / f"{name}.safetensors", step=step, host=self.host)
+            tensors, meta = self._trainer_tensors()
+            # Written last: its presence is what makes the folder a complete checkpoint.
+            write_checkpoint_file(folder / TRAINER_STATE,
+                                  lambda tmp: save_file(tensors, str(tmp), metadata={
+                                      "format": "pt", "vqtouch.format_version": "1",
+                                      "vqtouch.component": "trainer_state",
+                                      "vqtouch.trainer": json.dumps(meta, sort_keys=True)}))
+        except BaseException as exc:
+            if created:
+                shutil.rmtree(folder, ignore_errors=True)  # only this save's files: an incomplete step
+            if isinstance(exc, CheckpointWriteError):
+                previous = latest_checkpoint(self.checkpoint_dir)
+                kept = (f"nothing was replaced; the run's last complete checkpoint is {previous.name}"
+                        if previous is not None else "nothing was replaced; the run has no complete checkpoint yet")
+                raise exc.keeping(kept) from None
+            raise
+        self._saved = (step, folder)
+        self._remove_old_checkpoints(step)
         return folder
+
+    def _remove_old_checkpoints(self, step: int) -> None:
+        # Only complete folders older than the one just written count; newer ones (left by a run
+        # that was resumed from an earlier step) are overwritten when training reaches them.
+        older = [folder for number, folder in step_folders(self.checkpoint_dir)
+                 if number < step and (folder / TRAINER_STATE).is_file()]
+        for folder in older[:max(0, len(older) - (self.config.keep_last - 1))]:
+            try:
+                # The trainer state first: a deletion cut short leaves an incomplete folder, never
+                # one that looks complete but lacks a module file.
+                (folder / TRAINER_STATE).unlink()
+                shutil.rmtree(folder)
+            except OSError as exc:
+                warnings.warn(f"could not delete the old checkpoint {folder} ({exc.strerror or exc}); delete it by "
+                              "hand to free its space", stacklevel=3)
 
     def _trainer_tensors(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
         tensors: dict[str, torch.Tensor] = {"rng.torch_cpu": torch.get_rng_state()}
@@ -369,29 +607,58 @@ class Trainer:
                 tensors[f"ema.{module_name}.{key}"] = value.detach().cpu().contiguous()
         meta = {"step": self.state.step, "skipped_steps": self.state.skipped_steps,
                 "consecutive_skips": self.state.consecutive_skips, "history": self.state.history,
-                "optimizers": optim_meta, "seed": self.seed, "batch_size": self.batch_size, "world": self.dist.world}
+                "optimizers": optim_meta, "seed": self.seed, "batch_size": self.batch_size, "world": self.dist.world,
+                # Lets readers check that every module file of the step is there.
+                "modules": sorted(self.task.modules)}
         return tensors, meta
 
     def resume(self, checkpoint_dir: Path) -> bool:
-        """Load the latest complete checkpoint under ``checkpoint_dir``; False when there is none."""
-        folder = latest_checkpoint(checkpoint_dir)
-        if folder is None:
-            return False
+        """Load the newest good checkpoint under ``checkpoint_dir`` (or the step folder given);
+        False when the run has no checkpoint folder at all.
+
+        Newer folders that are incomplete or unreadable are skipped with a
+        :class:`SkippedCheckpointWarning`.  A ``checkpoints/`` folder that holds step folders but
+        no good one raises CheckpointError rather than starting over.  The run's metrics.jsonl
+        loses this stage's lines after the resumed step (they are logged again).
+        """
+        checkpoint_dir = Path(checkpoint_dir)
+        required = [f"{name}.safetensors" for name in self.task.modules]
+        if _STEP_FOLDER.fullmatch(checkpoint_dir.name) and checkpoint_dir.is_dir():
+            folder = checkpoint_dir
+            problem = checkpoint_problem(folder, required)
+            if problem is not None:
+                raise CheckpointError(f"{folder}: cannot resume from it: {problem}; choose another step folder")
+        else:
+            folder = latest_good_checkpoint(checkpoint_dir, required_files=required)
+            if folder is None:
+                folders = step_folders(checkpoint_dir)
+                if folders:
+                    newest = folders[-1][1]
+                    raise CheckpointError(
+                        f"{checkpoint_dir}: holds {len(folders)} checkpoint folder(s) but no complete one (the newest, "
+                        f"{newest.name}, {_as_clause(checkpoint_problem(newest, required))}); resuming would silently "
+                        f"restart from step 0: delete {checkpoint_dir} to start over")
+                self._rewind_run_metrics(0)
+                return False
         path = folder / TRAINER_STATE
         try:
             with safe_open(str(path), framework="pt") as handle:
                 meta = json.loads(handle.metadata()["vqtouch.trainer"])
                 tensors = {key: handle.get_tensor(key) for key in handle.keys()}
         except Exception as exc:  # noqa: BLE001
-            raise CheckpointError(f"{path}: unreadable trainer state ({exc})") from None
+            raise CheckpointError(f"{path}: unreadable trainer state ({_first_line(exc)})") from None
         if meta["batch_size"] != self.batch_size or meta["seed"] != self.seed or meta["world"] != self.dist.world:
             raise CheckpointError(f"{path}: saved with batch_size={meta['batch_size']}, seed={meta['seed']}, "
                                   f"world={meta['world']}; resuming needs the same values to continue exactly")
         from safetensors.torch import load_file
 
         for name, module in self.task.modules.items():
-            load_state_strict(module, load_file(str(folder / f"{name}.safetensors"), device=str(self.device)),
-                              folder / f"{name}.safetensors")
+            module_path = folder / f"{name}.safetensors"
+            try:
+                module_tensors = load_file(str(module_path), device=str(self.device))
+            except Exception as exc:  # noqa: BLE001 - safetensors raises several error types
+                raise CheckpointError(f"{module_path}: tensor data is unreadable ({_first_line(exc)})") from None
+            load_state_strict(module, module_tensors, module_path)
         for name, optimizer in self.optimizers.items():
             saved = meta["optimizers"][name]
             state: dict[int, dict[str, Any]] = {}
@@ -412,12 +679,131 @@ class Trainer:
             if cuda_states:
                 torch.cuda.set_rng_state_all(cuda_states)
         self.state = TrainerState(meta["step"], meta["skipped_steps"], meta["consecutive_skips"], meta["history"])
+        self._saved = (self.state.step, folder)
+        self._rewind_run_metrics(self.state.step)
         return True
+
+    def _rewind_run_metrics(self, step: int) -> None:
+        path = getattr(self.run, "path", None)
+        if path is not None and self.dist.is_main:
+            rewind_metrics(Path(path) / "metrics.jsonl", self.stage, step)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+def _as_clause(problem: str | None) -> str:
+    # checkpoint_problem's phrases ("no X: ...", "X is missing") after "the newest, step-N,".
+    if problem is None:
+        return "is complete"
+    return f"has {problem}" if problem.startswith("no ") else f"is unusable: {problem}"
+
+
+def step_folders(checkpoint_dir: Path) -> list[tuple[int, Path]]:
+    """The ``step-N`` folders under ``checkpoint_dir`` as (step, folder), oldest first, complete or not.
+
+    Ordered by the number, not the name (``step-100000000`` is newer than ``step-99999999``).
+    """
+    try:
+        entries = list(Path(checkpoint_dir).iterdir())
+    except OSError:  # missing, or not a folder
+        return []
+    folders = []
+    for entry in entries:
+        found = _STEP_FOLDER.fullmatch(entry.name)
+        if found and entry.is_dir():
+            folders.append((int(found.group(1)), entry))
+    return sorted(folders, key=lambda item: item[0])
+
+
+def _unreadable(path: Path) -> str | None:
+    """Why ``path`` is not a readable safetensors file (safe_open checks the header and that the
+    file is as long as the header says), or None."""
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            handle.metadata()
+    except Exception as exc:  # noqa: BLE001 - safetensors raises several error types
+        return _first_line(exc)
+    return None
+
+
+def checkpoint_problem(folder: Path, required_files: Iterable[str] = ()) -> str | None:
+    """Why the step folder ``folder`` cannot be used, in a few words, or None when it is complete and
+    readable: a readable trainer state, and every module file it lists plus ``required_files``
+    present and a readable safetensors file (headers are read, tensors are not)."""
+    state = folder / TRAINER_STATE
+    if not state.is_file():
+        return f"no {TRAINER_STATE}: its save was interrupted"
+    try:
+        with safe_open(str(state), framework="pt") as handle:
+            meta = json.loads((handle.metadata() or {})["vqtouch.trainer"])
+        modules = [f"{name}.safetensors" for name in meta.get("modules", [])]
+    except Exception as exc:  # noqa: BLE001 - safetensors, JSON and key errors alike
+        return f"{TRAINER_STATE} is unreadable ({_first_line(exc)})"
+    for name in dict.fromkeys([*modules, *required_files]):
+        if not (folder / name).is_file():
+            return f"{name} is missing"
+        why = _unreadable(folder / name)
+        if why is not None:
+            return f"{name} is not a readable safetensors file ({why})"
+    return None
+
+
+def latest_good_checkpoint(checkpoint_dir: Path, required_files: Iterable[str] = ()) -> Path | None:
+    """The newest ``step-*`` folder under ``checkpoint_dir`` that is complete and readable (see
+    :func:`checkpoint_problem`), or None; the one function every reader of a run's latest
+    checkpoint should use.
+
+    Each newer folder skipped on the way gets one :class:`SkippedCheckpointWarning` naming it
+    and why.  ``required_files`` are the files the caller needs (e.g. the tokenizer's
+    ``autoencoder.safetensors`` and ``quantizer.safetensors``).
+    """
+    required_files = tuple(required_files)
+    for _, folder in reversed(step_folders(checkpoint_dir)):
+        problem = checkpoint_problem(folder, required_files)
+        if problem is None:
+            return folder
+        warnings.warn(f"checkpoint {folder} skipped: {problem}", SkippedCheckpointWarning, stacklevel=2)
+    return None
 
 
 def latest_checkpoint(checkpoint_dir: Path) -> Path | None:
-    """The newest ``step-*`` folder that holds a complete trainer state, or None."""
-    if not checkpoint_dir.is_dir():
-        return None
-    complete = sorted(p for p in checkpoint_dir.glob("step-*") if (p / TRAINER_STATE).is_file())
+    """The newest ``step-*`` folder that holds a trainer state, or None (a quick look that reads no
+    file; :func:`latest_good_checkpoint` also checks the files and says what it skips)."""
+    complete = [folder for _, folder in step_folders(checkpoint_dir) if (folder / TRAINER_STATE).is_file()]
     return complete[-1] if complete else None
+
+
+def rewind_metrics(path: Path, stage: str, step: int) -> int:
+    """Drop the lines of ``stage`` logged after ``step`` from a run's metrics.jsonl; returns how many.
+
+    A resumed run logs those steps again, so keeping them would give duplicate lines and
+    steps that go backwards.  Other stages' lines are kept, and so are lines that are not
+    JSON, except a last line without its newline (an append cut short by a kill).  The file
+    is rewritten atomically, and only when something changes.
+    """
+    path = Path(path)
+    if not path.is_file():
+        return 0
+    kept, dropped, changed = [], 0, False
+    for line in path.read_text(encoding="utf-8").splitlines(keepends=True):
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:
+            record = None
+            if not line.endswith("\n"):
+                dropped, changed = dropped + 1, True
+                continue
+        if (isinstance(record, dict) and record.get("stage") == stage and isinstance(record.get("step"), int)
+                and record["step"] > step):
+            dropped, changed = dropped + 1, True
+            continue
+        if not line.endswith("\n"):
+            line, changed = line + "\n", True
+        kept.append(line)
+    if changed:
+        text = "".join(kept)
+        atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+    return dropped

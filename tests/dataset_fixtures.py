@@ -54,10 +54,41 @@ def write_sample(path: Path, number: int, modality: str) -> Path:
     return write_image(path, colour(number, modality), TACTILE_SIZE if modality == "tactile" else VISUAL_SIZE)
 
 
-def truncate(path: Path) -> Path:
-    """Cut an image file in half, as an interrupted download would."""
+def write_frames(path: Path, image_format: str, count: int = 2) -> Path:
+    """Write ``count`` flat-colour frames into one file: an animated GIF or PNG, or a multi-page TIFF.
+
+    ``image_format`` (a Pillow format name) is used whatever the suffix: readers identify
+    images by their content, so a ``.jpg`` frame may hold an animation.
+    """
+    from PIL import Image
+
+    frames = [Image.new("RGB", TACTILE_SIZE, (number * STEP, 0, 0)) for number in range(count)]
+    frames[0].save(path, format=image_format, save_all=True, append_images=frames[1:])
+    return path
+
+
+def write_16_bit(path: Path) -> Path:
+    """Write a 16-bit greyscale PNG (mode I;16, which readers refuse) whatever the suffix."""
+    from PIL import Image
+
+    Image.new("I;16", TACTILE_SIZE, 1000).save(path, format="PNG")
+    return path
+
+
+def break_link(path: Path) -> Path:
+    """Replace the file at ``path`` by a symbolic link to a file that does not exist; returns the target."""
+    target = path.with_name(f"{path.name}.gone")
+    path.unlink()
+    path.symlink_to(target)
+    return target
+
+
+def truncate_pixels(path: Path) -> Path:
+    """Cut a PNG or JPEG file inside its pixel data, as an interrupted download may: the header
+    still reads, so only decoding finds the damage."""
     data = path.read_bytes()
-    path.write_bytes(data[: len(data) // 2])
+    pixels = data.index(b"IDAT" if data.startswith(b"\x89PNG") else b"\xff\xda") + 4
+    path.write_bytes(data[: (pixels + len(data)) // 2])
     return path
 
 

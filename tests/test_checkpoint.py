@@ -1,5 +1,6 @@
 import importlib.util
 import json
+import os
 import struct
 import sys
 from pathlib import Path
@@ -144,6 +145,53 @@ def test_interrupted_save_keeps_previous_checkpoint(host, tmp_path):
         atomic_write(path, crash)
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["ckpt.safetensors"]  # no temporary left behind
+
+
+def test_disk_full_gives_one_line_error_and_keeps_the_previous_file(host, tmp_path, monkeypatch):
+    import errno
+
+    path = tmp_path / "ckpt.safetensors"
+    component = host.build("conditioner", "label", CONTEXT)
+    save(component, path, step=1, host=host)
+    before = path.read_bytes()
+
+    def no_space(module, filename, metadata=None):
+        with open(filename, "wb") as handle:
+            handle.write(b"half")  # part of the file made it to disk
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(checkpoint_module, "save_model", no_space)
+    with pytest.raises(CheckpointError) as info:
+        save(component, path, step=2, host=host)
+    assert str(info.value) == (f"{path}: could not write the checkpoint file: No space left on device; free disk "
+                               "space and run again (nothing was replaced)")
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["ckpt.safetensors"]
+
+
+def test_a_safetensors_write_error_is_one_line_too(host, tmp_path, monkeypatch):
+    from safetensors import SafetensorError
+
+    def read_only(module, filename, metadata=None):
+        raise SafetensorError(f"Error while serializing: I/O error: Read-only file system (os error 30) at path "
+                              f"\"{tmp_path}/.tmpAbCdEf\"")
+
+    monkeypatch.setattr(checkpoint_module, "save_model", read_only)
+    with pytest.raises(CheckpointError) as info:
+        save(host.build("conditioner", "label", CONTEXT), tmp_path / "c.safetensors", host=host)
+    assert str(info.value) == (f"{tmp_path / 'c.safetensors'}: could not write the checkpoint file: Read-only file "
+                               f"system; make {tmp_path} writable or write elsewhere (nothing was replaced)")
+
+
+def test_written_files_follow_the_umask(host, tmp_path):
+    previous = os.umask(0o027)
+    try:
+        text = atomic_write(tmp_path / "notes.json", lambda tmp: tmp.write_text("{}"))
+        # safetensors writes its own temporary (mode 0600) and renames it onto atomic_write's.
+        weights = save(host.build("conditioner", "label", CONTEXT), tmp_path / "c.safetensors", host=host)
+    finally:
+        os.umask(previous)
+    assert [oct(path.stat().st_mode & 0o777) for path in (text, weights)] == [oct(0o640)] * 2
 
 
 def test_truncated_file_gives_one_line_error(host, tmp_path):

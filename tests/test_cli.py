@@ -1,4 +1,6 @@
 import json
+import subprocess
+import sys
 from typing import Literal
 
 import pytest
@@ -263,3 +265,42 @@ def test_demo_full_keeps_the_configured_size_and_scaled_uses_the_caps(tmp_path, 
     assert sizes == ((500, 500, 50, 16, 1000, 48) if full else (40, 40, 10, 8, 240, 32))
     (stage,) = json.loads((out / "report.json").read_text())["stages"]
     assert stage["status"].startswith("cannot run: needs tokenizer.quantizer, which the config leaves empty")
+
+
+def test_closed_stdout_pipe_exits_quietly():
+    """`vqtouch plugins | head`: the reader goes away; no traceback, the usual SIGPIPE status."""
+    process = subprocess.Popen([sys.executable, "-m", "vqtouch.core.cli", "plugins"], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE)
+    process.stdout.close()  # before the command has imported anything, let alone printed
+    err = process.stderr.read().decode()
+    assert process.wait(timeout=300) == 141
+    assert err == ""
+
+
+def test_broken_pipe_in_a_handler_is_quiet_in_process(capsys, monkeypatch):
+    from vqtouch.core import cli
+
+    def closed_pipe(args):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(cli, "_cmd_plugins", closed_pipe)
+    assert main(["plugins"]) == 141
+    assert capsys.readouterr().err == ""
+
+
+def test_ctrl_c_prints_interrupted(capsys, monkeypatch):
+    from vqtouch.core import cli
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_cmd_plugins", interrupted)
+    assert main(["plugins"]) == 130
+    assert capsys.readouterr().err == "vqtouch: interrupted\n"
+
+
+def test_debug_is_a_global_flag(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = capsys.readouterr().out
+    assert "--debug" in out and "VQTOUCH_DEBUG=1" in out

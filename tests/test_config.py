@@ -316,3 +316,35 @@ def test_switching_a_list_slot_items_plugin_after_setting_its_options_is_refused
     with pytest.raises(ConfigError, match=f"--set {switch} selects another plugin for generator.conditioners.0.*"
                                           "drop the earlier --set generator.conditioners.0.width=16"):
         resolve_config("touch-to-touch", overrides=["generator.conditioners.0.width=16", switch], host=host)
+
+
+@pytest.mark.parametrize("override, problem", [
+    ("data.batch_size=true", "data.batch_size: Input should be a valid integer (got True)"),
+    ("data.num_workers=true", "data.num_workers: Input should be a valid integer (got True)"),
+    ("data.image_size=true", "data.image_size: Input should be a valid integer (got True)"),
+    ('data.batch_size="16"', "data.batch_size: Input should be a valid integer (got '16')"),
+    ("data.val_fraction=false", "data.val_fraction: Input should be a valid number (got False)"),
+])
+def test_data_counts_refuse_booleans_instead_of_reading_them_as_numbers(host, override, problem):
+    # In lax mode `true` became batch_size=1 and `false` val_fraction=0: valid, and not what was meant.
+    with pytest.raises(ConfigError) as info:
+        resolve_config("reconstruction", overrides=[override], host=host)
+    assert str(info.value) == f"invalid configuration: {problem}"
+
+
+def test_data_counts_still_take_plain_numbers(host):
+    config = resolve_config("reconstruction", overrides=["data.batch_size=4", "data.num_workers=0",
+                                                         "data.image_size=32", "data.val_fraction=0"], host=host)
+    assert (config.data.batch_size, config.data.num_workers, config.data.image_size) == (4, 0, 32)
+    assert config.data.val_fraction == 0.0 and isinstance(config.data.val_fraction, float)
+
+
+def test_non_utf8_config_file_names_the_file(tmp_path):
+    from vqtouch.core.config import load_config_file
+
+    path = tmp_path / "latin1.json"
+    path.write_bytes('{"description": "Kraftsensor f\u00fcr Gelsight"}'.encode("latin-1"))
+    with pytest.raises(ConfigError) as info:
+        load_config_file(path)
+    assert str(info.value) == (f"{path}: not UTF-8 text (byte 0xfc at position 30); save it as UTF-8 "
+                               "(TOML and JSON config files are UTF-8)")

@@ -8,8 +8,11 @@ not just from shapes.
 from __future__ import annotations
 
 import json
+import os
 import pickle
+import re
 import shutil
+import time
 import warnings
 from pathlib import Path
 
@@ -17,6 +20,7 @@ import pytest
 import torch
 
 from vqtouch.core import ConfigError, DatasetError, TactileDataset, load_plugins
+from vqtouch.plugins.data.readers import _io
 from vqtouch.plugins.data.readers._io import ImageLoader, SkippedSamplesWarning
 
 
@@ -24,6 +28,14 @@ import dataset_fixtures as layouts  # noqa: E402  (registered by conftest)
 CASES = layouts.READER_CASES
 HOST = load_plugins(autoload=False, extra=sorted({case.module for case in CASES}))
 SIZE = 16
+
+
+@pytest.fixture(autouse=True)
+def _own_cache_folder(tmp_path_factory, monkeypatch) -> Path:
+    """Each test gets its own user cache folder, so no test reads or writes ~/.cache."""
+    folder = tmp_path_factory.mktemp("xdg_cache")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(folder))
+    return folder
 
 
 def build(config: dict):
@@ -160,17 +172,46 @@ def test_pair_with_missing_visual_fails_or_is_skipped(case, tmp_path):
     assert len(lenient) == case.length - 1 and "skipped 1 bad sample" in message and str(victim) in message
 
 
+BAD_FILES = {  # damage -> (how to damage the file, the strict error; {path} is the escaped file name)
+    "not_an_image": (lambda path: path.write_bytes(b"definitely not an image"),
+                     r"cannot read image {path}: not an image file Pillow can read"),
+    "empty": (lambda path: path.write_bytes(b""), r"cannot read image {path}: not an image file Pillow can read"),
+    "broken_link": (layouts.break_link, r"image {path} is a broken symbolic link to .*\.gone; fix or remove it"),
+    "animated_gif": (lambda path: layouts.write_frames(path, "GIF"),
+                     r"image {path} has 2 frames \(GIF\); expected a single still image"),
+    "animated_png": (lambda path: layouts.write_frames(path, "PNG"),
+                     r"image {path} has 2 frames \(PNG\); expected a single still image"),
+    "multipage_tiff": (lambda path: layouts.write_frames(path, "TIFF", count=3),
+                       r"image {path} has 3 frames \(TIFF\); expected a single still image"),
+    "16_bit": (layouts.write_16_bit, r"image {path} has unsupported mode I;16; expected 8-bit RGB"),
+}
+
+
 @pytest.mark.parametrize("case", CASES, ids=lambda case: case.name)
-@pytest.mark.parametrize("damage", ["truncated", "not_an_image"])
-def test_corrupt_image_fails_on_access_or_is_skipped(case, damage, tmp_path):
+@pytest.mark.parametrize("damage", sorted(BAD_FILES))
+def test_bad_image_file_fails_at_build_or_is_skipped(case, damage, tmp_path):
+    """Every listed image's header is opened when the reader is built, so strict runs fail in seconds."""
     root, dataset = build_case(case, tmp_path)
     victim = first_file(dataset)
-    if damage == "truncated":
-        layouts.truncate(victim)
-    else:
-        victim.write_bytes(b"definitely not an image")
+    damage_file, expected = BAD_FILES[damage]
+    damage_file(victim)
+    with pytest.raises(DatasetError, match=expected.format(path=re.escape(str(victim)))) as failure:
+        build(case.config(root))
+    assert "\n" not in str(failure.value) and "set lenient=true" in str(failure.value)
+    with pytest.raises(DatasetError, match=expected.format(path=re.escape(str(victim)))):
+        build(case.config(root, header_cache=False))
+    lenient, message = build_lenient(case.config(root))
+    assert len(lenient) == case.length - 1 and "skipped 1 bad sample" in message and str(victim) in message
+    assert all(dataset.records[0].id != record.id for record in lenient.records)
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda case: case.name)
+def test_truncated_image_fails_on_access_or_is_skipped(case, tmp_path):
+    root, dataset = build_case(case, tmp_path)
+    victim = first_file(dataset)
+    layouts.truncate_pixels(victim)
     strict = build(case.config(root))
-    assert len(strict) == case.length  # strict builds do not decode; the error names the file on access
+    assert len(strict) == case.length  # the header is intact: only decoding the pixels finds the damage
     with pytest.raises(DatasetError, match=f"cannot decode image {victim}"):
         strict[0]
     lenient, message = build_lenient(case.config(root))
@@ -184,12 +225,24 @@ def test_greyscale_image_is_an_error_unless_allowed(case, tmp_path):
     victim = first_file(dataset)
     layouts.write_image(victim, (90, 90, 90), mode="L")
     with pytest.raises(DatasetError, match=f"{victim} is greyscale.*allow_greyscale"):
-        build(case.config(root))[0]
+        build(case.config(root))  # found by the header check, before any sample is loaded
     grey = build(case.config(root, allow_greyscale=True))[0]["tactile"]
     assert torch.equal(grey[0], grey[1]) and torch.equal(grey[1], grey[2])
     assert abs(float(grey.mean()) - 90 / 255) < 3 / 255
     lenient, message = build_lenient(case.config(root))
     assert len(lenient) == case.length - 1 and "greyscale" in message
+
+
+def test_header_check_stops_at_max_samples(tmp_path):
+    """Like the list checks, the header check covers only the samples kept, in list order."""
+    root = layouts.build_touch_and_go(tmp_path)
+    train_list = root / "dataset" / "train.txt"
+    train_list.write_text(train_list.read_text() + "not a list line\n")
+    recording, frame = layouts.tag_key(3).split("/")
+    (root / "dataset" / recording / "gelsight_frame" / frame).write_bytes(b"not an image")
+    assert len(build(tag_config(root, max_samples=2))) == 2
+    with pytest.raises(DatasetError, match="cannot read image"):
+        build(tag_config(root, max_samples=3))
 
 
 @pytest.mark.parametrize("case", [case for case in CASES if case.name in {"visgel", "objectfolder_real",
@@ -237,6 +290,121 @@ def test_crop_modes(crop, white_fraction, tmp_path):
     loaded = ImageLoader(size=SIZE, crop=crop).load(tmp_path / "tall.png")
     assert loaded.shape == (3, SIZE, SIZE)
     assert abs(float(loaded.mean()) - white_fraction) < 0.05
+
+
+# ============================================================================================
+# Header check cache
+# ============================================================================================
+@pytest.fixture
+def header_opens(monkeypatch) -> list[Path]:
+    """The files that Pillow opens from now on, in any thread; and files count as settled at once."""
+    from PIL import Image
+
+    opened: list[Path] = []
+    real_open = Image.open
+
+    def counting_open(path, *args, **kwargs):
+        opened.append(Path(path))
+        return real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr(Image, "open", counting_open)
+    # Fixture files are seconds old; the real settle time would keep them all out of the cache.
+    monkeypatch.setattr(_io, "HEADER_CACHE_SETTLE_NS", 0)
+    return opened
+
+
+def cache_files(folder: Path) -> list[Path]:
+    return sorted((folder / "vqtouch" / "image_headers").glob("*"))
+
+
+def test_header_cache_skips_unchanged_files(tmp_path, header_opens, _own_cache_folder):
+    root = layouts.build_touch_and_go(tmp_path)
+    first = build(tag_config(root))
+    files = {first.base / path for record in first.records for path in (record.tactile, record.visual)}
+    assert set(header_opens) == files and len(header_opens) == len(files)  # each header once
+    [cache] = cache_files(_own_cache_folder)
+    assert cache.suffix == ".json" and json.loads(cache.read_text())["base"] == str(root)
+    header_opens.clear()
+    second = build(tag_config(root))
+    assert header_opens == [] and second.records == first.records
+    build(tag_config(root, split="test"))  # another split of the same folder shares the cache file
+    assert len(header_opens) == 4 and len(cache_files(_own_cache_folder)) == 1
+    header_opens.clear()
+    assert len(build(tag_config(root, split="all"))) == 5 and header_opens == []
+
+
+def rewrite_keeping_size_and_mtime(path: Path, data: bytes) -> None:
+    """Replace a file's bytes without changing its size or modification time (as ``cp -p`` can)."""
+    before = path.stat()
+    assert len(data) == before.st_size
+    for _ in range(200):  # the change time ticks coarsely: wait until it moves
+        path.write_bytes(data)
+        os.utime(path, ns=(before.st_atime_ns, before.st_mtime_ns))
+        if path.stat().st_ctime_ns != before.st_ctime_ns:
+            return
+        time.sleep(0.005)
+    raise AssertionError(f"the change time of {path} did not move")
+
+
+def test_header_cache_never_hides_a_changed_file(tmp_path, header_opens):
+    root = layouts.build_touch_and_go(tmp_path)
+    victim = first_file(build(tag_config(root)))
+    rewrite_keeping_size_and_mtime(victim, b"x" * victim.stat().st_size)
+    with pytest.raises(DatasetError, match=f"cannot read image {re.escape(str(victim))}"):
+        build(tag_config(root))
+    layouts.write_image(victim, (90, 90, 90), mode="L")  # a new size and time
+    with pytest.raises(DatasetError, match=f"{re.escape(str(victim))} is greyscale"):
+        build(tag_config(root))
+    assert len(build(tag_config(root, allow_greyscale=True))) == 3  # the cache keeps facts, not verdicts
+    header_opens.clear()
+    with pytest.raises(DatasetError, match=f"{re.escape(str(victim))} is greyscale"):
+        build(tag_config(root))
+    assert header_opens == []  # the greyscale verdict came from the cached header
+
+
+def test_files_changed_just_before_the_check_are_not_cached(tmp_path, _own_cache_folder):
+    """A file checked within the clock's resolution of its last change could change again unseen."""
+    root = layouts.build_touch_and_go(tmp_path)
+    build(tag_config(root))  # every fixture file is younger than HEADER_CACHE_SETTLE_NS
+    assert cache_files(_own_cache_folder) == []
+
+
+def test_header_cache_folder_follows_xdg(tmp_path, header_opens, monkeypatch):
+    root = layouts.build_touch_and_go(tmp_path / "data")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    build(tag_config(root))
+    assert len(cache_files(tmp_path / "xdg")) == 1
+    monkeypatch.setenv("XDG_CACHE_HOME", "relative/xdg")  # ignored, as the XDG specification says
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    build(tag_config(root))
+    assert len(cache_files(tmp_path / "home" / ".cache")) == 1 and not Path("relative").exists()
+
+
+def test_header_cache_can_be_turned_off(tmp_path, header_opens, _own_cache_folder):
+    root = layouts.build_touch_and_go(tmp_path)
+    build(tag_config(root, header_cache=False))
+    build(tag_config(root, header_cache=False))
+    assert len(header_opens) == 12 and cache_files(_own_cache_folder) == []
+
+
+def test_header_cache_is_written_atomically_and_damage_is_ignored(tmp_path, header_opens, _own_cache_folder,
+                                                                   monkeypatch):
+    root = layouts.build_touch_and_go(tmp_path)
+    build(tag_config(root))
+    [cache] = cache_files(_own_cache_folder)
+    saved = cache.read_bytes()
+
+    def failing_replace(source, target):
+        raise OSError("disk full")
+
+    with monkeypatch.context() as patch:  # the new cache is written aside, then fails to take its place
+        patch.setattr(os, "replace", failing_replace)
+        assert len(build(tag_config(root, split="test"))) == 2  # a cache that cannot be saved is no error
+    assert cache_files(_own_cache_folder) == [cache] and cache.read_bytes() == saved
+    cache.write_text('{"version": 1, "base": "trunc')
+    header_opens.clear()
+    assert len(build(tag_config(root))) == 3 and len(header_opens) == 6
+    assert json.loads(cache.read_text())["base"] == str(root)  # rewritten whole
 
 
 # ============================================================================================

@@ -96,3 +96,138 @@ def test_third_party_run_component_is_named_from_env(third_party_conditioner, tm
         run.load_config(plain)
     assert str(info.value).endswith("generator.conditioners.0 uses conditioner 'x' from pkg 1.0 (plugin 'pkg_plugin'), "
                                     "which is not installed here; pip install pkg")
+
+
+# -- one run per directory (issue 9) -----------------------------------------------------------
+
+def _tiny_config(host, tmp_path, *overrides, autoencoder="dm_vqgan"):
+    return resolve_config("reconstruction", overrides=[
+        f"output_dir={tmp_path}", f"tokenizer.autoencoder.name={autoencoder}", "tokenizer.autoencoder.channels=16",
+        "tokenizer.autoencoder.norm_groups=8", "tokenizer.autoencoder.channel_multipliers=[1,2]",
+        "tokenizer.autoencoder.z_channels=16", "tokenizer.autoencoder.embed_dim=8",
+        "tokenizer.quantizer.codebook_size=32", "data.image_size=32", *overrides], host=host)
+
+
+def test_create_into_a_directory_holding_a_run_is_refused_unless_overwrite(host, tmp_path):
+    from vqtouch.core import ConfigError
+
+    path = tmp_path / "run"
+    first = RunDir.create(_tiny_config(host, tmp_path), host=host, path=path)
+    first.log_metrics("tokenizer", 1, {"loss": 1.0})
+    (first.checkpoints / "step-00000004").mkdir()
+    first.close()
+    second = _tiny_config(host, tmp_path, "tokenizer.quantizer.codebook_size=64")
+    with pytest.raises(ConfigError) as info:
+        RunDir.create(second, host=host, path=path)
+    assert str(info.value) == (f"{path} already holds a run; continue it with --resume {path}, start it afresh "
+                               "with --overwrite, or choose another --out")
+    assert json.loads((path / "config.json").read_text())["tokenizer"]["quantizer"]["codebook_size"] == 32
+    with RunDir.create(second, host=host, path=path, overwrite=True) as run:
+        assert json.loads((path / "config.json").read_text())["tokenizer"]["quantizer"]["codebook_size"] == 64
+        assert not (path / "metrics.jsonl").exists() and list(run.checkpoints.iterdir()) == []
+
+
+def test_create_accepts_an_empty_directory_and_refuses_to_wipe_a_non_run_folder(host, tmp_path):
+    from vqtouch.core import ConfigError
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    RunDir.create(_tiny_config(host, tmp_path), host=host, path=empty).close()
+    assert (empty / "config.json").is_file()
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    (folder / "holiday.png").write_bytes(b"not a run")
+    for overwrite in (False, True):
+        with pytest.raises(ConfigError) as info:
+            RunDir.create(_tiny_config(host, tmp_path), host=host, path=folder, overwrite=overwrite)
+        assert str(info.value) == (f"{folder} is not empty and is not a run directory (no config.json); choose an "
+                                   "empty or new --out (--overwrite only empties run directories)")
+    assert sorted(p.name for p in folder.iterdir()) == ["holiday.png"]  # untouched, not even a lock file
+
+
+def test_a_run_being_created_is_not_taken_for_a_foreign_folder(host, tmp_path):
+    """Between taking the lock and renaming config.json into place, a run holds only its lock file
+    and config.json's temporary file; a second writer must see a run there, not someone's folder."""
+    from vqtouch.core import ConfigError
+    from vqtouch.core.runs import LOCK_NAME
+
+    path = tmp_path / "run"
+    path.mkdir()
+    (path / LOCK_NAME).write_text("12345\n")
+    (path / ".config.json.k2j4.tmp").write_text("{")
+    with pytest.raises(ConfigError, match="already holds a run; continue it with --resume"):
+        RunDir.create(_tiny_config(host, tmp_path), host=host, path=path)
+    RunDir.create(_tiny_config(host, tmp_path), host=host, path=path, overwrite=True).close()
+    assert sorted(p.name for p in path.iterdir()) == [LOCK_NAME, "checkpoints", "config.json", "env.json"]
+
+
+def test_a_run_has_one_writer_at_a_time_in_one_process(host, tmp_path):
+    import os
+
+    from vqtouch.core import ConfigError
+
+    run = RunDir.create(_tiny_config(host, tmp_path), host=host, path=tmp_path / "run")
+    with pytest.raises(ConfigError, match=rf"is in use by another vqtouch process \(pid {os.getpid()}\)"):
+        RunDir.open(run.path, for_writing=True)
+    assert RunDir.open(run.path).load_config(host).seed == 0  # readers take no lock
+    run.close()
+    run.close()  # closing twice is harmless
+    with RunDir.open(run.path, for_writing=True):
+        pass
+
+
+def _save_step(run, host, config, step, complete=True):
+    """A checkpoint folder as the trainer writes it: one file per module (+ trainer state)."""
+    from vqtouch.core import Assembly, save
+    from vqtouch.core.training import TRAINER_STATE
+
+    folder = run.checkpoints / f"step-{step:08d}"
+    assembly = Assembly(config, host)
+    for name in ("autoencoder", "quantizer"):
+        save(assembly.component(f"tokenizer.{name}"), folder / f"{name}.safetensors", step=step, host=host)
+    if complete:
+        (folder / TRAINER_STATE).write_bytes(b"")
+    return folder
+
+
+def test_checkpoint_is_the_newest_complete_step_of_this_run(host, tmp_path):
+    from vqtouch.core import CheckpointError
+    from vqtouch.core.runs import MissingCheckpointError
+
+    config = _tiny_config(host, tmp_path)
+    run = RunDir.create(config, host=host, path=tmp_path / "run")
+    with pytest.raises(MissingCheckpointError) as info:
+        run.checkpoint(host)
+    assert str(info.value) == (f"{run.path}: no complete checkpoint in checkpoints/ (a step-* folder with "
+                               "trainer_state.safetensors); train this run first")
+    two = _save_step(run, host, config, 2)
+    _save_step(run, host, config, 4, complete=False)  # an interrupted save is not a checkpoint
+    assert run.checkpoint(host) == two and run.checkpoint(host, step=2) == two
+    with pytest.raises(MissingCheckpointError) as info:
+        run.checkpoint(host, step=4)
+    assert str(info.value) == (f"{run.checkpoints / 'step-00000004'}: incomplete checkpoint (no "
+                               "trainer_state.safetensors: its save was interrupted); choose another step")
+    with pytest.raises(MissingCheckpointError, match=r"step-00000003: no such checkpoint; this run has steps 2"):
+        run.checkpoint(host, step=3)
+    # An older run's folder left behind, newer than this run's own steps.
+    _save_step(run, host, _tiny_config(host, tmp_path, "tokenizer.quantizer.codebook_size=64"), 6)
+    with pytest.raises(CheckpointError) as info:
+        run.checkpoint(host)
+    assert str(info.value) == (
+        f"{run.checkpoints / 'step-00000006' / 'quantizer.safetensors'} was made with quantizer 'vq' "
+        '{"codebook_size": 64} but the run\'s config.json says tokenizer.quantizer {"codebook_size": 32}; this folder '
+        "mixes two runs: pick one of this run's own steps with --step, or retrain into an empty --out")
+    assert run.checkpoint(host, step=2) == two  # a step of this run is still readable
+
+
+def test_checkpoint_names_another_plugin_in_a_mixed_folder(host, tmp_path):
+    from vqtouch.core import CheckpointError
+
+    config = _tiny_config(host, tmp_path)
+    run = RunDir.create(config, host=host, path=tmp_path / "run")
+    _save_step(run, host, _tiny_config(host, tmp_path, autoencoder="vqgan"), 2)
+    with pytest.raises(CheckpointError) as info:
+        run.checkpoint(host)
+    assert str(info.value).startswith(f"{run.checkpoints / 'step-00000002' / 'autoencoder.safetensors'} was made with "
+                                      "autoencoder 'vqgan' but the run's config.json says tokenizer.autoencoder "
+                                      "is 'dm_vqgan'; this folder mixes two runs")

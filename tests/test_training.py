@@ -11,7 +11,8 @@ import torch
 from torch import nn
 
 from vqtouch.core import BuildContext, Conditioner, PluginConfig, TrainConfig, hookimpl, load_plugins
-from vqtouch.core.training import TRAINER_STATE, NonFiniteLossError, Trainer, batch_indices, latest_checkpoint
+from vqtouch.core.training import (TRAINER_STATE, NonFiniteLossError, SkippedCheckpointWarning, Trainer, batch_indices,
+                                   latest_checkpoint)
 
 
 class ToyDataset:
@@ -95,10 +96,11 @@ def test_training_reduces_the_loss_and_writes_checkpoints(host, tmp_path):
     trainer.fit()
     assert task.losses[-1] < task.losses[0] / 5
     assert latest_checkpoint(tmp_path / "checkpoints").name == "step-00000040"
-    # The newest complete step-* folder is the one source of truth: no pointer file to fall out of date.
+    # The newest complete step-* folder is the one source of truth: no pointer file to fall out of date;
+    # the newest keep_last (3) are kept.
     assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == [
-        f"step-{step:08d}" for step in range(4, 41, 4)]
-    assert {p.name for p in (tmp_path / "checkpoints" / "step-00000004").iterdir()} == {
+        f"step-{step:08d}" for step in range(32, 41, 4)]
+    assert {p.name for p in (tmp_path / "checkpoints" / "step-00000040").iterdir()} == {
         "model.safetensors", "trainer_state.safetensors"}
 
 
@@ -166,7 +168,11 @@ def test_incomplete_checkpoint_folder_is_ignored(host, tmp_path):
     (newer / "model.safetensors").write_bytes((checkpoints / "step-00000008" / "model.safetensors").read_bytes())
     assert latest_checkpoint(checkpoints).name == "step-00000008"
     resumed, _ = make_trainer(host, tmp_path, steps=12)
-    assert resumed.resume(checkpoints) and resumed.state.step == 8
+    with pytest.warns(SkippedCheckpointWarning) as caught:
+        assert resumed.resume(checkpoints) and resumed.state.step == 8
+    assert [str(w.message) for w in caught] == [
+        f"checkpoint {checkpoints / name} skipped: no {TRAINER_STATE}: its save was interrupted"
+        for name in ("step-00000099", "step-00000012")]
     # Once the newer folder is complete, it is the latest.
     (newer / TRAINER_STATE).write_bytes((checkpoints / "step-00000008" / TRAINER_STATE).read_bytes())
     assert latest_checkpoint(checkpoints).name == "step-00000012"
@@ -186,6 +192,44 @@ def test_train_config_defaults_are_generic_and_stages_subclass_them(host, tmp_pa
     assert isinstance(config.tokenizer.train, TrainConfig)
     assert config.tokenizer.train.steps == 7 and config.tokenizer.train.betas == (0.5, 0.9)
     assert "train" not in type(config).model_fields
+
+
+@pytest.mark.parametrize("override, problem", [
+    ("betas=[2,3]", "betas: each Adam beta must be a number in [0, 1), e.g. [0.9, 0.999] (got [2, 3])"),
+    ("betas=[0.9,1.0]", "betas: each Adam beta must be a number in [0, 1), e.g. [0.9, 0.999] (got [0.9, 1.0])"),
+    ("betas=[-0.1,0.9]", "betas: each Adam beta must be a number in [0, 1), e.g. [0.9, 0.999] (got [-0.1, 0.9])"),
+    ("betas=[0.9,NaN]", "betas: each Adam beta must be a number in [0, 1), e.g. [0.9, 0.999] (got [0.9, nan])"),
+    ("betas=[false,0.9]", "betas: each Adam beta must be a number in [0, 1), e.g. [0.9, 0.999] (got [False, 0.9])"),
+    ("steps=true", "steps: Input should be a valid integer (got True)"),
+    ("steps=2.0", "steps: Input should be a valid integer (got 2.0)"),
+    ("steps=100000000", "steps: Input should be less than or equal to 99999999 (got 100000000)"),
+    ("checkpoint_every=true", "checkpoint_every: Input should be a valid integer (got True)"),
+    ("log_every=false", "log_every: Input should be a valid integer (got False)"),
+    ("max_skipped_steps=true", "max_skipped_steps: Input should be a valid integer (got True)"),
+    ("keep_last=0", "keep_last: Input should be greater than or equal to 1 (got 0)"),
+    ("learning_rate=true", "learning_rate: Input should be a valid number (got True)"),
+    ("grad_clip=true", "grad_clip: Input should be a valid number (got True)"),
+])
+def test_train_config_refuses_values_that_would_crash_or_mislead_later(override, problem):
+    from vqtouch.core import ConfigError, resolve_config
+
+    # tokenizer.train is a subclass with its own betas default: the checks hold for it too.
+    with pytest.raises(ConfigError) as info:
+        resolve_config("label-to-touch", overrides=[f"tokenizer.train.{override}"], host=load_plugins(autoload=False))
+    assert str(info.value) == f"invalid configuration: tokenizer.train.{problem}"
+
+
+def test_train_config_keeps_accepting_what_is_sensible():
+    config = TrainConfig(steps=99_999_999, betas=[0.0, 0.999], learning_rate=1, grad_clip=5, ema_decay=0.999)
+    assert config.betas == (0.0, 0.999) and config.learning_rate == 1.0 and config.grad_clip == 5.0
+
+
+def test_a_long_run_does_not_build_every_batch_up_front(host, tmp_path):
+    trainer, task = make_trainer(host, tmp_path, steps=99_999_999, checkpoint_every=99_999_999,
+                                 task_options={"interrupt_at": 3})
+    with pytest.raises(KeyboardInterrupt):
+        trainer.fit()
+    assert len(task.losses) == 3
 
 
 def test_resume_with_different_batch_size_is_refused(host, tmp_path):

@@ -16,6 +16,7 @@ import torch
 from vqtouch.core import Assembly, ConfigError, RunDir, hookimpl, run_stage
 from vqtouch.core.cli import add_config_arguments, command_group, config_from_args, stage_failure
 from vqtouch.core.data import split_dataset
+from vqtouch.core.runs import is_main_process
 
 from .stages import load_tokenizer, printable, reconstruct_all, save_pairs
 from .training import evaluate_reconstruction
@@ -24,20 +25,25 @@ from .training import evaluate_reconstruction
 def _train_tokenizer_command(args: argparse.Namespace) -> int:
     host = args.host
     if args.resume:
+        if args.overwrite:
+            raise ConfigError("--overwrite starts a new run and --resume continues one; give one of them")
         if args.overrides or args.config:
             raise ConfigError("--resume continues a run with its saved config; drop --set/--config")
-        run = RunDir.open(args.resume)
+        run = RunDir.open(args.resume, for_writing=True)
         config = run.load_config(host)
     else:
         config = config_from_args(args, host)
-        run = RunDir.create(config, argv=args.argv, host=host, path=args.out)
-    try:
-        outcome = run_stage("tokenizer", Assembly(config, host), run, resume=bool(args.resume))
-    except KeyboardInterrupt:
-        print(f"\ninterrupted; the checkpoint is saved. Resume with: vqtouch train tokenizer --resume {run.path}")
-        return 130
+        run = RunDir.create(config, argv=args.argv, host=host, path=args.out, overwrite=args.overwrite)
+    with run:  # releases the run's lock however the command ends
+        try:
+            outcome = run_stage("tokenizer", Assembly(config, host), run, resume=bool(args.resume))
+        except KeyboardInterrupt:
+            print(f"\ninterrupted; the checkpoint is saved. Resume with: vqtouch train tokenizer --resume {run.path}")
+            return 130
     if outcome.status != "ran":
         raise stage_failure(outcome)
+    if not is_main_process():
+        return 0  # rank 0 writes eval.json (and may not have yet) and prints the result
     print(json.dumps(json.loads((run.path / "eval.json").read_text()), indent=2))
     print(f"run: {run.path}  (reconstructions.png, eval.json, checkpoints/)")
     return 0
@@ -89,7 +95,7 @@ def _evaluate_command(args: argparse.Namespace) -> int:
     host = args.host
     run = RunDir.open(args.run)
     config = run.load_config(host)
-    tokenizer, folder = load_tokenizer(run.path, host, args.step)
+    tokenizer, folder = load_tokenizer(run, host, args.step)
     assembly = Assembly(config, host)
     if args.dataset:
         # A separate held-out dataset (e.g. another seed), evaluated whole: runs trained on
@@ -117,6 +123,8 @@ def vqtouch_add_commands(subparsers):
     add_config_arguments(tokenizer, default_scene="reconstruction")
     tokenizer.add_argument("--out", help="run directory (default: <output_dir>/<name>-<time>-<hash>)")
     tokenizer.add_argument("--resume", metavar="RUN", help="continue an interrupted run from its last checkpoint")
+    tokenizer.add_argument("--overwrite", action="store_true",
+                           help="empty the --out run directory first (refused for a folder that holds no run)")
     tokenizer.set_defaults(handler=_train_tokenizer_command)
 
     reconstruct = subparsers.add_parser("reconstruct", help="encode and decode images with a trained tokenizer")

@@ -14,10 +14,12 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import CheckpointError, StageJob, StageUnavailable, hookimpl, load, resolve_device
+from vqtouch.core import RunDir, StageJob, StageUnavailable, hookimpl, load, resolve_device
 from vqtouch.core.data import split_dataset
+from vqtouch.core.errors import NothingToEvaluateError
 from vqtouch.core.images import image_grid, save_png
-from vqtouch.core.training import Trainer, latest_checkpoint
+from vqtouch.core.runs import MissingCheckpointError
+from vqtouch.core.training import Trainer
 
 from .training import Tokenizer, TokenizerSection, TokenizerTask, evaluate_reconstruction
 
@@ -58,41 +60,72 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
     trainer = Trainer(task, train_set, section.train, batch_size=config.data.batch_size, seed=config.seed,
                       device=device, checkpoint_dir=job.run.checkpoints, run=job.run,
                       num_workers=config.data.num_workers, host=job.host, stage=job.stage)
-    if job.resume and trainer.resume(job.run.checkpoints):
+    if job.resume and _has_checkpoint(job) and trainer.resume(job.run.checkpoints):
         print(f"resumed {job.run.path} at step {trainer.state.step}")
     state = trainer.fit()
     metrics = dict(zip((item.name for item in config.metrics), assembly.build_slots(["metrics"]).get("metrics", [])))
-    scores = evaluate_reconstruction(tokenizer, val_set, metrics, device=device, batch_size=config.data.batch_size)
+    try:
+        scores = evaluate_reconstruction(tokenizer, val_set, metrics, device=device,
+                                         batch_size=config.data.batch_size)
+    except NothingToEvaluateError:  # data.val_fraction=0 holds nothing out: keep the training, say why
+        scores = {"evaluation": f"skipped: no held-out samples (data.val_fraction={config.data.val_fraction:g})"}
     if trainer.dist.is_main:
-        save_pairs(*scores["examples"], job.run.path / "reconstructions.png")
+        if "examples" in scores:
+            save_pairs(*scores["examples"], job.run.path / "reconstructions.png")
         job.run.write_json("eval.json", {"step": state.step, "skipped_steps": state.skipped_steps,
                                          "train_samples": len(train_set), "val_samples": len(val_set),
                                          **printable(scores)})
     return scores
 
 
+def _has_checkpoint(job: StageJob) -> bool:
+    """Whether the run has a checkpoint to resume from, checked against the run's config (a
+    folder mixing two runs raises CheckpointError)."""
+    try:
+        # Trainer.resume picks the same folder again (training.latest_checkpoint); once it accepts a
+        # step folder, pass it this one.
+        job.run.checkpoint(job.host)
+    except MissingCheckpointError:
+        return False
+    return True
+
+
 def run_tokenizer_stage(job: StageJob) -> dict[str, Any]:
     """The ``tokenizer`` stage: train, then the held-out scores for the report."""
     scores = printable(train_tokenizer(job))
     return {"steps": job.section.train.steps,
-            **{k: v for k, v in scores.items() if k in ("ssim", "psnr", "codebook_usage", "samples")},
-            "picture": "reconstructions.png"}
+            **{k: v for k, v in scores.items() if k in ("ssim", "psnr", "codebook_usage", "samples", "evaluation")},
+            **({} if "evaluation" in scores else {"picture": "reconstructions.png"})}
 
 
-def load_tokenizer(run_or_folder: str | Path, host: Any, step: int | None = None,
+def load_tokenizer(run_or_folder: str | Path | RunDir, host: Any, step: int | None = None,
                    device: str = "cpu") -> tuple[Tokenizer, Path]:
     """Load the autoencoder and quantizer of a run (its latest complete checkpoint, or ``step``) or
-    of a checkpoint folder."""
-    path = Path(run_or_folder)
-    if all((path / name).is_file() for name in TOKENIZER_FILES):
-        folder = path
+    of a checkpoint folder.
+
+    A run's folder comes from :meth:`RunDir.checkpoint`, which refuses files made with another
+    config than the run's; so does a ``step-*`` folder given inside a run.  A checkpoint folder
+    outside any run (copied elsewhere) is loaded as it is.
+    """
+    if isinstance(run_or_folder, RunDir):
+        run, path = run_or_folder, run_or_folder.path
     else:
-        checkpoints = path / "checkpoints"
-        folder = checkpoints / f"step-{step:08d}" if step is not None else latest_checkpoint(checkpoints)
-        if folder is None or not all((folder / name).is_file() for name in TOKENIZER_FILES):
-            where = f"checkpoints/step-{step:08d}" if step is not None else "checkpoints/step-*"
-            raise CheckpointError(f"{path}: no tokenizer checkpoint found (expected {where}/{TOKENIZER_FILES[0]}); "
-                                  "train one with `vqtouch train tokenizer`")
+        path = Path(run_or_folder)
+        run = None
+        if all((path / name).is_file() for name in TOKENIZER_FILES):
+            inside = path.parent.parent
+            if (path.parent.name == "checkpoints" and path.name.startswith("step-") and path.name[5:].isdigit()
+                    and (inside / "config.json").is_file()):
+                run, step = RunDir.open(inside), int(path.name[5:])
+            else:
+                folder = path
+        else:
+            run = RunDir.open(path)
+    if run is not None:
+        folder = run.checkpoint(host, step)
+        if not all((folder / name).is_file() for name in TOKENIZER_FILES):
+            raise MissingCheckpointError(f"{folder}: holds no tokenizer (expected {', '.join(TOKENIZER_FILES)}); "
+                                         "train one with `vqtouch train tokenizer`")
     autoencoder = load(folder / TOKENIZER_FILES[0], host=host, map_location=device)
     quantizer = load(folder / TOKENIZER_FILES[1], host=host, map_location=device)
     return Tokenizer(autoencoder, quantizer).eval(), folder
@@ -108,8 +141,9 @@ def reconstruct_all(tokenizer: Tokenizer, images_B3HW: torch.Tensor, batch_size:
 def run_reconstruct_stage(job: StageJob) -> dict[str, Any]:
     """The ``reconstruct`` stage: the run's tokenizer on the sensor family's real reference frames."""
     try:
-        tokenizer, folder = load_tokenizer(job.run.path, job.host)
-    except CheckpointError as exc:
+        tokenizer, folder = load_tokenizer(job.run, job.host)
+    except MissingCheckpointError as exc:
+        # Only a missing checkpoint makes the stage unavailable; a wrong one is a failure.
         raise StageUnavailable(f"no trained tokenizer in this run ({exc}); run the tokenizer stage first") from None
     sensor_config = job.assembly.sensor_config("source")
     sensor = job.assembly.sensor("source")

@@ -21,7 +21,8 @@ import torch
 from pydantic import Field
 from torch import nn
 
-from vqtouch.core import Autoencoder, Metric, Quantizer, Section, Slot, TrainConfig
+from vqtouch.core import Autoencoder, Metric, Quantizer, Section, Slot, TrainConfig, VqtouchError
+from vqtouch.core.errors import NothingToEvaluateError
 from vqtouch.core.training import collate_samples
 
 from .discriminator import adaptive_weight, hinge_discriminator_loss
@@ -160,8 +161,15 @@ def evaluate_reconstruction(tokenizer: Tokenizer, dataset: Any, metrics: dict[st
     """Reconstruct every sample of ``dataset``; metrics, codebook usage, perplexity and speed.
 
     Returns the scores and, under ``"examples"``, the first ``keep`` (original, reconstruction)
-    pairs for a picture.
+    pairs for a picture.  Raises :class:`NothingToEvaluateError` when ``dataset`` is empty (a
+    caller may then skip the evaluation and say why), and :class:`VqtouchError` when the
+    reconstructions are not finite: no metric can score them.
     """
+    if len(dataset) == 0:
+        raise NothingToEvaluateError(
+            "nothing to evaluate: the dataset has no samples (a run's held-out split is empty when "
+            "data.val_fraction=0); evaluate other samples with `vqtouch evaluate reconstruction --split all` or "
+            "--dataset")
     tokenizer.eval()
     tokenizer.autoencoder.reset_randomness()
     tokenizer.quantizer.reset_usage()
@@ -175,6 +183,9 @@ def evaluate_reconstruction(tokenizer: Tokenizer, dataset: Any, metrics: dict[st
         tic = time.perf_counter()
         reconstruction, output = tokenizer.reconstruct(images)
         seconds += time.perf_counter() - tic
+        if not torch.isfinite(reconstruction).all():
+            # Checked here, before a metric sees them: the cause is the tokenizer, not the images.
+            raise VqtouchError(_non_finite_message(tokenizer))
         count += len(images)
         for metric in metrics.values():
             metric.update(reconstruction.cpu(), images.cpu())
@@ -190,3 +201,19 @@ def evaluate_reconstruction(tokenizer: Tokenizer, dataset: Any, metrics: dict[st
     scores |= {"samples": count, "reconstructions_per_second": count / max(seconds, 1e-9),
                "examples": (torch.stack(originals), torch.stack(reconstructions))}
     return scores
+
+
+def _non_finite_message(tokenizer: Tokenizer) -> str:
+    """Why a tokenizer's reconstructions are NaN/Inf: which of its weights are not finite, if any."""
+    step = getattr(tokenizer.autoencoder, "vqtouch_step", None)  # set when loaded from a checkpoint
+    which = f" (checkpoint step {step})" if step is not None else ""
+    broken = []
+    for name, module in (("autoencoder", tokenizer.autoencoder), ("quantizer", tokenizer.quantizer)):
+        bad = [key for key, value in module.state_dict().items()
+               if value.is_floating_point() and not torch.isfinite(value).all()]
+        if bad:
+            broken.append(f"{name}: {len(bad)} tensor(s), first {bad[0]!r}")
+    cause = (f"its weights are not finite ({'; '.join(broken)})" if broken
+             else "its weights are finite, so a value overflows inside the network")
+    return (f"the tokenizer{which} produced NaN/Inf reconstructions; {cause}; evaluate an earlier checkpoint with "
+            "--step, or retrain with a lower tokenizer.train.learning_rate")

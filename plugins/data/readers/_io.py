@@ -8,9 +8,13 @@ Every reader follows the same plan, implemented once here:
    its files exist with :class:`FileIndex` and reporting bad entries to a :class:`SkipLog`,
    which raises :class:`~vqtouch.core.DatasetError` in strict mode and records the reason when
    ``lenient`` is set;
-3. :func:`collect_records` keeps the good records (decoding every image once when lenient, so
-   corrupt files are skipped too), applies ``max_samples``, refuses an empty split and emits the
-   single warning that counts what was skipped;
+3. :func:`collect_records` keeps the good records, applies ``max_samples``, refuses an empty
+   split and emits the single warning that counts what was skipped.  It opens the header of every
+   image of the kept records (:class:`ImageCheck`: readable, an image, a supported mode, a single
+   frame), so a strict build fails in its first seconds naming the bad file rather than mid-training;
+   lenient builds also decode every image, so truncated files are skipped too.  Headers already
+   read are remembered by file stat in a small JSON file under the user cache folder
+   (:class:`HeaderCache`), so building the same dataset again reads none of them;
 4. :class:`RecordDataset` decodes images on access with :class:`ImageLoader`.
 
 Pillow is imported inside the functions that decode, so importing a reader stays cheap.
@@ -19,11 +23,19 @@ Pillow is imported inside the functions that decode, so importing a reader stays
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import os
 import re
+import stat
+import tempfile
+import threading
+import time
 import warnings
-from collections.abc import Callable, Iterable, Sequence
+from collections import deque
+from collections.abc import Iterable, Sequence
+from itertools import islice
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -42,6 +54,21 @@ CropMode = Literal["center", "top", "stretch"]
 REASONS_SHOWN = 3
 # Reference frames repeat across many samples (one per recording or trajectory).
 REFERENCE_CACHE_SIZE = 64
+# Header checks run in threads: on network storage each open waits mostly on the server.
+HEADER_THREADS = 8
+# Most candidates whose files are checked ahead of the one being judged (lists run to millions).
+HEADER_WINDOW = 256
+# Candidates checked per thread task: one task per file would cost more than a cached check.
+HEADER_BATCH = 32
+# Results of recent checks, so a reference frame shared by many samples is checked once.
+CHECKED_MEMO_SIZE = 4096
+# A file changed less than this long before its check is not cached: a second change within the
+# same tick of the file system's clock would leave its stat unchanged (git's "racily clean" case).
+HEADER_CACHE_SETTLE_NS = 2_000_000_000
+HEADER_CACHE_VERSION = 1
+# Formats whose extra frames are not an animation: a camera's multi-picture JPEG holds the photo
+# first and previews after it, and Pillow reads the photo.
+STILL_MULTI_FRAME_FORMATS = frozenset({"MPO"})
 
 
 class ReaderConfig(PluginConfig):
@@ -57,7 +84,15 @@ class ReaderConfig(PluginConfig):
                                                  "'stretch' resizes the whole image, ignoring the aspect ratio.")
     lenient: bool = Field(False, description="Skip bad samples (missing or corrupt files, bad labels, broken pairs) "
                                              "with one warning that counts them, instead of failing. Decodes every "
-                                             "image once at construction to find corrupt ones (slow on large sets).")
+                                             "image once at construction to find corrupt ones (slow on large sets); "
+                                             "strict builds only open each image's header, which misses truncated "
+                                             "pixel data until the image is loaded.")
+    header_cache: bool = Field(True, description="Remember the image headers checked at construction by file path, "
+                                                 "size, modification and change time, in "
+                                                 "$XDG_CACHE_HOME/vqtouch/image_headers/ (default "
+                                                 "~/.cache/vqtouch/image_headers/), so building the same dataset "
+                                                 "again opens only new or changed files; false opens every header "
+                                                 "each time and writes nothing.")
     allow_greyscale: bool = Field(False, description="Accept greyscale images by copying them into 3 channels; "
                                                      "otherwise they are errors (skips when lenient).")
     max_samples: int | None = Field(None, ge=1, le=1_000_000_000,
@@ -180,8 +215,12 @@ def natural_key(name: str) -> tuple[Any, ...]:
 
 
 def is_image_file(path: Path) -> bool:
-    """Whether ``path`` names a visible file with a known image suffix."""
-    return path.suffix.lower() in IMAGE_SUFFIXES and not path.name.startswith(".") and path.is_file()
+    """Whether ``path`` names a visible file, or symbolic link, with a known image suffix.
+
+    A broken link counts, so that the image check reports it instead of the sample vanishing.
+    """
+    return (path.suffix.lower() in IMAGE_SUFFIXES and not path.name.startswith(".")
+            and (path.is_file() or path.is_symlink()))
 
 
 def list_images(folder: Path, *, recursive: bool = False) -> list[Path]:
@@ -201,14 +240,16 @@ class FileIndex:
     """Answers "does this file exist?" from one directory listing per folder.
 
     Lists name up to hundreds of thousands of frames spread over a few hundred folders: one
-    ``scandir`` per folder is far cheaper than one ``stat`` per file on network storage.
+    ``scandir`` per folder is far cheaper than one ``stat`` per file on network storage.  A
+    symbolic link counts as existing even when broken, so that the image check reports it as a
+    broken link (naming its target) rather than as a missing file.
     """
 
     def __init__(self) -> None:
         self._names_by_folder: dict[Path, frozenset[str]] = {}
 
     def exists(self, path: Path) -> bool:
-        """Whether ``path`` is an existing file (or a link to one)."""
+        """Whether ``path`` is an existing file or a symbolic link (possibly broken)."""
         folder = path.parent
         names = self._names_by_folder.get(folder)
         if names is None:
@@ -220,7 +261,7 @@ class FileIndex:
     def _list(folder: Path) -> frozenset[str]:
         try:
             with os.scandir(folder) as entries:
-                return frozenset(entry.name for entry in entries if entry.is_file())
+                return frozenset(entry.name for entry in entries if entry.is_file() or entry.is_symlink())
         except (FileNotFoundError, NotADirectoryError):
             return frozenset()
         except OSError as exc:
@@ -232,6 +273,17 @@ class FileIndex:
 # --------------------------------------------------------------------------------------------
 _GREYSCALE_MODES = frozenset({"1", "L", "LA", "La"})
 _COLOUR_MODES = frozenset({"RGB", "RGBA", "RGBa", "RGBX", "CMYK", "YCbCr", "LAB", "HSV", "P", "PA"})
+
+
+def mode_problem(path: Path, mode: str, allow_greyscale: bool) -> str | None:
+    """Why an image of Pillow ``mode`` cannot be used, or None; transparency needs the pixels."""
+    if mode in _GREYSCALE_MODES:
+        if allow_greyscale:
+            return None
+        return f"image {path} is greyscale (mode {mode}); set allow_greyscale=true to copy it into 3 channels"
+    if mode not in _COLOUR_MODES:
+        return f"image {path} has unsupported mode {mode}; expected 8-bit RGB"
+    return None
 
 
 def crop_box(width: int, height: int, mode: CropMode) -> tuple[float, float, float, float]:
@@ -290,13 +342,11 @@ class ImageLoader:
         mode = image.mode
         if mode == "RGB":
             return image
+        problem = mode_problem(path, mode, self.allow_greyscale)
+        if problem:
+            raise DatasetError(problem)
         if mode in _GREYSCALE_MODES:
-            if not self.allow_greyscale:
-                raise DatasetError(f"image {path} is greyscale (mode {mode}); set allow_greyscale=true to "
-                                   f"copy it into 3 channels")
             return self._drop_opaque_alpha(image, path) if "A" in mode or "a" in mode else image.convert("RGB")
-        if mode not in _COLOUR_MODES:
-            raise DatasetError(f"image {path} has unsupported mode {mode}; expected 8-bit RGB")
         if mode == "P":
             # A palette image may mark one entry transparent; only then does it carry alpha.
             return self._drop_opaque_alpha(image.convert("RGBA"), path) if "transparency" in image.info \
@@ -326,6 +376,233 @@ def read_image_size(path: Path) -> tuple[int, int]:
 
 
 # --------------------------------------------------------------------------------------------
+# Header check: every image opened, not decoded, when a reader is built
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class ImageHeader:
+    """What Pillow reads from an image file without decoding its pixels."""
+
+    format: str
+    mode: str
+    width: int
+    height: int
+    frames: int
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
+
+
+def _unopenable(path: Path, exc: BaseException) -> str:
+    """Why ``path`` could not be opened, naming a broken link's target."""
+    if isinstance(exc, FileNotFoundError) and os.path.islink(path):
+        return f"image {path} is a broken symbolic link to {os.readlink(path)}; fix or remove it"
+    if isinstance(exc, FileNotFoundError):
+        return f"missing image {path}"
+    return f"cannot read image {path}: {type(exc).__name__}: {_one_line(exc)}; replace or remove it"
+
+
+def read_header(path: Path) -> ImageHeader:
+    """The header of the image at ``path``; a DatasetError naming the file when it cannot be read."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            # n_frames walks the frame headers of GIF, PNG and TIFF files; no pixels are decoded.
+            return ImageHeader(image.format or "unknown", image.mode, image.width, image.height,
+                               int(getattr(image, "n_frames", 1)))
+    except UnidentifiedImageError:
+        raise DatasetError(f"cannot read image {path}: not an image file Pillow can read; "
+                           f"replace or remove it") from None
+    except Exception as exc:  # noqa: BLE001 - damaged headers raise many types; each becomes a named bad file
+        raise DatasetError(_unopenable(path, exc)) from None
+
+
+def header_problem(header: ImageHeader, path: Path, allow_greyscale: bool) -> str | None:
+    """Why an image with this header cannot be loaded, or None (transparency needs the pixels)."""
+    if header.frames > 1 and header.format not in STILL_MULTI_FRAME_FORMATS:
+        return (f"image {path} has {header.frames} frames ({header.format}); expected a single still image "
+                f"(save one frame of it)")
+    return mode_problem(path, header.mode, allow_greyscale)
+
+
+def user_cache_folder() -> Path | None:
+    """vqtouch's user cache folder: $XDG_CACHE_HOME/vqtouch, else ~/.cache/vqtouch; None without a home."""
+    xdg = os.environ.get("XDG_CACHE_HOME", "")
+    if os.path.isabs(xdg):  # the XDG specification says to ignore relative paths
+        return Path(xdg) / "vqtouch"
+    try:
+        return Path.home() / ".cache" / "vqtouch"
+    except (RuntimeError, KeyError):
+        return None
+
+
+class HeaderCache:
+    """Image headers already read below one folder, remembered by file stat in a JSON file.
+
+    An entry is used only while the file's size, modification and change times (nanoseconds)
+    are those recorded, so a changed file is always read again; the change time also moves when
+    a file is replaced keeping its size and modification time (``cp -p``, ``rsync -t``).  Files
+    changed within :data:`HEADER_CACHE_SETTLE_NS` of their check are not recorded (see there).
+    Only good headers are recorded: a bad file is opened again on every build, so its error is
+    never stale.  The file is replaced atomically; concurrent builds (one per DDP rank) each write
+    a complete file and the last one wins.  The cache is only a speed-up: a cache file that cannot
+    be read is ignored and one that cannot be written is skipped, silently.
+    """
+
+    def __init__(self, base: Path, path: Path | None) -> None:
+        self.base = os.path.abspath(base)
+        self.path = path
+        self._entries: dict[str, list[Any]] = {}
+        self._changed = False
+        self._lock = threading.Lock()
+
+    @classmethod
+    def open(cls, base: Path) -> HeaderCache:
+        """The cache of the images below ``base``, loaded from the user cache folder if there."""
+        folder = user_cache_folder()
+        digest = hashlib.sha256(os.path.abspath(base).encode("utf-8", "surrogateescape")).hexdigest()[:32]
+        cache = cls(base, folder / "image_headers" / f"{digest}.json" if folder else None)
+        cache._load()
+        return cache
+
+    def lookup(self, key: str, status: os.stat_result) -> ImageHeader | None:
+        """The recorded header of file ``key`` if its stat is unchanged, else None."""
+        entry = self._entries.get(key)
+        # Entries come from a file anyone can edit: use only well-formed ones.
+        if (not isinstance(entry, list) or len(entry) != 8 or entry[:3] != _stat_signature(status)
+                or not all(isinstance(value, str) for value in entry[3:5])
+                or not all(type(value) is int for value in entry[5:])):
+            return None
+        return ImageHeader(*entry[3:])
+
+    def store(self, key: str, status: os.stat_result, header: ImageHeader) -> None:
+        """Record the header of file ``key`` read with stat ``status``, unless it changed too recently."""
+        if time.time_ns() - max(status.st_mtime_ns, status.st_ctime_ns) < HEADER_CACHE_SETTLE_NS:
+            return
+        entry = [*_stat_signature(status), header.format, header.mode, header.width, header.height, header.frames]
+        with self._lock:
+            self._entries[key] = entry
+            self._changed = True
+
+    def forget(self, key: str) -> None:
+        """Drop the record of file ``key`` (it is bad now)."""
+        with self._lock:
+            if self._entries.pop(key, None) is not None:
+                self._changed = True
+
+    def save(self) -> None:
+        """Write the records if any changed: a temporary file in the same folder, then renamed over."""
+        if not self._changed or self.path is None:
+            return
+        with self._lock:
+            text = json.dumps({"version": HEADER_CACHE_VERSION, "base": self.base, "files": self._entries},
+                              separators=(",", ":"))
+        temporary = None
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            handle, temporary = tempfile.mkstemp(dir=self.path.parent, prefix=f".{self.path.stem}.", suffix=".tmp")
+            with os.fdopen(handle, "w", encoding="utf-8") as stream:
+                stream.write(text)
+                stream.flush()
+                os.fsync(stream.fileno())  # the rename must not land before the data (a crash leaves the old file)
+            os.replace(temporary, self.path)
+            temporary = None
+            self._changed = False
+        except OSError:
+            pass  # read-only or full cache folder: the next build reads the headers again
+        finally:
+            if temporary is not None:
+                try:
+                    os.unlink(temporary)
+                except OSError:
+                    pass
+
+    def _load(self) -> None:
+        if self.path is None:
+            return
+        try:
+            data = json.loads(self.path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return  # absent, unreadable or damaged: start afresh and overwrite it
+        if (isinstance(data, dict) and data.get("version") == HEADER_CACHE_VERSION and data.get("base") == self.base
+                and isinstance(data.get("files"), dict)):
+            self._entries = data["files"]
+
+
+def _stat_signature(status: os.stat_result) -> list[int]:
+    return [status.st_size, status.st_mtime_ns, status.st_ctime_ns]
+
+
+class ImageCheck:
+    """Finds what is wrong with one image file of a dataset when the reader is built.
+
+    Opens the header (readable, an image, a supported mode, a single frame) and, with
+    ``decode``, decodes the pixels too (truncated data, transparency).  Paths are relative to
+    ``base``; results of recent checks are kept so that shared reference frames are checked once.
+    """
+
+    def __init__(self, base: Path, loader: ImageLoader, *, decode: bool, cache: HeaderCache | None) -> None:
+        self.base = base
+        self.loader = loader
+        self.decode = decode
+        self.cache = cache
+        self._recent: dict[str, str | None] = {}
+
+    def problem(self, relative: str) -> str | None:
+        """Why image ``relative`` cannot be used, or None."""
+        if relative in self._recent:
+            return self._recent[relative]
+        path = self.base / relative
+        try:
+            header = self._header(relative, path)
+        except DatasetError as exc:
+            problem: str | None = str(exc)
+        else:
+            problem = header_problem(header, path, self.loader.allow_greyscale)
+            if problem is None and self.decode:
+                problem = self.loader.problem(path)
+        if len(self._recent) >= CHECKED_MEMO_SIZE:
+            self._recent.clear()
+        self._recent[relative] = problem
+        return problem
+
+    def _header(self, relative: str, path: Path) -> ImageHeader:
+        if self.cache is None:
+            return read_header(path)
+        try:
+            status = os.stat(path)
+        except OSError as exc:
+            self.cache.forget(relative)
+            raise DatasetError(_unopenable(path, exc)) from None
+        if not stat.S_ISREG(status.st_mode):
+            raise DatasetError(f"image {path} is not a file; replace or remove it")
+        header = self.cache.lookup(relative, status)
+        if header is None:
+            try:
+                header = read_header(path)
+            except DatasetError:
+                self.cache.forget(relative)
+                raise
+            self.cache.store(relative, status, header)
+        return header
+
+    def first_problems(self, records: Sequence[SampleRecord], use_reference: bool) -> list[str | None]:
+        """For each record, the first problem among its images (reference included if used), or None."""
+        found = []
+        for record in records:
+            paths = (record.tactile, record.visual, record.reference if use_reference else None)
+            problem = next((problem for path in paths if path is not None and (problem := self.problem(path))), None)
+            found.append(f"sample {record.id}: {problem}" if problem else None)
+        return found
+
+    def save(self) -> None:
+        """Write the header cache, if there is one."""
+        if self.cache is not None:
+            self.cache.save()
+
+
+# --------------------------------------------------------------------------------------------
 # Records and the dataset
 # --------------------------------------------------------------------------------------------
 @dataclass(frozen=True, slots=True)
@@ -350,39 +627,52 @@ def collect_records(candidates: Iterable[SampleRecord], *, config: ReaderConfig,
                     total: int | None = None) -> list[SampleRecord]:
     """Keep the usable candidate records, in order, up to ``max_samples``.
 
-    Lenient builds decode every image of each candidate once so that corrupt files are skipped
-    now rather than failing later.  Raises DatasetError when nothing is left (naming
-    ``listed_in``) and otherwise warns once about what was skipped.
+    Every image of a record (its reference too with ``use_reference``) is checked with
+    :class:`ImageCheck` before the record is kept: headers always, pixels too when lenient, so
+    bad files are found now rather than mid-training.  Checks run in threads a little ahead of
+    the record being judged, never reading past what ``max_samples`` could keep.  Raises
+    DatasetError when nothing is left (naming ``listed_in``) and otherwise warns once about what
+    was skipped.
     """
-    verify = _verifier(loader, base, use_reference) if config.lenient else None
-    stage = "verifying images" if verify else "indexing"
+    check = ImageCheck(base, loader, decode=config.lenient,
+                       cache=HeaderCache.open(base) if config.header_cache else None)
+    stage = "verifying images" if config.lenient else "checking image headers"
+    pulled = iter(progress(candidates, total=total, desc=f"{config.name}: {stage}", unit="sample"))
+    pending: deque[tuple[list[SampleRecord], Future[list[str | None]]]] = deque()
+    in_flight = 0
     kept: list[SampleRecord] = []
-    for record in progress(candidates, total=total, desc=f"{config.name}: {stage}", unit="sample"):
-        problem = verify(record) if verify else None
-        if problem:
-            skips.reject(problem)
-            continue
-        kept.append(record)
-        if config.max_samples is not None and len(kept) >= config.max_samples:
-            break
+    pool = ThreadPoolExecutor(max_workers=HEADER_THREADS, thread_name_prefix="vqtouch-image-check")
+    try:
+        while True:
+            # Read no further ahead than could still be kept: like a plain walk, a build stopped by
+            # max_samples never reports problems in the lines after the samples it keeps.
+            room = HEADER_WINDOW if config.max_samples is None else min(HEADER_WINDOW, config.max_samples - len(kept))
+            while in_flight < room:
+                batch = list(islice(pulled, min(HEADER_BATCH, room - in_flight)))
+                if not batch:
+                    break
+                pending.append((batch, pool.submit(check.first_problems, batch, use_reference)))
+                in_flight += len(batch)
+            if not pending:
+                break
+            batch, problems = pending.popleft()
+            in_flight -= len(batch)
+            for record, problem in zip(batch, problems.result()):
+                if problem:
+                    skips.reject(problem)
+                else:
+                    kept.append(record)
+            if config.max_samples is not None and len(kept) >= config.max_samples:
+                break
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+        check.save()  # also after a strict failure: the good headers need not be read again
     if not kept:
         if skips.reasons:
             raise DatasetError(f"{config.name}: no usable samples in {listed_in}; {skips.summary()}")
         raise DatasetError(f"{config.name}: the split is empty: {listed_in} lists no samples")
     skips.warn_if_any()
     return kept
-
-
-def _verifier(loader: ImageLoader, base: Path, use_reference: bool) -> Callable[[SampleRecord], str | None]:
-    def first_problem(record: SampleRecord) -> str | None:
-        paths = [record.tactile, record.visual, record.reference if use_reference else None]
-        for relative in paths:
-            if relative is not None:
-                problem = loader.problem(base / relative)
-                if problem:
-                    return f"sample {record.id}: {problem}"
-        return None
-    return first_problem
 
 
 class RecordDataset(TactileDataset):
