@@ -7,12 +7,15 @@ import importlib.util
 import os
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
 
 os.environ["VQTOUCH_DISABLE_PLUGIN_AUTOLOAD"] = "1"
 os.environ["VQTOUCH_NO_PROGRESS"] = "1"
+# Reader header caches go to a throwaway folder, never the user's ~/.cache.
+os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="vqtouch-test-cache-")
 for variable in ("VQTOUCH_BLOCK_PLUGINS", "VQTOUCH_PLUGINS", "VQTOUCH_CLIP_CKPT", "VQTOUCH_WEIGHTS_DIR"):
     os.environ.pop(variable, None)
 

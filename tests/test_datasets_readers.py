@@ -178,11 +178,11 @@ BAD_FILES = {  # damage -> (how to damage the file, the strict error; {path} is 
     "empty": (lambda path: path.write_bytes(b""), r"cannot read image {path}: not an image file Pillow can read"),
     "broken_link": (layouts.break_link, r"image {path} is a broken symbolic link to .*\.gone; fix or remove it"),
     "animated_gif": (lambda path: layouts.write_frames(path, "GIF"),
-                     r"image {path} has 2 frames \(GIF\); expected a single still image"),
+                     r"image {path} has 2 frames \(GIF\); expected a single still image: save one frame of it"),
     "animated_png": (lambda path: layouts.write_frames(path, "PNG"),
-                     r"image {path} has 2 frames \(PNG\); expected a single still image"),
+                     r"image {path} has 2 frames \(PNG\); expected a single still image: save one frame of it"),
     "multipage_tiff": (lambda path: layouts.write_frames(path, "TIFF", count=3),
-                       r"image {path} has 3 frames \(TIFF\); expected a single still image"),
+                       r"image {path} has 3 frames \(TIFF\); expected a single still image: save one frame of it"),
     "16_bit": (layouts.write_16_bit, r"image {path} has unsupported mode I;16; expected 8-bit RGB"),
 }
 
@@ -325,8 +325,10 @@ def test_header_cache_skips_unchanged_files(tmp_path, header_opens, _own_cache_f
     [cache] = cache_files(_own_cache_folder)
     assert cache.suffix == ".json" and json.loads(cache.read_text())["base"] == str(root)
     header_opens.clear()
+    written = cache.stat()
     second = build(tag_config(root))
     assert header_opens == [] and second.records == first.records
+    assert (cache.stat().st_ino, cache.stat().st_mtime_ns) == (written.st_ino, written.st_mtime_ns)  # not rewritten
     build(tag_config(root, split="test"))  # another split of the same folder shares the cache file
     assert len(header_opens) == 4 and len(cache_files(_own_cache_folder)) == 1
     header_opens.clear()

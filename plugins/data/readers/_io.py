@@ -34,9 +34,9 @@ import time
 import warnings
 from collections import deque
 from collections.abc import Iterable, Sequence
-from itertools import islice
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import islice
 from pathlib import Path
 from typing import Any, Literal
 
@@ -421,8 +421,8 @@ def read_header(path: Path) -> ImageHeader:
 def header_problem(header: ImageHeader, path: Path, allow_greyscale: bool) -> str | None:
     """Why an image with this header cannot be loaded, or None (transparency needs the pixels)."""
     if header.frames > 1 and header.format not in STILL_MULTI_FRAME_FORMATS:
-        return (f"image {path} has {header.frames} frames ({header.format}); expected a single still image "
-                f"(save one frame of it)")
+        return (f"image {path} has {header.frames} frames ({header.format}); expected a single still image: "
+                f"save one frame of it")
     return mode_problem(path, header.mode, allow_greyscale)
 
 
@@ -572,18 +572,17 @@ class ImageCheck:
             return read_header(path)
         try:
             status = os.stat(path)
+            if not stat.S_ISREG(status.st_mode):
+                raise DatasetError(f"image {path} is not a file; replace or remove it")
+            cached = self.cache.lookup(relative, status)
+            header = cached or read_header(path)
         except OSError as exc:
             self.cache.forget(relative)
             raise DatasetError(_unopenable(path, exc)) from None
-        if not stat.S_ISREG(status.st_mode):
-            raise DatasetError(f"image {path} is not a file; replace or remove it")
-        header = self.cache.lookup(relative, status)
-        if header is None:
-            try:
-                header = read_header(path)
-            except DatasetError:
-                self.cache.forget(relative)
-                raise
+        except DatasetError:
+            self.cache.forget(relative)
+            raise
+        if cached is None:
             self.cache.store(relative, status, header)
         return header
 
