@@ -254,6 +254,11 @@ def load(path: str | Path, *, host: Any, map_location: str | torch.device = "cpu
         context = BuildContext.model_validate(json.loads(metadata["vqtouch.context"]))
     except (KeyError, json.JSONDecodeError, ValidationError) as exc:
         raise CheckpointError(f"{path}: damaged vqtouch header ({_first_line(exc)})") from None
+    step_text = metadata.get("vqtouch.step", "0")
+    if not step_text.isdecimal():
+        # Checked before any work: a step that is not a count means the header was edited or damaged.
+        raise CheckpointError(f"{path}: damaged vqtouch header (vqtouch.step is {step_text!r}, not a step "
+                              "number); use another checkpoint step, or restore the file from a copy")
     try:
         installed = plugin in host.registry(kind)
     except UnknownPluginError as exc:
@@ -278,7 +283,7 @@ def load(path: str | Path, *, host: Any, map_location: str | torch.device = "cpu
     except Exception as exc:  # noqa: BLE001
         raise CheckpointError(f"{path}: tensor data is unreadable ({_first_line(exc)})") from None
     load_state_strict(component, tensors, path)
-    component.vqtouch_step = int(metadata.get("vqtouch.step", "0"))
+    component.vqtouch_step = int(step_text)
     return component.to(map_location)
 
 

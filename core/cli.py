@@ -14,11 +14,12 @@ import os
 import stat
 import sys
 import traceback
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
 from .config import resolve_config
-from .errors import ConfigError, VqtouchError, one_line
+from .errors import ConfigError, VqtouchError, VqtouchWarning, one_line
 from .plugin_manager import PluginHost, load_plugins
 from .progress import disable_progress
 from .stages import StageOutcome, empty_slot_reason, missing_slots
@@ -265,6 +266,15 @@ def _silence_stdout() -> None:
         pass
 
 
+def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int, file: Any = None,
+                  line: str | None = None, *, default: Any = warnings.showwarning) -> None:
+    """vqtouch's own warnings as one line on stderr; every other warning as Python shows it."""
+    if issubclass(category, VqtouchWarning):
+        print(f"vqtouch: warning: {one_line(str(message))}", file=sys.stderr if file is None else file)
+    else:
+        default(message, category, filename, lineno, file, line)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``vqtouch`` command; returns the exit status.
 
@@ -274,6 +284,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = _debug_requested(argv)
+    with warnings.catch_warnings():
+        warnings.showwarning = _show_warning
+        return _main(argv, debug)
+
+
+def _main(argv: list[str], debug: bool) -> int:
     try:
         parser = build_parser(load_plugins())
         parser.add_argument("--debug", action="store_true",

@@ -52,6 +52,11 @@ class NothingToEvaluateError(VqtouchError):
     """
 
 
+class VqtouchWarning(UserWarning):
+    """Base class of the warnings vqtouch gives a user (something was skipped, the message says
+    what and why); the CLI prints each as one line, ``vqtouch: warning: ...``."""
+
+
 # PyTorch re-raises an exception from a DataLoader worker as the same type, but with the
 # worker's whole traceback as its message; the original message is its last line.
 _WORKER_ERROR = re.compile(

@@ -235,36 +235,43 @@ class RunDir:
         # garbage-collected, and the OS when the process dies.
         self._unlock = weakref.finalize(self, os.close, fd)
 
-    def checkpoint(self, host: Any, step: int | None = None) -> Path:
-        """The run's checkpoint folder to read: the newest complete ``checkpoints/step-*`` folder, or
-        the one of ``step``; the one function every reader of a run's weights goes through.
+    def checkpoint(self, host: Any, step: int | None = None, required_files: Sequence[str] = ()) -> Path:
+        """The run's checkpoint folder to read: the newest complete, readable ``checkpoints/step-*``
+        folder, or the one of ``step``; the one function every reader of a run's weights goes
+        through (resume, reconstruct, evaluate, generate, adapt).
 
-        Every component file in it must have been made with the config of one of the slots of
-        the run's config.json, else CheckpointError (the folder mixes two runs).  No complete
-        checkpoint: :class:`MissingCheckpointError`.
+        Newer folders that are incomplete or unreadable (an interrupted save, a truncated or
+        missing module file) are skipped with a :class:`~vqtouch.core.training.SkippedCheckpointWarning`
+        naming them.  ``required_files`` are the files the caller needs in the folder (e.g. a
+        tokenizer's ``autoencoder.safetensors``).  Every component file in the folder must have
+        been made with the config of one of the slots of the run's config.json, else
+        CheckpointError (the folder mixes two runs).  No usable checkpoint:
+        :class:`MissingCheckpointError`, which says why when step folders exist.
         """
-        from .training import TRAINER_STATE, latest_checkpoint
+        from .training import checkpoint_problem, latest_good_checkpoint, no_good_checkpoint, step_folders
 
         if step is None:
-            # TODO: switch to training.latest_good_checkpoint (skips unreadable steps with a warning)
-            # once it lands.
-            folder = latest_checkpoint(self.checkpoints)
+            folder = latest_good_checkpoint(self.checkpoints, required_files=required_files)
             if folder is None:
-                raise MissingCheckpointError(f"{self.path}: no complete checkpoint in checkpoints/ (a step-* folder "
-                                             f"with {TRAINER_STATE}); train this run first")
+                if not step_folders(self.checkpoints):
+                    raise MissingCheckpointError(f"{self.path}: no checkpoint in checkpoints/; train this run first")
+                raise MissingCheckpointError(f"{no_good_checkpoint(self.checkpoints, required_files)}; restore a step "
+                                             "folder from a copy, or train the run again with --overwrite")
         else:
             folder = self.checkpoints / f"step-{step:08d}"
             if not folder.is_dir():
-                steps = sorted(int(p.name[5:]) for p in self.checkpoints.glob("step-*") if p.name[5:].isdigit())
+                steps = [number for number, _ in step_folders(self.checkpoints)]
                 have = f"this run has steps {', '.join(map(str, steps))}" if steps else "this run has no checkpoint"
                 raise MissingCheckpointError(f"{folder}: no such checkpoint; {have}")
-            if not (folder / TRAINER_STATE).is_file():
-                raise MissingCheckpointError(f"{folder}: incomplete checkpoint (no {TRAINER_STATE}: its save was "
-                                             "interrupted); choose another step")
-        self._check_files(folder, host, TRAINER_STATE)
+            problem = checkpoint_problem(folder, required_files)
+            if problem is not None:
+                raise MissingCheckpointError(f"{folder}: unusable checkpoint ({problem}); choose another step")
+        self._check_files(folder, host)
         return folder
 
-    def _check_files(self, folder: Path, host: Any, trainer_state: str) -> None:
+    def _check_files(self, folder: Path, host: Any) -> None:
+        from .training import TRAINER_STATE
+
         config = self.load_config(host)
         slots: dict[str, list[tuple[str, dict[str, Any]]]] = {}  # kind -> [(slot, plugin config)]
         for path, info in host.slots.items():
@@ -275,7 +282,7 @@ class RunDir:
                     slot = path if index is None else f"{path}.{index}"
                     slots.setdefault(info.kind, []).append((slot, item.model_dump(mode="json")))
         for file in sorted(folder.glob("*.safetensors")):
-            if file.name == trainer_state:
+            if file.name == TRAINER_STATE:
                 continue
             metadata = read_metadata(file)
             kind, plugin = metadata.get("vqtouch.component", ""), metadata.get("vqtouch.plugin", "")
@@ -364,3 +371,20 @@ def _read_json(path: Path) -> Any:
         return json.loads(path.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ConfigError(f"{path}: not valid JSON ({exc}); restore it from a copy of the run") from None
+
+
+def interrupted_message(exc: BaseException, run: RunDir, command: str) -> str:
+    """What a ``vqtouch train COMMAND`` that was stopped by Ctrl-C or SIGTERM tells the user: the
+    checkpoint the trainer wrote (:class:`~vqtouch.core.training.TrainingInterrupted`), else the
+    run's newest complete one, else that nothing was saved; never a claim it cannot back."""
+    from .training import TrainingInterrupted, latest_checkpoint
+
+    resume = f"vqtouch train {command} --resume {run.path}"
+    if isinstance(exc, TrainingInterrupted) and exc.checkpoint is not None:
+        return f"vqtouch: {exc}; resume with: {resume}"
+    folder = latest_checkpoint(run.checkpoints)
+    cause = str(exc) if isinstance(exc, TrainingInterrupted) else "interrupted"
+    if folder is not None:
+        return f"vqtouch: {cause}; the run's last complete checkpoint is {folder}; resume with: {resume}"
+    return (f"vqtouch: {cause} before any checkpoint was written; nothing to resume: start again with "
+            f"--overwrite --out {run.path}")

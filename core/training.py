@@ -60,7 +60,7 @@ from torch import nn
 from .checkpoint import (CheckpointWriteError, atomic_write, load_state_strict, remove_stale_temporaries, save,
                          write_checkpoint_file)
 from .config import Section
-from .errors import CheckpointError, VqtouchError
+from .errors import CheckpointError, VqtouchError, VqtouchWarning
 from .progress import progress
 
 TRAINER_STATE = "trainer_state.safetensors"
@@ -157,7 +157,7 @@ class TrainingInterrupted(KeyboardInterrupt):
         self.cause, self.step, self.checkpoint = cause, step, checkpoint
 
 
-class SkippedCheckpointWarning(UserWarning):
+class SkippedCheckpointWarning(VqtouchWarning):
     """A checkpoint folder was skipped because it is incomplete or unreadable (the message says why)."""
 
 
@@ -631,13 +631,9 @@ class Trainer:
         else:
             folder = latest_good_checkpoint(checkpoint_dir, required_files=required)
             if folder is None:
-                folders = step_folders(checkpoint_dir)
-                if folders:
-                    newest = folders[-1][1]
-                    raise CheckpointError(
-                        f"{checkpoint_dir}: holds {len(folders)} checkpoint folder(s) but no complete one (the newest, "
-                        f"{newest.name}, {_as_clause(checkpoint_problem(newest, required))}); resuming would silently "
-                        f"restart from step 0: delete {checkpoint_dir} to start over")
+                if step_folders(checkpoint_dir):
+                    raise CheckpointError(f"{no_good_checkpoint(checkpoint_dir, required)}; resuming would silently "
+                                          f"restart from step 0: delete {checkpoint_dir} to start over")
                 self._rewind_run_metrics(0)
                 return False
         path = folder / TRAINER_STATE
@@ -701,6 +697,16 @@ def _as_clause(problem: str | None) -> str:
     return f"has {problem}" if problem.startswith("no ") else f"is unusable: {problem}"
 
 
+def no_good_checkpoint(checkpoint_dir: Path, required_files: Iterable[str] = ()) -> str:
+    """``DIR: holds N checkpoint folder(s) but no complete one (the newest, step-N, has ...)``: why a
+    run's step folders give nothing to read (for when :func:`latest_good_checkpoint` found none);
+    callers add what to do."""
+    folders = step_folders(checkpoint_dir)
+    newest = folders[-1][1]
+    return (f"{checkpoint_dir}: holds {len(folders)} checkpoint folder(s) but no complete one (the newest, "
+            f"{newest.name}, {_as_clause(checkpoint_problem(newest, required_files))})")
+
+
 def step_folders(checkpoint_dir: Path) -> list[tuple[int, Path]]:
     """The ``step-N`` folders under ``checkpoint_dir`` as (step, folder), oldest first, complete or not.
 
@@ -756,16 +762,20 @@ def latest_good_checkpoint(checkpoint_dir: Path, required_files: Iterable[str] =
     :func:`checkpoint_problem`), or None; the one function every reader of a run's latest
     checkpoint should use.
 
-    Each newer folder skipped on the way gets one :class:`SkippedCheckpointWarning` naming it
-    and why.  ``required_files`` are the files the caller needs (e.g. the tokenizer's
+    When a good folder is found, each newer folder skipped on the way gets one
+    :class:`SkippedCheckpointWarning` naming it and why (when none is good, the caller's error
+    says so once).  ``required_files`` are the files the caller needs (e.g. the tokenizer's
     ``autoencoder.safetensors`` and ``quantizer.safetensors``).
     """
     required_files = tuple(required_files)
+    skipped = []
     for _, folder in reversed(step_folders(checkpoint_dir)):
         problem = checkpoint_problem(folder, required_files)
         if problem is None:
+            for message in skipped:
+                warnings.warn(message, SkippedCheckpointWarning, stacklevel=2)
             return folder
-        warnings.warn(f"checkpoint {folder} skipped: {problem}", SkippedCheckpointWarning, stacklevel=2)
+        skipped.append(f"checkpoint {folder} skipped: {problem}")
     return None
 
 

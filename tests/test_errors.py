@@ -154,8 +154,6 @@ def test_non_utf8_config_file_is_one_line(tmp_path, capsys):
 
 # -- checkpoints and trained weights ----------------------------------------------------------
 
-@pytest.mark.xfail(strict=True, reason="needs load() (core/checkpoint.py) to parse vqtouch.step inside its header "
-                                       "checks: see the issue 9 report; remove this marker once applied")
 def test_unparsable_step_header_is_one_line(run_copy, capsys):
     path = run_copy / "checkpoints" / "step-00000002" / "autoencoder.safetensors"
     rewrite_checkpoint(path, **{"vqtouch.step": "two"})

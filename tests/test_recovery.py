@@ -22,7 +22,7 @@ import torch
 from vqtouch.core import CheckpointError, TrainConfig, load_plugins
 from vqtouch.core.runs import RunDir
 from vqtouch.core.training import (TRAINER_STATE, SkippedCheckpointWarning, Trainer, latest_checkpoint,
-                                   latest_good_checkpoint, rewind_metrics)
+                                   latest_good_checkpoint, no_good_checkpoint, rewind_metrics)
 
 TESTS = Path(__file__).resolve().parent
 
@@ -210,8 +210,10 @@ def test_resume_refuses_a_run_whose_checkpoints_are_all_incomplete(host, tmp_pat
     checkpoints = tmp_path / "checkpoints"
     (checkpoints / "step-00000004" / TRAINER_STATE).unlink()  # e.g. a save stopped by a second Ctrl-C
     resumed, _ = make_trainer(host, tmp_path, steps=8)
-    with pytest.warns(SkippedCheckpointWarning), pytest.raises(CheckpointError) as info:
-        resumed.resume(checkpoints)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the error says it all: no warning beside it
+        with pytest.raises(CheckpointError) as info:
+            resumed.resume(checkpoints)
     assert str(info.value) == (
         f"{checkpoints}: holds 1 checkpoint folder(s) but no complete one (the newest, step-00000004, has no "
         f"{TRAINER_STATE}: its save was interrupted); resuming would silently restart from step 0: delete "
@@ -269,10 +271,18 @@ def test_resume_falls_back_past_an_interrupted_save(host, tmp_path):
 
 def test_readers_name_the_files_they_need(host, tmp_path):
     checkpoints = trained(host, tmp_path)
-    with pytest.warns(SkippedCheckpointWarning) as caught:
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # none is good: the caller's error says so, no warnings
         assert latest_good_checkpoint(checkpoints, required_files=("decoder.safetensors",)) is None
+    assert no_good_checkpoint(checkpoints, ("decoder.safetensors",)) == (
+        f"{checkpoints}: holds 3 checkpoint folder(s) but no complete one (the newest, step-00000012, is unusable: "
+        "decoder.safetensors is missing)")
+    (checkpoints / "step-00000004" / "decoder.safetensors").write_bytes((checkpoints / "step-00000004" /
+                                                                         "model.safetensors").read_bytes())
+    with pytest.warns(SkippedCheckpointWarning) as caught:
+        assert latest_good_checkpoint(checkpoints, required_files=("decoder.safetensors",)).name == "step-00000004"
     assert [str(w.message) for w in caught] == [f"checkpoint {checkpoints / f'step-{step:08d}'} skipped: "
-                                                "decoder.safetensors is missing" for step in (12, 8, 4)]
+                                                "decoder.safetensors is missing" for step in (12, 8)]
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert latest_good_checkpoint(checkpoints, required_files=("model.safetensors",)).name == "step-00000012"

@@ -178,6 +178,9 @@ def test_a_run_has_one_writer_at_a_time_in_one_process(host, tmp_path):
 
 def _save_step(run, host, config, step, complete=True):
     """A checkpoint folder as the trainer writes it: one file per module (+ trainer state)."""
+    import torch
+    from safetensors.torch import save_file
+
     from vqtouch.core import Assembly, save
     from vqtouch.core.training import TRAINER_STATE
 
@@ -186,7 +189,10 @@ def _save_step(run, host, config, step, complete=True):
     for name in ("autoencoder", "quantizer"):
         save(assembly.component(f"tokenizer.{name}"), folder / f"{name}.safetensors", step=step, host=host)
     if complete:
-        (folder / TRAINER_STATE).write_bytes(b"")
+        # The header readers check: the trainer's JSON, naming the module files of the step.
+        meta = {"step": step, "modules": ["autoencoder", "quantizer"]}
+        save_file({"rng.torch_cpu": torch.get_rng_state()}, str(folder / TRAINER_STATE),
+                  metadata={"format": "pt", "vqtouch.trainer": json.dumps(meta)})
     return folder
 
 
@@ -198,14 +204,13 @@ def test_checkpoint_is_the_newest_complete_step_of_this_run(host, tmp_path):
     run = RunDir.create(config, host=host, path=tmp_path / "run")
     with pytest.raises(MissingCheckpointError) as info:
         run.checkpoint(host)
-    assert str(info.value) == (f"{run.path}: no complete checkpoint in checkpoints/ (a step-* folder with "
-                               "trainer_state.safetensors); train this run first")
+    assert str(info.value) == f"{run.path}: no checkpoint in checkpoints/; train this run first"
     two = _save_step(run, host, config, 2)
     _save_step(run, host, config, 4, complete=False)  # an interrupted save is not a checkpoint
     assert run.checkpoint(host) == two and run.checkpoint(host, step=2) == two
     with pytest.raises(MissingCheckpointError) as info:
         run.checkpoint(host, step=4)
-    assert str(info.value) == (f"{run.checkpoints / 'step-00000004'}: incomplete checkpoint (no "
+    assert str(info.value) == (f"{run.checkpoints / 'step-00000004'}: unusable checkpoint (no "
                                "trainer_state.safetensors: its save was interrupted); choose another step")
     with pytest.raises(MissingCheckpointError, match=r"step-00000003: no such checkpoint; this run has steps 2"):
         run.checkpoint(host, step=3)

@@ -8,15 +8,17 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from vqtouch.core import Assembly, ConfigError, RunDir, hookimpl, run_stage
+from vqtouch.core.config import parse_override
 from vqtouch.core.cli import add_config_arguments, command_group, config_from_args, stage_failure
 from vqtouch.core.data import split_dataset
-from vqtouch.core.runs import is_main_process
+from vqtouch.core.runs import interrupted_message, is_main_process
 
 from .stages import load_tokenizer, printable, reconstruct_all, save_pairs
 from .training import evaluate_reconstruction
@@ -37,8 +39,8 @@ def _train_tokenizer_command(args: argparse.Namespace) -> int:
     with run:  # releases the run's lock however the command ends
         try:
             outcome = run_stage("tokenizer", Assembly(config, host), run, resume=bool(args.resume))
-        except KeyboardInterrupt:
-            print(f"\ninterrupted; the checkpoint is saved. Resume with: vqtouch train tokenizer --resume {run.path}")
+        except KeyboardInterrupt as exc:
+            print(f"\n{interrupted_message(exc, run, 'tokenizer')}", file=sys.stderr)
             return 130
     if outcome.status != "ran":
         raise stage_failure(outcome)
@@ -60,6 +62,24 @@ def _json_option(text: str, flag: str) -> Any:
         raise ConfigError(f"{flag} is not valid JSON: {exc}") from None
 
 
+def _images_dataset(images: str, options: list[str], image_size: int) -> dict[str, Any]:
+    """The dataset block of ``reconstruct --images``: a folder read by ``image_folder``, or a JSON
+    block of any reader; ``--images-option KEY=VALUE`` sets that reader's options (those its
+    errors name, e.g. ``lenient=true``).  The image size is always the tokenizer's."""
+    block = _json_option(images, "--images") if images.strip().startswith("{") else {"root": images}
+    block = {"name": "image_folder", **block}
+    for option in options:
+        path, value = parse_override(option) if "=" in option else ([], None)
+        if len(path) != 1 or path[0] in ("name", "image_size"):
+            raise ConfigError(f"--images-option {option!r}: give one reader option as KEY=VALUE, e.g. lenient=true "
+                              "(the reader is chosen by --images and the image size by the tokenizer)")
+        block[path[0]] = value
+    if block.get("image_size", image_size) != image_size:
+        raise ConfigError(f"--images sets image_size={block['image_size']}, but the tokenizer works at {image_size} px; "
+                          "drop image_size (images are resized to the tokenizer's size)")
+    return {**block, "image_size": image_size}
+
+
 def _reconstruct_command(args: argparse.Namespace) -> int:
     host = args.host
     tokenizer, folder = load_tokenizer(args.run, host, args.step)
@@ -72,7 +92,7 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
                               "reconstruct your own with --images FOLDER")
         source = f"real {sensor_config.name} frames"
     else:
-        dataset = host.build("dataset", {"name": "image_folder", "root": args.images, "image_size": image_size})
+        dataset = host.build("dataset", _images_dataset(args.images, args.images_options, image_size))
         images = torch.stack([dataset[i]["tactile"] for i in range(len(dataset))])
         source = args.images
     metrics = {name: host.build("metric", name) for name in ("ssim", "psnr")}
@@ -133,7 +153,12 @@ def vqtouch_add_commands(subparsers):
     source = reconstruct.add_mutually_exclusive_group(required=True)
     source.add_argument("--real-frames", metavar="SENSOR",
                         help="the real reference frames of this sensor family (name or JSON), e.g. gelsight")
-    source.add_argument("--images", help="an image folder (one sub-folder per class) to reconstruct")
+    source.add_argument("--images", help="an image folder (one sub-folder per class) to reconstruct, or a JSON "
+                                         "dataset block of any reader, e.g. '{\"name\": \"touch_and_go\", "
+                                         "\"root\": \"data/tag\"}'")
+    reconstruct.add_argument("--images-option", dest="images_options", action="append", default=[],
+                             metavar="KEY=VALUE", help="an option of the --images reader (repeatable), e.g. "
+                                                       "lenient=true or allow_greyscale=true")
     reconstruct.add_argument("--out", required=True, help="folder for reconstructions.png and reconstruct.json")
     reconstruct.set_defaults(handler=_reconstruct_command)
 

@@ -60,8 +60,12 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
     trainer = Trainer(task, train_set, section.train, batch_size=config.data.batch_size, seed=config.seed,
                       device=device, checkpoint_dir=job.run.checkpoints, run=job.run,
                       num_workers=config.data.num_workers, host=job.host, stage=job.stage)
-    if job.resume and _has_checkpoint(job) and trainer.resume(job.run.checkpoints):
-        print(f"resumed {job.run.path} at step {trainer.state.step}")
+    if job.resume:
+        folder = _resume_folder(job)
+        # With no checkpoint folder, resume() starts at step 0 and drops the lines that the
+        # interrupted attempt logged.
+        if trainer.resume(folder or job.run.checkpoints):
+            print(f"resumed {job.run.path} at step {trainer.state.step} ({folder.name})")
     state = trainer.fit()
     metrics = dict(zip((item.name for item in config.metrics), assembly.build_slots(["metrics"]).get("metrics", [])))
     try:
@@ -78,16 +82,16 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
     return scores
 
 
-def _has_checkpoint(job: StageJob) -> bool:
-    """Whether the run has a checkpoint to resume from, checked against the run's config (a
-    folder mixing two runs raises CheckpointError)."""
-    try:
-        # Trainer.resume picks the same folder again (training.latest_checkpoint); once it accepts a
-        # step folder, pass it this one.
-        job.run.checkpoint(job.host)
-    except MissingCheckpointError:
-        return False
-    return True
+def _resume_folder(job: StageJob) -> Path | None:
+    """The checkpoint folder to resume the run from: its newest good one, checked against the
+    run's config (a folder mixing two runs raises CheckpointError); None when the run has no
+    checkpoint folder at all (training starts from step 0).  Step folders that are all unusable raise
+    MissingCheckpointError rather than silently starting over."""
+    from vqtouch.core.training import step_folders
+
+    if not step_folders(job.run.checkpoints):
+        return None
+    return job.run.checkpoint(job.host, required_files=TOKENIZER_FILES)
 
 
 def run_tokenizer_stage(job: StageJob) -> dict[str, Any]:
@@ -122,10 +126,7 @@ def load_tokenizer(run_or_folder: str | Path | RunDir, host: Any, step: int | No
         else:
             run = RunDir.open(path)
     if run is not None:
-        folder = run.checkpoint(host, step)
-        if not all((folder / name).is_file() for name in TOKENIZER_FILES):
-            raise MissingCheckpointError(f"{folder}: holds no tokenizer (expected {', '.join(TOKENIZER_FILES)}); "
-                                         "train one with `vqtouch train tokenizer`")
+        folder = run.checkpoint(host, step, required_files=TOKENIZER_FILES)
     autoencoder = load(folder / TOKENIZER_FILES[0], host=host, map_location=device)
     quantizer = load(folder / TOKENIZER_FILES[1], host=host, map_location=device)
     return Tokenizer(autoencoder, quantizer).eval(), folder

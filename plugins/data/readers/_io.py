@@ -45,6 +45,7 @@ import torch
 from pydantic import Field
 
 from vqtouch.core import DatasetError, PluginConfig, TactileDataset
+from vqtouch.core.errors import VqtouchWarning
 from vqtouch.core.progress import progress
 
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".webp", ".tif", ".tiff"})
@@ -100,7 +101,7 @@ class ReaderConfig(PluginConfig):
                                                 "null keeps all.")
 
 
-class SkippedSamplesWarning(UserWarning):
+class SkippedSamplesWarning(VqtouchWarning):
     """Issued once per lenient dataset build that skipped bad samples."""
 
 

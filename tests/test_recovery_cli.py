@@ -1,0 +1,165 @@
+"""Recovery as the command line shows it (issue 9, items 2, 3 and 6): every reader of a run skips
+an unusable newest step with a one-line warning, a resume never silently starts over, an
+interrupted command says only what it saved, and ``reconstruct --images`` takes the reader
+options that the reader's errors name."""
+
+import json
+import pathlib
+import shutil
+
+import pytest
+from PIL import Image
+
+from vqtouch.core.cli import main
+
+TINY = ["tokenizer.autoencoder.channels=16", "tokenizer.autoencoder.norm_groups=8",
+        "tokenizer.autoencoder.channel_multipliers=[1,2]", "tokenizer.autoencoder.z_channels=16",
+        "tokenizer.autoencoder.embed_dim=8", "tokenizer.quantizer.codebook_size=32", "data.image_size=32",
+        "data.batch_size=4", "data.dataset.num_samples=12", "tokenizer.train.steps=4",
+        "tokenizer.train.checkpoint_every=2", "tokenizer.train.log_every=1", "tokenizer.loss.perceptual=none",
+        "tokenizer.discriminator=null", 'metrics=[{"name": "psnr"}]']
+
+
+def train_args(out, *extra):
+    args = ["--no-progress", "train", "tokenizer", "--out", str(out)]
+    for override in [*TINY, *extra]:
+        args += ["--set", override]
+    return args
+
+
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory):
+    """A tiny tokenizer trained 4 steps, with complete checkpoints at steps 2 and 4."""
+    out = tmp_path_factory.mktemp("trained") / "run"
+    assert main(train_args(out)) == 0
+    assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["step-00000002", "step-00000004"]
+    return out
+
+
+@pytest.fixture
+def run_copy(trained_run, tmp_path):
+    return pathlib.Path(shutil.copytree(trained_run, tmp_path / "run"))
+
+
+def truncate(path, keep=100):
+    path.write_bytes(path.read_bytes()[:keep])
+
+
+def metric_steps(run):
+    return [json.loads(line)["step"] for line in (run / "metrics.jsonl").read_text().splitlines()]
+
+
+@pytest.mark.parametrize("damage", ["truncated", "missing"])
+def test_reconstruct_falls_back_past_a_damaged_newest_step_with_a_one_line_warning(run_copy, tmp_path, capsys, damage):
+    module = run_copy / "checkpoints" / "step-00000004" / "autoencoder.safetensors"
+    truncate(module) if damage == "truncated" else module.unlink()
+    capsys.readouterr()
+    out = tmp_path / "recon"
+    assert main(["reconstruct", "--run", str(run_copy), "--real-frames", "gelsight", "--out", str(out)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    why = "is missing" if damage == "missing" else "is not a readable safetensors file"
+    assert len(err) == 1 and err[0].startswith(f"vqtouch: warning: checkpoint {module.parent} skipped: "
+                                               f"autoencoder.safetensors {why}"), err
+    assert json.loads((out / "reconstruct.json").read_text())["checkpoint"].endswith("step-00000002")
+
+
+def test_resume_falls_back_past_a_truncated_newest_step_and_continues_exactly(run_copy, trained_run, capsys):
+    truncate(run_copy / "checkpoints" / "step-00000004" / "quantizer.safetensors")
+    capsys.readouterr()
+    assert main(["--no-progress", "train", "tokenizer", "--resume", str(run_copy)]) == 0
+    captured = capsys.readouterr()
+    assert f"resumed {run_copy} at step 2 (step-00000002)" in captured.out
+    assert captured.err.count("vqtouch: warning: checkpoint ") == 1
+    assert metric_steps(run_copy) == [1, 2, 3, 4]
+    # Steps 3 and 4 trained again from step 2's state give the uninterrupted run's losses.
+    assert (run_copy / "metrics.jsonl").read_text() == (trained_run / "metrics.jsonl").read_text()
+
+
+def test_resume_of_a_run_without_any_usable_step_is_refused_not_restarted(run_copy, capsys):
+    for step in ("step-00000002", "step-00000004"):
+        (run_copy / "checkpoints" / step / "trainer_state.safetensors").unlink()
+    metrics_before = (run_copy / "metrics.jsonl").read_text()
+    capsys.readouterr()
+    assert main(["--no-progress", "train", "tokenizer", "--resume", str(run_copy)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert err.strip() == (f"vqtouch: error: stage 'tokenizer' failed: {run_copy / 'checkpoints'}: holds 2 "
+                           "checkpoint folder(s) but no complete one (the newest, step-00000004, has no "
+                           "trainer_state.safetensors: its save was interrupted); restore a step folder from a copy, "
+                           "or train the run again with --overwrite")
+    assert (run_copy / "metrics.jsonl").read_text() == metrics_before  # nothing rewound, nothing trained
+
+
+def test_resume_of_a_run_killed_before_its_first_checkpoint_starts_at_step_0(run_copy, capsys):
+    shutil.rmtree(run_copy / "checkpoints")
+    (run_copy / "checkpoints").mkdir()
+    capsys.readouterr()
+    assert main(["--no-progress", "train", "tokenizer", "--resume", str(run_copy)]) == 0
+    assert "resumed" not in capsys.readouterr().out
+    assert metric_steps(run_copy) == [1, 2, 3, 4]  # the killed attempt's lines are dropped, not duplicated
+
+
+@pytest.mark.parametrize("saved", [False, True])
+def test_an_interrupted_training_says_only_what_it_saved(tmp_path, capsys, monkeypatch, saved):
+    """Ctrl-C before the trainer saved anything used to print "the checkpoint is saved"."""
+    from vqtouch.core.training import TrainingInterrupted
+    from vqtouch.plugins.tokenizer import commands
+
+    out = tmp_path / "run"
+    folder = out / "checkpoints" / "step-00000003"
+
+    def interrupted(*args, **kwargs):
+        if saved:
+            raise TrainingInterrupted("SIGINT", 3, folder)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(commands, "run_stage", interrupted)
+    assert main(train_args(out)) == 130
+    err = capsys.readouterr().err.strip()
+    assert "checkpoint is saved" not in err
+    if saved:
+        assert err == (f"vqtouch: training stopped by SIGINT after step 3; checkpoint saved: {folder}; resume with: "
+                       f"vqtouch train tokenizer --resume {out}")
+    else:
+        assert err == ("vqtouch: interrupted before any checkpoint was written; nothing to resume: start again with "
+                       f"--overwrite --out {out}")
+
+
+def _image_folder(root, corrupt=True):
+    for index in range(3):
+        folder = root / "ridges"
+        folder.mkdir(parents=True, exist_ok=True)
+        Image.new("RGB", (40, 40), (40 * index, 90, 160)).save(folder / f"{index}.png")
+    if corrupt:
+        (root / "ridges" / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n not an image")
+    return root
+
+
+def test_reconstruct_images_takes_the_reader_options_its_errors_name(trained_run, tmp_path, capsys):
+    images = _image_folder(tmp_path / "images")
+    out = tmp_path / "recon"
+    capsys.readouterr()
+    assert main(["reconstruct", "--run", str(trained_run), "--images", str(images), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "broken.png" in err and "set lenient=true" in err
+    assert main(["reconstruct", "--run", str(trained_run), "--images", str(images), "--images-option", "lenient=true",
+                 "--out", str(out)]) == 0
+    result = json.loads((out / "reconstruct.json").read_text())
+    assert result["images"] == 3 and result["checkpoint"].endswith("step-00000004")
+    # The same options as a dataset block.
+    block = json.dumps({"root": str(images), "lenient": True})
+    assert main(["reconstruct", "--run", str(trained_run), "--images", block, "--out", str(tmp_path / "b")]) == 0
+
+
+@pytest.mark.parametrize("option, message", [
+    ("lenient", "--images-option 'lenient': give one reader option as KEY=VALUE"),
+    ("image_size=64", "--images-option 'image_size=64': give one reader option as KEY=VALUE"),
+    ("lenent=true", "unknown option 'lenent'"),
+])
+def test_reconstruct_images_option_errors_are_one_line(trained_run, tmp_path, capsys, option, message):
+    images = _image_folder(tmp_path / "images", corrupt=False)
+    capsys.readouterr()
+    assert main(["reconstruct", "--run", str(trained_run), "--images", str(images), "--images-option", option,
+                 "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("vqtouch: error: ") and err.count("\n") == 1 and message in err, err
