@@ -41,6 +41,27 @@ def add_config_arguments(parser: argparse.ArgumentParser, *, scene_required: boo
                         help="override one value, e.g. --set tokenizer.train.steps=200 (JSON values; repeatable)")
 
 
+def checkpoint_step(text: str) -> int | str:
+    """``--step`` of the commands that read a run: a step number, or ``best`` (the checkpoint with the
+    lowest validation loss)."""
+    if text == "best":
+        return text
+    try:
+        step = int(text)
+    except ValueError:
+        step = -1
+    if step < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a step: give a step number (e.g. 500) or 'best'")
+    return step
+
+
+def add_step_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``--step N|best`` (default: the run's newest good checkpoint) to a command that reads a run."""
+    parser.add_argument("--step", type=checkpoint_step, metavar="N|best",
+                        help="checkpoint step, or 'best' for the lowest validation loss (default: the newest "
+                             "complete checkpoint)")
+
+
 def command_group(subparsers: argparse._SubParsersAction, name: str, help: str) -> argparse._SubParsersAction:
     """The sub-commands of group ``name`` (``train``, ``evaluate``, ...), created on first use.
 

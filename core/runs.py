@@ -235,9 +235,10 @@ class RunDir:
         # garbage-collected, and the OS when the process dies.
         self._unlock = weakref.finalize(self, os.close, fd)
 
-    def checkpoint(self, host: Any, step: int | None = None, required_files: Sequence[str] = ()) -> Path:
+    def checkpoint(self, host: Any, step: int | str | None = None, required_files: Sequence[str] = ()) -> Path:
         """The run's checkpoint folder to read: the newest complete, readable ``checkpoints/step-*``
-        folder, or the one of ``step``; the one function every reader of a run's weights goes
+        folder, the one of ``step``, or with ``step="best"`` the one with the lowest validation
+        loss (recorded by the trainer, see ``keep_best``); the one function every reader of a run's weights goes
         through (resume, reconstruct, evaluate, generate, adapt).
 
         Newer folders that are incomplete or unreadable (an interrupted save, a truncated or
@@ -250,6 +251,8 @@ class RunDir:
         """
         from .training import checkpoint_problem, latest_good_checkpoint, no_good_checkpoint, step_folders
 
+        if step == "best":
+            step = self.best_step(host, required_files)
         if step is None:
             folder = latest_good_checkpoint(self.checkpoints, required_files=required_files)
             if folder is None:
@@ -268,6 +271,18 @@ class RunDir:
                 raise MissingCheckpointError(f"{folder}: unusable checkpoint ({problem}); choose another step")
         self._check_files(folder, host)
         return folder
+
+    def best_step(self, host: Any, required_files: Sequence[str] = ()) -> int:
+        """The step whose checkpoint scored best on the held-out split, as the newest good checkpoint's
+        trainer state records it; MissingCheckpointError when the run kept none."""
+        from .training import read_trainer_meta
+
+        newest = self.checkpoint(host, required_files=required_files)
+        best = read_trainer_meta(newest).get("best_step")
+        if best is None:
+            raise MissingCheckpointError(f"{self.path}: no best checkpoint recorded (the run scored no held-out "
+                                         "samples: train.keep_best=false or data.val_fraction=0); give a step number")
+        return int(best)
 
     def _check_files(self, folder: Path, host: Any) -> None:
         from .training import TRAINER_STATE

@@ -18,7 +18,8 @@ tensors plus JSON, RNG states, step, the module names).  The trainer state is wr
 so a folder without it is an interrupted save.  The newest complete, readable folder is the
 one source of truth (:func:`latest_good_checkpoint`; there is no ``latest`` pointer file):
 newer folders that are incomplete or damaged are skipped with a warning.  Only the newest
-``keep_last`` complete folders are kept.  Resuming reproduces the run exactly: the data order
+``keep_last`` complete folders are kept, plus the one with the best held-out score when the
+task can score one (``validation_loss``, ``keep_best``).  Resuming reproduces the run exactly: the data order
 is a pure function of (seed, epoch) and every RNG state is restored; the run's metrics.jsonl
 loses the lines of the steps after the resumed one, which are logged again.
 
@@ -101,6 +102,11 @@ class TrainConfig(Section):
     keep_last: int = Field(3, ge=1, le=1_000_000, strict=True,
                            description="Keep the newest this many complete checkpoints of the run; older step folders "
                                        "are deleted after each save (the one just written is always kept).")
+    keep_best: bool = Field(True, strict=True,
+                            description="At every checkpoint, score the held-out split with the task's validation "
+                                        "loss (logged as val_loss) and keep the checkpoint with the lowest score too, "
+                                        "beside the newest keep_last; `--step best` reads it.  Skipped when the run "
+                                        "holds out no samples (data.val_fraction=0).")
 
     # A validator, not a bounded type: stages redeclare ``betas`` with their own default
     # (TokenizerTrainConfig), and field validators apply to the redeclared field too.
@@ -138,6 +144,9 @@ class TrainingTask(Protocol):
 
     def training_step(self, batch: dict[str, Any], step: int, trainer: Trainer) -> dict[str, float]:
         """One optimisation step on ``batch``; returns scalars to log."""
+
+    # Optional: ``validation_loss(batch, trainer) -> torch.Tensor`` (B,), the per-sample held-out
+    # score, lower is better; with it (and a validation set) the trainer keeps the best checkpoint.
 
 
 class NonFiniteLossError(VqtouchError):
@@ -300,6 +309,9 @@ class TrainerState:
     skipped_steps: int = 0
     consecutive_skips: int = 0
     history: list[dict[str, float]] = field(default_factory=list)
+    #: The checkpoint step with the lowest validation loss so far and that loss (None before any).
+    best_step: int | None = None
+    best_score: float | None = None
 
 
 class Trainer:
@@ -307,9 +319,11 @@ class Trainer:
 
     def __init__(self, task: TrainingTask, dataset: Any, config: TrainConfig, *, batch_size: int, seed: int,
                  device: torch.device, checkpoint_dir: Path | None, run: Any = None, num_workers: int = 0,
-                 host: Any = None, stage: str = "train") -> None:
+                 host: Any = None, stage: str = "train", val_dataset: Any = None) -> None:
         self.task = task
         self.dataset = dataset
+        #: Held-out samples scored at every checkpoint (``keep_best``); None or empty: no scoring.
+        self.val_dataset = val_dataset
         self.config = config
         self.batch_size = batch_size
         self.seed = seed
@@ -541,6 +555,7 @@ class Trainer:
 
     def _write_checkpoint(self) -> Path:
         step = self.state.step
+        self._validate(step)
         folder = self.checkpoint_dir / f"step-{step:08d}"
         created = not folder.exists()
         try:
@@ -571,11 +586,51 @@ class Trainer:
         self._remove_old_checkpoints(step)
         return folder
 
+    def validates(self) -> bool:
+        """Whether checkpoints are scored on held-out samples (and the best one kept)."""
+        return (self.config.keep_best and hasattr(self.task, "validation_loss") and self.val_dataset is not None
+                and len(self.val_dataset) > 0)
+
+    @torch.no_grad()
+    def _validate(self, step: int) -> None:
+        """Score the held-out split at ``step`` (val_loss in metrics.jsonl) and remember the best step.
+
+        Runs once per checkpoint, on rank 0; the RNG states are put back afterwards, so scoring
+        changes neither the training that follows nor an exact resume.
+        """
+        if not self.validates():
+            return
+        cpu_state = torch.get_rng_state()
+        cuda_states = torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None
+        training = {name: module.training for name, module in self.task.modules.items()}
+        total, count = 0.0, 0
+        try:
+            for start in range(0, len(self.val_dataset), self.batch_size):
+                samples = [self.val_dataset[i] for i in range(start, min(start + self.batch_size, len(self.val_dataset)))]
+                batch = {k: v.to(self.device) if isinstance(v, torch.Tensor) else v
+                         for k, v in collate_samples(samples).items()}
+                losses_B = self.task.validation_loss(batch, self)
+                total += float(losses_B.double().sum())
+                count += len(samples)
+        finally:
+            for name, module in self.task.modules.items():
+                module.train(training[name])
+            torch.set_rng_state(cpu_state)
+            if cuda_states is not None:
+                torch.cuda.set_rng_state_all(cuda_states)
+        score = total / count
+        if self.run is not None:
+            self.run.log_metrics(self.stage, step, {"val_loss": score})
+        # A non-finite score is logged but never "best": NaN compares False with everything.
+        if math.isfinite(score) and (self.state.best_score is None or score < self.state.best_score):
+            self.state.best_step, self.state.best_score = step, score
+
     def _remove_old_checkpoints(self, step: int) -> None:
         # Only complete folders older than the one just written count; newer ones (left by a run
-        # that was resumed from an earlier step) are overwritten when training reaches them.
+        # that was resumed from an earlier step) are overwritten when training reaches them.  The
+        # best-scoring folder is kept apart from the keep_last newest.
         older = [folder for number, folder in step_folders(self.checkpoint_dir)
-                 if number < step and (folder / TRAINER_STATE).is_file()]
+                 if number < step and number != self.state.best_step and (folder / TRAINER_STATE).is_file()]
         for folder in older[:max(0, len(older) - (self.config.keep_last - 1))]:
             try:
                 # The trainer state first: a deletion cut short leaves an incomplete folder, never
@@ -607,6 +662,7 @@ class Trainer:
                 tensors[f"ema.{module_name}.{key}"] = value.detach().cpu().contiguous()
         meta = {"step": self.state.step, "skipped_steps": self.state.skipped_steps,
                 "consecutive_skips": self.state.consecutive_skips, "history": self.state.history,
+                "best_step": self.state.best_step, "best_score": self.state.best_score,
                 "optimizers": optim_meta, "seed": self.seed, "batch_size": self.batch_size, "world": self.dist.world,
                 # Lets readers check that every module file of the step is there.
                 "modules": sorted(self.task.modules)}
@@ -674,7 +730,8 @@ class Trainer:
             cuda_states = [tensors[k] for k in sorted(tensors) if k.startswith("rng.cuda")]
             if cuda_states:
                 torch.cuda.set_rng_state_all(cuda_states)
-        self.state = TrainerState(meta["step"], meta["skipped_steps"], meta["consecutive_skips"], meta["history"])
+        self.state = TrainerState(meta["step"], meta["skipped_steps"], meta["consecutive_skips"], meta["history"],
+                                  meta.get("best_step"), meta.get("best_score"))
         self._saved = (self.state.step, folder)
         self._rewind_run_metrics(self.state.step)
         return True
@@ -735,6 +792,17 @@ def _unreadable(path: Path) -> str | None:
     return None
 
 
+def read_trainer_meta(folder: Path) -> dict[str, Any]:
+    """The JSON the trainer stored in a step folder's trainer state (step, best step, optimizer
+    settings, ...); CheckpointError naming the file when it cannot be read."""
+    path = Path(folder) / TRAINER_STATE
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            return json.loads((handle.metadata() or {})["vqtouch.trainer"])
+    except Exception as exc:  # noqa: BLE001 - safetensors, JSON and key errors alike
+        raise CheckpointError(f"{path}: unreadable trainer state ({_first_line(exc)})") from None
+
+
 def checkpoint_problem(folder: Path, required_files: Iterable[str] = ()) -> str | None:
     """Why the step folder ``folder`` cannot be used, in a few words, or None when it is complete and
     readable: a readable trainer state, and every module file it lists plus ``required_files``
@@ -747,6 +815,7 @@ def checkpoint_problem(folder: Path, required_files: Iterable[str] = ()) -> str 
             meta = json.loads((handle.metadata() or {})["vqtouch.trainer"])
         modules = [f"{name}.safetensors" for name in meta.get("modules", [])]
     except Exception as exc:  # noqa: BLE001 - safetensors, JSON and key errors alike
+        # Phrased like read_trainer_meta's error, which resume raises for the same file.
         return f"{TRAINER_STATE} is unreadable ({_first_line(exc)})"
     for name in dict.fromkeys([*modules, *required_files]):
         if not (folder / name).is_file():

@@ -397,3 +397,68 @@ def test_keep_last_is_documented_and_bounded():
     assert TrainConfig().keep_last == 3 and TrainConfig.model_fields["keep_last"].description
     with pytest.raises(ValueError):
         TrainConfig(keep_last=0)
+
+
+# -- the best checkpoint by validation score ------------------------------------------------------
+
+class ScoredTask(toy.ToyTask):
+    """The toy task with a scripted held-out score per checkpoint step, drawing random numbers while it
+    scores (which must not change the training)."""
+
+    def __init__(self, host, scores):
+        super().__init__(host)
+        self.scores = scores
+
+    def validation_loss(self, batch, trainer):
+        torch.rand(100)  # scoring consumes the global RNG; the trainer must put it back
+        self.modules["model"].eval()  # and may switch modes; the trainer puts them back too
+        return torch.full((len(batch["tactile"]),), self.scores[trainer.state.step])
+
+
+def scored_trainer(host, tmp_path, scores, steps=20, run=None, **config):
+    torch.manual_seed(0)
+    options = {"steps": steps, "learning_rate": 0.05, "checkpoint_every": 4, "log_every": 1, "keep_last": 2, **config}
+    task = ScoredTask(host, scores)
+    return Trainer(task, toy.ToyDataset(), TrainConfig(**options), batch_size=4, seed=3, device=torch.device("cpu"),
+                   checkpoint_dir=tmp_path / "checkpoints", host=host, run=run, val_dataset=toy.ToyDataset(6)), task
+
+
+SCORES = {4: 0.5, 8: 0.2, 12: 0.9, 16: 0.7, 20: 0.8, 24: 0.1, 28: 0.6}
+
+
+def test_the_best_checkpoint_is_kept_beside_the_newest(host, tmp_path):
+    from vqtouch.core import resolve_config
+
+    # A run whose config names the toy module, so that the run's checkpoint check accepts its files.
+    config = resolve_config("label-to-touch", overrides=['generator.conditioners=[{"name": "toy_regressor"}]'],
+                            host=host)
+    run = RunDir.create(config, host=host, path=tmp_path / "run")
+    trainer, task = scored_trainer(host, tmp_path / "run", SCORES, run=run)
+    state = trainer.fit()
+    checkpoints = tmp_path / "run" / "checkpoints"
+    assert sorted(p.name for p in checkpoints.iterdir()) == ["step-00000008", "step-00000016", "step-00000020"]
+    assert (state.best_step, state.best_score) == (8, pytest.approx(0.2))
+    logged = [json.loads(line) for line in (run.path / "metrics.jsonl").read_text().splitlines()]
+    assert [(line["step"], round(line["val_loss"], 6)) for line in logged if "val_loss" in line] == [
+        (step, SCORES[step]) for step in (4, 8, 12, 16, 20)]
+    assert run.checkpoint(host, step="best") == checkpoints / "step-00000008"
+    # Scoring changed nothing in the training: the same losses as without it.
+    plain, plain_task = scored_trainer(host, tmp_path / "plain", SCORES, keep_best=False)
+    plain.fit()
+    assert plain_task.losses == task.losses
+    assert sorted(p.name for p in (tmp_path / "plain" / "checkpoints").iterdir()) == ["step-00000016", "step-00000020"]
+
+
+def test_a_resumed_run_remembers_its_best_checkpoint(host, tmp_path):
+    trainer, _ = scored_trainer(host, tmp_path, SCORES)
+    trainer.fit()
+    resumed, _ = scored_trainer(host, tmp_path, SCORES, steps=28, keep_last=1)
+    assert resumed.resume(tmp_path / "checkpoints") and resumed.state.best_step == 8
+    resumed.fit()  # step 24 scores 0.1: the new best replaces step 8
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["step-00000024", "step-00000028"]
+    assert resumed.state.best_step == 24
+
+
+def test_non_finite_scores_are_never_best(host, tmp_path):
+    trainer, _ = scored_trainer(host, tmp_path, {**SCORES, 4: float("nan"), 8: float("inf")}, steps=12)
+    assert trainer.fit().best_step == 12

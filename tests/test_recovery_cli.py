@@ -46,7 +46,9 @@ def truncate(path, keep=100):
 
 
 def metric_steps(run):
-    return [json.loads(line)["step"] for line in (run / "metrics.jsonl").read_text().splitlines()]
+    """The steps of the training lines of metrics.jsonl (checkpoints add val_loss lines of their own)."""
+    lines = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    return [line["step"] for line in lines if "val_loss" not in line]
 
 
 @pytest.mark.parametrize("damage", ["truncated", "missing"])
@@ -163,3 +165,25 @@ def test_reconstruct_images_option_errors_are_one_line(trained_run, tmp_path, ca
                  "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("vqtouch: error: ") and err.count("\n") == 1 and message in err, err
+
+
+def test_step_best_reads_the_checkpoint_that_scored_best_on_the_held_out_split(trained_run, tmp_path, capsys):
+    evaluation = json.loads((trained_run / "eval.json").read_text())
+    losses = {json.loads(line)["step"]: json.loads(line)["val_loss"]
+              for line in (trained_run / "metrics.jsonl").read_text().splitlines() if "val_loss" in line}
+    assert sorted(losses) == [2, 4] and evaluation["best_step"] == min(losses, key=losses.get)
+    out = tmp_path / "best"
+    assert main(["reconstruct", "--run", str(trained_run), "--step", "best", "--real-frames", "gelsight",
+                 "--out", str(out)]) == 0
+    folder = json.loads((out / "reconstruct.json").read_text())["checkpoint"]
+    assert folder == str(trained_run / "checkpoints" / f"step-{evaluation['best_step']:08d}")
+
+
+def test_step_best_of_a_run_that_held_out_nothing_is_one_line(tmp_path, capsys):
+    run = tmp_path / "run"
+    assert main(train_args(run, "data.val_fraction=0")) == 0
+    capsys.readouterr()
+    assert main(["evaluate", "reconstruction", "--run", str(run), "--step", "best", "--split", "all"]) == 2
+    assert capsys.readouterr().err == (f"vqtouch: error: {run}: no best checkpoint recorded (the run scored no "
+                                       "held-out samples: train.keep_best=false or data.val_fraction=0); give a step "
+                                       "number\n")

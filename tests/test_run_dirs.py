@@ -56,8 +56,9 @@ def test_training_into_an_older_run_is_refused_and_overwrite_replaces_it(tmp_pat
 
     assert main(train_args(run, 128, "--overwrite")) == 0
     assert json.loads((run / "config.json").read_text())["tokenizer"]["quantizer"]["codebook_size"] == 128
-    steps = [json.loads(line)["step"] for line in (run / "metrics.jsonl").read_text().splitlines()]
-    assert steps == [1, 2, 3, 4]  # the new run's lines only
+    lines = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [line["step"] for line in lines if "val_loss" not in line] == [1, 2, 3, 4]  # the new run's lines only
+    assert [line["step"] for line in lines if "val_loss" in line] == [2, 4]  # one score per checkpoint
     assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["step-00000002", "step-00000004"]
     assert {codebook_in_header(run / "checkpoints" / name) for name in ("step-00000002", "step-00000004")} == {128}
     assert main(["train", "tokenizer", "--resume", str(run), "--overwrite"]) == 2

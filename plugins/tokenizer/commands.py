@@ -16,7 +16,7 @@ import torch
 
 from vqtouch.core import Assembly, ConfigError, RunDir, hookimpl, run_stage
 from vqtouch.core.config import parse_override
-from vqtouch.core.cli import add_config_arguments, command_group, config_from_args, stage_failure
+from vqtouch.core.cli import add_config_arguments, add_step_argument, command_group, config_from_args, stage_failure
 from vqtouch.core.data import split_dataset
 from vqtouch.core.runs import interrupted_message, is_main_process
 
@@ -149,7 +149,7 @@ def vqtouch_add_commands(subparsers):
 
     reconstruct = subparsers.add_parser("reconstruct", help="encode and decode images with a trained tokenizer")
     reconstruct.add_argument("--run", required=True, help="run directory (or a checkpoint folder)")
-    reconstruct.add_argument("--step", type=int, help="checkpoint step (default: latest)")
+    add_step_argument(reconstruct)
     source = reconstruct.add_mutually_exclusive_group(required=True)
     source.add_argument("--real-frames", metavar="SENSOR",
                         help="the real reference frames of this sensor family (name or JSON), e.g. gelsight")
@@ -165,7 +165,7 @@ def vqtouch_add_commands(subparsers):
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
     recon = evaluate.add_parser("reconstruction", help="the paper's Table 1 metrics on the held-out split")
     recon.add_argument("--run", required=True, help="run directory of a trained tokenizer")
-    recon.add_argument("--step", type=int, help="checkpoint step (default: latest)")
+    add_step_argument(recon)
     recon.add_argument("--split", choices=["val", "all"], default="val", help="held-out split or all samples")
     recon.add_argument("--metrics", help="comma-separated metric plugins (default: the run's metrics)")
     recon.add_argument("--dataset", help="evaluate on this dataset (JSON config, used whole) instead of the run's "

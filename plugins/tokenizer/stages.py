@@ -59,7 +59,7 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
     task = TokenizerTask(tokenizer, loss, discriminator, perceptual)
     trainer = Trainer(task, train_set, section.train, batch_size=config.data.batch_size, seed=config.seed,
                       device=device, checkpoint_dir=job.run.checkpoints, run=job.run,
-                      num_workers=config.data.num_workers, host=job.host, stage=job.stage)
+                      num_workers=config.data.num_workers, host=job.host, stage=job.stage, val_dataset=val_set)
     if job.resume:
         folder = _resume_folder(job)
         # With no checkpoint folder, resume() starts at step 0 and drops the lines that the
@@ -76,7 +76,8 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
     if trainer.dist.is_main:
         if "examples" in scores:
             save_pairs(*scores["examples"], job.run.path / "reconstructions.png")
-        job.run.write_json("eval.json", {"step": state.step, "skipped_steps": state.skipped_steps,
+        best = {"best_step": state.best_step, "best_val_loss": state.best_score} if trainer.validates() else {}
+        job.run.write_json("eval.json", {"step": state.step, "skipped_steps": state.skipped_steps, **best,
                                          "train_samples": len(train_set), "val_samples": len(val_set),
                                          **printable(scores)})
     return scores
@@ -102,10 +103,10 @@ def run_tokenizer_stage(job: StageJob) -> dict[str, Any]:
             **({} if "evaluation" in scores else {"picture": "reconstructions.png"})}
 
 
-def load_tokenizer(run_or_folder: str | Path | RunDir, host: Any, step: int | None = None,
+def load_tokenizer(run_or_folder: str | Path | RunDir, host: Any, step: int | str | None = None,
                    device: str = "cpu") -> tuple[Tokenizer, Path]:
-    """Load the autoencoder and quantizer of a run (its latest complete checkpoint, or ``step``) or
-    of a checkpoint folder.
+    """Load the autoencoder and quantizer of a run (its newest good checkpoint, ``step``, or with
+    ``step="best"`` the one that scored best on the held-out split) or of a checkpoint folder.
 
     A run's folder comes from :meth:`RunDir.checkpoint`, which refuses files made with another
     config than the run's; so does a ``step-*`` folder given inside a run.  A checkpoint folder

@@ -112,6 +112,17 @@ class TokenizerTask:
             groups["discriminator"] = list(self.discriminator.parameters())
         return groups
 
+    def validation_loss(self, batch: dict[str, Any], trainer: Any) -> torch.Tensor:
+        """(B,) held-out score of each sample: the mean absolute pixel error of its reconstruction (the
+        training L1, in [-1, 1] units), from the eval-mode tokenizer; the trainer keeps the
+        checkpoint where its mean is lowest."""
+        self.tokenizer.eval()
+        self.tokenizer.autoencoder.reset_randomness()
+        images = batch["tactile"]
+        with trainer.autocast():
+            reconstruction, _ = self.tokenizer.reconstruct(images)
+        return 2 * (reconstruction.float() - images).abs().flatten(1).mean(1)
+
     def training_step(self, batch: dict[str, Any], step: int, trainer: Any) -> dict[str, float]:
         """One generator step, then (from disc_start) one discriminator step."""
         images = batch["tactile"] * 2 - 1

@@ -1,0 +1,230 @@
+"""The x_0-predicting network of the discrete-diffusion decoder (VQ-Diffusion's ``selfcross`` transformer).
+
+Input: codes (B, L) in [0, K] (K = MASK) on an H x W grid (row-major, L = H W), timesteps (B,) in
+[0, T-1] and condition tokens (B, M, cond_dim).  Output: logits (B, K, L) over the K code classes,
+never MASK; :func:`vqtouch.plugins.generator.diffusion.log_predict_x0` turns them into the x_0
+distribution the diffusion maths works with.
+
+Each block: adaptive LayerNorm (timestep) -> self-attention; adaptive LayerNorm -> cross-attention to
+the condition tokens; adaptive LayerNorm -> MLP; every sub-layer residual.  Attention goes through
+``F.scaled_dot_product_attention``.  LayerNorms run in float32 and the residual stream stays float32
+under autocast, so bf16 autocast only lowers the matmuls (outputs stay finite, logits are float32).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+@dataclass
+class ConditionCache:
+    """The condition tokens of one batch, encoded once for every block (see
+    :meth:`DiffusionTransformer.precompute_condition`), so a sampler reuses them across its steps."""
+
+    #: Per block, cross-attention keys and values, each (B, heads, M, width / heads).
+    keys_values: list[tuple[torch.Tensor, torch.Tensor]]
+    #: Boolean attention mask (B, 1, 1, M), True where a token is attended; None when all are.
+    attn_mask_B11M: torch.Tensor | None
+    #: (B,) False for rows without any valid token, whose cross-attention then adds nothing; None
+    #: when every row has one.
+    has_tokens_B: torch.Tensor | None
+
+    @property
+    def batch_size(self) -> int:
+        """Number of rows B the cache was computed for."""
+        return self.keys_values[0][0].shape[0]
+
+
+def _layer_norm(x_BLd: torch.Tensor, weight: torch.Tensor | None = None,
+                bias: torch.Tensor | None = None) -> torch.Tensor:
+    """LayerNorm in float32 whatever the autocast: bf16 statistics of a float32 residual lose the
+    small differences between tokens."""
+    return F.layer_norm(x_BLd.float(), x_BLd.shape[-1:], None if weight is None else weight.float(),
+                        None if bias is None else bias.float(), eps=1e-6)
+
+
+class _SelfAttention(nn.Module):
+    def __init__(self, width: int, heads: int, dropout: float) -> None:
+        super().__init__()
+        self.heads = heads
+        self.dropout = dropout
+        self.qkv = nn.Linear(width, 3 * width)
+        self.proj = nn.Linear(width, width)
+
+    def forward(self, h_BLd: torch.Tensor) -> torch.Tensor:
+        batch, length, width = h_BLd.shape
+        q, k, v = self.qkv(h_BLd).view(batch, length, 3, self.heads, width // self.heads).permute(2, 0, 3, 1, 4)
+        out_BhLc = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
+        return self.proj(out_BhLc.transpose(1, 2).reshape(batch, length, width))
+
+
+class _CrossAttention(nn.Module):
+    def __init__(self, width: int, heads: int, dropout: float) -> None:
+        super().__init__()
+        self.heads = heads
+        self.dropout = dropout
+        self.q = nn.Linear(width, width)
+        self.kv = nn.Linear(width, 2 * width)
+        self.proj = nn.Linear(width, width)
+
+    def keys_values(self, cond_BMd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Keys and values (B, heads, M, c) of the projected condition tokens."""
+        batch, tokens, width = cond_BMd.shape
+        k, v = self.kv(cond_BMd).view(batch, tokens, 2, self.heads, width // self.heads).permute(2, 0, 3, 1, 4)
+        return k, v
+
+    def forward(self, h_BLd: torch.Tensor, keys_values: tuple[torch.Tensor, torch.Tensor],
+                attn_mask_B11M: torch.Tensor | None, has_tokens_B: torch.Tensor | None) -> torch.Tensor:
+        batch, length, width = h_BLd.shape
+        q = self.q(h_BLd).view(batch, length, self.heads, width // self.heads).transpose(1, 2)
+        # A cache made outside autocast may meet queries made inside it (or the reverse).
+        k, v = (tensor.to(q.dtype) for tensor in keys_values)
+        out_BhLc = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask_B11M,
+                                                  dropout_p=self.dropout if self.training else 0.0)
+        out_BLd = self.proj(out_BhLc.transpose(1, 2).reshape(batch, length, width))
+        if has_tokens_B is not None:
+            out_BLd = out_BLd * has_tokens_B.view(-1, 1, 1).to(out_BLd.dtype)
+        return out_BLd
+
+
+class _Block(nn.Module):
+    """Self-attention, cross-attention and MLP, each behind a timestep-adaptive LayerNorm."""
+
+    def __init__(self, width: int, heads: int, mlp_ratio: float, dropout: float) -> None:
+        super().__init__()
+        # shift and scale of the three adaptive LayerNorms, from the block's view of the timestep.
+        self.modulation = nn.Linear(width, 6 * width)
+        self.self_attn = _SelfAttention(width, heads, dropout)
+        self.cross_attn = _CrossAttention(width, heads, dropout)
+        hidden = max(1, round(width * mlp_ratio))
+        self.mlp = nn.Sequential(nn.Linear(width, hidden), nn.GELU(), nn.Linear(hidden, width), nn.Dropout(dropout))
+        self.drop = nn.Dropout(dropout)
+
+    def forward(self, x_BLd: torch.Tensor, time_Bd: torch.Tensor, keys_values: tuple[torch.Tensor, torch.Tensor],
+                attn_mask_B11M: torch.Tensor | None, has_tokens_B: torch.Tensor | None) -> torch.Tensor:
+        modulation = self.modulation(time_Bd).float().unsqueeze(1).chunk(6, dim=-1)
+
+        def adaptive_norm(x: torch.Tensor, index: int) -> torch.Tensor:
+            shift, scale = modulation[2 * index], modulation[2 * index + 1]
+            return _layer_norm(x) * (1.0 + scale) + shift
+
+        x_BLd = x_BLd + self.drop(self.self_attn(adaptive_norm(x_BLd, 0))).float()
+        x_BLd = x_BLd + self.drop(self.cross_attn(adaptive_norm(x_BLd, 1), keys_values, attn_mask_B11M,
+                                                  has_tokens_B)).float()
+        return x_BLd + self.mlp(adaptive_norm(x_BLd, 2)).float()
+
+
+class DiffusionTransformer(nn.Module):
+    """Predicts x_0 logits (B, K, L) from noised codes, the timestep and condition tokens.
+
+    Args:
+        num_codes: codebook size K; inputs are codes in [0, K] with K = MASK.
+        num_steps: diffusion steps T; the timestep table has T rows, so t must lie in [0, T-1].
+        grid_hw: (H, W) of the code grid; sequences are the row-major grid, L = H * W.
+        cond_dim: width of the condition tokens (``BuildContext.cond_dim``).
+        depth: number of blocks.
+        width: model width d (divisible by ``heads``).
+        heads: attention heads of the self- and cross-attention.
+        mlp_ratio: hidden width of the MLP as a multiple of d.
+        dropout: dropout on attention weights and residual branches in training mode.
+
+    The condition tokens are L2-normalised one by one (as VQ-Diffusion does with CLIP tokens: their
+    scale then cannot differ between conditioners), projected to d by one shared Linear, and every
+    block derives its own keys and values from that projection.
+    """
+
+    def __init__(self, num_codes: int, num_steps: int, grid_hw: tuple[int, int], cond_dim: int, depth: int = 8,
+                 width: int = 256, heads: int = 8, mlp_ratio: float = 4.0, dropout: float = 0.0) -> None:
+        super().__init__()
+        height, grid_width = grid_hw
+        for name, value in (("num_codes", num_codes), ("num_steps", num_steps), ("grid height", height),
+                            ("grid width", grid_width), ("cond_dim", cond_dim), ("depth", depth),
+                            ("width", width), ("heads", heads)):
+            if value < 1:
+                raise ValueError(f"DiffusionTransformer: {name} must be >= 1; got {value}")
+        if width % heads:
+            raise ValueError(f"DiffusionTransformer: width {width} is not divisible by heads {heads}")
+        if not 0.0 <= dropout < 1.0:
+            raise ValueError(f"DiffusionTransformer: dropout must lie in [0, 1); got {dropout}")
+        #: Codebook size K (MASK = K).
+        self.num_codes = num_codes
+        #: Number of timesteps T.
+        self.num_steps = num_steps
+        #: (H, W) of the code grid.
+        self.grid_hw = (height, grid_width)
+        self.cond_dim = cond_dim
+        self.width = width
+        self.token_embed = nn.Embedding(num_codes + 1, width)
+        self.row_embed = nn.Embedding(height, width)
+        self.col_embed = nn.Embedding(grid_width, width)
+        self.time_embed = nn.Embedding(num_steps, width)
+        self.cond_proj = nn.Linear(cond_dim, width)
+        self.blocks = nn.ModuleList(_Block(width, heads, mlp_ratio, dropout) for _ in range(depth))
+        self.head_norm = nn.LayerNorm(width, eps=1e-6)
+        self.head = nn.Linear(width, num_codes)
+        self.apply(self._init_weights)
+
+    @staticmethod
+    def _init_weights(module: nn.Module) -> None:
+        # GPT-style N(0, 0.02).  Nothing is zero-initialised: a zero head or modulation would leave
+        # the timestep embedding without gradient at the first step.
+        if isinstance(module, (nn.Linear, nn.Embedding)):
+            nn.init.normal_(module.weight, std=0.02)
+        if isinstance(module, nn.Linear) and module.bias is not None:
+            nn.init.zeros_(module.bias)
+
+    def precompute_condition(self, cond_BMD: torch.Tensor, mask: torch.Tensor | None = None) -> ConditionCache:
+        """Encode condition tokens (B, M, cond_dim) once for every block.
+
+        ``mask`` (B, M) bool: True where a token is real, False where it is padding (the convention
+        of ``scaled_dot_product_attention``, the opposite of ``nn.MultiheadAttention``'s
+        key_padding_mask).  A row with no real token gets no cross-attention contribution.
+        """
+        if cond_BMD.ndim != 3 or cond_BMD.shape[-1] != self.cond_dim:
+            raise ValueError(f"expected condition tokens (B, M, {self.cond_dim}); got {tuple(cond_BMD.shape)}")
+        # Normalise in float32: a bf16 sum of squares over cond_dim entries loses digits.
+        cond_BMd = self.cond_proj(F.normalize(cond_BMD.float(), dim=-1))
+        keys_values = [block.cross_attn.keys_values(cond_BMd) for block in self.blocks]
+        attn_mask_B11M = has_tokens_B = None
+        if mask is not None:
+            if mask.shape != cond_BMD.shape[:2]:
+                raise ValueError(f"condition mask must be (B, M) = {tuple(cond_BMD.shape[:2])}; "
+                                 f"got {tuple(mask.shape)}")
+            mask = mask.to(device=cond_BMD.device, dtype=torch.bool)
+            has_tokens_B = mask.any(dim=1)
+            # An all-False row would make softmax NaN; let it attend everywhere and zero its output.
+            attn_mask_B11M = (mask | ~has_tokens_B.unsqueeze(1)).view(mask.shape[0], 1, 1, mask.shape[1])
+        return ConditionCache(keys_values, attn_mask_B11M, has_tokens_B)
+
+    def forward(self, codes_BL: torch.Tensor, t_B: torch.Tensor, condition: torch.Tensor | None = None,
+                cache: ConditionCache | None = None, condition_mask: torch.Tensor | None = None) -> torch.Tensor:
+        """x_0 logits (B, K, L) in float32 for codes (B, L) in [0, K] at timesteps (B,) in [0, T-1].
+
+        Give either ``condition`` (B, M, cond_dim), with its optional ``condition_mask`` (B, M), or a
+        ``cache`` from :meth:`precompute_condition` (same result, without re-encoding).
+        """
+        if (condition is None) == (cache is None):
+            raise ValueError("DiffusionTransformer.forward needs exactly one of condition and cache")
+        if cache is None:
+            cache = self.precompute_condition(condition, condition_mask)
+        elif condition_mask is not None:
+            raise ValueError("condition_mask belongs to precompute_condition when a cache is passed")
+        height, grid_width = self.grid_hw
+        if codes_BL.ndim != 2 or codes_BL.shape[1] != height * grid_width:
+            raise ValueError(f"expected codes (B, {height * grid_width}) on the {height}x{grid_width} grid; "
+                             f"got {tuple(codes_BL.shape)}")
+        if t_B.shape != (codes_BL.shape[0],):
+            raise ValueError(f"expected timesteps ({codes_BL.shape[0]},); got {tuple(t_B.shape)}")
+        if cache.batch_size != codes_BL.shape[0]:
+            raise ValueError(f"condition batch {cache.batch_size} != codes batch {codes_BL.shape[0]}")
+        positions_Ld = (self.row_embed.weight.unsqueeze(1) + self.col_embed.weight.unsqueeze(0)).reshape(-1, self.width)
+        x_BLd = (self.token_embed(codes_BL.long()) + positions_Ld).float()
+        time_Bd = F.silu(self.time_embed(t_B.long()))
+        for block, keys_values in zip(self.blocks, cache.keys_values, strict=True):
+            x_BLd = block(x_BLd, time_Bd, keys_values, cache.attn_mask_B11M, cache.has_tokens_B)
+        logits_BLK = self.head(_layer_norm(x_BLd, self.head_norm.weight, self.head_norm.bias))
+        return logits_BLK.float().transpose(1, 2)
