@@ -340,6 +340,8 @@ class Trainer:
         #: interrupt right after a save does not write it twice.
         self._saved: tuple[int, Path] | None = None
         self._signals: _StopSignals | None = None
+        #: Set when another rank's stop request ended :meth:`fit` (see :meth:`_stop_agreed`).
+        self._stopped_by_peer = False
         if checkpoint_dir is not None and self.dist.is_main:
             # A new trainer is the only writer of its run's checkpoints: whatever temporaries are
             # there were left by a killed save (full-size weights, never cleaned otherwise).
@@ -460,21 +462,25 @@ class Trainer:
         """
         signals = _StopSignals().install()
         self._signals = signals
+        self._stopped_by_peer = False
         interrupted: KeyboardInterrupt | None = None
         try:
             try:
                 self._run_steps(signals)
             except KeyboardInterrupt as exc:  # raised by the task, or by a handler other than ours
                 interrupted = exc
-            if (interrupted is not None or signals.received is not None
-                    or self.state.step % self.config.checkpoint_every != 0):
+            stopped = interrupted is not None or signals.received is not None or self._stopped_by_peer
+            if stopped or self.state.step % self.config.checkpoint_every != 0:
                 self._save_unless_saved()
         finally:
             self._signals = None
             signals.restore()
         # Checked after the last save too: a signal during it still stops the caller.
-        if interrupted is not None or signals.received is not None:
-            cause = signal.Signals(signals.received).name if signals.received is not None else "KeyboardInterrupt"
+        if interrupted is not None or signals.received is not None or self._stopped_by_peer:
+            if signals.received is not None:
+                cause = signal.Signals(signals.received).name
+            else:
+                cause = "a stop request to another process" if self._stopped_by_peer else "KeyboardInterrupt"
             folder = self._saved[1] if self._saved is not None and self._saved[0] == self.state.step else None
             raise TrainingInterrupted(cause, self.state.step, folder) from interrupted
         return self.state
@@ -516,11 +522,26 @@ class Trainer:
                     bar.set_postfix({k: f"{v:.4g}" for k, v in list(scalars.items())[:3]} | {"img/s": f"{rate:.1f}"},
                                     refresh=False)
                     bar.update(1)
-                if signals.received is not None:
+                if self._stop_agreed(signals):
                     break
         finally:
             if bar is not None:
                 bar.close()
+
+    def _stop_agreed(self, signals: _StopSignals) -> bool:
+        """Whether to stop after this step: a stop request to any process stops them all at the same
+        step (under torchrun a signal may reach one rank only, or reach the ranks a step apart,
+        and a rank that stopped alone would leave the others waiting in their next all-reduce)."""
+        stop = signals.received is not None
+        if self.dist.world > 1:
+            import torch.distributed as dist
+
+            flag = torch.tensor([1.0 if stop else 0.0], device=self.device)
+            dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+            if flag.item() > 0 and not stop:
+                self._stopped_by_peer = True
+                stop = True
+        return stop
 
     # -- checkpoints -------------------------------------------------------------------------
     def save_checkpoint(self) -> Path | None:

@@ -305,3 +305,18 @@ def test_two_process_data_parallel_keeps_parameters_identical(tmp_path):
     params = [torch.load(tmp_path / f"rank{rank}.pt", weights_only=True) for rank in range(2)]
     assert torch.equal(params[0], params[1])
     assert not torch.equal(params[0], torch.load(tmp_path / "initial.pt", weights_only=True))
+
+
+def test_a_signal_to_one_rank_stops_every_rank_at_the_same_step(tmp_path):
+    """Under torchrun a rank that stopped alone would leave the others waiting in their next all-reduce."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).parent / "helpers")}
+    result = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
+                             "--master_port", "29519", str(DDP_SCRIPT), str(tmp_path), "signal"],
+                            capture_output=True, text=True, timeout=240, env=env)
+    assert result.returncode == 0, result.stderr[-3000:]
+    checkpoint = tmp_path / "checkpoints" / "step-00000004"
+    assert (tmp_path / "rank1.stopped").read_text() == "4 SIGTERM None"  # rank 1 writes no file
+    assert (tmp_path / "rank0.stopped").read_text() == f"4 a stop request to another process {checkpoint}"
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["step-00000004"]
+    params = [torch.load(tmp_path / f"rank{rank}.pt", weights_only=True) for rank in range(2)]
+    assert torch.equal(params[0], params[1])
