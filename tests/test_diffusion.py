@@ -108,7 +108,8 @@ def test_log1mexp_and_log_add_exp_never_leave_the_floor():
     value.sum().backward()
     assert torch.isfinite(a.grad).all()
     inf = float("-inf")
-    result = D.log_add_exp(torch.tensor([inf, inf, D.LOG_ZERO, -1e30, 0.0]), torch.tensor([inf, 0.0, D.LOG_ZERO, -1e30, 0.0]))
+    result = D.log_add_exp(torch.tensor([inf, inf, D.LOG_ZERO, -1e30, 0.0]),
+                           torch.tensor([inf, 0.0, D.LOG_ZERO, -1e30, 0.0]))
     assert torch.isfinite(result).all() and (result >= D.LOG_ZERO).all()
     torch.testing.assert_close(result[[1, 4]], torch.tensor([0.0, math.log(2.0)]))
 

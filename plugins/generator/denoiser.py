@@ -223,7 +223,7 @@ class DiffusionTransformer(nn.Module):
             raise ValueError(f"condition batch {cache.batch_size} != codes batch {codes_BL.shape[0]}")
         positions_Ld = (self.row_embed.weight.unsqueeze(1) + self.col_embed.weight.unsqueeze(0)).reshape(-1, self.width)
         x_BLd = (self.token_embed(codes_BL.long()) + positions_Ld).float()
-        time_Bd = F.silu(self.time_embed(torch.zeros_like(t_B)))
+        time_Bd = F.silu(self.time_embed(t_B.long()))
         for block, keys_values in zip(self.blocks, cache.keys_values, strict=True):
             x_BLd = block(x_BLd, time_Bd, keys_values, cache.attn_mask_B11M, cache.has_tokens_B)
         logits_BLK = self.head(_layer_norm(x_BLd, self.head_norm.weight, self.head_norm.bias))

@@ -234,7 +234,9 @@ class MaskReplaceSchedule(nn.Module):
     A module only to follow ``.to(device)``: its float32 tables are non-persistent buffers, rebuilt
     from the constructor arguments, so checkpoints do not carry them.  The float64 schedule is kept as
     attributes ``alpha``, ``beta``, ``gamma`` (T,) and ``alpha_bar``, ``beta_bar``, ``gamma_bar``
-    (T+1,, index T = step -1, the identity) for inspection and tests.
+    (T+1,), index T = step -1 (the identity), for inspection and tests.  Do not cast an owning module
+    to half precision with ``.to(dtype)``: that casts these buffers too (the maths itself promotes
+    its inputs to float32, but rounded tables stay rounded).
     """
 
     def __init__(self, num_codes: int, num_steps: int, att_1: float = 0.99999, att_T: float = 0.000009,
@@ -249,6 +251,7 @@ class MaskReplaceSchedule(nn.Module):
         self.mask_index = num_codes
         #: Number of steps T (t = 0..T-1).
         self.num_steps = num_steps
+        #: The constructor's end points, e.g. for a config or a log line.
         self.end_points = {"att_1": att_1, "att_T": att_T, "ctt_1": ctt_1, "ctt_T": ctt_T}
         for name in ("alpha", "beta", "gamma", "alpha_bar", "beta_bar", "gamma_bar"):
             setattr(self, name, tables[name])
