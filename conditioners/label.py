@@ -46,6 +46,11 @@ class LabelConditioner(Conditioner):
 def build_label_conditioner(config: LabelConditionerConfig, context: BuildContext) -> LabelConditioner:
     """Factory: the class count comes from the config, else from the dataset via the context."""
     num_classes = config.num_classes or context.num_classes
+    if config.num_classes and context.num_classes > config.num_classes:
+        from vqtouch.core import ConfigError
+
+        raise ConfigError(f"conditioner 'label' has num_classes={config.num_classes} but the dataset has "
+                          f"{context.num_classes} classes; set num_classes=0 to take the dataset's count")
     if num_classes < 1:
         from vqtouch.core import ConfigError
 

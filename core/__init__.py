@@ -23,11 +23,11 @@ import importlib.metadata as _metadata
 from .assembly import Assembly
 from .checkpoint import atomic_write, load, read_metadata, save
 from .components import (Autoencoder, BuildContext, Clusterer, Conditioner, ConditionTokens, Discriminator, Generator,
-                         Metric, PerImageMetric, ProvidesContext, Quantizer, QuantizerOutput, SensorFamily,
+                         Metric, PerImageMetric, ProvidesContext, Quantizer, QuantizerOutput, Sampler, SensorFamily,
                          TactileDataset)
 from .config import ExperimentConfig, Section, Slot, load_config_file, resolve_config, validate_experiment
 from .errors import (CheckpointError, ConfigError, DatasetError, MissingWeightsError, PluginError, UnknownPluginError,
-                     VqtouchError)
+                     VqtouchError, VqtouchWarning)
 from .frozen import FrozenModule
 from .hookspecs import hookimpl
 from .plugin_config import PluginConfig
@@ -47,8 +47,8 @@ __all__ = [
     "Assembly", "Autoencoder", "BuildContext", "CheckpointError", "Clusterer", "ConditionTokens", "Conditioner",
     "ConfigError", "DatasetError", "Discriminator", "ExperimentConfig", "FrozenModule", "Generator", "Metric",
     "MissingWeightsError", "PerImageMetric", "PluginConfig", "PluginError", "PluginHost", "ProvidesContext",
-    "Quantizer", "QuantizerOutput", "RunDir", "Section", "SensorFamily", "Slot", "StageJob", "StageOutcome",
-    "StageUnavailable", "TactileDataset", "TrainConfig", "UnknownPluginError", "VqtouchError", "WeightsSpec",
+    "Quantizer", "QuantizerOutput", "RunDir", "Sampler", "Section", "SensorFamily", "Slot", "StageJob", "StageOutcome",
+    "StageUnavailable", "TactileDataset", "TrainConfig", "UnknownPluginError", "VqtouchError", "VqtouchWarning", "WeightsSpec",
     "__version__", "atomic_write", "hookimpl", "load", "load_config_file", "load_plugins", "make_generator",
     "read_metadata", "required_slots", "resolve_config", "resolve_device", "resolve_weights", "run_stage", "save",
     "seed_everything", "validate_experiment",

@@ -9,7 +9,9 @@ one checkpoint writer (safetensors, no pickle) serves all of them.
 from __future__ import annotations
 
 import abc
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
@@ -33,6 +35,8 @@ class BuildContext(BaseModel):
     codebook_size: int = Field(0, ge=0, description="Codebook size of the tokenizer (0 when not yet known).")
     latent_dim: int = Field(0, ge=0, description="Channels of the autoencoder's latents, which the quantizer must "
                                                  "match (0 when not yet known).")
+    code_grid: int = Field(0, ge=0, description="Side of the tokenizer's square code grid, image_size / the "
+                                                "autoencoder's downsampling factor (0 when not yet known).")
 
 
 class ProvidesContext:
@@ -94,6 +98,53 @@ class Conditioner(nn.Module, abc.ABC):
             raise KeyError(f"{type(self).__name__} reads samples' {self.sample_key!r}, which this batch lacks "
                            f"(keys: {', '.join(sorted(batch))}); use a dataset that provides it")
         return batch[self.sample_key]
+
+    def parse_condition(self, value: Any, *, image_size: int, class_names: Sequence[str] = ()) -> Any:
+        """One sample's raw condition (what :meth:`condition_of` finds in one sample) from what a user
+        gave, e.g. on ``vqtouch generate``'s command line; collate several with
+        :func:`vqtouch.core.training.collate_samples` (``{sample_key: value}`` per sample).
+
+        The default follows the sample keys of :class:`TactileDataset`: ``"tactile"`` and
+        ``"visual"`` read an image file (a path; decoded, centre-cropped and resized to
+        ``image_size``, or a (3, S, S) tensor in [0, 1] as it is), ``"label"`` takes a class
+        index or one of ``class_names``, ``"text"`` takes the text.  A conditioner that reads
+        another key overrides this.  Raises ConfigError saying what was wrong.
+        """
+        from .errors import ConfigError
+
+        key = self.sample_key
+        if key in ("tactile", "visual"):
+            if isinstance(value, torch.Tensor):
+                return value
+            from .images import ImageLoader
+
+            path = Path(str(value))
+            if not path.is_file():
+                raise ConfigError(f"--{key} {value}: no such image file")
+            from .errors import DatasetError
+
+            try:
+                return ImageLoader(size=image_size).load(path)
+            except DatasetError as exc:
+                raise ConfigError(f"--{key}: {exc}") from None
+        if key == "label":
+            text = str(value).strip()
+            if text.lstrip("-").isdigit():
+                label = int(text)
+            elif text in class_names:
+                label = list(class_names).index(text)
+            else:
+                from .errors import unknown_name_message
+
+                raise ConfigError(f"--label: {unknown_name_message('class', text, class_names)} (or give an index)")
+            if class_names and not 0 <= label < len(class_names):
+                raise ConfigError(f"--label {label}: out of range; this run's classes are 0..{len(class_names) - 1} "
+                                  f"({', '.join(class_names)})")
+            return label
+        if key == "text":
+            return str(value)
+        raise NotImplementedError(f"{type(self).__name__} reads samples' {key!r}; it must override parse_condition "
+                                  "to turn a user's value into that entry")
 
     def forward(self, condition: Any, drop_mask_B: torch.Tensor | None = None) -> ConditionTokens:
         """Encode ``condition``; rows where ``drop_mask_B`` is True get the null tokens instead."""
@@ -174,8 +225,12 @@ class Autoencoder(nn.Module, ProvidesContext, abc.ABC):
         """Restart any evaluation-time randomness (e.g. MAE masks) so evaluations repeat exactly."""
 
     def context_facts(self) -> dict[str, Any]:
-        """The latent width a quantizer must match."""
-        return {"latent_dim": self.latent_channels}
+        """The latent width a quantizer must match and the side of the code grid a generator works on."""
+        facts: dict[str, Any] = {"latent_dim": self.latent_channels}
+        spec = getattr(self, "vqtouch_spec", None)
+        if spec is not None:
+            facts["code_grid"] = spec.context.image_size // self.downsample_factor
+        return facts
 
 
 @dataclass
@@ -283,7 +338,49 @@ class PerImageMetric(Metric):
 
 
 class Generator(nn.Module, abc.ABC):
-    """Generates code grids conditioned on condition tokens (e.g. discrete diffusion)."""
+    """Generates code grids conditioned on condition tokens (e.g. discrete diffusion).
+
+    Built with the context's ``codebook_size`` and ``code_grid``; codes are integers in
+    [0, codebook_size) on a (code_grid, code_grid) grid.  Condition tokens come from the
+    experiment's conditioners (:class:`ConditionTokens`; rows marked null carry the learned
+    "no condition", which classifier-free guidance contrasts with).
+    """
+
+    @abc.abstractmethod
+    def training_loss(self, codes_BHW: torch.Tensor, condition: ConditionTokens,
+                      generator: torch.Generator | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+        """The loss (scalar, fp32) of one batch of code grids under its conditions, and scalars to log.
+        Random draws (timesteps, noise) come from ``generator``."""
+
+    @abc.abstractmethod
+    def sample(self, condition: ConditionTokens, sampler: Sampler, *, steps: int, null: ConditionTokens | None = None,
+               guidance: float = 1.0, truncation: float = 1.0,
+               generators: list[torch.Generator] | None = None) -> torch.Tensor:
+        """Code grids (B, H, W) for a batch of conditions, drawn by ``sampler`` in ``steps`` steps.
+
+        ``null``: the null condition's tokens for classifier-free guidance (``guidance`` != 1);
+        ``truncation``: keep only the most likely codes holding this much probability at each
+        step (1 keeps all); ``generators``: one per row, so a row's result does not depend on
+        the batch it is in.
+        """
+
+
+class Sampler(abc.ABC):
+    """How a discrete-diffusion generator turns its x0 predictions into codes (one plugin per
+    strategy: the reverse posterior chain, MaskGIT-style confidence decoding, ...).
+
+    A sampler sees only a ``denoise`` function: codes x_t (B, L) in [0, K] (K = MASK) and
+    timesteps (B,) -> log p(x0 | x_t) (B, K+1, L), float32, already guided and truncated by the
+    generator; and the generator's forward process (``schedule``, with ``num_codes``,
+    ``num_steps``, ``mask_index`` and ``posterior``).  So guidance, truncation and condition
+    caching are written once, in the generator, and a new sampler is one function.
+    """
+
+    @abc.abstractmethod
+    def sample(self, denoise: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], schedule: Any, *, length: int,
+               steps: int, generators: list[torch.Generator]) -> torch.Tensor:
+        """Codes (B, length) in [0, K) for B = len(generators) rows, starting from all MASK and
+        calling ``denoise`` about ``steps`` times; row b's random draws come from ``generators[b]``."""
 
 
 class TactileDataset(ProvidesContext, abc.ABC):

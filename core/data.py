@@ -1,7 +1,9 @@
-"""Dataset utilities shared by every stage: deterministic splits and subsets."""
+"""Dataset utilities shared by every stage: deterministic splits and subsets, the user cache folder."""
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -35,3 +37,18 @@ def split_dataset(dataset: TactileDataset, val_fraction: float, seed: int) -> tu
         raise ConfigError(f"the dataset has {size} samples: too few to hold out {val_fraction:.0%} for evaluation")
     order = torch.randperm(size, generator=torch.Generator().manual_seed(seed + 7777)).tolist()
     return DatasetSubset(dataset, sorted(order[val_count:])), DatasetSubset(dataset, sorted(order[:val_count]))
+
+
+def user_cache_folder() -> Path | None:
+    """vqtouch's user cache folder: $XDG_CACHE_HOME/vqtouch, else ~/.cache/vqtouch; None without a home.
+
+    Only speed-ups live there (image headers already checked, tokenizer codes already computed):
+    deleting it is always safe.
+    """
+    xdg = os.environ.get("XDG_CACHE_HOME", "")
+    if os.path.isabs(xdg):  # the XDG specification says to ignore relative paths
+        return Path(xdg) / "vqtouch"
+    try:
+        return Path.home() / ".cache" / "vqtouch"
+    except (RuntimeError, KeyError):
+        return None

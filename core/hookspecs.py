@@ -70,6 +70,11 @@ def vqtouch_register_generators(register: Register) -> None:
 
 
 @hookspec
+def vqtouch_register_samplers(register: Register) -> None:
+    """Register samplers of discrete-diffusion generators (``vqtouch.core.Sampler`` subclasses)."""
+
+
+@hookspec
 def vqtouch_register_clusterers(register: Register) -> None:
     """Register clusterers that group sensors into families (``vqtouch.core.Clusterer``)."""
 

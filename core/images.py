@@ -1,13 +1,22 @@
-"""Writing image batches to PNG files (Pillow, imported only when an image is written)."""
+"""Reading image files into tensors and writing image batches to PNG files (Pillow, imported only
+when an image is read or written)."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Literal
 
+import numpy as np
 import torch
 
 from .checkpoint import atomic_write
+from .errors import DatasetError
+
+#: How an image is made square: see ``ImageLoader.crop``.
+CropMode = Literal["center", "top", "stretch"]
+
 
 
 def image_grid(images_B3HW: torch.Tensor, columns: int | None = None, padding: int = 2) -> torch.Tensor:
@@ -34,3 +43,96 @@ def save_png(image_3HW: torch.Tensor, path: str | Path) -> Path:
         raise ValueError(f"refusing to write {path}: the image contains NaN or Inf")
     array = (image_3HW.detach().float().cpu().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
     return atomic_write(Path(path), lambda tmp: Image.fromarray(array).save(tmp, format="PNG"))
+
+
+_GREYSCALE_MODES = frozenset({"1", "L", "LA", "La"})
+_COLOUR_MODES = frozenset({"RGB", "RGBA", "RGBa", "RGBX", "CMYK", "YCbCr", "LAB", "HSV", "P", "PA"})
+
+
+def mode_problem(path: Path, mode: str, allow_greyscale: bool) -> str | None:
+    """Why an image of Pillow ``mode`` cannot be used, or None; transparency needs the pixels."""
+    if mode in _GREYSCALE_MODES:
+        if allow_greyscale:
+            return None
+        return f"image {path} is greyscale (mode {mode}); set allow_greyscale=true to copy it into 3 channels"
+    if mode not in _COLOUR_MODES:
+        return f"image {path} has unsupported mode {mode}; expected 8-bit RGB"
+    return None
+
+
+def crop_box(width: int, height: int, mode: CropMode) -> tuple[float, float, float, float]:
+    """The region of a width x height image that becomes the square output."""
+    if mode == "stretch":
+        return (0.0, 0.0, float(width), float(height))
+    side = min(width, height)
+    left = (width - side) / 2
+    top = (height - side) / 2 if mode == "center" else 0.0
+    return (left, top, left + side, top + side)
+
+
+@dataclass(frozen=True)
+class ImageLoader:
+    """Decodes one image file into a float tensor (3, size, size) in [0, 1].
+
+    Colour modes other than RGB are converted; RGBA is accepted only when fully opaque (the
+    conversion is then lossless); greyscale is replicated into 3 channels only when
+    ``allow_greyscale`` is set.  Every failure is a DatasetError naming the file.
+    """
+
+    size: int
+    crop: CropMode = "center"
+    allow_greyscale: bool = False
+
+    def load(self, path: Path) -> torch.Tensor:
+        """The image at ``path`` as a float32 tensor (3, size, size) in [0, 1]."""
+        from PIL import Image
+
+        try:
+            with Image.open(path) as image:
+                # JPEG only: decode at a reduced scale that is still >= size (much faster, same result).
+                image.draft(None, (self.size, self.size))
+                image.load()
+                rgb = self._as_rgb(image, path)
+                # One resampling pass over the crop box: the same as resizing the shorter side and
+                # cropping afterwards, without rounding twice.  Pillow's resize antialiases.
+                square = rgb.resize((self.size, self.size), Image.Resampling.BICUBIC,
+                                    box=crop_box(rgb.width, rgb.height, self.crop))
+        except DatasetError:
+            raise
+        except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
+            raise DatasetError(f"cannot decode image {path}: {type(exc).__name__}: {exc}") from None
+        array = np.asarray(square, dtype=np.uint8)
+        return torch.from_numpy(array.copy()).permute(2, 0, 1).float().div_(255.0)
+
+    def problem(self, path: Path) -> str | None:
+        """Why ``path`` cannot be loaded, or None when it decodes."""
+        try:
+            self.load(path)
+        except DatasetError as exc:
+            return str(exc)
+        return None
+
+    def _as_rgb(self, image: Any, path: Path) -> Any:
+        mode = image.mode
+        if mode == "RGB":
+            return image
+        problem = mode_problem(path, mode, self.allow_greyscale)
+        if problem:
+            raise DatasetError(problem)
+        if mode in _GREYSCALE_MODES:
+            return self._drop_opaque_alpha(image, path) if "A" in mode or "a" in mode else image.convert("RGB")
+        if mode == "P":
+            # A palette image may mark one entry transparent; only then does it carry alpha.
+            return self._drop_opaque_alpha(image.convert("RGBA"), path) if "transparency" in image.info \
+                else image.convert("RGB")
+        if mode in {"RGBA", "RGBa", "PA"}:
+            return self._drop_opaque_alpha(image, path)
+        return image.convert("RGB")
+
+    def _drop_opaque_alpha(self, image: Any, path: Path) -> Any:
+        alpha = image.getchannel(image.getbands()[-1])
+        lowest, _ = alpha.getextrema()
+        if lowest < 255:
+            raise DatasetError(f"image {path} has transparent pixels (mode {image.mode}, alpha down to {lowest}); "
+                               f"expected an opaque RGB image")
+        return image.convert("RGB")

@@ -36,7 +36,7 @@ from pydantic import Field, ValidationError, create_model
 
 from . import hookspecs
 from .components import (Autoencoder, BuildContext, Clusterer, Conditioner, Discriminator, Generator, Metric,
-                         Quantizer, SensorFamily, TactileDataset)
+                         Quantizer, Sampler, SensorFamily, TactileDataset)
 from .config import ExperimentConfig, Section, SlotInfo, slots_of
 from .errors import ConfigError, PluginError, UnknownPluginError, format_validation_error, unknown_name_message
 from .plugin_config import PluginConfig
@@ -78,7 +78,8 @@ REGISTRY_KINDS: tuple[RegistryKind, ...] = (
                  reads=("num_classes",)),
     RegistryKind("sensor_family", "vqtouch_register_sensor_families", "tactile sensor renderers", SensorFamily),
     RegistryKind("generator", "vqtouch_register_generators", "code-grid generators", Generator,
-                 reads=("codebook_size", "num_classes")),
+                 reads=("codebook_size", "num_classes", "code_grid")),
+    RegistryKind("sampler", "vqtouch_register_samplers", "discrete-diffusion samplers", Sampler),
     RegistryKind("clusterer", "vqtouch_register_clusterers", "sensor-family clusterers", Clusterer),
     RegistryKind("dataset", "vqtouch_register_datasets", "tactile dataset readers", TactileDataset,
                  provides=("num_classes",)),

@@ -6,7 +6,8 @@ Layout::
         config.json     the fully resolved ExperimentConfig
         env.json        versions, plugins, command line, seed, git revision
         metrics.jsonl   one JSON object per logged step
-        checkpoints/    step-NNNNNNNN/ folders, one safetensors file per trained component
+        checkpoints/    step-NNNNNNNN/ folders, one safetensors file per trained component (the
+                        tokenizer's; another trained stage keeps its own in checkpoints/<stage>/)
         .vqtouch.lock   advisory lock of the process writing the run (holds its pid)
 
 A folder holds one run.  :meth:`RunDir.create` refuses a folder that already holds files
@@ -235,11 +236,12 @@ class RunDir:
         # garbage-collected, and the OS when the process dies.
         self._unlock = weakref.finalize(self, os.close, fd)
 
-    def checkpoint(self, host: Any, step: int | str | None = None, required_files: Sequence[str] = ()) -> Path:
+    def checkpoint(self, host: Any, step: int | str | None = None, required_files: Sequence[str] = (),
+                   stage: str | None = None) -> Path:
         """The run's checkpoint folder to read: the newest complete, readable ``checkpoints/step-*``
         folder, the one of ``step``, or with ``step="best"`` the one with the lowest validation
-        loss (recorded by the trainer, see ``keep_best``); the one function every reader of a run's weights goes
-        through (resume, reconstruct, evaluate, generate, adapt).
+        loss (recorded by the trainer, see ``keep_best``); the one function every reader of a
+        run's weights goes through (resume, reconstruct, evaluate, generate, adapt).
 
         Newer folders that are incomplete or unreadable (an interrupted save, a truncated or
         missing module file) are skipped with a :class:`~vqtouch.core.training.SkippedCheckpointWarning`
@@ -248,22 +250,26 @@ class RunDir:
         been made with the config of one of the slots of the run's config.json, else
         CheckpointError (the folder mixes two runs).  No usable checkpoint:
         :class:`MissingCheckpointError`, which says why when step folders exist.
+        ``stage``: read the checkpoints that a trained stage other than the tokenizer keeps in
+        ``checkpoints/<stage>/``.
         """
         from .training import checkpoint_problem, latest_good_checkpoint, no_good_checkpoint, step_folders
 
+        checkpoints = self.checkpoints / stage if stage else self.checkpoints
         if step == "best":
-            step = self.best_step(host, required_files)
+            step = self.best_step(host, required_files, stage=stage)
         if step is None:
-            folder = latest_good_checkpoint(self.checkpoints, required_files=required_files)
+            folder = latest_good_checkpoint(checkpoints, required_files=required_files)
             if folder is None:
-                if not step_folders(self.checkpoints):
-                    raise MissingCheckpointError(f"{self.path}: no checkpoint in checkpoints/; train this run first")
-                raise MissingCheckpointError(f"{no_good_checkpoint(self.checkpoints, required_files)}; restore a step "
+                if not step_folders(checkpoints):
+                    where = f"checkpoints/{stage}/" if stage else "checkpoints/"
+                    raise MissingCheckpointError(f"{self.path}: no checkpoint in {where}; train this run first")
+                raise MissingCheckpointError(f"{no_good_checkpoint(checkpoints, required_files)}; restore a step "
                                              "folder from a copy, or train the run again with --overwrite")
         else:
-            folder = self.checkpoints / f"step-{step:08d}"
+            folder = checkpoints / f"step-{step:08d}"
             if not folder.is_dir():
-                steps = [number for number, _ in step_folders(self.checkpoints)]
+                steps = [number for number, _ in step_folders(checkpoints)]
                 have = f"this run has steps {', '.join(map(str, steps))}" if steps else "this run has no checkpoint"
                 raise MissingCheckpointError(f"{folder}: no such checkpoint; {have}")
             problem = checkpoint_problem(folder, required_files)
@@ -272,12 +278,12 @@ class RunDir:
         self._check_files(folder, host)
         return folder
 
-    def best_step(self, host: Any, required_files: Sequence[str] = ()) -> int:
+    def best_step(self, host: Any, required_files: Sequence[str] = (), stage: str | None = None) -> int:
         """The step whose checkpoint scored best on the held-out split, as the newest good checkpoint's
         trainer state records it; MissingCheckpointError when the run kept none."""
         from .training import read_trainer_meta
 
-        newest = self.checkpoint(host, required_files=required_files)
+        newest = self.checkpoint(host, required_files=required_files, stage=stage)
         best = read_trainer_meta(newest).get("best_step")
         if best is None:
             raise MissingCheckpointError(f"{self.path}: no best checkpoint recorded (the run scored no held-out "

@@ -24,7 +24,8 @@ wrong, so pytest reports it like any failed ``assert``.  What is checked:
   is an instance of its kind's base class from :mod:`vqtouch.core.components`;
 - the behaviour of that base class: :func:`check_sensor_family`, :func:`check_conditioner`,
   :func:`check_autoencoder`, :func:`check_quantizer`, :func:`check_discriminator`,
-  :func:`check_clusterer`, :func:`check_metric`, :func:`check_dataset`;
+  :func:`check_clusterer`, :func:`check_metric`, :func:`check_dataset`, :func:`check_generator`,
+  :func:`check_sampler`;
 - for every ``nn.Module`` kind, the checkpoint round trip (:func:`check_round_trip`): saved
   with :func:`vqtouch.core.save` and rebuilt with :func:`vqtouch.core.load`, the component
   has the same state and computes the same outputs on fixed inputs.
@@ -50,20 +51,22 @@ from pydantic import ValidationError
 from torch import nn
 
 from . import checkpoint
-from .components import (Autoencoder, BuildContext, Clusterer, Conditioner, ConditionTokens, Discriminator, Metric,
-                         Quantizer, QuantizerOutput, SensorFamily, TactileDataset)
+from .components import (Autoencoder, BuildContext, Clusterer, Conditioner, ConditionTokens, Discriminator, Generator,
+                         Metric, Quantizer, QuantizerOutput, Sampler, SensorFamily, TactileDataset)
 from .errors import MissingWeightsError, VqtouchError
 from .plugin_config import PluginConfig, literal_name_of
 
 __all__ = [
     "DEFAULT_CONTEXT", "SAMPLE_KEYS", "build_for_check", "check_autoencoder", "check_clusterer", "check_conditioner",
-    "check_dataset", "check_discriminator", "check_metric", "check_plugin", "check_quantizer", "check_registration",
+    "check_dataset", "check_discriminator", "check_generator", "check_metric", "check_plugin", "check_quantizer",
+    "check_registration", "check_sampler", "schedule_from_host",
     "check_round_trip", "check_sensor_family", "example_condition", "press_height_maps", "probe_outputs",
 ]
 
 #: The context components are built in unless the caller passes one: small images, a few
 #: classes, narrow condition tokens and a latent width for quantizers to follow.
-DEFAULT_CONTEXT = BuildContext(image_size=32, channels=3, num_classes=4, cond_dim=16, latent_dim=8)
+DEFAULT_CONTEXT = BuildContext(image_size=32, channels=3, num_classes=4, cond_dim=16, latent_dim=8, codebook_size=16,
+                               code_grid=4)
 
 #: The entries of a dataset sample (see :class:`~vqtouch.core.TactileDataset`); ``visual`` is optional.
 SAMPLE_KEYS = ("tactile", "label", "text", "sensor", "id")
@@ -104,7 +107,7 @@ def check_plugin(host: Any, kind: str, name: str, options: Mapping[str, Any] | N
     base = host.registry(kind).base_type
     for base_class, check in _BEHAVIOUR_CHECKS:
         if base is not None and issubclass(base, base_class):
-            check(component, context, label=label, condition=condition,
+            check(component, context, label=label, condition=condition, host=host,
                   image_size=None if "image_size" in (options or {}) else context.image_size)
     if base is not None and issubclass(base, nn.Module):
         check_round_trip(host, component, tmp_dir, condition=condition, label=label)
@@ -428,6 +431,129 @@ def check_discriminator(discriminator: Discriminator, context: BuildContext | No
     _require(bool(torch.isfinite(logits).all()), label, "logits have NaN or Inf values")
 
 
+class OracleDenoiser:
+    """A denoiser that always predicts the same code grid with certainty: what every sampler must
+    then return exactly (used by :func:`check_sampler` and :func:`check_generator`)."""
+
+    def __init__(self, target_BL: torch.Tensor, num_codes: int) -> None:
+        self.target_BL, self.num_codes, self.calls = target_BL, num_codes, 0
+
+    def __call__(self, codes_t_BL: torch.Tensor, t_B: torch.Tensor) -> torch.Tensor:
+        self.calls += 1
+        onehot_BLC = torch.nn.functional.one_hot(self.target_BL[:len(codes_t_BL)], self.num_codes + 1).float()
+        return torch.log(onehot_BLC.clamp_min(1e-30)).clamp_min(-70.0).transpose(1, 2)
+
+
+class _ArgmaxSampler(Sampler):
+    """A one-call sampler for :func:`check_generator`: the most likely code of the all-MASK prediction."""
+
+    def sample(self, denoise: Callable[..., torch.Tensor], schedule: Any, *, length: int, steps: int,
+               generators: list[torch.Generator]) -> torch.Tensor:
+        batch = len(generators)
+        codes_t_BL = torch.full((batch, length), schedule.num_codes, dtype=torch.long)
+        t_B = torch.full((batch,), schedule.num_steps - 1, dtype=torch.long)
+        return denoise(codes_t_BL, t_B)[:, :schedule.num_codes].argmax(dim=1)
+
+
+def _condition_tokens(batch: int, context: BuildContext, seed: int = 0, tokens: int = 2) -> ConditionTokens:
+    generator = _generator(seed)
+    return ConditionTokens(torch.randn(batch, tokens, context.cond_dim, generator=generator),
+                           torch.zeros(batch, dtype=torch.bool))
+
+
+def check_generator(generator: Generator, context: BuildContext | None = None, *, label: str = "generator") -> None:
+    """A generator's training loss of random code grids (codebook_size, code_grid of the context) is a
+    finite scalar whose gradient reaches its parameters, batch 1 included, and under bf16 autocast;
+    it samples (B, H, W) codes in [0, codebook_size) with and without guidance, and the same
+    generators give the same codes."""
+    context = context or DEFAULT_CONTEXT
+    size, grid = context.codebook_size, context.code_grid
+    _require(size >= 2 and grid >= 1, label, "check_generator needs a context with codebook_size >= 2 and code_grid")
+    codes_BHW = torch.randint(size, (3, grid, grid), generator=_generator(1))
+    generator.train()
+    loss, scalars = _call(label, "training_loss", lambda: generator.training_loss(
+        codes_BHW, _condition_tokens(3, context), generator=_generator(2)))
+    _require(isinstance(loss, torch.Tensor) and loss.ndim == 0 and bool(torch.isfinite(loss)), label,
+             f"training_loss must return a finite scalar tensor, got {loss!r}")
+    _require(isinstance(scalars, dict) and all(isinstance(v, float) for v in scalars.values()), label,
+             "training_loss must return a dict of floats to log next to the loss")
+    loss.backward()
+    trained = [(name, p) for name, p in generator.named_parameters() if p.requires_grad]
+    no_grad = [name for name, p in trained if p.grad is None or not bool(torch.isfinite(p.grad).all())]
+    _require(trained and len(no_grad) < len(trained), label, "the loss's gradient reaches none of the parameters")
+    generator.zero_grad(set_to_none=True)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        bf16, _ = _call(label, "training_loss under bf16 autocast", lambda: generator.training_loss(
+            codes_BHW[:1], _condition_tokens(1, context), generator=_generator(3)))
+    _require(bool(torch.isfinite(bf16)), label, "training_loss of batch 1 under bf16 autocast is not finite")
+    generator.eval()
+    sampler = _ArgmaxSampler()
+    for guidance in (1.0, 3.0):
+        draws = lambda: [_generator(10 + row) for row in range(2)]  # noqa: E731
+        condition, null = _condition_tokens(2, context), _condition_tokens(2, context, seed=5)
+        first = _call(label, f"sample (guidance {guidance})", lambda: generator.sample(
+            condition, sampler, steps=1, null=null, guidance=guidance, generators=draws()))
+        again = generator.sample(condition, sampler, steps=1, null=null, guidance=guidance, generators=draws())
+        _require(tuple(first.shape) == (2, grid, grid) and not first.dtype.is_floating_point, label,
+                 f"sample must return integer codes (2, {grid}, {grid}), got {first.dtype} {tuple(first.shape)}")
+        _require(bool(((first >= 0) & (first < size)).all()), label, f"sampled codes outside [0, {size})")
+        _require(torch.equal(first, again), label, "the same generators gave different codes")
+
+
+def check_sampler(sampler: Sampler, context: BuildContext | None = None, *, schedule: Any,
+                  label: str = "sampler") -> None:
+    """With ``schedule`` (a generator's forward process: ``num_codes``, ``num_steps``, ``mask_index``,
+    ``posterior``), a sampler returns exactly the code grid an oracle denoiser predicts with
+    certainty, for 1, 2 and 10 steps and a 1-token grid, without MASK; it calls the denoiser at
+    most ``steps`` times, and a row's result does not depend on the other rows of its batch.
+    :func:`check_plugin` takes the schedule from a registered generator (see
+    :func:`schedule_from_host`)."""
+    size = schedule.num_codes
+    for length, steps in ((16, 1), (16, 2), (16, min(10, schedule.num_steps)), (1, 3)):
+        target_BL = torch.randint(size, (3, length), generator=_generator(length + steps))
+        oracle = OracleDenoiser(target_BL, size)
+        codes = _call(label, f"sample ({steps} steps, {length} tokens)", lambda: sampler.sample(
+            oracle, schedule, length=length, steps=steps, generators=[_generator(row) for row in range(3)]))
+        _require(torch.equal(codes.long(), target_BL), label,
+                 f"with a certain denoiser, {steps} steps on {length} tokens must give exactly its prediction")
+        _require(oracle.calls <= steps, label, f"called the denoiser {oracle.calls} times for steps={steps}")
+    # Row 1 alone (with its own generator) equals row 1 of a batch of 3, for an uncertain denoiser.
+    logits_BCL = torch.randn(3, size + 1, 16, generator=_generator(99))
+    logits_BCL[:, size] = -70.0
+
+    def uncertain(codes_t_BL: torch.Tensor, t_B: torch.Tensor) -> torch.Tensor:
+        rows = logits_BCL[:len(codes_t_BL)] if len(codes_t_BL) == 3 else logits_BCL[1:2]
+        return torch.log_softmax(rows, dim=1).clamp_min(-70.0)
+
+    batch = sampler.sample(uncertain, schedule, length=16, steps=4, generators=[_generator(20 + r) for r in range(3)])
+    alone = sampler.sample(uncertain, schedule, length=16, steps=4, generators=[_generator(21)])
+    _require(torch.equal(batch[1:2], alone), label, "a row's codes changed with the rest of its batch (draw each "
+                                                    "row's randomness from its own generator)")
+    _require(bool((batch < size).all()), label, "the output holds MASK tokens")
+
+
+def schedule_from_host(host: Any, context: BuildContext | None = None) -> Any:
+    """The forward process of the first registered generator that has one (``generator.schedule``),
+    built in ``context`` with its default options; None when no generator has a schedule."""
+    context = context or DEFAULT_CONTEXT
+    for name in host.registry("generator").names():
+        try:
+            generator = host.build("generator", {"name": name}, context)
+        except (VqtouchError, MissingWeightsError):
+            continue
+        if hasattr(generator, "schedule"):
+            return generator.schedule
+    return None
+
+
+def _check_sampler_with_host(sampler: Sampler, context: BuildContext, *, label: str, host: Any) -> None:
+    schedule = schedule_from_host(host, context)
+    if schedule is None:
+        _skip(f"{label}: no installed generator provides a forward process (generator.schedule) to sample from",
+              VqtouchError("no generator"))
+    check_sampler(sampler, context, schedule=schedule, label=label)
+
+
 def check_clusterer(clusterer: Clusterer, context: BuildContext | None = None, *, label: str = "clusterer") -> None:
     """A clusterer's ``fit`` and ``predict`` return one integer cluster index per feature row."""
     features = _features()
@@ -530,6 +656,8 @@ _BEHAVIOUR_CHECKS: tuple[tuple[type, Callable[..., None]], ...] = (
     (Clusterer, lambda c, ctx, label, **_: check_clusterer(c, ctx, label=label)),
     (Metric, lambda c, ctx, label, **_: check_metric(c, ctx, label=label)),
     (TactileDataset, lambda c, ctx, label, image_size, **_: check_dataset(c, image_size, label=label)),
+    (Generator, lambda c, ctx, label, **_: check_generator(c, ctx, label=label)),
+    (Sampler, lambda c, ctx, label, host, **_: _check_sampler_with_host(c, ctx, label=label, host=host)),
 )
 
 
@@ -594,7 +722,8 @@ def probe_outputs(component: nn.Module, context: BuildContext, *, condition: Any
     gradients: a sensor's render of fixed presses with a fixed generator; an autoencoder's
     decode(encode(x)) (randomness reset first); a quantizer's output on fixed latents; a
     discriminator's logits; a conditioner's tokens for a fixed condition and its null tokens; a
-    clusterer's predictions.  Other modules: None (their state dict is compared)."""
+    clusterer's predictions; a generator's held-out (eval-mode) loss of fixed codes and draws.
+    Other modules: None (their state dict is compared)."""
     component.eval()
     with torch.no_grad():
         if isinstance(component, SensorFamily):
@@ -619,6 +748,12 @@ def probe_outputs(component: nn.Module, context: BuildContext, *, condition: Any
             return tokens.tokens_BND, component.null(2).tokens_BND
         if isinstance(component, Clusterer):
             return _call(label, "predict", lambda: component.predict(_features()))
+        if isinstance(component, Generator):
+            codes_BHW = torch.randint(context.codebook_size, (2, context.code_grid, context.code_grid),
+                                      generator=_generator(1))
+            loss, _ = _call(label, "training_loss", lambda: component.training_loss(
+                codes_BHW, _condition_tokens(2, context), generator=_generator(2)))
+            return loss
     return None
 
 

@@ -19,6 +19,7 @@ _TOKENIZER = {"autoencoder": {"name": "dm_vqgan"},
               "quantizer": {"name": "vq", "codebook_size": 512, "l2_normalize": True, "lookup_dim": 8},
               "discriminator": {"name": "patchgan"}}
 #: An unseen "derivative" GelSight: same family, drifted illumination and a slightly worn gel.
+_GENERATOR = {"model": {"name": "vq_diffusion"}, "sampler": {"name": "posterior"}}
 GELSIGHT_DERIVATIVE_I = {"name": "gelsight", "variant": {
     "colour_gain": [1.08, 0.95, 0.9], "illumination_shift": 0.03, "background_drift": 0.05, "wear_blur": 0.008,
     "noise_std": 0.01, "seed": 1}}
@@ -35,7 +36,7 @@ SCENES: dict[str, tuple[str, dict]] = {
     "few-shot": (
         "Adapt to an unseen sensor from a few images mixed 1:5 with its family's data, then generate for it.",
         {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "cluster", "adapt", "generator"], "metrics": _METRICS,
-         "generator": {"conditioners": [{"name": "label"}]}, "sensor": {"name": "gelsight"}, "target_sensor": GELSIGHT_DERIVATIVE_I,
+         "generator": _GENERATOR | {"conditioners": [{"name": "label"}]}, "sensor": {"name": "gelsight"}, "target_sensor": GELSIGHT_DERIVATIVE_I,
          "data": {"dataset": {"name": "procedural", "num_samples": 500}}},
     ),
     "zero-shot": (
@@ -51,17 +52,17 @@ SCENES: dict[str, tuple[str, dict]] = {
     "vision-to-touch": (
         "Generate the tactile image of a contact from a visual image of it (frozen CLIP condition).",
         {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator"], "metrics": _METRICS,
-         "generator": {"conditioners": [{"name": "clip"}]}, "sensor": {"name": "gelsight"}, "data": _DATA},
+         "generator": _GENERATOR | {"conditioners": [{"name": "clip"}]}, "sensor": {"name": "gelsight"}, "data": _DATA},
     ),
     "label-to-touch": (
         "Generate tactile images of a given object class (label condition).",
         {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator"], "metrics": _METRICS,
-         "generator": {"conditioners": [{"name": "label"}]}, "sensor": {"name": "gelsight"}, "data": _DATA},
+         "generator": _GENERATOR | {"conditioners": [{"name": "label"}]}, "sensor": {"name": "gelsight"}, "data": _DATA},
     ),
     "touch-to-touch": (
         "Generate a tactile image for a target sensor from another tactile image (tactile condition).",
         {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator"], "metrics": _METRICS,
-         "generator": {"conditioners": [{"name": "tactile"}]}, "sensor": {"name": "gelsight"}, "target_sensor": {"name": "digit"},
+         "generator": _GENERATOR | {"conditioners": [{"name": "tactile"}]}, "sensor": {"name": "gelsight"}, "target_sensor": {"name": "digit"},
          "data": _DATA},
     ),
 }

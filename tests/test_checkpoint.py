@@ -15,7 +15,7 @@ from vqtouch.core.checkpoint import FORMAT_VERSION, atomic_write
 from vqtouch.core.plugin_manager import REGISTRY_KINDS
 from vqtouch.core.testing import build_for_check, check_round_trip
 
-CONTEXT = BuildContext(image_size=32, num_classes=5, cond_dim=16, latent_dim=8)
+CONTEXT = BuildContext(image_size=32, num_classes=5, cond_dim=16, latent_dim=8, codebook_size=16, code_grid=4)
 
 
 def _load_contract_cases():

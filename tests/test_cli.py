@@ -35,9 +35,10 @@ def test_config_show_prints_resolved_json_and_notes_empty_slots(capsys):
     captured = capsys.readouterr()
     config = json.loads(captured.out)
     assert config["seed"] == 5 and config["generator"]["conditioners"][0]["name"] == "label"
-    assert ("note: stage(s) generator cannot run yet: needs generator.model, and no generator plugin is installed"
-            in captured.err)
-    assert "generator.conditioners" not in captured.err
+    assert captured.err == ""  # every slot the scene's stages need is filled
+    assert main(["config", "show", "label-to-touch", "--set", "generator.model=null"]) == 0
+    assert capsys.readouterr().err == ("note: stage(s) generator cannot run yet: needs generator.model, which the "
+                                       "config leaves empty; choose with --set generator.model.name=<vq_diffusion>\n")
 
 
 def test_config_show_output_feeds_back_as_config_file(capsys, tmp_path):
@@ -151,11 +152,13 @@ TINY_DEMO = ["--set", "tokenizer.train.steps=2", "--set", "data.dataset.num_samp
 
 def test_demo_writes_run_directory(tmp_path, capsys):
     out = tmp_path / "run"
-    assert main(["--no-progress", "demo", "--scene", "label-to-touch", "--out", str(out),
-                 "--set", "generator.conditioners.0.num_classes=3", *TINY_DEMO]) == 0
+    assert main(["--no-progress", "demo", "--scene", "label-to-touch", "--out", str(out), *TINY_DEMO,
+                 "--set", "generator.model.depth=1", "--set", "generator.model.width=16", "--set",
+                 "generator.model.heads=2", "--set", "generator.train.steps=2", "--set", "generator.num_samples=2",
+                 "--set", "generator.steps=2"]) == 0
     printed = capsys.readouterr().out
-    assert "scene label-to-touch: 1 of 2 stages ran, 1 cannot run, 0 failed (reasons in the report)" in printed
-    for name in ("config.json", "env.json", "report.md", "report.json",
+    assert "scene label-to-touch: 2 of 2 stages ran, 0 cannot run, 0 failed (reasons in the report)" in printed
+    for name in ("config.json", "env.json", "report.md", "report.json", "samples.png", "generation.json",
                  "checkpoints/generator_conditioners[0].safetensors"):
         assert (out / name).is_file(), name
     assert not (out / "checkpoints" / "latest").exists()  # the trainer no longer writes a `latest` file
@@ -170,10 +173,10 @@ def test_demo_writes_run_directory(tmp_path, capsys):
     report = json.loads((out / "report.json").read_text())
     by_slot = {c["slot"]: c for c in report["components"]}
     assert by_slot["generator.conditioners[0]"]["checkpoint"].startswith("ok")
-    assert by_slot["generator.model"]["status"].startswith("missing: needs generator.model")
+    assert by_slot["generator.model"]["checkpoint"].startswith("ok")
     assert by_slot["metrics[0]"]["sanity"]["noise_sigma=0.0"] == 100.0
     stages = {s["stage"]: s for s in report["stages"]}
-    assert stages["generator"]["status"] == "cannot run: needs generator.model, and no generator plugin is installed"
+    assert stages["generator"]["status"].startswith("ran (") and stages["generator"]["result"]["samples"] == 1  # 1 held out
     assert stages["tokenizer"]["status"].startswith("ran (") and stages["tokenizer"]["result"]["steps"] == 2
     assert "evaluate" not in stages
 

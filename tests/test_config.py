@@ -48,7 +48,7 @@ def test_builtin_stages_and_their_sections(host):
     assert not {"render", "tokenizer", "cluster", "generator"} & set(ExperimentConfig.model_fields)
     assert set(host.slots) == {"sensor", "target_sensor", "data.dataset", "metrics", "tokenizer.autoencoder",
                                "tokenizer.quantizer", "tokenizer.discriminator", "cluster.clusterer",
-                               "generator.model", "generator.conditioners"}
+                               "generator.model", "generator.conditioners", "generator.sampler"}
     assert (host.slots["generator.conditioners"].kind, host.slots["generator.conditioners"].many) == (
         "conditioner", True)
     assert (host.slots["tokenizer.autoencoder"].kind, host.slots["tokenizer.autoencoder"].many) == (
@@ -263,8 +263,10 @@ def test_required_and_missing_slots(host):
     config = resolve_config("label-to-touch", host=host)
     assert required_slots(config, host) == ["data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer",
                                             "tokenizer.discriminator", "metrics", "generator.model",
-                                            "generator.conditioners"]
-    assert ("generator", "generator.model") in missing_slots(config, host)
+                                            "generator.conditioners", "generator.sampler"]
+    assert missing_slots(config, host) == []
+    no_model = resolve_config("label-to-touch", overrides=["generator.model=null"], host=host)
+    assert ("generator", "generator.model") in missing_slots(no_model, host)
     assert all(path != "generator.conditioners" for _, path in missing_slots(config, host))
     # The discriminator is optional: an empty one is never "missing".
     no_disc = resolve_config("label-to-touch", overrides=["tokenizer.discriminator=null"], host=host)

@@ -7,7 +7,7 @@ import torch
 from pydantic import Field
 
 from vqtouch.core import (Autoencoder, Clusterer, Conditioner, ConfigError, Discriminator, Generator, PluginConfig,
-                          PluginError, Quantizer, Section, SensorFamily, Slot, StageUnavailable, TactileDataset,
+                          PluginError, Quantizer, Sampler, Section, SensorFamily, Slot, StageUnavailable, TactileDataset,
                           UnknownPluginError, hookimpl, hookspecs, load_plugins, resolve_config)
 from vqtouch.core.plugin_manager import REGISTRY_KINDS
 
@@ -192,7 +192,16 @@ class _Sensor(SensorFamily):
 
 
 class _Generator(Generator):
-    pass
+    def training_loss(self, codes_BHW, condition, generator=None):
+        return torch.zeros(()), {}
+
+    def sample(self, condition, sampler, *, steps, null=None, guidance=1.0, truncation=1.0, generators=None):
+        return torch.zeros(len(condition.tokens_BND), 1, 1, dtype=torch.long)
+
+
+class _Sampler(Sampler):
+    def sample(self, denoise, schedule, *, length, steps, generators):
+        return torch.zeros(len(generators), length, dtype=torch.long)
 
 
 class _Discriminator(Discriminator):
@@ -208,6 +217,7 @@ MINIMAL = {
     "vqtouch_register_datasets": ("dataset", _Dataset),
     "vqtouch_register_sensor_families": ("sensor_family", _Sensor),
     "vqtouch_register_generators": ("generator", _Generator),
+    "vqtouch_register_samplers": ("sampler", _Sampler),
     "vqtouch_register_discriminators": ("discriminator", _Discriminator),
 }
 

@@ -114,10 +114,11 @@ def test_each_component_is_built_once_per_run(tmp_path, built_kinds):
 
 
 def test_a_stage_with_an_empty_needed_slot_says_which_and_the_choices(tmp_path):
-    config = resolve_config("label-to-touch", host=HOST)
+    config = resolve_config("label-to-touch", overrides=["generator.model=null"], host=HOST)
     outcome = run_stage("generator", Assembly(config, HOST), RunDir.create(config, host=HOST, path=tmp_path / "r"))
     assert outcome.status == "unavailable"
-    assert outcome.describe() == "cannot run: needs generator.model, and no generator plugin is installed"
+    assert outcome.describe() == ("cannot run: needs generator.model, which the config leaves empty; choose with "
+                                  "--set generator.model.name=<vq_diffusion>")
     emptied = resolve_config("label-to-touch", overrides=["tokenizer.autoencoder=null"], host=HOST)
     outcome = run_stage("tokenizer", Assembly(emptied, HOST), RunDir.create(emptied, host=HOST, path=tmp_path / "e"))
     assert outcome.status == "unavailable"

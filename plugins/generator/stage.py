@@ -1,35 +1,172 @@
-"""The ``generator`` stage's section and slots.
+"""The ``generator`` stage: train a generator over a trained tokenizer's codes, then generate and score.
 
-The stage generates code grids for the trained tokenizer, conditioned on one of several
-conditioners (the paper's unified framework trains with one condition per step).  Its
-section declares the generator plugin and the list of conditioners, so scenes and
-configs that name them validate today; training and sampling are not implemented in this
-version, and the stage says so when asked to run.
+The tokenizer comes from this run (the ``tokenizer`` stage ran before, as in the paper's scenes)
+or from another run (``generator.tokenizer_run``, what ``vqtouch train generator --tokenizer RUN``
+sets).  Its codes of the whole dataset are computed once and cached (:mod:`.codes`); training
+runs through the one trainer (:mod:`.training`), with its checkpoints in
+``checkpoints/generator/step-*`` (the tokenizer's stay in ``checkpoints/step-*``).  Afterwards
+the held-out conditions are generated with the configured sampler and scored against their
+ground-truth tactile images (``generation.json``, ``samples.png``).
 """
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
+import torch
 from pydantic import Field
 
-from vqtouch.core import Section, Slot, StageJob, StageUnavailable, hookimpl
+from vqtouch.core import RunDir, Section, Slot, StageJob, StageUnavailable, hookimpl, resolve_device
+from vqtouch.core.data import split_dataset
+from vqtouch.core.images import image_grid, save_png
+from vqtouch.core.runs import MissingCheckpointError
+from vqtouch.core.training import Trainer, collate_samples, step_folders
+
+from .training import CodesDataset, GeneratorTask, GeneratorTrainConfig
+
+#: Where a run keeps the generator's checkpoints, below its checkpoints/ folder.
+CHECKPOINT_FOLDER = "generator"
 
 
 class GeneratorSection(Section):
-    """The ``generator`` stage's section: the generator plugin and its conditioners."""
+    """The ``generator`` stage's section: the generator, its conditioners and sampler, how it trains
+    and how the stage samples."""
 
-    model: Slot("generator") | None = Field(None, description="Generator over the code grid (e.g. a discrete "
-                                                               "diffusion decoder).")
+    model: Slot("generator") | None = Field(None, description="Generator over the code grid (e.g. vq_diffusion).")
     conditioners: list[Slot("conditioner")] = Field(
         default_factory=list, description="Condition encoders the generator is trained with (label, tactile, "
-                                          "clip, ...); each reads its own entry of a sample.")
+                                          "clip, ...); each reads its own entry of a sample, one per training step.")
+    sampler: Slot("sampler") | None = Field(None, description="How codes are drawn from the generator (e.g. "
+                                                              "posterior, purity, confidence).")
+    tokenizer_run: str | None = Field(None, description="Run directory of the trained tokenizer whose codes the "
+                                                        "generator learns; null: this run's own tokenizer stage.")
+    steps: int = Field(25, ge=1, le=1000, strict=True, description="Sampling steps (denoiser calls) per sample.")
+    guidance: float = Field(1.0, ge=0, le=1000, description="Classifier-free guidance scale; 1 is unguided.")
+    truncation: float = Field(1.0, gt=0, le=1, description="Keep only the most likely codes holding this much "
+                                                           "probability at each step; 1 keeps all.")
+    num_samples: int = Field(16, ge=0, le=100_000, strict=True,
+                             description="Held-out conditions generated and scored after training (0: none).")
+    train: GeneratorTrainConfig = Field(default_factory=GeneratorTrainConfig, description="Optimisation settings.")
+
+
+def tokenizer_source(job: StageJob) -> RunDir:
+    """The run that holds the tokenizer: ``generator.tokenizer_run``, else this run."""
+    path = job.section.tokenizer_run
+    return RunDir.open(path) if path else job.run
+
+
+def load_run_tokenizer(job: StageJob, device: torch.device) -> tuple[Any, Path]:
+    """The trained tokenizer the generator works with, and its checkpoint folder."""
+    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+
+    source = tokenizer_source(job)
+    try:
+        tokenizer, folder = load_tokenizer(source, job.host, device=str(device))
+    except MissingCheckpointError as exc:
+        where = "this run" if source is job.run else str(source.path)
+        raise StageUnavailable(f"no trained tokenizer in {where} ({exc}); run the tokenizer stage first or give "
+                               "--tokenizer RUN") from None
+    return tokenizer, folder
+
+
+def images_config(config: Any) -> dict[str, Any]:
+    """What decides the dataset's images (and so its codes): the code cache's key."""
+    data = config.to_dict()
+    return {"dataset": data["data"]["dataset"], "image_size": data["data"]["image_size"],
+            "sensor": data.get("sensor"), "target_sensor": data.get("target_sensor")}
+
+
+def train_generator(job: StageJob) -> dict[str, Any]:
+    """Train the configured generator in ``job.run`` and score samples of the held-out conditions."""
+    from vqtouch.plugins.tokenizer.stages import TOKENIZER_FILES
+
+    from .codes import dataset_codes
+
+    config, section, assembly = job.config, job.section, job.assembly
+    device = resolve_device(config.device)
+    tokenizer, tokenizer_folder = load_run_tokenizer(job, device)
+    generator = assembly.component("generator.model")
+    conditioners = assembly.component("generator.conditioners")
+    codebook = tokenizer.quantizer.codebook_size
+    if getattr(generator, "num_codes", codebook) != codebook:
+        raise StageUnavailable(f"the generator was built for {generator.num_codes} codes but the tokenizer in "
+                               f"{tokenizer_folder} has {codebook}; the run's tokenizer section must match that "
+                               "tokenizer's config")
+    dataset = assembly.component("data.dataset")
+    codes_NHW, cache = dataset_codes(tokenizer, [tokenizer_folder / name for name in TOKENIZER_FILES], dataset,
+                                     images_config(config), batch_size=config.data.batch_size, device=device,
+                                     use_cache=section.train.code_cache)
+    grid = getattr(generator, "grid_hw", tuple(codes_NHW.shape[1:]))
+    if tuple(codes_NHW.shape[1:]) != tuple(grid):
+        raise StageUnavailable(f"the tokenizer makes {tuple(codes_NHW.shape[1:])} code grids but the generator was "
+                               f"built for {tuple(grid)}; data.image_size must be the tokenizer's")
+    keys = list(dict.fromkeys(conditioner.sample_key for conditioner in conditioners))
+    data = CodesDataset.collect(codes_NHW, dataset, keys)
+    train_set, val_set = split_dataset(data, config.data.val_fraction, config.seed)
+    task = GeneratorTask(generator, conditioners, section.train.condition_dropout, config.seed)
+    trainer = Trainer(task, train_set, section.train, batch_size=config.data.batch_size, seed=config.seed,
+                      device=device, checkpoint_dir=job.run.checkpoints / CHECKPOINT_FOLDER, run=job.run,
+                      num_workers=0, host=job.host, stage=job.stage, val_dataset=val_set)
+    if job.resume:
+        folder = None
+        if step_folders(job.run.checkpoints / CHECKPOINT_FOLDER):
+            folder = job.run.checkpoint(job.host, stage=CHECKPOINT_FOLDER)
+        if trainer.resume(folder or job.run.checkpoints / CHECKPOINT_FOLDER):
+            print(f"resumed {job.run.path} at step {trainer.state.step} ({folder.name})")
+    state = trainer.fit()
+    result: dict[str, Any] = {"step": state.step, "train_samples": len(train_set), "val_samples": len(val_set),
+                              "code_cache": cache, "tokenizer": str(tokenizer_folder)}
+    if trainer.validates():
+        result |= {"best_step": state.best_step, "best_val_loss": state.best_score}
+    if trainer.dist.is_main:
+        if section.num_samples and len(val_set) and section.sampler is not None:
+            result |= score_samples(job, tokenizer, task, val_set, dataset, device)
+        job.run.write_json("generation.json", result)
+    return result
+
+
+@torch.no_grad()
+def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: Any, dataset: Any,
+                  device: torch.device) -> dict[str, Any]:
+    """Generate the first ``num_samples`` held-out conditions with the first conditioner and score
+    them against their ground-truth tactile images (``samples.png``: ground truth above generated)."""
+    section = job.section
+    sampler = job.assembly.component("generator.sampler")
+    count = min(section.num_samples, len(val_set))
+    indices = [val_set.indices[i] for i in range(count)]
+    batch = collate_samples([val_set[i] for i in range(count)])
+    batch = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+    truth = torch.stack([dataset[index]["tactile"] for index in indices]).to(device)
+    for module in task.modules.values():
+        module.eval()
+    conditioner = task.conditioners[0]
+    condition = conditioner(conditioner.condition_of(batch))
+    null = conditioner.null(count)
+    generators = [torch.Generator(device=device).manual_seed(job.config.seed * 100_003 + index) for index in indices]
+    codes = task.generator.sample(condition, sampler, steps=section.steps, null=null, guidance=section.guidance,
+                                  truncation=section.truncation, generators=generators)
+    images = tokenizer.decode_codes(codes)
+    scores: dict[str, Any] = {"samples": count, "sampler": section.sampler.name, "steps": section.steps,
+                              "guidance": section.guidance, "truncation": section.truncation,
+                              "conditioner": job.config.generator.conditioners[0].name}
+    metrics = job.assembly.build_slots(["metrics"]).get("metrics", [])
+    for item, metric in zip(job.config.metrics, metrics):
+        metric.reset()
+        metric.update(images.cpu(), truth.cpu())
+        scores[item.name] = round(metric.compute(), 4)
+    columns = min(count, 8)
+    save_png(image_grid(torch.cat([truth[:columns], images[:columns]]).cpu(), columns=columns),
+             job.run.path / "samples.png")
+    return scores
 
 
 def run_generator_stage(job: StageJob) -> dict[str, Any]:
-    """Not implemented in this version: says so (after the slots were checked)."""
-    raise StageUnavailable("training the generator is not implemented in this version of vqtouch (its section, "
-                           "generator.model and generator.conditioners, is declared and validated)")
+    """The ``generator`` stage: train, then the sample scores for the report."""
+    result = train_generator(job)
+    shown = {key: result[key] for key in ("step", "samples", "sampler", "steps", "ssim", "psnr", "best_step")
+             if key in result}
+    return {**shown, **({"picture": "samples.png"} if "samples" in result else {})}
 
 
 @hookimpl
@@ -37,6 +174,8 @@ def vqtouch_register_stages(register):
     register("generator", run_generator_stage, section=GeneratorSection,
              needs=("data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer", "generator.model",
                     "generator.conditioners"),
-             uses=("metrics",),
+             uses=("generator.sampler", "metrics"),
+             demo={"train.steps": 60, "train.checkpoint_every": 60, "train.log_every": 10, "num_samples": 8,
+                   "steps": 10},
              description="Train a generator over the tokenizer's codes, conditioned on a visual image, a tactile "
-                         "image, a label or text.")
+                         "image, a label or text; then generate the held-out conditions and score them.")

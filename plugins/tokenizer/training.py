@@ -78,6 +78,14 @@ class Tokenizer:
         output = self.quantizer(self.autoencoder.encode(images_B3HW * 2 - 1))
         return ((self.autoencoder.decode(output.quantized_BDhw).float() + 1) / 2).clamp(0, 1), output
 
+    def encode_codes(self, images_B3HW: torch.Tensor) -> torch.Tensor:
+        """Images in [0, 1] -> integer codes (B, h, w) (the quantizer's code grid)."""
+        return self.quantizer(self.autoencoder.encode(images_B3HW * 2 - 1)).codes_Bhw
+
+    def decode_codes(self, codes_Bhw: torch.Tensor) -> torch.Tensor:
+        """Integer codes (B, h, w) -> images in [0, 1] (clamped), e.g. for generated codes."""
+        return ((self.autoencoder.decode(self.quantizer.lookup(codes_Bhw)).float() + 1) / 2).clamp(0, 1)
+
     def eval(self) -> Tokenizer:
         """Both parts in eval mode."""
         self.autoencoder.eval()

@@ -45,11 +45,12 @@ import torch
 from pydantic import Field
 
 from vqtouch.core import DatasetError, PluginConfig, TactileDataset
+from vqtouch.core.data import user_cache_folder
 from vqtouch.core.errors import VqtouchWarning
+from vqtouch.core.images import CropMode, ImageLoader, crop_box, mode_problem  # noqa: F401 - re-exported
 from vqtouch.core.progress import progress
 
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".webp", ".tif", ".tiff"})
-CropMode = Literal["center", "top", "stretch"]
 
 # Reasons quoted in the lenient-mode warning; the count covers the rest.
 REASONS_SHOWN = 3
@@ -272,99 +273,6 @@ class FileIndex:
 # --------------------------------------------------------------------------------------------
 # Images
 # --------------------------------------------------------------------------------------------
-_GREYSCALE_MODES = frozenset({"1", "L", "LA", "La"})
-_COLOUR_MODES = frozenset({"RGB", "RGBA", "RGBa", "RGBX", "CMYK", "YCbCr", "LAB", "HSV", "P", "PA"})
-
-
-def mode_problem(path: Path, mode: str, allow_greyscale: bool) -> str | None:
-    """Why an image of Pillow ``mode`` cannot be used, or None; transparency needs the pixels."""
-    if mode in _GREYSCALE_MODES:
-        if allow_greyscale:
-            return None
-        return f"image {path} is greyscale (mode {mode}); set allow_greyscale=true to copy it into 3 channels"
-    if mode not in _COLOUR_MODES:
-        return f"image {path} has unsupported mode {mode}; expected 8-bit RGB"
-    return None
-
-
-def crop_box(width: int, height: int, mode: CropMode) -> tuple[float, float, float, float]:
-    """The region of a width x height image that becomes the square output."""
-    if mode == "stretch":
-        return (0.0, 0.0, float(width), float(height))
-    side = min(width, height)
-    left = (width - side) / 2
-    top = (height - side) / 2 if mode == "center" else 0.0
-    return (left, top, left + side, top + side)
-
-
-@dataclass(frozen=True)
-class ImageLoader:
-    """Decodes one image file into a float tensor (3, size, size) in [0, 1].
-
-    Colour modes other than RGB are converted; RGBA is accepted only when fully opaque (the
-    conversion is then lossless); greyscale is replicated into 3 channels only when
-    ``allow_greyscale`` is set.  Every failure is a DatasetError naming the file.
-    """
-
-    size: int
-    crop: CropMode = "center"
-    allow_greyscale: bool = False
-
-    def load(self, path: Path) -> torch.Tensor:
-        """The image at ``path`` as a float32 tensor (3, size, size) in [0, 1]."""
-        from PIL import Image
-
-        try:
-            with Image.open(path) as image:
-                # JPEG only: decode at a reduced scale that is still >= size (much faster, same result).
-                image.draft(None, (self.size, self.size))
-                image.load()
-                rgb = self._as_rgb(image, path)
-                # One resampling pass over the crop box: the same as resizing the shorter side and
-                # cropping afterwards, without rounding twice.  Pillow's resize antialiases.
-                square = rgb.resize((self.size, self.size), Image.Resampling.BICUBIC,
-                                    box=crop_box(rgb.width, rgb.height, self.crop))
-        except DatasetError:
-            raise
-        except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
-            raise DatasetError(f"cannot decode image {path}: {type(exc).__name__}: {exc}") from None
-        array = np.asarray(square, dtype=np.uint8)
-        return torch.from_numpy(array.copy()).permute(2, 0, 1).float().div_(255.0)
-
-    def problem(self, path: Path) -> str | None:
-        """Why ``path`` cannot be loaded, or None when it decodes."""
-        try:
-            self.load(path)
-        except DatasetError as exc:
-            return str(exc)
-        return None
-
-    def _as_rgb(self, image: Any, path: Path) -> Any:
-        mode = image.mode
-        if mode == "RGB":
-            return image
-        problem = mode_problem(path, mode, self.allow_greyscale)
-        if problem:
-            raise DatasetError(problem)
-        if mode in _GREYSCALE_MODES:
-            return self._drop_opaque_alpha(image, path) if "A" in mode or "a" in mode else image.convert("RGB")
-        if mode == "P":
-            # A palette image may mark one entry transparent; only then does it carry alpha.
-            return self._drop_opaque_alpha(image.convert("RGBA"), path) if "transparency" in image.info \
-                else image.convert("RGB")
-        if mode in {"RGBA", "RGBa", "PA"}:
-            return self._drop_opaque_alpha(image, path)
-        return image.convert("RGB")
-
-    def _drop_opaque_alpha(self, image: Any, path: Path) -> Any:
-        alpha = image.getchannel(image.getbands()[-1])
-        lowest, _ = alpha.getextrema()
-        if lowest < 255:
-            raise DatasetError(f"image {path} has transparent pixels (mode {image.mode}, alpha down to {lowest}); "
-                               f"expected an opaque RGB image")
-        return image.convert("RGB")
-
-
 def read_image_size(path: Path) -> tuple[int, int]:
     """(width, height) of an image from its header, without decoding the pixels."""
     from PIL import Image
@@ -425,17 +333,6 @@ def header_problem(header: ImageHeader, path: Path, allow_greyscale: bool) -> st
         return (f"image {path} has {header.frames} frames ({header.format}); expected a single still image: "
                 f"save one frame of it")
     return mode_problem(path, header.mode, allow_greyscale)
-
-
-def user_cache_folder() -> Path | None:
-    """vqtouch's user cache folder: $XDG_CACHE_HOME/vqtouch, else ~/.cache/vqtouch; None without a home."""
-    xdg = os.environ.get("XDG_CACHE_HOME", "")
-    if os.path.isabs(xdg):  # the XDG specification says to ignore relative paths
-        return Path(xdg) / "vqtouch"
-    try:
-        return Path.home() / ".cache" / "vqtouch"
-    except (RuntimeError, KeyError):
-        return None
 
 
 class HeaderCache:

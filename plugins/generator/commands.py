@@ -1,0 +1,162 @@
+"""``vqtouch train generator`` and ``vqtouch generate``.
+
+``train generator`` runs the scene's stages up to the generator in one run directory (the
+tokenizer stage first, unless ``--tokenizer RUN`` names a trained one, whose tokenizer config is
+then copied so the generator is built for its codes); ``generate`` writes images from a trained
+run through :func:`.pipeline.load_pipeline`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from vqtouch.core import Assembly, ConfigError, RunDir, hookimpl, run_stage
+from vqtouch.core.cli import add_config_arguments, add_step_argument, command_group, config_from_args, stage_failure
+from vqtouch.core.config import validate_experiment
+from vqtouch.core.images import image_grid, save_png
+from vqtouch.core.runs import interrupted_message, is_main_process
+
+
+def _with_tokenizer_run(config: Any, tokenizer_run: str, host: Any) -> Any:
+    """``config`` set to learn the codes of the tokenizer trained in ``tokenizer_run``: its tokenizer
+    section and image size, the generator stage alone."""
+    source = RunDir.open(tokenizer_run)
+    trained = source.load_config(host).to_dict()
+    data = config.to_dict()
+    data["tokenizer"] = trained["tokenizer"]
+    data["data"]["image_size"] = trained["data"]["image_size"]
+    data["stages"] = ["generator"]
+    data["generator"]["tokenizer_run"] = str(source.path.resolve())
+    return validate_experiment(data, host)
+
+
+def _train_generator_command(args: argparse.Namespace) -> int:
+    host = args.host
+    if args.resume:
+        if args.overwrite or args.tokenizer:
+            raise ConfigError("--resume continues a run with its saved config; drop --overwrite/--tokenizer")
+        if args.overrides or args.config:
+            raise ConfigError("--resume continues a run with its saved config; drop --set/--config")
+        run = RunDir.open(args.resume, for_writing=True)
+        config = run.load_config(host)
+    else:
+        config = config_from_args(args, host)
+        if "generator" not in config.stages:
+            raise ConfigError(f"scene {config.scene!r} has no generator stage; use e.g. --scene label-to-touch")
+        if args.tokenizer:
+            config = _with_tokenizer_run(config, args.tokenizer, host)
+        else:
+            stages = config.stages[:config.stages.index("generator") + 1]
+            config = validate_experiment({**config.to_dict(), "stages": stages}, host)
+        run = RunDir.create(config, argv=args.argv, host=host, path=args.out, overwrite=args.overwrite)
+    assembly = Assembly(config, host)
+    with run:
+        try:
+            for stage in config.stages:
+                # On --resume a finished tokenizer stage is not run again: its checkpoint is complete.
+                if args.resume and stage == "tokenizer" and (run.path / "eval.json").is_file():
+                    continue
+                outcome = run_stage(stage, assembly, run, resume=bool(args.resume))
+                if outcome.status != "ran":
+                    raise stage_failure(outcome)
+        except KeyboardInterrupt as exc:
+            print(f"\n{interrupted_message(exc, run, 'generator')}", file=sys.stderr)
+            return 130
+    if not is_main_process():
+        return 0
+    print(json.dumps(json.loads((run.path / "generation.json").read_text()), indent=2))
+    print(f"run: {run.path}  (samples.png, generation.json, checkpoints/generator/)")
+    return 0
+
+
+def _condition_arguments(args: argparse.Namespace) -> dict[str, list[str]]:
+    given = {key: getattr(args, key) for key in ("label", "visual", "tactile", "text") if getattr(args, key)}
+    for item in args.condition:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--condition {item!r}: expected KEY=VALUE, e.g. --condition material=steel")
+        given.setdefault(key, []).append(value)
+    if len(given) != 1:
+        raise ConfigError("give exactly one kind of condition: --label, --visual, --tactile, --text or --condition "
+                          f"KEY=VALUE (got {', '.join(sorted(given)) or 'none'})")
+    return given
+
+
+def _generate_command(args: argparse.Namespace) -> int:
+    from .pipeline import load_pipeline
+
+    (key, values), = _condition_arguments(args).items()
+    pipe = load_pipeline(args.run, host=args.host, step=args.step)
+    # One value per image, or one value for all --n images.
+    values = values * args.n if len(values) == 1 else values
+    if len(values) != args.n and args.n_given:
+        raise ConfigError(f"{len(values)} --{key} values for --n {args.n}; give one value or --n values")
+    images = pipe(**{key: values}, steps=args.steps, sampler=args.sampler, guidance=args.guidance,
+                  truncation=args.truncation, seed=args.seed, batch_size=args.batch_size)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for index, image in enumerate(images):
+        save_png(image, out / f"sample_{index:04d}.png")
+    save_png(image_grid(images), out / "grid.png")
+    settings = {"run": str(Path(args.run).resolve()), "checkpoint": str(pipe.checkpoint), "condition": key,
+                "values": values, "n": len(images), "steps": args.steps or pipe.settings["steps"],
+                "sampler": args.sampler or pipe.sampler_name,
+                "guidance": pipe.settings["guidance"] if args.guidance is None else args.guidance,
+                "truncation": pipe.settings["truncation"] if args.truncation is None else args.truncation,
+                "seed": args.seed, "batch_size": args.batch_size}
+    (out / "generate.json").write_text(json.dumps(settings, indent=2) + "\n")
+    print(f"{len(images)} images -> {out} (sample_*.png, grid.png, generate.json)")
+    return 0
+
+
+class _CountAction(argparse.Action):
+    """``--n`` that remembers it was given (a single condition value is then repeated)."""
+
+    def __call__(self, parser: Any, namespace: Any, values: Any, option_string: Any = None) -> None:
+        setattr(namespace, self.dest, values)
+        namespace.n_given = True
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+@hookimpl
+def vqtouch_add_commands(subparsers):
+    train = command_group(subparsers, "train", "train a component (tokenizer, ...)")
+    generator = train.add_parser("generator", help="train a discrete-diffusion generator over a tokenizer's codes "
+                                                   "(trains the tokenizer first unless --tokenizer is given)")
+    add_config_arguments(generator, default_scene="label-to-touch")
+    generator.add_argument("--out", help="run directory (default: <output_dir>/<name>-<time>-<hash>)")
+    generator.add_argument("--tokenizer", metavar="RUN", help="use the tokenizer trained in this run")
+    generator.add_argument("--resume", metavar="RUN", help="continue an interrupted run from its last checkpoint")
+    generator.add_argument("--overwrite", action="store_true",
+                           help="empty the --out run directory first (refused for a folder that holds no run)")
+    generator.set_defaults(handler=_train_generator_command)
+
+    generate = subparsers.add_parser("generate", help="generate tactile images with a trained generator run")
+    generate.add_argument("--run", required=True, help="a run whose generator stage trained")
+    add_step_argument(generate)
+    generate.add_argument("--label", action="append", help="class index or name (repeatable: one per image)")
+    generate.add_argument("--visual", action="append", metavar="IMG", help="visual image file (repeatable)")
+    generate.add_argument("--tactile", action="append", metavar="IMG", help="conditioning tactile image (repeatable)")
+    generate.add_argument("--text", action="append", help="text description (repeatable)")
+    generate.add_argument("--condition", action="append", default=[], metavar="KEY=VALUE",
+                          help="a condition a third-party conditioner reads (sample key = value)")
+    generate.add_argument("--n", type=_positive_int, default=1, action=_CountAction,
+                          help="number of images (a single condition value is repeated)")
+    generate.add_argument("--steps", type=_positive_int, help="sampling steps (default: the run's generator.steps)")
+    generate.add_argument("--sampler", help="sampler plugin (default: the run's generator.sampler)")
+    generate.add_argument("--guidance", type=float, help="classifier-free guidance scale (1: none)")
+    generate.add_argument("--truncation", type=float, help="keep the most likely codes holding this mass (1: all)")
+    generate.add_argument("--seed", type=int, default=0, help="seed: same seed and settings, same images")
+    generate.add_argument("--batch-size", type=_positive_int, default=16, help="images per forward pass")
+    generate.add_argument("--out", required=True, help="folder for sample_*.png, grid.png and generate.json")
+    generate.set_defaults(handler=_generate_command, n_given=False)

@@ -1,0 +1,137 @@
+"""Generating tactile images from a trained run: :func:`load_pipeline` and :class:`GenerationPipeline`.
+
+::
+
+    from vqtouch.plugins.generator import load_pipeline
+
+    pipe = load_pipeline("runs/l2t")                 # a generator run (or a demo run that trained one)
+    images_B3HW = pipe(label=[3, 3], steps=25, seed=0)
+
+Sample ``i`` of a call is drawn with its own random generator seeded from (seed, i), so the same
+seed and settings give the same images whatever the batch size.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from vqtouch.core import ConfigError, RunDir, VqtouchError, load, load_plugins, resolve_device
+from vqtouch.core.training import collate_samples
+
+from .stage import CHECKPOINT_FOLDER
+
+
+@dataclass
+class GenerationPipeline:
+    """A trained generator with its tokenizer, conditioners and default sampling settings."""
+
+    tokenizer: Any
+    generator: Any
+    conditioners: list[Any]
+    sampler: Any
+    sampler_name: str
+    settings: dict[str, Any]
+    class_names: list[str]
+    image_size: int
+    host: Any
+    device: torch.device
+    checkpoint: Path
+
+    def conditioner_for(self, key: str) -> Any:
+        """The conditioner that reads samples' ``key`` (label, visual, tactile, text, ...)."""
+        for conditioner in self.conditioners:
+            if conditioner.sample_key == key:
+                return conditioner
+        have = ", ".join(sorted({c.sample_key for c in self.conditioners}))
+        raise ConfigError(f"this generator was not trained with a {key!r} condition; it takes: {have}")
+
+    @torch.no_grad()
+    def __call__(self, n: int | None = None, *, steps: int | None = None, sampler: str | None = None,
+                 guidance: float | None = None, truncation: float | None = None, seed: int = 0,
+                 batch_size: int = 16, **conditions: Any) -> torch.Tensor:
+        """Images (n, 3, S, S) in [0, 1] for one condition, given as ``key=value`` (``label=3``) or
+        ``key=[v1, v2, ...]`` (one per image); a single value is repeated ``n`` times.
+
+        Unset settings take the run's own (``generator.steps``, ``sampler``, ``guidance``,
+        ``truncation``).  Values are what :meth:`vqtouch.core.Conditioner.parse_condition` takes
+        (a class index or name, an image path or tensor, a text).
+        """
+        if len(conditions) != 1:
+            raise ConfigError("give exactly one condition, e.g. label=3, visual='photo.png' or text='...' "
+                              f"(got {', '.join(conditions) or 'none'})")
+        (key, value), = conditions.items()
+        values = list(value) if isinstance(value, (list, tuple)) else [value] * (n or 1)
+        if n is not None and len(values) != n:
+            raise ConfigError(f"{len(values)} values of {key} for n={n} images; give one value or n values")
+        if not values:
+            raise ConfigError("nothing to generate: n must be at least 1")
+        steps = steps if steps is not None else self.settings["steps"]
+        guidance = guidance if guidance is not None else self.settings["guidance"]
+        truncation = truncation if truncation is not None else self.settings["truncation"]
+        limit = getattr(self.generator, "max_steps", None)
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1 or (limit and steps > limit):
+            raise ConfigError(f"--steps {steps}: steps must be an integer in [1, {limit}] (the generator's diffusion "
+                              "steps)" if limit else f"--steps {steps}: steps must be a positive integer")
+        chosen = self.sampler if sampler in (None, self.sampler_name) else self.host.build("sampler", sampler)
+        conditioner = self.conditioner_for(key)
+        parsed = [conditioner.parse_condition(v, image_size=self.image_size, class_names=self.class_names)
+                  for v in values]
+        images = []
+        for start in range(0, len(parsed), batch_size):
+            rows = parsed[start:start + batch_size]
+            batch = collate_samples([{key: row} for row in rows])
+            batch = {k: v.to(self.device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+            condition = conditioner(conditioner.condition_of(batch))
+            generators = [torch.Generator(device=self.device).manual_seed(seed * 1_000_003 + start + row)
+                          for row in range(len(rows))]
+            codes = self.generator.sample(condition, chosen, steps=steps, null=conditioner.null(len(rows)),
+                                          guidance=guidance, truncation=truncation, generators=generators)
+            # Decoded one by one: the decoder's float rounding depends on the batch size (1e-6), which
+            # could flip a pixel's 8-bit value, and a sample must not depend on its batch.
+            images.extend(self.tokenizer.decode_codes(grid.unsqueeze(0)).cpu() for grid in codes)
+        return torch.cat(images)
+
+
+def load_pipeline(run: str | Path, *, host: Any = None, step: int | str | None = None,
+                  device: str | None = None) -> GenerationPipeline:
+    """The generation pipeline of a run whose ``generator`` stage trained (its newest good checkpoint,
+    ``step``, or ``"best"``), with the tokenizer it was trained on."""
+    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+
+    host = host or load_plugins()
+    run_dir = RunDir.open(run)
+    config = run_dir.load_config(host)
+    section = getattr(config, "generator", None)
+    if section is None or section.model is None:
+        raise ConfigError(f"{run_dir.path}: its config has no generator (generator.model); train one with "
+                          "`vqtouch train generator`")
+    device_ = resolve_device(device or config.device)
+    folder = run_dir.checkpoint(host, step, required_files=("generator.safetensors",), stage=CHECKPOINT_FOLDER)
+    generator = load(folder / "generator.safetensors", host=host, map_location=device_).eval()
+    conditioners = [load(folder / f"conditioner_{index}.safetensors", host=host, map_location=device_).eval()
+                    for index in range(len(section.conditioners))]
+    tokenizer, _ = load_tokenizer(RunDir.open(section.tokenizer_run) if section.tokenizer_run else run_dir, host,
+                                  device=str(device_))
+    if section.sampler is None:
+        raise ConfigError(f"{run_dir.path}: generator.sampler is empty; pass sampler=NAME")
+    sampler = host.build("sampler", section.sampler)
+    class_names = _class_names(config, host)
+    settings = {"steps": section.steps, "guidance": section.guidance, "truncation": section.truncation}
+    return GenerationPipeline(tokenizer, generator, conditioners, sampler, section.sampler.name, settings, class_names,
+                              config.data.image_size, host, device_, folder)
+
+
+def _class_names(config: Any, host: Any) -> list[str]:
+    """The class names of the run's dataset (labels can then be given by name), without rendering it."""
+    from vqtouch.core import Assembly
+
+    try:
+        dataset = Assembly(config, host).component("data.dataset")
+    except VqtouchError:  # a dataset that cannot be built here (e.g. its folder is elsewhere) only loses the names
+        return []
+    return list(getattr(dataset, "class_names", []))
+

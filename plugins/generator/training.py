@@ -1,0 +1,148 @@
+"""Training a generator over a tokenizer's codes, with one condition per step.
+
+:class:`GeneratorTask` is a :class:`vqtouch.core.training.TrainingTask`: the trainer owns the
+optimisation, checkpoints, exact resume, EMA, bf16 and data parallelism, as for the tokenizer.
+Each step picks one of the experiment's conditioners (the paper's unified training: one
+condition per step), encodes the batch's conditions with it, replaces a random
+``condition_dropout`` share of them by the conditioner's learned null tokens (what
+classifier-free guidance contrasts with), and optimises the generator's loss.
+
+The data are the cached codes of every sample plus the entries of each sample that the
+conditioners read (:class:`CodesDataset`): the tokenizer's encoder never runs during training.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from pydantic import Field
+from torch import nn
+
+from vqtouch.core import Conditioner, Generator, TactileDataset, TrainConfig
+from vqtouch.core.progress import progress
+
+
+class GeneratorTrainConfig(TrainConfig):
+    """How the generator trains (``generator.train``); VQ-Diffusion's optimiser settings by default."""
+
+    steps: int = Field(2000, ge=0, le=99_999_999, strict=True, description="Optimisation steps.")
+    learning_rate: float = Field(4.5e-4, gt=0, le=10, strict=True, description="Peak learning rate.")
+    weight_decay: float = Field(4.5e-2, ge=0, le=1, strict=True, description="Decoupled weight decay (AdamW).")
+    grad_clip: float | None = Field(0.5, gt=0, strict=True,
+                                    description="Clip the gradient norm to this value; null disables.")
+    betas: tuple[float, float] = Field((0.9, 0.96), description="Adam betas, each in [0, 1).")
+    condition_dropout: float = Field(0.1, ge=0, lt=1, strict=True,
+                                     description="Share of training rows whose condition is replaced by the learned "
+                                                 "null condition (needed for classifier-free guidance).")
+    code_cache: bool = Field(True, description="Reuse the tokenizer's codes of the dataset from the user cache "
+                                               "folder when they were computed before (see "
+                                               "vqtouch.plugins.generator.codes).")
+
+
+class CodesDataset(TactileDataset):
+    """Cached codes (N, h, w) with the sample entries the conditioners read, held in memory.
+
+    ``samples[key]`` holds every sample's value of ``key`` (tensors stacked, numbers as a
+    tensor, strings as a list); a sample is ``{"codes": codes[i], key: value, ...}``.
+    """
+
+    def __init__(self, codes_NHW: torch.Tensor, entries: dict[str, Any], class_names: Sequence[str] = ()) -> None:
+        self.codes_NHW = codes_NHW
+        self.entries = entries
+        self.class_names = list(class_names)
+        for key, values in entries.items():
+            if len(values) != len(codes_NHW):
+                raise ValueError(f"{len(values)} values of {key!r} for {len(codes_NHW)} code grids")
+
+    @classmethod
+    def collect(cls, codes_NHW: torch.Tensor, dataset: Any, keys: Sequence[str], desc: str = "reading conditions"
+                ) -> CodesDataset:
+        """Read ``keys`` of every sample of ``dataset`` (one pass) next to its codes."""
+        values: dict[str, list[Any]] = {key: [] for key in keys}
+        for index in progress(range(len(dataset)), desc=desc, unit="sample"):
+            sample = dataset[index]
+            for key in keys:
+                if key not in sample:
+                    raise KeyError(f"the dataset's samples have no {key!r} (keys: {', '.join(sorted(sample))}); a "
+                                   f"conditioner reads it: use a dataset that provides it")
+                values[key].append(sample[key])
+        entries = {key: _stack(items) for key, items in values.items()}
+        return cls(codes_NHW, entries, getattr(dataset, "class_names", []))
+
+    def __len__(self) -> int:
+        return len(self.codes_NHW)
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        return {"codes": self.codes_NHW[index], **{key: values[index] for key, values in self.entries.items()}}
+
+
+def _stack(items: list[Any]) -> Any:
+    if items and isinstance(items[0], torch.Tensor):
+        return torch.stack(items)
+    if items and isinstance(items[0], (int, float)) and not isinstance(items[0], bool):
+        return torch.tensor(items)
+    return items
+
+
+class GeneratorTask:
+    """The generator objective as a :class:`vqtouch.core.training.TrainingTask` (see the module docstring)."""
+
+    def __init__(self, generator: Generator, conditioners: Sequence[Conditioner], condition_dropout: float,
+                 seed: int) -> None:
+        if not conditioners:
+            raise ValueError("the generator needs at least one conditioner (generator.conditioners)")
+        self.generator = generator
+        self.conditioners = list(conditioners)
+        self.condition_dropout = condition_dropout
+        self.seed = seed
+        self.modules: dict[str, nn.Module] = {"generator": generator}
+        for index, conditioner in enumerate(self.conditioners):
+            self.modules[f"conditioner_{index}"] = conditioner
+
+    def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
+        """One optimizer over the generator and every trainable conditioner parameter."""
+        params = [p for module in self.modules.values() for p in module.parameters() if p.requires_grad]
+        return {"generator": params}
+
+    def pick(self, step: int) -> int:
+        """The conditioner of ``step``: a pure function of (seed, step), so a resumed run picks the same."""
+        if len(self.conditioners) == 1:
+            return 0
+        chooser = torch.Generator().manual_seed(self.seed * 1_000_003 + step)
+        return int(torch.randint(len(self.conditioners), (1,), generator=chooser))
+
+    def condition_tokens(self, index: int, batch: dict[str, Any], drop_B: torch.Tensor | None) -> Any:
+        """The tokens of conditioner ``index`` for ``batch`` (rows in ``drop_B`` get its null tokens)."""
+        conditioner = self.conditioners[index]
+        return conditioner(conditioner.condition_of(batch), drop_B)
+
+    def training_step(self, batch: dict[str, Any], step: int, trainer: Any) -> dict[str, float]:
+        """One step with one conditioner, its conditions dropped to null at the configured rate."""
+        for module in self.modules.values():
+            module.train()
+        index = self.pick(step)
+        codes_BHW = batch["codes"]
+        drop_B = torch.rand(len(codes_BHW), device=codes_BHW.device) < self.condition_dropout
+        with trainer.autocast():
+            condition = self.condition_tokens(index, batch, drop_B)
+            loss, scalars = self.generator.training_loss(codes_BHW, condition)
+        trainer.optimize("generator", loss)
+        return {"loss": float(loss.detach()), **scalars, "conditioner": float(index)}
+
+    @torch.no_grad()
+    def validation_loss(self, batch: dict[str, Any], trainer: Any) -> torch.Tensor:
+        """(B,) held-out loss with every conditioner in turn (averaged), in eval mode with a fixed
+        generator, so checkpoints are compared on the same draws."""
+        for module in self.modules.values():
+            module.eval()
+        codes_BHW = batch["codes"]
+        total = torch.zeros((), device=codes_BHW.device)
+        for index in range(len(self.conditioners)):
+            draws = torch.Generator(device=codes_BHW.device).manual_seed(self.seed + 17 * index)
+            with trainer.autocast():
+                condition = self.condition_tokens(index, batch, None)
+                loss, _ = self.generator.training_loss(codes_BHW, condition, generator=draws)
+            total = total + loss.float()
+        return (total / len(self.conditioners)).expand(len(codes_BHW))

@@ -1,0 +1,181 @@
+"""The ``vq_diffusion`` generator: a VQ-Diffusion style discrete-diffusion decoder over the code grid.
+
+The forward process, losses and guidance are in :mod:`.diffusion`, the x0-predicting network in
+:mod:`.denoiser`; this module ties them into a :class:`vqtouch.core.Generator` plugin:
+
+- training: x_t ~ q(x_t | x_0) at an (importance-sampled) step t, the network predicts x_0 from
+  (x_t, t, condition tokens), and the loss is either the variational bound with the auxiliary
+  x_0 term (``loss="vb"``) or the absorbing-state weighted cross-entropy on masked tokens
+  (``loss="masked_ce"``);
+- sampling: the condition is encoded once per call (cross-attention keys and values of every
+  block), conditional and null rows run as one batch when guidance is on, guidance and
+  truncation are applied to the x0 prediction, and a :class:`vqtouch.core.Sampler` plugin turns
+  the predictions into codes.
+
+All diffusion maths is fp32 whatever the autocast (the network's logits are fp32).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from pydantic import Field, model_validator
+
+from vqtouch.core import BuildContext, ConditionTokens, ConfigError, Generator, PluginConfig, Sampler, hookimpl
+
+from .denoiser import DiffusionTransformer
+from .diffusion import (MaskReplaceSchedule, TimestepSampler, guided_log_x0, log_predict_x0, masked_ce_loss, truncate,
+                        vb_loss)
+
+
+class VQDiffusionConfig(PluginConfig):
+    """Options of the ``vq_diffusion`` generator."""
+
+    name: Literal["vq_diffusion"] = "vq_diffusion"
+    num_steps: int = Field(100, ge=2, le=1000, strict=True,
+                           description="Diffusion steps T of the forward process (VQ-Diffusion uses 100).")
+    att_1: float = Field(0.99999, gt=0, le=1, description="alpha_bar at t = 0: probability a token is still its x0.")
+    att_T: float = Field(0.000009, ge=0, le=1, description="alpha_bar at t = T-1.")
+    ctt_1: float = Field(0.000009, ge=0, lt=1, description="gamma_bar at t = 0: probability a token is MASK.")
+    ctt_T: float = Field(0.99999, ge=0, le=1,
+                         description="gamma_bar at t = T-1.  With the defaults (VQ-Diffusion's released values) "
+                                     "the replace noise 1 - alpha_bar - gamma_bar is 1e-6: in effect masking only; "
+                                     "e.g. att_T=0, ctt_T=0.9 gives replacement noise of 0.1 at the last step.")
+    depth: int = Field(4, ge=1, le=48, strict=True, description="Transformer blocks.")
+    width: int = Field(128, ge=8, le=4096, strict=True, description="Transformer width (divisible by heads).")
+    heads: int = Field(4, ge=1, le=64, strict=True, description="Attention heads.")
+    mlp_ratio: float = Field(4.0, gt=0, le=16, description="MLP hidden width as a multiple of the width.")
+    dropout: float = Field(0.0, ge=0, lt=1, description="Dropout in the transformer during training.")
+    loss: Literal["vb", "masked_ce"] = Field(
+        "vb", description="'vb': VQ-Diffusion's variational bound plus the auxiliary x0 term; 'masked_ce': the "
+                          "absorbing-state (MDLM/MD4) weighted cross-entropy on masked tokens.")
+    aux_weight: float = Field(1e-3, ge=0, le=10, description="Weight of the auxiliary x0 term of the 'vb' loss.")
+    importance_sampling: bool = Field(True, description="Draw training steps t by importance (uniform until every "
+                                                        "t was seen 10 times), as VQ-Diffusion does; else uniformly.")
+
+    @model_validator(mode="after")
+    def _heads_divide_width(self) -> VQDiffusionConfig:
+        if self.width % self.heads:
+            raise ValueError(f"width {self.width} must be divisible by heads {self.heads}")
+        return self
+
+
+class VQDiffusion(Generator):
+    """A discrete-diffusion generator of (code_grid x code_grid) code grids (see the module docstring)."""
+
+    def __init__(self, config: VQDiffusionConfig, codebook_size: int, code_grid: int, cond_dim: int) -> None:
+        super().__init__()
+        self.config = config
+        self.num_codes = codebook_size
+        self.grid_hw = (code_grid, code_grid)
+        try:
+            self.schedule = MaskReplaceSchedule(codebook_size, config.num_steps, config.att_1, config.att_T,
+                                                config.ctt_1, config.ctt_T)
+        except ValueError as exc:
+            raise ConfigError(f"generator 'vq_diffusion': {exc}") from None
+        self.network = DiffusionTransformer(codebook_size, config.num_steps, self.grid_hw, cond_dim, depth=config.depth,
+                                            width=config.width, heads=config.heads, mlp_ratio=config.mlp_ratio,
+                                            dropout=config.dropout)
+        self.timesteps = TimestepSampler(config.num_steps)
+
+    @property
+    def max_steps(self) -> int:
+        """The most sampling steps a call can take: the T steps of the forward process."""
+        return self.config.num_steps
+
+    @property
+    def length(self) -> int:
+        """Tokens per code grid, L = H W."""
+        return self.grid_hw[0] * self.grid_hw[1]
+
+    def _flatten(self, codes_BHW: torch.Tensor) -> torch.Tensor:
+        if codes_BHW.shape[1:] != self.grid_hw:
+            raise ValueError(f"vq_diffusion was built for {self.grid_hw[0]}x{self.grid_hw[1]} code grids; got "
+                             f"{tuple(codes_BHW.shape[1:])} (a tokenizer with another image size or downsampling)")
+        return codes_BHW.reshape(len(codes_BHW), -1).long()
+
+    def training_loss(self, codes_BHW: torch.Tensor, condition: ConditionTokens,
+                      generator: torch.Generator | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+        """The configured loss of one batch, averaged over the batch's tokens (VQ-Diffusion's scale).
+
+        In training mode t is importance-sampled (when configured) and the sampler learns from
+        the batch; in eval mode t is uniform and nothing is updated."""
+        codes_BL = self._flatten(codes_BHW)
+        batch = len(codes_BL)
+        device = codes_BL.device
+        # Held-out scoring (eval mode) draws t uniformly, so checkpoints are compared on equal terms.
+        if self.config.importance_sampling and self.training:
+            t_B, p_t_B = self.timesteps.sample(batch, generator)
+        else:
+            t_B = torch.randint(0, self.config.num_steps, (batch,), generator=generator, device=device)
+            p_t_B = torch.full((batch,), 1.0 / self.config.num_steps, device=device)
+        codes_t_BL = self.schedule.q_sample(codes_BL, t_B, generator)
+        logits_BKL = self.network(codes_t_BL, t_B, condition=condition.tokens_BND)
+        masked = float((codes_t_BL == self.schedule.mask_index).float().mean())
+        if self.config.loss == "vb":
+            terms = vb_loss(log_predict_x0(logits_BKL), codes_BL, codes_t_BL, t_B, self.schedule,
+                            aux_weight=self.config.aux_weight, p_t_B=p_t_B)
+            loss_B, lt_B = terms.loss_B, terms.lt_B
+        else:
+            lt_B = masked_ce_loss(logits_BKL, codes_BL, codes_t_BL, t_B, self.schedule)
+            loss_B = lt_B / p_t_B
+        if self.training:
+            self.timesteps.update(t_B, lt_B)
+        # Divided by p_t (1/T for uniform t), so the mean is the per-token bound, as VQ-Diffusion logs it.
+        loss = loss_B.sum() / (batch * self.length)
+        return loss, {"lt": float(lt_B.detach().mean()), "masked_fraction": masked}
+
+    @torch.no_grad()
+    def log_x0(self, codes_t_BL: torch.Tensor, t_B: torch.Tensor, condition: ConditionTokens) -> torch.Tensor:
+        """log p(x0 | x_t, condition) (B, K+1, L) in fp32, without guidance or truncation."""
+        return log_predict_x0(self.network(codes_t_BL, t_B, condition=condition.tokens_BND))
+
+    @torch.no_grad()
+    def sample(self, condition: ConditionTokens, sampler: Sampler, *, steps: int, null: ConditionTokens | None = None,
+               guidance: float = 1.0, truncation: float = 1.0,
+               generators: list[torch.Generator] | None = None) -> torch.Tensor:
+        """Code grids (B, H, W) for a batch of conditions (see :meth:`vqtouch.core.Generator.sample`)."""
+        batch = condition.tokens_BND.shape[0]
+        guided = guidance != 1.0
+        if guided and null is None:
+            raise ValueError("guidance != 1 needs the null condition's tokens (null=...)")
+        if generators is None:
+            generators = [torch.Generator(device=condition.tokens_BND.device).manual_seed(row) for row in range(batch)]
+        if len(generators) != batch:
+            raise ValueError(f"got {len(generators)} generators for {batch} conditions")
+        tokens_BMD = condition.tokens_BND
+        if guided:
+            # Conditional and null rows run as one batch of 2B through the network.
+            tokens_BMD = torch.cat([tokens_BMD, null.tokens_BND.to(tokens_BMD)])
+        self.eval()
+        cache = self.network.precompute_condition(tokens_BMD)  # once per call, reused at every step
+
+        def denoise(codes_t_BL: torch.Tensor, t_B: torch.Tensor) -> torch.Tensor:
+            if guided:
+                logits_2BKL = self.network(torch.cat([codes_t_BL, codes_t_BL]), torch.cat([t_B, t_B]), cache=cache)
+                log_cond_BCL, log_null_BCL = log_predict_x0(logits_2BKL).chunk(2)
+                log_x0_BCL = guided_log_x0(log_cond_BCL, log_null_BCL, guidance)
+            else:
+                log_x0_BCL = log_predict_x0(self.network(codes_t_BL, t_B, cache=cache))
+            return truncate(log_x0_BCL, truncation)
+
+        codes_BL = sampler.sample(denoise, self.schedule, length=self.length, steps=steps, generators=generators)
+        return codes_BL.view(batch, *self.grid_hw)
+
+
+def build_vq_diffusion(config: VQDiffusionConfig, context: BuildContext) -> VQDiffusion:
+    """Factory: the codebook size and the code grid come from the experiment's tokenizer (the context)."""
+    if context.codebook_size < 2 or context.code_grid < 1:
+        raise ConfigError("generator 'vq_diffusion' needs the tokenizer's codebook size and code grid "
+                          f"(the build context has codebook_size={context.codebook_size}, "
+                          f"code_grid={context.code_grid}); build it after the tokenizer")
+    return VQDiffusion(config, context.codebook_size, context.code_grid, context.cond_dim)
+
+
+@hookimpl
+def vqtouch_register_generators(register):
+    register("vq_diffusion", build_vq_diffusion, VQDiffusionConfig,
+             demo={"depth": 2, "width": 64},
+             description="VQ-Diffusion style discrete diffusion over the code grid (mask-and-replace, transformer "
+                         "with cross-attention to the condition).")

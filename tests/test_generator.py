@@ -1,0 +1,186 @@
+"""The generator end to end (issue 10): `vqtouch train generator`, `vqtouch generate`, the pipeline,
+the code cache, exact resume, and the generator at numerical extremes."""
+
+import json
+import pathlib
+import shutil
+
+import pytest
+import torch
+
+from vqtouch.core import BuildContext, ConditionTokens, load_plugins
+from vqtouch.core.cli import main
+from vqtouch.core.testing import check_plugin
+
+HOST = load_plugins(autoload=False)
+TINY = ["tokenizer.autoencoder.channels=16", "tokenizer.autoencoder.norm_groups=8",
+        "tokenizer.autoencoder.channel_multipliers=[1,2]", "tokenizer.autoencoder.z_channels=16",
+        "tokenizer.autoencoder.embed_dim=8", "tokenizer.quantizer.codebook_size=32", "data.image_size=32",
+        "data.batch_size=4", "data.dataset.num_samples=24", "data.val_fraction=0.25", "tokenizer.train.steps=2", "tokenizer.loss.perceptual=none",
+        "tokenizer.discriminator=null", 'metrics=[{"name": "psnr"}]',
+        "generator.model.depth=1", "generator.model.width=32", "generator.model.num_steps=20",
+        "generator.train.steps=6", "generator.train.checkpoint_every=3", "generator.train.log_every=1",
+        "generator.num_samples=4", "generator.steps=4"]
+
+
+def train_args(out, *extra, scene="label-to-touch", flags=()):
+    args = ["--no-progress", "train", "generator", "--scene", scene, "--out", str(out), *flags]
+    for override in [*TINY, *extra]:
+        args += ["--set", override]
+    return args
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A tiny label-to-touch run: tokenizer (2 steps) then generator (6 steps)."""
+    out = tmp_path_factory.mktemp("l2t") / "run"
+    assert main(train_args(out)) == 0
+    return out
+
+
+def lines(run, stage="generator"):
+    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    return [r for r in records if r["stage"] == stage]
+
+
+def test_train_generator_writes_its_run_and_scores_samples(trained):
+    result = json.loads((trained / "generation.json").read_text())
+    assert result["step"] == 6 and result["samples"] == 4 and result["sampler"] == "posterior"
+    assert result["code_cache"]["cache"] in ("miss", "hit") and 0 < result["psnr"] < 100
+    assert sorted(p.name for p in (trained / "checkpoints" / "generator").iterdir()) == ["step-00000003",
+                                                                                         "step-00000006"]
+    assert (trained / "samples.png").is_file()
+    assert [r["step"] for r in lines(trained) if "loss" in r] == [1, 2, 3, 4, 5, 6]
+
+
+def test_generate_is_deterministic_and_independent_of_the_batch(trained, tmp_path, capsys):
+    def generate(out, *extra):
+        assert main(["generate", "--run", str(trained), "--label", "0", "--label", "3", "--label", "5", "--n", "3",
+                     "--steps", "3", "--guidance", "2", "--truncation", "0.9", "--seed", "7", "--out", str(out),
+                     *extra]) == 0
+        return [(out / f"sample_{i:04d}.png").read_bytes() for i in range(3)]
+
+    first = generate(tmp_path / "a")
+    assert generate(tmp_path / "b") == first
+    assert generate(tmp_path / "c", "--batch-size", "1") == first
+    assert generate(tmp_path / "d", "--seed", "8") != first
+    settings = json.loads((tmp_path / "a" / "generate.json").read_text())
+    assert settings["values"] == ["0", "3", "5"] and settings["steps"] == 3 and settings["guidance"] == 2.0
+    assert (tmp_path / "a" / "grid.png").is_file()
+
+
+@pytest.mark.parametrize("sampler", ["posterior", "purity", "confidence"])
+def test_the_python_pipeline_takes_every_sampler_and_class_names(trained, sampler):
+    from vqtouch.plugins.generator import load_pipeline
+
+    pipe = load_pipeline(trained, host=HOST)
+    images = pipe(label=["sphere", 2], steps=3, sampler=sampler, seed=0)
+    assert images.shape == (2, 3, 32, 32) and bool(torch.isfinite(images).all())
+    assert float(images.min()) >= 0 and float(images.max()) <= 1
+    assert torch.equal(images, pipe(label=["sphere", 2], steps=3, sampler=sampler, seed=0))
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--label", "blob"], "--label: unknown class 'blob'; available: "),
+    (["--label", "99"], "--label 99: out of range; this run's classes are 0..11"),
+    (["--visual", "photo.png"], "this generator was not trained with a 'visual' condition; it takes: label"),
+    (["--label", "1", "--label", "2", "--n", "3"], "2 --label values for --n 3; give one value or --n values"),
+    ([], "give exactly one kind of condition"),
+    (["--label", "1", "--steps", "21"], "steps must be an integer in [1, 20]"),
+])
+def test_generate_errors_are_one_line(trained, tmp_path, capsys, args, message):
+    capsys.readouterr()
+    assert main(["generate", "--run", str(trained), *args, "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("vqtouch: error: ") and err.count("\n") == 1 and message in err, err
+
+
+def test_a_second_run_reuses_the_cached_codes(trained, tmp_path):
+    out = tmp_path / "again"
+    assert main(train_args(out)) == 0
+    cache = json.loads((out / "generation.json").read_text())["code_cache"]
+    assert cache["cache"] == "hit"
+    # The same tokenizer weights (trained with the same seed) and images: the cached codes are its codes.
+    from safetensors.torch import load_file
+
+    from vqtouch.plugins.generator.codes import encode_dataset
+    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+    from vqtouch.core import Assembly, RunDir
+
+    run = RunDir.open(out)
+    tokenizer, _ = load_tokenizer(run, HOST)
+    dataset = Assembly(run.load_config(HOST), HOST).component("data.dataset")
+    assert torch.equal(load_file(cache["path"])["codes"].long(), encode_dataset(tokenizer, dataset, batch_size=4))
+
+
+def test_a_generator_on_another_runs_tokenizer_and_exact_resume(trained, tmp_path):
+    tokenizer_only = tmp_path / "tok"
+    shutil.copytree(trained, tokenizer_only)
+    out = tmp_path / "gen"
+    assert main(train_args(out, flags=("--tokenizer", str(trained)))) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["stages"] == ["generator"] and config["generator"]["tokenizer_run"] == str(trained.resolve())
+    assert not (out / "eval.json").exists()  # no tokenizer was trained in this run
+    uninterrupted = [r for r in lines(out) if "loss" in r]
+    # Lose the last checkpoint, resume: steps 4-6 again, with the same losses.
+    shutil.rmtree(out / "checkpoints" / "generator" / "step-00000006")
+    assert main(["--no-progress", "train", "generator", "--resume", str(out)]) == 0
+    assert [r for r in lines(out) if "loss" in r] == uninterrupted
+
+
+def test_the_generator_contract(tmp_path):
+    context = BuildContext(image_size=32, num_classes=4, cond_dim=16, codebook_size=16, code_grid=4)
+    check_plugin(HOST, "generator", "vq_diffusion", {"depth": 1, "width": 16, "heads": 2, "num_steps": 10}, context,
+                 tmp_dir=tmp_path)
+
+
+@pytest.mark.parametrize("codebook_size, grid", [(2, 1), (16384, 2), (16, 32)])
+@pytest.mark.parametrize("loss", ["vb", "masked_ce"])
+def test_training_and_sampling_stay_finite_at_the_extremes(codebook_size, grid, loss):
+    """K = 2 and K = 16384, a 1x1 and a 32x32 grid, batch 1, bf16, guidance 0 and 20, truncation near 0."""
+    context = BuildContext(image_size=32, cond_dim=8, codebook_size=codebook_size, code_grid=grid)
+    generator = HOST.build("generator", {"name": "vq_diffusion", "depth": 1, "width": 16, "heads": 2,
+                                         "num_steps": 10, "loss": loss}, context)
+    condition = ConditionTokens(torch.randn(1, 2, 8), torch.zeros(1, dtype=torch.bool))
+    codes = torch.randint(codebook_size, (1, grid, grid))
+    for t_draws in range(3):  # several t, t = 0 and t = T-1 among them with these seeds
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            loss_value, _ = generator.training_loss(codes, condition, generator=torch.Generator().manual_seed(t_draws))
+        assert bool(torch.isfinite(loss_value)), loss_value
+    generator.eval()
+    sampler = HOST.build("sampler", "posterior")
+    null = ConditionTokens(torch.randn(1, 2, 8), torch.ones(1, dtype=torch.bool))
+    for guidance, truncation in ((0.0, 1.0), (20.0, 1e-6), (1.0, 0.5)):
+        sampled = generator.sample(condition, sampler, steps=3, null=null, guidance=guidance, truncation=truncation,
+                                   generators=[torch.Generator().manual_seed(0)])
+        assert sampled.shape == (1, grid, grid) and int(sampled.max()) < codebook_size and int(sampled.min()) >= 0
+
+
+def test_guidance_needs_the_null_condition():
+    context = BuildContext(image_size=32, cond_dim=8, codebook_size=8, code_grid=2)
+    generator = HOST.build("generator", {"name": "vq_diffusion", "depth": 1, "width": 16, "heads": 2,
+                                         "num_steps": 10}, context)
+    condition = ConditionTokens(torch.randn(1, 2, 8), torch.zeros(1, dtype=torch.bool))
+    with pytest.raises(ValueError, match="guidance != 1 needs the null condition"):
+        generator.sample(condition, HOST.build("sampler", "posterior"), steps=2, guidance=3.0)
+
+
+def test_a_generator_without_the_tokenizers_facts_is_refused():
+    from vqtouch.core import ConfigError
+
+    with pytest.raises(ConfigError, match="needs the tokenizer's codebook size and code grid"):
+        HOST.build("generator", {"name": "vq_diffusion"}, BuildContext(image_size=32))
+
+
+def test_label_to_touch_in_a_fresh_interpreter_never_imports_open_clip(trained, run_cli):
+    """Model only what the scene requires: generating from a label run imports neither open_clip nor
+    torchvision's models."""
+    code = ("import sys; from vqtouch.plugins.generator import load_pipeline; "
+            f"pipe = load_pipeline({str(trained)!r}); pipe(label=1, steps=2); "
+            "print('open_clip' in sys.modules, 'torchvision.models' in sys.modules)")
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.split() == ["False", "False"]
