@@ -222,7 +222,7 @@ _WRITE_ELSEWHERE = "write the run elsewhere (--out or output_dir)"
 _OS_ERROR_HINTS = {
     errno.EACCES: f"fix its permissions, or {_WRITE_ELSEWHERE}",
     errno.EPERM: f"fix its permissions, or {_WRITE_ELSEWHERE}",
-    errno.EROFS: f"the file system is read-only: {_WRITE_ELSEWHERE}",
+    errno.EROFS: _WRITE_ELSEWHERE,
     errno.ENOSPC: f"the disk is full: free space, or {_WRITE_ELSEWHERE}",
     errno.EDQUOT: f"the disk quota is used up: free space, or {_WRITE_ELSEWHERE}",
     errno.EEXIST: "a file is in the way where a folder is needed: remove it or choose another path",

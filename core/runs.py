@@ -30,6 +30,7 @@ import shutil
 import subprocess
 import sys
 import time
+import warnings
 import weakref
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -37,7 +38,7 @@ from typing import Any
 
 from .checkpoint import atomic_write, read_metadata
 from .config import ExperimentConfig, validate_experiment
-from .errors import CheckpointError, ConfigError
+from .errors import CheckpointError, ConfigError, VqtouchWarning
 
 try:
     import fcntl
@@ -48,6 +49,10 @@ except ImportError:  # pragma: no cover - Windows has no flock; runs there are s
 #: lock two different files of the same name).  Only RunDir makes it, so it also marks a run
 #: directory whose config.json is not written yet.
 LOCK_NAME = ".vqtouch.lock"
+
+
+class StartedAfreshWarning(VqtouchWarning):
+    """A run directory that held only the config of a run that produced nothing was started afresh."""
 
 
 class MissingCheckpointError(CheckpointError):
@@ -163,6 +168,12 @@ class RunDir:
         try:
             # Checked again under the lock: the folder may have changed since the check above.
             run._refuse_foreign_folder()
+            if run._contents() and not overwrite and run._holds_no_results():
+                # A run that stopped before writing anything (bad data, a full disk) holds only its
+                # config: starting it again must not need --overwrite.
+                warnings.warn(f"{run.path} holds a run that stopped before writing any result; starting afresh "
+                              "in it", StartedAfreshWarning, stacklevel=2)
+                overwrite = True
             if run._contents():
                 if not overwrite:
                     raise ConfigError(f"{run.path} already holds a run; continue it with --resume {run.path}, start it "
@@ -208,6 +219,17 @@ class RunDir:
 
     def _contents(self) -> list[Path]:
         return [entry for entry in self.path.iterdir() if entry.name != LOCK_NAME] if self.path.is_dir() else []
+
+    def _holds_no_results(self) -> bool:
+        """Whether the folder holds a run's config and environment and nothing else (no metrics, no
+        checkpoint, no output): a run that failed before its first step."""
+        for entry in self._contents():
+            if entry.name in ("config.json", "env.json") and entry.is_file():
+                continue
+            if entry == self.checkpoints and entry.is_dir() and not any(entry.iterdir()):
+                continue
+            return False
+        return True
 
     def _refuse_foreign_folder(self) -> None:
         # The lock file counts: a run being created holds only it and config.json's temporary file.
@@ -409,3 +431,16 @@ def interrupted_message(exc: BaseException, run: RunDir, command: str) -> str:
         return f"vqtouch: {cause}; the run's last complete checkpoint is {folder}; resume with: {resume}"
     return (f"vqtouch: {cause} before any checkpoint was written; nothing to resume: start again with "
             f"--overwrite --out {run.path}")
+
+
+def interrupted_status(exc: BaseException) -> int:
+    """The exit status of a command stopped by ``exc``: 128 + the signal's number, as a shell reports a
+    process killed by that signal (143 for SIGTERM, which schedulers read as "terminated"), and
+    130 (Ctrl-C) for any other interruption."""
+    import signal as signals
+
+    from .training import TrainingInterrupted
+
+    if isinstance(exc, TrainingInterrupted) and exc.cause in signals.Signals.__members__:
+        return 128 + signals.Signals[exc.cause].value
+    return 130

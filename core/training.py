@@ -803,13 +803,22 @@ def step_folders(checkpoint_dir: Path) -> list[tuple[int, Path]]:
 
 
 def _unreadable(path: Path) -> str | None:
-    """Why ``path`` is not a readable safetensors file (safe_open checks the header and that the
-    file is as long as the header says), or None."""
+    """Why ``path`` is not a readable checkpoint file, or None: safe_open checks the safetensors
+    header and that the file is as long as the header says; a vqtouch component header must also
+    carry a parsable config and a step number (what :func:`vqtouch.core.load` needs)."""
     try:
         with safe_open(str(path), framework="pt") as handle:
-            handle.metadata()
+            metadata = handle.metadata() or {}
     except Exception as exc:  # noqa: BLE001 - safetensors raises several error types
-        return _first_line(exc)
+        return f"is not a readable safetensors file ({_first_line(exc)})"
+    if "vqtouch.component" in metadata:
+        step = metadata.get("vqtouch.step", "0")
+        if not step.isdecimal():
+            return f"has a damaged vqtouch header (vqtouch.step is {step!r}, not a step number)"
+        try:
+            json.loads(metadata["vqtouch.config"])
+        except (KeyError, json.JSONDecodeError):
+            return "has a damaged vqtouch header (no readable vqtouch.config)"
     return None
 
 
@@ -843,7 +852,7 @@ def checkpoint_problem(folder: Path, required_files: Iterable[str] = ()) -> str 
             return f"{name} is missing"
         why = _unreadable(folder / name)
         if why is not None:
-            return f"{name} is not a readable safetensors file ({why})"
+            return f"{name} {why}"
     return None
 
 

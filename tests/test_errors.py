@@ -158,8 +158,15 @@ def test_unparsable_step_header_is_one_line(run_copy, capsys):
     path = run_copy / "checkpoints" / "step-00000002" / "autoencoder.safetensors"
     rewrite_checkpoint(path, **{"vqtouch.step": "two"})
     assert main(["evaluate", "reconstruction", "--run", str(run_copy)]) == 2
-    line = one_error_line(capsys)
-    assert line.startswith(f"{path}: damaged vqtouch header") and "vqtouch.step" in line
+    assert one_error_line(capsys) == (
+        f"{run_copy / 'checkpoints'}: holds 1 checkpoint folder(s) but no complete one (the newest, step-00000002, "
+        "is unusable: autoencoder.safetensors has a damaged vqtouch header (vqtouch.step is 'two', not a step "
+        "number)); restore a step folder from a copy, or train the run again with --overwrite")
+    # load() itself refuses it too, naming the file (a checkpoint file used outside a run).
+    from vqtouch.core import CheckpointError, load, load_plugins
+
+    with pytest.raises(CheckpointError, match=r"damaged vqtouch header \(vqtouch.step is 'two', not a step number\)"):
+        load(path, host=load_plugins(autoload=False))
 
 
 def test_nan_weights_are_refused_before_the_metrics(run_copy, capsys):

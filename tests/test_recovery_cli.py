@@ -51,15 +51,27 @@ def metric_steps(run):
     return [line["step"] for line in lines if "val_loss" not in line]
 
 
-@pytest.mark.parametrize("damage", ["truncated", "missing"])
+def damage_header(path):
+    """Rewrite a checkpoint file with an unparsable ``vqtouch.step`` header (an edited or damaged header)."""
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    with safe_open(str(path), framework="pt") as handle:
+        header = {**handle.metadata(), "vqtouch.step": "two"}
+        tensors = {key: handle.get_tensor(key) for key in handle.keys()}
+    save_file(tensors, str(path), metadata=header)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "missing", "header"])
 def test_reconstruct_falls_back_past_a_damaged_newest_step_with_a_one_line_warning(run_copy, tmp_path, capsys, damage):
     module = run_copy / "checkpoints" / "step-00000004" / "autoencoder.safetensors"
-    truncate(module) if damage == "truncated" else module.unlink()
+    {"truncated": truncate, "missing": lambda path: path.unlink(), "header": damage_header}[damage](module)
     capsys.readouterr()
     out = tmp_path / "recon"
     assert main(["reconstruct", "--run", str(run_copy), "--real-frames", "gelsight", "--out", str(out)]) == 0
     err = capsys.readouterr().err.strip().splitlines()
-    why = "is missing" if damage == "missing" else "is not a readable safetensors file"
+    why = {"missing": "is missing", "truncated": "is not a readable safetensors file",
+           "header": "has a damaged vqtouch header (vqtouch.step is 'two', not a step number)"}[damage]
     assert len(err) == 1 and err[0].startswith(f"vqtouch: warning: checkpoint {module.parent} skipped: "
                                                f"autoencoder.safetensors {why}"), err
     assert json.loads((out / "reconstruct.json").read_text())["checkpoint"].endswith("step-00000002")
@@ -116,7 +128,7 @@ def test_an_interrupted_training_says_only_what_it_saved(tmp_path, capsys, monke
         raise KeyboardInterrupt
 
     monkeypatch.setattr(commands, "run_stage", interrupted)
-    assert main(train_args(out)) == 130
+    assert main(train_args(out)) == 130  # SIGINT's 128 + 2, and Ctrl-C's
     err = capsys.readouterr().err.strip()
     assert "checkpoint is saved" not in err
     if saved:
@@ -187,3 +199,16 @@ def test_step_best_of_a_run_that_held_out_nothing_is_one_line(tmp_path, capsys):
     assert capsys.readouterr().err == (f"vqtouch: error: {run}: no best checkpoint recorded (the run scored no "
                                        "held-out samples: train.keep_best=false or data.val_fraction=0); give a step "
                                        "number\n")
+
+
+def test_a_command_stopped_by_sigterm_exits_as_a_shell_reports_it(tmp_path, capsys, monkeypatch):
+    """143 (128 + SIGTERM) tells a scheduler the job was terminated; Ctrl-C keeps 130."""
+    from vqtouch.core.training import TrainingInterrupted
+    from vqtouch.plugins.tokenizer import commands
+
+    def terminated(*args, **kwargs):
+        raise TrainingInterrupted("SIGTERM", 1, tmp_path / "run" / "checkpoints" / "step-00000001")
+
+    monkeypatch.setattr(commands, "run_stage", terminated)
+    assert main(train_args(tmp_path / "run")) == 143
+    assert "training stopped by SIGTERM after step 1" in capsys.readouterr().err

@@ -199,3 +199,26 @@ def test_data_parallel_ranks_share_rank_zeros_run_directory(tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     assert json.loads((run / "eval.json").read_text())["step"] == 4
     assert codebook_in_header(run / "checkpoints" / "step-00000004") == 64
+
+
+def test_a_run_that_failed_before_writing_anything_starts_again_without_overwrite(tmp_path, capsys):
+    """Bad data or a full disk stop a run after config.json was written; the same command again must
+    not be refused as if results were at stake."""
+    run = tmp_path / "run"
+    images = tmp_path / "images" / "class_a"
+    images.mkdir(parents=True)
+    (images / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n not an image")
+    bad = ["--no-progress", "train", "tokenizer", "--out", str(run)]
+    for override in [*(o for o in TINY if not o.startswith("data.dataset.")),
+                     'data.dataset={"name": "image_folder", "root": "' + str(images.parent) + '"}']:
+        bad += ["--set", override]
+    assert main(bad) == 2
+    assert sorted(p.name for p in run.iterdir()) == [".vqtouch.lock", "checkpoints", "config.json", "env.json"]
+    capsys.readouterr()
+    assert main(train_args(run, 32)) == 0
+    err = capsys.readouterr().err
+    assert err.startswith(f"vqtouch: warning: {run} holds a run that stopped before writing any result; starting "
+                          "afresh in it\n")
+    # A run with results is still refused.
+    assert main(train_args(run, 32)) == 2
+    assert "already holds a run" in capsys.readouterr().err

@@ -18,7 +18,7 @@ from vqtouch.core import Assembly, ConfigError, RunDir, hookimpl, run_stage
 from vqtouch.core.cli import add_config_arguments, add_step_argument, command_group, config_from_args, stage_failure
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.images import image_grid, save_png
-from vqtouch.core.runs import interrupted_message, is_main_process
+from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
 
 
 def _with_tokenizer_run(config: Any, tokenizer_run: str, host: Any) -> Any:
@@ -65,7 +65,7 @@ def _train_generator_command(args: argparse.Namespace) -> int:
                     raise stage_failure(outcome)
         except KeyboardInterrupt as exc:
             print(f"\n{interrupted_message(exc, run, 'generator')}", file=sys.stderr)
-            return 130
+            return interrupted_status(exc)
     if not is_main_process():
         return 0
     print(json.dumps(json.loads((run.path / "generation.json").read_text()), indent=2))

@@ -18,7 +18,7 @@ from vqtouch.core import Assembly, ConfigError, RunDir, hookimpl, run_stage
 from vqtouch.core.config import parse_override
 from vqtouch.core.cli import add_config_arguments, add_step_argument, command_group, config_from_args, stage_failure
 from vqtouch.core.data import split_dataset
-from vqtouch.core.runs import interrupted_message, is_main_process
+from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
 
 from .stages import load_tokenizer, printable, reconstruct_all, save_pairs
 from .training import evaluate_reconstruction
@@ -41,13 +41,14 @@ def _train_tokenizer_command(args: argparse.Namespace) -> int:
             outcome = run_stage("tokenizer", Assembly(config, host), run, resume=bool(args.resume))
         except KeyboardInterrupt as exc:
             print(f"\n{interrupted_message(exc, run, 'tokenizer')}", file=sys.stderr)
-            return 130
+            return interrupted_status(exc)
     if outcome.status != "ran":
         raise stage_failure(outcome)
     if not is_main_process():
         return 0  # rank 0 writes eval.json (and may not have yet) and prints the result
     print(json.dumps(json.loads((run.path / "eval.json").read_text()), indent=2))
-    print(f"run: {run.path}  (reconstructions.png, eval.json, checkpoints/)")
+    outputs = [name for name in ("reconstructions.png", "eval.json") if (run.path / name).is_file()]
+    print(f"run: {run.path}  ({', '.join([*outputs, 'checkpoints/'])})")
     return 0
 
 
