@@ -22,7 +22,7 @@ $(STAMP): pyproject.toml setup.py constraints.txt
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/vqtouch demo --out runs/demo $(DEMO_ARGS)
+	$(BIN)/vqtouch demo --overwrite --out runs/demo $(DEMO_ARGS)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest $(PYTEST_ARGS)

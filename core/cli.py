@@ -15,7 +15,7 @@ import stat
 import sys
 import traceback
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from .config import resolve_config
@@ -60,6 +60,35 @@ def add_step_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--step", type=checkpoint_step, metavar="N|best",
                         help="checkpoint step, or 'best' for the lowest validation loss (default: the newest "
                              "complete checkpoint)")
+
+
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add ``--out``, ``--resume`` and ``--overwrite`` to a command that trains into a run directory
+    (see :func:`training_run`)."""
+    parser.add_argument("--out", help="run directory (default: <output_dir>/<name>-<time>-<hash>)")
+    parser.add_argument("--resume", metavar="RUN", help="continue an interrupted run from its last checkpoint")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="empty the --out run directory first (refused for a folder that holds no run)")
+
+
+def training_run(args: argparse.Namespace, host: PluginHost,
+                 prepare: Callable[[Any], Any] | None = None) -> tuple[Any, Any]:
+    """The run directory and config of a training command (:func:`add_run_arguments`): the run named
+    by ``--resume`` (locked for writing, its saved config), else a new run of the config the
+    command's arguments resolve to, after ``prepare(config)`` (e.g. a command's own flags)."""
+    from .runs import RunDir
+
+    if args.resume:
+        if args.overwrite:
+            raise ConfigError("--overwrite starts a new run and --resume continues one; give one of them")
+        if args.overrides or args.config:
+            raise ConfigError("--resume continues a run with its saved config; drop --set/--config")
+        run = RunDir.open(args.resume, for_writing=True)
+        return run, run.load_config(host)
+    config = config_from_args(args, host)
+    if prepare is not None:
+        config = prepare(config)
+    return RunDir.create(config, argv=args.argv, host=host, path=args.out, overwrite=args.overwrite), config
 
 
 def command_group(subparsers: argparse._SubParsersAction, name: str, help: str) -> argparse._SubParsersAction:

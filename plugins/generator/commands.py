@@ -15,7 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from vqtouch.core import Assembly, ConfigError, RunDir, hookimpl, run_stage
-from vqtouch.core.cli import add_config_arguments, add_step_argument, command_group, config_from_args, stage_failure
+from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group, stage_failure,
+                              training_run)
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
@@ -36,23 +37,18 @@ def _with_tokenizer_run(config: Any, tokenizer_run: str, host: Any) -> Any:
 
 def _train_generator_command(args: argparse.Namespace) -> int:
     host = args.host
-    if args.resume:
-        if args.overwrite or args.tokenizer:
-            raise ConfigError("--resume continues a run with its saved config; drop --overwrite/--tokenizer")
-        if args.overrides or args.config:
-            raise ConfigError("--resume continues a run with its saved config; drop --set/--config")
-        run = RunDir.open(args.resume, for_writing=True)
-        config = run.load_config(host)
-    else:
-        config = config_from_args(args, host)
+    if args.resume and args.tokenizer:
+        raise ConfigError("--resume continues a run with its saved config; drop --tokenizer")
+
+    def up_to_the_generator(config: Any) -> Any:
         if "generator" not in config.stages:
             raise ConfigError(f"scene {config.scene!r} has no generator stage; use e.g. --scene label-to-touch")
         if args.tokenizer:
-            config = _with_tokenizer_run(config, args.tokenizer, host)
-        else:
-            stages = config.stages[:config.stages.index("generator") + 1]
-            config = validate_experiment({**config.to_dict(), "stages": stages}, host)
-        run = RunDir.create(config, argv=args.argv, host=host, path=args.out, overwrite=args.overwrite)
+            return _with_tokenizer_run(config, args.tokenizer, host)
+        stages = config.stages[:config.stages.index("generator") + 1]
+        return validate_experiment({**config.to_dict(), "stages": stages}, host)
+
+    run, config = training_run(args, host, up_to_the_generator)
     assembly = Assembly(config, host)
     with run:
         try:
@@ -134,11 +130,8 @@ def vqtouch_add_commands(subparsers):
     generator = train.add_parser("generator", help="train a discrete-diffusion generator over a tokenizer's codes "
                                                    "(trains the tokenizer first unless --tokenizer is given)")
     add_config_arguments(generator, default_scene="label-to-touch")
-    generator.add_argument("--out", help="run directory (default: <output_dir>/<name>-<time>-<hash>)")
+    add_run_arguments(generator)
     generator.add_argument("--tokenizer", metavar="RUN", help="use the tokenizer trained in this run")
-    generator.add_argument("--resume", metavar="RUN", help="continue an interrupted run from its last checkpoint")
-    generator.add_argument("--overwrite", action="store_true",
-                           help="empty the --out run directory first (refused for a folder that holds no run)")
     generator.set_defaults(handler=_train_generator_command)
 
     generate = subparsers.add_parser("generate", help="generate tactile images with a trained generator run")

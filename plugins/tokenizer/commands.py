@@ -16,7 +16,8 @@ import torch
 
 from vqtouch.core import Assembly, ConfigError, RunDir, hookimpl, run_stage
 from vqtouch.core.config import parse_override
-from vqtouch.core.cli import add_config_arguments, add_step_argument, command_group, config_from_args, stage_failure
+from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group, stage_failure,
+                              training_run)
 from vqtouch.core.data import split_dataset
 from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
 
@@ -26,16 +27,7 @@ from .training import evaluate_reconstruction
 
 def _train_tokenizer_command(args: argparse.Namespace) -> int:
     host = args.host
-    if args.resume:
-        if args.overwrite:
-            raise ConfigError("--overwrite starts a new run and --resume continues one; give one of them")
-        if args.overrides or args.config:
-            raise ConfigError("--resume continues a run with its saved config; drop --set/--config")
-        run = RunDir.open(args.resume, for_writing=True)
-        config = run.load_config(host)
-    else:
-        config = config_from_args(args, host)
-        run = RunDir.create(config, argv=args.argv, host=host, path=args.out, overwrite=args.overwrite)
+    run, config = training_run(args, host)
     with run:  # releases the run's lock however the command ends
         try:
             outcome = run_stage("tokenizer", Assembly(config, host), run, resume=bool(args.resume))
@@ -142,10 +134,7 @@ def vqtouch_add_commands(subparsers):
     train = command_group(subparsers, "train", "train a component (tokenizer, ...)")
     tokenizer = train.add_parser("tokenizer", help="train a tactile tokenizer (autoencoder + quantizer [+ GAN])")
     add_config_arguments(tokenizer, default_scene="reconstruction")
-    tokenizer.add_argument("--out", help="run directory (default: <output_dir>/<name>-<time>-<hash>)")
-    tokenizer.add_argument("--resume", metavar="RUN", help="continue an interrupted run from its last checkpoint")
-    tokenizer.add_argument("--overwrite", action="store_true",
-                           help="empty the --out run directory first (refused for a folder that holds no run)")
+    add_run_arguments(tokenizer)
     tokenizer.set_defaults(handler=_train_tokenizer_command)
 
     reconstruct = subparsers.add_parser("reconstruct", help="encode and decode images with a trained tokenizer")
