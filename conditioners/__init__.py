@@ -1,6 +1,9 @@
 """Built-in conditioners: each module is one plugin registered through the conditioner hook.
 
 - ``label``: a learned embedding per class label;
-- ``tactile``: a small trainable convolutional encoder of a tactile image;
-- ``clip``: a frozen, locally supplied open_clip image encoder for visual images.
+- ``tactile`` and ``visual_cnn``: one small convolutional encoder trained from scratch
+  (:mod:`.image_cnn`), of the tactile or of the visual image;
+- ``visual``: the frozen ImageNet EfficientNet-Lite0 that installs offline, for visual images;
+- ``clip``: a frozen, locally supplied open_clip image encoder for visual images;
+- ``text_scratch``: a small word-level text encoder trained from scratch (hashed words, offline).
 """

@@ -50,14 +50,28 @@ SCENES: dict[str, tuple[str, dict]] = {
          "sensor": {"name": "gelsight"}, "target_sensor": {"name": "gelsight_mini"}, "data": _DATA},
     ),
     "vision-to-touch": (
-        "Generate the tactile image of a contact from a visual image of it (frozen CLIP condition).",
+        "Generate the tactile image of a contact from a visual image of it (frozen EfficientNet-Lite0 condition; "
+        "generator.conditioners.0.name=clip with local CLIP weights).",
         {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator"], "metrics": _METRICS,
-         "generator": _GENERATOR | {"conditioners": [{"name": "clip"}]}, "sensor": {"name": "gelsight"}, "data": _DATA},
+         "generator": _GENERATOR | {"conditioners": [{"name": "visual"}]}, "sensor": {"name": "gelsight"}, "data": _DATA},
     ),
     "label-to-touch": (
         "Generate tactile images of a given object class (label condition).",
         {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator"], "metrics": _METRICS,
          "generator": _GENERATOR | {"conditioners": [{"name": "label"}]}, "sensor": {"name": "gelsight"}, "data": _DATA},
+    ),
+    "text-to-touch": (
+        "Generate tactile images from a short text description (a text encoder trained from scratch).",
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator"], "metrics": _METRICS,
+         "generator": _GENERATOR | {"conditioners": [{"name": "text_scratch"}]}, "sensor": {"name": "gelsight"},
+         "data": _DATA},
+    ),
+    "mixed-to-touch": (
+        "One generator trained with a label, a visual image and a text, one condition per step; it generates "
+        "from any of them.",
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator"], "metrics": _METRICS,
+         "generator": _GENERATOR | {"conditioners": [{"name": "label"}, {"name": "visual"}, {"name": "text_scratch"}]},
+         "sensor": {"name": "gelsight"}, "data": _DATA},
     ),
     "touch-to-touch": (
         "Generate a tactile image for a target sensor from another tactile image (tactile condition).",

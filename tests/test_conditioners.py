@@ -11,9 +11,12 @@ CONTEXT = BuildContext(image_size=32, num_classes=4, cond_dim=16)
 
 
 def example_condition(conditioner, batch):
+    """The contract checks' example batch for the conditioner's sample key (labels, images or texts)."""
+    from vqtouch.core.testing import example_condition as contract_example
+
     if conditioner.sample_key == "label":
         return torch.arange(batch) % conditioner.num_classes
-    return torch.rand(batch, 3, 32, 32)
+    return contract_example(conditioner, batch, BuildContext(image_size=32))
 
 
 OFFLINE_CONDITIONERS = [name for name in load_plugins(autoload=False).registry("conditioner").names() if name != "clip"]

@@ -9,7 +9,7 @@ from vqtouch.core.config import apply_override, merge_configs, parse_override
 from vqtouch.core.stages import missing_slots, required_slots
 
 SCENES = ["reconstruction", "few-shot", "zero-shot", "cross-sensor", "vision-to-touch", "label-to-touch",
-          "touch-to-touch"]
+          "text-to-touch", "mixed-to-touch", "touch-to-touch"]
 BUILTIN_STAGES = ["adapt", "cluster", "generator", "reconstruct", "render", "tokenizer"]
 
 
@@ -151,7 +151,7 @@ def test_tokenizer_train_keeps_vqgan_betas_while_core_defaults_to_adamw(host):
 
 def test_unknown_plugin_lists_choices_and_closest(host):
     with pytest.raises(ConfigError, match=r"generator.conditioners.0: unknown conditioner 'lable'; available: clip, "
-                                          r"label, tactile; did you mean 'label'\?"):
+                                          r"label, tactile, text_scratch, visual, visual_cnn; did you mean 'label'\?"):
         resolve_config("label-to-touch", overrides=["generator.conditioners.0.name=lable"], host=host)
 
 

@@ -39,6 +39,9 @@ TINY_OPTIONS: dict[tuple[str, str], dict[str, Any]] = {
     ("discriminator", "patchgan"): {"channels": 8, "layers": 2},
     ("conditioner", "tactile"): {"width": 8, "depth": 2, "token_grid": 2},
     ("conditioner", "label"): {"num_tokens": 2},
+    ("conditioner", "visual"): {"token_grid": 2, "input_size": 32},
+    ("conditioner", "visual_cnn"): {"width": 8, "depth": 2, "token_grid": 2},
+    ("conditioner", "text_scratch"): {"depth": 1, "width": 16, "heads": 2, "vocab_buckets": 64, "max_words": 6},
     ("dataset", "procedural"): {"num_samples": 4},
     # A worn, noisy variant: its options must survive checkpoints and its noise follow the generator.
     **{("sensor_family", name): {"variant": {"response_scale": 0.8, "noise_std": 0.02, "damage_spots": 2, "seed": 3}}

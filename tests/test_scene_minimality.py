@@ -14,7 +14,7 @@ from vqtouch.core.assembly import Assembly
 from vqtouch.core.demo import run_demo
 from vqtouch.core.stages import required_slots
 
-HEAVY = ("open_clip", "torchvision.models", "timm")
+HEAVY = ("open_clip", "torchvision.models", "timm", "efficientnet_lite_pytorch")
 HOST = load_plugins(autoload=False)
 
 
@@ -55,20 +55,26 @@ def test_building_every_component_a_label_scene_needs_never_imports_open_clip():
     code = BUILD_SCENE.format(scene="label-to-touch") + (
         "assert [type(c).__name__ for c in built['generator.conditioners']] == ['LabelConditioner'], built\n"
         "assert type(built['tokenizer.autoencoder']).__name__ == 'VqganAutoencoder', built")
-    assert "open_clip" not in _modules_after(code)
+    assert _modules_after(code) == set()  # neither open_clip nor the EfficientNet of the visual conditioner
 
 
-def test_building_the_vision_scene_imports_open_clip_exactly_when_its_conditioner_is_built():
+def test_building_the_vision_scene_imports_its_encoder_exactly_when_its_conditioner_is_built():
     resolve_only = ("from vqtouch.core import load_plugins, resolve_config\n"
                     "host = load_plugins()\n"
                     "config = resolve_config('vision-to-touch', host=host)\n"
-                    "assert config.generator.conditioners[0].name == 'clip'")
-    assert "open_clip" not in _modules_after(resolve_only)
-    # Building the scene's components does import it (the clip conditioner then stops at its
-    # missing weights file): this checks the probe itself can see open_clip being imported.
+                    "assert config.generator.conditioners[0].name == 'visual'")
+    assert _modules_after(resolve_only) == set()
+    # Building the scene's components imports the frozen EfficientNet, and nothing else heavy: this
+    # also checks the probe itself can see a module being imported.
     code = BUILD_SCENE.format(scene="vision-to-touch") + (
+        "assert type(built['generator.conditioners'][0]).__name__ == 'VisualConditioner', built")
+    assert _modules_after(code) == {"efficientnet_lite_pytorch"}
+    # With the clip conditioner, open_clip (which then stops at its missing weights file).
+    clip = BUILD_SCENE.format(scene="vision-to-touch").replace(
+        "config = resolve_config('vision-to-touch', host=host)",
+        "config = resolve_config('vision-to-touch', overrides=['generator.conditioners.0.name=clip'], host=host)") + (
         "assert built['generator.conditioners'] == 'MissingWeightsError', built")
-    assert "open_clip" in _modules_after(code)
+    assert "open_clip" in _modules_after(clip) and "efficientnet_lite_pytorch" not in _modules_after(clip)
 
 
 def test_required_slots_come_from_the_stages_declarations():

