@@ -184,3 +184,25 @@ def test_label_to_touch_in_a_fresh_interpreter_never_imports_open_clip(trained, 
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
     assert result.stdout.split() == ["False", "False"]
+
+
+def test_scores_stand_next_to_the_no_contact_background_and_the_contact_region(trained):
+    result = json.loads((trained / "generation.json").read_text())
+    for key in ("psnr", "background_psnr", "contact_psnr", "background_contact_psnr", "contact_mae"):
+        assert isinstance(result[key], float), key
+    assert 0 < result["contact_fraction"] < 1
+
+
+def test_contact_region_scores_against_a_closed_form():
+    from vqtouch.plugins.generator.stage import contact_region_scores
+
+    background = torch.full((1, 3, 4, 4), 0.5)
+    truth = background.clone()
+    truth[..., :2, :] = 0.9  # the top half is in contact
+    images = background.clone()
+    images[..., :2, :] = 0.8  # off by 0.1 there, right elsewhere
+    scores = contact_region_scores(images, truth, background)
+    assert scores["contact_fraction"] == 0.5
+    assert scores["contact_mae"] == pytest.approx(0.1) and scores["background_contact_mae"] == pytest.approx(0.4)
+    assert scores["contact_psnr"] == pytest.approx(20.0, abs=1e-3)  # MSE 0.01
+    assert scores["background_contact_psnr"] == pytest.approx(10 * __import__("math").log10(1 / 0.16), abs=1e-3)

@@ -11,6 +11,7 @@ ground-truth tactile images (``generation.json``, ``samples.png``).
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -130,7 +131,9 @@ def train_generator(job: StageJob) -> dict[str, Any]:
 def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: Any, dataset: Any,
                   device: torch.device) -> dict[str, Any]:
     """Generate the first ``num_samples`` held-out conditions with the first conditioner and score
-    them against their ground-truth tactile images (``samples.png``: ground truth above generated)."""
+    them against their ground-truth tactile images (``samples.png``: ground truth above generated),
+    each score next to that of the sensor's no-contact image (``background_*``), plus scores on the
+    contact region (``contact_*``)."""
     section = job.section
     sampler = job.assembly.component("generator.sampler")
     count = min(section.num_samples, len(val_set))
@@ -151,20 +154,62 @@ def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: A
                               "guidance": section.guidance, "truncation": section.truncation,
                               "conditioner": job.config.generator.conditioners[0].name}
     metrics = job.assembly.build_slots(["metrics"]).get("metrics", [])
+    background = no_contact_image(job, truth)
     for item, metric in zip(job.config.metrics, metrics):
-        metric.reset()
-        metric.update(images.cpu(), truth.cpu())
-        scores[item.name] = round(metric.compute(), 4)
+        for prefix, predicted in (("", images), ("background_", background)):
+            metric.reset()
+            metric.update(predicted.cpu(), truth.cpu())
+            scores[prefix + item.name] = round(metric.compute(), 4)
+    if background is not None:
+        scores |= contact_region_scores(images, truth, background)
     columns = min(count, 8)
     save_png(image_grid(torch.cat([truth[:columns], images[:columns]]).cpu(), columns=columns),
              job.run.path / "samples.png")
     return scores
 
 
+#: A pixel belongs to the contact region where the ground truth differs from the sensor's no-contact
+#: image by more than this (mean absolute difference over the channels, images in [0, 1]).
+CONTACT_THRESHOLD = 0.02
+
+
+def no_contact_image(job: StageJob, truth_B3HW: torch.Tensor) -> torch.Tensor | None:
+    """The experiment's sensor rendering no contact, one copy per ground-truth image: what a generator
+    that ignores its condition and draws only the background would score.  None when the run has no
+    sensor (data read from files)."""
+    if job.config.sensor is None:
+        return None
+    size = truth_B3HW.shape[-1]
+    sensor = job.assembly.sensor()
+    flat = sensor.render(torch.zeros(1, size, size), generator=torch.Generator().manual_seed(0))
+    return flat.to(truth_B3HW).expand_as(truth_B3HW)
+
+
+def contact_region_scores(images_B3HW: torch.Tensor, truth_B3HW: torch.Tensor,
+                          background_B3HW: torch.Tensor) -> dict[str, float]:
+    """Scores on the contact region only (pixels where the ground truth differs from the no-contact
+    image, see ``CONTACT_THRESHOLD``): PSNR and mean absolute error of the generated images and of
+    the background, and the region's share of the pixels.  Whole-image scores flatter a model that
+    draws only the background; these do not."""
+    images, truth, background = (x.detach().float().cpu() for x in (images_B3HW, truth_B3HW, background_B3HW))
+    region_BHW = (truth - background).abs().mean(dim=1) > CONTACT_THRESHOLD
+    if not bool(region_BHW.any()):
+        return {"contact_fraction": 0.0}
+    mask = region_BHW.unsqueeze(1).expand_as(truth)
+    scores = {"contact_fraction": round(float(region_BHW.float().mean()), 4)}
+    for prefix, predicted in (("", images), ("background_", background)):
+        error = (predicted - truth)[mask]
+        mse = float(error.square().mean())
+        scores[f"{prefix}contact_psnr"] = round(10 * math.log10(1 / max(mse, 1e-10)), 4)
+        scores[f"{prefix}contact_mae"] = round(float(error.abs().mean()), 5)
+    return scores
+
+
 def run_generator_stage(job: StageJob) -> dict[str, Any]:
     """The ``generator`` stage: train, then the sample scores for the report."""
     result = train_generator(job)
-    shown = {key: result[key] for key in ("step", "samples", "sampler", "steps", "ssim", "psnr", "best_step")
+    shown = {key: result[key] for key in ("step", "samples", "sampler", "steps", "ssim", "background_ssim", "psnr",
+                                          "background_psnr", "contact_psnr", "background_contact_psnr", "best_step")
              if key in result}
     return {**shown, **({"picture": "samples.png"} if "samples" in result else {})}
 
