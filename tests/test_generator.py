@@ -206,3 +206,17 @@ def test_contact_region_scores_against_a_closed_form():
     assert scores["contact_mae"] == pytest.approx(0.1) and scores["background_contact_mae"] == pytest.approx(0.4)
     assert scores["contact_psnr"] == pytest.approx(20.0, abs=1e-3)  # MSE 0.01
     assert scores["background_contact_psnr"] == pytest.approx(10 * __import__("math").log10(1 / 0.16), abs=1e-3)
+
+
+def test_evaluate_generation_rescores_a_run_reproducibly(trained, capsys):
+    args = ["evaluate", "generation", "--run", str(trained), "--n", "3", "--steps", "3", "--sampler", "confidence"]
+    assert main(args) == 0
+    out = trained / "evaluation_generation_step-00000006_confidence_3.json"
+    first = json.loads(out.read_text())
+    assert first["samples"] == 3 and first["sampler"] == "confidence" and first["conditioner"] == "0:label"
+    assert {"psnr", "background_psnr", "contact_psnr"} <= set(first)
+    assert main(args) == 0 and json.loads(out.read_text()) == first
+    capsys.readouterr()
+    assert main([*args, "--conditioner", "1"]) == 2
+    assert capsys.readouterr().err == ("vqtouch: error: --conditioner 1: this generator has conditioners 0..0 "
+                                       "(label)\n")

@@ -109,6 +109,47 @@ def _generate_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def _evaluate_generation_command(args: argparse.Namespace) -> int:
+    from vqtouch.core.data import split_dataset
+
+    from .pipeline import load_pipeline
+    from .stage import score_generation
+
+    host = args.host
+    pipe = load_pipeline(args.run, host=host, step=args.step)
+    run = RunDir.open(args.run)
+    config = run.load_config(host)
+    assembly = Assembly(config, host)
+    dataset = assembly.component("data.dataset")
+    _, held_out = split_dataset(dataset, config.data.val_fraction, config.seed)
+    names = [item.name for item in config.generator.conditioners]
+    index = args.conditioner if args.conditioner is not None else 0
+    if not 0 <= index < len(names):
+        raise ConfigError(f"--conditioner {index}: this generator has conditioners 0..{len(names) - 1} "
+                          f"({', '.join(names)})")
+    sampler_name = args.sampler or pipe.sampler_name
+    steps = args.steps or pipe.settings["steps"]
+    limit = getattr(pipe.generator, "max_steps", steps)
+    if steps > limit:
+        raise ConfigError(f"--steps {steps}: steps must be an integer in [1, {limit}] (the generator's diffusion steps)")
+    metric_names = args.metrics.split(",") if args.metrics else [item.name for item in config.metrics]
+    tag = f"{pipe.checkpoint.name}_{sampler_name}_{steps}"
+    scores = score_generation(
+        generator=pipe.generator, conditioner=pipe.conditioners[index], tokenizer=pipe.tokenizer,
+        sampler=host.build("sampler", sampler_name), held_out=held_out, dataset=dataset,
+        metrics=[(name, assembly.build("metric", name)) for name in metric_names],
+        sensor=assembly.sensor() if config.sensor is not None else None, count=args.n, steps=steps,
+        guidance=pipe.settings["guidance"] if args.guidance is None else args.guidance,
+        truncation=pipe.settings["truncation"] if args.truncation is None else args.truncation,
+        seed=config.seed if args.seed is None else args.seed, device=pipe.device,
+        picture=run.path / f"samples_{tag}.png")
+    result = {"checkpoint": str(pipe.checkpoint), "conditioner": f"{index}:{names[index]}", "sampler": sampler_name,
+              **scores}
+    run.write_json(f"evaluation_generation_{tag}.json", result)
+    print(json.dumps(result, indent=2))
+    return 0
+
+
 class _CountAction(argparse.Action):
     """``--n`` that remembers it was given (a single condition value is then repeated)."""
 
@@ -133,6 +174,22 @@ def vqtouch_add_commands(subparsers):
     add_run_arguments(generator)
     generator.add_argument("--tokenizer", metavar="RUN", help="use the tokenizer trained in this run")
     generator.set_defaults(handler=_train_generator_command)
+
+    evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
+    scored = evaluate.add_parser("generation", help="generate the run's held-out conditions and score them against "
+                                                    "their ground truth, the no-contact background and the contact "
+                                                    "region")
+    scored.add_argument("--run", required=True, help="a run whose generator stage trained")
+    add_step_argument(scored)
+    scored.add_argument("--conditioner", type=int, help="which of the generator's conditioners (index; default 0)")
+    scored.add_argument("--n", type=_positive_int, default=64, help="held-out conditions to generate (at most all)")
+    scored.add_argument("--steps", type=_positive_int, help="sampling steps (default: the run's generator.steps)")
+    scored.add_argument("--sampler", help="sampler plugin (default: the run's generator.sampler)")
+    scored.add_argument("--guidance", type=float, help="classifier-free guidance scale (1: none)")
+    scored.add_argument("--truncation", type=float, help="keep the most likely codes holding this mass (1: all)")
+    scored.add_argument("--seed", type=int, help="seed of the sampling draws (default: the run's)")
+    scored.add_argument("--metrics", help="comma-separated metric plugins (default: the run's metrics)")
+    scored.set_defaults(handler=_evaluate_generation_command)
 
     generate = subparsers.add_parser("generate", help="generate tactile images with a trained generator run")
     generate.add_argument("--run", required=True, help="a run whose generator stage trained")

@@ -128,43 +128,63 @@ def train_generator(job: StageJob) -> dict[str, Any]:
 
 
 @torch.no_grad()
-def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: Any, dataset: Any,
-                  device: torch.device) -> dict[str, Any]:
-    """Generate the first ``num_samples`` held-out conditions with the first conditioner and score
-    them against their ground-truth tactile images (``samples.png``: ground truth above generated),
-    each score next to that of the sensor's no-contact image (``background_*``), plus scores on the
-    contact region (``contact_*``)."""
-    section = job.section
-    sampler = job.assembly.component("generator.sampler")
-    count = min(section.num_samples, len(val_set))
-    indices = [val_set.indices[i] for i in range(count)]
-    batch = collate_samples([val_set[i] for i in range(count)])
+def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sampler: Any, held_out: Any, dataset: Any,
+                     metrics: list[tuple[str, Any]], sensor: Any, count: int, steps: int, guidance: float,
+                     truncation: float, seed: int, device: torch.device, picture: Path | None = None
+                     ) -> dict[str, Any]:
+    """Generate the first ``count`` held-out conditions (``held_out``: a subset of ``dataset`` with
+    ``indices``) with ``conditioner`` and score them against their ground-truth tactile images,
+    each score next to that of the sensor's no-contact image (``background_*``; none without a
+    sensor), plus scores on the contact region (``contact_*``).  Sample i is drawn with a
+    generator seeded from (seed, its dataset index), so a score does not depend on ``count``.
+    ``picture``: where to save ground truth (top) above generated (bottom)."""
+    count = min(count, len(held_out))
+    indices = [held_out.indices[i] for i in range(count)]
+    batch = collate_samples([held_out[i] for i in range(count)])
     batch = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
     truth = torch.stack([dataset[index]["tactile"] for index in indices]).to(device)
-    for module in task.modules.values():
-        module.eval()
-    conditioner = task.conditioners[0]
+    generator.eval()
+    conditioner.eval()
     condition = conditioner(conditioner.condition_of(batch))
-    null = conditioner.null(count)
-    generators = [torch.Generator(device=device).manual_seed(job.config.seed * 100_003 + index) for index in indices]
-    codes = task.generator.sample(condition, sampler, steps=section.steps, null=null, guidance=section.guidance,
-                                  truncation=section.truncation, generators=generators)
+    draws = [torch.Generator(device=device).manual_seed(seed * 100_003 + index) for index in indices]
+    codes = generator.sample(condition, sampler, steps=steps, null=conditioner.null(count), guidance=guidance,
+                             truncation=truncation, generators=draws)
     images = tokenizer.decode_codes(codes)
-    scores: dict[str, Any] = {"samples": count, "sampler": section.sampler.name, "steps": section.steps,
-                              "guidance": section.guidance, "truncation": section.truncation,
-                              "conditioner": job.config.generator.conditioners[0].name}
-    metrics = job.assembly.build_slots(["metrics"]).get("metrics", [])
-    background = no_contact_image(job, truth)
-    for item, metric in zip(job.config.metrics, metrics):
-        for prefix, predicted in (("", images), ("background_", background)):
+    scores: dict[str, Any] = {"samples": count, "steps": steps, "guidance": guidance, "truncation": truncation}
+    background = no_contact_image(sensor, truth)
+    compared = [("", images)] + ([("background_", background)] if background is not None else [])
+    for name, metric in metrics:
+        for prefix, predicted in compared:
             metric.reset()
             metric.update(predicted.cpu(), truth.cpu())
-            scores[prefix + item.name] = round(metric.compute(), 4)
+            scores[prefix + name] = round(metric.compute(), 4)
     if background is not None:
         scores |= contact_region_scores(images, truth, background)
-    columns = min(count, 8)
-    save_png(image_grid(torch.cat([truth[:columns], images[:columns]]).cpu(), columns=columns),
-             job.run.path / "samples.png")
+    if picture is not None:
+        columns = min(count, 8)
+        save_png(image_grid(torch.cat([truth[:columns], images[:columns]]).cpu(), columns=columns), picture)
+    return scores
+
+
+def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: Any, dataset: Any,
+                  device: torch.device) -> dict[str, Any]:
+    """The stage's scores: :func:`score_generation` of the held-out conditions with the first
+    conditioner (``samples.png``) and, for a generator trained with several, with each of them
+    (``by_conditioner``)."""
+    section, config = job.section, job.config
+    metrics = list(zip((item.name for item in config.metrics),
+                       job.assembly.build_slots(["metrics"]).get("metrics", [])))
+    common = dict(generator=task.generator, tokenizer=tokenizer, sampler=job.assembly.component("generator.sampler"),
+                  held_out=val_set, dataset=dataset, metrics=metrics,
+                  sensor=job.assembly.sensor() if config.sensor is not None else None, count=section.num_samples,
+                  steps=section.steps, guidance=section.guidance, truncation=section.truncation, seed=config.seed,
+                  device=device)
+    names = [item.name for item in config.generator.conditioners]
+    scores = {"sampler": section.sampler.name, "conditioner": names[0],
+              **score_generation(conditioner=task.conditioners[0], picture=job.run.path / "samples.png", **common)}
+    if len(names) > 1:
+        scores["by_conditioner"] = {f"{index}:{name}": score_generation(conditioner=conditioner, **common)
+                                    for index, (name, conditioner) in enumerate(zip(names, task.conditioners))}
     return scores
 
 
@@ -173,14 +193,12 @@ def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: A
 CONTACT_THRESHOLD = 0.02
 
 
-def no_contact_image(job: StageJob, truth_B3HW: torch.Tensor) -> torch.Tensor | None:
-    """The experiment's sensor rendering no contact, one copy per ground-truth image: what a generator
-    that ignores its condition and draws only the background would score.  None when the run has no
-    sensor (data read from files)."""
-    if job.config.sensor is None:
+def no_contact_image(sensor: Any, truth_B3HW: torch.Tensor) -> torch.Tensor | None:
+    """``sensor`` rendering no contact, one copy per ground-truth image: what a generator that ignores
+    its condition and draws only the background would score.  None without a sensor."""
+    if sensor is None:
         return None
     size = truth_B3HW.shape[-1]
-    sensor = job.assembly.sensor()
     flat = sensor.render(torch.zeros(1, size, size), generator=torch.Generator().manual_seed(0))
     return flat.to(truth_B3HW).expand_as(truth_B3HW)
 
