@@ -74,7 +74,8 @@ SCENES: dict[str, tuple[str, dict]] = {
          "sensor": {"name": "gelsight"}, "data": _DATA},
     ),
     "touch-to-touch": (
-        "Generate a tactile image for a target sensor from another tactile image (tactile condition).",
+        "Generate a tactile image for a target sensor from another tactile image (tactile condition; paired data "
+        "of two sensors are not implemented yet, so the condition is the target image itself).",
         {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator"], "metrics": _METRICS,
          "generator": _GENERATOR | {"conditioners": [{"name": "tactile"}]}, "sensor": {"name": "gelsight"}, "target_sensor": {"name": "digit"},
          "data": _DATA},

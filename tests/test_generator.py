@@ -220,3 +220,19 @@ def test_evaluate_generation_rescores_a_run_reproducibly(trained, capsys):
     assert main([*args, "--conditioner", "1"]) == 2
     assert capsys.readouterr().err == ("vqtouch: error: --conditioner 1: this generator has conditioners 0..0 "
                                        "(label)\n")
+
+
+
+def test_a_condition_that_is_the_target_image_is_flagged(trained, tmp_path, capsys):
+    """Until paired touch-to-touch data exist, a tactile conditioner reads the image it must produce."""
+    overrides = [o for o in TINY if not o.startswith("tokenizer.")] + [
+        "generator.conditioners.0.width=8", "generator.conditioners.0.depth=1", "generator.train.steps=1",
+        "generator.num_samples=1", "generator.steps=1"]
+    args = ["--no-progress", "train", "generator", "--scene", "touch-to-touch", "--tokenizer", str(trained),
+            "--out", str(tmp_path / "t2t")]
+    for override in overrides:
+        args += ["--set", override]
+    capsys.readouterr()
+    assert main(args) == 0
+    assert ("vqtouch: warning: a conditioner reads samples' 'tactile' image, which is also the image the generator "
+            "learns to produce") in capsys.readouterr().err

@@ -12,6 +12,7 @@ ground-truth tactile images (``generation.json``, ``samples.png``).
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -20,11 +21,16 @@ from pydantic import Field
 
 from vqtouch.core import RunDir, Section, Slot, StageJob, StageUnavailable, hookimpl, resolve_device
 from vqtouch.core.data import split_dataset
+from vqtouch.core.errors import VqtouchWarning
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.core.training import Trainer, collate_samples, step_folders
 
 from .training import CodesDataset, GeneratorTask, GeneratorTrainConfig
+
+class ConditionIsTargetWarning(VqtouchWarning):
+    """A conditioner reads the very image the generator learns to produce."""
+
 
 #: Where a run keeps the generator's checkpoints, below its checkpoints/ folder.
 CHECKPOINT_FOLDER = "generator"
@@ -103,6 +109,10 @@ def train_generator(job: StageJob) -> dict[str, Any]:
         raise StageUnavailable(f"the tokenizer makes {tuple(codes_NHW.shape[1:])} code grids but the generator was "
                                f"built for {tuple(grid)}; data.image_size must be the tokenizer's")
     keys = list(dict.fromkeys(conditioner.sample_key for conditioner in conditioners))
+    if "tactile" in keys:
+        warnings.warn("a conditioner reads samples' 'tactile' image, which is also the image the generator learns to "
+                      "produce: it can learn to copy its condition (paired touch-to-touch data, a second sensor's "
+                      "image of the same contact, are not implemented yet)", ConditionIsTargetWarning, stacklevel=2)
     data = CodesDataset.collect(codes_NHW, dataset, keys)
     train_set, val_set = split_dataset(data, config.data.val_fraction, config.seed)
     task = GeneratorTask(generator, conditioners, section.train.condition_dropout, config.seed)
