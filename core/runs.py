@@ -300,6 +300,25 @@ class RunDir:
         self._check_files(folder, host)
         return folder
 
+    def resume(self, trainer: Any, host: Any, *, stage: str | None = None, required_files: Sequence[str] = ()) -> bool:
+        """Put ``trainer`` at this run's newest good checkpoint (of ``stage``'s folder, see
+        :meth:`checkpoint`), checked against the run's config; prints where it resumed.
+
+        A run without any step folder starts from step 0, dropping the metric lines an
+        interrupted attempt logged; step folders that are all unusable raise
+        :class:`MissingCheckpointError` rather than silently starting over.  Returns whether a
+        checkpoint was loaded.
+        """
+        from .training import step_folders
+
+        checkpoints = self.checkpoints / stage if stage else self.checkpoints
+        folder = (self.checkpoint(host, stage=stage, required_files=required_files)
+                  if step_folders(checkpoints) else checkpoints)
+        if not trainer.resume(folder):
+            return False
+        print(f"resumed {self.path} at step {trainer.state.step} ({folder.name})")
+        return True
+
     def best_step(self, host: Any, required_files: Sequence[str] = (), stage: str | None = None) -> int:
         """The step whose checkpoint scored best on the held-out split, as the newest good checkpoint's
         trainer state records it; MissingCheckpointError when the run kept none."""

@@ -24,7 +24,7 @@ from vqtouch.core.data import split_dataset
 from vqtouch.core.errors import VqtouchWarning
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
-from vqtouch.core.training import Trainer, collate_samples, step_folders
+from vqtouch.core.training import Trainer, collate_samples
 
 from .training import CodesDataset, GeneratorTask, GeneratorTrainConfig
 
@@ -120,11 +120,7 @@ def train_generator(job: StageJob) -> dict[str, Any]:
                       device=device, checkpoint_dir=job.run.checkpoints / CHECKPOINT_FOLDER, run=job.run,
                       num_workers=0, host=job.host, stage=job.stage, val_dataset=val_set)
     if job.resume:
-        folder = None
-        if step_folders(job.run.checkpoints / CHECKPOINT_FOLDER):
-            folder = job.run.checkpoint(job.host, stage=CHECKPOINT_FOLDER)
-        if trainer.resume(folder or job.run.checkpoints / CHECKPOINT_FOLDER):
-            print(f"resumed {job.run.path} at step {trainer.state.step} ({folder.name})")
+        job.run.resume(trainer, job.host, stage=CHECKPOINT_FOLDER)
     state = trainer.fit()
     result: dict[str, Any] = {"step": state.step, "train_samples": len(train_set), "val_samples": len(val_set),
                               "code_cache": cache, "tokenizer": str(tokenizer_folder)}

@@ -61,11 +61,7 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
                       device=device, checkpoint_dir=job.run.checkpoints, run=job.run,
                       num_workers=config.data.num_workers, host=job.host, stage=job.stage, val_dataset=val_set)
     if job.resume:
-        folder = _resume_folder(job)
-        # With no checkpoint folder, resume() starts at step 0 and drops the lines that the
-        # interrupted attempt logged.
-        if trainer.resume(folder or job.run.checkpoints):
-            print(f"resumed {job.run.path} at step {trainer.state.step} ({folder.name})")
+        job.run.resume(trainer, job.host, required_files=TOKENIZER_FILES)
     state = trainer.fit()
     metrics = dict(zip((item.name for item in config.metrics), assembly.build_slots(["metrics"]).get("metrics", [])))
     try:
@@ -81,18 +77,6 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
                                          "train_samples": len(train_set), "val_samples": len(val_set),
                                          **printable(scores)})
     return scores
-
-
-def _resume_folder(job: StageJob) -> Path | None:
-    """The checkpoint folder to resume the run from: its newest good one, checked against the
-    run's config (a folder mixing two runs raises CheckpointError); None when the run has no
-    checkpoint folder at all (training starts from step 0).  Step folders that are all unusable raise
-    MissingCheckpointError rather than silently starting over."""
-    from vqtouch.core.training import step_folders
-
-    if not step_folders(job.run.checkpoints):
-        return None
-    return job.run.checkpoint(job.host, required_files=TOKENIZER_FILES)
 
 
 def run_tokenizer_stage(job: StageJob) -> dict[str, Any]:
