@@ -201,7 +201,7 @@ def test_contact_region_scores_against_a_closed_form():
     truth[..., :2, :] = 0.9  # the top half is in contact
     images = background.clone()
     images[..., :2, :] = 0.8  # off by 0.1 there, right elsewhere
-    scores = contact_region_scores(images, truth, background)
+    scores = contact_region_scores({"": images, "background_": background}, truth, background)
     assert scores["contact_fraction"] == 0.5
     assert scores["contact_mae"] == pytest.approx(0.1) and scores["background_contact_mae"] == pytest.approx(0.4)
     assert scores["contact_psnr"] == pytest.approx(20.0, abs=1e-3)  # MSE 0.01
@@ -236,3 +236,29 @@ def test_a_condition_that_is_the_target_image_is_flagged(trained, tmp_path, caps
     assert main(args) == 0
     assert ("vqtouch: warning: a conditioner reads samples' 'tactile' image, which is also the image the generator "
             "learns to produce") in capsys.readouterr().err
+
+
+def test_the_baselines_stand_beside_every_score(trained):
+    result = json.loads((trained / "generation.json").read_text())
+    for prefix in ("ceiling_", "retrieval_", "class_mean_", "background_"):
+        assert isinstance(result[prefix + "psnr"], float) and isinstance(result[prefix + "contact_psnr"], float), prefix
+    assert len({result[prefix + "psnr"] for prefix in ("", "ceiling_", "retrieval_", "class_mean_", "background_")}) == 5
+
+
+def test_retrieval_and_class_mean_against_hand_built_training_data():
+    from vqtouch.core import Conditioner
+    from vqtouch.plugins.generator.stage import training_baselines
+
+    class Onehot(Conditioner):
+        sample_key = "label"
+
+        def encode(self, condition):
+            return torch.nn.functional.one_hot(torch.as_tensor(condition), 3).float().unsqueeze(1)
+
+    conditioner = Onehot(cond_dim=3, num_tokens=1)
+    train = [{"label": label, "tactile": torch.full((3, 2, 2), value)}
+             for label, value in ((0, 0.1), (1, 0.5), (0, 0.3), (2, 0.9))]
+    batch = {"label": torch.tensor([0, 2])}
+    baselines = training_baselines(conditioner, conditioner(batch["label"]), batch, train, torch.device("cpu"))
+    assert baselines["retrieval_"][:, 0, 0, 0].tolist() == pytest.approx([0.1, 0.9])  # first image of each label
+    assert baselines["class_mean_"][:, 0, 0, 0].tolist() == pytest.approx([0.2, 0.9])  # mean of 0.1 and 0.3

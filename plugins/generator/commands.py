@@ -121,7 +121,7 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
     config = run.load_config(host)
     assembly = Assembly(config, host)
     dataset = assembly.component("data.dataset")
-    _, held_out = split_dataset(dataset, config.data.val_fraction, config.seed)
+    train, held_out = split_dataset(dataset, config.data.val_fraction, config.seed)
     names = [item.name for item in config.generator.conditioners]
     index = args.conditioner if args.conditioner is not None else 0
     if not 0 <= index < len(names):
@@ -136,7 +136,7 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
     tag = f"{pipe.checkpoint.name}_{sampler_name}_{steps}"
     scores = score_generation(
         generator=pipe.generator, conditioner=pipe.conditioners[index], tokenizer=pipe.tokenizer,
-        sampler=host.build("sampler", sampler_name), held_out=held_out, dataset=dataset,
+        sampler=host.build("sampler", sampler_name), held_out=held_out, dataset=dataset, train=train,
         metrics=[(name, assembly.build("metric", name)) for name in metric_names],
         sensor=assembly.sensor() if config.sensor is not None else None, count=args.n, steps=steps,
         guidance=pipe.settings["guidance"] if args.guidance is None else args.guidance,

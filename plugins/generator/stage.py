@@ -20,7 +20,7 @@ import torch
 from pydantic import Field
 
 from vqtouch.core import RunDir, Section, Slot, StageJob, StageUnavailable, hookimpl, resolve_device
-from vqtouch.core.data import split_dataset
+from vqtouch.core.data import DatasetSubset, split_dataset
 from vqtouch.core.errors import VqtouchWarning
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
@@ -128,7 +128,7 @@ def train_generator(job: StageJob) -> dict[str, Any]:
         result |= {"best_step": state.best_step, "best_val_loss": state.best_score}
     if trainer.dist.is_main:
         if section.num_samples and len(val_set) and section.sampler is not None:
-            result |= score_samples(job, tokenizer, task, val_set, dataset, device)
+            result |= score_samples(job, tokenizer, task, val_set, train_set, dataset, device)
         job.run.write_json("generation.json", result)
     return result
 
@@ -136,14 +136,19 @@ def train_generator(job: StageJob) -> dict[str, Any]:
 @torch.no_grad()
 def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sampler: Any, held_out: Any, dataset: Any,
                      metrics: list[tuple[str, Any]], sensor: Any, count: int, steps: int, guidance: float,
-                     truncation: float, seed: int, device: torch.device, picture: Path | None = None
-                     ) -> dict[str, Any]:
+                     truncation: float, seed: int, device: torch.device, picture: Path | None = None,
+                     train: Any = None) -> dict[str, Any]:
     """Generate the first ``count`` held-out conditions (``held_out``: a subset of ``dataset`` with
-    ``indices``) with ``conditioner`` and score them against their ground-truth tactile images,
-    each score next to that of the sensor's no-contact image (``background_*``; none without a
-    sensor), plus scores on the contact region (``contact_*``).  Sample i is drawn with a
-    generator seeded from (seed, its dataset index), so a score does not depend on ``count``.
-    ``picture``: where to save ground truth (top) above generated (bottom)."""
+    ``indices``) with ``conditioner`` and score them against their ground-truth tactile images.
+
+    Next to each score stand the honest comparisons under the same protocol: the sensor's
+    no-contact image (``background_*``; none without a sensor), the tokenizer's own reconstruction
+    of the ground truth (``ceiling_*``: no generator over these codes can do better) and, given the
+    ``train`` split, the nearest training image by condition tokens (``retrieval_*``) and, for a
+    label condition, the mean training image of the label (``class_mean_*``).  Every one is also
+    scored on the contact region (``contact_*``).  Sample i is drawn with a generator seeded from
+    (seed, its dataset index), so a score does not depend on ``count``.  ``picture``: where to save
+    ground truth (top) above generated (bottom)."""
     count = min(count, len(held_out))
     indices = [held_out.indices[i] for i in range(count)]
     batch = collate_samples([held_out[i] for i in range(count)])
@@ -158,21 +163,58 @@ def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sample
     images = tokenizer.decode_codes(codes)
     scores: dict[str, Any] = {"samples": count, "steps": steps, "guidance": guidance, "truncation": truncation}
     background = no_contact_image(sensor, truth)
-    compared = [("", images)] + ([("background_", background)] if background is not None else [])
+    compared = {"": images, "ceiling_": tokenizer.decode_codes(tokenizer.encode_codes(truth))}
+    if background is not None:
+        compared["background_"] = background
+    if train is not None and len(train):
+        compared |= training_baselines(conditioner, condition, batch, train, device)
     for name, metric in metrics:
-        for prefix, predicted in compared:
+        for prefix, predicted in compared.items():
             metric.reset()
             metric.update(predicted.cpu(), truth.cpu())
             scores[prefix + name] = round(metric.compute(), 4)
     if background is not None:
-        scores |= contact_region_scores(images, truth, background)
+        scores |= contact_region_scores(compared, truth, background)
     if picture is not None:
         columns = min(count, 8)
         save_png(image_grid(torch.cat([truth[:columns], images[:columns]]).cpu(), columns=columns), picture)
     return scores
 
 
-def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: Any, dataset: Any,
+#: The most training samples the retrieval and class-mean baselines look at (the first ones of
+#: the split): their tactile images are held in memory.
+BASELINE_POOL = 2000
+
+
+@torch.no_grad()
+def training_baselines(conditioner: Any, condition: Any, batch: dict[str, Any], train: Any,
+                       device: torch.device) -> dict[str, torch.Tensor]:
+    """Baselines that use the training split (its first ``BASELINE_POOL`` samples): for each held-out
+    condition, the training tactile image whose condition tokens are nearest (cosine similarity of
+    the mean token; ties go to the earlier sample), and for labels the mean training image of the
+    label (the mean of all training images for a label the pool lacks)."""
+    pool = [train[i] for i in range(min(len(train), BASELINE_POOL))]
+    images_N3HW = torch.stack([sample["tactile"] for sample in pool]).to(device)
+    key = conditioner.sample_key
+    keys_ND = []
+    for start in range(0, len(pool), 64):
+        chunk = collate_samples([{key: sample[key]} for sample in pool[start:start + 64]])
+        chunk = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in chunk.items()}
+        keys_ND.append(conditioner(conditioner.condition_of(chunk)).tokens_BND.float().mean(dim=1))
+    similarity_BN = (torch.nn.functional.normalize(condition.tokens_BND.float().mean(dim=1), dim=-1)
+                     @ torch.nn.functional.normalize(torch.cat(keys_ND), dim=-1).T)
+    # argmax returns the first of equal maxima: a label's nearest is its first training image.
+    baselines = {"retrieval_": images_N3HW[similarity_BN.argmax(dim=1)]}
+    if key == "label":
+        labels_N = torch.as_tensor([int(sample["label"]) for sample in pool], device=device)
+        overall = images_N3HW.mean(dim=0)
+        means = [images_N3HW[labels_N == int(label)].mean(dim=0) if bool((labels_N == int(label)).any()) else overall
+                 for label in batch["label"]]
+        baselines["class_mean_"] = torch.stack(means)
+    return baselines
+
+
+def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: Any, train_set: Any, dataset: Any,
                   device: torch.device) -> dict[str, Any]:
     """The stage's scores: :func:`score_generation` of the held-out conditions with the first
     conditioner (``samples.png``) and, for a generator trained with several, with each of them
@@ -184,7 +226,7 @@ def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: A
                   held_out=val_set, dataset=dataset, metrics=metrics,
                   sensor=job.assembly.sensor() if config.sensor is not None else None, count=section.num_samples,
                   steps=section.steps, guidance=section.guidance, truncation=section.truncation, seed=config.seed,
-                  device=device)
+                  device=device, train=DatasetSubset(dataset, train_set.indices))
     names = [item.name for item in config.generator.conditioners]
     scores = {"sampler": section.sampler.name, "conditioner": names[0],
               **score_generation(conditioner=task.conditioners[0], picture=job.run.path / "samples.png", **common)}
@@ -209,20 +251,20 @@ def no_contact_image(sensor: Any, truth_B3HW: torch.Tensor) -> torch.Tensor | No
     return flat.to(truth_B3HW).expand_as(truth_B3HW)
 
 
-def contact_region_scores(images_B3HW: torch.Tensor, truth_B3HW: torch.Tensor,
+def contact_region_scores(candidates: dict[str, torch.Tensor], truth_B3HW: torch.Tensor,
                           background_B3HW: torch.Tensor) -> dict[str, float]:
     """Scores on the contact region only (pixels where the ground truth differs from the no-contact
-    image, see ``CONTACT_THRESHOLD``): PSNR and mean absolute error of the generated images and of
-    the background, and the region's share of the pixels.  Whole-image scores flatter a model that
-    draws only the background; these do not."""
-    images, truth, background = (x.detach().float().cpu() for x in (images_B3HW, truth_B3HW, background_B3HW))
+    image, see ``CONTACT_THRESHOLD``): ``{prefix}contact_psnr`` and ``{prefix}contact_mae`` of each
+    candidate (``{"": generated, "background_": ..., ...}``), and the region's share of the pixels.
+    Whole-image scores flatter a model that draws only the background; these do not."""
+    truth, background = (x.detach().float().cpu() for x in (truth_B3HW, background_B3HW))
     region_BHW = (truth - background).abs().mean(dim=1) > CONTACT_THRESHOLD
     if not bool(region_BHW.any()):
         return {"contact_fraction": 0.0}
     mask = region_BHW.unsqueeze(1).expand_as(truth)
     scores = {"contact_fraction": round(float(region_BHW.float().mean()), 4)}
-    for prefix, predicted in (("", images), ("background_", background)):
-        error = (predicted - truth)[mask]
+    for prefix, predicted in candidates.items():
+        error = (predicted.detach().float().cpu() - truth)[mask]
         mse = float(error.square().mean())
         scores[f"{prefix}contact_psnr"] = round(10 * math.log10(1 / max(mse, 1e-10)), 4)
         scores[f"{prefix}contact_mae"] = round(float(error.abs().mean()), 5)
