@@ -18,6 +18,8 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
+from .errors import ConfigError, DatasetError, unknown_name_message
+
 
 class BuildContext(BaseModel):
     """Facts a factory needs that belong to the experiment rather than to the plugin.
@@ -110,19 +112,15 @@ class Conditioner(nn.Module, abc.ABC):
         index or one of ``class_names``, ``"text"`` takes the text.  A conditioner that reads
         another key overrides this.  Raises ConfigError saying what was wrong.
         """
-        from .errors import ConfigError
-
         key = self.sample_key
         if key in ("tactile", "visual"):
             if isinstance(value, torch.Tensor):
                 return value
-            from .images import ImageLoader
+            from .images import ImageLoader  # images -> checkpoint -> components: imported when used
 
             path = Path(str(value))
             if not path.is_file():
                 raise ConfigError(f"--{key} {value}: no such image file")
-            from .errors import DatasetError
-
             try:
                 return ImageLoader(size=image_size).load(path)
             except DatasetError as exc:
@@ -134,8 +132,6 @@ class Conditioner(nn.Module, abc.ABC):
             elif text in class_names:
                 label = list(class_names).index(text)
             else:
-                from .errors import unknown_name_message
-
                 raise ConfigError(f"--label: {unknown_name_message('class', text, class_names)} (or give an index)")
             if class_names and not 0 <= label < len(class_names):
                 raise ConfigError(f"--label {label}: out of range; this run's classes are 0..{len(class_names) - 1} "
