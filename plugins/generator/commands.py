@@ -113,7 +113,7 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
     from vqtouch.core.data import split_dataset
 
     from .pipeline import load_pipeline
-    from .stage import score_generation
+    from .stage import baseline_pool, score_generation
 
     host = args.host
     pipe = load_pipeline(args.run, host=host, step=args.step)
@@ -136,7 +136,7 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
     tag = f"{pipe.checkpoint.name}_{sampler_name}_{steps}"
     scores = score_generation(
         generator=pipe.generator, conditioner=pipe.conditioners[index], tokenizer=pipe.tokenizer,
-        sampler=host.build("sampler", sampler_name), held_out=held_out, dataset=dataset, train=train,
+        sampler=host.build("sampler", sampler_name), held_out=held_out, dataset=dataset, pool=baseline_pool(train),
         metrics=[(name, assembly.build("metric", name)) for name in metric_names],
         sensor=assembly.sensor() if config.sensor is not None else None, count=args.n, steps=steps,
         guidance=pipe.settings["guidance"] if args.guidance is None else args.guidance,

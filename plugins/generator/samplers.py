@@ -54,6 +54,23 @@ def _check_call(schedule: Any, length: Any, steps: Any, generators: Sequence[tor
     return generators[0].device
 
 
+def _all_mask(schedule: Any, length: Any, steps: Any, generators: Sequence[torch.Generator]) -> torch.Tensor:
+    """The starting point of every sampler, after checking its arguments: (B, length) MASK codes on
+    the generators' device."""
+    device = _check_call(schedule, length, steps, generators)
+    return torch.full((len(generators), length), schedule.mask_index, dtype=torch.long, device=device)
+
+
+def _draw_masked(denoise: Denoise, schedule: Any, codes_BL: torch.Tensor, masked_B: torch.Tensor,
+                 generators: Sequence[torch.Generator]) -> tuple[torch.Tensor, torch.Tensor]:
+    """One step of the revealing samplers: denoise at the timestep matching each row's masked fraction
+    and draw a code for every position; returns log p(x0 | x_t) (B, K+1, L) and the draws (B, L)."""
+    t_B = timesteps_for_mask_ratio(schedule, masked_B / codes_BL.shape[1])
+    log_x0_BCL = _denoise(denoise, codes_BL, t_B, schedule.num_codes + 1)
+    drawn_BL = gumbel_sample(_without_mask(log_x0_BCL, schedule.mask_index), generator=generators)
+    return log_x0_BCL, drawn_BL
+
+
 def _denoise(denoise: Denoise, codes_BL: torch.Tensor, t_B: torch.Tensor, num_classes: int) -> torch.Tensor:
     """Call ``denoise`` and check its layout; returns float32 log p(x0 | x_t) (B, K+1, L)."""
     log_x0_BCL = denoise(codes_BL, t_B)
@@ -157,10 +174,9 @@ class PosteriorSampler(Sampler):
     def sample(self, denoise: Denoise, schedule: Any, *, length: int, steps: int,
                generators: list[torch.Generator]) -> torch.Tensor:
         """Codes (B, length) in [0, K) for B = len(generators), from all MASK in ``steps`` denoise calls."""
-        device = _check_call(schedule, length, steps, generators)
-        mask_index, batch = schedule.mask_index, len(generators)
+        codes_BL = _all_mask(schedule, length, steps, generators)
+        mask_index, batch, device = schedule.mask_index, len(generators), codes_BL.device
         points = strided_timesteps(schedule.num_steps, steps)
-        codes_BL = torch.full((batch, length), mask_index, dtype=torch.long, device=device)
         for i, t in enumerate(points):
             s = points[i + 1] if i + 1 < len(points) else -1
             t_B = torch.full((batch,), t, dtype=torch.long, device=device)
@@ -215,19 +231,15 @@ class PuritySampler(Sampler):
     def sample(self, denoise: Denoise, schedule: Any, *, length: int, steps: int,
                generators: list[torch.Generator]) -> torch.Tensor:
         """Codes (B, length) in [0, K) for B = len(generators), from all MASK in ``min(steps, length)`` calls."""
-        device = _check_call(schedule, length, steps, generators)
-        mask_index, num_codes, batch = schedule.mask_index, schedule.num_codes, len(generators)
-        codes_BL = torch.full((batch, length), mask_index, dtype=torch.long, device=device)
+        codes_BL = _all_mask(schedule, length, steps, generators)
+        mask_index, num_codes, device = schedule.mask_index, schedule.num_codes, codes_BL.device
         for masked_after in linear_masked_counts(length, steps):
             is_masked_BL = codes_BL == mask_index
             masked_B = is_masked_BL.sum(dim=1)
             reveal_B = (masked_B - masked_after).clamp_min(0)
             if int(reveal_B.max()) == 0:
                 continue  # only when steps > length: nothing to reveal, so no denoise call is wasted
-            t_B = timesteps_for_mask_ratio(schedule, masked_B / length)
-            log_x0_BCL = _denoise(denoise, codes_BL, t_B, num_codes + 1)
-            log_codes_BCL = _without_mask(log_x0_BCL, mask_index)
-            drawn_BL = gumbel_sample(log_codes_BCL, generator=generators)
+            log_x0_BCL, drawn_BL = _draw_masked(denoise, schedule, codes_BL, masked_B, generators)
             score_BL = log_x0_BCL[:, :num_codes].amax(dim=1)
             if self.randomness > 0:
                 score_BL = score_BL + self.randomness * _row_gumbel(generators, length, device)
@@ -276,19 +288,16 @@ class ConfidenceSampler(Sampler):
     def sample(self, denoise: Denoise, schedule: Any, *, length: int, steps: int,
                generators: list[torch.Generator]) -> torch.Tensor:
         """Codes (B, length) in [0, K) for B = len(generators), from all MASK in at most ``steps`` calls."""
-        device = _check_call(schedule, length, steps, generators)
-        mask_index, num_codes, batch = schedule.mask_index, schedule.num_codes, len(generators)
-        codes_BL = torch.full((batch, length), mask_index, dtype=torch.long, device=device)
+        codes_BL = _all_mask(schedule, length, steps, generators)
+        mask_index, device = schedule.mask_index, codes_BL.device
         for i in range(steps):
             is_masked_BL = codes_BL == mask_index
             masked_B = is_masked_BL.sum(dim=1)
             if int(masked_B.max()) == 0:
                 break  # only when steps > length: everything is revealed already
-            t_B = timesteps_for_mask_ratio(schedule, masked_B / length)
-            log_x0_BCL = _denoise(denoise, codes_BL, t_B, num_codes + 1)
-            log_codes_BCL = _without_mask(log_x0_BCL, mask_index)
-            drawn_BL = gumbel_sample(log_codes_BCL, generator=generators)
-            confidence_BL = log_codes_BCL.gather(1, drawn_BL.unsqueeze(1)).squeeze(1)
+            log_x0_BCL, drawn_BL = _draw_masked(denoise, schedule, codes_BL, masked_B, generators)
+            # The draws are never MASK, so their log-probability is read off the prediction as it is.
+            confidence_BL = log_x0_BCL.gather(1, drawn_BL.unsqueeze(1)).squeeze(1)
             noise_scale = self.temperature * (1.0 - (i + 1) / steps)
             if noise_scale > 0:
                 confidence_BL = confidence_BL + noise_scale * _row_gumbel(generators, length, device)

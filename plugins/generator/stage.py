@@ -137,14 +137,14 @@ def train_generator(job: StageJob) -> dict[str, Any]:
 def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sampler: Any, held_out: Any, dataset: Any,
                      metrics: list[tuple[str, Any]], sensor: Any, count: int, steps: int, guidance: float,
                      truncation: float, seed: int, device: torch.device, picture: Path | None = None,
-                     train: Any = None) -> dict[str, Any]:
+                     pool: list[dict[str, Any]] | None = None) -> dict[str, Any]:
     """Generate the first ``count`` held-out conditions (``held_out``: a subset of ``dataset`` with
     ``indices``) with ``conditioner`` and score them against their ground-truth tactile images.
 
     Next to each score stand the honest comparisons under the same protocol: the sensor's
     no-contact image (``background_*``; none without a sensor), the tokenizer's own reconstruction
-    of the ground truth (``ceiling_*``: no generator over these codes can do better) and, given the
-    ``train`` split, the nearest training image by condition tokens (``retrieval_*``) and, for a
+    of the ground truth (``ceiling_*``: no generator over these codes can do better) and, given training
+    samples (``pool``, see :func:`baseline_pool`), the nearest training image by condition tokens (``retrieval_*``) and, for a
     label condition, the mean training image of the label (``class_mean_*``).  Every one is also
     scored on the contact region (``contact_*``).  Sample i is drawn with a generator seeded from
     (seed, its dataset index), so a score does not depend on ``count``.  ``picture``: where to save
@@ -166,8 +166,8 @@ def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sample
     compared = {"": images, "ceiling_": tokenizer.decode_codes(tokenizer.encode_codes(truth))}
     if background is not None:
         compared["background_"] = background
-    if train is not None and len(train):
-        compared |= training_baselines(conditioner, condition, batch, train, device)
+    if pool:
+        compared |= training_baselines(conditioner, condition, batch, pool, device)
     for name, metric in metrics:
         for prefix, predicted in compared.items():
             metric.reset()
@@ -186,14 +186,19 @@ def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sample
 BASELINE_POOL = 2000
 
 
+def baseline_pool(train: Any) -> list[dict[str, Any]]:
+    """The training samples the baselines compare with: the first ``BASELINE_POOL`` of ``train``,
+    read once per scoring (a mixed generator's conditioners share them)."""
+    return [train[i] for i in range(min(len(train), BASELINE_POOL))]
+
+
 @torch.no_grad()
-def training_baselines(conditioner: Any, condition: Any, batch: dict[str, Any], train: Any,
+def training_baselines(conditioner: Any, condition: Any, batch: dict[str, Any], pool: list[dict[str, Any]],
                        device: torch.device) -> dict[str, torch.Tensor]:
-    """Baselines that use the training split (its first ``BASELINE_POOL`` samples): for each held-out
-    condition, the training tactile image whose condition tokens are nearest (cosine similarity of
-    the mean token; ties go to the earlier sample), and for labels the mean training image of the
-    label (the mean of all training images for a label the pool lacks)."""
-    pool = [train[i] for i in range(min(len(train), BASELINE_POOL))]
+    """Baselines from training samples (``pool``): for each held-out condition, the training tactile
+    image whose condition tokens are nearest (cosine similarity of the mean token; ties go to the
+    earlier sample), and for labels the mean training image of the label (the mean of all pool
+    images for a label the pool lacks)."""
     images_N3HW = torch.stack([sample["tactile"] for sample in pool]).to(device)
     key = conditioner.sample_key
     keys_ND = []
@@ -226,7 +231,7 @@ def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: A
                   held_out=val_set, dataset=dataset, metrics=metrics,
                   sensor=job.assembly.sensor() if config.sensor is not None else None, count=section.num_samples,
                   steps=section.steps, guidance=section.guidance, truncation=section.truncation, seed=config.seed,
-                  device=device, train=DatasetSubset(dataset, train_set.indices))
+                  device=device, pool=baseline_pool(DatasetSubset(dataset, train_set.indices)))
     names = [item.name for item in config.generator.conditioners]
     scores = {"sampler": section.sampler.name, "conditioner": names[0],
               **score_generation(conditioner=task.conditioners[0], picture=job.run.path / "samples.png", **common)}
