@@ -2,7 +2,9 @@
 
 - ``label``: a learned embedding per class label;
 - ``tactile`` and ``visual_cnn``: one small convolutional encoder trained from scratch
-  (:mod:`.image_cnn`), of the tactile or of the visual image;
+  (:mod:`.image_cnn`), of the paired sensor's tactile image or of the visual image;
+- ``tactile_codes``: the paired sensor's tactile image as its codes under that sensor's own
+  frozen tokenizer (another run), embedded;
 - ``visual``: the frozen ImageNet EfficientNet-Lite0 that installs offline, for visual images;
 - ``clip``: a frozen, locally supplied open_clip image encoder for visual images;
 - ``text_scratch``: a small word-level text encoder trained from scratch (hashed words, offline).

@@ -2,7 +2,7 @@
 
 Both plugins encode an RGB image of a sample into a grid of tokens with the same network,
 trained from scratch with the generator; they differ only in which entry of a sample they
-read (``"tactile"`` or ``"visual"``).  So the network lives here once, parametrised by the
+read (``"tactile_source"`` or ``"tactile"``, or ``"visual"``).  So the network lives here once, parametrised by the
 sample key, and each plugin module registers it under its own name with its own config
 class (same options: width, depth, token_grid).
 """
@@ -17,7 +17,7 @@ from torch import nn
 from vqtouch.core import Conditioner, PluginConfig
 
 #: The sample entries that hold an image this network can read (see ``TactileDataset``).
-IMAGE_SAMPLE_KEYS = ("tactile", "visual")
+IMAGE_SAMPLE_KEYS = ("tactile_source", "tactile", "visual")
 
 
 class ImageCnnOptions(PluginConfig):
@@ -33,7 +33,7 @@ class ImageCnnConditioner(Conditioner):
 
     ``depth`` stride-2 conv + GroupNorm + SiLU stages, adaptive average pooling to a
     ``token_grid`` x ``token_grid`` grid, a linear projection of each cell to ``cond_dim`` and a
-    learned position embedding per cell.  ``sample_key`` (``"tactile"`` or ``"visual"``) is set
+    learned position embedding per cell.  ``sample_key`` (one of ``IMAGE_SAMPLE_KEYS``) is set
     per instance: one class serves every plugin that registers it.
     """
 

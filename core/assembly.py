@@ -2,9 +2,10 @@
 
 The CLI, the demo, stages and tests all build through an :class:`Assembly`:
 
-- it resolves the experiment's sensors in one place (``sensor``, and ``target_sensor``
-  where a scene has two) and hands them to the factories that declared they need one
-  (``inputs=("sensor",)``, e.g. the procedural dataset);
+- it resolves the experiment's sensors in one place (``sensor``, and ``target_sensor`` or
+  ``paired_sensor`` where a scene has two) and hands them to the factories that declared they
+  need one (``inputs=("sensor",)``, e.g. the procedural dataset; ``optional_inputs=
+  ("paired_sensor",)`` for a dataset that renders pairs when the experiment has a paired sensor);
 - it keeps one :class:`BuildContext` and enriches it with the facts each built component
   fixes (classes, latent width, codebook size), building a fact's provider before any
   component whose kind reads it;
@@ -23,8 +24,8 @@ from .plugin_config import PluginConfig
 from .plugin_manager import KINDS_BY_NAME
 from .stages import empty_slot_reason
 
-SensorRole = Literal["source", "target"]
-SENSOR_SLOTS: dict[str, str] = {"source": "sensor", "target": "target_sensor"}
+SensorRole = Literal["source", "target", "paired"]
+SENSOR_SLOTS: dict[str, str] = {"source": "sensor", "target": "target_sensor", "paired": "paired_sensor"}
 
 
 class Assembly:
@@ -82,6 +83,9 @@ class Assembly:
         config = self.host.validate(kind, config)
         entry = self.host.registry(kind).get(config.name)
         inputs = {name: self._input(name, sensor_role) for name in entry.inputs}
+        for name in entry.optional_inputs:
+            if (value := self._optional_input(name)) is not None:
+                inputs[name] = value
         component = self.host.build(kind, config, self.context, **inputs)
         facts = component.context_facts() if hasattr(component, "context_facts") else {}
         if facts:
@@ -114,6 +118,13 @@ class Assembly:
         if name == "sensor":
             return self.sensor(sensor_role)
         raise ConfigError(f"no component can be supplied for input {name!r}; the assembly supplies: sensor")
+
+    def _optional_input(self, name: str) -> Any:
+        """An optional input: the experiment's paired sensor when it has one, else None."""
+        if name == "paired_sensor":
+            return self.sensor("paired") if self.config.paired_sensor is not None else None
+        raise ConfigError(f"no component can be supplied for optional input {name!r}; the assembly supplies: "
+                          "paired_sensor")
 
     def _build_fact_providers(self, kind: str) -> None:
         """Build the configured slots whose kind provides a fact ``kind`` reads (data before models)."""

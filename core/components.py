@@ -75,7 +75,7 @@ class Conditioner(nn.Module, abc.ABC):
     """
 
     #: Which entry of a sample (and so of a collated batch) this conditioner encodes:
-    #: ``"label"``, ``"visual"``, ``"tactile"`` or ``"text"``.
+    #: ``"label"``, ``"visual"``, ``"tactile_source"`` (a paired sensor's image), ``"tactile"`` or ``"text"``.
     sample_key: ClassVar[str] = ""
 
     def __init__(self, cond_dim: int, num_tokens: int) -> None:
@@ -106,25 +106,26 @@ class Conditioner(nn.Module, abc.ABC):
         gave, e.g. on ``vqtouch generate``'s command line; collate several with
         :func:`vqtouch.core.training.collate_samples` (``{sample_key: value}`` per sample).
 
-        The default follows the sample keys of :class:`TactileDataset`: ``"tactile"`` and
-        ``"visual"`` read an image file (a path; decoded, centre-cropped and resized to
+        The default follows the sample keys of :class:`TactileDataset`: ``"tactile"``,
+        ``"tactile_source"`` and ``"visual"`` read an image file (a path; decoded, centre-cropped and resized to
         ``image_size``, or a (3, S, S) tensor in [0, 1] as it is), ``"label"`` takes a class
         index or one of ``class_names``, ``"text"`` takes the text.  A conditioner that reads
         another key overrides this.  Raises ConfigError saying what was wrong.
         """
         key = self.sample_key
-        if key in ("tactile", "visual"):
+        if key in ("tactile", "tactile_source", "visual"):
+            flag = "visual" if key == "visual" else "tactile"  # vqtouch generate's option for the image
             if isinstance(value, torch.Tensor):
                 return value
             from .images import ImageLoader  # images -> checkpoint -> components: imported when used
 
             path = Path(str(value))
             if not path.is_file():
-                raise ConfigError(f"--{key} {value}: no such image file")
+                raise ConfigError(f"--{flag} {value}: no such image file")
             try:
                 return ImageLoader(size=image_size).load(path)
             except DatasetError as exc:
-                raise ConfigError(f"--{key}: {exc}") from None
+                raise ConfigError(f"--{flag}: {exc}") from None
         if key == "label":
             text = str(value).strip()
             if text.lstrip("-").isdigit():
@@ -386,6 +387,8 @@ class TactileDataset(ProvidesContext, abc.ABC):
 
     - ``"tactile"``: float tensor (3, S, S) in [0, 1] (S = the configured image size);
     - ``"visual"``: float tensor (3, S, S) in [0, 1], only when the dataset pairs a visual image;
+    - ``"tactile_source"``: float tensor (3, S, S) in [0, 1], only when the dataset pairs a second
+      sensor's image of the same contact (the source image of touch-to-touch generation);
     - ``"label"``: int class index, -1 when the sample has none;
     - ``"text"``: str description, "" when the sample has none;
     - ``"sensor"``: str id of the sensor that produced the tactile image;

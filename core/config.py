@@ -180,6 +180,10 @@ class ExperimentConfig(Section):
                           "renders them (procedural scenes). The one source of truth for the source sensor.")
     target_sensor: Slot("sensor_family") | None = Field(
         None, description="The unseen sensor a cross-sensor scene adapts to (few-shot, zero-shot, cross-sensor).")
+    paired_sensor: Slot("sensor_family") | None = Field(
+        None, description="A second sensor that renders the same contacts as `sensor`: datasets that can render "
+                          "pairs add its image of each sample as 'tactile_source' (the source image of touch-to-touch "
+                          "generation, e.g. GelSight -> DIGIT with sensor=digit, paired_sensor=gelsight).")
     data: DataConfig = Field(default_factory=DataConfig, description="Data source and shapes.")
     metrics: list[Slot("metric")] = Field(default_factory=list,
                                           description="Image metrics that stages report (e.g. psnr, ssim).")

@@ -11,13 +11,15 @@ Registration hooks receive a ``register`` callback::
         register("label", build_label_conditioner, LabelConditionerConfig,
                  description="Learned embedding per class label.")
 
-``register(name, factory, config, *, description="", aliases=(), inputs=(), demo=None)``:
+``register(name, factory, config, *, description="", aliases=(), inputs=(), demo=None, optional_inputs=())``:
 ``config`` is the plugin's :class:`~vqtouch.core.PluginConfig` subclass (with
 ``name: Literal[name]``) and ``factory(config, context, **inputs)`` builds the component from a
 validated config and a :class:`~vqtouch.core.BuildContext`.  ``inputs`` names built
 components the factory needs (``("sensor",)`` for a dataset that renders with the
-experiment's sensor); the assembly supplies them.  ``demo`` caps options for ``vqtouch demo``
-(e.g. ``{"num_samples": 240}``).
+experiment's sensor); the assembly supplies them.  ``optional_inputs`` names components the
+factory takes only when the experiment has them (``("paired_sensor",)``: a dataset that renders
+the same contact with a second sensor); absent ones are not passed.  ``demo`` caps options for
+``vqtouch demo`` (e.g. ``{"num_samples": 240}``).
 """
 
 from __future__ import annotations

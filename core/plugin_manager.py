@@ -184,9 +184,10 @@ class PluginHost:
         if missing:
             raise ConfigError(f"{kind} {entry.name!r} needs {', '.join(missing)}: build it through the experiment's "
                               f"Assembly (which supplies the experiment's {missing[0]}) or pass {missing[0]}=...")
-        extra = sorted(set(inputs) - set(entry.inputs))
+        extra = sorted(set(inputs) - set(entry.inputs) - set(entry.optional_inputs))
         if extra:
-            raise PluginError(f"{kind} {entry.name!r} takes no input {extra[0]!r} (it declares {list(entry.inputs)})")
+            raise PluginError(f"{kind} {entry.name!r} takes no input {extra[0]!r} (it declares "
+                              f"{list(entry.inputs + entry.optional_inputs)})")
         component = entry.factory(config, context, **inputs)
         if registry.base_type is not None and not isinstance(component, registry.base_type):
             raise PluginError(
@@ -355,9 +356,9 @@ def _component_register(registry: Registry) -> Any:
     def bind(source: PluginSource) -> Any:
         def register(name: str, factory: Any, config: type[PluginConfig], *, description: str = "",
                      aliases: Iterable[str] = (), inputs: Iterable[str] = (),
-                     demo: Mapping[str, Any] | None = None) -> None:
+                     demo: Mapping[str, Any] | None = None, optional_inputs: Iterable[str] = ()) -> None:
             registry.add(PluginEntry(registry.kind, name, factory, config, description, source, tuple(aliases),
-                                     tuple(inputs), dict(demo or {})))
+                                     tuple(inputs), dict(demo or {}), tuple(optional_inputs)))
         return register
     return bind
 

@@ -46,6 +46,9 @@ class PluginEntry:
     inputs: tuple[str, ...] = ()
     #: Caps on this plugin's options for ``vqtouch demo`` (e.g. ``{"num_samples": 240}``).
     demo: Mapping[str, Any] = field(default_factory=dict)
+    #: Built components the factory takes when the experiment has them (e.g. ``("paired_sensor",)``);
+    #: absent ones are not passed, so the factory gives them a default.
+    optional_inputs: tuple[str, ...] = ()
 
 
 @dataclass

@@ -70,7 +70,7 @@ DEFAULT_CONTEXT = BuildContext(image_size=32, channels=3, num_classes=4, cond_di
 
 #: The entries of a dataset sample (see :class:`~vqtouch.core.TactileDataset`); ``visual`` is optional.
 SAMPLE_KEYS = ("tactile", "label", "text", "sensor", "id")
-OPTIONAL_SAMPLE_KEYS = ("visual",)
+OPTIONAL_SAMPLE_KEYS = ("visual", "tactile_source")
 
 #: Outputs of a reloaded component must match the saved one to within these tolerances
 #: (same weights and inputs on one device: differences are float reassociation at most).
@@ -267,14 +267,15 @@ def check_sensor_family(sensor: SensorFamily, context: BuildContext | None = Non
 def example_condition(conditioner: Conditioner, batch: int, context: BuildContext | None = None) -> Any:
     """A fixed batch of raw conditions for ``conditioner``, chosen from its ``sample_key`` the way a
     collated dataset batch holds them: ``label`` integer labels (B,) below the context's class
-    count, ``tactile``/``visual`` images (B, channels, S, S) in [0, 1], ``text`` a list of B strings.
+    count, ``tactile``/``tactile_source``/``visual`` images (B, channels, S, S) in [0, 1], ``text`` a
+    list of B strings.
     Returns None for any other key (pass ``condition=`` to the checks then)."""
     context = context or DEFAULT_CONTEXT
     key = conditioner.sample_key
     if key == "label":
         return torch.arange(batch) % max(context.num_classes, 1)
-    if key in ("tactile", "visual"):
-        channels = context.channels if key == "tactile" else 3
+    if key in ("tactile", "tactile_source", "visual"):
+        channels = context.channels if key.startswith("tactile") else 3
         return torch.rand(batch, channels, context.image_size, context.image_size, generator=_generator(1))
     if key == "text":
         texts = ["a smooth sphere pressed into the gel", "a coarse woven fabric", "a sharp metal edge"]
@@ -290,7 +291,8 @@ def check_conditioner(conditioner: Conditioner, context: BuildContext | None = N
     context = context or DEFAULT_CONTEXT
     key = conditioner.sample_key
     _require(key in (*SAMPLE_KEYS, *OPTIONAL_SAMPLE_KEYS) and key not in ("sensor", "id"), label,
-             f"sample_key {key!r} is not a sample entry a conditioner can read (label, tactile, visual, text)")
+             f"sample_key {key!r} is not a sample entry a conditioner can read (label, tactile, tactile_source, "
+             "visual, text)")
     _require(conditioner.cond_dim == context.cond_dim, label,
              f"emits tokens of width {conditioner.cond_dim}, but the context asks for cond_dim={context.cond_dim}")
     _require(isinstance(conditioner.num_tokens, int) and conditioner.num_tokens >= 1, label,

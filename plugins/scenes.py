@@ -74,11 +74,12 @@ SCENES: dict[str, tuple[str, dict]] = {
          "sensor": {"name": "gelsight"}, "data": _DATA},
     ),
     "touch-to-touch": (
-        "Generate a tactile image for a target sensor from another tactile image (tactile condition; paired data "
-        "of two sensors are not implemented yet, so the condition is the target image itself).",
+        "Generate a DIGIT image of a contact from a GelSight image of the same contact (paired renders: the "
+        "tokenizer and generator work in `sensor`, the condition is `paired_sensor`'s image; set "
+        "sensor.name=gelsight_mini for GelSight -> GelSight Mini).",
         {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "generator"], "metrics": _METRICS,
-         "generator": _GENERATOR | {"conditioners": [{"name": "tactile"}]}, "sensor": {"name": "gelsight"}, "target_sensor": {"name": "digit"},
-         "data": _DATA},
+         "generator": _GENERATOR | {"conditioners": [{"name": "tactile"}]}, "sensor": {"name": "digit"},
+         "paired_sensor": {"name": "gelsight"}, "data": _DATA},
     ),
 }
 

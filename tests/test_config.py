@@ -46,7 +46,7 @@ def test_builtin_stages_and_their_sections(host):
     assert not {"reconstruct", "adapt", "train", "conditioner", "clusterer", "evaluate"} & fields
     # The base model holds only core's fields: stage sections come from the registrations.
     assert not {"render", "tokenizer", "cluster", "generator"} & set(ExperimentConfig.model_fields)
-    assert set(host.slots) == {"sensor", "target_sensor", "data.dataset", "metrics", "tokenizer.autoencoder",
+    assert set(host.slots) == {"sensor", "target_sensor", "paired_sensor", "data.dataset", "metrics", "tokenizer.autoencoder",
                                "tokenizer.quantizer", "tokenizer.discriminator", "cluster.clusterer",
                                "generator.model", "generator.conditioners", "generator.sampler"}
     assert (host.slots["generator.conditioners"].kind, host.slots["generator.conditioners"].many) == (

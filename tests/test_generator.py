@@ -223,19 +223,45 @@ def test_evaluate_generation_rescores_a_run_reproducibly(trained, capsys):
 
 
 
-def test_a_condition_that_is_the_target_image_is_flagged(trained, tmp_path, capsys):
-    """Until paired touch-to-touch data exist, a tactile conditioner reads the image it must produce."""
+def touch_to_touch_args(out, trained, *extra, conditioner=("generator.conditioners.0.width=8",
+                                                            "generator.conditioners.0.depth=1")):
     overrides = [o for o in TINY if not o.startswith("tokenizer.")] + [
-        "generator.conditioners.0.width=8", "generator.conditioners.0.depth=1", "generator.train.steps=1",
-        "generator.num_samples=1", "generator.steps=1"]
+        *conditioner, "generator.train.steps=1", "generator.num_samples=2", "generator.steps=1", *extra]
     args = ["--no-progress", "train", "generator", "--scene", "touch-to-touch", "--tokenizer", str(trained),
-            "--out", str(tmp_path / "t2t")]
+            "--out", str(out)]
     for override in overrides:
         args += ["--set", override]
+    return args
+
+
+def test_a_condition_that_is_the_target_image_is_flagged(trained, tmp_path, capsys):
+    """A tactile conditioner told to read the image it must produce could learn to copy it."""
     capsys.readouterr()
-    assert main(args) == 0
+    assert main(touch_to_touch_args(tmp_path / "t2t", trained, "generator.conditioners.0.reads=tactile")) == 0
     assert ("vqtouch: warning: a conditioner reads samples' 'tactile' image, which is also the image the generator "
             "learns to produce") in capsys.readouterr().err
+
+
+def test_touch_to_touch_conditions_on_the_paired_sensors_image(trained, tmp_path, capsys):
+    """The scene generates DIGIT images from GelSight images of the same contacts: no warning, the
+    conditioner reads 'tactile_source', and `generate --tactile IMG` feeds that conditioner."""
+    from vqtouch.core.images import save_png
+    from vqtouch.plugins.generator import load_pipeline
+
+    run = tmp_path / "t2t"
+    capsys.readouterr()
+    assert main(touch_to_touch_args(run, trained)) == 0
+    assert "warning" not in capsys.readouterr().err
+    config = json.loads((run / "config.json").read_text())
+    assert config["sensor"]["name"] == "digit" and config["paired_sensor"]["name"] == "gelsight"
+    pipe = load_pipeline(run, host=HOST)
+    assert [c.sample_key for c in pipe.conditioners] == ["tactile_source"]
+    image = tmp_path / "gelsight.png"
+    save_png(torch.rand(3, 32, 32), image)
+    assert main(["generate", "--run", str(run), "--tactile", str(image), "--steps", "1", "--out",
+                 str(tmp_path / "gen")]) == 0
+    assert json.loads((tmp_path / "gen" / "generate.json").read_text())["condition"] == "tactile"
+    assert (tmp_path / "gen" / "sample_0000.png").is_file()
 
 
 def test_the_baselines_stand_beside_every_score(trained):
@@ -262,3 +288,37 @@ def test_retrieval_and_class_mean_against_hand_built_training_data():
     baselines = training_baselines(conditioner, conditioner(batch["label"]), batch, train, torch.device("cpu"))
     assert baselines["retrieval_"][:, 0, 0, 0].tolist() == pytest.approx([0.1, 0.9])  # first image of each label
     assert baselines["class_mean_"][:, 0, 0, 0].tolist() == pytest.approx([0.2, 0.9])  # mean of 0.1 and 0.3
+
+
+def test_tactile_codes_embeds_the_source_sensors_codes_and_keeps_its_tokenizer_out(trained, tmp_path, capsys):
+    """The source image's codes under the source run's tokenizer (loaded independently here) decide
+    the tokens; the frozen tokenizer gets no gradient and stays out of the checkpoint; the
+    conditioner trains a touch-to-touch generator end to end."""
+    from vqtouch.core import ConfigError
+    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+
+    context = BuildContext(image_size=32, cond_dim=16)
+    conditioner = HOST.build("conditioner", {"name": "tactile_codes", "tokenizer": str(trained)}, context)
+    reference, _ = load_tokenizer(trained, HOST)
+    images = torch.rand(2, 3, 32, 32, generator=torch.Generator().manual_seed(0))
+    codes_BN = reference.encode_codes(images).flatten(1)
+    tokens = conditioner(images).tokens_BND
+    assert conditioner.sample_key == "tactile_source" and tokens.shape == (2, conditioner.num_tokens, 16)
+    assert conditioner.num_tokens == codes_BN.shape[1]
+    # Each cell's token is its code's embedding (codes from the independently loaded tokenizer) plus
+    # the cell's position: the tokens carry the source codes and nothing else of the image.
+    assert torch.allclose(tokens - conditioner.position_ND, conditioner.code_embedding.weight[codes_BN], atol=1e-6)
+    assert len(codes_BN.unique()) > 1
+    tokens.sum().backward()
+    assert conditioner.code_embedding.weight.grad is not None
+    assert all(p.grad is None and not p.requires_grad for p in conditioner.source.autoencoder.parameters())
+    assert not any(key.startswith(("frozen", "source", "autoencoder")) for key in conditioner.state_dict())
+    with pytest.raises(ConfigError, match=r"^conditioner 'tactile_codes': tokenizer .*nowhere does not exist; train"):
+        HOST.build("conditioner", {"name": "tactile_codes", "tokenizer": str(tmp_path / "nowhere")}, context)
+    with pytest.raises(ConfigError, match=r"needs the source sensor's tokenizer: set generator.conditioners.N"):
+        HOST.build("conditioner", {"name": "tactile_codes"}, context)
+
+    run = tmp_path / "t2t_codes"
+    source = json.dumps({"name": "tactile_codes", "tokenizer": str(trained)})
+    assert main(touch_to_touch_args(run, trained, conditioner=[f"generator.conditioners.0={source}"])) == 0
+    assert json.loads((run / "generation.json").read_text())["samples"] == 2

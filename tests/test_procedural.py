@@ -135,6 +135,57 @@ def test_an_experiment_renders_with_its_own_sensor():
     assert target[0]["tactile"].shape == data[0]["tactile"].shape == (3, 16, 16)
 
 
+def test_a_paired_sensor_renders_the_same_contacts_and_changes_nothing_else():
+    overrides = ['data.dataset={"name": "procedural", "num_samples": 4}', "data.image_size=32", "sensor=digit"]
+    single = Assembly(resolve_config(None, overrides=overrides, host=HOST), HOST).component("data.dataset")
+    assembly = Assembly(resolve_config(None, overrides=[*overrides, "paired_sensor=gelsight"], host=HOST), HOST)
+    paired = assembly.component("data.dataset")
+    assert paired.paired_sensor is assembly.sensor("paired") and single.paired_sensor is None
+    for index in range(4):
+        one, two = single[index], paired[index]
+        assert "tactile_source" not in one and two["tactile_source"].shape == (3, 32, 32)
+        assert two["sensor"] == "digit" and two["source_sensor"] == "gelsight"
+        # Adding the pair leaves the sample's own entries exactly as they were.
+        assert all(torch.equal(one[key], two[key]) if isinstance(one[key], torch.Tensor) else one[key] == two[key]
+                   for key in one)
+        # The pair is GelSight's own rendering: its no-contact border is GelSight's background, not DIGIT's.
+        assert not torch.allclose(two["tactile_source"], two["tactile"], atol=0.05)
+    # Rendered on demand, cached, and the same in a fresh dataset: a pure function of (seed, index).
+    again = Assembly(resolve_config(None, overrides=[*overrides, "paired_sensor=gelsight"], host=HOST),
+                     HOST).component("data.dataset")
+    assert torch.equal(again[2]["tactile_source"], paired[2]["tactile_source"])
+    # The cache keeps 8-bit images: a batch render differs from the cached sample by rounding only.
+    assert (paired.render_batch([2])["tactile_source"][0] - paired[2]["tactile_source"]).abs().max() <= 0.5 / 255 + 1e-6
+
+
+def test_reframing_a_press_matches_the_press_drawn_on_the_other_sensors_grid():
+    """A 3 mm ball pressed 1 mm, drawn on a 16 mm grid and reframed to 12 mm, against the same ball
+    drawn directly on the 12 mm grid (closed form): equal up to interpolation error at the rim."""
+    from vqtouch.plugins.data.procedural import reframe_indentation
+
+    def ball(field_mm, size=64, radius=3.0, depth=1.0, centre=(1.5, -2.0)):
+        axis = (torch.arange(size) + 0.5) / size * field_mm - field_mm / 2
+        ys, xs = torch.meshgrid(axis, axis, indexing="ij")
+        cap = (radius**2 - (xs - centre[0]) ** 2 - (ys - centre[1]) ** 2).clamp_min(0).sqrt()
+        return (cap - (radius - depth)).clamp_min(0)[None]
+
+    reframed = reframe_indentation(ball(16.0), 16.0, 12.0)
+    direct = ball(12.0)
+    assert (reframed - direct).abs().mean() < 0.01 and (reframed - direct).abs().max() < 0.15
+    assert abs(float(reframed.sum() - direct.sum())) / float(direct.sum()) < 0.02
+    assert torch.equal(reframe_indentation(ball(16.0), 16.0, 16.0), ball(16.0))
+
+
+def test_a_dataset_built_without_an_experiment_takes_the_paired_sensor_as_an_input():
+    data = HOST.build(
+        "dataset", {"name": "procedural", "num_samples": 2, "image_size": 16}, BuildContext(),
+        sensor=make_sensor("digit"), paired_sensor=make_sensor("gelsight_mini"))
+    assert data[0]["source_sensor"] == "gelsight_mini" and data[0]["tactile_source"].shape == (3, 16, 16)
+    with pytest.raises(Exception, match=r"dataset 'procedural' takes no input 'camera' \(it declares \['sensor', "
+                                        r"'paired_sensor'\]\)"):
+        HOST.build("dataset", {"name": "procedural", "num_samples": 2}, sensor=make_sensor(), camera=make_sensor())
+
+
 def test_an_experiment_without_a_sensor_fails_in_one_line():
     config = resolve_config(None, overrides=['data.dataset={"name": "procedural", "num_samples": 3}'], host=HOST)
     assert config.sensor is None

@@ -2,7 +2,9 @@
 
 Sample ``i`` is a pure function of ``(seed, i)``: an object of the scene library pressed into
 the experiment's sensor (tactile image), the camera view of the same region (visual image),
-its class label and a short text description.  Samples are rendered lazily and kept in
+its class label and a short text description.  When the experiment has a ``paired_sensor``, the
+same contact is also rendered by that sensor (``tactile_source``): paired touch-to-touch data
+with exact ground truth (GelSight -> DIGIT: ``sensor=digit``, ``paired_sensor=gelsight``).  Samples are rendered lazily and kept in
 memory as 8-bit images once rendered (``cache``).  Export a browsable copy with
 ``vqtouch data render``.
 """
@@ -12,6 +14,7 @@ from __future__ import annotations
 from typing import Any, Literal
 
 import torch
+import torch.nn.functional as F
 from pydantic import Field, field_validator
 
 from vqtouch.core import BuildContext, PluginConfig, SensorFamily, TactileDataset, hookimpl
@@ -56,11 +59,33 @@ def sample_generator(seed: int, index: int) -> torch.Generator:
     return torch.Generator().manual_seed((seed * 1_000_003 + index * 7_919 + 17) % (2**63 - 1))
 
 
-class ProceduralTactileDataset(TactileDataset):
-    """Procedural (tactile, visual, label, text) samples for one sensor."""
+def paired_render_generator(seed: int, index: int) -> torch.Generator:
+    """The noise generator of sample ``index``'s paired-sensor image: separate from the sample's own,
+    so adding a paired sensor leaves every other entry of the sample unchanged."""
+    return torch.Generator().manual_seed(sample_generator(seed, index).initial_seed() ^ 0x5EED_0F7A_1C)
 
-    def __init__(self, sensor: Any, config: ProceduralDataConfig) -> None:
+
+def reframe_indentation(indentation_BHW: torch.Tensor, from_mm: float, to_mm: float) -> torch.Tensor:
+    """An indentation map (mm) imaged over a ``from_mm`` square, seen by a sensor imaging a centred
+    ``to_mm`` square at the same resolution: bilinear resampling, no contact outside the original
+    square.  The same physical press, framed by the other sensor's field of view."""
+    if from_mm == to_mm:
+        return indentation_BHW
+    scale = to_mm / from_mm
+    batch, height, width = indentation_BHW.shape
+    theta = torch.tensor([[scale, 0.0, 0.0], [0.0, scale, 0.0]]).expand(batch, 2, 3)
+    grid = F.affine_grid(theta, [batch, 1, height, width], align_corners=False)
+    return F.grid_sample(indentation_BHW[:, None], grid, mode="bilinear", padding_mode="zeros",
+                         align_corners=False)[:, 0]
+
+
+class ProceduralTactileDataset(TactileDataset):
+    """Procedural (tactile, visual, label, text) samples for one sensor, and the same contacts
+    rendered by a second sensor (``tactile_source``) when one is given."""
+
+    def __init__(self, sensor: Any, config: ProceduralDataConfig, paired_sensor: Any = None) -> None:
         self.sensor = sensor
+        self.paired_sensor = paired_sensor
         self.config = config
         self.class_names = list(config.classes) or list(CLASS_NAMES)
         self._classes = [OBJECT_CLASSES[CLASS_NAMES.index(name)] for name in self.class_names]
@@ -92,14 +117,22 @@ class ProceduralTactileDataset(TactileDataset):
             # depend on which batch it was rendered in.
             tactile = torch.cat([self.sensor.render(c.indentation_mm_HW[None], generator=g)
                                  for c, g in zip(contacts, generators)])
-        spec = getattr(self.sensor, "vqtouch_spec", None)
-        sensor_id = self.sensor.sensor_id or (spec.config.name if spec else type(self.sensor).__name__)
-        return {
+        batch: dict[str, Any] = {}
+        if self.paired_sensor is not None:
+            with torch.no_grad():
+                batch["tactile_source"] = torch.cat([
+                    self.paired_sensor.render(
+                        reframe_indentation(c.indentation_mm_HW[None], self.sensor.field_of_view_mm,
+                                            self.paired_sensor.field_of_view_mm),
+                        generator=paired_render_generator(self.config.seed, index))
+                    for c, index in zip(contacts, indices)])
+            batch["source_sensor"] = [_sensor_id(self.paired_sensor)] * len(indices)
+        return batch | {
             "tactile": tactile, "visual": torch.stack(visuals),
             "label": torch.tensor([c.class_index for c in contacts]),
             "text": [c.description(self.class_names[c.class_index], self._classes[c.class_index].material)
                      for c in contacts],
-            "sensor": [sensor_id] * len(indices),
+            "sensor": [_sensor_id(self.sensor)] * len(indices),
             "id": [f"{self.config.seed}-{index:07d}" for index in indices],
             "depth_mm": torch.tensor([c.depth_mm for c in contacts]),
         }
@@ -108,29 +141,41 @@ class ProceduralTactileDataset(TactileDataset):
         index = self._check_index(index)
         if index in self._cache:
             stored = self._cache[index]
-            return {**stored, "tactile": stored["tactile"].float() / 255, "visual": stored["visual"].float() / 255}
+            return {**stored, **{key: stored[key].float() / 255 for key in _IMAGE_KEYS if key in stored}}
         batch = self.render_batch([index])
         sample = {key: value[0] for key, value in batch.items()}
         sample["label"] = int(sample["label"])
         sample["depth_mm"] = float(sample["depth_mm"])
         if self.config.cache:
-            self._cache[index] = {**sample, "tactile": (sample["tactile"] * 255).round().to(torch.uint8),
-                                  "visual": (sample["visual"] * 255).round().to(torch.uint8)}
+            self._cache[index] = {**sample, **{key: (sample[key] * 255).round().to(torch.uint8)
+                                               for key in _IMAGE_KEYS if key in sample}}
             return self[index]
         return sample
 
 
-def build_procedural(config: ProceduralDataConfig, context: BuildContext,
-                     sensor: SensorFamily) -> ProceduralTactileDataset:
+#: The image entries of a sample (kept in memory as 8-bit images when cached).
+_IMAGE_KEYS = ("tactile", "visual", "tactile_source")
+
+
+def _sensor_id(sensor: Any) -> str:
+    """The id a sample records for the sensor that rendered it."""
+    spec = getattr(sensor, "vqtouch_spec", None)
+    return sensor.sensor_id or (spec.config.name if spec else type(sensor).__name__)
+
+
+def build_procedural(config: ProceduralDataConfig, context: BuildContext, sensor: SensorFamily,
+                     paired_sensor: SensorFamily | None = None) -> ProceduralTactileDataset:
     """Factory: the scenes rendered by ``sensor``, which the assembly supplies (the experiment's
-    sensor, or its target sensor where a stage asks for that)."""
+    sensor, or its target sensor where a stage asks for that), and by ``paired_sensor`` (the
+    experiment's paired sensor, when it has one) as each sample's ``tactile_source``."""
     if config.image_size is None:
         config = config.model_copy(update={"image_size": context.image_size})
-    return ProceduralTactileDataset(sensor, config)
+    return ProceduralTactileDataset(sensor, config, paired_sensor)
 
 
 @hookimpl
 def vqtouch_register_datasets(register):
-    register("procedural", build_procedural, ProceduralDataConfig, inputs=("sensor",), demo={"num_samples": 240},
+    register("procedural", build_procedural, ProceduralDataConfig, inputs=("sensor",),
+             optional_inputs=("paired_sensor",), demo={"num_samples": 240},
              description="Embedded procedural scenes: 12 object classes x any sensor family (tactile, visual, "
-                         "label, text).")
+                         "label, text; tactile_source with a paired sensor).")

@@ -42,10 +42,13 @@ class GenerationPipeline:
     checkpoint: Path
 
     def conditioner_for(self, key: str) -> Any:
-        """The conditioner that reads samples' ``key`` (label, visual, tactile, text, ...)."""
-        for conditioner in self.conditioners:
-            if conditioner.sample_key == key:
-                return conditioner
+        """The conditioner that reads samples' ``key`` (label, visual, tactile, text, ...); ``tactile``
+        also finds one reading ``tactile_source`` (the conditioning tactile image, whichever entry
+        holds it)."""
+        for wanted in (key, "tactile_source") if key == "tactile" else (key,):
+            for conditioner in self.conditioners:
+                if conditioner.sample_key == wanted:
+                    return conditioner
         have = ", ".join(sorted({c.sample_key for c in self.conditioners}))
         raise ConfigError(f"this generator was not trained with a {key!r} condition; it takes: {have}")
 
@@ -83,7 +86,7 @@ class GenerationPipeline:
         images = []
         for start in range(0, len(parsed), batch_size):
             rows = parsed[start:start + batch_size]
-            batch = collate_samples([{key: row} for row in rows])
+            batch = collate_samples([{conditioner.sample_key: row} for row in rows])
             batch = {k: v.to(self.device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
             condition = conditioner(conditioner.condition_of(batch))
             generators = [torch.Generator(device=self.device).manual_seed(seed * 1_000_003 + start + row)

@@ -111,8 +111,9 @@ def train_generator(job: StageJob) -> dict[str, Any]:
     keys = list(dict.fromkeys(conditioner.sample_key for conditioner in conditioners))
     if "tactile" in keys:
         warnings.warn("a conditioner reads samples' 'tactile' image, which is also the image the generator learns to "
-                      "produce: it can learn to copy its condition (paired touch-to-touch data, a second sensor's "
-                      "image of the same contact, are not implemented yet)", ConditionIsTargetWarning, stacklevel=2)
+                      "produce: it can learn to copy its condition; for touch-to-touch, condition on a second sensor's "
+                      "image of the same contact (tactile conditioner reads=tactile_source, with paired_sensor set)",
+                      ConditionIsTargetWarning, stacklevel=2)
     data = CodesDataset.collect(codes_NHW, dataset, keys)
     train_set, val_set = split_dataset(data, config.data.val_fraction, config.seed)
     task = GeneratorTask(generator, conditioners, section.train.condition_dropout, config.seed)
