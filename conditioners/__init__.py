@@ -7,5 +7,6 @@
   frozen tokenizer (another run), embedded;
 - ``visual``: the frozen ImageNet EfficientNet-Lite0 that installs offline, for visual images;
 - ``clip``: a frozen, locally supplied open_clip image encoder for visual images;
+- ``text``: the frozen text tower of a locally supplied open_clip model, per-token states projected;
 - ``text_scratch``: a small word-level text encoder trained from scratch (hashed words, offline).
 """

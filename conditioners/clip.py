@@ -10,6 +10,7 @@ projection is saved.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, Literal
 
 import torch
@@ -77,21 +78,52 @@ class ClipConditioner(Conditioner):
         return self.project(embedding_BE).view(-1, self.num_tokens, self.cond_dim)
 
 
-def import_open_clip() -> Any:
+def import_open_clip(conditioner: str = "clip") -> Any:
     """Import open_clip, or raise :class:`PluginError` naming the extra that installs it.
 
-    open_clip is an optional dependency (the ``clip`` extra): only this conditioner needs it.
+    open_clip is an optional dependency (the ``clip`` extra): only the conditioners built on it
+    need it.  ``conditioner`` is the registered name the one-line error message starts with
+    (``"clip"`` or ``"text"``).
     """
     try:
         import open_clip
     except ImportError as exc:
         if isinstance(exc, ModuleNotFoundError) and exc.name == "open_clip":
-            raise PluginError("conditioner 'clip' needs open_clip_torch: pip install 'vqtouch[clip]'") from None
+            raise PluginError(f"conditioner {conditioner!r} needs open_clip_torch: "
+                              "pip install 'vqtouch[clip]'") from None
         # Installed but broken, typically a torchvision that does not match torch: say so, not "install it".
         first_line = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        raise PluginError(f"conditioner 'clip': open_clip_torch is installed but does not import ({first_line}); reinstall "
-                          "it with a torchvision that matches torch: pip install 'vqtouch[clip]'") from None
+        raise PluginError(f"conditioner {conditioner!r}: open_clip_torch is installed but does not import "
+                          f"({first_line}); reinstall it with a torchvision that matches torch: "
+                          "pip install 'vqtouch[clip]'") from None
     return open_clip
+
+
+def check_open_clip_architecture(open_clip: Any, architecture: str, conditioner: str = "clip") -> None:
+    """Raise :class:`~vqtouch.core.ConfigError` (one line, with the closest names) unless ``architecture``
+    is one of open_clip's model names; ``conditioner`` starts the message."""
+    from vqtouch.core import ConfigError
+
+    if architecture not in open_clip.list_models():
+        from vqtouch.core.errors import unknown_name_message
+
+        raise ConfigError(f"conditioner {conditioner!r}: " + unknown_name_message(
+            "open_clip architecture", architecture, open_clip.list_models()))
+
+
+def create_open_clip_model(open_clip: Any, architecture: str, path: Path, model_overrides: dict[str, Any],
+                           conditioner: str = "clip") -> nn.Module:
+    """Build open_clip's ``architecture`` (with ``model_overrides``) holding the weights of the local file
+    ``path``; never downloads.  A file that does not hold that model's weights raises
+    :class:`~vqtouch.core.MissingWeightsError` in one line; ``conditioner`` starts the message."""
+    try:
+        return open_clip.create_model(architecture, pretrained=str(path), **model_overrides)
+    except (RuntimeError, ValueError, KeyError) as exc:
+        from vqtouch.core import MissingWeightsError
+
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise MissingWeightsError(f"conditioner {conditioner!r}: {path} does not hold {architecture} weights "
+                                  f"({first})") from None
 
 
 def build_clip_conditioner(config: ClipConditionerConfig, context: BuildContext) -> ClipConditioner:
@@ -99,21 +131,8 @@ def build_clip_conditioner(config: ClipConditionerConfig, context: BuildContext)
     build the frozen encoder."""
     open_clip = import_open_clip()
     path = resolve_weights(CLIP_WEIGHTS, config.checkpoint)
-    from vqtouch.core import ConfigError
-
-    if config.architecture not in open_clip.list_models():
-        from vqtouch.core.errors import unknown_name_message
-
-        raise ConfigError("conditioner 'clip': " + unknown_name_message(
-            "open_clip architecture", config.architecture, open_clip.list_models()))
-    try:
-        model = open_clip.create_model(config.architecture, pretrained=str(path), **config.model_overrides)
-    except (RuntimeError, ValueError, KeyError) as exc:
-        from vqtouch.core import MissingWeightsError
-
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise MissingWeightsError(f"conditioner 'clip': {path} does not hold {config.architecture} weights "
-                                  f"({first})") from None
+    check_open_clip_architecture(open_clip, config.architecture)
+    model = create_open_clip_model(open_clip, config.architecture, path, config.model_overrides)
     embed_dim = getattr(model.visual, "output_dim", None)
     if not isinstance(embed_dim, int):
         with torch.no_grad():

@@ -19,7 +19,8 @@ def example_condition(conditioner, batch):
     return contract_example(conditioner, batch, BuildContext(image_size=32))
 
 
-OFFLINE_CONDITIONERS = [name for name in load_plugins(autoload=False).registry("conditioner").names() if name != "clip"]
+OFFLINE_CONDITIONERS = [name for name in load_plugins(autoload=False).registry("conditioner").names()
+                        if name not in ("clip", "text")]  # these two need a local open_clip weights file
 
 
 # The shape / null-token / drop-mask contract of every conditioner is checked by

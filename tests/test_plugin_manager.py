@@ -22,7 +22,8 @@ def test_builtins_load_through_entry_points_with_autoload_off(host):
     assert BUILTIN_PLUGINS <= set(host.sources)
     for name in BUILTIN_PLUGINS:
         assert host.sources[name].distribution == "vqtouch"
-    assert host.registry("conditioner").names() == ["clip", "label", "tactile", "text_scratch", "visual", "visual_cnn"]
+    assert host.registry("conditioner").names() == ["clip", "label", "tactile", "tactile_codes", "text", "text_scratch",
+                                                    "visual", "visual_cnn"]
     assert {"psnr", "ssim", "fd_effnetlite0"} <= set(host.registry("metric").names())
     assert {"few-shot", "zero-shot", "cross-sensor", "vision-to-touch", "label-to-touch",
             "touch-to-touch"} <= set(host.scenes)
