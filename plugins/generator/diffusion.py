@@ -175,7 +175,10 @@ def _schedule_tables(num_codes: int, num_steps: int, att_1: float, att_T: float,
     one, zero = torch.ones(1, dtype=f64), torch.zeros(1, dtype=f64)
     alpha_bar = torch.cat([att_1 + fraction_T * (att_T - att_1), one])    # index T: identity
     gamma_bar = torch.cat([ctt_1 + fraction_T * (ctt_T - ctt_1), zero])
-    keep_bar = 1.0 - gamma_bar                                             # 1 - gamma_bar > 0 except at the end
+    # 1 - gamma_bar (> 0 except at the end), interpolated from 1 - ctt_1 and 1 - ctt_T rather than taken as
+    # 1 - gamma_bar: with ctt_1 near 1, the subtraction would cancel and make a pure-mask schedule's beta_t
+    # slightly negative (refused) at late steps.
+    keep_bar = torch.cat([(1.0 - ctt_1) * (1.0 - fraction_T) + fraction_T * (1.0 - ctt_T), one])
 
     # Transition from step s (column) to step t (row).  Only s < t (or s = -1, column T) is a forward
     # transition; every other pair is set to the identity so indexing it is harmless.
@@ -268,7 +271,8 @@ class MaskReplaceSchedule(nn.Module):
         self.register_buffer("replace_mass_T1", (num_codes * tables["beta_bar"]).float(), persistent=False)
         gamma_bar, gamma_bar_prev = tables["gamma_bar"][:num_steps], torch.cat([torch.zeros(1, dtype=A.dtype),
                                                                                  tables["gamma_bar"][:num_steps - 1]])
-        weight = torch.where(gamma_bar > 0, (gamma_bar - gamma_bar_prev) / gamma_bar.clamp_min(1e-300), 0.0)
+        # clamp: where gamma_bar barely moves, float64 rounding can make the difference a hair negative.
+        weight = torch.where(gamma_bar > 0, (gamma_bar - gamma_bar_prev) / gamma_bar.clamp_min(1e-300), 0.0).clamp(0, 1)
         self.register_buffer("masked_ce_weight_T", weight.float(), persistent=False)
 
     # -- indexing ---------------------------------------------------------------------------------
