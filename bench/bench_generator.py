@@ -7,11 +7,15 @@ RUN is a run whose generator stage trained (``vqtouch train generator``).  Every
 (sampler x steps x guidance x precision x batch) runs in a fresh interpreter, so its peak memory
 (max RSS; the interpreter's RSS after loading the pipeline is reported apart) is its own; the
 settings are run ``--rounds`` times, interleaved (round 1 of every setting, then round 2, ...),
-and the median throughput is reported, so machine drift hits every setting alike.  Quality is
-scored on the run's held-out conditions, each image against the ground-truth tactile image of
-its own condition (SSIM, PSNR), plus ``fd_effnetlite0`` between the generated and the real
-held-out images; the same conditions and seeds for every setting.  Cost ratios are against the
-first setting (the most steps) measured in the same run.
+and the median throughput is reported, so machine drift hits every setting alike.  Generation,
+timing and scoring are those of ``vqtouch tradeoff generator``
+(:mod:`vqtouch.plugins.generator.tradeoff`, which measures every setting in one process and
+draws the Pareto plot): the run's held-out conditions, the same seeds for every setting, each
+image scored against the ground-truth tactile image of its own condition (SSIM, PSNR, contact
+PSNR) and, with ``--fd``, ``fd_effnetlite0`` against the real held-out images and the accuracy
+of a classifier trained on real images.  This script adds what one process cannot measure: each
+setting's peak memory.  Cost ratios are against the first setting (the most steps) measured in
+the same run.
 
 ``--train`` also measures generator training throughput (code grids per second) from cached
 codes against the same step with the tokenizer's encoder run on the batch's images, which is what
@@ -21,52 +25,28 @@ training without the code cache would cost per step.
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import statistics
 import subprocess
 import sys
 
 WORKER = r"""
-import json, resource, sys, time, torch
+import json, resource, sys, torch
 args = json.loads(sys.argv[1])
 torch.set_num_threads(args["threads"])
-from vqtouch.core import Assembly, RunDir, load_plugins
-from vqtouch.core.data import split_dataset
-from vqtouch.plugins.generator import load_pipeline
-host = load_plugins()
-pipe = load_pipeline(args["run"], host=host)
-run = RunDir.open(args["run"])
-config = run.load_config(host)
-assembly = Assembly(config, host)
-dataset = assembly.component("data.dataset")
-_, val = split_dataset(dataset, config.data.val_fraction, config.seed)
-count = min(args["n"], len(val))
-samples = [val[i] for i in range(count)]
-key = pipe.conditioners[0].sample_key
-values = [s[key] for s in samples]
-truth = torch.stack([s["tactile"] for s in samples])
+from vqtouch.core import load_plugins
+from vqtouch.plugins.generator.tradeoff import load_tradeoff_bench
+bench = load_tradeoff_bench(args["run"], load_plugins(), n=args["n"], batch_size=args["batch"], distribution=False)
+setting = {key: args[key] for key in ("sampler", "steps", "guidance", "precision", "batch")}
 loaded_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-def generate():
-    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=args["precision"] == "bf16"):
-        return pipe(**{key: values}, steps=args["steps"], sampler=args["sampler"], guidance=args["guidance"],
-                    seed=0, batch_size=args["batch"])
-pipe(**{key: values[:1]}, steps=1, sampler=args["sampler"], guidance=args["guidance"], seed=0)  # warm-up
-tic = time.perf_counter()
-images = generate()
-seconds = time.perf_counter() - tic
-scores = {}
-for name in ("ssim", "psnr"):
-    metric = host.build("metric", name)
-    metric.update(images.float(), truth)
-    scores[name] = metric.compute()
-if args["fd"]:
-    metric = host.build("metric", {"name": "fd_effnetlite0", "image_size": 64})
-    metric.update(images.float(), truth)
-    scores["fd_effnetlite0"] = metric.compute()
-print(json.dumps({"img_per_s": count / seconds, "seconds": seconds, "images": count, **scores,
-                  "finite": bool(torch.isfinite(images).all()), "loaded_mb": loaded_mb,
-                  "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+bench.warm_up([setting])
+seconds, images = bench.timed(setting)
+peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+if args["fd"]:  # after the peak is read: the feature network's memory is not the sampler's
+    bench.fit_distribution(args["feature_size"])
+scores = bench.score(images)
+print(json.dumps({"img_per_s": images.shape[0] / seconds, "seconds": seconds, "images": images.shape[0], **scores,
+                  "finite": bool(torch.isfinite(images).all()), "loaded_mb": loaded_mb, "peak_mb": peak_mb}))
 """
 
 TRAIN_WORKER = r"""
@@ -123,27 +103,26 @@ def main() -> None:
     parser.add_argument("--n", type=int, default=32, help="held-out conditions generated per setting")
     parser.add_argument("--rounds", type=int, default=2, help="interleaved repetitions (median reported)")
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--fd", action="store_true", help="also score fd_effnetlite0 (slower)")
+    parser.add_argument("--fd", action="store_true", help="also score fd_effnetlite0 and the accuracy of a classifier "
+                                                          "trained on real images (slower)")
+    parser.add_argument("--feature-size", type=int, help="EfficientNet-Lite0 input side for --fd (default: the run's "
+                                                        "fd_effnetlite0 metric's, else 224)")
     parser.add_argument("--only", choices=["steps", "grid"], default="steps",
-                        help="'steps': vary one knob at a time around posterior/25 steps/fp32/unguided; "
+                        help="'steps': vary one knob at a time around the first sampler, guidance, precision and "
+                             "batch and the middle --steps value (posterior/25/unguided/fp32/16 by default); "
                              "'grid': every combination")
     parser.add_argument("--train", action="store_true", help="also measure training with and without the code cache")
     parser.add_argument("--json", help="write every measurement to this file")
     args = parser.parse_args()
 
-    base = {"sampler": args.samplers[0], "steps": 25, "guidance": 1.0, "precision": "fp32", "batch": args.batches[0]}
-    if args.only == "grid":
-        settings = [dict(zip(("sampler", "steps", "guidance", "precision", "batch"), combo))
-                    for combo in itertools.product(args.samplers, args.steps, args.guidance, args.precisions,
-                                                   args.batches)]
-    else:  # one knob at a time
-        settings = [{**base, "steps": steps} for steps in args.steps]
-        settings += [{**base, "sampler": sampler} for sampler in args.samplers[1:]]
-        settings += [{**base, "guidance": guidance} for guidance in args.guidance if guidance != base["guidance"]]
-        settings += [{**base, "precision": precision} for precision in args.precisions if precision != "fp32"]
-        settings += [{**base, "batch": batch} for batch in args.batches[1:] + [1] if batch != base["batch"]]
-        settings = [dict(item) for item in dict.fromkeys(tuple(sorted(s.items())) for s in settings)]
-    common = {"run": args.run, "n": args.n, "threads": args.threads, "fd": args.fd}
+    from vqtouch.plugins.generator.tradeoff import sweep_settings
+
+    grid = args.only == "grid"
+    # One knob at a time also measures batch 1 (the latency of a single image).
+    batches = args.batches if grid else list(dict.fromkeys([*args.batches, 1]))
+    settings = sweep_settings(steps=args.steps, samplers=args.samplers, guidance=args.guidance,
+                              precisions=args.precisions, grid=grid, batches=batches)
+    common = {"run": args.run, "n": args.n, "threads": args.threads, "fd": args.fd, "feature_size": args.feature_size}
     measured: list[list[dict]] = [[] for _ in settings]
     for round_index in range(args.rounds):
         for index, setting in enumerate(settings):
@@ -151,7 +130,8 @@ def main() -> None:
             print(f"round {round_index + 1}/{args.rounds}, setting {index + 1}/{len(settings)}", file=sys.stderr)
     reference = statistics.median(m["img_per_s"] for m in measured[0])
     header = (f"{'sampler':10s} {'steps':>5s} {'guid':>4s} {'prec':4s} {'batch':>5s} {'img/s':>7s} {'cost':>6s} "
-              f"{'SSIM':>6s} {'PSNR':>6s}" + (f" {'FD':>7s}" if args.fd else "") + f" {'peak MB':>8s} {'+load MB':>8s}")
+              f"{'SSIM':>6s} {'PSNR':>6s}" + (f" {'FD':>7s} {'cls acc':>7s}" if args.fd else "")
+              + f" {'peak MB':>8s} {'+load MB':>8s}")
     print(f"run {args.run}; {measured[0][0]['images']} held-out conditions; {args.threads} threads; "
           f"median of {args.rounds} interleaved rounds; cost = time per image / that of the first row")
     print(header)
@@ -160,10 +140,12 @@ def main() -> None:
     for setting, results in zip(settings, measured):
         rate = statistics.median(r["img_per_s"] for r in results)
         row = {**setting, "img_per_s": rate, "cost": reference / rate,
-               **{k: results[0][k] for k in ("ssim", "psnr", "fd_effnetlite0", "peak_mb", "loaded_mb", "finite")
-                  if k in results[0]}}
+               **{k: results[0][k] for k in ("ssim", "psnr", "contact_psnr", "fd_effnetlite0", "classifier_accuracy",
+                                             "peak_mb", "loaded_mb", "finite") if k in results[0]}}
         rows.append(row)
-        fd = f" {row['fd_effnetlite0']:7.2f}" if args.fd else ""
+        accuracy = row.get("classifier_accuracy")
+        fd = (f" {row['fd_effnetlite0']:7.2f} {'-' if accuracy is None else f'{accuracy:.3f}':>7s}"
+              if args.fd else "")
         print(f"{setting['sampler']:10s} {setting['steps']:5d} {setting['guidance']:4g} {setting['precision']:4s} "
               f"{setting['batch']:5d} {rate:7.2f} {row['cost']:5.2f}x {row['ssim']:6.4f} {row['psnr']:6.2f}{fd} "
               f"{row['peak_mb']:8.0f} {row['peak_mb'] - row['loaded_mb']:8.0f}")

@@ -37,6 +37,7 @@ def _register_helper_module(name: str) -> None:
 
 
 _register_helper_module("dataset_fixtures")
+_register_helper_module("generator_runs")
 
 
 @pytest.fixture(autouse=True)

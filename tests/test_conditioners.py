@@ -10,6 +10,20 @@ from vqtouch.core import BuildContext, ConfigError, MissingWeightsError, PluginE
 CONTEXT = BuildContext(image_size=32, num_classes=4, cond_dim=16)
 
 
+@pytest.fixture(scope="module")
+def build(host, tmp_path_factory):
+    """``build(name, context)``: the conditioner with its default options, plus the local files it
+    needs (tactile_codes: a tiny source tokenizer)."""
+    import generator_runs
+
+    def build_conditioner(name, context=CONTEXT):
+        config = {"name": name}
+        if name == "tactile_codes":
+            config["tokenizer"] = str(generator_runs.tiny_tokenizer_folder(tmp_path_factory.getbasetemp()))
+        return host.build("conditioner", config, context)
+    return build_conditioner
+
+
 def example_condition(conditioner, batch):
     """The contract checks' example batch for the conditioner's sample key (labels, images or texts)."""
     from vqtouch.core.testing import example_condition as contract_example
@@ -28,16 +42,16 @@ OFFLINE_CONDITIONERS = [name for name in load_plugins(autoload=False).registry("
 
 
 @pytest.mark.parametrize("name", OFFLINE_CONDITIONERS)
-def test_conditioner_gradients_reach_parameters(host, name):
-    conditioner = host.build("conditioner", name, CONTEXT)
+def test_conditioner_gradients_reach_parameters(build, name):
+    conditioner = build(name)
     conditioner(example_condition(conditioner, 2)).tokens_BND.square().sum().backward()
     trainable = [p for n, p in conditioner.named_parameters() if n != "null_tokens_ND"]
     assert trainable and all(p.grad is not None and torch.isfinite(p.grad).all() for p in trainable)
 
 
 @pytest.mark.parametrize("name", OFFLINE_CONDITIONERS)
-def test_conditioner_under_bf16_autocast_is_finite(host, name):
-    conditioner = host.build("conditioner", name, CONTEXT)
+def test_conditioner_under_bf16_autocast_is_finite(build, name):
+    conditioner = build(name)
     with torch.autocast("cpu", dtype=torch.bfloat16):
         out = conditioner(example_condition(conditioner, 2))
     assert torch.isfinite(out.tokens_BND.float()).all()
@@ -174,16 +188,16 @@ def test_clip_unknown_architecture(host, tiny_clip_file):
 
 
 @pytest.mark.parametrize("name", OFFLINE_CONDITIONERS)
-def test_each_conditioner_reads_its_own_entry_of_a_dataset_batch(host, name):
-    """`sample_key` routes a collated batch of procedural samples to the right conditioner input."""
+def test_each_conditioner_reads_its_own_entry_of_a_dataset_batch(host, build, name):
+    """`sample_key` routes a collated batch of procedural samples (paired: a DIGIT image per GelSight
+    one) to the right conditioner input."""
     from vqtouch.core.training import collate_samples
 
-    sensor = host.build("sensor_family", "gelsight")
     dataset = host.build("dataset", {"name": "procedural", "num_samples": 3, "image_size": 32},
-                         BuildContext(image_size=32), sensor=sensor)
+                         BuildContext(image_size=32), sensor=host.build("sensor_family", "gelsight"),
+                         paired_sensor=host.build("sensor_family", "digit"))
     batch = collate_samples([dataset[i] for i in range(3)])
-    conditioner = host.build("conditioner", name, BuildContext(image_size=32, num_classes=dataset.num_classes,
-                                                               cond_dim=16))
+    conditioner = build(name, BuildContext(image_size=32, num_classes=dataset.num_classes, cond_dim=16))
     condition = conditioner.condition_of(batch)
     assert condition is batch[conditioner.sample_key]
     assert conditioner(condition).tokens_BND.shape == (3, conditioner.num_tokens, 16)

@@ -151,7 +151,8 @@ def test_tokenizer_train_keeps_vqgan_betas_while_core_defaults_to_adamw(host):
 
 def test_unknown_plugin_lists_choices_and_closest(host):
     with pytest.raises(ConfigError, match=r"generator.conditioners.0: unknown conditioner 'lable'; available: clip, "
-                                          r"label, tactile, text_scratch, visual, visual_cnn; did you mean 'label'\?"):
+                                          r"label, tactile, tactile_codes, text, text_scratch, visual, visual_cnn; "
+                                          r"did you mean 'label'\?"):
         resolve_config("label-to-touch", overrides=["generator.conditioners.0.name=lable"], host=host)
 
 
@@ -170,7 +171,7 @@ def test_changing_slot_name_resets_its_options(host):
     config = resolve_config("label-to-touch", overrides=["generator.conditioners.0.name=tactile",
                                                          "generator.conditioners.0.width=16"], host=host)
     assert config.generator.conditioners[0].model_dump() == {"name": "tactile", "width": 16, "depth": 3,
-                                                             "token_grid": 4}
+                                                             "token_grid": 4, "reads": "tactile_source"}
     config = resolve_config("reconstruction", overrides=["tokenizer.quantizer.name=ema_vq"], host=host)
     assert "lookup_dim" not in config.tokenizer.quantizer.model_dump()  # the scene's vq options are dropped
 

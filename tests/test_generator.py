@@ -12,22 +12,9 @@ from vqtouch.core import BuildContext, ConditionTokens, load_plugins
 from vqtouch.core.cli import main
 from vqtouch.core.testing import check_plugin
 
+from generator_runs import TINY, train_args  # noqa: E402  (registered by conftest)
+
 HOST = load_plugins(autoload=False)
-TINY = ["tokenizer.autoencoder.channels=16", "tokenizer.autoencoder.norm_groups=8",
-        "tokenizer.autoencoder.channel_multipliers=[1,2]", "tokenizer.autoencoder.z_channels=16",
-        "tokenizer.autoencoder.embed_dim=8", "tokenizer.quantizer.codebook_size=32", "data.image_size=32",
-        "data.batch_size=4", "data.dataset.num_samples=24", "data.val_fraction=0.25", "tokenizer.train.steps=2", "tokenizer.loss.perceptual=none",
-        "tokenizer.discriminator=null", 'metrics=[{"name": "psnr"}]',
-        "generator.model.depth=1", "generator.model.width=32", "generator.model.num_steps=20",
-        "generator.train.steps=6", "generator.train.checkpoint_every=3", "generator.train.log_every=1",
-        "generator.num_samples=4", "generator.steps=4"]
-
-
-def train_args(out, *extra, scene="label-to-touch", flags=()):
-    args = ["--no-progress", "train", "generator", "--scene", scene, "--out", str(out), *flags]
-    for override in [*TINY, *extra]:
-        args += ["--set", override]
-    return args
 
 
 @pytest.fixture(scope="module")
@@ -254,6 +241,22 @@ def test_touch_to_touch_conditions_on_the_paired_sensors_image(trained, tmp_path
     assert "warning" not in capsys.readouterr().err
     config = json.loads((run / "config.json").read_text())
     assert config["sensor"]["name"] == "digit" and config["paired_sensor"]["name"] == "gelsight"
+    # The sample grid: the GelSight conditions (top row), generated, ground truth (DIGIT); two columns.
+    import numpy as np
+    from PIL import Image
+
+    from vqtouch.core import Assembly, RunDir
+    from vqtouch.core.data import split_dataset
+
+    grid_HW3 = np.asarray(Image.open(run / "samples.png").convert("RGB"))
+    assert grid_HW3.shape == (3 * (32 + 2) + 2, 2 * (32 + 2) + 2, 3)
+    run_config = RunDir.open(run).load_config(HOST)
+    dataset = Assembly(run_config, HOST).component("data.dataset")
+    _, held_out = split_dataset(dataset, run_config.data.val_fraction, run_config.seed)
+    for row, key in ((0, "tactile_source"), (2, "tactile")):
+        expected = (held_out[1][key].permute(1, 2, 0).numpy() * 255).round()
+        cell = grid_HW3[2 + row * 34:2 + row * 34 + 32, 36:68].astype(float)
+        assert np.abs(cell - expected).max() <= 1, key
     pipe = load_pipeline(run, host=HOST)
     assert [c.sample_key for c in pipe.conditioners] == ["tactile_source"]
     image = tmp_path / "gelsight.png"

@@ -102,9 +102,9 @@ def test_visual_cnn_and_tactile_share_one_implementation_reading_different_keys(
     touch = host.build("conditioner", {"name": "tactile", **options}, CONTEXT)
     vision = host.build("conditioner", {"name": "visual_cnn", **options}, CONTEXT)
     assert type(touch) is type(vision) is image_cnn.ImageCnnConditioner is tactile.TactileConditioner
-    assert (touch.sample_key, vision.sample_key) == ("tactile", "visual")
-    batch = {"tactile": _images(2, 5), "visual": _images(2, 6)}
-    assert touch.condition_of(batch) is batch["tactile"] and vision.condition_of(batch) is batch["visual"]
+    assert (touch.sample_key, vision.sample_key) == ("tactile_source", "visual")
+    batch = {"tactile_source": _images(2, 5), "visual": _images(2, 6)}
+    assert touch.condition_of(batch) is batch["tactile_source"] and vision.condition_of(batch) is batch["visual"]
     # Same weights, same image: same tokens (the same network, not a copy that could drift).
     vision.load_state_dict(touch.state_dict())
     torch.testing.assert_close(vision.encode(batch["visual"]), touch.encode(batch["visual"]))
@@ -113,12 +113,14 @@ def test_visual_cnn_and_tactile_share_one_implementation_reading_different_keys(
 
 
 def test_tactile_checkpoint_keys_are_unchanged_by_the_refactor(host):
+    """The tactile conditioner's weights keep their names (old checkpoints still load); ``reads``,
+    which sample entry it encodes, is a config option, not a weight."""
     touch = host.build("conditioner", {"name": "tactile", "width": 8, "depth": 2, "token_grid": 2}, CONTEXT)
     assert set(touch.state_dict()) == {"null_tokens_ND", "position_ND", "project.weight", "project.bias",
                                        "trunk.0.weight", "trunk.0.bias", "trunk.1.weight", "trunk.1.bias",
                                        "trunk.3.weight", "trunk.3.bias", "trunk.4.weight", "trunk.4.bias"}
     assert list(host.registry("conditioner").get("tactile").config_model.model_fields) == [
-        "name", "width", "depth", "token_grid"]
+        "name", "width", "depth", "token_grid", "reads"]
 
 
 # -- text_scratch -------------------------------------------------------------------------------------

@@ -59,6 +59,7 @@ TINY_CLIP = {
 
 
 import dataset_fixtures  # noqa: E402  (registered by conftest)
+import generator_runs  # noqa: E402  (registered by conftest)
 
 READER_CASES = {case.name: case for case in dataset_fixtures.READER_CASES}
 
@@ -72,24 +73,6 @@ def tiny_clip_weights(folder: Path) -> Path:
     if not path.is_file():
         model = open_clip.create_model("ViT-S-32", pretrained=None, **TINY_CLIP)
         save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(path))
-    return path
-
-
-def tiny_tokenizer_folder(folder: Path) -> Path:
-    """A checkpoint folder holding a tiny untrained VQGAN tokenizer (autoencoder + quantizer): what
-    the tactile_codes conditioner loads as its source sensor's tokenizer."""
-    from vqtouch.core import save
-    from vqtouch.core.testing import DEFAULT_CONTEXT
-
-    path = folder / "tiny_tokenizer"
-    if not (path / "quantizer.safetensors").is_file():
-        path.mkdir(parents=True, exist_ok=True)
-        autoencoder = HOST.build("autoencoder", {"name": "vqgan", **TINY_OPTIONS[("autoencoder", "vqgan")]},
-                                 DEFAULT_CONTEXT)
-        context = DEFAULT_CONTEXT.model_copy(update=autoencoder.context_facts())
-        quantizer = HOST.build("quantizer", {"name": "vq", "codebook_size": 16}, context)
-        save(autoencoder, path / "autoencoder.safetensors", host=HOST)
-        save(quantizer, path / "quantizer.safetensors", host=HOST)
     return path
 
 
@@ -107,7 +90,7 @@ def builtin_case(kind: str, name: str, tmp_path_factory: pytest.TempPathFactory)
         options.update({"architecture": "ViT-S-32", "checkpoint": str(weights), "model_overrides": TINY_CLIP,
                         "context_length": 4})
     if (kind, name) == ("conditioner", "tactile_codes"):
-        options["tokenizer"] = str(tiny_tokenizer_folder(tmp_path_factory.getbasetemp()))
+        options["tokenizer"] = str(generator_runs.tiny_tokenizer_folder(tmp_path_factory.getbasetemp()))
     if kind == "dataset" and name in READER_CASES:
         reader = READER_CASES[name]
         options.update({k: v for k, v in reader.config(reader.build(tmp_path_factory.mktemp(name))).items()

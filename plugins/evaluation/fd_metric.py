@@ -13,6 +13,7 @@ computed in float64.
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import torch
@@ -90,6 +91,40 @@ class FeatureMoments:
         return self.shift_F + centered_mean, covariance
 
 
+def feature_frechet_distance(features_NF: torch.Tensor, reference_MF: torch.Tensor) -> float:
+    """``fd_effnetlite0`` of two sets of pooled features (N, F) and (M, F): the Fréchet distance between
+    their Gaussians (float64), the number :class:`FdEffNetLite0` gives for them.
+
+    With at least F rows in each set it is the metric's own computation
+    (:class:`FeatureMoments` and :func:`frechet_distance`).  With fewer (the
+    usual case: a few hundred images, 1280 features) the covariances have rank below F and the same
+    quantity is computed exactly in the rows' space: with A, B the centered features,
+    ``tr sqrt(S1^1/2 S2 S1^1/2)`` is the sum of the singular values of ``A B^T`` over
+    ``sqrt((N-1)(M-1))`` (the nonzero eigenvalues of ``S1 S2`` are those of ``(A B^T)(A B^T)^T``), and
+    ``tr S = |A|^2 / (N-1)``.  That avoids an eigen-decomposition of a rank-deficient F x F matrix,
+    which takes seconds on a CPU and can fail to converge on such matrices."""
+    rows, reference_rows = features_NF.shape[0], reference_MF.shape[0]
+    if min(rows, reference_rows) < 2:
+        raise ValueError(f"fd_effnetlite0 needs at least 2 images in each set, got {rows} and {reference_rows}")
+    if features_NF.shape[1] != reference_MF.shape[1]:
+        raise ValueError(f"features of different widths: {features_NF.shape[1]} and {reference_MF.shape[1]}")
+    if min(rows, reference_rows) >= features_NF.shape[1]:
+        moments = []
+        for features in (features_NF, reference_MF):
+            accumulated = FeatureMoments()
+            accumulated.add(features)
+            moments.append(accumulated.mean_and_covariance())
+        (mu1, sigma1), (mu2, sigma2) = moments
+        return frechet_distance(mu1, sigma1, mu2, sigma2)
+    first, second = features_NF.detach().cpu().double(), reference_MF.detach().cpu().double()
+    mean1, mean2 = first.mean(dim=0), second.mean(dim=0)
+    centered1, centered2 = first - mean1, second - mean2
+    trace1 = centered1.square().sum() / (rows - 1)
+    trace2 = centered2.square().sum() / (reference_rows - 1)
+    cross = torch.linalg.svdvals(centered1 @ centered2.T).sum() / math.sqrt((rows - 1) * (reference_rows - 1))
+    return float((mean1 - mean2).square().sum() + trace1 + trace2 - 2 * cross)
+
+
 class FdEffNetLite0Config(PluginConfig):
     """Options of the ``fd_effnetlite0`` metric."""
 
@@ -133,22 +168,31 @@ class FdEffNetLite0(Metric):
 
     def update(self, predicted_B3HW: torch.Tensor, target_B3HW: torch.Tensor) -> None:
         """Add a batch of predicted and a batch of target images (both (B, 3, H, W) in [0, 1])."""
-        self._predicted.add(self.pooled_features(predicted_B3HW))
-        self._target.add(self.pooled_features(target_B3HW))
+        for features, moments, rows in ((self.pooled_features(predicted_B3HW), self._predicted, self._predicted_rows),
+                                        (self.pooled_features(target_B3HW), self._target, self._target_rows)):
+            moments.add(features)
+            if moments.count < EFFNET_LITE0_POOLED_DIM:  # below the feature width the rows are the cheaper record
+                rows.append(features)
+            else:
+                rows.clear()
 
     def compute(self) -> float:
         """Fréchet distance between predicted and target feature statistics (needs >= 2 images of each)."""
         if self._predicted.count < 2 or self._target.count < 2:
             raise ValueError(f"fd_effnetlite0 needs at least 2 predicted and 2 target images before compute(); got "
                              f"{self._predicted.count} and {self._target.count}")
+        if self._predicted_rows and self._target_rows:
+            # Rank-deficient covariances: the exact row-space form (see feature_frechet_distance).
+            return feature_frechet_distance(torch.cat(self._predicted_rows), torch.cat(self._target_rows))
         mu_predicted, sigma_predicted = self._predicted.mean_and_covariance()
         mu_target, sigma_target = self._target.mean_and_covariance()
         return frechet_distance(mu_predicted, sigma_predicted, mu_target, sigma_target)
 
     def reset(self) -> None:
         """Forget every image seen."""
-        self._predicted = FeatureMoments()
-        self._target = FeatureMoments()
+        self._predicted, self._target = FeatureMoments(), FeatureMoments()
+        self._predicted_rows: list[torch.Tensor] = []
+        self._target_rows: list[torch.Tensor] = []
 
 
 def build_fd_effnetlite0(config: FdEffNetLite0Config, context: BuildContext) -> FdEffNetLite0:

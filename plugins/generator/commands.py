@@ -1,4 +1,5 @@
-"""``vqtouch train generator`` and ``vqtouch generate``.
+"""``vqtouch train generator``, ``vqtouch generate``, ``vqtouch evaluate generation`` and
+``vqtouch tradeoff generator`` (:mod:`.tradeoff`).
 
 ``train generator`` runs the scene's stages up to the generator in one run directory (the
 tokenizer stage first, unless ``--tokenizer RUN`` names a trained one, whose tokenizer config is
@@ -133,21 +134,60 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
     if steps > limit:
         raise ConfigError(f"--steps {steps}: steps must be an integer in [1, {limit}] (the generator's diffusion steps)")
     metric_names = args.metrics.split(",") if args.metrics else [item.name for item in config.metrics]
+    metrics = [(name, assembly.build("metric", name)) for name in metric_names]
+    if args.feature_size is not None:
+        if args.feature_size < 32:
+            raise ConfigError(f"--feature-size {args.feature_size}: EfficientNet-Lite0 needs at least 32 px")
+        metrics = [(name, metric) for name, metric in metrics if name != "fd_effnetlite0"]
+        metrics.append(("fd_effnetlite0", assembly.build("metric", {"name": "fd_effnetlite0",
+                                                                    "image_size": args.feature_size})))
     tag = f"{pipe.checkpoint.name}_{sampler_name}_{steps}"
     scores = score_generation(
         generator=pipe.generator, conditioner=pipe.conditioners[index], tokenizer=pipe.tokenizer,
         sampler=host.build("sampler", sampler_name), held_out=held_out, dataset=dataset, pool=baseline_pool(train),
-        metrics=[(name, assembly.build("metric", name)) for name in metric_names],
+        metrics=metrics,
         sensor=assembly.sensor() if config.sensor is not None else None, count=args.n, steps=steps,
         guidance=pipe.settings["guidance"] if args.guidance is None else args.guidance,
         truncation=pipe.settings["truncation"] if args.truncation is None else args.truncation,
         seed=config.seed if args.seed is None else args.seed, device=pipe.device,
-        picture=run.path / f"samples_{tag}.png")
+        picture=run.path / f"samples_{tag}.png", distribution=args.distribution)
     result = {"checkpoint": str(pipe.checkpoint), "conditioner": f"{index}:{names[index]}", "sampler": sampler_name,
               **scores}
     run.write_json(f"evaluation_generation_{tag}.json", result)
     print(json.dumps(result, indent=2))
     return 0
+
+
+def _tradeoff_generator_command(args: argparse.Namespace) -> int:
+    from .tradeoff import tradeoff_command
+
+    return tradeoff_command(args)
+
+
+def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of ``vqtouch tradeoff generator``."""
+    parser.add_argument("--run", required=True, help="a run whose generator stage trained")
+    parser.add_argument("--out", required=True, help="folder for tradeoff.json, tradeoff.md and pareto.png")
+    parser.add_argument("--n", type=_positive_int, default=64, help="held-out conditions per setting (at most all)")
+    parser.add_argument("--rounds", type=_positive_int, default=2, help="interleaved timing rounds (median reported)")
+    parser.add_argument("--steps", type=int, nargs="+", default=[100, 50, 25, 10, 5], help="sampling steps")
+    parser.add_argument("--samplers", nargs="+", default=["posterior", "purity", "confidence"],
+                        help="sampler plugins (the first is the base)")
+    parser.add_argument("--guidance", type=float, nargs="+", default=[1.0, 3.0],
+                        help="classifier-free guidance scales (1: unguided; the first is the base)")
+    parser.add_argument("--precisions", nargs="+", default=["fp32", "bf16"], metavar="{fp32,bf16}",
+                        help="fp32, or bf16 autocast (the first is the base)")
+    parser.add_argument("--batch-size", type=_positive_int, default=16, help="conditions per forward pass")
+    parser.add_argument("--grid", action="store_true",
+                        help="every combination (default: one knob at a time around the first sampler, guidance and "
+                             "precision and the middle --steps value)")
+    parser.add_argument("--seed", type=int, help="seed of the sampling draws (default: the run's)")
+    parser.add_argument("--threads", type=_positive_int, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--distribution", action=argparse.BooleanOptionalAction, default=True,
+                        help="score fd_effnetlite0 and a real-image classifier's accuracy (default: on)")
+    parser.add_argument("--feature-size", type=_positive_int,
+                        help="side EfficientNet-Lite0 sees the images at (default: the run's fd_effnetlite0 metric's, "
+                             "else 224)")
 
 
 class _CountAction(argparse.Action):
@@ -189,7 +229,22 @@ def vqtouch_add_commands(subparsers):
     scored.add_argument("--truncation", type=float, help="keep the most likely codes holding this mass (1: all)")
     scored.add_argument("--seed", type=int, help="seed of the sampling draws (default: the run's)")
     scored.add_argument("--metrics", help="comma-separated metric plugins (default: the run's metrics)")
+    scored.add_argument("--distribution", action=argparse.BooleanOptionalAction, default=True,
+                        help="also score fd_effnetlite0 against the real held-out images and the accuracy of a "
+                             "classifier trained on real training images, for the generator and its baselines "
+                             "(default: on)")
+    scored.add_argument("--feature-size", type=_positive_int,
+                        help="side EfficientNet-Lite0 sees the images at (default: the run's fd_effnetlite0 metric's, "
+                             "else 224)")
     scored.set_defaults(handler=_evaluate_generation_command)
+
+    tradeoff = command_group(subparsers, "tradeoff", "measure the speed/quality trade-off of a trained component")
+    traded = tradeoff.add_parser("generator", help="time and score a trained generator at each sampler, steps, "
+                                                   "guidance and precision setting (tradeoff.json, tradeoff.md, "
+                                                   "pareto.png)")
+    _add_tradeoff_arguments(traded)
+    add_step_argument(traded)
+    traded.set_defaults(handler=_tradeoff_generator_command)
 
     generate = subparsers.add_parser("generate", help="generate tactile images with a trained generator run")
     generate.add_argument("--run", required=True, help="a run whose generator stage trained")

@@ -6,15 +6,18 @@ sets).  Its codes of the whole dataset are computed once and cached (:mod:`.code
 runs through the one trainer (:mod:`.training`), with its checkpoints in
 ``checkpoints/generator/step-*`` (the tokenizer's stay in ``checkpoints/step-*``).  Afterwards
 the held-out conditions are generated with the configured sampler and scored against their
-ground-truth tactile images (``generation.json``, ``samples.png``).
+ground-truth tactile images (``generation.json``; ``samples.png``: condition images when there
+are, generated, ground truth).
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from pydantic import Field
@@ -27,6 +30,9 @@ from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.core.training import Trainer, collate_samples
 
 from .training import CodesDataset, GeneratorTask, GeneratorTrainConfig
+
+if TYPE_CHECKING:
+    from vqtouch.plugins.evaluation.distribution import DistributionScorer
 
 class ConditionIsTargetWarning(VqtouchWarning):
     """A conditioner reads the very image the generator learns to produce."""
@@ -54,6 +60,9 @@ class GeneratorSection(Section):
                                                            "probability at each step; 1 keeps all.")
     num_samples: int = Field(16, ge=0, le=100_000, strict=True,
                              description="Held-out conditions generated and scored after training (0: none).")
+    distribution: bool = Field(False, description="Also score the held-out samples' fd_effnetlite0 and the accuracy "
+                                                   "of a classifier trained on real images (EfficientNet-Lite0 "
+                                                   "features at 224 px; slower on a CPU).")
     train: GeneratorTrainConfig = Field(default_factory=GeneratorTrainConfig, description="Optimisation settings.")
 
 
@@ -138,7 +147,8 @@ def train_generator(job: StageJob) -> dict[str, Any]:
 def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sampler: Any, held_out: Any, dataset: Any,
                      metrics: list[tuple[str, Any]], sensor: Any, count: int, steps: int, guidance: float,
                      truncation: float, seed: int, device: torch.device, picture: Path | None = None,
-                     pool: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+                     pool: list[dict[str, Any]] | None = None,
+                     distribution: bool | DistributionScorer = False) -> dict[str, Any]:
     """Generate the first ``count`` held-out conditions (``held_out``: a subset of ``dataset`` with
     ``indices``) with ``conditioner`` and score them against their ground-truth tactile images.
 
@@ -149,19 +159,22 @@ def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sample
     label condition, the mean training image of the label (``class_mean_*``).  Every one is also
     scored on the contact region (``contact_*``).  Sample i is drawn with a generator seeded from
     (seed, its dataset index), so a score does not depend on ``count``.  ``picture``: where to save
-    ground truth (top) above generated (bottom)."""
-    count = min(count, len(held_out))
-    indices = [held_out.indices[i] for i in range(count)]
-    batch = collate_samples([held_out[i] for i in range(count)])
-    batch = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
-    truth = torch.stack([dataset[index]["tactile"] for index in indices]).to(device)
+    the sample grid: the conditions (top row, when they are images), generated, ground truth.
+
+    ``distribution``: also score every one of them with :func:`distribution_scorer`'s
+    ``fd_effnetlite0`` against the real held-out images and the accuracy of a classifier trained
+    on the real training images of ``pool`` (``classifier_accuracy``, beside
+    ``real_classifier_accuracy``, the real held-out images' own); a
+    :class:`~vqtouch.plugins.evaluation.distribution.DistributionScorer` already fitted on these
+    conditions is used as it is."""
+    conditions = held_out_conditions(held_out, dataset, count, device)
+    count, indices, truth = len(conditions.indices), conditions.indices, conditions.truth
+    batch = conditions.batch(device=device)
     generator.eval()
     conditioner.eval()
     condition = conditioner(conditioner.condition_of(batch))
-    draws = [torch.Generator(device=device).manual_seed(seed * 100_003 + index) for index in indices]
-    codes = generator.sample(condition, sampler, steps=steps, null=conditioner.null(count), guidance=guidance,
-                             truncation=truncation, generators=draws)
-    images = tokenizer.decode_codes(codes)
+    images = sample_images(generator, conditioner, tokenizer, sampler, condition, indices, steps=steps,
+                           guidance=guidance, truncation=truncation, seed=seed, device=device)
     scores: dict[str, Any] = {"samples": count, "steps": steps, "guidance": guidance, "truncation": truncation}
     background = no_contact_image(sensor, truth)
     compared = {"": images, "ceiling_": tokenizer.decode_codes(tokenizer.encode_codes(truth))}
@@ -169,16 +182,134 @@ def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sample
         compared["background_"] = background
     if pool:
         compared |= training_baselines(conditioner, condition, batch, pool, device)
-    for name, metric in metrics:
-        for prefix, predicted in compared.items():
-            metric.reset()
-            metric.update(predicted.cpu(), truth.cpu())
-            scores[prefix + name] = round(metric.compute(), 4)
-    if background is not None:
-        scores |= contact_region_scores(compared, truth, background)
+    scorer = distribution_scorer(conditions, pool, metrics, seed) if distribution is True else distribution or None
+    if scorer is not None:
+        scores |= scorer.real_scores()
+    scores |= score_images(compared, truth, metrics, background, scorer)
     if picture is not None:
         columns = min(count, 8)
-        save_png(image_grid(torch.cat([truth[:columns], images[:columns]]).cpu(), columns=columns), picture)
+        shown = condition_images(conditioner, batch)
+        rows = ([shown[:columns].float().cpu()] if shown is not None else []) + [images[:columns].cpu(),
+                                                                                 truth[:columns].cpu()]
+        save_png(image_grid(torch.cat(rows), columns=columns), picture)
+    return scores
+
+
+def condition_images(conditioner: Any, batch: dict[str, Any]) -> torch.Tensor | None:
+    """The conditions of ``batch`` as images (B, 3, H, W) when the conditioner reads an image (a visual
+    or a paired sensor's tactile image), for the sample grid; None for labels, texts and others."""
+    value = batch.get(conditioner.sample_key)
+    if isinstance(value, torch.Tensor) and value.ndim == 4 and value.shape[1] == 3:
+        return value
+    return None
+
+
+@dataclass
+class HeldOutConditions:
+    """The first held-out conditions, read once: their samples as the generator's data gives them
+    (condition entries), their dataset indices (each one's sampling seed) and their ground-truth
+    tactile images (on the scoring device) with their labels (None without labels)."""
+
+    samples: list[dict[str, Any]]
+    indices: list[int]
+    truth: torch.Tensor
+    labels: list[int] | None
+
+    def batch(self, start: int = 0, stop: int | None = None, *, device: torch.device) -> dict[str, Any]:
+        """Samples ``start:stop`` collated, their tensors on ``device``."""
+        batch = collate_samples(self.samples[start:stop])
+        return {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+
+
+def held_out_conditions(held_out: Any, dataset: Any, count: int, device: torch.device) -> HeldOutConditions:
+    """The first ``count`` (at most all) conditions of ``held_out`` (a subset of ``dataset`` with
+    ``indices``), with their ground truth and labels read from ``dataset``."""
+    from vqtouch.plugins.evaluation.distribution import labels_of
+
+    count = min(count, len(held_out))
+    indices = [held_out.indices[i] for i in range(count)]
+    real = [dataset[index] for index in indices]
+    truth = torch.stack([sample["tactile"] for sample in real]).to(device)
+    return HeldOutConditions([held_out[i] for i in range(count)], indices, truth, labels_of(real))
+
+
+@torch.no_grad()
+def sample_images(generator: Any, conditioner: Any, tokenizer: Any, sampler: Any, condition: Any, indices: list[int],
+                  *, steps: int, guidance: float, truncation: float, seed: int, device: torch.device) -> torch.Tensor:
+    """Decoded images (B, 3, H, W) of encoded ``condition`` (one row per entry of ``indices``): row i
+    drawn with a generator seeded from (seed, ``indices[i]``), its dataset index."""
+    draws = [torch.Generator(device=device).manual_seed(seed * 100_003 + index) for index in indices]
+    codes = generator.sample(condition, sampler, steps=steps, null=conditioner.null(len(indices)), guidance=guidance,
+                             truncation=truncation, generators=draws)
+    return tokenizer.decode_codes(codes)
+
+
+#: Sampling precisions: float32, or bfloat16 autocast (the generator and the decoder).
+PRECISIONS = ("fp32", "bf16")
+
+
+@torch.no_grad()
+def generate_held_out(generator: Any, conditioner: Any, tokenizer: Any, sampler: Any, conditions: HeldOutConditions,
+                      *, steps: int, guidance: float, truncation: float, seed: int, device: torch.device,
+                      batch_size: int | None = None, precision: str = "fp32") -> torch.Tensor:
+    """Float32 images (N, 3, H, W) of ``conditions``, encoded and sampled ``batch_size`` at a time
+    (None: all at once, as :func:`score_generation` does) in ``precision`` (``fp32``, or ``bf16``
+    autocast); the seeds of :func:`sample_images`, so image i does not depend on the batching
+    beyond float rounding.  What ``vqtouch tradeoff generator`` times."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision {precision!r}: expected one of {', '.join(PRECISIONS)}")
+    generator.eval()
+    conditioner.eval()
+    count = len(conditions.indices)
+    size = batch_size or count
+    images = []
+    autocast = (torch.autocast(device.type, dtype=torch.bfloat16) if precision == "bf16"
+                else contextlib.nullcontext())
+    with autocast:
+        for start in range(0, count, size):
+            batch = conditions.batch(start, start + size, device=device)
+            condition = conditioner(conditioner.condition_of(batch))
+            images.append(sample_images(generator, conditioner, tokenizer, sampler, condition,
+                                        conditions.indices[start:start + size], steps=steps, guidance=guidance,
+                                        truncation=truncation, seed=seed, device=device).float())
+    return torch.cat(images)
+
+
+def distribution_scorer(conditions: HeldOutConditions, pool: list[dict[str, Any]] | None,
+                        metrics: list[tuple[str, Any]], seed: int) -> DistributionScorer:
+    """The distribution scores of ``conditions``: ``fd_effnetlite0`` against their ground truth and
+    a classifier trained on the real training images of ``pool`` (their dataset labels).  The
+    features are those of the ``fd_effnetlite0`` metric among ``metrics`` (its options), else of
+    one with its defaults (224 px)."""
+    from vqtouch.plugins.evaluation.distribution import DistributionScorer, labels_of
+
+    metric = next((metric for name, metric in metrics if name == "fd_effnetlite0"), None)
+    pool = pool or []
+    return DistributionScorer(conditions.truth, conditions.labels, [sample["tactile"] for sample in pool],
+                              labels_of(pool) if pool else None, metric=metric, seed=seed)
+
+
+def score_images(candidates: dict[str, torch.Tensor], truth_B3HW: torch.Tensor, metrics: list[tuple[str, Any]],
+                 background_B3HW: torch.Tensor | None = None,
+                 distribution: DistributionScorer | None = None) -> dict[str, Any]:
+    """Scores of each candidate image set (``{prefix: images}``, image i for held-out condition i)
+    against the ground truth: ``{prefix}{metric}`` for each metric, the contact-region scores (given
+    the no-contact image) and, given a scorer, ``{prefix}fd_effnetlite0`` and
+    ``{prefix}classifier_accuracy`` (the scorer's ``fd_effnetlite0`` stands for the metric of that
+    name: the same quantity, its real features computed once)."""
+    scores: dict[str, Any] = {}
+    for name, metric in metrics:
+        if distribution is not None and name == "fd_effnetlite0":
+            continue
+        for prefix, predicted in candidates.items():
+            metric.reset()
+            metric.update(predicted.cpu(), truth_B3HW.cpu())
+            scores[prefix + name] = round(metric.compute(), 4)
+    if background_B3HW is not None:
+        scores |= contact_region_scores(candidates, truth_B3HW, background_B3HW)
+    if distribution is not None:
+        for prefix, predicted in candidates.items():
+            scores |= distribution.score(predicted, prefix)
     return scores
 
 
@@ -224,15 +355,19 @@ def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: A
                   device: torch.device) -> dict[str, Any]:
     """The stage's scores: :func:`score_generation` of the held-out conditions with the first
     conditioner (``samples.png``) and, for a generator trained with several, with each of them
-    (``by_conditioner``)."""
+    (``by_conditioner``); with ``generator.distribution``, the distribution scores too."""
     section, config = job.section, job.config
     metrics = list(zip((item.name for item in config.metrics),
                        job.assembly.build_slots(["metrics"]).get("metrics", [])))
+    pool = baseline_pool(DatasetSubset(dataset, train_set.indices))
+    # One classifier and one pass over the real images serve every conditioner.
+    scorer = (distribution_scorer(held_out_conditions(val_set, dataset, section.num_samples, device), pool, metrics,
+                                  config.seed) if section.distribution else None)
     common = dict(generator=task.generator, tokenizer=tokenizer, sampler=job.assembly.component("generator.sampler"),
                   held_out=val_set, dataset=dataset, metrics=metrics,
                   sensor=job.assembly.sensor() if config.sensor is not None else None, count=section.num_samples,
                   steps=section.steps, guidance=section.guidance, truncation=section.truncation, seed=config.seed,
-                  device=device, pool=baseline_pool(DatasetSubset(dataset, train_set.indices)))
+                  device=device, pool=pool, distribution=scorer or False)
     names = [item.name for item in config.generator.conditioners]
     scores = {"sampler": section.sampler.name, "conditioner": names[0],
               **score_generation(conditioner=task.conditioners[0], picture=job.run.path / "samples.png", **common)}

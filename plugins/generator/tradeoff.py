@@ -1,0 +1,386 @@
+"""``vqtouch tradeoff generator``: the sampling cost and the quality of a trained generator, knob by
+knob, measured in one process.
+
+::
+
+    vqtouch tradeoff generator --run runs/l2t --out runs/l2t/tradeoff --n 60 --rounds 2
+
+The pipeline is loaded once and every setting (sampler x steps x guidance x precision; one knob
+at a time around a base setting, or ``--grid``) generates the same held-out conditions with the
+same seeds (those of :func:`.stage.score_generation`).  Only generation is timed (condition
+encoding, sampling and decoding, after a warm-up), ``--rounds`` times, interleaved (round 1 of
+every setting, then round 2, ...), so machine drift hits every setting alike; the median is
+reported and cost ratios are against the first row.  Quality is scored once per setting, outside
+the timed part, by the functions the stage uses (:func:`.stage.score_images`): SSIM, PSNR and
+contact PSNR against the ground truth of each condition, ``fd_effnetlite0`` against the real
+held-out images and the accuracy of a classifier trained on real images
+(:class:`vqtouch.plugins.evaluation.distribution.DistributionScorer`, fitted once).
+
+Writes ``tradeoff.json`` (every measurement), ``tradeoff.md`` (the table) and ``pareto.png``
+(time per image against each quality, the Pareto front drawn).  ``bench/bench_generator.py``
+measures the same settings' peak memory, each in a fresh interpreter, with these functions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import itertools
+import json
+import math
+import statistics
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from vqtouch.core import Assembly, ConfigError, RunDir
+from vqtouch.core.runs import MissingCheckpointError
+
+from .stage import (PRECISIONS, HeldOutConditions, baseline_pool, distribution_scorer, generate_held_out,
+                    held_out_conditions, no_contact_image, score_images)
+
+#: The knobs of a setting, in the order of the table's columns.
+KNOBS = ("sampler", "steps", "guidance", "precision")
+
+#: Quality columns: (key, label, higher is better).  ``contact_psnr`` falls back to ``psnr``
+#: without a sensor (no no-contact image, no contact region).
+QUALITIES = (("contact_psnr", "contact PSNR (dB)", True), ("fd_effnetlite0", "fd_effnetlite0", False),
+             ("classifier_accuracy", "classifier accuracy", True))
+
+
+def sweep_settings(*, steps: list[int], samplers: list[str], guidance: list[float], precisions: list[str],
+                   grid: bool = False, batches: list[int] | None = None) -> list[dict[str, Any]]:
+    """The settings to measure.  ``grid``: every combination.  Otherwise one knob at a time around
+    the base (the first sampler, guidance, precision and batch, and the middle of ``steps``): first
+    every ``steps`` value, then the other samplers, guidance values, precisions and batches.
+    Duplicates are dropped, the order kept; the first row is the cost reference.  ``batches``
+    (None: not a knob) adds a ``batch`` entry to every setting."""
+    lists = {"sampler": samplers, "steps": steps, "guidance": guidance, "precision": precisions}
+    if batches is not None:
+        lists["batch"] = batches
+    if grid:
+        settings = [dict(zip(lists, combo)) for combo in itertools.product(*lists.values())]
+    else:
+        base = {key: values[0] for key, values in lists.items()} | {"steps": steps[len(steps) // 2]}
+        settings = [{**base, "steps": value} for value in steps]
+        for key in ("sampler", "guidance", "precision", "batch"):
+            settings += [{**base, key: value} for value in lists.get(key, [])[1:]]
+    unique = dict.fromkeys(tuple(setting.items()) for setting in settings)
+    return [dict(items) for items in unique]
+
+
+def setting_label(setting: dict[str, Any]) -> str:
+    """A short name of a setting for the plot: ``posterior 25``, ``purity 10 g3 bf16``."""
+    label = f"{setting['sampler']} {setting['steps']}"
+    if setting["guidance"] != 1:
+        label += f" g{setting['guidance']:g}"
+    if setting["precision"] != "fp32":
+        label += f" {setting['precision']}"
+    if "batch" in setting:
+        label += f" b{setting['batch']}"
+    return label
+
+
+def pareto_front(costs: list[float], qualities: list[float | None], higher_is_better: bool = True) -> list[int]:
+    """Indices of the points on the Pareto front of (cost, quality), cheapest first: a point is on
+    it when no other point is at least as cheap and at least as good and strictly better in one of
+    the two (of identical points only the first).  Points without a quality (None, NaN) are on no
+    front."""
+    sign = 1.0 if higher_is_better else -1.0
+    usable = [i for i, quality in enumerate(qualities)
+              if quality is not None and not math.isnan(quality) and not math.isnan(costs[i])]
+    # Cheapest first, and at equal cost the best first: a point is on the front when it beats the
+    # best quality of every point before it.
+    order = sorted(usable, key=lambda i: (costs[i], -sign * qualities[i], i))
+    front, best = [], -math.inf
+    for index in order:
+        if sign * qualities[index] > best:
+            front.append(index)
+            best = sign * qualities[index]
+    return front
+
+
+@dataclass
+class TradeoffBench:
+    """A loaded generator run and the held-out conditions every setting generates and is scored on."""
+
+    pipe: Any
+    run: Path
+    conditions: HeldOutConditions
+    metrics: list[tuple[str, Any]]
+    background: torch.Tensor | None
+    seed: int
+    batch_size: int
+    train: Any
+    feature_size: int = 224
+    scorer: Any = None
+
+    def fit_distribution(self, feature_size: int | None = None) -> None:
+        """Fit the distribution scorer (:func:`.stage.distribution_scorer`): the real held-out
+        images' features and the classifier on the training split's real images, EfficientNet-Lite0
+        features at ``feature_size`` px (None: :attr:`feature_size`, the run's ``fd_effnetlite0``
+        metric's, else 224).  Once; every setting's images are then scored with it."""
+        from vqtouch.plugins.evaluation.fd_metric import FdEffNetLite0
+
+        if feature_size is not None:
+            self.feature_size = feature_size
+        metric = FdEffNetLite0(image_size=self.feature_size)
+        self.scorer = distribution_scorer(self.conditions, baseline_pool(self.train), [("fd_effnetlite0", metric)],
+                                          self.seed)
+
+    def sampler(self, name: str) -> Any:
+        """The sampler plugin ``name`` (the registry's error lists the samplers there are)."""
+        return self.pipe.sampler if name == self.pipe.sampler_name else self.pipe.host.build("sampler", name)
+
+    def generate(self, setting: dict[str, Any], conditions: HeldOutConditions | None = None) -> torch.Tensor:
+        """The images of the held-out conditions (or ``conditions``) under ``setting``."""
+        pipe = self.pipe
+        return generate_held_out(pipe.generator, pipe.conditioners[0], pipe.tokenizer, self.sampler(setting["sampler"]),
+                                 conditions or self.conditions, steps=setting["steps"], guidance=setting["guidance"],
+                                 truncation=pipe.settings["truncation"], seed=self.seed, device=pipe.device,
+                                 batch_size=setting.get("batch", self.batch_size), precision=setting["precision"])
+
+    def timed(self, setting: dict[str, Any]) -> tuple[float, torch.Tensor]:
+        """Seconds to generate (encode, sample, decode) the held-out conditions, and the images."""
+        synchronize(self.pipe.device)
+        tic = time.perf_counter()
+        images = self.generate(setting)
+        synchronize(self.pipe.device)
+        return time.perf_counter() - tic, images
+
+    def warm_up(self, settings: list[dict[str, Any]]) -> None:
+        """One step on one batch for each sampler x precision x (guided or not) among ``settings``:
+        lazy initialisation and first-call costs stay out of the timings."""
+        rows = min(self.batch_size, len(self.conditions.indices))
+        first = HeldOutConditions(self.conditions.samples[:rows], self.conditions.indices[:rows],
+                                  self.conditions.truth[:rows], None)
+        seen = set()
+        for setting in settings:
+            key = (setting["sampler"], setting["precision"], setting["guidance"] != 1, setting.get("batch"))
+            if key not in seen:
+                seen.add(key)
+                self.generate({**setting, "steps": 1}, first)
+
+    def score(self, images: torch.Tensor, prefix: str = "") -> dict[str, Any]:
+        """Quality of one image set of the held-out conditions (the stage's scores)."""
+        return score_images({prefix: images}, self.conditions.truth, self.metrics, self.background, self.scorer)
+
+
+def synchronize(device: torch.device) -> None:
+    """Wait for the device's queued work (timings on a GPU)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def load_tradeoff_bench(run: str | Path, host: Any, *, n: int, step: int | str | None = None, seed: int | None = None,
+                        batch_size: int = 16, distribution: bool = True,
+                        feature_size: int | None = None) -> TradeoffBench:
+    """The run's pipeline, its first ``n`` held-out conditions (the split of
+    ``vqtouch evaluate generation``), SSIM and PSNR, the no-contact image and, with
+    ``distribution``, the distribution scorer (classifier fitted on the training split's real images,
+    EfficientNet-Lite0 features at ``feature_size`` px; None: the run's ``fd_effnetlite0`` metric's,
+    else 224)."""
+    from vqtouch.core.data import split_dataset
+
+    from .pipeline import load_pipeline
+
+    try:
+        pipe = load_pipeline(run, host=host, step=step)
+    except MissingCheckpointError as exc:
+        raise ConfigError(f"no trained generator in {run} ({exc}); train one with `vqtouch train generator`") from None
+    run_dir = RunDir.open(run)
+    config = run_dir.load_config(host)
+    assembly = Assembly(config, host)
+    dataset = assembly.component("data.dataset")
+    train, held_out = split_dataset(dataset, config.data.val_fraction, config.seed)
+    seed = config.seed if seed is None else seed
+    conditions = held_out_conditions(held_out, dataset, n, pipe.device)
+    metrics = [(name, host.build("metric", name)) for name in ("ssim", "psnr")]
+    background = no_contact_image(assembly.sensor() if config.sensor is not None else None, conditions.truth)
+    run_size = next((item.image_size for item in config.metrics if item.name == "fd_effnetlite0"), 224)
+    bench = TradeoffBench(pipe, run_dir.path, conditions, metrics, background, seed, batch_size, train,
+                          feature_size if feature_size is not None else run_size)
+    if distribution:
+        bench.fit_distribution()
+    return bench
+
+
+def check_settings(bench: TradeoffBench, steps: list[int], samplers: list[str], guidance: list[float],
+                   precisions: list[str]) -> None:
+    """One-line errors for values no setting can take, before anything is timed."""
+    if not (steps and samplers and guidance and precisions):
+        raise ConfigError("give at least one value of each of --steps, --samplers, --guidance and --precisions")
+    limit = getattr(bench.pipe.generator, "max_steps", None)
+    for value in steps:
+        if value < 1 or (limit and value > limit):
+            raise ConfigError(f"--steps {value}: steps must be an integer in [1, {limit}] (the generator's diffusion "
+                              "steps)" if limit else f"--steps {value}: steps must be at least 1")
+    for value in guidance:
+        if not value >= 0 or math.isinf(value):
+            raise ConfigError(f"--guidance {value:g}: the guidance scale must be a finite number >= 0 (1: unguided)")
+    for name in precisions:
+        if name not in PRECISIONS:
+            raise ConfigError(f"--precisions {name}: expected {' or '.join(PRECISIONS)}")
+    for name in samplers:
+        bench.sampler(name)  # an unknown name raises the registry's error, which lists the samplers
+
+
+def measure(bench: TradeoffBench, settings: list[dict[str, Any]], rounds: int, log: Any = None) -> list[dict[str, Any]]:
+    """Time every setting ``rounds`` times, interleaved, and score each once; the rows of the table.
+    Progress goes to ``log`` (default: stderr), one line per setting and round."""
+    log = log or sys.stderr
+    bench.warm_up(settings)
+    seconds: list[list[float]] = [[] for _ in settings]
+    scores: list[dict[str, Any]] = [{} for _ in settings]
+    digests: list[set[str]] = [set() for _ in settings]
+    count = len(bench.conditions.indices)
+    for round_index in range(rounds):
+        for index, setting in enumerate(settings):
+            elapsed, images = bench.timed(setting)
+            seconds[index].append(elapsed)
+            digests[index].add(hashlib.sha256(images.cpu().numpy().tobytes()).hexdigest())
+            if round_index == 0:
+                scores[index] = bench.score(images)
+            shown = ", ".join(f"{key} {scores[index][key]:g}" for key in ("ssim", *(q[0] for q in QUALITIES))
+                              if isinstance(scores[index].get(key), float))
+            print(f"[round {round_index + 1}/{rounds}, setting {index + 1}/{len(settings)}] {setting_label(setting)}: "
+                  f"{count / elapsed:.2f} img/s; {shown}", file=log, flush=True)
+    reference = statistics.median(seconds[0]) / count
+    rows = []
+    for setting, times, score, digest in zip(settings, seconds, scores, digests):
+        per_image = statistics.median(times) / count
+        rows.append({**setting, "label": setting_label(setting), "img_per_s": round(1 / per_image, 4),
+                     "seconds_per_image": round(per_image, 6), "cost": round(per_image / reference, 4),
+                     "seconds": [round(t, 4) for t in times], "reproducible": len(digest) == 1, **score,
+                     "pareto": []})
+    for key, _, higher in QUALITIES:
+        key = quality_key(rows, key)
+        for index in pareto_front([row["seconds_per_image"] for row in rows], [row.get(key) for row in rows], higher):
+            rows[index]["pareto"].append(key)
+    return rows
+
+
+def quality_key(rows: list[dict[str, Any]], key: str) -> str:
+    """``key``, or ``psnr`` for a contact PSNR that no row has (no sensor)."""
+    if key == "contact_psnr" and not any(key in row for row in rows):
+        return "psnr"
+    return key
+
+
+def _cell(value: Any, digits: int) -> str:
+    return "–" if not isinstance(value, (int, float)) else f"{value:.{digits}f}"
+
+
+def markdown_table(rows: list[dict[str, Any]], header: str, reference: dict[str, Any]) -> str:
+    """``tradeoff.md``: the header line, the table (one row per setting) and the reference scores."""
+    lines = [header, "",
+             "| sampler | steps | guidance | precision | img/s | ms/img | cost | SSIM | PSNR dB | contact PSNR dB "
+             "| fd_effnetlite0 | classifier acc | Pareto front |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        lines.append(f"| {row['sampler']} | {row['steps']} | {row['guidance']:g} | {row['precision']} | "
+                     f"{row['img_per_s']:.2f} | {row['seconds_per_image'] * 1000:.1f} | {row['cost']:.2f}x | "
+                     f"{_cell(row.get('ssim'), 4)} | {_cell(row.get('psnr'), 2)} | "
+                     f"{_cell(row.get('contact_psnr'), 2)} | "
+                     f"{_cell(row.get('fd_effnetlite0'), 2)} | {_cell(row.get('classifier_accuracy'), 3)} | "
+                     f"{', '.join(row.get('pareto', [])) or '–'} |")
+    if reference:
+        lines += ["", "References on the same conditions: " + "; ".join(f"{key} {value}" for key, value in
+                                                                        reference.items()) + "."]
+    return "\n".join(lines) + "\n"
+
+
+def plot_pareto(rows: list[dict[str, Any]], path: Path, title: str, reference: dict[str, Any]) -> None:
+    """``pareto.png``: one panel per quality column the rows have (contact PSNR, fd_effnetlite0,
+    classifier accuracy), time per image on a log x axis, every setting a labelled point, the
+    Pareto front a line, and the reference scores (real images, no-contact image) as dashed lines."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    panels = [(quality_key(rows, key), label, higher) for key, label, higher in QUALITIES]
+    panels = [(key, "PSNR (dB)" if key == "psnr" else label, higher) for key, label, higher in panels
+              if any(isinstance(row.get(key), (int, float)) for row in rows)]
+    figure = Figure(figsize=(5.5 * len(panels), 4.5), layout="constrained")
+    FigureCanvasAgg(figure)
+    costs = [row["seconds_per_image"] for row in rows]
+    for number, (key, label, higher) in enumerate(panels):
+        axes = figure.add_subplot(1, len(panels), number + 1)
+        points = [(cost, row[key], row["label"]) for cost, row in zip(costs, rows)
+                  if isinstance(row.get(key), (int, float))]
+        axes.scatter([p[0] for p in points], [p[1] for p in points], s=18, color="tab:blue", zorder=3)
+        for x, y, text in points:
+            axes.annotate(text, (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7)
+        front = pareto_front(costs, [row.get(key) for row in rows], higher)
+        axes.plot([costs[i] for i in front], [rows[i][key] for i in front], color="tab:red", marker="o",
+                  linewidth=1.5, label="Pareto front", zorder=2)
+        for name, style in ((f"real_{key}", "--"), (f"background_{key}", ":")):
+            if isinstance(reference.get(name), (int, float)):
+                axes.axhline(reference[name], linestyle=style, color="grey", linewidth=1,
+                             label="real held-out images" if name.startswith("real_") else "no-contact image")
+        axes.set_xscale("log")
+        axes.set_xlabel("seconds per image (log scale)")
+        axes.set_ylabel(f"{label} ({'higher' if higher else 'lower'} is better)")
+        axes.grid(True, which="both", alpha=0.3)
+        axes.legend(fontsize=7)
+    figure.suptitle(title, fontsize=9)
+    figure.savefig(path, dpi=120)
+
+
+def tradeoff_command(args: argparse.Namespace) -> int:
+    """``vqtouch tradeoff generator``."""
+    host = args.host
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    for value in args.steps:
+        if value < 1:
+            raise ConfigError(f"--steps {value}: steps must be at least 1")
+    if args.feature_size is not None and args.feature_size < 32:
+        raise ConfigError(f"--feature-size {args.feature_size}: EfficientNet-Lite0 needs at least 32 px")
+    bench = load_tradeoff_bench(args.run, host, n=args.n, step=args.step, seed=args.seed, batch_size=args.batch_size,
+                                distribution=False, feature_size=args.feature_size)
+    check_settings(bench, args.steps, args.samplers, args.guidance, args.precisions)
+    if args.distribution:
+        bench.fit_distribution()
+    settings = sweep_settings(steps=args.steps, samplers=args.samplers, guidance=args.guidance,
+                              precisions=args.precisions, grid=args.grid)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    count = len(bench.conditions.indices)
+    print(f"{len(settings)} settings x {args.rounds} rounds on {count} held-out conditions of {bench.run}",
+          file=sys.stderr, flush=True)
+    rows = measure(bench, settings, args.rounds)
+    reference: dict[str, Any] = {}
+    if bench.scorer is not None:
+        real = bench.scorer.real_scores()
+        reference |= {"real_classifier_accuracy": real.get("real_classifier_accuracy"),
+                      "classifier_train_images": real.get("classifier_train_images"),
+                      "classifier_skipped": real.get("classifier_skipped")}
+    if bench.background is not None:
+        background = bench.score(bench.background, "background_")
+        reference |= {key: background.get(key) for key in ("background_ssim", "background_psnr",
+                                                           "background_contact_psnr", "background_fd_effnetlite0",
+                                                           "background_classifier_accuracy")}
+    reference = {key: value for key, value in reference.items() if value is not None}
+    device = str(bench.pipe.device)
+    header = (f"Generator trade-off: run `{bench.run}` ({bench.pipe.checkpoint.name}); n = {count} held-out "
+              f"conditions; threads {torch.get_num_threads()}; rounds {args.rounds} (interleaved, median); device "
+              f"{device}; batch {args.batch_size}; seed {bench.seed}; "
+              f"truncation {bench.pipe.settings['truncation']:g}; "
+              f"features {bench.feature_size} px; cost = time per image / the first row's.")
+    result = {"run": str(bench.run), "checkpoint": str(bench.pipe.checkpoint), "n": count, "rounds": args.rounds,
+              "threads": torch.get_num_threads(), "device": device, "batch_size": args.batch_size, "seed": bench.seed,
+              "truncation": bench.pipe.settings["truncation"], "feature_size": bench.feature_size,
+              "distribution": bool(args.distribution), "grid": bool(args.grid), "reference": reference,
+              "settings": rows}
+    (out / "tradeoff.json").write_text(json.dumps(result, indent=2) + "\n")
+    table = markdown_table(rows, header, reference)
+    (out / "tradeoff.md").write_text(table)
+    plot_pareto(rows, out / "pareto.png", f"{bench.run.name}: n = {count}, {device}, {torch.get_num_threads()} threads",
+                reference)
+    print(table)
+    print(f"-> {out} (tradeoff.json, tradeoff.md, pareto.png)")
+    return 0
