@@ -5,7 +5,9 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.vqtouch-installed
-DEMO_ARGS ?=
+# The quick start's demo: a tokenizer (scored on held-out and on taxim's real GelSight frames),
+# then a label-to-touch generator with its samples and scores.  DEMO_ARGS="--scene NAME" runs another.
+DEMO_ARGS ?= --scene label-to-touch --set 'stages=["tokenizer", "reconstruct", "generator"]'
 PYTEST_ARGS ?=
 
 .PHONY: install demo test clean

@@ -300,6 +300,7 @@ def plot_pareto(rows: list[dict[str, Any]], path: Path, title: str, reference: d
     Pareto front a line, and the reference scores (real images, no-contact image) as dashed lines."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.ticker import NullFormatter
 
     panels = [(quality_key(rows, key), label, higher) for key, label, higher in QUALITIES]
     panels = [(key, "PSNR (dB)" if key == "psnr" else label, higher) for key, label, higher in panels
@@ -322,6 +323,7 @@ def plot_pareto(rows: list[dict[str, Any]], path: Path, title: str, reference: d
                 axes.axhline(reference[name], linestyle=style, color="grey", linewidth=1,
                              label="real held-out images" if name.startswith("real_") else "no-contact image")
         axes.set_xscale("log")
+        axes.xaxis.set_minor_formatter(NullFormatter())  # labelled minor ticks overlap on a short log axis
         axes.set_xlabel("seconds per image (log scale)")
         axes.set_ylabel(f"{label} ({'higher' if higher else 'lower'} is better)")
         axes.grid(True, which="both", alpha=0.3)
