@@ -25,6 +25,7 @@ seen the whole text (they are kept as the tower computes them).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Any, Literal
 
@@ -33,20 +34,16 @@ import torch.nn.functional as F
 from pydantic import Field
 from torch import nn
 
-from vqtouch.core import (BuildContext, Conditioner, ConfigError, PluginConfig, WeightsSpec, hookimpl,
+from vqtouch.core import (BuildContext, Conditioner, ConfigError, PluginConfig, hookimpl,
                           resolve_weights)
 from vqtouch.core.frozen import FrozenModule
 
-from .clip import check_open_clip_architecture, create_open_clip_model, import_open_clip
+from .clip import CLIP_WEIGHTS, check_open_clip_architecture, create_open_clip_model, import_open_clip
 
 #: The same open_clip checkpoint file the ``clip`` conditioner reads (it holds both towers), found the same way.
-TEXT_WEIGHTS = WeightsSpec(
-    description="conditioner 'text' (frozen open_clip text encoder)",
-    filenames=("open_clip_model.safetensors", "open_clip_pytorch_model.bin"),
-    env_var="VQTOUCH_CLIP_CKPT",
-    config_hint="the text conditioner's checkpoint option (e.g. --set generator.conditioners.0.checkpoint=PATH)",
-    source_url="the model's open_clip/Hugging Face page (e.g. laion/CLIP-ViT-B-32-laion2B-s34B-b79K)",
-)
+TEXT_WEIGHTS = dataclasses.replace(
+    CLIP_WEIGHTS, description="conditioner 'text' (frozen open_clip text encoder)",
+    config_hint="the text conditioner's checkpoint option (e.g. --set generator.conditioners.0.checkpoint=PATH)")
 
 
 class TextConditionerConfig(PluginConfig):
