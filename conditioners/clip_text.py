@@ -25,7 +25,6 @@ seen the whole text (they are kept as the tower computes them).
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from typing import Any, Literal
 
@@ -34,15 +33,16 @@ import torch.nn.functional as F
 from pydantic import Field
 from torch import nn
 
-from vqtouch.core import (BuildContext, Conditioner, ConfigError, PluginConfig, hookimpl,
+from vqtouch.core import (BuildContext, Conditioner, ConfigError, PluginConfig, WeightsSpec, hookimpl,
                           resolve_weights)
 from vqtouch.core.frozen import FrozenModule
 
 from .clip import CLIP_WEIGHTS, check_open_clip_architecture, create_open_clip_model, import_open_clip
 
 #: The same open_clip checkpoint file the ``clip`` conditioner reads (it holds both towers), found the same way.
-TEXT_WEIGHTS = dataclasses.replace(
-    CLIP_WEIGHTS, description="conditioner 'text' (frozen open_clip text encoder)",
+TEXT_WEIGHTS = WeightsSpec(
+    description="conditioner 'text' (frozen open_clip text encoder)",
+    filenames=CLIP_WEIGHTS.filenames, env_var=CLIP_WEIGHTS.env_var, source_url=CLIP_WEIGHTS.source_url,
     config_hint="the text conditioner's checkpoint option (e.g. --set generator.conditioners.0.checkpoint=PATH)")
 
 
