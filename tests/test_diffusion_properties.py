@@ -333,6 +333,16 @@ def test_q_pred_one_step_is_a_column_of_the_step_matrix(num_codes, num_steps, en
     assert_matches(likelihood, ref.step_matrix(t), "q(x_t | x_{t-1})")
 
 
+def draw_posterior_case(data, num_codes, num_steps, batch, length):
+    """A drawn posterior query: (t, s) pairs per row (and as tensors), codes x_0 (B, L) and an x_t
+    (B, L) mixing MASK, x_0 and replaced codes."""
+    pairs = data.draw(step_pairs(num_steps, batch), label="(t, s)")
+    t_B, s_B = torch.tensor([t for t, _ in pairs]), torch.tensor([s for _, s in pairs])
+    codes = data.draw(st.lists(st.integers(0, num_codes - 1), min_size=batch * length, max_size=batch * length))
+    x0_BL = torch.tensor(codes).view(batch, length)
+    return pairs, t_B, s_B, x0_BL, draw_x_t(data.draw, x0_BL, num_codes)
+
+
 # -- 2. the posterior q(x_s | x_t, x_0) ----------------------------------------------------------
 
 @_settings(40)
@@ -345,11 +355,7 @@ def test_posterior_is_bayes_rule_on_dense_matrices(num_codes, num_steps, ends, b
     schedule = D.MaskReplaceSchedule(num_codes, num_steps, **ends)
     ref = Reference(num_codes, num_steps, **ends)
     length, C = grid * grid, num_codes + 1
-    pairs = data.draw(step_pairs(num_steps, batch), label="(t, s)")
-    t_B, s_B = torch.tensor([t for t, _ in pairs]), torch.tensor([s for _, s in pairs])
-    codes = data.draw(st.lists(st.integers(0, num_codes - 1), min_size=batch * length, max_size=batch * length))
-    x0_BL = torch.tensor(codes).view(batch, length)
-    x_t_BL = draw_x_t(data.draw, x0_BL, num_codes)
+    pairs, t_B, s_B, x0_BL, x_t_BL = draw_posterior_case(data, num_codes, num_steps, batch, length)
     scale = data.draw(st.sampled_from([0.0, 0.5, 2.0, 8.0]), label="logit scale")
     soft = soft_log_x0(data.draw(SEED, label="seed"), batch, num_codes, length, scale, mask_mass=False)
 
@@ -385,11 +391,7 @@ def test_posterior_of_onehot_x0_matches_closed_form_bayes_for_any_k(num_codes, n
     schedule = D.MaskReplaceSchedule(num_codes, num_steps, **ends)
     ref = Reference(num_codes, num_steps, **ends)
     length, C = grid * grid, num_codes + 1
-    pairs = data.draw(step_pairs(num_steps, batch), label="(t, s)")
-    t_B, s_B = torch.tensor([t for t, _ in pairs]), torch.tensor([s for _, s in pairs])
-    codes = data.draw(st.lists(st.integers(0, num_codes - 1), min_size=batch * length, max_size=batch * length))
-    x0_BL = torch.tensor(codes).view(batch, length)
-    x_t_BL = draw_x_t(data.draw, x0_BL, num_codes)
+    pairs, t_B, s_B, x0_BL, x_t_BL = draw_posterior_case(data, num_codes, num_steps, batch, length)
     log_post = schedule.posterior(log_onehot_BCL(x0_BL, C), x_t_BL, t_B, s_B)
     assert_valid_log_probs(log_post)
     for b, (t, s) in enumerate(pairs):
