@@ -288,7 +288,14 @@ def load(path: str | Path, *, host: Any, map_location: str | torch.device = "cpu
 
 
 def load_state_strict(module: nn.Module, tensors: Mapping[str, torch.Tensor], path: str | Path) -> None:
-    """Load ``tensors`` into ``module``: every key present, none extra, every shape equal."""
+    """Load ``tensors`` into ``module``: every key present, none extra, every shape equal.
+
+    A module whose state size is learned rather than configured (a fitted clusterer's number of
+    families) defines ``resize_to_state(tensors)``; it is called first, and the shapes are then
+    checked against the resized module as strictly as any other."""
+    resize = getattr(module, "resize_to_state", None)
+    if callable(resize):
+        resize(tensors)
     expected = module.state_dict()
     # save_model drops tied duplicates; restore them from the kept name.
     tensors = dict(tensors)
