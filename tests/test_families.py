@@ -1,0 +1,111 @@
+"""Sensor families from tokenizer features and `vqtouch cluster` (issue 11): features against
+independent computations, the refined prototype's closed form, families recovered end to end on
+rendered sensors and a folder of images, and one-line errors."""
+
+import json
+
+import pytest
+import torch
+
+import generator_runs
+from vqtouch.core import load_plugins
+from vqtouch.core.cli import main
+from vqtouch.plugins.adaptation.families import image_features, sensor_prototype
+
+HOST = load_plugins(autoload=False)
+
+
+@pytest.fixture(scope="module")
+def tokenizer_folder(tmp_path_factory):
+    return generator_runs.tiny_tokenizer_folder(tmp_path_factory.mktemp("tok"))
+
+
+@pytest.fixture(scope="module")
+def tokenizer(tokenizer_folder):
+    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+
+    return load_tokenizer(tokenizer_folder, HOST)[0]
+
+
+def test_the_prototype_drops_the_farthest_images_and_is_the_mean_of_the_rest():
+    inliers = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0], [0.5, 0.5], [0.2, 0.8], [0.8, 0.2],
+                            [0.5, 0.4]], dtype=torch.float64)
+    outliers = torch.tensor([[40.0, 40.0], [-30.0, 50.0]], dtype=torch.float64)
+    features = torch.cat([inliers, outliers])
+    torch.testing.assert_close(sensor_prototype(features, refine_steps=0), features.mean(dim=0))
+    torch.testing.assert_close(sensor_prototype(features, refine_steps=3, keep=0.8), inliers.mean(dim=0))
+    torch.testing.assert_close(sensor_prototype(features[:1], refine_steps=3), features[0])
+    with pytest.raises(ValueError, match=r"keep must lie in \(0, 1\]"):
+        sensor_prototype(features, keep=0.0)
+
+
+def test_features_are_the_encoders_pooled_statistics_and_the_code_histogram(tokenizer):
+    images = torch.rand(5, 3, 32, 32, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        latents = tokenizer.autoencoder.encode(images * 2 - 1).double()
+        codes = tokenizer.encode_codes(images)
+    pooled = image_features(tokenizer, images, "pooled", batch_size=2)
+    channels = latents.shape[1]
+    assert pooled.shape == (5, 2 * channels) and pooled.dtype == torch.float64
+    torch.testing.assert_close(pooled[:, :channels], latents.mean(dim=(2, 3)))
+    torch.testing.assert_close(pooled[:, channels:], latents.std(dim=(2, 3), correction=0))
+    histogram = image_features(tokenizer, images, "codes", batch_size=3)
+    size = tokenizer.quantizer.codebook_size
+    expected = torch.stack([torch.bincount(row.flatten(), minlength=size).double() / row.numel() for row in codes])
+    torch.testing.assert_close(histogram, expected)
+    torch.testing.assert_close(histogram.sum(dim=1), torch.ones(5, dtype=torch.float64))
+
+
+def _variant(name, seed, **variant):
+    return json.dumps({"name": name, "variant": {"seed": seed, **variant}})
+
+
+def test_cluster_groups_variants_with_their_family_and_a_folder_joins_its_sensor(tokenizer_folder, tmp_path, capsys):
+    from vqtouch.core.images import save_png
+
+    folder = tmp_path / "my_digit"
+    folder.mkdir()
+    digit = HOST.build("dataset", {"name": "procedural", "num_samples": 8, "image_size": 32, "seed": 5},
+                       sensor=HOST.build("sensor_family", "digit"))
+    for index in range(8):
+        save_png(digit[index]["tactile"], folder / f"frame_{index}.png")
+    out = tmp_path / "families"
+    args = ["cluster", "--run", str(tokenizer_folder), "--image-size", "32", "--images", "8", "--out", str(out),
+            "--families", "2", "--sensors", "gelsight", _variant("gelsight", 1, colour_gain=[1.05, 0.95, 0.95]),
+            "digit", _variant("digit", 2, noise_std=0.02), str(folder)]
+    assert main(args) == 0
+    result = json.loads((out / "cluster.json").read_text())
+    assert (out / "families.png").is_file()
+    family = result["sensor_family"]
+    assert family["gelsight"] == family["gelsight*"] != family["digit"] == family["digit*"] == family["my_digit"]
+    assert len(result["family_distances"]) == 2 and result["family_distances"][0][0] == 0.0
+    assert [entry["images"] for entry in result["sensors"]] == [8] * 5
+    assert "family 0: gelsight, gelsight*" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("sensors, message", [
+    (["gelsight"], "--sensors: give at least two sensors to group into families"),
+    (["gelsight", "gelsite"], "sensor 'gelsite' is neither a folder nor a registered sensor family (digit, "
+                              "gelsight, gelsight_mini)"),
+    (["gelsight", "{bad json"], "sensor '{bad json': not a folder, a sensor name or valid JSON"),
+])
+def test_cluster_errors_are_one_line(tokenizer_folder, tmp_path, capsys, sensors, message):
+    capsys.readouterr()
+    assert main(["cluster", "--run", str(tokenizer_folder), "--image-size", "32", "--images", "4", "--out",
+                 str(tmp_path / "x"), "--sensors", *sensors]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"vqtouch: error: {message}") and err.count("\n") == 1, err
+
+
+def test_cluster_refuses_an_empty_folder_and_names_a_corrupt_file(tokenizer_folder, tmp_path, capsys):
+    empty, corrupt = tmp_path / "empty", tmp_path / "corrupt"
+    empty.mkdir()
+    corrupt.mkdir()
+    (corrupt / "broken.png").write_bytes(b"not a png")
+    for folder, message in ((empty, "no image files (png, jpg, ...) in this folder"),
+                            (corrupt, "cannot decode image")):
+        capsys.readouterr()
+        assert main(["cluster", "--run", str(tokenizer_folder), "--image-size", "32", "--images", "4", "--out",
+                     str(tmp_path / "x"), "--sensors", "gelsight", str(folder)]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, err
