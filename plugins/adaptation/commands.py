@@ -30,6 +30,20 @@ def _positive(text: str) -> int:
     return value
 
 
+def _fraction(text: str) -> float:
+    value = float(text)
+    if not 0 < value <= 1:
+        raise argparse.ArgumentTypeError(f"{text}: must lie in (0, 1]")
+    return value
+
+
+def _non_negative(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text}: must be 0 or more")
+    return value
+
+
 def _cluster_command(args: argparse.Namespace) -> int:
     from vqtouch.core import RunDir
     from vqtouch.plugins.tokenizer.stages import load_tokenizer
@@ -84,8 +98,8 @@ def vqtouch_add_commands(subparsers):
     cluster.add_argument("--features", choices=("pooled", "codes"), default="pooled",
                          help="pooled encoder features or code histograms (default pooled)")
     cluster.add_argument("--clusterer", default="kmeans", help="clusterer plugin (default kmeans)")
-    cluster.add_argument("--families", type=int, default=0, help="number of families (0: chosen by silhouette)")
-    cluster.add_argument("--refine-steps", type=int, default=3, help="prototype refinement steps (default 3)")
-    cluster.add_argument("--keep", type=float, default=0.8, help="fraction of images kept per refinement step")
+    cluster.add_argument("--families", type=_non_negative, default=0, help="number of families (0: chosen by silhouette)")
+    cluster.add_argument("--refine-steps", type=_non_negative, default=3, help="prototype refinement steps (default 3)")
+    cluster.add_argument("--keep", type=_fraction, default=0.8, help="fraction of images kept per refinement step")
     cluster.add_argument("--seed", type=int, default=0, help="seed of the rendered scenes")
     cluster.set_defaults(handler=_cluster_command)
