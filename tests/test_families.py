@@ -10,7 +10,8 @@ import torch
 import generator_runs
 from vqtouch.core import load_plugins
 from vqtouch.core.cli import main
-from vqtouch.plugins.adaptation.families import image_features, sensor_prototype
+from vqtouch.plugins.adaptation.families import (assign_to_family, image_features, refusal_threshold, sensor_prototype,
+                                                 within_family_spread)
 
 HOST = load_plugins(autoload=False)
 
@@ -37,6 +38,26 @@ def test_the_prototype_drops_the_farthest_images_and_is_the_mean_of_the_rest():
     torch.testing.assert_close(sensor_prototype(features[:1], refine_steps=3), features[0])
     with pytest.raises(ValueError, match=r"keep must lie in \(0, 1\]"):
         sensor_prototype(features, keep=0.0)
+
+
+def test_assignment_names_the_nearest_family_its_margin_and_refuses_a_far_sensor():
+    prototypes = torch.tensor([[0.0, 0.0], [0.2, 0.0], [10.0, 0.0], [10.0, 0.4]], dtype=torch.float64)
+    clusterer = HOST.build("clusterer", {"name": "kmeans", "num_families": 2})
+    labels = clusterer.fit(prototypes)
+    assert labels.tolist() == [0, 0, 1, 1]
+    spreads = within_family_spread(prototypes, labels, clusterer.centroids_KF)
+    assert spreads == pytest.approx([0.1, 0.2])
+    # max(3 x the largest spread, half the distance between the family means (0.1, 0) and (10, 0.2))
+    threshold = refusal_threshold(spreads, clusterer.centroids_KF)
+    assert threshold == pytest.approx(max(3 * 0.2, (9.9**2 + 0.2**2) ** 0.5 / 2))
+    assert refusal_threshold([1.0, 2.0], clusterer.centroids_KF) == pytest.approx(6.0)
+    near = assign_to_family(clusterer, torch.tensor([9.0, 1.0]), threshold)
+    expected = [(9.0 - 0.1) ** 2 + 1.0, 1.0 + 0.8**2]
+    assert near["family"] == near["nearest_family"] == 1 and not near["refused"]
+    assert near["distances"] == pytest.approx([e**0.5 for e in expected], abs=1e-6)
+    assert near["margin"] == pytest.approx(expected[0] ** 0.5 - expected[1] ** 0.5, abs=1e-6)
+    far = assign_to_family(clusterer, torch.tensor([5.0, 40.0]), threshold)
+    assert far["refused"] and far["family"] is None and far["nearest_family"] in (0, 1)
 
 
 def test_features_are_the_encoders_pooled_statistics_and_the_code_histogram(tokenizer):
@@ -72,15 +93,22 @@ def test_cluster_groups_variants_with_their_family_and_a_folder_joins_its_sensor
     out = tmp_path / "families"
     args = ["cluster", "--run", str(tokenizer_folder), "--image-size", "32", "--images", "8", "--out", str(out),
             "--families", "2", "--sensors", "gelsight", _variant("gelsight", 1, colour_gain=[1.05, 0.95, 0.95]),
-            "digit", _variant("digit", 2, noise_std=0.02), str(folder)]
+            "digit", _variant("digit", 2, noise_std=0.02), str(folder), "--unseen", _variant("digit", 4)]
     assert main(args) == 0
     result = json.loads((out / "cluster.json").read_text())
+    assigned = result["assignments"]["digit*"]
+    assert assigned["family"] == result["sensor_family"]["digit"] and not assigned["refused"]
+    assert assigned["threshold"] == result["refusal_threshold"] > 0
     assert (out / "families.png").is_file()
     family = result["sensor_family"]
     assert family["gelsight"] == family["gelsight*"] != family["digit"] == family["digit*"] == family["my_digit"]
     assert len(result["family_distances"]) == 2 and result["family_distances"][0][0] == 0.0
     assert [entry["images"] for entry in result["sensors"]] == [8] * 5
     assert "family 0: gelsight, gelsight*" in capsys.readouterr().out
+    # Told to accept nothing, it refuses rather than assigning silently.
+    assert main([*args, "--threshold", "0"]) == 0
+    assert json.loads((out / "cluster.json").read_text())["assignments"]["digit*"]["family"] is None
+    assert "unseen digit*: refused: " in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("sensors, message", [

@@ -6,7 +6,8 @@
         path/to/real_sensor_frames --out DIR [--images 64] [--features pooled|codes] [--clusterer kmeans]
 
 writes ``DIR/cluster.json`` (families, members, prototypes, the family distance matrix, each
-sensor's distance to every family) and ``DIR/families.png`` (a 2-D PCA embedding of every image's
+sensor's distance to every family, and with ``--unseen SPEC ...`` where each unseen sensor is
+assigned, or why it is refused) and ``DIR/families.png`` (a 2-D PCA embedding of every image's
 features with the sensors' prototypes).  See :mod:`.families` for the method.
 """
 
@@ -48,7 +49,8 @@ def _cluster_command(args: argparse.Namespace) -> int:
     from vqtouch.core import RunDir
     from vqtouch.plugins.tokenizer.stages import load_tokenizer
 
-    from .families import cluster_prototypes, image_features, plot_families, sensor_images, sensor_prototype
+    from .families import (assign_to_family, cluster_prototypes, image_features, plot_families, sensor_images,
+                           sensor_prototype)
 
     host = args.host
     if len(args.sensors) < 2:
@@ -68,11 +70,19 @@ def _cluster_command(args: argparse.Namespace) -> int:
         prototypes.append(sensor_prototype(rows, args.refine_steps, args.keep))
         print(f"{name}: {len(rows)} images", flush=True)
     prototypes_SF = torch.stack(prototypes)
+    unseen = []
+    for spec in args.unseen:
+        sensor = sensor_images(spec, host, count=args.images, image_size=image_size, seed=args.seed + 1)
+        unseen.append((sensor, sensor_prototype(image_features(tokenizer, sensor.images, args.features),
+                                                args.refine_steps, args.keep)))
     result = {"tokenizer": str(folder), "features": args.features, "images_per_sensor": args.images,
               "image_size": image_size, "clusterer": clusterer.vqtouch_spec.config.model_dump(mode="json"),
               "sensors": [{"name": n, "source": s, "images": len(f)} for n, s, f in zip(names, sources, features)],
               **cluster_prototypes(names, prototypes_SF, clusterer),
               "prototypes": {name: [round(float(v), 6) for v in row] for name, row in zip(names, prototypes_SF)}}
+    threshold = args.threshold if args.threshold is not None else result["refusal_threshold"]
+    result["assignments"] = {sensor.name: {"source": sensor.source, **assign_to_family(clusterer, prototype, threshold)}
+                             for sensor, prototype in unseen}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write(out / "cluster.json", lambda tmp: tmp.write_text(json.dumps(result, indent=2) + "\n"))
@@ -81,6 +91,11 @@ def _cluster_command(args: argparse.Namespace) -> int:
                                         f"({args.features} features, {args.clusterer})")
     for index, members in enumerate(result["families"]):
         print(f"family {index}: {', '.join(members)}")
+    for name, assigned in result["assignments"].items():
+        verdict = (f"refused: {min(assigned['distances']):.4g} from the nearest family, beyond the threshold "
+                   f"{assigned['threshold']:.4g}" if assigned["refused"] else
+                   f"family {assigned['family']} (margin {assigned['margin']:.4g})")
+        print(f"unseen {name}: {verdict}")
     print(f"-> {out} (cluster.json, families.png)")
     return 0
 
@@ -102,4 +117,9 @@ def vqtouch_add_commands(subparsers):
     cluster.add_argument("--refine-steps", type=_non_negative, default=3, help="prototype refinement steps (default 3)")
     cluster.add_argument("--keep", type=_fraction, default=0.8, help="fraction of images kept per refinement step")
     cluster.add_argument("--seed", type=int, default=0, help="seed of the rendered scenes")
+    cluster.add_argument("--unseen", nargs="+", default=[], metavar="SPEC",
+                         help="sensors to assign to the fitted families without joining them (zero-shot)")
+    cluster.add_argument("--threshold", type=float,
+                         help="refuse an unseen sensor farther than this from every family (default: 3x the "
+                              "largest within-family spread, at least half the nearest two families' distance)")
     cluster.set_defaults(handler=_cluster_command)

@@ -112,19 +112,60 @@ def sensor_images(spec: str, host: Any, *, count: int, image_size: int, seed: in
 
 def cluster_prototypes(names: list[str], prototypes_SF: torch.Tensor, clusterer: Any) -> dict[str, Any]:
     """Families of the sensors' prototypes (``clusterer`` is fitted here): each sensor's family, the
-    members of each family, the family distance matrix D(C_i, C_j) = ||mean(C_i) - mean(C_j)||, and
-    every sensor's distance to every family mean."""
+    members of each family, the family distance matrix D(C_i, C_j) = ||mean(C_i) - mean(C_j)||,
+    every sensor's distance to every family mean, each family's spread and the distance beyond
+    which an unseen sensor is refused (:func:`refusal_threshold`)."""
     labels = clusterer.fit(prototypes_SF)
     centroids = clusterer.centroids_KF.double().cpu()
     distances = torch.cdist(centroids, centroids)
     to_families = clusterer.distances(prototypes_SF)
+    spreads = within_family_spread(prototypes_SF, labels, centroids)
     return {
+        "within_family_spread": [round(value, 6) for value in spreads],
+        "refusal_threshold": round(refusal_threshold(spreads, centroids), 6),
         "families": [[names[i] for i in range(len(names)) if int(labels[i]) == family]
                      for family in range(clusterer.num_families)],
         "sensor_family": {name: int(label) for name, label in zip(names, labels)},
         "family_distances": [[round(float(value), 6) for value in row] for row in distances],
         "sensor_to_family_distances": {name: [round(float(v), 6) for v in row] for name, row in zip(names, to_families)},
     }
+
+
+#: An unseen sensor farther from every family mean than this many times the largest within-family
+#: spread is refused (see :func:`assign_to_family`).
+REFUSAL_FACTOR = 3.0
+
+
+def within_family_spread(prototypes_SF: torch.Tensor, labels_S: torch.Tensor, centroids_KF: torch.Tensor) -> list[float]:
+    """Each family's spread: the largest distance of a member's prototype to the family mean."""
+    distances = (prototypes_SF.double() - centroids_KF.double()[labels_S]).norm(dim=1)
+    return [float(distances[labels_S == family].max()) for family in range(len(centroids_KF))]
+
+
+def refusal_threshold(spreads: list[float], centroids_KF: torch.Tensor, factor: float = REFUSAL_FACTOR) -> float:
+    """The distance beyond which an unseen sensor matches no family: ``factor`` times the largest
+    within-family spread, and never less than half the distance between the two nearest families
+    (a family of a few sensors has too little spread to go by; a sensor within half that distance
+    of a family is nearer to it than any two families are to each other)."""
+    floor = 0.0
+    if len(centroids_KF) > 1:
+        between = torch.cdist(centroids_KF.double(), centroids_KF.double())
+        floor = float(between[~torch.eye(len(centroids_KF), dtype=torch.bool)].min()) / 2
+    return max(factor * max(spreads, default=0.0), floor)
+
+
+def assign_to_family(clusterer: Any, prototype_F: torch.Tensor, threshold: float) -> dict[str, Any]:
+    """Where an unseen sensor's prototype belongs: its distance to every family mean, the nearest
+    family, the margin to the second nearest, and ``refused`` when even the nearest is farther than
+    ``threshold`` (then ``family`` is None: no silent wrong assignment)."""
+    distances = clusterer.distances(prototype_F.unsqueeze(0))[0]
+    order = distances.argsort(stable=True)
+    nearest = int(order[0])
+    margin = float(distances[order[1]] - distances[nearest]) if len(order) > 1 else float("inf")
+    refused = float(distances[nearest]) > threshold
+    return {"family": None if refused else nearest, "nearest_family": nearest, "refused": refused,
+            "distances": [round(float(v), 6) for v in distances], "margin": round(margin, 6),
+            "threshold": round(threshold, 6)}
 
 
 def plot_families(names: list[str], features_by_sensor: list[torch.Tensor], prototypes_SF: torch.Tensor,
