@@ -325,3 +325,21 @@ def test_tactile_codes_embeds_the_source_sensors_codes_and_keeps_its_tokenizer_o
     source = json.dumps({"name": "tactile_codes", "tokenizer": str(trained)})
     assert main(touch_to_touch_args(run, trained, conditioner=[f"generator.conditioners.0={source}"])) == 0
     assert json.loads((run / "generation.json").read_text())["samples"] == 2
+
+
+def test_a_mixed_generator_is_scored_with_each_of_its_conditioners(trained, tmp_path):
+    """by_conditioner holds one score set per conditioner; the first is the run's own (not sampled twice)."""
+    run = tmp_path / "mixed"
+    overrides = [o for o in TINY if not o.startswith("tokenizer.")] + [
+        'generator.conditioners=[{"name": "label"}, {"name": "text_scratch", "depth": 1, "width": 16, "heads": 2}]',
+        "generator.train.steps=2", "generator.num_samples=2", "generator.steps=2"]
+    args = ["--no-progress", "train", "generator", "--scene", "label-to-touch", "--tokenizer", str(trained),
+            "--out", str(run)]
+    for override in overrides:
+        args += ["--set", override]
+    assert main(args) == 0
+    result = json.loads((run / "generation.json").read_text())
+    assert list(result["by_conditioner"]) == ["0:label", "1:text_scratch"]
+    first, second = result["by_conditioner"]["0:label"], result["by_conditioner"]["1:text_scratch"]
+    assert all(result[key] == value for key, value in first.items())
+    assert second["samples"] == first["samples"] == 2 and second["psnr"] != first["psnr"]

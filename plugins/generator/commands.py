@@ -114,7 +114,7 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
     from vqtouch.core.data import split_dataset
 
     from .pipeline import load_pipeline
-    from .stage import baseline_pool, score_generation
+    from .stage import baseline_pool, held_out_conditions, score_generation
 
     host = args.host
     pipe = load_pipeline(args.run, host=host, step=args.step)
@@ -129,24 +129,20 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
         raise ConfigError(f"--conditioner {index}: this generator has conditioners 0..{len(names) - 1} "
                           f"({', '.join(names)})")
     sampler_name = args.sampler or pipe.sampler_name
-    steps = args.steps or pipe.settings["steps"]
-    limit = getattr(pipe.generator, "max_steps", steps)
-    if steps > limit:
-        raise ConfigError(f"--steps {steps}: steps must be an integer in [1, {limit}] (the generator's diffusion steps)")
+    steps = pipe.check_steps(args.steps or pipe.settings["steps"])
     metric_names = args.metrics.split(",") if args.metrics else [item.name for item in config.metrics]
     metrics = [(name, assembly.build("metric", name)) for name in metric_names]
     if args.feature_size is not None:
-        if args.feature_size < 32:
-            raise ConfigError(f"--feature-size {args.feature_size}: EfficientNet-Lite0 needs at least 32 px")
         metrics = [(name, metric) for name, metric in metrics if name != "fd_effnetlite0"]
         metrics.append(("fd_effnetlite0", assembly.build("metric", {"name": "fd_effnetlite0",
                                                                     "image_size": args.feature_size})))
     tag = f"{pipe.checkpoint.name}_{sampler_name}_{steps}"
     scores = score_generation(
         generator=pipe.generator, conditioner=pipe.conditioners[index], tokenizer=pipe.tokenizer,
-        sampler=host.build("sampler", sampler_name), held_out=held_out, dataset=dataset, pool=baseline_pool(train),
+        sampler=host.build("sampler", sampler_name),
+        conditions=held_out_conditions(held_out, dataset, args.n, pipe.device), pool=baseline_pool(train),
         metrics=metrics,
-        sensor=assembly.sensor() if config.sensor is not None else None, count=args.n, steps=steps,
+        sensor=assembly.sensor() if config.sensor is not None else None, steps=steps,
         guidance=pipe.settings["guidance"] if args.guidance is None else args.guidance,
         truncation=pipe.settings["truncation"] if args.truncation is None else args.truncation,
         seed=config.seed if args.seed is None else args.seed, device=pipe.device,
@@ -183,11 +179,25 @@ def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
                              "precision and the middle --steps value)")
     parser.add_argument("--seed", type=int, help="seed of the sampling draws (default: the run's)")
     parser.add_argument("--threads", type=_positive_int, help="torch CPU threads (default: torch's)")
+    _add_distribution_arguments(parser)
+
+
+def _add_distribution_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--distribution/--no-distribution`` and ``--feature-size``, shared by ``evaluate generation``
+    and ``tradeoff generator``."""
     parser.add_argument("--distribution", action=argparse.BooleanOptionalAction, default=True,
-                        help="score fd_effnetlite0 and a real-image classifier's accuracy (default: on)")
-    parser.add_argument("--feature-size", type=_positive_int,
+                        help="also score fd_effnetlite0 against the real held-out images and the accuracy of a "
+                             "classifier trained on real training images (default: on)")
+    parser.add_argument("--feature-size", type=_feature_size,
                         help="side EfficientNet-Lite0 sees the images at (default: the run's fd_effnetlite0 metric's, "
                              "else 224)")
+
+
+def _feature_size(text: str) -> int:
+    value = int(text)
+    if value < 32:
+        raise argparse.ArgumentTypeError(f"{value}: EfficientNet-Lite0 needs at least 32 px")
+    return value
 
 
 class _CountAction(argparse.Action):
@@ -229,13 +239,7 @@ def vqtouch_add_commands(subparsers):
     scored.add_argument("--truncation", type=float, help="keep the most likely codes holding this mass (1: all)")
     scored.add_argument("--seed", type=int, help="seed of the sampling draws (default: the run's)")
     scored.add_argument("--metrics", help="comma-separated metric plugins (default: the run's metrics)")
-    scored.add_argument("--distribution", action=argparse.BooleanOptionalAction, default=True,
-                        help="also score fd_effnetlite0 against the real held-out images and the accuracy of a "
-                             "classifier trained on real training images, for the generator and its baselines "
-                             "(default: on)")
-    scored.add_argument("--feature-size", type=_positive_int,
-                        help="side EfficientNet-Lite0 sees the images at (default: the run's fd_effnetlite0 metric's, "
-                             "else 224)")
+    _add_distribution_arguments(scored)
     scored.set_defaults(handler=_evaluate_generation_command)
 
     tradeoff = command_group(subparsers, "tradeoff", "measure the speed/quality trade-off of a trained component")

@@ -41,6 +41,15 @@ class GenerationPipeline:
     device: torch.device
     checkpoint: Path
 
+    def check_steps(self, steps: Any) -> int:
+        """``steps`` as given, or a one-line ConfigError: sampling steps are an integer in [1, T] (the
+        generator's diffusion steps; any positive integer for a generator that has no limit)."""
+        limit = getattr(self.generator, "max_steps", None)
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1 or (limit and steps > limit):
+            raise ConfigError(f"--steps {steps}: steps must be an integer in [1, {limit}] (the generator's diffusion "
+                              "steps)" if limit else f"--steps {steps}: steps must be a positive integer")
+        return steps
+
     def conditioner_for(self, key: str) -> Any:
         """The conditioner that reads samples' ``key`` (label, visual, tactile, text, ...); ``tactile``
         also finds one reading ``tactile_source`` (the conditioning tactile image, whichever entry
@@ -75,10 +84,7 @@ class GenerationPipeline:
         steps = steps if steps is not None else self.settings["steps"]
         guidance = guidance if guidance is not None else self.settings["guidance"]
         truncation = truncation if truncation is not None else self.settings["truncation"]
-        limit = getattr(self.generator, "max_steps", None)
-        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1 or (limit and steps > limit):
-            raise ConfigError(f"--steps {steps}: steps must be an integer in [1, {limit}] (the generator's diffusion "
-                              "steps)" if limit else f"--steps {steps}: steps must be a positive integer")
+        self.check_steps(steps)
         chosen = self.sampler if sampler in (None, self.sampler_name) else self.host.build("sampler", sampler)
         conditioner = self.conditioner_for(key)
         parsed = [conditioner.parse_condition(v, image_size=self.image_size, class_names=self.class_names)

@@ -144,13 +144,13 @@ def train_generator(job: StageJob) -> dict[str, Any]:
 
 
 @torch.no_grad()
-def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sampler: Any, held_out: Any, dataset: Any,
-                     metrics: list[tuple[str, Any]], sensor: Any, count: int, steps: int, guidance: float,
+def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sampler: Any, conditions: HeldOutConditions,
+                     metrics: list[tuple[str, Any]], sensor: Any, steps: int, guidance: float,
                      truncation: float, seed: int, device: torch.device, picture: Path | None = None,
                      pool: list[dict[str, Any]] | None = None,
                      distribution: bool | DistributionScorer = False) -> dict[str, Any]:
-    """Generate the first ``count`` held-out conditions (``held_out``: a subset of ``dataset`` with
-    ``indices``) with ``conditioner`` and score them against their ground-truth tactile images.
+    """Generate the held-out ``conditions`` (:func:`held_out_conditions`, read once and shared by every
+    conditioner scored) with ``conditioner`` and score them against their ground-truth tactile images.
 
     Next to each score stand the honest comparisons under the same protocol: the sensor's
     no-contact image (``background_*``; none without a sensor), the tokenizer's own reconstruction
@@ -158,7 +158,7 @@ def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sample
     samples (``pool``, see :func:`baseline_pool`), the nearest training image by condition tokens (``retrieval_*``) and, for a
     label condition, the mean training image of the label (``class_mean_*``).  Every one is also
     scored on the contact region (``contact_*``).  Sample i is drawn with a generator seeded from
-    (seed, its dataset index), so a score does not depend on ``count``.  ``picture``: where to save
+    (seed, its dataset index), so a score does not depend on how many are scored.  ``picture``: where to save
     the sample grid: the conditions (top row, when they are images), generated, ground truth.
 
     ``distribution``: also score every one of them with :func:`distribution_scorer`'s
@@ -167,7 +167,6 @@ def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sample
     ``real_classifier_accuracy``, the real held-out images' own); a
     :class:`~vqtouch.plugins.evaluation.distribution.DistributionScorer` already fitted on these
     conditions is used as it is."""
-    conditions = held_out_conditions(held_out, dataset, count, device)
     count, indices, truth = len(conditions.indices), conditions.indices, conditions.truth
     batch = conditions.batch(device=device)
     generator.eval()
@@ -360,20 +359,22 @@ def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: A
     metrics = list(zip((item.name for item in config.metrics),
                        job.assembly.build_slots(["metrics"]).get("metrics", [])))
     pool = baseline_pool(DatasetSubset(dataset, train_set.indices))
-    # One classifier and one pass over the real images serve every conditioner.
-    scorer = (distribution_scorer(held_out_conditions(val_set, dataset, section.num_samples, device), pool, metrics,
-                                  config.seed) if section.distribution else None)
+    # The held-out samples are read once, and one classifier and one pass over the real images serve
+    # every conditioner.
+    conditions = held_out_conditions(val_set, dataset, section.num_samples, device)
+    scorer = distribution_scorer(conditions, pool, metrics, config.seed) if section.distribution else None
     common = dict(generator=task.generator, tokenizer=tokenizer, sampler=job.assembly.component("generator.sampler"),
-                  held_out=val_set, dataset=dataset, metrics=metrics,
-                  sensor=job.assembly.sensor() if config.sensor is not None else None, count=section.num_samples,
+                  conditions=conditions, metrics=metrics,
+                  sensor=job.assembly.sensor() if config.sensor is not None else None,
                   steps=section.steps, guidance=section.guidance, truncation=section.truncation, seed=config.seed,
                   device=device, pool=pool, distribution=scorer or False)
     names = [item.name for item in config.generator.conditioners]
-    scores = {"sampler": section.sampler.name, "conditioner": names[0],
-              **score_generation(conditioner=task.conditioners[0], picture=job.run.path / "samples.png", **common)}
+    first = score_generation(conditioner=task.conditioners[0], picture=job.run.path / "samples.png", **common)
+    scores = {"sampler": section.sampler.name, "conditioner": names[0], **first}
     if len(names) > 1:
-        scores["by_conditioner"] = {f"{index}:{name}": score_generation(conditioner=conditioner, **common)
-                                    for index, (name, conditioner) in enumerate(zip(names, task.conditioners))}
+        scores["by_conditioner"] = {f"0:{names[0]}": first} | {
+            f"{index}:{name}": score_generation(conditioner=conditioner, **common)
+            for index, (name, conditioner) in enumerate(zip(names, task.conditioners)) if index > 0}
     return scores
 
 

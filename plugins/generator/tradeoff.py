@@ -214,11 +214,8 @@ def check_settings(bench: TradeoffBench, steps: list[int], samplers: list[str], 
     """One-line errors for values no setting can take, before anything is timed."""
     if not (steps and samplers and guidance and precisions):
         raise ConfigError("give at least one value of each of --steps, --samplers, --guidance and --precisions")
-    limit = getattr(bench.pipe.generator, "max_steps", None)
     for value in steps:
-        if value < 1 or (limit and value > limit):
-            raise ConfigError(f"--steps {value}: steps must be an integer in [1, {limit}] (the generator's diffusion "
-                              "steps)" if limit else f"--steps {value}: steps must be at least 1")
+        bench.pipe.check_steps(value)
     for value in guidance:
         if not value >= 0 or math.isinf(value):
             raise ConfigError(f"--guidance {value:g}: the guidance scale must be a finite number >= 0 (1: unguided)")
@@ -337,11 +334,6 @@ def tradeoff_command(args: argparse.Namespace) -> int:
     host = args.host
     if args.threads:
         torch.set_num_threads(args.threads)
-    for value in args.steps:
-        if value < 1:
-            raise ConfigError(f"--steps {value}: steps must be at least 1")
-    if args.feature_size is not None and args.feature_size < 32:
-        raise ConfigError(f"--feature-size {args.feature_size}: EfficientNet-Lite0 needs at least 32 px")
     bench = load_tradeoff_bench(args.run, host, n=args.n, step=args.step, seed=args.seed, batch_size=args.batch_size,
                                 distribution=False, feature_size=args.feature_size)
     check_settings(bench, args.steps, args.samplers, args.guidance, args.precisions)
