@@ -99,7 +99,7 @@ def sensor_images(spec: str, host: Any, *, count: int, image_size: int, seed: in
         raise ConfigError(f"sensor {spec!r}: not a folder, a sensor name or valid JSON ({exc})") from None
     if not isinstance(config, dict) or "name" not in config:
         raise ConfigError(f"sensor {spec!r}: a JSON sensor needs a 'name', e.g. {{\"name\": \"gelsight\"}}")
-    if config["name"] not in host.registry("sensor_family").names() and not Path(spec).exists():
+    if config["name"] not in host.registry("sensor_family").names():
         raise ConfigError(f"sensor {spec!r} is neither a folder nor a registered sensor family "
                           f"({', '.join(host.registry('sensor_family').names())})")
     sensor = host.build("sensor_family", config)
