@@ -168,8 +168,11 @@ def write_checkpoint_file(path: str | Path, write: Any) -> Path:
     raise CheckpointWriteError(path, cause, fix) from None
 
 
-def checkpoint_metadata(component: nn.Module, step: int, host: Any = None) -> dict[str, str]:
-    """The header metadata for ``component`` (which must have been built by a PluginHost)."""
+def checkpoint_metadata(component: nn.Module, step: int, host: Any = None,
+                        extra: Mapping[str, str] | None = None) -> dict[str, str]:
+    """The header metadata for ``component`` (which must have been built by a PluginHost): the
+    reserved entries, the plugins' (``vqtouch_checkpoint_metadata``) and the caller's ``extra``
+    (e.g. how an adapted tokenizer was made); extra keys are namespaced like a plugin's."""
     spec = getattr(component, "vqtouch_spec", None)
     if spec is None:
         raise CheckpointError(
@@ -187,19 +190,22 @@ def checkpoint_metadata(component: nn.Module, step: int, host: Any = None) -> di
         "vqtouch.context": _json(spec.context.model_dump(mode="json")),
         "vqtouch.step": str(int(step)),
     }
-    if host is not None:
-        for extra in host.pm.hook.vqtouch_checkpoint_metadata(kind=spec.kind, name=spec.config.name, config=config):
-            for key, value in (extra or {}).items():
-                if key.startswith(RESERVED_PREFIXES) or not isinstance(value, str):
-                    raise CheckpointError(
-                        f"checkpoint metadata {key!r} from a plugin is not allowed: keys must be namespaced by "
-                        "the plugin (not 'vqtouch.'/'format') and values must be strings")
-                metadata[key] = value
+    sources = [("a plugin", entries) for entries in (host.pm.hook.vqtouch_checkpoint_metadata(
+        kind=spec.kind, name=spec.config.name, config=config) if host is not None else [])]
+    for who, entries in [*sources, ("the caller", extra)]:
+        for key, value in (entries or {}).items():
+            if key.startswith(RESERVED_PREFIXES) or not isinstance(value, str):
+                raise CheckpointError(
+                    f"checkpoint metadata {key!r} from {who} is not allowed: keys must be namespaced (not "
+                    "'vqtouch.'/'format') and values must be strings")
+            metadata[key] = value
     return metadata
 
 
-def save(component: nn.Module, path: str | Path, *, step: int = 0, host: Any = None) -> Path:
+def save(component: nn.Module, path: str | Path, *, step: int = 0, host: Any = None,
+         metadata: Mapping[str, str] | None = None) -> Path:
     """Write ``component`` to ``path`` (a ``.safetensors`` file) atomically; returns the path.
+    ``metadata`` adds namespaced header entries (read back with :func:`read_metadata`).
 
     A failed write (full disk, ...) raises :class:`CheckpointWriteError`; the file that was at
     ``path`` is untouched.
@@ -207,7 +213,7 @@ def save(component: nn.Module, path: str | Path, *, step: int = 0, host: Any = N
     path = Path(path)
     if path.suffix != ".safetensors":
         raise CheckpointError(f"{path}: checkpoint files must end in .safetensors")
-    metadata = checkpoint_metadata(component, step, host)
+    metadata = checkpoint_metadata(component, step, host, metadata)
     # safetensors refuses non-contiguous tensors; save_model also de-duplicates tied weights.
     write_checkpoint_file(path, lambda tmp: save_model(component, str(tmp), metadata=metadata))
     return path

@@ -48,6 +48,38 @@ class SensorVariant(StrictModel):
         return self == SensorVariant()
 
 
+def environment_variant(seed: int, strength: float = 1.0) -> SensorVariant:
+    """A random derived sensor drawn from every environmental factor at once, fixed by ``seed``.
+
+    Each factor is drawn uniformly within a range typical of one physical sensor drifting or
+    ageing relative to its family (``strength`` scales every range: 0 gives the family itself):
+    illumination shift +-0.05, colour gain 1 +- 0.1 per channel, background drift up to 0.06,
+    response scale 1 +- 0.15, wear blur up to 1% of the side, up to 2 damaged spots, camera noise
+    up to 0.015, misalignment up to 2% of the side and 2 degrees.  The ranges are assumptions
+    (no measured spread across individual sensors ships), chosen so a variant stays visibly of
+    its family.  Used for family-recovery experiments and the ``cluster`` stage's default sensors.
+    """
+    if not 0 <= strength <= 3:
+        raise ValueError(f"strength must lie in [0, 3], got {strength}")
+    generator = torch.Generator().manual_seed(1_000_003 + seed)
+
+    def uniform(low: float, high: float) -> float:
+        return float(low + (high - low) * torch.rand((), generator=generator, dtype=torch.float64))
+
+    spots = int(torch.randint(0, 3, (), generator=generator)) if strength > 0 else 0
+    return SensorVariant(
+        illumination_shift=strength * uniform(-0.05, 0.05),
+        colour_gain=tuple(1 + strength * uniform(-0.1, 0.1) for _ in range(3)),
+        background_drift=strength * uniform(0.0, 0.06),
+        response_scale=1 + strength * uniform(-0.15, 0.15),
+        wear_blur=strength * uniform(0.0, 0.01),
+        damage_spots=spots,
+        noise_std=strength * uniform(0.0, 0.015),
+        shift=(strength * uniform(-0.02, 0.02), strength * uniform(-0.02, 0.02)),
+        rotation_deg=strength * uniform(-2.0, 2.0),
+        seed=seed)
+
+
 def _variant_generator(variant: SensorVariant, salt: int) -> torch.Generator:
     return torch.Generator().manual_seed(variant.seed * 7919 + salt)
 

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import torch
+
 TINY = ["tokenizer.autoencoder.channels=16", "tokenizer.autoencoder.norm_groups=8",
         "tokenizer.autoencoder.channel_multipliers=[1,2]", "tokenizer.autoencoder.z_channels=16",
         "tokenizer.autoencoder.embed_dim=8", "tokenizer.quantizer.codebook_size=32", "data.image_size=32",
@@ -36,10 +38,13 @@ def tiny_tokenizer_folder(folder: Path) -> Path:
     if not (path / "quantizer.safetensors").is_file():
         host = load_plugins(autoload=False)
         path.mkdir(parents=True, exist_ok=True)
-        autoencoder = host.build("autoencoder", {"name": "vqgan", "channels": 8, "channel_multipliers": [1, 2],
-                                                 "z_channels": 8, "embed_dim": 8, "norm_groups": 4}, DEFAULT_CONTEXT)
-        context = DEFAULT_CONTEXT.model_copy(update=autoencoder.context_facts())
-        quantizer = host.build("quantizer", {"name": "vq", "codebook_size": 16}, context)
+        with torch.random.fork_rng():  # the same weights on every run: tests that use them are repeatable
+            torch.manual_seed(0)
+            autoencoder = host.build("autoencoder", {"name": "vqgan", "channels": 8, "channel_multipliers": [1, 2],
+                                                     "z_channels": 8, "embed_dim": 8, "norm_groups": 4},
+                                     DEFAULT_CONTEXT)
+            context = DEFAULT_CONTEXT.model_copy(update=autoencoder.context_facts())
+            quantizer = host.build("quantizer", {"name": "vq", "codebook_size": 16}, context)
         save(autoencoder, path / "autoencoder.safetensors", host=host)
         save(quantizer, path / "quantizer.safetensors", host=host)
     return path

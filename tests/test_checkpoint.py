@@ -86,8 +86,8 @@ def test_round_trip_check_fails_when_the_header_loses_an_option(host, tmp_path, 
     """A sensor has no tensors: what it is lives in its options, so losing one must show."""
     original = checkpoint_module.checkpoint_metadata
 
-    def forgetful(component, step, host=None):
-        metadata = original(component, step, host)
+    def forgetful(component, step, host=None, extra=None):
+        metadata = original(component, step, host, extra)
         config = json.loads(metadata["vqtouch.config"])
         config.pop("variant", None)
         return {**metadata, "vqtouch.config": json.dumps(config)}
@@ -295,3 +295,14 @@ def test_no_pickle_anywhere_in_the_package(package_sources):
         for line in text.splitlines():
             if "torch.load(" in line:
                 assert "weights_only=True" in line, f"{path}: {line.strip()}"
+
+
+def test_a_callers_header_entries_are_saved_and_must_be_namespaced(host, tmp_path):
+    from vqtouch.core import read_metadata
+
+    sensor = host.build("sensor_family", "gelsight")
+    path = save(sensor, tmp_path / "s.safetensors", host=host, metadata={"adaptation.shots": "50"})
+    assert read_metadata(path)["adaptation.shots"] == "50"
+    for bad in ({"vqtouch.step": "3"}, {"adaptation.shots": 50}):
+        with pytest.raises(CheckpointError, match="from the caller is not allowed: keys must be namespaced"):
+            save(sensor, tmp_path / "t.safetensors", host=host, metadata=bad)

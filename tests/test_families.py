@@ -96,19 +96,19 @@ def test_cluster_groups_variants_with_their_family_and_a_folder_joins_its_sensor
             "digit", _variant("digit", 2, noise_std=0.02), str(folder), "--unseen", _variant("digit", 4)]
     assert main(args) == 0
     result = json.loads((out / "cluster.json").read_text())
-    assigned = result["assignments"]["digit*"]
+    assigned = result["assignments"]["digit/v4"]
     assert assigned["family"] == result["sensor_family"]["digit"] and not assigned["refused"]
     assert assigned["threshold"] == result["refusal_threshold"] > 0
     assert (out / "families.png").is_file()
     family = result["sensor_family"]
-    assert family["gelsight"] == family["gelsight*"] != family["digit"] == family["digit*"] == family["my_digit"]
+    assert family["gelsight"] == family["gelsight/v1"] != family["digit"] == family["digit/v2"] == family["my_digit"]
     assert len(result["family_distances"]) == 2 and result["family_distances"][0][0] == 0.0
     assert [entry["images"] for entry in result["sensors"]] == [8] * 5
-    assert "family 0: gelsight, gelsight*" in capsys.readouterr().out
+    assert "family 0: gelsight, gelsight/v1" in capsys.readouterr().out
     # Told to accept nothing, it refuses rather than assigning silently.
     assert main([*args, "--threshold", "0"]) == 0
-    assert json.loads((out / "cluster.json").read_text())["assignments"]["digit*"]["family"] is None
-    assert "unseen digit*: refused: " in capsys.readouterr().out
+    assert json.loads((out / "cluster.json").read_text())["assignments"]["digit/v4"]["family"] is None
+    assert "unseen digit/v4: refused: " in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("sensors, message", [

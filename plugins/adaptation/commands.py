@@ -14,13 +14,9 @@ features with the sensors' prototypes).  See :mod:`.families` for the method.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
-import torch
-
 from vqtouch.core import ConfigError, hookimpl
-from vqtouch.core.checkpoint import atomic_write
 from vqtouch.core.cli import add_step_argument
 
 
@@ -38,6 +34,13 @@ def _fraction(text: str) -> float:
     return value
 
 
+def _non_negative_float(text: str) -> float:
+    value = float(text)
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"{text}: must be a finite number >= 0")
+    return value
+
+
 def _non_negative(text: str) -> int:
     value = int(text)
     if value < 0:
@@ -49,8 +52,7 @@ def _cluster_command(args: argparse.Namespace) -> int:
     from vqtouch.core import RunDir
     from vqtouch.plugins.tokenizer.stages import load_tokenizer
 
-    from .families import (assign_to_family, cluster_prototypes, image_features, plot_families, sensor_images,
-                           sensor_prototype)
+    from .families import fit_families, save_families, sensor_images
 
     host = args.host
     if len(args.sensors) < 2:
@@ -59,45 +61,77 @@ def _cluster_command(args: argparse.Namespace) -> int:
     run = RunDir.open(args.run) if (Path(args.run) / "config.json").is_file() else None
     image_size = args.image_size or (run.load_config(host).data.image_size if run else 64)
     clusterer = host.build("clusterer", {"name": args.clusterer, "num_families": args.families})
-    names, sources, features, prototypes = [], [], [], []
-    for spec in args.sensors:
-        sensor = sensor_images(spec, host, count=args.images, image_size=image_size, seed=args.seed)
-        name = sensor.name if sensor.name not in names else f"{sensor.name}#{len(names)}"
-        rows = image_features(tokenizer, sensor.images, args.features)
-        names.append(name)
-        sources.append(sensor.source)
-        features.append(rows)
-        prototypes.append(sensor_prototype(rows, args.refine_steps, args.keep))
-        print(f"{name}: {len(rows)} images", flush=True)
-    prototypes_SF = torch.stack(prototypes)
-    unseen = []
+    families = fit_families(tokenizer, args.sensors, host, clusterer=clusterer, images=args.images,
+                            image_size=image_size, features=args.features, refine_steps=args.refine_steps,
+                            keep=args.keep, seed=args.seed, tokenizer_source=str(folder),
+                            report=lambda line: print(line, flush=True))
+    assignments = {}
     for spec in args.unseen:
         sensor = sensor_images(spec, host, count=args.images, image_size=image_size, seed=args.seed + 1)
-        unseen.append((sensor, sensor_prototype(image_features(tokenizer, sensor.images, args.features),
-                                                args.refine_steps, args.keep)))
-    result = {"tokenizer": str(folder), "features": args.features, "images_per_sensor": args.images,
-              "image_size": image_size, "clusterer": clusterer.vqtouch_spec.config.model_dump(mode="json"),
-              "sensors": [{"name": n, "source": s, "images": len(f)} for n, s, f in zip(names, sources, features)],
-              **cluster_prototypes(names, prototypes_SF, clusterer),
-              "prototypes": {name: [round(float(v), 6) for v in row] for name, row in zip(names, prototypes_SF)}}
-    threshold = args.threshold if args.threshold is not None else result["refusal_threshold"]
-    result["assignments"] = {sensor.name: {"source": sensor.source, **assign_to_family(clusterer, prototype, threshold)}
-                             for sensor, prototype in unseen}
+        assignments[sensor.name] = {"source": sensor.source,
+                                    **families.assign(families.prototype(tokenizer, sensor.images), args.threshold)}
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write(out / "cluster.json", lambda tmp: tmp.write_text(json.dumps(result, indent=2) + "\n"))
-    plot_families(names, features, prototypes_SF, [result["sensor_family"][n] for n in names],
-                  out / "families.png", f"{len(result['families'])} families of {len(names)} sensors "
-                                        f"({args.features} features, {args.clusterer})")
-    for index, members in enumerate(result["families"]):
+    save_families(families, out, host, {"assignments": assignments})
+    for index, members in enumerate(families.summary["families"]):
         print(f"family {index}: {', '.join(members)}")
-    for name, assigned in result["assignments"].items():
-        verdict = (f"refused: {min(assigned['distances']):.4g} from the nearest family, beyond the threshold "
-                   f"{assigned['threshold']:.4g}" if assigned["refused"] else
-                   f"family {assigned['family']} (margin {assigned['margin']:.4g})")
-        print(f"unseen {name}: {verdict}")
-    print(f"-> {out} (cluster.json, families.png)")
+    for name, assigned in assignments.items():
+        print(f"unseen {name}: {describe_assignment(assigned)}")
+    print(f"-> {out} (cluster.json, clusterer.safetensors, families.png)")
     return 0
+
+
+def describe_assignment(assigned: dict) -> str:
+    """One line: the family an unseen sensor joins and the margin, or why it is refused."""
+    if assigned["refused"]:
+        return (f"refused: {min(assigned['distances']):.4g} from the nearest family, beyond the threshold "
+                f"{assigned['threshold']:.4g}")
+    return f"family {assigned['family']} (distance {min(assigned['distances']):.4g}, margin {assigned['margin']:.4g})"
+
+
+def _adapt_command(args: argparse.Namespace) -> int:
+    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+
+    from .adapt import AdaptSettings, adapt_tokenizer, check_same_tokenizer, default_families
+    from .families import folder_of, load_families, save_families
+
+    host = args.host
+    out = Path(args.out)
+    tokenizer, folder = load_tokenizer(args.run, host, step=args.step)
+    if args.families:
+        families = load_families(args.families, host)
+        check_same_tokenizer(families, folder, f"the families in {args.families}")
+    else:
+        print("no --families: clustering the registered sensor families and 3 variants of each", flush=True)
+        exclude = "" if folder_of(args.images) is not None else _canonical_spec(args.images.strip())
+        families = default_families(tokenizer, host, image_size=tokenizer.autoencoder.vqtouch_spec.context.image_size,
+                                    tokenizer_source=str(folder), exclude=exclude, seed=args.seed,
+                                    report=lambda line: None)
+        save_families(families, out / "families", host)
+    settings = AdaptSettings(shots=args.shots, ratio=args.ratio, steps=args.steps, learning_rate=args.learning_rate,
+                             batch_size=args.batch_size, eval_images=args.eval_images, threshold=args.threshold,
+                             family=args.family, seed=args.seed)
+    summary = adapt_tokenizer(args.run, args.images, families, host, out, settings, step=args.step,
+                              overwrite=args.overwrite, report=lambda line: print(line, flush=True))
+    before, after = summary["before"], summary["after"]
+    print(f"held-out {summary['target']} ({summary['held_out']} images): SSIM {before['ssim']:.4f} -> {after['ssim']:.4f}, "
+          f"PSNR {before['psnr']:.2f} -> {after['psnr']:.2f} dB ({summary['steps']} steps, {summary['seconds']:.1f} s)")
+    if "real_frames" in summary:
+        real = summary["real_frames"]
+        print(f"{real['count']} real frames: SSIM {real['before']['ssim']:.4f} -> {real['after']['ssim']:.4f}, "
+              f"PSNR {real['before']['psnr']:.2f} -> {real['after']['psnr']:.2f} dB")
+    print(f"-> {out} (autoencoder.safetensors, quantizer.safetensors, adapt.json, before_after.png)")
+    return 0
+
+
+def _canonical_spec(spec: str) -> str:
+    """A registered sensor's spec as the JSON a clustering records as its source ('' when not JSON)."""
+    import json
+
+    try:
+        config = json.loads(spec) if spec.startswith("{") else {"name": spec}
+    except json.JSONDecodeError:
+        return ""
+    return json.dumps(config, sort_keys=True)
 
 
 @hookimpl
@@ -123,3 +157,27 @@ def vqtouch_add_commands(subparsers):
                          help="refuse an unseen sensor farther than this from every family (default: 3x the "
                               "largest within-family spread, at least half the nearest two families' distance)")
     cluster.set_defaults(handler=_cluster_command)
+
+    adapt = subparsers.add_parser("adapt", help="adapt a family tokenizer to an unseen sensor from a few of its images")
+    adapt.add_argument("--run", required=True, help="the family tokenizer: a run whose tokenizer trained (or a "
+                                                    "checkpoint folder)")
+    add_step_argument(adapt)
+    adapt.add_argument("--images", required=True, metavar="DIR_OR_SPEC",
+                       help="the unseen sensor: a folder of its images, or a registered sensor (name or JSON variant)")
+    adapt.add_argument("--out", required=True, help="folder for the adapted tokenizer, adapt.json and before_after.png")
+    adapt.add_argument("--shots", type=_positive, default=50, help="unseen-sensor images to train on (default 50)")
+    adapt.add_argument("--ratio", type=_non_negative_float, default=5.0,
+                       help="family images per shot in the mixed set (default 5: the paper's 1:5)")
+    adapt.add_argument("--steps", type=_positive, default=200, help="fine-tuning steps (default 200)")
+    adapt.add_argument("--learning-rate", type=float, help="default: the run's tokenizer.train.learning_rate")
+    adapt.add_argument("--batch-size", type=_positive, help="default: the run's data.batch_size")
+    adapt.add_argument("--eval-images", type=_positive, default=64,
+                       help="held-out unseen-sensor images scored before and after (default 64)")
+    adapt.add_argument("--families", help="a `vqtouch cluster` output folder (default: cluster the registered "
+                                          "sensor families and 3 variants of each, written to OUT/families)")
+    adapt.add_argument("--threshold", type=float, help="refuse a sensor farther than this from every family "
+                                                       "(default: the clustering's refusal threshold)")
+    adapt.add_argument("--family", type=_non_negative, help="adapt from this family, whatever the assignment says")
+    adapt.add_argument("--seed", type=int, default=0, help="seed of the shots' draw and the rendered scenes")
+    adapt.add_argument("--overwrite", action="store_true", help="replace an adapted tokenizer already in --out")
+    adapt.set_defaults(handler=_adapt_command)

@@ -74,23 +74,24 @@ class SensorImages:
     images: torch.Tensor
 
 
-def sensor_images(spec: str, host: Any, *, count: int, image_size: int, seed: int = 0) -> SensorImages:
-    """The images of ``spec``: a folder of image files (the first ``count``, natural order), or a
-    registered sensor family given by name or JSON (``{"name": "gelsight", "variant": {...}}``),
-    which renders ``count`` procedural scenes."""
+def sensor_images(spec: str, host: Any, *, count: int, image_size: int, seed: int = 0,
+                  files: list[Path] | None = None) -> SensorImages:
+    """The images of ``spec``: a folder of image files (the first ``count`` in natural order, or
+    the given ``files`` of it), or a registered sensor family given by name or JSON
+    (``{"name": "gelsight", "variant": {...}}``), which renders ``count`` procedural scenes
+    (scene seed ``seed``)."""
     from vqtouch.core import BuildContext
     from vqtouch.core.images import ImageLoader
     from vqtouch.plugins.data.readers._io import list_images
 
-    path = Path(spec).expanduser()
-    if path.is_dir():
-        files = list_images(path)
+    path = folder_of(spec)
+    if path is not None:
+        files = files if files is not None else list_images(path)[:count]
         if not files:
             raise DatasetError(f"{path}: no image files (png, jpg, ...) in this folder")
+        check_one_resolution(path, files)
         loader = ImageLoader(size=image_size)
-        images = []
-        for file in files[:count]:
-            images.append(loader.load(file))  # DatasetError names the file that does not decode
+        images = [loader.load(file) for file in files]  # DatasetError names the file that does not decode
         return SensorImages(path.name, str(path), torch.stack(images))
     text = spec.strip()
     try:
@@ -106,8 +107,63 @@ def sensor_images(spec: str, host: Any, *, count: int, image_size: int, seed: in
     dataset = host.build("dataset", {"name": "procedural", "num_samples": count, "image_size": image_size,
                                      "seed": seed}, BuildContext(image_size=image_size), sensor=sensor)
     images = dataset.render_batch(list(range(count)))["tactile"]
-    label = config["name"] + ("" if set(config) == {"name"} else "*")
-    return SensorImages(label, json.dumps(config, sort_keys=True), images)
+    return SensorImages(sensor_label(config), json.dumps(config, sort_keys=True), images)
+
+
+def folder_of(spec: str) -> Path | None:
+    """The folder ``spec`` names, or None when it is a sensor name or JSON (or no folder)."""
+    if spec.lstrip().startswith("{"):
+        return None
+    try:
+        path = Path(spec).expanduser()
+        return path if path.is_dir() else None
+    except OSError:  # e.g. a name too long to be a path
+        return None
+
+
+def sensor_label(config: dict[str, Any]) -> str:
+    """A short display name of a sensor config: ``gelsight``, ``gelsight/v3`` (variant seed 3), or
+    ``gelsight*`` for other options."""
+    if set(config) == {"name"}:
+        return config["name"]
+    if set(config) == {"name", "variant"} and isinstance(config["variant"], dict):
+        return f"{config['name']}/v{config['variant'].get('seed', 0)}"
+    return config["name"] + "*"
+
+
+def check_one_resolution(folder: Path, files: list[Path]) -> None:
+    """Refuse a folder whose images have different sizes: one sensor's frames share one camera
+    resolution, and resizing a mix would silently stretch some of them."""
+    from PIL import Image
+
+    sizes: dict[tuple[int, int], Path] = {}
+    for file in files:
+        try:
+            with Image.open(file) as image:
+                sizes.setdefault(image.size, file)
+        except (OSError, ValueError) as exc:
+            raise DatasetError(f"cannot decode image {file}: {type(exc).__name__}: {exc}") from None
+        if len(sizes) > 1:
+            (a, first), (b, second) = list(sizes.items())[:2]
+            raise DatasetError(f"{folder}: images of different sizes ({first.name} is {a[0]}x{a[1]}, {second.name} is "
+                               f"{b[0]}x{b[1]}); a sensor's frames share one resolution: give each sensor its own "
+                               "folder, or resize them to one size first")
+
+
+def family_sensor_specs(host: Any, variants_per_family: int = 3, *, strength: float = 1.0,
+                        first_seed: int = 101) -> list[str]:
+    """Sensor specs (JSON) for clustering: every registered sensor family, then
+    ``variants_per_family`` random environmental variants of each
+    (:func:`vqtouch.sensors.environment_variant`, seeds ``first_seed``, ``first_seed + 1``, ...)."""
+    from vqtouch.sensors import environment_variant
+
+    specs = []
+    for name in host.registry("sensor_family").names():
+        specs.append(json.dumps({"name": name}))
+        for seed in range(first_seed, first_seed + variants_per_family):
+            variant = environment_variant(seed, strength).model_dump(mode="json")
+            specs.append(json.dumps({"name": name, "variant": variant}, sort_keys=True))
+    return specs
 
 
 def cluster_prototypes(names: list[str], prototypes_SF: torch.Tensor, clusterer: Any) -> dict[str, Any]:
@@ -197,3 +253,108 @@ def plot_families(names: list[str], features_by_sensor: list[torch.Tensor], prot
     axes.grid(alpha=0.3)
     figure.tight_layout()
     figure.savefig(path)
+
+
+#: What ``vqtouch cluster`` writes into its output folder (and ``vqtouch adapt`` reads back).
+CLUSTER_JSON, CLUSTERER_FILE, FAMILIES_PNG = "cluster.json", "clusterer.safetensors", "families.png"
+
+
+@dataclass
+class SensorFamilies:
+    """Sensors grouped into families by one tokenizer's features.
+
+    ``summary`` is what ``cluster.json`` holds (families, members and their sources, the distance
+    matrices, the refusal threshold, how the features were computed); ``clusterer`` is the fitted
+    clusterer plugin (family means); ``features`` are the per-image features of each sensor, kept
+    for the plot (None when read back from a folder).
+    """
+
+    summary: dict[str, Any]
+    clusterer: Any
+    prototypes_SF: torch.Tensor
+    features: list[torch.Tensor] | None = None
+
+    @property
+    def names(self) -> list[str]:
+        """The clustered sensors' display names."""
+        return [sensor["name"] for sensor in self.summary["sensors"]]
+
+    def members(self, family: int) -> list[dict[str, Any]]:
+        """The sensors (name, source, images) of ``family``."""
+        return [sensor for sensor in self.summary["sensors"] if self.summary["sensor_family"][sensor["name"]] == family]
+
+    def prototype(self, tokenizer: Any, images_B3HW: torch.Tensor) -> torch.Tensor:
+        """The prototype of an unseen sensor's images, computed exactly as the members' were."""
+        summary = self.summary
+        return sensor_prototype(image_features(tokenizer, images_B3HW, summary["features"]), summary["refine_steps"],
+                                summary["keep"])
+
+    def assign(self, prototype_F: torch.Tensor, threshold: float | None = None) -> dict[str, Any]:
+        """:func:`assign_to_family` with the fitted threshold unless one is given."""
+        return assign_to_family(self.clusterer, prototype_F,
+                                self.summary["refusal_threshold"] if threshold is None else threshold)
+
+
+def fit_families(tokenizer: Any, specs: list[str], host: Any, *, clusterer: Any, images: int = 64,
+                 image_size: int = 64, features: FeatureKind = "pooled", refine_steps: int = 3, keep: float = 0.8,
+                 seed: int = 0, tokenizer_source: str = "", report: Any = print) -> SensorFamilies:
+    """Group the sensors ``specs`` (see :func:`sensor_images`) into families with ``clusterer``
+    (a built clusterer plugin, fitted here) from ``tokenizer``'s ``features``; ``report`` is called
+    with one line per sensor."""
+    if len(specs) < 2:
+        raise ConfigError("give at least two sensors to group into families")
+    names: list[str] = []
+    sensors, features_by_sensor, prototypes = [], [], []
+    for spec in specs:
+        sensor = sensor_images(spec, host, count=images, image_size=image_size, seed=seed)
+        name = sensor.name if sensor.name not in names else f"{sensor.name}#{len(names)}"
+        rows = image_features(tokenizer, sensor.images, features)
+        names.append(name)
+        sensors.append({"name": name, "source": sensor.source, "images": len(rows)})
+        features_by_sensor.append(rows)
+        prototypes.append(sensor_prototype(rows, refine_steps, keep))
+        report(f"{name}: {len(rows)} images")
+    prototypes_SF = torch.stack(prototypes)
+    summary = {"tokenizer": tokenizer_source, "features": features, "images_per_sensor": images,
+               "image_size": image_size, "refine_steps": refine_steps, "keep": keep, "seed": seed,
+               "clusterer": clusterer.vqtouch_spec.config.model_dump(mode="json"), "sensors": sensors,
+               **cluster_prototypes(names, prototypes_SF, clusterer),
+               "prototypes": {name: [round(float(v), 6) for v in row] for name, row in zip(names, prototypes_SF)}}
+    return SensorFamilies(summary, clusterer, prototypes_SF, features_by_sensor)
+
+
+def save_families(families: SensorFamilies, folder: Path, host: Any, extra: dict[str, Any] | None = None) -> Path:
+    """Write ``cluster.json`` (the summary plus ``extra``), the fitted clusterer and, when the
+    features are at hand, ``families.png`` into ``folder``; returns the JSON's path."""
+    from vqtouch.core import save
+    from vqtouch.core.checkpoint import atomic_write
+
+    folder.mkdir(parents=True, exist_ok=True)
+    save(families.clusterer, folder / CLUSTERER_FILE, host=host)
+    summary = {**families.summary, **(extra or {})}
+    path = atomic_write(folder / CLUSTER_JSON, lambda tmp: tmp.write_text(json.dumps(summary, indent=2) + "\n"))
+    if families.features is not None:
+        count = len(summary["families"])
+        plot_families(families.names, families.features, families.prototypes_SF,
+                      [summary["sensor_family"][name] for name in families.names], folder / FAMILIES_PNG,
+                      f"{count} families of {len(families.names)} sensors ({summary['features']} features, "
+                      f"{summary['clusterer']['name']})")
+    return path
+
+
+def load_families(folder: str | Path, host: Any) -> SensorFamilies:
+    """Families written by ``vqtouch cluster`` (or the ``cluster`` stage) into ``folder``."""
+    from vqtouch.core import load
+
+    folder = Path(folder)
+    if not (folder / CLUSTER_JSON).is_file() or not (folder / CLUSTERER_FILE).is_file():
+        raise ConfigError(f"{folder}: no sensor families here ({CLUSTER_JSON} and {CLUSTERER_FILE}); make them with "
+                          f"`vqtouch cluster --run TOKRUN --sensors ... --out {folder}`")
+    try:
+        summary = json.loads((folder / CLUSTER_JSON).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{folder / CLUSTER_JSON}: not readable ({exc}); run `vqtouch cluster` again") from None
+    clusterer = load(folder / CLUSTERER_FILE, host=host)
+    names = [sensor["name"] for sensor in summary["sensors"]]
+    prototypes_SF = torch.tensor([summary["prototypes"][name] for name in names], dtype=torch.float64)
+    return SensorFamilies(summary, clusterer, prototypes_SF)

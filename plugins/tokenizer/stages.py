@@ -21,7 +21,7 @@ from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.core.training import Trainer
 
-from .training import Tokenizer, TokenizerSection, TokenizerTask, evaluate_reconstruction
+from .training import Tokenizer, TokenizerLossConfig, TokenizerSection, TokenizerTask, evaluate_reconstruction
 
 #: The files a tokenizer checkpoint folder holds, one per trained module.
 TOKENIZER_FILES = ("autoencoder.safetensors", "quantizer.safetensors")
@@ -39,24 +39,30 @@ def save_pairs(originals: torch.Tensor, reconstructions: torch.Tensor, path: Pat
     return save_png(image_grid(torch.cat([originals[:count], reconstructions[:count]]), columns=count), path)
 
 
-def train_tokenizer(job: StageJob) -> dict[str, Any]:
-    """Train the configured tokenizer in ``job.run`` and evaluate it on the held-out split."""
+def tokenizer_task(tokenizer: Tokenizer, loss: TokenizerLossConfig, device: torch.device,
+                   discriminator: torch.nn.Module | None = None) -> TokenizerTask:
+    """The tokenizer objective ``loss`` for ``tokenizer``, with its perceptual network built on
+    ``device`` when the loss uses one (training and adaptation both start here)."""
     from .perceptual import build_perceptual_loss
 
+    perceptual = None
+    if loss.perceptual != "none" and loss.perceptual_weight > 0:
+        perceptual = build_perceptual_loss(loss.perceptual, loss.lpips_backbone, loss.lpips_heads,
+                                           effnet_image_size=loss.perceptual_image_size).to(device)
+    return TokenizerTask(tokenizer, loss, discriminator, perceptual)
+
+
+def train_tokenizer(job: StageJob) -> dict[str, Any]:
+    """Train the configured tokenizer in ``job.run`` and evaluate it on the held-out split."""
     config, section, assembly = job.config, job.section, job.assembly
     device = resolve_device(config.device)
     dataset = assembly.component("data.dataset")
     train_set, val_set = split_dataset(dataset, config.data.val_fraction, config.seed)
     tokenizer = Tokenizer(assembly.component("tokenizer.autoencoder"), assembly.component("tokenizer.quantizer"))
-    loss = section.loss
     discriminator = None
-    if section.discriminator is not None and loss.adversarial_weight > 0:
+    if section.discriminator is not None and section.loss.adversarial_weight > 0:
         discriminator = assembly.component("tokenizer.discriminator")
-    perceptual = None
-    if loss.perceptual != "none" and loss.perceptual_weight > 0:
-        perceptual = build_perceptual_loss(loss.perceptual, loss.lpips_backbone, loss.lpips_heads,
-                                           effnet_image_size=loss.perceptual_image_size).to(device)
-    task = TokenizerTask(tokenizer, loss, discriminator, perceptual)
+    task = tokenizer_task(tokenizer, section.loss, device, discriminator)
     trainer = Trainer(task, train_set, section.train, batch_size=config.data.batch_size, seed=config.seed,
                       device=device, checkpoint_dir=job.run.checkpoints, run=job.run,
                       num_workers=config.data.num_workers, host=job.host, stage=job.stage, val_dataset=val_set)

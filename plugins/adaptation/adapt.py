@@ -1,0 +1,314 @@
+"""Few-shot adaptation of a family tokenizer to an unseen sensor: what ``vqtouch adapt`` does.
+
+1. The unseen sensor's images are split into the *shots* (the few images adaptation may train
+   on, a seeded draw) and held-out images (the rest of a folder, or other scenes rendered by a
+   registered sensor) that score the tokenizer before and after.
+2. Its prototype (from the shots, computed as the families' members' were) is assigned to the
+   nearest family, or refused beyond the threshold (:mod:`.families`): no silent wrong assignment.
+3. The mixed set is the shots plus ``ratio`` times as many images of the family's members
+   (the paper's 1:5 mix), drawn evenly from every member.
+4. The family tokenizer is fine-tuned on the mixed set with its own objective (the run's
+   ``tokenizer.loss``; the adversarial term only when the run's discriminator was saved) and
+   written as its own checkpoint folder, whose headers name the family, its members and the shots.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from vqtouch.core import ConfigError, DatasetError, VqtouchError
+
+from .families import SensorFamilies, folder_of, sensor_images
+
+#: What an adaptation writes into its output folder besides the tokenizer files.
+ADAPT_JSON, BEFORE_AFTER_PNG = "adapt.json", "before_after.png"
+#: A pixel belongs to a contact when it differs from the sensor's no-contact background by more
+#: than this (mean over RGB, images in [0, 1]): far above camera noise, below a light press.
+CONTACT_PIXEL_THRESHOLD = 0.04
+#: A set of frames holds contacts when at least one frame has this fraction of contact pixels.
+MIN_CONTACT_FRACTION = 0.002
+
+
+class AdaptationRefused(VqtouchError):
+    """The unseen sensor cannot be adapted as asked (it matches no family, or its images hold no contact)."""
+
+
+@dataclass
+class AdaptSettings:
+    """How to adapt (the ``vqtouch adapt`` options and the ``adapt`` stage's section)."""
+
+    shots: int = 50
+    ratio: float = 5.0
+    steps: int = 200
+    learning_rate: float | None = None
+    batch_size: int | None = None
+    eval_images: int = 64
+    threshold: float | None = None
+    family: int | None = None
+    seed: int = 0
+
+
+class ImageSet(torch.utils.data.Dataset):
+    """Images (N, 3, S, S) in [0, 1] as tactile samples (what the tokenizer trainer reads)."""
+
+    class_names: list[str] = []
+
+    def __init__(self, images_N3HW: torch.Tensor, sensor: str = "") -> None:
+        self.images = images_N3HW
+        self.sensor = sensor
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        return {"tactile": self.images[index], "label": -1, "text": "", "sensor": self.sensor, "id": str(index)}
+
+
+def contact_fraction(images_N3HW: torch.Tensor) -> torch.Tensor:
+    """(N,) fraction of each image's pixels that differ from the set's no-contact background
+    (its per-pixel median: contacts move around, the background stays) by more than
+    :data:`CONTACT_PIXEL_THRESHOLD`."""
+    background = images_N3HW.median(dim=0).values
+    return ((images_N3HW - background).abs().mean(dim=1) > CONTACT_PIXEL_THRESHOLD).flatten(1).double().mean(dim=1)
+
+
+def check_contacts(images_N3HW: torch.Tensor, name: str) -> None:
+    """Refuse a set of frames in which nothing touches the gel (only no-contact frames)."""
+    if len(images_N3HW) < 2:
+        return
+    fraction = contact_fraction(images_N3HW)
+    if float(fraction.max()) < MIN_CONTACT_FRACTION:
+        raise AdaptationRefused(
+            f"{name}: the {len(images_N3HW)} images look like no-contact frames (no image differs from the "
+            f"others' background on more than {float(fraction.max()):.2%} of its pixels); adaptation needs frames "
+            "of objects pressed into the gel")
+
+
+def target_images(spec: str, host: Any, *, shots: int, eval_images: int, image_size: int,
+                  seed: int) -> tuple[str, str, torch.Tensor, torch.Tensor]:
+    """(name, source, shots, held-out images) of the unseen sensor ``spec``.
+
+    A folder's images are shuffled with ``seed``; the first ``shots`` are the shots and up to
+    ``eval_images`` of the rest are held out (a folder must keep at least one).  A registered
+    sensor renders the shots and, from other scenes, ``eval_images`` held-out images.
+    """
+    path = folder_of(spec)
+    if path is not None:
+        from vqtouch.plugins.data.readers._io import list_images
+
+        files = list_images(path)
+        if len(files) < 2:
+            raise DatasetError(f"{path}: {len(files)} image(s); adaptation needs the shots plus at least one "
+                               "held-out image to score it")
+        if shots >= len(files):
+            raise ConfigError(f"--shots {shots}: the folder {path} holds {len(files)} images; use at most "
+                              f"{len(files) - 1} shots (the rest are held out to score the adaptation)")
+        order = torch.randperm(len(files), generator=torch.Generator().manual_seed(seed)).tolist()
+        chosen = [files[i] for i in order[:shots + eval_images]]
+        sensor = sensor_images(str(path), host, count=len(chosen), image_size=image_size, files=chosen)
+        return sensor.name, sensor.source, sensor.images[:shots], sensor.images[shots:]
+    trained = sensor_images(spec, host, count=shots, image_size=image_size, seed=seed + 101)
+    held_out = sensor_images(spec, host, count=eval_images, image_size=image_size, seed=seed + 202)
+    return trained.name, trained.source, trained.images, held_out.images
+
+
+def family_images(families: SensorFamilies, family: int, host: Any, *, count: int, image_size: int, seed: int,
+                  exclude: str = "") -> tuple[torch.Tensor, list[str]]:
+    """``count`` images of ``family``'s members (but the sensor whose source is ``exclude``), drawn
+    evenly from every member: rendered scenes (new seeds) or a folder's images (repeated when it
+    holds fewer).  Returns the images and the members used."""
+    members = [member for member in families.members(family) if member["source"] != exclude]
+    if not members:
+        raise AdaptationRefused(f"family {family} has no member other than the unseen sensor itself: no family "
+                                "data to mix with the shots")
+    per_member = [count // len(members) + (index < count % len(members)) for index in range(len(members))]
+    chunks = []
+    for index, (member, wanted) in enumerate(zip(members, per_member)):
+        if wanted == 0:
+            continue
+        images = sensor_images(member["source"], host, count=wanted, image_size=image_size,
+                               seed=seed + 1009 * (index + 1)).images
+        chunks.append(images.repeat(math.ceil(wanted / len(images)), 1, 1, 1)[:wanted])
+    return torch.cat(chunks), [member["name"] for member in members]
+
+
+def _scores(tokenizer: Any, images_N3HW: torch.Tensor, host: Any, batch_size: int) -> dict[str, Any]:
+    """SSIM, PSNR and codebook usage of ``tokenizer`` reconstructing ``images_N3HW``."""
+    from vqtouch.plugins.tokenizer.training import evaluate_reconstruction
+
+    metrics = {name: host.build("metric", {"name": name}) for name in ("ssim", "psnr")}
+    scores = evaluate_reconstruction(tokenizer, ImageSet(images_N3HW), metrics, batch_size=batch_size)
+    return {key: (round(value, 4) if isinstance(value, float) else value) for key, value in scores.items()
+            if key in ("ssim", "psnr", "codebook_usage", "codes_used", "samples")}
+
+
+def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, host: Any, out: Path,
+                    settings: AdaptSettings, *, step: int | str | None = None, overwrite: bool = False,
+                    report: Any = print) -> dict[str, Any]:
+    """Adapt the tokenizer of ``run_or_folder`` to the unseen sensor ``target`` (see the module
+    docstring); writes the adapted tokenizer, ``adapt.json`` and ``before_after.png`` into ``out``
+    and returns the summary.  Raises :class:`AdaptationRefused` when the sensor matches no family
+    (unless ``settings.family`` names one) or its images hold no contact."""
+    from vqtouch.core import resolve_device, save
+    from vqtouch.core.images import image_grid, save_png
+    from vqtouch.core.training import Trainer
+    from vqtouch.plugins.tokenizer.stages import TOKENIZER_FILES, load_tokenizer, reconstruct_all, tokenizer_task
+    from vqtouch.plugins.tokenizer.training import TokenizerLossConfig, TokenizerTrainConfig
+
+    if (out / TOKENIZER_FILES[0]).exists() and not overwrite:
+        raise ConfigError(f"{out} already holds an adapted tokenizer; choose another --out or pass --overwrite")
+    if settings.shots < 1 or settings.ratio < 0:
+        raise ConfigError(f"shots must be >= 1 and ratio >= 0 (got {settings.shots}, {settings.ratio})")
+    tokenizer, folder = load_tokenizer(run_or_folder, host, step=step)
+    image_size = families.summary["image_size"]
+    if tokenizer.autoencoder.vqtouch_spec.context.image_size != image_size:
+        raise ConfigError(f"the families were fitted at {image_size} px, the tokenizer works at "
+                          f"{tokenizer.autoencoder.vqtouch_spec.context.image_size} px: cluster with this tokenizer")
+    run_config = _run_config(folder, host)
+    section = run_config.tokenizer if run_config is not None else None
+    loss = section.loss if section is not None else TokenizerLossConfig()
+    train = (section.train if section is not None else TokenizerTrainConfig()).model_copy(update={
+        "steps": settings.steps, "checkpoint_every": max(1, settings.steps), "keep_best": False,
+        **({"learning_rate": settings.learning_rate} if settings.learning_rate is not None else {})})
+    batch_size = settings.batch_size or (run_config.data.batch_size if run_config is not None else 16)
+
+    name, source, shots_N, held_out_M = target_images(target, host, shots=settings.shots,
+                                                      eval_images=settings.eval_images, image_size=image_size,
+                                                      seed=settings.seed)
+    check_contacts(torch.cat([shots_N, held_out_M]), name)
+    prototype = families.prototype(tokenizer, shots_N)
+    assignment = families.assign(prototype, settings.threshold)
+    family = assignment["family"]
+    if settings.family is not None:
+        if not 0 <= settings.family < len(families.summary["families"]):
+            raise ConfigError(f"--family {settings.family}: the families are numbered 0 to "
+                              f"{len(families.summary['families']) - 1}")
+        family = settings.family
+    elif assignment["refused"]:
+        nearest = assignment["nearest_family"]
+        raise AdaptationRefused(
+            f"{name} matches no sensor family: {assignment['distances'][nearest]:.4g} from the nearest (family "
+            f"{nearest}: {', '.join(families.summary['families'][nearest])}), beyond the threshold "
+            f"{assignment['threshold']:.4g}; cluster it with more sensors, raise --threshold, or name a family with "
+            "--family")
+    report(f"{name}: family {family} ({', '.join(families.summary['families'][family])}); distances "
+           f"{assignment['distances']}, margin {assignment['margin']:.4g}")
+    family_count = round(settings.shots * settings.ratio)
+    mixed = [shots_N]
+    members: list[str] = []
+    if family_count > 0:
+        family_N, members = family_images(families, family, host, count=family_count, image_size=image_size,
+                                          seed=settings.seed, exclude=source)
+        mixed.append(family_N)
+    mixed_set = ImageSet(torch.cat(mixed), name)
+    if len(mixed_set) < batch_size:
+        batch_size = len(mixed_set)  # a handful of shots still trains (one batch = every image)
+
+    device = resolve_device(run_config.device if run_config is not None else "auto")
+    before = _scores(tokenizer, held_out_M, host, batch_size)
+    before_images = reconstruct_all(tokenizer, held_out_M[:8])
+    real = _real_frames(target, host, image_size)  # the sensor's own captured frames, when it ships some (taxim)
+    real_before = _scores(tokenizer, real, host, batch_size) if real is not None else None
+    discriminator, adversarial = _discriminator(folder, loss, host)
+    if discriminator is not None:
+        start = getattr(tokenizer.autoencoder, "vqtouch_step", 0)
+        loss = loss.model_copy(update={"disc_start": max(0, loss.disc_start - start)})
+    task = tokenizer_task(tokenizer, loss, device, discriminator)
+    trainer = Trainer(task, mixed_set, train, batch_size=batch_size, seed=settings.seed, device=device,
+                      checkpoint_dir=None, host=host, stage="adapt")
+    tic = time.perf_counter()
+    trainer.fit()
+    seconds = time.perf_counter() - tic
+    tokenizer.eval()
+    after = _scores(tokenizer, held_out_M, host, batch_size)
+    after_images = reconstruct_all(tokenizer, held_out_M[:8])
+
+    summary: dict[str, Any] = {
+        "target": name, "target_source": source, "adapted_from": str(folder), "family": family,
+        "family_members": families.summary["families"][family], "members_used": members,
+        "assignment": assignment, "forced_family": settings.family is not None,
+        "shots": len(shots_N), "ratio": settings.ratio, "family_images": family_count, "held_out": len(held_out_M),
+        "steps": settings.steps, "learning_rate": train.learning_rate, "batch_size": batch_size,
+        "adversarial": adversarial, "seconds": round(seconds, 2), "before": before, "after": after}
+    if real is not None:
+        summary["real_frames"] = {"count": len(real), "before": real_before,
+                                  "after": _scores(tokenizer, real, host, batch_size)}
+    out.mkdir(parents=True, exist_ok=True)
+    header = {"adaptation.target": source, "adaptation.family": str(family),
+              "adaptation.family_members": json.dumps(summary["family_members"]),
+              "adaptation.shots": str(len(shots_N)), "adaptation.ratio": f"{settings.ratio:g}",
+              "adaptation.adapted_from": str(folder)}
+    step_reached = getattr(tokenizer.autoencoder, "vqtouch_step", 0) + settings.steps
+    for file, module in zip(TOKENIZER_FILES, (tokenizer.autoencoder, tokenizer.quantizer)):
+        save(module, out / file, step=step_reached, host=host, metadata=header)
+    count = len(before_images)
+    save_png(image_grid(torch.cat([held_out_M[:count], before_images, after_images]), columns=count),
+             out / BEFORE_AFTER_PNG)
+    (out / ADAPT_JSON).write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _run_config(folder: Path, host: Any) -> Any:
+    """The config of the run a checkpoint folder belongs to, or None for a loose folder."""
+    from vqtouch.core import RunDir
+
+    run_path = folder.parent.parent
+    if folder.parent.name == "checkpoints" and (run_path / "config.json").is_file():
+        return RunDir.open(run_path).load_config(host)
+    return None
+
+
+def _discriminator(folder: Path, loss: Any, host: Any) -> tuple[Any, str]:
+    """The run's discriminator when its objective is adversarial and it was saved, and why not otherwise."""
+    from vqtouch.core import load
+
+    if loss.adversarial_weight == 0:
+        return None, "off (tokenizer.loss.adversarial_weight = 0)"
+    path = folder / "discriminator.safetensors"
+    if not path.is_file():
+        return None, f"off (no {path.name} beside the tokenizer: it trained without one)"
+    return load(path, host=host), "on (the run's discriminator, fine-tuned too)"
+
+
+def _real_frames(target: str, host: Any, image_size: int) -> torch.Tensor | None:
+    """The captured frames of ``target`` when it is a registered sensor family (no variant: a
+    variant's perturbations are not in the family's frames) that ships some."""
+    if folder_of(target) is not None:
+        return None
+    text = target.strip()
+    config = host.validate("sensor_family", json.loads(text) if text.startswith("{") else {"name": text})
+    variant = getattr(config, "variant", None)
+    if variant is not None and not variant.is_identity():
+        return None
+    return host.build("sensor_family", config).reference_frames(image_size, image_size)
+
+
+def default_families(tokenizer: Any, host: Any, *, image_size: int, tokenizer_source: str, exclude: str = "",
+                     clusterer: dict[str, Any] | None = None, variants_per_family: int = 3, images: int = 32,
+                     seed: int = 0, report: Any = print) -> SensorFamilies:
+    """Families of every registered sensor family and ``variants_per_family`` environmental
+    variants of each (:func:`.families.family_sensor_specs`), clustered with ``clusterer``
+    (default: k-means, the family count by silhouette); the sensor whose source is ``exclude``
+    (the unseen one) is left out."""
+    from .families import family_sensor_specs, fit_families
+
+    specs = [spec for spec in family_sensor_specs(host, variants_per_family)
+             if json.dumps(json.loads(spec), sort_keys=True) != exclude]
+    return fit_families(tokenizer, specs, host, clusterer=host.build("clusterer", clusterer or {"name": "kmeans"}),
+                        images=images, image_size=image_size, seed=seed, tokenizer_source=tokenizer_source,
+                        report=report)
+
+
+def check_same_tokenizer(families: SensorFamilies, tokenizer_folder: Path, where: str) -> None:
+    """Refuse families fitted on another tokenizer's features: distances to them mean nothing."""
+    fitted = families.summary.get("tokenizer", "")
+    if fitted and Path(fitted).resolve() != tokenizer_folder.resolve():
+        raise ConfigError(f"{where} were fitted on the features of {fitted}, not of {tokenizer_folder} (the tokenizer "
+                          "being adapted); run `vqtouch cluster` with this tokenizer, or adapt that one")

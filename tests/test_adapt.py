@@ -1,0 +1,142 @@
+"""Few-shot adaptation (`vqtouch adapt`, issue 11): the adapted checkpoint and its header, the
+mixed set's composition, the contact check's closed form and every bad input's one-line error."""
+
+import json
+
+import pytest
+import torch
+
+import generator_runs
+from vqtouch.core import load_plugins, read_metadata
+from vqtouch.core.cli import main
+from vqtouch.core.images import save_png
+from vqtouch.plugins.adaptation.adapt import contact_fraction, family_images, target_images
+from vqtouch.plugins.adaptation.families import SensorFamilies, sensor_images
+
+HOST = load_plugins(autoload=False)
+
+
+def _variant(name, seed, **variant):
+    return json.dumps({"name": name, "variant": {"seed": seed, **variant}})
+
+
+@pytest.fixture(scope="module")
+def tokenizer_folder(tmp_path_factory):
+    return generator_runs.tiny_tokenizer_folder(tmp_path_factory.mktemp("tok"))
+
+
+@pytest.fixture(scope="module")
+def families_folder(tokenizer_folder, tmp_path_factory):
+    out = tmp_path_factory.mktemp("families")
+    assert main(["cluster", "--run", str(tokenizer_folder), "--image-size", "32", "--images", "8", "--out", str(out),
+                 "--families", "2", "--sensors", "gelsight", _variant("gelsight", 1, colour_gain=[1.05, 0.95, 0.95]),
+                 "digit", _variant("digit", 2, noise_std=0.02)]) == 0
+    return out
+
+
+def _adapt(tokenizer_folder, families_folder, out, images, *extra):
+    return main(["adapt", "--run", str(tokenizer_folder), "--families", str(families_folder), "--images", images,
+                 "--out", str(out), "--shots", "4", "--ratio", "2", "--steps", "2", "--eval-images", "4",
+                 "--batch-size", "4", *extra])
+
+
+def test_adapt_writes_its_own_tokenizer_whose_header_names_the_family_and_the_shots(tokenizer_folder, families_folder,
+                                                                                   tmp_path, capsys):
+    from vqtouch.plugins.tokenizer.stages import load_tokenizer, reconstruct_all
+
+    target = _variant("gelsight", 7, illumination_shift=0.04, noise_std=0.01)
+    out = tmp_path / "adapted"
+    # An untrained tokenizer's families are tight: a generous threshold (refusals are tested below).
+    assert _adapt(tokenizer_folder, families_folder, out, target, "--threshold", "1") == 0
+    clusters = json.loads((families_folder / "cluster.json").read_text())
+    gelsight_family = clusters["sensor_family"]["gelsight"]
+    summary = json.loads((out / "adapt.json").read_text())
+    assert summary["family"] == gelsight_family and not summary["assignment"]["refused"]
+    assert summary["members_used"] == ["gelsight", "gelsight/v1"] and summary["family_images"] == 8
+    for file in ("autoencoder.safetensors", "quantizer.safetensors"):
+        header = read_metadata(out / file)
+        assert header["adaptation.family"] == str(gelsight_family) and header["adaptation.shots"] == "4"
+        assert header["adaptation.ratio"] == "2" and json.loads(header["adaptation.target"])["variant"]["seed"] == 7
+        assert json.loads(header["adaptation.family_members"]) == ["gelsight", "gelsight/v1"]
+    assert (out / "before_after.png").is_file()
+    original, _ = load_tokenizer(tokenizer_folder, HOST)
+    adapted, _ = load_tokenizer(out, HOST)
+    before_weights, after_weights = original.autoencoder.state_dict(), adapted.autoencoder.state_dict()
+    assert before_weights.keys() == after_weights.keys()
+    assert not all(torch.equal(before_weights[key], after_weights[key]) for key in before_weights)
+    # The "before" score is the family tokenizer on the held-out images, recomputed here directly.
+    _, _, _, held_out = target_images(target, HOST, shots=4, eval_images=4, image_size=32, seed=0)
+    ssim = HOST.build("metric", {"name": "ssim"})
+    ssim.update(reconstruct_all(original, held_out), held_out)
+    assert summary["before"]["ssim"] == pytest.approx(ssim.compute(), abs=1e-4)
+    printed = capsys.readouterr().out
+    assert "held-out gelsight/v7 (4 images): SSIM" in printed and "real frames" not in printed  # not a variant's
+    assert _adapt(tokenizer_folder, families_folder, out, target) == 2
+    assert "already holds an adapted tokenizer; choose another --out or pass --overwrite" in capsys.readouterr().err
+
+
+def test_the_mixed_set_draws_evenly_from_the_family_but_the_unseen_sensor():
+    sources = ['{"name": "gelsight"}', _variant("gelsight", 1, noise_std=0.02), '{"name": "digit"}',
+               _variant("gelsight", 2, colour_gain=[1.1, 1, 1])]
+    summary = {"sensors": [{"name": f"s{i}", "source": source, "images": 4} for i, source in enumerate(sources)],
+               "sensor_family": {"s0": 0, "s1": 0, "s2": 1, "s3": 0}}
+    families = SensorFamilies(summary, clusterer=None, prototypes_SF=torch.zeros(4, 2))
+    images, members = family_images(families, 0, HOST, count=7, image_size=16, seed=3, exclude=sources[3])
+    assert members == ["s0", "s1"] and images.shape == (7, 3, 16, 16)
+    torch.testing.assert_close(images[:4], sensor_images(sources[0], HOST, count=4, image_size=16, seed=3 + 1009).images)
+    torch.testing.assert_close(images[4:], sensor_images(sources[1], HOST, count=3, image_size=16, seed=3 + 2018).images)
+
+
+def test_contact_fraction_is_the_share_of_pixels_off_the_background():
+    images = torch.full((4, 3, 10, 10), 0.5)
+    for index in range(4):  # each image presses a different 2 x (index + 1) patch: the median stays background
+        images[index, :, 2 * index:2 * index + 2, :index + 1] += 0.2
+    torch.testing.assert_close(contact_fraction(images), torch.tensor([0.02, 0.04, 0.06, 0.08], dtype=torch.float64))
+    images[3, :, 6:8, :4] = 0.5 + 0.03  # below the contact threshold: no longer a contact
+    assert float(contact_fraction(images)[3]) == 0.0
+
+
+def _frames(folder, images):
+    folder.mkdir()
+    for index, image in enumerate(images):
+        save_png(image, folder / f"frame_{index:02d}.png")
+    return folder
+
+
+def test_adapt_bad_inputs_get_one_line_errors(tokenizer_folder, families_folder, tmp_path, capsys):
+    gelsight = HOST.build("sensor_family", "gelsight")
+    contacts = sensor_images("gelsight", HOST, count=6, image_size=32).images
+    no_contact = gelsight.render(torch.zeros(6, 32, 32), generator=torch.Generator().manual_seed(0))
+    one = _frames(tmp_path / "one", contacts[:1])
+    three = _frames(tmp_path / "three", contacts[:3])
+    mixed_sizes = _frames(tmp_path / "sizes", contacts[:3])
+    save_png(torch.rand(3, 40, 32), mixed_sizes / "frame_99.png")
+    corrupt = _frames(tmp_path / "corrupt", contacts[:5])
+    (corrupt / "frame_03.png").write_bytes(b"not a png")
+    flat = _frames(tmp_path / "flat", no_contact)
+    cases = [
+        (one, [], "1 image(s); adaptation needs the shots plus at least one held-out image"),
+        (three, [], "--shots 4: the folder " + str(three) + " holds 3 images; use at most 2 shots"),
+        (mixed_sizes, ["--shots", "1"], "images of different sizes (frame_00.png is 32x32, frame_99.png is 32x40)"),
+        (corrupt, [], "cannot decode image " + str(corrupt / "frame_03.png")),
+        (flat, [], "the 6 images look like no-contact frames"),
+        (_frames(tmp_path / "ok", contacts), ["--threshold", "0"], "ok matches no sensor family: "),
+        (tmp_path / "ok", ["--family", "5"], "--family 5: the families are numbered 0 to 1"),
+    ]
+    for folder, extra, message in cases:
+        capsys.readouterr()
+        assert _adapt(tokenizer_folder, families_folder, tmp_path / "out", str(folder), *extra) == 2, message
+        err = capsys.readouterr().err
+        assert err.startswith("vqtouch: error: ") and message in err and err.count("\n") == 1, err
+        assert not (tmp_path / "out" / "autoencoder.safetensors").exists()
+    # A forced family adapts a sensor the threshold refuses, and says so.
+    assert _adapt(tokenizer_folder, families_folder, tmp_path / "out", str(tmp_path / "ok"), "--threshold", "0",
+                  "--family", "1", "--shots", "3") == 0
+    summary = json.loads((tmp_path / "out" / "adapt.json").read_text())
+    assert summary["forced_family"] and summary["assignment"]["refused"] and summary["family"] == 1
+
+
+def test_families_from_another_tokenizer_are_refused(families_folder, tmp_path, capsys):
+    other = generator_runs.tiny_tokenizer_folder(tmp_path)
+    assert _adapt(other, families_folder, tmp_path / "out", "gelsight") == 2
+    assert "were fitted on the features of" in capsys.readouterr().err
