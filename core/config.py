@@ -308,6 +308,12 @@ def validate_experiment(data: Mapping[str, Any], host: Any) -> ExperimentConfig:
 
     Afterwards every plugin's ``vqtouch_validate_experiment`` hook may veto the combination.
     """
+    stages = data.get("stages")
+    # An unknown stage first: it also explains its section being an unknown option (a scene of a
+    # stage whose plugin is not installed carries that stage's section).
+    for name in stages if isinstance(stages, list) else []:
+        if isinstance(name, str) and name not in host.stages:
+            raise ConfigError(f"invalid configuration: stages: {unknown_name_message('stage', name, host.stages)}")
     try:
         config = host.experiment_model.model_validate(dict(data), context={"host": host})
     except ValidationError as exc:

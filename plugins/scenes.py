@@ -18,6 +18,8 @@ _DATA = {"dataset": {"name": "procedural"}}
 _TOKENIZER = {"autoencoder": {"name": "dm_vqgan"},
               "quantizer": {"name": "vq", "codebook_size": 512, "l2_normalize": True, "lookup_dim": 8},
               "discriminator": {"name": "patchgan"}}
+#: Sensor families by k-means over the tokenizer's pooled features, the family count by silhouette.
+_CLUSTER = {"clusterer": {"name": "kmeans"}}
 #: An unseen "derivative" GelSight: same family, drifted illumination and a slightly worn gel.
 _GENERATOR = {"model": {"name": "vq_diffusion"}, "sampler": {"name": "posterior"}}
 GELSIGHT_DERIVATIVE_I = {"name": "gelsight", "variant": {
@@ -36,12 +38,14 @@ SCENES: dict[str, tuple[str, dict]] = {
     "few-shot": (
         "Adapt to an unseen sensor from a few images mixed 1:5 with its family's data, then generate for it.",
         {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "cluster", "adapt", "generator"], "metrics": _METRICS,
+         "cluster": _CLUSTER,
          "generator": _GENERATOR | {"conditioners": [{"name": "label"}]}, "sensor": {"name": "gelsight"}, "target_sensor": GELSIGHT_DERIVATIVE_I,
          "data": {"dataset": {"name": "procedural", "num_samples": 500}}},
     ),
     "zero-shot": (
         "Assign an unseen sensor to its family without any of its images and reuse the family tokenizer.",
         {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "cluster", "reconstruct"], "metrics": _METRICS,
+         "cluster": _CLUSTER,
          "sensor": {"name": "gelsight"}, "target_sensor": GELSIGHT_DERIVATIVE_II, "data": _DATA},
     ),
     "cross-sensor": (

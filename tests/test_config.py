@@ -40,10 +40,10 @@ def test_builtin_stages_and_their_sections(host):
     assert sorted(host.stages) == BUILTIN_STAGES
     sections = {name: entry.section.__name__ if entry.section else None for name, entry in host.stages.items()}
     assert sections == {"render": "RenderSection", "tokenizer": "TokenizerSection", "reconstruct": None,
-                        "cluster": "ClusterSection", "adapt": None, "generator": "GeneratorSection"}
+                        "cluster": "ClusterSection", "adapt": "AdaptSection", "generator": "GeneratorSection"}
     fields = set(host.experiment_model.model_fields)
-    assert {"render", "tokenizer", "cluster", "generator"} <= fields
-    assert not {"reconstruct", "adapt", "train", "conditioner", "clusterer", "evaluate"} & fields
+    assert {"render", "tokenizer", "cluster", "adapt", "generator"} <= fields
+    assert not {"reconstruct", "train", "conditioner", "clusterer", "evaluate"} & fields
     # The base model holds only core's fields: stage sections come from the registrations.
     assert not {"render", "tokenizer", "cluster", "generator"} & set(ExperimentConfig.model_fields)
     assert set(host.slots) == {"sensor", "target_sensor", "paired_sensor", "data.dataset", "metrics", "tokenizer.autoencoder",

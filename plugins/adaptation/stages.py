@@ -1,19 +1,27 @@
-"""The ``cluster`` and ``adapt`` stages' sections and slots.
+"""The ``cluster`` and ``adapt`` stages.
 
-``cluster`` groups sensors into families from tokenizer features (its ``cluster.clusterer``
-slot) and assigns an unseen sensor to one; ``adapt`` fine-tunes the family tokenizer with a
-few images of the experiment's ``target_sensor`` mixed with family data.  Both are declared
-so scenes and configs that use them validate; running them is not implemented in this
-version, and each stage says so when asked to run.
+- ``cluster`` groups sensors into families from the run's tokenizer features (its
+  ``cluster.clusterer`` slot): by default every registered sensor family and a few random
+  environmental variants of each.  With a ``target_sensor`` it also assigns that unseen sensor to
+  a family (or refuses it) and scores the family tokenizer on its images zero-shot.  Writes
+  ``<run>/cluster/`` (cluster.json, clusterer.safetensors, families.png).
+- ``adapt`` fine-tunes the run's tokenizer (the family tokenizer) with a few images of the
+  ``target_sensor`` mixed 1:ratio with family data (:mod:`.adapt`) and writes the adapted
+  tokenizer to ``<run>/adapted/`` with its before/after scores.  It reuses the ``cluster``
+  stage's families when that stage ran, and clusters the defaults itself otherwise.
 """
 
 from __future__ import annotations
 
-from typing import Any
+import json
+from typing import Any, Literal
 
 from pydantic import Field
 
 from vqtouch.core import Section, Slot, StageJob, StageUnavailable, hookimpl
+
+#: Where the stages write inside a run.
+CLUSTER_FOLDER, ADAPTED_FOLDER = "cluster", "adapted"
 
 
 class ClusterSection(Section):
@@ -21,24 +29,128 @@ class ClusterSection(Section):
 
     clusterer: Slot("clusterer") | None = Field(None, description="Clustering plugin that groups sensors into "
                                                                   "families from tokenizer features.")
+    sensors: list[str] | None = Field(
+        None, description="Sensors to group: registered family names, JSON sensor configs with a variant, or "
+                          "folders of a real sensor's images; null: every registered family plus "
+                          "`variants_per_family` random environmental variants of each.")
+    variants_per_family: int = Field(3, ge=0, le=50, description="Random environmental variants per registered "
+                                                                 "family when `sensors` is null.")
+    images_per_sensor: int = Field(32, ge=1, le=10_000, description="Images of each sensor that make its prototype.")
+    features: Literal["pooled", "codes"] = Field("pooled", description="Pooled encoder features or code histograms.")
+    refine_steps: int = Field(3, ge=0, le=100, description="Prototype refinement steps (drop the farthest images, "
+                                                           "re-average).")
+    keep: float = Field(0.8, gt=0.0, le=1.0, description="Fraction of images kept at each refinement step.")
+    threshold: float | None = Field(None, ge=0.0, description="Refuse an unseen sensor farther than this from every "
+                                                              "family; null: derived from the within-family spread.")
+
+
+class AdaptSection(Section):
+    """The ``adapt`` stage's section: how the family tokenizer is adapted to the target sensor."""
+
+    shots: int = Field(50, ge=1, le=100_000, description="Target-sensor images to train on.")
+    ratio: float = Field(5.0, ge=0.0, le=1000.0, description="Family images per shot in the mixed set (the paper's "
+                                                             "1:5).")
+    steps: int = Field(200, ge=1, le=1_000_000, description="Fine-tuning steps.")
+    learning_rate: float | None = Field(None, gt=0.0, le=10.0, description="Fine-tuning learning rate; null: the "
+                                                                           "tokenizer's own.")
+    eval_images: int = Field(64, ge=1, le=100_000, description="Held-out target images scored before and after.")
+    threshold: float | None = Field(None, ge=0.0, description="Refuse a target farther than this from every family; "
+                                                              "null: the clustering's threshold.")
+    family: int | None = Field(None, ge=0, description="Adapt from this family whatever the assignment says.")
+
+
+def _family_tokenizer(job: StageJob) -> tuple[Any, Any]:
+    from vqtouch.core.runs import MissingCheckpointError
+    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+
+    try:
+        return load_tokenizer(job.run, job.host)
+    except MissingCheckpointError as exc:
+        raise StageUnavailable(f"no trained tokenizer in this run ({exc}); run the tokenizer stage first") from None
+
+
+def target_spec(job: StageJob) -> str:
+    """The experiment's ``target_sensor`` as a sensor spec (the JSON a clustering records as its source)."""
+    config = job.assembly.sensor_config("target")
+    return json.dumps({"name": config.name, **config.model_dump(mode="json", exclude_defaults=True)}, sort_keys=True)
 
 
 def run_cluster_stage(job: StageJob) -> dict[str, Any]:
-    """Not implemented in this version: says so (after the slots were checked)."""
-    raise StageUnavailable("sensor-family clustering is not implemented in this version of vqtouch")
+    """Group the section's sensors into families; assign and score the target sensor when there is one."""
+    from vqtouch.plugins.tokenizer.stages import reconstruct_all
+
+    from .families import family_sensor_specs, fit_families, save_families, sensor_images
+
+    section, config = job.section, job.config
+    tokenizer, folder = _family_tokenizer(job)
+    image_size = tokenizer.autoencoder.vqtouch_spec.context.image_size
+    target = target_spec(job) if config.target_sensor is not None else None
+    specs = section.sensors if section.sensors is not None else family_sensor_specs(job.host,
+                                                                                    section.variants_per_family)
+    specs = [spec for spec in specs if spec != target]  # the unseen sensor is assigned, not clustered
+    families = fit_families(tokenizer, specs, job.host, clusterer=job.assembly.component("cluster.clusterer"),
+                            images=section.images_per_sensor, image_size=image_size, features=section.features,
+                            refine_steps=section.refine_steps, keep=section.keep, seed=config.seed,
+                            tokenizer_source=str(folder), report=lambda line: None)
+    result: dict[str, Any] = {"sensors": len(specs), "families": len(families.summary["families"]),
+                              "members": "; ".join(", ".join(members) for members in families.summary["families"])}
+    extra: dict[str, Any] = {}
+    if target is not None:
+        sensor = sensor_images(target, job.host, count=section.images_per_sensor, image_size=image_size,
+                               seed=config.seed + 1)
+        assigned = families.assign(families.prototype(tokenizer, sensor.images), section.threshold)
+        extra["assignments"] = {sensor.name: {"source": target, **assigned}}
+        reconstructions = reconstruct_all(tokenizer, sensor.images)
+        result |= {"target": sensor.name, "target_family": "refused" if assigned["refused"] else assigned["family"],
+                   "margin": assigned["margin"]}
+        for item, metric in zip(config.metrics, job.assembly.build_slots(["metrics"]).get("metrics", [])):
+            metric.reset()
+            metric.update(reconstructions, sensor.images)
+            result[f"zero_shot_{item.name}"] = round(metric.compute(), 4)
+    save_families(families, job.run.path / CLUSTER_FOLDER, job.host, extra)
+    return {**result, "picture": f"{CLUSTER_FOLDER}/families.png"}
 
 
 def run_adapt_stage(job: StageJob) -> dict[str, Any]:
-    """Not implemented in this version: says so (after the slots were checked)."""
-    raise StageUnavailable("few-shot adaptation to the target sensor is not implemented in this version of vqtouch")
+    """Adapt the run's tokenizer to the target sensor (see the module docstring)."""
+    from .adapt import AdaptSettings, adapt_tokenizer, check_same_tokenizer, default_families
+    from .families import CLUSTER_JSON, load_families, save_families
+
+    section, config = job.section, job.config
+    tokenizer, folder = _family_tokenizer(job)
+    target = target_spec(job)
+    clustered = job.run.path / CLUSTER_FOLDER
+    if (clustered / CLUSTER_JSON).is_file():
+        families = load_families(clustered, job.host)
+        check_same_tokenizer(families, folder, "the cluster stage's families")
+    else:
+        families = default_families(tokenizer, job.host, image_size=tokenizer.autoencoder.vqtouch_spec.context.image_size,
+                                     tokenizer_source=str(folder), exclude=target, seed=config.seed,
+                                     report=lambda line: None)
+        save_families(families, job.run.path / ADAPTED_FOLDER / "families", job.host)
+    settings = AdaptSettings(shots=section.shots, ratio=section.ratio, steps=section.steps,
+                             learning_rate=section.learning_rate, eval_images=section.eval_images,
+                             threshold=section.threshold, family=section.family, seed=config.seed)
+    summary = adapt_tokenizer(job.run, target, families, job.host, job.run.path / ADAPTED_FOLDER, settings,
+                              overwrite=True, report=lambda line: None)
+    result = {"target": summary["target"], "family": summary["family"], "shots": summary["shots"],
+              "ratio": summary["ratio"], "steps": summary["steps"], "seconds": summary["seconds"]}
+    for when in ("before", "after"):
+        result |= {f"{key}_{when}": summary[when][key] for key in ("ssim", "psnr")}
+    if "real_frames" in summary:
+        real = summary["real_frames"]
+        result |= {f"real_{key}_{when}": real[when][key] for when in ("before", "after") for key in ("ssim", "psnr")}
+    return {**result, "picture": f"{ADAPTED_FOLDER}/before_after.png"}
 
 
 @hookimpl
 def vqtouch_register_stages(register):
     register("cluster", run_cluster_stage, section=ClusterSection,
-             needs=("data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer", "cluster.clusterer"),
+             needs=("tokenizer.autoencoder", "tokenizer.quantizer", "cluster.clusterer"), uses=("metrics",),
+             demo={"images_per_sensor": 16, "variants_per_family": 2},
              description="Cluster sensors into families from tokenizer features; assign an unseen sensor to one.")
-    register("adapt", run_adapt_stage,
-             needs=("data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer", "sensor", "target_sensor"),
+    register("adapt", run_adapt_stage, section=AdaptSection,
+             needs=("tokenizer.autoencoder", "tokenizer.quantizer", "sensor", "target_sensor"),
+             demo={"steps": 30, "shots": 20, "eval_images": 16},
              description="Adapt the family tokenizer to the target sensor from a few of its images mixed 1:5 with "
                          "family data.")
