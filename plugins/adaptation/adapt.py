@@ -53,6 +53,9 @@ class AdaptSettings:
     threshold: float | None = None
     family: int | None = None
     seed: int = 0
+    #: Metric plugins scoring the held-out images before and after (``fd_effnetlite0`` adds a
+    #: distribution score; it needs at least 2 held-out images).
+    metrics: tuple[str, ...] = ("ssim", "psnr")
 
 
 class ImageSet(torch.utils.data.Dataset):
@@ -95,9 +98,10 @@ def target_images(spec: str, host: Any, *, shots: int, eval_images: int, image_s
                   seed: int) -> tuple[str, str, torch.Tensor, torch.Tensor]:
     """(name, source, shots, held-out images) of the unseen sensor ``spec``.
 
-    A folder's images are shuffled with ``seed``; the first ``shots`` are the shots and up to
-    ``eval_images`` of the rest are held out (a folder must keep at least one).  A registered
-    sensor renders the shots and, from other scenes, ``eval_images`` held-out images.
+    A folder's images are shuffled with ``seed``; the first ``shots`` are the shots and the last
+    ``eval_images`` (at most all the others) are held out, so runs with fewer shots score the
+    same held-out images (a folder must keep at least one).  A registered sensor renders the shots
+    and, from other scenes, ``eval_images`` held-out images.
     """
     path = folder_of(spec)
     if path is not None:
@@ -111,7 +115,8 @@ def target_images(spec: str, host: Any, *, shots: int, eval_images: int, image_s
             raise ConfigError(f"--shots {shots}: the folder {path} holds {len(files)} images; use at most "
                               f"{len(files) - 1} shots (the rest are held out to score the adaptation)")
         order = torch.randperm(len(files), generator=torch.Generator().manual_seed(seed)).tolist()
-        chosen = [files[i] for i in order[:shots + eval_images]]
+        held_out = min(eval_images, len(files) - shots)
+        chosen = [files[i] for i in order[:shots] + order[len(files) - held_out:]]
         sensor = sensor_images(str(path), host, count=len(chosen), image_size=image_size, files=chosen)
         return sensor.name, sensor.source, sensor.images[:shots], sensor.images[shots:]
     trained = sensor_images(spec, host, count=shots, image_size=image_size, seed=seed + 101)
@@ -139,14 +144,16 @@ def family_images(families: SensorFamilies, family: int, host: Any, *, count: in
     return torch.cat(chunks), [member["name"] for member in members]
 
 
-def _scores(tokenizer: Any, images_N3HW: torch.Tensor, host: Any, batch_size: int) -> dict[str, Any]:
-    """SSIM, PSNR and codebook usage of ``tokenizer`` reconstructing ``images_N3HW``."""
+def reconstruction_scores(tokenizer: Any, images_N3HW: torch.Tensor, host: Any, batch_size: int = 32,
+                          metrics: tuple[str, ...] = ("ssim", "psnr")) -> dict[str, Any]:
+    """The ``metrics`` (plugin names), codebook usage and codes used of ``tokenizer`` reconstructing
+    ``images_N3HW``."""
     from vqtouch.plugins.tokenizer.training import evaluate_reconstruction
 
-    metrics = {name: host.build("metric", {"name": name}) for name in ("ssim", "psnr")}
-    scores = evaluate_reconstruction(tokenizer, ImageSet(images_N3HW), metrics, batch_size=batch_size)
+    built = {name: host.build("metric", {"name": name}) for name in metrics}
+    scores = evaluate_reconstruction(tokenizer, ImageSet(images_N3HW), built, batch_size=batch_size)
     return {key: (round(value, 4) if isinstance(value, float) else value) for key, value in scores.items()
-            if key in ("ssim", "psnr", "codebook_usage", "codes_used", "samples")}
+            if key in (*metrics, "codebook_usage", "codes_used", "samples")}
 
 
 def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, host: Any, out: Path,
@@ -212,10 +219,10 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
         batch_size = len(mixed_set)  # a handful of shots still trains (one batch = every image)
 
     device = resolve_device(run_config.device if run_config is not None else "auto")
-    before = _scores(tokenizer, held_out_M, host, batch_size)
+    before = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics)
     before_images = reconstruct_all(tokenizer, held_out_M[:8])
     real = _real_frames(target, host, image_size)  # the sensor's own captured frames, when it ships some (taxim)
-    real_before = _scores(tokenizer, real, host, batch_size) if real is not None else None
+    real_before = reconstruction_scores(tokenizer, real, host, batch_size, settings.metrics) if real is not None else None
     discriminator, adversarial = _discriminator(folder, loss, host)
     if discriminator is not None:
         start = getattr(tokenizer.autoencoder, "vqtouch_step", 0)
@@ -227,7 +234,7 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
     trainer.fit()
     seconds = time.perf_counter() - tic
     tokenizer.eval()
-    after = _scores(tokenizer, held_out_M, host, batch_size)
+    after = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics)
     after_images = reconstruct_all(tokenizer, held_out_M[:8])
 
     summary: dict[str, Any] = {
@@ -239,7 +246,7 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
         "adversarial": adversarial, "seconds": round(seconds, 2), "before": before, "after": after}
     if real is not None:
         summary["real_frames"] = {"count": len(real), "before": real_before,
-                                  "after": _scores(tokenizer, real, host, batch_size)}
+                                  "after": reconstruction_scores(tokenizer, real, host, batch_size, settings.metrics)}
     out.mkdir(parents=True, exist_ok=True)
     header = {"adaptation.target": source, "adaptation.family": str(family),
               "adaptation.family_members": json.dumps(summary["family_members"]),

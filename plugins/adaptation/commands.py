@@ -14,6 +14,7 @@ features with the sensors' prototypes).  See :mod:`.families` for the method.
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 from vqtouch.core import ConfigError, hookimpl
@@ -125,13 +126,27 @@ def _adapt_command(args: argparse.Namespace) -> int:
 
 def _canonical_spec(spec: str) -> str:
     """A registered sensor's spec as the JSON a clustering records as its source ('' when not JSON)."""
-    import json
 
     try:
         config = json.loads(spec) if spec.startswith("{") else {"name": spec}
     except json.JSONDecodeError:
         return ""
     return json.dumps(config, sort_keys=True)
+
+
+def _evaluate_cross_sensor_command(args: argparse.Namespace) -> int:
+    from .evaluation import evaluate_cross_sensor
+
+    out = Path(args.out)
+    evaluate_cross_sensor(args.run, args.host, out, target=args.target, seeds=args.seeds, steps=args.steps,
+                          shots=args.shots, ratios=args.ratios, main_shots=args.main_shots, main_ratio=args.main_ratio,
+                          everything=args.everything, eval_images=args.eval_images, variants=args.variants,
+                          held_out_variants=args.held_out_variants, images=args.images, clusterers=args.clusterers,
+                          real_family=None if args.real == "none" else args.real, real_shots=args.real_shots,
+                          report=lambda line: print(line, flush=True))
+    print((out / "cross_sensor.md").read_text())
+    print(f"-> {out} (cross_sensor.json, cross_sensor.md, cross_sensor.png)")
+    return 0
 
 
 @hookimpl
@@ -181,3 +196,35 @@ def vqtouch_add_commands(subparsers):
     adapt.add_argument("--seed", type=int, default=0, help="seed of the shots' draw and the rendered scenes")
     adapt.add_argument("--overwrite", action="store_true", help="replace an adapted tokenizer already in --out")
     adapt.set_defaults(handler=_adapt_command)
+
+    from vqtouch.core.cli import command_group
+    from vqtouch.plugins.scenes import GELSIGHT_DERIVATIVE_II
+
+    evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
+    cross = evaluate.add_parser("cross-sensor", help="family recovery, few-shot transfer arms, real frames and cost "
+                                                     "of adapting a family tokenizer (JSON, markdown, PNG)")
+    cross.add_argument("--run", required=True, help="the family tokenizer's run")
+    cross.add_argument("--out", required=True, help="folder for cross_sensor.json/.md/.png and the arms' tokenizers")
+    cross.add_argument("--target", default=json.dumps(GELSIGHT_DERIVATIVE_II),
+                       help="the unseen sensor (default: the zero-shot scene's damaged, drifted GelSight)")
+    cross.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (default 0 1 2)")
+    cross.add_argument("--steps", type=_positive, default=200, help="fine-tuning steps of every arm (default 200)")
+    cross.add_argument("--shots", type=_positive, nargs="+", default=[10, 25, 50, 100],
+                       help="shot counts of arms b and c (default 10 25 50 100)")
+    cross.add_argument("--main-shots", type=_positive, default=50, help="shots of the ratio sweep (default 50)")
+    cross.add_argument("--ratios", type=_non_negative_float, nargs="+", default=[1.0, 5.0, 20.0],
+                       help="family images per shot in arm c (default 1 5 20)")
+    cross.add_argument("--main-ratio", type=_non_negative_float, default=5.0, help="ratio of the shots sweep (5)")
+    cross.add_argument("--everything", type=_non_negative, default=1000,
+                       help="target images of arm d, mixed 1:1 with family data (0 skips arm d and the cost)")
+    cross.add_argument("--eval-images", type=_positive, default=64, help="held-out target images (default 64)")
+    cross.add_argument("--variants", type=_positive, default=4, help="variants per family to cluster (default 4)")
+    cross.add_argument("--held-out-variants", type=_positive, default=2,
+                       help="further variants per family to assign (default 2)")
+    cross.add_argument("--images", type=_positive, default=32, help="images per sensor for clustering (default 32)")
+    cross.add_argument("--clusterers", nargs="+", default=["kmeans", "agglomerative"], help="clusterer plugins")
+    cross.add_argument("--real", default="gelsight_mini",
+                       help="a sensor family whose captured frames play the unseen sensor ('none' skips)")
+    cross.add_argument("--real-shots", type=_positive, nargs="+", default=[4, 8, 16],
+                       help="shots from the real frames (default 4 8 16; the rest are held out)")
+    cross.set_defaults(handler=_evaluate_cross_sensor_command)

@@ -1,0 +1,326 @@
+"""``vqtouch evaluate cross-sensor``: the cross-sensor experiment in one command.
+
+Three parts, each over several seeds, written as ``cross_sensor.json``, ``cross_sensor.md`` (tables)
+and ``cross_sensor.png`` (figures):
+
+1. **Family recovery.**  Every registered sensor family with ``variants`` random environmental
+   variants each (illumination, colour gain, drift, response, wear, damage, noise, misalignment:
+   :func:`vqtouch.sensors.environment_variant`, new variant seeds per evaluation seed) is clustered
+   from the tokenizer's features by each clusterer; the adjusted Rand index against the true
+   families, and the assignment accuracy of ``held_out_variants`` further variants per family.
+2. **Transfer to an unseen sensor**, every arm fine-tuned for the same steps from the family
+   tokenizer: (a) zero-shot (the family tokenizer as it is), (b) the shots alone, (c) the shots
+   mixed 1:ratio with family data, (d) everything (``everything`` target images mixed 1:1 with
+   family data); (c) at every shot count and ratio asked.  SSIM, PSNR, ``fd_effnetlite0`` and
+   codebook usage on held-out target images.
+3. **Real frames as the unseen sensor**: taxim's captured GelSight Mini frames (arms a-c; there
+   are not enough frames for (d)), when the tokenizer works at a size the frames allow.
+
+Plus the **cost**: arm (c)'s adaptation wall time against training a fresh tokenizer (the run's
+config and steps) on everything, measured in the same process.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from vqtouch.core import ConfigError
+
+from .adapt import AdaptSettings, ImageSet, adapt_tokenizer, family_images, reconstruction_scores, target_images
+from .families import SensorFamilies, family_sensor_specs, fit_families, sensor_images
+
+METRICS = ("ssim", "psnr", "fd_effnetlite0")
+TABLE_COLUMNS = ("ssim", "psnr", "fd_effnetlite0", "codebook_usage", "seconds")
+
+
+def _family_of(source: str) -> str:
+    """The registered family name of a rendered sensor's source JSON."""
+    return json.loads(source)["name"]
+
+
+def family_recovery(tokenizer: Any, host: Any, *, seed: int, variants: int, held_out_variants: int, images: int,
+                    image_size: int, clusterers: list[str], tokenizer_source: str) -> tuple[list[dict], SensorFamilies]:
+    """One seed of part 1: per clusterer, the families found, the ARI and the held-out assignment
+    accuracy.  Returns the rows and the first clusterer's families (used by the transfer arms)."""
+    from sklearn.metrics import adjusted_rand_score
+
+    specs = family_sensor_specs(host, variants, first_seed=1000 + 100 * seed)
+    unseen = [spec for spec in family_sensor_specs(host, held_out_variants, first_seed=1050 + 100 * seed)
+              if "variant" in json.loads(spec)]
+    rows, first = [], None
+    for name in clusterers:
+        families = fit_families(tokenizer, specs, host, clusterer=host.build("clusterer", {"name": name, "seed": seed}),
+                                images=images, image_size=image_size, seed=seed, tokenizer_source=tokenizer_source,
+                                report=lambda line: None)
+        summary = families.summary
+        truth = [_family_of(sensor["source"]) for sensor in summary["sensors"]]
+        found = [summary["sensor_family"][sensor["name"]] for sensor in summary["sensors"]]
+        majority = {family: max(set(members), key=members.count) for family in set(found)
+                    for members in [[t for t, f in zip(truth, found) if f == family]]}
+        correct = refused = 0
+        for spec in unseen:
+            sensor = sensor_images(spec, host, count=images, image_size=image_size, seed=seed + 1)
+            assigned = families.assign(families.prototype(tokenizer, sensor.images))
+            refused += assigned["refused"]
+            correct += (not assigned["refused"]) and majority[assigned["family"]] == _family_of(spec)
+        rows.append({"clusterer": name, "seed": seed, "sensors": len(specs), "true_families": len(set(truth)),
+                     "families": len(summary["families"]), "ari": round(adjusted_rand_score(truth, found), 4),
+                     "assignment_accuracy": round(correct / len(unseen), 4), "refused": refused,
+                     "held_out_sensors": len(unseen)})
+        first = first or families
+    return rows, first
+
+
+def _arm_settings(shots: int, ratio: float, steps: int, eval_images: int, seed: int, **extra: Any) -> AdaptSettings:
+    return AdaptSettings(shots=shots, ratio=ratio, steps=steps, eval_images=eval_images, seed=seed, metrics=METRICS,
+                         **extra)
+
+
+def _arm_row(arm: str, summary: dict[str, Any], *, zero_shot: bool = False) -> dict[str, Any]:
+    scores = summary["before" if zero_shot else "after"]
+    return {"arm": arm, "shots": 0 if zero_shot else summary["shots"], "ratio": None if zero_shot else summary["ratio"],
+            "held_out": summary["held_out"], **{key: scores.get(key) for key in METRICS},
+            "codebook_usage": scores.get("codebook_usage"), "seconds": 0.0 if zero_shot else summary["seconds"]}
+
+
+def transfer_arms(run: Any, target: str, families: SensorFamilies, host: Any, out: Path, *, seed: int, steps: int,
+                  shots: list[int], ratios: list[float], main_shots: int, main_ratio: float, everything: int,
+                  eval_images: int, family: int | None = None) -> list[dict[str, Any]]:
+    """One seed of part 2 (or 3, with a folder target): every arm's held-out scores."""
+    rows = []
+
+    def arm(name: str, shot_count: int, ratio: float) -> dict[str, Any]:
+        settings = _arm_settings(shot_count, ratio, steps, eval_images, seed, family=family)
+        return adapt_tokenizer(run, target, families, host, out / f"seed{seed}" / f"{name}-{shot_count}-{ratio:g}",
+                               settings, overwrite=True, report=lambda line: None)
+
+    first = arm("b", shots[0], 0.0)
+    rows.append(_arm_row("a: zero-shot", first, zero_shot=True))
+    rows.append(_arm_row("b: shots alone", first))
+    for count in shots[1:]:
+        rows.append(_arm_row("b: shots alone", arm("b", count, 0.0)))
+    for count in shots:
+        rows.append(_arm_row("c: mixed", arm("c", count, main_ratio)))
+    for ratio in ratios:
+        if ratio != main_ratio:
+            rows.append(_arm_row("c: mixed", arm("c", main_shots, ratio)))
+    if everything:
+        rows.append(_arm_row("d: everything", arm("d", everything, 1.0)))
+    return rows
+
+
+def scratch_cost(run: Any, target: str, families: SensorFamilies, host: Any, *, seed: int, everything: int,
+                 eval_images: int, family: int) -> dict[str, Any]:
+    """Train a fresh tokenizer (the run's config and steps) on everything; its wall time and scores."""
+    from vqtouch.core import Assembly, RunDir, resolve_device
+    from vqtouch.core.training import Trainer
+    from vqtouch.plugins.tokenizer.stages import tokenizer_task
+    from vqtouch.plugins.tokenizer.training import Tokenizer
+
+    config = RunDir.open(run).load_config(host)
+    image_size = families.summary["image_size"]
+    _, source, target_N, held_out = target_images(target, host, shots=everything, eval_images=eval_images,
+                                                  image_size=image_size, seed=seed)
+    family_N, _ = family_images(families, family, host, count=everything, image_size=image_size, seed=seed,
+                                exclude=source)
+    assembly = Assembly(config, host)
+    tokenizer = Tokenizer(assembly.component("tokenizer.autoencoder"), assembly.component("tokenizer.quantizer"))
+    section = config.tokenizer
+    discriminator = (assembly.component("tokenizer.discriminator")
+                     if section.discriminator is not None and section.loss.adversarial_weight > 0 else None)
+    device = resolve_device(config.device)
+    trainer = Trainer(tokenizer_task(tokenizer, section.loss, device, discriminator),
+                      ImageSet(torch.cat([target_N, family_N])), section.train.model_copy(update={"keep_best": False}),
+                      batch_size=config.data.batch_size, seed=seed, device=device, checkpoint_dir=None, host=host,
+                      stage="scratch")
+    tic = time.perf_counter()
+    trainer.fit()
+    seconds = time.perf_counter() - tic
+    scores = reconstruction_scores(tokenizer.eval(), held_out, host, metrics=METRICS)
+    return {"arm": "fresh tokenizer on everything", "shots": everything, "ratio": 1.0, "held_out": len(held_out),
+            **{key: scores.get(key) for key in METRICS}, "codebook_usage": scores.get("codebook_usage"),
+            "steps": section.train.steps, "seconds": round(seconds, 2)}
+
+
+def _mean_spread(rows: list[dict[str, Any]], keys: tuple[str, ...], group: tuple[str, ...]) -> list[dict[str, Any]]:
+    """Rows grouped by ``group`` with each key's mean and standard deviation over the seeds."""
+    grouped: dict[tuple, list[dict[str, Any]]] = {}
+    for row in rows:
+        grouped.setdefault(tuple(row[key] for key in group), []).append(row)
+    table = []
+    for values, members in grouped.items():
+        entry: dict[str, Any] = dict(zip(group, values)) | {"seeds": len(members)}
+        for key in keys:
+            numbers = [row[key] for row in members if isinstance(row.get(key), (int, float))]
+            if numbers:
+                entry[key] = round(statistics.fmean(numbers), 4)
+                entry[f"{key}_std"] = round(statistics.pstdev(numbers), 4) if len(numbers) > 1 else 0.0
+        table.append(entry)
+    return table
+
+
+def _markdown_table(rows: list[dict[str, Any]], group: tuple[str, ...], keys: tuple[str, ...]) -> list[str]:
+    lines = ["| " + " | ".join((*group, *keys)) + " |", "|" + "---|" * (len(group) + len(keys))]
+    for row in rows:
+        cells = [str(row.get(key, "")) if row.get(key) is not None else "-" for key in group]
+        for key in keys:
+            if key in row:
+                spread = row.get(f"{key}_std")
+                cells.append(f"{row[key]:.4g}" + (f" ± {spread:.2g}" if spread else ""))
+            else:
+                cells.append("-")
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def plot_transfer(transfer: list[dict[str, Any]], path: Path, title: str) -> None:
+    """SSIM against shots (arms b and c, with a and d as lines) and against the mix ratio."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(10, 4), dpi=110)
+    FigureCanvasAgg(figure)
+    by_shots, by_ratio = figure.add_subplot(1, 2, 1), figure.add_subplot(1, 2, 2)
+    main_ratio = max((row["ratio"] for row in transfer if row["arm"] == "c: mixed"),
+                     key=lambda r: sum(1 for row in transfer if row["arm"] == "c: mixed" and row["ratio"] == r))
+    for arm, marker in (("b: shots alone", "o"), ("c: mixed", "s")):
+        points = sorted((row["shots"], row["ssim"], row.get("ssim_std", 0)) for row in transfer
+                        if row["arm"] == arm and (arm != "c: mixed" or row["ratio"] == main_ratio))
+        if points:
+            xs, ys, errors = zip(*points)
+            label = arm if arm != "c: mixed" else f"c: mixed 1:{main_ratio:g}"
+            by_shots.errorbar(xs, ys, yerr=errors, marker=marker, capsize=3, label=label)
+    for arm, style in (("a: zero-shot", "--"), ("d: everything", ":")):
+        for row in transfer:
+            if row["arm"] == arm:
+                by_shots.axhline(row["ssim"], linestyle=style, color="grey", label=arm)
+    by_shots.set_xscale("log")
+    by_shots.set_xlabel("unseen-sensor shots")
+    by_shots.set_ylabel("held-out SSIM")
+    by_shots.legend(fontsize=8)
+    by_shots.grid(alpha=0.3)
+    mixed = sorted({row["shots"] for row in transfer if row["arm"] == "c: mixed"},
+                   key=lambda s: -sum(1 for row in transfer if row["arm"] == "c: mixed" and row["shots"] == s))
+    if mixed:
+        points = sorted((row["ratio"], row["ssim"], row.get("ssim_std", 0)) for row in transfer
+                        if row["arm"] == "c: mixed" and row["shots"] == mixed[0])
+        xs, ys, errors = zip(*points)
+        by_ratio.errorbar(xs, ys, yerr=errors, marker="s", capsize=3)
+        by_ratio.set_xlabel(f"family images per shot ({mixed[0]} shots)")
+    by_ratio.set_ylabel("held-out SSIM")
+    by_ratio.grid(alpha=0.3)
+    figure.suptitle(title, fontsize=9)
+    figure.tight_layout()
+    figure.savefig(path)
+
+
+def real_frames_folder(host: Any, family: str, image_size: int, folder: Path) -> Path | None:
+    """Write the captured frames ``family`` ships (e.g. taxim's GelSight Mini) as PNGs; None without any."""
+    from vqtouch.core.images import save_png
+
+    frames = host.build("sensor_family", family).reference_frames(image_size, image_size)
+    if frames is None:
+        return None
+    folder.mkdir(parents=True, exist_ok=True)
+    for index, frame in enumerate(frames):
+        save_png(frame, folder / f"frame_{index:03d}.png")
+    return folder
+
+
+def evaluate_cross_sensor(run: Any, host: Any, out: Path, *, target: str, seeds: list[int], steps: int,
+                          shots: list[int], ratios: list[float], main_shots: int, main_ratio: float, everything: int,
+                          eval_images: int, variants: int, held_out_variants: int, images: int,
+                          clusterers: list[str], real_family: str | None, real_shots: list[int],
+                          report: Any = print) -> dict[str, Any]:
+    """Run the three parts and the cost (see the module docstring); write the JSON, markdown and PNG."""
+    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+
+    tokenizer, folder = load_tokenizer(run, host)
+    image_size = tokenizer.autoencoder.vqtouch_spec.context.image_size
+    if main_shots not in shots:
+        raise ConfigError(f"--main-shots {main_shots} must be one of --shots {shots}")
+    out.mkdir(parents=True, exist_ok=True)
+    recovery, transfer, real_rows, costs = [], [], [], []
+    for seed in seeds:
+        rows, families = family_recovery(tokenizer, host, seed=seed, variants=variants,
+                                         held_out_variants=held_out_variants, images=images, image_size=image_size,
+                                         clusterers=clusterers, tokenizer_source=str(folder))
+        recovery += rows
+        report(f"seed {seed}: family recovery " + ", ".join(f"{r['clusterer']} ARI {r['ari']}" for r in rows))
+        seed_rows = transfer_arms(run, target, families, host, out / "arms", seed=seed, steps=steps, shots=shots,
+                                  ratios=ratios, main_shots=main_shots, main_ratio=main_ratio, everything=everything,
+                                  eval_images=eval_images)
+        transfer += [{**row, "seed": seed} for row in seed_rows]
+        report(f"seed {seed}: transfer " + ", ".join(f"{r['arm'][0]}{r['shots']}/{r['ratio']} {r['ssim']}"
+                                                    for r in seed_rows))
+        adapted = next(row for row in seed_rows if row["arm"] == "c: mixed" and row["shots"] == main_shots
+                       and row["ratio"] == main_ratio)
+        family = json.loads((out / "arms" / f"seed{seed}" / f"c-{main_shots}-{main_ratio:g}" / "adapt.json")
+                            .read_text())["family"]
+        if everything and (Path(run) / "config.json").is_file():
+            scratch = scratch_cost(run, target, families, host, seed=seed, everything=everything,
+                                   eval_images=eval_images, family=family)
+            costs.append({"seed": seed, "adaptation_seconds": adapted["seconds"],
+                          "scratch_seconds": scratch["seconds"], "scratch_steps": scratch["steps"],
+                          "ratio": round(adapted["seconds"] / scratch["seconds"], 4), "scratch_ssim": scratch["ssim"],
+                          "scratch_psnr": scratch["psnr"], "adapted_ssim": adapted["ssim"]})
+            report(f"seed {seed}: adaptation {adapted['seconds']} s vs fresh training {scratch['seconds']} s")
+        if real_family is not None:
+            frames = real_frames_folder(host, real_family, image_size, out / f"real_{real_family}")
+            if frames is not None:
+                available = len(list(frames.iterdir()))
+                usable = [count for count in real_shots if count < available]
+                sensor = sensor_images(str(frames), host, count=available, image_size=image_size)
+                assigned = families.assign(families.prototype(tokenizer, sensor.images))
+                nearest = assigned["nearest_family"]
+                rows = transfer_arms(run, str(frames), families, host, out / "real_arms", seed=seed, steps=steps,
+                                     shots=usable, ratios=[main_ratio], main_shots=usable[-1], main_ratio=main_ratio,
+                                     everything=0, eval_images=available - max(usable), family=nearest)
+                real_rows += [{**row, "seed": seed, "assigned_family": assigned["family"], "nearest_family": nearest,
+                               "refused": assigned["refused"], "margin": assigned["margin"]} for row in rows]
+    group = ("arm", "shots", "ratio")
+    result = {
+        "tokenizer": str(folder), "target": target, "seeds": seeds, "steps": steps, "image_size": image_size,
+        "family_recovery": {"rows": recovery, "summary": _mean_spread(
+            recovery, ("ari", "assignment_accuracy", "families", "refused"), ("clusterer",))},
+        "transfer": {"rows": transfer, "summary": _mean_spread(transfer, TABLE_COLUMNS, group)},
+        "real_frames": {"family": real_family, "rows": real_rows,
+                        "summary": _mean_spread(real_rows, TABLE_COLUMNS, group)},
+        "cost": {"rows": costs, "summary": _mean_spread(costs, ("adaptation_seconds", "scratch_seconds", "ratio",
+                                                                "scratch_ssim", "adapted_ssim"), ())}}
+    (out / "cross_sensor.json").write_text(json.dumps(result, indent=2) + "\n")
+    (out / "cross_sensor.md").write_text(render_markdown(result) + "\n")
+    plot_transfer(result["transfer"]["summary"], out / "cross_sensor.png",
+                  f"transfer to {json.loads(target)['name'] if target.startswith('{') else target} "
+                  f"({steps} steps per arm, {len(seeds)} seeds)")
+    return result
+
+
+def render_markdown(result: dict[str, Any]) -> str:
+    """The tables of ``cross_sensor.json`` for people."""
+    seeds = len(result["seeds"])
+    lines = [f"# Cross-sensor evaluation ({seeds} seeds: mean ± std)", "",
+             f"Tokenizer `{result['tokenizer']}`, {result['image_size']} px; every arm fine-tunes "
+             f"{result['steps']} steps.", "", "## Family recovery", ""]
+    lines += _markdown_table(result["family_recovery"]["summary"], ("clusterer",),
+                             ("ari", "assignment_accuracy", "families", "refused"))
+    lines += ["", f"## Transfer to `{result['target']}`", ""]
+    lines += _markdown_table(result["transfer"]["summary"], ("arm", "shots", "ratio"), TABLE_COLUMNS)
+    if result["real_frames"]["rows"]:
+        rows = result["real_frames"]["rows"]
+        refused = sum(row["refused"] for row in rows if row["arm"].startswith("a"))
+        lines += ["", f"## Real {result['real_frames']['family']} frames as the unseen sensor", "",
+                  f"Assigned family (nearest): {sorted({row['nearest_family'] for row in rows})}; refused by the "
+                  f"threshold in {refused} of {seeds} seeds; every arm adapts from the nearest family.", ""]
+        lines += _markdown_table(result["real_frames"]["summary"], ("arm", "shots", "ratio"), TABLE_COLUMNS)
+    if result["cost"]["rows"]:
+        lines += ["", "## Cost", ""]
+        lines += _markdown_table(result["cost"]["summary"], (),
+                                 ("adaptation_seconds", "scratch_seconds", "ratio", "adapted_ssim", "scratch_ssim"))
+    return "\n".join(lines)
