@@ -140,3 +140,22 @@ def test_families_from_another_tokenizer_are_refused(families_folder, tmp_path, 
     other = generator_runs.tiny_tokenizer_folder(tmp_path)
     assert _adapt(other, families_folder, tmp_path / "out", "gelsight") == 2
     assert "were fitted on the features of" in capsys.readouterr().err
+
+
+def test_a_generator_trains_on_an_adapted_tokenizers_codes(tokenizer_folder, families_folder, tmp_path, capsys):
+    from generator_runs import train_args
+    from vqtouch.plugins.generator import load_pipeline
+    from vqtouch.plugins.tokenizer.stages import tokenizer_configs
+
+    adapted = tmp_path / "adapted"
+    assert _adapt(tokenizer_folder, families_folder, adapted, "gelsight", "--threshold", "1") == 0
+    run = tmp_path / "gen"
+    assert main(train_args(run, flags=("--tokenizer", str(adapted)))) == 0
+    config = json.loads((run / "config.json").read_text())
+    autoencoder, quantizer, image_size = tokenizer_configs(adapted)
+    assert config["generator"]["tokenizer_run"] == str(adapted.resolve()) and config["stages"] == ["generator"]
+    assert config["tokenizer"]["autoencoder"] == autoencoder and config["tokenizer"]["quantizer"] == quantizer
+    assert config["data"]["image_size"] == image_size == 32
+    pipeline = load_pipeline(run)
+    images = pipeline(label=0, n=2, steps=2, seed=0)
+    assert images.shape == (2, 3, 32, 32) and torch.isfinite(images).all()

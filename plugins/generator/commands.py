@@ -24,15 +24,25 @@ from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_p
 
 
 def _with_tokenizer_run(config: Any, tokenizer_run: str, host: Any) -> Any:
-    """``config`` set to learn the codes of the tokenizer trained in ``tokenizer_run``: its tokenizer
-    section and image size, the generator stage alone."""
-    source = RunDir.open(tokenizer_run)
-    trained = source.load_config(host).to_dict()
+    """``config`` set to learn the codes of the tokenizer trained in ``tokenizer_run`` (a run, or a
+    tokenizer checkpoint folder such as an adapted tokenizer): its tokenizer section and image
+    size, the generator stage alone."""
+    from vqtouch.plugins.tokenizer.stages import tokenizer_configs, tokenizer_location
+
+    source = tokenizer_location(tokenizer_run)
     data = config.to_dict()
-    data["tokenizer"] = trained["tokenizer"]
-    data["data"]["image_size"] = trained["data"]["image_size"]
+    if isinstance(source, RunDir):
+        trained = source.load_config(host).to_dict()
+        data["tokenizer"] = trained["tokenizer"]
+        data["data"]["image_size"] = trained["data"]["image_size"]
+        path = source.path
+    else:
+        autoencoder, quantizer, image_size = tokenizer_configs(source)
+        data["tokenizer"] |= {"autoencoder": autoencoder, "quantizer": quantizer}
+        data["data"]["image_size"] = image_size
+        path = source
     data["stages"] = ["generator"]
-    data["generator"]["tokenizer_run"] = str(source.path.resolve())
+    data["generator"]["tokenizer_run"] = str(path.resolve())
     return validate_experiment(data, host)
 
 

@@ -109,7 +109,7 @@ def load_pipeline(run: str | Path, *, host: Any = None, step: int | str | None =
                   device: str | None = None) -> GenerationPipeline:
     """The generation pipeline of a run whose ``generator`` stage trained (its newest good checkpoint,
     ``step``, or ``"best"``), with the tokenizer it was trained on."""
-    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+    from vqtouch.plugins.tokenizer.stages import load_tokenizer, tokenizer_location
 
     host = host or load_plugins()
     run_dir = RunDir.open(run)
@@ -123,8 +123,8 @@ def load_pipeline(run: str | Path, *, host: Any = None, step: int | str | None =
     generator = load(folder / "generator.safetensors", host=host, map_location=device_).eval()
     conditioners = [load(folder / f"conditioner_{index}.safetensors", host=host, map_location=device_).eval()
                     for index in range(len(section.conditioners))]
-    tokenizer, _ = load_tokenizer(RunDir.open(section.tokenizer_run) if section.tokenizer_run else run_dir, host,
-                                  device=str(device_))
+    tokenizer, _ = load_tokenizer(tokenizer_location(section.tokenizer_run) if section.tokenizer_run else run_dir,
+                                  host, device=str(device_))
     if section.sampler is None:
         raise ConfigError(f"{run_dir.path}: generator.sampler is empty; pass sampler=NAME")
     sampler = host.build("sampler", section.sampler)

@@ -53,7 +53,8 @@ class GeneratorSection(Section):
     sampler: Slot("sampler") | None = Field(None, description="How codes are drawn from the generator (e.g. "
                                                               "posterior, purity, confidence).")
     tokenizer_run: str | None = Field(None, description="Run directory of the trained tokenizer whose codes the "
-                                                        "generator learns; null: this run's own tokenizer stage.")
+                                                        "generator learns, or a tokenizer checkpoint folder (e.g. "
+                                                        "from `vqtouch adapt`); null: this run's own tokenizer stage.")
     steps: int = Field(25, ge=1, le=1000, strict=True, description="Sampling steps (denoiser calls) per sample.")
     guidance: float = Field(1.0, ge=0, le=1000, description="Classifier-free guidance scale; 1 is unguided.")
     truncation: float = Field(1.0, gt=0, le=1, description="Keep only the most likely codes holding this much "
@@ -66,10 +67,13 @@ class GeneratorSection(Section):
     train: GeneratorTrainConfig = Field(default_factory=GeneratorTrainConfig, description="Optimisation settings.")
 
 
-def tokenizer_source(job: StageJob) -> RunDir:
-    """The run that holds the tokenizer: ``generator.tokenizer_run``, else this run."""
+def tokenizer_source(job: StageJob) -> RunDir | Path:
+    """Where the tokenizer is: ``generator.tokenizer_run`` (a run or a tokenizer checkpoint
+    folder), else this run."""
+    from vqtouch.plugins.tokenizer.stages import tokenizer_location
+
     path = job.section.tokenizer_run
-    return RunDir.open(path) if path else job.run
+    return tokenizer_location(path) if path else job.run
 
 
 def load_run_tokenizer(job: StageJob, device: torch.device) -> tuple[Any, Path]:
@@ -80,7 +84,7 @@ def load_run_tokenizer(job: StageJob, device: torch.device) -> tuple[Any, Path]:
     try:
         tokenizer, folder = load_tokenizer(source, job.host, device=str(device))
     except MissingCheckpointError as exc:
-        where = "this run" if source is job.run else str(source.path)
+        where = "this run" if source is job.run else str(getattr(source, "path", source))
         raise StageUnavailable(f"no trained tokenizer in {where} ({exc}); run the tokenizer stage first or give "
                                "--tokenizer RUN") from None
     return tokenizer, folder

@@ -123,6 +123,27 @@ def load_tokenizer(run_or_folder: str | Path | RunDir, host: Any, step: int | st
     return Tokenizer(autoencoder, quantizer).eval(), folder
 
 
+def tokenizer_location(path: str | Path) -> RunDir | Path:
+    """Where a tokenizer lives: the run at ``path``, or ``path`` itself when it is a checkpoint
+    folder holding the tokenizer files outside any run (e.g. what ``vqtouch adapt`` writes)."""
+    path = Path(path)
+    if not (path / "config.json").is_file() and all((path / name).is_file() for name in TOKENIZER_FILES):
+        return path
+    return RunDir.open(path)
+
+
+def tokenizer_configs(folder: str | Path) -> tuple[dict[str, Any], dict[str, Any], int]:
+    """The autoencoder and quantizer plugin configs and the image size a tokenizer checkpoint
+    folder was made with (read from its headers)."""
+    import json
+
+    from vqtouch.core import read_metadata
+
+    headers = [read_metadata(Path(folder) / name) for name in TOKENIZER_FILES]
+    image_size = json.loads(headers[0]["vqtouch.context"])["image_size"]
+    return json.loads(headers[0]["vqtouch.config"]), json.loads(headers[1]["vqtouch.config"]), image_size
+
+
 @torch.no_grad()
 def reconstruct_all(tokenizer: Tokenizer, images_B3HW: torch.Tensor, batch_size: int = 16) -> torch.Tensor:
     """Reconstructions in [0, 1] of a stack of images in [0, 1], ``batch_size`` at a time."""
