@@ -53,6 +53,7 @@ def test_adapt_writes_its_own_tokenizer_whose_header_names_the_family_and_the_sh
     summary = json.loads((out / "adapt.json").read_text())
     assert summary["family"] == gelsight_family and not summary["assignment"]["refused"]
     assert summary["members_used"] == ["gelsight", "gelsight/v1"] and summary["family_images"] == 8
+    assert summary["family_held_out"]["images"] == 4 and 0 < summary["family_held_out"]["after"]["ssim"] <= 1
     for file in ("autoencoder.safetensors", "quantizer.safetensors"):
         header = read_metadata(out / file)
         assert header["adaptation.family"] == str(gelsight_family) and header["adaptation.shots"] == "4"

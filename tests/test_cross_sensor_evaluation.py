@@ -45,6 +45,8 @@ def test_cross_sensor_evaluation_writes_every_part(tokenizer_run, tmp_path, caps
     assert arm["shots"] == 3 and arm["family_images"] == 6 and arm["steps"] == 1 and arm["held_out"] == 2
     assert transfer[0]["ssim"] == arm["before"]["ssim"] and transfer[4]["ssim"] == arm["after"]["ssim"]
     assert transfer[4]["fd_effnetlite0"] == arm["after"]["fd_effnetlite0"] >= 0
+    assert transfer[4]["family_ssim"] == arm["family_held_out"]["after"]["ssim"]
+    assert transfer[0]["family_psnr"] == arm["family_held_out"]["before"]["psnr"]
     # The summary is the mean and spread over the seeds of the rows.
     rows = [row for row in result["transfer"]["rows"] if row["arm"].startswith("c") and row["shots"] == 3
             and row["ratio"] == 2.0]

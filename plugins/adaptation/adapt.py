@@ -10,6 +10,8 @@
 4. The family tokenizer is fine-tuned on the mixed set with its own objective (the run's
    ``tokenizer.loss``; the adversarial term only when the run's discriminator was saved) and
    written as its own checkpoint folder, whose headers name the family, its members and the shots.
+   Held-out images of the family are scored before and after too: what the adaptation keeps of
+   the family (the mix's purpose) or forgets.
 """
 
 from __future__ import annotations
@@ -220,6 +222,10 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
 
     device = resolve_device(run_config.device if run_config is not None else "auto")
     before = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics)
+    # Held-out family images (new scenes): what the adaptation keeps of the family, or forgets.
+    family_held_out, _ = family_images(families, family, host, count=settings.eval_images, image_size=image_size,
+                                       seed=settings.seed + 77_777, exclude=source)
+    family_before = reconstruction_scores(tokenizer, family_held_out, host, batch_size)
     before_images = reconstruct_all(tokenizer, held_out_M[:8])
     real = _real_frames(target, host, image_size)  # the sensor's own captured frames, when it ships some (taxim)
     real_before = reconstruction_scores(tokenizer, real, host, batch_size, settings.metrics) if real is not None else None
@@ -235,6 +241,7 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
     seconds = time.perf_counter() - tic
     tokenizer.eval()
     after = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics)
+    family_after = reconstruction_scores(tokenizer, family_held_out, host, batch_size)
     after_images = reconstruct_all(tokenizer, held_out_M[:8])
 
     summary: dict[str, Any] = {
@@ -243,7 +250,8 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
         "assignment": assignment, "forced_family": settings.family is not None,
         "shots": len(shots_N), "ratio": settings.ratio, "family_images": family_count, "held_out": len(held_out_M),
         "steps": settings.steps, "learning_rate": train.learning_rate, "batch_size": batch_size,
-        "adversarial": adversarial, "seconds": round(seconds, 2), "before": before, "after": after}
+        "adversarial": adversarial, "seconds": round(seconds, 2), "before": before, "after": after,
+        "family_held_out": {"images": len(family_held_out), "before": family_before, "after": family_after}}
     if real is not None:
         summary["real_frames"] = {"count": len(real), "before": real_before,
                                   "after": reconstruction_scores(tokenizer, real, host, batch_size, settings.metrics)}

@@ -36,7 +36,7 @@ from .adapt import AdaptSettings, ImageSet, adapt_tokenizer, family_images, reco
 from .families import SensorFamilies, family_sensor_specs, fit_families, sensor_images
 
 METRICS = ("ssim", "psnr", "fd_effnetlite0")
-TABLE_COLUMNS = ("ssim", "psnr", "fd_effnetlite0", "codebook_usage", "seconds")
+TABLE_COLUMNS = ("ssim", "psnr", "fd_effnetlite0", "codebook_usage", "family_ssim", "family_psnr", "seconds")
 
 
 def _family_of(source: str) -> str:
@@ -83,10 +83,12 @@ def _arm_settings(shots: int, ratio: float, steps: int, eval_images: int, seed: 
 
 
 def _arm_row(arm: str, summary: dict[str, Any], *, zero_shot: bool = False) -> dict[str, Any]:
-    scores = summary["before" if zero_shot else "after"]
+    when = "before" if zero_shot else "after"
+    scores, family = summary[when], summary["family_held_out"][when]
     return {"arm": arm, "shots": 0 if zero_shot else summary["shots"], "ratio": None if zero_shot else summary["ratio"],
             "held_out": summary["held_out"], **{key: scores.get(key) for key in METRICS},
-            "codebook_usage": scores.get("codebook_usage"), "seconds": 0.0 if zero_shot else summary["seconds"]}
+            "codebook_usage": scores.get("codebook_usage"), "family_ssim": family["ssim"],
+            "family_psnr": family["psnr"], "seconds": 0.0 if zero_shot else summary["seconds"]}
 
 
 def transfer_arms(run: Any, target: str, families: SensorFamilies, host: Any, out: Path, *, seed: int, steps: int,
@@ -307,7 +309,9 @@ def render_markdown(result: dict[str, Any]) -> str:
     seeds = len(result["seeds"])
     lines = [f"# Cross-sensor evaluation ({seeds} seeds: mean ± std)", "",
              f"Tokenizer `{result['tokenizer']}`, {result['image_size']} px; every arm fine-tunes "
-             f"{result['steps']} steps.", "", "## Family recovery", ""]
+             f"{result['steps']} steps.  `ssim` to `codebook_usage`: held-out images of the unseen sensor; "
+             "`family_ssim`, `family_psnr`: held-out images of the family's members (what an adaptation keeps of "
+             "the family); `seconds`: fine-tuning wall time.", "", "## Family recovery", ""]
     lines += _markdown_table(result["family_recovery"]["summary"], ("clusterer",),
                              ("ari", "assignment_accuracy", "families", "refused"))
     lines += ["", f"## Transfer to `{result['target']}`", ""]
