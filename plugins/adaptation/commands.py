@@ -66,13 +66,14 @@ def _cluster_command(args: argparse.Namespace) -> int:
                             image_size=image_size, features=args.features, refine_steps=args.refine_steps,
                             keep=args.keep, seed=args.seed, tokenizer_source=str(folder),
                             report=lambda line: print(line, flush=True))
-    assignments = {}
+    assignments, plotted = {}, []
     for spec in args.unseen:
         sensor = sensor_images(spec, host, count=args.images, image_size=image_size, seed=args.seed + 1)
-        assignments[sensor.name] = {"source": sensor.source,
-                                    **families.assign(families.prototype(tokenizer, sensor.images), args.threshold)}
+        assigned, shown = families.unseen(tokenizer, sensor.name, sensor.images, args.threshold)
+        assignments[sensor.name] = {"source": sensor.source, **assigned}
+        plotted.append(shown)
     out = Path(args.out)
-    save_families(families, out, host, {"assignments": assignments})
+    save_families(families, out, host, {"assignments": assignments}, plotted)
     for index, members in enumerate(families.summary["families"]):
         print(f"family {index}: {', '.join(members)}")
     for name, assigned in assignments.items():

@@ -224,10 +224,21 @@ def assign_to_family(clusterer: Any, prototype_F: torch.Tensor, threshold: float
             "threshold": round(threshold, 6)}
 
 
+@dataclass
+class UnseenSensor:
+    """An assigned sensor for the plot: its name, image features, prototype and verdict (e.g. "family 1")."""
+
+    name: str
+    features: torch.Tensor
+    prototype: torch.Tensor
+    verdict: str
+
+
 def plot_families(names: list[str], features_by_sensor: list[torch.Tensor], prototypes_SF: torch.Tensor,
-                  labels: list[int], path: Path, title: str) -> None:
-    """A 2-D PCA embedding (fitted on every image feature) of the images (small points) and the
-    prototypes (large markers, coloured by family, labelled by sensor)."""
+                  labels: list[int], path: Path, title: str, unseen: list[UnseenSensor] = ()) -> None:
+    """A 2-D PCA embedding (fitted on every clustered image feature) of the images (small points)
+    and the prototypes (large markers, coloured by family, labelled by sensor); unseen sensors are
+    black stars labelled with where they were assigned."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from sklearn.decomposition import PCA
@@ -247,6 +258,15 @@ def plot_families(names: list[str], features_by_sensor: list[torch.Tensor], prot
         y = rest[0] if rest else 0.0
         axes.scatter([x], [y], s=120, color=colour, edgecolors="black", zorder=3)
         axes.annotate(f"{name} (family {label})", (x, y), textcoords="offset points", xytext=(6, 6), fontsize=8)
+    for sensor in unseen:
+        points = pca.transform(sensor.features.numpy())
+        axes.scatter(points[:, 0], points[:, 1] if points.shape[1] > 1 else 0 * points[:, 0], s=6, alpha=0.3,
+                     color="black")
+        x, *rest = pca.transform(sensor.prototype.unsqueeze(0).numpy())[0]
+        y = rest[0] if rest else 0.0
+        axes.scatter([x], [y], s=260, marker="*", color="black", zorder=4)
+        axes.annotate(f"{sensor.name} (unseen: {sensor.verdict})", (x, y), textcoords="offset points",
+                      xytext=(6, -12), fontsize=8, fontweight="bold")
     axes.set_xlabel("PCA 1 of the tokenizer features")
     axes.set_ylabel("PCA 2")
     axes.set_title(title, fontsize=9)
@@ -289,6 +309,15 @@ class SensorFamilies:
         return sensor_prototype(image_features(tokenizer, images_B3HW, summary["features"]), summary["refine_steps"],
                                 summary["keep"])
 
+    def unseen(self, tokenizer: Any, name: str, images_B3HW: torch.Tensor,
+               threshold: float | None = None) -> tuple[dict[str, Any], UnseenSensor]:
+        """Assign an unseen sensor's images: the assignment and the sensor as the plot shows it."""
+        features = image_features(tokenizer, images_B3HW, self.summary["features"])
+        prototype = sensor_prototype(features, self.summary["refine_steps"], self.summary["keep"])
+        assigned = self.assign(prototype, threshold)
+        verdict = "refused" if assigned["refused"] else f"family {assigned['family']}"
+        return assigned, UnseenSensor(name, features, prototype, verdict)
+
     def assign(self, prototype_F: torch.Tensor, threshold: float | None = None) -> dict[str, Any]:
         """:func:`assign_to_family` with the fitted threshold unless one is given."""
         return assign_to_family(self.clusterer, prototype_F,
@@ -323,9 +352,11 @@ def fit_families(tokenizer: Any, specs: list[str], host: Any, *, clusterer: Any,
     return SensorFamilies(summary, clusterer, prototypes_SF, features_by_sensor)
 
 
-def save_families(families: SensorFamilies, folder: Path, host: Any, extra: dict[str, Any] | None = None) -> Path:
+def save_families(families: SensorFamilies, folder: Path, host: Any, extra: dict[str, Any] | None = None,
+                  unseen: list[UnseenSensor] = ()) -> Path:
     """Write ``cluster.json`` (the summary plus ``extra``), the fitted clusterer and, when the
-    features are at hand, ``families.png`` into ``folder``; returns the JSON's path."""
+    features are at hand, ``families.png`` (with the ``unseen`` sensors) into ``folder``; returns
+    the JSON's path."""
     from vqtouch.core import save
     from vqtouch.core.checkpoint import atomic_write
 
@@ -338,7 +369,7 @@ def save_families(families: SensorFamilies, folder: Path, host: Any, extra: dict
         plot_families(families.names, families.features, families.prototypes_SF,
                       [summary["sensor_family"][name] for name in families.names], folder / FAMILIES_PNG,
                       f"{count} families of {len(families.names)} sensors ({summary['features']} features, "
-                      f"{summary['clusterer']['name']})")
+                      f"{summary['clusterer']['name']})", unseen)
     return path
 
 

@@ -95,10 +95,12 @@ def run_cluster_stage(job: StageJob) -> dict[str, Any]:
     result: dict[str, Any] = {"sensors": len(specs), "families": len(families.summary["families"]),
                               "members": "; ".join(", ".join(members) for members in families.summary["families"])}
     extra: dict[str, Any] = {}
+    plotted = []
     if target is not None:
         sensor = sensor_images(target, job.host, count=section.images_per_sensor, image_size=image_size,
                                seed=config.seed + 1)
-        assigned = families.assign(families.prototype(tokenizer, sensor.images), section.threshold)
+        assigned, shown = families.unseen(tokenizer, sensor.name, sensor.images, section.threshold)
+        plotted.append(shown)
         extra["assignments"] = {sensor.name: {"source": target, **assigned}}
         reconstructions = reconstruct_all(tokenizer, sensor.images)
         result |= {"target": sensor.name, "target_family": "refused" if assigned["refused"] else assigned["family"],
@@ -107,7 +109,7 @@ def run_cluster_stage(job: StageJob) -> dict[str, Any]:
             metric.reset()
             metric.update(reconstructions, sensor.images)
             result[f"zero_shot_{item.name}"] = round(metric.compute(), 4)
-    save_families(families, job.run.path / CLUSTER_FOLDER, job.host, extra)
+    save_families(families, job.run.path / CLUSTER_FOLDER, job.host, extra, plotted)
     return {**result, "picture": f"{CLUSTER_FOLDER}/families.png"}
 
 
