@@ -115,12 +115,16 @@ def test_adapt_bad_inputs_get_one_line_errors(tokenizer_folder, families_folder,
     corrupt = _frames(tmp_path / "corrupt", contacts[:5])
     (corrupt / "frame_03.png").write_bytes(b"not a png")
     flat = _frames(tmp_path / "flat", no_contact)
+    digit = HOST.build("sensor_family", "digit")  # with DIGIT's published camera noise (7/255)
+    noisy_flat = _frames(tmp_path / "noisy_flat",
+                         digit.render(torch.zeros(6, 32, 32), generator=torch.Generator().manual_seed(0)))
     cases = [
         (one, [], "1 image(s); adaptation needs the shots plus at least one held-out image"),
         (three, [], "--shots 4: the folder " + str(three) + " holds 3 images; use at most 2 shots"),
         (mixed_sizes, ["--shots", "1"], "images of different sizes (frame_00.png is 32x32, frame_99.png is 32x40)"),
         (corrupt, [], "cannot decode image " + str(corrupt / "frame_03.png")),
         (flat, [], "the 6 images look like no-contact frames"),
+        (noisy_flat, [], "the 6 images look like no-contact frames"),
         (_frames(tmp_path / "ok", contacts), ["--threshold", "0"], "ok matches no sensor family: "),
         (tmp_path / "ok", ["--family", "5"], "--family 5: the families are numbered 0 to 1"),
     ]

@@ -101,10 +101,11 @@ def test_library_dependencies_have_lower_bounds_not_exact_pins():
     assert any(s.operator == ">=" for s in torch.specifier), torch
 
 
-def test_constraints_pin_exactly_the_verified_torch_pair():
+def test_constraints_pin_exactly_the_verified_torch_pair_and_tacto():
     lines = [line.split("#")[0].strip() for line in (REPO / "constraints.txt").read_text().splitlines()]
     pins = {r.name: str(r.specifier) for r in _requirements(line for line in lines if line)}
-    assert pins == {"torch": "==2.15.0", "torchvision": "==0.29.2"}
+    # tacto: the release whose config_digit.yml the digit family reads (tests/test_digit_design.py).
+    assert pins == {"torch": "==2.15.0", "torchvision": "==0.29.2", "tacto": "==0.0.3"}
     # The pinned versions satisfy the library's own bounds (else pip could not resolve with the file).
     project = _project()
     bounds = _requirements([*project["dependencies"], *project["optional-dependencies"]["clip"]])
@@ -141,3 +142,6 @@ def test_makefile_installs_with_the_constraints_and_the_clip_extra():
     assert "-c constraints.txt" in installs[0] and "'.[test,clip]'" in installs[0], installs[0]
     stamp_rule = next(line for line in makefile.splitlines() if line.startswith("$(STAMP):"))
     assert "constraints.txt" in stamp_rule, "editing constraints.txt must trigger a reinstall"
+    # tacto only for its DIGIT design file: its own dependencies (pyrender, OpenGL) must not be installed.
+    tacto = [line for line in makefile.splitlines() if "pip install" in line and line.rstrip().endswith(" tacto")]
+    assert len(tacto) == 1 and "--no-deps" in tacto[0] and "-c constraints.txt" in tacto[0], tacto

@@ -17,7 +17,7 @@ from vqtouch.core import PluginConfig, SensorFamily, load_plugins
 EXAMPLE = Path(__file__).parent / "example_plugin"
 MARKER_MODULE = EXAMPLE / "vqtouch_example_plugin" / "marker_sensor.py"
 AUTHORING_KIT = ["RenderedSensor", "SensorVariant", "apply_variant", "check_height_map", "drifted_background",
-                 "gaussian_blur", "surface_slopes"]
+                 "environment_variant", "gaussian_blur", "surface_slopes"]
 
 # Grid geometry for the marker tests: 18 mm imaged at 108 px is 1/6 mm a pixel, so the default
 # 1.5 mm marker pitch is 9 px and the markers' centres, at (k + 1/2) pitches, fall exactly on

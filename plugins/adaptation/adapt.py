@@ -31,11 +31,14 @@ from .families import SensorFamilies, folder_of, sensor_images
 
 #: What an adaptation writes into its output folder besides the tokenizer files.
 ADAPT_JSON, BEFORE_AFTER_PNG = "adapt.json", "before_after.png"
-#: A pixel belongs to a contact when it differs from the sensor's no-contact background by more
-#: than this (mean over RGB, images in [0, 1]): far above camera noise, below a light press.
+#: A pixel belongs to a contact when it differs from the set's background by more than this (mean
+#: absolute difference over RGB, images in [0, 1]) and than the camera noise allows: above a
+#: drifting background, below a light press.
 CONTACT_PIXEL_THRESHOLD = 0.04
 #: A set of frames holds contacts when at least one frame has this fraction of contact pixels.
 MIN_CONTACT_FRACTION = 0.002
+#: The contact check looks at this many images at most (it asks whether the set holds contacts at all).
+MAX_CONTACT_CHECK_IMAGES = 64
 
 
 class AdaptationRefused(VqtouchError):
@@ -77,18 +80,27 @@ class ImageSet(torch.utils.data.Dataset):
 
 
 def contact_fraction(images_N3HW: torch.Tensor) -> torch.Tensor:
-    """(N,) fraction of each image's pixels that differ from the set's no-contact background
-    (its per-pixel median: contacts move around, the background stays) by more than
-    :data:`CONTACT_PIXEL_THRESHOLD`."""
-    background = images_N3HW.median(dim=0).values
-    return ((images_N3HW - background).abs().mean(dim=1) > CONTACT_PIXEL_THRESHOLD).flatten(1).double().mean(dim=1)
+    """(N,) fraction of each image's pixels in contact (:func:`~vqtouch.plugins.evaluation.contact.contact_mask`
+    with the floor :data:`CONTACT_PIXEL_THRESHOLD`) against the no-contact background: the
+    per-pixel median of the other images (contacts move around, the background stays; leaving the
+    image out keeps its noise out of its background, so the noise estimate is not too low)."""
+    from vqtouch.plugins.evaluation.contact import contact_mask
+
+    if len(images_N3HW) < 2:
+        raise ValueError("the contact fraction needs at least 2 images (the others make the background)")
+    fractions = []
+    for index in range(len(images_N3HW)):
+        others = torch.cat([images_N3HW[:index], images_N3HW[index + 1:]])
+        background = others.median(dim=0, keepdim=True).values
+        fractions.append(contact_mask(images_N3HW[index:index + 1], background, CONTACT_PIXEL_THRESHOLD).double().mean())
+    return torch.stack(fractions)
 
 
 def check_contacts(images_N3HW: torch.Tensor, name: str) -> None:
     """Refuse a set of frames in which nothing touches the gel (only no-contact frames)."""
     if len(images_N3HW) < 2:
         return
-    fraction = contact_fraction(images_N3HW)
+    fraction = contact_fraction(images_N3HW[:MAX_CONTACT_CHECK_IMAGES])
     if float(fraction.max()) < MIN_CONTACT_FRACTION:
         raise AdaptationRefused(
             f"{name}: the {len(images_N3HW)} images look like no-contact frames (no image differs from the "

@@ -382,11 +382,6 @@ def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: A
     return scores
 
 
-#: A pixel belongs to the contact region where the ground truth differs from the sensor's no-contact
-#: image by more than this (mean absolute difference over the channels, images in [0, 1]).
-CONTACT_THRESHOLD = 0.02
-
-
 def no_contact_image(sensor: Any, truth_B3HW: torch.Tensor) -> torch.Tensor | None:
     """``sensor`` rendering no contact, one copy per ground-truth image: what a generator that ignores
     its condition and draws only the background would score.  None without a sensor."""
@@ -400,11 +395,14 @@ def no_contact_image(sensor: Any, truth_B3HW: torch.Tensor) -> torch.Tensor | No
 def contact_region_scores(candidates: dict[str, torch.Tensor], truth_B3HW: torch.Tensor,
                           background_B3HW: torch.Tensor) -> dict[str, float]:
     """Scores on the contact region only (pixels where the ground truth differs from the no-contact
-    image, see ``CONTACT_THRESHOLD``): ``{prefix}contact_psnr`` and ``{prefix}contact_mae`` of each
-    candidate (``{"": generated, "background_": ..., ...}``), and the region's share of the pixels.
-    Whole-image scores flatter a model that draws only the background; these do not."""
-    truth, background = (x.detach().float().cpu() for x in (truth_B3HW, background_B3HW))
-    region_BHW = (truth - background).abs().mean(dim=1) > CONTACT_THRESHOLD
+    image by more than the threshold and the camera noise allow, see
+    :mod:`vqtouch.plugins.evaluation.contact`): ``{prefix}contact_psnr`` and ``{prefix}contact_mae``
+    of each candidate (``{"": generated, "background_": ..., ...}``), and the region's share of the
+    pixels.  Whole-image scores flatter a model that draws only the background; these do not."""
+    from vqtouch.plugins.evaluation.contact import contact_mask
+
+    truth = truth_B3HW.detach().float().cpu()
+    region_BHW = contact_mask(truth, background_B3HW)
     if not bool(region_BHW.any()):
         return {"contact_fraction": 0.0}
     mask = region_BHW.unsqueeze(1).expand_as(truth)
