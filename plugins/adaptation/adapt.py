@@ -161,11 +161,12 @@ def family_images(families: SensorFamilies, family: int, host: Any, *, count: in
 def reconstruction_scores(tokenizer: Any, images_N3HW: torch.Tensor, host: Any, batch_size: int = 32,
                           metrics: tuple[str, ...] = ("ssim", "psnr")) -> dict[str, Any]:
     """The ``metrics`` (plugin names), codebook usage and codes used of ``tokenizer`` reconstructing
-    ``images_N3HW``."""
+    ``images_N3HW`` (on the tokenizer's device)."""
     from vqtouch.plugins.tokenizer.training import evaluate_reconstruction
 
     built = {name: host.build("metric", {"name": name}) for name in metrics}
-    scores = evaluate_reconstruction(tokenizer, ImageSet(images_N3HW), built, batch_size=batch_size)
+    scores = evaluate_reconstruction(tokenizer, ImageSet(images_N3HW), built, batch_size=batch_size,
+                                     device=tokenizer_device(tokenizer))
     return {key: (round(value, 4) if isinstance(value, float) else value) for key, value in scores.items()
             if key in (*metrics, "codebook_usage", "codes_used", "samples")}
 
@@ -177,7 +178,7 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
     docstring); writes the adapted tokenizer, ``adapt.json`` and ``before_after.png`` into ``out``
     and returns the summary.  Raises :class:`AdaptationRefused` when the sensor matches no family
     (unless ``settings.family`` names one) or its images hold no contact."""
-    from vqtouch.core import resolve_device, save
+    from vqtouch.core import atomic_write, resolve_device, save
     from vqtouch.core.images import image_grid, save_png
     from vqtouch.core.training import Trainer
     from vqtouch.plugins.tokenizer.stages import TOKENIZER_FILES, load_tokenizer, reconstruct_all, tokenizer_task
@@ -187,12 +188,14 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
         raise ConfigError(f"{out} already holds an adapted tokenizer; choose another --out or pass --overwrite")
     if settings.shots < 1 or settings.ratio < 0:
         raise ConfigError(f"shots must be >= 1 and ratio >= 0 (got {settings.shots}, {settings.ratio})")
-    tokenizer, folder = load_tokenizer(run_or_folder, host, step=step)
+    _, folder = load_tokenizer(run_or_folder, host, step=step)
+    run_config = _run_config(folder, host)
+    device = resolve_device(run_config.device if run_config is not None else "auto")
+    tokenizer, _ = load_tokenizer(folder, host, device=str(device))
     image_size = families.summary["image_size"]
     if tokenizer.autoencoder.vqtouch_spec.context.image_size != image_size:
         raise ConfigError(f"the families were fitted at {image_size} px, the tokenizer works at "
                           f"{tokenizer.autoencoder.vqtouch_spec.context.image_size} px: cluster with this tokenizer")
-    run_config = _run_config(folder, host)
     section = run_config.tokenizer if run_config is not None else None
     loss = section.loss if section is not None else TokenizerLossConfig()
     train = (section.train if section is not None else TokenizerTrainConfig()).model_copy(update={
@@ -232,13 +235,12 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
     if len(mixed_set) < batch_size:
         batch_size = len(mixed_set)  # a handful of shots still trains (one batch = every image)
 
-    device = resolve_device(run_config.device if run_config is not None else "auto")
     before = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics)
     # Held-out family images (new scenes): what the adaptation keeps of the family, or forgets.
     family_held_out, _ = family_images(families, family, host, count=settings.eval_images, image_size=image_size,
                                        seed=settings.seed + 77_777, exclude=source)
     family_before = reconstruction_scores(tokenizer, family_held_out, host, batch_size)
-    before_images = reconstruct_all(tokenizer, held_out_M[:8])
+    before_images = reconstruct_all(tokenizer, held_out_M[:8].to(device)).cpu()
     real = _real_frames(target, host, image_size)  # the sensor's own captured frames, when it ships some (taxim)
     real_before = reconstruction_scores(tokenizer, real, host, batch_size, settings.metrics) if real is not None else None
     discriminator, adversarial = _discriminator(folder, loss, host)
@@ -254,7 +256,7 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
     tokenizer.eval()
     after = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics)
     family_after = reconstruction_scores(tokenizer, family_held_out, host, batch_size)
-    after_images = reconstruct_all(tokenizer, held_out_M[:8])
+    after_images = reconstruct_all(tokenizer, held_out_M[:8].to(device)).cpu()
 
     summary: dict[str, Any] = {
         "target": name, "target_source": source, "adapted_from": str(folder), "family": family,
@@ -278,8 +280,13 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
     count = len(before_images)
     save_png(image_grid(torch.cat([held_out_M[:count], before_images, after_images]), columns=count),
              out / BEFORE_AFTER_PNG)
-    (out / ADAPT_JSON).write_text(json.dumps(summary, indent=2) + "\n")
+    atomic_write(out / ADAPT_JSON, lambda tmp: tmp.write_text(json.dumps(summary, indent=2) + "\n"))
     return summary
+
+
+def tokenizer_device(tokenizer: Any) -> torch.device:
+    """The device a tokenizer's weights are on."""
+    return next(tokenizer.autoencoder.parameters()).device
 
 
 def _run_config(folder: Path, host: Any) -> Any:

@@ -36,7 +36,9 @@ def image_features(tokenizer: Any, images_B3HW: torch.Tensor, kind: FeatureKind 
     if kind not in ("pooled", "codes"):
         raise ValueError(f"feature kind {kind!r}: expected 'pooled' or 'codes'")
     rows = []
+    device = next(tokenizer.autoencoder.parameters()).device
     for chunk in images_B3HW.split(batch_size):
+        chunk = chunk.to(device)
         if kind == "pooled":
             latents = tokenizer.autoencoder.encode(chunk * 2 - 1).double().flatten(2)
             rows.append(torch.cat([latents.mean(dim=2), latents.std(dim=2, correction=0)], dim=1))
