@@ -60,6 +60,9 @@ def test_the_cross_sensor_scene_adapts_to_gelsight_mini_and_scores_its_real_fram
     names = [sensor["name"] for sensor in clusters["sensors"]]
     # Without a cluster stage the adapt stage clusters the defaults itself, leaving the target out.
     assert "gelsight_mini" not in names and {"gelsight", "digit", "gelsight_mini/v101"} <= set(names)
+    # ... and writes them with the target's assignment (the plot shows it as a star).
+    assert clusters["assignments"]["gelsight_mini"]["family"] == _stages(out)["adapt"]["result"]["family"]
+    assert (out / "adapted" / "families" / "families.png").is_file()
     summary = json.loads((out / "adapted" / "adapt.json").read_text())
     assert summary["real_frames"]["count"] == 24  # taxim's real GelSight Mini frames
     assert result["real_ssim_after"] == summary["real_frames"]["after"]["ssim"]

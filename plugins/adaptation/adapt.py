@@ -27,10 +27,11 @@ import torch
 
 from vqtouch.core import ConfigError, DatasetError, VqtouchError
 
-from .families import SensorFamilies, folder_of, sensor_images
+from .families import SensorFamilies, folder_of, save_families, sensor_images
 
-#: What an adaptation writes into its output folder besides the tokenizer files.
-ADAPT_JSON, BEFORE_AFTER_PNG = "adapt.json", "before_after.png"
+#: What an adaptation writes into its output folder besides the tokenizer files (the families
+#: only when it fitted them itself).
+ADAPT_JSON, BEFORE_AFTER_PNG, FAMILIES_FOLDER = "adapt.json", "before_after.png", "families"
 #: A pixel belongs to a contact when it differs from the set's background by more than this (mean
 #: absolute difference over RGB, images in [0, 1]) and than the camera noise allows: above a
 #: drifting background, below a light press.
@@ -207,8 +208,10 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
                                                       eval_images=settings.eval_images, image_size=image_size,
                                                       seed=settings.seed)
     check_contacts(torch.cat([shots_N, held_out_M]), name)
-    prototype = families.prototype(tokenizer, shots_N)
-    assignment = families.assign(prototype, settings.threshold)
+    assignment, shown = families.unseen(tokenizer, name, shots_N, settings.threshold)
+    if families.features is not None:  # fitted for this adaptation (not read back): write them, with the sensor
+        save_families(families, out / FAMILIES_FOLDER, host, {"assignments": {name: {"source": source, **assignment}}},
+                      [shown])
     family = assignment["family"]
     if settings.family is not None:
         if not 0 <= settings.family < len(families.summary["families"]):

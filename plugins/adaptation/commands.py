@@ -94,7 +94,7 @@ def _adapt_command(args: argparse.Namespace) -> int:
     from vqtouch.plugins.tokenizer.stages import load_tokenizer
 
     from .adapt import AdaptSettings, adapt_tokenizer, check_same_tokenizer, default_families
-    from .families import folder_of, load_families, save_families
+    from .families import folder_of, load_families
 
     host = args.host
     out = Path(args.out)
@@ -108,7 +108,6 @@ def _adapt_command(args: argparse.Namespace) -> int:
         families = default_families(tokenizer, host, image_size=tokenizer.autoencoder.vqtouch_spec.context.image_size,
                                     tokenizer_source=str(folder), exclude=exclude, seed=args.seed,
                                     report=lambda line: None)
-        save_families(families, out / "families", host)
     settings = AdaptSettings(shots=args.shots, ratio=args.ratio, steps=args.steps, learning_rate=args.learning_rate,
                              batch_size=args.batch_size, eval_images=args.eval_images, threshold=args.threshold,
                              family=args.family, seed=args.seed)
@@ -190,7 +189,8 @@ def vqtouch_add_commands(subparsers):
     adapt.add_argument("--eval-images", type=_positive, default=64,
                        help="held-out unseen-sensor images scored before and after (default 64)")
     adapt.add_argument("--families", help="a `vqtouch cluster` output folder (default: cluster the registered "
-                                          "sensor families and 3 variants of each, written to OUT/families)")
+                                          "sensor families and 3 variants of each, written with the sensor's "
+                                          "assignment to OUT/families)")
     adapt.add_argument("--threshold", type=float, help="refuse a sensor farther than this from every family "
                                                        "(default: the clustering's refusal threshold)")
     adapt.add_argument("--family", type=_non_negative, help="adapt from this family, whatever the assignment says")

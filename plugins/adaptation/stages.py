@@ -116,7 +116,7 @@ def run_cluster_stage(job: StageJob) -> dict[str, Any]:
 def run_adapt_stage(job: StageJob) -> dict[str, Any]:
     """Adapt the run's tokenizer to the target sensor (see the module docstring)."""
     from .adapt import AdaptSettings, adapt_tokenizer, check_same_tokenizer, default_families
-    from .families import CLUSTER_JSON, load_families, save_families
+    from .families import CLUSTER_JSON, load_families
 
     section, config = job.section, job.config
     tokenizer, folder = _family_tokenizer(job)
@@ -129,7 +129,6 @@ def run_adapt_stage(job: StageJob) -> dict[str, Any]:
         families = default_families(tokenizer, job.host, image_size=tokenizer.autoencoder.vqtouch_spec.context.image_size,
                                      tokenizer_source=str(folder), exclude=target, seed=config.seed,
                                      report=lambda line: None)
-        save_families(families, job.run.path / ADAPTED_FOLDER / "families", job.host)
     settings = AdaptSettings(shots=section.shots, ratio=section.ratio, steps=section.steps,
                              learning_rate=section.learning_rate, eval_images=section.eval_images,
                              threshold=section.threshold, family=section.family, seed=config.seed)
