@@ -185,8 +185,7 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
     from vqtouch.plugins.tokenizer.stages import TOKENIZER_FILES, load_tokenizer, reconstruct_all, tokenizer_task
     from vqtouch.plugins.tokenizer.training import TokenizerLossConfig, TokenizerTrainConfig
 
-    if (out / TOKENIZER_FILES[0]).exists() and not overwrite:
-        raise ConfigError(f"{out} already holds an adapted tokenizer; choose another --out or pass --overwrite")
+    refuse_existing(out, overwrite)
     if settings.shots < 1 or settings.ratio < 0:
         raise ConfigError(f"shots must be >= 1 and ratio >= 0 (got {settings.shots}, {settings.ratio})")
     _, folder = load_tokenizer(run_or_folder, host, step=step)
@@ -290,6 +289,12 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
 def tokenizer_device(tokenizer: Any) -> torch.device:
     """The device a tokenizer's weights are on."""
     return next(tokenizer.autoencoder.parameters()).device
+
+
+def refuse_existing(out: Path, overwrite: bool) -> None:
+    """Refuse to replace an adapted tokenizer already in ``out`` unless ``overwrite``."""
+    if (out / "autoencoder.safetensors").exists() and not overwrite:
+        raise ConfigError(f"{out} already holds an adapted tokenizer; choose another --out or pass --overwrite")
 
 
 def _run_config(folder: Path, host: Any) -> Any:

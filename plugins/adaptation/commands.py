@@ -1,14 +1,18 @@
-"""``vqtouch cluster``: group sensors into families from a trained tokenizer's features.
+"""The cross-sensor commands: ``vqtouch cluster``, ``vqtouch adapt`` and ``vqtouch evaluate cross-sensor``.
 
 ::
 
     vqtouch cluster --run TOKRUN --sensors gelsight gelsight_mini digit '{"name": "gelsight", "variant": {...}}' \\
         path/to/real_sensor_frames --out DIR [--images 64] [--features pooled|codes] [--clusterer kmeans]
+    vqtouch adapt --run TOKRUN --images DIR_OR_SPEC --shots 50 --ratio 5 --out OUT [--families DIR]
+    vqtouch evaluate cross-sensor --run TOKRUN --out DIR
 
-writes ``DIR/cluster.json`` (families, members, prototypes, the family distance matrix, each
-sensor's distance to every family, and with ``--unseen SPEC ...`` where each unseen sensor is
-assigned, or why it is refused) and ``DIR/families.png`` (a 2-D PCA embedding of every image's
-features with the sensors' prototypes).  See :mod:`.families` for the method.
+``cluster`` writes ``DIR/cluster.json`` (families, members, prototypes, the family distance
+matrix, each sensor's distance to every family, and with ``--unseen SPEC ...`` where each unseen
+sensor is assigned, or why it is refused), ``DIR/clusterer.safetensors`` and ``DIR/families.png``
+(a 2-D PCA embedding of every image's features with the sensors' prototypes); see
+:mod:`.families`.  ``adapt`` writes an adapted tokenizer (:mod:`.adapt`); ``evaluate
+cross-sensor`` the experiment of :mod:`.evaluation`.
 """
 
 from __future__ import annotations
@@ -93,11 +97,12 @@ def describe_assignment(assigned: dict) -> str:
 def _adapt_command(args: argparse.Namespace) -> int:
     from vqtouch.plugins.tokenizer.stages import load_tokenizer
 
-    from .adapt import AdaptSettings, adapt_tokenizer, check_same_tokenizer, default_families
+    from .adapt import AdaptSettings, adapt_tokenizer, check_same_tokenizer, default_families, refuse_existing
     from .families import folder_of, load_families
 
     host = args.host
     out = Path(args.out)
+    refuse_existing(out, args.overwrite)  # before the clustering, which takes a while
     tokenizer, folder = load_tokenizer(args.run, host, step=args.step)
     if args.families:
         families = load_families(args.families, host)
@@ -126,7 +131,6 @@ def _adapt_command(args: argparse.Namespace) -> int:
 
 def _canonical_spec(spec: str) -> str:
     """A registered sensor's spec as the JSON a clustering records as its source ('' when not JSON)."""
-
     try:
         config = json.loads(spec) if spec.startswith("{") else {"name": spec}
     except json.JSONDecodeError:
