@@ -1,4 +1,4 @@
-"""Deformable convolution cost: the grid_sample backend against torchvision's kernel.
+"""Deformable convolution cost: the grid_sample and gather backends against torchvision's kernel.
 
 Run:  .venv/bin/python bench/bench_deformable.py [--device cpu|cuda] [--repeats 5] [--threads N]
 
@@ -19,7 +19,8 @@ from typing import Callable
 import torch
 import torch.nn.functional as F
 
-from vqtouch.plugins.tokenizer.deformable import deform_conv2d_grid_sample, deform_conv2d_torchvision
+from vqtouch.plugins.tokenizer.deformable import (deform_conv2d_gather, deform_conv2d_grid_sample,
+                                                  deform_conv2d_torchvision)
 
 # (batch, channels, height, width); channels in = channels out, as in a ResNet block's second conv.
 SHAPES = [(8, 64, 32, 32), (8, 128, 32, 32), (8, 64, 16, 16), (8, 128, 16, 16), (8, 64, 8, 8), (8, 128, 8, 8)]
@@ -88,17 +89,18 @@ def main() -> None:
     where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu, {torch.get_num_threads()} threads"
     print(f"torch {torch.__version__}, torchvision {torchvision.__version__}, {where}; "
           f"3x3 DCNv2 forward+backward, float32, best of {args.repeats}")
-    header = f"{'B x C x H x W':>16s} {'conv2d ms':>10s} {'grid_sample ms':>15s} {'torchvision ms':>15s} " \
-             f"{'tv / gs':>8s} {'gs / conv2d':>12s}"
+    header = f"{'B x C x H x W':>16s} {'conv2d ms':>10s} {'grid_sample ms':>15s} {'gather ms':>10s} " \
+             f"{'torchvision ms':>15s} {'gs / gather':>12s} {'tv / gs':>8s} {'gather / conv2d':>16s}"
     print(header)
     print("-" * len(header))
     for shape in SHAPES:
-        conv_ms, grid_ms, vision_ms = best_milliseconds(
+        conv_ms, grid_ms, gather_ms, vision_ms = best_milliseconds(
             [forward_backward(function, shape, device)
-             for function in (None, deform_conv2d_grid_sample, deform_conv2d_torchvision)], args.repeats, device)
+             for function in (None, deform_conv2d_grid_sample, deform_conv2d_gather, deform_conv2d_torchvision)],
+            args.repeats, device)
         label = "x".join(str(n) for n in shape)
-        print(f"{label:>16s} {conv_ms:10.2f} {grid_ms:15.2f} {vision_ms:15.2f} {vision_ms / grid_ms:8.2f} "
-              f"{grid_ms / conv_ms:12.2f}")
+        print(f"{label:>16s} {conv_ms:10.2f} {grid_ms:15.2f} {gather_ms:10.2f} {vision_ms:15.2f} "
+              f"{grid_ms / gather_ms:12.2f} {vision_ms / grid_ms:8.2f} {gather_ms / conv_ms:16.2f}")
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from vqtouch.plugins.tokenizer.deformable import (DeformableConv2d, deform_conv2d_grid_sample,
+from vqtouch.plugins.tokenizer.deformable import (DeformableConv2d, deform_conv2d_gather, deform_conv2d_grid_sample,
                                               deform_conv2d_torchvision)
 
 
@@ -36,9 +36,12 @@ needs_torchvision = pytest.mark.skipif(
     torchvision_ops is None, reason="torchvision.ops is not importable: torchvision-backend test skipped "
                                     "(the default grid_sample backend is tested without it)")
 # Parametrisations over both backends: only the torchvision case carries the skip.
-BACKENDS = ["grid_sample", pytest.param("torchvision", marks=needs_torchvision)]
+BACKENDS = ["grid_sample", "gather", pytest.param("torchvision", marks=needs_torchvision)]
 FUNCTIONS = [pytest.param(deform_conv2d_grid_sample, id="grid_sample"),
+             pytest.param(deform_conv2d_gather, id="gather"),
              pytest.param(deform_conv2d_torchvision, id="torchvision", marks=needs_torchvision)]
+PURE_FUNCTIONS = [pytest.param(deform_conv2d_grid_sample, id="grid_sample"),
+                  pytest.param(deform_conv2d_gather, id="gather")]
 
 HEIGHT, WIDTH = 9, 11  # non-square on purpose: catches (dy, dx) / (x, y) swaps
 
@@ -214,12 +217,13 @@ def off_integer_problem(stride: int, with_mask: bool):
 
 @pytest.mark.parametrize("stride", [1, 2])
 @pytest.mark.parametrize("with_mask", [True, False])
-def test_gradcheck_grid_sample_path(stride, with_mask):
+@pytest.mark.parametrize("deform_conv2d", PURE_FUNCTIONS)
+def test_gradcheck_pure_pytorch_paths(stride, with_mask, deform_conv2d):
     x, offset, weight, bias, mask = off_integer_problem(stride, with_mask)
     inputs = [t.requires_grad_() for t in (x, offset, weight, bias) + ((mask,) if with_mask else ())]
 
     def function(x, offset, weight, bias, mask=None):
-        return deform_conv2d_grid_sample(x, offset, weight, bias, stride=stride, padding=1, mask=mask)
+        return deform_conv2d(x, offset, weight, bias, stride=stride, padding=1, mask=mask)
 
     assert torch.autograd.gradcheck(function, inputs, eps=1e-6, atol=1e-6)
 
@@ -239,6 +243,35 @@ def test_backends_agree_on_gradients(with_mask, stride, padding, dilation):
         gradients.append([t.grad for t in leaves] + ([leaf_mask.grad] if with_mask else []))
     for ours, reference in zip(*gradients):
         torch.testing.assert_close(ours, reference, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize("kernel,stride,padding,dilation", [(3, 1, 1, 1), (3, 2, 0, 2), (1, 1, 0, 1), (3, 1, 2, 1)])
+@pytest.mark.parametrize("with_mask", [True, False])
+@pytest.mark.parametrize("offset_groups", [1, 2])
+def test_gather_backend_equals_grid_sample_in_float32(kernel, stride, padding, dilation, with_mask, offset_groups):
+    """The channels-last gather backend and the grid_sample backend agree to 1e-5 in fp32 (relative
+    to the largest value), values and gradients, with taps outside the image, offset groups and
+    weight groups."""
+    generator = torch.Generator().manual_seed(11)
+    in_channels, out_channels, weight_groups = 4, 6, 2
+    out_h, out_w = (out_size(HEIGHT, kernel, stride, padding, dilation), out_size(WIDTH, kernel, stride, padding,
+                                                                                 dilation))
+    x = torch.randn(2, in_channels, HEIGHT, WIDTH, generator=generator)
+    offset = 4 * torch.randn(2, 2 * offset_groups * kernel * kernel, out_h, out_w, generator=generator)
+    weight = torch.randn(out_channels, in_channels // weight_groups, kernel, kernel, generator=generator)
+    bias = torch.randn(out_channels, generator=generator)
+    mask = (torch.rand(2, offset_groups * kernel * kernel, out_h, out_w, generator=generator) if with_mask
+            else None)
+    results = []
+    for function in (deform_conv2d_grid_sample, deform_conv2d_gather):
+        leaves = [t.detach().clone().requires_grad_() for t in (x, offset, weight, bias)]
+        leaf_mask = mask.detach().clone().requires_grad_() if with_mask else None
+        out = function(*leaves, stride=stride, padding=padding, dilation=dilation, mask=leaf_mask)
+        (out * torch.linspace(-1, 1, out.numel()).view_as(out)).sum().backward()
+        results.append([out.detach()] + [t.grad for t in leaves] + ([leaf_mask.grad] if with_mask else []))
+    for reference, gathered in zip(*results):
+        scale = max(1.0, float(reference.abs().max()))
+        torch.testing.assert_close(gathered, reference, atol=1e-5 * scale, rtol=1e-5)
 
 
 # -- stability ---------------------------------------------------------------------------------
@@ -374,8 +407,9 @@ def test_without_torchvision_only_the_torchvision_tests_skip():
     assert completed.returncode == 0, completed.stdout[-3000:] + completed.stderr[-2000:]
     counts = dict((word, int(number)) for number, word in re.findall(r"(\d+) (passed|skipped|failed|error)",
                                                                     completed.stdout.strip().splitlines()[-1]))
-    # Every grid_sample case runs and passes; exactly its torchvision twin skips, with the reason.
-    assert counts.get("passed", 0) == counts.get("skipped", 0) > 0 and set(counts) == {"passed", "skipped"}, counts
+    # Every grid_sample and gather case runs and passes; exactly their torchvision twin skips, with the reason.
+    assert counts.get("passed", 0) == 2 * counts.get("skipped", 0) > 0 and set(counts) == {"passed", "skipped"}, \
+        counts
     assert "torchvision.ops is not importable" in completed.stdout
 
 

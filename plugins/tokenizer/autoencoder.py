@@ -64,8 +64,10 @@ class DmVqganConfig(VqganConfig):
                     "the default channel_multipliers (1, 2, 2) and 2, the levels at 1/2 and 1/4 of the image "
                     "side plus the middle blocks (10 deformable layers).  0 disables them (the ablation); at "
                     "most len(channel_multipliers) (every level); each level further up costs ~4x more on CPU.")
-    deformable_backend: Literal["grid_sample", "torchvision"] = Field(
-        "grid_sample", description="Deformable convolution implementation (same maths; grid_sample is faster on CPU).")
+    deformable_backend: Literal["grid_sample", "gather", "torchvision"] = Field(
+        "grid_sample", description="Deformable convolution implementation, same maths: grid_sample (pure PyTorch), "
+                                   "gather (channels-last bilinear gather + matmul, pure PyTorch) or torchvision's "
+                                   "kernel (bench/bench_deformable.py times them).")
     deformable_modulation: bool = Field(True, description="DCNv2 modulation mask (False: DCNv1).")
     max_offset: float = Field(4.0, gt=0.0, le=64.0, description="Offsets are bounded to max_offset * tanh(raw) pixels.")
     offset_lr_scale: float = Field(

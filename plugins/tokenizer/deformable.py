@@ -1,12 +1,16 @@
 """Deformable convolution (DCNv1 / DCNv2) for the DM-VQGAN ResNet blocks.
 
-Two interchangeable implementations of ``torchvision.ops.deform_conv2d``'s maths:
+Three interchangeable implementations of ``torchvision.ops.deform_conv2d``'s maths:
 
 * :func:`deform_conv2d_grid_sample`: pure PyTorch, one ``F.grid_sample`` that gathers all
   k*k deformed taps of every output pixel, then one matmul with the flattened weight (an
   im2col convolution whose "im2col" is bilinear).  Autograd, every device and every dtype
   come for free, and on CPU it is faster than torchvision's kernel (see
   ``bench/bench_deformable.py``).
+* :func:`deform_conv2d_gather`: pure PyTorch, channels last: the four bilinear corners of every
+  tap are one fused gather-and-weighted-sum (``F.embedding_bag`` with per-sample weights, whose
+  forward and backward are single kernels), laid out so the result is already the im2col
+  matrix, then one matmul.
 * :func:`deform_conv2d_torchvision`: a thin wrapper around ``torchvision.ops.deform_conv2d``,
   kept as the reference and as an option.  torchvision is imported inside the function:
   ``import torchvision`` imports ``torchvision.models``, which importing vqtouch must not do.
@@ -36,11 +40,11 @@ from torch import nn
 
 from vqtouch.core import ConfigError
 
-__all__ = ["DeformableConv2d", "deform_conv2d_grid_sample", "deform_conv2d_torchvision"]
+__all__ = ["DeformableConv2d", "deform_conv2d_gather", "deform_conv2d_grid_sample", "deform_conv2d_torchvision"]
 
 IntPair = int | tuple[int, int]
-Backend = Literal["grid_sample", "torchvision"]
-BACKENDS: tuple[str, ...] = ("grid_sample", "torchvision")
+Backend = Literal["grid_sample", "gather", "torchvision"]
+BACKENDS: tuple[str, ...] = ("grid_sample", "gather", "torchvision")
 
 
 def _pair(value: IntPair, name: str) -> tuple[int, int]:
@@ -190,6 +194,85 @@ def deform_conv2d_grid_sample(input: torch.Tensor, offset: torch.Tensor, weight:
     return out_BOHW.to(result_dtype)
 
 
+def deform_conv2d_gather(input: torch.Tensor, offset: torch.Tensor, weight: torch.Tensor,
+                         bias: torch.Tensor | None = None, stride: IntPair = 1, padding: IntPair = 0,
+                         dilation: IntPair = 1, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Deformable convolution with :func:`deform_conv2d_grid_sample`'s signature, semantics and
+    dtype rules, computed as a channels-last bilinear gather and one matmul.
+
+    The input is laid out as rows of channels (``[B*G*H*W, C_in/G]``, channels last).  The four
+    bilinear corners of every tap of every output pixel are fetched by one row gather, ordered
+    (corner, image, output pixel, tap), so that their weighted sum is already the im2col matrix
+    ``[B*Ho*Wo, K*C_in]`` with no permute copy.  Each corner's bilinear weight, its in-image test
+    (zeros outside, as torchvision) and the DCNv2 mask are folded into one per-corner factor, and
+    ``F.embedding_bag`` (each tap a bag of its four corner rows, the factors its per-sample
+    weights) gathers and sums them in one kernel, backward included: done with separate gather,
+    multiply and sum ops the same maths ran 2-4x slower than ``grid_sample`` on CPU.  One matmul
+    with the weight seen as ``[K*C_in, C_out]`` finishes.  Dtypes as :func:`deform_conv2d_grid_sample`.
+    """
+    stride_hw, padding_hw = _pair(stride, "stride"), _pair(padding, "padding")
+    dilation_hw = _pair(dilation, "dilation")
+    offset_groups, weight_groups, out_h, out_w = _check_shapes(input, offset, weight, bias, stride_hw, padding_hw,
+                                                               dilation_hw, mask)
+    batch, in_channels, height, width = input.shape
+    out_channels, _, kernel_h, kernel_w = weight.shape
+    taps, pixels = kernel_h * kernel_w, out_h * out_w
+    group_channels = in_channels // offset_groups
+    images = batch * offset_groups
+    result_dtype = _result_dtype(input)
+    sample_dtype = torch.float64 if input.dtype == torch.float64 else torch.float32
+    device = input.device
+
+    with torch.autocast(device_type=device.type, enabled=False):
+        rows_o = torch.arange(out_h, device=device, dtype=sample_dtype) * stride_hw[0] - padding_hw[0]
+        cols_o = torch.arange(out_w, device=device, dtype=sample_dtype) * stride_hw[1] - padding_hw[1]
+        tap_rows_K = torch.arange(kernel_h, device=device, dtype=sample_dtype).repeat_interleave(kernel_w)
+        tap_cols_K = torch.arange(kernel_w, device=device, dtype=sample_dtype).repeat(kernel_h)
+        # Positions ordered (image, output row, output column, tap): pixel-major, tap-minor.
+        base_y_HWK = (rows_o[:, None, None] + tap_rows_K * dilation_hw[0]).expand(out_h, out_w, taps)
+        base_x_HWK = (cols_o[None, :, None] + tap_cols_K * dilation_hw[1]).expand(out_h, out_w, taps)
+        offset_NK2HW = offset.to(sample_dtype).reshape(images, taps, 2, out_h, out_w)
+        y_NHWK = base_y_HWK + offset_NK2HW[:, :, 0].permute(0, 2, 3, 1)
+        x_NHWK = base_x_HWK + offset_NK2HW[:, :, 1].permute(0, 2, 3, 1)
+        # The corners' indices carry no gradient; the fractions do (through the offsets).
+        y0, x0 = y_NHWK.detach().floor(), x_NHWK.detach().floor()
+        fy, fx = y_NHWK - y0, x_NHWK - x0
+        corner_y = torch.stack((y0, y0, y0 + 1, y0 + 1))  # [4, N, Ho, Wo, K]
+        corner_x = torch.stack((x0, x0 + 1, x0, x0 + 1))
+        factor = torch.stack(((1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx))
+        inside = (corner_y >= 0) & (corner_y <= height - 1) & (corner_x >= 0) & (corner_x <= width - 1)
+        factor = factor * inside
+        if mask is not None:
+            factor = factor * mask.to(sample_dtype).reshape(images, taps, out_h, out_w).permute(0, 2, 3, 1)
+        image_start = (torch.arange(images, device=device) * (height * width)).view(1, images, 1, 1, 1)
+        index = (corner_y.clamp(0, height - 1) * width + corner_x.clamp(0, width - 1)).long() + image_start
+        rows = input.to(sample_dtype).reshape(images, group_channels, height * width).transpose(1, 2)
+        rows = rows.reshape(images * height * width, group_channels)
+        # One fused gather-and-weighted-sum: each tap is a "bag" of its four corner rows.
+        sampled = F.embedding_bag(index.reshape(4, -1).t(), rows, mode="sum",
+                                  per_sample_weights=factor.reshape(4, -1).t())  # [N*Ho*Wo*K, C/G]
+        if offset_groups > 1:  # channel c = g*C/G + c' must sit next to its tap: [B, L, K, C]
+            sampled = sampled.view(batch, offset_groups, pixels, taps, group_channels).permute(0, 2, 3, 1, 4)
+        columns = sampled.reshape(batch * pixels, taps, in_channels)
+
+    in_per_group, out_per_group = in_channels // weight_groups, out_channels // weight_groups
+    weight_GwKCO = weight.reshape(weight_groups, out_per_group, in_per_group, taps).permute(0, 3, 2, 1)
+    if not torch.is_autocast_enabled(device.type):
+        columns = columns.to(input.dtype)  # as F.conv2d: the matmul in the input's dtype
+    else:
+        columns, weight_GwKCO = columns.to(result_dtype), weight_GwKCO.to(result_dtype)
+    if weight_groups == 1:
+        out_LO = columns.reshape(batch * pixels, taps * in_channels) @ weight_GwKCO.reshape(taps * in_channels,
+                                                                                           out_channels)
+    else:
+        grouped = columns.view(batch * pixels, taps, weight_groups, in_per_group)
+        out_LO = torch.einsum("lkgc,gkco->lgo", grouped, weight_GwKCO).reshape(batch * pixels, out_channels)
+    out_BOHW = out_LO.view(batch, out_h, out_w, out_channels).permute(0, 3, 1, 2)
+    if bias is not None:
+        out_BOHW = out_BOHW + bias.to(out_BOHW.dtype).view(1, out_channels, 1, 1)
+    return out_BOHW.contiguous().to(result_dtype)
+
+
 def deform_conv2d_torchvision(input: torch.Tensor, offset: torch.Tensor, weight: torch.Tensor,
                               bias: torch.Tensor | None = None, stride: IntPair = 1, padding: IntPair = 0,
                               dilation: IntPair = 1, mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -216,7 +299,8 @@ def deform_conv2d_torchvision(input: torch.Tensor, offset: torch.Tensor, weight:
     return out_BOHW.to(result_dtype)
 
 
-_BACKEND_FUNCTIONS = {"grid_sample": deform_conv2d_grid_sample, "torchvision": deform_conv2d_torchvision}
+_BACKEND_FUNCTIONS = {"grid_sample": deform_conv2d_grid_sample, "gather": deform_conv2d_gather,
+                      "torchvision": deform_conv2d_torchvision}
 
 
 class DeformableConv2d(nn.Module):
@@ -246,7 +330,8 @@ class DeformableConv2d(nn.Module):
             offsets and mask); the convolution weight itself is always dense.
         modulation: learn a DCNv2 mask (False: DCNv1).
         max_offset: bound on each offset component, in pixels of the input.
-        backend: ``"grid_sample"`` (pure PyTorch, default) or ``"torchvision"``.
+        backend: ``"grid_sample"`` (pure PyTorch, default), ``"gather"`` (pure PyTorch, channels
+            last) or ``"torchvision"``.
     """
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: IntPair = 3, stride: IntPair = 1,
