@@ -110,6 +110,35 @@ def _result_dtype(input: torch.Tensor) -> torch.dtype:
     return input.dtype
 
 
+def _checked_geometry(input: torch.Tensor, offset: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None,
+                      stride: IntPair, padding: IntPair, dilation: IntPair, mask: torch.Tensor | None) -> tuple:
+    """The (h, w) pairs of stride, padding and dilation, then the offset groups, weight groups and
+    output size of a checked deformable-convolution call (see :func:`_check_shapes`)."""
+    stride_hw, padding_hw = _pair(stride, "stride"), _pair(padding, "padding")
+    dilation_hw = _pair(dilation, "dilation")
+    return (stride_hw, padding_hw, dilation_hw,
+            *_check_shapes(input, offset, weight, bias, stride_hw, padding_hw, dilation_hw, mask))
+
+
+def _sample_dtype(input: torch.Tensor) -> torch.dtype:
+    """Where sample positions and bilinear weights are computed: float64 for float64 inputs (exact
+    gradcheck), float32 otherwise (bfloat16 cannot hold sub-pixel positions)."""
+    return torch.float64 if input.dtype == torch.float64 else torch.float32
+
+
+def _tap_positions(out_h: int, out_w: int, kernel_h: int, kernel_w: int, stride_hw: tuple[int, int],
+                   padding_hw: tuple[int, int], dilation_hw: tuple[int, int], dtype: torch.dtype,
+                   device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Undeformed tap positions in input pixels, as output origin + kernel point: the output
+    rows' and columns' origins (Ho,), (Wo,) and each kernel point's row and column displacement
+    (K,) (kernel point k = i*kw + j sits at row i*dilation, column j*dilation)."""
+    rows_o = torch.arange(out_h, device=device, dtype=dtype) * stride_hw[0] - padding_hw[0]
+    cols_o = torch.arange(out_w, device=device, dtype=dtype) * stride_hw[1] - padding_hw[1]
+    tap_rows_K = torch.arange(kernel_h, device=device, dtype=dtype).repeat_interleave(kernel_w) * dilation_hw[0]
+    tap_cols_K = torch.arange(kernel_w, device=device, dtype=dtype).repeat(kernel_h) * dilation_hw[1]
+    return rows_o, cols_o, tap_rows_K, tap_cols_K
+
+
 def deform_conv2d_grid_sample(input: torch.Tensor, offset: torch.Tensor, weight: torch.Tensor,
                               bias: torch.Tensor | None = None, stride: IntPair = 1, padding: IntPair = 0,
                               dilation: IntPair = 1, mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -139,25 +168,16 @@ def deform_conv2d_grid_sample(input: torch.Tensor, offset: torch.Tensor, weight:
     exact), with autocast off; the matmul then runs in the result dtype (autocast's
     bfloat16/float16 when autocast is on, the input dtype otherwise), like ``F.conv2d``.
     """
-    stride_hw, padding_hw = _pair(stride, "stride"), _pair(padding, "padding")
-    dilation_hw = _pair(dilation, "dilation")
-    offset_groups, weight_groups, out_h, out_w = _check_shapes(input, offset, weight, bias, stride_hw, padding_hw,
-                                                               dilation_hw, mask)
+    stride_hw, padding_hw, dilation_hw, offset_groups, weight_groups, out_h, out_w = _checked_geometry(
+        input, offset, weight, bias, stride, padding, dilation, mask)
     batch, in_channels, height, width = input.shape
     out_channels, _, kernel_h, kernel_w = weight.shape
     taps = kernel_h * kernel_w
-    result_dtype = _result_dtype(input)
-    sample_dtype = torch.float64 if input.dtype == torch.float64 else torch.float32
-    device = input.device
+    result_dtype, sample_dtype, device = _result_dtype(input), _sample_dtype(input), input.device
 
     with torch.autocast(device_type=device.type, enabled=False):
-        # Undeformed tap positions in input pixels: output origin + kernel point.
-        rows_o = torch.arange(out_h, device=device, dtype=sample_dtype) * stride_hw[0] - padding_hw[0]
-        cols_o = torch.arange(out_w, device=device, dtype=sample_dtype) * stride_hw[1] - padding_hw[1]
-        # Kernel point k = i*kw + j sits at row i*dilation, column j*dilation.
-        tap_rows_K = torch.arange(kernel_h, device=device, dtype=sample_dtype).repeat_interleave(kernel_w)
-        tap_cols_K = torch.arange(kernel_w, device=device, dtype=sample_dtype).repeat(kernel_h)
-        tap_rows_K, tap_cols_K = tap_rows_K * dilation_hw[0], tap_cols_K * dilation_hw[1]
+        rows_o, cols_o, tap_rows_K, tap_cols_K = _tap_positions(out_h, out_w, kernel_h, kernel_w, stride_hw,
+                                                                padding_hw, dilation_hw, sample_dtype, device)
         base_y_KHW = (tap_rows_K[:, None, None] + rows_o[None, :, None]).expand(taps, out_h, out_w)
         base_x_KHW = (tap_cols_K[:, None, None] + cols_o[None, None, :]).expand(taps, out_h, out_w)
 
@@ -210,27 +230,21 @@ def deform_conv2d_gather(input: torch.Tensor, offset: torch.Tensor, weight: torc
     multiply and sum ops the same maths ran 2-4x slower than ``grid_sample`` on CPU.  One matmul
     with the weight seen as ``[K*C_in, C_out]`` finishes.  Dtypes as :func:`deform_conv2d_grid_sample`.
     """
-    stride_hw, padding_hw = _pair(stride, "stride"), _pair(padding, "padding")
-    dilation_hw = _pair(dilation, "dilation")
-    offset_groups, weight_groups, out_h, out_w = _check_shapes(input, offset, weight, bias, stride_hw, padding_hw,
-                                                               dilation_hw, mask)
+    stride_hw, padding_hw, dilation_hw, offset_groups, weight_groups, out_h, out_w = _checked_geometry(
+        input, offset, weight, bias, stride, padding, dilation, mask)
     batch, in_channels, height, width = input.shape
     out_channels, _, kernel_h, kernel_w = weight.shape
     taps, pixels = kernel_h * kernel_w, out_h * out_w
     group_channels = in_channels // offset_groups
     images = batch * offset_groups
-    result_dtype = _result_dtype(input)
-    sample_dtype = torch.float64 if input.dtype == torch.float64 else torch.float32
-    device = input.device
+    result_dtype, sample_dtype, device = _result_dtype(input), _sample_dtype(input), input.device
 
     with torch.autocast(device_type=device.type, enabled=False):
-        rows_o = torch.arange(out_h, device=device, dtype=sample_dtype) * stride_hw[0] - padding_hw[0]
-        cols_o = torch.arange(out_w, device=device, dtype=sample_dtype) * stride_hw[1] - padding_hw[1]
-        tap_rows_K = torch.arange(kernel_h, device=device, dtype=sample_dtype).repeat_interleave(kernel_w)
-        tap_cols_K = torch.arange(kernel_w, device=device, dtype=sample_dtype).repeat(kernel_h)
+        rows_o, cols_o, tap_rows_K, tap_cols_K = _tap_positions(out_h, out_w, kernel_h, kernel_w, stride_hw,
+                                                                padding_hw, dilation_hw, sample_dtype, device)
         # Positions ordered (image, output row, output column, tap): pixel-major, tap-minor.
-        base_y_HWK = (rows_o[:, None, None] + tap_rows_K * dilation_hw[0]).expand(out_h, out_w, taps)
-        base_x_HWK = (cols_o[None, :, None] + tap_cols_K * dilation_hw[1]).expand(out_h, out_w, taps)
+        base_y_HWK = (rows_o[:, None, None] + tap_rows_K).expand(out_h, out_w, taps)
+        base_x_HWK = (cols_o[None, :, None] + tap_cols_K).expand(out_h, out_w, taps)
         offset_NK2HW = offset.to(sample_dtype).reshape(images, taps, 2, out_h, out_w)
         y_NHWK = base_y_HWK + offset_NK2HW[:, :, 0].permute(0, 2, 3, 1)
         x_NHWK = base_x_HWK + offset_NK2HW[:, :, 1].permute(0, 2, 3, 1)
@@ -286,11 +300,9 @@ def deform_conv2d_torchvision(input: torch.Tensor, offset: torch.Tensor, weight:
     """
     from torchvision.ops import deform_conv2d as torchvision_deform_conv2d
 
-    stride_hw, padding_hw = _pair(stride, "stride"), _pair(padding, "padding")
-    dilation_hw = _pair(dilation, "dilation")
-    _check_shapes(input, offset, weight, bias, stride_hw, padding_hw, dilation_hw, mask)
-    result_dtype = _result_dtype(input)
-    compute_dtype = torch.float64 if input.dtype == torch.float64 else torch.float32
+    stride_hw, padding_hw, dilation_hw, *_ = _checked_geometry(input, offset, weight, bias, stride, padding,
+                                                               dilation, mask)
+    result_dtype, compute_dtype = _result_dtype(input), _sample_dtype(input)
     with torch.autocast(device_type=input.device.type, enabled=False):
         out_BOHW = torchvision_deform_conv2d(
             input.to(compute_dtype), offset.to(compute_dtype), weight.to(compute_dtype),
