@@ -167,7 +167,7 @@ def reconstruction_scores(tokenizer: Any, images_N3HW: torch.Tensor, host: Any, 
 
     built = {name: host.build("metric", {"name": name}) for name in metrics}
     scores = evaluate_reconstruction(tokenizer, ImageSet(images_N3HW), built, batch_size=batch_size,
-                                     device=tokenizer_device(tokenizer))
+                                     device=tokenizer.device)
     return {key: (round(value, 4) if isinstance(value, float) else value) for key, value in scores.items()
             if key in (*metrics, "codebook_usage", "codes_used", "samples")}
 
@@ -188,10 +188,10 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
     refuse_existing(out, overwrite)
     if settings.shots < 1 or settings.ratio < 0:
         raise ConfigError(f"shots must be >= 1 and ratio >= 0 (got {settings.shots}, {settings.ratio})")
-    _, folder = load_tokenizer(run_or_folder, host, step=step)
+    tokenizer, folder = load_tokenizer(run_or_folder, host, step=step)
     run_config = _run_config(folder, host)
     device = resolve_device(run_config.device if run_config is not None else "auto")
-    tokenizer, _ = load_tokenizer(folder, host, device=str(device))
+    tokenizer.to(device)
     image_size = families.summary["image_size"]
     if tokenizer.autoencoder.vqtouch_spec.context.image_size != image_size:
         raise ConfigError(f"the families were fitted at {image_size} px, the tokenizer works at "
@@ -286,11 +286,6 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
     return summary
 
 
-def tokenizer_device(tokenizer: Any) -> torch.device:
-    """The device a tokenizer's weights are on."""
-    return next(tokenizer.autoencoder.parameters()).device
-
-
 def refuse_existing(out: Path, overwrite: bool) -> None:
     """Refuse to replace an adapted tokenizer already in ``out`` unless ``overwrite``."""
     if (out / "autoencoder.safetensors").exists() and not overwrite:
@@ -341,8 +336,7 @@ def default_families(tokenizer: Any, host: Any, *, image_size: int, tokenizer_so
     (the unseen one) is left out."""
     from .families import family_sensor_specs, fit_families
 
-    specs = [spec for spec in family_sensor_specs(host, variants_per_family)
-             if json.dumps(json.loads(spec), sort_keys=True) != exclude]
+    specs = [spec for spec in family_sensor_specs(host, variants_per_family) if spec != exclude]
     return fit_families(tokenizer, specs, host, clusterer=host.build("clusterer", clusterer or {"name": "kmeans"}),
                         images=images, image_size=image_size, seed=seed, tokenizer_source=tokenizer_source,
                         report=report)

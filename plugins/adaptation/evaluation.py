@@ -66,7 +66,7 @@ def family_recovery(tokenizer: Any, host: Any, *, seed: int, variants: int, held
         correct = refused = 0
         for spec in unseen:
             sensor = sensor_images(spec, host, count=images, image_size=image_size, seed=seed + 1)
-            assigned = families.assign(families.prototype(tokenizer, sensor.images))
+            assigned, _ = families.unseen(tokenizer, sensor.name, sensor.images)
             refused += assigned["refused"]
             correct += (not assigned["refused"]) and majority[assigned["family"]] == _family_of(spec)
         rows.append({"clusterer": name, "seed": seed, "sensors": len(specs), "true_families": len(set(truth)),
@@ -87,7 +87,7 @@ def _arm_row(arm: str, summary: dict[str, Any], *, zero_shot: bool = False) -> d
     scores, family = summary[when], summary["family_held_out"][when]
     return {"arm": arm, "shots": 0 if zero_shot else summary["shots"], "ratio": None if zero_shot else summary["ratio"],
             "held_out": summary["held_out"], **{key: scores.get(key) for key in METRICS},
-            "codebook_usage": scores.get("codebook_usage"), "family_ssim": family["ssim"],
+            "codebook_usage": scores.get("codebook_usage"), "family": summary["family"], "family_ssim": family["ssim"],
             "family_psnr": family["psnr"], "seconds": 0.0 if zero_shot else summary["seconds"]}
 
 
@@ -248,6 +248,12 @@ def evaluate_cross_sensor(run: Any, host: Any, out: Path, *, target: str, seeds:
     if main_shots not in shots:
         raise ConfigError(f"--main-shots {main_shots} must be one of --shots {shots}")
     out.mkdir(parents=True, exist_ok=True)
+    real, usable = None, []
+    if real_family is not None:  # written and read once: every seed adapts to the same frames
+        frames = real_frames_folder(host, real_family, image_size, out / f"real_{real_family}")
+        if frames is not None:
+            real = sensor_images(str(frames), host, count=len(list(frames.iterdir())), image_size=image_size)
+            usable = [count for count in real_shots if count < len(real.images)]
     recovery, transfer, real_rows, costs = [], [], [], []
     for seed in seeds:
         rows, families = family_recovery(tokenizer, host, seed=seed, variants=variants,
@@ -263,29 +269,22 @@ def evaluate_cross_sensor(run: Any, host: Any, out: Path, *, target: str, seeds:
                                                     for r in seed_rows))
         adapted = next(row for row in seed_rows if row["arm"] == "c: mixed" and row["shots"] == main_shots
                        and row["ratio"] == main_ratio)
-        family = json.loads((out / "arms" / f"seed{seed}" / f"c-{main_shots}-{main_ratio:g}" / "adapt.json")
-                            .read_text())["family"]
         if everything and (Path(run) / "config.json").is_file():
             scratch = scratch_cost(run, target, families, host, seed=seed, everything=everything,
-                                   eval_images=eval_images, family=family)
+                                   eval_images=eval_images, family=adapted["family"])
             costs.append({"seed": seed, "adaptation_seconds": adapted["seconds"],
                           "scratch_seconds": scratch["seconds"], "scratch_steps": scratch["steps"],
                           "ratio": round(adapted["seconds"] / scratch["seconds"], 4), "scratch_ssim": scratch["ssim"],
                           "scratch_psnr": scratch["psnr"], "adapted_ssim": adapted["ssim"]})
             report(f"seed {seed}: adaptation {adapted['seconds']} s vs fresh training {scratch['seconds']} s")
-        if real_family is not None:
-            frames = real_frames_folder(host, real_family, image_size, out / f"real_{real_family}")
-            if frames is not None:
-                available = len(list(frames.iterdir()))
-                usable = [count for count in real_shots if count < available]
-                sensor = sensor_images(str(frames), host, count=available, image_size=image_size)
-                assigned = families.assign(families.prototype(tokenizer, sensor.images))
-                nearest = assigned["nearest_family"]
-                rows = transfer_arms(run, str(frames), families, host, out / "real_arms", seed=seed, steps=steps,
-                                     shots=usable, ratios=[main_ratio], main_shots=usable[-1], main_ratio=main_ratio,
-                                     everything=0, eval_images=available - max(usable), family=nearest)
-                real_rows += [{**row, "seed": seed, "assigned_family": assigned["family"], "nearest_family": nearest,
-                               "refused": assigned["refused"], "margin": assigned["margin"]} for row in rows]
+        if real is not None:
+            assigned, _ = families.unseen(tokenizer, real.name, real.images)
+            nearest = assigned["nearest_family"]
+            rows = transfer_arms(run, real.source, families, host, out / "real_arms", seed=seed, steps=steps,
+                                 shots=usable, ratios=[main_ratio], main_shots=usable[-1], main_ratio=main_ratio,
+                                 everything=0, eval_images=len(real.images) - max(usable), family=nearest)
+            real_rows += [{**row, "seed": seed, "assigned_family": assigned["family"], "nearest_family": nearest,
+                           "refused": assigned["refused"], "margin": assigned["margin"]} for row in rows]
     group = ("arm", "shots", "ratio")
     result = {
         "tokenizer": str(folder), "target": target, "seeds": seeds, "steps": steps, "image_size": image_size,

@@ -36,9 +36,8 @@ def image_features(tokenizer: Any, images_B3HW: torch.Tensor, kind: FeatureKind 
     if kind not in ("pooled", "codes"):
         raise ValueError(f"feature kind {kind!r}: expected 'pooled' or 'codes'")
     rows = []
-    device = next(tokenizer.autoencoder.parameters()).device
     for chunk in images_B3HW.split(batch_size):
-        chunk = chunk.to(device)
+        chunk = chunk.to(tokenizer.device)
         if kind == "pooled":
             latents = tokenizer.autoencoder.encode(chunk * 2 - 1).double().flatten(2)
             rows.append(torch.cat([latents.mean(dim=2), latents.std(dim=2, correction=0)], dim=1))
@@ -159,9 +158,9 @@ def family_sensor_specs(host: Any, variants_per_family: int = 3, *, strength: fl
     (:func:`vqtouch.sensors.environment_variant`, seeds ``first_seed``, ``first_seed + 1``, ...)."""
     from vqtouch.sensors import environment_variant
 
-    specs = []
+    specs = []  # canonical JSON (sorted keys), as a clustering records its sources
     for name in host.registry("sensor_family").names():
-        specs.append(json.dumps({"name": name}))
+        specs.append(json.dumps({"name": name}, sort_keys=True))
         for seed in range(first_seed, first_seed + variants_per_family):
             variant = environment_variant(seed, strength).model_dump(mode="json")
             specs.append(json.dumps({"name": name, "variant": variant}, sort_keys=True))
@@ -305,15 +304,10 @@ class SensorFamilies:
         """The sensors (name, source, images) of ``family``."""
         return [sensor for sensor in self.summary["sensors"] if self.summary["sensor_family"][sensor["name"]] == family]
 
-    def prototype(self, tokenizer: Any, images_B3HW: torch.Tensor) -> torch.Tensor:
-        """The prototype of an unseen sensor's images, computed exactly as the members' were."""
-        summary = self.summary
-        return sensor_prototype(image_features(tokenizer, images_B3HW, summary["features"]), summary["refine_steps"],
-                                summary["keep"])
-
     def unseen(self, tokenizer: Any, name: str, images_B3HW: torch.Tensor,
                threshold: float | None = None) -> tuple[dict[str, Any], UnseenSensor]:
-        """Assign an unseen sensor's images: the assignment and the sensor as the plot shows it."""
+        """Assign an unseen sensor's images (its prototype computed exactly as the members' were):
+        the assignment and the sensor as the plot shows it."""
         features = image_features(tokenizer, images_B3HW, self.summary["features"])
         prototype = sensor_prototype(features, self.summary["refine_steps"], self.summary["keep"])
         assigned = self.assign(prototype, threshold)

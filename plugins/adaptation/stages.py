@@ -77,7 +77,7 @@ def target_spec(job: StageJob) -> str:
 
 def run_cluster_stage(job: StageJob) -> dict[str, Any]:
     """Group the section's sensors into families; assign and score the target sensor when there is one."""
-    from vqtouch.plugins.tokenizer.stages import reconstruct_all
+    from vqtouch.plugins.tokenizer.stages import experiment_metrics, reconstruct_all
 
     from .families import family_sensor_specs, fit_families, save_families, sensor_images
 
@@ -102,13 +102,9 @@ def run_cluster_stage(job: StageJob) -> dict[str, Any]:
         assigned, shown = families.unseen(tokenizer, sensor.name, sensor.images, section.threshold)
         plotted.append(shown)
         extra["assignments"] = {sensor.name: {"source": target, **assigned}}
-        reconstructions = reconstruct_all(tokenizer, sensor.images)
         result |= {"target": sensor.name, "target_family": "refused" if assigned["refused"] else assigned["family"],
-                   "margin": assigned["margin"]}
-        for item, metric in zip(config.metrics, job.assembly.build_slots(["metrics"]).get("metrics", [])):
-            metric.reset()
-            metric.update(reconstructions, sensor.images)
-            result[f"zero_shot_{item.name}"] = round(metric.compute(), 4)
+                   "margin": assigned["margin"],
+                   **experiment_metrics(job, reconstruct_all(tokenizer, sensor.images), sensor.images, "zero_shot_")}
     save_families(families, job.run.path / CLUSTER_FOLDER, job.host, extra, plotted)
     return {**result, "picture": f"{CLUSTER_FOLDER}/families.png"}
 

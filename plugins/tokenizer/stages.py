@@ -167,13 +167,20 @@ def run_reconstruct_stage(job: StageJob) -> dict[str, Any]:
                                "(SensorFamily.reference_frames) to reconstruct")
     reconstructions = reconstruct_all(tokenizer, frames)
     scores: dict[str, Any] = {"source": f"{len(frames)} real {sensor.sensor_id or sensor_config.name} frames",
-                              "checkpoint": folder.name}
-    for item, metric in zip(job.config.metrics, job.assembly.build_slots(["metrics"]).get("metrics", [])):
-        metric.reset()
-        metric.update(reconstructions, frames)
-        scores[item.name] = round(metric.compute(), 4)
+                              "checkpoint": folder.name, **experiment_metrics(job, reconstructions, frames)}
     save_pairs(frames, reconstructions, job.run.path / "real_frames.png")
     return {**scores, "picture": "real_frames.png"}
+
+
+def experiment_metrics(job: StageJob, predicted_B3HW: torch.Tensor, truth_B3HW: torch.Tensor,
+                       prefix: str = "") -> dict[str, float]:
+    """The experiment's ``metrics`` of ``predicted_B3HW`` against ``truth_B3HW``, by name (``prefix`` + name)."""
+    scores = {}
+    for item, metric in zip(job.config.metrics, job.assembly.build_slots(["metrics"]).get("metrics", [])):
+        metric.reset()
+        metric.update(predicted_B3HW, truth_B3HW)
+        scores[f"{prefix}{item.name}"] = round(metric.compute(), 4)
+    return scores
 
 
 @hookimpl

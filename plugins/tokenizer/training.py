@@ -73,6 +73,17 @@ class Tokenizer:
     autoencoder: Autoencoder
     quantizer: Quantizer
 
+    @property
+    def device(self) -> torch.device:
+        """The device the tokenizer's weights are on."""
+        return next(self.autoencoder.parameters()).device
+
+    def to(self, device: torch.device | str) -> Tokenizer:
+        """Both parts moved to ``device``."""
+        self.autoencoder.to(device)
+        self.quantizer.to(device)
+        return self
+
     def reconstruct(self, images_B3HW: torch.Tensor) -> tuple[torch.Tensor, Any]:
         """Images in [0, 1] -> reconstructions in [0, 1] (clamped) and the quantizer output."""
         output = self.quantizer(self.autoencoder.encode(images_B3HW * 2 - 1))
