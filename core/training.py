@@ -86,8 +86,10 @@ class TrainConfig(Section):
     weight_decay: float = Field(0.0, ge=0, le=1, strict=True, description="Decoupled weight decay (AdamW).")
     grad_clip: float | None = Field(1.0, gt=0, strict=True,
                                     description="Clip the gradient norm to this value; null disables.")
-    precision: Literal["fp32", "bf16"] = Field(
-        "fp32", description="Autocast precision of the networks; quantizer and diffusion maths stay fp32.")
+    precision: Literal["auto", "fp32", "bf16"] = Field(
+        "auto", description="Autocast precision of the networks (quantizer and diffusion maths stay fp32): fp32, "
+                            "bf16, or auto, the measured choice for the device the run trains on "
+                            "(AUTO_PRECISION: fp32 on CPU, bf16 on a CUDA GPU that supports it).")
     optimizer: Literal["adamw", "adam"] = Field("adamw", description="Optimizer of every trained module.")
     betas: tuple[float, float] = Field((0.9, 0.999), description="Adam betas, each in [0, 1).")
     ema_decay: float | None = Field(None, gt=0.0, lt=1.0, strict=True,
@@ -124,6 +126,23 @@ class TrainConfig(Section):
         if not all(0.0 <= beta < 1.0 for beta in value):
             raise _betas_error()
         return value
+
+
+#: What ``precision: auto`` trains in, per device type (others: fp32).  CPU: fp32, measured (docs/results.md,
+#: bench/tradeoff_tokenizer.py): bf16 autocast saved 17% per tokenizer step on the 2-core CPU but cost 1.4 dB
+#: PSNR at 150 steps, and bf16 inference there ran slower than fp32.  CUDA: bf16, the tensor-core precision,
+#: where ``torch.cuda.is_bf16_supported()``; not yet measured by this project (no GPU has been lent).
+AUTO_PRECISION = {"cpu": "fp32", "cuda": "bf16"}
+
+
+def resolve_precision(precision: str, device: torch.device) -> str:
+    """The precision (``fp32`` or ``bf16``) a run set to ``precision`` trains in on ``device``."""
+    if precision != "auto":
+        return precision
+    choice = AUTO_PRECISION.get(device.type, "fp32")
+    if choice == "bf16" and device.type == "cuda" and not torch.cuda.is_bf16_supported():
+        return "fp32"
+    return choice
 
 
 def _betas_error() -> PydanticCustomError:
@@ -335,6 +354,8 @@ class Trainer:
         #: Written as the "stage" of every metrics.jsonl line (the stage that trains).
         self.stage = stage
         self.dist = DistributedContext.from_environment(device)
+        #: The precision the networks run in: ``config.precision`` with ``auto`` resolved for ``device``.
+        self.precision = resolve_precision(config.precision, device)
         self.state = TrainerState()
         #: The step whose checkpoint folder is known complete (saved or resumed from), so an
         #: interrupt right after a save does not write it twice.
@@ -377,8 +398,8 @@ class Trainer:
                     weight_decay=self.config.weight_decay)
 
     def autocast(self) -> contextlib.AbstractContextManager:
-        """The autocast context of the configured precision (a no-op in fp32)."""
-        if self.config.precision == "bf16":
+        """The autocast context of the configured precision (a no-op in fp32; ``auto`` as :func:`resolve_precision`)."""
+        if self.precision == "bf16":
             return torch.autocast(device_type=self.device.type, dtype=torch.bfloat16)
         return contextlib.nullcontext()
 
@@ -487,7 +508,8 @@ class Trainer:
 
     def _run_steps(self, signals: _StopSignals) -> None:
         start = self.state.step
-        bar = progress(total=self.config.steps, initial=start, desc="training", unit="step") if self.dist.is_main \
+        bar = progress(total=self.config.steps, initial=start, desc=f"training ({self.precision})",
+                       unit="step") if self.dist.is_main \
             else None
         images_seen, tic = 0, time.perf_counter()
         try:

@@ -1,8 +1,8 @@
 """Deformable convolution: torchvision parity, identity at init, gradients, bounds and dtypes.
 
 torchvision is optional here: without an importable ``torchvision.ops`` only the tests of the
-torchvision backend and the parity checks against it skip; the default grid_sample backend is
-still tested in full.
+torchvision backend and the parity checks against it skip; the pure-PyTorch backends (gather,
+the default, and grid_sample) are still tested in full.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ def _import_torchvision_ops():
 torchvision_ops = _import_torchvision_ops()
 needs_torchvision = pytest.mark.skipif(
     torchvision_ops is None, reason="torchvision.ops is not importable: torchvision-backend test skipped "
-                                    "(the default grid_sample backend is tested without it)")
+                                    "(the pure-PyTorch backends are tested without it)")
 # Parametrisations over both backends: only the torchvision case carries the skip.
 BACKENDS = ["grid_sample", "gather", pytest.param("torchvision", marks=needs_torchvision)]
 FUNCTIONS = [pytest.param(deform_conv2d_grid_sample, id="grid_sample"),
@@ -426,4 +426,5 @@ def test_torchvision_backend_without_torchvision_fails_when_built(monkeypatch):
     with pytest.raises(ConfigError, match=r"deformable_backend 'torchvision' needs torchvision, which is not "
                                           r"installed: pip install torchvision"):
         DeformableConv2d(4, 4, 3, padding=1, backend="torchvision")
-    DeformableConv2d(4, 4, 3, padding=1, backend="grid_sample")  # the default needs nothing
+    DeformableConv2d(4, 4, 3, padding=1)  # the default (gather) needs nothing
+    DeformableConv2d(4, 4, 3, padding=1, backend="grid_sample")

@@ -70,6 +70,7 @@ class ToyTask:
             raise KeyboardInterrupt
         with trainer.autocast():
             prediction = self.modules["model"].encode(batch["tactile"]).view(-1)
+        self.prediction_dtype = prediction.dtype
         loss = (prediction.float() - batch["label"].float()).pow(2).mean()
         if step in self.poison_steps:
             loss = loss * float("nan")
@@ -282,6 +283,27 @@ def test_bf16_autocast_trains(host, tmp_path):
     trainer, task = make_trainer(host, tmp_path, steps=20, precision="bf16")
     trainer.fit()
     assert task.losses[-1] < task.losses[0] and all(torch.isfinite(torch.tensor(task.losses)))
+
+
+@pytest.mark.parametrize("precision, expected", [("auto", torch.float32), ("fp32", torch.float32),
+                                                  ("bf16", torch.bfloat16)])
+def test_precision_sets_the_networks_dtype_and_auto_trains_fp32_on_cpu(host, tmp_path, precision, expected):
+    """``auto`` (the default) runs the networks in fp32 on CPU, where bf16 measured slower to infer and worse."""
+    trainer, task = make_trainer(host, tmp_path, steps=2, **({} if precision == "auto" else {"precision": precision}))
+    trainer.fit()
+    assert task.prediction_dtype == expected
+
+
+def test_auto_precision_is_bf16_only_on_a_cuda_device_that_supports_it(monkeypatch):
+    from vqtouch.core.training import resolve_precision
+
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *args, **kwargs: True)
+    assert [resolve_precision("auto", torch.device(kind)) for kind in ("cpu", "cuda", "meta")] == \
+        ["fp32", "bf16", "fp32"]
+    assert resolve_precision("fp32", torch.device("cuda")) == "fp32"
+    assert resolve_precision("bf16", torch.device("cpu")) == "bf16"
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *args, **kwargs: False)
+    assert resolve_precision("auto", torch.device("cuda")) == "fp32"
 
 
 def test_batch_indices_cover_each_epoch_once_and_split_across_ranks():

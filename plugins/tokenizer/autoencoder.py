@@ -65,9 +65,10 @@ class DmVqganConfig(VqganConfig):
                     "side plus the middle blocks (10 deformable layers).  0 disables them (the ablation); at "
                     "most len(channel_multipliers) (every level); each level further up costs ~4x more on CPU.")
     deformable_backend: Literal["grid_sample", "gather", "torchvision"] = Field(
-        "grid_sample", description="Deformable convolution implementation, same maths: grid_sample (pure PyTorch), "
-                                   "gather (channels-last bilinear gather + matmul, pure PyTorch) or torchvision's "
-                                   "kernel (bench/bench_deformable.py times them).")
+        "gather", description="Deformable convolution implementation, same maths to 1e-5: gather (channels-last "
+                              "bilinear gather + one matmul, pure PyTorch; the fastest measured on CPU, "
+                              "bench/bench_dm_vqgan.py), grid_sample (pure PyTorch) or torchvision's kernel "
+                              "(bench/bench_deformable.py times the three layer by layer).")
     deformable_modulation: bool = Field(True, description="DCNv2 modulation mask (False: DCNv1).")
     max_offset: float = Field(4.0, gt=0.0, le=64.0, description="Offsets are bounded to max_offset * tanh(raw) pixels.")
     offset_lr_scale: float = Field(

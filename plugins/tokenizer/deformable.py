@@ -342,13 +342,13 @@ class DeformableConv2d(nn.Module):
             offsets and mask); the convolution weight itself is always dense.
         modulation: learn a DCNv2 mask (False: DCNv1).
         max_offset: bound on each offset component, in pixels of the input.
-        backend: ``"grid_sample"`` (pure PyTorch, default), ``"gather"`` (pure PyTorch, channels
-            last) or ``"torchvision"``.
+        backend: ``"gather"`` (pure PyTorch, channels last; the default, fastest on CPU in
+            ``bench/bench_dm_vqgan.py``), ``"grid_sample"`` (pure PyTorch) or ``"torchvision"``.
     """
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: IntPair = 3, stride: IntPair = 1,
                  padding: IntPair = 1, dilation: IntPair = 1, groups: int = 1, bias: bool = True,
-                 modulation: bool = True, max_offset: float = 4.0, backend: Backend = "grid_sample") -> None:
+                 modulation: bool = True, max_offset: float = 4.0, backend: Backend = "gather") -> None:
         super().__init__()
         if in_channels < 1 or out_channels < 1:
             raise ValueError(f"DeformableConv2d: channel counts must be positive, got in {in_channels}, "
@@ -365,7 +365,7 @@ class DeformableConv2d(nn.Module):
             # Fail when the model is built, not at its first forward pass deep inside training.
             raise ConfigError("deformable_backend 'torchvision' needs torchvision, which is not installed: "
                               "pip install torchvision (it comes with vqtouch[clip]), or use the default "
-                              "'grid_sample' backend (same maths, no extra package)")
+                              "'gather' backend (same maths, no extra package)")
         self.in_channels, self.out_channels = in_channels, out_channels
         self.kernel_size = _pair(kernel_size, "kernel_size")
         self.stride, self.padding = _pair(stride, "stride"), _pair(padding, "padding")
