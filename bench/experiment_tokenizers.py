@@ -23,7 +23,8 @@ from vqtouch.core.cli import main as vqtouch
 HELD_OUT = {"name": "procedural", "seed": 999, "num_samples": 200, "image_size": 64}
 
 
-def train_and_score(run: Path, overrides: list[str], metrics: str, image_size: int = 64) -> tuple[float, dict]:
+def train_and_score(run: Path, overrides: list[str], metrics: str, image_size: int | tuple[int, int] = 64
+                    ) -> tuple[float, dict]:
     """Train a tokenizer in ``run`` with ``--set`` overrides over the reconstruction scene, then
     score it on HELD_OUT rendered at ``image_size``; returns (training wall seconds, the evaluation record)."""
     tic = time.perf_counter()

@@ -21,6 +21,7 @@ from pydantic import Field
 from torch import nn
 
 from vqtouch.core import BuildContext, ConfigError, Conditioner, PluginConfig, hookimpl
+from vqtouch.core.image_size import ImageSize, image_hw
 from vqtouch.core.frozen import FrozenModule
 
 
@@ -41,12 +42,12 @@ class TactileCodesConditioner(Conditioner):
     """Source images (B, 3, S, S) in [0, 1] -> the frozen source tokenizer's codes (B, h, w) ->
     tokens (B, h*w, cond_dim): a code embedding plus a learned position embedding per cell."""
 
-    def __init__(self, tokenizer: object, sample_key: str, cond_dim: int, image_size: int) -> None:
+    def __init__(self, tokenizer: object, sample_key: str, cond_dim: int, image_size: ImageSize) -> None:
         """``tokenizer``: the source sensor's trained tokenizer (``encode_codes``; frozen here)."""
         tokenizer.autoencoder.eval().requires_grad_(False)
         tokenizer.quantizer.eval().requires_grad_(False)
         with torch.no_grad():
-            grid_hw = tuple(tokenizer.encode_codes(torch.zeros(1, 3, image_size, image_size)).shape[1:])
+            grid_hw = tuple(tokenizer.encode_codes(torch.zeros(1, 3, *image_hw(image_size))).shape[1:])
         super().__init__(cond_dim, grid_hw[0] * grid_hw[1])
         self.source = tokenizer
         self.sample_key = sample_key

@@ -19,6 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
 from .errors import ConfigError, DatasetError, unknown_name_message
+from .image_size import ImageSize, ImageSizeOption, image_hw, square_or_pair
 
 
 class BuildContext(BaseModel):
@@ -30,15 +31,17 @@ class BuildContext(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    image_size: int = Field(64, ge=8, le=4096, description="Side of the square tactile images in pixels.")
+    image_size: ImageSizeOption = Field(64, description="Size of the tactile images: S for S x S pixels, or "
+                                                        "(height, width).")
     channels: int = Field(3, ge=1, le=16, description="Image channels (3 for RGB tactile images).")
     num_classes: int = Field(0, ge=0, description="Number of labels in the dataset (0 when unlabelled).")
     cond_dim: int = Field(256, ge=1, description="Width of the condition tokens a conditioner must emit.")
     codebook_size: int = Field(0, ge=0, description="Codebook size of the tokenizer (0 when not yet known).")
     latent_dim: int = Field(0, ge=0, description="Channels of the autoencoder's latents, which the quantizer must "
                                                  "match (0 when not yet known).")
-    code_grid: int = Field(0, ge=0, description="Side of the tokenizer's square code grid, image_size / the "
-                                                "autoencoder's downsampling factor (0 when not yet known).")
+    code_grid: int | tuple[int, int] = Field(
+        0, description="The tokenizer's code grid, image_size / the autoencoder's downsampling factor: S for S x S, "
+                       "or (rows, columns); 0 when not yet known.")
 
 
 class ProvidesContext:
@@ -101,14 +104,14 @@ class Conditioner(nn.Module, abc.ABC):
                            f"(keys: {', '.join(sorted(batch))}); use a dataset that provides it")
         return batch[self.sample_key]
 
-    def parse_condition(self, value: Any, *, image_size: int, class_names: Sequence[str] = ()) -> Any:
+    def parse_condition(self, value: Any, *, image_size: ImageSize, class_names: Sequence[str] = ()) -> Any:
         """One sample's raw condition (what :meth:`condition_of` finds in one sample) from what a user
         gave, e.g. on ``vqtouch generate``'s command line; collate several with
         :func:`vqtouch.core.training.collate_samples` (``{sample_key: value}`` per sample).
 
         The default follows the sample keys of :class:`TactileDataset`: ``"tactile"``,
-        ``"tactile_source"`` and ``"visual"`` read an image file (a path; decoded, centre-cropped and resized to
-        ``image_size``, or a (3, S, S) tensor in [0, 1] as it is), ``"label"`` takes a class
+        ``"tactile_source"`` and ``"visual"`` read an image file (a path; decoded, centre-cropped to
+        ``image_size``'s aspect and resized to it, or a (3, H, W) tensor in [0, 1] as it is), ``"label"`` takes a class
         index or one of ``class_names``, ``"text"`` takes the text.  A conditioner that reads
         another key overrides this.  Raises ConfigError saying what was wrong.
         """
@@ -180,6 +183,12 @@ class SensorFamily(nn.Module, abc.ABC):
     def render(self, height_mm_BHW: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """Render (B, H, W) indentation depths in millimetres to RGB images (B, 3, H, W) in [0, 1]."""
 
+    def imaged_extent_mm(self, height: int, width: int) -> tuple[float, float]:
+        """(rows, columns) in mm of the gel area an H x W image covers.  The default is the square
+        field of view at every size (a non-square image then has non-square pixels); a family
+        whose imaged area has its own aspect (GelSight's ``view: full``, 240 x 320) overrides it."""
+        return self.field_of_view_mm, self.field_of_view_mm
+
     def reference_frames(self, height: int, width: int) -> torch.Tensor | None:
         """Real frames captured with the physical sensor this family models, as (N, 3, height, width)
         RGB in [0, 1] over the same imaged area as :meth:`render`, or None when the family ships none.
@@ -222,11 +231,12 @@ class Autoencoder(nn.Module, ProvidesContext, abc.ABC):
         """Restart any evaluation-time randomness (e.g. MAE masks) so evaluations repeat exactly."""
 
     def context_facts(self) -> dict[str, Any]:
-        """The latent width a quantizer must match and the side of the code grid a generator works on."""
+        """The latent width a quantizer must match and the code grid a generator works on."""
         facts: dict[str, Any] = {"latent_dim": self.latent_channels}
         spec = getattr(self, "vqtouch_spec", None)
         if spec is not None:
-            facts["code_grid"] = spec.context.image_size // self.downsample_factor
+            height, width = image_hw(spec.context.image_size)
+            facts["code_grid"] = square_or_pair(height // self.downsample_factor, width // self.downsample_factor)
         return facts
 
 
@@ -338,7 +348,7 @@ class Generator(nn.Module, abc.ABC):
     """Generates code grids conditioned on condition tokens (e.g. discrete diffusion).
 
     Built with the context's ``codebook_size`` and ``code_grid``; codes are integers in
-    [0, codebook_size) on a (code_grid, code_grid) grid.  Condition tokens come from the
+    [0, codebook_size) on an ``image_hw(code_grid)`` grid (rows, columns).  Condition tokens come from the
     experiment's conditioners (:class:`ConditionTokens`; rows marked null carry the learned
     "no condition", which classifier-free guidance contrasts with).
     """

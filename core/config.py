@@ -27,6 +27,7 @@ from pydantic import AfterValidator, BaseModel, Field, SerializeAsAny, Validatio
 from pydantic_core import PydanticCustomError
 
 from .errors import ConfigError, UnknownPluginError, format_validation_error, unknown_name_message
+from .image_size import ImageSizeOption
 from .plugin_config import PluginConfig, StrictModel
 
 @dataclass(frozen=True)
@@ -129,8 +130,9 @@ class DataConfig(Section):
                           "or the embedded procedural scenes, which render with the experiment's sensor.")
     # Strict: in lax mode `true` would validate as 1 (and `false` as val_fraction 0) or "16" as
     # 16, a config that runs but is not what was written.  Strict floats still take integers.
-    image_size: int = Field(64, ge=8, le=4096, strict=True,
-                            description="Side of the square images fed to the models, in pixels.")
+    image_size: ImageSizeOption = Field(
+        64, description="Size of the images fed to the models, in pixels: 64 for 64x64, or [height, width] such as "
+                        "[240, 320] for a sensor's native aspect (readers crop to that aspect, then resize).")
     batch_size: int = Field(16, ge=1, le=65536, strict=True,
                             description="Images per optimisation step (per process).")
     num_workers: int = Field(0, ge=0, le=256, strict=True,

@@ -20,6 +20,7 @@ from .checkpoint import load, save
 from .components import Metric, SensorFamily, TactileDataset
 from .config import ExperimentConfig, validate_experiment
 from .errors import VqtouchError
+from .image_size import ImageSize, image_hw
 from .images import image_grid, save_png
 from .progress import progress
 from .runs import RunDir
@@ -53,10 +54,13 @@ def _metric_sanity(metric: Metric, generator: torch.Generator) -> dict[str, floa
     return scores
 
 
-def _ball_presses(image_size: int, field_of_view_mm: float, radius_mm: float = 2.0) -> torch.Tensor:
-    """Height maps (mm) of a 2 mm ball pressed 0.2, 0.5 and 1.0 mm deep: a sensor-agnostic probe."""
-    axis = (torch.arange(image_size) + 0.5) / image_size * field_of_view_mm - field_of_view_mm / 2
-    ys, xs = torch.meshgrid(axis, axis, indexing="ij")
+def _ball_presses(image_size: ImageSize, sensor: SensorFamily, radius_mm: float = 2.0) -> torch.Tensor:
+    """Height maps (mm) of a 2 mm ball pressed 0.2, 0.5 and 1.0 mm deep at the centre of ``sensor``'s
+    imaged area: a sensor-agnostic probe."""
+    height, width = image_hw(image_size)
+    rows_mm, cols_mm = sensor.imaged_extent_mm(height, width)
+    ys, xs = torch.meshgrid((torch.arange(height) + 0.5) / height * rows_mm - rows_mm / 2,
+                            (torch.arange(width) + 0.5) / width * cols_mm - cols_mm / 2, indexing="ij")
     ball = (radius_mm**2 - xs**2 - ys**2).clamp_min(0).sqrt()
     return torch.stack([(ball - (radius_mm - depth)).clamp_min(0) for depth in (0.2, 0.5, 1.0)])
 
@@ -150,7 +154,7 @@ def run_demo(config: ExperimentConfig, host: Any, run: RunDir) -> dict[str, Any]
                                                   host)
             if isinstance(component, SensorFamily):
                 with torch.no_grad():
-                    presses = _ball_presses(config.data.image_size, component.field_of_view_mm)
+                    presses = _ball_presses(config.data.image_size, component)
                     images = component.render(presses, generator=generator)
                 record["render"] = str(save_png(image_grid(images), run.path / f"render_{slot}.png"))
             if isinstance(component, Metric):

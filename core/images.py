@@ -13,10 +13,10 @@ import torch
 
 from .checkpoint import atomic_write
 from .errors import DatasetError
+from .image_size import ImageSize, image_hw
 
-#: How an image is made square: see ``ImageLoader.crop``.
+#: How an image is brought to the requested aspect ratio: see ``ImageLoader.crop``.
 CropMode = Literal["center", "top", "stretch"]
-
 
 
 def image_grid(images_B3HW: torch.Tensor, columns: int | None = None, padding: int = 2) -> torch.Tensor:
@@ -60,43 +60,50 @@ def mode_problem(path: Path, mode: str, allow_greyscale: bool) -> str | None:
     return None
 
 
-def crop_box(width: int, height: int, mode: CropMode) -> tuple[float, float, float, float]:
-    """The region of a width x height image that becomes the square output."""
+def crop_box(width: int, height: int, mode: CropMode, aspect_hw: tuple[int, int] = (1, 1)
+             ) -> tuple[float, float, float, float]:
+    """The region (left, top, right, bottom) of a width x height image that becomes an output of
+    ``aspect_hw``'s aspect ratio: the largest such box, centred ("center") or at the top ("top"),
+    or the whole image ("stretch")."""
     if mode == "stretch":
         return (0.0, 0.0, float(width), float(height))
-    side = min(width, height)
-    left = (width - side) / 2
-    top = (height - side) / 2 if mode == "center" else 0.0
-    return (left, top, left + side, top + side)
+    out_h, out_w = aspect_hw
+    # The largest out_h:out_w box inside the image.
+    box_w, box_h = (float(width), width * out_h / out_w) if width * out_h <= height * out_w \
+        else (height * out_w / out_h, float(height))
+    left = (width - box_w) / 2
+    top = (height - box_h) / 2 if mode == "center" else 0.0
+    return (left, top, left + box_w, top + box_h)
 
 
 @dataclass(frozen=True)
 class ImageLoader:
-    """Decodes one image file into a float tensor (3, size, size) in [0, 1].
+    """Decodes one image file into a float tensor (3, H, W) in [0, 1], (H, W) = ``image_hw(size)``.
 
     Colour modes other than RGB are converted; RGBA is accepted only when fully opaque (the
     conversion is then lossless); greyscale is replicated into 3 channels only when
     ``allow_greyscale`` is set.  Every failure is a DatasetError naming the file.
     """
 
-    size: int
+    size: ImageSize
     crop: CropMode = "center"
     allow_greyscale: bool = False
 
     def load(self, path: Path) -> torch.Tensor:
-        """The image at ``path`` as a float32 tensor (3, size, size) in [0, 1]."""
+        """The image at ``path`` as a float32 tensor (3, H, W) in [0, 1]."""
         from PIL import Image
 
+        height, width = image_hw(self.size)
         try:
             with Image.open(path) as image:
                 # JPEG only: decode at a reduced scale that is still >= size (much faster, same result).
-                image.draft(None, (self.size, self.size))
+                image.draft(None, (width, height))
                 image.load()
                 rgb = self._as_rgb(image, path)
-                # One resampling pass over the crop box: the same as resizing the shorter side and
-                # cropping afterwards, without rounding twice.  Pillow's resize antialiases.
-                square = rgb.resize((self.size, self.size), Image.Resampling.BICUBIC,
-                                    box=crop_box(rgb.width, rgb.height, self.crop))
+                # One resampling pass over the crop box: the same as resizing and cropping
+                # afterwards, without rounding twice.  Pillow's resize antialiases.
+                square = rgb.resize((width, height), Image.Resampling.BICUBIC,
+                                    box=crop_box(rgb.width, rgb.height, self.crop, (height, width)))
         except DatasetError:
             raise
         except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:

@@ -54,6 +54,7 @@ from . import checkpoint
 from .components import (Autoencoder, BuildContext, Clusterer, Conditioner, ConditionTokens, Discriminator, Generator,
                          Metric, Quantizer, QuantizerOutput, Sampler, SensorFamily, TactileDataset)
 from .errors import MissingWeightsError, VqtouchError
+from .image_size import ImageSize, image_hw, size_text
 from .plugin_config import PluginConfig, literal_name_of
 
 __all__ = [
@@ -204,11 +205,15 @@ def check_registration(host: Any, kind: str, name: str) -> Any:
 
 # -- behaviour of each base class ----------------------------------------------------------------------
 
-def press_height_maps(batch: int, size: int, field_of_view_mm: float, depth_mm: float = 1.0) -> torch.Tensor:
-    """(batch, size, size) indentations in mm: a sphere pressed ``depth_mm`` deep, a little off-centre
-    and a little deeper in each row, drawn at the physical scale of ``field_of_view_mm``."""
-    axis = (torch.arange(size, dtype=torch.float32) + 0.5) / size * field_of_view_mm - field_of_view_mm / 2
-    ys, xs = torch.meshgrid(axis, axis, indexing="ij")
+def press_height_maps(batch: int, size: ImageSize, field_of_view_mm: float, depth_mm: float = 1.0) -> torch.Tensor:
+    """(batch, H, W) indentations in mm (``size`` S or (H, W)): a sphere pressed ``depth_mm`` deep, a
+    little off-centre and a little deeper in each row, drawn at the physical scale of
+    ``field_of_view_mm`` (the side of the square it covers, with square pixels along the shorter side)."""
+    height, width = image_hw(size)
+    rows_mm, cols_mm = (field_of_view_mm * side / min(height, width) for side in (height, width))
+    ys, xs = torch.meshgrid((torch.arange(height, dtype=torch.float32) + 0.5) / height * rows_mm - rows_mm / 2,
+                            (torch.arange(width, dtype=torch.float32) + 0.5) / width * cols_mm - cols_mm / 2,
+                            indexing="ij")
     radius = field_of_view_mm / 4
     maps = []
     for row in range(batch):
@@ -224,16 +229,16 @@ def check_sensor_family(sensor: SensorFamily, context: BuildContext | None = Non
     deterministically for a fixed generator, shows a contact, stays finite at extremes (flat, a deep
     sharp-edged press) and declares a sensible field of view, sensor id and reference frames."""
     context = context or DEFAULT_CONTEXT
-    size = context.image_size
+    height, width = image_hw(context.image_size)
     fov = sensor.field_of_view_mm
     _require(isinstance(fov, (int, float)) and math.isfinite(fov) and fov > 0, label,
              f"field_of_view_mm must be a positive number of mm, got {fov!r}")
     _require(isinstance(sensor.sensor_id, str), label, f"sensor_id must be a str, got {sensor.sensor_id!r}")
     sensor.eval()
-    press = press_height_maps(2, size, fov)
-    flat = torch.zeros(2, size, size)
-    deep = torch.zeros(2, size, size)
-    deep[:, size // 4: 3 * size // 4, size // 4: 3 * size // 4] = 50.0
+    press = press_height_maps(2, context.image_size, fov)
+    flat = torch.zeros(2, height, width)
+    deep = torch.zeros(2, height, width)
+    deep[:, height // 4: 3 * height // 4, width // 4: 3 * width // 4] = 50.0
     with torch.no_grad():
         rendered = {what: _call(label, f"render({what} height maps)",
                                 lambda h=heights: sensor.render(h, generator=_generator(0)))
@@ -242,9 +247,9 @@ def check_sensor_family(sensor: SensorFamily, context: BuildContext | None = Non
     for what, images in rendered.items():
         _require(isinstance(images, torch.Tensor), label, f"render({what}) returned {type(images).__name__}, "
                                                           "not a tensor")
-        _require(tuple(images.shape) == (2, 3, size, size), label,
-                 f"render of (2, {size}, {size}) {what} height maps returned shape {tuple(images.shape)}; "
-                 f"expected (2, 3, {size}, {size})")
+        _require(tuple(images.shape) == (2, 3, height, width), label,
+                 f"render of (2, {height}, {width}) {what} height maps returned shape {tuple(images.shape)}; "
+                 f"expected (2, 3, {height}, {width})")
         _require(images.dtype.is_floating_point, label, f"render({what}) returned dtype {images.dtype}")
         _require(bool(torch.isfinite(images).all()), label, f"render({what}) has NaN or Inf values")
         low, high = float(images.min()), float(images.max())
@@ -255,13 +260,18 @@ def check_sensor_family(sensor: SensorFamily, context: BuildContext | None = Non
              "torch.Generator().manual_seed(0) gave different images (draw noise from `generator`)")
     _require(float((rendered["pressed"] - rendered["flat"]).abs().max()) > 1e-3, label,
              "a 1 mm press renders the same image as no contact: the height map does not reach the image")
-    frames = _call(label, f"reference_frames({size}, {size})", lambda: sensor.reference_frames(size, size))
+    frames = _call(label, f"reference_frames({height}, {width})", lambda: sensor.reference_frames(height, width))
     if frames is not None:
-        _require(isinstance(frames, torch.Tensor) and frames.ndim == 4 and tuple(frames.shape[1:]) == (3, size, size),
-                 label, f"reference_frames({size}, {size}) must be None or (N, 3, {size}, {size}), got "
+        _require(isinstance(frames, torch.Tensor) and frames.ndim == 4
+                 and tuple(frames.shape[1:]) == (3, height, width),
+                 label, f"reference_frames({height}, {width}) must be None or (N, 3, {height}, {width}), got "
                         f"{tuple(getattr(frames, 'shape', ()))}")
         _require(bool(torch.isfinite(frames).all()) and float(frames.min()) >= 0 and float(frames.max()) <= 1,
                  label, "reference_frames has values outside [0, 1] or non-finite values")
+    extent = _call(label, f"imaged_extent_mm({height}, {width})", lambda: sensor.imaged_extent_mm(height, width))
+    _require(isinstance(extent, tuple) and len(extent) == 2
+             and all(isinstance(side, (int, float)) and math.isfinite(side) and side > 0 for side in extent), label,
+             f"imaged_extent_mm({height}, {width}) must be a (rows, columns) pair of positive mm, got {extent!r}")
 
 
 def example_condition(conditioner: Conditioner, batch: int, context: BuildContext | None = None) -> Any:
@@ -276,7 +286,7 @@ def example_condition(conditioner: Conditioner, batch: int, context: BuildContex
         return torch.arange(batch) % max(context.num_classes, 1)
     if key in ("tactile", "tactile_source", "visual"):
         channels = context.channels if key.startswith("tactile") else 3
-        return torch.rand(batch, channels, context.image_size, context.image_size, generator=_generator(1))
+        return torch.rand(batch, channels, *image_hw(context.image_size), generator=_generator(1))
     if key == "text":
         texts = ["a smooth sphere pressed into the gel", "a coarse woven fabric", "a sharp metal edge"]
         return [texts[i % len(texts)] for i in range(batch)]
@@ -347,8 +357,9 @@ def check_autoencoder(autoencoder: Autoencoder, context: BuildContext | None = N
     and back to (B, C, S, S); decode is a pure function of its input, ``reset_randomness`` makes an
     evaluation repeat exactly and ``context_facts`` reports the latent width."""
     context = context or DEFAULT_CONTEXT
-    factor, width, size = autoencoder.downsample_factor, autoencoder.latent_channels, context.image_size
-    _require(isinstance(factor, int) and factor >= 1 and size % factor == 0, label,
+    factor, width = autoencoder.downsample_factor, autoencoder.latent_channels
+    (rows, cols), size = image_hw(context.image_size), size_text(context.image_size)
+    _require(isinstance(factor, int) and factor >= 1 and rows % factor == 0 and cols % factor == 0, label,
              f"downsample_factor {factor!r} must be a positive int dividing the image size {size}")
     _require(isinstance(width, int) and width >= 1, label, f"latent_channels must be a positive int, got {width!r}")
     _require(autoencoder.context_facts().get("latent_dim") == width, label,
@@ -358,9 +369,9 @@ def check_autoencoder(autoencoder: Autoencoder, context: BuildContext | None = N
     with torch.no_grad():
         autoencoder.reset_randomness()
         latents = _call(label, "encode(images)", lambda: autoencoder.encode(images))
-        _require(tuple(latents.shape) == (2, width, size // factor, size // factor), label,
-                 f"encode of (2, {context.channels}, {size}, {size}) returned {tuple(latents.shape)}; expected "
-                 f"(2, {width}, {size // factor}, {size // factor})")
+        _require(tuple(latents.shape) == (2, width, rows // factor, cols // factor), label,
+                 f"encode of (2, {context.channels}, {rows}, {cols}) returned {tuple(latents.shape)}; expected "
+                 f"(2, {width}, {rows // factor}, {cols // factor})")
         _require(bool(torch.isfinite(latents).all()), label, "encode returned NaN or Inf latents")
         decoded = _call(label, "decode(latents)", lambda: autoencoder.decode(latents))
         _require(tuple(decoded.shape) == tuple(images.shape), label,
@@ -469,9 +480,10 @@ def check_generator(generator: Generator, context: BuildContext | None = None, *
     it samples (B, H, W) codes in [0, codebook_size) with and without guidance, and the same
     generators give the same codes."""
     context = context or DEFAULT_CONTEXT
-    size, grid = context.codebook_size, context.code_grid
-    _require(size >= 2 and grid >= 1, label, "check_generator needs a context with codebook_size >= 2 and code_grid")
-    codes_BHW = torch.randint(size, (3, grid, grid), generator=_generator(1))
+    size, grid_hw = context.codebook_size, image_hw(context.code_grid)
+    _require(size >= 2 and min(grid_hw) >= 1, label,
+             "check_generator needs a context with codebook_size >= 2 and code_grid")
+    codes_BHW = torch.randint(size, (3, *grid_hw), generator=_generator(1))
     generator.train()
     loss, scalars = _call(label, "training_loss", lambda: generator.training_loss(
         codes_BHW, _condition_tokens(3, context), generator=_generator(2)))
@@ -496,8 +508,9 @@ def check_generator(generator: Generator, context: BuildContext | None = None, *
         first = _call(label, f"sample (guidance {guidance})", lambda: generator.sample(
             condition, sampler, steps=1, null=null, guidance=guidance, generators=draws()))
         again = generator.sample(condition, sampler, steps=1, null=null, guidance=guidance, generators=draws())
-        _require(tuple(first.shape) == (2, grid, grid) and not first.dtype.is_floating_point, label,
-                 f"sample must return integer codes (2, {grid}, {grid}), got {first.dtype} {tuple(first.shape)}")
+        _require(tuple(first.shape) == (2, *grid_hw) and not first.dtype.is_floating_point, label,
+                 f"sample must return integer codes (2, {grid_hw[0]}, {grid_hw[1]}), got {first.dtype} "
+                 f"{tuple(first.shape)}")
         _require(bool(((first >= 0) & (first < size)).all()), label, f"sampled codes outside [0, {size})")
         _require(torch.equal(first, again), label, "the same generators gave different codes")
 
@@ -574,8 +587,7 @@ def check_metric(metric: Metric, context: BuildContext | None = None, *, label: 
     which way), returns a finite float, accumulates every ``update`` and forgets on ``reset``."""
     context = context or DEFAULT_CONTEXT
     _require(isinstance(metric.higher_is_better, bool), label, "higher_is_better must be a bool")
-    size = context.image_size
-    target = torch.rand(4, 3, size, size, generator=_generator(2))
+    target = torch.rand(4, 3, *image_hw(context.image_size), generator=_generator(2))
     noisy = (target + 0.2 * torch.randn(target.shape, generator=_generator(3))).clamp(0, 1)
 
     def score(*pairs: tuple[torch.Tensor, torch.Tensor]) -> float:
@@ -601,12 +613,12 @@ def check_metric(metric: Metric, context: BuildContext | None = None, *, label: 
     metric.reset()
 
 
-def check_dataset(dataset: TactileDataset, image_size: int | None = None, *, label: str = "dataset") -> None:
+def check_dataset(dataset: TactileDataset, image_size: ImageSize | None = None, *, label: str = "dataset") -> None:
     """A dataset is non-empty and every sample is a dict with the documented entries: ``tactile``
-    (3, S, S) float in [0, 1] (and an optional ``visual`` of the same shape), an int ``label`` in
+    (3, H, W) float in [0, 1] (and an optional ``visual`` of the same shape), an int ``label`` in
     [-1, num_classes), str ``text``, non-empty str ``sensor`` and ``id`` (further entries are
     allowed); reading a sample twice gives the same sample and ``context_facts`` reports the class
-    count.  ``image_size``: the S samples must have (None: any)."""
+    count.  ``image_size``: the S or (H, W) samples must have (None: any)."""
     length = _call(label, "len(dataset)", lambda: len(dataset))
     _require(isinstance(length, int) and length > 0, label, f"len(dataset) must be a positive int, got {length!r}")
     names = dataset.class_names
@@ -623,12 +635,13 @@ def check_dataset(dataset: TactileDataset, image_size: int | None = None, *, lab
                                      "visual is optional)")
         tactile = sample["tactile"]
         _require(isinstance(tactile, torch.Tensor) and tactile.dtype.is_floating_point and tactile.ndim == 3
-                 and tactile.shape[0] == 3 and tactile.shape[1] == tactile.shape[2], label,
-                 f"{where}: tactile must be a float tensor (3, S, S), got "
+                 and tactile.shape[0] == 3, label,
+                 f"{where}: tactile must be a float tensor (3, H, W), got "
                  f"{getattr(tactile, 'dtype', type(tactile).__name__)} {tuple(getattr(tactile, 'shape', ()))}")
         if image_size is not None:
-            _require(tactile.shape[-1] == image_size, label,
-                     f"{where}: tactile is {tactile.shape[-1]} px but the experiment's image size is {image_size}")
+            _require(tuple(tactile.shape[-2:]) == image_hw(image_size), label,
+                     f"{where}: tactile is {tactile.shape[-2]}x{tactile.shape[-1]} px but the experiment's image "
+                     f"size is {size_text(image_size)}")
         for key in ("tactile", *(k for k in OPTIONAL_SAMPLE_KEYS if k in sample)):
             image = sample[key]
             _require(isinstance(image, torch.Tensor) and tuple(image.shape) == tuple(tactile.shape), label,
@@ -751,7 +764,7 @@ def probe_outputs(component: nn.Module, context: BuildContext, *, condition: Any
         if isinstance(component, Clusterer):
             return _call(label, "predict", lambda: component.predict(_features()))
         if isinstance(component, Generator):
-            codes_BHW = torch.randint(context.codebook_size, (2, context.code_grid, context.code_grid),
+            codes_BHW = torch.randint(context.codebook_size, (2, *image_hw(context.code_grid)),
                                       generator=_generator(1))
             loss, _ = _call(label, "training_loss", lambda: component.training_loss(
                 codes_BHW, _condition_tokens(2, context), generator=_generator(2)))
@@ -793,8 +806,7 @@ def _generator(seed: int) -> torch.Generator:
 
 
 def _images(batch: int, context: BuildContext) -> torch.Tensor:
-    size = context.image_size
-    return torch.rand(batch, context.channels, size, size, generator=_generator(4)) * 2 - 1
+    return torch.rand(batch, context.channels, *image_hw(context.image_size), generator=_generator(4)) * 2 - 1
 
 
 def _latents(quantizer: Quantizer) -> torch.Tensor:

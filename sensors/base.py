@@ -74,8 +74,9 @@ class RenderedSensor(SensorFamily):
         self.gel_blur_mm = gel_blur_mm
 
     def pixel_size_mm(self, height: int, width: int) -> tuple[float, float]:
-        """Size of one output pixel (row, column) in mm for an H x W render of the field of view."""
-        return self.field_of_view_mm / height, self.field_of_view_mm / width
+        """Size of one output pixel (row, column) in mm for an H x W render of the imaged area."""
+        rows_mm, cols_mm = self.imaged_extent_mm(height, width)
+        return rows_mm / height, cols_mm / width
 
     @abc.abstractmethod
     def background(self, height: int, width: int, device: torch.device) -> torch.Tensor:

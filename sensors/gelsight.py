@@ -161,8 +161,9 @@ class GelSightSensor(RenderedSensor):
         self.register_buffer("table_K36", table_NN36.reshape(self.bins * self.bins, 3, 6), persistent=False)
         self._background_cache: dict[tuple[int, int, str], torch.Tensor] = {}
 
-    def pixel_size_mm(self, height: int, width: int) -> tuple[float, float]:
-        return (self.native_pixel_mm * self.crop_size[0] / height, self.native_pixel_mm * self.crop_size[1] / width)
+    def imaged_extent_mm(self, height: int, width: int) -> tuple[float, float]:
+        """The imaged crop of the real frame (``view``), in mm, whatever the render's size."""
+        return self.native_pixel_mm * self.crop_size[0], self.native_pixel_mm * self.crop_size[1]
 
     def _imaged_area(self, frames_N3HW: torch.Tensor, height: int, width: int) -> torch.Tensor:
         """Native-resolution frames cropped to the imaged area (``view``) and resized to height x width."""

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from vqtouch.core.image_size import ImageSize, image_hw
+
 Grid = tuple[torch.Tensor, torch.Tensor]  # (u, v) rotated/offset coordinates in mm, each (H, W)
 
 
@@ -186,15 +188,23 @@ class Contact:
         return f"{subject} in {material}, pressed {self.depth_mm:.2f} mm into the gel"
 
 
-def sample_contact(object_class: ObjectClass, class_index: int, generator: torch.Generator, size: int,
-                   field_of_view_mm: float, depth_range_mm: tuple[float, float] = (0.2, 1.0)) -> Contact:
-    """Draw one object of ``object_class`` at a random pose and press it into the gel."""
+def sample_contact(object_class: ObjectClass, class_index: int, generator: torch.Generator, size: ImageSize,
+                   field_of_view_mm: float | tuple[float, float],
+                   depth_range_mm: tuple[float, float] = (0.2, 1.0)) -> Contact:
+    """Draw one object of ``object_class`` at a random pose and press it into the gel.
+
+    ``size``: the height map's S (S x S) or (height, width); ``field_of_view_mm``: the side of the
+    square area it covers, or its (rows, columns) extent in mm (``SensorFamily.imaged_extent_mm``).
+    """
+    rows_mm, cols_mm = (field_of_view_mm, field_of_view_mm) if isinstance(field_of_view_mm, (int, float)) \
+        else field_of_view_mm
     angle = _uniform(generator, 0.0, 2 * math.pi)
-    offset = (_uniform(generator, -0.15, 0.15) * field_of_view_mm, _uniform(generator, -0.15, 0.15) * field_of_view_mm)
+    offset = (_uniform(generator, -0.15, 0.15) * cols_mm, _uniform(generator, -0.15, 0.15) * rows_mm)
     scale = _uniform(generator, 0.8, 1.25)
-    half = field_of_view_mm / 2
-    axis = (torch.arange(size, dtype=torch.float32) + 0.5) / size * field_of_view_mm - half
-    y, x = torch.meshgrid(axis, axis, indexing="ij")
+    height, width = image_hw(size)
+    axis_rows = (torch.arange(height, dtype=torch.float32) + 0.5) / height * rows_mm - rows_mm / 2
+    axis_cols = (torch.arange(width, dtype=torch.float32) + 0.5) / width * cols_mm - cols_mm / 2
+    y, x = torch.meshgrid(axis_rows, axis_cols, indexing="ij")
     x, y = x - offset[0], y - offset[1]
     u = x * math.cos(angle) + y * math.sin(angle)
     v = -x * math.sin(angle) + y * math.cos(angle)

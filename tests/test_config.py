@@ -324,7 +324,12 @@ def test_switching_a_list_slot_items_plugin_after_setting_its_options_is_refused
 @pytest.mark.parametrize("override, problem", [
     ("data.batch_size=true", "data.batch_size: Input should be a valid integer (got True)"),
     ("data.num_workers=true", "data.num_workers: Input should be a valid integer (got True)"),
-    ("data.image_size=true", "data.image_size: Input should be a valid integer (got True)"),
+    ("data.image_size=true", "data.image_size: expected a side S (S x S pixels) or [height, width] such as "
+                             "[240, 320], whole numbers of pixels from 8 to 4096 (got True)"),
+    ("data.image_size=[240]", "data.image_size: expected a side S (S x S pixels) or [height, width] such as "
+                              "[240, 320], whole numbers of pixels from 8 to 4096 (got [240])"),
+    ("data.image_size=[4, 320]", "data.image_size: expected a side S (S x S pixels) or [height, width] such as "
+                                 "[240, 320], whole numbers of pixels from 8 to 4096 (got [4, 320])"),
     ('data.batch_size="16"', "data.batch_size: Input should be a valid integer (got '16')"),
     ("data.val_fraction=false", "data.val_fraction: Input should be a valid number (got False)"),
 ])

@@ -296,6 +296,20 @@ def test_huge_raw_offsets_stay_bounded_and_finite(backend, modulation):
     assert torch.isfinite(layer.offset_conv.weight.grad).all()
 
 
+@pytest.mark.parametrize("deform_conv2d", PURE_FUNCTIONS)
+def test_nan_offsets_give_nan_where_they_sample_and_nothing_else(deform_conv2d):
+    """NaN weights must surface as NaN outputs (which the evaluation refuses with its own message),
+    never as an index error deep in a backend or as finite garbage."""
+    x = torch.randn(2, 4, HEIGHT, WIDTH)
+    offset = torch.zeros(2, 18, HEIGHT, WIDTH)
+    offset[0, :, 3, 5] = float("nan")  # one output pixel of the first image
+    out = deform_conv2d(x, offset, torch.randn(6, 4, 3, 3), padding=1, mask=torch.ones(2, 9, HEIGHT, WIDTH))
+    nan = torch.isnan(out)
+    assert nan[0, :, 3, 5].all()
+    nan[0, :, 3, 5] = False
+    assert not nan.any()
+
+
 def scrambled_layer(backend: str, modulation: bool = True) -> DeformableConv2d:
     """A layer whose offset branch is no longer at its zero init (as after some training)."""
     torch.manual_seed(7)

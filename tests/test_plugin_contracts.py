@@ -18,7 +18,7 @@ from torch import nn
 from vqtouch.core import (Conditioner, Metric, MissingWeightsError, PluginConfig, SensorFamily, TactileDataset,
                           hookimpl, load_plugins)
 from vqtouch.core.plugin_manager import KINDS_BY_NAME
-from vqtouch.core.testing import check_plugin, check_registration
+from vqtouch.core.testing import DEFAULT_CONTEXT, check_plugin, check_registration
 
 HOST = load_plugins(autoload=False)
 ENTRIES = [(entry.kind, entry.name) for entry in HOST.entries()]
@@ -117,6 +117,16 @@ def test_builtin_entry_has_a_versioned_source(kind, name):
 @pytest.mark.parametrize("kind, name", ENTRIES)
 def test_builtin_meets_its_contract(kind, name, tmp_path, tmp_path_factory):
     check_plugin(HOST, kind, name, tmp_dir=tmp_path, **builtin_case(kind, name, tmp_path_factory))
+
+
+#: A 2:3 context (rows, columns): every built-in must work at a sensor's native, non-square aspect.
+NATIVE_ASPECT = DEFAULT_CONTEXT.model_copy(update={"image_size": (32, 48), "code_grid": (8, 12)})
+
+
+@pytest.mark.parametrize("kind, name", ENTRIES)
+def test_builtin_meets_its_contract_at_a_native_aspect(kind, name, tmp_path, tmp_path_factory):
+    """The same contract with (32, 48) images and an (8, 12) code grid: shapes follow the aspect."""
+    check_plugin(HOST, kind, name, context=NATIVE_ASPECT, tmp_dir=tmp_path, **builtin_case(kind, name, tmp_path_factory))
 
 
 def test_every_registry_kind_is_checked():

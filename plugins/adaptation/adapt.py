@@ -26,6 +26,7 @@ from typing import Any
 import torch
 
 from vqtouch.core import ConfigError, DatasetError, VqtouchError
+from vqtouch.core.image_size import ImageSize, image_hw, size_text
 
 from .families import SensorFamilies, folder_of, save_families, sensor_images
 
@@ -109,7 +110,7 @@ def check_contacts(images_N3HW: torch.Tensor, name: str) -> None:
             "of objects pressed into the gel")
 
 
-def target_images(spec: str, host: Any, *, shots: int, eval_images: int, image_size: int,
+def target_images(spec: str, host: Any, *, shots: int, eval_images: int, image_size: ImageSize,
                   seed: int) -> tuple[str, str, torch.Tensor, torch.Tensor]:
     """(name, source, shots, held-out images) of the unseen sensor ``spec``.
 
@@ -139,7 +140,7 @@ def target_images(spec: str, host: Any, *, shots: int, eval_images: int, image_s
     return trained.name, trained.source, trained.images, held_out.images
 
 
-def family_images(families: SensorFamilies, family: int, host: Any, *, count: int, image_size: int, seed: int,
+def family_images(families: SensorFamilies, family: int, host: Any, *, count: int, image_size: ImageSize, seed: int,
                   exclude: str = "") -> tuple[torch.Tensor, list[str]]:
     """``count`` images of ``family``'s members (but the sensor whose source is ``exclude``), drawn
     evenly from every member: rendered scenes (new seeds) or a folder's images (repeated when it
@@ -193,9 +194,10 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
     device = resolve_device(run_config.device if run_config is not None else "auto")
     tokenizer.to(device)
     image_size = families.summary["image_size"]
-    if tokenizer.autoencoder.vqtouch_spec.context.image_size != image_size:
-        raise ConfigError(f"the families were fitted at {image_size} px, the tokenizer works at "
-                          f"{tokenizer.autoencoder.vqtouch_spec.context.image_size} px: cluster with this tokenizer")
+    if image_hw(tokenizer.autoencoder.vqtouch_spec.context.image_size) != image_hw(image_size):
+        raise ConfigError(f"the families were fitted at {size_text(image_size)} px, the tokenizer works at "
+                          f"{size_text(tokenizer.autoencoder.vqtouch_spec.context.image_size)} px: cluster with "
+                          "this tokenizer")
     section = run_config.tokenizer if run_config is not None else None
     loss = section.loss if section is not None else TokenizerLossConfig()
     train = (section.train if section is not None else TokenizerTrainConfig()).model_copy(update={
@@ -314,7 +316,7 @@ def _discriminator(folder: Path, loss: Any, host: Any) -> tuple[Any, str]:
     return load(path, host=host), "on (the run's discriminator, fine-tuned too)"
 
 
-def _real_frames(target: str, host: Any, image_size: int) -> torch.Tensor | None:
+def _real_frames(target: str, host: Any, image_size: ImageSize) -> torch.Tensor | None:
     """The captured frames of ``target`` when it is a registered sensor family (no variant: a
     variant's perturbations are not in the family's frames) that ships some."""
     if folder_of(target) is not None:
@@ -324,10 +326,10 @@ def _real_frames(target: str, host: Any, image_size: int) -> torch.Tensor | None
     variant = getattr(config, "variant", None)
     if variant is not None and not variant.is_identity():
         return None
-    return host.build("sensor_family", config).reference_frames(image_size, image_size)
+    return host.build("sensor_family", config).reference_frames(*image_hw(image_size))
 
 
-def default_families(tokenizer: Any, host: Any, *, image_size: int, tokenizer_source: str, exclude: str = "",
+def default_families(tokenizer: Any, host: Any, *, image_size: ImageSize, tokenizer_source: str, exclude: str = "",
                      clusterer: dict[str, Any] | None = None, variants_per_family: int = 3, images: int = 32,
                      seed: int = 0, report: Any = print) -> SensorFamilies:
     """Families of every registered sensor family and ``variants_per_family`` environmental

@@ -23,6 +23,7 @@ from pathlib import Path
 
 from vqtouch.core import ConfigError, hookimpl
 from vqtouch.core.cli import add_step_argument
+from vqtouch.core.image_size import image_size_argument
 
 
 def _positive(text: str) -> int:
@@ -54,7 +55,6 @@ def _non_negative(text: str) -> int:
 
 
 def _cluster_command(args: argparse.Namespace) -> int:
-    from vqtouch.core import RunDir
     from vqtouch.plugins.tokenizer.stages import load_tokenizer
 
     from .families import fit_families, save_families, sensor_images
@@ -63,8 +63,7 @@ def _cluster_command(args: argparse.Namespace) -> int:
     if len(args.sensors) < 2:
         raise ConfigError("--sensors: give at least two sensors to group into families")
     tokenizer, folder = load_tokenizer(args.run, host, step=args.step)
-    run = RunDir.open(args.run) if (Path(args.run) / "config.json").is_file() else None
-    image_size = args.image_size or (run.load_config(host).data.image_size if run else 64)
+    image_size = args.image_size or tokenizer.autoencoder.vqtouch_spec.context.image_size
     clusterer = host.build("clusterer", {"name": args.clusterer, "num_families": args.families})
     families = fit_families(tokenizer, args.sensors, host, clusterer=clusterer, images=args.images,
                             image_size=image_size, features=args.features, refine_steps=args.refine_steps,
@@ -162,7 +161,8 @@ def vqtouch_add_commands(subparsers):
                          help="sensors: registered family names, JSON with a variant, or folders of images")
     cluster.add_argument("--out", required=True, help="folder for cluster.json and families.png")
     cluster.add_argument("--images", type=_positive, default=64, help="images per sensor (default 64)")
-    cluster.add_argument("--image-size", type=_positive, help="image side (default: the run's data.image_size)")
+    cluster.add_argument("--image-size", type=image_size_argument,
+                         help="image size, S or HEIGHTxWIDTH (default: the tokenizer's)")
     cluster.add_argument("--features", choices=("pooled", "codes"), default="pooled",
                          help="pooled encoder features or code histograms (default pooled)")
     cluster.add_argument("--clusterer", default="kmeans", help="clusterer plugin (default kmeans)")

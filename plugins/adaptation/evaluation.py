@@ -31,6 +31,7 @@ from typing import Any
 import torch
 
 from vqtouch.core import ConfigError
+from vqtouch.core.image_size import ImageSize, image_hw, size_text
 
 from .adapt import AdaptSettings, ImageSet, adapt_tokenizer, family_images, reconstruction_scores, target_images
 from .families import SensorFamilies, family_sensor_specs, fit_families, sensor_images
@@ -45,7 +46,7 @@ def _family_of(source: str) -> str:
 
 
 def family_recovery(tokenizer: Any, host: Any, *, seed: int, variants: int, held_out_variants: int, images: int,
-                    image_size: int, clusterers: list[str], tokenizer_source: str) -> tuple[list[dict], SensorFamilies]:
+                    image_size: ImageSize, clusterers: list[str], tokenizer_source: str) -> tuple[list[dict], SensorFamilies]:
     """One seed of part 1: per clusterer, the families found, the ARI and the held-out assignment
     accuracy.  Returns the rows and the first clusterer's families (used by the transfer arms)."""
     from sklearn.metrics import adjusted_rand_score
@@ -222,11 +223,11 @@ def plot_transfer(transfer: list[dict[str, Any]], path: Path, title: str) -> Non
     figure.savefig(path)
 
 
-def real_frames_folder(host: Any, family: str, image_size: int, folder: Path) -> Path | None:
+def real_frames_folder(host: Any, family: str, image_size: ImageSize, folder: Path) -> Path | None:
     """Write the captured frames ``family`` ships (e.g. taxim's GelSight Mini) as PNGs; None without any."""
     from vqtouch.core.images import save_png
 
-    frames = host.build("sensor_family", family).reference_frames(image_size, image_size)
+    frames = host.build("sensor_family", family).reference_frames(*image_hw(image_size))
     if frames is None:
         return None
     folder.mkdir(parents=True, exist_ok=True)
@@ -307,7 +308,7 @@ def render_markdown(result: dict[str, Any]) -> str:
     """The tables of ``cross_sensor.json`` for people."""
     seeds = len(result["seeds"])
     lines = [f"# Cross-sensor evaluation ({seeds} seeds: mean ± std)", "",
-             f"Tokenizer `{result['tokenizer']}`, {result['image_size']} px; every arm fine-tunes "
+             f"Tokenizer `{result['tokenizer']}`, {size_text(result['image_size'])} px; every arm fine-tunes "
              f"{result['steps']} steps.  `ssim` to `codebook_usage`: held-out images of the unseen sensor; "
              "`family_ssim`, `family_psnr`: held-out images of the family's members (what an adaptation keeps of "
              "the family); `seconds`: fine-tuning wall time.", "", "## Family recovery", ""]

@@ -25,6 +25,7 @@ from typing import Any, Literal
 import torch
 
 from vqtouch.core import ConfigError, DatasetError
+from vqtouch.core.image_size import ImageSize
 
 FeatureKind = Literal["pooled", "codes"]
 
@@ -75,7 +76,7 @@ class SensorImages:
     images: torch.Tensor
 
 
-def sensor_images(spec: str, host: Any, *, count: int, image_size: int, seed: int = 0,
+def sensor_images(spec: str, host: Any, *, count: int, image_size: ImageSize, seed: int = 0,
                   files: list[Path] | None = None) -> SensorImages:
     """The images of ``spec``: a folder of image files (the first ``count`` in natural order, or
     the given ``files`` of it), or a registered sensor family given by name or JSON
@@ -321,7 +322,7 @@ class SensorFamilies:
 
 
 def fit_families(tokenizer: Any, specs: list[str], host: Any, *, clusterer: Any, images: int = 64,
-                 image_size: int = 64, features: FeatureKind = "pooled", refine_steps: int = 3, keep: float = 0.8,
+                 image_size: ImageSize = 64, features: FeatureKind = "pooled", refine_steps: int = 3, keep: float = 0.8,
                  seed: int = 0, tokenizer_source: str = "", report: Any = print) -> SensorFamilies:
     """Group the sensors ``specs`` (see :func:`sensor_images`) into families with ``clusterer``
     (a built clusterer plugin, fitted here) from ``tokenizer``'s ``features``; ``report`` is called

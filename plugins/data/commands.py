@@ -20,6 +20,7 @@ import torch
 from vqtouch.core import ConfigError, hookimpl
 from vqtouch.core.checkpoint import atomic_write
 from vqtouch.core.images import image_grid, save_png
+from vqtouch.core.image_size import image_size_argument
 
 from .export import export_samples
 
@@ -87,7 +88,8 @@ def vqtouch_add_commands(subparsers):
                         help='sensor family name, or JSON such as \'{"name": "gelsight", "variant": {"noise_std": 0.02}}\'')
     render.add_argument("--n", type=int, default=500, help="number of samples (default 500)")
     render.add_argument("--out", required=True, help="output folder")
-    render.add_argument("--image-size", type=int, default=64, help="image side in pixels (default 64)")
+    render.add_argument("--image-size", type=image_size_argument, default=64,
+                        help="image size: a side S, or HEIGHTxWIDTH such as 240x320 (default 64)")
     render.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
     render.add_argument("--classes", help="comma-separated object classes (default: all 12)")
     render.add_argument("--batch-size", type=int, default=32, help="samples rendered per step (default 32)")

@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from pydantic import Field, field_validator
 
 from vqtouch.core import BuildContext, PluginConfig, SensorFamily, TactileDataset, hookimpl
+from vqtouch.core.image_size import ImageSize, ImageSizeOption, image_hw, size_text
 from vqtouch.sensors.camera import render_visual
 from vqtouch.sensors.objects import CLASS_NAMES, OBJECT_CLASSES, sample_contact
 
@@ -27,14 +28,23 @@ class ProceduralDataConfig(PluginConfig):
 
     name: Literal["procedural"] = "procedural"
     num_samples: int = Field(1000, ge=1, le=10_000_000, description="Number of samples in the dataset.")
-    image_size: int | None = Field(None, ge=16, le=1024,
-                                   description="Side of the square tactile and visual images; null uses the "
-                                               "experiment's data.image_size.")
+    image_size: ImageSizeOption | None = Field(
+        None, description="Size of the tactile and visual images, 16 to 1024 px a side: S for S x S, or [height, "
+                          "width] (the sensor's imaged area is then resampled to that shape: set a sensor view of "
+                          "the same aspect, e.g. GelSight's view=full for [240, 320]); null uses the "
+                          "experiment's data.image_size.")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed; sample i depends only on (seed, i).")
     classes: list[str] = Field(default_factory=list,
                                description=f"Object classes to draw (empty: all). Known: {', '.join(CLASS_NAMES)}.")
     depth_mm: tuple[float, float] = Field((0.2, 1.0), description="Range of press depths in mm.")
     cache: bool = Field(True, description="Keep rendered samples in memory (as 8-bit images).")
+
+    @field_validator("image_size")
+    @classmethod
+    def _renderable_size(cls, size: ImageSize | None) -> ImageSize | None:
+        if size is not None and not all(16 <= side <= 1024 for side in image_hw(size)):
+            raise ValueError(f"image_size {size_text(size)}: each side must be 16 to 1024 px")
+        return size
 
     @field_validator("classes")
     @classmethod
@@ -65,15 +75,19 @@ def paired_render_generator(seed: int, index: int) -> torch.Generator:
     return torch.Generator().manual_seed(sample_generator(seed, index).initial_seed() ^ 0x5EED_0F7A_1C)
 
 
-def reframe_indentation(indentation_BHW: torch.Tensor, from_mm: float, to_mm: float) -> torch.Tensor:
-    """An indentation map (mm) imaged over a ``from_mm`` square, seen by a sensor imaging a centred
-    ``to_mm`` square at the same resolution: bilinear resampling, no contact outside the original
-    square.  The same physical press, framed by the other sensor's field of view."""
-    if from_mm == to_mm:
+def reframe_indentation(indentation_BHW: torch.Tensor, from_mm: float | tuple[float, float],
+                        to_mm: float | tuple[float, float]) -> torch.Tensor:
+    """An indentation map (mm) imaged over a ``from_mm`` area, seen by a sensor imaging a centred
+    ``to_mm`` area at the same resolution: bilinear resampling, no contact outside the original
+    area.  The same physical press, framed by the other sensor's field of view.  An area is a
+    square's side or a (rows, columns) extent in mm."""
+    from_rows, from_cols = (from_mm, from_mm) if isinstance(from_mm, (int, float)) else from_mm
+    to_rows, to_cols = (to_mm, to_mm) if isinstance(to_mm, (int, float)) else to_mm
+    if (from_rows, from_cols) == (to_rows, to_cols):
         return indentation_BHW
-    scale = to_mm / from_mm
     batch, height, width = indentation_BHW.shape
-    theta = torch.tensor([[scale, 0.0, 0.0], [0.0, scale, 0.0]]).expand(batch, 2, 3)
+    # affine_grid's x is the column axis.
+    theta = torch.tensor([[to_cols / from_cols, 0.0, 0.0], [0.0, to_rows / from_rows, 0.0]]).expand(batch, 2, 3)
     grid = F.affine_grid(theta, [batch, 1, height, width], align_corners=False)
     return F.grid_sample(indentation_BHW[:, None], grid, mode="bilinear", padding_mode="zeros",
                          align_corners=False)[:, 0]
@@ -102,14 +116,15 @@ class ProceduralTactileDataset(TactileDataset):
     def render_batch(self, indices: list[int]) -> dict[str, Any]:
         """Render several samples at once (the sensor runs batched): tensors stacked on dim 0."""
         indices = [self._check_index(i) for i in indices]
+        extent_mm = self.sensor.imaged_extent_mm(*image_hw(self.config.image_size))
         contacts, visuals, generators = [], [], []
         for index in indices:
             generator = sample_generator(self.config.seed, index)
             label = int(torch.randint(0, len(self._classes), (1,), generator=generator))
             object_class = self._classes[label]
-            contact = sample_contact(object_class, label, generator, self.config.image_size,
-                                     self.sensor.field_of_view_mm, self.config.depth_mm)
-            visuals.append(render_visual(object_class, contact, generator, self.sensor.field_of_view_mm))
+            contact = sample_contact(object_class, label, generator, self.config.image_size, extent_mm,
+                                     self.config.depth_mm)
+            visuals.append(render_visual(object_class, contact, generator, extent_mm))
             contacts.append(contact)
             generators.append(generator)
         with torch.no_grad():
@@ -122,8 +137,8 @@ class ProceduralTactileDataset(TactileDataset):
             with torch.no_grad():
                 batch["tactile_source"] = torch.cat([
                     self.paired_sensor.render(
-                        reframe_indentation(c.indentation_mm_HW[None], self.sensor.field_of_view_mm,
-                                            self.paired_sensor.field_of_view_mm),
+                        reframe_indentation(c.indentation_mm_HW[None], extent_mm,
+                                            self.paired_sensor.imaged_extent_mm(*image_hw(self.config.image_size))),
                         generator=paired_render_generator(self.config.seed, index))
                     for c, index in zip(contacts, indices)])
             batch["source_sensor"] = [_sensor_id(self.paired_sensor)] * len(indices)

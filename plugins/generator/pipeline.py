@@ -20,6 +20,7 @@ from typing import Any
 import torch
 
 from vqtouch.core import ConfigError, RunDir, VqtouchError, load, load_plugins, resolve_device
+from vqtouch.core.image_size import ImageSize
 from vqtouch.core.training import collate_samples
 
 from .stage import CHECKPOINT_FOLDER
@@ -36,7 +37,7 @@ class GenerationPipeline:
     sampler_name: str
     settings: dict[str, Any]
     class_names: list[str]
-    image_size: int
+    image_size: ImageSize
     host: Any
     device: torch.device
     checkpoint: Path

@@ -387,8 +387,7 @@ def no_contact_image(sensor: Any, truth_B3HW: torch.Tensor) -> torch.Tensor | No
     its condition and draws only the background would score.  None without a sensor."""
     if sensor is None:
         return None
-    size = truth_B3HW.shape[-1]
-    flat = sensor.render(torch.zeros(1, size, size), generator=torch.Generator().manual_seed(0))
+    flat = sensor.render(torch.zeros(1, *truth_B3HW.shape[-2:]), generator=torch.Generator().manual_seed(0))
     return flat.to(truth_B3HW).expand_as(truth_B3HW)
 
 

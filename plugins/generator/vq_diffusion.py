@@ -23,6 +23,7 @@ import torch
 from pydantic import Field, model_validator
 
 from vqtouch.core import BuildContext, ConditionTokens, ConfigError, Generator, PluginConfig, Sampler, hookimpl
+from vqtouch.core.image_size import ImageSize, image_hw
 
 from .denoiser import DiffusionTransformer
 from .diffusion import (MaskReplaceSchedule, TimestepSampler, guided_log_x0, log_predict_x0, masked_ce_loss, truncate,
@@ -64,13 +65,14 @@ class VQDiffusionConfig(PluginConfig):
 
 
 class VQDiffusion(Generator):
-    """A discrete-diffusion generator of (code_grid x code_grid) code grids (see the module docstring)."""
+    """A discrete-diffusion generator of code grids, ``image_hw(code_grid)`` (rows, columns) (see the module
+    docstring)."""
 
-    def __init__(self, config: VQDiffusionConfig, codebook_size: int, code_grid: int, cond_dim: int) -> None:
+    def __init__(self, config: VQDiffusionConfig, codebook_size: int, code_grid: ImageSize, cond_dim: int) -> None:
         super().__init__()
         self.config = config
         self.num_codes = codebook_size
-        self.grid_hw = (code_grid, code_grid)
+        self.grid_hw = image_hw(code_grid)
         try:
             self.schedule = MaskReplaceSchedule(codebook_size, config.num_steps, config.att_1, config.att_T,
                                                 config.ctt_1, config.ctt_T)
@@ -168,7 +170,7 @@ class VQDiffusion(Generator):
 
 def build_vq_diffusion(config: VQDiffusionConfig, context: BuildContext) -> VQDiffusion:
     """Factory: the codebook size and the code grid come from the experiment's tokenizer (the context)."""
-    if context.codebook_size < 2 or context.code_grid < 1:
+    if context.codebook_size < 2 or min(image_hw(context.code_grid)) < 1:
         raise ConfigError("generator 'vq_diffusion' needs the tokenizer's codebook size and code grid "
                           f"(the build context has codebook_size={context.codebook_size}, "
                           f"code_grid={context.code_grid}); build it after the tokenizer")

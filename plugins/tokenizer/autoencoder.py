@@ -21,6 +21,7 @@ from pydantic import Field, model_validator
 from torch import nn
 
 from vqtouch.core import Autoencoder, BuildContext, ConfigError, PluginConfig, hookimpl
+from vqtouch.core.image_size import ImageSize, image_hw, size_text
 
 from .blocks import (AttentionBlock, ConvFactory, Downsample, MultiScaleFusion, ResnetBlock, Upsample, group_norm,
                      plain_conv3x3)
@@ -36,8 +37,12 @@ class VqganConfig(PluginConfig):
         description="Channel multiplier per resolution level; f = 2 ** (levels - 1) (default f = 4).")
     num_res_blocks: int = Field(1, ge=1, le=8, description="ResNet blocks per level (the decoder uses one more).")
     attention_resolutions: tuple[int, ...] = Field(
-        (), description="Feature resolutions (in pixels) that get an attention block after each ResNet block.")
-    mid_attention: bool = Field(True, description="Attention in the middle (bottleneck) block, as in taming.")
+        (), description="Feature resolutions (the feature map's shorter side, in pixels) that get an attention "
+                        "block after each ResNet block.")
+    mid_attention: bool = Field(
+        True, description="Attention in the middle (bottleneck) block, as in taming: over (H/f) x (W/f) tokens, "
+                          "4096 at 256x256 px and f = 4, so its memory grows with the image area squared; false "
+                          "drops it (bench/resolution_tokenizer.py measures both).")
     z_channels: int = Field(64, ge=1, le=4096, description="Channels at the encoder output, before quant_conv.")
     embed_dim: int = Field(32, ge=1, le=4096, description="Latent channels fed to the quantizer (after quant_conv).")
     dropout: float = Field(0.0, ge=0.0, lt=1.0, description="Dropout inside ResNet blocks.")
@@ -92,14 +97,16 @@ class DmVqganConfig(VqganConfig):
 class VqganAutoencoder(Autoencoder):
     """VQGAN encoder + decoder (with optional DM-VQGAN parts)."""
 
-    def __init__(self, config: VqganConfig, image_size: int, channels: int = 3) -> None:
+    def __init__(self, config: VqganConfig, image_size: ImageSize, channels: int = 3) -> None:
         super().__init__()
         levels = len(config.channel_multipliers)
         self.downsample_factor = 2 ** (levels - 1)
         self.latent_channels = config.embed_dim
-        if image_size % self.downsample_factor:
-            raise ConfigError(f"image_size {image_size} is not divisible by the tokenizer's downsampling factor "
-                              f"f = {self.downsample_factor} (channel_multipliers {config.channel_multipliers})")
+        if any(side % self.downsample_factor for side in image_hw(image_size)):
+            raise ConfigError(f"image_size {size_text(image_size)} is not divisible by the tokenizer's downsampling "
+                              f"factor f = {self.downsample_factor} (channel_multipliers "
+                              f"{config.channel_multipliers}): use sides that are multiples of "
+                              f"{self.downsample_factor}")
         dm = config if isinstance(config, DmVqganConfig) else None
         self.offset_lr_scale = dm.offset_lr_scale if dm else 1.0
         groups = config.norm_groups
@@ -122,7 +129,7 @@ class VqganAutoencoder(Autoencoder):
         # -- encoder ------------------------------------------------------------------------
         self.enc_in = nn.Conv2d(channels, config.channels, 3, padding=1)
         self.enc_levels = nn.ModuleList()
-        resolution, width = image_size, config.channels
+        resolution, width = min(image_hw(image_size)), config.channels
         for level, out_width in enumerate(widths):
             stage = nn.Module()
             stage.blocks = nn.ModuleList()

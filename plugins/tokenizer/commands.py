@@ -19,6 +19,7 @@ from vqtouch.core.config import parse_override
 from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group, stage_failure,
                               training_run)
 from vqtouch.core.data import split_dataset
+from vqtouch.core.image_size import ImageSize, image_hw, size_text
 from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
 
 from .stages import load_tokenizer, printable, reconstruct_all, save_pairs
@@ -55,7 +56,7 @@ def _json_option(text: str, flag: str) -> Any:
         raise ConfigError(f"{flag} is not valid JSON: {exc}") from None
 
 
-def _images_dataset(images: str, options: list[str], image_size: int) -> dict[str, Any]:
+def _images_dataset(images: str, options: list[str], image_size: ImageSize) -> dict[str, Any]:
     """The dataset block of ``reconstruct --images``: a folder read by ``image_folder``, or a JSON
     block of any reader; ``--images-option KEY=VALUE`` sets that reader's options (those its
     errors name, e.g. ``lenient=true``).  The image size is always the tokenizer's."""
@@ -67,8 +68,9 @@ def _images_dataset(images: str, options: list[str], image_size: int) -> dict[st
             raise ConfigError(f"--images-option {option!r}: give one reader option as KEY=VALUE, e.g. lenient=true "
                               "(the reader is chosen by --images and the image size by the tokenizer)")
         block[path[0]] = value
-    if block.get("image_size", image_size) != image_size:
-        raise ConfigError(f"--images sets image_size={block['image_size']}, but the tokenizer works at {image_size} px; "
+    if "image_size" in block and block["image_size"] not in (image_size, list(image_hw(image_size))):
+        raise ConfigError(f"--images sets image_size={block['image_size']}, but the tokenizer works at "
+                          f"{size_text(image_size)} px; "
                           "drop image_size (images are resized to the tokenizer's size)")
     return {**block, "image_size": image_size}
 
@@ -79,7 +81,7 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     image_size = tokenizer.autoencoder.vqtouch_spec.context.image_size
     if args.real_frames:
         sensor_config = host.validate("sensor_family", _json_option(args.real_frames, "--real-frames"))
-        images = host.build("sensor_family", sensor_config).reference_frames(image_size, image_size)
+        images = host.build("sensor_family", sensor_config).reference_frames(*image_hw(image_size))
         if images is None:
             raise ConfigError(f"sensor family {sensor_config.name!r} declares no real reference frames; "
                               "reconstruct your own with --images FOLDER")

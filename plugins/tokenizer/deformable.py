@@ -259,7 +259,10 @@ def deform_conv2d_gather(input: torch.Tensor, offset: torch.Tensor, weight: torc
         if mask is not None:
             factor = factor * mask.to(sample_dtype).reshape(images, taps, out_h, out_w).permute(0, 2, 3, 1)
         image_start = (torch.arange(images, device=device) * (height * width)).view(1, images, 1, 1, 1)
-        index = (corner_y.clamp(0, height - 1) * width + corner_x.clamp(0, width - 1)).long() + image_start
+        # A NaN position (NaN weights) must give NaN, as grid_sample does, not an out-of-range index:
+        # its factor is already NaN, so any in-range row will do.
+        index = (corner_y.nan_to_num(0).clamp(0, height - 1) * width
+                 + corner_x.nan_to_num(0).clamp(0, width - 1)).long() + image_start
         rows = input.to(sample_dtype).reshape(images, group_channels, height * width).transpose(1, 2)
         rows = rows.reshape(images * height * width, group_channels)
         # One fused gather-and-weighted-sum: each tap is a "bag" of its four corner rows.

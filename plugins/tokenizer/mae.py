@@ -28,6 +28,7 @@ from pydantic import Field
 from torch import nn
 
 from vqtouch.core import Autoencoder, BuildContext, ConfigError, PluginConfig, Quantizer, QuantizerOutput, hookimpl
+from vqtouch.core.image_size import ImageSize, image_hw, size_text
 
 
 class MaeConfig(PluginConfig):
@@ -56,21 +57,23 @@ def _blocks(width: int, heads: int, depth: int) -> nn.TransformerEncoder:
 class MaskedAutoencoder(Autoencoder):
     """ViT masked autoencoder exposing the Autoencoder contract (see the module docstring)."""
 
-    def __init__(self, config: MaeConfig, image_size: int, channels: int = 3) -> None:
+    def __init__(self, config: MaeConfig, image_size: ImageSize, channels: int = 3) -> None:
         super().__init__()
-        if image_size % config.patch_size:
-            raise ConfigError(f"mae: image_size {image_size} is not divisible by patch_size {config.patch_size}")
+        if any(side % config.patch_size for side in image_hw(image_size)):
+            raise ConfigError(f"mae: image_size {size_text(image_size)} is not divisible by patch_size "
+                              f"{config.patch_size}")
         if config.width % config.heads or config.decoder_width % config.heads:
             raise ConfigError(f"mae: heads {config.heads} must divide width {config.width} and decoder_width "
                               f"{config.decoder_width}")
         self.config = config
         self.channels = channels
-        self.grid = image_size // config.patch_size
+        #: Patch rows and columns.
+        self.grid_hw = tuple(side // config.patch_size for side in image_hw(image_size))
         self.downsample_factor = config.patch_size
         patch_dim = channels * config.patch_size**2
         # Latent channels: decoder tokens | visible flag | visible pixels (only when pasting them back).
         self.latent_channels = config.decoder_width + 1 + (patch_dim if config.paste_visible else 0)
-        tokens = self.grid * self.grid
+        tokens = self.grid_hw[0] * self.grid_hw[1]
         self.embed = nn.Linear(patch_dim, config.width)
         self.position_LD = nn.Parameter(torch.randn(tokens, config.width) * 0.02)
         self.encoder = _blocks(config.width, config.heads, config.depth)
@@ -85,18 +88,18 @@ class MaskedAutoencoder(Autoencoder):
 
     def patchify(self, images_BCHW: torch.Tensor) -> torch.Tensor:
         """(B, C, H, W) -> (B, L, C*p*p) in row-major patch order."""
-        batch, p, g = images_BCHW.shape[0], self.config.patch_size, self.grid
-        patches = images_BCHW.reshape(batch, self.channels, g, p, g, p).permute(0, 2, 4, 1, 3, 5)
-        return patches.reshape(batch, g * g, self.channels * p * p)
+        batch, p, (rows, cols) = images_BCHW.shape[0], self.config.patch_size, self.grid_hw
+        patches = images_BCHW.reshape(batch, self.channels, rows, p, cols, p).permute(0, 2, 4, 1, 3, 5)
+        return patches.reshape(batch, rows * cols, self.channels * p * p)
 
     def unpatchify(self, patches_BLP: torch.Tensor) -> torch.Tensor:
         """(B, L, C*p*p) -> (B, C, H, W)."""
-        batch, p, g = patches_BLP.shape[0], self.config.patch_size, self.grid
-        images = patches_BLP.reshape(batch, g, g, self.channels, p, p).permute(0, 3, 1, 4, 2, 5)
-        return images.reshape(batch, self.channels, g * p, g * p)
+        batch, p, (rows, cols) = patches_BLP.shape[0], self.config.patch_size, self.grid_hw
+        images = patches_BLP.reshape(batch, rows, cols, self.channels, p, p).permute(0, 3, 1, 4, 2, 5)
+        return images.reshape(batch, self.channels, rows * p, cols * p)
 
     def _visible_mask(self, batch: int, device: torch.device) -> torch.Tensor:
-        tokens = self.grid * self.grid
+        tokens = self.grid_hw[0] * self.grid_hw[1]
         keep = max(1, round(tokens * (1 - self.config.mask_ratio)))
         generator = None
         if not self.training:  # repeatable evaluation masks
@@ -108,17 +111,17 @@ class MaskedAutoencoder(Autoencoder):
         return visible_BL
 
     def encode(self, images_BCHW: torch.Tensor) -> torch.Tensor:
-        if images_BCHW.ndim != 4 or images_BCHW.shape[1] != self.channels or \
-                images_BCHW.shape[-1] != self.grid * self.config.patch_size:
-            raise ValueError(f"mae expects images (B, {self.channels}, {self.grid * self.config.patch_size}, "
-                             f"{self.grid * self.config.patch_size}), got {tuple(images_BCHW.shape)}")
+        height, width = (side * self.config.patch_size for side in self.grid_hw)
+        if images_BCHW.ndim != 4 or tuple(images_BCHW.shape[1:]) != (self.channels, height, width):
+            raise ValueError(f"mae expects images (B, {self.channels}, {height}, {width}), "
+                             f"got {tuple(images_BCHW.shape)}")
         batch = images_BCHW.shape[0]
         visible_BL = self._visible_mask(batch, images_BCHW.device)
         tokens_BLD = self.embed(self.patchify(images_BCHW)) + self.position_LD
         keep = int(visible_BL[0].sum())
         visible_tokens = tokens_BLD[visible_BL].view(batch, keep, -1)
         encoded = self.to_decoder(self.encoder_norm(self.encoder(visible_tokens)))
-        grid_BLD = self.mask_token_D.to(encoded.dtype).expand(batch, self.grid * self.grid, -1).clone()
+        grid_BLD = self.mask_token_D.to(encoded.dtype).expand(batch, self.grid_hw[0] * self.grid_hw[1], -1).clone()
         grid_BLD[visible_BL] = encoded.reshape(-1, encoded.shape[-1])
         # One dtype for every channel, wide enough for the tokens (bf16 under autocast) and the pixels
         # exactly: the identity quantizer and decode read them back unchanged.
@@ -128,10 +131,10 @@ class MaskedAutoencoder(Autoencoder):
             pixels_BLP = self.patchify(images_BCHW.detach()).to(dtype)
             parts.append(torch.where(visible_BL[..., None], pixels_BLP, torch.zeros((), dtype=dtype,
                                                                                  device=pixels_BLP.device)))
-        return torch.cat(parts, dim=-1).transpose(1, 2).reshape(batch, -1, self.grid, self.grid)
+        return torch.cat(parts, dim=-1).transpose(1, 2).reshape(batch, -1, *self.grid_hw)
 
     def _check_latents(self, latents_BDhw: torch.Tensor) -> None:
-        expected = (self.latent_channels, self.grid, self.grid)
+        expected = (self.latent_channels, *self.grid_hw)
         if latents_BDhw.ndim != 4 or tuple(latents_BDhw.shape[1:]) != expected:
             raise ValueError(f"mae expects latents (B, {', '.join(map(str, expected))}) as encode returns them "
                              f"(tokens | visible flag | visible pixels), got {tuple(latents_BDhw.shape)}")

@@ -17,6 +17,7 @@ import torch
 from vqtouch.core import RunDir, StageJob, StageUnavailable, hookimpl, load, resolve_device
 from vqtouch.core.data import split_dataset
 from vqtouch.core.errors import NothingToEvaluateError
+from vqtouch.core.image_size import image_hw
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.core.training import Trainer
@@ -161,7 +162,7 @@ def run_reconstruct_stage(job: StageJob) -> dict[str, Any]:
     sensor_config = job.assembly.sensor_config("source")
     sensor = job.assembly.sensor("source")
     image_size = tokenizer.autoencoder.vqtouch_spec.context.image_size
-    frames = sensor.reference_frames(image_size, image_size)
+    frames = sensor.reference_frames(*image_hw(image_size))
     if frames is None:
         raise StageUnavailable(f"sensor family {sensor_config.name!r} declares no real reference frames "
                                "(SensorFamily.reference_frames) to reconstruct")

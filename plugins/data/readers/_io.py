@@ -46,6 +46,7 @@ from pydantic import Field
 
 from vqtouch.core import DatasetError, PluginConfig, TactileDataset
 from vqtouch.core.data import user_cache_folder
+from vqtouch.core.image_size import ImageSizeOption
 from vqtouch.core.errors import VqtouchWarning
 from vqtouch.core.images import CropMode, ImageLoader, crop_box, mode_problem  # noqa: F401 - re-exported
 from vqtouch.core.progress import progress
@@ -78,12 +79,13 @@ class ReaderConfig(PluginConfig):
 
     root: str = Field("", description="Dataset folder (see the reader's layout). Required: building fails "
                                       "naming it when it is empty or missing.")
-    image_size: int | None = Field(None, ge=8, le=4096,
-                                   description="Side S of the square (3, S, S) images returned, in pixels; null "
-                                               "uses the experiment's data.image_size.")
-    crop: CropMode = Field("center", description="How an image is made square: 'center' resizes the shorter side "
-                                                 "to image_size and keeps the middle, 'top' keeps the top instead, "
-                                                 "'stretch' resizes the whole image, ignoring the aspect ratio.")
+    image_size: ImageSizeOption | None = Field(
+        None, description="Size of the images returned, in pixels: S for (3, S, S), or [height, width] such as "
+                          "[240, 320] for a sensor's native 3:4 frames; null uses the experiment's data.image_size.")
+    crop: CropMode = Field("center", description="How an image is brought to image_size's aspect: 'center' keeps the "
+                                                 "largest centred region of that aspect and resizes it, 'top' keeps "
+                                                 "the top instead, 'stretch' resizes the whole image, ignoring the "
+                                                 "aspect ratio.")
     lenient: bool = Field(False, description="Skip bad samples (missing or corrupt files, bad labels, broken pairs) "
                                              "with one warning that counts them, instead of failing. Decodes every "
                                              "image once at construction to find corrupt ones (slow on large sets); "
