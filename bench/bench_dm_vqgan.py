@@ -3,13 +3,14 @@
 Run:  OMP_NUM_THREADS=2 .venv/bin/python bench/bench_dm_vqgan.py [--size 64] [--rounds 15] [--device cpu]
 
 - The machine's fp32 peaks: the best of several 2048 x 2048 matrix products, and of a 3x3
-  128-channel convolution, in GFLOP/s (on this 2-core CPU the convolution library outruns the
-  matrix product, so "% of peak" divides by the larger of the two).
-- Every contender (VQGAN, DM-VQGAN with each pure-PyTorch deformable backend) is built once in
+  128-channel convolution forward, in GFLOP/s; each contender's share is given of both (on some
+  CPUs the convolution library outruns the matrix product, and the convolution share is the stricter).
+- Every contender (VQGAN, DM-VQGAN with each pure-PyTorch deformable backend, and both at
+  taming-transformers' ImageNet f16 configuration, ``TAMING_F16``) is built once in
   this process; each round times one training step of every contender, in a rotated order, so
   a change of the machine's load hits all of them alike.  Reported: the median step time, the
-  median of the per-round ratios to VQGAN (paired), and the share of the matmul peak = the
-  step's matmul/convolution FLOPs (forward and backward, counted by
+  median of the per-round ratios to VQGAN at the same configuration (paired), and the share of
+  each peak = the step's matmul/convolution FLOPs (forward and backward, counted by
   ``torch.utils.flop_counter``; the deformable gathers count nothing) / the median step time /
   the peak.
 - Peak memory: each contender trains a few steps in a fresh interpreter; its peak RSS (CPU) or
@@ -28,9 +29,15 @@ import time
 
 import torch
 
+#: taming-transformers' ImageNet VQGAN (vqgan_imagenet_f16_1024: ch 128, ch_mult 1,1,2,2,4, 2 ResNet blocks,
+#: attention at 16 px, z and embed 256); vqtouch's VQGAN has its parameter count at this config.
+TAMING_F16 = {"channels": 128, "channel_multipliers": [1, 1, 2, 2, 4], "num_res_blocks": 2,
+              "attention_resolutions": [16], "z_channels": 256, "embed_dim": 256}
 CONTENDERS = {"vqgan": {"name": "vqgan"},
               "dm_vqgan (grid_sample)": {"name": "dm_vqgan", "deformable_backend": "grid_sample"},
-              "dm_vqgan (gather)": {"name": "dm_vqgan", "deformable_backend": "gather"}}
+              "dm_vqgan (gather)": {"name": "dm_vqgan", "deformable_backend": "gather"},
+              "vqgan, taming f16": {"name": "vqgan", **TAMING_F16},
+              "dm_vqgan (gather), taming f16": {"name": "dm_vqgan", "deformable_backend": "gather", **TAMING_F16}}
 
 MEMORY_WORKER = r"""
 import json, sys
@@ -64,7 +71,7 @@ def build(config: dict, size: int, batch: int, channels: int, device: torch.devi
     torch.manual_seed(0)
     host = load_plugins(autoload=False)
     context = BuildContext(image_size=size)
-    encoder = host.build("autoencoder", {**config, "channels": channels}, context).to(device)
+    encoder = host.build("autoencoder", {"channels": channels, **config}, context).to(device)
     quantizer = host.build("quantizer", {"name": "vq", "codebook_size": 512},
                            context.model_copy(update={"latent_dim": encoder.latent_channels})).to(device)
     optimizer = torch.optim.AdamW(list(encoder.parameters()) + list(quantizer.parameters()), lr=1e-4)
@@ -133,14 +140,17 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=8)
     parser.add_argument("--channels", type=int, default=64, help="base channels (the scene's default 64)")
     parser.add_argument("--rounds", type=int, default=15, help="interleaved timing rounds (default 15)")
+    parser.add_argument("--no-taming", action="store_true", help="leave out the two taming-f16 contenders")
     args = parser.parse_args()
+    if args.no_taming:
+        for label in [label for label in CONTENDERS if "taming" in label]:
+            del CONTENDERS[label]
     device = torch.device(args.device)
     matmul_peak, conv_peak = matmul_peak_gflops(device), conv_peak_gflops(device)
-    peak = max(matmul_peak, conv_peak)
     where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu, {torch.get_num_threads()} threads"
     print(f"torch {torch.__version__}, {where}; {args.size} px, batch {args.batch}, base channels {args.channels}")
     print(f"fp32 peaks: matmul {matmul_peak:.1f} GFLOP/s (best 2048x2048 product), 3x3 conv {conv_peak:.1f} GFLOP/s "
-          f"(128 ch, 32 px); '% of peak' uses the larger")
+          f"(128 ch, 32 px, forward)")
     steps = {label: train_step(*build(config, args.size, args.batch, args.channels, device))
              for label, config in CONTENDERS.items()}
     flops = {label: counted_flops(step) for label, step in steps.items()}
@@ -157,21 +167,22 @@ def main() -> None:
             _sync(device)
             times[label].append(time.perf_counter() - tic)
     bench_folder = str(__import__("pathlib").Path(__file__).resolve().parent)
-    header = (f"{'contender':24s} {'step ms':>8s} {'x VQGAN':>8s} {'GFLOP':>7s} {'% of peak':>9s} "
+    header = (f"{'contender':30s} {'step ms':>8s} {'x VQGAN':>8s} {'GFLOP':>7s} {'% matmul':>8s} {'% conv':>7s} "
               f"{'peak MB':>8s} {'import torch MB':>15s}")
     print(header)
     print("-" * len(header))
     for label in labels:
         median = statistics.median(times[label])
-        paired = statistics.median(t / v for t, v in zip(times[label], times["vqgan"]))
+        baseline = "vqgan, taming f16" if "taming" in label else "vqgan"  # VQGAN at the same configuration
+        paired = statistics.median(t / v for t, v in zip(times[label], times[baseline]))
         memory = json.loads(subprocess.run(
             [sys.executable, "-c", MEMORY_WORKER, json.dumps({
                 "bench": bench_folder, "config": CONTENDERS[label], "size": args.size, "batch": args.batch,
                 "channels": args.channels, "device": args.device})],
             capture_output=True, text=True, check=True).stdout.strip().splitlines()[-1])
-        share = flops[label] / median / 1e9 / peak
-        print(f"{label:24s} {median * 1e3:8.1f} {paired:8.2f} {flops[label] / 1e9:7.2f} {share:9.1%} "
-              f"{memory['peak_mb']:8.0f} {memory['import_torch_mb']:15.0f}")
+        gflops = flops[label] / median / 1e9
+        print(f"{label:30s} {median * 1e3:8.1f} {paired:8.2f} {flops[label] / 1e9:7.2f} {gflops / matmul_peak:8.1%} "
+              f"{gflops / conv_peak:7.1%} {memory['peak_mb']:8.0f} {memory['import_torch_mb']:15.0f}")
 
 
 if __name__ == "__main__":

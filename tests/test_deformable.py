@@ -17,8 +17,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from vqtouch.plugins.tokenizer.deformable import (DeformableConv2d, deform_conv2d_gather, deform_conv2d_grid_sample,
-                                              deform_conv2d_torchvision)
+from vqtouch.plugins.tokenizer.deformable import (DeformableConv2d, bilinear_taps, deform_conv2d_gather,
+                                                  deform_conv2d_grid_sample, deform_conv2d_torchvision)
 
 
 
@@ -243,6 +243,27 @@ def test_backends_agree_on_gradients(with_mask, stride, padding, dilation):
         gradients.append([t.grad for t in leaves] + ([leaf_mask.grad] if with_mask else []))
     for ours, reference in zip(*gradients):
         torch.testing.assert_close(ours, reference, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_bilinear_taps_matches_an_indexing_reference(dtype):
+    """The gather under the gather backend, values and both gradients, against plain indexing and
+    autograd: repeated rows inside a bag, rows read by many bags and rows nobody reads (gradient 0)."""
+    generator = torch.Generator().manual_seed(3)
+    rows = torch.randn(10, 5, generator=generator, dtype=dtype)
+    index = torch.randint(0, 7, (13, 4), generator=generator)  # rows 7-9 are never read
+    index[0] = torch.tensor([2, 2, 2, 5])
+    factor = torch.randn(13, 4, generator=generator, dtype=dtype)
+    upstream = torch.randn(13, 5, generator=generator, dtype=dtype)
+    results = []
+    for function in (bilinear_taps, lambda r, i, f: (r[i] * f[..., None]).sum(1)):
+        leaf_rows, leaf_factor = rows.clone().requires_grad_(), factor.clone().requires_grad_()
+        out = function(leaf_rows, index, leaf_factor)
+        (out * upstream).sum().backward()
+        results.append((out, leaf_rows.grad, leaf_factor.grad))
+    for ours, reference in zip(*results):
+        torch.testing.assert_close(ours, reference)
+    assert not results[0][1][7:].any()
 
 
 @pytest.mark.parametrize("kernel,stride,padding,dilation", [(3, 1, 1, 1), (3, 2, 0, 2), (1, 1, 0, 1), (3, 1, 2, 1)])

@@ -40,7 +40,7 @@ from torch import nn
 
 from vqtouch.core import ConfigError
 
-__all__ = ["DeformableConv2d", "deform_conv2d_gather", "deform_conv2d_grid_sample", "deform_conv2d_torchvision"]
+__all__ = ["DeformableConv2d", "bilinear_taps", "deform_conv2d_gather", "deform_conv2d_grid_sample", "deform_conv2d_torchvision"]
 
 IntPair = int | tuple[int, int]
 Backend = Literal["grid_sample", "gather", "torchvision"]
@@ -214,6 +214,49 @@ def deform_conv2d_grid_sample(input: torch.Tensor, offset: torch.Tensor, weight:
     return out_BOHW.to(result_dtype)
 
 
+class _RowGradient(torch.autograd.Function):
+    """Identity on the gathered taps whose backward gives the gradient of the gathered rows.
+
+    ``F.embedding_bag``'s own backward for its table (the "dense" one) sorts the indices and
+    accumulates with a generic kernel: profiled on the CPU it cost 1.5-2x the forward gather.
+    Here the gradient of the rows is the transposed gather, computed as another ``embedding_bag``:
+    the corner entries sorted by the row they read (one argsort) are the bags, each row's
+    gradient the factor-weighted sum of the taps that read it, with rows nobody read left 0."""
+
+    @staticmethod
+    def forward(ctx, sampled_MC: torch.Tensor, rows_RC: torch.Tensor, index_M4: torch.Tensor,
+                factor_M4: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(index_M4, factor_M4)
+        ctx.num_rows = rows_RC.shape[0]
+        return sampled_MC.view_as(sampled_MC)
+
+    @staticmethod
+    def backward(ctx, grad_MC: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None, None, None]:
+        grad_rows_RC = None
+        if ctx.needs_input_grad[1]:
+            index_M4, factor_M4 = ctx.saved_tensors
+            flat = index_M4.reshape(-1)
+            order = torch.argsort(flat)
+            counts = torch.bincount(flat, minlength=ctx.num_rows)
+            starts = counts.cumsum(0) - counts  # bag r: the corner entries that read row r
+            corners = index_M4.shape[1]
+            grad_rows_RC = F.embedding_bag(order // corners, grad_MC.contiguous(), starts, mode="sum",
+                                           per_sample_weights=factor_M4.reshape(-1)[order])
+        return grad_MC, grad_rows_RC, None, None
+
+
+def bilinear_taps(rows_RC: torch.Tensor, index_M4: torch.Tensor, factor_M4: torch.Tensor) -> torch.Tensor:
+    """``sampled[m] = sum_j factor[m, j] * rows[index[m, j]]``: (M, C) from the table (R, C), the
+    corner indices (M, 4) and their factors (M, 4), differentiable in ``rows`` and ``factor``.
+
+    The forward and the factors' gradient are ``F.embedding_bag``'s own fused kernels (each tap a
+    bag of its four corner rows, the factors its per-sample weights); the rows' gradient is
+    :class:`_RowGradient`'s transposed gather.  Done with separate gather, multiply and sum ops
+    the same maths ran 2-4x slower than ``grid_sample`` on CPU."""
+    sampled_MC = F.embedding_bag(index_M4, rows_RC.detach(), mode="sum", per_sample_weights=factor_M4)
+    return _RowGradient.apply(sampled_MC, rows_RC, index_M4, factor_M4.detach())
+
+
 def deform_conv2d_gather(input: torch.Tensor, offset: torch.Tensor, weight: torch.Tensor,
                          bias: torch.Tensor | None = None, stride: IntPair = 1, padding: IntPair = 0,
                          dilation: IntPair = 1, mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -222,13 +265,11 @@ def deform_conv2d_gather(input: torch.Tensor, offset: torch.Tensor, weight: torc
 
     The input is laid out as rows of channels (``[B*G*H*W, C_in/G]``, channels last).  The four
     bilinear corners of every tap of every output pixel are fetched by one row gather, ordered
-    (corner, image, output pixel, tap), so that their weighted sum is already the im2col matrix
+    (image, output pixel, tap), so that their weighted sum is already the im2col matrix
     ``[B*Ho*Wo, K*C_in]`` with no permute copy.  Each corner's bilinear weight, its in-image test
     (zeros outside, as torchvision) and the DCNv2 mask are folded into one per-corner factor, and
-    ``F.embedding_bag`` (each tap a bag of its four corner rows, the factors its per-sample
-    weights) gathers and sums them in one kernel, backward included: done with separate gather,
-    multiply and sum ops the same maths ran 2-4x slower than ``grid_sample`` on CPU.  One matmul
-    with the weight seen as ``[K*C_in, C_out]`` finishes.  Dtypes as :func:`deform_conv2d_grid_sample`.
+    :func:`bilinear_taps` gathers and sums them (one fused kernel each way).  One matmul with the
+    weight seen as ``[K*C_in, C_out]`` finishes.  Dtypes as :func:`deform_conv2d_grid_sample`.
     """
     stride_hw, padding_hw, dilation_hw, offset_groups, weight_groups, out_h, out_w = _checked_geometry(
         input, offset, weight, bias, stride, padding, dilation, mask)
@@ -245,29 +286,32 @@ def deform_conv2d_gather(input: torch.Tensor, offset: torch.Tensor, weight: torc
         # Positions ordered (image, output row, output column, tap): pixel-major, tap-minor.
         base_y_HWK = (rows_o[:, None, None] + tap_rows_K).expand(out_h, out_w, taps)
         base_x_HWK = (cols_o[None, :, None] + tap_cols_K).expand(out_h, out_w, taps)
-        offset_NK2HW = offset.to(sample_dtype).reshape(images, taps, 2, out_h, out_w)
-        y_NHWK = base_y_HWK + offset_NK2HW[:, :, 0].permute(0, 2, 3, 1)
-        x_NHWK = base_x_HWK + offset_NK2HW[:, :, 1].permute(0, 2, 3, 1)
-        # The corners' indices carry no gradient; the fractions do (through the offsets).
-        y0, x0 = y_NHWK.detach().floor(), x_NHWK.detach().floor()
-        fy, fx = y_NHWK - y0, x_NHWK - x0
-        corner_y = torch.stack((y0, y0, y0 + 1, y0 + 1))  # [4, N, Ho, Wo, K]
-        corner_x = torch.stack((x0, x0 + 1, x0, x0 + 1))
-        factor = torch.stack(((1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx))
+        # Made contiguous in that order once (it is small), so every tensor derived from it is too.
+        offset_NHWK2 = offset.to(sample_dtype).reshape(images, taps, 2, out_h, out_w).permute(0, 3, 4, 1, 2)
+        offset_NHWK2 = offset_NHWK2.contiguous()
+        y_NHWK1 = (base_y_HWK + offset_NHWK2[..., 0])[..., None]
+        x_NHWK1 = (base_x_HWK + offset_NHWK2[..., 1])[..., None]
+        # The corners' indices carry no gradient; the fractions do (through the offsets).  Corners
+        # last, so that each tap's four are one contiguous bag: [N, Ho, Wo, K, 4].
+        y0, x0 = y_NHWK1.detach().floor(), x_NHWK1.detach().floor()
+        fy, fx = y_NHWK1 - y0, x_NHWK1 - x0
+        corner = torch.tensor([0.0, 1.0], dtype=sample_dtype, device=device)
+        corner_y = y0 + corner.repeat_interleave(2)  # corners (y0, x0), (y0, x0+1), (y0+1, x0), (y0+1, x0+1)
+        corner_x = x0 + corner.repeat(2)
+        factor = torch.cat(((1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx), dim=-1)
         inside = (corner_y >= 0) & (corner_y <= height - 1) & (corner_x >= 0) & (corner_x <= width - 1)
         factor = factor * inside
         if mask is not None:
-            factor = factor * mask.to(sample_dtype).reshape(images, taps, out_h, out_w).permute(0, 2, 3, 1)
-        image_start = (torch.arange(images, device=device) * (height * width)).view(1, images, 1, 1, 1)
+            mask_NHWK1 = mask.to(sample_dtype).reshape(images, taps, out_h, out_w).permute(0, 2, 3, 1)[..., None]
+            factor = factor * mask_NHWK1
+        image_start = (torch.arange(images, device=device) * (height * width)).view(images, 1, 1, 1, 1)
         # A NaN position (NaN weights) must give NaN, as grid_sample does, not an out-of-range index:
         # its factor is already NaN, so any in-range row will do.
         index = (corner_y.nan_to_num(0).clamp(0, height - 1) * width
                  + corner_x.nan_to_num(0).clamp(0, width - 1)).long() + image_start
         rows = input.to(sample_dtype).reshape(images, group_channels, height * width).transpose(1, 2)
         rows = rows.reshape(images * height * width, group_channels)
-        # One fused gather-and-weighted-sum: each tap is a "bag" of its four corner rows.
-        sampled = F.embedding_bag(index.reshape(4, -1).t(), rows, mode="sum",
-                                  per_sample_weights=factor.reshape(4, -1).t())  # [N*Ho*Wo*K, C/G]
+        sampled = bilinear_taps(rows, index.reshape(-1, 4), factor.reshape(-1, 4))  # [N*Ho*Wo*K, C/G]
         if offset_groups > 1:  # channel c = g*C/G + c' must sit next to its tap: [B, L, K, C]
             sampled = sampled.view(batch, offset_groups, pixels, taps, group_channels).permute(0, 2, 3, 1, 4)
         columns = sampled.reshape(batch * pixels, taps, in_channels)
