@@ -39,7 +39,7 @@ class TactileCodesConditionerConfig(PluginConfig):
 
 
 class TactileCodesConditioner(Conditioner):
-    """Source images (B, 3, S, S) in [0, 1] -> the frozen source tokenizer's codes (B, h, w) ->
+    """Source images (B, 3, H, W) in [0, 1] -> the frozen source tokenizer's codes (B, h, w) ->
     tokens (B, h*w, cond_dim): a code embedding plus a learned position embedding per cell."""
 
     def __init__(self, tokenizer: object, sample_key: str, cond_dim: int, image_size: ImageSize) -> None:
@@ -74,7 +74,7 @@ class TactileCodesConditioner(Conditioner):
         return codes_Bhw
 
     def encode(self, condition: torch.Tensor) -> torch.Tensor:
-        """Images (B, 3, S, S) in [0, 1] to tokens (B, h*w, cond_dim)."""
+        """Images (B, 3, H, W) in [0, 1] to tokens (B, h*w, cond_dim)."""
         codes_BN = self.source_codes(condition).flatten(1).to(self.code_embedding.weight.device)
         return self.code_embedding(codes_BN) + self.position_ND
 

@@ -165,9 +165,9 @@ class SensorFamily(nn.Module, abc.ABC):
     """Renders tactile images from contact height maps for one family of sensors.
 
     Implementations are batched, run on any device and are deterministic for a given
-    ``generator``.  A height map covers the sensor's square field of view
-    (``field_of_view_mm`` on a side) whatever its resolution, so scene generators can draw
-    objects at physical scale.  A family with a background, a shaded contact response and
+    ``generator``.  A height map covers the sensor's imaged area (:meth:`imaged_extent_mm`: by
+    default the square field of view, ``field_of_view_mm`` on a side) whatever its resolution,
+    so scene generators can draw objects at physical scale.  A family with a background, a shaded contact response and
     per-sensor variants can subclass ``RenderedSensor`` from the built-in sensors package,
     which does that common work.
     """
@@ -395,9 +395,9 @@ class TactileDataset(ProvidesContext, abc.ABC):
 
     ``__getitem__`` returns one sample dict:
 
-    - ``"tactile"``: float tensor (3, S, S) in [0, 1] (S = the configured image size);
-    - ``"visual"``: float tensor (3, S, S) in [0, 1], only when the dataset pairs a visual image;
-    - ``"tactile_source"``: float tensor (3, S, S) in [0, 1], only when the dataset pairs a second
+    - ``"tactile"``: float tensor (3, H, W) in [0, 1] ((H, W) = ``image_hw`` of the configured image size);
+    - ``"visual"``: float tensor (3, H, W) in [0, 1], only when the dataset pairs a visual image;
+    - ``"tactile_source"``: float tensor (3, H, W) in [0, 1], only when the dataset pairs a second
       sensor's image of the same contact (the source image of touch-to-touch generation);
     - ``"label"``: int class index, -1 when the sample has none;
     - ``"text"``: str description, "" when the sample has none;

@@ -277,7 +277,7 @@ def check_sensor_family(sensor: SensorFamily, context: BuildContext | None = Non
 def example_condition(conditioner: Conditioner, batch: int, context: BuildContext | None = None) -> Any:
     """A fixed batch of raw conditions for ``conditioner``, chosen from its ``sample_key`` the way a
     collated dataset batch holds them: ``label`` integer labels (B,) below the context's class
-    count, ``tactile``/``tactile_source``/``visual`` images (B, channels, S, S) in [0, 1], ``text`` a
+    count, ``tactile``/``tactile_source``/``visual`` images (B, channels, H, W) in [0, 1], ``text`` a
     list of B strings.
     Returns None for any other key (pass ``condition=`` to the checks then)."""
     context = context or DEFAULT_CONTEXT
@@ -353,8 +353,8 @@ def check_conditioner(conditioner: Conditioner, context: BuildContext | None = N
 
 def check_autoencoder(autoencoder: Autoencoder, context: BuildContext | None = None, *,
                       label: str = "autoencoder") -> None:
-    """An autoencoder maps images (B, C, S, S) in [-1, 1] to finite latents (B, latent_channels, S/f, S/f)
-    and back to (B, C, S, S); decode is a pure function of its input, ``reset_randomness`` makes an
+    """An autoencoder maps images (B, C, H, W) in [-1, 1] to finite latents (B, latent_channels, H/f, W/f)
+    and back to (B, C, H, W); decode is a pure function of its input, ``reset_randomness`` makes an
     evaluation repeat exactly and ``context_facts`` reports the latent width."""
     context = context or DEFAULT_CONTEXT
     factor, width = autoencoder.downsample_factor, autoencoder.latent_channels
@@ -433,7 +433,7 @@ def check_quantizer(quantizer: Quantizer, context: BuildContext | None = None, *
 
 def check_discriminator(discriminator: Discriminator, context: BuildContext | None = None, *,
                         label: str = "discriminator") -> None:
-    """A discriminator scores images (B, C, S, S) in [-1, 1] with finite logits, one set per image."""
+    """A discriminator scores images (B, C, H, W) in [-1, 1] with finite logits, one set per image."""
     context = context or DEFAULT_CONTEXT
     images = _images(2, context)
     discriminator.eval()
