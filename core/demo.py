@@ -20,7 +20,7 @@ from .checkpoint import load, save
 from .components import Metric, SensorFamily, TactileDataset
 from .config import ExperimentConfig, validate_experiment
 from .errors import VqtouchError
-from .image_size import ImageSize, image_hw
+from .image_size import ImageSize, image_hw, pixel_centres_mm
 from .images import image_grid, save_png
 from .progress import progress
 from .runs import RunDir
@@ -58,9 +58,7 @@ def _ball_presses(image_size: ImageSize, sensor: SensorFamily, radius_mm: float 
     """Height maps (mm) of a 2 mm ball pressed 0.2, 0.5 and 1.0 mm deep at the centre of ``sensor``'s
     imaged area: a sensor-agnostic probe."""
     height, width = image_hw(image_size)
-    rows_mm, cols_mm = sensor.imaged_extent_mm(height, width)
-    ys, xs = torch.meshgrid((torch.arange(height) + 0.5) / height * rows_mm - rows_mm / 2,
-                            (torch.arange(width) + 0.5) / width * cols_mm - cols_mm / 2, indexing="ij")
+    ys, xs = pixel_centres_mm(height, width, sensor.imaged_extent_mm(height, width))
     ball = (radius_mm**2 - xs**2 - ys**2).clamp_min(0).sqrt()
     return torch.stack([(ball - (radius_mm - depth)).clamp_min(0) for depth in (0.2, 0.5, 1.0)])
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
+import torch
 from pydantic import BeforeValidator
 from pydantic_core import PydanticCustomError
 
@@ -20,6 +21,25 @@ def image_hw(size: ImageSize) -> tuple[int, int]:
         return size, size
     height, width = size
     return int(height), int(width)
+
+
+def extent_hw(extent_mm: float | tuple[float, float]) -> tuple[float, float]:
+    """``(rows, columns)`` in mm of an imaged area given as a square's side or as that pair."""
+    if isinstance(extent_mm, (int, float)):
+        return float(extent_mm), float(extent_mm)
+    rows_mm, cols_mm = extent_mm
+    return float(rows_mm), float(cols_mm)
+
+
+def pixel_centres_mm(height: int, width: int, extent_mm: float | tuple[float, float]
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(ys, xs), each (height, width): the centre of every pixel of a height x width image of a
+    centred area ``extent_mm`` (a side, or (rows, columns)), in mm from the area's centre."""
+    rows_mm, cols_mm = extent_hw(extent_mm)
+    axis_rows = (torch.arange(height, dtype=torch.float32) + 0.5) / height * rows_mm - rows_mm / 2
+    axis_cols = (torch.arange(width, dtype=torch.float32) + 0.5) / width * cols_mm - cols_mm / 2
+    ys, xs = torch.meshgrid(axis_rows, axis_cols, indexing="ij")
+    return ys, xs
 
 
 def square_or_pair(height: int, width: int) -> ImageSize:
@@ -53,12 +73,9 @@ def image_size_argument(text: str) -> ImageSize:
     """``--image-size`` on a command line: ``64`` or ``240x320`` (height x width)."""
     import argparse
 
-    parts = text.lower().replace(",", "x").split("x")
     try:
-        sides = [int(part) for part in parts]
-    except ValueError:
-        sides = []
-    if len(sides) not in (1, 2) or not all(8 <= side <= 4096 for side in sides):
+        sides = [int(part) for part in text.lower().replace(",", "x").split("x")]
+        return _checked_size(sides if len(sides) > 1 else sides[0])
+    except (ValueError, PydanticCustomError):
         raise argparse.ArgumentTypeError(f"{text!r}: expected a side S (S x S pixels) or HEIGHTxWIDTH such as "
-                                         f"240x320, each 8 to 4096")
-    return square_or_pair(sides[0], sides[-1])
+                                         f"240x320, each 8 to 4096") from None

@@ -54,7 +54,7 @@ from . import checkpoint
 from .components import (Autoencoder, BuildContext, Clusterer, Conditioner, ConditionTokens, Discriminator, Generator,
                          Metric, Quantizer, QuantizerOutput, Sampler, SensorFamily, TactileDataset)
 from .errors import MissingWeightsError, VqtouchError
-from .image_size import ImageSize, image_hw, size_text
+from .image_size import ImageSize, image_hw, pixel_centres_mm, size_text
 from .plugin_config import PluginConfig, literal_name_of
 
 __all__ = [
@@ -210,10 +210,8 @@ def press_height_maps(batch: int, size: ImageSize, field_of_view_mm: float, dept
     little off-centre and a little deeper in each row, drawn at the physical scale of
     ``field_of_view_mm`` (the side of the square it covers, with square pixels along the shorter side)."""
     height, width = image_hw(size)
-    rows_mm, cols_mm = (field_of_view_mm * side / min(height, width) for side in (height, width))
-    ys, xs = torch.meshgrid((torch.arange(height, dtype=torch.float32) + 0.5) / height * rows_mm - rows_mm / 2,
-                            (torch.arange(width, dtype=torch.float32) + 0.5) / width * cols_mm - cols_mm / 2,
-                            indexing="ij")
+    ys, xs = pixel_centres_mm(height, width, tuple(field_of_view_mm * side / min(height, width)
+                                                   for side in (height, width)))
     radius = field_of_view_mm / 4
     maps = []
     for row in range(batch):

@@ -13,6 +13,8 @@ import math
 import torch
 import torch.nn.functional as F
 
+from vqtouch.core.image_size import extent_hw
+
 from .objects import Contact, ObjectClass, draw_digit
 
 
@@ -55,8 +57,7 @@ def render_visual(object_class: ObjectClass, contact: Contact, generator: torch.
     """(3, H, W) visual image in [0, 1] of the contact region, shaded from the object's surface;
     ``field_of_view_mm`` as :func:`~vqtouch.sensors.objects.sample_contact` (a side, or (rows, columns))."""
     surface = contact.surface_mm_HW
-    rows_mm, cols_mm = (field_of_view_mm, field_of_view_mm) if isinstance(field_of_view_mm, (int, float)) \
-        else field_of_view_mm
+    rows_mm, cols_mm = extent_hw(field_of_view_mm)
     slope_row, slope_col = torch.gradient(surface, spacing=(rows_mm / surface.shape[-2],
                                                             cols_mm / surface.shape[-1]))
     normal = torch.stack([-slope_col, -slope_row, torch.ones_like(surface)])

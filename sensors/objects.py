@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from vqtouch.core.image_size import ImageSize, image_hw
+from vqtouch.core.image_size import ImageSize, extent_hw, image_hw, pixel_centres_mm
 
 Grid = tuple[torch.Tensor, torch.Tensor]  # (u, v) rotated/offset coordinates in mm, each (H, W)
 
@@ -196,15 +196,11 @@ def sample_contact(object_class: ObjectClass, class_index: int, generator: torch
     ``size``: the height map's S (S x S) or (height, width); ``field_of_view_mm``: the side of the
     square area it covers, or its (rows, columns) extent in mm (``SensorFamily.imaged_extent_mm``).
     """
-    rows_mm, cols_mm = (field_of_view_mm, field_of_view_mm) if isinstance(field_of_view_mm, (int, float)) \
-        else field_of_view_mm
+    rows_mm, cols_mm = extent_hw(field_of_view_mm)
     angle = _uniform(generator, 0.0, 2 * math.pi)
     offset = (_uniform(generator, -0.15, 0.15) * cols_mm, _uniform(generator, -0.15, 0.15) * rows_mm)
     scale = _uniform(generator, 0.8, 1.25)
-    height, width = image_hw(size)
-    axis_rows = (torch.arange(height, dtype=torch.float32) + 0.5) / height * rows_mm - rows_mm / 2
-    axis_cols = (torch.arange(width, dtype=torch.float32) + 0.5) / width * cols_mm - cols_mm / 2
-    y, x = torch.meshgrid(axis_rows, axis_cols, indexing="ij")
+    y, x = pixel_centres_mm(*image_hw(size), (rows_mm, cols_mm))
     x, y = x - offset[0], y - offset[1]
     u = x * math.cos(angle) + y * math.sin(angle)
     v = -x * math.sin(angle) + y * math.cos(angle)

@@ -137,3 +137,24 @@ def test_native_view_renders_round_contacts_and_the_default_view_stretches_them(
                          sensor=full)
     sample = dataset[0]
     assert sample["tactile"].shape == sample["visual"].shape == (3, 24, 32)
+
+
+def test_pixel_centres_are_the_centred_mm_grid_of_each_axis():
+    from vqtouch.core.image_size import pixel_centres_mm
+
+    ys, xs = pixel_centres_mm(3, 4, (6.0, 2.0))
+    assert ys[:, 0].tolist() == [-2.0, 0.0, 2.0] and xs[0].tolist() == [-0.75, -0.25, 0.25, 0.75]
+    assert (ys == ys[:, :1]).all() and (xs == xs[:1]).all()  # rows vary down, columns across
+
+
+def test_a_sphere_stays_round_on_a_non_square_image_with_square_pixels():
+    """96 x 128 pixels over 15 x 20 mm (GelSight's 3:4 view): a pressed sphere covers as many rows as
+    columns (over the square 15 mm it would cover a third more columns)."""
+    from vqtouch.sensors.objects import CLASS_NAMES, OBJECT_CLASSES, sample_contact
+
+    sphere = CLASS_NAMES.index("sphere")
+    contact = sample_contact(OBJECT_CLASSES[sphere], sphere, torch.Generator().manual_seed(0), (96, 128),
+                             (15.0, 20.0), depth_range_mm=(1.0, 1.0))
+    touched = contact.indentation_mm_HW > 0
+    rows, cols = int(touched.any(1).sum()), int(touched.any(0).sum())
+    assert rows > 15 and abs(rows - cols) <= 1

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from pydantic import Field, field_validator
 
 from vqtouch.core import BuildContext, PluginConfig, SensorFamily, TactileDataset, hookimpl
-from vqtouch.core.image_size import ImageSize, ImageSizeOption, image_hw, size_text
+from vqtouch.core.image_size import ImageSize, ImageSizeOption, extent_hw, image_hw, size_text
 from vqtouch.sensors.camera import render_visual
 from vqtouch.sensors.objects import CLASS_NAMES, OBJECT_CLASSES, sample_contact
 
@@ -81,8 +81,7 @@ def reframe_indentation(indentation_BHW: torch.Tensor, from_mm: float | tuple[fl
     ``to_mm`` area at the same resolution: bilinear resampling, no contact outside the original
     area.  The same physical press, framed by the other sensor's field of view.  An area is a
     square's side or a (rows, columns) extent in mm."""
-    from_rows, from_cols = (from_mm, from_mm) if isinstance(from_mm, (int, float)) else from_mm
-    to_rows, to_cols = (to_mm, to_mm) if isinstance(to_mm, (int, float)) else to_mm
+    (from_rows, from_cols), (to_rows, to_cols) = extent_hw(from_mm), extent_hw(to_mm)
     if (from_rows, from_cols) == (to_rows, to_cols):
         return indentation_BHW
     batch, height, width = indentation_BHW.shape
@@ -134,11 +133,11 @@ class ProceduralTactileDataset(TactileDataset):
                                  for c, g in zip(contacts, generators)])
         batch: dict[str, Any] = {}
         if self.paired_sensor is not None:
+            paired_extent_mm = self.paired_sensor.imaged_extent_mm(*image_hw(self.config.image_size))
             with torch.no_grad():
                 batch["tactile_source"] = torch.cat([
                     self.paired_sensor.render(
-                        reframe_indentation(c.indentation_mm_HW[None], extent_mm,
-                                            self.paired_sensor.imaged_extent_mm(*image_hw(self.config.image_size))),
+                        reframe_indentation(c.indentation_mm_HW[None], extent_mm, paired_extent_mm),
                         generator=paired_render_generator(self.config.seed, index))
                     for c, index in zip(contacts, indices)])
             batch["source_sensor"] = [_sensor_id(self.paired_sensor)] * len(indices)
