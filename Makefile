@@ -1,6 +1,6 @@
 # Two commands on a fresh machine with Python 3.11+ and pip:
 #   make demo   creates/reuses .venv, installs vqtouch, runs the main job
-#   make test   creates/reuses .venv, installs vqtouch with the test and clip extras, runs the tests
+#   make test   creates/reuses .venv, installs vqtouch with the test, clip and metrics extras, runs the tests
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
@@ -13,14 +13,15 @@ PYTEST_ARGS ?=
 .PHONY: install demo test clean
 
 # constraints.txt pins the verified torch/torchvision pair (pyproject.toml has lower bounds only);
-# the clip extra (open_clip) is installed so the tests cover the clip conditioner.  tacto is
+# the clip extra (open_clip) and the metrics extra (torch-fidelity) are installed so the tests cover the clip
+# conditioner, LPIPS, FID and KID.  tacto is
 # installed for one data file, DIGIT's published design (config_digit.yml, read by sensors/digit.py),
 # with --no-deps: its own dependencies (pyrender, OpenGL, pybullet) serve its simulator, never imported.
 $(STAMP): pyproject.toml setup.py constraints.txt
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "vqtouch needs Python >= 3.11; set PYTHON=python3.11")'
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip "setuptools>=77"
-	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[test,clip]'
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[test,clip,metrics]'
 	$(BIN)/python -m pip install --quiet --no-deps -c constraints.txt tacto
 	@touch $(STAMP)
 

@@ -23,8 +23,8 @@ import importlib.metadata as _metadata
 from .assembly import Assembly
 from .checkpoint import atomic_write, load, read_metadata, save
 from .components import (Autoencoder, BuildContext, Clusterer, Conditioner, ConditionTokens, Discriminator, Generator,
-                         Metric, PerImageMetric, ProvidesContext, Quantizer, QuantizerOutput, Sampler, SensorFamily,
-                         TactileDataset)
+                         Metric, MetricSet, PerImageMetric, ProvidesContext, Quantizer, QuantizerOutput, Sampler, SensorFamily,
+                         SkippedMetric, TactileDataset)
 from .config import ExperimentConfig, Section, Slot, load_config_file, resolve_config, validate_experiment
 from .errors import (CheckpointError, ConfigError, DatasetError, MissingWeightsError, PluginError, UnknownPluginError,
                      VqtouchError, VqtouchWarning)
@@ -45,9 +45,9 @@ except _metadata.PackageNotFoundError:  # running from an uninstalled checkout
 
 __all__ = [
     "Assembly", "Autoencoder", "BuildContext", "CheckpointError", "Clusterer", "ConditionTokens", "Conditioner",
-    "ConfigError", "DatasetError", "Discriminator", "ExperimentConfig", "FrozenModule", "Generator", "Metric",
+    "ConfigError", "DatasetError", "Discriminator", "ExperimentConfig", "FrozenModule", "Generator", "Metric", "MetricSet",
     "MissingWeightsError", "PerImageMetric", "PluginConfig", "PluginError", "PluginHost", "ProvidesContext",
-    "Quantizer", "QuantizerOutput", "RunDir", "Sampler", "Section", "SensorFamily", "Slot", "StageJob", "StageOutcome",
+    "Quantizer", "QuantizerOutput", "RunDir", "Sampler", "Section", "SensorFamily", "SkippedMetric", "Slot", "StageJob", "StageOutcome",
     "StageUnavailable", "TactileDataset", "TrainConfig", "UnknownPluginError", "VqtouchError", "VqtouchWarning", "WeightsSpec",
     "__version__", "atomic_write", "hookimpl", "load", "load_config_file", "load_plugins", "make_generator",
     "read_metadata", "required_slots", "resolve_config", "resolve_device", "resolve_weights", "run_stage", "save",

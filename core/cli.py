@@ -1,7 +1,7 @@
 """The ``vqtouch`` command line.
 
 ``main(argv) -> int`` builds an argparse parser whose subcommands come from core
-(``plugins``, ``config``, ``demo``) and from plugins (``vqtouch_add_commands``).  User
+(``plugins``, ``config``, ``demo``, ``report``) and from plugins (``vqtouch_add_commands``).  User
 errors print one line, ``vqtouch: error: ...``, and exit with status 2.
 """
 
@@ -190,12 +190,19 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     run = RunDir.create(config, argv=args.argv, host=host, path=args.out, overwrite=args.overwrite)
     with run:  # releases the run's lock however the demo ends
         report = run_demo(config, host, run)
-    print(f"report: {run.path / 'report.md'}")
+    print(f"report: {run.path / 'report.html'}")
     ran = sum(stage["status"].startswith("ran") for stage in report["stages"])
     blocked = sum(stage["status"].startswith("cannot run") for stage in report["stages"])
     failed = sum(stage["status"].startswith("failed") for stage in report["stages"])
     print(f"scene {config.scene}: {ran} of {len(report['stages'])} stages ran, {blocked} cannot run, {failed} failed "
           "(reasons in the report)")
+    return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from .demo import rebuild_report
+
+    print(f"report: {rebuild_report(args.run_dir)}")
     return 0
 
 
@@ -237,6 +244,10 @@ def build_parser(host: PluginHost) -> argparse.ArgumentParser:
     demo.add_argument("--full", action="store_true",
                       help="run the scene at its configured size (default: scaled down to minutes on a CPU)")
     demo.set_defaults(handler=_cmd_demo)
+
+    report = sub.add_parser("report", help="rebuild report.html and report.md of a demo run from its report.json")
+    report.add_argument("run_dir", metavar="RUN_DIR", help="the folder of a `vqtouch demo` run (its --out)")
+    report.set_defaults(handler=_cmd_report)
 
     host.pm.hook.vqtouch_add_commands(subparsers=sub)
     parser.set_defaults(host=host)

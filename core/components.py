@@ -9,7 +9,7 @@ one checkpoint writer (safetensors, no pickle) serves all of them.
 from __future__ import annotations
 
 import abc
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -303,9 +303,16 @@ class Clusterer(nn.Module, abc.ABC):
 
 
 class Metric(abc.ABC):
-    """An accumulating image metric: ``update`` with batches, then ``compute``."""
+    """An accumulating image metric: ``update`` with batches, then ``compute``.
+
+    A metric that cannot run here (a weights file or package it needs is missing) is built as a
+    :class:`SkippedMetric` carrying the reason: it is reported as skipped, never replaced by a
+    substitute under its name.  Score a set of metrics with :class:`MetricSet`, which does that.
+    """
 
     higher_is_better: ClassVar[bool] = True
+    #: Why this metric cannot be computed here (None: it can).  See :class:`SkippedMetric`.
+    skipped: str | None = None
 
     @abc.abstractmethod
     def update(self, predicted_B3HW: torch.Tensor, target_B3HW: torch.Tensor) -> None:
@@ -318,6 +325,81 @@ class Metric(abc.ABC):
     @abc.abstractmethod
     def reset(self) -> None:
         """Forget what was seen."""
+
+
+class SkippedMetric(Metric):
+    """A metric that cannot run in this environment, and why (e.g. ``"needs vgg16-397923af.pth: ..."``).
+
+    Factories return it instead of raising when only a user-supplied file or an optional package is
+    missing, so one unavailable metric does not stop a run; :class:`MetricSet` reports it under
+    ``"skipped"`` with the reason.  Updating or computing it raises :class:`ConfigError` with the reason.
+    """
+
+    def __init__(self, reason: str, higher_is_better: bool = True) -> None:
+        if not reason.strip():
+            raise ValueError("a skipped metric needs a reason that says what is missing and how to provide it")
+        self.skipped = reason
+        self.higher_is_better = higher_is_better  # type: ignore[misc]  # per instance: the real metric's direction
+
+    def update(self, predicted_B3HW: torch.Tensor, target_B3HW: torch.Tensor) -> None:
+        raise ConfigError(f"this metric is skipped: {self.skipped}")
+
+    def compute(self) -> float:
+        raise ConfigError(f"this metric is skipped: {self.skipped}")
+
+    def reset(self) -> None:
+        """Nothing to forget."""
+
+
+class MetricSet:
+    """Named metrics scored together: the one place that reports skipped metrics as skipped.
+
+    ``update`` feeds every available metric; :meth:`scores` returns ``{prefix + name: value}`` for
+    those and, when any is skipped, ``{"skipped": {name: reason}}`` (a skipped metric never gets
+    a number).
+    """
+
+    def __init__(self, metrics: Mapping[str, Metric] | Iterable[tuple[str, Metric]]) -> None:
+        self.metrics: dict[str, Metric] = dict(metrics)
+
+    def __len__(self) -> int:
+        return len(self.metrics)
+
+    def available(self) -> dict[str, Metric]:
+        """The metrics that can be computed here, by name."""
+        return {name: metric for name, metric in self.metrics.items() if metric.skipped is None}
+
+    def skipped(self) -> dict[str, str]:
+        """Why each skipped metric is skipped, by name."""
+        return {name: metric.skipped for name, metric in self.metrics.items() if metric.skipped is not None}
+
+    def reset(self) -> None:
+        """Forget everything every metric has seen."""
+        for metric in self.available().values():
+            metric.reset()
+
+    def update(self, predicted_B3HW: torch.Tensor, target_B3HW: torch.Tensor) -> None:
+        """Add a batch of image pairs (in [0, 1]) to every available metric."""
+        for metric in self.available().values():
+            metric.update(predicted_B3HW, target_B3HW)
+
+    def scores(self, prefix: str = "", digits: int | None = 4) -> dict[str, Any]:
+        """Each available metric's value as ``prefix + name`` (rounded to ``digits`` unless None), and
+        ``"skipped"``: ``{name: reason}`` when a metric is skipped."""
+        values: dict[str, Any] = {}
+        for name, metric in self.available().items():
+            value = float(metric.compute())
+            values[prefix + name] = round(value, digits) if digits is not None else value
+        if self.skipped():
+            values["skipped"] = self.skipped()
+        return values
+
+    def score(self, predicted_B3HW: torch.Tensor, target_B3HW: torch.Tensor, prefix: str = "",
+              digits: int | None = 4) -> dict[str, Any]:
+        """:meth:`reset`, one :meth:`update` with these pairs, then :meth:`scores`."""
+        self.reset()
+        self.update(predicted_B3HW, target_B3HW)
+        return self.scores(prefix, digits)
 
 
 class PerImageMetric(Metric):
@@ -406,15 +488,29 @@ class TactileDataset(ProvidesContext, abc.ABC):
 
     A dataset may add keys of its own (the procedural scenes add ``"depth_mm"``, the press
     depth); stages rely only on the keys above.
+
+    A dataset that knows which samples are near-duplicates of each other (the frames of one
+    recording, the contacts of one trial) says so with :meth:`split_groups`, so that
+    ``vqtouch.core.data.split_dataset`` never puts one of them on each side of a split.
     """
 
     #: Class names indexed by label (empty for unlabelled datasets).
     class_names: list[str] = []
+    #: What one group of :meth:`split_groups` is, in words ("recording", "trial", "fabric", ...);
+    #: "sample" when every sample is its own group.
+    split_unit: str = "sample"
 
     @property
     def num_classes(self) -> int:
         """Number of labels (0 when unlabelled)."""
         return len(self.class_names)
+
+    def split_groups(self) -> list[str] | None:
+        """Which samples must stay together in a train/held-out split: one group key per sample,
+        in index order (samples with the same key go to the same side), or None when every sample
+        is its own group.  The default is None; a reader that knows the recording, trial or object
+        of each sample overrides it and sets :attr:`split_unit`."""
+        return None
 
     def context_facts(self) -> dict[str, Any]:
         """The number of labels a label conditioner must embed."""

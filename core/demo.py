@@ -8,7 +8,10 @@ cannot run says why; nothing is faked.
 
 from __future__ import annotations
 
+import datetime as _dt
 import json
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -16,14 +19,16 @@ import torch
 from torch import nn
 
 from .assembly import Assembly
-from .checkpoint import load, save
+from .checkpoint import atomic_write, load, save
 from .components import Metric, SensorFamily, TactileDataset
 from .config import ExperimentConfig, validate_experiment
-from .errors import VqtouchError
+from .errors import ConfigError, VqtouchError
 from .image_size import ImageSize, image_hw, pixel_centres_mm
 from .images import image_grid, save_png
 from .progress import progress
-from .runs import RunDir
+from .report_html import (BACKGROUND_PREFIX, beats, contact_verdict, direction_arrow, format_value, render_html,
+                          score_table)
+from .runs import RunDir, _read_json
 from .seeding import make_generator
 from .stages import empty_slot_reason, missing_slots, required_slots, run_stage
 
@@ -117,13 +122,18 @@ def run_demo(config: ExperimentConfig, host: Any, run: RunDir) -> dict[str, Any]
     Stages run through :func:`run_stage` with one shared :class:`Assembly`, so every component
     is built once.  Afterwards each required slot is reported: parameters, a bit-for-bit
     checkpoint round trip, a sensor's render of a ball press, a metric's sanity scores, a
-    dataset's preview.  Returns the report (also written as report.json and report.md).
+    dataset's preview.  The report also holds when the demo started, its wall time (``seconds``, and
+    each stage's) and the process's peak resident memory (``peak_rss_mb``).  Returns the report
+    (also written as report.json, report.md and report.html).
     """
+    start = time.perf_counter()
     assembly = Assembly(config, host)
-    report: dict[str, Any] = {"scene": config.scene, "run_dir": str(run.path), "stages": [], "components": []}
+    report: dict[str, Any] = {"scene": config.scene, "description": config.description, "run_dir": str(run.path),
+                              "started": _dt.datetime.now().astimezone().isoformat(timespec="seconds"),
+                              "stages": [], "components": []}
     for stage in progress(config.stages, desc="stages", unit="stage"):
         outcome = run_stage(stage, assembly, run)
-        entry: dict[str, Any] = {"stage": stage, "status": outcome.describe()}
+        entry: dict[str, Any] = {"stage": stage, "status": outcome.describe(), "seconds": round(outcome.seconds, 2)}
         if outcome.result is not None:
             entry["result"] = outcome.result
         report["stages"].append(entry)
@@ -155,29 +165,106 @@ def run_demo(config: ExperimentConfig, host: Any, run: RunDir) -> dict[str, Any]
                     presses = _ball_presses(config.data.image_size, component)
                     images = component.render(presses, generator=generator)
                 record["render"] = str(save_png(image_grid(images), run.path / f"render_{slot}.png"))
-            if isinstance(component, Metric):
+            if isinstance(component, Metric) and component.skipped is not None:
+                record["status"] = f"skipped: {component.skipped}"
+            elif isinstance(component, Metric):
                 record["sanity"] = _metric_sanity(component, generator)
             if isinstance(component, TactileDataset):
                 record["data"] = _preview_dataset(component, run, slot)
             report["components"].append(record)
+    report["seconds"] = round(time.perf_counter() - start, 1)
+    report["peak_rss_mb"] = peak_rss_mb()
     run.write_json("report.json", report)
-    run.write_text("report.md", render_report(config, report))
+    write_reports(run.path, report)
     return report
 
 
-def render_report(config: ExperimentConfig, report: dict[str, Any]) -> str:
-    """The human-readable report.md."""
-    lines = [f"# vqtouch demo: scene `{config.scene}`", "", config.description, "",
-             "## Stages", "", "| stage | status |", "|---|---|"]
+def peak_rss_mb() -> float | None:
+    """The peak resident memory of this process so far, in MB (2**20 bytes); None where the
+    platform does not say (Windows).  Worker processes (``data.num_workers``) are not counted."""
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - Windows
+        return None
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(peak / (2**20 if sys.platform == "darwin" else 2**10), 1)  # bytes on macOS, KiB on Linux
+
+
+def write_reports(run_dir: str | Path, report: dict[str, Any]) -> Path:
+    """Write report.md and the self-contained report.html of ``report`` into ``run_dir``, atomically;
+    returns report.html's path."""
+    run_dir = Path(run_dir)
+    for name, text in (("report.md", render_report(report)), ("report.html", render_html(report, run_dir))):
+        atomic_write(run_dir / name, lambda tmp, text=text: tmp.write_text(text, encoding="utf-8"))
+    return run_dir / "report.html"
+
+
+def rebuild_report(run_dir: str | Path) -> Path:
+    """``vqtouch report``: rebuild report.md and report.html of a demo run from its report.json (e.g.
+    after the renderer changed, or in a copy of the run); returns report.html's path."""
+    run_dir = Path(run_dir)
+    if not (run_dir / "report.json").is_file():
+        what = "no such folder" if not run_dir.exists() else "no report.json in it"
+        raise ConfigError(f"{run_dir}: {what}; give the folder of a `vqtouch demo` run (its --out)")
+    report = _read_json(run_dir / "report.json")
+    if not isinstance(report, dict) or not isinstance(report.get("stages"), list):
+        raise ConfigError(f"{run_dir / 'report.json'}: not a demo report (no list of stages)")
+    if "description" not in report and (run_dir / "config.json").is_file():  # reports written before it was kept
+        report["description"] = _read_json(run_dir / "config.json").get("description", "")
+    return write_reports(run_dir, report)
+
+
+#: Marks after a model score in report.md's score tables (explained under each table).
+WORSE_MARK, BETTER_MARK = "✗", "✓"
+
+
+def _markdown_scores(table: Any) -> list[str]:
+    """A stage's scores with comparisons (a :class:`~vqtouch.core.report_html.ScoreTable`) as markdown
+    table lines: one row per score, the model's column then one per comparison, each model score
+    marked by whether it beats the no-contact background (as report.html colours it)."""
+    if not table.rows:
+        return []
+    columns = [prefix.rstrip("_") for prefix in table.columns]
+    lines = ["", "| score | model | " + " | ".join(columns) + " |", "|---" * (2 + len(columns)) + "|"]
+    for score, values in table.rows.items():
+        better = beats(score, values[""], values.get(BACKGROUND_PREFIX))
+        mark = "" if better is None else f" {BETTER_MARK if better else WORSE_MARK}"
+        cells = [f"{format_value(values[''])}{mark}",
+                 *(format_value(values[prefix]) if prefix in values else "-" for prefix in table.columns)]
+        lines.append(f"| {score} {direction_arrow(score)} | " + " | ".join(cells) + " |")
+    note = "↑ higher is better, ↓ lower is better"
+    if BACKGROUND_PREFIX in table.columns:
+        note += (f"; {BETTER_MARK} the model beats the no-contact background, {WORSE_MARK} it is worse than "
+                 "the background (a tie counts as worse)")
+    return [*lines, "", f"*{note}.*"]
+
+
+def render_report(report: dict[str, Any]) -> str:
+    """The human-readable report.md (report.html shows the same with its pictures embedded)."""
+    lines = [f"# vqtouch demo: scene `{report['scene']}`", ""]
+    if report.get("description"):
+        lines += [report["description"], ""]
+    if "seconds" in report:
+        memory = f", peak memory {report['peak_rss_mb']:,.0f} MB" if report.get("peak_rss_mb") is not None else ""
+        lines += [f"Wall time {report['seconds']:.0f} s{memory}.", ""]
+    lines += ["## Stages", "", "| stage | status |", "|---|---|"]
     lines += [f"| {s['stage']} | {s['status']} |" for s in report["stages"]]
     for s in report["stages"]:
         if "result" in s:
             result = s["result"]
-            scores = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
-                               for k, v in result.items() if k != "picture")
-            lines += ["", f"### {s['stage']}", "", scores]
+            table = score_table(result)
+            facts = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in table.facts.items())
+            lines += ["", f"### {s['stage']}"]
+            lines += _markdown_scores(table)
+            verdict = contact_verdict(result)
+            if verdict is not None:
+                lines += ["", verdict[1]]
+            if facts:
+                lines += ["", facts]
             if "picture" in result:
                 lines += ["", f"![{s['stage']}]({result['picture']})"]
+                if result.get("caption"):
+                    lines += ["", f"*{result['caption']}*"]
     lines += ["", "## Components", "", "| slot | plugin | status | parameters | checkpoint round trip |",
               "|---|---|---|---|---|"]
     for c in report["components"]:

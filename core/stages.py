@@ -14,7 +14,8 @@ A stage plugin registers, through ``vqtouch_register_stages``::
   Both may name slots of any section (core's ``sensor``, ``data.dataset``, ``metrics``, or
   another stage's).  Unknown paths fail when plugins load.
 - ``run(job)`` does the work and returns a JSON-ready report (scores; ``"picture"``: a file
-  name inside the run), or raises :class:`StageUnavailable` saying why it cannot run.
+  name inside the run, ``"caption"``: what its rows and columns show; ``"skipped"``: what could
+  not be scored and why), or raises :class:`StageUnavailable` saying why it cannot run.
 - ``demo``: caps applied to the section's options by ``vqtouch demo`` (paths inside the
   section), so the demo runs in minutes on a CPU.
 

@@ -10,7 +10,11 @@ from __future__ import annotations
 
 from vqtouch.core import hookimpl
 
-_METRICS = [{"name": "psnr"}, {"name": "ssim"}]
+#: Every scene's pairwise metrics.  LPIPS needs a weights file (VQTOUCH_LPIPS_VGG, ...): without it
+#: the run reports it as skipped, with the file to provide.  FID and KID are left to the
+#: distribution scores and `vqtouch evaluate`: a held-out split of a few dozen images gives no
+#: meaningful FID.
+_METRICS = [{"name": "psnr"}, {"name": "ssim"}, {"name": "ms_ssim"}, {"name": "lpips"}]
 _DATA = {"dataset": {"name": "procedural"}}
 #: The paper's tokenizer: DM-VQGAN + nearest-neighbour VQ, trained with a PatchGAN.  The lookup is
 #: cosine in 8 dimensions (ViT-VQGAN): with the plain lookup, 512 codes collapsed to ~10 in use on

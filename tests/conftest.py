@@ -16,7 +16,8 @@ os.environ["VQTOUCH_DISABLE_PLUGIN_AUTOLOAD"] = "1"
 os.environ["VQTOUCH_NO_PROGRESS"] = "1"
 # Reader header caches go to a throwaway folder, never the user's ~/.cache.
 os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="vqtouch-test-cache-")
-for variable in ("VQTOUCH_BLOCK_PLUGINS", "VQTOUCH_PLUGINS", "VQTOUCH_CLIP_CKPT", "VQTOUCH_WEIGHTS_DIR"):
+for variable in ("VQTOUCH_BLOCK_PLUGINS", "VQTOUCH_PLUGINS", "VQTOUCH_CLIP_CKPT", "VQTOUCH_WEIGHTS_DIR", "VQTOUCH_LPIPS_VGG",
+                 "VQTOUCH_LPIPS_BACKBONE", "VQTOUCH_FID_INCEPTION"):
     os.environ.pop(variable, None)
 
 import torch  # noqa: E402
@@ -38,6 +39,7 @@ def _register_helper_module(name: str) -> None:
 
 _register_helper_module("dataset_fixtures")
 _register_helper_module("generator_runs")
+_register_helper_module("metric_weights")
 
 
 @pytest.fixture(autouse=True)

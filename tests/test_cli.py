@@ -23,7 +23,8 @@ def test_plugins_lists_kind_package_version(capsys):
 def test_plugins_json_and_kind_filter(capsys):
     assert main(["plugins", "--json", "--kind", "metric"]) == 0
     rows = json.loads(capsys.readouterr().out)
-    assert {row["name"] for row in rows} == {"fd_effnetlite0", "psnr", "ssim"}
+    assert {row["name"] for row in rows} == {"fd_effnetlite0", "psnr", "ssim", "ms_ssim", "lpips", "fid", "kid",
+                                             "kid_effnetlite0"}
     assert all(row["package"] == "vqtouch" and row["version"] for row in rows)
     assert main(["plugins", "--json", "--kind", "stage"]) == 0
     assert {row["name"] for row in json.loads(capsys.readouterr().out)} == {
@@ -75,7 +76,7 @@ def test_config_stages_lists_each_stage_with_its_section_and_slots(capsys, host)
         assert fields["uses"] == (", ".join(optional) or "-")
         assert detail.endswith(f"from {stage.source.describe()}")
     assert listed["tokenizer"].startswith("section: [tokenizer]; needs: data.dataset, tokenizer.autoencoder, "
-                                          "tokenizer.quantizer; uses: tokenizer.discriminator, metrics; "
+                                          "tokenizer.quantizer; uses: tokenizer.discriminator, metrics, sensor; "
                                           "from plugin 'tokenizer-stages'")
     assert listed["reconstruct"].startswith("section: -; needs: sensor, tokenizer.autoencoder, tokenizer.quantizer; "
                                             "uses: metrics;")

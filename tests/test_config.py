@@ -203,7 +203,7 @@ def test_override_values_are_json_or_string():
 def test_list_index_overrides(host):
     config = resolve_config("label-to-touch", overrides=["metrics.1.window_size=7"], host=host)
     assert config.metrics[1].window_size == 7
-    with pytest.raises(ConfigError, match="index '5' is not within a list of 2"):
+    with pytest.raises(ConfigError, match="index '5' is not within a list of 4"):
         resolve_config("label-to-touch", overrides=["metrics.5.name=psnr"], host=host)
     with pytest.raises(ConfigError, match="index '1' is not within a list of 1"):
         resolve_config("label-to-touch", overrides=["generator.conditioners.1.num_tokens=2"], host=host)
@@ -263,7 +263,7 @@ def test_multiple_problems_are_reported_together(host):
 def test_required_and_missing_slots(host):
     config = resolve_config("label-to-touch", host=host)
     assert required_slots(config, host) == ["data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer",
-                                            "tokenizer.discriminator", "metrics", "generator.model",
+                                            "tokenizer.discriminator", "metrics", "sensor", "generator.model",
                                             "generator.conditioners", "generator.sampler"]
     assert missing_slots(config, host) == []
     no_model = resolve_config("label-to-touch", overrides=["generator.model=null"], host=host)

@@ -814,3 +814,59 @@ def test_image_folder_csv_problems(tmp_path):
     # Extra columns are ignored and a text column becomes the sample's text.
     csv_path.write_text("path,label,note,text\ntouch/3.png,0,anything,a soft cat\n")
     assert build({**config, "class_names": ["x"]})[0]["text"] == "a soft cat"
+
+
+# ============================================================================================
+# Split groups: what each layout says belongs to one recording
+# ============================================================================================
+def test_each_reader_groups_samples_by_what_its_layout_records(tmp_path):
+    def groups(case_name: str, **extra):
+        case = next(case for case in CASES if case.name == case_name)
+        root = case.build(tmp_path / case_name)
+        dataset = build(case.config(root, **extra))
+        return dataset.split_unit, dataset.split_groups()
+
+    tag_numbers = [number for number, label in layouts.TAG_LISTS["train"] if label != -1]
+    assert groups("touch_and_go") == ("recording", [layouts.TAG_RECORDINGS[n % 2] for n in tag_numbers])
+    # Every VisGel fixture line names the same no-contact frame: one recording.
+    assert groups("visgel") == ("recording", [layouts.visgel_frame(0, "tactile")] * len(layouts.VISGEL_NUMBERS))
+    # Trajectory folders <idx>-<ts> of the runs; the same folder name in two runs is two trajectories.
+    assert groups("tvl_hct") == ("trajectory", ["data1/3-1700000003", "data1/4-1700000004", "data2/4-1700000004"])
+    assert groups("tvl_ssvtp") == ("sample", None)
+    assert groups("objectfolder_real") == ("trial", [f"{obj}/{trial}" for obj, trial, _, _ in layouts.of_real_frames()])
+    assert groups("objectfolder_cross") == ("sample", None)
+    assert groups("fabricvst") == ("fabric", [fabric for fabric, numbers in layouts.fabric_numbers().items()
+                                              for _ in numbers])
+    unit, folder_groups = groups("image_folder")
+    # rough/img0.png and smooth/img2.png sit in their class folders: each its own group.
+    assert unit == "folder" and folder_groups[1] == "rough/nested" and len(set(folder_groups)) == 3
+
+
+def test_fabricvst_flat_layout_groups_by_fabric(tmp_path):
+    root = layouts.build_fabricvst(tmp_path, flat=True)
+    dataset = build({"name": "fabricvst", "root": str(root), "image_size": SIZE})
+    assert dataset.split_groups() == [fabric for fabric, numbers in layouts.fabric_numbers().items() for _ in numbers]
+
+
+def test_image_folder_groups_come_from_the_group_column(tmp_path):
+    root = layouts.build_image_folder(tmp_path)
+    config = {"name": "image_folder", "root": str(root), "csv": "listed/list.csv", "image_size": SIZE}
+    csv_path = layouts.write_image_folder_csv(root, ["0", "0", "1", "1"])
+    assert build(config).split_groups() is None and build(config).split_unit == "sample"
+    csv_path.write_text("path,group,label\ntouch/3.png,rec_a,0\ntouch/4.png,rec_b,0\ntouch/5.png,rec_a,1\n"
+                        "touch/6.png,,1\n")
+    dataset = build(config)
+    assert dataset.split_unit == "group"
+    assert dataset.split_groups()[:3] == ["rec_a", "rec_b", "rec_a"]
+    assert dataset.split_groups()[3] not in {"rec_a", "rec_b"}  # an empty cell: a group of its own
+
+
+def test_a_split_of_a_reader_keeps_its_groups_on_one_side(tmp_path):
+    from vqtouch.core.data import split_dataset
+
+    root = layouts.build_objectfolder_real(tmp_path)
+    dataset = build({"name": "objectfolder_real", "root": str(root), "image_size": SIZE})
+    for seed in range(5):
+        train, held_out = split_dataset(dataset, 0.3, seed)
+        assert held_out.split_unit == "trial" and len(held_out) > 0
+        assert not set(train.split_groups()) & set(held_out.split_groups())

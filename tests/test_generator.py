@@ -181,7 +181,7 @@ def test_scores_stand_next_to_the_no_contact_background_and_the_contact_region(t
 
 
 def test_contact_region_scores_against_a_closed_form():
-    from vqtouch.plugins.generator.stage import contact_region_scores
+    from vqtouch.plugins.evaluation.contact import contact_region_scores
 
     background = torch.full((1, 3, 4, 4), 0.5)
     truth = background.clone()

@@ -104,11 +104,14 @@ def test_library_dependencies_have_lower_bounds_not_exact_pins():
 def test_constraints_pin_exactly_the_verified_torch_pair_and_tacto():
     lines = [line.split("#")[0].strip() for line in (REPO / "constraints.txt").read_text().splitlines()]
     pins = {r.name: str(r.specifier) for r in _requirements(line for line in lines if line)}
-    # tacto: the release whose config_digit.yml the digit family reads (tests/test_digit_design.py).
-    assert pins == {"torch": "==2.15.0", "torchvision": "==0.29.2", "tacto": "==0.0.3"}
+    # tacto: the release whose config_digit.yml the digit family reads (tests/test_digit_design.py);
+    # torchmetrics and torch-fidelity: the metric implementations the tests' closed forms were checked on.
+    assert pins == {"torch": "==2.15.0", "torchvision": "==0.29.2", "tacto": "==0.0.3", "torchmetrics": "==1.9.0",
+                    "torch-fidelity": "==0.4.0"}
     # The pinned versions satisfy the library's own bounds (else pip could not resolve with the file).
     project = _project()
-    bounds = _requirements([*project["dependencies"], *project["optional-dependencies"]["clip"]])
+    bounds = _requirements([*project["dependencies"], *project["optional-dependencies"]["clip"],
+                            *project["optional-dependencies"]["metrics"]])
     for requirement in bounds:
         if requirement.name in pins:
             assert requirement.specifier.contains(pins[requirement.name].removeprefix("==")), requirement
@@ -135,11 +138,11 @@ def test_open_clip_is_only_in_the_clip_extra_and_imported_only_lazily(package_so
     assert not any(at_module_level for _, at_module_level in importers), importers
 
 
-def test_makefile_installs_with_the_constraints_and_the_clip_extra():
+def test_makefile_installs_with_the_constraints_and_the_clip_and_metrics_extras():
     makefile = (REPO / "Makefile").read_text()
     installs = [line for line in makefile.splitlines() if "pip install" in line and " -e " in line]
     assert len(installs) == 1, installs
-    assert "-c constraints.txt" in installs[0] and "'.[test,clip]'" in installs[0], installs[0]
+    assert "-c constraints.txt" in installs[0] and "'.[test,clip,metrics]'" in installs[0], installs[0]
     stamp_rule = next(line for line in makefile.splitlines() if line.startswith("$(STAMP):"))
     assert "constraints.txt" in stamp_rule, "editing constraints.txt must trigger a reinstall"
     # tacto only for its DIGIT design file: its own dependencies (pyrender, OpenGL) must not be installed.

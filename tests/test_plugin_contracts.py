@@ -47,6 +47,8 @@ TINY_OPTIONS: dict[tuple[str, str], dict[str, Any]] = {
     **{("sensor_family", name): {"variant": {"response_scale": 0.8, "noise_std": 0.02, "damage_spots": 2, "seed": 3}}
        for name in ("gelsight", "gelsight_mini", "digit")},
     ("metric", "fd_effnetlite0"): {"image_size": 32, "batch_size": 4},
+    ("metric", "kid_effnetlite0"): {"image_size": 32, "batch_size": 4, "subsets": 10},
+    ("metric", "kid"): {"subsets": 10},
     ("generator", "vq_diffusion"): {"depth": 1, "width": 16, "heads": 2, "num_steps": 10},
 }
 
@@ -60,6 +62,7 @@ TINY_CLIP = {
 
 import dataset_fixtures  # noqa: E402  (registered by conftest)
 import generator_runs  # noqa: E402  (registered by conftest)
+import metric_weights  # noqa: E402  (registered by conftest)
 
 READER_CASES = {case.name: case for case in dataset_fixtures.READER_CASES}
 
@@ -76,10 +79,15 @@ def tiny_clip_weights(folder: Path) -> Path:
     return path
 
 
-def builtin_case(kind: str, name: str, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+def builtin_case(kind: str, name: str, tmp_path_factory: pytest.TempPathFactory,
+                 monkeypatch: pytest.MonkeyPatch | None = None) -> dict[str, Any]:
     """The keyword arguments of ``check_plugin`` for one built-in: its tiny options, the files it
-    reads (a dataset layout in miniature, a tiny CLIP) and the inputs it declares."""
+    reads (a dataset layout in miniature, a tiny CLIP, weights files of the real layouts: metrics
+    need ``monkeypatch`` to accept those files' digests) and the inputs it declares."""
     options = dict(TINY_OPTIONS.get((kind, name), {}))
+    if kind == "metric":
+        options.update(metric_weights.weighted_metric_options((kind, name), tmp_path_factory.getbasetemp(),
+                                                              monkeypatch))
     case: dict[str, Any] = {"options": options}
     if (kind, name) == ("conditioner", "clip"):
         weights = tiny_clip_weights(tmp_path_factory.getbasetemp())
@@ -115,18 +123,31 @@ def test_builtin_entry_has_a_versioned_source(kind, name):
 
 
 @pytest.mark.parametrize("kind, name", ENTRIES)
-def test_builtin_meets_its_contract(kind, name, tmp_path, tmp_path_factory):
-    check_plugin(HOST, kind, name, tmp_dir=tmp_path, **builtin_case(kind, name, tmp_path_factory))
+def test_builtin_meets_its_contract(kind, name, tmp_path, tmp_path_factory, monkeypatch):
+    check_plugin(HOST, kind, name, tmp_dir=tmp_path, **builtin_case(kind, name, tmp_path_factory, monkeypatch))
+
+
+@pytest.mark.parametrize("kind, name", [entry for entry in ENTRIES if entry[0] == "metric"])
+def test_builtin_metrics_are_checked_computing_not_skipped(kind, name, tmp_path_factory, monkeypatch):
+    """check_metric passes a skipped metric on its reason alone: every built-in must reach it with
+    the files it needs (fabricated, of the real layout), so its behaviour is what is checked."""
+    case = builtin_case(kind, name, tmp_path_factory, monkeypatch)
+    assert HOST.build(kind, {"name": name, **case["options"]}).skipped is None
 
 
 #: A 2:3 context (rows, columns): every built-in must work at a sensor's native, non-square aspect.
 NATIVE_ASPECT = DEFAULT_CONTEXT.model_copy(update={"image_size": (32, 48), "code_grid": (8, 12)})
 
 
-@pytest.mark.parametrize("kind, name", ENTRIES)
-def test_builtin_meets_its_contract_at_a_native_aspect(kind, name, tmp_path, tmp_path_factory):
+#: Inception-v3 resizes every input to 299 x 299, so these add nothing at a native aspect but a minute.
+ASPECT_BLIND = {("metric", "fid"), ("metric", "kid")}
+
+
+@pytest.mark.parametrize("kind, name", [entry for entry in ENTRIES if entry not in ASPECT_BLIND])
+def test_builtin_meets_its_contract_at_a_native_aspect(kind, name, tmp_path, tmp_path_factory, monkeypatch):
     """The same contract with (32, 48) images and an (8, 12) code grid: shapes follow the aspect."""
-    check_plugin(HOST, kind, name, context=NATIVE_ASPECT, tmp_dir=tmp_path, **builtin_case(kind, name, tmp_path_factory))
+    check_plugin(HOST, kind, name, context=NATIVE_ASPECT, tmp_dir=tmp_path,
+                 **builtin_case(kind, name, tmp_path_factory, monkeypatch))
 
 
 def test_every_registry_kind_is_checked():

@@ -70,7 +70,8 @@ def test_block_removes_a_builtin():
 def test_block_from_environment(monkeypatch):
     monkeypatch.setenv("VQTOUCH_BLOCK_PLUGINS", "metrics, label")
     host = load_plugins(autoload=False)
-    assert host.registry("metric").names() == ["fd_effnetlite0"]  # psnr and ssim came from "metrics"
+    # psnr, ssim, ms_ssim and lpips came from "metrics"
+    assert host.registry("metric").names() == ["fd_effnetlite0", "fid", "kid", "kid_effnetlite0"]
     assert "label" not in host.registry("conditioner")
 
 

@@ -232,9 +232,10 @@ def test_gelsight_background_is_taxims_no_contact_frame():
 
 # -- fidelity against taxim's real frames -------------------------------------------------------
 
-@pytest.mark.parametrize("sensor, min_ssim, min_psnr", [("gelsight", 0.94, 29.0), ("gelsight_mini", 0.81, 23.3)])
+@pytest.mark.parametrize("sensor, min_ssim, min_psnr", [("gelsight", 0.93, 29.0), ("gelsight_mini", 0.85, 23.3)])
 def test_render_matches_real_ball_presses(sensor, min_ssim, min_psnr):
-    """Measured: GelSight SSIM 0.953 / PSNR 29.9 dB, Mini 0.826 / 23.8 dB (64 px contact crops)."""
+    """Measured (torchmetrics' SSIM): GelSight SSIM 0.936 / PSNR 29.9 dB, Mini 0.862 / 23.8 dB (64 px contact
+    crops; with the earlier valid-window SSIM: 0.953 and 0.826)."""
     from vqtouch.sensors.fidelity import evaluate_fidelity
 
     result = evaluate_fidelity(sensor, HOST, resolution=(240, 320), crop_px=64)

@@ -170,7 +170,7 @@ def reconstruction_scores(tokenizer: Any, images_N3HW: torch.Tensor, host: Any, 
     scores = evaluate_reconstruction(tokenizer, ImageSet(images_N3HW), built, batch_size=batch_size,
                                      device=tokenizer.device)
     return {key: (round(value, 4) if isinstance(value, float) else value) for key, value in scores.items()
-            if key in (*metrics, "codebook_usage", "codes_used", "samples")}
+            if key in (*metrics, "codebook_usage", "codes_used", "samples", "skipped")}
 
 
 def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, host: Any, out: Path,

@@ -106,7 +106,10 @@ def run_cluster_stage(job: StageJob) -> dict[str, Any]:
                    "margin": assigned["margin"],
                    **experiment_metrics(job, reconstruct_all(tokenizer, sensor.images), sensor.images, "zero_shot_")}
     save_families(families, job.run.path / CLUSTER_FOLDER, job.host, extra, plotted)
-    return {**result, "picture": f"{CLUSTER_FOLDER}/families.png"}
+    return {**result, "picture": f"{CLUSTER_FOLDER}/families.png",
+            "caption": "2-D PCA of the tokenizer's image features: each sensor's images (small points) and prototype "
+                       "(large marker, coloured by family); the unseen target sensor is a black star labelled with "
+                       "the family it was assigned to."}
 
 
 def run_adapt_stage(job: StageJob) -> dict[str, Any]:
@@ -137,7 +140,9 @@ def run_adapt_stage(job: StageJob) -> dict[str, Any]:
     if "real_frames" in summary:
         real = summary["real_frames"]
         result |= {f"real_{key}_{when}": real[when][key] for when in ("before", "after") for key in ("ssim", "psnr")}
-    return {**result, "picture": f"{ADAPTED_FOLDER}/before_after.png"}
+    return {**result, "picture": f"{ADAPTED_FOLDER}/before_after.png",
+            "caption": "Held-out images of the target sensor (top row), the family tokenizer's reconstructions "
+                       "before adaptation (middle row) and after (bottom row)."}
 
 
 @hookimpl

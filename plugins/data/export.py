@@ -21,7 +21,9 @@ from vqtouch.core.progress import progress
 from vqtouch.core.training import collate_samples
 
 
-def _batches(dataset: Any, indices: list[int], batch_size: int) -> Iterable[dict[str, Any]]:
+def sample_batches(dataset: Any, indices: list[int], batch_size: int) -> Iterable[dict[str, Any]]:
+    """The samples ``indices`` of ``dataset`` in batches of ``batch_size``, collated (tensors stacked,
+    strings in lists)."""
     for first in range(0, len(indices), batch_size):
         chunk = indices[first:first + batch_size]
         # The procedural dataset renders a batch at once; any other dataset is read sample by sample.
@@ -40,7 +42,7 @@ def export_samples(dataset: Any, indices: Iterable[int], out: Path, *, batch_siz
     rows, previews = [], []
     start = time.perf_counter()
     bar = progress(total=len(indices), desc="rendering", unit="img")
-    for batch in _batches(dataset, indices, batch_size):
+    for batch in sample_batches(dataset, indices, batch_size):
         for k, sample_id in enumerate(batch["id"]):
             name = str(sample_id).replace("/", "_")
             save_png(batch["tactile"][k], out / "tactile" / f"{name}.png")

@@ -34,7 +34,9 @@ def run_render_stage(job: StageJob) -> dict[str, Any]:
                             batch_size=section.batch_size)
     job.run.write_json(f"{section.folder}/render.json", record)
     return {"samples": record["samples"], "samples_per_second": record["images_per_second"],
-            "folder": section.folder, "picture": f"{section.folder}/preview.png"}
+            "folder": section.folder, "picture": f"{section.folder}/preview.png",
+            "caption": "The first samples, each as its tactile image followed by its visual image (the tactile "
+                       "image again when there is none), four pairs per row."}
 
 
 @hookimpl

@@ -13,6 +13,9 @@ instead of turning every pixel into "contact".
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 import torch
 
 #: A pixel is in contact where it differs from the background by more than this (mean absolute
@@ -29,3 +32,71 @@ def contact_mask(images_B3HW: torch.Tensor, background_B3HW: torch.Tensor,
     difference = images_B3HW.detach().float().cpu() - background_B3HW.detach().float().cpu()
     noise_sigma = 1.4826 * float(difference.abs().median())
     return difference.abs().mean(dim=1) > max(threshold, NOISE_FACTOR * noise_sigma)
+
+
+def no_contact_image(sensor: Any, truth_B3HW: torch.Tensor) -> torch.Tensor | None:
+    """``sensor`` rendering no contact, one copy per ground-truth image: what a model that ignores
+    its input and draws only the background would score.  None without a sensor."""
+    if sensor is None:
+        return None
+    flat = sensor.render(torch.zeros(1, *truth_B3HW.shape[-2:]), generator=torch.Generator().manual_seed(0))
+    return flat.to(truth_B3HW).expand_as(truth_B3HW)
+
+
+class ContactRegionScores:
+    """Scores on the contact region only, accumulated over batches: pixels where the ground truth
+    differs from the no-contact image by more than the threshold and the camera noise allow
+    (:func:`contact_mask`, the noise estimated per batch).  Whole-image scores flatter a model that
+    draws only the background; these do not.
+
+    ``update({prefix: images}, truth)`` adds candidates (``{"": reconstructed, "background_": ...}``);
+    :meth:`scores` gives ``{prefix}contact_psnr`` (torchmetrics' PSNR of the error pooled over the
+    region's pixels, capped at 100 dB), ``{prefix}contact_mae`` and ``contact_fraction``, the region's
+    share of the pixels (0 and no other score when no pixel is in contact).
+    """
+
+    def __init__(self, background_B3HW: torch.Tensor, max_db: float = 100.0) -> None:
+        self.background = background_B3HW.detach().float().cpu()
+        self.max_db = max_db
+        self.region_pixels, self.pixels = 0, 0
+        self._psnr: dict[str, Any] = {}
+        self._absolute: dict[str, tuple[float, int]] = {}
+
+    def update(self, candidates: Mapping[str, torch.Tensor], truth_B3HW: torch.Tensor) -> None:
+        """Add one batch: each candidate image set against its ground truth (image i against truth i)."""
+        from torchmetrics.image import PeakSignalNoiseRatio
+
+        truth = truth_B3HW.detach().float().cpu()
+        background = self.background[: len(truth)] if len(self.background) > 1 else self.background
+        region_BHW = contact_mask(truth, background)
+        self.region_pixels += int(region_BHW.sum())
+        self.pixels += region_BHW.numel()
+        mask = region_BHW.unsqueeze(1).expand_as(truth)
+        for prefix, predicted in candidates.items():
+            predicted_region = predicted.detach().float().cpu()[mask].double()
+            psnr = self._psnr.setdefault(prefix, PeakSignalNoiseRatio(data_range=1.0).double())
+            total, count = self._absolute.get(prefix, (0.0, 0))
+            if predicted_region.numel():
+                psnr.update(predicted_region, truth[mask].double())
+                total += float((predicted_region - truth[mask].double()).abs().sum())
+                count += predicted_region.numel()
+            self._absolute[prefix] = (total, count)
+
+    def scores(self) -> dict[str, float]:
+        """The region's share of the pixels and each candidate's contact PSNR and MAE."""
+        if self.region_pixels == 0:
+            return {"contact_fraction": 0.0}
+        scores = {"contact_fraction": round(self.region_pixels / self.pixels, 4)}
+        for prefix, psnr in self._psnr.items():
+            total, count = self._absolute[prefix]
+            scores[f"{prefix}contact_psnr"] = round(min(float(psnr.compute()), self.max_db), 4)
+            scores[f"{prefix}contact_mae"] = round(total / count, 5)
+        return scores
+
+
+def contact_region_scores(candidates: Mapping[str, torch.Tensor], truth_B3HW: torch.Tensor,
+                          background_B3HW: torch.Tensor) -> dict[str, float]:
+    """:class:`ContactRegionScores` of one batch of candidates."""
+    accumulated = ContactRegionScores(background_B3HW)
+    accumulated.update(candidates, truth_B3HW)
+    return accumulated.scores()

@@ -13,7 +13,6 @@ are, generated, ground truth).
 from __future__ import annotations
 
 import contextlib
-import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,12 +21,13 @@ from typing import TYPE_CHECKING, Any
 import torch
 from pydantic import Field
 
-from vqtouch.core import RunDir, Section, Slot, StageJob, StageUnavailable, hookimpl, resolve_device
+from vqtouch.core import MetricSet, RunDir, Section, Slot, StageJob, StageUnavailable, hookimpl, resolve_device
 from vqtouch.core.data import DatasetSubset, split_dataset
 from vqtouch.core.errors import VqtouchWarning
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.core.training import Trainer, collate_samples
+from vqtouch.plugins.evaluation.contact import contact_region_scores, no_contact_image
 
 from .training import CodesDataset, GeneratorTask, GeneratorTrainConfig
 
@@ -137,7 +137,7 @@ def train_generator(job: StageJob) -> dict[str, Any]:
         job.run.resume(trainer, job.host, stage=CHECKPOINT_FOLDER)
     state = trainer.fit()
     result: dict[str, Any] = {"step": state.step, "train_samples": len(train_set), "val_samples": len(val_set),
-                              "code_cache": cache, "tokenizer": str(tokenizer_folder)}
+                              "split_unit": val_set.split_unit, "code_cache": cache, "tokenizer": str(tokenizer_folder)}
     if trainer.validates():
         result |= {"best_step": state.best_step, "best_val_loss": state.best_score}
     if trainer.dist.is_main:
@@ -299,15 +299,13 @@ def score_images(candidates: dict[str, torch.Tensor], truth_B3HW: torch.Tensor, 
     against the ground truth: ``{prefix}{metric}`` for each metric, the contact-region scores (given
     the no-contact image) and, given a scorer, ``{prefix}fd_effnetlite0`` and
     ``{prefix}classifier_accuracy`` (the scorer's ``fd_effnetlite0`` stands for the metric of that
-    name: the same quantity, its real features computed once)."""
+    name: the same quantity, its real features computed once).  A metric that cannot run here is
+    listed under ``"skipped"`` with its reason."""
     scores: dict[str, Any] = {}
-    for name, metric in metrics:
-        if distribution is not None and name == "fd_effnetlite0":
-            continue
-        for prefix, predicted in candidates.items():
-            metric.reset()
-            metric.update(predicted.cpu(), truth_B3HW.cpu())
-            scores[prefix + name] = round(metric.compute(), 4)
+    metric_set = MetricSet((name, metric) for name, metric in metrics
+                           if distribution is None or name != "fd_effnetlite0")
+    for prefix, predicted in candidates.items():
+        scores |= metric_set.score(predicted.cpu(), truth_B3HW.cpu(), prefix)
     if background_B3HW is not None:
         scores |= contact_region_scores(candidates, truth_B3HW, background_B3HW)
     if distribution is not None:
@@ -382,45 +380,16 @@ def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: A
     return scores
 
 
-def no_contact_image(sensor: Any, truth_B3HW: torch.Tensor) -> torch.Tensor | None:
-    """``sensor`` rendering no contact, one copy per ground-truth image: what a generator that ignores
-    its condition and draws only the background would score.  None without a sensor."""
-    if sensor is None:
-        return None
-    flat = sensor.render(torch.zeros(1, *truth_B3HW.shape[-2:]), generator=torch.Generator().manual_seed(0))
-    return flat.to(truth_B3HW).expand_as(truth_B3HW)
-
-
-def contact_region_scores(candidates: dict[str, torch.Tensor], truth_B3HW: torch.Tensor,
-                          background_B3HW: torch.Tensor) -> dict[str, float]:
-    """Scores on the contact region only (pixels where the ground truth differs from the no-contact
-    image by more than the threshold and the camera noise allow, see
-    :mod:`vqtouch.plugins.evaluation.contact`): ``{prefix}contact_psnr`` and ``{prefix}contact_mae``
-    of each candidate (``{"": generated, "background_": ..., ...}``), and the region's share of the
-    pixels.  Whole-image scores flatter a model that draws only the background; these do not."""
-    from vqtouch.plugins.evaluation.contact import contact_mask
-
-    truth = truth_B3HW.detach().float().cpu()
-    region_BHW = contact_mask(truth, background_B3HW)
-    if not bool(region_BHW.any()):
-        return {"contact_fraction": 0.0}
-    mask = region_BHW.unsqueeze(1).expand_as(truth)
-    scores = {"contact_fraction": round(float(region_BHW.float().mean()), 4)}
-    for prefix, predicted in candidates.items():
-        error = (predicted.detach().float().cpu() - truth)[mask]
-        mse = float(error.square().mean())
-        scores[f"{prefix}contact_psnr"] = round(10 * math.log10(1 / max(mse, 1e-10)), 4)
-        scores[f"{prefix}contact_mae"] = round(float(error.abs().mean()), 5)
-    return scores
-
-
 def run_generator_stage(job: StageJob) -> dict[str, Any]:
     """The ``generator`` stage: train, then the sample scores for the report."""
     result = train_generator(job)
     shown = {key: result[key] for key in ("step", "samples", "sampler", "steps", "ssim", "background_ssim", "psnr",
-                                          "background_psnr", "contact_psnr", "background_contact_psnr", "best_step")
+                                          "background_psnr", "contact_psnr", "background_contact_psnr", "best_step",
+                                          "skipped")
              if key in result}
-    return {**shown, **({"picture": "samples.png"} if "samples" in result else {})}
+    caption = ("One column per held-out sample: its condition when that is an image (top row), the generated "
+               "tactile image, then the ground truth (bottom row).")
+    return {**shown, **({"picture": "samples.png", "caption": caption} if "samples" in result else {})}
 
 
 @hookimpl

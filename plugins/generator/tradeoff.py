@@ -39,9 +39,10 @@ import torch
 
 from vqtouch.core import Assembly, ConfigError, RunDir
 from vqtouch.core.runs import MissingCheckpointError
+from vqtouch.plugins.evaluation.contact import no_contact_image
 
 from .stage import (PRECISIONS, HeldOutConditions, baseline_pool, distribution_scorer, generate_held_out,
-                    held_out_conditions, no_contact_image, score_images)
+                    held_out_conditions, score_images)
 
 #: The knobs of a setting, in the order of the table's columns.
 KNOBS = ("sampler", "steps", "guidance", "precision")

@@ -21,6 +21,7 @@ from pydantic import Field
 from torch import nn
 
 from vqtouch.core import Conditioner, Generator, TactileDataset, TrainConfig
+from vqtouch.core.data import dataset_groups
 from vqtouch.core.progress import progress
 
 
@@ -48,13 +49,20 @@ class CodesDataset(TactileDataset):
     tensor, strings as a list); a sample is ``{"codes": codes[i], key: value, ...}``.
     """
 
-    def __init__(self, codes_NHW: torch.Tensor, entries: dict[str, Any], class_names: Sequence[str] = ()) -> None:
+    def __init__(self, codes_NHW: torch.Tensor, entries: dict[str, Any], class_names: Sequence[str] = (),
+                 groups: Sequence[str] | None = None, split_unit: str = TactileDataset.split_unit) -> None:
         self.codes_NHW = codes_NHW
         self.entries = entries
         self.class_names = list(class_names)
+        # The source dataset's split groups: the generator's held-out split keeps a recording's
+        # frames together exactly as the tokenizer's does (the same split of the same samples).
+        self.groups = list(groups) if groups is not None else None
+        self.split_unit = split_unit
         for key, values in entries.items():
             if len(values) != len(codes_NHW):
                 raise ValueError(f"{len(values)} values of {key!r} for {len(codes_NHW)} code grids")
+        if self.groups is not None and len(self.groups) != len(codes_NHW):
+            raise ValueError(f"{len(self.groups)} split groups for {len(codes_NHW)} code grids")
 
     @classmethod
     def collect(cls, codes_NHW: torch.Tensor, dataset: Any, keys: Sequence[str], desc: str = "reading conditions"
@@ -69,7 +77,12 @@ class CodesDataset(TactileDataset):
                                    f"conditioner reads it: use a dataset that provides it")
                 values[key].append(sample[key])
         entries = {key: _stack(items) for key, items in values.items()}
-        return cls(codes_NHW, entries, getattr(dataset, "class_names", []))
+        return cls(codes_NHW, entries, getattr(dataset, "class_names", []), dataset_groups(dataset),
+                   getattr(dataset, "split_unit", TactileDataset.split_unit))
+
+    def split_groups(self) -> list[str] | None:
+        """The source dataset's split groups (None: every sample is its own)."""
+        return self.groups
 
     def __len__(self) -> int:
         return len(self.codes_NHW)

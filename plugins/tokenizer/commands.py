@@ -14,7 +14,7 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import Assembly, ConfigError, RunDir, hookimpl, run_stage
+from vqtouch.core import Assembly, ConfigError, MetricSet, RunDir, hookimpl, run_stage
 from vqtouch.core.config import parse_override
 from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group, stage_failure,
                               training_run)
@@ -22,7 +22,7 @@ from vqtouch.core.data import split_dataset
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
 
-from .stages import load_tokenizer, printable, reconstruct_all, save_pairs
+from .stages import load_tokenizer, printable, reconstruct_all, save_pairs, sensor_background
 from .training import evaluate_reconstruction
 
 
@@ -90,14 +90,12 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
         dataset = host.build("dataset", _images_dataset(args.images, args.images_options, image_size))
         images = torch.stack([dataset[i]["tactile"] for i in range(len(dataset))])
         source = args.images
-    metrics = {name: host.build("metric", name) for name in ("ssim", "psnr")}
+    metrics = MetricSet((name, host.build("metric", name)) for name in ("ssim", "psnr"))
     reconstructions = reconstruct_all(tokenizer, images, batch_size=32)
-    for metric in metrics.values():
-        metric.update(reconstructions, images)
+    scores = metrics.score(reconstructions, images)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     save_pairs(images, reconstructions, out / "reconstructions.png")
-    scores = {name: round(metric.compute(), 4) for name, metric in metrics.items()}
     (out / "reconstruct.json").write_text(json.dumps({"checkpoint": str(folder), "source": source,
                                                      "images": len(images), "image_size": image_size,
                                                      **scores}, indent=2) + "\n")
@@ -122,7 +120,8 @@ def _evaluate_command(args: argparse.Namespace) -> int:
         evaluated = dataset if args.split == "all" else val_set
     names = args.metrics.split(",") if args.metrics else [m.name for m in config.metrics]
     metrics = {name: assembly.build("metric", name) for name in names}
-    scores = evaluate_reconstruction(tokenizer, evaluated, metrics, batch_size=config.data.batch_size)
+    scores = evaluate_reconstruction(tokenizer, evaluated, metrics, batch_size=config.data.batch_size,
+                                     background_3HW=sensor_background(assembly, config))
     save_pairs(*scores["examples"], run.path / f"reconstructions_{folder.name}.png")
     result = {"checkpoint": str(folder), "split": "dataset" if args.dataset else args.split, **printable(scores)}
     suffix = "_dataset" if args.dataset else ""

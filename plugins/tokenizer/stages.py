@@ -14,13 +14,14 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import RunDir, StageJob, StageUnavailable, hookimpl, load, resolve_device
+from vqtouch.core import MetricSet, RunDir, StageJob, StageUnavailable, hookimpl, load, resolve_device
 from vqtouch.core.data import split_dataset
 from vqtouch.core.errors import NothingToEvaluateError
 from vqtouch.core.image_size import image_hw
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.core.training import Trainer
+from vqtouch.plugins.evaluation.contact import contact_region_scores, no_contact_image
 
 from .training import Tokenizer, TokenizerLossConfig, TokenizerSection, TokenizerTask, evaluate_reconstruction
 
@@ -73,7 +74,8 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
     metrics = dict(zip((item.name for item in config.metrics), assembly.build_slots(["metrics"]).get("metrics", [])))
     try:
         scores = evaluate_reconstruction(tokenizer, val_set, metrics, device=device,
-                                         batch_size=config.data.batch_size)
+                                         batch_size=config.data.batch_size,
+                                         background_3HW=sensor_background(assembly, config))
     except NothingToEvaluateError:  # data.val_fraction=0 holds nothing out: keep the training, say why
         scores = {"evaluation": f"skipped: no held-out samples (data.val_fraction={config.data.val_fraction:g})"}
     if trainer.dist.is_main:
@@ -82,16 +84,31 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
         best = {"best_step": state.best_step, "best_val_loss": state.best_score} if trainer.validates() else {}
         job.run.write_json("eval.json", {"step": state.step, "skipped_steps": state.skipped_steps, **best,
                                          "train_samples": len(train_set), "val_samples": len(val_set),
-                                         **printable(scores)})
+                                         "split_unit": val_set.split_unit, **printable(scores)})
     return scores
+
+
+def sensor_background(assembly: Any, config: Any) -> torch.Tensor | None:
+    """The experiment's sensor rendering no contact at the data's size, (3, H, W): the image every
+    reconstruction score is shown next to.  None when the experiment names no sensor."""
+    if config.sensor is None:
+        return None
+    return no_contact_image(assembly.sensor(), torch.zeros(1, 3, *image_hw(config.data.image_size)))[0]
+
+
+#: The tokenizer stage's scores shown in the run report (eval.json holds them all).
+SHOWN_SCORES = ("ssim", "background_ssim", "psnr", "background_psnr", "contact_psnr", "background_contact_psnr",
+                "contact_fraction", "codebook_usage", "samples", "evaluation", "skipped")
 
 
 def run_tokenizer_stage(job: StageJob) -> dict[str, Any]:
     """The ``tokenizer`` stage: train, then the held-out scores for the report."""
     scores = printable(train_tokenizer(job))
     return {"steps": job.section.train.steps,
-            **{k: v for k, v in scores.items() if k in ("ssim", "psnr", "codebook_usage", "samples", "evaluation")},
-            **({} if "evaluation" in scores else {"picture": "reconstructions.png"})}
+            **{k: v for k, v in scores.items() if k in SHOWN_SCORES},
+            **({} if "evaluation" in scores else {
+                "picture": "reconstructions.png",
+                "caption": "Held-out images (top row) above the trained tokenizer's reconstructions of them (bottom row)."})}
 
 
 def load_tokenizer(run_or_folder: str | Path | RunDir, host: Any, step: int | str | None = None,
@@ -167,28 +184,32 @@ def run_reconstruct_stage(job: StageJob) -> dict[str, Any]:
         raise StageUnavailable(f"sensor family {sensor_config.name!r} declares no real reference frames "
                                "(SensorFamily.reference_frames) to reconstruct")
     reconstructions = reconstruct_all(tokenizer, frames)
+    background = no_contact_image(sensor, frames)
     scores: dict[str, Any] = {"source": f"{len(frames)} real {sensor.sensor_id or sensor_config.name} frames",
-                              "checkpoint": folder.name, **experiment_metrics(job, reconstructions, frames)}
+                              "checkpoint": folder.name, **experiment_metrics(job, reconstructions, frames),
+                              **experiment_metrics(job, background, frames, prefix="background_"),
+                              **contact_region_scores({"": reconstructions, "background_": background}, frames,
+                                                      background)}
     save_pairs(frames, reconstructions, job.run.path / "real_frames.png")
-    return {**scores, "picture": "real_frames.png"}
+    return {**scores, "picture": "real_frames.png",
+            "caption": f"The first {min(8, len(frames))} of the sensor's real reference frames (top row) above the "
+                       "tokenizer's reconstructions of them (bottom row)."}
 
 
 def experiment_metrics(job: StageJob, predicted_B3HW: torch.Tensor, truth_B3HW: torch.Tensor,
                        prefix: str = "") -> dict[str, float]:
-    """The experiment's ``metrics`` of ``predicted_B3HW`` against ``truth_B3HW``, by name (``prefix`` + name)."""
-    scores = {}
-    for item, metric in zip(job.config.metrics, job.assembly.build_slots(["metrics"]).get("metrics", [])):
-        metric.reset()
-        metric.update(predicted_B3HW, truth_B3HW)
-        scores[f"{prefix}{item.name}"] = round(metric.compute(), 4)
-    return scores
+    """The experiment's ``metrics`` of ``predicted_B3HW`` against ``truth_B3HW``, by name (``prefix`` + name),
+    and ``"skipped"`` with the reason of each that cannot run here."""
+    metrics = MetricSet(zip((item.name for item in job.config.metrics),
+                            job.assembly.build_slots(["metrics"]).get("metrics", [])))
+    return metrics.score(predicted_B3HW, truth_B3HW, prefix)
 
 
 @hookimpl
 def vqtouch_register_stages(register):
     register("tokenizer", run_tokenizer_stage, section=TokenizerSection,
              needs=("data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer"),
-             uses=("tokenizer.discriminator", "metrics"),
+             uses=("tokenizer.discriminator", "metrics", "sensor"),
              demo={"train.steps": 40, "train.checkpoint_every": 40, "train.log_every": 10},
              description="Train the tactile tokenizer (autoencoder + quantizer [+ GAN]) and score the held-out "
                          "split.")

@@ -14,6 +14,7 @@ finite).  The discriminator is not trained before ``disc_start``.  Images enter 
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -21,7 +22,7 @@ import torch
 from pydantic import Field
 from torch import nn
 
-from vqtouch.core import Autoencoder, Metric, Quantizer, Section, Slot, TrainConfig, VqtouchError
+from vqtouch.core import Autoencoder, Metric, MetricSet, Quantizer, Section, Slot, TrainConfig, VqtouchError
 from vqtouch.core.errors import NothingToEvaluateError
 from vqtouch.core.training import collate_samples
 
@@ -186,15 +187,25 @@ class TokenizerTask:
 
 
 @torch.no_grad()
-def evaluate_reconstruction(tokenizer: Tokenizer, dataset: Any, metrics: dict[str, Metric], *, batch_size: int = 32,
-                            device: torch.device | str = "cpu", keep: int = 8) -> dict[str, Any]:
+def evaluate_reconstruction(tokenizer: Tokenizer, dataset: Any, metrics: Mapping[str, Metric] | MetricSet, *,
+                            batch_size: int = 32, device: torch.device | str = "cpu", keep: int = 8,
+                            background_3HW: torch.Tensor | None = None) -> dict[str, Any]:
     """Reconstruct every sample of ``dataset``; metrics, codebook usage, perplexity and speed.
+
+    Metrics are scored through a :class:`~vqtouch.core.MetricSet`: unrounded values by name, and
+    ``"skipped"`` with the reason of each metric that cannot run here.  Given the sensor's
+    no-contact image ``background_3HW``, each metric also scores that image against every input
+    (``background_*``: what a tokenizer that draws only the background gets), and both are scored
+    on the contact region (``contact_*``, ``background_contact_*``, ``contact_fraction``; see
+    :class:`~vqtouch.plugins.evaluation.contact.ContactRegionScores`).
 
     Returns the scores and, under ``"examples"``, the first ``keep`` (original, reconstruction)
     pairs for a picture.  Raises :class:`NothingToEvaluateError` when ``dataset`` is empty (a
     caller may then skip the evaluation and say why), and :class:`VqtouchError` when the
     reconstructions are not finite: no metric can score them.
     """
+    from vqtouch.plugins.evaluation.contact import ContactRegionScores
+
     if len(dataset) == 0:
         raise NothingToEvaluateError(
             "nothing to evaluate: the dataset has no samples (a run's held-out split is empty when "
@@ -203,13 +214,19 @@ def evaluate_reconstruction(tokenizer: Tokenizer, dataset: Any, metrics: dict[st
     tokenizer.eval()
     tokenizer.autoencoder.reset_randomness()
     tokenizer.quantizer.reset_usage()
-    for metric in metrics.values():
-        metric.reset()
+    metrics = metrics if isinstance(metrics, MetricSet) else MetricSet(metrics)
+    metrics.reset()
+    background = background_3HW.detach().float().cpu().unsqueeze(0) if background_3HW is not None else None
+    contact = ContactRegionScores(background) if background is not None else None
+
+    def batches():
+        for start in range(0, len(dataset), batch_size):
+            yield collate_samples([dataset[i] for i in range(start, min(start + batch_size, len(dataset)))])["tactile"]
+
     originals, reconstructions = [], []
     seconds, count = 0.0, 0
-    for start in range(0, len(dataset), batch_size):
-        batch = collate_samples([dataset[i] for i in range(start, min(start + batch_size, len(dataset)))])
-        images = batch["tactile"].to(device)
+    for images in batches():
+        images = images.to(device)
         tic = time.perf_counter()
         reconstruction, output = tokenizer.reconstruct(images)
         seconds += time.perf_counter() - tic
@@ -217,12 +234,21 @@ def evaluate_reconstruction(tokenizer: Tokenizer, dataset: Any, metrics: dict[st
             # Checked here, before a metric sees them: the cause is the tokenizer, not the images.
             raise VqtouchError(_non_finite_message(tokenizer))
         count += len(images)
-        for metric in metrics.values():
-            metric.update(reconstruction.cpu(), images.cpu())
+        metrics.update(reconstruction.cpu(), images.cpu())
+        if contact is not None:
+            contact.update({"": reconstruction, "background_": background.expand_as(images.cpu())}, images)
         if len(originals) < keep:
             originals.extend(images[: keep - len(originals)].cpu())
             reconstructions.extend(reconstruction[: keep - len(reconstructions)].cpu())
-    scores: dict[str, Any] = {name: metric.compute() for name, metric in metrics.items()}
+    scores: dict[str, Any] = metrics.scores(digits=None)
+    if background is not None:
+        # The metrics again, on the background against every input (a second pass: the metrics
+        # accumulate one stream at a time).
+        metrics.reset()
+        for images in batches():
+            metrics.update(background.expand_as(images), images)
+        scores |= metrics.scores("background_", digits=None)
+        scores |= contact.scores()
     counts_K = tokenizer.quantizer.usage_counts()
     if counts_K is not None:  # a codebook: how much of it the held-out images use
         counts_K = counts_K.cpu()

@@ -510,7 +510,8 @@ class SampleRecord:
 
     Paths are strings relative to the dataset's base folder (or absolute): millions of records
     stay small.  ``reference`` is a no-contact frame of the same sensor, used only when the
-    dataset subtracts it.
+    dataset subtracts it.  ``group`` names the recording (trial, fabric, ...) the sample belongs
+    to, which a train/held-out split keeps on one side; None: the sample is a group of its own.
     """
 
     id: str
@@ -519,6 +520,7 @@ class SampleRecord:
     reference: str | None = None
     label: int = -1
     text: str = ""
+    group: str | None = None
 
 
 def collect_records(candidates: Iterable[SampleRecord], *, config: ReaderConfig, skips: SkipLog, base: Path,
@@ -578,11 +580,14 @@ class RecordDataset(TactileDataset):
     """A dataset of indexed :class:`SampleRecord` s whose images are decoded on access.
 
     With ``subtract_reference`` the tactile image becomes ``tactile - reference + 0.5``,
-    clamped to [0, 1], which keeps only what contact changed.
+    clamped to [0, 1], which keeps only what contact changed.  The records' ``group`` s are the
+    dataset's split groups, each a ``split_unit`` ("recording", ...); without any, every sample
+    is its own group.
     """
 
     def __init__(self, records: Sequence[SampleRecord], *, base: Path, loader: ImageLoader, sensor: str,
-                 class_names: Sequence[str] = (), subtract_reference: bool = False) -> None:
+                 class_names: Sequence[str] = (), subtract_reference: bool = False,
+                 split_unit: str | None = None) -> None:
         has_visual = {record.visual is not None for record in records}
         if len(has_visual) > 1:
             raise ValueError("records must either all pair a visual image or none")
@@ -596,6 +601,17 @@ class RecordDataset(TactileDataset):
         self.subtract_reference = subtract_reference
         self.has_visual = has_visual == {True}
         self._reference_cache: dict[str, torch.Tensor] = {}
+        self._grouped = any(record.group is not None for record in self.records)
+        if self._grouped:
+            self.split_unit = split_unit or "group"
+
+    def split_groups(self) -> list[str] | None:
+        """Each record's ``group`` (a record without one is a group of its own, keyed by its id), or
+        None when no record has a group."""
+        if not self._grouped:
+            return None
+        # Ids are relative paths and group keys are folder names or column values: keep the two apart.
+        return [record.group if record.group is not None else f"sample:{record.id}" for record in self.records]
 
     def __len__(self) -> int:
         return len(self.records)

@@ -20,6 +20,10 @@ annotator files and each has the simple layout ``fabric,<attribute>,...`` (heade
 per fabric, values 0/1, the same attribute columns in every file); they are aggregated by
 majority (ties negative) and the positive ones become ``text`` ("soft, thin, ...").  The
 tactile sensor model is undocumented: the ``sensor`` option names it.
+
+Split groups: the fabric, the finest unit either layout names (the 225 images of one fabric are
+touches of one piece of cloth), so ``split_dataset`` holds out whole fabrics, as the paper's
+40/5/5 fabric split does; held-out fabrics are then classes the training never saw.
 """
 
 from __future__ import annotations
@@ -60,7 +64,8 @@ class FabricVstConfig(ReaderConfig):
 
 
 class FabricVstDataset(RecordDataset):
-    """FabricVST samples: one tactile image each, labelled by fabric, attributes as text."""
+    """FabricVST samples: one tactile image each, labelled by fabric, attributes as text; split groups
+    are fabrics."""
 
     def __init__(self, *args, attributes: dict[str, list[str]] | None = None, **kwargs) -> None:
         super().__init__(*args, **kwargs)
@@ -140,7 +145,7 @@ def _candidates(grouped: dict[str, list[Path]], chosen: Sequence[str], label_of:
         text = ", ".join(attributes.get(fabric, []))
         for image in grouped[fabric]:
             path = relative_posix(image, root)
-            yield SampleRecord(id=path, tactile=path, label=label_of[fabric], text=text)
+            yield SampleRecord(id=path, tactile=path, label=label_of[fabric], text=text, group=fabric)
 
 
 def build_fabricvst(config: FabricVstConfig, context: BuildContext) -> FabricVstDataset:
@@ -163,7 +168,7 @@ def build_fabricvst(config: FabricVstConfig, context: BuildContext) -> FabricVst
                               listed_in=f"{root / 'tactile'} (fabrics {', '.join(chosen)})",
                               total=sum(len(grouped[fabric]) for fabric in chosen))
     return FabricVstDataset(records, base=root, loader=loader, sensor=config.sensor, class_names=fabrics,
-                            attributes=attributes)
+                            attributes=attributes, split_unit="fabric")
 
 
 @hookimpl

@@ -5,13 +5,19 @@ Two layouts:
 - class folders (``csv`` empty): ``<root>/<class>/**/<image>``; class names are the sorted
   sub-folder names (plain string order) unless ``class_names`` fixes them; images directly in
   ``<root>`` belong to no class and are bad samples;
-- a CSV (``csv`` set) whose header has ``path`` and ``label`` and optionally ``visual`` and
-  ``text`` (any column order; other columns, such as those ``vqtouch data render`` adds, are
-  ignored).  Paths are relative to the CSV's folder.  A label is a class name or an integer
+- a CSV (``csv`` set) whose header has ``path`` and ``label`` and optionally ``visual``,
+  ``text`` and ``group`` (any column order; other columns, such as those ``vqtouch data
+  render`` adds, are ignored).  Paths are relative to the CSV's folder.  A label is a class name or an integer
   index; an empty label or -1 means "no label".  Without ``class_names``, integer labels give
   the classes "0".."max" and name labels the sorted distinct names; a column that mixes both is
   refused, since what the integers mean is then unknown (set ``class_names`` to say it).  With
   ``visual``, every row must name a visual image, which is returned as ``"visual"``.
+
+Split groups (samples that ``split_dataset`` keeps on one side, e.g. the frames of one
+recording): in a CSV, the optional ``group`` column (an empty cell: a group of its own); in class
+folders, the sub-folder below the class folder (``<root>/<class>/<recording>/**/<image>``), while
+an image directly in its class folder is a group of its own.  The class folder itself is never
+the group: holding out whole classes would leave their labels untrained.
 """
 
 from __future__ import annotations
@@ -33,7 +39,7 @@ from vqtouch.plugins.data.readers._io import (with_context_size, FileIndex, Read
 READER = "image_folder"
 LAYOUT = "<root>/<class>/<image> (one sub-folder per class), or a CSV with header path,label[,visual]"
 REQUIRED_COLUMNS = ("path", "label")
-OPTIONAL_COLUMNS = ("visual", "text")
+OPTIONAL_COLUMNS = ("visual", "text", "group")
 UNLABELLED = -1
 _INTEGER = re.compile(r"-?\d+")
 
@@ -44,9 +50,11 @@ class ImageFolderConfig(ReaderConfig):
     name: Literal["image_folder"] = "image_folder"
     root: str = Field("", description="Folder with one sub-folder of images per class, or the folder that the csv "
                                       "path is relative to. Required.")
-    csv: str = Field("", description="CSV with columns path,label and optionally visual,text (relative to root "
-                                     "unless absolute; paths inside are relative to the CSV's folder; other columns "
-                                     "are ignored). Empty: read class sub-folders of root.")
+    csv: str = Field("", description="CSV with columns path,label and optionally visual,text,group (relative to "
+                                     "root unless absolute; paths inside are relative to the CSV's folder; rows with "
+                                     "the same group, e.g. frames of one recording, stay on one side of a "
+                                     "train/held-out split; other columns are ignored). Empty: read class "
+                                     "sub-folders of root, grouped by the sub-folder below each class folder.")
     class_names: tuple[str, ...] = Field(
         (), max_length=1_000_000, description="Fixed class order: folder and label names must be in it and integer "
                                               "labels below its length. Empty: derived from the folders or labels.")
@@ -54,7 +62,8 @@ class ImageFolderConfig(ReaderConfig):
 
 
 class ImageFolderDataset(RecordDataset):
-    """Images from class folders or a CSV, with an optional paired visual image."""
+    """Images from class folders or a CSV, with an optional paired visual image and split groups
+    (see the module docstring)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -67,7 +76,9 @@ def _folder_candidates(root: Path, folders: Sequence[Path], label_of: dict[str, 
     for folder in folders:
         for image in list_images(folder, recursive=True):
             path = relative_posix(image, root)
-            yield SampleRecord(id=path, tactile=path, label=label_of[folder.name])
+            nested = image.relative_to(folder).parts[:-1]
+            yield SampleRecord(id=path, tactile=path, label=label_of[folder.name],
+                               group=f"{folder.name}/{nested[0]}" if nested else None)
 
 
 def _build_from_folders(config: ImageFolderConfig, root: Path, skips: SkipLog) -> ImageFolderDataset:
@@ -84,7 +95,8 @@ def _build_from_folders(config: ImageFolderConfig, root: Path, skips: SkipLog) -
     records = collect_records(_folder_candidates(root, folders, label_of, skips), config=config, skips=skips,
                               base=root, loader=loader, use_reference=False,
                               listed_in=f"the class folders of {root}")
-    return ImageFolderDataset(records, base=root, loader=loader, sensor=config.sensor, class_names=class_names)
+    return ImageFolderDataset(records, base=root, loader=loader, sensor=config.sensor, class_names=class_names,
+                              split_unit="folder")
 
 
 # --------------------------------------------------------------------------------------------
@@ -94,7 +106,7 @@ def _column_positions(header: list[str], csv_path: Path) -> dict[str, int]:
     names = [cell.lower() for cell in header]
     if len(set(names)) != len(names) or not set(REQUIRED_COLUMNS) <= set(names):
         raise DatasetError(f"{READER}: {csv_path}: header must name each column once and include path and label "
-                           f"(optionally visual, text); got {header}")
+                           f"(optionally visual, text, group); got {header}")
     return {name: position for position, name in enumerate(names)}
 
 
@@ -144,6 +156,7 @@ def _csv_candidates(rows: list[tuple[int, list[str]]], columns: dict[str, int], 
         tactile, label_cell = cells[columns["path"]], cells[columns["label"]]
         visual = cells[columns["visual"]] if "visual" in columns else None
         text = cells[columns["text"]] if "text" in columns else ""
+        group = cells[columns["group"]] if "group" in columns else ""
         label = label_of(label_cell)
         if label is None:
             skips.reject(f"{where}: label {label_cell!r} is not a valid class")
@@ -154,7 +167,8 @@ def _csv_candidates(rows: list[tuple[int, list[str]]], columns: dict[str, int], 
         if problems:
             skips.reject(f"{where}: {' and '.join(problems)}")
             continue
-        yield SampleRecord(id=Path(tactile).as_posix(), tactile=tactile, visual=visual, label=label, text=text)
+        yield SampleRecord(id=Path(tactile).as_posix(), tactile=tactile, visual=visual, label=label, text=text,
+                           group=group or None)
 
 
 def _build_from_csv(config: ImageFolderConfig, root: Path, skips: SkipLog) -> ImageFolderDataset:
@@ -171,7 +185,7 @@ def _build_from_csv(config: ImageFolderConfig, root: Path, skips: SkipLog) -> Im
                               base=csv_path.parent, loader=loader, use_reference=False, listed_in=str(csv_path),
                               total=len(body))
     return ImageFolderDataset(records, base=csv_path.parent, loader=loader, sensor=config.sensor,
-                              class_names=label_of.names)
+                              class_names=label_of.names, split_unit="group")
 
 
 def build_image_folder(config: ImageFolderConfig, context: BuildContext) -> ImageFolderDataset:

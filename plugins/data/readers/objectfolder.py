@@ -20,6 +20,11 @@ are not documented, so samples are tactile-only.
 
 The label is the object: classes are the objects named anywhere in the split JSON, in natural
 order, so a label means the same object in every split (cross-object test objects included).
+
+Split groups (what ``split_dataset`` holds out whole): for ObjectFolder-Real the trial
+(``<obj_idx>/tactile_data/<trial_idx>/``), whose frames record one touch and are near-duplicates;
+an object-level split is the ``objects`` option.  A cross-generation sample is one contact, so
+each is its own group (the split JSON itself decides cross-contact or cross-object).
 """
 
 from __future__ import annotations
@@ -64,7 +69,8 @@ class ObjectFolderRealConfig(ReaderConfig):
 
 
 class ObjectFolderRealDataset(RecordDataset):
-    """ObjectFolder-Real samples: one GelSight frame each, labelled by the object's material."""
+    """ObjectFolder-Real samples: one GelSight frame each, labelled by the object's material; split
+    groups are trials (``<obj_idx>/<trial_idx>``)."""
 
 
 def read_material_table(path: Path) -> dict[int, str]:
@@ -136,7 +142,8 @@ def _real_candidates(objects: list[tuple[int, Path]], root: Path, materials: dic
             label = class_names.index(materials[object_index])
         for frame in _trial_frames(object_index, folder, skips):
             path = relative_posix(frame, root)
-            yield SampleRecord(id=path, tactile=path, label=label)
+            trial = frame.parents[2].name  # <trial_idx>/0/gelsight/<frame>
+            yield SampleRecord(id=path, tactile=path, label=label, group=f"{object_index}/{trial}")
 
 
 def build_objectfolder_real(config: ObjectFolderRealConfig, context: BuildContext) -> ObjectFolderRealDataset:
@@ -151,7 +158,8 @@ def build_objectfolder_real(config: ObjectFolderRealConfig, context: BuildContex
     candidates = _real_candidates(_object_folders(config, root), root, materials, class_names, metadata, skips)
     records = collect_records(candidates, config=config, skips=skips, base=root, loader=loader, use_reference=False,
                               listed_in=f"{root} (expected {REAL_LAYOUT})")
-    return ObjectFolderRealDataset(records, base=root, loader=loader, sensor=SENSOR, class_names=class_names)
+    return ObjectFolderRealDataset(records, base=root, loader=loader, sensor=SENSOR, class_names=class_names,
+                                   split_unit="trial")
 
 
 # --------------------------------------------------------------------------------------------
@@ -172,7 +180,8 @@ class ObjectFolderCrossConfig(ReaderConfig):
 
 
 class ObjectFolderCrossDataset(RecordDataset):
-    """Cross-generation samples: the touch and vision image of one (object, contact), labelled by object."""
+    """Cross-generation samples: the touch and vision image of one (object, contact), labelled by object.
+    No split groups: every sample is a contact of its own."""
 
 
 def _is_key(value: Any) -> bool:

@@ -18,6 +18,10 @@ Labels:
   grass) to "soft" and the rest to "hard", as the repository's ``dataset.py`` does;
 - the rough lists carry binary labels whose meaning (which of 0/1 is rough) the repository
   does not document, so their classes are named ``rough_smooth_0`` and ``rough_smooth_1``.
+
+Split groups: the recording folder (``dataset/<recording>/``).  Its frames are consecutive video
+frames of one contact sequence, near-duplicates of each other, so ``split_dataset`` holds out
+whole recordings.
 """
 
 from __future__ import annotations
@@ -138,7 +142,7 @@ def _candidates(lines: list[tuple[int, str]], list_name: str, root: Path, label_
         if missing:
             skips.reject(f"{where}: missing {' and '.join(missing)}")
             continue
-        yield SampleRecord(id=f"{recording}/{frame}", tactile=tactile, visual=visual, label=label)
+        yield SampleRecord(id=f"{recording}/{frame}", tactile=tactile, visual=visual, label=label, group=recording)
 
 
 def build_touch_and_go(config: TouchAndGoConfig, context: BuildContext) -> TouchAndGoDataset:
@@ -156,7 +160,7 @@ def build_touch_and_go(config: TouchAndGoConfig, context: BuildContext) -> Touch
     records = collect_records(candidates, config=config, skips=skips, base=root, loader=loader, use_reference=False,
                               listed_in=str(list_path), total=len(lines))
     return TouchAndGoDataset(records, base=root, loader=loader, sensor="gelsight", class_names=class_names,
-                             dropped_unlabelled=dropped)
+                             dropped_unlabelled=dropped, split_unit="recording")
 
 
 @hookimpl

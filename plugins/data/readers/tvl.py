@@ -37,6 +37,10 @@ assuming [unverified] that the webcam frames are larger than DIGIT frames (DIGIT
 640x480).  This heuristic cannot see a swap when both cameras recorded the same resolution.  The original contact.json also lists
 frames that do not load (Max-Fu/tvl #8): strict builds name the first one, ``lenient=true``
 skips them with a count.
+
+Split groups (what ``split_dataset`` holds out whole): for HCT the trajectory folder
+``<run>/<idx>-<unix_ts>/``, one recorded contact sequence whose frames are near-duplicates.
+SSVTP names nothing but the sample index, so its samples are each their own group.
 """
 
 from __future__ import annotations
@@ -121,7 +125,7 @@ class HctRow:
 
 
 class TvlHctDataset(RecordDataset):
-    """TVL HCT samples: DIGIT tactile frame, webcam frame, caption."""
+    """TVL HCT samples: DIGIT tactile frame, webcam frame, caption; split groups are trajectories."""
 
 
 def _hct_rows_from_csv(root: Path, run: str, split: str) -> list[HctRow]:
@@ -185,7 +189,8 @@ def _hct_candidates(rows: list[HctRow], root: Path, config: TvlHctConfig, skips:
         if config.check_swap and (problem := _swap_problem(root / tactile, root / vision)):
             skips.reject(f"{row.where}: {problem}")
             continue
-        yield SampleRecord(id=tactile, tactile=tactile, visual=vision, reference=background, text=caption)
+        yield SampleRecord(id=tactile, tactile=tactile, visual=vision, reference=background, text=caption,
+                           group=Path(tactile).parent.parent.as_posix())
 
 
 def build_tvl_hct(config: TvlHctConfig, context: BuildContext) -> TvlHctDataset:
@@ -208,7 +213,7 @@ def build_tvl_hct(config: TvlHctConfig, context: BuildContext) -> TvlHctDataset:
                               loader=loader, use_reference=config.subtract_background, listed_in=listed_in,
                               total=len(chosen))
     return TvlHctDataset(records, base=root, loader=loader, sensor=SENSOR,
-                         subtract_reference=config.subtract_background)
+                         subtract_reference=config.subtract_background, split_unit="trajectory")
 
 
 # --------------------------------------------------------------------------------------------
@@ -224,7 +229,8 @@ class TvlSsvtpConfig(ReaderConfig):
 
 
 class TvlSsvtpDataset(RecordDataset):
-    """TVL SSVTP samples: tactile and visual image of index i, adjectives as text."""
+    """TVL SSVTP samples: tactile and visual image of index i, adjectives as text.  No split groups:
+    the release records nothing that ties two indices to one recording or object."""
 
 
 def _ssvtp_rows(csv_path: Path) -> list[tuple[int, list[str]]]:

@@ -13,6 +13,10 @@ output, ``ref_*`` the no-contact frames of the same recording.  For ``vision2tou
 visual image is ``src`` and the tactile image ``des`` (tactile reference ``ref_des``); for
 ``touch2vision`` lists it is the other way round (tactile ``src``, reference ``ref_src``).  The
 time-window neighbours are not used.  VisGel has no labels or text.
+
+Split groups: the recording, known by its no-contact reference frame (``ref_src``/``ref_des``
+are the reference frames of the recording a line's frames come from): lines sharing the tactile
+reference frame are frames of one recording, and ``split_dataset`` holds out whole recordings.
 """
 
 from __future__ import annotations
@@ -78,7 +82,7 @@ def _candidates(lines: list[tuple[int, str]], list_name: str, root: Path, direct
             skips.reject(f"{where}: missing {' and '.join(missing)}")
             continue
         yield SampleRecord(id=paths[tactile_at], tactile=paths[tactile_at], visual=paths[visual_at],
-                           reference=paths[reference_at])
+                           reference=paths[reference_at], group=paths[reference_at])
 
 
 def build_visgel(config: VisGelConfig, context: BuildContext) -> VisGelDataset:
@@ -94,7 +98,7 @@ def build_visgel(config: VisGelConfig, context: BuildContext) -> VisGelDataset:
     records = collect_records(candidates, config=config, skips=skips, base=root, loader=loader,
                               use_reference=config.subtract_reference, listed_in=str(list_path), total=len(lines))
     return VisGelDataset(records, base=root, loader=loader, sensor="gelsight",
-                         subtract_reference=config.subtract_reference)
+                         subtract_reference=config.subtract_reference, split_unit="recording")
 
 
 @hookimpl
