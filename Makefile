@@ -5,9 +5,9 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.vqtouch-installed
-# The quick start's demo: a tokenizer (scored on held-out and on taxim's real GelSight frames),
-# then a label-to-touch generator with its samples and scores.  DEMO_ARGS="--scene NAME" runs another.
-DEMO_ARGS ?= --scene label-to-touch --set 'stages=["tokenizer", "reconstruct", "generator"]'
+# The quick start's demo: the `tour` scene, every stage once (tokenizer, real-frame reconstructions,
+# sensor families, few-shot adaptation, a generator from each condition).  DEMO_ARGS="--scene NAME" runs another.
+DEMO_ARGS ?= --scene tour
 PYTEST_ARGS ?=
 
 .PHONY: install demo test clean

@@ -237,7 +237,7 @@ def build_parser(host: PluginHost) -> argparse.ArgumentParser:
     stages.set_defaults(handler=_cmd_config_stages)
 
     demo = sub.add_parser("demo", help="run a scene end to end on the embedded data and write a report")
-    add_config_arguments(demo, default_scene="reconstruction")
+    add_config_arguments(demo, default_scene="tour")
     demo.add_argument("--out", help="run directory (default: <output_dir>/<name>-<time>-<hash>)")
     demo.add_argument("--overwrite", action="store_true",
                       help="empty the --out run directory first (refused for a folder that holds no run)")

@@ -27,7 +27,7 @@ from .image_size import ImageSize, image_hw, pixel_centres_mm
 from .images import image_grid, save_png
 from .progress import progress
 from .report_html import (BACKGROUND_PREFIX, beats, contact_verdict, direction_arrow, format_value, render_html,
-                          score_table)
+                          score_table, stage_parts)
 from .runs import RunDir, _read_json
 from .seeding import make_generator
 from .stages import empty_slot_reason, missing_slots, required_slots, run_stage
@@ -239,6 +239,23 @@ def _markdown_scores(table: Any) -> list[str]:
     return [*lines, "", f"*{note}.*"]
 
 
+def _markdown_result(result: Any, title: str) -> list[str]:
+    """A stage result (or one of its parts) in markdown: the scores table, the verdict, facts, picture."""
+    table = score_table(result)
+    facts = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in table.facts.items())
+    lines = _markdown_scores(table)
+    verdict = contact_verdict(result)
+    if verdict is not None:
+        lines += ["", verdict[1]]
+    if facts:
+        lines += ["", facts]
+    if "picture" in result:
+        lines += ["", f"![{title}]({result['picture']})"]
+        if result.get("caption"):
+            lines += ["", f"*{result['caption']}*"]
+    return lines
+
+
 def render_report(report: dict[str, Any]) -> str:
     """The human-readable report.md (report.html shows the same with its pictures embedded)."""
     lines = [f"# vqtouch demo: scene `{report['scene']}`", ""]
@@ -251,20 +268,11 @@ def render_report(report: dict[str, Any]) -> str:
     lines += [f"| {s['stage']} | {s['status']} |" for s in report["stages"]]
     for s in report["stages"]:
         if "result" in s:
-            result = s["result"]
-            table = score_table(result)
-            facts = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in table.facts.items())
             lines += ["", f"### {s['stage']}"]
-            lines += _markdown_scores(table)
-            verdict = contact_verdict(result)
-            if verdict is not None:
-                lines += ["", verdict[1]]
-            if facts:
-                lines += ["", facts]
-            if "picture" in result:
-                lines += ["", f"![{s['stage']}]({result['picture']})"]
-                if result.get("caption"):
-                    lines += ["", f"*{result['caption']}*"]
+            lines += _markdown_result(s["result"], s["stage"])
+            for title, part in stage_parts(s["result"]).items():
+                lines += ["", f"#### {title}"]
+                lines += _markdown_result(part, f"{s['stage']}: {title}")
     lines += ["", "## Components", "", "| slot | plugin | status | parameters | checkpoint round trip |",
               "|---|---|---|---|---|"]
     for c in report["components"]:

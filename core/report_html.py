@@ -32,6 +32,9 @@ from typing import Any
 
 #: Result keys that describe pictures rather than score anything.
 PICTURE_KEYS = frozenset({"picture", "pictures", "caption"})
+#: A stage result's key for named sub-results (``{title: result}``, e.g. one per condition a generator
+#: was trained with), each shown like a stage of its own: scores, verdict, pictures.
+PARTS_KEY = "parts"
 
 #: Pictures are scaled up by a whole factor (crisp pixels) up to this width, at most 3 times.
 MAX_PICTURE_WIDTH = 1100
@@ -259,6 +262,7 @@ COMPARISON_PREFIXES = {
     "retrieval_": "the nearest training image by condition",
     "class_mean_": "the mean training image of the condition's class",
     "real_": "the real held-out images themselves",
+    "before_": "the same model before it was adapted (the family tokenizer, for an adapted one)",
 }
 
 #: The comparison every model score must beat: tactile images are mostly static background, so a
@@ -313,7 +317,7 @@ def score_table(result: Mapping[str, Any]) -> ScoreTable:
     """Split ``result`` into the scores with comparisons (a key ``P + X`` beside a key ``X``, ``P`` one of
     :data:`COMPARISON_PREFIXES`, both numbers) and the other facts, keeping the result's order."""
     scores = {key: value for key, value in result.items()
-              if key not in PICTURE_KEYS and not _is_skip_key(key) and _is_score_value(value)}
+              if key not in PICTURE_KEYS and key != PARTS_KEY and not _is_skip_key(key) and _is_score_value(value)}
     rows: dict[str, dict[str, Any]] = {}
     for key in scores:
         compared = {prefix: scores[prefix + key] for prefix in COMPARISON_PREFIXES if prefix + key in scores}
@@ -321,7 +325,8 @@ def score_table(result: Mapping[str, Any]) -> ScoreTable:
             rows[key] = {"": scores[key], **compared}
     paired = {prefix + key for key, values in rows.items() for prefix in values}
     columns = tuple(prefix for prefix in COMPARISON_PREFIXES if any(prefix in values for values in rows.values()))
-    facts = {key: value for key, value in result.items() if key not in PICTURE_KEYS and key not in paired}
+    facts = {key: value for key, value in result.items()
+             if key not in PICTURE_KEYS and key != PARTS_KEY and key not in paired}
     return ScoreTable(rows, columns, facts)
 
 
@@ -408,7 +413,9 @@ def _scores_block(result: Mapping[str, Any], skipped: list[tuple[str, str, str]]
 def _facts_table(facts: Mapping[str, Any], skipped: list[tuple[str, str, str]]) -> str:
     rows = [f"<tr><td>{_e(key)}</td>{_value_cell(value)}</tr>" for key, value in facts.items()
             if not _is_skip_key(key) and not is_skip_reason(value)]
-    rows += [f'<tr><td>{_e(what)}</td><td class="muted">skipped: {_e(reason)}</td></tr>' for _, what, reason in skipped]
+    # The reason is in the Skipped section once; here a pointer keeps the table readable.
+    rows += [f'<tr><td>{_e(what)}</td><td class="muted">skipped (<a href="#skipped">why</a>)</td></tr>'
+             for _, what, _reason in skipped]
     if not rows:
         return ""
     return f'<table class="scores facts"><tr><th>other facts</th><th>value</th></tr>{"".join(rows)}</table>'
@@ -542,8 +549,20 @@ def _stage_section(entry: Mapping[str, Any], report: Mapping[str, Any], run_dir:
         parts.append(f'<div class="row">{"".join(row)}</div>')
     for name, caption in _stage_pictures(result):
         parts.append(_figure(run_file(run_dir, report, name), caption, name))
+    for title, part in stage_parts(result).items():
+        parts.append(f'<h3>{_e(title)}</h3>{_scores_block(part, [])}')
+        for name, caption in _stage_pictures(part):
+            parts.append(_figure(run_file(run_dir, report, name), caption, name))
     parts.append("</section>")
     return "".join(parts)
+
+
+def stage_parts(result: Mapping[str, Any]) -> dict[str, Mapping[str, Any]]:
+    """A stage result's named sub-results (:data:`PARTS_KEY`), those that are results (mappings)."""
+    parts = result.get(PARTS_KEY)
+    if not isinstance(parts, Mapping):
+        return {}
+    return {str(title): part for title, part in parts.items() if isinstance(part, Mapping)}
 
 
 def _png_size(data: bytes) -> tuple[int, int]:
@@ -554,9 +573,15 @@ def _png_size(data: bytes) -> tuple[int, int]:
 def _skipped_section(skipped: list[tuple[str, str, str]]) -> str:
     if not skipped:
         return '<section id="skipped"><h2>Skipped</h2><p>Nothing was reported as skipped.</p></section>'
-    rows = "".join(f"<tr><td>{_e(where)}</td><td>{_e(what)}</td><td>{_e(reason)}</td></tr>"
-                   for where, what, reason in skipped)
-    return (f'<section id="skipped"><h2>Skipped ({len(skipped)})</h2><table class="skipped">'
+    # One row per (what, reason): a metric missing its weights is skipped by every stage that scores.
+    grouped: dict[tuple[str, str], list[str]] = {}
+    for where, what, reason in skipped:
+        places = grouped.setdefault((what.split(" / ")[-1], reason), [])
+        if where not in places:
+            places.append(where)
+    rows = "".join(f"<tr><td>{_e(', '.join(places))}</td><td>{_e(what)}</td><td>{_e(reason)}</td></tr>"
+                   for (what, reason), places in grouped.items())
+    return (f'<section id="skipped"><h2>Skipped ({len(grouped)})</h2><table class="skipped">'
             f"<tr><th>where</th><th>what</th><th>reason</th></tr>{rows}</table></section>")
 
 

@@ -34,6 +34,18 @@ GELSIGHT_DERIVATIVE_II = {"name": "gelsight", "variant": {
     "rotation_deg": 2.0, "noise_std": 0.01, "seed": 2}}
 
 SCENES: dict[str, tuple[str, dict]] = {
+    "tour": (
+        "Every stage once (what `make demo` runs): a DM-VQGAN tokenizer and its reconstructions of real GelSight "
+        "frames; sensor families and few-shot adaptation to an unseen GelSight; one generator trained from a label, "
+        "a visual image, a text and a GelSight Mini image of the same contact (one condition per step), which "
+        "generates from each.",
+        {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "reconstruct", "cluster", "adapt", "generator"],
+         "metrics": _METRICS, "cluster": _CLUSTER,
+         "generator": _GENERATOR | {"conditioners": [{"name": "label"}, {"name": "visual"}, {"name": "text_scratch"},
+                                                     {"name": "tactile"}]},
+         "sensor": {"name": "gelsight"}, "paired_sensor": {"name": "gelsight_mini"},
+         "target_sensor": GELSIGHT_DERIVATIVE_I, "data": _DATA},
+    ),
     "reconstruction": (
         "Train a tactile tokenizer and measure how well it reconstructs held-out images.",
         {"tokenizer": _TOKENIZER, "stages": ["tokenizer", "reconstruct"], "metrics": _METRICS, "sensor": {"name": "gelsight"},

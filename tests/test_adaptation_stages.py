@@ -65,7 +65,7 @@ def test_the_cross_sensor_scene_adapts_to_gelsight_mini_and_scores_its_real_fram
     assert (out / "adapted" / "families" / "families.png").is_file()
     summary = json.loads((out / "adapted" / "adapt.json").read_text())
     assert summary["real_frames"]["count"] == 24  # taxim's real GelSight Mini frames
-    assert result["real_ssim_after"] == summary["real_frames"]["after"]["ssim"]
+    assert result["real_frames_ssim"] == summary["real_frames"]["after"]["ssim"]
     assert set(summary["members_used"]) <= set(clusters["families"][summary["family"]])
 
 

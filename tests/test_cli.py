@@ -185,7 +185,7 @@ def test_demo_writes_run_directory(tmp_path, capsys):
 def test_demo_runs_the_reconstruction_scene_through_the_registered_stages(tmp_path, capsys):
     """The tokenizer-stages plugin registers 'tokenizer' and 'reconstruct'; the demo runs both via run_stage."""
     out = tmp_path / "run"
-    assert main(["--no-progress", "demo", "--out", str(out), *TINY_DEMO]) == 0  # default scene: reconstruction
+    assert main(["--no-progress", "demo", "--scene", "reconstruction", "--out", str(out), *TINY_DEMO]) == 0
     assert "scene reconstruction: 2 of 2 stages ran, 0 cannot run, 0 failed" in capsys.readouterr().out
     stages = {s["stage"]: s for s in json.loads((out / "report.json").read_text())["stages"]}
     assert list(stages) == ["tokenizer", "reconstruct"]
@@ -257,7 +257,7 @@ DEMO_SIZE_PROBE = ['stages=["tokenizer"]', "tokenizer.quantizer=null", "tokenize
 def test_demo_full_keeps_the_configured_size_and_scaled_uses_the_caps(tmp_path, capsys, full):
     # The tokenizer stage cannot run here (no quantizer), so only the resolved sizes are compared.
     out = tmp_path / "run"
-    argv = ["--no-progress", "demo", "--out", str(out), *(["--full"] if full else [])]
+    argv = ["--no-progress", "demo", "--scene", "reconstruction", "--out", str(out), *(["--full"] if full else [])]
     for override in DEMO_SIZE_PROBE:
         argv += ["--set", override]
     assert main(argv) == 0
@@ -308,3 +308,25 @@ def test_debug_is_a_global_flag(capsys):
         main(["--help"])
     out = capsys.readouterr().out
     assert "--debug" in out and "VQTOUCH_DEBUG=1" in out
+
+
+def test_the_default_demo_is_the_tour_of_every_stage_with_a_sample_grid_per_condition(tmp_path, capsys):
+    """`vqtouch demo` (and `make demo`) runs the tour: tokenizer, real frames, families, adaptation and one
+    generator from each of its four conditions, each condition shown with its own scores and samples."""
+    out = tmp_path / "run"
+    tiny = [*TINY_DEMO, "--set", "cluster.images_per_sensor=4", "--set", "cluster.variants_per_family=1",
+            "--set", "adapt.steps=2", "--set", "adapt.shots=4", "--set", "adapt.eval_images=4",
+            "--set", "generator.train.steps=2", "--set", "generator.train.checkpoint_every=2",
+            "--set", "generator.num_samples=2", "--set", "generator.steps=2", "--set", "generator.model.depth=1",
+            "--set", "generator.model.width=16", "--set", "generator.model.heads=2"]
+    assert main(["--no-progress", "demo", "--out", str(out), *tiny]) == 0
+    assert "scene tour: 5 of 5 stages ran" in capsys.readouterr().out
+    stages = {s["stage"]: s for s in json.loads((out / "report.json").read_text())["stages"]}
+    assert list(stages) == ["tokenizer", "reconstruct", "cluster", "adapt", "generator"]
+    parts = stages["generator"]["result"]["parts"]
+    assert sorted(parts) == ["from label", "from tactile", "from text_scratch", "from visual"]
+    for part in parts.values():
+        assert "background_psnr" in part and (out / part["picture"]).is_file()
+    assert len({part["picture"] for part in parts.values()}) == 4
+    adapt = stages["adapt"]["result"]
+    assert {"ssim", "before_ssim", "psnr", "before_psnr"} <= set(adapt)

@@ -89,7 +89,7 @@ def test_unwritable_output_dir_is_one_line(tmp_path, capsys, refuse_mkdir, code)
     refuse_mkdir(output_dir, code)
     assert main(["demo", "--set", f"output_dir={output_dir}"]) == 2
     line = one_error_line(capsys)
-    assert line.startswith(f"{output_dir}/reconstruction-") and f": {os.strerror(code)}; " in line
+    assert line.startswith(f"{output_dir}/tour-") and f": {os.strerror(code)}; " in line
     assert "--out" in line and "output_dir" in line
 
 

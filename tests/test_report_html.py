@@ -2,6 +2,7 @@
 Fast checks on the markup; tests/test_report_browser.py opens the page in a real browser."""
 
 import base64
+import html
 import importlib.util
 import io
 import json
@@ -317,3 +318,20 @@ def test_report_md_has_the_same_comparison_table_and_verdict():
     # No comparison, no table: the score is a fact.
     alone = render_report({**report, "stages": [{"stage": "s", "status": "ran", "result": {"lpips": 0.2}}]})
     assert "| score |" not in alone and "lpips 0.2" in alone
+
+
+def test_a_reason_skipped_by_several_stages_and_parts_is_listed_once_and_each_part_is_shown():
+    """A metric without its weights is skipped by every stage that scores: one Skipped row names them all;
+    a stage's parts (one per condition) each get their own scores table and picture caption."""
+    reason = "metric 'lpips' needs vgg16-397923af.pth"
+    part = {"psnr": 24.0, "background_psnr": 25.0, "skipped": {"lpips": reason}, "caption": "from label grid"}
+    report = {"scene": "tour", "stages": [
+        {"stage": "tokenizer", "status": "ran (1 s)", "result": {"psnr": 30.0, "skipped": {"lpips": reason}}},
+        {"stage": "generator", "status": "ran (1 s)",
+         "result": {"step": 60, "parts": {"from label": part, "from text": dict(part, psnr=26.0)}}}]}
+    page = render_html(report, Path("/nonexistent-run"))
+    assert page.count(html.escape(reason)) == 1 and "Skipped (1)" in page
+    assert "stage tokenizer, stage generator" in page
+    assert "<h3>from label</h3>" in page and "<h3>from text</h3>" in page
+    markdown = render_report(report | {"components": [], "run_dir": "/nonexistent-run"})
+    assert "#### from label" in markdown and "#### from text" in markdown

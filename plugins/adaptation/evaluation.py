@@ -275,7 +275,7 @@ def evaluate_cross_sensor(run: Any, host: Any, out: Path, *, target: str, seeds:
                                    eval_images=eval_images, family=adapted["family"])
             costs.append({"seed": seed, "adaptation_seconds": adapted["seconds"],
                           "scratch_seconds": scratch["seconds"], "scratch_steps": scratch["steps"],
-                          "ratio": round(adapted["seconds"] / scratch["seconds"], 4), "scratch_ssim": scratch["ssim"],
+                          "ratio": float(f"{adapted['seconds'] / scratch['seconds']:.4g}"), "scratch_ssim": scratch["ssim"],
                           "scratch_psnr": scratch["psnr"], "adapted_ssim": adapted["ssim"]})
             report(f"seed {seed}: adaptation {adapted['seconds']} s vs fresh training {scratch['seconds']} s")
         if real is not None:

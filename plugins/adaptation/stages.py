@@ -135,11 +135,13 @@ def run_adapt_stage(job: StageJob) -> dict[str, Any]:
                               overwrite=True, report=lambda line: None)
     result = {"target": summary["target"], "family": summary["family"], "shots": summary["shots"],
               "ratio": summary["ratio"], "steps": summary["steps"], "seconds": summary["seconds"]}
-    for when in ("before", "after"):
-        result |= {f"{key}_{when}": summary[when][key] for key in ("ssim", "psnr")}
+    # The adapted tokenizer's scores, each beside the family tokenizer's before adaptation (before_*).
+    result |= {key: summary["after"][key] for key in ("ssim", "psnr")}
+    result |= {f"before_{key}": summary["before"][key] for key in ("ssim", "psnr")}
     if "real_frames" in summary:
         real = summary["real_frames"]
-        result |= {f"real_{key}_{when}": real[when][key] for when in ("before", "after") for key in ("ssim", "psnr")}
+        result |= {f"{when}real_frames_{key}": real[moment][key] for when, moment in (("", "after"), ("before_", "before"))
+                   for key in ("ssim", "psnr")}
     return {**result, "picture": f"{ADAPTED_FOLDER}/before_after.png",
             "caption": "Held-out images of the target sensor (top row), the family tokenizer's reconstructions "
                        "before adaptation (middle row) and after (bottom row)."}

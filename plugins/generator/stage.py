@@ -375,21 +375,39 @@ def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: A
     scores = {"sampler": section.sampler.name, "conditioner": names[0], **first}
     if len(names) > 1:
         scores["by_conditioner"] = {f"0:{names[0]}": first} | {
-            f"{index}:{name}": score_generation(conditioner=conditioner, **common)
+            f"{index}:{name}": score_generation(conditioner=conditioner, picture=job.run.path / samples_picture(index, name),
+                                                **common)
             for index, (name, conditioner) in enumerate(zip(names, task.conditioners)) if index > 0}
     return scores
+
+
+def samples_picture(index: int, name: str) -> str:
+    """The file of the sample grid of the generator's conditioner ``index`` (``name``): samples.png for the
+    first, whose scores stand in generation.json's top level, samples_<index>_<name>.png for the others."""
+    return "samples.png" if index == 0 else f"samples_{index}_{name}.png"
+
+
+#: The generation scores shown in the run report (generation.json holds them all).
+SHOWN_SCORES = ("samples", "ssim", "background_ssim", "ceiling_ssim", "psnr", "background_psnr", "ceiling_psnr",
+                "contact_psnr", "background_contact_psnr", "ceiling_contact_psnr", "retrieval_contact_psnr",
+                "class_mean_contact_psnr", "ms_ssim", "background_ms_ssim", "lpips", "background_lpips", "skipped")
+SAMPLES_CAPTION = ("One column per held-out sample: its condition when that is an image (top row), the generated "
+                   "tactile image, then the ground truth (bottom row).")
 
 
 def run_generator_stage(job: StageJob) -> dict[str, Any]:
     """The ``generator`` stage: train, then the sample scores for the report."""
     result = train_generator(job)
-    shown = {key: result[key] for key in ("step", "samples", "sampler", "steps", "ssim", "background_ssim", "psnr",
-                                          "background_psnr", "contact_psnr", "background_contact_psnr", "best_step",
-                                          "skipped")
-             if key in result}
-    caption = ("One column per held-out sample: its condition when that is an image (top row), the generated "
-               "tactile image, then the ground truth (bottom row).")
-    return {**shown, **({"picture": "samples.png", "caption": caption} if "samples" in result else {})}
+    facts = {key: result[key] for key in ("step", "sampler", "steps", "best_step", "split_unit") if key in result}
+    if "by_conditioner" in result:  # several conditions: one part each, with its own sample grid
+        parts = {}
+        for key, scores in result["by_conditioner"].items():
+            index, name = key.split(":", 1)
+            parts[f"from {name}"] = ({k: scores[k] for k in SHOWN_SCORES if k in scores}
+                                     | {"picture": samples_picture(int(index), name), "caption": SAMPLES_CAPTION})
+        return {**facts, "parts": parts}
+    shown = {key: result[key] for key in SHOWN_SCORES if key in result}
+    return {**facts, **shown, **({"picture": "samples.png", "caption": SAMPLES_CAPTION} if "samples" in result else {})}
 
 
 @hookimpl

@@ -97,7 +97,8 @@ def sensor_background(assembly: Any, config: Any) -> torch.Tensor | None:
 
 
 #: The tokenizer stage's scores shown in the run report (eval.json holds them all).
-SHOWN_SCORES = ("ssim", "background_ssim", "psnr", "background_psnr", "contact_psnr", "background_contact_psnr",
+SHOWN_SCORES = ("ssim", "background_ssim", "psnr", "background_psnr", "ms_ssim", "background_ms_ssim", "lpips",
+                "background_lpips", "contact_psnr", "background_contact_psnr",
                 "contact_fraction", "codebook_usage", "samples", "evaluation", "skipped")
 
 
