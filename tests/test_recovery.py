@@ -112,8 +112,11 @@ def start_training(tmp_path, save_seconds):
     script = tmp_path / "train.py"
     script.write_text(TRAIN_SCRIPT.format(test_training=str(TESTS / "test_training.py")))
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    # SIGINT's default action in the child: a suite started in the background (`make test &`) inherits
+    # SIGINT ignored, and Python then never turns it into KeyboardInterrupt, so the Ctrl-C tests would hang.
     process = subprocess.Popen([sys.executable, str(script), str(tmp_path), str(save_seconds)],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     wait_for(tmp_path / "training", process)
     return process
 
