@@ -91,6 +91,25 @@ def training_run(args: argparse.Namespace, host: PluginHost,
     return RunDir.create(config, argv=args.argv, host=host, path=args.out, overwrite=args.overwrite), config
 
 
+def plugin_block(text: str, flag: str, default_name: str | None = None) -> dict[str, Any]:
+    """A plugin given on the command line (``--sensor``, ``--dataset``, ...): its name, or a JSON object of
+    the plugin and its options (``"name"`` defaults to ``default_name`` when one is given).  Bad JSON or a
+    block without a name is a ConfigError naming ``flag``."""
+    text = text.strip()
+    if not text.startswith("{"):
+        return {"name": text}
+    try:
+        block = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{flag} is not valid JSON: {exc}") from None
+    if isinstance(block, dict) and default_name is not None:
+        block = {"name": default_name, **block}
+    if not isinstance(block, dict) or "name" not in block:
+        raise ConfigError(f'{flag}: a JSON block needs the plugin\'s "name", e.g. {{"name": "image_folder", '
+                          f'"root": "data/frames"}}')
+    return block
+
+
 def command_group(subparsers: argparse._SubParsersAction, name: str, help: str) -> argparse._SubParsersAction:
     """The sub-commands of group ``name`` (``train``, ``evaluate``, ...), created on first use.
 

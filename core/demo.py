@@ -28,7 +28,7 @@ from .images import image_grid, save_png
 from .progress import progress
 from .report_html import (BACKGROUND_PREFIX, beats, contact_verdict, direction_arrow, format_value, render_html,
                           score_table, stage_parts)
-from .runs import RunDir, _read_json
+from .runs import RunDir, read_run_json
 from .seeding import make_generator
 from .stages import empty_slot_reason, missing_slots, required_slots, run_stage
 
@@ -206,11 +206,11 @@ def rebuild_report(run_dir: str | Path) -> Path:
     if not (run_dir / "report.json").is_file():
         what = "no such folder" if not run_dir.exists() else "no report.json in it"
         raise ConfigError(f"{run_dir}: {what}; give the folder of a `vqtouch demo` run (its --out)")
-    report = _read_json(run_dir / "report.json")
+    report = read_run_json(run_dir / "report.json")
     if not isinstance(report, dict) or not isinstance(report.get("stages"), list):
         raise ConfigError(f"{run_dir / 'report.json'}: not a demo report (no list of stages)")
     if "description" not in report and (run_dir / "config.json").is_file():  # reports written before it was kept
-        report["description"] = _read_json(run_dir / "config.json").get("description", "")
+        report["description"] = read_run_json(run_dir / "config.json").get("description", "")
     return write_reports(run_dir, report)
 
 

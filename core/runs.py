@@ -365,9 +365,9 @@ class RunDir:
         A plugin the run used that is no longer installed is named with its distribution (from
         env.json), rather than answered with the closest installed name.
         """
-        data = _read_json(self.path / "config.json")
+        data = read_run_json(self.path / "config.json")
         env_path = self.path / "env.json"
-        recorded = _read_json(env_path).get("components", {}) if env_path.is_file() else {}
+        recorded = read_run_json(env_path).get("components", {}) if env_path.is_file() else {}
         for key, source in recorded.items():
             if source["name"] not in host.registry(source["kind"]):
                 package = source.get("package") or source.get("plugin")
@@ -427,7 +427,7 @@ def _mismatch(made_with: dict[str, Any], candidates: list[tuple[str, dict[str, A
     return f" {shown(made_with)} but the run's config.json says {slot} {shown(config)}"
 
 
-def _read_json(path: Path) -> Any:
+def read_run_json(path: Path) -> Any:
     """A run's JSON file; ConfigError naming it when it is damaged (json's own error names no file)."""
     try:
         return json.loads(path.read_text(encoding="utf-8"))

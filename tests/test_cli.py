@@ -6,7 +6,7 @@ from typing import Literal
 import pytest
 from pydantic import Field
 
-from vqtouch.core import PluginConfig, Section, hookimpl, load_plugins, resolve_config
+from vqtouch.core import ConfigError, PluginConfig, Section, hookimpl, load_plugins, resolve_config
 from vqtouch.core.cli import build_parser, main
 from vqtouch.core.demo import scale_for_demo
 
@@ -330,3 +330,16 @@ def test_the_default_demo_is_the_tour_of_every_stage_with_a_sample_grid_per_cond
     assert len({part["picture"] for part in parts.values()}) == 4
     adapt = stages["adapt"]["result"]
     assert {"ssim", "before_ssim", "psnr", "before_psnr"} <= set(adapt)
+
+
+def test_a_plugin_on_the_command_line_is_a_name_or_a_json_block():
+    from vqtouch.core.cli import plugin_block
+
+    assert plugin_block(" gelsight ", "--sensor") == {"name": "gelsight"}
+    assert plugin_block('{"name": "digit", "view": "full"}', "--sensor") == {"name": "digit", "view": "full"}
+    assert plugin_block('{"root": "frames"}', "--images", default_name="image_folder") == {
+        "name": "image_folder", "root": "frames"}
+    with pytest.raises(ConfigError, match="--sensor is not valid JSON"):
+        plugin_block('{"name": ', "--sensor")
+    with pytest.raises(ConfigError, match='--dataset: a JSON block needs the plugin\'s "name"'):
+        plugin_block('{"root": "frames"}', "--dataset")

@@ -21,6 +21,7 @@ import torch
 
 from vqtouch.core import ConfigError, VqtouchError, hookimpl
 from vqtouch.core.checkpoint import atomic_write
+from vqtouch.core.cli import plugin_block
 from vqtouch.core.config import DataConfig, ExperimentConfig
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.image_size import image_size_argument
@@ -31,13 +32,10 @@ from .leakage import COMPARE_SIZE, DEFAULT_THRESHOLD
 
 def _sensor_argument(text: str) -> Any:
     """``--sensor`` takes a family name or a JSON object (family plus options and variant)."""
-    text = text.strip()
-    if text.startswith("{"):
-        try:
-            return json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise argparse.ArgumentTypeError(f"--sensor is not valid JSON: {exc}") from None
-    return {"name": text}
+    try:
+        return plugin_block(text, "--sensor")
+    except ConfigError as exc:  # argparse's own one-line usage error, at parse time
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _render_command(args: argparse.Namespace) -> int:
@@ -82,26 +80,11 @@ def _fidelity_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def _plugin_block(text: str, flag: str) -> dict[str, Any]:
-    """A plugin given on the command line: its name, or a JSON object of the plugin and its options."""
-    text = text.strip()
-    if not text.startswith("{"):
-        return {"name": text}
-    try:
-        block = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"{flag} is not valid JSON: {exc}") from None
-    if not isinstance(block, dict) or "name" not in block:
-        raise ConfigError(f'{flag}: a JSON block needs the plugin\'s "name", e.g. {{"name": "image_folder", '
-                          f'"root": "data/frames"}}')
-    return block
-
-
 def _build_dataset(host: Any, text: str, flag: str, sensor: dict[str, Any]) -> Any:
     """The dataset ``text`` names, built as an experiment would (with ``sensor`` if it renders one);
     every error names ``flag``."""
     try:
-        config = host.validate("dataset", _plugin_block(text, flag))
+        config = host.validate("dataset", plugin_block(text, flag))
     except VqtouchError as exc:
         raise type(exc)(f"{flag}: {exc}") from None
     inputs = {}

@@ -49,7 +49,8 @@ ALEXNET_WEIGHTS = WeightsSpec(
     description="LPIPS backbone (torchvision AlexNet ImageNet weights, only features.* are used)",
     filenames=("alexnet-owt-7be5be79.pth",),
     env_var="VQTOUCH_LPIPS_BACKBONE",
-    config_hint="--set tokenizer.loss.lpips_backbone=PATH",
+    config_hint="--set tokenizer.loss.lpips_backbone=PATH (the LPIPS loss) or the lpips metric's weights option "
+                "(e.g. --set metrics.3.weights=PATH with --set metrics.3.backbone=alex)",
     source_url="https://download.pytorch.org/models/alexnet-owt-7be5be79.pth",
     sha256_prefix="7be5be79",
 )

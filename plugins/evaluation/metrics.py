@@ -25,6 +25,8 @@ from vqtouch.core import (BuildContext, MissingWeightsError, PerImageMetric, Plu
                           hookimpl, resolve_weights)
 from vqtouch.core.components import Metric
 
+from .feature_networks import ALEXNET_WEIGHTS
+
 
 def check_pair(predicted: torch.Tensor, target: torch.Tensor, metric: str = "metrics") -> None:
     """Raise ValueError unless ``predicted`` and ``target`` are finite image batches of one shape (B, C, H, W)."""
@@ -125,8 +127,8 @@ class Ssim(PerImageMetric):
         from torchmetrics.functional.image import structural_similarity_index_measure
 
         return structural_similarity_index_measure(predicted.double().cpu(), target.double().cpu(),
-                                                   data_range=self.data_range,
-                          kernel_size=self.window_size, sigma=self.sigma, reduction="none")
+                                                   data_range=self.data_range, kernel_size=self.window_size,
+                                                   sigma=self.sigma, reduction="none")
 
 
 #: Wang, Simoncelli and Bovik's five scale weights (2003), finest first.
@@ -177,7 +179,8 @@ class MsSsim(PerImageMetric):
 
         return multiscale_structural_similarity_index_measure(predicted.double().cpu(), target.double().cpu(),
                                                               data_range=self.data_range,
-                             betas=tuple((betas / betas.sum()).tolist()), normalize="relu", reduction="none")
+                                                              betas=tuple((betas / betas.sum()).tolist()),
+                                                              normalize="relu", reduction="none")
 
 
 # -- LPIPS ----------------------------------------------------------------------------------------
@@ -189,13 +192,8 @@ LPIPS_VGG_WEIGHTS = WeightsSpec(
     config_hint="the lpips metric's weights option (e.g. --set metrics.3.weights=PATH, 3 being lpips' place in "
                 "metrics) or `vqtouch evaluate pairs --lpips-weights PATH`",
     source_url="https://download.pytorch.org/models/vgg16-397923af.pth", sha256_prefix="397923af")
-LPIPS_ALEX_WEIGHTS = WeightsSpec(
-    description="metric 'lpips' (AlexNet trunk: torchvision's ImageNet AlexNet weights)",
-    filenames=("alexnet-owt-7be5be79.pth",), env_var="VQTOUCH_LPIPS_BACKBONE",
-    config_hint="the lpips metric's weights option (e.g. --set metrics.3.weights=PATH with "
-                "--set metrics.3.backbone=alex)",
-    source_url="https://download.pytorch.org/models/alexnet-owt-7be5be79.pth", sha256_prefix="7be5be79")
-LPIPS_TRUNK_WEIGHTS = {"vgg": LPIPS_VGG_WEIGHTS, "alex": LPIPS_ALEX_WEIGHTS}
+#: AlexNet: the same file as the tokenizer's LPIPS loss, found the same way.
+LPIPS_TRUNK_WEIGHTS = {"vgg": LPIPS_VGG_WEIGHTS, "alex": ALEXNET_WEIGHTS}
 
 
 class LpipsConfig(PluginConfig):

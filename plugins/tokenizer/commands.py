@@ -16,8 +16,8 @@ import torch
 
 from vqtouch.core import Assembly, ConfigError, MetricSet, RunDir, hookimpl, run_stage
 from vqtouch.core.config import parse_override
-from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group, stage_failure,
-                              training_run)
+from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group, plugin_block,
+                              stage_failure, training_run)
 from vqtouch.core.data import split_dataset
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
@@ -45,23 +45,12 @@ def _train_tokenizer_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def _json_option(text: str, flag: str) -> Any:
-    """A plugin block given on the command line: a plugin name or a JSON object."""
-    text = text.strip()
-    if not text.startswith("{"):
-        return {"name": text}
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"{flag} is not valid JSON: {exc}") from None
-
-
 def _images_dataset(images: str, options: list[str], image_size: ImageSize) -> dict[str, Any]:
     """The dataset block of ``reconstruct --images``: a folder read by ``image_folder``, or a JSON
     block of any reader; ``--images-option KEY=VALUE`` sets that reader's options (those its
     errors name, e.g. ``lenient=true``).  The image size is always the tokenizer's."""
-    block = _json_option(images, "--images") if images.strip().startswith("{") else {"root": images}
-    block = {"name": "image_folder", **block}
+    block = (plugin_block(images, "--images", default_name="image_folder") if images.strip().startswith("{")
+             else {"name": "image_folder", "root": images})
     for option in options:
         path, value = parse_override(option) if "=" in option else ([], None)
         if len(path) != 1 or path[0] in ("name", "image_size"):
@@ -80,7 +69,7 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     tokenizer, folder = load_tokenizer(args.run, host, args.step)
     image_size = tokenizer.autoencoder.vqtouch_spec.context.image_size
     if args.real_frames:
-        sensor_config = host.validate("sensor_family", _json_option(args.real_frames, "--real-frames"))
+        sensor_config = host.validate("sensor_family", plugin_block(args.real_frames, "--real-frames"))
         images = host.build("sensor_family", sensor_config).reference_frames(*image_hw(image_size))
         if images is None:
             raise ConfigError(f"sensor family {sensor_config.name!r} declares no real reference frames; "
@@ -113,7 +102,7 @@ def _evaluate_command(args: argparse.Namespace) -> int:
     if args.dataset:
         # A separate held-out dataset (e.g. another seed), evaluated whole: runs trained on
         # different amounts of data are then compared on the very same images.
-        evaluated = assembly.dataset(_json_option(args.dataset, "--dataset"))
+        evaluated = assembly.dataset(plugin_block(args.dataset, "--dataset"))
     else:
         dataset = assembly.component("data.dataset")
         _, val_set = split_dataset(dataset, config.data.val_fraction, config.seed)
