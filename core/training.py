@@ -35,7 +35,6 @@ each batch and gradients are all-reduced (gloo on CPU, nccl on GPU); rank 0 writ
 
 from __future__ import annotations
 
-import atexit
 import contextlib
 import functools
 import json
@@ -318,19 +317,7 @@ class DistributedContext:
 
         if not dist.is_initialized():
             dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
-            # Tear the group down before the interpreter does: left to finalisation, gloo's background
-            # threads can outlive their owner and abort the process at exit ("terminate called without
-            # an active exception", seen intermittently in the two-rank tests).
-            atexit.register(_destroy_process_group)
         return cls(dist.get_rank(), dist.get_world_size())
-
-
-def _destroy_process_group() -> None:
-    """Destroy the default process group if this process still has one (registered at exit)."""
-    import torch.distributed as dist
-
-    if dist.is_available() and dist.is_initialized():
-        dist.destroy_process_group()
 
 
 @dataclass
