@@ -23,7 +23,6 @@ config and steps) on everything, measured in the same process.
 from __future__ import annotations
 
 import json
-import statistics
 import time
 from pathlib import Path
 from typing import Any
@@ -31,6 +30,7 @@ from typing import Any
 import torch
 
 from vqtouch.core import ConfigError
+from vqtouch.core.experiments import markdown_table, mean_spread
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 
 from .adapt import AdaptSettings, ImageSet, adapt_tokenizer, family_images, reconstruction_scores, target_images
@@ -151,37 +151,6 @@ def scratch_cost(run: Any, target: str, families: SensorFamilies, host: Any, *, 
             "steps": section.train.steps, "seconds": round(seconds, 2)}
 
 
-def _mean_spread(rows: list[dict[str, Any]], keys: tuple[str, ...], group: tuple[str, ...]) -> list[dict[str, Any]]:
-    """Rows grouped by ``group`` with each key's mean and standard deviation over the seeds."""
-    grouped: dict[tuple, list[dict[str, Any]]] = {}
-    for row in rows:
-        grouped.setdefault(tuple(row[key] for key in group), []).append(row)
-    table = []
-    for values, members in grouped.items():
-        entry: dict[str, Any] = dict(zip(group, values)) | {"seeds": len(members)}
-        for key in keys:
-            numbers = [row[key] for row in members if isinstance(row.get(key), (int, float))]
-            if numbers:
-                entry[key] = round(statistics.fmean(numbers), 4)
-                entry[f"{key}_std"] = round(statistics.pstdev(numbers), 4) if len(numbers) > 1 else 0.0
-        table.append(entry)
-    return table
-
-
-def _markdown_table(rows: list[dict[str, Any]], group: tuple[str, ...], keys: tuple[str, ...]) -> list[str]:
-    lines = ["| " + " | ".join((*group, *keys)) + " |", "|" + "---|" * (len(group) + len(keys))]
-    for row in rows:
-        cells = [str(row.get(key, "")) if row.get(key) is not None else "-" for key in group]
-        for key in keys:
-            if key in row:
-                spread = row.get(f"{key}_std")
-                cells.append(f"{row[key]:.4g}" + (f" ± {spread:.2g}" if spread else ""))
-            else:
-                cells.append("-")
-        lines.append("| " + " | ".join(cells) + " |")
-    return lines
-
-
 def plot_transfer(transfer: list[dict[str, Any]], path: Path, title: str) -> None:
     """SSIM against shots (arms b and c, with a and d as lines) and against the mix ratio."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -289,12 +258,12 @@ def evaluate_cross_sensor(run: Any, host: Any, out: Path, *, target: str, seeds:
     group = ("arm", "shots", "ratio")
     result = {
         "tokenizer": str(folder), "target": target, "seeds": seeds, "steps": steps, "image_size": image_size,
-        "family_recovery": {"rows": recovery, "summary": _mean_spread(
+        "family_recovery": {"rows": recovery, "summary": mean_spread(
             recovery, ("ari", "assignment_accuracy", "families", "refused"), ("clusterer",))},
-        "transfer": {"rows": transfer, "summary": _mean_spread(transfer, TABLE_COLUMNS, group)},
+        "transfer": {"rows": transfer, "summary": mean_spread(transfer, TABLE_COLUMNS, group)},
         "real_frames": {"family": real_family, "rows": real_rows,
-                        "summary": _mean_spread(real_rows, TABLE_COLUMNS, group)},
-        "cost": {"rows": costs, "summary": _mean_spread(costs, ("adaptation_seconds", "scratch_seconds", "ratio",
+                        "summary": mean_spread(real_rows, TABLE_COLUMNS, group)},
+        "cost": {"rows": costs, "summary": mean_spread(costs, ("adaptation_seconds", "scratch_seconds", "ratio",
                                                                 "scratch_ssim", "adapted_ssim"), ())}}
     (out / "cross_sensor.json").write_text(json.dumps(result, indent=2) + "\n")
     (out / "cross_sensor.md").write_text(render_markdown(result) + "\n")
@@ -312,19 +281,19 @@ def render_markdown(result: dict[str, Any]) -> str:
              f"{result['steps']} steps.  `ssim` to `codebook_usage`: held-out images of the unseen sensor; "
              "`family_ssim`, `family_psnr`: held-out images of the family's members (what an adaptation keeps of "
              "the family); `seconds`: fine-tuning wall time.", "", "## Family recovery", ""]
-    lines += _markdown_table(result["family_recovery"]["summary"], ("clusterer",),
+    lines += markdown_table(result["family_recovery"]["summary"], ("clusterer",),
                              ("ari", "assignment_accuracy", "families", "refused"))
     lines += ["", f"## Transfer to `{result['target']}`", ""]
-    lines += _markdown_table(result["transfer"]["summary"], ("arm", "shots", "ratio"), TABLE_COLUMNS)
+    lines += markdown_table(result["transfer"]["summary"], ("arm", "shots", "ratio"), TABLE_COLUMNS)
     if result["real_frames"]["rows"]:
         rows = result["real_frames"]["rows"]
         refused = sum(row["refused"] for row in rows if row["arm"].startswith("a"))
         lines += ["", f"## Real {result['real_frames']['family']} frames as the unseen sensor", "",
                   f"Assigned family (nearest): {sorted({row['nearest_family'] for row in rows})}; refused by the "
                   f"threshold in {refused} of {seeds} seeds; every arm adapts from the nearest family.", ""]
-        lines += _markdown_table(result["real_frames"]["summary"], ("arm", "shots", "ratio"), TABLE_COLUMNS)
+        lines += markdown_table(result["real_frames"]["summary"], ("arm", "shots", "ratio"), TABLE_COLUMNS)
     if result["cost"]["rows"]:
         lines += ["", "## Cost", ""]
-        lines += _markdown_table(result["cost"]["summary"], (),
+        lines += markdown_table(result["cost"]["summary"], (),
                                  ("adaptation_seconds", "scratch_seconds", "ratio", "adapted_ssim", "scratch_ssim"))
     return "\n".join(lines)
