@@ -1,0 +1,179 @@
+"""`vqtouch evaluate downstream` (issue 13, Table 3) at toy size: the arms and files, the scores
+against closed forms, the summary against an independent mean, the real images each arm trained
+on against an independent recomputation of the run's split (no held-out image is ever trained
+on), the same run on a folder in the image_folder layout, and the one-line refusals."""
+
+import json
+import shutil
+import statistics
+from collections import Counter
+
+import pytest
+import torch
+
+import generator_runs
+from vqtouch.core import Assembly, ConfigError, RunDir
+from vqtouch.core.cli import main
+from vqtouch.core.data import split_dataset
+from vqtouch.core.images import save_png
+from vqtouch.plugins.evaluation.downstream import (ARMS, CEILING, FEW, FEW_AND_GENERATED, GENERATED, draw_shots,
+                                                   label_conditioner_index, recognition_scores)
+
+CLASSES = ["sphere", "edge", "ridges"]
+#: Small enough to run in seconds: 32-px features, 2 seeds, 2 shots, 2 generated images per class.
+FAST = ["--seeds", "0", "1", "--shots", "2", "--generated-per-class", "2", "--feature-size", "32"]
+
+
+@pytest.fixture(scope="module")
+def label_run(tmp_path_factory):
+    """A tiny label-to-touch run over 3 classes: 27 training and 9 held-out samples."""
+    out = tmp_path_factory.mktemp("downstream") / "run"
+    assert main(generator_runs.train_args(out, f"data.dataset.classes={json.dumps(CLASSES)}",
+                                           "data.dataset.num_samples=36", "generator.num_samples=0")) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def evaluated(label_run, tmp_path_factory):
+    out = tmp_path_factory.mktemp("downstream_out")
+    assert main(["--no-progress", "evaluate", "downstream", "--run", str(label_run), "--out", str(out), *FAST]) == 0
+    return out, json.loads((out / "downstream.json").read_text())
+
+
+def _run_dataset(run, host):
+    """The run's dataset, built from its saved config, and the config."""
+    config = RunDir.open(run).load_config(host)
+    return Assembly(config, host).component("data.dataset"), config
+
+
+def test_every_arm_and_file_is_written_with_scores_in_range(evaluated):
+    out, result = evaluated
+    assert [(row["arm"], row["seed"]) for row in result["rows"]] == [(arm, seed) for seed in (0, 1) for arm in ARMS]
+    for row in result["rows"]:
+        assert all(0 <= row[score] <= 1 for score in ("top1", "precision", "recall", "f1")), row
+    by_arm = {row["arm"]: row for row in result["rows"] if row["seed"] == 0}
+    assert by_arm[GENERATED]["train_images"] == 3 * 2 and by_arm[FEW]["train_images"] == 3 * 2
+    assert by_arm[FEW_AND_GENERATED]["train_images"] == 3 * 2 + 3 * 2
+    assert result["chance"] == pytest.approx(1 / 3, abs=1e-4)
+    counts = result["test_class_counts"]
+    assert sum(counts.values()) == result["test_images"] == 9
+    assert result["majority"] == pytest.approx(max(counts.values()) / 9, abs=1e-4)
+    # A classifier whose training images are all one image names one class: at most the majority rate.
+    assert all(row["top1"] <= result["majority"] for row in result["rows"] if row["arm"] == "no-contact background")
+    matrix = torch.tensor(result["confusion"]["matrices"][CEILING])
+    assert int(matrix.sum()) == 9 and float(matrix.diag().sum() / 9) == pytest.approx(by_arm[CEILING]["top1"], abs=1e-4)
+    markdown = (out / "downstream.md").read_text()
+    assert "| all real (ceiling) | all | 0 | 27 |" in markdown and "Chance (1 / 3 classes): 0.3333" in markdown
+    for name in ("downstream.png", "downstream_confusion.png", "downstream_generated.png"):
+        assert (out / name).stat().st_size > 1000, name
+    assert result["provenance"]["wall_seconds"] > 0
+
+
+def test_the_summary_is_the_mean_and_spread_of_the_seeds(evaluated):
+    _, result = evaluated
+    for arm in ARMS:
+        rows = [row for row in result["rows"] if row["arm"] == arm]
+        summary = next(row for row in result["summary"] if row["arm"] == arm)
+        assert summary["seeds"] == 2
+        for score in ("top1", "precision", "recall", "f1"):
+            assert summary[score] == pytest.approx(statistics.fmean(row[score] for row in rows), abs=1e-5)
+            assert summary[f"{score}_std"] == pytest.approx(statistics.pstdev(row[score] for row in rows), abs=1e-5)
+
+
+def test_no_arm_trains_on_a_held_out_image(evaluated, label_run, host):
+    _, result = evaluated
+    dataset, config = _run_dataset(label_run, host)
+    train, held_out = split_dataset(dataset, config.data.val_fraction, config.seed)
+    assert sorted(result["test_indices"]) == sorted(held_out.indices) and len(held_out.indices) == 9
+    for row in result["rows"]:
+        assert not set(row["real_indices"]) & set(held_out.indices), row["arm"]
+        assert set(row["real_indices"]) <= set(train.indices), row["arm"]
+    ceilings = [row for row in result["rows"] if row["arm"] == CEILING]
+    assert all(sorted(row["real_indices"]) == sorted(train.indices) for row in ceilings)
+    few = {row["seed"]: row["real_indices"] for row in result["rows"] if row["arm"] == FEW}
+    for indices in few.values():  # two distinct images of each class, read back from the dataset
+        assert len(set(indices)) == 6 and Counter(dataset[i]["label"] for i in indices) == {0: 2, 1: 2, 2: 2}
+    assert set(few[0]) != set(few[1])  # the seed draws the shots
+    assert [row["real_indices"] for row in result["rows"] if row["arm"] == FEW_AND_GENERATED] == [few[0], few[1]]
+
+
+def test_macro_scores_match_the_closed_form_of_a_known_confusion():
+    true = [0, 0, 0, 1, 1, 2]
+    predicted = [0, 0, 1, 1, 2, 2]
+    # Per class (precision, recall): 0: (2/2, 2/3), 1: (1/2, 1/2), 2: (1/2, 1/1); F1 = 2PR / (P + R).
+    per_class = [(1.0, 2 / 3), (0.5, 0.5), (0.5, 1.0)]
+    f1s = [2 * p * r / (p + r) for p, r in per_class]
+    scores = recognition_scores(true, predicted)
+    assert scores["top1"] == pytest.approx(4 / 6, abs=1e-4)
+    assert scores["precision"] == pytest.approx(statistics.fmean(p for p, _ in per_class), abs=1e-4)
+    assert scores["recall"] == pytest.approx(statistics.fmean(r for _, r in per_class), abs=1e-4)
+    assert scores["f1"] == pytest.approx(statistics.fmean(f1s), abs=1e-4)
+    # A class never predicted counts with precision 0; a predicted class the test lacks is only a miss.
+    assert recognition_scores([0, 0, 1, 1], [0, 0, 0, 0]) == {"top1": 0.5, "precision": 0.25, "recall": 0.5,
+                                                               "f1": pytest.approx(1 / 3, abs=1e-4)}
+    assert recognition_scores([0, 0, 1, 1], [0, 7, 1, 1]) == {"top1": 0.75, "precision": 1.0, "recall": 0.75,
+                                                               "f1": pytest.approx((2 / 3 + 1) / 2, abs=1e-4)}
+
+
+def test_shots_are_distinct_images_of_each_class_and_too_many_are_refused():
+    labels = [0, 1, 0, 2, 1, 0, 2, 2, 1, 0]
+    chosen = draw_shots(labels, 3, seed=4)
+    assert len(set(chosen)) == 9 and Counter(labels[p] for p in chosen) == {0: 3, 1: 3, 2: 3}
+    assert draw_shots(labels, 3, seed=4) == chosen and draw_shots(labels, 2, seed=5) != draw_shots(labels, 2, seed=6)
+    with pytest.raises(ConfigError, match=r"--shots 4: class 'edge' \(1\) has only 3 real training images in the "
+                                          r"run's split; give --shots 3 or fewer"):
+        draw_shots(labels, 4, seed=0, class_names=CLASSES)
+
+
+def test_the_label_conditioner_is_found_or_refused():
+    assert label_conditioner_index(["visual", "label", "text"], ["visual", "label", "text_scratch"], None) == 1
+    with pytest.raises(ConfigError, match=r"this run's generator has no label conditioner \(0:visual \(reads "
+                                          r"'visual'\), 1:text_scratch \(reads 'text'\)\); .*--scene label-to-touch"):
+        label_conditioner_index(["visual", "text"], ["visual", "text_scratch"], None)
+    with pytest.raises(ConfigError, match="--conditioner 0 \\(visual\\) reads samples' 'visual', not 'label'"):
+        label_conditioner_index(["visual", "label"], ["visual", "label"], 0)
+
+
+@pytest.mark.parametrize(("flags", "message"), [
+    (["--shots", "50"], "--shots 50: class "),
+    (["--conditioner", "1"], "--conditioner 1: this generator has conditioners 0..0 (0:label (reads 'label'))"),
+])
+def test_bad_requests_are_one_line_errors(label_run, tmp_path, capsys, flags, message):
+    code = main(["--no-progress", "evaluate", "downstream", "--run", str(label_run), "--out", str(tmp_path / "x"),
+                 "--feature-size", "32", *flags])
+    error = capsys.readouterr().err
+    assert code == 2 and message in error and len(error.strip().splitlines()) == 1
+    assert not (tmp_path / "x" / "downstream.json").exists()
+
+
+def _folder_run(label_run, folder, dataset):
+    """A copy of ``label_run`` whose dataset block is ``dataset`` (the trained models unchanged)."""
+    shutil.copytree(label_run, folder)
+    config = json.loads((folder / "config.json").read_text())
+    config["data"]["dataset"] = dataset
+    (folder / "config.json").write_text(json.dumps(config))
+    return folder
+
+
+def test_a_run_on_a_class_folder_works_and_an_unlabelled_one_is_refused(label_run, tmp_path, capsys, host):
+    dataset, _ = _run_dataset(label_run, host)
+    root = tmp_path / "frames"
+    for index in range(len(dataset)):
+        sample = dataset[index]
+        save_png(sample["tactile"], root / CLASSES[sample["label"]] / f"{index:03d}.png")
+    folder_run = _folder_run(label_run, tmp_path / "folder_run",
+                             {"name": "image_folder", "root": str(root), "class_names": CLASSES})
+    out = tmp_path / "folder_out"
+    assert main(["--no-progress", "evaluate", "downstream", "--run", str(folder_run), "--out", str(out),
+                 "--seeds", "0", "--shots", "1", "--generated-per-class", "1", "--feature-size", "32"]) == 0
+    result = json.loads((out / "downstream.json").read_text())
+    assert result["dataset"] == "image_folder" and {row["arm"] for row in result["rows"]} == set(ARMS)
+    assert result["test_images"] + result["real_train_images"] == 36
+
+    (root / "list.csv").write_text("path,label\n" + "".join(f"{p.relative_to(root).as_posix()},\n"
+                                                          for p in sorted(root.rglob("*.png"))))
+    unlabelled = _folder_run(label_run, tmp_path / "unlabelled_run",
+                             {"name": "image_folder", "root": str(root), "csv": "list.csv"})
+    capsys.readouterr()
+    assert main(["evaluate", "downstream", "--run", str(unlabelled), "--out", str(tmp_path / "y")]) == 2
+    assert "the run's dataset (image_folder) has no class labels" in capsys.readouterr().err
