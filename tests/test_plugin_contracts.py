@@ -97,6 +97,9 @@ def builtin_case(kind: str, name: str, tmp_path_factory: pytest.TempPathFactory,
         weights = tiny_clip_weights(tmp_path_factory.getbasetemp())
         options.update({"architecture": "ViT-S-32", "checkpoint": str(weights), "model_overrides": TINY_CLIP,
                         "context_length": 4})
+    if (kind, name) == ("metric", "clip_score"):
+        weights = tiny_clip_weights(tmp_path_factory.getbasetemp())
+        options.update({"architecture": "ViT-S-32", "checkpoint": str(weights), "model_overrides": TINY_CLIP})
     if (kind, name) == ("conditioner", "tactile_codes"):
         options["tokenizer"] = str(generator_runs.tiny_tokenizer_folder(tmp_path_factory.getbasetemp()))
     if kind == "dataset" and name in READER_CASES:

@@ -16,8 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from vqtouch.core import Assembly, ConfigError, RunDir, hookimpl, run_stage
-from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group, stage_failure,
-                              training_run)
+from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group, plugin_block,
+                              stage_failure, training_run)
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
@@ -127,6 +127,9 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
     from .stage import baseline_pool, held_out_conditions, score_generation
 
     host = args.host
+    if args.clip_checkpoint and not Path(args.clip_checkpoint).expanduser().is_file():
+        raise ConfigError(f"--clip-checkpoint {args.clip_checkpoint}: no such file; give the open_clip weights file "
+                          "(.safetensors, .pt or .bin)")
     pipe = load_pipeline(args.run, host=host, step=args.step)
     run = RunDir.open(args.run)
     config = run.load_config(host)
@@ -140,8 +143,7 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
                           f"({', '.join(names)})")
     sampler_name = args.sampler or pipe.sampler_name
     steps = pipe.check_steps(args.steps or pipe.settings["steps"])
-    metric_names = args.metrics.split(",") if args.metrics else [item.name for item in config.metrics]
-    metrics = [(name, assembly.build("metric", name)) for name in metric_names]
+    metrics = [(block["name"], assembly.build("metric", block)) for block in _metric_blocks(args, config)]
     if args.feature_size is not None:
         metrics = [(name, metric) for name, metric in metrics if name != "fd_effnetlite0"]
         metrics.append(("fd_effnetlite0", assembly.build("metric", {"name": "fd_effnetlite0",
@@ -162,6 +164,30 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
     run.write_json(f"evaluation_generation_{tag}.json", result)
     print(json.dumps(result, indent=2))
     return 0
+
+
+def _metric_blocks(args: argparse.Namespace, config: Any) -> list[dict[str, Any]]:
+    """The metrics ``evaluate generation`` scores, as plugin blocks: ``--metrics`` (comma-separated names, or a
+    JSON list of names and ``{"name": ..., options}`` blocks), else the run's own with their options; then
+    ``--clip-checkpoint``/``--clip-architecture`` set ``clip_score``'s options, adding it when absent."""
+    text = (args.metrics or "").strip()
+    if not text:
+        blocks = [item.model_dump() for item in config.metrics]
+    elif text.startswith("["):
+        try:
+            items = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"--metrics is not valid JSON: {exc}") from None
+        blocks = [plugin_block(json.dumps(item) if isinstance(item, dict) else str(item), "--metrics")
+                  for item in items]
+    else:
+        blocks = [plugin_block(name, "--metrics") for name in text.split(",")]
+    clip = {key: value for key, value in (("checkpoint", args.clip_checkpoint),
+                                          ("architecture", args.clip_architecture)) if value}
+    if clip:
+        given = next((block for block in blocks if block["name"] == "clip_score"), {"name": "clip_score"})
+        blocks = [block for block in blocks if block["name"] != "clip_score"] + [given | clip]
+    return blocks
 
 
 def _tradeoff_generator_command(args: argparse.Namespace) -> int:
@@ -248,7 +274,14 @@ def vqtouch_add_commands(subparsers):
     scored.add_argument("--guidance", type=float, help="classifier-free guidance scale (1: none)")
     scored.add_argument("--truncation", type=float, help="keep the most likely codes holding this mass (1: all)")
     scored.add_argument("--seed", type=int, help="seed of the sampling draws (default: the run's)")
-    scored.add_argument("--metrics", help="comma-separated metric plugins (default: the run's metrics)")
+    scored.add_argument("--metrics", help="comma-separated metric plugins, or a JSON list of names and "
+                                          "{\"name\": ..., options} blocks (default: the run's metrics)")
+    scored.add_argument("--clip-checkpoint", metavar="PATH",
+                        help="open_clip weights file of the clip_score metric (CLIP-space agreement of each "
+                             "generated image with its condition), added to the metrics; a clip_score listed "
+                             "without it reads VQTOUCH_CLIP_CKPT or VQTOUCH_WEIGHTS_DIR, else is reported as skipped")
+    scored.add_argument("--clip-architecture", metavar="NAME",
+                        help="open_clip model name the --clip-checkpoint file holds (default: ViT-B-32)")
     _add_distribution_arguments(scored)
     scored.set_defaults(handler=_evaluate_generation_command)
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -170,7 +170,12 @@ def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sample
     on the real training images of ``pool`` (``classifier_accuracy``, beside
     ``real_classifier_accuracy``, the real held-out images' own); a
     :class:`~vqtouch.plugins.evaluation.distribution.DistributionScorer` already fitted on these
-    conditions is used as it is."""
+    conditions is used as it is.
+
+    A metric that scores images against their conditions rather than their ground truth (one with
+    ``condition_scores``, e.g. ``clip_score``) gets the raw conditions instead, for the model's images,
+    each comparison and the ground truth itself (``real_*``); conditions it cannot read are listed
+    under ``"skipped"`` with the reason."""
     count, indices, truth = len(conditions.indices), conditions.indices, conditions.truth
     batch = conditions.batch(device=device)
     generator.eval()
@@ -188,7 +193,14 @@ def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sample
     scorer = distribution_scorer(conditions, pool, metrics, seed) if distribution is True else distribution or None
     if scorer is not None:
         scores |= scorer.real_scores()
-    scores |= score_images(compared, truth, metrics, background, scorer)
+    by_truth = [(name, metric) for name, metric in metrics if not hasattr(metric, "condition_scores")]
+    scores |= score_images(compared, truth, by_truth, background, scorer)
+    for metric in (metric for _, metric in metrics if hasattr(metric, "condition_scores")):
+        found = metric.condition_scores(compared | {"real_": truth}, conditioner.condition_of(batch),
+                                        conditioner.sample_key, conditions.class_names)
+        if "skipped" in found:
+            scores["skipped"] = scores.get("skipped", {}) | found.pop("skipped")
+        scores |= found
     if picture is not None:
         columns = min(count, 8)
         shown = condition_images(conditioner, batch)
@@ -211,12 +223,14 @@ def condition_images(conditioner: Any, batch: dict[str, Any]) -> torch.Tensor | 
 class HeldOutConditions:
     """The first held-out conditions, read once: their samples as the generator's data gives them
     (condition entries), their dataset indices (each one's sampling seed) and their ground-truth
-    tactile images (on the scoring device) with their labels (None without labels)."""
+    tactile images (on the scoring device) with their labels (None without labels) and the dataset's
+    class names (what a label means, e.g. for a label's CLIP prompt; empty when unlabelled)."""
 
     samples: list[dict[str, Any]]
     indices: list[int]
     truth: torch.Tensor
     labels: list[int] | None
+    class_names: list[str] = field(default_factory=list)
 
     def batch(self, start: int = 0, stop: int | None = None, *, device: torch.device) -> dict[str, Any]:
         """Samples ``start:stop`` collated, their tensors on ``device``."""
@@ -233,7 +247,8 @@ def held_out_conditions(held_out: Any, dataset: Any, count: int, device: torch.d
     indices = [held_out.indices[i] for i in range(count)]
     real = [dataset[index] for index in indices]
     truth = torch.stack([sample["tactile"] for sample in real]).to(device)
-    return HeldOutConditions([held_out[i] for i in range(count)], indices, truth, labels_of(real))
+    return HeldOutConditions([held_out[i] for i in range(count)], indices, truth, labels_of(real),
+                             list(getattr(dataset, "class_names", [])))
 
 
 @torch.no_grad()
@@ -390,7 +405,8 @@ def samples_picture(index: int, name: str) -> str:
 #: The generation scores shown in the run report (generation.json holds them all).
 SHOWN_SCORES = ("samples", "ssim", "background_ssim", "ceiling_ssim", "psnr", "background_psnr", "ceiling_psnr",
                 "contact_psnr", "background_contact_psnr", "ceiling_contact_psnr", "retrieval_contact_psnr",
-                "class_mean_contact_psnr", "ms_ssim", "background_ms_ssim", "lpips", "background_lpips", "skipped")
+                "class_mean_contact_psnr", "ms_ssim", "background_ms_ssim", "lpips", "background_lpips", "clip_score",
+                "background_clip_score", "real_clip_score", "skipped")
 SAMPLES_CAPTION = ("One column per held-out sample: its condition when that is an image (top row), the generated "
                    "tactile image, then the ground truth (bottom row).")
 
