@@ -24,11 +24,11 @@ def test_plugins_json_and_kind_filter(capsys):
     assert main(["plugins", "--json", "--kind", "metric"]) == 0
     rows = json.loads(capsys.readouterr().out)
     assert {row["name"] for row in rows} == {"fd_effnetlite0", "psnr", "ssim", "ms_ssim", "lpips", "fid", "kid",
-                                             "kid_effnetlite0"}
+                                             "kid_effnetlite0", "clip_score"}
     assert all(row["package"] == "vqtouch" and row["version"] for row in rows)
     assert main(["plugins", "--json", "--kind", "stage"]) == 0
     assert {row["name"] for row in json.loads(capsys.readouterr().out)} == {
-        "render", "tokenizer", "reconstruct", "cluster", "adapt", "generator"}
+        "render", "tokenizer", "reconstruct", "cluster", "adapt", "generator", "pretrained"}
 
 
 def test_config_show_prints_resolved_json_and_notes_empty_slots(capsys):
@@ -320,9 +320,11 @@ def test_the_default_demo_is_the_tour_of_every_stage_with_a_sample_grid_per_cond
             "--set", "generator.num_samples=2", "--set", "generator.steps=2", "--set", "generator.model.depth=1",
             "--set", "generator.model.width=16", "--set", "generator.model.heads=2"]
     assert main(["--no-progress", "demo", "--out", str(out), *tiny]) == 0
-    assert "scene tour: 5 of 5 stages ran" in capsys.readouterr().out
+    # The bundled checkpoints work at 64 px: at this test's 32 px the pretrained stage says it cannot run.
+    assert "scene tour: 5 of 6 stages ran, 1 cannot run" in capsys.readouterr().out
     stages = {s["stage"]: s for s in json.loads((out / "report.json").read_text())["stages"]}
-    assert list(stages) == ["tokenizer", "reconstruct", "cluster", "adapt", "generator"]
+    assert list(stages) == ["tokenizer", "reconstruct", "cluster", "adapt", "generator", "pretrained"]
+    assert "data.image_size: bundle 64, scene 32" in stages["pretrained"]["status"]
     parts = stages["generator"]["result"]["parts"]
     assert sorted(parts) == ["from label", "from tactile", "from text_scratch", "from visual"]
     for part in parts.values():

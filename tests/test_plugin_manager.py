@@ -15,7 +15,7 @@ TESTS = Path(__file__).resolve().parent
 
 BUILTIN_PLUGINS = {"label", "tactile", "clip", "metrics", "scenes", "tokenizer-stages", "data-stages", "generator",
                    "adaptation"}
-BUILTIN_STAGES = {"render", "tokenizer", "reconstruct", "cluster", "adapt", "generator"}
+BUILTIN_STAGES = {"render", "tokenizer", "reconstruct", "cluster", "adapt", "generator", "pretrained"}
 
 
 def test_builtins_load_through_entry_points_with_autoload_off(host):

@@ -120,8 +120,39 @@ def _generate_command(args: argparse.Namespace) -> int:
     return 0
 
 
+#: ``evaluate generation`` flags that only mean something when scoring one run (``--run``).
+_RUN_ONLY = ("step", "conditioner", "steps", "sampler", "guidance", "truncation", "seed", "feature_size")
+
+
+def _generation_experiment_command(args: argparse.Namespace) -> int:
+    from vqtouch.core.cli import config_from_args
+
+    from .experiment import evaluate_generation_experiment
+
+    given = [f"--{name.replace('_', '-')}" for name in _RUN_ONLY if getattr(args, name, None) is not None]
+    if given:
+        raise ConfigError(f"{', '.join(given)} only apply to scoring one run (--run); the experiment (--out) samples "
+                          "with the scene's generator settings: set them with --set generator.steps=N ...")
+    host = args.host
+    config = config_from_args(args, host)
+    if args.metrics or args.clip_checkpoint or args.clip_architecture:
+        config = validate_experiment({**config.to_dict(), "metrics": _metric_blocks(args, config)}, host)
+    evaluate_generation_experiment(config, host, Path(args.out), seeds=args.seeds, n=args.n,
+                                   tokenizer=args.tokenizer, overwrite=args.overwrite)
+    out = Path(args.out)
+    print((out / "generation.md").read_text())
+    print(f"-> {out} (generation.json, generation.md, generation.png, seed*/ runs)")
+    return 0
+
+
 def _evaluate_generation_command(args: argparse.Namespace) -> int:
     from vqtouch.core.data import split_dataset
+
+    if args.out:
+        return _generation_experiment_command(args)
+    if args.overrides or args.config or args.tokenizer or args.overwrite:
+        raise ConfigError("--set/--config/--tokenizer/--overwrite belong to the experiment (--out); scoring a run "
+                          "(--run) uses the run's own config")
 
     from .pipeline import load_pipeline
     from .stage import baseline_pool, held_out_conditions, score_generation
@@ -264,8 +295,19 @@ def vqtouch_add_commands(subparsers):
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
     scored = evaluate.add_parser("generation", help="generate the run's held-out conditions and score them against "
                                                     "their ground truth, the no-contact background and the contact "
-                                                    "region")
-    scored.add_argument("--run", required=True, help="a run whose generator stage trained")
+                                                    "region; with --out, the per-conditioner experiment over seeds "
+                                                    "(Table 2: JSON, markdown, PNG)")
+    mode = scored.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--run", help="a run whose generator stage trained: score it")
+    mode.add_argument("--out", help="run the experiment into this folder: train the scene's generator once per seed "
+                                    "over one tokenizer and score every conditioner against the baselines")
+    scored.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2],
+                        help="with --out: generator seeds (default 0 1 2)")
+    scored.add_argument("--tokenizer", metavar="RUN", help="with --out: the trained tokenizer every seed's generator "
+                                                           "learns (default: the scene's, trained once into OUT/tokenizer)")
+    scored.add_argument("--overwrite", action="store_true", help="with --out: run again into a folder that holds "
+                                                                 "an earlier result")
+    add_config_arguments(scored, default_scene="tour")
     add_step_argument(scored)
     scored.add_argument("--conditioner", type=int, help="which of the generator's conditioners (index; default 0)")
     scored.add_argument("--n", type=_positive_int, default=64, help="held-out conditions to generate (at most all)")

@@ -1,0 +1,183 @@
+"""Bundled checkpoints: write a trained generator run (and its tokenizer) into the package, read it back.
+
+A bundle is a folder ``weights/<name>/`` inside this package::
+
+    tokenizer/autoencoder.safetensors  tokenizer/quantizer.safetensors
+    generator/generator.safetensors    generator/conditioner_<i>.safetensors
+
+Every file is an ordinary vqtouch checkpoint (:func:`vqtouch.core.save`: the component's config,
+build context and training step in its header, loaded strictly) plus three header entries that
+say where it came from: ``pretrained.command`` (the ``vqtouch`` command line that trained it, from
+the run's env.json), ``pretrained.run_config`` (the training run's whole config) and
+``pretrained.stored_as`` (the precision of the stored parameters).  The header is the one source
+of truth: nothing else describes a bundle.
+
+To keep the package small, parameters are stored in float16 except the quantizer's, whose
+codebook decides which code each latent gets (quantizer maths stays fp32); loading casts them
+back to the module's float32.  The scores the ``pretrained`` stage reports are those of the
+weights as stored.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from vqtouch.core import ConfigError, RunDir, load, read_metadata, save
+
+#: Where the bundles live inside the installed package.
+BUNDLES = Path(__file__).parent / "weights"
+TOKENIZER = "tokenizer"
+GENERATOR = "generator"
+COMMAND_KEY = "pretrained.command"
+RUN_CONFIG_KEY = "pretrained.run_config"
+STORED_KEY = "pretrained.stored_as"
+#: fp16's largest finite value: a parameter beyond it cannot be stored in half precision.
+FP16_MAX = 65504.0
+
+
+def bundle_names(root: Path | None = None) -> list[str]:
+    """The bundles present under ``root`` (default: the package's), sorted."""
+    root = root or BUNDLES
+    if not root.is_dir():
+        return []
+    return sorted(path.name for path in root.iterdir() if (path / GENERATOR / "generator.safetensors").is_file())
+
+
+def bundle_folder(name: str, root: Path | None = None) -> Path:
+    """The folder of bundle ``name``; a one-line error listing the bundles when there is none of that name."""
+    root = root or BUNDLES
+    names = bundle_names(root)
+    if name not in names:
+        raise ConfigError(f"no bundled checkpoints named {name!r} in {root}; bundled: {', '.join(names) or 'none'} "
+                          "(make one with `vqtouch pretrained export --run GENERATOR_RUN --name NAME`)")
+    return root / name
+
+
+def half_precision_copy(module: nn.Module, where: str) -> nn.Module:
+    """A copy of ``module`` whose floating-point parameters are float16 (buffers untouched); refuses
+    a parameter fp16 cannot hold rather than storing infinities."""
+    copied = copy.deepcopy(module)
+    for name, parameter in copied.named_parameters():
+        if not parameter.is_floating_point():
+            continue
+        largest = parameter.detach().abs().max().item() if parameter.numel() else 0.0
+        if not largest < FP16_MAX:
+            raise ConfigError(f"{where}: parameter {name!r} reaches {largest:.3g}, beyond float16's {FP16_MAX:g}; "
+                              "export with --precision fp32")
+        parameter.data = parameter.data.half()
+    return copied
+
+
+def _provenance(run: RunDir) -> dict[str, str]:
+    """The header entries naming how ``run`` was trained: its command line and its config."""
+    env = json.loads((run.path / "env.json").read_text()) if (run.path / "env.json").is_file() else {}
+    argv = env.get("argv") or ["(unknown command)"]
+    command = " ".join(argv)
+    if env.get("git_revision"):
+        command += f"  # vqtouch git {env['git_revision'][:12]}"
+    return {COMMAND_KEY: command, RUN_CONFIG_KEY: (run.path / "config.json").read_text()}
+
+
+def export_bundle(generator_run: str | Path, name: str, host: Any, *, root: Path | None = None,
+                  precision: str = "fp16", overwrite: bool = False) -> Path:
+    """Write the newest checkpoint of ``generator_run`` (its generator, conditioners and the tokenizer
+    it was trained on) as bundle ``name`` under ``root``; returns the bundle's folder."""
+    from vqtouch.plugins.generator.pipeline import load_pipeline
+    from vqtouch.plugins.tokenizer.stages import tokenizer_location
+
+    if precision not in ("fp16", "fp32"):
+        raise ConfigError(f"--precision {precision!r}: choose fp16 or fp32")
+    if not name or any(char in name for char in "/\\ ") or name.startswith("."):
+        raise ConfigError(f"bundle name {name!r}: use a plain folder name such as 'tour'")
+    folder = (root or BUNDLES) / name
+    if folder.exists() and not overwrite:
+        raise ConfigError(f"{folder} exists; pass --overwrite to replace bundle {name!r}")
+    pipe = load_pipeline(generator_run, host=host, device="cpu")
+    run = RunDir.open(generator_run)
+    section = run.load_config(host).generator
+    source = tokenizer_location(section.tokenizer_run) if section.tokenizer_run else run
+    generator_headers = _provenance(run)
+    tokenizer_headers = _provenance(source) if isinstance(source, RunDir) else generator_headers
+
+    def store(module: nn.Module, path: Path, headers: dict[str, str], keep_fp32: bool = False) -> None:
+        half = precision == "fp16" and not keep_fp32
+        stored = half_precision_copy(module, str(path)) if half else module
+        save(stored, path, step=getattr(module, "vqtouch_step", 0), host=host,
+             metadata={**headers, STORED_KEY: "float16 parameters" if half else "float32"})
+
+    (folder / TOKENIZER).mkdir(parents=True, exist_ok=True)
+    (folder / GENERATOR).mkdir(parents=True, exist_ok=True)
+    store(pipe.tokenizer.autoencoder, folder / TOKENIZER / "autoencoder.safetensors", tokenizer_headers)
+    store(pipe.tokenizer.quantizer, folder / TOKENIZER / "quantizer.safetensors", tokenizer_headers, keep_fp32=True)
+    store(pipe.generator, folder / GENERATOR / "generator.safetensors", generator_headers)
+    for index, conditioner in enumerate(pipe.conditioners):
+        store(conditioner, folder / GENERATOR / f"conditioner_{index}.safetensors", generator_headers)
+    return folder
+
+
+@dataclass
+class Bundle:
+    """A loaded bundle: the tokenizer, the generator and its conditioners, and where they came from."""
+
+    name: str
+    folder: Path
+    tokenizer: Any
+    generator: nn.Module
+    conditioners: list[nn.Module]
+    tokenizer_step: int
+    generator_step: int
+    tokenizer_command: str
+    generator_command: str
+    run_config: dict[str, Any]
+
+    @property
+    def conditioner_names(self) -> list[str]:
+        """The registered name of each conditioner, in the generator's order."""
+        return [conditioner.vqtouch_spec.config.name for conditioner in self.conditioners]
+
+    @property
+    def size_bytes(self) -> int:
+        """The bundle's size on disk."""
+        return sum(path.stat().st_size for path in self.folder.rglob("*.safetensors"))
+
+
+def describe_bundle(folder: Path) -> dict[str, Any]:
+    """A bundle's facts from its headers alone (no tensors loaded): steps, commands, files and sizes."""
+    generator = read_metadata(folder / GENERATOR / "generator.safetensors")
+    tokenizer = read_metadata(folder / TOKENIZER / "autoencoder.safetensors")
+    files = sorted(folder.rglob("*.safetensors"))
+    conditioners = [json.loads(read_metadata(path)["vqtouch.config"])["name"]
+                    for path in sorted((folder / GENERATOR).glob("conditioner_*.safetensors"),
+                                       key=lambda p: int(p.stem.split("_")[1]))]
+    return {"name": folder.name, "tokenizer_step": int(tokenizer["vqtouch.step"]),
+            "generator_step": int(generator["vqtouch.step"]),
+            "tokenizer": json.loads(tokenizer["vqtouch.config"])["name"], "conditioners": conditioners,
+            "tokenizer_command": tokenizer.get(COMMAND_KEY, "?"), "generator_command": generator.get(COMMAND_KEY, "?"),
+            "stored_as": generator.get(STORED_KEY, "?"), "files": len(files),
+            "megabytes": round(sum(path.stat().st_size for path in files) / 1e6, 2)}
+
+
+def load_bundle(name: str, host: Any, *, device: str | torch.device = "cpu", root: Path | None = None) -> Bundle:
+    """Load bundle ``name`` strictly (every tensor by name and shape) onto ``device``, in eval mode."""
+    from vqtouch.plugins.tokenizer.training import Tokenizer
+
+    folder = bundle_folder(name, root)
+    autoencoder = load(folder / TOKENIZER / "autoencoder.safetensors", host=host, map_location=device)
+    quantizer = load(folder / TOKENIZER / "quantizer.safetensors", host=host, map_location=device)
+    generator = load(folder / GENERATOR / "generator.safetensors", host=host, map_location=device).eval()
+    paths = sorted((folder / GENERATOR).glob("conditioner_*.safetensors"), key=lambda p: int(p.stem.split("_")[1]))
+    conditioners = [load(path, host=host, map_location=device).eval() for path in paths]
+    headers = read_metadata(folder / GENERATOR / "generator.safetensors")
+    tokenizer_headers = read_metadata(folder / TOKENIZER / "autoencoder.safetensors")
+    return Bundle(name=name, folder=folder, tokenizer=Tokenizer(autoencoder, quantizer).eval(), generator=generator,
+                  conditioners=conditioners, tokenizer_step=autoencoder.vqtouch_step,
+                  generator_step=generator.vqtouch_step, tokenizer_command=tokenizer_headers.get(COMMAND_KEY, "?"),
+                  generator_command=headers.get(COMMAND_KEY, "?"),
+                  run_config=json.loads(headers.get(RUN_CONFIG_KEY, "{}")))

@@ -1,0 +1,127 @@
+"""The ``pretrained`` stage: the bundled checkpoints on this run's held-out data.
+
+It loads a bundle (:mod:`.bundle`), reconstructs the run's held-out images with its tokenizer
+and generates the held-out conditions from each of its conditioners, scoring both exactly like
+the ``tokenizer`` and ``generator`` stages do (with the no-contact background and contact-region
+scores beside every score).  Nothing is trained; the report says the weights are bundled, which
+command trained them and at which step.
+
+It refuses (as "cannot run", with the reason) a scene whose data the bundle cannot speak for: another
+image size, sensor or paired sensor, other class names, or a conditioner kind the scene's data
+does not provide, and a scene whose dataset is the one the bundle was trained on (its "held-out"
+images could be the bundle's training images).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import Field
+
+from vqtouch.core import ConfigError, Section, StageJob, StageUnavailable, hookimpl, resolve_device
+from vqtouch.core.data import DatasetSubset, split_dataset
+
+from .bundle import Bundle, bundle_folder, load_bundle
+
+#: The folder of the stage's pictures inside the run.
+PICTURES = "pretrained"
+
+
+class PretrainedSection(Section):
+    """The ``pretrained`` stage's options."""
+
+    bundle: str = Field("tour", description="Name of the bundled checkpoints to show (`vqtouch pretrained list`).")
+    num_samples: int = Field(16, ge=1, le=10_000, strict=True,
+                             description="Held-out images reconstructed and held-out conditions generated per "
+                                         "conditioner (at most the held-out split).")
+    sampler: str = Field("posterior", description="Sampler plugin the bundled generator draws codes with.")
+    steps: int = Field(25, ge=1, le=1000, strict=True, description="Sampling steps per generated image.")
+
+
+def _compared(config: dict[str, Any]) -> dict[str, Any]:
+    data = config.get("data", {})
+    dataset = data.get("dataset") or {}
+    return {"data.image_size": data.get("image_size"), "sensor": config.get("sensor"),
+            "paired_sensor": config.get("paired_sensor"), "data.dataset.name": dataset.get("name"),
+            "data.dataset.classes": dataset.get("classes")}
+
+
+def check_compatible(bundle: Bundle, config: Any) -> None:
+    """Refuse (StageUnavailable) a scene whose data the bundle was not trained for, or was trained on."""
+    trained, scene = bundle.run_config, config.to_dict()
+    differences = [f"{key}: bundle {value!r}, scene {_compared(scene)[key]!r}"
+                   for key, value in _compared(trained).items() if _compared(scene)[key] != value]
+    if differences:
+        raise StageUnavailable(f"bundle {bundle.name!r} was trained for other data ({'; '.join(differences)}); "
+                               "retrain one for this scene with `vqtouch pretrained export`")
+    trained_data, scene_data = dict(trained["data"]["dataset"]), dict(scene["data"]["dataset"])
+    trained_data.pop("num_samples", None), scene_data.pop("num_samples", None)
+    if trained_data == scene_data:
+        raise StageUnavailable(f"bundle {bundle.name!r} was trained on this scene's very dataset, so its held-out "
+                               "split may hold the bundle's training images; set another data.dataset.seed")
+
+
+def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
+    """Load the bundle, check it fits the scene, score its tokenizer and each of its conditioners."""
+    from vqtouch.core import MetricSet
+    from vqtouch.plugins.generator.stage import (SAMPLES_CAPTION, SHOWN_SCORES, baseline_pool, held_out_conditions,
+                                                 score_generation)
+    from vqtouch.plugins.tokenizer.stages import SHOWN_SCORES as TOKENIZER_SCORES
+    from vqtouch.plugins.tokenizer.stages import printable, save_pairs, sensor_background
+    from vqtouch.plugins.tokenizer.training import evaluate_reconstruction
+
+    config, section = job.config, job.section
+    try:
+        bundle_folder(section.bundle)
+    except ConfigError as exc:
+        raise StageUnavailable(str(exc)) from None
+    device = resolve_device(config.device)
+    bundle = load_bundle(section.bundle, job.host, device=device)
+    check_compatible(bundle, config)
+    dataset = job.assembly.component("data.dataset")
+    train_set, val_set = split_dataset(dataset, config.data.val_fraction, config.seed)
+    if len(val_set) == 0:
+        raise StageUnavailable(f"no held-out samples to score (data.val_fraction={config.data.val_fraction:g})")
+    metrics = list(zip((item.name for item in config.metrics), job.assembly.build_slots(["metrics"]).get("metrics", [])))
+    held_out = DatasetSubset(dataset, val_set.indices[:section.num_samples])
+    (job.run.path / PICTURES).mkdir(exist_ok=True)
+
+    scores = evaluate_reconstruction(bundle.tokenizer, held_out, MetricSet(metrics), device=device,
+                                     batch_size=config.data.batch_size,
+                                     background_3HW=sensor_background(job.assembly, config))
+    save_pairs(*scores.pop("examples"), job.run.path / PICTURES / "reconstructions.png")
+    parts: dict[str, Any] = {"bundled tokenizer": {
+        **{key: value for key, value in printable(scores).items() if key in TOKENIZER_SCORES},
+        "picture": f"{PICTURES}/reconstructions.png",
+        "caption": "Held-out images of this run (top row) above the bundled tokenizer's reconstructions (bottom row)."}}
+
+    conditions = held_out_conditions(val_set, dataset, section.num_samples, device)
+    missing = [name for name, conditioner in zip(bundle.conditioner_names, bundle.conditioners)
+               if conditioner.sample_key not in conditions.samples[0]]
+    if missing:
+        raise StageUnavailable(f"this scene's samples lack what bundled conditioner(s) {', '.join(missing)} read; "
+                               "use a scene with a paired sensor and visual images (e.g. tour)")
+    pool = baseline_pool(DatasetSubset(dataset, train_set.indices))
+    sampler = job.host.build("sampler", section.sampler)
+    sensor = job.assembly.sensor() if config.sensor is not None else None
+    for index, (name, conditioner) in enumerate(zip(bundle.conditioner_names, bundle.conditioners)):
+        picture = f"{PICTURES}/samples_{index}_{name}.png"
+        generated = score_generation(generator=bundle.generator, conditioner=conditioner, tokenizer=bundle.tokenizer,
+                                     sampler=sampler, conditions=conditions, metrics=metrics, sensor=sensor,
+                                     steps=section.steps, guidance=1.0, truncation=1.0, seed=config.seed,
+                                     device=device, picture=job.run.path / picture, pool=pool)
+        parts[f"bundled generator from {name}"] = ({key: generated[key] for key in SHOWN_SCORES if key in generated}
+                                                   | {"picture": picture, "caption": SAMPLES_CAPTION})
+    return {"bundle": bundle.name, "bundled": True, "megabytes": round(bundle.size_bytes / 1e6, 2),
+            "tokenizer_step": bundle.tokenizer_step, "generator_step": bundle.generator_step,
+            "tokenizer_trained_by": bundle.tokenizer_command, "generator_trained_by": bundle.generator_command,
+            "sampler": section.sampler, "steps": section.steps, "parts": parts}
+
+
+@hookimpl
+def vqtouch_register_stages(register):
+    register("pretrained", run_pretrained_stage, section=PretrainedSection, needs=("data.dataset",),
+             uses=("metrics", "sensor"), demo={"num_samples": 8, "steps": 10},
+             description="Show the bundled pretrained tokenizer and generator (trained longer than a demo can, "
+                         "shipped in the package) on this run's held-out data: reconstructions and generations "
+                         "from every condition, scored beside the background; nothing is trained.")

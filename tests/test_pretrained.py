@@ -1,0 +1,125 @@
+"""Bundled pretrained checkpoints: export, headers, fp16 storage, strict load, the ``pretrained`` stage."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from safetensors import safe_open
+
+from generator_runs import TINY, train_args
+from vqtouch.core import Assembly, ConfigError, RunDir, load_plugins, read_metadata, resolve_config, run_stage
+from vqtouch.core.cli import main
+from vqtouch.plugins.generator.pipeline import load_pipeline
+from vqtouch.plugins.pretrained import bundle as bundle_module
+from vqtouch.plugins.pretrained.bundle import (COMMAND_KEY, RUN_CONFIG_KEY, bundle_folder, describe_bundle,
+                                               export_bundle, half_precision_copy, load_bundle)
+
+HOST = load_plugins()
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A tiny trained label-to-touch run and its bundle under a private root."""
+    root = tmp_path_factory.mktemp("pretrained")
+    run = root / "run"
+    assert main(train_args(run)) == 0
+    bundles = root / "bundles"
+    export_bundle(run, "tiny", HOST, root=bundles)
+    return run, bundles
+
+
+def scene_config(*extra: str):
+    overrides = [*TINY, "stages=[\"pretrained\"]", "pretrained.num_samples=3", "pretrained.steps=3", *extra]
+    return resolve_config("label-to-touch", (), overrides, host=HOST)
+
+
+def test_headers_say_how_and_when_each_file_was_trained(trained):
+    run, bundles = trained
+    folder = bundles / "tiny"
+    env, config = json.loads((run / "env.json").read_text()), json.loads((run / "config.json").read_text())
+    pipe = load_pipeline(run, host=HOST)
+    for path in sorted(folder.rglob("*.safetensors")):
+        header = read_metadata(path)
+        assert header[COMMAND_KEY].startswith(" ".join(env["argv"]))
+        assert json.loads(header[RUN_CONFIG_KEY]) == config
+    assert int(read_metadata(folder / "generator" / "generator.safetensors")["vqtouch.step"]) == pipe.generator.vqtouch_step == 6
+    facts = describe_bundle(folder)
+    assert facts["conditioners"] == ["label"] and facts["files"] == 4 and facts["generator_step"] == 6
+    assert facts["megabytes"] == round(sum(p.stat().st_size for p in folder.rglob("*.safetensors")) / 1e6, 2)
+
+
+def test_parameters_are_stored_in_fp16_except_the_quantizers_and_load_back_as_fp16_rounding(trained):
+    run, bundles = trained
+    folder = bundles / "tiny"
+    with safe_open(str(folder / "generator" / "generator.safetensors"), "pt") as handle:
+        dtypes = {handle.get_tensor(key).dtype for key in handle.keys()}
+    assert torch.float16 in dtypes
+    with safe_open(str(folder / "tokenizer" / "quantizer.safetensors"), "pt") as handle:
+        assert all(handle.get_tensor(key).dtype != torch.float16 for key in handle.keys())
+    original = load_pipeline(run, host=HOST)
+    loaded = load_bundle("tiny", HOST, root=bundles)
+    for mine, theirs in ((loaded.generator, original.generator), (loaded.tokenizer.autoencoder, original.tokenizer.autoencoder)):
+        for (name, value), (_, reference) in zip(mine.named_parameters(), theirs.named_parameters()):
+            assert value.dtype == torch.float32
+            assert torch.equal(value, reference.half().float()), name
+    for value, reference in zip(loaded.tokenizer.quantizer.parameters(), original.tokenizer.quantizer.parameters()):
+        assert torch.equal(value, reference)
+
+
+def test_a_parameter_beyond_fp16_is_refused_not_stored_as_infinity():
+    module = torch.nn.Linear(2, 2)
+    with torch.no_grad():
+        module.weight[0, 0] = 1e5
+    with pytest.raises(ConfigError, match="beyond float16.*--precision fp32"):
+        half_precision_copy(module, "x.safetensors")
+    assert module.weight.dtype == torch.float32  # the original is untouched
+
+
+def test_unknown_bundle_and_existing_bundle_are_one_line_errors(trained, tmp_path):
+    run, bundles = trained
+    with pytest.raises(ConfigError, match="no bundled checkpoints named 'nope'.*bundled: tiny") as caught:
+        bundle_folder("nope", bundles)
+    assert "\n" not in str(caught.value)
+    with pytest.raises(ConfigError, match="exists; pass --overwrite"):
+        export_bundle(run, "tiny", HOST, root=bundles)
+    with pytest.raises(ConfigError, match="plain folder name"):
+        export_bundle(run, "../x", HOST, root=bundles)
+
+
+def test_the_stage_scores_the_bundle_on_another_datasets_held_out_split(trained, tmp_path, monkeypatch):
+    _, bundles = trained
+    monkeypatch.setattr(bundle_module, "BUNDLES", bundles)
+    config = scene_config("pretrained.bundle=tiny", "data.dataset.seed=5")
+    run = RunDir.create(config, host=HOST, path=tmp_path / "show")
+    outcome = run_stage("pretrained", Assembly(config, HOST), run)
+    assert outcome.status == "ran", outcome.describe()
+    result = outcome.result
+    assert result["bundled"] is True and result["generator_step"] == 6 and result["tokenizer_step"] == 2
+    assert set(result["parts"]) == {"bundled tokenizer", "bundled generator from label"}
+    for part in result["parts"].values():
+        assert (run.path / part["picture"]).is_file()
+        assert 0 < part["psnr"] < 100 and "background_psnr" in part
+    assert result["parts"]["bundled generator from label"]["samples"] == 3
+
+
+@pytest.mark.parametrize("extra, reason", [
+    (("data.dataset.seed=0",), "very dataset"),
+    (("data.dataset.seed=5", "data.image_size=64"), "data.image_size: bundle 32, scene 64"),
+    (("pretrained.bundle=missing",), "no bundled checkpoints named 'missing'"),
+])
+def test_the_stage_refuses_data_the_bundle_cannot_speak_for(trained, tmp_path, monkeypatch, extra, reason):
+    _, bundles = trained
+    monkeypatch.setattr(bundle_module, "BUNDLES", bundles)
+    config = scene_config("pretrained.bundle=tiny", *extra)
+    run = RunDir.create(config, host=HOST, path=tmp_path / "refused")
+    outcome = run_stage("pretrained", Assembly(config, HOST), run)
+    assert outcome.status == "unavailable" and reason in outcome.describe()
+
+
+def test_list_command_prints_steps_and_commands(trained, capsys):
+    _, bundles = trained
+    assert main(["pretrained", "list", "--root", str(bundles), "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [row["name"] for row in rows] == ["tiny"] and "train generator" in rows[0]["generator_command"]
