@@ -51,8 +51,10 @@ class ContactRegionScores:
 
     ``update({prefix: images}, truth)`` adds candidates (``{"": reconstructed, "background_": ...}``);
     :meth:`scores` gives ``{prefix}contact_psnr`` (torchmetrics' PSNR of the error pooled over the
-    region's pixels, capped at 100 dB), ``{prefix}contact_mae`` and ``contact_fraction``, the region's
-    share of the pixels (0 and no other score when no pixel is in contact).
+    region's pixels, capped at 100 dB), ``{prefix}contact_mae``, ``{prefix}contact_ssim`` (the SSIM
+    map of the ``ssim`` metric's default window averaged over the region's pixels and channels; only
+    for images at least that window wide) and ``contact_fraction``, the region's share of the pixels
+    (0 and no other score when no pixel is in contact).
     """
 
     def __init__(self, background_B3HW: torch.Tensor, max_db: float = 100.0) -> None:
@@ -61,6 +63,7 @@ class ContactRegionScores:
         self.region_pixels, self.pixels = 0, 0
         self._psnr: dict[str, Any] = {}
         self._absolute: dict[str, tuple[float, int]] = {}
+        self._ssim: dict[str, tuple[float, int]] = {}
 
     def update(self, candidates: Mapping[str, torch.Tensor], truth_B3HW: torch.Tensor) -> None:
         """Add one batch: each candidate image set against its ground truth (image i against truth i)."""
@@ -80,6 +83,10 @@ class ContactRegionScores:
                 psnr.update(predicted_region, truth[mask].double())
                 total += float((predicted_region - truth[mask].double()).abs().sum())
                 count += predicted_region.numel()
+                ssim_map = _ssim_map(predicted.detach().float().cpu(), truth)
+                if ssim_map is not None:
+                    ssim_total, ssim_count = self._ssim.get(prefix, (0.0, 0))
+                    self._ssim[prefix] = (ssim_total + float(ssim_map[mask].sum()), ssim_count + int(mask.sum()))
             self._absolute[prefix] = (total, count)
 
     def scores(self) -> dict[str, float]:
@@ -91,7 +98,26 @@ class ContactRegionScores:
             total, count = self._absolute[prefix]
             scores[f"{prefix}contact_psnr"] = round(min(float(psnr.compute()), self.max_db), 4)
             scores[f"{prefix}contact_mae"] = round(total / count, 5)
+            if prefix in self._ssim:
+                ssim_total, ssim_count = self._ssim[prefix]
+                scores[f"{prefix}contact_ssim"] = round(ssim_total / ssim_count, 4)
         return scores
+
+
+def _ssim_map(predicted_B3HW: torch.Tensor, truth_B3HW: torch.Tensor) -> torch.Tensor | None:
+    """The per-pixel SSIM map (B, 3, H, W), float64, with the ``ssim`` metric's default window (its
+    whole-image score is this map's mean); None for images narrower than the window."""
+    from torchmetrics.functional.image import structural_similarity_index_measure
+
+    from .metrics import SsimConfig
+
+    window = SsimConfig()
+    if min(truth_B3HW.shape[-2:]) < window.window_size:
+        return None
+    _, ssim_map = structural_similarity_index_measure(
+        predicted_B3HW.double(), truth_B3HW.double(), data_range=window.data_range, kernel_size=window.window_size,
+        sigma=window.sigma, reduction="none", return_full_image=True)
+    return ssim_map
 
 
 def contact_region_scores(candidates: Mapping[str, torch.Tensor], truth_B3HW: torch.Tensor,

@@ -1,1 +1,790 @@
-"""Work in progress (issue 13)."""
+"""``vqtouch evaluate tradeoff``: the whole pipeline's speed/accuracy trade, tokenizer knobs and
+generator knobs in one table, measured in one process.
+
+::
+
+    vqtouch evaluate tradeoff --out runs/tradeoff                      # label-to-touch, scaled for a CPU
+    vqtouch evaluate tradeoff --out runs/tradeoff --quick              # fewer steps and knobs (~15 min)
+    vqtouch evaluate tradeoff reconstruction --out DIR --knobs deformable codebook=128,2048 precision
+    vqtouch evaluate tradeoff --out DIR --set 'data.dataset={"name": "image_folder", "root": "data/frames"}'
+
+The baseline is the scene's config (``SCENE``/``--config``/``--set``; default ``label-to-touch``),
+scaled down like ``vqtouch demo`` unless ``--full``, every training shortened to
+``--tokenizer-steps`` / ``--generator-steps``.  For every seed:
+
+1. **Tokenizer knobs.**  The baseline tokenizer and one tokenizer per knob value (one knob changed
+   at a time: deformable layers on/off, i.e. ``dm_vqgan`` against ``vqgan``; codebook size;
+   resolution; training precision; downsampling factor f) train the same number of steps through
+   the ``tokenizer`` stage (:func:`vqtouch.core.run_stage`, what ``vqtouch train tokenizer`` runs),
+   each in its own run folder, and are scored by that stage on the held-out split: SSIM, PSNR and
+   their contact-region scores, next to the same scores of the sensor's no-contact image
+   (``background_*``: what a tokenizer that draws only the background gets).  Then their costs are
+   timed in interleaved rounds (round 1 of every tokenizer, then round 2, ...; the median is kept):
+   ``--timing-steps`` training steps through the trainer (seconds per step) and an encode + decode
+   of the held-out images (images per second).  The baseline is timed first AND last in every
+   round; the last timing's ratio to the first is the machine's drift during a round.
+2. **Generator knobs.**  A generator trains (``generator`` stage) on the baseline tokenizer's codes
+   in the baseline's run; then ``vqtouch tradeoff generator``'s functions
+   (:mod:`vqtouch.plugins.generator.tradeoff`) time and score every sampling setting (steps,
+   sampler, guidance, sampling precision; one at a time around the configured one, the configured
+   one repeated last) on the held-out conditions.  The cost of a generated image is the whole
+   pipeline's: condition encoding, sampling and decoding by the tokenizer.
+
+Time (2-core CPU, scaled scene, a machine shared with other jobs, ``--threads 1``): one seed of
+the default knobs took 12.8 min at 4 tokenizer steps and 15.1 min at 12, i.e. about 17 s per
+tokenizer step for all 7 tokenizers and 12 min of scoring, timing and generation; the default
+(150 steps, 3 seeds) extrapolates to 2 h 45 min there.  ``--quick`` (40 steps, 5 tokenizers, 5
+sampling settings) took 12 min for one seed there, so about 37 min for three.  A quiet machine is
+about 3x faster (VQGAN's step: 1.6 s there, 0.49 s in docs/results.md).  Two OpenMP threads per
+process on a shared CPU spin against each other: give ``--threads 1`` there.
+
+Every cost is also given relative to the baseline timed in the same seed's process (``x base``),
+then averaged over the seeds.  Writes ``tradeoff.json`` (every per-seed row, the mean ± std
+summary with the Pareto fronts, the knobs, the baseline config and the provenance),
+``tradeoff.md`` (the one table) and ``tradeoff.png`` (Pareto plots: tokenizer training cost,
+tokenizer inference cost and generation cost, each against the contact-region SSIM).  A setting
+is on a front when no other setting of its part is at least as cheap and at least as good on the
+contact region, and strictly better in one (:func:`~vqtouch.plugins.generator.tradeoff.pareto_front`);
+claims of "better" are made on the contact region, never on the whole-image scores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import math
+import re
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from vqtouch.core import Assembly, ConfigError, RunDir, hookimpl, resolve_device, run_stage, validate_experiment
+from vqtouch.core.cli import add_config_arguments, command_group, config_from_args, stage_failure
+from vqtouch.core.experiments import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
+from vqtouch.core.image_size import image_hw, size_text
+
+#: The scene whose baseline the command measures when none is named: a tokenizer and a generator.
+DEFAULT_SCENE = "label-to-touch"
+#: The ``setting`` of the baseline's second timing in every round (its ``x base`` is the drift).
+DRIFT = "timed again last"
+#: At most this many held-out images are encoded and decoded per inference timing.
+TIMED_IMAGES = 64
+#: Whole-image and contact-region quality columns; each stands next to its ``background_`` score.
+QUALITY_KEYS = ("ssim", "psnr", "contact_ssim", "contact_psnr")
+COST_KEYS = ("train_s_per_step", "train_cost", "img_per_s", "seconds_per_image", "inference_cost", "stage_seconds")
+SUMMARY_KEYS = (*COST_KEYS, *QUALITY_KEYS, *(f"background_{key}" for key in QUALITY_KEYS), "codes_used",
+                "contact_fraction", "fd_effnetlite0", "classifier_accuracy")
+#: The Pareto fronts: (part, cost column, name in the table).
+FRONTS = (("tokenizer", "train_cost", "training"), ("tokenizer", "inference_cost", "inference"),
+          ("generator", "inference_cost", "generation"))
+
+
+# -- knobs ----------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Knob:
+    """A knob that costs time: the part of the pipeline it changes, what its values mean, the value
+    the baseline has and the values measured when none are given."""
+
+    name: str
+    part: str
+    meaning: str
+    parse: Callable[[str], Any]
+    baseline: Callable[[Any, Any], Any]
+    alternatives: Callable[[Any, Any, Any], list[Any]]
+    #: Tokenizer knobs: set ``value`` in a config dict (``data, value, host``).
+    apply: Callable[[dict[str, Any], Any, Any], None] | None = None
+    #: Generator knobs: the key of the sampling setting they change.
+    setting_key: str | None = None
+    show: Callable[[Any], str] = str
+
+
+def _choice(*options: str) -> Callable[[str], str]:
+    def parse(text: str) -> str:
+        if text not in options:
+            raise ValueError(f"expected {' or '.join(options)}")
+        return text
+    return parse
+
+
+def _integer(minimum: int, power_of_two: bool = False) -> Callable[[str], int]:
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise ValueError(f"{text!r} is not an integer") from None
+        if value < minimum or (power_of_two and value & (value - 1)):
+            raise ValueError(f"expected {'a power of two' if power_of_two else 'an integer'} >= {minimum}")
+        return value
+    return parse
+
+
+def _guidance(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"{text!r} is not a number") from None
+    if not value >= 0 or math.isinf(value):
+        raise ValueError("expected a finite guidance scale >= 0 (1: unguided)")
+    return value
+
+
+def _deformable_baseline(config: Any, host: Any) -> str:
+    name = config.tokenizer.autoencoder.name if config.tokenizer.autoencoder is not None else None
+    if name not in ("dm_vqgan", "vqgan"):
+        raise ConfigError(f"the deformable knob swaps dm_vqgan and vqgan, but the baseline's autoencoder is {name!r}; "
+                          "leave it out of --knobs")
+    return "on" if name == "dm_vqgan" else "off"
+
+
+def _set_deformable(data: dict[str, Any], value: str, host: Any) -> None:
+    # Keep the options both encoders have (channels, levels, ...): only the deformable parts change.
+    name = "dm_vqgan" if value == "on" else "vqgan"
+    block = data["tokenizer"]["autoencoder"]
+    fields = host.registry("autoencoder").get(name).config_model.model_fields
+    data["tokenizer"]["autoencoder"] = {"name": name, **{key: item for key, item in block.items()
+                                                         if key in fields and key != "name"}}
+
+
+def _codebook_baseline(config: Any, host: Any) -> int:
+    size = getattr(config.tokenizer.quantizer, "codebook_size", None)
+    if size is None:
+        raise ConfigError("the codebook knob needs a quantizer with a codebook_size; leave it out of --knobs")
+    return size
+
+
+def _set(path: str) -> Callable[[dict[str, Any], Any, Any], None]:
+    def apply(data: dict[str, Any], value: Any, host: Any) -> None:
+        *parents, last = path.split(".")
+        node = data
+        for part in parents:
+            node = node[part]
+        node[last] = value
+    return apply
+
+
+def _resolution_alternatives(config: Any, host: Any, baseline: Any) -> list[Any]:
+    height, width = image_hw(baseline)
+    return [2 * height if height == width else (2 * height, 2 * width)]
+
+
+def _precision_baseline(config: Any, host: Any) -> str:
+    from vqtouch.core.training import resolve_precision
+
+    return resolve_precision(config.tokenizer.train.precision, resolve_device(config.device))
+
+
+def _downsampling_baseline(config: Any, host: Any) -> int:
+    multipliers = getattr(config.tokenizer.autoencoder, "channel_multipliers", None)
+    if not multipliers:
+        raise ConfigError("the downsampling knob needs an autoencoder with channel_multipliers (vqgan, dm_vqgan); "
+                          "leave it out of --knobs")
+    return 2 ** (len(multipliers) - 1)
+
+
+def _set_downsampling(data: dict[str, Any], value: int, host: Any) -> None:
+    # f = 2^(levels - 1): drop levels, or add levels at the last level's width.
+    multipliers = list(data["tokenizer"]["autoencoder"]["channel_multipliers"])
+    levels = int(math.log2(value)) + 1
+    data["tokenizer"]["autoencoder"]["channel_multipliers"] = (multipliers[:levels] + [multipliers[-1]] *
+                                                               max(0, levels - len(multipliers)))
+
+
+def _other_samplers(config: Any, host: Any, baseline: str) -> list[str]:
+    return [name for name in host.registry("sampler").names() if name != baseline]
+
+
+KNOBS: dict[str, Knob] = {knob.name: knob for knob in (
+    Knob("deformable", "tokenizer", "deformable layers on (dm_vqgan) or off (vqgan), the other options kept",
+         _choice("on", "off"), _deformable_baseline, lambda c, h, base: ["off" if base == "on" else "on"],
+         apply=_set_deformable, show=lambda value: f"{value} ({'dm_vqgan' if value == 'on' else 'vqgan'})"),
+    Knob("codebook", "tokenizer", "codebook size (default: a quarter and 4x the baseline's)", _integer(2),
+         _codebook_baseline, lambda c, h, base: [max(2, base // 4), base * 4],
+         apply=_set("tokenizer.quantizer.codebook_size"), show=lambda value: f"K = {value}"),
+    Knob("resolution", "tokenizer", "image size in pixels (default: twice the baseline's)", _integer(16),
+         lambda config, host: config.data.image_size, _resolution_alternatives, apply=_set("data.image_size"),
+         show=lambda value: f"{size_text(value)} px"),
+    Knob("precision", "tokenizer", "training precision, fp32 or bf16 autocast (inference stays fp32, as the stage "
+                                   "scores it)", _choice("fp32", "bf16"), _precision_baseline,
+         lambda c, h, base: ["bf16" if base == "fp32" else "fp32"], apply=_set("tokenizer.train.precision"),
+         show=lambda value: f"train {value}"),
+    Knob("downsampling", "tokenizer", "downsampling factor f of the code grid, a power of two (default: twice the "
+                                      "baseline's)", _integer(2, power_of_two=True), _downsampling_baseline,
+         lambda c, h, base: [base * 2], apply=_set_downsampling, show=lambda value: f"f = {value}"),
+    Knob("steps", "generator", "sampling steps (default: twice and half the configured)", _integer(1),
+         lambda config, host: config.generator.steps,
+         lambda c, h, base: [value for value in dict.fromkeys([base * 2, max(1, base // 2)])
+                             if value != base and value <= getattr(c.generator.model, "num_steps", value)],
+         setting_key="steps", show=lambda value: f"{value} steps"),
+    Knob("sampler", "generator", "sampler plugin (default: every other registered one)", str,
+         lambda config, host: config.generator.sampler.name, _other_samplers, setting_key="sampler"),
+    Knob("guidance", "generator", "classifier-free guidance scale (default: 3, or 1 when the baseline is guided)",
+         _guidance, lambda config, host: config.generator.guidance,
+         lambda c, h, base: [3.0 if base == 1 else 1.0], setting_key="guidance", show=lambda value: f"g = {value:g}"),
+    Knob("sampling-precision", "generator", "precision of sampling and decoding, fp32 or bf16 autocast",
+         _choice("fp32", "bf16"), lambda config, host: "fp32", lambda c, h, base: ["bf16"], setting_key="precision"),
+)}
+
+
+def known_knobs() -> str:
+    """The knob names, for error messages and help."""
+    return ", ".join(KNOBS)
+
+
+def parse_knobs(specs: list[str] | None, config: Any, host: Any) -> dict[str, list[Any]]:
+    """The knobs to measure and their values, from ``--knobs NAME[=V1,V2,...] ...`` (None: every
+    knob of the parts the baseline trains, at its default values).  One-line errors for an unknown
+    knob (listing the known ones), a value that does not parse, a knob given twice and a value that
+    is the baseline's own (the baseline is always measured)."""
+    has_generator = "generator" in config.stages
+    if specs is None:
+        specs = [name for name, knob in KNOBS.items() if knob.part == "tokenizer" or has_generator]
+    chosen: dict[str, list[Any]] = {}
+    for spec in specs:
+        name, separator, text = spec.partition("=")
+        name = name.strip()
+        if name not in KNOBS:
+            raise ConfigError(f"--knobs {spec}: unknown knob {name!r}; known knobs: {known_knobs()}")
+        if name in chosen:
+            raise ConfigError(f"--knobs {spec}: the knob {name!r} is given twice; give its values once, "
+                              f"e.g. {name}=A,B")
+        knob = KNOBS[name]
+        if knob.part == "generator" and not has_generator:
+            raise ConfigError(f"--knobs {spec}: the {name} knob is a generator knob, but the scene "
+                              f"{config.scene!r} trains no generator; use e.g. --scene {DEFAULT_SCENE}")
+        baseline = knob.baseline(config, host)
+        if separator:
+            values = []
+            for item in text.split(","):
+                try:
+                    values.append(knob.parse(item.strip()))
+                except ValueError as exc:
+                    raise ConfigError(f"--knobs {spec}: {item.strip()!r}: {exc} ({knob.meaning})") from None
+            if baseline in values:
+                raise ConfigError(f"--knobs {spec}: {knob.show(baseline)} is the baseline's own value, measured "
+                                  "anyway; give other values")
+        else:
+            values = knob.alternatives(config, host, baseline)
+        chosen[name] = list(dict.fromkeys(values))
+    return chosen
+
+
+# -- configs --------------------------------------------------------------------------------------
+
+def scaled_config(config: Any, host: Any, full: bool) -> Any:
+    """``config`` scaled down like ``vqtouch demo`` (unless ``full``): the sizes the knobs' default
+    values and the baseline derive from."""
+    from vqtouch.core.demo import scale_for_demo
+
+    if "tokenizer" not in config.stages:
+        raise ConfigError(f"the scene {config.scene!r} trains no tokenizer; use e.g. --scene {DEFAULT_SCENE}")
+    if config.data.val_fraction == 0:
+        raise ConfigError("data.val_fraction=0 holds no images out: nothing to score the settings on; "
+                          "set data.val_fraction=0.1")
+    return config if full else scale_for_demo(config, host)
+
+
+def baseline_config(config: Any, host: Any, *, tokenizer_steps: int, generator_steps: int, generator: bool) -> Any:
+    """The baseline: ``config`` (see :func:`scaled_config`) with the tokenizer (and with
+    ``generator`` the generator) trained for the given steps, one checkpoint at the end, and only
+    the stages the experiment runs.  The generator stage scores no samples itself: the experiment
+    scores every setting."""
+    data = config.to_dict()
+    stages = {"tokenizer": tokenizer_steps, **({"generator": generator_steps} if generator else {})}
+    for stage, steps in stages.items():
+        train = data[stage]["train"]
+        train |= {"steps": steps, "checkpoint_every": steps, "log_every": min(train["log_every"], steps)}
+    if generator:
+        data["generator"]["num_samples"] = 0
+    data["stages"] = list(stages)
+    return validate_experiment(data, host)
+
+
+def variant_config(baseline: Any, host: Any, seed: int, knob: str | None = None, value: Any = None) -> Any:
+    """The baseline at ``seed`` (initialisation, data order and held-out split), with ``knob`` set
+    to ``value`` (a tokenizer knob: the variant trains the tokenizer only)."""
+    data = copy.deepcopy(baseline.to_dict()) | {"seed": seed}
+    if knob is not None:
+        KNOBS[knob].apply(data, value, host)
+        data["stages"] = ["tokenizer"]
+    try:
+        return validate_experiment(data, host)
+    except ConfigError as exc:
+        raise ConfigError(f"--knobs {knob}={value}: {exc}") from None
+
+
+def baseline_text(config: Any, host: Any) -> str:
+    """The baseline tokenizer's value of every tokenizer knob, e.g. ``on (dm_vqgan), K = 512, 64 px``."""
+    shown = []
+    for knob in KNOBS.values():
+        if knob.part == "tokenizer":
+            try:
+                shown.append(knob.show(knob.baseline(config, host)))
+            except ConfigError:
+                continue
+    return ", ".join(shown)
+
+
+def check_sampling_values(config: Any, host: Any, knobs: dict[str, list[Any]]) -> None:
+    """One-line errors for a sampler that is not registered and for more sampling steps than the
+    generator's diffusion steps, before anything trains."""
+    for name in knobs.get("sampler", []):
+        host.registry("sampler").get(name)  # its error lists the registered samplers
+    limit = getattr(config.generator.model, "num_steps", None) if "steps" in knobs else None
+    too_many = [value for value in knobs.get("steps", []) if limit and value > limit]
+    if too_many:
+        raise ConfigError(f"--knobs steps={too_many[0]}: more sampling steps than the generator's {limit} diffusion "
+                          f"steps (generator.model.num_steps); give at most {limit}")
+
+
+def generator_base(config: Any) -> dict[str, Any]:
+    """The configured sampling setting (the generator part's baseline)."""
+    section = config.generator
+    return {"sampler": section.sampler.name, "steps": section.steps, "guidance": section.guidance,
+            "precision": "fp32"}
+
+
+# -- training and timing --------------------------------------------------------------------------
+
+def train_tokenizer_run(config: Any, host: Any, folder: Path, argv: list[str]) -> tuple[Path, float]:
+    """Train ``config``'s tokenizer through :func:`run_stage` in a new run ``folder`` (replacing an
+    earlier run there; a folder that holds no run is refused); the folder and the stage's seconds."""
+    run = RunDir.create(config, argv=argv, host=host, path=folder, overwrite=True)
+    with run:
+        outcome = run_stage("tokenizer", Assembly(config, host), run)
+    if outcome.status != "ran":
+        raise stage_failure(outcome)
+    return run.path, outcome.seconds
+
+
+class TokenizerTimer:
+    """One trained tokenizer's costs: seconds per training step (the run's objective, optimiser,
+    precision and batch through the trainer) and encode + decode seconds per held-out image."""
+
+    def __init__(self, config: Any, run: Path, host: Any, steps: int) -> None:
+        from vqtouch.core.data import split_dataset
+        from vqtouch.plugins.tokenizer.stages import load_tokenizer, tokenizer_task
+
+        self.config, self.host, self.steps = config, host, steps
+        self.device = resolve_device(config.device)
+        self.tokenizer, _ = load_tokenizer(run, host, device=str(self.device))
+        assembly = Assembly(config, host)
+        dataset = assembly.component("data.dataset")
+        self.train_set, held_out = split_dataset(dataset, config.data.val_fraction, config.seed)
+        count = min(len(held_out), TIMED_IMAGES)
+        self.images_B3HW = torch.stack([held_out[index]["tactile"] for index in range(count)]).to(self.device)
+        section = config.tokenizer
+        discriminator = (assembly.component("tokenizer.discriminator")
+                         if section.discriminator is not None and section.loss.adversarial_weight > 0 else None)
+        self.task = tokenizer_task(self.tokenizer, section.loss, self.device, discriminator)
+        self.train_config = section.train.model_copy(update={"steps": steps, "checkpoint_every": steps,
+                                                             "keep_best": False})
+
+    def training_seconds_per_step(self) -> float:
+        """Seconds per step of ``steps`` training steps (a fresh optimiser; the weights go on training,
+        which does not change what a step costs)."""
+        from vqtouch.core.training import Trainer
+        from vqtouch.plugins.generator.tradeoff import synchronize
+
+        trainer = Trainer(self.task, self.train_set, self.train_config, batch_size=self.config.data.batch_size,
+                          seed=self.config.seed, device=self.device, checkpoint_dir=None,
+                          num_workers=self.config.data.num_workers, host=self.host, stage="timing")
+        synchronize(self.device)
+        tic = time.perf_counter()
+        trainer.fit()
+        synchronize(self.device)
+        return (time.perf_counter() - tic) / self.steps
+
+    def seconds_per_image(self) -> float:
+        """Seconds to encode and decode one held-out image (batches of the run's batch size)."""
+        from vqtouch.plugins.generator.tradeoff import synchronize
+        from vqtouch.plugins.tokenizer.stages import reconstruct_all
+
+        self.tokenizer.eval()
+        synchronize(self.device)
+        tic = time.perf_counter()
+        reconstruct_all(self.tokenizer, self.images_B3HW, batch_size=self.config.data.batch_size)
+        synchronize(self.device)
+        return (time.perf_counter() - tic) / len(self.images_B3HW)
+
+
+def time_tokenizers(timers: list[TokenizerTimer], rounds: int, report: Callable[[str], None]
+                    ) -> list[tuple[float, float]]:
+    """(training seconds per step, seconds per image) of each timer, the median of ``rounds``
+    interleaved rounds, and last the baseline's (``timers[0]``) second timing of every round.  One
+    untimed round first pays the first-call costs (allocation, the data's first renders)."""
+    order = [*range(len(timers)), 0]
+    for timer in timers:
+        timer.training_seconds_per_step()
+        timer.seconds_per_image()
+    training: list[list[float]] = [[] for _ in order]
+    inference: list[list[float]] = [[] for _ in order]
+    for round_index in range(rounds):
+        for position, index in enumerate(order):
+            training[position].append(timers[index].training_seconds_per_step())
+            inference[position].append(timers[index].seconds_per_image())
+        report(f"  timing round {round_index + 1}/{rounds}: " + ", ".join(
+            f"{times[-1]:.3f} s/step" for times in training))
+    return [(statistics.median(train), statistics.median(infer)) for train, infer in zip(training, inference)]
+
+
+def _quality(scores: dict[str, Any]) -> dict[str, Any]:
+    keys = (*QUALITY_KEYS, *(f"background_{key}" for key in QUALITY_KEYS), "codes_used", "contact_fraction")
+    return {key: scores[key] for key in keys if isinstance(scores.get(key), (int, float))}
+
+
+def tokenizer_rows(baseline: Any, host: Any, knobs: dict[str, list[Any]], *, seed: int, out: Path, rounds: int,
+                   timing_steps: int, argv: list[str], report: Callable[[str], None]) -> tuple[list[dict], Path]:
+    """One seed of part 1: the baseline's and every tokenizer knob value's row (scores, costs and
+    costs relative to the baseline), then the baseline's drift row.  Also returns the baseline's
+    run (where the generator trains)."""
+    variants = [(None, None)] + [(name, value) for name, values in knobs.items() if KNOBS[name].part == "tokenizer"
+                                 for value in values]
+    configs = [variant_config(baseline, host, seed, name, value) for name, value in variants]
+    rows, runs = [], []
+    for (name, value), config in zip(variants, configs):
+        folder = out / "runs" / f"seed{seed}" / ("baseline" if name is None else
+                                                  re.sub(r"[^A-Za-z0-9.]+", "_", f"{name}-{value}").strip("_"))
+        # The baseline's generator trains in the same run later (generator_rows), on this tokenizer.
+        path, seconds = train_tokenizer_run(config, host, folder, argv)
+        scores = json.loads((path / "eval.json").read_text())
+        runs.append(path)
+        rows.append({"part": "tokenizer", "knob": name or "baseline",
+                     "setting": baseline_text(config, host) if name is None else KNOBS[name].show(value),
+                     "seed": seed, "stage_seconds": round(seconds, 2), "run": str(path), **_quality(scores)})
+        report(f"seed {seed}: tokenizer {rows[-1]['knob']} {rows[-1]['setting']}: SSIM {scores.get('ssim')}, "
+               f"contact SSIM {scores.get('contact_ssim')} (background {scores.get('background_contact_ssim')}), "
+               f"{seconds:.0f} s")
+    report(f"seed {seed}: timing {len(configs)} tokenizers, {rounds} interleaved rounds of {timing_steps} steps")
+    timers = [TokenizerTimer(config, path, host, timing_steps) for config, path in zip(configs, runs)]
+    costs = time_tokenizers(timers, rounds, report)
+    rows.append({"part": "tokenizer", "knob": "baseline", "setting": DRIFT, "seed": seed})
+    base_step, base_image = costs[0]
+    for row, (per_step, per_image) in zip(rows, costs):
+        row |= {"train_s_per_step": round(per_step, 6), "train_cost": round(per_step / base_step, 4),
+                "seconds_per_image": round(per_image, 6), "img_per_s": round(1 / per_image, 4),
+                "inference_cost": round(per_image / base_image, 4)}
+    return rows, runs[0]
+
+
+def generator_rows(run: Path, config: Any, host: Any, knobs: dict[str, list[Any]], *, seed: int, n: int,
+                   rounds: int, batch_size: int, distribution: bool,
+                   report: Callable[[str], None]) -> list[dict[str, Any]]:
+    """One seed of part 2: train the generator in the baseline's ``run`` (on its tokenizer's codes),
+    then time and score every sampling setting with ``vqtouch tradeoff generator``'s functions, the
+    configured setting first and again last (drift)."""
+    from vqtouch.plugins.generator.tradeoff import check_settings, load_tradeoff_bench, measure, sweep_settings
+
+    with RunDir.open(run, for_writing=True) as run_dir:
+        outcome = run_stage("generator", Assembly(config, host), run_dir)
+    if outcome.status != "ran":
+        raise stage_failure(outcome)
+    report(f"seed {seed}: generator trained in {outcome.seconds:.0f} s")
+    bench = load_tradeoff_bench(run, host, n=n, batch_size=batch_size, distribution=False)
+    base = generator_base(config)
+    lists = {key: [base[key]] for key in base}
+    for name, values in knobs.items():
+        if KNOBS[name].part == "generator":
+            lists[KNOBS[name].setting_key] += values
+    check_settings(bench, lists["steps"], lists["sampler"], lists["guidance"], lists["precision"])
+    if distribution:
+        bench.fit_distribution()
+    settings = sweep_settings(steps=lists["steps"], samplers=lists["sampler"], guidance=lists["guidance"],
+                              precisions=lists["precision"], base=base)
+    measured = measure(bench, [*settings, base], rounds, log=_ReportLog(report))
+    background = bench.score(bench.background, "background_") if bench.background is not None else {}
+    knob_of = {KNOBS[name].setting_key: name for name in KNOBS if KNOBS[name].part == "generator"}
+    rows = []
+    for index, (setting, result) in enumerate(zip([*settings, base], measured)):
+        changed = [key for key in base if setting[key] != base[key]]
+        if changed:
+            knob = knob_of[changed[0]]
+            text = KNOBS[knob].show(setting[changed[0]])
+        else:
+            knob, text = "baseline", DRIFT if index == len(settings) else result["label"]
+        # The drift row repeats the baseline's images: a timing, not a contender.
+        quality = {} if text == DRIFT else {
+            **_quality(result | background),
+            **{key: result[key] for key in ("classifier_accuracy", "fd_effnetlite0") if key in result}}
+        rows.append({"part": "generator", "knob": knob, "setting": text, "seed": seed, "sampling": setting, **quality,
+                     "seconds_per_image": result["seconds_per_image"], "img_per_s": result["img_per_s"],
+                     "inference_cost": result["cost"], "reproducible": result["reproducible"], "run": str(run)})
+    return rows
+
+
+class _ReportLog:
+    """A file-like ``log`` for :func:`measure` that hands each line to ``report``."""
+
+    def __init__(self, report: Callable[[str], None]) -> None:
+        self.report = report
+
+    def write(self, text: str) -> None:
+        if text.strip():
+            self.report("  " + text.rstrip("\n"))
+
+    def flush(self) -> None:
+        pass
+
+
+# -- summary, table and figure --------------------------------------------------------------------
+
+#: The scores the fronts are drawn on, the first one the rows have: contact SSIM; contact PSNR for
+#: images narrower than SSIM's window; whole-image SSIM only without a sensor (no contact region).
+FRONT_QUALITIES = ("contact_ssim", "contact_psnr", "ssim")
+FRONT_TEXT = {"contact_ssim": "the contact region's SSIM: claims of 'better' rest on it, not on the whole-image scores",
+              "contact_psnr": "the contact region's PSNR (the images are narrower than SSIM's window): claims of "
+                              "'better' rest on it, not on the whole-image scores",
+              "ssim": "whole-image SSIM, because the experiment names no sensor: without a no-contact image there is "
+                      "no contact region, and whole-image scores flatter a model that draws only the background"}
+AXIS_LABELS = {"contact_ssim": "contact SSIM", "contact_psnr": "contact PSNR (dB)", "ssim": "whole-image SSIM"}
+
+
+def front_quality_key(rows: list[dict[str, Any]]) -> str:
+    """The score the Pareto fronts use (:data:`FRONT_QUALITIES`)."""
+    return next((key for key in FRONT_QUALITIES if any(key in row for row in rows)), FRONT_QUALITIES[0])
+
+
+def summarize(rows: list[dict[str, Any]]) -> tuple[list[dict[str, Any]], str]:
+    """Mean ± std over the seeds of every (part, knob, setting), each with ``pareto``: the fronts
+    (training, inference, generation) it is on, on the mean relative cost against the mean contact
+    score (the drift rows are no contenders).  Also returns that score's key."""
+    summary = mean_spread(rows, SUMMARY_KEYS, group=("part", "knob", "setting"))
+    key = front_quality_key(rows)
+    for row in summary:
+        row["pareto"] = []
+    for part, cost, name in FRONTS:
+        members = [row for row in summary if row["part"] == part and row["setting"] != DRIFT]
+        costs = [row.get(cost, math.nan) for row in members]
+        for index in pareto_front(costs, [row.get(key) for row in members]):
+            members[index]["pareto"].append(name)
+    for row in summary:
+        row["pareto_front"] = ", ".join(row["pareto"]) or "-"
+    return summary, key
+
+
+def pareto_front(costs: list[float], qualities: list[float | None]) -> list[int]:
+    """:func:`vqtouch.plugins.generator.tradeoff.pareto_front`, higher quality better."""
+    from vqtouch.plugins.generator.tradeoff import pareto_front as front
+
+    return front(costs, qualities, higher_is_better=True)
+
+
+TABLE_KEYS = ("train_s_per_step", "train_cost", "img_per_s", "inference_cost", "ssim", "background_ssim", "psnr",
+              "background_psnr", "contact_ssim", "background_contact_ssim", "contact_psnr", "background_contact_psnr",
+              "codes_used", "pareto_front")
+TABLE_HEADERS = {"train_s_per_step": "train s/step", "train_cost": "train x base", "img_per_s": "img/s",
+                 "inference_cost": "img cost x base", "ssim": "SSIM", "background_ssim": "bg SSIM", "psnr": "PSNR dB",
+                 "background_psnr": "bg PSNR", "contact_ssim": "contact SSIM",
+                 "background_contact_ssim": "bg contact SSIM", "contact_psnr": "contact PSNR dB",
+                 "background_contact_psnr": "bg contact PSNR", "codes_used": "codes used",
+                 "pareto_front": "Pareto front"}
+
+
+def render_markdown(result: dict[str, Any]) -> list[str]:
+    """``tradeoff.md``: what was measured, the one table and how to read it."""
+    seeds, settings = len(result["seeds"]), result["settings"]
+    drift = [row for row in result["summary"] if row["setting"] == DRIFT]
+    lines = [f"# Speed/accuracy trade of the whole pipeline ({seeds} seeds: mean ± std)", "",
+             f"Baseline: scene `{result['scene']}`{'' if settings['full'] else ' scaled like `vqtouch demo`'}; "
+             f"tokenizer {result['baseline']}, {settings['tokenizer_steps']} training steps per tokenizer"
+             + (f"; generator {settings['generator_steps']} steps on the baseline tokenizer's codes, sampling "
+                f"{result['generator_baseline']}" if result["generator_baseline"] else "") + ".", "",
+             f"Costs: `train s/step` is the median of {settings['rounds']} interleaved rounds of "
+             f"{settings['timing_steps']} training steps; `img/s` encodes and decodes held-out images (tokenizer) or "
+             "encodes the condition, samples and decodes (generator: the whole pipeline's cost of a generated image); "
+             "`x base` is the ratio to the baseline timed in the same process, per seed, then averaged.  The "
+             f"`{DRIFT}` rows time the baseline again at the end of every round: their `x base` is the machine's "
+             "drift, the error bar of every ratio.", "",
+             "Quality on the held-out split: `bg` is the sensor's no-contact image scored the same way (a model that "
+             "draws only the background gets it); `contact` scores only the pixels in contact.  The Pareto fronts "
+             "(training and inference cost of the tokenizers, generation cost of the samplings) use "
+             f"{FRONT_TEXT[result['front_quality']]}.", ""]
+    lines += markdown_table(result["summary"], ("part", "knob", "setting"), TABLE_KEYS, TABLE_HEADERS)
+    notes = []
+    if any(row["knob"] == "resolution" for row in result["summary"]):
+        notes.append("The resolution rows are scored at their own resolution (the same scenes rendered larger): "
+                     "their quality is not the same measurement as the other rows'.")
+    for row in drift:
+        for key in ("train_cost", "inference_cost"):
+            if isinstance(row.get(key), float) and abs(row[key] - 1) > 0.1:
+                notes.append(f"The {row['part']} baseline's {key.replace('_', ' ')} drifted by "
+                             f"{100 * (row[key] - 1):+.0f}% within a round: ratios closer to 1 than that are noise.")
+    if notes:
+        lines += ["", *notes]
+    return lines
+
+
+def plot_tradeoff(summary: list[dict[str, Any]], key: str, path: Path, title: str) -> None:
+    """``tradeoff.png``: one panel per front (tokenizer training cost, tokenizer inference cost,
+    generation cost; relative to the baseline, log scale) against the contact score, error bars the
+    std over seeds, each setting labelled, the front a line, the no-contact image's score dashed."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    panels = [(part, cost, name) for part, cost, name in FRONTS
+              if any(row["part"] == part and isinstance(row.get(key), (int, float)) for row in summary)]
+    figure = Figure(figsize=(5.5 * max(len(panels), 1), 4.6), layout="constrained")
+    FigureCanvasAgg(figure)
+    label = AXIS_LABELS[key]
+    axis_names = {"training": "tokenizer training s/step", "inference": "tokenizer encode + decode s/image",
+                  "generation": "generation (sample + decode) s/image"}
+    for number, (part, cost, name) in enumerate(panels):
+        axes = figure.add_subplot(1, len(panels), number + 1)
+        rows = [row for row in summary if row["part"] == part and row["setting"] != DRIFT
+                and isinstance(row.get(key), (int, float)) and isinstance(row.get(cost), (int, float))]
+        axes.errorbar([row[cost] for row in rows], [row[key] for row in rows],
+                      xerr=[row.get(f"{cost}_std", 0) for row in rows], yerr=[row.get(f"{key}_std", 0) for row in rows],
+                      fmt="o", markersize=4, capsize=2, color="tab:blue", zorder=3)
+        for row in rows:
+            text = "baseline" if row["knob"] == "baseline" else f"{row['knob']}: {row['setting']}"
+            axes.annotate(text, (row[cost], row[key]), textcoords="offset points", xytext=(4, 3), fontsize=7)
+        front = sorted((row for row in rows if name in row["pareto"]), key=lambda row: row[cost])
+        axes.plot([row[cost] for row in front], [row[key] for row in front], color="tab:red", linewidth=1.5,
+                  label="Pareto front", zorder=2)
+        base = next((row for row in rows if row["knob"] == "baseline"), None)
+        if base is not None and isinstance(base.get(f"background_{key}"), (int, float)):
+            axes.axhline(base[f"background_{key}"], linestyle="--", color="grey", linewidth=1,
+                         label="no-contact image")
+        axes.set_xscale("log")
+        # Ratios span less than a decade: label 0.5x, 1x, 2x ... rather than powers of ten.
+        axes.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        axes.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}x"))
+        axes.xaxis.set_minor_formatter(NullFormatter())
+        axes.set_xlabel(f"{axis_names[name]}, x baseline (log scale)")
+        axes.set_ylabel(f"{label} (higher is better)")
+        axes.set_title(f"{part} knobs: {name} cost", fontsize=9)
+        axes.grid(True, which="both", alpha=0.3)
+        axes.legend(fontsize=7)
+    figure.suptitle(title, fontsize=9)
+    figure.savefig(path, dpi=120)
+
+
+# -- the experiment -------------------------------------------------------------------------------
+
+def evaluate_tradeoff(config: Any, host: Any, out: Path, *, seeds: list[int], knobs: dict[str, list[Any]],
+                      full: bool, tokenizer_steps: int, generator_steps: int, rounds: int, timing_steps: int, n: int,
+                      batch_size: int, distribution: bool, argv: list[str],
+                      report: Callable[[str], None] = print) -> dict[str, Any]:
+    """Both parts for every seed (see the module docstring) around ``config`` (already
+    :func:`scaled_config`; ``full`` says whether it was scaled down); writes ``tradeoff.json``,
+    ``tradeoff.md`` and ``tradeoff.png`` into ``out`` and returns the result."""
+    record = ExperimentRecord("tradeoff", out, seeds)
+    generator = any(KNOBS[name].part == "generator" for name in knobs)
+    baseline = baseline_config(config, host, tokenizer_steps=tokenizer_steps, generator_steps=generator_steps,
+                               generator=generator)
+    # Every value is checked before anything trains: a bad one would otherwise fail an hour in.
+    for name, values in knobs.items():
+        if KNOBS[name].part == "tokenizer":
+            for value in values:
+                variant_config(baseline, host, seeds[0], name, value)
+    check_sampling_values(baseline, host, knobs)
+    rows: list[dict[str, Any]] = []
+    for seed in seeds:
+        seed_rows, baseline_run = tokenizer_rows(baseline, host, knobs, seed=seed, out=out, rounds=rounds,
+                                                 timing_steps=timing_steps, argv=argv, report=report)
+        rows += seed_rows
+        if generator:
+            rows += generator_rows(baseline_run, variant_config(baseline, host, seed), host, knobs, seed=seed, n=n,
+                                   rounds=rounds, batch_size=batch_size, distribution=distribution,
+                                   report=report)
+    summary, key = summarize(rows)
+    base = generator_base(baseline) if generator else None
+    result = {"seeds": seeds, "scene": baseline.scene, "baseline": baseline_text(baseline, host),
+              "generator_baseline": (f"{base['sampler']}, {base['steps']} steps, guidance {base['guidance']:g}, "
+                                     f"{base['precision']}") if base else None,
+              "knobs": {name: [KNOBS[name].show(value) for value in values] for name, values in knobs.items()},
+              "settings": {"full": full, "tokenizer_steps": tokenizer_steps, "generator_steps": generator_steps,
+                           "rounds": rounds, "timing_steps": timing_steps, "n": n, "batch_size": batch_size,
+                           "distribution": distribution},
+              "front_quality": key, "config": baseline.to_dict(), "rows": rows, "summary": summary}
+    record.write(result, render_markdown(result))
+    plot_tradeoff(summary, key, record.path("tradeoff.png"),
+                  f"{baseline.scene}: {len(seeds)} seeds, {tokenizer_steps} tokenizer steps, "
+                  f"{torch.get_num_threads()} threads")
+    return result
+
+
+# Defaults of the full command and of --quick: (tokenizer steps, generator steps, rounds, timing steps, n).
+STANDARD = {"tokenizer_steps": 150, "generator_steps": 300, "rounds": 3, "timing_steps": 3, "n": 32}
+QUICK = {"tokenizer_steps": 40, "generator_steps": 60, "rounds": 2, "timing_steps": 2, "n": 16}
+QUICK_KNOBS = ["deformable", "codebook", "precision", "steps", "sampler"]
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text}: must be a positive integer")
+    return value
+
+
+def _command(args: argparse.Namespace) -> int:
+    host = args.host
+    if not (args.scene_positional or args.scene):
+        args.scene = DEFAULT_SCENE
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    config = scaled_config(config_from_args(args, host), host, args.full)
+    preset = QUICK if args.quick else STANDARD
+    chosen = {key: getattr(args, key) if getattr(args, key) is not None else value for key, value in preset.items()}
+    specs = args.knobs
+    if specs is None and args.quick:
+        specs = [name for name in QUICK_KNOBS if KNOBS[name].part == "tokenizer" or "generator" in config.stages]
+    knobs = parse_knobs(specs, config, host)
+    out = Path(args.out)
+    evaluate_tradeoff(config, host, out, seeds=args.seeds, knobs=knobs, full=args.full,
+                      batch_size=args.batch_size, distribution=args.distribution, argv=args.argv,
+                      report=lambda line: print(line, file=sys.stderr, flush=True), **chosen)
+    print((out / "tradeoff.md").read_text())
+    print(f"-> {out} (tradeoff.json, tradeoff.md, tradeoff.png; the trained runs in {out / 'runs'})")
+    return 0
+
+
+@hookimpl
+def vqtouch_add_commands(subparsers):
+    evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
+    parser = evaluate.add_parser(
+        "tradeoff", help="the whole pipeline's speed/accuracy trade: tokenizer and generator knobs, one table, "
+                         "Pareto plots (JSON, markdown, PNG)",
+        description="Train a tokenizer per tokenizer knob value and a generator on the baseline tokenizer, time them "
+                    "in interleaved rounds and score them on the held-out split (contact region and no-contact "
+                    f"background included).  Default ({STANDARD['tokenizer_steps']} tokenizer steps, every knob, "
+                    "3 seeds): about 1 h on a quiet 2-core CPU, 3 h on a shared one; --quick: about 15 min quiet, "
+                    "40 min shared.  On a shared CPU give --threads 1.")
+    add_config_arguments(parser, scene_required=True)
+    parser.set_defaults(scene_required=False)  # the default scene is filled in by the command
+    add_experiment_arguments(parser)
+    parser.add_argument("--knobs", nargs="+", metavar="KNOB[=V1,V2]",
+                        help=f"knobs to measure, each at its default values or the ones given (known: "
+                             f"{known_knobs()}; default: every knob of the parts the scene trains)")
+    parser.add_argument("--tokenizer-steps", type=_positive,
+                        help=f"training steps of every tokenizer (default {STANDARD['tokenizer_steps']}, "
+                             f"--quick {QUICK['tokenizer_steps']})")
+    parser.add_argument("--generator-steps", type=_positive,
+                        help=f"training steps of the generator (default {STANDARD['generator_steps']}, "
+                             f"--quick {QUICK['generator_steps']})")
+    parser.add_argument("--rounds", type=_positive, help=f"interleaved timing rounds, the median kept (default "
+                                                         f"{STANDARD['rounds']}, --quick {QUICK['rounds']})")
+    parser.add_argument("--timing-steps", type=_positive,
+                        help=f"training steps per tokenizer per timing round (default {STANDARD['timing_steps']}, "
+                             f"--quick {QUICK['timing_steps']})")
+    parser.add_argument("--n", type=_positive, help=f"held-out conditions each sampling setting generates (at most "
+                                                    f"the held-out split; default {STANDARD['n']}, --quick "
+                                                    f"{QUICK['n']})")
+    parser.add_argument("--batch-size", type=_positive, default=16, help="conditions sampled at once (default 16)")
+    parser.add_argument("--distribution", action="store_true",
+                        help="also score every sampling setting's fd_effnetlite0 and classifier accuracy (slower)")
+    parser.add_argument("--quick", action="store_true",
+                        help=f"small defaults: {QUICK['tokenizer_steps']} tokenizer and {QUICK['generator_steps']} "
+                             f"generator steps, {QUICK['rounds']} rounds, knobs {' '.join(QUICK_KNOBS)}")
+    parser.add_argument("--full", action="store_true",
+                        help="keep the scene's model and data sizes (default: scaled down like `vqtouch demo`)")
+    parser.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's)")
+    parser.set_defaults(handler=_command)

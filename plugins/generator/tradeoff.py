@@ -54,10 +54,12 @@ QUALITIES = (("contact_psnr", "contact PSNR (dB)", True), ("fd_effnetlite0", "fd
 
 
 def sweep_settings(*, steps: list[int], samplers: list[str], guidance: list[float], precisions: list[str],
-                   grid: bool = False, batches: list[int] | None = None) -> list[dict[str, Any]]:
+                   grid: bool = False, batches: list[int] | None = None,
+                   base: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """The settings to measure.  ``grid``: every combination.  Otherwise one knob at a time around
-    the base (the first sampler, guidance, precision and batch, and the middle of ``steps``): first
-    every ``steps`` value, then the other samplers, guidance values, precisions and batches.
+    the base (the first sampler, guidance, precision and batch, and the middle of ``steps``; or
+    ``base``, e.g. a run's configured setting, each list then starting with its value): first every
+    ``steps`` value, then the other samplers, guidance values, precisions and batches.
     Duplicates are dropped, the order kept; the first row is the cost reference.  ``batches``
     (None: not a knob) adds a ``batch`` entry to every setting."""
     lists = {"sampler": samplers, "steps": steps, "guidance": guidance, "precision": precisions}
@@ -66,7 +68,8 @@ def sweep_settings(*, steps: list[int], samplers: list[str], guidance: list[floa
     if grid:
         settings = [dict(zip(lists, combo)) for combo in itertools.product(*lists.values())]
     else:
-        base = {key: values[0] for key, values in lists.items()} | {"steps": steps[len(steps) // 2]}
+        if base is None:
+            base = {key: values[0] for key, values in lists.items()} | {"steps": steps[len(steps) // 2]}
         settings = [{**base, "steps": value} for value in steps]
         for key in ("sampler", "guidance", "precision", "batch"):
             settings += [{**base, key: value} for value in lists.get(key, [])[1:]]
