@@ -16,8 +16,8 @@ CONDITIONERS = '[{"name": "label"}, {"name": "text_scratch", "width": 16, "depth
 
 def experiment_args(out, *extra):
     args = ["--no-progress", "evaluate", "generation", "--out", str(out), "--scene", "label-to-touch",
-            "--seeds", "0", "1", "--n", "3", *extra]
-    for override in [*TINY, f"generator.conditioners={CONDITIONERS}", "generator.distribution=false"]:
+            "--seeds", "0", "1", "--n", "3", "--no-distribution", *extra]
+    for override in [*TINY, f"generator.conditioners={CONDITIONERS}"]:
         args += ["--set", override]
     return args
 

@@ -138,7 +138,7 @@ def _generation_experiment_command(args: argparse.Namespace) -> int:
     if args.metrics or args.clip_checkpoint or args.clip_architecture:
         config = validate_experiment({**config.to_dict(), "metrics": _metric_blocks(args, config)}, host)
     evaluate_generation_experiment(config, host, Path(args.out), seeds=args.seeds, n=args.n,
-                                   tokenizer=args.tokenizer, overwrite=args.overwrite)
+                                   tokenizer=args.tokenizer, overwrite=args.overwrite, distribution=args.distribution)
     out = Path(args.out)
     print((out / "generation.md").read_text())
     print(f"-> {out} (generation.json, generation.md, generation.png, seed*/ runs)")

@@ -151,10 +151,11 @@ def _tokenizer_run(config: Any, tokenizer: str | None, out: Path, host: Any) -> 
 
 
 def evaluate_generation_experiment(config: Any, host: Any, out: Path, *, seeds: list[int], n: int,
-                                   tokenizer: str | None = None, overwrite: bool = False,
+                                   tokenizer: str | None = None, overwrite: bool = False, distribution: bool = True,
                                    report: Any = print) -> dict[str, Any]:
     """Train a generator per seed over one tokenizer, score every conditioner against the baselines;
-    write generation.json/.md/.png into ``out`` (see the module docstring)."""
+    write generation.json/.md/.png into ``out`` (see the module docstring).  ``distribution=False``
+    leaves out ``fd_effnetlite0`` and the classifier (EfficientNet-Lite0 at 224 px: the slow part on a CPU)."""
     from .commands import _with_tokenizer_run
 
     if "generator" not in config.stages or config.generator.model is None:
@@ -171,7 +172,7 @@ def evaluate_generation_experiment(config: Any, host: Any, out: Path, *, seeds: 
     for seed in record.seeds:
         data = base.to_dict()
         data["seed"] = seed
-        data["generator"] |= {"num_samples": n, "distribution": True}
+        data["generator"] |= {"num_samples": n, "distribution": distribution}
         seed_config = validate_experiment(data, host)
         with RunDir.create(seed_config, host=host, path=out / f"seed{seed}", overwrite=True) as run:
             outcome = run_stage("generator", Assembly(seed_config, host), run)
