@@ -55,6 +55,22 @@ def checkpoint_step(text: str) -> int | str:
     return step
 
 
+def positive_int(text: str) -> int:
+    """An argparse ``type``: an integer of at least 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    """An argparse ``type``: an integer of at least 0."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
+    return value
+
+
 def add_step_argument(parser: argparse.ArgumentParser) -> None:
     """Add ``--step N|best`` (default: the run's newest good checkpoint) to a command that reads a run."""
     parser.add_argument("--step", type=checkpoint_step, metavar="N|best",

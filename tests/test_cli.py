@@ -66,7 +66,7 @@ def test_config_stages_lists_each_stage_with_its_section_and_slots(capsys, host)
         name = head.split()[0]
         listed[name] = detail.strip()
         assert head[len(name):].strip() == host.stage(name).description
-    assert sorted(listed) == ["adapt", "cluster", "generator", "reconstruct", "render", "tokenizer"]
+    assert sorted(listed) == ["adapt", "cluster", "generator", "pretrained", "reconstruct", "render", "tokenizer"]
     for name, detail in listed.items():
         stage = host.stage(name)
         fields = dict(part.split(": ", 1) for part in detail.split("; from ")[0].split("; "))
@@ -99,7 +99,7 @@ def test_config_show_takes_the_scene_as_argument_or_option(capsys):
      "tokenizer.train.steps: Input should be greater than or equal to 0 (got -1)"),
     (["config", "show", "label-to-touch", "--set", "train.steps=3"], "<root>: unknown option 'train'"),
     (["config", "show", "label-to-touch", "--set", 'stages=["evaluate"]'],
-     "stages: unknown stage 'evaluate'; available: adapt, cluster, generator, reconstruct, render, tokenizer"),
+     "stages: unknown stage 'evaluate'; available: adapt, cluster, generator, pretrained, reconstruct, render, tokenizer"),
     (["config", "show", "label-to-touch", "--set", "oops"], "bad override 'oops'"),
     (["config", "validate", "/nonexistent.toml"], "config file '/nonexistent.toml' does not exist"),
     (["config", "show"], "name a scene, e.g. `vqtouch config show reconstruction`"),

@@ -134,7 +134,7 @@ def test_without_the_plugin_its_stage_is_unknown_and_listed_choices_exclude_it(r
                      python_path=example_plugin_site, env_extra={"VQTOUCH_DISABLE_PLUGIN_AUTOLOAD": "1"})
     assert result.returncode == 2
     assert result.stderr.strip().startswith("vqtouch: error: invalid configuration: stages: unknown stage 'gallery'; "
-                                            "available: adapt, cluster, generator, reconstruct, render, tokenizer")
+                                            "available: adapt, cluster, generator, pretrained, reconstruct, render, tokenizer")
 
 
 def test_a_run_made_with_an_uninstalled_plugin_names_its_distribution(run_cli, example_plugin_site, tmp_path):

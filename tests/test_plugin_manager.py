@@ -71,7 +71,7 @@ def test_block_from_environment(monkeypatch):
     monkeypatch.setenv("VQTOUCH_BLOCK_PLUGINS", "metrics, label")
     host = load_plugins(autoload=False)
     # psnr, ssim, ms_ssim and lpips came from "metrics"
-    assert host.registry("metric").names() == ["fd_effnetlite0", "fid", "kid", "kid_effnetlite0"]
+    assert host.registry("metric").names() == ["clip_score", "fd_effnetlite0", "fid", "kid", "kid_effnetlite0"]
     assert "label" not in host.registry("conditioner")
 
 

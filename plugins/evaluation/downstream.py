@@ -57,6 +57,8 @@ from typing import Any, Callable, Sequence
 import torch
 
 from vqtouch.core import ConfigError, hookimpl
+from vqtouch.core.cli import non_negative_int, positive_int
+from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.core.experiments import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
 
 GENERATED, FEW, FEW_AND_GENERATED, CEILING, BACKGROUND = (
@@ -414,25 +416,7 @@ def save_generated(images_N3HW: torch.Tensor, per_class: int, path: Path) -> Non
     save_png(image_grid(rows.reshape(-1, *images_N3HW.shape[1:]), columns=shown), path)
 
 
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text}: must be a positive integer")
-    return value
 
-
-def _non_negative(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{text}: must be 0 or more")
-    return value
-
-
-def _feature_size(text: str) -> int:
-    value = int(text)
-    if value < 32:
-        raise argparse.ArgumentTypeError(f"{value}: EfficientNet-Lite0 needs at least 32 px")
-    return value
 
 
 def _evaluate_downstream_command(args: argparse.Namespace) -> int:
@@ -460,20 +444,20 @@ def vqtouch_add_commands(subparsers: Any) -> None:
                                                          "(e.g. `vqtouch train generator --scene label-to-touch`)")
     add_step_argument(downstream)
     add_experiment_arguments(downstream)
-    downstream.add_argument("--shots", type=_positive, default=5,
+    downstream.add_argument("--shots", type=positive_int, default=5,
                             help="real training images per class of the few-shot arms (default 5)")
-    downstream.add_argument("--generated-per-class", type=_positive, default=10,
+    downstream.add_argument("--generated-per-class", type=positive_int, default=10,
                             help="images generated per class and seed (default 10)")
     downstream.add_argument("--conditioner", type=int,
                             help="which of the generator's conditioners (index; default the first label conditioner)")
-    downstream.add_argument("--steps", type=_positive, help="sampling steps (default: the run's generator.steps)")
+    downstream.add_argument("--steps", type=positive_int, help="sampling steps (default: the run's generator.steps)")
     downstream.add_argument("--sampler", help="sampler plugin (default: the run's generator.sampler)")
     downstream.add_argument("--guidance", type=float, help="classifier-free guidance scale (default: the run's)")
-    downstream.add_argument("--feature-size", type=_feature_size,
+    downstream.add_argument("--feature-size", type=feature_size_argument,
                             help="side EfficientNet-Lite0 sees the images at (default: the run's fd_effnetlite0 "
                                  "metric's, else 224)")
-    downstream.add_argument("--train-images", type=_non_negative, default=0,
+    downstream.add_argument("--train-images", type=non_negative_int, default=0,
                             help="featurize at most this many real training images, drawn once at random (default 0: "
                                  "all; the ceiling arm trains on them)")
-    downstream.add_argument("--batch-size", type=_positive, default=16, help="labels generated per forward pass")
+    downstream.add_argument("--batch-size", type=positive_int, default=16, help="labels generated per forward pass")
     downstream.set_defaults(handler=_evaluate_downstream_command)

@@ -274,3 +274,13 @@ class AlexNetFeatures(FrozenModule):
             if index == ALEXNET_RELU_INDICES[-1]:
                 break  # the final max-pool feeds only the classifier
         return relu_outputs
+
+
+def feature_size_argument(text: str) -> int:
+    """An argparse ``type`` for the side EfficientNet-Lite0 sees images at: at least 32 px."""
+    import argparse
+
+    value = int(text)
+    if value < 32:
+        raise argparse.ArgumentTypeError(f"{value}: EfficientNet-Lite0 needs at least 32 px")
+    return value

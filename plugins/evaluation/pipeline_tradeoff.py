@@ -66,7 +66,7 @@ from typing import Any
 import torch
 
 from vqtouch.core import Assembly, ConfigError, RunDir, hookimpl, resolve_device, run_stage, validate_experiment
-from vqtouch.core.cli import add_config_arguments, command_group, config_from_args, stage_failure
+from vqtouch.core.cli import add_config_arguments, command_group, config_from_args, positive_int, stage_failure
 from vqtouch.core.experiments import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
 from vqtouch.core.image_size import image_hw, size_text
 
@@ -718,12 +718,6 @@ QUICK = {"tokenizer_steps": 40, "generator_steps": 60, "rounds": 2, "timing_step
 QUICK_KNOBS = ["deformable", "codebook", "precision", "steps", "sampler"]
 
 
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text}: must be a positive integer")
-    return value
-
 
 def _command(args: argparse.Namespace) -> int:
     host = args.host
@@ -764,21 +758,21 @@ def vqtouch_add_commands(subparsers):
     parser.add_argument("--knobs", nargs="+", metavar="KNOB[=V1,V2]",
                         help=f"knobs to measure, each at its default values or the ones given (known: "
                              f"{known_knobs()}; default: every knob of the parts the scene trains)")
-    parser.add_argument("--tokenizer-steps", type=_positive,
+    parser.add_argument("--tokenizer-steps", type=positive_int,
                         help=f"training steps of every tokenizer (default {STANDARD['tokenizer_steps']}, "
                              f"--quick {QUICK['tokenizer_steps']})")
-    parser.add_argument("--generator-steps", type=_positive,
+    parser.add_argument("--generator-steps", type=positive_int,
                         help=f"training steps of the generator (default {STANDARD['generator_steps']}, "
                              f"--quick {QUICK['generator_steps']})")
-    parser.add_argument("--rounds", type=_positive, help=f"interleaved timing rounds, the median kept (default "
+    parser.add_argument("--rounds", type=positive_int, help=f"interleaved timing rounds, the median kept (default "
                                                          f"{STANDARD['rounds']}, --quick {QUICK['rounds']})")
-    parser.add_argument("--timing-steps", type=_positive,
+    parser.add_argument("--timing-steps", type=positive_int,
                         help=f"training steps per tokenizer per timing round (default {STANDARD['timing_steps']}, "
                              f"--quick {QUICK['timing_steps']})")
-    parser.add_argument("--n", type=_positive, help=f"held-out conditions each sampling setting generates (at most "
+    parser.add_argument("--n", type=positive_int, help=f"held-out conditions each sampling setting generates (at most "
                                                     f"the held-out split; default {STANDARD['n']}, --quick "
                                                     f"{QUICK['n']})")
-    parser.add_argument("--batch-size", type=_positive, default=16, help="conditions sampled at once (default 16)")
+    parser.add_argument("--batch-size", type=positive_int, default=16, help="conditions sampled at once (default 16)")
     parser.add_argument("--distribution", action="store_true",
                         help="also score every sampling setting's fd_effnetlite0 and classifier accuracy (slower)")
     parser.add_argument("--quick", action="store_true",
@@ -786,5 +780,5 @@ def vqtouch_add_commands(subparsers):
                              f"generator steps, {QUICK['rounds']} rounds, knobs {' '.join(QUICK_KNOBS)}")
     parser.add_argument("--full", action="store_true",
                         help="keep the scene's model and data sizes (default: scaled down like `vqtouch demo`)")
-    parser.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--threads", type=positive_int, help="torch CPU threads (default: torch's)")
     parser.set_defaults(handler=_command)

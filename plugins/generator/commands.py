@@ -17,7 +17,8 @@ from typing import Any
 
 from vqtouch.core import Assembly, ConfigError, RunDir, hookimpl, run_stage
 from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group, plugin_block,
-                              stage_failure, training_run)
+                              positive_int, stage_failure, training_run)
+from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
@@ -231,8 +232,8 @@ def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of ``vqtouch tradeoff generator``."""
     parser.add_argument("--run", required=True, help="a run whose generator stage trained")
     parser.add_argument("--out", required=True, help="folder for tradeoff.json, tradeoff.md and pareto.png")
-    parser.add_argument("--n", type=_positive_int, default=64, help="held-out conditions per setting (at most all)")
-    parser.add_argument("--rounds", type=_positive_int, default=2, help="interleaved timing rounds (median reported)")
+    parser.add_argument("--n", type=positive_int, default=64, help="held-out conditions per setting (at most all)")
+    parser.add_argument("--rounds", type=positive_int, default=2, help="interleaved timing rounds (median reported)")
     parser.add_argument("--steps", type=int, nargs="+", default=[100, 50, 25, 10, 5], help="sampling steps")
     parser.add_argument("--samplers", nargs="+", default=["posterior", "purity", "confidence"],
                         help="sampler plugins (the first is the base)")
@@ -240,12 +241,12 @@ def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
                         help="classifier-free guidance scales (1: unguided; the first is the base)")
     parser.add_argument("--precisions", nargs="+", default=["fp32", "bf16"], metavar="{fp32,bf16}",
                         help="fp32, or bf16 autocast (the first is the base)")
-    parser.add_argument("--batch-size", type=_positive_int, default=16, help="conditions per forward pass")
+    parser.add_argument("--batch-size", type=positive_int, default=16, help="conditions per forward pass")
     parser.add_argument("--grid", action="store_true",
                         help="every combination (default: one knob at a time around the first sampler, guidance and "
                              "precision and the middle --steps value)")
     parser.add_argument("--seed", type=int, help="seed of the sampling draws (default: the run's)")
-    parser.add_argument("--threads", type=_positive_int, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--threads", type=positive_int, help="torch CPU threads (default: torch's)")
     _add_distribution_arguments(parser)
 
 
@@ -255,16 +256,10 @@ def _add_distribution_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--distribution", action=argparse.BooleanOptionalAction, default=True,
                         help="also score fd_effnetlite0 against the real held-out images and the accuracy of a "
                              "classifier trained on real training images (default: on)")
-    parser.add_argument("--feature-size", type=_feature_size,
+    parser.add_argument("--feature-size", type=feature_size_argument,
                         help="side EfficientNet-Lite0 sees the images at (default: the run's fd_effnetlite0 metric's, "
                              "else 224)")
 
-
-def _feature_size(text: str) -> int:
-    value = int(text)
-    if value < 32:
-        raise argparse.ArgumentTypeError(f"{value}: EfficientNet-Lite0 needs at least 32 px")
-    return value
 
 
 class _CountAction(argparse.Action):
@@ -274,12 +269,6 @@ class _CountAction(argparse.Action):
         setattr(namespace, self.dest, values)
         namespace.n_given = True
 
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
 
 
 @hookimpl
@@ -310,8 +299,8 @@ def vqtouch_add_commands(subparsers):
     add_config_arguments(scored, default_scene="tour")
     add_step_argument(scored)
     scored.add_argument("--conditioner", type=int, help="which of the generator's conditioners (index; default 0)")
-    scored.add_argument("--n", type=_positive_int, default=64, help="held-out conditions to generate (at most all)")
-    scored.add_argument("--steps", type=_positive_int, help="sampling steps (default: the run's generator.steps)")
+    scored.add_argument("--n", type=positive_int, default=64, help="held-out conditions to generate (at most all)")
+    scored.add_argument("--steps", type=positive_int, help="sampling steps (default: the run's generator.steps)")
     scored.add_argument("--sampler", help="sampler plugin (default: the run's generator.sampler)")
     scored.add_argument("--guidance", type=float, help="classifier-free guidance scale (1: none)")
     scored.add_argument("--truncation", type=float, help="keep the most likely codes holding this mass (1: all)")
@@ -344,13 +333,13 @@ def vqtouch_add_commands(subparsers):
     generate.add_argument("--text", action="append", help="text description (repeatable)")
     generate.add_argument("--condition", action="append", default=[], metavar="KEY=VALUE",
                           help="a condition a third-party conditioner reads (sample key = value)")
-    generate.add_argument("--n", type=_positive_int, default=1, action=_CountAction,
+    generate.add_argument("--n", type=positive_int, default=1, action=_CountAction,
                           help="number of images (a single condition value is repeated)")
-    generate.add_argument("--steps", type=_positive_int, help="sampling steps (default: the run's generator.steps)")
+    generate.add_argument("--steps", type=positive_int, help="sampling steps (default: the run's generator.steps)")
     generate.add_argument("--sampler", help="sampler plugin (default: the run's generator.sampler)")
     generate.add_argument("--guidance", type=float, help="classifier-free guidance scale (1: none)")
     generate.add_argument("--truncation", type=float, help="keep the most likely codes holding this mass (1: all)")
     generate.add_argument("--seed", type=int, default=0, help="seed: same seed and settings, same images")
-    generate.add_argument("--batch-size", type=_positive_int, default=16, help="images per forward pass")
+    generate.add_argument("--batch-size", type=positive_int, default=16, help="images per forward pass")
     generate.add_argument("--out", required=True, help="folder for sample_*.png, grid.png and generate.json")
     generate.set_defaults(handler=_generate_command, n_given=False)
