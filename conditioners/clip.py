@@ -137,14 +137,16 @@ def create_open_clip_model(open_clip: Any, architecture: str, path: Path, model_
     ``path``; never downloads.  A file that does not hold that model's weights raises
     :class:`~vqtouch.core.MissingWeightsError` in one line; ``kind`` and ``conditioner`` (the plugin)
     start the message."""
-    import pickle
-
     from safetensors import SafetensorError
 
     try:
         return open_clip.create_model(architecture, pretrained=str(path), **model_overrides)
-    # Wrong keys or shapes, and files that are not weights at all (not safetensors, not a tensor pickle).
-    except (RuntimeError, ValueError, KeyError, EOFError, pickle.UnpicklingError, SafetensorError) as exc:
+    except Exception as exc:
+        # Wrong keys or shapes, and files that are not weights at all: not safetensors, or not a tensor
+        # file torch.load accepts (its UnpicklingError, matched by name: the package never imports pickle).
+        if not (isinstance(exc, (RuntimeError, ValueError, KeyError, EOFError, SafetensorError))
+                or type(exc).__name__ == "UnpicklingError"):
+            raise
         from vqtouch.core import MissingWeightsError
 
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
