@@ -59,7 +59,7 @@ def positive_int(text: str) -> int:
     """An argparse ``type``: an integer of at least 1."""
     value = int(text)
     if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+        raise argparse.ArgumentTypeError(f"{text}: must be at least 1")
     return value
 
 
@@ -67,7 +67,7 @@ def non_negative_int(text: str) -> int:
     """An argparse ``type``: an integer of at least 0."""
     value = int(text)
     if value < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
+        raise argparse.ArgumentTypeError(f"{text}: must be 0 or more")
     return value
 
 

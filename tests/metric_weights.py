@@ -80,3 +80,12 @@ def weighted_metric_options(kind_name: tuple[str, str], folder: Path, monkeypatc
     if kind_name in (("metric", "fid"), ("metric", "kid")):
         return {"weights": str(fabricated_inception(folder))}
     return {}
+
+
+#: A tiny random open_clip model config (not CLIP, not pretrained): ViT-S-32 layout with 2-layer, 64-wide
+#: towers at 64 px, for the clip/text conditioners and the clip_score metric.
+TINY_RANDOM_CLIP = {
+    "embed_dim": 32,
+    "vision_cfg": {"image_size": 64, "layers": 2, "width": 64, "patch_size": 16, "head_width": 32},
+    "text_cfg": {"context_length": 77, "vocab_size": 49408, "width": 64, "heads": 2, "layers": 2},
+}

@@ -24,12 +24,7 @@ from vqtouch.core.cli import main
 from generator_runs import train_args  # noqa: E402  (registered by conftest)
 
 HOST = load_plugins(autoload=False)
-#: A tiny random open_clip model (not CLIP, not pretrained): ViT-S-32 with 2-layer, 64-wide towers at 64 px.
-TINY_RANDOM_CLIP = {
-    "embed_dim": 32,
-    "vision_cfg": {"image_size": 64, "layers": 2, "width": 64, "patch_size": 16, "head_width": 32},
-    "text_cfg": {"context_length": 77, "vocab_size": 49408, "width": 64, "heads": 2, "layers": 2},
-}
+from metric_weights import TINY_RANDOM_CLIP  # noqa: E402  (registered by conftest)
 CLASS_NAMES = ["sphere", "edge", "ridge"]
 
 

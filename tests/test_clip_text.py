@@ -21,12 +21,7 @@ from vqtouch.core import BuildContext, ConfigError, MissingWeightsError, PluginE
 from vqtouch.core.training import collate_samples
 
 CONTEXT = BuildContext(image_size=32, cond_dim=16)
-#: A tiny random open_clip model (not CLIP, not pretrained): ViT-S-32 with a 2-layer, 64-wide text transformer.
-TINY_RANDOM_CLIP = {
-    "embed_dim": 32,
-    "vision_cfg": {"image_size": 64, "layers": 2, "width": 64, "patch_size": 16, "head_width": 32},
-    "text_cfg": {"context_length": 77, "vocab_size": 49408, "width": 64, "heads": 2, "layers": 2},
-}
+from metric_weights import TINY_RANDOM_CLIP  # noqa: E402  (registered by conftest)
 TEXTS = ["a smooth sphere pressed into the gel", "a coarse woven fabric", "a sharp metal edge"]
 
 

@@ -52,12 +52,8 @@ TINY_OPTIONS: dict[tuple[str, str], dict[str, Any]] = {
     ("generator", "vq_diffusion"): {"depth": 1, "width": 16, "heads": 2, "num_steps": 10},
 }
 
-#: A tiny open_clip model: the clip conditioner is checked with a weights file written from it.
-TINY_CLIP = {
-    "embed_dim": 32,
-    "vision_cfg": {"image_size": 64, "layers": 2, "width": 64, "patch_size": 16, "head_width": 32},
-    "text_cfg": {"context_length": 77, "vocab_size": 49408, "width": 64, "heads": 2, "layers": 2},
-}
+# A tiny open_clip model: the clip conditioner is checked with a weights file written from it.
+from metric_weights import TINY_RANDOM_CLIP as TINY_CLIP  # noqa: E402  (registered by conftest)
 
 
 import dataset_fixtures  # noqa: E402  (registered by conftest)

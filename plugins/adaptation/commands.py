@@ -22,15 +22,9 @@ import json
 from pathlib import Path
 
 from vqtouch.core import ConfigError, hookimpl
-from vqtouch.core.cli import add_step_argument
+from vqtouch.core.cli import add_step_argument, non_negative_int, positive_int
 from vqtouch.core.image_size import image_size_argument
 
-
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text}: must be a positive integer")
-    return value
 
 
 def _fraction(text: str) -> float:
@@ -46,12 +40,6 @@ def _non_negative_float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"{text}: must be a finite number >= 0")
     return value
 
-
-def _non_negative(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{text}: must be 0 or more")
-    return value
 
 
 def _cluster_command(args: argparse.Namespace) -> int:
@@ -160,14 +148,14 @@ def vqtouch_add_commands(subparsers):
     cluster.add_argument("--sensors", nargs="+", required=True, metavar="SPEC",
                          help="sensors: registered family names, JSON with a variant, or folders of images")
     cluster.add_argument("--out", required=True, help="folder for cluster.json and families.png")
-    cluster.add_argument("--images", type=_positive, default=64, help="images per sensor (default 64)")
+    cluster.add_argument("--images", type=positive_int, default=64, help="images per sensor (default 64)")
     cluster.add_argument("--image-size", type=image_size_argument,
                          help="image size, S or HEIGHTxWIDTH (default: the tokenizer's)")
     cluster.add_argument("--features", choices=("pooled", "codes"), default="pooled",
                          help="pooled encoder features or code histograms (default pooled)")
     cluster.add_argument("--clusterer", default="kmeans", help="clusterer plugin (default kmeans)")
-    cluster.add_argument("--families", type=_non_negative, default=0, help="number of families (0: chosen by silhouette)")
-    cluster.add_argument("--refine-steps", type=_non_negative, default=3, help="prototype refinement steps (default 3)")
+    cluster.add_argument("--families", type=non_negative_int, default=0, help="number of families (0: chosen by silhouette)")
+    cluster.add_argument("--refine-steps", type=non_negative_int, default=3, help="prototype refinement steps (default 3)")
     cluster.add_argument("--keep", type=_fraction, default=0.8, help="fraction of images kept per refinement step")
     cluster.add_argument("--seed", type=int, default=0, help="seed of the rendered scenes")
     cluster.add_argument("--unseen", nargs="+", default=[], metavar="SPEC",
@@ -184,20 +172,20 @@ def vqtouch_add_commands(subparsers):
     adapt.add_argument("--images", required=True, metavar="DIR_OR_SPEC",
                        help="the unseen sensor: a folder of its images, or a registered sensor (name or JSON variant)")
     adapt.add_argument("--out", required=True, help="folder for the adapted tokenizer, adapt.json and before_after.png")
-    adapt.add_argument("--shots", type=_positive, default=50, help="unseen-sensor images to train on (default 50)")
+    adapt.add_argument("--shots", type=positive_int, default=50, help="unseen-sensor images to train on (default 50)")
     adapt.add_argument("--ratio", type=_non_negative_float, default=5.0,
                        help="family images per shot in the mixed set (default 5: the paper's 1:5)")
-    adapt.add_argument("--steps", type=_positive, default=200, help="fine-tuning steps (default 200)")
+    adapt.add_argument("--steps", type=positive_int, default=200, help="fine-tuning steps (default 200)")
     adapt.add_argument("--learning-rate", type=float, help="default: the run's tokenizer.train.learning_rate")
-    adapt.add_argument("--batch-size", type=_positive, help="default: the run's data.batch_size")
-    adapt.add_argument("--eval-images", type=_positive, default=64,
+    adapt.add_argument("--batch-size", type=positive_int, help="default: the run's data.batch_size")
+    adapt.add_argument("--eval-images", type=positive_int, default=64,
                        help="held-out unseen-sensor images scored before and after (default 64)")
     adapt.add_argument("--families", help="a `vqtouch cluster` output folder (default: cluster the registered "
                                           "sensor families and 3 variants of each, written with the sensor's "
                                           "assignment to OUT/families)")
     adapt.add_argument("--threshold", type=float, help="refuse a sensor farther than this from every family "
                                                        "(default: the clustering's refusal threshold)")
-    adapt.add_argument("--family", type=_non_negative, help="adapt from this family, whatever the assignment says")
+    adapt.add_argument("--family", type=non_negative_int, help="adapt from this family, whatever the assignment says")
     adapt.add_argument("--seed", type=int, default=0, help="seed of the shots' draw and the rendered scenes")
     adapt.add_argument("--overwrite", action="store_true", help="replace an adapted tokenizer already in --out")
     adapt.set_defaults(handler=_adapt_command)
@@ -213,23 +201,23 @@ def vqtouch_add_commands(subparsers):
     cross.add_argument("--target", default=json.dumps(GELSIGHT_DERIVATIVE_II),
                        help="the unseen sensor (default: the zero-shot scene's damaged, drifted GelSight)")
     cross.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (default 0 1 2)")
-    cross.add_argument("--steps", type=_positive, default=200, help="fine-tuning steps of every arm (default 200)")
-    cross.add_argument("--shots", type=_positive, nargs="+", default=[10, 25, 50, 100],
+    cross.add_argument("--steps", type=positive_int, default=200, help="fine-tuning steps of every arm (default 200)")
+    cross.add_argument("--shots", type=positive_int, nargs="+", default=[10, 25, 50, 100],
                        help="shot counts of arms b and c (default 10 25 50 100)")
-    cross.add_argument("--main-shots", type=_positive, default=50, help="shots of the ratio sweep (default 50)")
+    cross.add_argument("--main-shots", type=positive_int, default=50, help="shots of the ratio sweep (default 50)")
     cross.add_argument("--ratios", type=_non_negative_float, nargs="+", default=[1.0, 5.0, 20.0],
                        help="family images per shot in arm c (default 1 5 20)")
     cross.add_argument("--main-ratio", type=_non_negative_float, default=5.0, help="ratio of the shots sweep (5)")
-    cross.add_argument("--everything", type=_non_negative, default=1000,
+    cross.add_argument("--everything", type=non_negative_int, default=1000,
                        help="target images of arm d, mixed 1:1 with family data (0 skips arm d and the cost)")
-    cross.add_argument("--eval-images", type=_positive, default=64, help="held-out target images (default 64)")
-    cross.add_argument("--variants", type=_positive, default=4, help="variants per family to cluster (default 4)")
-    cross.add_argument("--held-out-variants", type=_positive, default=2,
+    cross.add_argument("--eval-images", type=positive_int, default=64, help="held-out target images (default 64)")
+    cross.add_argument("--variants", type=positive_int, default=4, help="variants per family to cluster (default 4)")
+    cross.add_argument("--held-out-variants", type=positive_int, default=2,
                        help="further variants per family to assign (default 2)")
-    cross.add_argument("--images", type=_positive, default=32, help="images per sensor for clustering (default 32)")
+    cross.add_argument("--images", type=positive_int, default=32, help="images per sensor for clustering (default 32)")
     cross.add_argument("--clusterers", nargs="+", default=["kmeans", "agglomerative"], help="clusterer plugins")
     cross.add_argument("--real", default="gelsight_mini",
                        help="a sensor family whose captured frames play the unseen sensor ('none' skips)")
-    cross.add_argument("--real-shots", type=_positive, nargs="+", default=[4, 8, 16],
+    cross.add_argument("--real-shots", type=positive_int, nargs="+", default=[4, 8, 16],
                        help="shots from the real frames (default 4 8 16; the rest are held out)")
     cross.set_defaults(handler=_evaluate_cross_sensor_command)

@@ -35,6 +35,7 @@ from vqtouch.core import Assembly, ConfigError, RunDir, run_stage
 from vqtouch.core.cli import stage_failure
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.experiments import ExperimentRecord, markdown_table, mean_spread
+from vqtouch.core.report_html import direction_arrow, lower_is_better
 
 #: Numbers of a score dict that describe the sampling, not the quality.
 FACTS = ("samples", "steps", "guidance", "truncation", "contact_fraction")
@@ -45,8 +46,6 @@ BASELINES = {"background_": "no-contact image", "retrieval_": "retrieval by cond
 #: Columns of the table, in order, when present; any other score follows them.
 PREFERRED = ("ssim", "psnr", "ms_ssim", "lpips", "contact_psnr", "contact_mae", "fd_effnetlite0",
              "classifier_accuracy")
-#: Scores where lower is better.
-LOWER_IS_BETTER = ("lpips", "contact_mae", "fd_effnetlite0", "fid", "kid", "mae")
 
 
 def _is_score(value: Any) -> bool:
@@ -56,9 +55,14 @@ def _is_score(value: Any) -> bool:
 def score_keys(scores: dict[str, Any]) -> list[str]:
     """The generator's own scores in a conditioner's score dict: numbers that are neither facts of
     the sampling nor a baseline's (prefixed) copy."""
-    keys = [key for key, value in scores.items() if _is_score(value) and key not in FACTS
-            and not key.startswith(tuple(BASELINES))]
-    return sorted(keys, key=lambda key: (PREFERRED.index(key) if key in PREFERRED else len(PREFERRED), key))
+    return in_column_order(key for key, value in scores.items() if _is_score(value) and key not in FACTS
+                           and not key.startswith(tuple(BASELINES)))
+
+
+def in_column_order(keys: Any) -> list[str]:
+    """``keys`` without repeats, the :data:`PREFERRED` columns first in that order, then the others by name."""
+    return sorted(dict.fromkeys(keys), key=lambda key: (PREFERRED.index(key) if key in PREFERRED else len(PREFERRED),
+                                                        key))
 
 
 def rows_of(generation: dict[str, Any], seed: int) -> list[dict[str, Any]]:
@@ -78,10 +82,6 @@ def rows_of(generation: dict[str, Any], seed: int) -> list[dict[str, Any]]:
     return rows
 
 
-def _lower_is_better(key: str) -> bool:
-    return key.endswith(LOWER_IS_BETTER)
-
-
 def verdicts(summary: list[dict[str, Any]], key: str = "contact_psnr") -> list[str]:
     """Per conditioner, whether the generator beats the best non-ceiling baseline on the contact-region
     score ``key``, said only when the gap exceeds the two spreads together."""
@@ -92,7 +92,7 @@ def verdicts(summary: list[dict[str, Any]], key: str = "contact_psnr") -> list[s
         rivals = [row for method, row in rows.items() if method != "generator" and not method.startswith("ceiling")]
         if model is None or not rivals:
             continue
-        sign = -1 if _lower_is_better(key) else 1
+        sign = -1 if lower_is_better(key) else 1
         best = max(rivals, key=lambda row: sign * row[key])
         gap = sign * (model[key] - best[key])
         noise = model.get(f"{key}_std", 0.0) + best.get(f"{key}_std", 0.0)
@@ -126,7 +126,7 @@ def plot(summary: list[dict[str, Any]], path: Path, title: str) -> None:
             axes.bar(xs, [cell.get(key, float("nan")) for cell in cells], width,
                      yerr=[cell.get(f"{key}_std", 0.0) for cell in cells], capsize=2, label=method)
         axes.set_xticks([position + 0.4 - width / 2 for position in range(len(conditioners))], conditioners)
-        axes.set_ylabel(key + (" (lower is better)" if _lower_is_better(key) else " (higher is better)"))
+        axes.set_ylabel(key + (" (lower is better)" if lower_is_better(key) else " (higher is better)"))
         axes.grid(axis="y", alpha=0.3)
     if keys:
         figure.axes[0].legend(fontsize=7)
@@ -185,8 +185,7 @@ def evaluate_generation_experiment(config: Any, host: Any, out: Path, *, seeds: 
             skipped |= scores.get("skipped") or {}
         report(f"seed {seed}: " + ", ".join(f"{row['conditioner']} contact PSNR {row.get('contact_psnr', '-')}"
                                            for row in seed_rows if row["method"] == "generator"))
-    keys = list(dict.fromkeys(key for row in rows for key in row if key not in ("conditioner", "method", "seed")))
-    keys.sort(key=lambda key: (PREFERRED.index(key) if key in PREFERRED else len(PREFERRED), key))
+    keys = in_column_order(key for row in rows for key in row if key not in ("conditioner", "method", "seed"))
     summary = mean_spread(rows, keys, ("conditioner", "method"))
     result = {"scene": config.scene, "tokenizer": base.generator.tokenizer_run, "n": n,
               "generator_steps": base.generator.train.steps, "sampling_steps": base.generator.steps,
@@ -196,7 +195,7 @@ def evaluate_generation_experiment(config: Any, host: Any, out: Path, *, seeds: 
              f"Scene `{config.scene}`; tokenizer `{result['tokenizer']}`; one generator per seed trained "
              f"{result['generator_steps']} steps with every conditioner; {n} held-out conditions generated with "
              f"`{result['sampler']}`, {result['sampling_steps']} steps, unguided.  Arrows: "
-             + ", ".join(f"{key} {'↓' if _lower_is_better(key) else '↑'}" for key in keys) + ".", "",
+             + ", ".join(f"{key} {direction_arrow(key)}" for key in keys) + ".", "",
              *markdown_table(summary, ("conditioner", "method"), keys), "",
              "Verdicts (contact region only, a gap counts when it exceeds both spreads):", "",
              *(verdicts(summary) or ["- no contact-region score to compare"])]

@@ -49,8 +49,8 @@ def _compared(config: dict[str, Any]) -> dict[str, Any]:
 def check_compatible(bundle: Bundle, config: Any) -> None:
     """Refuse (StageUnavailable) a scene whose data the bundle was not trained for, or was trained on."""
     trained, scene = bundle.run_config, config.to_dict()
-    differences = [f"{key}: bundle {value!r}, scene {_compared(scene)[key]!r}"
-                   for key, value in _compared(trained).items() if _compared(scene)[key] != value]
+    wanted, given = _compared(trained), _compared(scene)
+    differences = [f"{key}: bundle {value!r}, scene {given[key]!r}" for key, value in wanted.items() if given[key] != value]
     if differences:
         raise StageUnavailable(f"bundle {bundle.name!r} was trained for other data ({'; '.join(differences)}); "
                                "retrain one for this scene with `vqtouch pretrained export`")
@@ -72,11 +72,11 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
 
     config, section = job.config, job.section
     try:
-        bundle_folder(section.bundle)
+        folder = bundle_folder(section.bundle)
     except ConfigError as exc:
         raise StageUnavailable(str(exc)) from None
     device = resolve_device(config.device)
-    bundle = load_bundle(section.bundle, job.host, device=device)
+    bundle = load_bundle(section.bundle, job.host, device=device, root=folder.parent)
     check_compatible(bundle, config)
     dataset = job.assembly.component("data.dataset")
     train_set, val_set = split_dataset(dataset, config.data.val_fraction, config.seed)
