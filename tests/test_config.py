@@ -10,7 +10,7 @@ from vqtouch.core.stages import missing_slots, required_slots
 
 SCENES = ["reconstruction", "few-shot", "zero-shot", "cross-sensor", "vision-to-touch", "label-to-touch",
           "text-to-touch", "mixed-to-touch", "touch-to-touch"]
-BUILTIN_STAGES = ["adapt", "cluster", "generator", "reconstruct", "render", "tokenizer"]
+BUILTIN_STAGES = ["adapt", "cluster", "generator", "pretrained", "reconstruct", "render", "tokenizer"]
 
 
 @pytest.mark.parametrize("scene", SCENES)
@@ -40,7 +40,8 @@ def test_builtin_stages_and_their_sections(host):
     assert sorted(host.stages) == BUILTIN_STAGES
     sections = {name: entry.section.__name__ if entry.section else None for name, entry in host.stages.items()}
     assert sections == {"render": "RenderSection", "tokenizer": "TokenizerSection", "reconstruct": None,
-                        "cluster": "ClusterSection", "adapt": "AdaptSection", "generator": "GeneratorSection"}
+                        "cluster": "ClusterSection", "adapt": "AdaptSection", "generator": "GeneratorSection",
+                        "pretrained": "PretrainedSection"}
     fields = set(host.experiment_model.model_fields)
     assert {"render", "tokenizer", "cluster", "adapt", "generator"} <= fields
     assert not {"reconstruct", "train", "conditioner", "clusterer", "evaluate"} & fields
@@ -59,9 +60,9 @@ def test_unknown_stage_lists_the_registered_stages(host):
     with pytest.raises(ConfigError) as info:
         resolve_config(None, overrides=['stages=["tokenizer", "evaluate"]'], host=host)
     assert str(info.value).startswith("invalid configuration: stages: unknown stage 'evaluate'; available: "
-                                      "adapt, cluster, generator, reconstruct, render, tokenizer")
+                                      "adapt, cluster, generator, pretrained, reconstruct, render, tokenizer")
     with pytest.raises(UnknownPluginError, match="unknown stage 'evaluate'; available: adapt, cluster, generator, "
-                                                 "reconstruct, render, tokenizer"):
+                                                 "pretrained, reconstruct, render, tokenizer"):
         host.stage("evaluate")
     with pytest.raises(ConfigError, match="a stage is listed twice"):
         resolve_config(None, overrides=['stages=["tokenizer", "tokenizer"]'], host=host)
@@ -74,10 +75,10 @@ def test_a_scene_validates_against_the_stages_its_host_registered(make_plugin):
     assert "cluster" not in without.stages and "adapt" not in without.stages
     for scene in ("few-shot", "zero-shot"):
         with pytest.raises(ConfigError, match=r"stages: unknown stage 'cluster'; available: generator, "
-                                              r"reconstruct, render, tokenizer"):
+                                              r"pretrained, reconstruct, render, tokenizer"):
             resolve_config(scene, host=without)
-    with pytest.raises(ConfigError, match=r"stages: unknown stage 'adapt'; available: generator, reconstruct, "
-                                          r"render, tokenizer"):
+    with pytest.raises(ConfigError, match=r"stages: unknown stage 'adapt'; available: generator, pretrained, "
+                                          r"reconstruct, render, tokenizer"):
         resolve_config("cross-sensor", host=without)
     assert resolve_config("reconstruction", host=without).stages == ["tokenizer", "reconstruct"]
 
