@@ -140,6 +140,11 @@ class DataConfig(Section):
     val_fraction: float = Field(0.1, ge=0.0, lt=1.0, strict=True,
                                 description="Fraction of samples held out for evaluation; 0 trains on every "
                                             "sample and skips the held-out evaluation.")
+    train_samples: int | None = Field(
+        None, ge=1, strict=True,
+        description="Train on only this many samples of the training split (a seeded draw: with one seed, a "
+                    "smaller count is a subset of a larger one); the held-out split does not change.  None: "
+                    "every training sample.  What `vqtouch evaluate reconstruction --out` varies.")
 
 
 def _known_stages(stages: list[str], info: ValidationInfo) -> list[str]:

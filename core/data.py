@@ -14,6 +14,8 @@ from .errors import ConfigError, PluginError
 # The split's generator is seeded apart from the experiment's seed, so that its draws are not the ones every
 # other generator seeded with that seed starts with.
 _SPLIT_SEED_OFFSET = 7777
+# The training-subset draw's own offset, for the same reason (and so it is not the split's order).
+_SUBSET_SEED_OFFSET = 9191
 
 
 class DatasetSubset(TactileDataset):
@@ -68,6 +70,33 @@ def split_dataset(dataset: TactileDataset, val_fraction: float, seed: int) -> tu
     train, held_out = DatasetSubset(dataset, train_indices), DatasetSubset(dataset, held_out_indices)
     train.split_unit = held_out.split_unit = unit
     return train, held_out
+
+
+def experiment_split(dataset: TactileDataset, data: Any, seed: int) -> tuple[DatasetSubset, DatasetSubset]:
+    """The experiment's (train, held-out) split of ``dataset``: :func:`split_dataset` with
+    ``data.val_fraction``, then, when ``data.train_samples`` is set, only that many samples of the
+    training split (:func:`first_samples`).  Every stage and command that trains on or scores a
+    run's data takes its split from here, so they agree on it.  The held-out split never depends on
+    ``data.train_samples``: runs trained on different amounts of data are scored on the same images."""
+    train, held_out = split_dataset(dataset, data.val_fraction, seed)
+    count = getattr(data, "train_samples", None)
+    if count is not None:
+        if count > len(train):
+            raise ConfigError(f"data.train_samples={count}, but the training split holds {len(train)} samples "
+                              f"({len(dataset)} in the dataset, {len(held_out)} held out); lower "
+                              "data.train_samples or give the dataset more samples")
+        train = first_samples(train, count, seed)
+    return train, held_out
+
+
+def first_samples(subset: DatasetSubset, count: int, seed: int) -> DatasetSubset:
+    """``count`` samples of ``subset`` drawn in a seeded order, kept in dataset order.  The order
+    depends only on (len(subset), ``seed``), so with one seed a smaller count is a subset of a
+    larger one: the training-set-size experiment adds data without swapping what was there."""
+    order = torch.randperm(len(subset), generator=torch.Generator().manual_seed(seed + _SUBSET_SEED_OFFSET)).tolist()
+    chosen = DatasetSubset(subset.dataset, sorted(subset.indices[position] for position in order[:count]))
+    chosen.split_unit = subset.split_unit
+    return chosen
 
 
 def _split_samples(size: int, val_fraction: float, seed: int) -> tuple[list[int], list[int]]:

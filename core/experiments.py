@@ -94,6 +94,23 @@ def markdown_table(rows: Sequence[dict[str, Any]], group: Sequence[str], keys: S
     return lines
 
 
+def gap_verdict(model: dict[str, Any], rival: dict[str, Any], key: str, rival_name: str) -> str:
+    """How ``model``'s mean of ``key`` compares with ``rival``'s (rows of :func:`mean_spread`), e.g.
+    "beats VQGAN by 0.8": "beats", "is behind" or "is level with", a gap counting only when it
+    exceeds the two standard deviations added; the score's direction comes from
+    :func:`.report_html.lower_is_better`."""
+    from .report_html import lower_is_better
+
+    sign = -1 if lower_is_better(key) else 1
+    gap = sign * (model[key] - rival[key])
+    noise = (model.get(f"{key}_std") or 0.0) + (rival.get(f"{key}_std") or 0.0)
+    if gap > noise:
+        return f"beats {rival_name} by {gap:.3g}"
+    if gap < -noise:
+        return f"is behind {rival_name} by {-gap:.3g}"
+    return f"is level with {rival_name} (gap {gap:+.3g} within the spread {noise:.2g})"
+
+
 def check_seeds(seeds: Sequence[int]) -> list[int]:
     """``seeds`` as a list, refusing an empty or repeated one (a repeated seed would fake a small spread)."""
     seeds = list(seeds)

@@ -5,7 +5,7 @@
     vqtouch evaluate downstream --run RUN --out DIR [--shots 5] [--generated-per-class 10] [--seeds 0 1 2]
 
 Do generated tactile images carry their class?  A classifier is trained on each arm's images and
-tested on the run's **real held-out images** (the split of :func:`vqtouch.core.data.split_dataset`
+tested on the run's **real held-out images** (the split of :func:`vqtouch.core.data.experiment_split`
 that the generator never trained on; group-aware for readers with recordings):
 
 1. ``generated only``: ``--generated-per-class M`` images per class, generated from the label;
@@ -225,7 +225,7 @@ def evaluate_downstream(run: str | Path, host: Any, out: str | Path, *, seeds: S
     real training images, drawn once at random (0: all; the ceiling arm then trains on them);
     ``batch_size``: labels generated per forward pass.  Returns what ``downstream.json`` holds."""
     from vqtouch.core import Assembly, RunDir
-    from vqtouch.core.data import split_dataset
+    from vqtouch.core.data import experiment_split
     from vqtouch.plugins.evaluation.contact import no_contact_image
     from vqtouch.plugins.generator.pipeline import load_pipeline
 
@@ -246,7 +246,7 @@ def evaluate_downstream(run: str | Path, host: Any, out: str | Path, *, seeds: S
     if not class_names:
         raise ConfigError(f"the run's dataset ({dataset_name}) has no class labels; downstream recognition needs "
                           "them (e.g. image_folder with one sub-folder per class, or a CSV with a label column)")
-    train_split, test_split = split_dataset(dataset, config.data.val_fraction, config.seed)
+    train_split, test_split = experiment_split(dataset, config.data, config.seed)
     if not len(test_split):
         raise ConfigError(f"the run holds out no images (data.val_fraction={config.data.val_fraction}); downstream "
                           "recognition tests on the run's held-out split: use a run trained with data.val_fraction > 0")

@@ -369,7 +369,7 @@ class TokenizerTimer:
     precision and batch through the trainer) and encode + decode seconds per held-out image."""
 
     def __init__(self, config: Any, run: Path, host: Any, steps: int) -> None:
-        from vqtouch.core.data import split_dataset
+        from vqtouch.core.data import experiment_split
         from vqtouch.plugins.tokenizer.stages import load_tokenizer, tokenizer_task
 
         self.config, self.host, self.steps = config, host, steps
@@ -377,7 +377,7 @@ class TokenizerTimer:
         self.tokenizer, _ = load_tokenizer(run, host, device=str(self.device))
         assembly = Assembly(config, host)
         dataset = assembly.component("data.dataset")
-        self.train_set, held_out = split_dataset(dataset, config.data.val_fraction, config.seed)
+        self.train_set, held_out = experiment_split(dataset, config.data, config.seed)
         count = min(len(held_out), TIMED_IMAGES)
         self.images_B3HW = torch.stack([held_out[index]["tactile"] for index in range(count)]).to(self.device)
         section = config.tokenizer

@@ -147,7 +147,7 @@ def _generation_experiment_command(args: argparse.Namespace) -> int:
 
 
 def _evaluate_generation_command(args: argparse.Namespace) -> int:
-    from vqtouch.core.data import split_dataset
+    from vqtouch.core.data import experiment_split
 
     if args.out:
         return _generation_experiment_command(args)
@@ -167,7 +167,7 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
     config = run.load_config(host)
     assembly = Assembly(config, host)
     dataset = assembly.component("data.dataset")
-    train, held_out = split_dataset(dataset, config.data.val_fraction, config.seed)
+    train, held_out = experiment_split(dataset, config.data, config.seed)
     names = [item.name for item in config.generator.conditioners]
     index = args.conditioner if args.conditioner is not None else 0
     if not 0 <= index < len(names):

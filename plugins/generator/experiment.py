@@ -34,7 +34,7 @@ from typing import Any
 from vqtouch.core import Assembly, ConfigError, RunDir, run_stage
 from vqtouch.core.cli import stage_failure
 from vqtouch.core.config import validate_experiment
-from vqtouch.core.experiments import ExperimentRecord, markdown_table, mean_spread
+from vqtouch.core.experiments import ExperimentRecord, gap_verdict, markdown_table, mean_spread
 from vqtouch.core.report_html import direction_arrow, lower_is_better
 
 #: Numbers of a score dict that describe the sampling, not the quality.
@@ -94,15 +94,7 @@ def verdicts(summary: list[dict[str, Any]], key: str = "contact_psnr") -> list[s
             continue
         sign = -1 if lower_is_better(key) else 1
         best = max(rivals, key=lambda row: sign * row[key])
-        gap = sign * (model[key] - best[key])
-        noise = model.get(f"{key}_std", 0.0) + best.get(f"{key}_std", 0.0)
-        if gap > noise:
-            verdict = f"beats {best['method']} by {gap:.3g}"
-        elif gap < -noise:
-            verdict = f"is behind {best['method']} by {-gap:.3g}"
-        else:
-            verdict = f"is level with {best['method']} (gap {gap:+.3g} within the spread {noise:.2g})"
-        lines.append(f"- from `{conditioner}`: the generator {verdict} on {key}.")
+        lines.append(f"- from `{conditioner}`: the generator {gap_verdict(model, best, key, best['method'])} on {key}.")
     return lines
 
 

@@ -22,7 +22,7 @@ import torch
 from pydantic import Field
 
 from vqtouch.core import MetricSet, RunDir, Section, Slot, StageJob, StageUnavailable, hookimpl, resolve_device
-from vqtouch.core.data import DatasetSubset, split_dataset
+from vqtouch.core.data import DatasetSubset, experiment_split
 from vqtouch.core.errors import VqtouchWarning
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
@@ -128,7 +128,7 @@ def train_generator(job: StageJob) -> dict[str, Any]:
                       "image of the same contact (tactile conditioner reads=tactile_source, with paired_sensor set)",
                       ConditionIsTargetWarning, stacklevel=2)
     data = CodesDataset.collect(codes_NHW, dataset, keys)
-    train_set, val_set = split_dataset(data, config.data.val_fraction, config.seed)
+    train_set, val_set = experiment_split(data, config.data, config.seed)
     task = GeneratorTask(generator, conditioners, section.train.condition_dropout, config.seed)
     trainer = Trainer(task, train_set, section.train, batch_size=config.data.batch_size, seed=config.seed,
                       device=device, checkpoint_dir=job.run.checkpoints / CHECKPOINT_FOLDER, run=job.run,

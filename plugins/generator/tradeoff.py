@@ -188,7 +188,7 @@ def load_tradeoff_bench(run: str | Path, host: Any, *, n: int, step: int | str |
     ``distribution``, the distribution scorer (classifier fitted on the training split's real images,
     EfficientNet-Lite0 features at ``feature_size`` px; None: the run's ``fd_effnetlite0`` metric's,
     else 224)."""
-    from vqtouch.core.data import split_dataset
+    from vqtouch.core.data import experiment_split
 
     from .pipeline import load_pipeline
 
@@ -200,7 +200,7 @@ def load_tradeoff_bench(run: str | Path, host: Any, *, n: int, step: int | str |
     config = run_dir.load_config(host)
     assembly = Assembly(config, host)
     dataset = assembly.component("data.dataset")
-    train, held_out = split_dataset(dataset, config.data.val_fraction, config.seed)
+    train, held_out = experiment_split(dataset, config.data, config.seed)
     seed = config.seed if seed is None else seed
     conditions = held_out_conditions(held_out, dataset, n, pipe.device)
     metrics = [(name, host.build("metric", name)) for name in ("ssim", "psnr")]

@@ -19,7 +19,7 @@ from typing import Any
 from pydantic import Field
 
 from vqtouch.core import ConfigError, Section, StageJob, StageUnavailable, hookimpl, resolve_device
-from vqtouch.core.data import DatasetSubset, split_dataset
+from vqtouch.core.data import DatasetSubset, experiment_split
 
 from .bundle import Bundle, bundle_folder, load_bundle
 
@@ -79,7 +79,7 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
     bundle = load_bundle(section.bundle, job.host, device=device, root=folder.parent)
     check_compatible(bundle, config)
     dataset = job.assembly.component("data.dataset")
-    train_set, val_set = split_dataset(dataset, config.data.val_fraction, config.seed)
+    train_set, val_set = experiment_split(dataset, config.data, config.seed)
     if len(val_set) == 0:
         raise StageUnavailable(f"no held-out samples to score (data.val_fraction={config.data.val_fraction:g})")
     metrics = list(zip((item.name for item in config.metrics), job.assembly.build_slots(["metrics"]).get("metrics", [])))

@@ -15,10 +15,11 @@ from typing import Any
 import torch
 
 from vqtouch.core import Assembly, ConfigError, MetricSet, RunDir, hookimpl, run_stage
-from vqtouch.core.config import parse_override
 from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group, plugin_block,
-                              stage_failure, training_run)
-from vqtouch.core.data import split_dataset
+                              positive_int, stage_failure, training_run)
+from vqtouch.core.config import parse_override, resolve_config
+from vqtouch.core.experiments import DEFAULT_SEEDS
+from vqtouch.core.data import experiment_split
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
 
@@ -95,6 +96,10 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
 
 def _evaluate_command(args: argparse.Namespace) -> int:
     host = args.host
+    if args.out:
+        return _reconstruction_experiment_command(args)
+    if args.overrides or args.config:
+        raise ConfigError("--set and --config shape the experiment (--out); with --run the run's own config is used")
     run = RunDir.open(args.run)
     config = run.load_config(host)
     tokenizer, folder = load_tokenizer(run, host, args.step)
@@ -105,7 +110,7 @@ def _evaluate_command(args: argparse.Namespace) -> int:
         evaluated = assembly.dataset(plugin_block(args.dataset, "--dataset"))
     else:
         dataset = assembly.component("data.dataset")
-        _, val_set = split_dataset(dataset, config.data.val_fraction, config.seed)
+        _, val_set = experiment_split(dataset, config.data, config.seed)
         evaluated = dataset if args.split == "all" else val_set
     names = args.metrics.split(",") if args.metrics else [m.name for m in config.metrics]
     metrics = {name: assembly.build("metric", name) for name in names}
@@ -116,6 +121,26 @@ def _evaluate_command(args: argparse.Namespace) -> int:
     suffix = "_dataset" if args.dataset else ""
     run.write_json(f"evaluation_{folder.name}{suffix}.json", result)
     print(json.dumps(result, indent=2))
+    return 0
+
+
+def _reconstruction_experiment_command(args: argparse.Namespace) -> int:
+    from .experiment import evaluate_reconstruction_experiment
+
+    if args.step is not None or args.dataset or args.metrics or args.split != "val":
+        raise ConfigError("--step, --split, --metrics and --dataset score one run (--run); the experiment (--out) "
+                          "trains its own runs and scores them with the scene's metrics")
+    config = resolve_config(args.scene, args.config, args.overrides, host=args.host)
+    held_out = args.held_out
+    if held_out is None and config.data.dataset is not None and "num_samples" in type(config.data.dataset).model_fields:
+        held_out = 200
+    out = Path(args.out)
+    evaluate_reconstruction_experiment(config, args.host, out, seeds=args.seeds, samples=args.samples,
+                                       models=args.models, mae_ratios=args.mae_ratios, held_out=held_out,
+                                       distribution=args.distribution, overwrite=args.overwrite,
+                                       report=lambda line: print(line, flush=True))
+    print((out / "reconstruction.md").read_text())
+    print(f"-> {out} (reconstruction.json, reconstruction.md, reconstruction.png, reconstruction_samples.png, runs/)")
     return 0
 
 
@@ -143,8 +168,30 @@ def vqtouch_add_commands(subparsers):
     reconstruct.set_defaults(handler=_reconstruct_command)
 
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
-    recon = evaluate.add_parser("reconstruction", help="the paper's Table 1 metrics on the held-out split")
-    recon.add_argument("--run", required=True, help="run directory of a trained tokenizer")
+    recon = evaluate.add_parser("reconstruction", help="score a trained tokenizer on the held-out split; with --out, "
+                                                       "the experiment: reconstruction against training-set size "
+                                                       "for each model over seeds (Table 1: JSON, markdown, PNG)")
+    mode = recon.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--run", help="run directory of a trained tokenizer: score it")
+    mode.add_argument("--out", help="run the experiment into this folder: train every model of --models and "
+                                    "--mae-ratios on each --samples count of the scene's data, per seed")
+    recon.add_argument("--seeds", type=int, nargs="+", default=list(DEFAULT_SEEDS),
+                       help="with --out: seeds (split, sample draw, initialisation; default 0 1 2)")
+    recon.add_argument("--samples", type=positive_int, nargs="+", default=[100, 1000, 10000],
+                       help="with --out: training-set sizes (default 100 1000 10000; the same steps for each)")
+    recon.add_argument("--models", nargs="*", default=["vqgan", "dm_vqgan"],
+                       help="with --out: autoencoder plugins swapped into the scene's tokenizer (default vqgan "
+                            "dm_vqgan)")
+    recon.add_argument("--mae-ratios", type=float, nargs="*", default=[0.25, 0.5, 0.75],
+                       help="with --out: mask ratios of the MAE baseline (default 0.25 0.5 0.75; none: leave it out)")
+    recon.add_argument("--held-out", type=positive_int,
+                       help="with --out: held-out procedural samples (default 200; a reader's dataset holds out "
+                            "data.val_fraction of its groups instead)")
+    recon.add_argument("--distribution", action=argparse.BooleanOptionalAction, default=True,
+                       help="with --out: also score fd_effnetlite0 (default: on)")
+    recon.add_argument("--overwrite", action="store_true",
+                       help="with --out: write the result again (finished runs with an unchanged config are reused)")
+    add_config_arguments(recon, default_scene="reconstruction")
     add_step_argument(recon)
     recon.add_argument("--split", choices=["val", "all"], default="val", help="held-out split or all samples")
     recon.add_argument("--metrics", help="comma-separated metric plugins (default: the run's metrics)")

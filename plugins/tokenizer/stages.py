@@ -15,7 +15,7 @@ from typing import Any
 import torch
 
 from vqtouch.core import MetricSet, RunDir, StageJob, StageUnavailable, hookimpl, load, resolve_device
-from vqtouch.core.data import split_dataset
+from vqtouch.core.data import experiment_split
 from vqtouch.core.errors import NothingToEvaluateError
 from vqtouch.core.image_size import image_hw
 from vqtouch.core.images import image_grid, save_png
@@ -59,7 +59,7 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
     config, section, assembly = job.config, job.section, job.assembly
     device = resolve_device(config.device)
     dataset = assembly.component("data.dataset")
-    train_set, val_set = split_dataset(dataset, config.data.val_fraction, config.seed)
+    train_set, val_set = experiment_split(dataset, config.data, config.seed)
     tokenizer = Tokenizer(assembly.component("tokenizer.autoencoder"), assembly.component("tokenizer.quantizer"))
     discriminator = None
     if section.discriminator is not None and section.loss.adversarial_weight > 0:
