@@ -161,25 +161,37 @@ def family_images(families: SensorFamilies, family: int, host: Any, *, count: in
 
 
 def reconstruction_scores(tokenizer: Any, images_N3HW: torch.Tensor, host: Any, batch_size: int = 32,
-                          metrics: tuple[str, ...] = ("ssim", "psnr")) -> dict[str, Any]:
+                          metrics: tuple[str, ...] = ("ssim", "psnr"),
+                          background_3HW: torch.Tensor | None = None) -> dict[str, Any]:
     """The ``metrics`` (plugin names), codebook usage and codes used of ``tokenizer`` reconstructing
-    ``images_N3HW`` (on the tokenizer's device)."""
+    ``images_N3HW`` (on the tokenizer's device).
+
+    Given the sensor's no-contact image ``background_3HW``, also that image's scores against the
+    same images (``background_<metric>``: what a tokenizer that draws only the background gets)
+    and both on the contact region (``contact_*``, ``background_contact_*``, ``contact_fraction``;
+    :func:`~vqtouch.plugins.tokenizer.training.evaluate_reconstruction`).
+    """
     from vqtouch.plugins.tokenizer.training import evaluate_reconstruction
 
     built = {name: host.build("metric", {"name": name}) for name in metrics}
     scores = evaluate_reconstruction(tokenizer, ImageSet(images_N3HW), built, batch_size=batch_size,
-                                     device=tokenizer.device)
+                                     device=tokenizer.device, background_3HW=background_3HW)
+    kept = (*metrics, "codebook_usage", "codes_used", "samples", "skipped")
+    # The background and contact-region entries exist only when a background was given.
+    compared = ("background_", "contact_")
     return {key: (round(value, 4) if isinstance(value, float) else value) for key, value in scores.items()
-            if key in (*metrics, "codebook_usage", "codes_used", "samples", "skipped")}
+            if key in kept or key.startswith(compared)}
 
 
 def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, host: Any, out: Path,
                     settings: AdaptSettings, *, step: int | str | None = None, overwrite: bool = False,
-                    report: Any = print) -> dict[str, Any]:
+                    report: Any = print, background_3HW: torch.Tensor | None = None) -> dict[str, Any]:
     """Adapt the tokenizer of ``run_or_folder`` to the unseen sensor ``target`` (see the module
     docstring); writes the adapted tokenizer, ``adapt.json`` and ``before_after.png`` into ``out``
     and returns the summary.  Raises :class:`AdaptationRefused` when the sensor matches no family
-    (unless ``settings.family`` names one) or its images hold no contact."""
+    (unless ``settings.family`` names one) or its images hold no contact.  Given the sensor's
+    no-contact image ``background_3HW``, the held-out scores before and after carry the
+    background's and the contact region's (:func:`reconstruction_scores`)."""
     from vqtouch.core import atomic_write, resolve_device, save
     from vqtouch.core.images import image_grid, save_png
     from vqtouch.core.training import Trainer
@@ -239,7 +251,7 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
     if len(mixed_set) < batch_size:
         batch_size = len(mixed_set)  # a handful of shots still trains (one batch = every image)
 
-    before = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics)
+    before = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics, background_3HW)
     # Held-out family images (new scenes): what the adaptation keeps of the family, or forgets.
     family_held_out, _ = family_images(families, family, host, count=settings.eval_images, image_size=image_size,
                                        seed=settings.seed + 77_777, exclude=source)
@@ -258,7 +270,7 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
     trainer.fit()
     seconds = time.perf_counter() - tic
     tokenizer.eval()
-    after = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics)
+    after = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics, background_3HW)
     family_after = reconstruction_scores(tokenizer, family_held_out, host, batch_size)
     after_images = reconstruct_all(tokenizer, held_out_M[:8].to(device)).cpu()
 

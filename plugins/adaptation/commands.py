@@ -1,4 +1,5 @@
-"""The cross-sensor commands: ``vqtouch cluster``, ``vqtouch adapt`` and ``vqtouch evaluate cross-sensor``.
+"""The cross-sensor commands: ``vqtouch cluster``, ``vqtouch adapt``, ``vqtouch evaluate cross-sensor`` and
+``vqtouch evaluate fewshot``.
 
 ::
 
@@ -6,13 +7,14 @@
         path/to/real_sensor_frames --out DIR [--images 64] [--features pooled|codes] [--clusterer kmeans]
     vqtouch adapt --run TOKRUN --images DIR_OR_SPEC --shots 50 --ratio 5 --out OUT [--families DIR]
     vqtouch evaluate cross-sensor --run TOKRUN --out DIR
+    vqtouch evaluate fewshot --run TOKRUN --out DIR [--target SPEC] [--n 500 2000] [--ratio 5]
 
 ``cluster`` writes ``DIR/cluster.json`` (families, members, prototypes, the family distance
 matrix, each sensor's distance to every family, and with ``--unseen SPEC ...`` where each unseen
 sensor is assigned, or why it is refused), ``DIR/clusterer.safetensors`` and ``DIR/families.png``
 (a 2-D PCA embedding of every image's features with the sensors' prototypes); see
 :mod:`.families`.  ``adapt`` writes an adapted tokenizer (:mod:`.adapt`); ``evaluate
-cross-sensor`` the experiment of :mod:`.evaluation`.
+cross-sensor`` the experiment of :mod:`.evaluation`, ``evaluate fewshot`` that of :mod:`.fewshot`.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from pathlib import Path
 
 from vqtouch.core import ConfigError, hookimpl
 from vqtouch.core.cli import add_step_argument, non_negative_int, positive_int
+from vqtouch.core.experiments import add_experiment_arguments
 from vqtouch.core.image_size import image_size_argument
 
 
@@ -140,6 +143,18 @@ def _evaluate_cross_sensor_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def _evaluate_fewshot_command(args: argparse.Namespace) -> int:
+    from .fewshot import evaluate_fewshot
+
+    out = Path(args.out)
+    evaluate_fewshot(args.run, args.host, out, target=args.target, seeds=args.seeds, counts=args.n, ratio=args.ratio,
+                     steps=args.steps, scratch_steps=args.scratch_steps, eval_images=args.eval_images,
+                     families=args.families, overwrite=args.overwrite, report=lambda line: print(line, flush=True))
+    print((out / "fewshot.md").read_text())
+    print(f"-> {out} (fewshot.json, fewshot.md, fewshot.png; the trained arms' tokenizers in seed<S>/<arm>-<N>/)")
+    return 0
+
+
 @hookimpl
 def vqtouch_add_commands(subparsers):
     cluster = subparsers.add_parser("cluster", help="group sensors into families from a trained tokenizer's features")
@@ -221,3 +236,26 @@ def vqtouch_add_commands(subparsers):
     cross.add_argument("--real-shots", type=positive_int, nargs="+", default=[4, 8, 16],
                        help="shots from the real frames (default 4 8 16; the rest are held out)")
     cross.set_defaults(handler=_evaluate_cross_sensor_command)
+
+    fewshot = evaluate.add_parser("fewshot", help="few-shot reconstruction of an unseen sensor from N of its images "
+                                                  "(Table 4): from scratch, zero-shot, fine-tuned on the N alone, "
+                                                  "mixed 1:ratio with family data (JSON, markdown, PNG)")
+    fewshot.add_argument("--run", required=True, help="the family tokenizer's run (its config trains the scratch arm)")
+    add_experiment_arguments(fewshot)
+    fewshot.add_argument("--target", default=json.dumps(GELSIGHT_DERIVATIVE_II),
+                         help="the unseen sensor: a registered sensor (name or JSON variant) or a folder of its "
+                              "images (default: the zero-shot scene's damaged, drifted GelSight)")
+    fewshot.add_argument("--n", type=positive_int, nargs="+", default=[500, 2000], metavar="N",
+                         help="unseen-sensor images each arm learns from (default 500 2000)")
+    fewshot.add_argument("--ratio", type=_non_negative_float, default=5.0,
+                         help="family images per target image in the mixed arm (default 5: the paper's 1:5)")
+    fewshot.add_argument("--steps", type=positive_int, default=200,
+                         help="fine-tuning steps of the shots-alone and mixed arms (default 200)")
+    fewshot.add_argument("--scratch-steps", type=positive_int,
+                         help="training steps of the scratch arm (default: the run's tokenizer.train.steps)")
+    fewshot.add_argument("--eval-images", type=positive_int, default=64,
+                         help="held-out unseen-sensor images every arm is scored on (default 64)")
+    fewshot.add_argument("--families", help="a `vqtouch cluster` output of this tokenizer (default: cluster the "
+                                            "registered sensor families and 3 variants of each into OUT/families)")
+    fewshot.add_argument("--overwrite", action="store_true", help="run again into an --out that holds fewshot.json")
+    fewshot.set_defaults(handler=_evaluate_fewshot_command)

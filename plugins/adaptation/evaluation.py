@@ -118,37 +118,61 @@ def transfer_arms(run: Any, target: str, families: SensorFamilies, host: Any, ou
     return rows
 
 
-def scratch_cost(run: Any, target: str, families: SensorFamilies, host: Any, *, seed: int, everything: int,
-                 eval_images: int, family: int) -> dict[str, Any]:
-    """Train a fresh tokenizer (the run's config and steps) on everything; its wall time and scores."""
-    from vqtouch.core import Assembly, RunDir, resolve_device
+def train_fresh_tokenizer(run: Any, images_N3HW: torch.Tensor, host: Any, *, seed: int, steps: int | None = None,
+                          out: Path | None = None,
+                          metadata: dict[str, str] | None = None) -> tuple[Any, dict[str, Any]]:
+    """A fresh tokenizer built from the run's config and trained with its objective and batch size
+    on ``images_N3HW`` alone, for ``steps`` (default: the run's ``tokenizer.train.steps``): the
+    baseline an adaptation is measured against.  Saved into ``out`` (autoencoder and quantizer,
+    ``metadata`` in their headers) when given.  Returns the tokenizer, in eval mode, and
+    ``{"steps", "seconds", "train_images", "batch_size"}``."""
+    from vqtouch.core import Assembly, RunDir, resolve_device, save
     from vqtouch.core.training import Trainer
-    from vqtouch.plugins.tokenizer.stages import tokenizer_task
+    from vqtouch.plugins.tokenizer.stages import TOKENIZER_FILES, tokenizer_task
     from vqtouch.plugins.tokenizer.training import Tokenizer
 
     config = RunDir.open(run).load_config(host)
+    assembly = Assembly(config, host)
+    section = config.tokenizer
+    # ``seed`` draws the initial weights too (repeatable; the seeds' spread covers them), leaving the
+    # caller's random state as it was.
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        tokenizer = Tokenizer(assembly.component("tokenizer.autoencoder"), assembly.component("tokenizer.quantizer"))
+        discriminator = (assembly.component("tokenizer.discriminator")
+                         if section.discriminator is not None and section.loss.adversarial_weight > 0 else None)
+    device = resolve_device(config.device)
+    steps = section.train.steps if steps is None else steps
+    # A set smaller than the run's batch still trains (few-shot arms): one batch then holds every image.
+    batch_size = min(config.data.batch_size, len(images_N3HW))
+    trainer = Trainer(tokenizer_task(tokenizer, section.loss, device, discriminator), ImageSet(images_N3HW),
+                      section.train.model_copy(update={"steps": steps, "keep_best": False}), batch_size=batch_size,
+                      seed=seed, device=device, checkpoint_dir=None, host=host, stage="scratch")
+    tic = time.perf_counter()
+    trainer.fit()
+    seconds = time.perf_counter() - tic
+    tokenizer.eval()
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        for file, module in zip(TOKENIZER_FILES, (tokenizer.autoencoder, tokenizer.quantizer)):
+            save(module, out / file, step=steps, host=host, metadata=metadata)
+    return tokenizer, {"steps": steps, "seconds": round(seconds, 2), "train_images": len(images_N3HW),
+                       "batch_size": batch_size}
+
+
+def scratch_cost(run: Any, target: str, families: SensorFamilies, host: Any, *, seed: int, everything: int,
+                 eval_images: int, family: int) -> dict[str, Any]:
+    """Train a fresh tokenizer (the run's config and steps) on everything; its wall time and scores."""
     image_size = families.summary["image_size"]
     _, source, target_N, held_out = target_images(target, host, shots=everything, eval_images=eval_images,
                                                   image_size=image_size, seed=seed)
     family_N, _ = family_images(families, family, host, count=everything, image_size=image_size, seed=seed,
                                 exclude=source)
-    assembly = Assembly(config, host)
-    tokenizer = Tokenizer(assembly.component("tokenizer.autoencoder"), assembly.component("tokenizer.quantizer"))
-    section = config.tokenizer
-    discriminator = (assembly.component("tokenizer.discriminator")
-                     if section.discriminator is not None and section.loss.adversarial_weight > 0 else None)
-    device = resolve_device(config.device)
-    trainer = Trainer(tokenizer_task(tokenizer, section.loss, device, discriminator),
-                      ImageSet(torch.cat([target_N, family_N])), section.train.model_copy(update={"keep_best": False}),
-                      batch_size=config.data.batch_size, seed=seed, device=device, checkpoint_dir=None, host=host,
-                      stage="scratch")
-    tic = time.perf_counter()
-    trainer.fit()
-    seconds = time.perf_counter() - tic
-    scores = reconstruction_scores(tokenizer.eval(), held_out, host, metrics=METRICS)
+    tokenizer, trained = train_fresh_tokenizer(run, torch.cat([target_N, family_N]), host, seed=seed)
+    scores = reconstruction_scores(tokenizer, held_out, host, metrics=METRICS)
     return {"arm": "fresh tokenizer on everything", "shots": everything, "ratio": 1.0, "held_out": len(held_out),
             **{key: scores.get(key) for key in METRICS}, "codebook_usage": scores.get("codebook_usage"),
-            "steps": section.train.steps, "seconds": round(seconds, 2)}
+            "steps": trained["steps"], "seconds": trained["seconds"]}
 
 
 def plot_transfer(transfer: list[dict[str, Any]], path: Path, title: str) -> None:

@@ -1,0 +1,367 @@
+"""``vqtouch evaluate fewshot --run FAMILY_RUN --out DIR``: the paper's Table 4, few-shot reconstruction
+of an unseen sensor from N of its images.
+
+::
+
+    vqtouch evaluate fewshot --run runs/tok --out runs/exp/fewshot [--target SPEC] [--n 500 2000] [--ratio 5] \\
+        [--steps 200] [--scratch-steps S] [--eval-images 64] [--families DIR] [--seeds 0 1 2] [--overwrite]
+
+The unseen sensor (``--target``: by default the zero-shot scene's damaged, drifted GelSight; any
+registered sensor, a variant as JSON, or a folder of a real sensor's images) gives N images per
+seed (the shots: rendered scenes, or a seeded draw from the folder), and four arms learn from them:
+
+1. ``scratch``: a fresh tokenizer with the family run's config, trained on the N images alone for
+   ``--scratch-steps`` (default: the run's own ``tokenizer.train.steps``);
+2. ``zero-shot``: the family tokenizer unchanged (scored once per seed; it does not depend on N,
+   and the table repeats it under every N);
+3. ``shots alone``: the family tokenizer fine-tuned ``--steps`` on the N images (``vqtouch adapt``
+   with ratio 0);
+4. ``mixed 1:5``: the family tokenizer fine-tuned ``--steps`` on the N images plus ``--ratio`` times
+   as many images of its family's members (VQ-Touch's mix, ``vqtouch adapt``).
+
+Every arm of a seed is scored on the same held-out images of the sensor (``--eval-images``; for a
+folder, the same last images of the seed's shuffle, so the largest N must leave at least one):
+SSIM, PSNR, ``fd_effnetlite0`` (listed as skipped with the reason where it cannot run), codebook
+usage, and next to them the same scores of the sensor's **no-contact background** (a registered
+sensor rendering no contact; for a folder, the per-pixel median of its images) and the
+**contact-region** scores (contact PSNR/SSIM/MAE on the pixels where the held-out image differs
+from that background).  The sensor is assigned to a family once per seed from the smallest N's
+shots; every fine-tuned arm of the seed adapts from that family (its nearest one, said so, when
+the assignment is refused).  Families come from ``--families`` (a ``vqtouch cluster`` output of
+this tokenizer) or are clustered once from every registered sensor family and 3 variants of each
+(written to ``DIR/families``), as ``vqtouch adapt`` does.
+
+Writes ``fewshot.json`` (every arm x N x seed row, mean ± std over the seeds, the assignments,
+provenance), ``fewshot.md`` (one table grouped by N and arm with a ``no-contact background`` row
+per N, and verdicts that compare the mixed arm with every other on the contact PSNR only, when the
+gap exceeds both spreads), ``fewshot.png`` (contact PSNR and SSIM against N per arm, the
+background as a line) and every trained arm's tokenizer in ``DIR/seed<S>/<arm>-<N>/`` (``scratch``,
+``shots``, ``mixed``; ``vqtouch adapt``'s ``adapt.json`` beside the fine-tuned ones).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import torch
+
+from vqtouch.core import ConfigError
+from vqtouch.core.experiments import ExperimentRecord, check_seeds, gap_verdict, markdown_table, mean_spread
+from vqtouch.core.image_size import ImageSize, image_hw, size_text
+from vqtouch.core.report_html import direction_arrow
+
+from .adapt import (AdaptSettings, adapt_tokenizer, check_same_tokenizer, default_families, reconstruction_scores,
+                    target_images)
+from .evaluation import METRICS, train_fresh_tokenizer
+from .families import SensorFamilies, folder_of, load_families, save_families, sensor_images
+
+SCRATCH, ZERO_SHOT, SHOTS_ALONE, BACKGROUND = "scratch", "zero-shot", "shots alone", "no-contact background"
+#: The held-out scores every arm carries, and its background's under the ``background_`` prefix.
+SCORES = ("ssim", "psnr", "contact_ssim", "contact_psnr", "contact_mae", "fd_effnetlite0")
+#: What the table shows per (N, arm), in order.
+TABLE_COLUMNS = ("train_images", "ssim", "psnr", "contact_ssim", "contact_psnr", "fd_effnetlite0", "codebook_usage",
+                 "seconds")
+#: Numbers of a row averaged over the seeds (the table's and the JSON's).
+SUMMARY_KEYS = (*TABLE_COLUMNS, "contact_mae", "family_images", "family_ssim", "family_psnr",
+                *(f"background_{key}" for key in SCORES), "contact_fraction")
+#: A folder's no-contact background is the median of at most this many of its images (evenly spaced).
+MAX_BACKGROUND_IMAGES = 256
+#: The verdicts compare on this contact-region score only (whole-image scores flatter the background).
+VERDICT_KEY = "contact_psnr"
+
+
+def mixed_arm(ratio: float) -> str:
+    """The mixed arm's name: ``mixed 1:5`` for ratio 5."""
+    return f"mixed 1:{ratio:g}"
+
+
+def check_counts(counts: Sequence[int]) -> list[int]:
+    """``counts`` (the N) ascending, refusing an empty list, a repeat or a count below 1."""
+    counts = list(counts)
+    if not counts or min(counts) < 1:
+        raise ConfigError(f"--n {' '.join(map(str, counts))}: give one or more image counts of at least 1")
+    if len(set(counts)) != len(counts):
+        raise ConfigError(f"--n {' '.join(map(str, counts))} repeats a count; give distinct counts")
+    return sorted(counts)
+
+
+def held_out_count(target: str, counts: Sequence[int], eval_images: int) -> int:
+    """How many held-out images score every arm: ``eval_images``, or for a folder as many as the
+    largest N leaves (its shuffle's last ones are held out; every N must leave the same ones).
+    A one-line ConfigError when the folder cannot spare the largest N plus one held-out image."""
+    from vqtouch.plugins.data.readers._io import list_images
+
+    path = folder_of(target)
+    if path is None:
+        return eval_images
+    images = len(list_images(path))
+    if max(counts) + 1 > images:
+        usable = f"the largest usable --n is {images - 1}" if images > 1 else "few-shot needs at least 2 images"
+        raise ConfigError(f"--n {max(counts)}: the folder {path} holds {images} images; {usable} (the rest are held "
+                          "out to score every arm)")
+    return min(eval_images, images - max(counts))
+
+
+def sensor_background(target: str, host: Any, image_size: ImageSize) -> tuple[torch.Tensor, str]:
+    """The unseen sensor's no-contact image (3, H, W) and how it was made: a registered sensor (name
+    or JSON variant) rendering no contact; for a folder, which holds no such frame, the per-pixel
+    median of its images (at most :data:`MAX_BACKGROUND_IMAGES`, evenly spaced: contacts move
+    around, the background stays; the estimate :func:`.adapt.contact_fraction` uses)."""
+    from vqtouch.plugins.data.readers._io import list_images
+    from vqtouch.plugins.evaluation.contact import no_contact_image
+
+    path = folder_of(target)
+    if path is None:
+        source = sensor_images(target, host, count=1, image_size=image_size).source  # checks the spec too
+        sensor = host.build("sensor_family", json.loads(source))
+        background = no_contact_image(sensor, torch.zeros(1, 3, *image_hw(image_size)))[0]
+        return background, "the sensor's rendering of no contact"
+    files = list_images(path)
+    count = min(len(files), MAX_BACKGROUND_IMAGES)
+    chosen = [files[round(i * (len(files) - 1) / max(1, count - 1))] for i in range(count)]
+    images = sensor_images(str(path), host, count=len(chosen), image_size=image_size, files=chosen).images
+    return images.median(dim=0).values, (f"the per-pixel median of {len(chosen)} of the folder's {len(files)} "
+                                         "images (the folder holds no no-contact frame)")
+
+
+def _families(families: str | Path | None, tokenizer: Any, folder: Path, target: str, host: Any, out: Path,
+              image_size: ImageSize) -> tuple[SensorFamilies, str]:
+    """The families the fine-tuned arms mix from and where they came from: ``families`` (a cluster
+    output of this tokenizer), or the registered sensor families and 3 variants of each clustered
+    once (written to ``out/families`` and read back, so no arm writes them again)."""
+    from .commands import _canonical_spec
+
+    if families:
+        loaded = load_families(families, host)
+        check_same_tokenizer(loaded, folder, f"the families in {families}")
+        return loaded, str(families)
+    exclude = "" if folder_of(target) is not None else _canonical_spec(target.strip())
+    fitted = default_families(tokenizer, host, image_size=image_size, tokenizer_source=str(folder), exclude=exclude,
+                              report=lambda line: None)
+    save_families(fitted, out / "families", host)
+    return load_families(out / "families", host), f"{out / 'families'} (registered sensor families, 3 variants each)"
+
+
+def _scores(scores: dict[str, Any]) -> dict[str, Any]:
+    """One arm's held-out scores as a row's columns (the background's keep their prefix)."""
+    keys = (*SCORES, "codebook_usage", "contact_fraction", *(f"background_{key}" for key in SCORES))
+    return {key: scores[key] for key in keys if key in scores}
+
+
+def _adapted_row(n: int, arm: str, seed: int, summary: dict[str, Any]) -> dict[str, Any]:
+    """A fine-tuned arm's row from its ``adapt.json`` summary."""
+    family = summary["family_held_out"]["after"]
+    return {"n": n, "arm": arm, "seed": seed, "train_images": summary["shots"] + summary["family_images"],
+            "family_images": summary["family_images"], "steps": summary["steps"], "held_out": summary["held_out"],
+            **_scores(summary["after"]), "family_ssim": family["ssim"], "family_psnr": family["psnr"],
+            "seconds": summary["seconds"]}
+
+
+def _background_row(n: int, seed: int, scores: dict[str, Any]) -> dict[str, Any]:
+    """The no-contact background's row: its ``background_*`` scores without the prefix, beside the arms'."""
+    return {"n": n, "arm": BACKGROUND, "seed": seed, "train_images": 0, "held_out": scores["samples"],
+            **{key: scores[f"background_{key}"] for key in SCORES if f"background_{key}" in scores},
+            "contact_fraction": scores.get("contact_fraction")}
+
+
+def seed_arms(run: Any, target: str, families: SensorFamilies, family: int, host: Any, out: Path, *, seed: int,
+              counts: Sequence[int], ratio: float, steps: int, scratch_steps: int, held_out: int, batch_size: int,
+              background_3HW: torch.Tensor, image_size: ImageSize,
+              report: Callable[[str], None] = print) -> tuple[list[dict[str, Any]], dict[str, str]]:
+    """One seed's rows: at every N the four arms and the background, in the table's order, and the
+    metrics skipped with their reasons.  Every arm scores the same ``held_out`` images in batches of
+    ``batch_size`` (the fine-tuning batch too)."""
+    rows: list[dict[str, Any]] = []
+    skipped: dict[str, str] = {}
+    zero_shot = None
+    for n in counts:
+        summaries = {}
+        for arm, arm_ratio, name in ((SHOTS_ALONE, 0.0, "shots"), (mixed_arm(ratio), ratio, "mixed")):
+            settings = AdaptSettings(shots=n, ratio=arm_ratio, steps=steps, eval_images=held_out, seed=seed,
+                                     family=family, batch_size=batch_size, metrics=METRICS)
+            summaries[arm] = adapt_tokenizer(run, target, families, host, out / f"seed{seed}" / f"{name}-{n}", settings,
+                                             overwrite=True, report=lambda line: None, background_3HW=background_3HW)
+        # The family tokenizer before any fine-tuning, on the same held-out images: the zero-shot arm.
+        zero_shot = zero_shot or summaries[SHOTS_ALONE]["before"]
+        _, source, shots_N, held_out_M = target_images(target, host, shots=n, eval_images=held_out,
+                                                       image_size=image_size, seed=seed)
+        metadata = {"fewshot.arm": SCRATCH, "fewshot.target": source, "fewshot.train_images": str(n)}
+        tokenizer, trained = train_fresh_tokenizer(run, shots_N, host, seed=seed, steps=scratch_steps,
+                                                   out=out / f"seed{seed}" / f"{SCRATCH}-{n}", metadata=metadata)
+        scratch = reconstruction_scores(tokenizer, held_out_M, host, batch_size, METRICS, background_3HW)
+        rows.append({"n": n, "arm": SCRATCH, "seed": seed, "train_images": trained["train_images"],
+                     "family_images": 0, "steps": trained["steps"], "held_out": len(held_out_M), **_scores(scratch),
+                     "seconds": trained["seconds"]})
+        rows.append({"n": n, "arm": ZERO_SHOT, "seed": seed, "train_images": 0, "family_images": 0, "steps": 0,
+                     "held_out": zero_shot["samples"], **_scores(zero_shot), "seconds": 0.0})
+        rows += [_adapted_row(n, arm, seed, summary) for arm, summary in summaries.items()]
+        rows.append(_background_row(n, seed, zero_shot))
+        for scores in (scratch, zero_shot, *(summary["after"] for summary in summaries.values())):
+            skipped |= scores.get("skipped") or {}
+        report(f"seed {seed}, N {n}: contact PSNR " + ", ".join(
+            f"{row['arm']} {row.get(VERDICT_KEY, '-')}" for row in rows if row["n"] == n))
+    return rows, skipped
+
+
+def evaluate_fewshot(run: str | Path, host: Any, out: str | Path, *, target: str, seeds: Sequence[int],
+                     counts: Sequence[int] = (500, 2000), ratio: float = 5.0, steps: int = 200,
+                     scratch_steps: int | None = None, eval_images: int = 64, families: str | Path | None = None,
+                     overwrite: bool = False, report: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run the experiment of the module docstring and write its files into ``out``.
+
+    ``run``: the family tokenizer's run (its config builds the scratch arm); ``target``: the unseen
+    sensor (registered name, JSON variant or folder); ``counts``: the N; ``ratio``: family images per
+    target image of the mixed arm; ``steps``: fine-tuning steps; ``scratch_steps``: the scratch arm's
+    (default the run's ``tokenizer.train.steps``); ``eval_images``: held-out images (fewer when a
+    folder cannot spare them); ``families``: a ``vqtouch cluster`` folder (default: clustered here).
+    Every bad input is refused with a one-line ConfigError before anything trains.  Returns what
+    ``fewshot.json`` holds."""
+    from vqtouch.core import RunDir
+    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+
+    out = Path(out)
+    if (out / "fewshot.json").is_file() and not overwrite:
+        raise ConfigError(f"{out} already holds a fewshot experiment; pass --overwrite to run it again, or choose "
+                          "another --out")
+    seeds = check_seeds(seeds)
+    counts = check_counts(counts)
+    if not (ratio > 0 and math.isfinite(ratio)):
+        raise ConfigError(f"--ratio {ratio:g}: the mixed arm needs family images (a finite ratio > 0; the "
+                          "shots-alone arm is ratio 0)")
+    if not (run and (Path(run) / "config.json").is_file()):
+        raise ConfigError(f"--run {run}: not a run directory (no config.json); the scratch arm trains a fresh "
+                          "tokenizer with the run's config, so give the family tokenizer's run")
+    config = RunDir.open(run).load_config(host)
+    scratch_steps = scratch_steps or config.tokenizer.train.steps
+    tokenizer, folder = load_tokenizer(run, host)
+    image_size = tokenizer.autoencoder.vqtouch_spec.context.image_size
+    held_out = held_out_count(target, counts, eval_images)  # before anything trains or renders
+    # One scoring batch for every arm: the contact region's noise estimate is made per batch, so the
+    # arms' regions (and the background's scores) are the same pixels only when the batches are.  It
+    # is the run's batch, or the smallest N when that is smaller (the fine-tuning batch then too).
+    batch_size = min(config.data.batch_size, counts[0])
+    background, background_source = sensor_background(target, host, image_size)
+    record = ExperimentRecord("fewshot", out, seeds)
+    fitted, families_source = _families(families, tokenizer, folder, target, host, out, image_size)
+    rows: list[dict[str, Any]] = []
+    skipped: dict[str, str] = {}
+    assignments = []
+    name = source = ""
+    for seed in record.seeds:
+        # One family per seed, from the smallest N's shots (what every arm has): only N changes between the
+        # fine-tuned arms of a seed.
+        name, source, shots_N, _ = target_images(target, host, shots=counts[0], eval_images=held_out,
+                                                 image_size=image_size, seed=seed)
+        assigned, _ = fitted.unseen(tokenizer, name, shots_N)
+        family = assigned["nearest_family"] if assigned["refused"] else assigned["family"]
+        assignments.append({"seed": seed, "family": family, "members": fitted.summary["families"][family],
+                            **{key: assigned[key] for key in ("refused", "nearest_family", "margin", "threshold")}})
+        report(f"seed {seed}: {name} -> family {family} ({', '.join(fitted.summary['families'][family])})"
+               + (", nearest: the assignment was refused" if assigned["refused"] else ""))
+        seed_rows, seed_skipped = seed_arms(run, target, fitted, family, host, out, seed=seed, counts=counts,
+                                            ratio=ratio, steps=steps, scratch_steps=scratch_steps, held_out=held_out,
+                                            batch_size=batch_size, background_3HW=background, image_size=image_size,
+                                            report=report)
+        rows += seed_rows
+        skipped |= seed_skipped
+    summary = mean_spread(rows, SUMMARY_KEYS, ("n", "arm"))
+    result = {"run": str(run), "tokenizer": str(folder), "target": name, "target_source": source,
+              "background": background_source, "image_size": image_size, "counts": counts, "ratio": ratio,
+              "steps": steps, "scratch_steps": scratch_steps, "batch_size": batch_size, "held_out": held_out,
+              "families": families_source,
+              "assignments": assignments, "rows": rows, "summary": summary, "skipped": skipped}
+    plot(summary, counts, record.path("fewshot.png"),
+         f"few-shot reconstruction of {name} ({len(record.seeds)} seeds, {steps} fine-tuning steps)")
+    record.write(result, render_markdown(result))
+    return result
+
+
+def verdict_lines(summary: Sequence[dict[str, Any]], counts: Sequence[int], ratio: float,
+                  key: str = VERDICT_KEY) -> list[str]:
+    """Per N, the mixed arm against every other arm and the background on the contact-region score
+    ``key`` (:func:`vqtouch.core.experiments.gap_verdict`: a gap counts beyond both spreads)."""
+    lines = []
+    mixed = mixed_arm(ratio)
+    for n in counts:
+        rows = {row["arm"]: row for row in summary if row["n"] == n and key in row}
+        if mixed not in rows:
+            continue
+        for arm in (SCRATCH, ZERO_SHOT, SHOTS_ALONE, BACKGROUND):
+            if arm in rows:
+                lines.append(f"- N = {n}: {mixed} {gap_verdict(rows[mixed], rows[arm], key, arm)} on {key}.")
+    return lines
+
+
+def render_markdown(result: dict[str, Any]) -> list[str]:
+    """The table and verdicts of ``fewshot.json`` for people."""
+    mixed = mixed_arm(result["ratio"])
+    fractions = [row["contact_fraction"] for row in result["rows"] if row["arm"] == BACKGROUND
+                 and row.get("contact_fraction") is not None]
+    region = (f"the contact region is {100 * sum(fractions) / len(fractions):.3g}% of their pixels"
+              if fractions else "no contact region was found")
+    refused = [entry["seed"] for entry in result["assignments"] if entry["refused"]]
+    lines = [f"# Few-shot reconstruction of an unseen sensor (Table 4; {len(result['assignments'])} seeds: "
+             "mean ± std)", "",
+             f"Family tokenizer `{result['tokenizer']}`, {size_text(result['image_size'])} px; unseen sensor "
+             f"`{result['target']}`.  At every N: `{SCRATCH}` trains a fresh tokenizer with the run's config on the N "
+             f"images alone ({result['scratch_steps']} steps); `{ZERO_SHOT}` is the family tokenizer unchanged (the "
+             f"same at every N); `{SHOTS_ALONE}` fine-tunes it {result['steps']} steps on the N images; `{mixed}` "
+             f"fine-tunes it {result['steps']} steps on the N images plus {result['ratio']:g} x N images of its "
+             f"family.  Every arm of a seed scores the same {result['held_out']} held-out images of the sensor; "
+             f"{region}.  `{BACKGROUND}`: {result['background']}, scored against the same images.  `contact_*`: "
+             "scores on the contact region only; `seconds`: training wall time.  Arrows: "
+             + ", ".join(f"{key} {direction_arrow(key)}" for key in TABLE_COLUMNS[1:-1]) + ".", "",
+             *markdown_table(result["summary"], ("n", "arm"), TABLE_COLUMNS,
+                             {"n": "N", "train_images": "train images"}), "",
+             f"Verdicts ({mixed} against each other arm, on the contact region only; a gap counts when it exceeds "
+             "both spreads):", "",
+             *(verdict_lines(result["summary"], result["counts"], result["ratio"])
+               or ["- no contact-region score to compare"]), "",
+             "Families: " + result["families"] + "; " + "; ".join(
+                 f"seed {entry['seed']}: family {entry['family']} ({', '.join(entry['members'])})"
+                 for entry in result["assignments"]) + "."]
+    if refused:
+        lines += ["", f"The assignment was refused (beyond the threshold) for seed(s) {refused}: those seeds adapt "
+                      "from the nearest family."]
+    if result["skipped"]:
+        lines += ["", "Skipped: " + "; ".join(f"`{name}`: {reason}"
+                                              for name, reason in sorted(result["skipped"].items()))]
+    return lines
+
+
+def plot(summary: Sequence[dict[str, Any]], counts: Sequence[int], path: Path, title: str) -> None:
+    """Contact PSNR and contact SSIM against N per arm (the seeds' spread as error bars), the
+    no-contact background as a dashed line."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    keys = [key for key in ("contact_psnr", "contact_ssim") if any(key in row for row in summary)]
+    figure = Figure(figsize=(5 * max(1, len(keys)), 4), dpi=110)
+    FigureCanvasAgg(figure)
+    arms = list(dict.fromkeys(row["arm"] for row in summary))
+    for panel, key in enumerate(keys):
+        axes = figure.add_subplot(1, len(keys), panel + 1)
+        for arm in arms:
+            points = [(row["n"], row[key], row.get(f"{key}_std", 0.0)) for row in summary
+                      if row["arm"] == arm and key in row]
+            if not points:
+                continue
+            xs, ys, errors = zip(*points)
+            if arm == BACKGROUND:
+                axes.plot(xs, ys, linestyle="--", color="grey", label=arm)
+            else:
+                axes.errorbar(xs, ys, yerr=errors, marker="o", capsize=3, label=arm)
+        axes.set_xscale("log")
+        axes.set_xticks(list(counts), [str(n) for n in counts])
+        axes.minorticks_off()
+        axes.set_xlabel("N: unseen-sensor images")
+        axes.set_ylabel(f"held-out {key} {direction_arrow(key)}")
+        axes.grid(alpha=0.3)
+    if keys:
+        figure.axes[0].legend(fontsize=7)
+    figure.suptitle(title, fontsize=9)
+    figure.tight_layout()
+    figure.savefig(path)
