@@ -111,6 +111,44 @@ def gap_verdict(model: dict[str, Any], rival: dict[str, Any], key: str, rival_na
     return f"is level with {rival_name} (gap {gap:+.3g} within the spread {noise:.2g})"
 
 
+def plot_against_count(summary: Sequence[dict[str, Any]], *, count: str, line: str, keys: Sequence[str], path: Path,
+                       title: str, xlabel: str, dashed: Sequence[str] = ()) -> None:
+    """One panel per score of ``keys`` (those some row has): the score's mean against the row's
+    ``count`` column on a log axis (ticks at the counts), one line per value of the ``line`` column
+    with the seeds' spread as error bars; lines named in ``dashed`` (a no-contact background) grey
+    and dashed.  Saved as a PNG at ``path``."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from .report_html import direction_arrow
+
+    keys = [key for key in keys if any(key in row for row in summary)]
+    counts = sorted({row[count] for row in summary})
+    figure = Figure(figsize=(5 * max(1, len(keys)), 4), dpi=110)
+    FigureCanvasAgg(figure)
+    for panel, key in enumerate(keys):
+        axes = figure.add_subplot(1, len(keys), panel + 1)
+        for name in dict.fromkeys(row[line] for row in summary):
+            points = sorted((row[count], row[key], row.get(f"{key}_std") or 0.0) for row in summary
+                            if row[line] == name and key in row)
+            if not points:
+                continue
+            xs, ys, errors = zip(*points)
+            style = {"linestyle": "--", "color": "grey"} if name in dashed else {"marker": "o"}
+            axes.errorbar(xs, ys, yerr=errors, capsize=3, label=name, **style)
+        axes.set_xscale("log")
+        axes.set_xticks(counts, [str(value) for value in counts])
+        axes.minorticks_off()
+        axes.set_xlabel(xlabel)
+        axes.set_ylabel(f"held-out {key} {direction_arrow(key)}")
+        axes.grid(alpha=0.3)
+    if keys:
+        figure.axes[0].legend(fontsize=7)
+    figure.suptitle(title, fontsize=9)
+    figure.tight_layout()
+    figure.savefig(path)
+
+
 def check_seeds(seeds: Sequence[int]) -> list[int]:
     """``seeds`` as a list, refusing an empty or repeated one (a repeated seed would fake a small spread)."""
     seeds = list(seeds)

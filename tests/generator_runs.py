@@ -19,6 +19,22 @@ TINY = ["tokenizer.autoencoder.channels=16", "tokenizer.autoencoder.norm_groups=
         "generator.num_samples=4", "generator.steps=4"]
 
 
+#: A tiny VQGAN tokenizer run of the reconstruction scene (32 px, 2 steps, no GAN): the family
+#: tokenizer of the cross-sensor and few-shot experiments' tests.
+TINY_TOKENIZER = ["tokenizer.autoencoder.name=vqgan", "tokenizer.autoencoder.channels=16",
+                  "tokenizer.autoencoder.norm_groups=8", "tokenizer.autoencoder.channel_multipliers=[1,2]",
+                  "tokenizer.autoencoder.z_channels=16", "tokenizer.autoencoder.embed_dim=8",
+                  "tokenizer.quantizer.codebook_size=32", "data.image_size=32", "data.batch_size=4",
+                  "data.dataset.num_samples=16", "tokenizer.train.steps=2", "tokenizer.loss.perceptual=none",
+                  "tokenizer.discriminator=null"]
+
+
+def tiny_tokenizer_args(out: Path) -> list[str]:
+    """``vqtouch train tokenizer`` arguments of the :data:`TINY_TOKENIZER` run in ``out``."""
+    return ["--no-progress", "train", "tokenizer", "--scene", "reconstruction", "--out", str(out),
+            *[item for override in TINY_TOKENIZER for item in ("--set", override)]]
+
+
 def train_args(out: Path, *extra: str, scene: str = "label-to-touch", flags: tuple[str, ...] = ()) -> list[str]:
     """``vqtouch train generator`` arguments of a tiny run in ``out``; ``extra`` overrides come last."""
     args = ["--no-progress", "train", "generator", "--scene", scene, "--out", str(out), *flags]

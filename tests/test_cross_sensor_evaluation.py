@@ -7,23 +7,14 @@ import statistics
 
 import pytest
 
+from generator_runs import tiny_tokenizer_args
 from vqtouch.core.cli import main
-
-TINY_TOKENIZER = ["tokenizer.autoencoder.name=vqgan", "tokenizer.autoencoder.channels=16",
-                  "tokenizer.autoencoder.norm_groups=8", "tokenizer.autoencoder.channel_multipliers=[1,2]",
-                  "tokenizer.autoencoder.z_channels=16", "tokenizer.autoencoder.embed_dim=8",
-                  "tokenizer.quantizer.codebook_size=32", "data.image_size=32", "data.batch_size=4",
-                  "data.dataset.num_samples=16", "tokenizer.train.steps=2", "tokenizer.loss.perceptual=none",
-                  "tokenizer.discriminator=null"]
 
 
 @pytest.fixture(scope="module")
 def tokenizer_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("xs") / "tok"
-    args = ["--no-progress", "train", "tokenizer", "--scene", "reconstruction", "--out", str(out)]
-    for override in TINY_TOKENIZER:
-        args += ["--set", override]
-    assert main(args) == 0
+    assert main(tiny_tokenizer_args(out)) == 0
     return out
 
 

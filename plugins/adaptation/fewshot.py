@@ -49,7 +49,8 @@ from typing import Any, Callable, Sequence
 import torch
 
 from vqtouch.core import ConfigError
-from vqtouch.core.experiments import ExperimentRecord, check_seeds, gap_verdict, markdown_table, mean_spread
+from vqtouch.core.experiments import (ExperimentRecord, check_seeds, gap_verdict, markdown_table, mean_spread,
+                                      plot_against_count)
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 from vqtouch.core.report_html import direction_arrow
 
@@ -273,8 +274,10 @@ def evaluate_fewshot(run: str | Path, host: Any, out: str | Path, *, target: str
               "steps": steps, "scratch_steps": scratch_steps, "batch_size": batch_size, "held_out": held_out,
               "families": families_source,
               "assignments": assignments, "rows": rows, "summary": summary, "skipped": skipped}
-    plot(summary, counts, record.path("fewshot.png"),
-         f"few-shot reconstruction of {name} ({len(record.seeds)} seeds, {steps} fine-tuning steps)")
+    plot_against_count(summary, count="n", line="arm", keys=("contact_psnr", "contact_ssim"),
+                       path=record.path("fewshot.png"), xlabel="N: unseen-sensor images", dashed=(BACKGROUND,),
+                       title=f"few-shot reconstruction of {name} ({len(record.seeds)} seeds, {steps} "
+                             "fine-tuning steps)")
     record.write(result, render_markdown(result))
     return result
 
@@ -330,38 +333,3 @@ def render_markdown(result: dict[str, Any]) -> list[str]:
         lines += ["", "Skipped: " + "; ".join(f"`{name}`: {reason}"
                                               for name, reason in sorted(result["skipped"].items()))]
     return lines
-
-
-def plot(summary: Sequence[dict[str, Any]], counts: Sequence[int], path: Path, title: str) -> None:
-    """Contact PSNR and contact SSIM against N per arm (the seeds' spread as error bars), the
-    no-contact background as a dashed line."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    keys = [key for key in ("contact_psnr", "contact_ssim") if any(key in row for row in summary)]
-    figure = Figure(figsize=(5 * max(1, len(keys)), 4), dpi=110)
-    FigureCanvasAgg(figure)
-    arms = list(dict.fromkeys(row["arm"] for row in summary))
-    for panel, key in enumerate(keys):
-        axes = figure.add_subplot(1, len(keys), panel + 1)
-        for arm in arms:
-            points = [(row["n"], row[key], row.get(f"{key}_std", 0.0)) for row in summary
-                      if row["arm"] == arm and key in row]
-            if not points:
-                continue
-            xs, ys, errors = zip(*points)
-            if arm == BACKGROUND:
-                axes.plot(xs, ys, linestyle="--", color="grey", label=arm)
-            else:
-                axes.errorbar(xs, ys, yerr=errors, marker="o", capsize=3, label=arm)
-        axes.set_xscale("log")
-        axes.set_xticks(list(counts), [str(n) for n in counts])
-        axes.minorticks_off()
-        axes.set_xlabel("N: unseen-sensor images")
-        axes.set_ylabel(f"held-out {key} {direction_arrow(key)}")
-        axes.grid(alpha=0.3)
-    if keys:
-        figure.axes[0].legend(fontsize=7)
-    figure.suptitle(title, fontsize=9)
-    figure.tight_layout()
-    figure.savefig(path)

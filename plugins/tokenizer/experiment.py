@@ -46,7 +46,8 @@ from vqtouch.core import Assembly, ConfigError, RunDir, run_stage
 from vqtouch.core.cli import stage_failure
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.data import experiment_split
-from vqtouch.core.experiments import ExperimentRecord, gap_verdict, markdown_table, mean_spread
+from vqtouch.core.experiments import (ExperimentRecord, gap_verdict, markdown_table, mean_spread,
+                                      plot_against_count)
 from vqtouch.core.report_html import direction_arrow, lower_is_better
 
 #: The columns of the table, in order, when some row has them.
@@ -169,38 +170,6 @@ def verdict_lines(summary: list[dict[str, Any]], key: str = "contact_psnr") -> l
     return lines
 
 
-def plot(summary: list[dict[str, Any]], path: Path, title: str) -> None:
-    """Contact PSNR and SSIM against the training-set size, one line per model, the background dashed."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    keys = [key for key in ("contact_psnr", "ssim") if any(key in row for row in summary)]
-    figure = Figure(figsize=(5 * max(1, len(keys)), 4), dpi=110)
-    FigureCanvasAgg(figure)
-    for panel, key in enumerate(keys):
-        axes = figure.add_subplot(1, len(keys), panel + 1)
-        for model in dict.fromkeys(row["model"] for row in summary):
-            points = sorted((row["samples"], row[key], row.get(f"{key}_std", 0.0)) for row in summary
-                            if row["model"] == model and key in row)
-            if not points:
-                continue
-            xs, ys, errors = zip(*points)
-            style = {"linestyle": "--", "color": "grey"} if model == BACKGROUND else {"marker": "o"}
-            axes.errorbar(xs, ys, yerr=errors, capsize=3, label=model, **style)
-        axes.set_xscale("log")
-        sizes = sorted({row["samples"] for row in summary})
-        axes.set_xticks(sizes, [str(size) for size in sizes])
-        axes.minorticks_off()
-        axes.set_xlabel("training samples")
-        axes.set_ylabel(f"held-out {key} {direction_arrow(key)}")
-        axes.grid(alpha=0.3)
-    if keys:
-        figure.axes[0].legend(fontsize=7)
-    figure.suptitle(title, fontsize=9)
-    figure.tight_layout()
-    figure.savefig(path)
-
-
 def sample_grid(folders: list[tuple[str, Path]], config: Any, host: Any, path: Path, count: int = 8) -> None:
     """The first ``count`` held-out images (top row) above each run's reconstructions of them."""
     import torch
@@ -276,8 +245,9 @@ def evaluate_reconstruction_experiment(config: Any, host: Any, out: Path, *, see
              *(verdict_lines(summary) or ["- no contact-region score to compare"])]
     if skipped:
         lines += ["", "Skipped: " + "; ".join(f"`{name}`: {reason}" for name, reason in sorted(skipped.items()))]
-    plot(summary, record.path("reconstruction.png"),
-         f"reconstruction vs training-set size ({len(record.seeds)} seeds, {steps} steps)")
+    plot_against_count(summary, count="samples", line="model", keys=("contact_psnr", "ssim"),
+                       path=record.path("reconstruction.png"), xlabel="training samples", dashed=(BACKGROUND,),
+                       title=f"reconstruction vs training-set size ({len(record.seeds)} seeds, {steps} steps)")
     if first_runs:
         sample_grid(first_runs, first_config, host, record.path("reconstruction_samples.png"))
         lines += ["", f"`reconstruction_samples.png`: held-out images (top row), then the reconstructions of "
