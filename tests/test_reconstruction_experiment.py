@@ -168,7 +168,11 @@ def test_a_second_call_refuses_to_overwrite_and_run_only_flags_are_refused(exper
     assert "already holds a reconstruction experiment; pass --overwrite" in capsys.readouterr().err
     assert main(experiment_args(tmp_path / "x", "--split", "all")) == 2
     assert "--step, --split, --metrics and --dataset score one run (--run)" in capsys.readouterr().err
-    assert not (tmp_path / "x" / "runs").exists()
+    assert not (tmp_path / "x").exists()
+    # A bad option of one model is refused before the experiment makes its folder.
+    assert main(experiment_args(tmp_path / "y", "--mae-ratios", "0.5", "1.5")) == 2
+    assert "tokenizer.autoencoder.mask_ratio: Input should be less than 1 (got 1.5)" in capsys.readouterr().err
+    assert not (tmp_path / "y").exists()
 
 
 def test_a_rerun_reuses_finished_runs_and_retrains_a_changed_one(experiment, monkeypatch, capsys):

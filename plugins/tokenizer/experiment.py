@@ -46,7 +46,7 @@ from vqtouch.core import Assembly, ConfigError, RunDir, run_stage
 from vqtouch.core.cli import stage_failure
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.data import experiment_split
-from vqtouch.core.experiments import (ExperimentRecord, gap_verdict, markdown_table, mean_spread,
+from vqtouch.core.experiments import (ExperimentRecord, check_seeds, gap_verdict, markdown_table, mean_spread,
                                       plot_against_count)
 from vqtouch.core.report_html import direction_arrow, lower_is_better
 
@@ -205,14 +205,16 @@ def evaluate_reconstruction_experiment(config: Any, host: Any, out: Path, *, see
         config = validate_experiment(config.to_dict() | {
             "metrics": [*config.to_dict()["metrics"], {"name": "fd_effnetlite0"}]}, host)
     samples = sorted(set(samples))
+    # Every run's config is planned (and every bad option refused) before the folder is made.
+    plans = {seed: plan_configs(config, host, samples=samples, models=models, mae_ratios=mae_ratios,
+                                held_out=held_out, seed=seed) for seed in check_seeds(seeds)}
     record = ExperimentRecord("reconstruction", out, seeds)
     rows: list[dict[str, Any]] = []
     skipped: dict[str, str] = {}
     first_runs: list[tuple[str, Path]] = []
     first_config = None
     for seed in record.seeds:
-        for label, count, run_config in plan_configs(config, host, samples=samples, models=models,
-                                                     mae_ratios=mae_ratios, held_out=held_out, seed=seed):
+        for label, count, run_config in plans[seed]:
             folder = out / "runs" / f"{label.replace(' ', '').replace('(', '-').replace(')', '')}-{count}" / f"seed{seed}"
             scores = train_and_score(run_config, host, folder)
             skipped |= scores.get("skipped") or {}
