@@ -71,12 +71,14 @@ def mean_spread(rows: Iterable[dict[str, Any]], keys: Sequence[str], group: Sequ
 
 
 def format_cell(value: Any, spread: Any = None) -> str:
-    """A table cell: 4 significant digits, ``± spread`` when there is one, ``-`` for nothing."""
+    """A table cell: 4 significant digits (a whole number in full, e.g. 12000 training images),
+    ``± spread`` when there is one, ``-`` for nothing."""
     if value is None:
         return "-"
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return str(value)
-    text = f"{value:.4g}"
+    whole = math.isfinite(value) and float(value).is_integer() and abs(value) < 1e15
+    text = str(int(value)) if whole else f"{value:.4g}"
     return text + (f" ± {spread:.2g}" if _is_number(spread) and spread else "")
 
 

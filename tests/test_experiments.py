@@ -57,6 +57,9 @@ def test_markdown_table_shows_mean_and_spread_and_renames_headers():
 def test_format_cell():
     assert format_cell(None) == "-" and format_cell("x") == "x" and format_cell(True) == "True"
     assert format_cell(1234.5678, 0.0123) == "1235 ± 0.012" and format_cell(0.5, 0.0) == "0.5"
+    # Whole numbers in full (a count of 12000 images is not "1.2e+04"), fractions to 4 significant digits.
+    assert format_cell(12000.0) == "12000" and format_cell(12000) == "12000" and format_cell(12345.6) == "1.235e+04"
+    assert format_cell(float("nan")) == "nan" and format_cell(3.0, 0.5) == "3 ± 0.5"
 
 
 @pytest.mark.parametrize("seeds, message", [([], "at least one seed"), ([0, 1, 0], "repeats a seed")])

@@ -135,6 +135,13 @@ def test_every_arm_trains_on_its_own_images_and_scores_the_same_held_out_images(
     header = read_metadata(out / "seed1" / "scratch-8" / "autoencoder.safetensors")
     assert header["fewshot.arm"] == "scratch" and header["fewshot.train_images"] == "8"
     assert json.loads((out / "seed0" / "mixed-4" / "adapt.json").read_text())["family_images"] == 8
+    # The zero-shot row's family score is the unchanged tokenizer's on the family's held-out images, as the
+    # mixed arm's own adaptation measured it before fine-tuning.
+    for seed in (0, 1):
+        for n in (4, 8):
+            before = json.loads((out / f"seed{seed}" / f"mixed-{n}" / "adapt.json").read_text())["family_held_out"]
+            assert by_key[(n, ZERO_SHOT, seed)]["family_psnr"] == before["before"]["psnr"]
+            assert by_key[(n, "mixed 1:2", seed)]["family_psnr"] == before["after"]["psnr"]
     markdown = (out / "fewshot.md").read_text()
     assert "| 4 | no-contact background |" in markdown and "- N = 8: mixed 1:2 " in markdown
 

@@ -64,7 +64,7 @@ SCRATCH, ZERO_SHOT, SHOTS_ALONE, BACKGROUND = "scratch", "zero-shot", "shots alo
 SCORES = ("ssim", "psnr", "contact_ssim", "contact_psnr", "contact_mae", "fd_effnetlite0")
 #: What the table shows per (N, arm), in order.
 TABLE_COLUMNS = ("train_images", "ssim", "psnr", "contact_ssim", "contact_psnr", "fd_effnetlite0", "codebook_usage",
-                 "seconds")
+                 "family_psnr", "seconds")
 #: Numbers of a row averaged over the seeds (the table's and the JSON's).
 SUMMARY_KEYS = (*TABLE_COLUMNS, "contact_mae", "family_images", "family_ssim", "family_psnr",
                 *(f"background_{key}" for key in SCORES), "contact_fraction")
@@ -185,8 +185,10 @@ def seed_arms(run: Any, target: str, families: SensorFamilies, family: int, host
                                      family=family, batch_size=batch_size, metrics=METRICS)
             summaries[arm] = adapt_tokenizer(run, target, families, host, out / f"seed{seed}" / f"{name}-{n}", settings,
                                              overwrite=True, report=lambda line: None, background_3HW=background_3HW)
-        # The family tokenizer before any fine-tuning, on the same held-out images: the zero-shot arm.
+        # The family tokenizer before any fine-tuning, on the same held-out images: the zero-shot arm (and
+        # its score on the family's held-out images, what the fine-tuned arms keep or forget of the family).
         zero_shot = zero_shot or summaries[SHOTS_ALONE]["before"]
+        family_before = summaries[SHOTS_ALONE]["family_held_out"]["before"]
         _, source, shots_N, held_out_M = target_images(target, host, shots=n, eval_images=held_out,
                                                        image_size=image_size, seed=seed)
         metadata = {"fewshot.arm": SCRATCH, "fewshot.target": source, "fewshot.train_images": str(n)}
@@ -197,7 +199,8 @@ def seed_arms(run: Any, target: str, families: SensorFamilies, family: int, host
                      "family_images": 0, "steps": trained["steps"], "held_out": len(held_out_M), **_scores(scratch),
                      "seconds": trained["seconds"]})
         rows.append({"n": n, "arm": ZERO_SHOT, "seed": seed, "train_images": 0, "family_images": 0, "steps": 0,
-                     "held_out": zero_shot["samples"], **_scores(zero_shot), "seconds": 0.0})
+                     "held_out": zero_shot["samples"], **_scores(zero_shot), "family_ssim": family_before["ssim"],
+                     "family_psnr": family_before["psnr"], "seconds": 0.0})
         rows += [_adapted_row(n, arm, seed, summary) for arm, summary in summaries.items()]
         rows.append(_background_row(n, seed, zero_shot))
         for scores in (scratch, zero_shot, *(summary["after"] for summary in summaries.values())):
@@ -315,7 +318,8 @@ def render_markdown(result: dict[str, Any]) -> list[str]:
              f"fine-tunes it {result['steps']} steps on the N images plus {result['ratio']:g} x N images of its "
              f"family.  Every arm of a seed scores the same {result['held_out']} held-out images of the sensor; "
              f"{region}.  `{BACKGROUND}`: {result['background']}, scored against the same images.  `contact_*`: "
-             "scores on the contact region only; `seconds`: training wall time.  Arrows: "
+             "scores on the contact region only; `family_psnr`: PSNR on held-out images of the family's members (what "
+             "an arm keeps of the family, the mix's purpose); `seconds`: training wall time.  Arrows: "
              + ", ".join(f"{key} {direction_arrow(key)}" for key in TABLE_COLUMNS[1:-1]) + ".", "",
              *markdown_table(result["summary"], ("n", "arm"), TABLE_COLUMNS,
                              {"n": "N", "train_images": "train images"}), "",
