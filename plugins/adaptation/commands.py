@@ -88,7 +88,7 @@ def _adapt_command(args: argparse.Namespace) -> int:
     from vqtouch.plugins.tokenizer.stages import load_tokenizer
 
     from .adapt import AdaptSettings, adapt_tokenizer, check_same_tokenizer, default_families, refuse_existing
-    from .families import folder_of, load_families
+    from .families import load_families, registered_source
 
     host = args.host
     out = Path(args.out)
@@ -99,7 +99,7 @@ def _adapt_command(args: argparse.Namespace) -> int:
         check_same_tokenizer(families, folder, f"the families in {args.families}")
     else:
         print("no --families: clustering the registered sensor families and 3 variants of each", flush=True)
-        exclude = "" if folder_of(args.images) is not None else _canonical_spec(args.images.strip())
+        exclude = registered_source(args.images)
         families = default_families(tokenizer, host, image_size=tokenizer.autoencoder.vqtouch_spec.context.image_size,
                                     tokenizer_source=str(folder), exclude=exclude, seed=args.seed,
                                     report=lambda line: None)
@@ -117,15 +117,6 @@ def _adapt_command(args: argparse.Namespace) -> int:
               f"PSNR {real['before']['psnr']:.2f} -> {real['after']['psnr']:.2f} dB")
     print(f"-> {out} (autoencoder.safetensors, quantizer.safetensors, adapt.json, before_after.png)")
     return 0
-
-
-def _canonical_spec(spec: str) -> str:
-    """A registered sensor's spec as the JSON a clustering records as its source ('' when not JSON)."""
-    try:
-        config = json.loads(spec) if spec.startswith("{") else {"name": spec}
-    except json.JSONDecodeError:
-        return ""
-    return json.dumps(config, sort_keys=True)
 
 
 def _evaluate_cross_sensor_command(args: argparse.Namespace) -> int:

@@ -123,6 +123,20 @@ def folder_of(spec: str) -> Path | None:
         return None
 
 
+def registered_source(spec: str) -> str:
+    """The source a clustering records for the registered sensor ``spec`` (name or JSON variant):
+    its config as sorted JSON, so an unseen sensor can be kept out of its own family's data; ''
+    for a folder of images or a spec that is not JSON."""
+    if folder_of(spec) is not None:
+        return ""
+    spec = spec.strip()
+    try:
+        config = json.loads(spec) if spec.startswith("{") else {"name": spec}
+    except json.JSONDecodeError:
+        return ""
+    return json.dumps(config, sort_keys=True)
+
+
 def sensor_label(config: dict[str, Any]) -> str:
     """A short display name of a sensor config: ``gelsight``, ``gelsight/v3`` (variant seed 3), or
     ``gelsight*`` for other options."""

@@ -57,7 +57,7 @@ from vqtouch.core.report_html import direction_arrow
 from .adapt import (AdaptSettings, adapt_tokenizer, check_same_tokenizer, default_families, reconstruction_scores,
                     target_images)
 from .evaluation import METRICS, train_fresh_tokenizer
-from .families import SensorFamilies, folder_of, load_families, save_families, sensor_images
+from .families import SensorFamilies, folder_of, load_families, registered_source, save_families, sensor_images
 
 SCRATCH, ZERO_SHOT, SHOTS_ALONE, BACKGROUND = "scratch", "zero-shot", "shots alone", "no-contact background"
 #: The held-out scores every arm carries, and its background's under the ``background_`` prefix.
@@ -133,13 +133,11 @@ def _families(families: str | Path | None, tokenizer: Any, folder: Path, target:
     """The families the fine-tuned arms mix from and where they came from: ``families`` (a cluster
     output of this tokenizer), or the registered sensor families and 3 variants of each clustered
     once (written to ``out/families`` and read back, so no arm writes them again)."""
-    from .commands import _canonical_spec
-
     if families:
         loaded = load_families(families, host)
         check_same_tokenizer(loaded, folder, f"the families in {families}")
         return loaded, str(families)
-    exclude = "" if folder_of(target) is not None else _canonical_spec(target.strip())
+    exclude = registered_source(target)
     fitted = default_families(tokenizer, host, image_size=image_size, tokenizer_source=str(folder), exclude=exclude,
                               report=lambda line: None)
     save_families(fitted, out / "families", host)
