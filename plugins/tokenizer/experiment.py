@@ -42,7 +42,7 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-from vqtouch.core import Assembly, ConfigError, RunDir, run_stage
+from vqtouch.core import Assembly, ConfigError, RunDir, VqtouchError, run_stage
 from vqtouch.core.cli import stage_failure
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.data import experiment_split
@@ -112,7 +112,7 @@ def plan_configs(config: Any, host: Any, *, samples: Sequence[int], models: Sequ
 
 def _check_sizes(runs: list[tuple[str, int, Any]], host: Any) -> None:
     """Refuse, before anything trains, an N larger than the training split (one split per seed)."""
-    label, count, config = max(runs, key=lambda run: run[1])
+    _, count, config = max(runs, key=lambda run: run[1])
     dataset = Assembly(config, host).component("data.dataset")
     largest = len(experiment_split(dataset, config.data.model_copy(update={"train_samples": None}), config.seed)[0])
     if count > largest:
@@ -127,7 +127,7 @@ def train_and_score(config: Any, host: Any, folder: Path) -> dict[str, Any]:
     if row_file.is_file() and (folder / "config.json").is_file():
         try:
             same = RunDir.open(folder).load_config(host).to_dict() == config.to_dict()
-        except Exception:  # a damaged or foreign folder is trained again, never trusted
+        except VqtouchError:  # a damaged or foreign folder is trained again, never trusted
             same = False
         if same:
             return json.loads(row_file.read_text()) | {"reused": True}
@@ -211,6 +211,7 @@ def evaluate_reconstruction_experiment(config: Any, host: Any, out: Path, *, see
     record = ExperimentRecord("reconstruction", out, seeds)
     rows: list[dict[str, Any]] = []
     skipped: dict[str, str] = {}
+    background_rows: set[tuple[int, int]] = set()
     first_runs: list[tuple[str, Path]] = []
     first_config = None
     for seed in record.seeds:
@@ -218,17 +219,16 @@ def evaluate_reconstruction_experiment(config: Any, host: Any, out: Path, *, see
             folder = out / "runs" / f"{label.replace(' ', '').replace('(', '-').replace(')', '')}-{count}" / f"seed{seed}"
             scores = train_and_score(run_config, host, folder)
             skipped |= scores.get("skipped") or {}
-            rows += rows_of(scores, label, count, seed)
+            # The no-contact image's scores depend on the held-out images only: one row per seed and N.
+            rows += [row for row in rows_of(scores, label, count, seed)
+                     if row["model"] != BACKGROUND or (seed, count) not in background_rows]
+            background_rows.add((seed, count))
             report(f"seed {seed}: {label}, {count} samples: SSIM {scores.get('ssim')}, contact PSNR "
                    f"{scores.get('contact_psnr')} (background {scores.get('background_contact_psnr')})"
                    + (" [reused]" if scores.get("reused") else f" in {scores['seconds']:.0f} s"))
             if seed == record.seeds[0] and count == samples[-1]:
                 first_runs.append((label, folder))
                 first_config = run_config
-    # The no-contact image's scores depend on the held-out images only: one row per seed and N is enough.
-    rows = [row for index, row in enumerate(rows) if row["model"] != BACKGROUND
-            or not any(other["model"] == BACKGROUND and other["seed"] == row["seed"]
-                       and other["samples"] == row["samples"] for other in rows[:index])]
     keys = [key for key in COLUMNS if any(key in row for row in rows)]
     summary = mean_spread(rows, keys, ("model", "samples"))
     summary.sort(key=lambda row: (row["samples"], row["model"] == BACKGROUND))
