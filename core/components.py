@@ -512,6 +512,12 @@ class TactileDataset(ProvidesContext, abc.ABC):
         of each sample overrides it and sets :attr:`split_unit`."""
         return None
 
+    def rendering_sensor(self) -> Any | None:
+        """The sensor whose renders are this dataset's tactile images, when the dataset makes them:
+        its no-contact image is then known exactly.  None (the default) for datasets of captured
+        frames, whose no-contact background is then estimated from the images themselves."""
+        return None
+
     def context_facts(self) -> dict[str, Any]:
         """The number of labels a label conditioner must embed."""
         return {"num_classes": self.num_classes}

@@ -38,6 +38,11 @@ class DatasetSubset(TactileDataset):
         groups = dataset_groups(self.dataset)
         return None if groups is None else [groups[index] for index in self.indices]
 
+    def rendering_sensor(self) -> Any | None:
+        """The parent dataset's rendering sensor (None for captured frames or a dataset without the method)."""
+        rendering_sensor = getattr(self.dataset, "rendering_sensor", None)
+        return rendering_sensor() if rendering_sensor is not None else None
+
 
 def dataset_groups(dataset: TactileDataset) -> list[str] | None:
     """``dataset.split_groups()``, checked to hold one key per sample; None for a dataset without groups."""

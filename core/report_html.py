@@ -10,7 +10,7 @@ generic keys of its result only (``picture`` with an optional ``caption``, ``pic
 scores, ``skipped``); anything a stage wants said about its picture it says in its ``caption``.
 
 Scores are shown against their comparisons by the key convention alone: ``background_psnr`` beside
-``psnr`` is the sensor's no-contact background image's PSNR (see :data:`COMPARISON_PREFIXES`).
+``psnr`` is the no-contact background image's PSNR (see :data:`COMPARISON_PREFIXES`).
 Tactile images are mostly static background, so a whole-image score flatters a model that draws
 only the background: each model score is coloured by whether it beats the background's, and a
 verdict on the contact region (``contact_psnr`` against ``background_contact_psnr``) says whether
@@ -257,7 +257,8 @@ def _value_cell(value: Any) -> str:
 #: key of the result (``background_psnr`` next to ``psnr``) is the score ``X`` of the comparison ``P``,
 #: shown in P's column beside the model's own ``X``.  Values: what each comparison is (a header tooltip).
 COMPARISON_PREFIXES = {
-    "background_": "the sensor's no-contact background image (what a model that draws only the background scores)",
+    "background_": "the no-contact background image: the rendering sensor's, or the per-pixel median of captured "
+                   "training frames (what a model that draws only the background scores)",
     "ceiling_": "the tokenizer's own reconstruction of the ground truth (no generator over its codes does better)",
     "retrieval_": "the nearest training image by condition",
     "class_mean_": "the mean training image of the condition's class",

@@ -303,6 +303,6 @@ def test_score_generation_lists_conditions_clip_cannot_read_as_skipped(trained, 
                ("clip_score", HOST.build("metric", options(tiny_clip[0])))]
     scores = score_generation(generator=pipe.generator, conditioner=pipe.conditioners[0], tokenizer=pipe.tokenizer,
                               sampler=HOST.build("sampler", "posterior"), conditions=conditions, metrics=metrics,
-                              sensor=None, steps=2, guidance=1.0, truncation=1.0, seed=0, device=pipe.device)
+                              background_3HW=None, steps=2, guidance=1.0, truncation=1.0, seed=0, device=pipe.device)
     assert set(scores["skipped"]) == {"lpips", "clip_score"} and "class names" in scores["skipped"]["clip_score"]
     assert "psnr" in scores and not any("clip" in key for key in scores if key != "skipped")

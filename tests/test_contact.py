@@ -1,6 +1,9 @@
 """The contact region (plugins/evaluation/contact.py): the floor on noise-free images, the noise
 bar under DIGIT's published camera noise, and a press recovered through that noise."""
 
+import math
+
+import pytest
 import torch
 
 from vqtouch.plugins.evaluation.contact import CONTACT_THRESHOLD, NOISE_FACTOR, contact_mask
@@ -40,3 +43,129 @@ def test_camera_noise_alone_is_not_contact_and_a_press_shows_through_it():
     truth[:, 10:30, 20:40] = True
     assert float((mask & truth).sum() / (mask | truth).sum()) > 0.98  # intersection over union
     assert NOISE_FACTOR * NOISE * 2**0.5 < 0.3  # the press is well above the bar it sets
+
+
+# -- the background of a dataset (dataset_background) --------------------------------------------
+
+from vqtouch.core import BuildContext, TactileDataset, load_plugins  # noqa: E402
+from vqtouch.core.data import split_dataset  # noqa: E402
+from vqtouch.plugins.evaluation.contact import (RENDERED_BACKGROUND, dataset_background,  # noqa: E402
+                                                evenly_spaced)
+
+HOST = load_plugins(autoload=False)
+SIZE = 32
+BLOB = 6  # the side of each frame's square press, in pixels
+
+
+def _known_background(size=SIZE):
+    """(3, H, W) a smooth, channel-dependent background on the 8-bit grid (so a PNG holds it exactly)."""
+    rows = torch.arange(size).view(size, 1)
+    columns = torch.arange(size).view(1, size)
+    levels = torch.stack([60 + 2 * rows + columns, 90 + rows + 2 * columns, 120 + rows - columns + size])
+    return levels.to(torch.uint8).float() / 255
+
+
+def _frames(count, size=SIZE):
+    """``count`` captured frames: the known background plus one press per frame, each at its own
+    place (no pixel is pressed in two frames), and the press masks (count, H, W)."""
+    background = _known_background(size)
+    frames, masks = [], []
+    per_row = size // BLOB
+    for index in range(count):
+        top, left = (index // per_row) * BLOB, (index % per_row) * BLOB
+        mask = torch.zeros(size, size, dtype=torch.bool)
+        mask[top:top + BLOB, left:left + BLOB] = True
+        frames.append(torch.where(mask, (background + 64 / 255).clamp(max=1), background))
+        masks.append(mask)
+    return torch.stack(frames), torch.stack(masks), background
+
+
+class CapturedFrames(TactileDataset):
+    """Frames held in memory, as a reader of captured images gives them (no rendering sensor); it
+    records which samples were read."""
+
+    def __init__(self, frames):
+        self.frames = frames
+        self.read: list[int] = []
+
+    def __len__(self):
+        return len(self.frames)
+
+    def __getitem__(self, index):
+        self.read.append(index)
+        return {"tactile": self.frames[index], "label": -1, "text": "", "sensor": "captured", "id": str(index)}
+
+
+def test_a_rendered_datasets_background_is_its_sensors_no_contact_render_exactly():
+    sensor = HOST.build("sensor_family", {"name": "digit"})  # camera noise: the render depends on the seed
+    dataset = HOST.build("dataset", {"name": "procedural", "num_samples": 12, "image_size": SIZE, "seed": 0},
+                         BuildContext(image_size=SIZE), sensor=sensor)
+    assert dataset.rendering_sensor() is sensor
+    expected = sensor.render(torch.zeros(1, SIZE, SIZE), generator=torch.Generator().manual_seed(0))[0]
+    train, _ = split_dataset(dataset, 0.25, seed=0)
+    for given in (dataset, train):  # a split forwards its dataset's rendering sensor
+        background, source = dataset_background(given, (SIZE, SIZE))
+        assert torch.equal(background, expected) and source == RENDERED_BACKGROUND
+    # The images' median is not it: the render is the exact background, not an estimate from the images.
+    rendered = torch.stack([dataset[i]["tactile"] for i in range(len(dataset))])
+    assert not torch.equal(rendered.median(dim=0).values, expected)
+
+
+def test_captured_frames_get_the_per_pixel_median_which_recovers_the_background_and_the_presses():
+    frames, masks, known = _frames(10)
+    dataset = CapturedFrames(frames)
+    assert dataset.rendering_sensor() is None
+    background, source = dataset_background(dataset, (SIZE, SIZE))
+    # Each pixel is pressed in at most one of the 10 frames: its median is the background's value.
+    assert torch.equal(background, known)
+    assert source.startswith("the per-pixel median of 10 of 10 training images")
+    for index in (0, 4, 9):
+        mask = contact_mask(frames[index:index + 1], background[None])[0]
+        assert torch.equal(mask, masks[index])  # the frame's press and nothing else
+    # At most max_images samples, evenly spaced from the first to the last, are read.
+    dataset.read.clear()
+    estimate, source = dataset_background(dataset, (SIZE, SIZE), max_images=4)
+    assert dataset.read == evenly_spaced(10, 4) == [0, 3, 6, 9]
+    assert torch.equal(estimate, known) and source.startswith("the per-pixel median of 4 of 10 ")
+
+
+def test_too_few_captured_frames_have_no_background_and_say_why():
+    frames, _, _ = _frames(1)
+    background, reason = dataset_background(CapturedFrames(frames), (SIZE, SIZE))
+    assert background is None and reason.startswith("none: ") and "at least 2" in reason
+
+
+def test_the_tokenizer_stage_scores_captured_frames_without_a_sensor_beside_their_median_background(tmp_path):
+    """A folder of real frames and no ``sensor``: the stage still scores the background and the
+    contact region, against the training frames' median (not a rendered sensor's background, which
+    would put the whole image in contact)."""
+    import json
+
+    from PIL import Image
+
+    from generator_runs import TINY_TOKENIZER
+    from vqtouch.core import Assembly, RunDir, resolve_config, run_stage
+
+    frames, _, _ = _frames(16)
+    for index, frame in enumerate(frames):
+        path = tmp_path / "frames" / ("a" if index % 2 else "b") / f"{index:02d}.png"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray((frame * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()).save(path)
+    overrides = [item for item in TINY_TOKENIZER if not item.startswith("data.dataset")]
+    config = resolve_config("reconstruction", host=HOST, overrides=[
+        *overrides, "sensor=null", 'stages=["tokenizer"]', 'metrics=[{"name": "psnr"}]', "data.val_fraction=0.25",
+        json.dumps({"name": "image_folder", "root": str(tmp_path / "frames")}).join(["data.dataset=", ""])])
+    run = RunDir.create(config, host=HOST, path=tmp_path / "run")
+    outcome = run_stage("tokenizer", Assembly(config, HOST), run)
+    assert outcome.status == "ran", outcome.describe()
+    scores = json.loads((run.path / "eval.json").read_text())
+    assert scores["background"].startswith("the per-pixel median of ")
+    for key in ("psnr", "background_psnr", "contact_psnr", "background_contact_psnr"):
+        assert isinstance(scores[key], float), key
+    # Closed form: the background is the frames' own (the median recovers it exactly, through the
+    # PNGs' 8-bit grid), so every held-out frame differs from it by 64/255 on its press (36 of 1024
+    # pixels) alone, and that press is the contact region.
+    press, share = 64 / 255, BLOB * BLOB / SIZE**2
+    assert scores["contact_fraction"] == round(share, 4)
+    assert scores["background_psnr"] == pytest.approx(-10 * math.log10(share * press**2), abs=1e-3)
+    assert scores["background_contact_psnr"] == pytest.approx(-10 * math.log10(press**2), abs=1e-3)

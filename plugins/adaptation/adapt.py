@@ -86,14 +86,14 @@ def contact_fraction(images_N3HW: torch.Tensor) -> torch.Tensor:
     with the floor :data:`CONTACT_PIXEL_THRESHOLD`) against the no-contact background: the
     per-pixel median of the other images (contacts move around, the background stays; leaving the
     image out keeps its noise out of its background, so the noise estimate is not too low)."""
-    from vqtouch.plugins.evaluation.contact import contact_mask
+    from vqtouch.plugins.evaluation.contact import contact_mask, median_background
 
     if len(images_N3HW) < 2:
         raise ValueError("the contact fraction needs at least 2 images (the others make the background)")
     fractions = []
     for index in range(len(images_N3HW)):
         others = torch.cat([images_N3HW[:index], images_N3HW[index + 1:]])
-        background = others.median(dim=0, keepdim=True).values
+        background = median_background(others)[None]
         fractions.append(contact_mask(images_N3HW[index:index + 1], background, CONTACT_PIXEL_THRESHOLD).double().mean())
     return torch.stack(fractions)
 

@@ -53,6 +53,8 @@ from vqtouch.core.experiments import (ExperimentRecord, check_seeds, gap_verdict
                                       plot_against_count)
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 from vqtouch.core.report_html import direction_arrow
+from vqtouch.plugins.evaluation.contact import (MAX_BACKGROUND_IMAGES, RENDERED_BACKGROUND, evenly_spaced,
+                                                median_background, no_contact_image)
 
 from .adapt import (AdaptSettings, adapt_tokenizer, check_same_tokenizer, default_families, reconstruction_scores,
                     target_images)
@@ -68,8 +70,6 @@ TABLE_COLUMNS = ("train_images", "ssim", "psnr", "contact_ssim", "contact_psnr",
 #: Numbers of a row averaged over the seeds (the table's and the JSON's).
 SUMMARY_KEYS = (*TABLE_COLUMNS, "contact_mae", "family_images", "family_ssim", "family_psnr",
                 *(f"background_{key}" for key in SCORES), "contact_fraction")
-#: A folder's no-contact background is the median of at most this many of its images (evenly spaced).
-MAX_BACKGROUND_IMAGES = 256
 #: The verdicts compare on this contact-region score only (whole-image scores flatter the background).
 VERDICT_KEY = "contact_psnr"
 
@@ -110,22 +110,21 @@ def sensor_background(target: str, host: Any, image_size: ImageSize) -> tuple[to
     """The unseen sensor's no-contact image (3, H, W) and how it was made: a registered sensor (name
     or JSON variant) rendering no contact; for a folder, which holds no such frame, the per-pixel
     median of its images (at most :data:`MAX_BACKGROUND_IMAGES`, evenly spaced: contacts move
-    around, the background stays; the estimate :func:`.adapt.contact_fraction` uses)."""
+    around, the background stays; :func:`~vqtouch.plugins.evaluation.contact.median_background`, the
+    estimate every stage makes of captured frames)."""
     from vqtouch.plugins.data.readers._io import list_images
-    from vqtouch.plugins.evaluation.contact import no_contact_image
 
     path = folder_of(target)
     if path is None:
         source = sensor_images(target, host, count=1, image_size=image_size).source  # checks the spec too
         sensor = host.build("sensor_family", json.loads(source))
         background = no_contact_image(sensor, torch.zeros(1, 3, *image_hw(image_size)))[0]
-        return background, "the sensor's rendering of no contact"
+        return background, RENDERED_BACKGROUND
     files = list_images(path)
-    count = min(len(files), MAX_BACKGROUND_IMAGES)
-    chosen = [files[round(i * (len(files) - 1) / max(1, count - 1))] for i in range(count)]
+    chosen = [files[index] for index in evenly_spaced(len(files), MAX_BACKGROUND_IMAGES)]
     images = sensor_images(str(path), host, count=len(chosen), image_size=image_size, files=chosen).images
-    return images.median(dim=0).values, (f"the per-pixel median of {len(chosen)} of the folder's {len(files)} "
-                                         "images (the folder holds no no-contact frame)")
+    return median_background(images), (f"the per-pixel median of {len(chosen)} of the folder's {len(files)} "
+                                       "images (the folder holds no no-contact frame)")
 
 
 def _families(families: str | Path | None, tokenizer: Any, folder: Path, target: str, host: Any, out: Path,

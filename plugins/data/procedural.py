@@ -119,6 +119,10 @@ class ProceduralTactileDataset(TactileDataset):
         """None: every sample is an independent draw, its own group (see the module docstring)."""
         return None
 
+    def rendering_sensor(self) -> Any:
+        """The sensor that renders every tactile image (its no-contact render is the exact background)."""
+        return self.sensor
+
     def _check_index(self, index: int) -> int:
         if not -len(self) <= index < len(self):
             raise IndexError(f"sample {index} is out of range for a dataset of {len(self)}")

@@ -9,6 +9,11 @@ the median sees noise, not contact), and the mean absolute value of three channe
 Gaussian noise exceeds :data:`NOISE_FACTOR` sigma on about 6e-5 of the pixels.  Noise-free
 renders (GelSight) keep the floor exactly; DIGIT's published 7/255 camera noise raises the bar
 instead of turning every pixel into "contact".
+
+The background of a dataset (:func:`dataset_background`, what every stage scores against) is the
+no-contact render of its rendering sensor when the dataset renders its images (the procedural
+scenes), and for captured frames, which hold no no-contact frame, the per-pixel median of up to
+:data:`MAX_BACKGROUND_IMAGES` of them (contacts move around, the background stays).
 """
 
 from __future__ import annotations
@@ -23,6 +28,10 @@ import torch
 CONTACT_THRESHOLD = 0.02
 #: ... and by more than this many standard deviations of the estimated noise.
 NOISE_FACTOR = 2.5
+#: The background of captured frames is the per-pixel median of at most this many of them.
+MAX_BACKGROUND_IMAGES = 256
+#: How :func:`dataset_background` says it made a rendering sensor's background.
+RENDERED_BACKGROUND = "the sensor's rendering of no contact"
 
 
 def contact_mask(images_B3HW: torch.Tensor, background_B3HW: torch.Tensor,
@@ -41,6 +50,45 @@ def no_contact_image(sensor: Any, truth_B3HW: torch.Tensor) -> torch.Tensor | No
         return None
     flat = sensor.render(torch.zeros(1, *truth_B3HW.shape[-2:]), generator=torch.Generator().manual_seed(0))
     return flat.to(truth_B3HW).expand_as(truth_B3HW)
+
+
+def evenly_spaced(count: int, max_images: int = MAX_BACKGROUND_IMAGES) -> list[int]:
+    """At most ``max_images`` of the indices ``0 .. count - 1``, evenly spaced from the first to the
+    last: the images a median background is estimated from (neighbouring frames of a recording
+    share their contact, so a spread draw sees the contacts in different places)."""
+    chosen = min(count, max_images)
+    return [round(i * (count - 1) / max(1, chosen - 1)) for i in range(chosen)]
+
+
+def median_background(images_N3HW: torch.Tensor) -> torch.Tensor:
+    """(3, H, W): the per-pixel median of the images, the no-contact background of captured frames
+    (contacts move around, the background stays: a pixel in contact in fewer than half of the
+    images keeps its background value)."""
+    return images_N3HW.detach().float().median(dim=0).values
+
+
+def dataset_background(dataset: Any, image_hw: tuple[int, int],
+                       max_images: int = MAX_BACKGROUND_IMAGES) -> tuple[torch.Tensor | None, str]:
+    """The (3, H, W) no-contact image of ``dataset``'s tactile images and how it was made: the
+    no-contact render of the dataset's rendering sensor (``dataset.rendering_sensor()``, exact) when
+    it renders its images, else the per-pixel median (:func:`median_background`) of at most
+    ``max_images`` evenly spaced samples' ``"tactile"`` images.  None, with the reason, for
+    captured frames fewer than 2.  Every stage's background comes from here; callers pass the
+    training split, never the held-out images being scored."""
+    rendering_sensor = getattr(dataset, "rendering_sensor", None)
+    sensor = rendering_sensor() if rendering_sensor is not None else None
+    if sensor is not None:
+        return no_contact_image(sensor, torch.zeros(1, 3, *image_hw))[0], RENDERED_BACKGROUND
+    if len(dataset) < 2:
+        return None, (f"none: the dataset's {len(dataset)} captured image(s) are too few for a per-pixel median "
+                      "background (it needs at least 2)")
+    indices = evenly_spaced(len(dataset), max_images)
+    images = torch.stack([dataset[index]["tactile"] for index in indices])
+    if tuple(images.shape[-2:]) != tuple(image_hw):
+        raise ValueError(f"the dataset's images are {tuple(images.shape[-2:])} pixels, not the {tuple(image_hw)} "
+                         "asked for")
+    return median_background(images), (f"the per-pixel median of {len(indices)} of {len(dataset)} training images "
+                                       "(captured frames hold no no-contact frame)")
 
 
 class ContactRegionScores:

@@ -13,10 +13,12 @@ that the generator never trained on; group-aware for readers with recordings):
 3. ``real few + generated``: both;
 4. ``all real (ceiling)``: every real training image of the run's split, the ceiling;
 
-and, as the honest floor of arm 1, ``no-contact background``: M copies per class of the sensor's
-no-contact image, what a generator that draws only the background would give (a classifier
-trained on it predicts one class; no sensor, no row).  Each arm is trained and tested once per
-seed; the seed draws the K real images, the generated images and the classifier's random state.
+and, as the honest floor of arm 1, ``no-contact background``: M copies per class of the no-contact
+image of the run's training images (the rendering sensor's for the procedural scenes, the
+per-pixel median of captured frames: :func:`~vqtouch.plugins.evaluation.contact.dataset_background`),
+what a generator that draws only the background would give (a classifier trained on it predicts
+one class).  Each arm is trained and tested once per seed; the seed draws the K real images, the
+generated images and the classifier's random state.
 The scores are top-1 accuracy and macro precision, recall and F1 over the test set's classes
 (scikit-learn's ``accuracy_score`` and ``precision_recall_fscore_support``, a class never
 predicted has precision 0), beside the chance level (1 / classes) and the majority-class rate
@@ -226,7 +228,7 @@ def evaluate_downstream(run: str | Path, host: Any, out: str | Path, *, seeds: S
     ``batch_size``: labels generated per forward pass.  Returns what ``downstream.json`` holds."""
     from vqtouch.core import Assembly, RunDir
     from vqtouch.core.data import experiment_split
-    from vqtouch.plugins.evaluation.contact import no_contact_image
+    from vqtouch.plugins.evaluation.contact import dataset_background
     from vqtouch.plugins.generator.pipeline import load_pipeline
 
     pipe = load_pipeline(run, host=host, step=step)
@@ -269,9 +271,8 @@ def evaluate_downstream(run: str | Path, host: Any, out: str | Path, *, seeds: S
         raise ConfigError(f"none of the run's {len(test_split)} held-out images of {dataset_name} has a label; "
                           "downstream recognition tests on labelled held-out images")
     draw_shots(real_train.labels, shots, 0, class_names)  # refuses too many shots before anything is generated
-    sensor = assembly.sensor() if config.sensor is not None else None
-    background = no_contact_image(sensor, torch.zeros(1, 3, *test_split[0]["tactile"].shape[-2:]))
-    background_features = None if background is None else metric.pooled_features(background).float()
+    background, background_source = dataset_background(train_split, tuple(test_split[0]["tactile"].shape[-2:]))
+    background_features = None if background is None else metric.pooled_features(background[None]).float()
     every_class = sorted(set(classes) | set(test.labels))
     test_counts = Counter(test.labels)
     rows: list[dict[str, Any]] = []
@@ -317,7 +318,7 @@ def evaluate_downstream(run: str | Path, host: Any, out: str | Path, *, seeds: S
         "classes_without_training_images": sorted(set(test.labels) - set(classes)),
         "chance": round(1 / len(every_class), 4),
         "majority": round(max(test_counts.values()) / len(test.labels), 4),
-        "background": None if background is None else "the sensor's no-contact image",
+        "background": None if background is None else background_source,
         "rows": rows, "summary": summary,
         "confusion": {"seed": record.seeds[0], "labels": every_class, "matrices": confusion}}
     plot_scores(summary, result["chance"], result["majority"], record.path("downstream.png"),
@@ -350,9 +351,10 @@ def render_markdown(result: dict[str, Any]) -> list[str]:
               f"{result['generator_train_images']} training images, so `{GENERATED}` measures whether its images carry "
               "the class, not what K real images would teach it."]
     if result["background"]:
-        lines += ["", f"`{BACKGROUND}`: the sensor's no-contact image as every class's training images, what a "
-                      f"generator that draws only the background would give `{GENERATED}` (a classifier that names one "
-                      "class: at most the majority-class rate).  Claim `better` on the real held-out scores above it."]
+        lines += ["", f"`{BACKGROUND}`: the no-contact image ({result['background']}) as every class's training "
+                      f"images, what a generator that draws only the background would give `{GENERATED}` (a classifier "
+                      "that names one class: at most the majority-class rate).  Claim `better` on the real held-out "
+                      "scores above it."]
     if result["classes_without_training_images"]:
         lines += ["", f"Held-out classes with no training image (no arm can learn them): "
                       f"{result['classes_without_training_images']}."]

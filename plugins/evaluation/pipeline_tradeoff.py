@@ -536,13 +536,14 @@ class _ReportLog:
 # -- summary, table and figure --------------------------------------------------------------------
 
 #: The scores the fronts are drawn on, the first one the rows have: contact SSIM; contact PSNR for
-#: images narrower than SSIM's window; whole-image SSIM only without a sensor (no contact region).
+#: images narrower than SSIM's window; whole-image SSIM only without a background (no contact region).
 FRONT_QUALITIES = ("contact_ssim", "contact_psnr", "ssim")
 FRONT_TEXT = {"contact_ssim": "the contact region's SSIM: claims of 'better' rest on it, not on the whole-image scores",
               "contact_psnr": "the contact region's PSNR (the images are narrower than SSIM's window): claims of "
                               "'better' rest on it, not on the whole-image scores",
-              "ssim": "whole-image SSIM, because the experiment names no sensor: without a no-contact image there is "
-                      "no contact region, and whole-image scores flatter a model that draws only the background"}
+              "ssim": "whole-image SSIM, because the training split is too small for a no-contact image: without one "
+                      "there is no contact region, and whole-image scores flatter a model that draws only the "
+                      "background"}
 AXIS_LABELS = {"contact_ssim": "contact SSIM", "contact_psnr": "contact PSNR (dB)", "ssim": "whole-image SSIM"}
 
 
@@ -602,7 +603,7 @@ def render_markdown(result: dict[str, Any]) -> list[str]:
              "`x base` is the ratio to the baseline timed in the same process, per seed, then averaged.  The "
              f"`{DRIFT}` rows time the baseline again at the end of every round: their `x base` is the machine's "
              "drift, the error bar of every ratio.", "",
-             "Quality on the held-out split: `bg` is the sensor's no-contact image scored the same way (a model that "
+             "Quality on the held-out split: `bg` is the data's no-contact image scored the same way (a model that "
              "draws only the background gets it); `contact` scores only the pixels in contact.  The Pareto fronts "
              "(training and inference cost of the tokenizers, generation cost of the samplings) use "
              f"{FRONT_TEXT[result['front_quality']]}.", ""]

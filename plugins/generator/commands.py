@@ -148,6 +148,8 @@ def _generation_experiment_command(args: argparse.Namespace) -> int:
 
 def _evaluate_generation_command(args: argparse.Namespace) -> int:
     from vqtouch.core.data import experiment_split
+    from vqtouch.core.image_size import image_hw
+    from vqtouch.plugins.evaluation.contact import dataset_background
 
     if args.out:
         return _generation_experiment_command(args)
@@ -181,18 +183,19 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
         metrics.append(("fd_effnetlite0", assembly.build("metric", {"name": "fd_effnetlite0",
                                                                     "image_size": args.feature_size})))
     tag = f"{pipe.checkpoint.name}_{sampler_name}_{steps}"
+    background, background_source = dataset_background(train, image_hw(config.data.image_size))
     scores = score_generation(
         generator=pipe.generator, conditioner=pipe.conditioners[index], tokenizer=pipe.tokenizer,
         sampler=host.build("sampler", sampler_name),
         conditions=held_out_conditions(held_out, dataset, args.n, pipe.device), pool=baseline_pool(train),
         metrics=metrics,
-        sensor=assembly.sensor() if config.sensor is not None else None, steps=steps,
+        background_3HW=background, steps=steps,
         guidance=pipe.settings["guidance"] if args.guidance is None else args.guidance,
         truncation=pipe.settings["truncation"] if args.truncation is None else args.truncation,
         seed=config.seed if args.seed is None else args.seed, device=pipe.device,
         picture=run.path / f"samples_{tag}.png", distribution=args.distribution)
     result = {"checkpoint": str(pipe.checkpoint), "conditioner": f"{index}:{names[index]}", "sampler": sampler_name,
-              **scores}
+              "background": background_source, **scores}
     run.write_json(f"evaluation_generation_{tag}.json", result)
     print(json.dumps(result, indent=2))
     return 0

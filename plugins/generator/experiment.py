@@ -11,7 +11,7 @@ lists, one condition per training step) into ``DIR/seed<S>``.  Each conditioner 
 same ``--n`` held-out conditions, scored by the generator stage's own scorer against their ground
 truth: every metric of the scene (SSIM, PSNR, MS-SSIM, LPIPS and the CLIP score when their weights
 are there, reported as skipped otherwise), ``fd_effnetlite0`` and a real-image classifier's
-accuracy (always), next to the baselines under the same protocol: the sensor's no-contact image
+accuracy (always), next to the baselines under the same protocol: the data's no-contact image
 (draws nothing), retrieval of the nearest training image by the conditioner's tokens, the label's
 mean training image, and the tokenizer's reconstruction of the ground truth (the ceiling).
 

@@ -24,10 +24,11 @@ from pydantic import Field
 from vqtouch.core import MetricSet, RunDir, Section, Slot, StageJob, StageUnavailable, hookimpl, resolve_device
 from vqtouch.core.data import DatasetSubset, experiment_split
 from vqtouch.core.errors import VqtouchWarning
+from vqtouch.core.image_size import image_hw
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.core.training import Trainer, collate_samples
-from vqtouch.plugins.evaluation.contact import contact_region_scores, no_contact_image
+from vqtouch.plugins.evaluation.contact import contact_region_scores, dataset_background
 
 from .training import CodesDataset, GeneratorTask, GeneratorTrainConfig
 
@@ -149,15 +150,16 @@ def train_generator(job: StageJob) -> dict[str, Any]:
 
 @torch.no_grad()
 def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sampler: Any, conditions: HeldOutConditions,
-                     metrics: list[tuple[str, Any]], sensor: Any, steps: int, guidance: float,
+                     metrics: list[tuple[str, Any]], background_3HW: torch.Tensor | None, steps: int, guidance: float,
                      truncation: float, seed: int, device: torch.device, picture: Path | None = None,
                      pool: list[dict[str, Any]] | None = None,
                      distribution: bool | DistributionScorer = False) -> dict[str, Any]:
     """Generate the held-out ``conditions`` (:func:`held_out_conditions`, read once and shared by every
     conditioner scored) with ``conditioner`` and score them against their ground-truth tactile images.
 
-    Next to each score stand the honest comparisons under the same protocol: the sensor's
-    no-contact image (``background_*``; none without a sensor), the tokenizer's own reconstruction
+    Next to each score stand the honest comparisons under the same protocol: the no-contact image
+    ``background_3HW`` (``background_*``; none without one: see
+    :func:`~vqtouch.plugins.evaluation.contact.dataset_background`), the tokenizer's own reconstruction
     of the ground truth (``ceiling_*``: no generator over these codes can do better) and, given training
     samples (``pool``, see :func:`baseline_pool`), the nearest training image by condition tokens (``retrieval_*``) and, for a
     label condition, the mean training image of the label (``class_mean_*``).  Every one is also
@@ -184,7 +186,7 @@ def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sample
     images = sample_images(generator, conditioner, tokenizer, sampler, condition, indices, steps=steps,
                            guidance=guidance, truncation=truncation, seed=seed, device=device)
     scores: dict[str, Any] = {"samples": count, "steps": steps, "guidance": guidance, "truncation": truncation}
-    background = no_contact_image(sensor, truth)
+    background = None if background_3HW is None else background_3HW.to(truth).expand_as(truth)
     compared = {"": images, "ceiling_": tokenizer.decode_codes(tokenizer.encode_codes(truth))}
     if background is not None:
         compared["background_"] = background
@@ -375,19 +377,21 @@ def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: A
     section, config = job.section, job.config
     metrics = list(zip((item.name for item in config.metrics),
                        job.assembly.build_slots(["metrics"]).get("metrics", [])))
-    pool = baseline_pool(DatasetSubset(dataset, train_set.indices))
+    # The training split of the dataset itself (the codes dataset's samples hold no images).
+    train_images = DatasetSubset(dataset, train_set.indices)
+    pool = baseline_pool(train_images)
+    background, background_source = dataset_background(train_images, image_hw(config.data.image_size))
     # The held-out samples are read once, and one classifier and one pass over the real images serve
     # every conditioner.
     conditions = held_out_conditions(val_set, dataset, section.num_samples, device)
     scorer = distribution_scorer(conditions, pool, metrics, config.seed) if section.distribution else None
     common = dict(generator=task.generator, tokenizer=tokenizer, sampler=job.assembly.component("generator.sampler"),
-                  conditions=conditions, metrics=metrics,
-                  sensor=job.assembly.sensor() if config.sensor is not None else None,
+                  conditions=conditions, metrics=metrics, background_3HW=background,
                   steps=section.steps, guidance=section.guidance, truncation=section.truncation, seed=config.seed,
                   device=device, pool=pool, distribution=scorer or False)
     names = [item.name for item in config.generator.conditioners]
     first = score_generation(conditioner=task.conditioners[0], picture=job.run.path / "samples.png", **common)
-    scores = {"sampler": section.sampler.name, "conditioner": names[0], **first}
+    scores = {"sampler": section.sampler.name, "conditioner": names[0], "background": background_source, **first}
     if len(names) > 1:
         scores["by_conditioner"] = {f"0:{names[0]}": first} | {
             f"{index}:{name}": score_generation(conditioner=conditioner, picture=job.run.path / samples_picture(index, name),

@@ -39,7 +39,7 @@ import torch
 
 from vqtouch.core import Assembly, ConfigError, RunDir
 from vqtouch.core.runs import MissingCheckpointError
-from vqtouch.plugins.evaluation.contact import no_contact_image
+from vqtouch.plugins.evaluation.contact import dataset_background
 
 from .stage import (PRECISIONS, HeldOutConditions, baseline_pool, distribution_scorer, generate_held_out,
                     held_out_conditions, score_images)
@@ -48,7 +48,7 @@ from .stage import (PRECISIONS, HeldOutConditions, baseline_pool, distribution_s
 KNOBS = ("sampler", "steps", "guidance", "precision")
 
 #: Quality columns: (key, label, higher is better).  ``contact_psnr`` falls back to ``psnr``
-#: without a sensor (no no-contact image, no contact region).
+#: without a background (no no-contact image, no contact region).
 QUALITIES = (("contact_psnr", "contact PSNR (dB)", True), ("fd_effnetlite0", "fd_effnetlite0", False),
              ("classifier_accuracy", "classifier accuracy", True))
 
@@ -122,6 +122,8 @@ class TradeoffBench:
     train: Any
     feature_size: int = 224
     scorer: Any = None
+    #: How :attr:`background` was made (:func:`~vqtouch.plugins.evaluation.contact.dataset_background`).
+    background_source: str = ""
 
     def fit_distribution(self, feature_size: int | None = None) -> None:
         """Fit the distribution scorer (:func:`.stage.distribution_scorer`): the real held-out
@@ -184,7 +186,8 @@ def load_tradeoff_bench(run: str | Path, host: Any, *, n: int, step: int | str |
                         batch_size: int = 16, distribution: bool = True,
                         feature_size: int | None = None) -> TradeoffBench:
     """The run's pipeline, its first ``n`` held-out conditions (the split of
-    ``vqtouch evaluate generation``), SSIM and PSNR, the no-contact image and, with
+    ``vqtouch evaluate generation``), SSIM and PSNR, the no-contact image (of the training split:
+    :func:`~vqtouch.plugins.evaluation.contact.dataset_background`) and, with
     ``distribution``, the distribution scorer (classifier fitted on the training split's real images,
     EfficientNet-Lite0 features at ``feature_size`` px; None: the run's ``fd_effnetlite0`` metric's,
     else 224)."""
@@ -204,10 +207,12 @@ def load_tradeoff_bench(run: str | Path, host: Any, *, n: int, step: int | str |
     seed = config.seed if seed is None else seed
     conditions = held_out_conditions(held_out, dataset, n, pipe.device)
     metrics = [(name, host.build("metric", name)) for name in ("ssim", "psnr")]
-    background = no_contact_image(assembly.sensor() if config.sensor is not None else None, conditions.truth)
+    background_3HW, background_source = dataset_background(train, tuple(conditions.truth.shape[-2:]))
+    background = None if background_3HW is None else background_3HW.to(conditions.truth).expand_as(conditions.truth)
     run_size = next((item.image_size for item in config.metrics if item.name == "fd_effnetlite0"), 224)
     bench = TradeoffBench(pipe, run_dir.path, conditions, metrics, background, seed, batch_size, train,
-                          feature_size if feature_size is not None else run_size)
+                          feature_size if feature_size is not None else run_size,
+                          background_source=background_source)
     if distribution:
         bench.fit_distribution()
     return bench
@@ -266,7 +271,7 @@ def measure(bench: TradeoffBench, settings: list[dict[str, Any]], rounds: int, l
 
 
 def quality_key(rows: list[dict[str, Any]], key: str) -> str:
-    """``key``, or ``psnr`` for a contact PSNR that no row has (no sensor)."""
+    """``key``, or ``psnr`` for a contact PSNR that no row has (no background)."""
     if key == "contact_psnr" and not any(key in row for row in rows):
         return "psnr"
     return key
@@ -372,8 +377,8 @@ def tradeoff_command(args: argparse.Namespace) -> int:
     result = {"run": str(bench.run), "checkpoint": str(bench.pipe.checkpoint), "n": count, "rounds": args.rounds,
               "threads": torch.get_num_threads(), "device": device, "batch_size": args.batch_size, "seed": bench.seed,
               "truncation": bench.pipe.settings["truncation"], "feature_size": bench.feature_size,
-              "distribution": bool(args.distribution), "grid": bool(args.grid), "reference": reference,
-              "settings": rows}
+              "distribution": bool(args.distribution), "grid": bool(args.grid), "background": bench.background_source,
+              "reference": reference, "settings": rows}
     (out / "tradeoff.json").write_text(json.dumps(result, indent=2) + "\n")
     table = markdown_table(rows, header, reference)
     (out / "tradeoff.md").write_text(table)

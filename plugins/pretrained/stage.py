@@ -20,6 +20,8 @@ from pydantic import Field
 
 from vqtouch.core import ConfigError, Section, StageJob, StageUnavailable, hookimpl, resolve_device
 from vqtouch.core.data import DatasetSubset, experiment_split
+from vqtouch.core.image_size import image_hw
+from vqtouch.plugins.evaluation.contact import dataset_background
 
 from .bundle import Bundle, bundle_folder, load_bundle
 
@@ -67,7 +69,7 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
     from vqtouch.plugins.generator.stage import (SAMPLES_CAPTION, SHOWN_SCORES, baseline_pool, held_out_conditions,
                                                  score_generation)
     from vqtouch.plugins.tokenizer.stages import SHOWN_SCORES as TOKENIZER_SCORES
-    from vqtouch.plugins.tokenizer.stages import printable, save_pairs, sensor_background
+    from vqtouch.plugins.tokenizer.stages import printable, save_pairs
     from vqtouch.plugins.tokenizer.training import evaluate_reconstruction
 
     config, section = job.config, job.section
@@ -86,9 +88,9 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
     held_out = DatasetSubset(dataset, val_set.indices[:section.num_samples])
     (job.run.path / PICTURES).mkdir(exist_ok=True)
 
+    background, background_source = dataset_background(train_set, image_hw(config.data.image_size))
     scores = evaluate_reconstruction(bundle.tokenizer, held_out, MetricSet(metrics), device=device,
-                                     batch_size=config.data.batch_size,
-                                     background_3HW=sensor_background(job.assembly, config))
+                                     batch_size=config.data.batch_size, background_3HW=background)
     save_pairs(*scores.pop("examples"), job.run.path / PICTURES / "reconstructions.png")
     parts: dict[str, Any] = {"bundled tokenizer": {
         **{key: value for key, value in printable(scores).items() if key in TOKENIZER_SCORES},
@@ -103,11 +105,11 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
                                "use a scene with a paired sensor and visual images (e.g. tour)")
     pool = baseline_pool(DatasetSubset(dataset, train_set.indices))
     sampler = job.host.build("sampler", section.sampler)
-    sensor = job.assembly.sensor() if config.sensor is not None else None
     for index, (name, conditioner) in enumerate(zip(bundle.conditioner_names, bundle.conditioners)):
         picture = f"{PICTURES}/samples_{index}_{name}.png"
         generated = score_generation(generator=bundle.generator, conditioner=conditioner, tokenizer=bundle.tokenizer,
-                                     sampler=sampler, conditions=conditions, metrics=metrics, sensor=sensor,
+                                     sampler=sampler, conditions=conditions, metrics=metrics,
+                                     background_3HW=background,
                                      steps=section.steps, guidance=1.0, truncation=1.0, seed=config.seed,
                                      device=device, picture=job.run.path / picture, pool=pool)
         parts[f"bundled generator from {name}"] = ({key: generated[key] for key in SHOWN_SCORES if key in generated}
@@ -115,7 +117,7 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
     return {"bundle": bundle.name, "bundled": True, "megabytes": round(bundle.size_bytes / 1e6, 2),
             "tokenizer_step": bundle.tokenizer_step, "generator_step": bundle.generator_step,
             "tokenizer_trained_by": bundle.tokenizer_command, "generator_trained_by": bundle.generator_command,
-            "sampler": section.sampler, "steps": section.steps, "parts": parts}
+            "sampler": section.sampler, "steps": section.steps, "background": background_source, "parts": parts}
 
 
 @hookimpl

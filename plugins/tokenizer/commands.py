@@ -22,8 +22,9 @@ from vqtouch.core.experiments import DEFAULT_SEEDS
 from vqtouch.core.data import experiment_split
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
+from vqtouch.plugins.evaluation.contact import dataset_background
 
-from .stages import load_tokenizer, printable, reconstruct_all, save_pairs, sensor_background
+from .stages import load_tokenizer, printable, reconstruct_all, save_pairs
 from .training import evaluate_reconstruction
 
 
@@ -104,20 +105,23 @@ def _evaluate_command(args: argparse.Namespace) -> int:
     config = run.load_config(host)
     tokenizer, folder = load_tokenizer(run, host, args.step)
     assembly = Assembly(config, host)
+    dataset = assembly.component("data.dataset")
+    train_set, val_set = experiment_split(dataset, config.data, config.seed)
     if args.dataset:
         # A separate held-out dataset (e.g. another seed), evaluated whole: runs trained on
         # different amounts of data are then compared on the very same images.
         evaluated = assembly.dataset(plugin_block(args.dataset, "--dataset"))
     else:
-        dataset = assembly.component("data.dataset")
-        _, val_set = experiment_split(dataset, config.data, config.seed)
         evaluated = dataset if args.split == "all" else val_set
     names = args.metrics.split(",") if args.metrics else [m.name for m in config.metrics]
     metrics = {name: assembly.build("metric", name) for name in names}
+    # The run's training images give the background (as in the tokenizer stage), whichever images are scored.
+    background, background_source = dataset_background(train_set, image_hw(config.data.image_size))
     scores = evaluate_reconstruction(tokenizer, evaluated, metrics, batch_size=config.data.batch_size,
-                                     background_3HW=sensor_background(assembly, config))
+                                     background_3HW=background)
     save_pairs(*scores["examples"], run.path / f"reconstructions_{folder.name}.png")
-    result = {"checkpoint": str(folder), "split": "dataset" if args.dataset else args.split, **printable(scores)}
+    result = {"checkpoint": str(folder), "split": "dataset" if args.dataset else args.split,
+              "background": background_source, **printable(scores)}
     suffix = "_dataset" if args.dataset else ""
     run.write_json(f"evaluation_{folder.name}{suffix}.json", result)
     print(json.dumps(result, indent=2))

@@ -16,7 +16,7 @@ continuous, non-tokenizing reference).
 
 Every row carries what the tokenizer stage scores (SSIM, PSNR, MS-SSIM, LPIPS when its weights are
 there, reported as skipped otherwise, ``fd_effnetlite0`` unless ``--no-distribution``), the same
-scores of the sensor's no-contact image (what a tokenizer that draws only the background gets),
+scores of the data's no-contact image (what a tokenizer that draws only the background gets),
 the contact-region scores (``contact_psnr``, ``contact_ssim``, ``contact_mae``), codebook usage and
 the wall time.  Verdicts compare contact PSNR only, and only when a gap exceeds both spreads.
 

@@ -21,7 +21,7 @@ from vqtouch.core.image_size import image_hw
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.core.training import Trainer
-from vqtouch.plugins.evaluation.contact import contact_region_scores, no_contact_image
+from vqtouch.plugins.evaluation.contact import contact_region_scores, dataset_background, no_contact_image
 
 from .training import Tokenizer, TokenizerLossConfig, TokenizerSection, TokenizerTask, evaluate_reconstruction
 
@@ -72,10 +72,10 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
         job.run.resume(trainer, job.host, required_files=TOKENIZER_FILES)
     state = trainer.fit()
     metrics = dict(zip((item.name for item in config.metrics), assembly.build_slots(["metrics"]).get("metrics", [])))
+    background, background_source = dataset_background(train_set, image_hw(config.data.image_size))
     try:
         scores = evaluate_reconstruction(tokenizer, val_set, metrics, device=device,
-                                         batch_size=config.data.batch_size,
-                                         background_3HW=sensor_background(assembly, config))
+                                         batch_size=config.data.batch_size, background_3HW=background)
     except NothingToEvaluateError:  # data.val_fraction=0 holds nothing out: keep the training, say why
         scores = {"evaluation": f"skipped: no held-out samples (data.val_fraction={config.data.val_fraction:g})"}
     if trainer.dist.is_main:
@@ -84,16 +84,9 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
         best = {"best_step": state.best_step, "best_val_loss": state.best_score} if trainer.validates() else {}
         job.run.write_json("eval.json", {"step": state.step, "skipped_steps": state.skipped_steps, **best,
                                          "train_samples": len(train_set), "val_samples": len(val_set),
-                                         "split_unit": val_set.split_unit, **printable(scores)})
+                                         "split_unit": val_set.split_unit, "background": background_source,
+                                         **printable(scores)})
     return scores
-
-
-def sensor_background(assembly: Any, config: Any) -> torch.Tensor | None:
-    """The experiment's sensor rendering no contact at the data's size, (3, H, W): the image every
-    reconstruction score is shown next to.  None when the experiment names no sensor."""
-    if config.sensor is None:
-        return None
-    return no_contact_image(assembly.sensor(), torch.zeros(1, 3, *image_hw(config.data.image_size)))[0]
 
 
 #: The tokenizer stage's scores shown in the run report (eval.json holds them all).

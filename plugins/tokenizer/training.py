@@ -193,7 +193,7 @@ def evaluate_reconstruction(tokenizer: Tokenizer, dataset: Any, metrics: Mapping
     """Reconstruct every sample of ``dataset``; metrics, codebook usage, perplexity and speed.
 
     Metrics are scored through a :class:`~vqtouch.core.MetricSet`: unrounded values by name, and
-    ``"skipped"`` with the reason of each metric that cannot run here.  Given the sensor's
+    ``"skipped"`` with the reason of each metric that cannot run here.  Given the data's
     no-contact image ``background_3HW``, each metric also scores that image against every input
     (``background_*``: what a tokenizer that draws only the background gets), and both are scored
     on the contact region (``contact_*``, ``background_contact_*``, ``contact_fraction``; see
