@@ -169,3 +169,20 @@ def test_the_tokenizer_stage_scores_captured_frames_without_a_sensor_beside_thei
     assert scores["contact_fraction"] == round(share, 4)
     assert scores["background_psnr"] == pytest.approx(-10 * math.log10(share * press**2), abs=1e-3)
     assert scores["background_contact_psnr"] == pytest.approx(-10 * math.log10(press**2), abs=1e-3)
+    # A separate dataset scored whole (`evaluate reconstruction --dataset`) is scored against its own
+    # background: here the frames of a sensor 20/255 darker everywhere, whose whole image would be
+    # "contact" against the run's training background.
+    from vqtouch.core.cli import main
+
+    darker = tmp_path / "darker"
+    for index, frame in enumerate(frames):
+        path = darker / ("a" if index % 2 else "b") / f"{index:02d}.png"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        shifted = (frame * 255).round() - 20
+        Image.fromarray(shifted.to(torch.uint8).permute(1, 2, 0).numpy()).save(path)
+    spec = json.dumps({"name": "image_folder", "root": str(darker)})
+    assert main(["--no-progress", "evaluate", "reconstruction", "--run", str(run.path), "--dataset", spec]) == 0
+    evaluated = json.loads(next(run.path.glob("evaluation_*_dataset.json")).read_text())
+    assert evaluated["background"].startswith("the per-pixel median of 16 of 16 ")
+    assert evaluated["contact_fraction"] == round(share, 4)
+    assert evaluated["background_contact_psnr"] == pytest.approx(-10 * math.log10(press**2), abs=1e-3)

@@ -75,8 +75,7 @@ def dataset_background(dataset: Any, image_hw: tuple[int, int],
     ``max_images`` evenly spaced samples' ``"tactile"`` images.  None, with the reason, for
     captured frames fewer than 2.  Every stage's background comes from here; callers pass the
     training split, never the held-out images being scored."""
-    rendering_sensor = getattr(dataset, "rendering_sensor", None)
-    sensor = rendering_sensor() if rendering_sensor is not None else None
+    sensor = dataset.rendering_sensor()
     if sensor is not None:
         return no_contact_image(sensor, torch.zeros(1, 3, *image_hw))[0], RENDERED_BACKGROUND
     if len(dataset) < 2:

@@ -105,18 +105,19 @@ def _evaluate_command(args: argparse.Namespace) -> int:
     config = run.load_config(host)
     tokenizer, folder = load_tokenizer(run, host, args.step)
     assembly = Assembly(config, host)
-    dataset = assembly.component("data.dataset")
-    train_set, val_set = experiment_split(dataset, config.data, config.seed)
     if args.dataset:
         # A separate held-out dataset (e.g. another seed), evaluated whole: runs trained on
-        # different amounts of data are then compared on the very same images.
+        # different amounts of data are then compared on the very same images.  Its own images give
+        # the background (it may come from another sensor than the run's; it has no training split).
         evaluated = assembly.dataset(plugin_block(args.dataset, "--dataset"))
+        background_images = evaluated
     else:
+        dataset = assembly.component("data.dataset")
+        background_images, val_set = experiment_split(dataset, config.data, config.seed)
         evaluated = dataset if args.split == "all" else val_set
     names = args.metrics.split(",") if args.metrics else [m.name for m in config.metrics]
     metrics = {name: assembly.build("metric", name) for name in names}
-    # The run's training images give the background (as in the tokenizer stage), whichever images are scored.
-    background, background_source = dataset_background(train_set, image_hw(config.data.image_size))
+    background, background_source = dataset_background(background_images, image_hw(config.data.image_size))
     scores = evaluate_reconstruction(tokenizer, evaluated, metrics, batch_size=config.data.batch_size,
                                      background_3HW=background)
     save_pairs(*scores["examples"], run.path / f"reconstructions_{folder.name}.png")
