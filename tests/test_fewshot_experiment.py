@@ -155,6 +155,17 @@ def test_a_folder_target_too_small_for_n_is_refused_before_anything_trains(token
     error = capsys.readouterr().err
     assert error.count("\n") == 1
     assert f"vqtouch: error: --n 8: the folder {folder} holds 8 images; the largest usable --n is 7" in error
+    assert "sub-folders" not in error  # the folder holds its frames itself: no hint
+    assert trainer_calls == [] and not out.exists()
+    # An exported dataset (`vqtouch data render`) keeps its frames one level down: the error says where.
+    exported = tmp_path / "exported"
+    (exported / "tactile").mkdir(parents=True)
+    folder.rename(exported / "tactile" / "frames")
+    assert main(["evaluate", "fewshot", "--run", str(tokenizer_run), "--out", str(out), "--target", str(exported),
+                 "--n", "4", "--families", str(families_folder)]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and f"holds 0 images" in error
+    assert f"not its sub-folders (tactile): point --target at the one holding its frames, e.g. {exported / 'tactile'}" in error
     assert trainer_calls == [] and not out.exists()
 
 

@@ -101,8 +101,11 @@ def held_out_count(target: str, counts: Sequence[int], eval_images: int) -> int:
     images = len(list_images(path))
     if max(counts) + 1 > images:
         usable = f"the largest usable --n is {images - 1}" if images > 1 else "few-shot needs at least 2 images"
+        deeper = [sub.name for sub in sorted(path.iterdir()) if sub.is_dir() and list_images(sub, recursive=True)]
+        hint = (f"; the sensor's images are read from the folder itself, not its sub-folders ({', '.join(deeper)}): "
+                f"point --target at the one holding its frames, e.g. {path / deeper[0]}" if deeper else "")
         raise ConfigError(f"--n {max(counts)}: the folder {path} holds {images} images; {usable} (the rest are held "
-                          "out to score every arm)")
+                          f"out to score every arm){hint}")
     return min(eval_images, images - max(counts))
 
 
