@@ -752,7 +752,9 @@ def vqtouch_add_commands(subparsers):
                     "in interleaved rounds and score them on the held-out split (contact region and no-contact "
                     f"background included).  Default ({STANDARD['tokenizer_steps']} tokenizer steps, every knob, "
                     "3 seeds): about 1 h on a quiet 2-core CPU, 3 h on a shared one; --quick: about 15 min quiet, "
-                    "40 min shared.  On a shared CPU give --threads 1.")
+                    "40 min shared.  On a CPU without bf16 units the precision knob alone trains about 15 times "
+                    "slower (16 to 25 min per seed measured on a shared 2-core CPU at --quick): leave it out with "
+                    "--knobs deformable codebook steps sampler.  On a shared CPU give --threads 1.")
     add_config_arguments(parser, scene_required=True)
     parser.set_defaults(scene_required=False)  # the default scene is filled in by the command
     add_experiment_arguments(parser)
