@@ -15,7 +15,7 @@ from pydantic import Field
 
 from vqtouch.core import BuildContext, hookimpl
 
-from .image_cnn import ImageCnnConditioner, ImageCnnOptions
+from .image_cnn import ImageCnnConditioner, ImageCnnOptions, grid_stage_for
 
 #: The tactile conditioner's class (kept under its historical name for imports).
 TactileConditioner = ImageCnnConditioner
@@ -33,8 +33,9 @@ class TactileConditionerConfig(ImageCnnOptions):
 
 def build_tactile_conditioner(config: TactileConditionerConfig, context: BuildContext) -> ImageCnnConditioner:
     """Factory for the ``tactile`` conditioner: the tactile image has the context's channel count."""
+    grid_stage = grid_stage_for(context.image_size, context.code_grid, config.depth) if config.spatial else None
     return ImageCnnConditioner(config.reads, context.cond_dim, config.width, config.depth, config.token_grid,
-                               context.channels)
+                               context.channels, grid_stage=grid_stage)
 
 
 @hookimpl

@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from pydantic import Field
 from torch import nn
 
-from vqtouch.core import BuildContext, Conditioner, PluginConfig, hookimpl
+from vqtouch.core import BuildContext, Conditioner, PluginConfig, hookimpl, load_missing_as_zeros
 
 if TYPE_CHECKING:
     from vqtouch.plugins.evaluation.feature_networks import EfficientNetLite0Features
@@ -37,6 +37,11 @@ class VisualConditionerConfig(PluginConfig):
     input_size: int = Field(224, ge=32, le=1024, description="Side in pixels the visual image is resized to before "
                                                              "EfficientNet-Lite0 (224 as in ImageNet training; the "
                                                              "feature map is input_size / 32 on a side).")
+    grid_stage: int | None = Field(3, ge=0, le=4, description="Also hand the generator the map of this "
+                                   "EfficientNet-Lite0 resolution stage (0..4 at strides 2, 4, 8, 16, 32), projected "
+                                   "and added at each code's position: the visual image is aligned with the tactile "
+                                   "one, so it says where the contact is.  3: stride 16 (8x8 at input_size 128).  "
+                                   "null: cross-attention tokens only (the ablation).")
 
 
 class VisualConditioner(Conditioner):
@@ -51,29 +56,48 @@ class VisualConditioner(Conditioner):
 
     sample_key = "visual"
 
-    def __init__(self, features: EfficientNetLite0Features, cond_dim: int, token_grid: int) -> None:
-        """``features``: the frozen network (built by the factory, which is where it is imported)."""
+    def __init__(self, features: EfficientNetLite0Features, cond_dim: int, token_grid: int,
+                 grid_stage: int | None = None) -> None:
+        """``features``: the frozen network (built by the factory, which is where it is imported);
+        ``grid_stage``: the resolution stage whose map is also returned as the condition grid."""
         super().__init__(cond_dim, token_grid * token_grid)
         self.token_grid = token_grid
         # A FrozenModule: frozen, always in eval mode, out of state_dict and checkpoints, moved by .to().
         self.features = features
-        from vqtouch.plugins.evaluation.feature_networks import EFFNET_LITE0_POOLED_DIM
+        from vqtouch.plugins.evaluation.feature_networks import EFFNET_LITE0_POOLED_DIM, EFFNET_LITE0_STAGE_CHANNELS
 
         self.project = nn.Linear(EFFNET_LITE0_POOLED_DIM, cond_dim)
         self.position_ND = nn.Parameter(torch.randn(token_grid * token_grid, cond_dim) * 0.02)
+        self.grid_stage = grid_stage
+        self.grid_project = nn.Linear(EFFNET_LITE0_STAGE_CHANNELS[grid_stage if grid_stage is not None else -1], cond_dim)
+        # Checkpoints from before the grid existed load it as zeros (the generator then sees no grid).
+        load_missing_as_zeros(self, "grid_project")
 
     def encode(self, condition: torch.Tensor) -> torch.Tensor:
         """Visual images (B, 3, H, W) in [0, 1] to tokens (B, token_grid**2, cond_dim)."""
+        return self.encode_with_grid(condition)[0]
+
+    def encode_with_grid(self, condition: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Visual images (B, 3, H, W) in [0, 1] to tokens (B, token_grid**2, cond_dim) and, with a
+        ``grid_stage``, that stage's map with each position L2-normalised and projected (B, cond_dim, h, w)."""
         images_B3HW = condition
         if images_B3HW.ndim != 4 or images_B3HW.shape[1] != 3:
             raise ValueError(f"visual conditioner expects RGB images (B, 3, H, W) in [0, 1], "
                              f"got {tuple(images_B3HW.shape)}")
+        images_B3HW = images_B3HW.to(self.project.weight.device)
         # The network is frozen and the images need no gradient: skip its autograd graph (memory).
         with torch.no_grad():
-            feature_map_BFhw = self.features.feature_map(images_B3HW.to(self.project.weight.device))
+            if self.grid_stage is None:
+                feature_map_BFhw, stage_BChw = self.features.feature_map(images_B3HW), None
+            else:
+                feature_map_BFhw, stage_BChw = self.features.feature_map_and_stage(images_B3HW, self.grid_stage)
         pooled_BFgg = F.adaptive_avg_pool2d(feature_map_BFhw.float(), self.token_grid)
         cells_BNF = F.normalize(pooled_BFgg.flatten(2).transpose(1, 2), dim=-1, eps=1e-6)
-        return self.project(cells_BNF.to(self.project.weight.dtype)) + self.position_ND
+        tokens_BND = self.project(cells_BNF.to(self.project.weight.dtype)) + self.position_ND
+        if stage_BChw is None:
+            return tokens_BND, None
+        cells_BhwC = F.normalize(stage_BChw.float().permute(0, 2, 3, 1), dim=-1, eps=1e-6)
+        return tokens_BND, self.grid_project(cells_BhwC.to(self.project.weight.dtype)).permute(0, 3, 1, 2)
 
     def extra_repr(self) -> str:
         return f"token_grid={self.token_grid}, input_size={self.features.image_size}"
@@ -87,7 +111,8 @@ def build_visual_conditioner(config: VisualConditionerConfig, context: BuildCont
     """
     from vqtouch.plugins.evaluation.feature_networks import EfficientNetLite0Features
 
-    return VisualConditioner(EfficientNetLite0Features(config.input_size), context.cond_dim, config.token_grid)
+    return VisualConditioner(EfficientNetLite0Features(config.input_size), context.cond_dim, config.token_grid,
+                             config.grid_stage)
 
 
 @hookimpl

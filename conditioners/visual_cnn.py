@@ -12,7 +12,7 @@ from typing import Literal
 
 from vqtouch.core import BuildContext, hookimpl
 
-from .image_cnn import ImageCnnConditioner, ImageCnnOptions
+from .image_cnn import ImageCnnConditioner, ImageCnnOptions, grid_stage_for
 
 
 class VisualCnnConditionerConfig(ImageCnnOptions):
@@ -23,7 +23,9 @@ class VisualCnnConditionerConfig(ImageCnnOptions):
 
 def build_visual_cnn_conditioner(config: VisualCnnConditionerConfig, context: BuildContext) -> ImageCnnConditioner:
     """Factory for the ``visual_cnn`` conditioner: visual images are always RGB (3 channels)."""
-    return ImageCnnConditioner("visual", context.cond_dim, config.width, config.depth, config.token_grid, channels=3)
+    grid_stage = grid_stage_for(context.image_size, context.code_grid, config.depth) if config.spatial else None
+    return ImageCnnConditioner("visual", context.cond_dim, config.width, config.depth, config.token_grid, channels=3,
+                               grid_stage=grid_stage)
 
 
 @hookimpl

@@ -24,7 +24,7 @@ from .assembly import Assembly
 from .checkpoint import atomic_write, load, read_metadata, save
 from .components import (Autoencoder, BuildContext, Clusterer, Conditioner, ConditionTokens, Discriminator, Generator,
                          Metric, MetricSet, PerImageMetric, ProvidesContext, Quantizer, QuantizerOutput, Sampler, SensorFamily,
-                         SkippedMetric, TactileDataset)
+                         SkippedMetric, TactileDataset, load_missing_as_zeros)
 from .config import ExperimentConfig, Section, Slot, load_config_file, resolve_config, validate_experiment
 from .errors import (CheckpointError, ConfigError, DatasetError, MissingWeightsError, PluginError, UnknownPluginError,
                      VqtouchError, VqtouchWarning)
@@ -49,7 +49,7 @@ __all__ = [
     "MissingWeightsError", "PerImageMetric", "PluginConfig", "PluginError", "PluginHost", "ProvidesContext",
     "Quantizer", "QuantizerOutput", "RunDir", "Sampler", "Section", "SensorFamily", "SkippedMetric", "Slot", "StageJob", "StageOutcome",
     "StageUnavailable", "TactileDataset", "TrainConfig", "UnknownPluginError", "VqtouchError", "VqtouchWarning", "WeightsSpec",
-    "__version__", "atomic_write", "hookimpl", "load", "load_config_file", "load_plugins", "make_generator",
+    "__version__", "atomic_write", "hookimpl", "load", "load_config_file", "load_missing_as_zeros", "load_plugins", "make_generator",
     "read_metadata", "required_slots", "resolve_config", "resolve_device", "resolve_weights", "run_stage", "save",
     "seed_everything", "validate_experiment",
 ]

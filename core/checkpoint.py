@@ -37,7 +37,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_model
 from torch import nn
 
-from .components import BuildContext
+from .components import BuildContext, fill_missing_with_zeros
 from .errors import CheckpointError, ConfigError, UnknownPluginError, VqtouchError
 
 FORMAT_VERSION = "1"
@@ -305,6 +305,8 @@ def load_state_strict(module: nn.Module, tensors: Mapping[str, torch.Tensor], pa
     expected = module.state_dict()
     # save_model drops tied duplicates; restore them from the kept name.
     tensors = dict(tensors)
+    # Paths added later as zero-initialised layers load as zeros from older files (load_missing_as_zeros).
+    fill_missing_with_zeros(module, tensors)
     for name, value in expected.items():
         if name not in tensors:
             for other_name, other_value in expected.items():

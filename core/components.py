@@ -62,11 +62,44 @@ class ConditionTokens:
     """A batch of condition tokens for the generator.
 
     ``tokens_BND`` are the cross-attention tokens; ``is_null_B`` marks rows that carry the
-    learned null condition (classifier-free guidance and condition dropout).
+    learned null condition (classifier-free guidance and condition dropout).  ``grid_BDhw``, from a
+    conditioner whose condition is an image aligned with the target (a tactile image of the same
+    contact, a visual image of it), is a feature map (B, cond_dim, h, w) over that image: a
+    generator can add it at each position of its code grid, so it does not have to learn where
+    the contact is through attention alone.  Null rows hold zeros there.  None for conditions
+    without a spatial layout (label, text).
     """
 
     tokens_BND: torch.Tensor
     is_null_B: torch.Tensor
+    grid_BDhw: torch.Tensor | None = None
+
+    def null_grid_like(self) -> torch.Tensor | None:
+        """The grid of null rows for a batch like this one (zeros), None when it has no grid."""
+        return None if self.grid_BDhw is None else torch.zeros_like(self.grid_BDhw)
+
+
+def load_missing_as_zeros(module: nn.Module, *names: str) -> None:
+    """Let ``module`` load a state dict that lacks the submodules ``names`` (checkpoints saved
+    before they existed): their parameters load as zeros.  For layers added to a network as
+    zero-initialised paths, so an old checkpoint computes exactly what it did.  Honoured by
+    ``load_state_dict`` and by vqtouch's strict checkpoint loading."""
+    module.vqtouch_zero_if_missing = tuple(getattr(module, "vqtouch_zero_if_missing", ())) + names
+
+    def fill(state_dict: dict[str, torch.Tensor], prefix: str, *args: Any) -> None:
+        fill_missing_with_zeros(module, state_dict, prefix)
+
+    module._register_load_state_dict_pre_hook(fill)
+
+
+def fill_missing_with_zeros(module: nn.Module, state_dict: dict[str, torch.Tensor], prefix: str = "") -> None:
+    """Add zeros to ``state_dict`` for the tensors it lacks of every submodule declared with
+    :func:`load_missing_as_zeros` anywhere in ``module`` (keys under ``prefix``)."""
+    for path, child in module.named_modules():
+        for name in getattr(child, "vqtouch_zero_if_missing", ()):
+            for key, tensor in getattr(child, name).state_dict().items():
+                full = ".".join(part for part in (path, name, key) if part)
+                state_dict.setdefault(prefix + full, torch.zeros_like(tensor))
 
 
 class Conditioner(nn.Module, abc.ABC):
@@ -92,8 +125,16 @@ class Conditioner(nn.Module, abc.ABC):
     def encode(self, condition: Any) -> torch.Tensor:
         """Map a batch of raw conditions to tokens of shape (B, num_tokens, cond_dim)."""
 
+    def encode_with_grid(self, condition: Any) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Tokens (B, num_tokens, cond_dim) and, for a condition image aligned with the target image,
+        a feature map (B, cond_dim, h, w) over it (see :class:`ConditionTokens`).  The default has
+        no grid: :meth:`encode` and None.  Image conditioners override this, computing both in one
+        pass over the image."""
+        return self.encode(condition), None
+
     def null(self, batch_size: int) -> ConditionTokens:
-        """The learned 'no condition' tokens for ``batch_size`` rows."""
+        """The learned 'no condition' tokens for ``batch_size`` rows (a conditioner with a grid gives
+        its null rows a zero grid inside :meth:`forward`; generators treat a missing grid as zeros)."""
         tokens = self.null_tokens_ND.unsqueeze(0).expand(batch_size, -1, -1)
         return ConditionTokens(tokens, torch.ones(batch_size, dtype=torch.bool, device=tokens.device))
 
@@ -147,8 +188,9 @@ class Conditioner(nn.Module, abc.ABC):
                                   "to turn a user's value into that entry")
 
     def forward(self, condition: Any, drop_mask_B: torch.Tensor | None = None) -> ConditionTokens:
-        """Encode ``condition``; rows where ``drop_mask_B`` is True get the null tokens instead."""
-        tokens_BND = self.encode(condition)
+        """Encode ``condition``; rows where ``drop_mask_B`` is True get the null tokens (and a zero grid)
+        instead."""
+        tokens_BND, grid_BDhw = self.encode_with_grid(condition)
         if tokens_BND.ndim != 3 or tokens_BND.shape[1:] != (self.num_tokens, self.cond_dim):
             raise RuntimeError(
                 f"{type(self).__name__}.encode returned shape {tuple(tokens_BND.shape)}; "
@@ -158,7 +200,12 @@ class Conditioner(nn.Module, abc.ABC):
             drop_mask_B = torch.zeros(batch, dtype=torch.bool, device=tokens_BND.device)
         null_BND = self.null_tokens_ND.to(tokens_BND.dtype).unsqueeze(0).expand(batch, -1, -1)
         tokens_BND = torch.where(drop_mask_B[:, None, None], null_BND, tokens_BND)
-        return ConditionTokens(tokens_BND, drop_mask_B)
+        if grid_BDhw is not None:
+            if grid_BDhw.ndim != 4 or grid_BDhw.shape[:2] != (batch, self.cond_dim):
+                raise RuntimeError(f"{type(self).__name__}.encode_with_grid returned a grid of shape "
+                                   f"{tuple(grid_BDhw.shape)}; expected (B, {self.cond_dim}, h, w)")
+            grid_BDhw = torch.where(drop_mask_B[:, None, None, None], torch.zeros_like(grid_BDhw), grid_BDhw)
+        return ConditionTokens(tokens_BND, drop_mask_B, grid_BDhw)
 
 
 class SensorFamily(nn.Module, abc.ABC):

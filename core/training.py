@@ -91,6 +91,14 @@ class TrainConfig(Section):
                             "bf16, or auto, the measured choice for the device the run trains on "
                             "(AUTO_PRECISION: fp32 on CPU, bf16 on a CUDA GPU that supports it).")
     optimizer: Literal["adamw", "adam"] = Field("adamw", description="Optimizer of every trained module.")
+    warmup_steps: int = Field(0, ge=0, le=MAX_STEPS, strict=True,
+                              description="Raise the learning rate linearly from 1/warmup_steps of its peak to the "
+                                          "peak over this many first steps (0: start at the peak).")
+    lr_schedule: Literal["constant", "cosine"] = Field(
+        "constant", description="After warm-up: keep the peak learning rate ('constant') or lower it along a half "
+                                "cosine to min_lr_ratio of the peak at the last step ('cosine').")
+    min_lr_ratio: float = Field(0.1, ge=0.0, le=1.0, strict=True,
+                                description="Where the cosine schedule ends, as a share of the peak learning rate.")
     betas: tuple[float, float] = Field((0.9, 0.999), description="Adam betas, each in [0, 1).")
     ema_decay: float | None = Field(None, gt=0.0, lt=1.0, strict=True,
                                     description="Keep an exponential moving average of the weights with this decay "
@@ -126,6 +134,19 @@ class TrainConfig(Section):
         if not all(0.0 <= beta < 1.0 for beta in value):
             raise _betas_error()
         return value
+
+
+def learning_rate_factor(config: TrainConfig, step: int) -> float:
+    """The share of the peak learning rate at ``step`` (0-based): a linear warm-up over
+    ``warmup_steps``, then constant or a half cosine down to ``min_lr_ratio`` at step ``steps - 1``.
+    A pure function of the step, so a resumed run continues the same schedule."""
+    if step < config.warmup_steps:
+        return (step + 1) / config.warmup_steps
+    if config.lr_schedule == "constant":
+        return 1.0
+    span = max(1, config.steps - 1 - config.warmup_steps)
+    progress_done = min(1.0, (step - config.warmup_steps) / span)
+    return config.min_lr_ratio + (1.0 - config.min_lr_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress_done))
 
 
 #: What ``precision: auto`` trains in, per device type (others: fp32).  CPU: fp32, measured (docs/results.md,
@@ -410,6 +431,9 @@ class Trainer:
         never diverge; the skip is counted and logged.
         """
         optimizer = self.optimizers[name]
+        factor = learning_rate_factor(self.config, self.state.step)
+        for group in optimizer.param_groups:
+            group["lr"] = self.config.learning_rate * group.get("lr_scale", 1.0) * factor
         params = [p for group in optimizer.param_groups for p in group["params"]]
         finite = torch.isfinite(loss.detach()).all().float().reshape(1)
         if self.dist.world > 1:

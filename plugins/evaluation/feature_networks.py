@@ -44,6 +44,8 @@ EFFNET_LITE0_POOLED_DIM = 1280
 #: Indices of the last MBConv block of each resolution stage of EfficientNet-Lite0 (16 blocks):
 #: strides 2, 4, 8, 16, 32 with 16, 24, 40, 112, 320 channels.
 EFFNET_LITE0_STAGE_END_BLOCKS = (0, 2, 4, 10, 15)
+#: Channels of each resolution stage's output (strides 2, 4, 8, 16, 32).
+EFFNET_LITE0_STAGE_CHANNELS = (16, 24, 40, 112, 320)
 
 ALEXNET_WEIGHTS = WeightsSpec(
     description="LPIPS backbone (torchvision AlexNet ImageNet weights, only features.* are used)",
@@ -163,6 +165,22 @@ class EfficientNetLite0Features(FrozenModule):
     def feature_map(self, images_B3HW: torch.Tensor) -> torch.Tensor:
         """The head's feature map (B, 1280, h, w) (``extract_features``; 7x7 at 224 px)."""
         return self.network.extract_features(self.preprocess(images_B3HW))
+
+    def feature_map_and_stage(self, images_B3HW: torch.Tensor, stage: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The head's feature map (B, 1280, h, w), as :meth:`feature_map`, and, from the same pass,
+        the output of resolution stage ``stage`` (0..4: 16, 24, 40, 112, 320 channels at strides
+        2, 4, 8, 16, 32), a finer map of where things are."""
+        if not 0 <= stage < len(EFFNET_LITE0_STAGE_END_BLOCKS):
+            raise ValueError(f"EfficientNet-Lite0 has resolution stages 0..{len(EFFNET_LITE0_STAGE_END_BLOCKS) - 1}; "
+                             f"got {stage}")
+        network = self.network
+        features = self._stem(self.preprocess(images_B3HW))
+        tapped = features
+        for index in range(len(network._blocks)):
+            features = self._block(index, features)
+            if index == EFFNET_LITE0_STAGE_END_BLOCKS[stage]:
+                tapped = features
+        return network._swish(network._bn1(network._conv_head(features))), tapped
 
     def pooled(self, images_B3HW: torch.Tensor) -> torch.Tensor:
         """Global-mean-pooled head features (B, 1280): the FD-EffNetLite0 feature."""

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from vqtouch.core import Assembly, ConfigError, RunDir, hookimpl, run_stage
+from vqtouch.core import Assembly, ConfigError, RunDir, atomic_write, hookimpl, run_stage
 from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group, plugin_block,
                               positive_int, stage_failure, training_run)
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
@@ -151,30 +151,40 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
     from vqtouch.core.image_size import image_hw
     from vqtouch.plugins.evaluation.contact import dataset_background
 
-    if args.out:
+    if not args.run and not args.out:
+        raise ConfigError("give --run RUN (score a trained generator or pretrained:NAME) or --out DIR (run the "
+                          "experiment)")
+    if not args.run:
         return _generation_experiment_command(args)
     if args.overrides or args.config or args.tokenizer or args.overwrite:
-        raise ConfigError("--set/--config/--tokenizer/--overwrite belong to the experiment (--out); scoring a run "
-                          "(--run) uses the run's own config")
+        raise ConfigError("--set/--config/--tokenizer/--overwrite belong to the experiment (--out without --run); "
+                          "scoring a run (--run) uses the run's own config")
 
-    from .pipeline import load_pipeline
-    from .stage import baseline_pool, held_out_conditions, score_generation
+    from .pipeline import is_pretrained, load_pipeline
+    from .stage import baseline_pool, distribution_scorer, held_out_conditions, score_generation
 
     host = args.host
+    if is_pretrained(args.run) and not args.out:
+        raise ConfigError(f"--run {args.run}: a bundle is read-only; give --out DIR for its scores")
     if args.clip_checkpoint and not Path(args.clip_checkpoint).expanduser().is_file():
         raise ConfigError(f"--clip-checkpoint {args.clip_checkpoint}: no such file; give the open_clip weights file "
                           "(.safetensors, .pt or .bin)")
     pipe = load_pipeline(args.run, host=host, step=args.step)
-    run = RunDir.open(args.run)
-    config = run.load_config(host)
+    config = pipe.config
     assembly = Assembly(config, host)
     dataset = assembly.component("data.dataset")
     train, held_out = experiment_split(dataset, config.data, config.seed)
     names = [item.name for item in config.generator.conditioners]
-    index = args.conditioner if args.conditioner is not None else 0
-    if not 0 <= index < len(names):
-        raise ConfigError(f"--conditioner {index}: this generator has conditioners 0..{len(names) - 1} "
+    if args.conditioner is not None and not 0 <= args.conditioner < len(names):
+        raise ConfigError(f"--conditioner {args.conditioner}: this generator has conditioners 0..{len(names) - 1} "
                           f"({', '.join(names)})")
+    out = Path(args.out) if args.out else None
+    if out is not None:
+        if out.exists() and not out.is_dir():
+            raise ConfigError(f"--out {out}: exists and is not a folder")
+        out.mkdir(parents=True, exist_ok=True)
+    # Into --out: every conditioner unless one is named (Table 2's by_conditioner); into the run: one, 0 by default.
+    indices = [args.conditioner] if args.conditioner is not None else (list(range(len(names))) if out else [0])
     sampler_name = args.sampler or pipe.sampler_name
     steps = pipe.check_steps(args.steps or pipe.settings["steps"])
     metrics = [(block["name"], assembly.build("metric", block)) for block in _metric_blocks(args, config)]
@@ -184,19 +194,31 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
                                                                     "image_size": args.feature_size})))
     tag = f"{pipe.checkpoint.name}_{sampler_name}_{steps}"
     background, background_source = dataset_background(train, image_hw(config.data.image_size))
-    scores = score_generation(
-        generator=pipe.generator, conditioner=pipe.conditioners[index], tokenizer=pipe.tokenizer,
-        sampler=host.build("sampler", sampler_name),
-        conditions=held_out_conditions(held_out, dataset, args.n, pipe.device), pool=baseline_pool(train),
-        metrics=metrics,
-        background_3HW=background, steps=steps,
-        guidance=pipe.settings["guidance"] if args.guidance is None else args.guidance,
-        truncation=pipe.settings["truncation"] if args.truncation is None else args.truncation,
-        seed=config.seed if args.seed is None else args.seed, device=pipe.device,
-        picture=run.path / f"samples_{tag}.png", distribution=args.distribution)
-    result = {"checkpoint": str(pipe.checkpoint), "conditioner": f"{index}:{names[index]}", "sampler": sampler_name,
-              "background": background_source, **scores}
-    run.write_json(f"evaluation_generation_{tag}.json", result)
+    conditions = held_out_conditions(held_out, dataset, args.n, pipe.device)
+    pool = baseline_pool(train)
+    scorer = distribution_scorer(conditions, pool, metrics, config.seed) if args.distribution else False
+    folder = out if out is not None else pipe.run.path
+    by_conditioner = {}
+    for index in indices:
+        picture = f"samples_{index}_{names[index]}.png" if out is not None else f"samples_{tag}.png"
+        by_conditioner[f"{index}:{names[index]}"] = score_generation(
+            generator=pipe.generator, conditioner=pipe.conditioners[index], tokenizer=pipe.tokenizer,
+            sampler=host.build("sampler", sampler_name), conditions=conditions, pool=pool, metrics=metrics,
+            background_3HW=background, steps=steps,
+            guidance=pipe.settings["guidance"] if args.guidance is None else args.guidance,
+            truncation=pipe.settings["truncation"] if args.truncation is None else args.truncation,
+            seed=config.seed if args.seed is None else args.seed, device=pipe.device,
+            picture=folder / picture, distribution=scorer)
+    head = {"checkpoint": str(args.run if is_pretrained(args.run) else pipe.checkpoint), "sampler": sampler_name,
+            "background": background_source}
+    if out is not None:
+        result = head | {"by_conditioner": by_conditioner}
+        text = json.dumps(result, indent=2) + "\n"
+        atomic_write(out / "generation.json", lambda tmp: Path(tmp).write_text(text))
+    else:
+        (name, scores), = by_conditioner.items()
+        result = head | {"conditioner": name, **scores}
+        pipe.run.write_json(f"evaluation_generation_{tag}.json", result)
     print(json.dumps(result, indent=2))
     return 0
 
@@ -289,10 +311,12 @@ def vqtouch_add_commands(subparsers):
                                                     "their ground truth, the no-contact background and the contact "
                                                     "region; with --out, the per-conditioner experiment over seeds "
                                                     "(Table 2: JSON, markdown, PNG)")
-    mode = scored.add_mutually_exclusive_group(required=True)
-    mode.add_argument("--run", help="a run whose generator stage trained: score it")
-    mode.add_argument("--out", help="run the experiment into this folder: train the scene's generator once per seed "
-                                    "over one tokenizer and score every conditioner against the baselines")
+    scored.add_argument("--run", help="a run whose generator stage trained, or a bundle (pretrained:NAME): score it "
+                                      "(with --out DIR, into DIR/generation.json; a bundle is read-only and needs "
+                                      "--out)")
+    scored.add_argument("--out", help="without --run: run the experiment into this folder: train the scene's "
+                                      "generator once per seed over one tokenizer and score every conditioner against "
+                                      "the baselines; with --run: where the run's scores go")
     scored.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2],
                         help="with --out: generator seeds (default 0 1 2)")
     scored.add_argument("--tokenizer", metavar="RUN", help="with --out: the trained tokenizer every seed's generator "

@@ -6,7 +6,16 @@ never MASK; :func:`vqtouch.plugins.generator.diffusion.log_predict_x0` turns the
 distribution the diffusion maths works with.
 
 Each block: adaptive LayerNorm (timestep) -> self-attention; adaptive LayerNorm -> cross-attention to
-the condition tokens; adaptive LayerNorm -> MLP; every sub-layer residual.  Attention goes through
+the condition tokens; adaptive LayerNorm -> MLP; every sub-layer residual.
+
+Besides cross-attention the condition reaches the network two more ways (both zero-initialised, so
+they start as no-ops and a checkpoint saved without them loads and computes exactly as before):
+
+- globally: the mean of the projected condition tokens is added to the timestep embedding that
+  drives every adaptive LayerNorm (VQ-Diffusion's class-AdaLN, for any conditioner);
+- spatially: a condition image aligned with the target (``grid_BDhw`` of the condition, see
+  :class:`vqtouch.core.ConditionTokens`) is resized to the code grid, L2-normalised per position,
+  projected and added to the token embeddings, so a code sees the condition at its own place.  Attention goes through
 ``F.scaled_dot_product_attention``.  LayerNorms run in float32 and the residual stream stays float32
 under autocast, so bf16 autocast only lowers the matmuls (outputs stay finite, logits are float32).
 """
@@ -18,6 +27,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from vqtouch.core import load_missing_as_zeros
 
 
 @dataclass
@@ -32,6 +43,10 @@ class ConditionCache:
     #: (B,) False for rows without any valid token, whose cross-attention then adds nothing; None
     #: when every row has one.
     has_tokens_B: torch.Tensor | None
+    #: The condition's global embedding (B, width), added to the timestep embedding.
+    global_Bd: torch.Tensor | None = None
+    #: The aligned condition image's embedding at each code (B, L, width); None without a grid.
+    grid_BLd: torch.Tensor | None = None
 
     @property
     def batch_size(self) -> int:
@@ -163,10 +178,16 @@ class DiffusionTransformer(nn.Module):
         self.col_embed = nn.Embedding(grid_width, width)
         self.time_embed = nn.Embedding(num_steps, width)
         self.cond_proj = nn.Linear(cond_dim, width)
+        self.cond_global = nn.Linear(width, width)
+        self.grid_proj = nn.Linear(cond_dim, width)
         self.blocks = nn.ModuleList(_Block(width, heads, mlp_ratio, dropout) for _ in range(depth))
         self.head_norm = nn.LayerNorm(width, eps=1e-6)
         self.head = nn.Linear(width, num_codes)
         self.apply(self._init_weights)
+        for layer in (self.cond_global, self.grid_proj):
+            nn.init.zeros_(layer.weight)
+        # Checkpoints saved before these paths existed load them as zeros: the no-ops they replace.
+        load_missing_as_zeros(self, "cond_global", "grid_proj")
 
     @staticmethod
     def _init_weights(module: nn.Module) -> None:
@@ -177,8 +198,10 @@ class DiffusionTransformer(nn.Module):
         if isinstance(module, nn.Linear) and module.bias is not None:
             nn.init.zeros_(module.bias)
 
-    def precompute_condition(self, cond_BMD: torch.Tensor, mask: torch.Tensor | None = None) -> ConditionCache:
-        """Encode condition tokens (B, M, cond_dim) once for every block.
+    def precompute_condition(self, cond_BMD: torch.Tensor, mask: torch.Tensor | None = None,
+                             grid_BDhw: torch.Tensor | None = None) -> ConditionCache:
+        """Encode condition tokens (B, M, cond_dim), and the aligned condition grid (B, cond_dim, h, w)
+        when there is one, once for every block.
 
         ``mask`` (B, M) bool: True where a token is real, False where it is padding (the convention
         of ``scaled_dot_product_attention``, the opposite of ``nn.MultiheadAttention``'s
@@ -198,21 +221,45 @@ class DiffusionTransformer(nn.Module):
             has_tokens_B = mask.any(dim=1)
             # An all-False row would make softmax NaN; let it attend everywhere and zero its output.
             attn_mask_B11M = (mask | ~has_tokens_B.unsqueeze(1)).view(mask.shape[0], 1, 1, mask.shape[1])
-        return ConditionCache(keys_values, attn_mask_B11M, has_tokens_B)
+        if mask is None:
+            pooled_Bd = cond_BMd.float().mean(dim=1)
+        else:
+            weight_BM1 = mask.unsqueeze(-1).float()
+            pooled_Bd = (cond_BMd.float() * weight_BM1).sum(1) / weight_BM1.sum(1).clamp_min(1.0)
+        global_Bd = self.cond_global(pooled_Bd.to(cond_BMd.dtype))
+        return ConditionCache(keys_values, attn_mask_B11M, has_tokens_B, global_Bd, self._grid_embedding(grid_BDhw))
+
+    def _grid_embedding(self, grid_BDhw: torch.Tensor | None) -> torch.Tensor | None:
+        """The aligned condition grid on the code grid, (B, L, width), or None."""
+        if grid_BDhw is None:
+            return None
+        if grid_BDhw.ndim != 4 or grid_BDhw.shape[1] != self.cond_dim:
+            raise ValueError(f"expected a condition grid (B, {self.cond_dim}, h, w); got {tuple(grid_BDhw.shape)}")
+        grid_BDhw = grid_BDhw.float()
+        if tuple(grid_BDhw.shape[-2:]) != self.grid_hw:
+            larger = grid_BDhw.shape[-2] >= self.grid_hw[0] and grid_BDhw.shape[-1] >= self.grid_hw[1]
+            # Area averaging when shrinking (every condition pixel counts), bilinear when enlarging.
+            grid_BDhw = F.interpolate(grid_BDhw, size=self.grid_hw, mode="area") if larger else \
+                F.interpolate(grid_BDhw, size=self.grid_hw, mode="bilinear", align_corners=False)
+        # Per-position L2 normalisation, as for the tokens; a null row's zeros stay zeros.
+        cells_BLD = F.normalize(grid_BDhw.flatten(2).transpose(1, 2), dim=-1, eps=1e-6)
+        return self.grid_proj(cells_BLD)
 
     def forward(self, codes_BL: torch.Tensor, t_B: torch.Tensor, condition: torch.Tensor | None = None,
-                cache: ConditionCache | None = None, condition_mask: torch.Tensor | None = None) -> torch.Tensor:
+                cache: ConditionCache | None = None, condition_mask: torch.Tensor | None = None,
+                condition_grid: torch.Tensor | None = None) -> torch.Tensor:
         """x_0 logits (B, K, L) in float32 for codes (B, L) in [0, K] at timesteps (B,) in [0, T-1].
 
-        Give either ``condition`` (B, M, cond_dim), with its optional ``condition_mask`` (B, M), or a
-        ``cache`` from :meth:`precompute_condition` (same result, without re-encoding).
+        Give either ``condition`` (B, M, cond_dim), with its optional ``condition_mask`` (B, M) and
+        ``condition_grid`` (B, cond_dim, h, w), or a ``cache`` from :meth:`precompute_condition`
+        (same result, without re-encoding).
         """
         if (condition is None) == (cache is None):
             raise ValueError("DiffusionTransformer.forward needs exactly one of condition and cache")
         if cache is None:
-            cache = self.precompute_condition(condition, condition_mask)
-        elif condition_mask is not None:
-            raise ValueError("condition_mask belongs to precompute_condition when a cache is passed")
+            cache = self.precompute_condition(condition, condition_mask, condition_grid)
+        elif condition_mask is not None or condition_grid is not None:
+            raise ValueError("condition_mask and condition_grid belong to precompute_condition when a cache is passed")
         height, grid_width = self.grid_hw
         if codes_BL.ndim != 2 or codes_BL.shape[1] != height * grid_width:
             raise ValueError(f"expected codes (B, {height * grid_width}) on the {height}x{grid_width} grid; "
@@ -223,7 +270,12 @@ class DiffusionTransformer(nn.Module):
             raise ValueError(f"condition batch {cache.batch_size} != codes batch {codes_BL.shape[0]}")
         positions_Ld = (self.row_embed.weight.unsqueeze(1) + self.col_embed.weight.unsqueeze(0)).reshape(-1, self.width)
         x_BLd = (self.token_embed(codes_BL.long()) + positions_Ld).float()
-        time_Bd = F.silu(self.time_embed(t_B.long()))
+        if cache.grid_BLd is not None:
+            x_BLd = x_BLd + cache.grid_BLd.float()
+        time_Bd = self.time_embed(t_B.long())
+        if cache.global_Bd is not None:
+            time_Bd = time_Bd + cache.global_Bd.to(time_Bd.dtype)
+        time_Bd = F.silu(time_Bd)
         for block, keys_values in zip(self.blocks, cache.keys_values, strict=True):
             x_BLd = block(x_BLd, time_Bd, keys_values, cache.attn_mask_B11M, cache.has_tokens_B)
         logits_BLK = self.head(_layer_norm(x_BLd, self.head_norm.weight, self.head_norm.bias))

@@ -455,7 +455,7 @@ def vb_loss(log_x0_pred_BCL: torch.Tensor, codes_x0_BL: torch.Tensor, codes_t_BL
 
 
 def masked_ce_loss(logits_BKL: torch.Tensor, codes_x0_BL: torch.Tensor, codes_t_BL: torch.Tensor, t_B: torch.Tensor,
-                   schedule: MaskReplaceSchedule) -> torch.Tensor:
+                   schedule: MaskReplaceSchedule, weighting: str = "elbo") -> torch.Tensor:
     """The absorbing-state loss L_t (MD4/MDLM, methods.md 10), per sample (B,): w_t times the summed
     cross-entropy -log p(x_0 | x_t) of the masked tokens only; unmasked tokens contribute nothing.
 
@@ -470,7 +470,14 @@ def masked_ce_loss(logits_BKL: torch.Tensor, codes_x0_BL: torch.Tensor, codes_t_
     With real replace noise this ignores replaced tokens: it is then the absorbing approximation,
     and :func:`vb_loss` is the exact objective.  A step with gamma_bar_t = 0 has no masked tokens and
     weight 0.
+
+    ``weighting="mean"`` instead gives each sample the mean cross-entropy of its masked tokens
+    (MaskGIT's objective, not a bound): every masked token counts alike whatever t, where the
+    ELBO weight w_t ~ 1/t makes a token masked at large t (where the condition decides the
+    layout) count ~T times less than one masked at t = 0.
     """
+    if weighting not in ("elbo", "mean"):
+        raise ValueError(f"masked_ce_loss weighting must be 'elbo' or 'mean'; got {weighting!r}")
     num_codes = schedule.num_codes
     if logits_BKL.ndim != 3 or logits_BKL.shape[1] != num_codes:
         raise ValueError(f"expected logits (B, {num_codes}, L); got {tuple(logits_BKL.shape)}")
@@ -478,7 +485,10 @@ def masked_ce_loss(logits_BKL: torch.Tensor, codes_x0_BL: torch.Tensor, codes_t_
     log_p_BKL = F.log_softmax(logits_BKL.to(torch.promote_types(logits_BKL.dtype, torch.float32)), dim=1)
     nll_BL = -log_p_BKL.gather(1, codes_x0_BL.long().unsqueeze(1)).squeeze(1)
     # where, not a product: a -inf logit at an unmasked position must not turn 0 * inf into NaN.
-    masked_nll_BL = torch.where(codes_t_BL == schedule.mask_index, nll_BL, torch.zeros_like(nll_BL))
+    is_masked_BL = codes_t_BL == schedule.mask_index
+    masked_nll_BL = torch.where(is_masked_BL, nll_BL, torch.zeros_like(nll_BL))
+    if weighting == "mean":
+        return masked_nll_BL.sum(dim=1) / is_masked_BL.sum(dim=1).clamp_min(1).to(nll_BL.dtype)
     return schedule.masked_ce_weight_T[t_B].to(nll_BL.dtype) * masked_nll_BL.sum(dim=1)
 
 

@@ -41,6 +41,10 @@ class GenerationPipeline:
     host: Any
     device: torch.device
     checkpoint: Path
+    #: The experiment config the generator was trained with (its run's, or the bundle's recorded one).
+    config: Any = None
+    #: The run it was loaded from; None for a bundle (``pretrained:NAME``), which is read-only.
+    run: RunDir | None = None
 
     def check_steps(self, steps: Any) -> int:
         """``steps`` as given, or a one-line ConfigError: sampling steps are an integer in [1, T] (the
@@ -106,13 +110,27 @@ class GenerationPipeline:
         return torch.cat(images)
 
 
+#: ``--run pretrained:NAME`` names a bundled checkpoint (``vqtouch pretrained list``) instead of a run folder.
+PRETRAINED_PREFIX = "pretrained:"
+
+
+def is_pretrained(run: str | Path) -> bool:
+    """Whether ``run`` names a bundle (``pretrained:NAME``) rather than a run folder."""
+    return isinstance(run, str) and run.startswith(PRETRAINED_PREFIX)
+
+
 def load_pipeline(run: str | Path, *, host: Any = None, step: int | str | None = None,
                   device: str | None = None) -> GenerationPipeline:
     """The generation pipeline of a run whose ``generator`` stage trained (its newest good checkpoint,
-    ``step``, or ``"best"``), with the tokenizer it was trained on."""
+    ``step``, or ``"best"``), with the tokenizer it was trained on; or of a bundle, ``pretrained:NAME``
+    (its tokenizer, generator and conditioners, with the config of the run that trained them)."""
     from vqtouch.plugins.tokenizer.stages import load_tokenizer, tokenizer_location
 
     host = host or load_plugins()
+    if is_pretrained(run):
+        if step is not None:
+            raise ConfigError(f"--step belongs to runs; {run} is a bundle with one checkpoint")
+        return _bundle_pipeline(str(run)[len(PRETRAINED_PREFIX):], host, device)
     run_dir = RunDir.open(run)
     config = run_dir.load_config(host)
     section = getattr(config, "generator", None)
@@ -132,7 +150,27 @@ def load_pipeline(run: str | Path, *, host: Any = None, step: int | str | None =
     class_names = _class_names(config, host)
     settings = {"steps": section.steps, "guidance": section.guidance, "truncation": section.truncation}
     return GenerationPipeline(tokenizer, generator, conditioners, sampler, section.sampler.name, settings, class_names,
-                              config.data.image_size, host, device_, folder)
+                              config.data.image_size, host, device_, folder, config, run_dir)
+
+
+def _bundle_pipeline(name: str, host: Any, device: str | None) -> GenerationPipeline:
+    """The pipeline of bundle ``name``: its weights, and the generator settings, classes and image size
+    of the config recorded in its headers."""
+    from vqtouch.core import validate_experiment
+    from vqtouch.plugins.pretrained.bundle import load_bundle  # the bundles build on this module, not the reverse
+
+    device_ = resolve_device(device or "auto")
+    bundle = load_bundle(name, host, device=device_)
+    if not bundle.run_config:
+        raise ConfigError(f"pretrained:{name}: its headers record no run config; export it again with "
+                          "`vqtouch pretrained export`")
+    config = validate_experiment(bundle.run_config, host)
+    section = config.generator
+    sampler = host.build("sampler", section.sampler)
+    settings = {"steps": section.steps, "guidance": section.guidance, "truncation": section.truncation}
+    return GenerationPipeline(bundle.tokenizer, bundle.generator, bundle.conditioners, sampler, section.sampler.name,
+                              settings, _class_names(config, host), config.data.image_size, host, device_,
+                              bundle.folder / "generator", config, None)
 
 
 def _class_names(config: Any, host: Any) -> list[str]:

@@ -130,6 +130,9 @@ def train_generator(job: StageJob) -> dict[str, Any]:
                       ConditionIsTargetWarning, stacklevel=2)
     data = CodesDataset.collect(codes_NHW, dataset, keys)
     train_set, val_set = experiment_split(data, config.data, config.seed)
+    background_note = None
+    if section.train.canonical_background:
+        background_note = canonicalise_codes(data, train_set, dataset, tokenizer, image_hw(config.data.image_size))
     task = GeneratorTask(generator, conditioners, section.train.condition_dropout, config.seed)
     trainer = Trainer(task, train_set, section.train, batch_size=config.data.batch_size, seed=config.seed,
                       device=device, checkpoint_dir=job.run.checkpoints / CHECKPOINT_FOLDER, run=job.run,
@@ -138,7 +141,8 @@ def train_generator(job: StageJob) -> dict[str, Any]:
         job.run.resume(trainer, job.host, stage=CHECKPOINT_FOLDER)
     state = trainer.fit()
     result: dict[str, Any] = {"step": state.step, "train_samples": len(train_set), "val_samples": len(val_set),
-                              "split_unit": val_set.split_unit, "code_cache": cache, "tokenizer": str(tokenizer_folder)}
+                              "split_unit": val_set.split_unit, "code_cache": cache, "tokenizer": str(tokenizer_folder),
+                              "canonical_background": background_note}
     if trainer.validates():
         result |= {"best_step": state.best_step, "best_val_loss": state.best_score}
     if trainer.dist.is_main:
@@ -146,6 +150,21 @@ def train_generator(job: StageJob) -> dict[str, Any]:
             result |= score_samples(job, tokenizer, task, val_set, train_set, dataset, device)
         job.run.write_json("generation.json", result)
     return result
+
+
+def canonicalise_codes(data: CodesDataset, train_set: Any, dataset: Any, tokenizer: Any,
+                       size_hw: tuple[int, int]) -> dict[str, Any]:
+    """Replace ``data``'s codes by their canonical-background form (:func:`.codes.canonical_background`)
+    in place, with the no-contact image of the training split; what was done, for generation.json."""
+    from .codes import canonical_background
+
+    background, source = dataset_background(DatasetSubset(dataset, train_set.indices), size_hw)
+    if background is None:
+        warnings.warn(f"generator.train.canonical_background: no no-contact background ({source}); training on "
+                      "the raw codes", VqtouchWarning, stacklevel=2)
+        return {"applied": False, "reason": source}
+    data.codes_NHW, changed = canonical_background(data.codes_NHW, tokenizer, background)
+    return {"applied": True, "cells_changed": round(changed, 4), "background": source}
 
 
 @torch.no_grad()

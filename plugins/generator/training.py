@@ -37,6 +37,11 @@ class GeneratorTrainConfig(TrainConfig):
     condition_dropout: float = Field(0.1, ge=0, lt=1, strict=True,
                                      description="Share of training rows whose condition is replaced by the learned "
                                                  "null condition (needed for classifier-free guidance).")
+    canonical_background: bool = Field(
+        True, description="Train on codes whose cells away from the contact are the no-contact image's own codes "
+                          "(vqtouch.plugins.generator.codes.canonical_background): the tokenizer gives identical "
+                          "no-contact patches different near-synonymous codes, which a generator would otherwise "
+                          "have to guess.  Needs the dataset's no-contact background; false: the raw codes.")
     code_cache: bool = Field(True, description="Reuse the tokenizer's codes of the dataset from the user cache "
                                                "folder when they were computed before (see "
                                                "vqtouch.plugins.generator.codes).")

@@ -48,10 +48,12 @@ class VQDiffusionConfig(PluginConfig):
     heads: int = Field(4, ge=1, le=64, strict=True, description="Attention heads.")
     mlp_ratio: float = Field(4.0, gt=0, le=16, description="MLP hidden width as a multiple of the width.")
     dropout: float = Field(0.0, ge=0, lt=1, description="Dropout in the transformer during training.")
-    loss: Literal["vb", "masked_ce"] = Field(
+    loss: Literal["vb", "masked_ce", "masked_ce_mean"] = Field(
         "masked_ce", description="'masked_ce': the absorbing-state (MDLM/MD4) weighted cross-entropy on masked "
-                                 "tokens (the default: it scored better than 'vb' on every measure at equal steps "
-                                 "on the embedded data, see docs/results.md); 'vb': VQ-Diffusion's variational "
+                                 "tokens (it scored better than 'vb' on every measure at equal steps "
+                                 "on the embedded data, see docs/results.md); 'masked_ce_mean': the mean "
+                                 "cross-entropy of the masked tokens, every token alike whatever t (MaskGIT's "
+                                 "objective, see docs/generation.md); 'vb': VQ-Diffusion's variational "
                                  "bound plus the auxiliary x0 term.")
     aux_weight: float = Field(1e-3, ge=0, le=10, description="Weight of the auxiliary x0 term of the 'vb' loss.")
     importance_sampling: bool = Field(True, description="Draw training steps t by importance (uniform until every "
@@ -115,14 +117,15 @@ class VQDiffusion(Generator):
             t_B = torch.randint(0, self.config.num_steps, (batch,), generator=generator, device=device)
             p_t_B = torch.full((batch,), 1.0 / self.config.num_steps, device=device)
         codes_t_BL = self.schedule.q_sample(codes_BL, t_B, generator)
-        logits_BKL = self.network(codes_t_BL, t_B, condition=condition.tokens_BND)
+        logits_BKL = self.network(codes_t_BL, t_B, condition=condition.tokens_BND, condition_grid=condition.grid_BDhw)
         masked = float((codes_t_BL == self.schedule.mask_index).float().mean())
         if self.config.loss == "vb":
             terms = vb_loss(log_predict_x0(logits_BKL), codes_BL, codes_t_BL, t_B, self.schedule,
                             aux_weight=self.config.aux_weight, p_t_B=p_t_B)
             loss_B, lt_B = terms.loss_B, terms.lt_B
         else:
-            lt_B = masked_ce_loss(logits_BKL, codes_BL, codes_t_BL, t_B, self.schedule)
+            lt_B = masked_ce_loss(logits_BKL, codes_BL, codes_t_BL, t_B, self.schedule,
+                                  weighting="mean" if self.config.loss == "masked_ce_mean" else "elbo")
             loss_B = lt_B / p_t_B
         if self.training:
             self.timesteps.update(t_B, lt_B)
@@ -133,7 +136,8 @@ class VQDiffusion(Generator):
     @torch.no_grad()
     def log_x0(self, codes_t_BL: torch.Tensor, t_B: torch.Tensor, condition: ConditionTokens) -> torch.Tensor:
         """log p(x0 | x_t, condition) (B, K+1, L) in fp32, without guidance or truncation."""
-        return log_predict_x0(self.network(codes_t_BL, t_B, condition=condition.tokens_BND))
+        return log_predict_x0(self.network(codes_t_BL, t_B, condition=condition.tokens_BND,
+                                           condition_grid=condition.grid_BDhw))
 
     @torch.no_grad()
     def sample(self, condition: ConditionTokens, sampler: Sampler, *, steps: int, null: ConditionTokens | None = None,
@@ -148,12 +152,17 @@ class VQDiffusion(Generator):
             generators = [torch.Generator(device=condition.tokens_BND.device).manual_seed(row) for row in range(batch)]
         if len(generators) != batch:
             raise ValueError(f"got {len(generators)} generators for {batch} conditions")
-        tokens_BMD = condition.tokens_BND
+        tokens_BMD, grid_BDhw = condition.tokens_BND, condition.grid_BDhw
         if guided:
-            # Conditional and null rows run as one batch of 2B through the network.
+            # Conditional and null rows run as one batch of 2B through the network; a null row's grid
+            # is zeros (what the conditioner gives dropped rows in training).
             tokens_BMD = torch.cat([tokens_BMD, null.tokens_BND.to(tokens_BMD)])
+            if grid_BDhw is not None:
+                null_grid = null.grid_BDhw if null.grid_BDhw is not None else torch.zeros_like(grid_BDhw)
+                grid_BDhw = torch.cat([grid_BDhw, null_grid.to(grid_BDhw)])
         self.eval()
-        cache = self.network.precompute_condition(tokens_BMD)  # once per call, reused at every step
+        # Once per call, reused at every step.
+        cache = self.network.precompute_condition(tokens_BMD, grid_BDhw=grid_BDhw)
 
         def denoise(codes_t_BL: torch.Tensor, t_B: torch.Tensor) -> torch.Tensor:
             if guided:

@@ -1,0 +1,330 @@
+"""Why does (or doesn't) the generator follow its condition?  The measurements of docs/generation.md.
+
+Run (one job at a time on a 2-core CPU; OMP_NUM_THREADS=2):
+
+    .venv/bin/python bench/generator_diagnosis.py codes                      # the tokenizer's no-contact codes
+    .venv/bin/python bench/generator_diagnosis.py overfit --conditioner tactile --minutes 5 [--set KEY=VALUE ...]
+    .venv/bin/python bench/generator_diagnosis.py split --bundle tour         # loss / x0 accuracy by region and t
+    .venv/bin/python bench/generator_diagnosis.py sensitivity --bundle tour  # does the sample move with its condition?
+
+Everything runs over the bundled ``tour`` tokenizer (``plugins/pretrained/weights/tour``) and the
+tour scene's procedural data: GelSight targets, GelSight Mini images of the same contacts as the
+tactile condition, aligned visual images, 12 labelled classes.  ``overfit`` trains a fresh
+generator and conditioner on a fixed set of training pairs (the whole diagnosis: can the model
+learn the mapping at all, and how fast) and scores its samples of those same pairs against the
+tokenizer's ceiling and the no-contact background; ``--held-out N`` also trains on N more pairs
+and scores unseen conditions, ``--out FILE`` writes the JSON (with the weights in FILE.pt for
+``split``/``sensitivity --weights``).  Prints one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+
+from vqtouch.core import Assembly, BuildContext, load_plugins, resolve_config
+from vqtouch.core.config import parse_override
+from vqtouch.plugins.evaluation.contact import contact_mask, contact_region_scores
+from vqtouch.plugins.generator.codes import canonical_background
+from vqtouch.plugins.pretrained.bundle import load_bundle
+
+#: Conditioners a diagnosis can train, with the sample key each reads.
+CONDITIONERS = {"tactile": {"name": "tactile"}, "label": {"name": "label"}, "visual": {"name": "visual", "input_size": 128},
+                "text_scratch": {"name": "text_scratch", "vocab_buckets": 1024}}
+
+
+def tour_data(host: Any, seed: int, count: int) -> tuple[Any, dict[str, Any]]:
+    """The tour scene's dataset (procedural ``seed``) and its first ``count`` samples, batched."""
+    config = resolve_config("tour", overrides=[f"data.dataset.seed={seed}", f"data.dataset.num_samples={count}"],
+                            host=host)
+    dataset = Assembly(config, host).component("data.dataset")
+    return dataset, dataset.render_batch(list(range(count)))
+
+
+def background_of(dataset: Any, size: int = 64) -> torch.Tensor:
+    """The rendering sensor's no-contact image (3, H, W)."""
+    return dataset.sensor.render(torch.zeros(1, size, size), generator=torch.Generator().manual_seed(0))[0]
+
+
+def contact_tokens(images_B3HW: torch.Tensor, background_3HW: torch.Tensor, grid: int) -> torch.Tensor:
+    """(B, grid*grid) bool: code-grid cells that hold any contact pixel."""
+    mask_BHW = contact_mask(images_B3HW, background_3HW.expand_as(images_B3HW))
+    return F.adaptive_max_pool2d(mask_BHW[:, None].float(), grid)[:, 0].flatten(1) > 0
+
+
+@torch.no_grad()
+def encode(tokenizer: Any, images: torch.Tensor, batch: int = 64) -> torch.Tensor:
+    return torch.cat([tokenizer.encode_codes(images[i:i + batch]) for i in range(0, len(images), batch)])
+
+
+@torch.no_grad()
+def decode(tokenizer: Any, codes: torch.Tensor, batch: int = 64) -> torch.Tensor:
+    return torch.cat([tokenizer.decode_codes(codes[i:i + batch]) for i in range(0, len(codes), batch)]).clamp(0, 1)
+
+
+def entropy_bits(codes: torch.Tensor) -> float:
+    counts = torch.bincount(codes.flatten()).float()
+    p = counts[counts > 0] / counts.sum()
+    return float(-(p * p.log2()).sum())
+
+
+# -- codes: what the tokenizer does to the no-contact area ----------------------------------------
+
+def codes_report(args: argparse.Namespace) -> dict[str, Any]:
+    host = load_plugins()
+    bundle = load_bundle(args.bundle, host)
+    dataset, batch = tour_data(host, args.seed, args.n)
+    background = background_of(dataset)
+    renders = torch.cat([dataset.sensor.render(torch.zeros(1, 64, 64), generator=torch.Generator().manual_seed(s))
+                         for s in range(64)])
+    flat_codes = encode(bundle.tokenizer, renders).flatten(1)  # (64 noise draws, L)
+    codes_BL = encode(bundle.tokenizer, batch["tactile"]).flatten(1)
+    grid = int(math.isqrt(codes_BL.shape[1]))
+    in_contact = contact_tokens(batch["tactile"], background, grid)
+    mode_L = flat_codes.mode(dim=0).values
+    return {
+        "code_grid": grid, "codebook_size": bundle.tokenizer.quantizer.codebook_size,
+        "no_contact_renders": {
+            "distinct_codes": int(flat_codes.unique().numel()),
+            "distinct_codes_per_position_mean": float(torch.tensor([len(c.unique()) for c in flat_codes.T]).float().mean()),
+            "share_of_tokens_not_their_position_mode": float((flat_codes != mode_L).float().mean()),
+            "entropy_bits_per_token": entropy_bits(flat_codes)},
+        "dataset": {
+            "images": args.n, "contact_token_share": float(in_contact.float().mean()),
+            "distinct_codes_background_tokens": int(codes_BL[~in_contact].unique().numel()),
+            "distinct_codes_contact_tokens": int(codes_BL[in_contact].unique().numel()),
+            "background_tokens_equal_to_no_contact_mode": float(
+                (codes_BL == mode_L)[~in_contact].float().mean()),
+            "entropy_bits_background_tokens": entropy_bits(codes_BL[~in_contact]),
+            "entropy_bits_contact_tokens": entropy_bits(codes_BL[in_contact])},
+    }
+
+
+# -- overfit: can a fresh generator learn a fixed set of pairs? -----------------------------------
+
+def build_generator(host: Any, tokenizer: Any, conditioner_name: str, overrides: list[str], num_classes: int) -> tuple:
+    """A fresh vq_diffusion generator (the bundle's width and depth unless overridden) and conditioner."""
+    generator_cfg: dict[str, Any] = {"name": "vq_diffusion"}
+    conditioner_cfg = dict(CONDITIONERS[conditioner_name])
+    for text in overrides:
+        path, value = parse_override(text)
+        target = generator_cfg if path[0] == "model" else conditioner_cfg
+        target[path[-1]] = value
+    codebook = tokenizer.quantizer.codebook_size
+    context = BuildContext(image_size=64, channels=3, num_classes=num_classes, codebook_size=codebook,
+                           code_grid=16)
+    generator = host.build("generator", generator_cfg, context)
+    conditioner = host.build("conditioner", conditioner_cfg, context)
+    return generator, conditioner, generator_cfg, conditioner_cfg
+
+
+def _condition(conditioner: Any, batch: dict[str, Any], index: torch.Tensor) -> Any:
+    value = batch[conditioner.sample_key]
+    return [value[int(i)] for i in index] if isinstance(value, list) else value[index]
+
+
+@torch.no_grad()
+def sample_codes(generator: Any, conditioner: Any, batch: dict[str, Any], count: int, *, steps: int, guidance: float,
+                 seed: int, sampler_name: str = "posterior", offset: int = 0) -> torch.Tensor:
+    host = load_plugins()
+    sampler = host.build("sampler", {"name": sampler_name})
+    generator.eval(), conditioner.eval()
+    rows = []
+    for start in range(0, count, 32):
+        index = torch.arange(offset + start, offset + min(count, start + 32))
+        condition = conditioner(_condition(conditioner, batch, index))
+        draws = [torch.Generator().manual_seed(seed * 100_003 + int(i)) for i in index]
+        rows.append(generator.sample(condition, sampler, steps=steps, null=conditioner.null(len(index)),
+                                     guidance=guidance, generators=draws))
+    return torch.cat(rows)
+
+
+def contact_psnr(candidates: dict[str, torch.Tensor], truth: torch.Tensor, background: torch.Tensor) -> dict[str, float]:
+    scores = contact_region_scores(candidates, truth, background.expand_as(truth))
+    return {key: round(value, 3) for key, value in scores.items() if key.endswith("contact_psnr")}
+
+
+def centroid_error_px(images: torch.Tensor, truth: torch.Tensor, background: torch.Tensor) -> float:
+    """Mean distance in pixels between the contact-region centroids of images and truth (contact
+    weighted by the absolute difference to the background, so a faint contact still has a centre)."""
+    def centres(x: torch.Tensor) -> torch.Tensor:
+        weight = (x - background).abs().mean(1)
+        weight = (weight - weight.flatten(1).median(1).values[:, None, None]).clamp_min(0)
+        rows = torch.arange(x.shape[-2]).float()[None, :, None]
+        cols = torch.arange(x.shape[-1]).float()[None, None, :]
+        total = weight.sum((1, 2)).clamp_min(1e-8)
+        return torch.stack([(weight * rows).sum((1, 2)) / total, (weight * cols).sum((1, 2)) / total], 1)
+    return float((centres(images) - centres(truth)).norm(dim=1).mean())
+
+
+def overfit(args: argparse.Namespace) -> dict[str, Any]:
+    torch.manual_seed(args.seed)
+    host = load_plugins()
+    bundle = load_bundle(args.bundle, host)
+    tokenizer = bundle.tokenizer
+    total = args.pairs + args.held_out
+    dataset, batch = tour_data(host, 7, total)  # the bundle tokenizer's own training seed
+    background = background_of(dataset)
+    codes = encode(tokenizer, batch["tactile"])
+    changed = 0.0
+    if args.canonical:
+        codes, changed = canonical_background(codes, tokenizer, background)
+    codes = codes.flatten(1)
+    generator, conditioner, gcfg, ccfg = build_generator(host, tokenizer, args.conditioner, args.set,
+                                                         len(dataset.class_names))
+    train_index = torch.arange(args.pairs)
+    params = [p for m in (generator, conditioner) for p in m.parameters() if p.requires_grad]
+    optimizer = torch.optim.AdamW(params, lr=args.lr, betas=(0.9, 0.96), weight_decay=4.5e-2)
+    warmup = args.warmup
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: min(1.0, (s + 1) / warmup) if warmup else 1.0)
+    draws = torch.Generator().manual_seed(args.seed)
+    log, step, start = [], 0, time.perf_counter()
+    while time.perf_counter() - start < args.minutes * 60 and (args.steps == 0 or step < args.steps):
+        generator.train(), conditioner.train()
+        index = train_index[torch.randint(args.pairs, (args.batch,), generator=draws)]
+        drop = torch.rand(args.batch, generator=draws) < 0.1
+        condition = conditioner(_condition(conditioner, batch, index), drop)
+        loss, _ = generator.training_loss(codes[index].view(-1, 16, 16), condition)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(params, 0.5)
+        optimizer.step()
+        schedule.step()
+        step += 1
+        if step % 50 == 0:
+            log.append({"step": step, "minutes": round((time.perf_counter() - start) / 60, 2),
+                        "loss": round(float(loss.detach()), 4)})
+            print(json.dumps(log[-1]), flush=True)
+    minutes = (time.perf_counter() - start) / 60
+    result: dict[str, Any] = {"conditioner": ccfg, "generator": gcfg, "pairs": args.pairs, "steps": step,
+                              "canonical_background_cells_changed": round(changed, 4),
+                              "train_minutes": round(minutes, 2), "lr": args.lr, "warmup": warmup, "log": log}
+    truth = batch["tactile"]
+    for name, offset, count in (("train", 0, min(args.pairs, 64)), ("held_out", args.pairs, min(args.held_out, 64))):
+        if not count:
+            continue
+        sampled = sample_codes(generator, conditioner, batch, count, steps=args.sample_steps, guidance=args.guidance,
+                               seed=1, offset=offset)
+        rows = slice(offset, offset + count)
+        images = decode(tokenizer, sampled)
+        result[name] = {
+            "token_accuracy": round(float((sampled.flatten(1) == codes[rows]).float().mean()), 4),
+            **contact_psnr({"": images, "ceiling_": decode(tokenizer, codes[rows].view(-1, 16, 16)),
+                            "background_": background.expand_as(truth[rows])}, truth[rows], background),
+            "centroid_error_px": round(centroid_error_px(images, truth[rows], background), 2)}
+    result |= split_scores(generator, conditioner, batch, codes, background, train_index[:64])
+    if args.out:
+        Path(args.out).write_text(json.dumps(result, indent=1))
+        torch.save({"generator": generator.state_dict(), "conditioner": conditioner.state_dict(),
+                    "generator_cfg": gcfg, "conditioner_cfg": ccfg}, args.out + ".pt")
+    return result
+
+
+@torch.no_grad()
+def split_scores(generator: Any, conditioner: Any, batch: dict[str, Any], codes: torch.Tensor,
+                 background: torch.Tensor, index: torch.Tensor) -> dict[str, Any]:
+    """Cross-entropy and x0 accuracy of masked tokens, split by contact/background token and by t
+    (five bins), from the condition and from the null condition."""
+    generator.eval(), conditioner.eval()
+    schedule, steps = generator.schedule, generator.config.num_steps
+    in_contact = contact_tokens(batch["tactile"][index], background, 16)
+    out: dict[str, Any] = {}
+    for label, drop in (("conditioned", False), ("null", True)):
+        rows = []
+        for t in range(0, steps, max(1, steps // 20)):
+            t_B = torch.full((len(index),), t)
+            noised = schedule.q_sample(codes[index], t_B, torch.Generator().manual_seed(t))
+            condition = conditioner(_condition(conditioner, batch, index), torch.full((len(index),), drop))
+            logits = generator.network(noised, t_B, condition=condition.tokens_BND, condition_grid=condition.grid_BDhw)
+            nll = F.cross_entropy(logits, codes[index], reduction="none")
+            correct = (logits.argmax(1) == codes[index]).float()
+            masked = noised == schedule.mask_index
+            for region, where in (("contact", in_contact), ("background", ~in_contact)):
+                sel = masked & where
+                if sel.any():
+                    rows.append((t, region, float(nll[sel].mean()), float(correct[sel].mean())))
+        table = {}
+        for lo in range(0, steps, steps // 5):
+            for region in ("contact", "background"):
+                picked = [r for r in rows if lo <= r[0] < lo + steps // 5 and r[1] == region]
+                if picked:
+                    table[f"t{lo}-{lo + steps // 5 - 1}:{region}"] = {
+                        "ce": round(sum(r[2] for r in picked) / len(picked), 3),
+                        "x0_acc": round(sum(r[3] for r in picked) / len(picked), 3)}
+        out[f"split_{label}"] = table
+    return out
+
+
+def load_bundle_pair(host: Any, name: str, conditioner_name: str) -> tuple[Any, Any, Any]:
+    bundle = load_bundle(name, host)
+    index = bundle.conditioner_names.index(conditioner_name)
+    return bundle.tokenizer, bundle.generator.float(), bundle.conditioners[index].float()
+
+
+def split(args: argparse.Namespace) -> dict[str, Any]:
+    host = load_plugins()
+    tokenizer, generator, conditioner = load_bundle_pair(host, args.bundle, args.conditioner)
+    dataset, batch = tour_data(host, 0, 64)
+    background = background_of(dataset)
+    codes = encode(tokenizer, batch["tactile"]).flatten(1)
+    return {"bundle": args.bundle, "conditioner": args.conditioner,
+            **split_scores(generator, conditioner, batch, codes, background, torch.arange(64))}
+
+
+def sensitivity(args: argparse.Namespace) -> dict[str, Any]:
+    """Sample each held-out condition, and the same draws with the conditions shuffled: does the
+    sample's contact centre follow its own condition's truth, or the shuffled one's?"""
+    host = load_plugins()
+    tokenizer, generator, conditioner = load_bundle_pair(host, args.bundle, args.conditioner)
+    dataset, batch = tour_data(host, 0, args.n)
+    background = background_of(dataset)
+    truth = batch["tactile"]
+    images = decode(tokenizer, sample_codes(generator, conditioner, batch, args.n, steps=args.sample_steps,
+                                            guidance=args.guidance, seed=1))
+    permutation = torch.roll(torch.arange(args.n), 1)
+    shuffled_batch = {k: ([v[int(i)] for i in permutation] if isinstance(v, list) else v[permutation])
+                      for k, v in batch.items()}
+    shuffled = decode(tokenizer, sample_codes(generator, conditioner, shuffled_batch, args.n, steps=args.sample_steps,
+                                              guidance=args.guidance, seed=1))
+    return {"bundle": args.bundle, "conditioner": args.conditioner, "n": args.n,
+            "centroid_error_px_to_own_truth": round(centroid_error_px(images, truth, background), 2),
+            "centroid_error_px_shuffled_condition_to_own_truth": round(centroid_error_px(shuffled, truth, background), 2),
+            "centroid_error_px_shuffled_condition_to_its_truth": round(
+                centroid_error_px(shuffled, truth[permutation], background), 2),
+            "mean_abs_change_when_condition_changes": round(float((images - shuffled).abs().mean()), 4),
+            "mean_abs_truth_difference_between_conditions": round(float((truth - truth[permutation]).abs().mean()), 4)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("what", choices=["codes", "overfit", "split", "sensitivity"])
+    parser.add_argument("--bundle", default="tour")
+    parser.add_argument("--conditioner", default="tactile", choices=sorted(CONDITIONERS))
+    parser.add_argument("--n", type=int, default=64, help="images or conditions scored")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--pairs", type=int, default=64, help="overfit: training pairs")
+    parser.add_argument("--held-out", type=int, default=0, help="overfit: unseen pairs scored after training")
+    parser.add_argument("--minutes", type=float, default=5.0)
+    parser.add_argument("--steps", type=int, default=0, help="overfit: stop after this many steps (0: time only)")
+    parser.add_argument("--batch", type=int, default=16)
+    parser.add_argument("--lr", type=float, default=4.5e-4)
+    parser.add_argument("--warmup", type=int, default=0)
+    parser.add_argument("--canonical", action="store_true", help="overfit: train on canonical-background codes")
+    parser.add_argument("--sample-steps", type=int, default=25)
+    parser.add_argument("--guidance", type=float, default=1.0)
+    parser.add_argument("--set", action="append", default=[], metavar="model.KEY=V|conditioner.KEY=V")
+    parser.add_argument("--out", default="")
+    args = parser.parse_args()
+    result = {"codes": codes_report, "overfit": overfit, "split": split, "sensitivity": sensitivity}[args.what](args)
+    print(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,211 @@
+"""How the condition reaches the generator (issue 23): the aligned condition grid and the global
+path, old checkpoints without them, canonical-background codes, the mean masked loss and the
+learning-rate schedule."""
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from vqtouch.conditioners.image_cnn import ImageCnnConditioner, grid_stage_for
+from vqtouch.core import BuildContext, load_missing_as_zeros, load_plugins
+from vqtouch.core.checkpoint import load_state_strict
+from vqtouch.core.training import TrainConfig, learning_rate_factor
+from vqtouch.plugins.generator.codes import canonical_background
+from vqtouch.plugins.generator.denoiser import DiffusionTransformer
+from vqtouch.plugins.generator.diffusion import MaskReplaceSchedule, masked_ce_loss
+
+HOST = load_plugins(autoload=False)
+CONTEXT = BuildContext(image_size=32, num_classes=3, codebook_size=16, code_grid=8, cond_dim=24)
+
+
+def network(seed=0, **extra):
+    torch.manual_seed(seed)
+    return DiffusionTransformer(16, 10, (8, 8), 24, depth=2, width=32, heads=4, **extra).eval()
+
+
+def randomise_condition_paths(net):
+    with torch.no_grad():
+        for layer in (net.cond_global, net.grid_proj):
+            layer.weight.normal_(0, 0.5)
+            layer.bias.normal_(0, 0.5)
+
+
+def test_the_condition_grid_changes_the_logits_at_its_own_place():
+    net = network()
+    randomise_condition_paths(net)
+    codes = torch.full((1, 64), 16)
+    tokens = torch.randn(1, 2, 24)
+    grid = torch.randn(1, 24, 8, 8)
+    base = net(codes, torch.tensor([5]), condition=tokens, condition_grid=grid)
+    changed_grid = grid.clone()
+    changed_grid[:, :, 2, 3] += 3.0
+    changed = net(codes, torch.tensor([5]), condition=tokens, condition_grid=changed_grid)
+    difference_L = (changed - base).abs().sum(1)[0]
+    # Self-attention spreads the change, but the token at the changed cell moves most.
+    assert int(difference_L.argmax()) == 2 * 8 + 3
+    assert not torch.allclose(net(codes, torch.tensor([5]), condition=tokens), base)
+
+
+def test_a_grid_of_another_size_is_resized_to_the_code_grid():
+    net = network()
+    randomise_condition_paths(net)
+    fine = torch.randn(1, 24, 32, 32)
+    coarse = F.interpolate(fine, size=(8, 8), mode="area")
+    tokens = torch.randn(1, 2, 24)
+    codes, t = torch.full((1, 64), 16), torch.tensor([3])
+    torch.testing.assert_close(net(codes, t, condition=tokens, condition_grid=fine),
+                               net(codes, t, condition=tokens, condition_grid=coarse))
+    with pytest.raises(ValueError, match="condition grid"):
+        net(codes, t, condition=tokens, condition_grid=torch.randn(1, 5, 8, 8))
+
+
+def test_new_paths_start_as_no_ops_and_old_checkpoints_load_as_before():
+    net = network()
+    codes, t, tokens = torch.randint(0, 17, (2, 64)), torch.tensor([1, 7]), torch.randn(2, 3, 24)
+    grid = torch.randn(2, 24, 8, 8)
+    # Zero-initialised: a fresh network's grid and global paths add nothing.
+    torch.testing.assert_close(net(codes, t, condition=tokens, condition_grid=grid), net(codes, t, condition=tokens))
+    randomise_condition_paths(net)
+    old_state = {k: v for k, v in net.state_dict().items() if not k.startswith(("cond_global", "grid_proj"))}
+    reloaded = network(seed=1)
+    randomise_condition_paths(reloaded)
+    load_state_strict(reloaded, old_state, "old.safetensors")
+    assert reloaded.grid_proj.weight.abs().sum() == 0 and reloaded.cond_global.bias.abs().sum() == 0
+    plain = network(seed=2)
+    plain.load_state_dict(old_state)  # torch's own loader honours the same declaration
+    torch.testing.assert_close(plain(codes, t, condition=tokens), reloaded(codes, t, condition=tokens))
+
+
+def test_load_missing_as_zeros_fills_only_what_was_declared():
+    class Two(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.kept, self.added = torch.nn.Linear(2, 2), torch.nn.Linear(2, 2)
+            load_missing_as_zeros(self, "added")
+
+    module = Two()
+    state = {k: v for k, v in module.state_dict().items() if k.startswith("kept")}
+    load_state_strict(module, state, "f")
+    assert module.added.weight.abs().sum() == 0
+    with pytest.raises(Exception, match="missing 1 tensor"):
+        load_state_strict(Two(), {"kept.weight": torch.zeros(2, 2)}, "f")
+
+
+def test_image_conditioners_hand_an_aligned_grid_and_zero_for_null_rows():
+    conditioner = HOST.build("conditioner", {"name": "tactile", "reads": "tactile"}, CONTEXT)
+    assert conditioner.grid_stage == grid_stage_for(32, 8, 3) == 1
+    images = torch.rand(3, 3, 32, 32)
+    tokens = conditioner(images, torch.tensor([False, True, False]))
+    assert tokens.grid_BDhw.shape == (3, 24, 8, 8)
+    assert tokens.grid_BDhw[1].abs().sum() == 0 and tokens.grid_BDhw[0].abs().sum() > 0
+    # A shifted contact shifts the grid with it (the map is computed, not learned per position).
+    wide = HOST.build("conditioner", {"name": "tactile", "reads": "tactile"},
+                      CONTEXT.model_copy(update={"image_size": 64, "code_grid": 16}))
+    blob = torch.zeros(1, 3, 64, 64)
+    blob[..., 16:24, 16:24] = 1.0
+    grid_a = wide.encode_with_grid(blob)[1]
+    grid_b = wide.encode_with_grid(torch.roll(blob, shifts=(16, 16), dims=(-2, -1)))[1]
+    torch.testing.assert_close(torch.roll(grid_a, shifts=(4, 4), dims=(-2, -1))[..., 6:12, 6:12],
+                               grid_b[..., 6:12, 6:12], atol=1e-5, rtol=1e-5)
+    assert not torch.allclose(grid_a[..., 6:12, 6:12], grid_b[..., 6:12, 6:12], atol=1e-3)
+    without = HOST.build("conditioner", {"name": "tactile", "reads": "tactile", "spatial": False}, CONTEXT)
+    assert without(images).grid_BDhw is None
+    assert HOST.build("conditioner", {"name": "label"}, CONTEXT)(torch.tensor([0, 2])).grid_BDhw is None
+
+
+@pytest.mark.parametrize("image, grid, depth, stage", [(64, 16, 3, 1), (64, 8, 3, 2), (64, 32, 3, 0),
+                                                       (64, 4, 3, 2), (256, 16, 6, 3), (64, 0, 3, None)])
+def test_grid_stage_is_the_smallest_trunk_map_covering_the_code_grid(image, grid, depth, stage):
+    assert grid_stage_for(image, grid, depth) == stage
+    if stage is not None:
+        conditioner = ImageCnnConditioner("tactile", 8, 8, depth, 2, grid_stage=stage)
+        side = conditioner.encode_with_grid(torch.rand(1, 3, image, image))[1].shape[-1]
+        assert side == image // 2 ** (stage + 1) and (side >= grid or stage == depth - 1)
+
+
+def test_a_generator_trained_with_a_grid_samples_with_guidance_and_batch_one():
+    generator = HOST.build("generator", {"name": "vq_diffusion", "depth": 1, "width": 32, "num_steps": 10}, CONTEXT)
+    conditioner = HOST.build("conditioner", {"name": "tactile", "reads": "tactile"}, CONTEXT)
+    sampler = HOST.build("sampler", {"name": "posterior"})
+    randomise_condition_paths(generator.network)
+    for batch in (1, 2):
+        condition = conditioner(torch.rand(batch, 3, 32, 32))
+        for guidance in (1.0, 50.0):
+            codes = generator.sample(condition, sampler, steps=3, null=conditioner.null(batch), guidance=guidance)
+            assert codes.shape == (batch, 8, 8) and int(codes.min()) >= 0 and int(codes.max()) < 16
+
+
+class _PatchTokenizer:
+    """Codes = one per 4x4 patch: 0 for the background's patch, 1 + patch mean quantised otherwise
+    (a stand-in whose encoder is local, so canonical cells are known in closed form)."""
+
+    device = torch.device("cpu")
+
+    def encode_codes(self, images):
+        means = F.avg_pool2d(images.mean(1, keepdim=True), 4)[:, 0]
+        return torch.where(means < 0.05, torch.zeros_like(means), 1 + (means * 10).round().clamp(max=14)).long()
+
+    def decode_codes(self, codes):
+        values = torch.where(codes == 0, torch.zeros_like(codes).float(), (codes.float() - 1) / 10)
+        return F.interpolate(values[:, None].expand(-1, 3, -1, -1), scale_factor=4, mode="nearest")
+
+
+def test_canonical_background_replaces_exactly_the_cells_away_from_the_contact():
+    tokenizer = _PatchTokenizer()
+    background = torch.zeros(3, 32, 32)
+    images = torch.zeros(2, 3, 32, 32)
+    images[0, :, 8:12, 8:12] = 0.9  # one contact cell at (2, 2)
+    codes = tokenizer.encode_codes(images)
+    synonyms = codes.clone()
+    synonyms[codes == 0] = 15  # the encoder's synonym for "no contact", decoding to the same image
+    canonical, changed = canonical_background(synonyms, _SynonymTokenizer(tokenizer), background, margin=1)
+    near = torch.zeros(8, 8, dtype=torch.bool)
+    near[1:4, 1:4] = True
+    assert torch.equal(canonical[0][near], synonyms[0][near])
+    assert (canonical[0][~near] == 0).all() and (canonical[1] == 0).all()
+    assert changed == pytest.approx((64 - 9 + 64) / 128)
+    kept_all, _ = canonical_background(synonyms, _SynonymTokenizer(tokenizer), background, margin=8)
+    assert torch.equal(kept_all[0], synonyms[0])
+
+
+class _SynonymTokenizer:
+    """The patch tokenizer whose code 15 is a synonym of the background's code 0."""
+
+    device = torch.device("cpu")
+
+    def __init__(self, inner):
+        self.inner = inner
+
+    def encode_codes(self, images):
+        return self.inner.encode_codes(images)
+
+    def decode_codes(self, codes):
+        return self.inner.decode_codes(torch.where(codes == 15, torch.zeros_like(codes), codes))
+
+
+def test_the_mean_masked_loss_is_the_mean_cross_entropy_of_masked_tokens():
+    schedule = MaskReplaceSchedule(8, 10)
+    torch.manual_seed(0)
+    logits = torch.randn(2, 8, 6)
+    x0 = torch.randint(0, 8, (2, 6))
+    xt = x0.clone()
+    xt[0, [1, 4]] = 8
+    xt[1, 0] = 8
+    loss = masked_ce_loss(logits, x0, xt, torch.tensor([3, 9]), schedule, weighting="mean")
+    nll = -F.log_softmax(logits, 1).gather(1, x0[:, None])[:, 0]
+    torch.testing.assert_close(loss, torch.stack([nll[0, [1, 4]].mean(), nll[1, 0]]))
+    unmasked = masked_ce_loss(logits, x0, x0, torch.tensor([3, 9]), schedule, weighting="mean")
+    assert torch.equal(unmasked, torch.zeros(2))
+    with pytest.raises(ValueError, match="weighting"):
+        masked_ce_loss(logits, x0, xt, torch.tensor([3, 9]), schedule, weighting="flat")
+
+
+def test_learning_rate_schedule_warms_up_then_follows_a_half_cosine():
+    config = TrainConfig(steps=110, warmup_steps=10, lr_schedule="cosine", min_lr_ratio=0.2)
+    assert [learning_rate_factor(config, s) for s in (0, 4, 9)] == [0.1, 0.5, 1.0]
+    assert learning_rate_factor(config, 10) == 1.0
+    assert learning_rate_factor(config, 109) == pytest.approx(0.2)
+    assert learning_rate_factor(config, 59.5) == pytest.approx(0.2 + 0.8 * 0.5 * (1 + math.cos(math.pi * 0.5)))
+    assert learning_rate_factor(TrainConfig(steps=50), 30) == 1.0
