@@ -164,6 +164,16 @@ def centroid_error_px(images: torch.Tensor, truth: torch.Tensor, background: tor
     return float((centres(images) - centres(truth)).norm(dim=1).mean())
 
 
+def nearest_label_accuracy(images: torch.Tensor, labels: torch.Tensor, pool: torch.Tensor,
+                           pool_labels: torch.Tensor) -> float:
+    """Share of images whose nearest training image (pixel distance at 16x16, background included)
+    has the image's condition label: a crude, classifier-free check that a label is followed."""
+    def small(x: torch.Tensor) -> torch.Tensor:
+        return F.adaptive_avg_pool2d(x, 16).flatten(1)
+    nearest = torch.cdist(small(images), small(pool)).argmin(1)
+    return float((pool_labels[nearest] == labels).float().mean())
+
+
 def overfit(args: argparse.Namespace) -> dict[str, Any]:
     torch.manual_seed(args.seed)
     host = load_plugins()
@@ -218,7 +228,9 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
             "token_accuracy": round(float((sampled.flatten(1) == codes[rows]).float().mean()), 4),
             **contact_psnr({"": images, "ceiling_": decode(tokenizer, codes[rows].view(-1, 16, 16)),
                             "background_": background.expand_as(truth[rows])}, truth[rows], background),
-            "centroid_error_px": round(centroid_error_px(images, truth[rows], background), 2)}
+            "centroid_error_px": round(centroid_error_px(images, truth[rows], background), 2),
+            "nearest_training_image_label_accuracy": round(nearest_label_accuracy(
+                images, batch["label"][rows], truth[:args.pairs], batch["label"][:args.pairs]), 3)}
     result |= split_scores(generator, conditioner, batch, codes, background, train_index[:64])
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=1))

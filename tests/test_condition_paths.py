@@ -209,3 +209,42 @@ def test_learning_rate_schedule_warms_up_then_follows_a_half_cosine():
     assert learning_rate_factor(config, 109) == pytest.approx(0.2)
     assert learning_rate_factor(config, 59.5) == pytest.approx(0.2 + 0.8 * 0.5 * (1 + math.cos(math.pi * 0.5)))
     assert learning_rate_factor(TrainConfig(steps=50), 30) == 1.0
+
+
+def test_a_trained_touch_to_touch_run_keeps_its_grid_and_trains_on_canonical_codes(tmp_path):
+    import json
+
+    from generator_runs import train_args  # registered by conftest
+
+    from vqtouch.core.cli import main
+    from vqtouch.plugins.generator import load_pipeline
+
+    out = tmp_path / "t2t"
+    assert main(train_args(out, "generator.conditioners.0.width=8", scene="touch-to-touch")) == 0
+    result = json.loads((out / "generation.json").read_text())
+    assert result["canonical_background"]["applied"] is True
+    assert 0 <= result["canonical_background"]["cells_changed"] <= 1
+    pipe = load_pipeline(out, host=HOST)
+    conditioner = pipe.conditioners[0]
+    assert conditioner.grid_stage == grid_stage_for(32, pipe.generator.grid_hw[0], 3)
+    condition = conditioner(torch.rand(2, 3, 32, 32))
+    assert condition.grid_BDhw is not None and condition.grid_BDhw.shape[-1] >= pipe.generator.grid_hw[1]
+
+
+def test_keeping_revealed_tokens_warns_only_with_real_replacement_noise():
+    import warnings
+
+    from vqtouch.plugins.generator.samplers import KeepUnmaskedWarning, PosteriorSampler
+
+    def denoise(codes_BL, t_B):
+        return torch.log_softmax(torch.zeros(len(codes_BL), 9, codes_BL.shape[1]), 1)
+
+    generators = [torch.Generator().manual_seed(0)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        PosteriorSampler().sample(denoise, MaskReplaceSchedule(8, 10), length=4, steps=3, generators=generators)
+        PosteriorSampler(keep_unmasked=False).sample(denoise, MaskReplaceSchedule(8, 10, att_T=0.0, ctt_T=0.9),
+                                                     length=4, steps=3, generators=generators)
+    with pytest.warns(KeepUnmaskedWarning, match="keep_unmasked=false"):
+        PosteriorSampler().sample(denoise, MaskReplaceSchedule(8, 10, att_T=0.0, ctt_T=0.9), length=4, steps=3,
+                                  generators=generators)

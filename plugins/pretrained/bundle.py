@@ -104,7 +104,14 @@ def export_bundle(generator_run: str | Path, name: str, host: Any, *, root: Path
     section = run.load_config(host).generator
     source = tokenizer_location(section.tokenizer_run) if section.tokenizer_run else run
     generator_headers = _provenance(run)
-    tokenizer_headers = _provenance(source) if isinstance(source, RunDir) else generator_headers
+    if isinstance(source, RunDir):
+        tokenizer_headers = _provenance(source)
+    else:
+        # A tokenizer checkpoint folder (an adapted tokenizer, or an earlier bundle's tokenizer): keep the
+        # provenance its own headers record, else the generator run's.
+        recorded = read_metadata(source / "autoencoder.safetensors")
+        tokenizer_headers = {key: recorded[key] for key in (COMMAND_KEY, RUN_CONFIG_KEY) if key in recorded} \
+            or generator_headers
 
     def store(module: nn.Module, path: Path, headers: dict[str, str], keep_fp32: bool = False) -> None:
         half = precision == "fp16" and not keep_fp32
