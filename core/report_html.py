@@ -274,7 +274,7 @@ BACKGROUND_PREFIX = "background_"
 #: taken as higher-is-better.  Names ending in one of :data:`LOWER_IS_BETTER_SUFFIXES` are lower-is-better too.
 LOWER_IS_BETTER = frozenset({"mae", "mse", "loss", "contact_mae", "lpips", "fid", "kid", "fd_effnetlite0",
                              "kid_effnetlite0"})
-LOWER_IS_BETTER_SUFFIXES = ("_mae", "_loss")
+LOWER_IS_BETTER_SUFFIXES = ("_mae", "_loss", "_error_px")
 
 #: The contact-region scores a verdict is given on, first found first: (score, how it is named, unit).
 CONTACT_VERDICT_SCORES = (("contact_psnr", "contact PSNR", " dB"), ("contact_mae", "contact MAE", ""))

@@ -211,20 +211,27 @@ def test_learning_rate_schedule_warms_up_then_follows_a_half_cosine():
     assert learning_rate_factor(TrainConfig(steps=50), 30) == 1.0
 
 
-def test_a_trained_touch_to_touch_run_keeps_its_grid_and_trains_on_canonical_codes(tmp_path):
-    import json
-
+@pytest.fixture(scope="module")
+def touch_run(tmp_path_factory):
+    """A tiny trained touch-to-touch run (32 px, tactile conditioner)."""
     from generator_runs import train_args  # registered by conftest
 
     from vqtouch.core.cli import main
+
+    out = tmp_path_factory.mktemp("t2t") / "run"
+    assert main(train_args(out, "generator.conditioners.0.width=8", scene="touch-to-touch")) == 0
+    return out
+
+
+def test_a_trained_touch_to_touch_run_keeps_its_grid_and_trains_on_canonical_codes(touch_run):
+    import json
+
     from vqtouch.plugins.generator import load_pipeline
 
-    out = tmp_path / "t2t"
-    assert main(train_args(out, "generator.conditioners.0.width=8", scene="touch-to-touch")) == 0
-    result = json.loads((out / "generation.json").read_text())
+    result = json.loads((touch_run / "generation.json").read_text())
     assert result["canonical_background"]["applied"] is True
     assert 0 <= result["canonical_background"]["cells_changed"] <= 1
-    pipe = load_pipeline(out, host=HOST)
+    pipe = load_pipeline(touch_run, host=HOST)
     conditioner = pipe.conditioners[0]
     assert conditioner.grid_stage == grid_stage_for(32, pipe.generator.grid_hw[0], 3)
     condition = conditioner(torch.rand(2, 3, 32, 32))
@@ -248,3 +255,53 @@ def test_keeping_revealed_tokens_warns_only_with_real_replacement_noise():
     with pytest.warns(KeepUnmaskedWarning, match="keep_unmasked=false"):
         PosteriorSampler().sample(denoise, MaskReplaceSchedule(8, 10, att_T=0.0, ctt_T=0.9), length=4, steps=3,
                                   generators=generators)
+
+
+def test_contact_centroid_error_is_the_distance_between_contact_centres():
+    from vqtouch.core.report_html import lower_is_better
+    from vqtouch.plugins.evaluation.contact import contact_centroid_errors, contact_centroids
+
+    background = torch.full((1, 3, 32, 32), 0.5)
+    truth = background.repeat(2, 1, 1, 1)
+    truth[0, :, 4:8, 10:14] = 0.9   # centre (5.5, 11.5)
+    truth[1, :, 20:22, 16:26] = 0.1  # centre (20.5, 20.5)
+    torch.testing.assert_close(contact_centroids(truth, background), torch.tensor([[5.5, 11.5], [20.5, 20.5]]))
+    moved = torch.roll(truth, shifts=(3, 4), dims=(-2, -1))
+    errors = contact_centroid_errors({"": moved, "background_": background.expand_as(truth)}, truth, background)
+    assert errors["contact_centroid_error_px"] == pytest.approx(5.0)
+    # Drawing nothing is scored as guessing the image centre (15.5, 15.5).
+    expected = (math.hypot(10, 4) + math.hypot(5, 5)) / 2
+    assert errors["background_contact_centroid_error_px"] == pytest.approx(expected)
+    assert lower_is_better("contact_centroid_error_px")
+
+
+def test_evaluate_generation_scores_a_bundle_into_out(touch_run, tmp_path, monkeypatch, capsys):
+    import json
+
+    from vqtouch.core.cli import main
+    from vqtouch.plugins.pretrained import bundle as bundle_module
+
+    bundles = tmp_path / "bundles"
+    bundle_module.export_bundle(touch_run, "tiny", HOST, root=bundles)
+    monkeypatch.setattr(bundle_module, "BUNDLES", bundles)
+    out = tmp_path / "scores"
+    assert main(["--no-progress", "evaluate", "generation", "--run", "pretrained:tiny", "--n", "3", "--steps", "2",
+                 "--metrics", "psnr", "--out", str(out)]) == 0
+    result = json.loads((out / "generation.json").read_text())
+    assert result["checkpoint"] == "pretrained:tiny"
+    (name, scores), = result["by_conditioner"].items()
+    assert name == "0:tactile" and scores["samples"] == 3 and scores["steps"] == 2
+    for key in ("contact_psnr", "retrieval_contact_psnr", "ceiling_contact_psnr", "background_contact_psnr",
+                "contact_centroid_error_px", "retrieval_contact_centroid_error_px"):
+        assert math.isfinite(scores[key]), key
+    assert (out / "samples_0_tactile.png").is_file()
+    # The same scores as scoring the run itself (the bundle holds its weights in fp16: close, not equal).
+    assert main(["--no-progress", "evaluate", "generation", "--run", str(touch_run), "--n", "3", "--steps", "2",
+                 "--metrics", "psnr", "--out", str(tmp_path / "run_scores")]) == 0
+    direct = json.loads((tmp_path / "run_scores" / "generation.json").read_text())["by_conditioner"]["0:tactile"]
+    assert direct["ceiling_contact_psnr"] == pytest.approx(scores["ceiling_contact_psnr"], abs=0.5)
+    capsys.readouterr()
+    assert main(["evaluate", "generation", "--run", "pretrained:tiny", "--n", "2"]) == 2
+    assert "read-only; give --out" in capsys.readouterr().err
+    assert main(["evaluate", "generation", "--run", "pretrained:nope", "--out", str(tmp_path / "x")]) == 2
+    assert "no bundled checkpoints named 'nope'" in capsys.readouterr().err

@@ -173,3 +173,31 @@ def contact_region_scores(candidates: Mapping[str, torch.Tensor], truth_B3HW: to
     accumulated = ContactRegionScores(background_B3HW)
     accumulated.update(candidates, truth_B3HW)
     return accumulated.scores()
+
+
+def contact_centroids(images_B3HW: torch.Tensor, background_B3HW: torch.Tensor) -> torch.Tensor:
+    """(B, 2) the (row, column) centre of each image's contact region (:func:`contact_mask`), each
+    pixel weighted by how far it is from the no-contact image; the image centre for an image with
+    no contact pixel (what a guess without the condition would say)."""
+    difference_BHW = (images_B3HW.detach().float().cpu() - background_B3HW.detach().float().cpu()).abs().mean(dim=1)
+    weight_BHW = difference_BHW * contact_mask(images_B3HW, background_B3HW)
+    height, width = weight_BHW.shape[-2:]
+    rows = torch.arange(height, dtype=torch.float32).view(1, -1, 1)
+    cols = torch.arange(width, dtype=torch.float32).view(1, 1, -1)
+    total_B = weight_BHW.sum(dim=(1, 2))
+    centre = torch.tensor([(height - 1) / 2, (width - 1) / 2])
+    found_B = total_B > 0
+    safe_B = total_B.clamp_min(1e-12)
+    centres_B2 = torch.stack([(weight_BHW * rows).sum((1, 2)) / safe_B, (weight_BHW * cols).sum((1, 2)) / safe_B], 1)
+    return torch.where(found_B[:, None], centres_B2, centre.expand_as(centres_B2))
+
+
+def contact_centroid_errors(candidates: Mapping[str, torch.Tensor], truth_B3HW: torch.Tensor,
+                            background_B3HW: torch.Tensor) -> dict[str, float]:
+    """``{prefix}contact_centroid_error_px``: the mean distance in pixels between the contact centre
+    (:func:`contact_centroids`) of each candidate image and of its ground truth (the no-contact
+    image's own is the error of always guessing the image centre)."""
+    truth_B2 = contact_centroids(truth_B3HW, background_B3HW)
+    return {f"{prefix}contact_centroid_error_px": float((contact_centroids(images, background_B3HW) - truth_B2)
+                                                        .norm(dim=1).mean())
+            for prefix, images in candidates.items()}

@@ -44,8 +44,8 @@ BASELINES = {"background_": "no-contact image", "retrieval_": "retrieval by cond
              "class_mean_": "label's mean training image", "real_": "real image (same condition)",
              "ceiling_": "ceiling: tokenizer reconstruction"}
 #: Columns of the table, in order, when present; any other score follows them.
-PREFERRED = ("ssim", "psnr", "ms_ssim", "lpips", "contact_psnr", "contact_mae", "fd_effnetlite0",
-             "classifier_accuracy")
+PREFERRED = ("ssim", "psnr", "ms_ssim", "lpips", "contact_psnr", "contact_mae", "contact_centroid_error_px",
+             "fd_effnetlite0", "classifier_accuracy")
 
 
 def _is_score(value: Any) -> bool:

@@ -28,7 +28,7 @@ from vqtouch.core.image_size import image_hw
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.core.training import Trainer, collate_samples
-from vqtouch.plugins.evaluation.contact import contact_region_scores, dataset_background
+from vqtouch.plugins.evaluation.contact import contact_centroid_errors, contact_region_scores, dataset_background
 
 from .training import CodesDataset, GeneratorTask, GeneratorTrainConfig
 
@@ -344,6 +344,7 @@ def score_images(candidates: dict[str, torch.Tensor], truth_B3HW: torch.Tensor, 
         scores |= metric_set.score(predicted.cpu(), truth_B3HW.cpu(), prefix)
     if background_B3HW is not None:
         scores |= contact_region_scores(candidates, truth_B3HW, background_B3HW)
+        scores |= contact_centroid_errors(candidates, truth_B3HW, background_B3HW)
     if distribution is not None:
         for prefix, predicted in candidates.items():
             scores |= distribution.score(predicted, prefix)
