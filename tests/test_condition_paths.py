@@ -305,3 +305,25 @@ def test_evaluate_generation_scores_a_bundle_into_out(touch_run, tmp_path, monke
     assert "read-only; give --out" in capsys.readouterr().err
     assert main(["evaluate", "generation", "--run", "pretrained:nope", "--out", str(tmp_path / "x")]) == 2
     assert "no bundled checkpoints named 'nope'" in capsys.readouterr().err
+
+
+def test_the_classifier_can_learn_from_the_tokenizers_reconstructions(monkeypatch):
+    from vqtouch.plugins.evaluation import distribution
+    from vqtouch.plugins.generator.stage import HeldOutConditions, distribution_scorer
+
+    seen = {}
+
+    class Recording:
+        def __init__(self, real, labels, train_images, train_labels, **options):
+            seen["train"] = torch.stack(list(train_images))
+
+    monkeypatch.setattr(distribution, "DistributionScorer", Recording)
+    torch.manual_seed(0)
+    pool = [{"tactile": torch.rand(3, 32, 32), "label": i % 2} for i in range(4)]
+    conditions = HeldOutConditions([{}], [0], torch.rand(1, 3, 32, 32), [0])
+    distribution_scorer(conditions, pool, [], 0)
+    torch.testing.assert_close(seen["train"], torch.stack([s["tactile"] for s in pool]))
+    tokenizer = _PatchTokenizer()
+    distribution_scorer(conditions, pool, [], 0, tokenizer=tokenizer)
+    expected = tokenizer.decode_codes(tokenizer.encode_codes(torch.stack([s["tactile"] for s in pool])))
+    torch.testing.assert_close(seen["train"], expected)

@@ -226,14 +226,13 @@ def evaluate_downstream(run: str | Path, host: Any, out: str | Path, *, seeds: S
     the run's ``fd_effnetlite0`` metric's, else 224); ``train_images``: featurize at most this many
     real training images, drawn once at random (0: all; the ceiling arm then trains on them);
     ``batch_size``: labels generated per forward pass.  Returns what ``downstream.json`` holds."""
-    from vqtouch.core import Assembly, RunDir
+    from vqtouch.core import Assembly
     from vqtouch.core.data import experiment_split
     from vqtouch.plugins.evaluation.contact import dataset_background
     from vqtouch.plugins.generator.pipeline import load_pipeline
 
     pipe = load_pipeline(run, host=host, step=step)
-    run_dir = RunDir.open(run)
-    config = run_dir.load_config(host)
+    config = pipe.config
     names = [item.name for item in config.generator.conditioners]
     chosen = label_conditioner_index([c.sample_key for c in pipe.conditioners], names, conditioner)
     label_conditioner = pipe.conditioners[chosen]
@@ -305,7 +304,7 @@ def evaluate_downstream(run: str | Path, host: Any, out: str | Path, *, seeds: S
                                            if row["seed"] == seed) + f" ({time.perf_counter() - tic:.0f} s)")
     summary = mean_spread(rows, ("train_images", *SCORES), GROUP)
     result = {
-        "run": str(run_dir.path), "checkpoint": str(pipe.checkpoint), "conditioner": f"{chosen}:{names[chosen]}",
+        "run": str(pipe.run.path if pipe.run is not None else run), "checkpoint": str(pipe.checkpoint), "conditioner": f"{chosen}:{names[chosen]}",
         "sampler": sampler_name, "steps": steps, "guidance": guidance, "dataset": dataset_name,
         "classes": {label: class_names[label] if label < len(class_names) else str(label) for label in every_class},
         "classifier": f"logistic regression on standardized frozen EfficientNet-Lite0 pooled features at "
@@ -443,7 +442,8 @@ def vqtouch_add_commands(subparsers: Any) -> None:
         "downstream", help="downstream recognition (Table 3): a classifier trained on generated, few real, both, or "
                            "all real images, tested on the run's real held-out images (JSON, markdown, PNG)")
     downstream.add_argument("--run", required=True, help="a run whose generator trained with a label conditioner "
-                                                         "(e.g. `vqtouch train generator --scene label-to-touch`)")
+                                                         "(e.g. `vqtouch train generator --scene label-to-touch`), "
+                                                         "or a bundle (pretrained:NAME)")
     add_step_argument(downstream)
     add_experiment_arguments(downstream)
     downstream.add_argument("--shots", type=positive_int, default=5,

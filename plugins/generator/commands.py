@@ -110,7 +110,7 @@ def _generate_command(args: argparse.Namespace) -> int:
     for index, image in enumerate(images):
         save_png(image, out / f"sample_{index:04d}.png")
     save_png(image_grid(images), out / "grid.png")
-    settings = {"run": str(Path(args.run).resolve()), "checkpoint": str(pipe.checkpoint), "condition": key,
+    settings = {"run": str(pipe.run.path.resolve()) if pipe.run is not None else args.run, "checkpoint": str(pipe.checkpoint), "condition": key,
                 "values": values, "n": len(images), "steps": args.steps or pipe.settings["steps"],
                 "sampler": args.sampler or pipe.sampler_name,
                 "guidance": pipe.settings["guidance"] if args.guidance is None else args.guidance,
@@ -123,6 +123,8 @@ def _generate_command(args: argparse.Namespace) -> int:
 
 #: ``evaluate generation`` flags that only mean something when scoring one run (``--run``).
 _RUN_ONLY = ("step", "conditioner", "steps", "sampler", "guidance", "truncation", "seed", "feature_size")
+#: Run-only flags with a default, refused by the experiment only when set to something else.
+_RUN_ONLY_DEFAULTS = {"classifier_on": "real"}
 
 
 def _generation_experiment_command(args: argparse.Namespace) -> int:
@@ -131,6 +133,8 @@ def _generation_experiment_command(args: argparse.Namespace) -> int:
     from .experiment import evaluate_generation_experiment
 
     given = [f"--{name.replace('_', '-')}" for name in _RUN_ONLY if getattr(args, name, None) is not None]
+    given += [f"--{name.replace('_', '-')}" for name, default in _RUN_ONLY_DEFAULTS.items()
+              if getattr(args, name, default) != default]
     if given:
         raise ConfigError(f"{', '.join(given)} only apply to scoring one run (--run); the experiment (--out) samples "
                           "with the scene's generator settings: set them with --set generator.steps=N ...")
@@ -196,7 +200,10 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
     background, background_source = dataset_background(train, image_hw(config.data.image_size))
     conditions = held_out_conditions(held_out, dataset, args.n, pipe.device)
     pool = baseline_pool(train)
-    scorer = distribution_scorer(conditions, pool, metrics, config.seed) if args.distribution else False
+    scorer = False
+    if args.distribution:
+        scorer = distribution_scorer(conditions, pool, metrics, config.seed,
+                                     tokenizer=pipe.tokenizer if args.classifier_on == "reconstructions" else None)
     folder = out if out is not None else pipe.run.path
     by_conditioner = {}
     for index in indices:
@@ -211,6 +218,8 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
             picture=folder / picture, distribution=scorer)
     head = {"checkpoint": str(args.run if is_pretrained(args.run) else pipe.checkpoint), "sampler": sampler_name,
             "background": background_source}
+    if args.distribution:
+        head["classifier_trained_on"] = f"the {args.classifier_on} of the training images"
     if out is not None:
         result = head | {"by_conditioner": by_conditioner}
         text = json.dumps(result, indent=2) + "\n"
@@ -255,7 +264,7 @@ def _tradeoff_generator_command(args: argparse.Namespace) -> int:
 
 def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of ``vqtouch tradeoff generator``."""
-    parser.add_argument("--run", required=True, help="a run whose generator stage trained")
+    parser.add_argument("--run", required=True, help="a run whose generator stage trained, or a bundle (pretrained:NAME)")
     parser.add_argument("--out", required=True, help="folder for tradeoff.json, tradeoff.md and pareto.png")
     parser.add_argument("--n", type=positive_int, default=64, help="held-out conditions per setting (at most all)")
     parser.add_argument("--rounds", type=positive_int, default=2, help="interleaved timing rounds (median reported)")
@@ -341,6 +350,10 @@ def vqtouch_add_commands(subparsers):
     scored.add_argument("--clip-architecture", metavar="NAME",
                         help="open_clip model name the --clip-checkpoint file holds (default: ViT-B-32)")
     _add_distribution_arguments(scored)
+    scored.add_argument("--classifier-on", choices=["real", "reconstructions"], default="real",
+                        help="with --run: train the distribution scores' classifier on the real training images "
+                             "(default) or on the tokenizer's reconstructions of them, which judges decoded images "
+                             "(samples and the tokenizer's ceiling) fairly")
     scored.set_defaults(handler=_evaluate_generation_command)
 
     tradeoff = command_group(subparsers, "tradeoff", "measure the speed/quality trade-off of a trained component")
@@ -352,7 +365,8 @@ def vqtouch_add_commands(subparsers):
     traded.set_defaults(handler=_tradeoff_generator_command)
 
     generate = subparsers.add_parser("generate", help="generate tactile images with a trained generator run")
-    generate.add_argument("--run", required=True, help="a run whose generator stage trained")
+    generate.add_argument("--run", required=True, help="a run whose generator stage trained, or a bundle "
+                                                        "(pretrained:NAME)")
     add_step_argument(generate)
     generate.add_argument("--label", action="append", help="class index or name (repeatable: one per image)")
     generate.add_argument("--visual", action="append", metavar="IMG", help="visual image file (repeatable)")

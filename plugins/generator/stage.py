@@ -315,16 +315,27 @@ def generate_held_out(generator: Any, conditioner: Any, tokenizer: Any, sampler:
 
 
 def distribution_scorer(conditions: HeldOutConditions, pool: list[dict[str, Any]] | None,
-                        metrics: list[tuple[str, Any]], seed: int) -> DistributionScorer:
+                        metrics: list[tuple[str, Any]], seed: int, tokenizer: Any = None) -> DistributionScorer:
     """The distribution scores of ``conditions``: ``fd_effnetlite0`` against their ground truth and
     a classifier trained on the real training images of ``pool`` (their dataset labels).  The
     features are those of the ``fd_effnetlite0`` metric among ``metrics`` (its options), else of
-    one with its defaults (224 px)."""
+    one with its defaults (224 px).
+
+    Given a ``tokenizer``, the classifier trains on its reconstructions of those training images
+    instead: a classifier fitted on sharp real images can fail on every decoded image (the
+    tokenizer's own reconstructions included, the ceiling), which says more about the decoder's
+    blur than about whether a sample shows its class."""
     from vqtouch.plugins.evaluation.distribution import DistributionScorer, labels_of
 
     metric = next((metric for name, metric in metrics if name == "fd_effnetlite0"), None)
     pool = pool or []
-    return DistributionScorer(conditions.truth, conditions.labels, [sample["tactile"] for sample in pool],
+    images = [sample["tactile"] for sample in pool]
+    if tokenizer is not None and images:
+        stacked = torch.stack(images)
+        with torch.no_grad():
+            images = list(torch.cat([tokenizer.decode_codes(tokenizer.encode_codes(stacked[i:i + 64].to(tokenizer.device)))
+                                     .float().clamp(0, 1).cpu() for i in range(0, len(stacked), 64)]))
+    return DistributionScorer(conditions.truth, conditions.labels, images,
                               labels_of(pool) if pool else None, metric=metric, seed=seed)
 
 

@@ -37,7 +37,7 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import Assembly, ConfigError, RunDir
+from vqtouch.core import Assembly, ConfigError
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.plugins.evaluation.contact import dataset_background
 
@@ -199,8 +199,8 @@ def load_tradeoff_bench(run: str | Path, host: Any, *, n: int, step: int | str |
         pipe = load_pipeline(run, host=host, step=step)
     except MissingCheckpointError as exc:
         raise ConfigError(f"no trained generator in {run} ({exc}); train one with `vqtouch train generator`") from None
-    run_dir = RunDir.open(run)
-    config = run_dir.load_config(host)
+    config = pipe.config
+    where = pipe.run.path if pipe.run is not None else Path(str(run))  # a bundle: its name, pretrained:NAME
     assembly = Assembly(config, host)
     dataset = assembly.component("data.dataset")
     train, held_out = experiment_split(dataset, config.data, config.seed)
@@ -210,7 +210,7 @@ def load_tradeoff_bench(run: str | Path, host: Any, *, n: int, step: int | str |
     background_3HW, background_source = dataset_background(train, tuple(conditions.truth.shape[-2:]))
     background = None if background_3HW is None else background_3HW.to(conditions.truth).expand_as(conditions.truth)
     run_size = next((item.image_size for item in config.metrics if item.name == "fd_effnetlite0"), 224)
-    bench = TradeoffBench(pipe, run_dir.path, conditions, metrics, background, seed, batch_size, train,
+    bench = TradeoffBench(pipe, where, conditions, metrics, background, seed, batch_size, train,
                           feature_size if feature_size is not None else run_size,
                           background_source=background_source)
     if distribution:
