@@ -342,3 +342,29 @@ def test_a_signal_to_one_rank_stops_every_rank_at_the_same_step(tmp_path):
     assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["step-00000004"]
     params = [torch.load(tmp_path / f"rank{rank}.pt", weights_only=True) for rank in range(2)]
     assert torch.equal(params[0], params[1])
+
+
+def test_warm_up_and_cosine_move_each_step_by_the_scheduled_rate(host, tmp_path):
+    trainer, _ = make_trainer(host, tmp_path, steps=6, task_options={"bias_lr_scale": 0.1}, grad_clip=None,
+                              warmup_steps=2, lr_schedule="cosine", min_lr_ratio=0.2)
+    linear = trainer.task.modules["model"].linear
+    before = linear.weight.detach().clone()
+    trainer.config = trainer.config.model_copy(update={"steps": 1})
+    trainer.fit()
+    # Adam's first step moves a weight by ~ its learning rate: half the peak at step 0 of a 2-step warm-up.
+    assert (linear.weight - before).abs().flatten().tolist() == pytest.approx([0.025] * 4, rel=1e-3)
+    assert [g["lr"] for g in trainer.optimizers["main"].param_groups] == pytest.approx([0.025, 0.0025])
+
+
+def test_a_resumed_run_continues_the_learning_rate_schedule_exactly(host, tmp_path):
+    options = {"warmup_steps": 3, "lr_schedule": "cosine"}
+    full, full_task = make_trainer(host, tmp_path / "full", **options)
+    full.fit()
+    first, _ = make_trainer(host, tmp_path / "split", task_options={"interrupt_at": 5}, **options)
+    with pytest.raises(KeyboardInterrupt):
+        first.fit()
+    second, second_task = make_trainer(host, tmp_path / "split", **options)
+    assert second.resume(tmp_path / "split" / "checkpoints")
+    second.fit()
+    for a, b in zip(full.task.modules["model"].parameters(), second.task.modules["model"].parameters()):
+        assert torch.equal(a, b)
