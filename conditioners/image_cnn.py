@@ -70,9 +70,10 @@ class ImageCnnConditioner(Conditioner):
         if grid_stage is not None and not 0 <= grid_stage < depth:
             raise ValueError(f"grid_stage must be one of the trunk's stages 0..{depth - 1}; got {grid_stage}")
         self.grid_stage = grid_stage
-        self.grid_project = nn.Conv2d(width, cond_dim, 1)
-        # Checkpoints from before the grid existed load it as zeros (the generator then sees no grid).
-        load_missing_as_zeros(self, "grid_project")
+        self.grid_project = nn.Conv2d(width, cond_dim, 1) if grid_stage is not None else None
+        if self.grid_project is not None:
+            # Checkpoints from before the grid existed load it as zeros (the generator then sees no grid).
+            load_missing_as_zeros(self, "grid_project")
 
     def encode(self, condition: torch.Tensor) -> torch.Tensor:
         """Images (B, C, H, W), values in [0, 1], to tokens (B, token_grid**2, cond_dim)."""

@@ -69,9 +69,11 @@ class VisualConditioner(Conditioner):
         self.project = nn.Linear(EFFNET_LITE0_POOLED_DIM, cond_dim)
         self.position_ND = nn.Parameter(torch.randn(token_grid * token_grid, cond_dim) * 0.02)
         self.grid_stage = grid_stage
-        self.grid_project = nn.Linear(EFFNET_LITE0_STAGE_CHANNELS[grid_stage if grid_stage is not None else -1], cond_dim)
-        # Checkpoints from before the grid existed load it as zeros (the generator then sees no grid).
-        load_missing_as_zeros(self, "grid_project")
+        self.grid_project = None
+        if grid_stage is not None:
+            self.grid_project = nn.Linear(EFFNET_LITE0_STAGE_CHANNELS[grid_stage], cond_dim)
+            # Checkpoints from before the grid existed load it as zeros (the generator then sees no grid).
+            load_missing_as_zeros(self, "grid_project")
 
     def encode(self, condition: torch.Tensor) -> torch.Tensor:
         """Visual images (B, 3, H, W) in [0, 1] to tokens (B, token_grid**2, cond_dim)."""

@@ -44,7 +44,11 @@ OFFLINE_CONDITIONERS = [name for name in load_plugins(autoload=False).registry("
 @pytest.mark.parametrize("name", OFFLINE_CONDITIONERS)
 def test_conditioner_gradients_reach_parameters(build, name):
     conditioner = build(name)
-    conditioner(example_condition(conditioner, 2)).tokens_BND.square().sum().backward()
+    condition = conditioner(example_condition(conditioner, 2))
+    loss = condition.tokens_BND.square().sum()
+    if condition.grid_BDhw is not None:  # the aligned grid is an output too (image conditioners)
+        loss = loss + condition.grid_BDhw.square().sum()
+    loss.backward()
     trainable = [p for n, p in conditioner.named_parameters() if n != "null_tokens_ND"]
     assert trainable and all(p.grad is not None and torch.isfinite(p.grad).all() for p in trainable)
 
