@@ -172,7 +172,7 @@ def test_changing_slot_name_resets_its_options(host):
     config = resolve_config("label-to-touch", overrides=["generator.conditioners.0.name=tactile",
                                                          "generator.conditioners.0.width=16"], host=host)
     assert config.generator.conditioners[0].model_dump() == {"name": "tactile", "width": 16, "depth": 3,
-                                                             "token_grid": 4, "reads": "tactile_source"}
+                                                             "token_grid": 4, "spatial": True, "reads": "tactile_source"}
     config = resolve_config("reconstruction", overrides=["tokenizer.quantizer.name=ema_vq"], host=host)
     assert "lookup_dim" not in config.tokenizer.quantizer.model_dump()  # the scene's vq options are dropped
 

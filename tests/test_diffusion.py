@@ -507,7 +507,8 @@ def test_denoiser_gradient_reaches_every_parameter():
     model = tiny_model(dropout=0.1).train()
     codes, t, condition = denoiser_inputs(batch=4)
     codes[:, : K + 1] = torch.arange(K + 1)                                   # every token embedding row
-    logits = model(codes, t, condition, condition_mask=torch.tensor([[True, True, False]] * 4))
+    grid = torch.randn(4, COND_DIM, 4, 4, generator=gen(2))  # an aligned condition image's map: the grid path
+    logits = model(codes, t, condition, condition_mask=torch.tensor([[True, True, False]] * 4), condition_grid=grid)
     (logits * torch.randn(logits.shape, generator=gen(1))).sum().backward()
     for name, parameter in model.named_parameters():
         assert parameter.grad is not None, name

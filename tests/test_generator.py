@@ -342,4 +342,7 @@ def test_a_mixed_generator_is_scored_with_each_of_its_conditioners(trained, tmp_
     assert list(result["by_conditioner"]) == ["0:label", "1:text_scratch"]
     first, second = result["by_conditioner"]["0:label"], result["by_conditioner"]["1:text_scratch"]
     assert all(result[key] == value for key, value in first.items())
-    assert second["samples"] == first["samples"] == 2 and second["psnr"] != first["psnr"]
+    # After 2 training steps two conditions' samples can coincide (the canonical codes make the first
+    # steps' predictions nearly condition-free); retrieval by each conditioner's own tokens cannot.
+    assert second["samples"] == first["samples"] == 2
+    assert second["retrieval_psnr"] != first["retrieval_psnr"]

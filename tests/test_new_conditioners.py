@@ -65,7 +65,8 @@ def test_visual_tokens_depend_on_the_image_and_nothing_else(host):
 def test_visual_frozen_network_is_out_of_checkpoints_and_gets_no_gradient(host):
     conditioner = host.build("conditioner", VISUAL, CONTEXT)
     network = conditioner.features.network
-    assert set(conditioner.state_dict()) == {"null_tokens_ND", "position_ND", "project.weight", "project.bias"}
+    assert set(conditioner.state_dict()) == {"null_tokens_ND", "position_ND", "project.weight", "project.bias",
+                                             "grid_project.weight", "grid_project.bias"}
     assert not any(name.startswith("features") for name, _ in conditioner.named_parameters())
     conditioner.train().requires_grad_(True)  # what a trainer does: the frozen network must stay frozen
     assert not network.training and not any(p.requires_grad for p in network.parameters())
@@ -120,7 +121,7 @@ def test_tactile_checkpoint_keys_are_unchanged_by_the_refactor(host):
                                        "trunk.0.weight", "trunk.0.bias", "trunk.1.weight", "trunk.1.bias",
                                        "trunk.3.weight", "trunk.3.bias", "trunk.4.weight", "trunk.4.bias"}
     assert list(host.registry("conditioner").get("tactile").config_model.model_fields) == [
-        "name", "width", "depth", "token_grid", "reads"]
+        "name", "width", "depth", "token_grid", "spatial", "reads"]
 
 
 # -- text_scratch -------------------------------------------------------------------------------------
