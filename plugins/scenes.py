@@ -18,7 +18,7 @@ _METRICS = [{"name": "psnr"}, {"name": "ssim"}, {"name": "ms_ssim"}, {"name": "l
 _DATA = {"dataset": {"name": "procedural"}}
 #: The paper's tokenizer: DM-VQGAN + nearest-neighbour VQ, trained with a PatchGAN.  The lookup is
 #: cosine in 8 dimensions (ViT-VQGAN): with the plain lookup, 512 codes collapsed to ~10 in use on
-#: our 64-px GelSight scenes; with it ~400 are used and PSNR is ~3.5 dB higher at equal steps (README).
+#: our 64-px GelSight scenes; with it ~400 are used and PSNR is ~3.5 dB higher at equal steps (docs/guide.md, Tokenizers).
 _TOKENIZER = {"autoencoder": {"name": "dm_vqgan"},
               "quantizer": {"name": "vq", "codebook_size": 512, "l2_normalize": True, "lookup_dim": 8},
               "discriminator": {"name": "patchgan"}}

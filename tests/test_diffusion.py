@@ -34,7 +34,7 @@ def gen(seed: int) -> torch.Generator:
 
 def per_step_float64(num_codes: int, num_steps: int, att_1: float, att_T: float, ctt_1: float,
                      ctt_T: float) -> list[tuple[float, float, float]]:
-    """(alpha_t, beta_t, gamma_t) for t = 0..T-1 from the linear cumulative end points (methods.md 4.1)."""
+    """(alpha_t, beta_t, gamma_t) for t = 0..T-1 from the linear cumulative end points (docs/diffusion.md section 1)."""
     alpha_bar = [att_1 + t / (num_steps - 1) * (att_T - att_1) for t in range(num_steps)]
     gamma_bar = [ctt_1 + t / (num_steps - 1) * (ctt_T - ctt_1) for t in range(num_steps)]
     steps = []

@@ -4,7 +4,7 @@ Every reference here is float64 and built by the test itself, never from the mod
 
 - the schedule: per-step alpha_t, gamma_t from the linear cumulative end points, then cumulative
   products alpha_bar_{t|s} = prod alpha_i, 1 - gamma_bar_{t|s} = prod (1 - gamma_i) and
-  beta_bar_{t|s} = (1 - alpha_bar - gamma_bar) / K (methods.md 4.1);
+  beta_bar_{t|s} = (1 - alpha_bar - gamma_bar) / K (docs/diffusion.md section 1);
 - q(x_t | x_0): the closed form alpha_bar 1[j = k] + beta_bar (codes), gamma_bar (MASK), applied to a
   one-hot or a soft x_0;
 - q(x_s | x_t, x_0): Bayes' rule on explicit (K+1) x (K+1) step matrices multiplied out (small K), or on
@@ -143,7 +143,7 @@ def gen(seed: int) -> torch.Generator:
 # -- independent float64 reference of the forward process -----------------------------------------
 
 class Reference:
-    """The mask-and-replace process in float64 numpy, from the end points alone (methods.md 4.1)."""
+    """The mask-and-replace process in float64 numpy, from the end points alone (docs/diffusion.md section 1)."""
 
     def __init__(self, num_codes: int, num_steps: int, att_1: float, att_T: float, ctt_1: float,
                  ctt_T: float) -> None:

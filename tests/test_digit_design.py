@@ -62,7 +62,7 @@ def test_design_values_are_the_files(tacto_yaml):
                                        for colour, i in zip(lights["colors"], lights["intensities"]))
     assert design.camera_noise_std == sensor["noise"]["color"]["std"] / 255
     assert design.field_of_view_mm == pytest.approx(1000 * min(gel["width"], gel["height"], seen))
-    # The values the README and the module docstring cite.
+    # The values docs/guide.md and the module docstring cite.
     assert design.led_azimuth_deg == pytest.approx(PUBLISHED_AZIMUTHS, abs=1e-9)
     assert design.led_elevation_deg == pytest.approx((40.3645,) * 3, abs=1e-4)
     assert design.led_colours == ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))

@@ -1,4 +1,4 @@
-"""The README's worked example: a third-party package adds a sensor family and a conditioner
+"""The worked example of docs/extending.md: a third-party package adds a sensor family and a conditioner
 through the `vqtouch` entry-point group; they become selectable by config and usable by the
 CLI with no change to vqtouch itself."""
 

@@ -1,6 +1,6 @@
 """Discrete-diffusion maths of a VQ-Diffusion style decoder over a tokenizer's codes.
 
-The mask-and-replace forward process (VQ-Diffusion, methods.md section 4), its posteriors, the
+The mask-and-replace forward process (VQ-Diffusion, docs/diffusion.md, sections 1-3), its posteriors, the
 variational and the absorbing-state losses, importance sampling of timesteps, classifier-free
 guidance on x0-predictions, truncation and Gumbel sampling.  Registration, the training stage and
 the samplers build on these functions; nothing here owns weights.
@@ -352,7 +352,7 @@ class MaskReplaceSchedule(nn.Module):
 
         For a one-hot x_0 this is q(x_s | x_t, x_0) = q(x_t | x_s) q(x_s | x_0) / q(x_t | x_0).  For a
         predicted distribution p(x_0) it is sum_k q(x_s | x_t, x_0 = k) p(k), computed without the sum
-        over k (methods.md 4.2, generalised to a skip s < t - 1):
+        over k (docs/diffusion.md section 2, generalised to a skip s < t - 1):
 
           1. a_k = log q(x_t | x_0 = k)            for each code k (x_0 is never MASK; its MASK row is
                                                    ignored);
@@ -427,7 +427,7 @@ class VBLoss:
 
 def vb_loss(log_x0_pred_BCL: torch.Tensor, codes_x0_BL: torch.Tensor, codes_t_BL: torch.Tensor, t_B: torch.Tensor,
             schedule: MaskReplaceSchedule, aux_weight: float = 1e-3, p_t_B: torch.Tensor | None = None) -> VBLoss:
-    """VQ-Diffusion's training loss (methods.md 4.3) for x_t ~ q(x_t | x_0) at steps ``t_B``.
+    """VQ-Diffusion's training loss (docs/diffusion.md section 3) for x_t ~ q(x_t | x_0) at steps ``t_B``.
 
     ``log_x0_pred_BCL`` is the network's x_0 distribution (:func:`log_predict_x0`); ``p_t_B`` the
     probability with which each t was drawn (:meth:`TimestepSampler.sample`; None = 1).  The aux
@@ -456,7 +456,7 @@ def vb_loss(log_x0_pred_BCL: torch.Tensor, codes_x0_BL: torch.Tensor, codes_t_BL
 
 def masked_ce_loss(logits_BKL: torch.Tensor, codes_x0_BL: torch.Tensor, codes_t_BL: torch.Tensor, t_B: torch.Tensor,
                    schedule: MaskReplaceSchedule, weighting: str = "elbo") -> torch.Tensor:
-    """The absorbing-state loss L_t (MD4/MDLM, methods.md 10), per sample (B,): w_t times the summed
+    """The absorbing-state loss L_t (MD4/MDLM, docs/diffusion.md section 3), per sample (B,): w_t times the summed
     cross-entropy -log p(x_0 | x_t) of the masked tokens only; unmasked tokens contribute nothing.
 
     Weight: w_t = (gamma_bar_t - gamma_bar_{t-1}) / gamma_bar_t with gamma_bar_{-1} = 0 (so w_0 = 1).
@@ -493,7 +493,7 @@ def masked_ce_loss(logits_BKL: torch.Tensor, codes_x0_BL: torch.Tensor, codes_t_
 
 
 class TimestepSampler(nn.Module):
-    """Importance sampling of training timesteps (VQ-Diffusion, methods.md 4.3).
+    """Importance sampling of training timesteps (VQ-Diffusion, docs/diffusion.md section 3).
 
     Uniform until every t has been seen more than ``min_count`` times, then p_t proportional to
     sqrt(E[L_t^2]) + ``floor`` with E[L_t^2] an exponential moving average (decay ``decay``) of the

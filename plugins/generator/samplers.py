@@ -2,13 +2,13 @@
 
 Three strategies, one plugin each (``vqtouch_register_samplers``):
 
-- ``posterior``: VQ-Diffusion's reverse chain x_T -> ... -> x_0 (methods.md 4.5), with ``steps`` timesteps
+- ``posterior``: VQ-Diffusion's reverse chain x_T -> ... -> x_0 (docs/diffusion.md section 4), with ``steps`` timesteps
   evenly spaced from T-1 down to 0 and each jump t -> s computed exactly across the skip
   (:meth:`MaskReplaceSchedule.posterior` with s < t - 1), never "the last ``steps`` steps" (the diffusers
-  pitfall, methods.md 4.5).
+  pitfall, docs/diffusion.md section 4).
 - ``purity``: Improved VQ-Diffusion's high-quality inference: each round reveals a fixed number of masked
   tokens, chosen by purity (the largest probability of p(x0 | x_t) at the position).
-- ``confidence``: MaskGIT decoding (methods.md 5): sample every masked token, re-mask the least confident
+- ``confidence``: MaskGIT decoding (docs/diffusion.md section 4): sample every masked token, re-mask the least confident
   ones following a cosine schedule.
 
 A sampler sees only ``denoise(codes_t_BL, t_B) -> log p(x0 | x_t)`` (B, K+1, L), already guided and
@@ -288,7 +288,7 @@ class ConfidenceSamplerConfig(PluginConfig):
 
 
 class ConfidenceSampler(Sampler):
-    """MaskGIT decoding (methods.md 5) of a VQ-Diffusion x0-predictor.
+    """MaskGIT decoding (docs/diffusion.md section 4) of a VQ-Diffusion x0-predictor.
 
     Iteration i of ``steps``: draw every masked token from p(x0 | x_t) (Gumbel), score it by
     log p(drawn) + temperature (1 - (i+1)/S) Gumbel noise, and re-mask the

@@ -1,8 +1,8 @@
 """Example third-party plugin: a sensor family, a conditioner, a pipeline stage, a CLI command.
 
-Everything a plugin can do is here in under two hundred lines; see the README section
-"Extending vqtouch".  (``marker_sensor.py`` beside it shows a sensor family built on the
-public ``RenderedSensor`` base class, registered through its own entry point.)
+Everything a plugin can do is here in under two hundred lines; see docs/extending.md.
+(``marker_sensor.py`` beside it shows a sensor family built on the public ``RenderedSensor``
+base class, registered through its own entry point.)
 """
 
 from __future__ import annotations
