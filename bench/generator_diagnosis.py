@@ -131,9 +131,8 @@ def _condition(conditioner: Any, batch: dict[str, Any], index: torch.Tensor) -> 
 
 
 @torch.no_grad()
-def sample_codes(generator: Any, conditioner: Any, batch: dict[str, Any], count: int, *, steps: int, guidance: float,
-                 seed: int, sampler_name: str = "posterior", offset: int = 0) -> torch.Tensor:
-    host = load_plugins()
+def sample_codes(host: Any, generator: Any, conditioner: Any, batch: dict[str, Any], count: int, *, steps: int,
+                 guidance: float, seed: int, sampler_name: str = "posterior", offset: int = 0) -> torch.Tensor:
     sampler = host.build("sampler", {"name": sampler_name})
     generator.eval(), conditioner.eval()
     rows = []
@@ -220,7 +219,7 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
     for name, offset, count in (("train", 0, min(args.pairs, 64)), ("held_out", args.pairs, min(args.held_out, 64))):
         if not count:
             continue
-        sampled = sample_codes(generator, conditioner, batch, count, steps=args.sample_steps, guidance=args.guidance,
+        sampled = sample_codes(host, generator, conditioner, batch, count, steps=args.sample_steps, guidance=args.guidance,
                                seed=1, offset=offset)
         rows = slice(offset, offset + count)
         images = decode(tokenizer, sampled)
@@ -298,12 +297,12 @@ def sensitivity(args: argparse.Namespace) -> dict[str, Any]:
     dataset, batch = tour_data(host, 0, args.n)
     background = background_of(dataset)
     truth = batch["tactile"]
-    images = decode(tokenizer, sample_codes(generator, conditioner, batch, args.n, steps=args.sample_steps,
+    images = decode(tokenizer, sample_codes(host, generator, conditioner, batch, args.n, steps=args.sample_steps,
                                             guidance=args.guidance, seed=1))
     permutation = torch.roll(torch.arange(args.n), 1)
     shuffled_batch = {k: ([v[int(i)] for i in permutation] if isinstance(v, list) else v[permutation])
                       for k, v in batch.items()}
-    shuffled = decode(tokenizer, sample_codes(generator, conditioner, shuffled_batch, args.n, steps=args.sample_steps,
+    shuffled = decode(tokenizer, sample_codes(host, generator, conditioner, shuffled_batch, args.n, steps=args.sample_steps,
                                               guidance=args.guidance, seed=1))
     return {"bundle": args.bundle, "conditioner": args.conditioner, "n": args.n,
             "centroid_error_px_to_own_truth": round(centroid_error_px(images, truth, background), 2),

@@ -74,10 +74,6 @@ class ConditionTokens:
     is_null_B: torch.Tensor
     grid_BDhw: torch.Tensor | None = None
 
-    def null_grid_like(self) -> torch.Tensor | None:
-        """The grid of null rows for a batch like this one (zeros), None when it has no grid."""
-        return None if self.grid_BDhw is None else torch.zeros_like(self.grid_BDhw)
-
 
 def load_missing_as_zeros(module: nn.Module, *names: str) -> None:
     """Let ``module`` load a state dict that lacks the submodules ``names`` (checkpoints saved
