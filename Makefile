@@ -1,6 +1,6 @@
 # Two commands on a fresh machine with Python 3.11+ and pip:
 #   make demo   creates/reuses .venv, installs vqtouch, runs the main job
-#   make test   creates/reuses .venv, installs vqtouch with the test, clip and metrics extras, runs the tests
+#   make test   creates/reuses .venv, installs vqtouch with the test, clip and metrics extras, lints, runs the tests
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
@@ -10,7 +10,7 @@ STAMP := $(VENV)/.vqtouch-installed
 DEMO_ARGS ?= --scene tour
 PYTEST_ARGS ?=
 
-.PHONY: install demo test clean
+.PHONY: install demo lint test clean
 
 # constraints.txt pins the verified torch/torchvision pair (pyproject.toml has lower bounds only);
 # the clip extra (open_clip) and the metrics extra (torch-fidelity) are installed so the tests cover the clip
@@ -30,7 +30,11 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/vqtouch demo --overwrite --out runs/demo $(DEMO_ARGS)
 
-test: $(STAMP)
+# ruff's rules are in pyproject.toml ([tool.ruff]).
+lint: $(STAMP)
+	$(BIN)/ruff check .
+
+test: lint
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 clean:

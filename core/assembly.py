@@ -19,10 +19,11 @@ from typing import Any, Literal
 
 from .components import BuildContext, SensorFamily
 from .config import ExperimentConfig
+from .deprecations import warn_renamed
 from .errors import ConfigError
 from .plugin_config import PluginConfig
 from .plugin_manager import KINDS_BY_NAME
-from .stages import empty_slot_reason
+from .stages import empty_slot_reason, required_slots
 
 SensorRole = Literal["source", "target", "paired"]
 SENSOR_SLOTS: dict[str, str] = {"source": "sensor", "target": "target_sensor", "paired": "paired_sensor"}
@@ -134,3 +135,15 @@ class Assembly:
                         and not info.many and self.config.slot(path) is not None):
                     self.component(path)
                     break
+
+
+def build_components(config: ExperimentConfig, host: Any, *, slots: list[str] | None = None,
+                     context: BuildContext | None = None) -> dict[str, Any]:
+    """Deprecated (0.1.0): ``Assembly(config, host, context=context).build_slots(slots)``.
+
+    ``slots`` defaults to every slot the config's stages need or use, as it did."""
+    warn_renamed("build_components(config, host)", "Assembly(config, host).build_slots(paths)", what="function")
+    assembly = Assembly(config, host, context=context)
+    if slots is None:
+        slots = required_slots(config, host)
+    return assembly.build_slots(list(slots))

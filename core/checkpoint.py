@@ -27,6 +27,7 @@ import json
 import os
 import re
 import tempfile
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -38,7 +39,8 @@ from safetensors.torch import load_file, save_model
 from torch import nn
 
 from .components import BuildContext, fill_missing_with_zeros
-from .errors import CheckpointError, ConfigError, UnknownPluginError, VqtouchError
+from .deprecations import current_kind
+from .errors import CheckpointError, ConfigError, UnknownPluginError, VqtouchDeprecationWarning, VqtouchError
 
 FORMAT_VERSION = "1"
 RESERVED_PREFIXES = ("vqtouch.", "format")
@@ -243,17 +245,26 @@ def _first_line(exc: BaseException) -> str:
     return text[0] if text else type(exc).__name__
 
 
-def load(path: str | Path, *, host: Any, map_location: str | torch.device = "cpu") -> nn.Module:
+def load(path: str | Path, *, host: Any = None, map_location: str | torch.device = "cpu") -> nn.Module:
     """Rebuild a component from a checkpoint's header with ``host``'s plugins and load its weights
     strictly.
 
     Fails with a one-line :class:`CheckpointError` when the file is unreadable, the plugin
     that made it is not installed (naming its distribution), or names/shapes disagree with
-    the rebuilt module.
+    the rebuilt module.  A header written under a 0.1.0 kind name (``encoder``) loads under
+    today's (``autoencoder``), with a deprecation warning.  ``host`` is required; leaving it out
+    (as 0.1.0 allowed) still works with a warning and loads the installed plugins.
     """
+    if host is None:
+        warnings.warn("load() without host= is deprecated since vqtouch 0.2.0 and stops working in 0.3.0; pass "
+                      "host=vqtouch.core.load_plugins()", VqtouchDeprecationWarning, stacklevel=2)
+        # Only this deprecated call needs the plugin manager, which itself imports checkpoints' users.
+        from .plugin_manager import load_plugins
+
+        host = load_plugins()
     path = Path(path)
     metadata = read_metadata(path)
-    kind = metadata.get("vqtouch.component", "")
+    kind = current_kind(metadata.get("vqtouch.component", ""))
     plugin = metadata.get("vqtouch.plugin", "")
     try:
         config = json.loads(metadata["vqtouch.config"])

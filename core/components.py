@@ -18,6 +18,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
+from .deprecations import warn_renamed
 from .errors import ConfigError, DatasetError, unknown_name_message
 from .image_size import ImageSize, ImageSizeOption, image_hw, square_or_pair
 
@@ -109,6 +110,13 @@ class Conditioner(nn.Module, abc.ABC):
     #: Which entry of a sample (and so of a collated batch) this conditioner encodes:
     #: ``"label"``, ``"visual"``, ``"tactile_source"`` (a paired sensor's image), ``"tactile"`` or ``"text"``.
     sample_key: ClassVar[str] = ""
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        # 0.1.0 called it ``modality``: a conditioner written then still reads the right key.
+        if "modality" in cls.__dict__ and "sample_key" not in cls.__dict__:
+            warn_renamed(f"{cls.__name__}.modality", f"{cls.__name__}.sample_key", what="Conditioner attribute")
+            cls.sample_key = cls.__dict__["modality"]
 
     def __init__(self, cond_dim: int, num_tokens: int) -> None:
         super().__init__()

@@ -26,7 +26,10 @@ from typing import Annotated, Any, Literal, Union
 from pydantic import AfterValidator, BaseModel, Field, SerializeAsAny, ValidationError, ValidationInfo, WrapValidator
 from pydantic_core import PydanticCustomError
 
-from .errors import ConfigError, UnknownPluginError, format_validation_error, unknown_name_message
+from .deprecations import (CONFIG_REMOVED, CONFIG_RENAMES, RENAMED_IN, STAGE_RENAMES, STAGES_REMOVED, ConfigRename,
+                           warn_renamed)
+from .errors import (ConfigError, PluginError, UnknownPluginError, format_validation_error, one_line,
+                     unknown_name_message)
 from .image_size import ImageSizeOption
 from .plugin_config import PluginConfig, StrictModel
 
@@ -315,6 +318,7 @@ def validate_experiment(data: Mapping[str, Any], host: Any) -> ExperimentConfig:
 
     Afterwards every plugin's ``vqtouch_validate_experiment`` hook may veto the combination.
     """
+    data = migrate_config(data, host.stages, host.experiment_model)
     stages = data.get("stages")
     # An unknown stage first: it also explains its section being an unknown option (a scene of a
     # stage whose plugin is not installed carries that stage's section).
@@ -325,7 +329,18 @@ def validate_experiment(data: Mapping[str, Any], host: Any) -> ExperimentConfig:
         config = host.experiment_model.model_validate(dict(data), context={"host": host})
     except ValidationError as exc:
         raise ConfigError(format_validation_error(exc)) from None
-    host.pm.hook.vqtouch_validate_experiment(config=config)
+    # One implementation at a time, so an unexpected error names the plugin that raised it.
+    for impl in host.pm.hook.vqtouch_validate_experiment.get_hookimpls():
+        try:
+            impl.function(config=config)
+        except ConfigError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a plugin's bug, reported in one line naming it
+            source = host.sources.get(impl.plugin_name)
+            who = source.describe() if source is not None else f"plugin {impl.plugin_name!r}"
+            raise PluginError(f"{who} failed in vqtouch_validate_experiment: {type(exc).__name__}: "
+                              f"{one_line(str(exc))}; fix or update that plugin, or block it with "
+                              f"VQTOUCH_BLOCK_PLUGINS={impl.plugin_name}") from exc
     return config
 
 
@@ -376,3 +391,89 @@ def _refuse_lost_overrides(data: dict[str, Any], path: list[str], value: Any,
         where = ".".join(slot)
         raise ConfigError(f"--set {text} selects another plugin for {where}, which resets its options and would "
                           f"drop the earlier {', '.join('--set ' + t for t in lost)}; put --set {text} before them")
+
+
+# -- configs written for vqtouch 0.1.0 ---------------------------------------------------------
+
+def migrate_config(data: Mapping[str, Any], registered_stages: Iterable[str] = (),
+                   experiment_model: type[BaseModel] = ExperimentConfig) -> dict[str, Any]:
+    """``data`` with every 0.1.0 key moved to its new place (one warning each), or ConfigError
+    naming a removed key or stage and what replaced it.  Today's configs come back unchanged.
+    ``registered_stages``: stage names installed now (a plugin may register a removed name anew);
+    ``experiment_model``: the host's config model (which tells a section's keys from a plugin's)."""
+    registered = set(registered_stages)
+    migrated = copy.deepcopy(dict(data))
+    for key, advice in CONFIG_REMOVED.items():
+        if key in migrated:
+            raise ConfigError(f"config key {key!r} (vqtouch 0.1.0) {advice}")
+    for rename in CONFIG_RENAMES:
+        _apply_rename(migrated, rename, experiment_model)
+    stages = migrated.get("stages")
+    if isinstance(stages, list):
+        renamed = []
+        for stage in stages:
+            if isinstance(stage, str) and stage in STAGES_REMOVED and stage not in registered:
+                raise ConfigError(f"stage {stage!r} (vqtouch 0.1.0) was removed in {RENAMED_IN}: "
+                                  f"{STAGES_REMOVED[stage]}")
+            if isinstance(stage, str) and stage in STAGE_RENAMES:
+                warn_renamed(stage, STAGE_RENAMES[stage], what="stage", stacklevel=4)
+                stage = STAGE_RENAMES[stage]
+            renamed.append(stage)
+        migrated["stages"] = renamed
+    return migrated
+
+
+def _apply_rename(data: dict[str, Any], rename: ConfigRename, experiment_model: type[BaseModel]) -> None:
+    *old_parents, old_key = rename.old.split(".")
+    parent = _node(data, old_parents)
+    if not isinstance(parent, dict) or old_key not in parent:
+        return
+    value = parent[old_key]
+    *new_parents, new_key = rename.new.split(".")
+    if rename.only_plugin_block:
+        if not (isinstance(value, Mapping) and "name" in value):
+            return
+        # The old block may have been merged into today's section of the same name (a file or --set over
+        # a scene): only the keys that are not the section's own are the plugin's.
+        section_keys = _section_fields(experiment_model, rename.old)
+        kept = {key: item for key, item in value.items() if key in section_keys}
+        value = {key: item for key, item in value.items() if key not in section_keys}
+        parent[old_key] = kept
+    else:
+        del parent[old_key]
+    if rename.as_list:
+        value = list(value) if isinstance(value, list) else [value]
+    warn_renamed(rename.old, rename.new, what="config key", stacklevel=5)
+    target = data
+    for part in new_parents:
+        child = target.get(part)
+        if child is None:
+            child = target[part] = {}
+        elif not isinstance(child, dict):
+            raise ConfigError(f"config key {rename.old!r} moved to {rename.new!r}, but {part!r} is "
+                              f"{type(child).__name__} {child!r} here; write it under {rename.new!r}")
+        target = child
+    current = target.get(new_key)
+    # Only a user's file or --set can hold an old key, so it is what they asked for: it goes over what
+    # a scene put at the new key (a block naming another plugin replaces it whole).
+    target[new_key] = merge_configs(current, value) if isinstance(current, dict) and isinstance(value, Mapping) \
+        else value
+
+
+def _section_fields(model: type[BaseModel], path: str) -> set[str]:
+    """The keys of the config section at dotted ``path`` of ``model`` (empty when it is no section)."""
+    for part in path.split("."):
+        field = model.model_fields.get(part)
+        annotation = field.annotation if field is not None else None
+        if not (isinstance(annotation, type) and issubclass(annotation, BaseModel)):
+            return set()
+        model = annotation
+    return set(model.model_fields)
+
+
+def _node(data: Any, path: list[str]) -> Any:
+    for part in path:
+        if not isinstance(data, dict):
+            return None
+        data = data.get(part)
+    return data

@@ -57,6 +57,11 @@ class VqtouchWarning(UserWarning):
     what and why); the CLI prints each as one line, ``vqtouch: warning: ...``."""
 
 
+class VqtouchDeprecationWarning(VqtouchWarning, FutureWarning):
+    """An old name still works but will be removed (see :mod:`vqtouch.core.deprecations`).  A
+    FutureWarning, so Python shows it to users by default, as timm and diffusers do."""
+
+
 # PyTorch re-raises an exception from a DataLoader worker as the same type, but with the
 # worker's whole traceback as its message; the original message is its last line.
 _WORKER_ERROR = re.compile(

@@ -38,6 +38,7 @@ from . import hookspecs
 from .components import (Autoencoder, BuildContext, Clusterer, Conditioner, Discriminator, Generator, Metric,
                          Quantizer, Sampler, SensorFamily, TactileDataset)
 from .config import ExperimentConfig, Section, SlotInfo, slots_of
+from .deprecations import HOOK_RENAMES, HOOKS_REMOVED, RENAMED_IN
 from .errors import ConfigError, PluginError, UnknownPluginError, format_validation_error, unknown_name_message
 from .plugin_config import PluginConfig
 from .registry import PluginEntry, PluginSource, Registry
@@ -284,19 +285,33 @@ def load_plugins(*, autoload: bool | None = None, extra: Iterable[str | Any] = (
         pm.register(module, name=name)
         sources[name] = _source_for(name, module, None)
 
+    _refuse_removed_hooks(pm, sources)
     try:
         pm.check_pending()
     except pluggy.PluginValidationError as exc:
         raise PluginError(f"{exc}; hook names must match a vqtouch_* hookspec (see vqtouch.core.hookspecs)") from None
 
     host = PluginHost(pm, sources)
+    old_hooks = {new: old for old, new in HOOK_RENAMES.items()}
     for kind in REGISTRY_KINDS:
         _run_registration_hook(host, kind.hook, _component_register(host.registries[kind.name]))
+        if kind.hook in old_hooks:  # 0.1.0 plugins still register (pluggy warned when they loaded)
+            _run_registration_hook(host, old_hooks[kind.hook], _component_register(host.registries[kind.name]))
         host.registries[kind.name].freeze()
     _run_registration_hook(host, "vqtouch_register_stages", lambda source: _stage_register(host, source))
     _run_registration_hook(host, "vqtouch_register_scenes", lambda source: _scene_register(host, source))
     _assemble_experiment_model(host)
     return host
+
+
+def _refuse_removed_hooks(pm: pluggy.PluginManager, sources: dict[str, PluginSource]) -> None:
+    """PluginError naming the plugin, its distribution and the replacement when a plugin implements a
+    hook that 0.2.0 removed (pluggy would only say the hook is unknown)."""
+    for name, plugin in pm.list_name_plugin():
+        for hook, replacement in HOOKS_REMOVED.items():
+            if callable(getattr(plugin, hook, None)):
+                raise PluginError(f"{sources[name].describe()} implements {hook}, which vqtouch {RENAMED_IN} removed: "
+                                  f"{replacement}; update the plugin or block it with {ENV_BLOCK}={name}")
 
 
 def _assemble_experiment_model(host: PluginHost) -> None:

@@ -164,7 +164,7 @@ def test_a_folder_target_too_small_for_n_is_refused_before_anything_trains(token
     assert main(["evaluate", "fewshot", "--run", str(tokenizer_run), "--out", str(out), "--target", str(exported),
                  "--n", "4", "--families", str(families_folder)]) == 2
     error = capsys.readouterr().err
-    assert error.count("\n") == 1 and f"holds 0 images" in error
+    assert error.count("\n") == 1 and "holds 0 images" in error
     assert f"not its sub-folders (tactile): point --target at the one holding its frames, e.g. {exported / 'tactile'}" in error
     assert trainer_calls == [] and not out.exists()
 

@@ -2,7 +2,6 @@
 the code cache, exact resume, and the generator at numerical extremes."""
 
 import json
-import pathlib
 import shutil
 
 import pytest

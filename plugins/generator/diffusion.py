@@ -172,12 +172,11 @@ def _schedule_tables(num_codes: int, num_steps: int, att_1: float, att_T: float,
 
     f64 = torch.float64
     fraction_T = torch.arange(num_steps, dtype=f64) / (num_steps - 1)
-    one, zero = torch.ones(1, dtype=f64), torch.zeros(1, dtype=f64)
+    one = torch.ones(1, dtype=f64)
     alpha_bar = torch.cat([att_1 + fraction_T * (att_T - att_1), one])    # index T: identity
-    gamma_bar = torch.cat([ctt_1 + fraction_T * (ctt_T - ctt_1), zero])
-    # 1 - gamma_bar (> 0 except at the end), interpolated from 1 - ctt_1 and 1 - ctt_T rather than taken as
-    # 1 - gamma_bar: with ctt_1 near 1, the subtraction would cancel and make a pure-mask schedule's beta_t
-    # slightly negative (refused) at late steps.
+    # keep_bar = 1 - gamma_bar, gamma_bar being the cumulative mask mass from ctt_1 to ctt_T (so > 0 except at
+    # the end), interpolated directly from 1 - ctt_1 and 1 - ctt_T: computing 1 - gamma_bar with ctt_1 near 1
+    # would cancel and make a pure-mask schedule's beta_t slightly negative (refused) at late steps.
     keep_bar = torch.cat([(1.0 - ctt_1) * (1.0 - fraction_T) + fraction_T * (1.0 - ctt_T), one])
 
     # Transition from step s (column) to step t (row).  Only s < t (or s = -1, column T) is a forward
