@@ -104,7 +104,8 @@ def _generate_command(args: argparse.Namespace) -> int:
     if len(values) != args.n and args.n_given:
         raise ConfigError(f"{len(values)} --{key} values for --n {args.n}; give one value or --n values")
     images = pipe(**{key: values}, steps=args.steps, sampler=args.sampler, guidance=args.guidance,
-                  truncation=args.truncation, seed=args.seed, batch_size=args.batch_size)
+                  truncation=args.truncation, seed=args.seed, batch_size=args.batch_size,
+                  conditioner=args.conditioner)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for index, image in enumerate(images):
@@ -115,7 +116,8 @@ def _generate_command(args: argparse.Namespace) -> int:
                 "sampler": args.sampler or pipe.sampler_name,
                 "guidance": pipe.settings["guidance"] if args.guidance is None else args.guidance,
                 "truncation": pipe.settings["truncation"] if args.truncation is None else args.truncation,
-                "seed": args.seed, "batch_size": args.batch_size}
+                "seed": args.seed, "batch_size": args.batch_size,
+                "conditioner": pipe.conditioner_names()[pipe.conditioner_index(key, args.conditioner)]}
     (out / "generate.json").write_text(json.dumps(settings, indent=2) + "\n")
     print(f"{len(images)} images -> {out} (sample_*.png, grid.png, generate.json)")
     return 0
@@ -374,6 +376,9 @@ def vqtouch_add_commands(subparsers):
     generate.add_argument("--text", action="append", help="text description (repeatable)")
     generate.add_argument("--condition", action="append", default=[], metavar="KEY=VALUE",
                           help="a condition a third-party conditioner reads (sample key = value)")
+    generate.add_argument("--conditioner", metavar="INDEX|NAME",
+                          help="which of the generator's conditioners encodes the condition (index or name, e.g. "
+                               "1 or visual); needed only when several read the same kind of condition")
     generate.add_argument("--n", type=positive_int, default=1, action=_CountAction,
                           help="number of images (a single condition value is repeated)")
     generate.add_argument("--steps", type=positive_int, help="sampling steps (default: the run's generator.steps)")

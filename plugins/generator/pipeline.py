@@ -55,26 +55,64 @@ class GenerationPipeline:
                               "steps)" if limit else f"--steps {steps}: steps must be a positive integer")
         return steps
 
-    def conditioner_for(self, key: str) -> Any:
-        """The conditioner that reads samples' ``key`` (label, visual, tactile, text, ...); ``tactile``
-        also finds one reading ``tactile_source`` (the conditioning tactile image, whichever entry
-        holds it)."""
-        for wanted in (key, "tactile_source") if key == "tactile" else (key,):
-            for conditioner in self.conditioners:
-                if conditioner.sample_key == wanted:
-                    return conditioner
+    def conditioner_names(self) -> list[str]:
+        """``INDEX:NAME`` of each conditioner, in training order (``0:label``, ``1:visual``, ...)."""
+        blocks = self.config.generator.conditioners if self.config is not None else []
+        names = [block.name for block in blocks] if len(blocks) == len(self.conditioners) else \
+            [type(c).__name__ for c in self.conditioners]
+        return [f"{index}:{name}" for index, name in enumerate(names)]
+
+    def conditioner_for(self, key: str, which: int | str | None = None) -> Any:
+        """The conditioner that reads samples' ``key`` (see :meth:`conditioner_index`)."""
+        return self.conditioners[self.conditioner_index(key, which)]
+
+    def conditioner_index(self, key: str, which: int | str | None = None) -> int:
+        """The index of the conditioner that reads samples' ``key`` (label, visual, tactile, text, ...);
+        ``tactile`` also finds one reading ``tactile_source`` (the conditioning tactile image, whichever
+        entry holds it).  ``which`` (an index or a conditioner name, as ``vqtouch generate
+        --conditioner``) chooses among several; with several and no choice, a ConfigError lists them."""
+        wanted = (key, "tactile_source") if key == "tactile" else (key,)
+        names = self.conditioner_names()
+        if which is not None:
+            index = self._conditioner_index(which, names)
+            if self.conditioners[index].sample_key not in wanted:
+                raise ConfigError(f"--conditioner {which}: conditioner {names[index]} reads samples' "
+                                  f"{self.conditioners[index].sample_key!r}, not {key!r}; give a "
+                                  f"--{self.conditioners[index].sample_key.removesuffix('_source')} condition or "
+                                  "choose another conditioner")
+            return index
+        for accepted in wanted:
+            matching = [i for i, conditioner in enumerate(self.conditioners) if conditioner.sample_key == accepted]
+            if len(matching) > 1:
+                raise ConfigError(f"this generator has {len(matching)} conditioners reading {accepted!r} "
+                                  f"({', '.join(names[i] for i in matching)}); choose one with --conditioner "
+                                  "INDEX|NAME")
+            if matching:
+                return matching[0]
         have = ", ".join(sorted({c.sample_key for c in self.conditioners}))
         raise ConfigError(f"this generator was not trained with a {key!r} condition; it takes: {have}")
+
+    @staticmethod
+    def _conditioner_index(which: int | str, names: list[str]) -> int:
+        text = str(which)
+        if text.isdecimal() and int(text) < len(names):
+            return int(text)
+        by_name = [i for i, label in enumerate(names) if label.split(":", 1)[1] == text or label == text]
+        if len(by_name) == 1:
+            return by_name[0]
+        reason = "names several" if by_name else "is none of"
+        raise ConfigError(f"--conditioner {which} {reason} this generator's conditioners ({', '.join(names)}); "
+                          "give its index")
 
     @torch.no_grad()
     def __call__(self, n: int | None = None, *, steps: int | None = None, sampler: str | None = None,
                  guidance: float | None = None, truncation: float | None = None, seed: int = 0,
-                 batch_size: int = 16, **conditions: Any) -> torch.Tensor:
+                 batch_size: int = 16, conditioner: int | str | None = None, **conditions: Any) -> torch.Tensor:
         """Images (n, 3, S, S) in [0, 1] for one condition, given as ``key=value`` (``label=3``) or
         ``key=[v1, v2, ...]`` (one per image); a single value is repeated ``n`` times.
 
         Unset settings take the run's own (``generator.steps``, ``sampler``, ``guidance``,
-        ``truncation``).  Values are what :meth:`vqtouch.core.Conditioner.parse_condition` takes
+        ``truncation``).  ``conditioner``: which conditioner (index or name) when several read ``key``.  Values are what :meth:`vqtouch.core.Conditioner.parse_condition` takes
         (a class index or name, an image path or tensor, a text).
         """
         if len(conditions) != 1:
@@ -91,7 +129,7 @@ class GenerationPipeline:
         truncation = truncation if truncation is not None else self.settings["truncation"]
         self.check_steps(steps)
         chosen = self.sampler if sampler in (None, self.sampler_name) else self.host.build("sampler", sampler)
-        conditioner = self.conditioner_for(key)
+        conditioner = self.conditioner_for(key, conditioner)
         parsed = [conditioner.parse_condition(v, image_size=self.image_size, class_names=self.class_names)
                   for v in values]
         images = []

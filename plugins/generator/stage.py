@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import torch
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from vqtouch.core import MetricSet, RunDir, Section, Slot, StageJob, StageUnavailable, hookimpl, resolve_device
 from vqtouch.core.data import DatasetSubset, experiment_split
@@ -66,6 +66,14 @@ class GeneratorSection(Section):
                                                    "of a classifier trained on real images (EfficientNet-Lite0 "
                                                    "features at 224 px; slower on a CPU).")
     train: GeneratorTrainConfig = Field(default_factory=GeneratorTrainConfig, description="Optimisation settings.")
+
+    @model_validator(mode="after")
+    def _one_weight_per_conditioner(self) -> GeneratorSection:
+        weights = self.train.conditioner_weights
+        if weights is not None and len(weights) != len(self.conditioners):
+            raise ValueError(f"train.conditioner_weights has {len(weights)} weights for {len(self.conditioners)} "
+                             "conditioners; give one per entry of generator.conditioners, in their order")
+        return self
 
 
 def tokenizer_source(job: StageJob) -> RunDir | Path:
@@ -133,7 +141,8 @@ def train_generator(job: StageJob) -> dict[str, Any]:
     background_note = None
     if section.train.canonical_background:
         background_note = canonicalise_codes(data, train_set, dataset, tokenizer, image_hw(config.data.image_size))
-    task = GeneratorTask(generator, conditioners, section.train.condition_dropout, config.seed)
+    task = GeneratorTask(generator, conditioners, section.train.condition_dropout, config.seed,
+                         section.train.conditioner_weights)
     trainer = Trainer(task, train_set, section.train, batch_size=config.data.batch_size, seed=config.seed,
                       device=device, checkpoint_dir=job.run.checkpoints / CHECKPOINT_FOLDER, run=job.run,
                       num_workers=0, host=job.host, stage=job.stage, val_dataset=val_set)

@@ -13,11 +13,12 @@ conditioners read (:class:`CodesDataset`): the tokenizer's encoder never runs du
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
 import torch
-from pydantic import Field
+from pydantic import Field, field_validator
 from torch import nn
 
 from vqtouch.core import Conditioner, Generator, TactileDataset, TrainConfig
@@ -42,9 +43,22 @@ class GeneratorTrainConfig(TrainConfig):
                           "(vqtouch.plugins.generator.codes.canonical_background): the tokenizer gives identical "
                           "no-contact patches different near-synonymous codes, which a generator would otherwise "
                           "have to guess.  Needs the dataset's no-contact background; false: the raw codes.")
+    conditioner_weights: list[float] | None = Field(
+        None, min_length=1, description="Share of the training steps each conditioner gets, in the order of "
+                                        "generator.conditioners (any positive numbers; they are normalised), e.g. "
+                                        "[2, 1, 1, 1] gives the first twice the steps of each other; null: equal "
+                                        "shares.  Conditions that fix less of the image (a label) learn slower.")
     code_cache: bool = Field(True, description="Reuse the tokenizer's codes of the dataset from the user cache "
                                                "folder when they were computed before (see "
                                                "vqtouch.plugins.generator.codes).")
+
+
+    @field_validator("conditioner_weights")
+    @classmethod
+    def _positive_finite(cls, weights: list[float] | None) -> list[float] | None:
+        if weights is not None and not all(math.isfinite(w) and w > 0 for w in weights):
+            raise ValueError(f"every conditioner weight must be a positive finite number, got {weights}")
+        return weights
 
 
 class CodesDataset(TactileDataset):
@@ -108,9 +122,13 @@ class GeneratorTask:
     """The generator objective as a :class:`vqtouch.core.training.TrainingTask` (see the module docstring)."""
 
     def __init__(self, generator: Generator, conditioners: Sequence[Conditioner], condition_dropout: float,
-                 seed: int) -> None:
+                 seed: int, conditioner_weights: Sequence[float] | None = None) -> None:
         if not conditioners:
             raise ValueError("the generator needs at least one conditioner (generator.conditioners)")
+        if conditioner_weights is not None and len(conditioner_weights) != len(conditioners):
+            raise ValueError(f"{len(conditioner_weights)} conditioner weights for {len(conditioners)} conditioners; "
+                             "give generator.train.conditioner_weights one weight per conditioner")
+        self.weights = None if conditioner_weights is None else torch.tensor(conditioner_weights, dtype=torch.float64)
         self.generator = generator
         self.conditioners = list(conditioners)
         self.condition_dropout = condition_dropout
@@ -129,7 +147,9 @@ class GeneratorTask:
         if len(self.conditioners) == 1:
             return 0
         chooser = torch.Generator().manual_seed(self.seed * 1_000_003 + step)
-        return int(torch.randint(len(self.conditioners), (1,), generator=chooser))
+        if self.weights is None:
+            return int(torch.randint(len(self.conditioners), (1,), generator=chooser))
+        return int(torch.multinomial(self.weights, 1, generator=chooser))
 
     def condition_tokens(self, index: int, batch: dict[str, Any], drop_B: torch.Tensor | None) -> Any:
         """The tokens of conditioner ``index`` for ``batch`` (rows in ``drop_B`` get its null tokens)."""
