@@ -30,9 +30,10 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/vqtouch demo --overwrite --out runs/demo $(DEMO_ARGS)
 
-# ruff's rules are in pyproject.toml ([tool.ruff]).
+# ruff's rules and the packages' import layers (import-linter) are in pyproject.toml.
 lint: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/lint-imports --no-cache
 
 test: lint
 	$(BIN)/python -m pytest $(PYTEST_ARGS)

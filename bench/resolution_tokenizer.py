@@ -47,7 +47,7 @@ def scores_at_64(run: Path, image_size: ImageSize) -> dict[str, float]:
     """SSIM and PSNR of the run's held-out reconstructions after resizing them and their ground truth to
     64 px wide."""
     from vqtouch.core import Assembly, RunDir, load_plugins
-    from vqtouch.plugins.tokenizer.stages import load_tokenizer, reconstruct_all
+    from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all
 
     host = load_plugins()
     tokenizer, _ = load_tokenizer(run, host)

@@ -37,7 +37,10 @@ from vqtouch.core import (BuildContext, Conditioner, ConfigError, PluginConfig, 
                           resolve_weights)
 from vqtouch.core.frozen import FrozenModule
 
-from .clip import CLIP_WEIGHTS, check_open_clip_architecture, create_open_clip_model, import_open_clip
+from vqtouch.plugins.evaluation.open_clip_towers import (builtin_tokenizer, check_open_clip_architecture,
+                                                        create_open_clip_model, import_open_clip)
+
+from .clip import CLIP_WEIGHTS
 
 #: The same open_clip checkpoint file the ``clip`` conditioner reads (it holds both towers), found the same way.
 TEXT_WEIGHTS = WeightsSpec(
@@ -79,37 +82,6 @@ def text_hidden_states(model: nn.Module, ids_BL: torch.Tensor) -> torch.Tensor:
     output = model.forward_intermediates(text=ids_BL, text_indices=1, normalize_intermediates=True,
                                          intermediates_only=True)
     return output["text_intermediates"][-1]
-
-
-def builtin_tokenizer(open_clip: Any, architecture: str, context_length: int,
-                      model_overrides: dict[str, Any], conditioner: str = "text", *,
-                      kind: str = "conditioner") -> Any:
-    """open_clip's tokenizer for ``architecture``, which must be its built-in BPE ``SimpleTokenizer``
-    (vocabulary shipped in the wheel, so it works offline) producing ``context_length`` ids per text.
-
-    Raises :class:`~vqtouch.core.ConfigError` (one line, starting with ``kind`` and ``conditioner``,
-    the plugin that asked) when the architecture's tokenizer or text tower would come from the
-    Hugging Face Hub (``hf_tokenizer_name``/``hf_model_name``, SigLIP models), since vqtouch never
-    downloads, or when it would shorten texts at random.
-    """
-    plugin = f"{kind} {conditioner!r}"
-    text_cfg = {**(open_clip.get_model_config(architecture) or {}).get("text_cfg", {}),
-                **model_overrides.get("text_cfg", {})}
-    hub_source = text_cfg.get("hf_tokenizer_name") or text_cfg.get("hf_model_name")
-    if hub_source or "siglip" in architecture.lower():
-        what = f"the Hugging Face tokenizer {hub_source!r}" if hub_source else "a SigLIP (Hugging Face) tokenizer"
-        raise ConfigError(f"{plugin}: open_clip architecture {architecture!r} uses {what}, which would be "
-                          "downloaded; vqtouch never downloads: choose an architecture with open_clip's built-in BPE "
-                          "tokenizer (e.g. ViT-B-32)")
-    tokenizer = open_clip.get_tokenizer(architecture, context_length=context_length,
-                                        **text_cfg.get("tokenizer_kwargs", {}))
-    if not isinstance(tokenizer, open_clip.tokenizer.SimpleTokenizer):
-        raise ConfigError(f"{plugin}: open_clip gave {type(tokenizer).__name__} for {architecture!r}, not "
-                          "its built-in BPE tokenizer; choose another architecture (e.g. ViT-B-32)")
-    if tokenizer.reduction_fn is not None:
-        raise ConfigError(f"{plugin}: {architecture!r}'s tokenizer shortens long texts at random "
-                          "(tokenizer_kwargs.reduction_mask); remove it so a text always gives the same tokens")
-    return tokenizer
 
 
 class TextConditioner(Conditioner):

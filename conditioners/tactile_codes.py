@@ -88,7 +88,7 @@ def build_tactile_codes_conditioner(config: TactileCodesConditionerConfig,
     the generator's ``.to(device)`` moves it) and sizes the tokens by its code grid at the
     experiment's image size."""
     from vqtouch.core import VqtouchError, load_plugins
-    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+    from vqtouch.plugins.tokenizer import load_tokenizer
 
     if config.tokenizer is None:
         raise ConfigError("conditioner 'tactile_codes' needs the source sensor's tokenizer: set "

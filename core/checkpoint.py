@@ -27,7 +27,6 @@ import json
 import os
 import re
 import tempfile
-import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -40,7 +39,7 @@ from torch import nn
 
 from .components import BuildContext, fill_missing_with_zeros
 from .deprecations import current_kind
-from .errors import CheckpointError, ConfigError, UnknownPluginError, VqtouchDeprecationWarning, VqtouchError
+from .errors import CheckpointError, ConfigError, UnknownPluginError, VqtouchError
 
 FORMAT_VERSION = "1"
 RESERVED_PREFIXES = ("vqtouch.", "format")
@@ -252,16 +251,12 @@ def load(path: str | Path, *, host: Any = None, map_location: str | torch.device
     Fails with a one-line :class:`CheckpointError` when the file is unreadable, the plugin
     that made it is not installed (naming its distribution), or names/shapes disagree with
     the rebuilt module.  A header written under a 0.1.0 kind name (``encoder``) loads under
-    today's (``autoencoder``), with a deprecation warning.  ``host`` is required; leaving it out
-    (as 0.1.0 allowed) still works with a warning and loads the installed plugins.
+    today's (``autoencoder``), with a deprecation warning.  There is no hidden plugin host: leaving
+    ``host`` out (as 0.1.0 allowed) is a one-line TypeError that says what to pass.
     """
     if host is None:
-        warnings.warn("load() without host= is deprecated since vqtouch 0.2.0 and stops working in 0.3.0; pass "
-                      "host=vqtouch.core.load_plugins()", VqtouchDeprecationWarning, stacklevel=2)
-        # Only this deprecated call needs the plugin manager, which itself imports checkpoints' users.
-        from .plugin_manager import load_plugins
-
-        host = load_plugins()
+        raise TypeError("load() needs host= since vqtouch 0.2.0 (no hidden plugin host): "
+                        "load(path, host=vqtouch.core.load_plugins())")
     path = Path(path)
     metadata = read_metadata(path)
     kind = current_kind(metadata.get("vqtouch.component", ""))

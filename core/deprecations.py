@@ -12,8 +12,9 @@ error naming what replaced it.  Nothing that changed is left to fail later with 
 - **hooks** (:data:`HOOK_RENAMES`, :data:`HOOKS_REMOVED`): an old registration hook still registers,
   a removed one is refused when plugins load, naming the plugin;
 - **Python names**: ``Conditioner.modality`` (now ``sample_key``), ``vqtouch.core.Encoder`` (now
-  ``Autoencoder``), ``build_components`` (now :class:`~vqtouch.core.Assembly`), ``load`` without
-  ``host``.  Their shims sit beside the new names and call :func:`warn_renamed`.
+  ``Autoencoder``), ``build_components`` (now :class:`~vqtouch.core.Assembly`): their shims sit
+  beside the new names and call :func:`warn_renamed`.  ``load`` without ``host`` is refused (there
+  is no hidden plugin host).
 
 The list is the CHANGELOG's "Renamed" section in code; a test checks that every entry is described
 there.

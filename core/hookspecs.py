@@ -145,3 +145,16 @@ def vqtouch_checkpoint_metadata(kind: str, name: str, config: dict[str, Any]) ->
     Keys must be namespaced with the plugin's name (``"myplugin.calibration_id"``); the
     ``vqtouch.`` and ``format`` keys are reserved.
     """
+
+
+@hookspec(firstresult=True)
+def vqtouch_open_pretrained(name: str, host: Any, device: Any) -> Any:
+    """Open the bundled pretrained weights ``name`` (what ``--run pretrained:NAME`` names), or return
+    None when this plugin ships none.
+
+    The answer has the attributes ``tokenizer``, ``generator``, ``conditioners`` (built, in eval mode,
+    on ``device``), ``run_config`` (the config dict of the run that trained them) and ``folder``.  The
+    first plugin that answers wins; a plugin that knows the name but cannot open it raises a one-line
+    ``vqtouch.core.ConfigError``.  Through this hook the generation pipeline opens bundles without
+    importing the package that ships them.
+    """

@@ -42,7 +42,7 @@ def _adapt(tokenizer_folder, families_folder, out, images, *extra):
 
 def test_adapt_writes_its_own_tokenizer_whose_header_names_the_family_and_the_shots(tokenizer_folder, families_folder,
                                                                                    tmp_path, capsys):
-    from vqtouch.plugins.tokenizer.stages import load_tokenizer, reconstruct_all
+    from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all
 
     target = _variant("gelsight", 7, illumination_shift=0.04, noise_std=0.01)
     out = tmp_path / "adapted"
@@ -150,7 +150,7 @@ def test_families_from_another_tokenizer_are_refused(families_folder, tmp_path, 
 def test_a_generator_trains_on_an_adapted_tokenizers_codes(tokenizer_folder, families_folder, tmp_path, capsys):
     from generator_runs import train_args
     from vqtouch.plugins.generator import load_pipeline
-    from vqtouch.plugins.tokenizer.stages import tokenizer_configs
+    from vqtouch.plugins.tokenizer import tokenizer_configs
 
     adapted = tmp_path / "adapted"
     assert _adapt(tokenizer_folder, families_folder, adapted, "gelsight", "--threshold", "1") == 0

@@ -30,7 +30,7 @@ def _stages(out):
 
 
 def test_the_few_shot_scene_clusters_assigns_adapts_and_generates(tmp_path, capsys):
-    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+    from vqtouch.plugins.tokenizer import load_tokenizer
 
     out = tmp_path / "few"
     assert _demo(out, "few-shot") == 0

@@ -99,11 +99,11 @@ def _label_checkpoint(host, path: Path) -> Path:
                 path, step=1, host=host)
 
 
-def test_load_without_host_works_with_a_warning(host, tmp_path):
+def test_load_without_host_is_refused_in_one_line_saying_what_to_pass(host, tmp_path):
     path = _label_checkpoint(host, tmp_path / "label.safetensors")
-    with pytest.warns(VqtouchDeprecationWarning, match="host="):
-        component = load(path)
-    assert torch.equal(component.null_tokens_ND, load(path, host=host).null_tokens_ND)
+    with pytest.raises(TypeError, match=r"load\(\) needs host= since vqtouch 0.2.0 .*load_plugins\(\)") as error:
+        load(path)
+    assert "\n" not in str(error.value)
 
 
 def test_a_checkpoint_under_an_old_kind_name_loads_under_the_new_one(host, tmp_path):

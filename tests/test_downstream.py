@@ -16,7 +16,7 @@ from vqtouch.core import Assembly, ConfigError, RunDir
 from vqtouch.core.cli import main
 from vqtouch.core.data import split_dataset
 from vqtouch.core.images import save_png
-from vqtouch.plugins.evaluation.downstream import (ARMS, CEILING, FEW, FEW_AND_GENERATED, GENERATED, draw_shots,
+from vqtouch.plugins.experiments.downstream import (ARMS, CEILING, FEW, FEW_AND_GENERATED, GENERATED, draw_shots,
                                                    label_conditioner_index, recognition_scores)
 
 CLASSES = ["sphere", "edge", "ridges"]

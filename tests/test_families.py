@@ -23,7 +23,7 @@ def tokenizer_folder(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def tokenizer(tokenizer_folder):
-    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+    from vqtouch.plugins.tokenizer import load_tokenizer
 
     return load_tokenizer(tokenizer_folder, HOST)[0]
 

@@ -69,7 +69,7 @@ def _frames(folder, images):
 def test_every_arm_trains_on_its_own_images_and_scores_the_same_held_out_images(tokenizer_run, families_folder,
                                                                                  trainer_calls, tmp_path):
     from vqtouch.plugins.evaluation.contact import contact_region_scores, no_contact_image
-    from vqtouch.plugins.tokenizer.stages import load_tokenizer, reconstruct_all
+    from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all
 
     out = tmp_path / "fewshot"
     result = evaluate_fewshot(tokenizer_run, HOST, out, target=TARGET, seeds=[0, 1], counts=(8, 4), ratio=2.0,

@@ -90,7 +90,7 @@ def test_a_second_run_reuses_the_cached_codes(trained, tmp_path):
     from safetensors.torch import load_file
 
     from vqtouch.plugins.generator.codes import encode_dataset
-    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+    from vqtouch.plugins.tokenizer import load_tokenizer
     from vqtouch.core import Assembly, RunDir
 
     run = RunDir.open(out)
@@ -297,7 +297,7 @@ def test_tactile_codes_embeds_the_source_sensors_codes_and_keeps_its_tokenizer_o
     the tokens; the frozen tokenizer gets no gradient and stays out of the checkpoint; the
     conditioner trains a touch-to-touch generator end to end."""
     from vqtouch.core import ConfigError
-    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+    from vqtouch.plugins.tokenizer import load_tokenizer
 
     context = BuildContext(image_size=32, cond_dim=16)
     conditioner = HOST.build("conditioner", {"name": "tactile_codes", "tokenizer": str(trained)}, context)

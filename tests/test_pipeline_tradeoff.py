@@ -11,7 +11,7 @@ import torch
 
 from vqtouch.core.cli import main
 from vqtouch.core.config import resolve_config
-from vqtouch.plugins.evaluation import pipeline_tradeoff as tradeoff
+from vqtouch.plugins.experiments import pipeline_tradeoff as tradeoff
 
 #: A tiny VQGAN tokenizer and generator at 32 px (tests/generator_runs.py's sizes); the encoder's
 #: name first: selecting a plugin resets its options.

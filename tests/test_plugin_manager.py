@@ -384,17 +384,11 @@ def test_bad_stage_registrations_fail_when_plugins_load(make_plugin, options, me
 
 
 def test_removed_hooks_fail_loudly(make_plugin):
-    """vqtouch_run_stage and vqtouch_register_encoders are gone: a plugin still using them fails to load."""
+    """vqtouch_run_stage is gone: a plugin still using it fails to load (vqtouch_register_encoders still
+    registers, with a deprecation warning: tests/test_deprecations.py)."""
     @hookimpl
     def vqtouch_run_stage(stage, config, run):
         return None
 
     with pytest.raises(PluginError, match="vqtouch_run_stage"):
         load_plugins(autoload=False, extra=[make_plugin("old_stage", vqtouch_run_stage)])
-
-    @hookimpl
-    def vqtouch_register_encoders(register):
-        pass
-
-    with pytest.raises(PluginError, match="vqtouch_register_encoders"):
-        load_plugins(autoload=False, extra=[make_plugin("old_encoder", vqtouch_register_encoders)])

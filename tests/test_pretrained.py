@@ -123,3 +123,26 @@ def test_list_command_prints_steps_and_commands(trained, capsys):
     assert main(["pretrained", "list", "--root", str(bundles), "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)
     assert [row["name"] for row in rows] == ["tiny"] and "train generator" in rows[0]["generator_command"]
+
+
+def test_a_plugin_can_serve_pretrained_names_through_its_hook(trained, make_plugin):
+    """The generation pipeline opens `pretrained:NAME` through vqtouch_open_pretrained, so a plugin
+    package can ship bundles, and the generator package never imports the one that ships the built-in."""
+    from vqtouch.core import hookimpl
+
+    _, bundles = trained
+
+    @hookimpl
+    def vqtouch_open_pretrained(name, host, device):
+        return load_bundle("tiny", host, device=device, root=bundles) if name == "lab-tiny" else None
+
+    host = load_plugins(autoload=False, extra=[make_plugin("lab_bundles", vqtouch_open_pretrained)])
+    pipe = load_pipeline("pretrained:lab-tiny", host=host, device="cpu")
+    assert pipe.run is None and pipe.checkpoint == bundles / "tiny" / "generator"
+    # Other names still reach the built-in plugin's bundles.
+    with pytest.raises(ConfigError, match="no bundled checkpoints named 'nope'"):
+        load_pipeline("pretrained:nope", host=host, device="cpu")
+    # With no plugin that ships bundles, one line says so.
+    with pytest.raises(ConfigError, match="no installed plugin ships bundled weights") as error:
+        load_pipeline("pretrained:tour", host=load_plugins(autoload=False, block=["pretrained"]), device="cpu")
+    assert "\n" not in str(error.value)

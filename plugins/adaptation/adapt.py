@@ -195,7 +195,7 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
     from vqtouch.core import atomic_write, resolve_device, save
     from vqtouch.core.images import image_grid, save_png
     from vqtouch.core.training import Trainer
-    from vqtouch.plugins.tokenizer.stages import TOKENIZER_FILES, load_tokenizer, reconstruct_all, tokenizer_task
+    from vqtouch.plugins.tokenizer import TOKENIZER_FILES, load_tokenizer, reconstruct_all, tokenizer_task
     from vqtouch.plugins.tokenizer.training import TokenizerLossConfig, TokenizerTrainConfig
 
     refuse_existing(out, overwrite)

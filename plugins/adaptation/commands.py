@@ -46,7 +46,7 @@ def _non_negative_float(text: str) -> float:
 
 
 def _cluster_command(args: argparse.Namespace) -> int:
-    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+    from vqtouch.plugins.tokenizer import load_tokenizer
 
     from .families import fit_families, save_families, sensor_images
 
@@ -85,7 +85,7 @@ def describe_assignment(assigned: dict) -> str:
 
 
 def _adapt_command(args: argparse.Namespace) -> int:
-    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+    from vqtouch.plugins.tokenizer import load_tokenizer
 
     from .adapt import AdaptSettings, adapt_tokenizer, check_same_tokenizer, default_families, refuse_existing
     from .families import load_families, registered_source

@@ -128,7 +128,7 @@ def train_fresh_tokenizer(run: Any, images_N3HW: torch.Tensor, host: Any, *, see
     ``{"steps", "seconds", "train_images", "batch_size"}``."""
     from vqtouch.core import Assembly, RunDir, resolve_device, save
     from vqtouch.core.training import Trainer
-    from vqtouch.plugins.tokenizer.stages import TOKENIZER_FILES, tokenizer_task
+    from vqtouch.plugins.tokenizer import TOKENIZER_FILES, tokenizer_task
     from vqtouch.plugins.tokenizer.training import Tokenizer
 
     config = RunDir.open(run).load_config(host)
@@ -235,7 +235,7 @@ def evaluate_cross_sensor(run: Any, host: Any, out: Path, *, target: str, seeds:
                           clusterers: list[str], real_family: str | None, real_shots: list[int],
                           report: Any = print) -> dict[str, Any]:
     """Run the three parts and the cost (see the module docstring); write the JSON, markdown and PNG."""
-    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+    from vqtouch.plugins.tokenizer import load_tokenizer
 
     tokenizer, folder = load_tokenizer(run, host)
     image_size = tokenizer.autoencoder.vqtouch_spec.context.image_size

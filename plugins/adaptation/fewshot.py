@@ -224,7 +224,7 @@ def evaluate_fewshot(run: str | Path, host: Any, out: str | Path, *, target: str
     Every bad input is refused with a one-line ConfigError before anything trains.  Returns what
     ``fewshot.json`` holds."""
     from vqtouch.core import RunDir
-    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+    from vqtouch.plugins.tokenizer import load_tokenizer
 
     out = Path(out)
     if (out / "fewshot.json").is_file() and not overwrite:

@@ -61,7 +61,7 @@ class AdaptSection(Section):
 
 def _family_tokenizer(job: StageJob) -> tuple[Any, Any]:
     from vqtouch.core.runs import MissingCheckpointError
-    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+    from vqtouch.plugins.tokenizer import load_tokenizer
 
     try:
         return load_tokenizer(job.run, job.host)
@@ -77,7 +77,8 @@ def target_spec(job: StageJob) -> str:
 
 def run_cluster_stage(job: StageJob) -> dict[str, Any]:
     """Group the section's sensors into families; assign and score the target sensor when there is one."""
-    from vqtouch.plugins.tokenizer.stages import experiment_metrics, reconstruct_all
+    from vqtouch.plugins.tokenizer import reconstruct_all
+    from vqtouch.plugins.tokenizer.stages import experiment_metrics
 
     from .families import family_sensor_specs, fit_families, save_families, sensor_images
 

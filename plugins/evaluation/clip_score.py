@@ -45,18 +45,18 @@ import torch.nn.functional as F
 from pydantic import Field, field_validator
 from torch import nn
 
-from vqtouch.conditioners.clip import (CLIP_WEIGHTS, check_open_clip_architecture, clip_image_embeddings,
-                                       clip_image_geometry, create_open_clip_model, import_open_clip)
-from vqtouch.conditioners.clip_text import builtin_tokenizer
 from vqtouch.core import (BuildContext, ConfigError, Metric, MissingWeightsError, PerImageMetric, PluginConfig,
                           PluginError, SkippedMetric, WeightsSpec, hookimpl, resolve_weights)
 
 from .metrics import check_pair
+from .open_clip_towers import (OPEN_CLIP_ENV_VAR, OPEN_CLIP_FILENAMES, OPEN_CLIP_SOURCE, builtin_tokenizer,
+                               check_open_clip_architecture, clip_image_embeddings, clip_image_geometry,
+                               create_open_clip_model, import_open_clip)
 
 #: The same open_clip checkpoint the clip and text conditioners read (it holds both towers), found the same way.
 CLIP_SCORE_WEIGHTS = WeightsSpec(
     description="metric 'clip_score' (open_clip image and text encoders)",
-    filenames=CLIP_WEIGHTS.filenames, env_var=CLIP_WEIGHTS.env_var, source_url=CLIP_WEIGHTS.source_url,
+    filenames=OPEN_CLIP_FILENAMES, env_var=OPEN_CLIP_ENV_VAR, source_url=OPEN_CLIP_SOURCE,
     config_hint="the clip_score metric's checkpoint option (e.g. --set metrics.4.checkpoint=PATH, 4 being its place "
                 "in metrics) or `vqtouch evaluate generation --clip-checkpoint PATH`")
 

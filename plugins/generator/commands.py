@@ -28,7 +28,7 @@ def _with_tokenizer_run(config: Any, tokenizer_run: str, host: Any) -> Any:
     """``config`` set to learn the codes of the tokenizer trained in ``tokenizer_run`` (a run, or a
     tokenizer checkpoint folder such as an adapted tokenizer): its tokenizer section and image
     size, the generator stage alone."""
-    from vqtouch.plugins.tokenizer.stages import tokenizer_configs, tokenizer_location
+    from vqtouch.plugins.tokenizer import tokenizer_configs, tokenizer_location
 
     source = tokenizer_location(tokenizer_run)
     data = config.to_dict()

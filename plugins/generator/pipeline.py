@@ -162,7 +162,7 @@ def load_pipeline(run: str | Path, *, host: Any = None, step: int | str | None =
     """The generation pipeline of a run whose ``generator`` stage trained (its newest good checkpoint,
     ``step``, or ``"best"``), with the tokenizer it was trained on; or of a bundle, ``pretrained:NAME``
     (its tokenizer, generator and conditioners, with the config of the run that trained them)."""
-    from vqtouch.plugins.tokenizer.stages import load_tokenizer, tokenizer_location
+    from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_location
 
     host = host or load_plugins()
     if is_pretrained(run):
@@ -195,10 +195,13 @@ def _bundle_pipeline(name: str, host: Any, device: str | None) -> GenerationPipe
     """The pipeline of bundle ``name``: its weights, and the generator settings, classes and image size
     of the config recorded in its headers."""
     from vqtouch.core import validate_experiment
-    from vqtouch.plugins.pretrained.bundle import load_bundle  # the bundles build on this module, not the reverse
 
     device_ = resolve_device(device or "auto")
-    bundle = load_bundle(name, host, device=device_)
+    # The package that ships bundles builds on this one, so it is asked through its hook, not imported.
+    bundle = host.pm.hook.vqtouch_open_pretrained(name=name, host=host, device=device_)
+    if bundle is None:
+        raise ConfigError(f"pretrained:{name}: no installed plugin ships bundled weights (the built-in 'pretrained' "
+                          "plugin may be blocked by VQTOUCH_BLOCK_PLUGINS)")
     if not bundle.run_config:
         raise ConfigError(f"pretrained:{name}: its headers record no run config; export it again with "
                           "`vqtouch pretrained export`")

@@ -79,7 +79,7 @@ class GeneratorSection(Section):
 def tokenizer_source(job: StageJob) -> RunDir | Path:
     """Where the tokenizer is: ``generator.tokenizer_run`` (a run or a tokenizer checkpoint
     folder), else this run."""
-    from vqtouch.plugins.tokenizer.stages import tokenizer_location
+    from vqtouch.plugins.tokenizer import tokenizer_location
 
     path = job.section.tokenizer_run
     return tokenizer_location(path) if path else job.run
@@ -87,7 +87,7 @@ def tokenizer_source(job: StageJob) -> RunDir | Path:
 
 def load_run_tokenizer(job: StageJob, device: torch.device) -> tuple[Any, Path]:
     """The trained tokenizer the generator works with, and its checkpoint folder."""
-    from vqtouch.plugins.tokenizer.stages import load_tokenizer
+    from vqtouch.plugins.tokenizer import load_tokenizer
 
     source = tokenizer_source(job)
     try:
@@ -108,7 +108,7 @@ def images_config(config: Any) -> dict[str, Any]:
 
 def train_generator(job: StageJob) -> dict[str, Any]:
     """Train the configured generator in ``job.run`` and score samples of the held-out conditions."""
-    from vqtouch.plugins.tokenizer.stages import TOKENIZER_FILES
+    from vqtouch.plugins.tokenizer import TOKENIZER_FILES
 
     from .codes import dataset_codes
 

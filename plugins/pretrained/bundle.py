@@ -90,7 +90,7 @@ def export_bundle(generator_run: str | Path, name: str, host: Any, *, root: Path
     """Write the newest checkpoint of ``generator_run`` (its generator, conditioners and the tokenizer
     it was trained on) as bundle ``name`` under ``root``; returns the bundle's folder."""
     from vqtouch.plugins.generator.pipeline import load_pipeline
-    from vqtouch.plugins.tokenizer.stages import tokenizer_location
+    from vqtouch.plugins.tokenizer import tokenizer_location
 
     if precision not in ("fp16", "fp32"):
         raise ConfigError(f"--precision {precision!r}: choose fp16 or fp32")

@@ -121,6 +121,12 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
 
 
 @hookimpl
+def vqtouch_open_pretrained(name, host, device):
+    """Open a bundle of this package for ``--run pretrained:NAME`` (the generation pipeline asks)."""
+    return load_bundle(name, host, device=device)
+
+
+@hookimpl
 def vqtouch_register_stages(register):
     register("pretrained", run_pretrained_stage, section=PretrainedSection, needs=("data.dataset",),
              uses=("metrics", "sensor"), demo={"num_samples": 8, "steps": 10},

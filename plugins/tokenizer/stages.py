@@ -14,7 +14,7 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import MetricSet, RunDir, StageJob, StageUnavailable, hookimpl, load, resolve_device
+from vqtouch.core import MetricSet, StageJob, StageUnavailable, hookimpl, resolve_device
 from vqtouch.core.data import experiment_split
 from vqtouch.core.errors import NothingToEvaluateError
 from vqtouch.core.image_size import image_hw
@@ -23,10 +23,8 @@ from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.core.training import Trainer
 from vqtouch.plugins.evaluation.contact import contact_region_scores, dataset_background, no_contact_image
 
-from .training import Tokenizer, TokenizerLossConfig, TokenizerSection, TokenizerTask, evaluate_reconstruction
-
-#: The files a tokenizer checkpoint folder holds, one per trained module.
-TOKENIZER_FILES = ("autoencoder.safetensors", "quantizer.safetensors")
+from .loading import TOKENIZER_FILES, load_tokenizer, reconstruct_all
+from .training import Tokenizer, TokenizerSection, evaluate_reconstruction, tokenizer_task
 
 
 def printable(scores: dict[str, Any]) -> dict[str, Any]:
@@ -39,19 +37,6 @@ def save_pairs(originals: torch.Tensor, reconstructions: torch.Tensor, path: Pat
     """A picture of the first ``count`` originals (top row) above their reconstructions."""
     count = min(count, len(originals))
     return save_png(image_grid(torch.cat([originals[:count], reconstructions[:count]]), columns=count), path)
-
-
-def tokenizer_task(tokenizer: Tokenizer, loss: TokenizerLossConfig, device: torch.device,
-                   discriminator: torch.nn.Module | None = None) -> TokenizerTask:
-    """The tokenizer objective ``loss`` for ``tokenizer``, with its perceptual network built on
-    ``device`` when the loss uses one (training and adaptation both start here)."""
-    from .perceptual import build_perceptual_loss
-
-    perceptual = None
-    if loss.perceptual != "none" and loss.perceptual_weight > 0:
-        perceptual = build_perceptual_loss(loss.perceptual, loss.lpips_backbone, loss.lpips_heads,
-                                           effnet_image_size=loss.perceptual_image_size).to(device)
-    return TokenizerTask(tokenizer, loss, discriminator, perceptual)
 
 
 def train_tokenizer(job: StageJob) -> dict[str, Any]:
@@ -103,64 +88,6 @@ def run_tokenizer_stage(job: StageJob) -> dict[str, Any]:
             **({} if "evaluation" in scores else {
                 "picture": "reconstructions.png",
                 "caption": "Held-out images (top row) above the trained tokenizer's reconstructions of them (bottom row)."})}
-
-
-def load_tokenizer(run_or_folder: str | Path | RunDir, host: Any, step: int | str | None = None,
-                   device: str = "cpu") -> tuple[Tokenizer, Path]:
-    """Load the autoencoder and quantizer of a run (its newest good checkpoint, ``step``, or with
-    ``step="best"`` the one that scored best on the held-out split) or of a checkpoint folder.
-
-    A run's folder comes from :meth:`RunDir.checkpoint`, which refuses files made with another
-    config than the run's; so does a ``step-*`` folder given inside a run.  A checkpoint folder
-    outside any run (copied elsewhere) is loaded as it is.
-    """
-    if isinstance(run_or_folder, RunDir):
-        run, path = run_or_folder, run_or_folder.path
-    else:
-        path = Path(run_or_folder)
-        run = None
-        if all((path / name).is_file() for name in TOKENIZER_FILES):
-            inside = path.parent.parent
-            if (path.parent.name == "checkpoints" and path.name.startswith("step-") and path.name[5:].isdigit()
-                    and (inside / "config.json").is_file()):
-                run, step = RunDir.open(inside), int(path.name[5:])
-            else:
-                folder = path
-        else:
-            run = RunDir.open(path)
-    if run is not None:
-        folder = run.checkpoint(host, step, required_files=TOKENIZER_FILES)
-    autoencoder = load(folder / TOKENIZER_FILES[0], host=host, map_location=device)
-    quantizer = load(folder / TOKENIZER_FILES[1], host=host, map_location=device)
-    return Tokenizer(autoencoder, quantizer).eval(), folder
-
-
-def tokenizer_location(path: str | Path) -> RunDir | Path:
-    """Where a tokenizer lives: the run at ``path``, or ``path`` itself when it is a checkpoint
-    folder holding the tokenizer files outside any run (e.g. what ``vqtouch adapt`` writes)."""
-    path = Path(path)
-    if not (path / "config.json").is_file() and all((path / name).is_file() for name in TOKENIZER_FILES):
-        return path
-    return RunDir.open(path)
-
-
-def tokenizer_configs(folder: str | Path) -> tuple[dict[str, Any], dict[str, Any], int]:
-    """The autoencoder and quantizer plugin configs and the image size a tokenizer checkpoint
-    folder was made with (read from its headers)."""
-    import json
-
-    from vqtouch.core import read_metadata
-
-    headers = [read_metadata(Path(folder) / name) for name in TOKENIZER_FILES]
-    image_size = json.loads(headers[0]["vqtouch.context"])["image_size"]
-    return json.loads(headers[0]["vqtouch.config"]), json.loads(headers[1]["vqtouch.config"]), image_size
-
-
-@torch.no_grad()
-def reconstruct_all(tokenizer: Tokenizer, images_B3HW: torch.Tensor, batch_size: int = 16) -> torch.Tensor:
-    """Reconstructions in [0, 1] of a stack of images in [0, 1], ``batch_size`` at a time."""
-    return torch.cat([tokenizer.reconstruct(images_B3HW[i:i + batch_size])[0]
-                      for i in range(0, len(images_B3HW), batch_size)])
 
 
 def run_reconstruct_stage(job: StageJob) -> dict[str, Any]:

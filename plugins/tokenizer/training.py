@@ -273,3 +273,16 @@ def _non_finite_message(tokenizer: Tokenizer) -> str:
              else "its weights are finite, so a value overflows inside the network")
     return (f"the tokenizer{which} produced NaN/Inf reconstructions; {cause}; evaluate an earlier checkpoint with "
             "--step, or retrain with a lower tokenizer.train.learning_rate")
+
+
+def tokenizer_task(tokenizer: Tokenizer, loss: TokenizerLossConfig, device: torch.device,
+                   discriminator: torch.nn.Module | None = None) -> TokenizerTask:
+    """The tokenizer objective ``loss`` for ``tokenizer``, with its perceptual network built on
+    ``device`` when the loss uses one (training and adaptation both start here)."""
+    from .perceptual import build_perceptual_loss
+
+    perceptual = None
+    if loss.perceptual != "none" and loss.perceptual_weight > 0:
+        perceptual = build_perceptual_loss(loss.perceptual, loss.lpips_backbone, loss.lpips_heads,
+                                           effnet_image_size=loss.perceptual_image_size).to(device)
+    return TokenizerTask(tokenizer, loss, discriminator, perceptual)

@@ -9,3 +9,8 @@ the lists and CSVs that ship with its dataset, indexes and checks all samples wh
 images only in ``__getitem__``; shared image decoding, file checks and the lenient
 skip-and-warn policy live in :mod:`vqtouch.plugins.data.readers._io`.
 """
+
+from ._io import IMAGE_SUFFIXES, is_image_file, list_images, read_image_size
+
+#: The readers' public helpers for image files, which other packages (the evaluation commands) use.
+__all__ = ["IMAGE_SUFFIXES", "is_image_file", "list_images", "read_image_size"]

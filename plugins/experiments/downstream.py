@@ -197,7 +197,7 @@ def generate_per_class(pipe: Any, conditioner: Any, sampler: Any, classes: Seque
 def train_and_test(train: LabelledFeatures, test: LabelledFeatures, seed: int) -> tuple[dict[str, float], list[int]]:
     """Fit the linear probe on ``train`` (random state ``seed``), predict ``test``: its scores and
     predictions."""
-    from .distribution import RealImageClassifier
+    from vqtouch.plugins.evaluation.distribution import RealImageClassifier
 
     classifier = RealImageClassifier(train.features_NF, train.labels, seed=seed)
     predicted = classifier.predict(test.features_NF)

@@ -370,7 +370,7 @@ class TokenizerTimer:
 
     def __init__(self, config: Any, run: Path, host: Any, steps: int) -> None:
         from vqtouch.core.data import experiment_split
-        from vqtouch.plugins.tokenizer.stages import load_tokenizer, tokenizer_task
+        from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_task
 
         self.config, self.host, self.steps = config, host, steps
         self.device = resolve_device(config.device)
@@ -405,7 +405,7 @@ class TokenizerTimer:
     def seconds_per_image(self) -> float:
         """Seconds to encode and decode one held-out image (batches of the run's batch size)."""
         from vqtouch.plugins.generator.tradeoff import synchronize
-        from vqtouch.plugins.tokenizer.stages import reconstruct_all
+        from vqtouch.plugins.tokenizer import reconstruct_all
 
         self.tokenizer.eval()
         synchronize(self.device)

@@ -1,0 +1,74 @@
+"""Loading a trained tokenizer: from a run (its newest good checkpoint, a step, or the best one) or
+from a checkpoint folder outside any run (what ``vqtouch adapt`` writes), and the helpers that read
+its files.  Part of the tokenizer package's public API (``vqtouch.plugins.tokenizer``): other
+packages load tokenizers through it, never through the stage module.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from vqtouch.core import RunDir, load, read_metadata
+
+from .training import Tokenizer
+
+#: The files of a tokenizer checkpoint, in every step folder of a run and in an adapted folder.
+TOKENIZER_FILES = ("autoencoder.safetensors", "quantizer.safetensors")
+
+
+def load_tokenizer(run_or_folder: str | Path | RunDir, host: Any, step: int | str | None = None,
+                   device: str = "cpu") -> tuple[Tokenizer, Path]:
+    """Load the autoencoder and quantizer of a run (its newest good checkpoint, ``step``, or with
+    ``step="best"`` the one that scored best on the held-out split) or of a checkpoint folder.
+
+    A run's folder comes from :meth:`RunDir.checkpoint`, which refuses files made with another
+    config than the run's; so does a ``step-*`` folder given inside a run.  A checkpoint folder
+    outside any run (copied elsewhere) is loaded as it is.
+    """
+    if isinstance(run_or_folder, RunDir):
+        run, path = run_or_folder, run_or_folder.path
+    else:
+        path = Path(run_or_folder)
+        run = None
+        if all((path / name).is_file() for name in TOKENIZER_FILES):
+            inside = path.parent.parent
+            if (path.parent.name == "checkpoints" and path.name.startswith("step-") and path.name[5:].isdigit()
+                    and (inside / "config.json").is_file()):
+                run, step = RunDir.open(inside), int(path.name[5:])
+            else:
+                folder = path
+        else:
+            run = RunDir.open(path)
+    if run is not None:
+        folder = run.checkpoint(host, step, required_files=TOKENIZER_FILES)
+    autoencoder = load(folder / TOKENIZER_FILES[0], host=host, map_location=device)
+    quantizer = load(folder / TOKENIZER_FILES[1], host=host, map_location=device)
+    return Tokenizer(autoencoder, quantizer).eval(), folder
+
+
+def tokenizer_location(path: str | Path) -> RunDir | Path:
+    """Where a tokenizer lives: the run at ``path``, or ``path`` itself when it is a checkpoint
+    folder holding the tokenizer files outside any run (e.g. what ``vqtouch adapt`` writes)."""
+    path = Path(path)
+    if not (path / "config.json").is_file() and all((path / name).is_file() for name in TOKENIZER_FILES):
+        return path
+    return RunDir.open(path)
+
+
+def tokenizer_configs(folder: str | Path) -> tuple[dict[str, Any], dict[str, Any], int]:
+    """The autoencoder and quantizer plugin configs and the image size a tokenizer checkpoint
+    folder was made with (read from its headers)."""
+    headers = [read_metadata(Path(folder) / name) for name in TOKENIZER_FILES]
+    image_size = json.loads(headers[0]["vqtouch.context"])["image_size"]
+    return json.loads(headers[0]["vqtouch.config"]), json.loads(headers[1]["vqtouch.config"]), image_size
+
+
+@torch.no_grad()
+def reconstruct_all(tokenizer: Tokenizer, images_B3HW: torch.Tensor, batch_size: int = 16) -> torch.Tensor:
+    """Reconstructions in [0, 1] of a stack of images in [0, 1], ``batch_size`` at a time."""
+    return torch.cat([tokenizer.reconstruct(images_B3HW[i:i + batch_size])[0]
+                      for i in range(0, len(images_B3HW), batch_size)])
