@@ -91,11 +91,12 @@ def environment_record(config: ExperimentConfig, argv: Sequence[str] | None, hos
     """What env.json holds: enough to say later exactly what produced a run."""
     import torch
 
-    plugins, components = {}, {}
+    plugins, components, sections = {}, {}, {}
     if host is not None:
         for name, source in sorted(host.sources.items()):
             plugins[name] = {"module": source.module, "package": source.distribution, "version": source.version}
         components = component_sources(config, host)
+        sections = section_sources(config, host)
     return {
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "argv": list(argv) if argv is not None else list(sys.argv),
@@ -110,14 +111,61 @@ def environment_record(config: ExperimentConfig, argv: Sequence[str] | None, hos
         "git_revision": _git_revision(),
         "plugins": plugins,
         "components": components,
+        "sections": sections,
     }
 
 
+def used_sections(config: ExperimentConfig, host: Any) -> set[str]:
+    """The stage sections a run of ``config`` uses: its stages' own, and those holding a slot its stages
+    need or use (the generator stage reads ``tokenizer``).  Core's fields are always used."""
+    used = set()
+    for name in config.stages:
+        stage = host.stage(name)
+        used.add(stage.name)
+        used.update(path.split(".")[0] for path in stage.slots)
+    return used
+
+
+def stage_section_names(config: ExperimentConfig) -> list[str]:
+    """The fields of ``config`` that are stage sections (added by stage plugins), not core's own."""
+    return [name for name in type(config).model_fields if name not in ExperimentConfig.model_fields]
+
+
+def recorded_config(config: ExperimentConfig, host: Any = None) -> dict[str, Any]:
+    """What a run's config.json holds: the resolved config without the sections of stages the run does
+    not use, so installing or removing an unrelated stage plugin never changes or breaks it (without
+    ``host`` to say which stages use which sections: all of it)."""
+    data = config.to_dict()
+    if host is None:
+        return data
+    used = used_sections(config, host)
+    for name in stage_section_names(config):
+        if name not in used:
+            data.pop(name, None)
+    return data
+
+
+def section_sources(config: ExperimentConfig, host: Any) -> dict[str, dict[str, Any]]:
+    """For every stage section the run records: the stage that owns it and where that came from."""
+    sources = {}
+    owners = {stage.name: stage for stage in host.stages.values() if stage.section is not None}
+    for name in sorted(used_sections(config, host) & set(stage_section_names(config))):
+        stage = owners.get(name)
+        if stage is not None:
+            sources[name] = {"stage": stage.name, "plugin": stage.source.plugin,
+                             "package": stage.source.distribution, "version": stage.source.version}
+    return sources
+
+
 def component_sources(config: ExperimentConfig, host: Any) -> dict[str, dict[str, Any]]:
-    """For every filled slot (``metrics.0`` for list items): the plugin name and where it came from,
-    so a later reader of the run can name a distribution that has since been uninstalled."""
+    """For every filled slot (``metrics.0`` for list items) of the sections the run records: the plugin
+    name and where it came from, so a later reader of the run can name a distribution that has since
+    been uninstalled."""
     sources: dict[str, dict[str, Any]] = {}
+    recorded = set(recorded_config(config, host))
     for path, info in host.slots.items():
+        if path.split(".")[0] not in recorded:
+            continue
         value = config.slot(path)
         items = list(enumerate(value)) if info.many else [(None, value)]
         for index, item in items:
@@ -183,7 +231,7 @@ class RunDir:
                         shutil.rmtree(entry)
                     else:
                         entry.unlink()
-            run.write_json("config.json", config.to_dict())
+            run.write_json("config.json", recorded_config(config, host))
             run.write_json("env.json", environment_record(config, argv, host))
             run.checkpoints.mkdir(exist_ok=True)
         except BaseException:
@@ -367,7 +415,15 @@ class RunDir:
         """
         data = read_run_json(self.path / "config.json")
         env_path = self.path / "env.json"
-        recorded = read_run_json(env_path).get("components", {}) if env_path.is_file() else {}
+        env = read_run_json(env_path) if env_path.is_file() else {}
+        for name, source in env.get("sections", {}).items():
+            if name in data and name not in host.experiment_model.model_fields:
+                package = source.get("package") or source.get("plugin")
+                version = f" {source['version']}" if source.get("version") else ""
+                raise ConfigError(f"{self.path}: its config section {name!r} belongs to stage {source['stage']!r} from "
+                                  f"{package}{version} (plugin {source['plugin']!r}), which is not installed here; "
+                                  f"pip install {package}")
+        recorded = env.get("components", {})
         for key, source in recorded.items():
             if source["name"] not in host.registry(source["kind"]):
                 package = source.get("package") or source.get("plugin")

@@ -84,7 +84,8 @@ def check_plugin(host: Any, kind: str, name: str, options: Mapping[str, Any] | N
                  context: BuildContext | None = None, *, inputs: Mapping[str, Any] | None = None,
                  condition: Any = None, tmp_dir: str | Path | None = None,
                  missing_weights: Literal["skip", "raise"] = "skip") -> Any:
-    """Run every contract check of ``kind`` on the plugin registered as ``name``; returns the built component.
+    """Run every contract check of ``kind`` on the plugin registered as ``name``; returns the built component
+    (for ``kind="stage"``: the stage's entry, see :func:`check_stage`).
 
     ``options``: the plugin's options besides ``name`` (keep them small: the checks build and
     run the component several times).  ``context``: the :class:`BuildContext` to build in
@@ -101,6 +102,8 @@ def check_plugin(host: Any, kind: str, name: str, options: Mapping[str, Any] | N
     perturbed in place.  Raises AssertionError naming the plugin and the broken rule on the first
     failed check.
     """
+    if kind == "stage":
+        return check_stage(host, name)
     context = context or DEFAULT_CONTEXT
     check_registration(host, kind, name)
     component = build_for_check(host, kind, name, options, context, inputs=inputs, missing_weights=missing_weights)
@@ -113,6 +116,54 @@ def check_plugin(host: Any, kind: str, name: str, options: Mapping[str, Any] | N
     if base is not None and issubclass(base, nn.Module):
         check_round_trip(host, component, tmp_dir, condition=condition, label=label)
     return component
+
+
+def check_stage(host: Any, name: str) -> Any:
+    """The contract of a registered stage (``check_plugin(host, "stage", name)``); returns its entry.
+
+    ``run`` is a callable of one argument (the :class:`~vqtouch.core.StageJob`); the stage has a
+    description; its section, if it has one, is a :class:`~vqtouch.core.Section` that is strict,
+    documented (a docstring and a description on every field) and valid with its defaults; its
+    ``demo`` caps name options of its section; every slot it needs or uses exists.
+    """
+    import inspect
+
+    from .config import Section
+
+    label = f"stage {name!r}"
+    try:
+        stage = host.stage(name)
+    except VqtouchError as exc:
+        raise AssertionError(f"{label} is not registered: {exc}") from exc
+    _require(callable(stage.run), label, "run is not callable")
+    try:
+        parameters = [p for p in inspect.signature(stage.run).parameters.values()
+                      if p.default is inspect.Parameter.empty and p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    except (TypeError, ValueError):
+        parameters = [None]
+    _require(len(parameters) == 1, label, f"run must take one argument, the StageJob (it requires {len(parameters)})")
+    _require(bool(stage.description.strip()), label, "no description (it is the stage's documentation in "
+                                                     "`vqtouch config stages`)")
+    missing = [path for path in stage.slots if path not in host.slots]
+    _require(not missing, label, f"declares slots the experiment config does not have: {missing}")
+    section = stage.section
+    if section is None:
+        _require(not stage.demo, label, f"demo caps {sorted(stage.demo)} but the stage has no section")
+        return stage
+    _require(isinstance(section, type) and issubclass(section, Section), label,
+             f"section {section!r} is not a vqtouch.core.Section subclass")
+    _require(section.model_config.get("extra") == "forbid", label, f"section {section.__name__} accepts unknown keys")
+    _require(bool(section.__doc__ and section.__doc__.strip()), label, f"section {section.__name__} has no docstring")
+    undocumented = [field for field, info in section.model_fields.items() if not info.description]
+    _require(not undocumented, label, f"section {section.__name__} fields without description: {undocumented}")
+    try:
+        section.model_validate({}, context={"host": host})
+    except ValidationError as exc:
+        raise AssertionError(f"{label}: section {section.__name__} is not valid with its defaults: "
+                             f"{exc.errors()[0]['msg']}") from exc
+    unknown = [key for key in stage.demo if key.split(".")[0] not in section.model_fields]
+    _require(not unknown, label, f"demo caps name options its section does not have: {unknown}")
+    return stage
 
 
 def build_for_check(host: Any, kind: str, name: str, options: Mapping[str, Any] | None = None,

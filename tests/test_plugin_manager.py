@@ -1,4 +1,5 @@
 import inspect
+import re
 from pathlib import Path
 from typing import Literal
 
@@ -392,3 +393,57 @@ def test_removed_hooks_fail_loudly(make_plugin):
 
     with pytest.raises(PluginError, match="vqtouch_run_stage"):
         load_plugins(autoload=False, extra=[make_plugin("old_stage", vqtouch_run_stage)])
+
+
+def test_a_stage_plugins_section_does_not_leak_into_runs_that_do_not_use_it(make_plugin, tmp_path):
+    """A run records only the sections its stages use: a run made while a stage plugin is installed
+    still opens after it is removed; a run that used the stage names the plugin that is missing."""
+    import json
+
+    from vqtouch.core import RunDir
+
+    with_gallery = load_plugins(autoload=False, extra=[_stage_plugin(make_plugin)])
+    plain = load_plugins(autoload=False)
+    other = resolve_config("reconstruction", host=with_gallery)
+    other_run = RunDir.create(other, host=with_gallery, path=tmp_path / "other")
+    recorded = json.loads((other_run.path / "config.json").read_text())
+    assert "gallery" not in recorded and "tokenizer" in recorded
+    other_run.close()
+    assert RunDir.open(other_run.path).load_config(plain) == resolve_config("reconstruction", host=plain)
+
+    used = resolve_config(overrides=['stages=["gallery"]', "sensor.name=digit", "gallery.columns=5"], host=with_gallery)
+    used_run = RunDir.create(used, host=with_gallery, path=tmp_path / "used")
+    used_run.close()
+    assert RunDir.open(used_run.path).load_config(with_gallery).gallery.columns == 5
+    with pytest.raises(ConfigError) as error:
+        RunDir.open(used_run.path).load_config(plain)
+    # An in-memory plugin has no distribution, so its plugin name stands for it.
+    assert str(error.value).endswith("its config section 'gallery' belongs to stage 'gallery' from stage_gallery "
+                                     "(plugin 'stage_gallery'), which is not installed here; pip install stage_gallery")
+    assert "\n" not in str(error.value)
+
+
+def test_check_plugin_covers_stages(make_plugin, host):
+    from vqtouch.core.testing import check_plugin
+
+    for name in host.stages:
+        assert check_plugin(host, "stage", name).name == name
+    good = load_plugins(autoload=False, extra=[_stage_plugin(make_plugin, demo={"columns": 2})])
+    assert check_plugin(good, "stage", "gallery").section is GallerySection
+
+    class Undocumented(GallerySection):
+        """A section with an undocumented option."""
+
+        width: int = 3
+
+    cases = [
+        ({"section": Undocumented}, "section Undocumented fields without description: ['width']"),
+        ({"demo": {"colums": 2}}, "demo caps name options its section does not have: ['colums']"),
+        ({"description": ""}, "no description"),
+    ]
+    for options, message in cases:
+        bad = load_plugins(autoload=False, extra=[_stage_plugin(make_plugin, **options)])
+        with pytest.raises(AssertionError, match=re.escape(message)):
+            check_plugin(bad, "stage", "gallery")
+    with pytest.raises(AssertionError, match="stage 'nope' is not registered"):
+        check_plugin(host, "stage", "nope")
