@@ -36,6 +36,9 @@ class BuildContext(BaseModel):
                                                         "(height, width).")
     channels: int = Field(3, ge=1, le=16, description="Image channels (3 for RGB tactile images).")
     num_classes: int = Field(0, ge=0, description="Number of labels in the dataset (0 when unlabelled).")
+    class_names: tuple[str, ...] = Field((), description="The dataset's class names, indexed by label (empty when "
+                                                         "unlabelled or unknown): what a condition derived from the "
+                                                         "class (a material, a hardness) reads.")
     cond_dim: int = Field(256, ge=1, description="Width of the condition tokens a conditioner must emit.")
     codebook_size: int = Field(0, ge=0, description="Codebook size of the tokenizer (0 when not yet known).")
     latent_dim: int = Field(0, ge=0, description="Channels of the autoencoder's latents, which the quantizer must "
@@ -107,9 +110,15 @@ class Conditioner(nn.Module, abc.ABC):
     classifier-free guidance is shared by all of them.
     """
 
-    #: Which entry of a sample (and so of a collated batch) this conditioner encodes:
-    #: ``"label"``, ``"visual"``, ``"tactile_source"`` (a paired sensor's image), ``"tactile"`` or ``"text"``.
+    #: Which entry of a sample (and so of a collated batch) this conditioner encodes: a built-in one
+    #: (``"label"``, ``"visual"``, ``"tactile_source"`` (a paired sensor's image), ``"tactile"``,
+    #: ``"text"``), any other entry a dataset provides, or the name of a condition derived from other
+    #: entries (see :attr:`derived_from`).  ``vqtouch generate --condition KEY=VALUE`` gives it by this name.
     sample_key: ClassVar[str] = ""
+    #: The sample entries a *derived* condition is computed from (e.g. ``("label",)`` for a material read
+    #: from the class), when samples have no ``sample_key`` entry of their own; :meth:`derive` computes
+    #: it.  Empty: the condition is the ``sample_key`` entry itself.
+    derived_from: ClassVar[tuple[str, ...]] = ()
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -142,12 +151,27 @@ class Conditioner(nn.Module, abc.ABC):
         tokens = self.null_tokens_ND.unsqueeze(0).expand(batch_size, -1, -1)
         return ConditionTokens(tokens, torch.ones(batch_size, dtype=torch.bool, device=tokens.device))
 
+    def sample_entries(self) -> tuple[str, ...]:
+        """The sample entries training reads for this conditioner: :attr:`derived_from`, else ``sample_key``."""
+        return self.derived_from or (self.sample_key,)
+
     def condition_of(self, batch: dict[str, Any]) -> Any:
-        """This conditioner's raw condition in a collated batch of samples (``batch[sample_key]``)."""
-        if self.sample_key not in batch:
-            raise KeyError(f"{type(self).__name__} reads samples' {self.sample_key!r}, which this batch lacks "
-                           f"(keys: {', '.join(sorted(batch))}); use a dataset that provides it")
-        return batch[self.sample_key]
+        """This conditioner's raw condition in a collated batch of samples: ``batch[sample_key]``, or for a
+        derived condition, :meth:`derive` of its :attr:`derived_from` entries."""
+        if self.sample_key in batch:
+            return batch[self.sample_key]
+        if self.derived_from and all(key in batch for key in self.derived_from):
+            return self.derive(batch)
+        wanted = " or ".join(repr(key) for key in (self.sample_key, *self.derived_from))
+        raise KeyError(f"{type(self).__name__} reads samples' {wanted}, which this batch lacks "
+                       f"(keys: {', '.join(sorted(batch))}); use a dataset that provides it")
+
+    def derive(self, batch: dict[str, Any]) -> Any:
+        """A derived condition of a collated batch from its :attr:`derived_from` entries (e.g. each row's
+        material from its label, through the class names the build context carries).  Conditioners that
+        set :attr:`derived_from` implement it."""
+        raise NotImplementedError(f"{type(self).__name__} sets derived_from={self.derived_from}; it must implement "
+                                  "derive(batch)")
 
     def parse_condition(self, value: Any, *, image_size: ImageSize, class_names: Sequence[str] = ()) -> Any:
         """One sample's raw condition (what :meth:`condition_of` finds in one sample) from what a user
@@ -570,8 +594,8 @@ class TactileDataset(ProvidesContext, abc.ABC):
         return None
 
     def context_facts(self) -> dict[str, Any]:
-        """The number of labels a label conditioner must embed."""
-        return {"num_classes": self.num_classes}
+        """The number of labels a label conditioner must embed, and their names."""
+        return {"num_classes": self.num_classes, "class_names": tuple(self.class_names)}
 
     @abc.abstractmethod
     def __len__(self) -> int:

@@ -76,14 +76,14 @@ REGISTRY_KINDS: tuple[RegistryKind, ...] = (
                  provides=("codebook_size",), reads=("latent_dim",)),
     RegistryKind("discriminator", "vqtouch_register_discriminators", "GAN discriminators", Discriminator),
     RegistryKind("conditioner", "vqtouch_register_conditioners", "condition encoders", Conditioner,
-                 reads=("num_classes",)),
+                 reads=("num_classes", "class_names")),
     RegistryKind("sensor_family", "vqtouch_register_sensor_families", "tactile sensor renderers", SensorFamily),
     RegistryKind("generator", "vqtouch_register_generators", "code-grid generators", Generator,
                  reads=("codebook_size", "num_classes", "code_grid")),
     RegistryKind("sampler", "vqtouch_register_samplers", "discrete-diffusion samplers", Sampler),
     RegistryKind("clusterer", "vqtouch_register_clusterers", "sensor-family clusterers", Clusterer),
     RegistryKind("dataset", "vqtouch_register_datasets", "tactile dataset readers", TactileDataset,
-                 provides=("num_classes",)),
+                 provides=("num_classes", "class_names")),
     RegistryKind("metric", "vqtouch_register_metrics", "image metrics", Metric),
 )
 KINDS_BY_NAME = {kind.name: kind for kind in REGISTRY_KINDS}

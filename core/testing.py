@@ -349,9 +349,9 @@ def check_conditioner(conditioner: Conditioner, context: BuildContext | None = N
     learned null tokens and the other rows are unchanged; ``null(B)`` is the null tokens, flagged."""
     context = context or DEFAULT_CONTEXT
     key = conditioner.sample_key
-    _require(key in (*SAMPLE_KEYS, *OPTIONAL_SAMPLE_KEYS) and key not in ("sensor", "id"), label,
-             f"sample_key {key!r} is not a sample entry a conditioner can read (label, tactile, tactile_source, "
-             "visual, text)")
+    _require(isinstance(key, str) and key not in ("", "sensor", "id"), label,
+             f"sample_key {key!r} is not a condition: name the sample entry it reads (label, tactile, "
+             "tactile_source, visual, text, or another a dataset provides) or the condition it derives")
     _require(conditioner.cond_dim == context.cond_dim, label,
              f"emits tokens of width {conditioner.cond_dim}, but the context asks for cond_dim={context.cond_dim}")
     _require(isinstance(conditioner.num_tokens, int) and conditioner.num_tokens >= 1, label,

@@ -130,7 +130,7 @@ def train_generator(job: StageJob) -> dict[str, Any]:
     if tuple(codes_NHW.shape[1:]) != tuple(grid):
         raise StageUnavailable(f"the tokenizer makes {tuple(codes_NHW.shape[1:])} code grids but the generator was "
                                f"built for {tuple(grid)}; data.image_size must be the tokenizer's")
-    keys = list(dict.fromkeys(conditioner.sample_key for conditioner in conditioners))
+    keys = list(dict.fromkeys(key for conditioner in conditioners for key in conditioner.sample_entries()))
     if "tactile" in keys:
         warnings.warn("a conditioner reads samples' 'tactile' image, which is also the image the generator learns to "
                       "produce: it can learn to copy its condition; for touch-to-touch, condition on a second sensor's "
@@ -390,17 +390,17 @@ def training_baselines(conditioner: Any, condition: Any, batch: dict[str, Any], 
     earlier sample), and for labels the mean training image of the label (the mean of all pool
     images for a label the pool lacks)."""
     images_N3HW = torch.stack([sample["tactile"] for sample in pool]).to(device)
-    key = conditioner.sample_key
+    entries = conditioner.sample_entries()
     keys_ND = []
     for start in range(0, len(pool), 64):
-        chunk = collate_samples([{key: sample[key]} for sample in pool[start:start + 64]])
+        chunk = collate_samples([{key: sample[key] for key in entries} for sample in pool[start:start + 64]])
         chunk = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in chunk.items()}
         keys_ND.append(conditioner(conditioner.condition_of(chunk)).tokens_BND.float().mean(dim=1))
     similarity_BN = (torch.nn.functional.normalize(condition.tokens_BND.float().mean(dim=1), dim=-1)
                      @ torch.nn.functional.normalize(torch.cat(keys_ND), dim=-1).T)
     # argmax returns the first of equal maxima: a label's nearest is its first training image.
     baselines = {"retrieval_": images_N3HW[similarity_BN.argmax(dim=1)]}
-    if key == "label":
+    if conditioner.sample_key == "label":
         labels_N = torch.as_tensor([int(sample["label"]) for sample in pool], device=device)
         overall = images_N3HW.mean(dim=0)
         means = [images_N3HW[labels_N == int(label)].mean(dim=0) if bool((labels_N == int(label)).any()) else overall

@@ -99,7 +99,7 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
 
     conditions = held_out_conditions(val_set, dataset, section.num_samples, device)
     missing = [name for name, conditioner in zip(bundle.conditioner_names, bundle.conditioners)
-               if conditioner.sample_key not in conditions.samples[0]]
+               if not all(key in conditions.samples[0] for key in conditioner.sample_entries())]
     if missing:
         raise StageUnavailable(f"this scene's samples lack what bundled conditioner(s) {', '.join(missing)} read; "
                                "use a scene with a paired sensor and visual images (e.g. tour)")
