@@ -15,7 +15,7 @@ The CLI, the demo, stages and tests all build through an :class:`Assembly`:
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from .components import BuildContext, SensorFamily
 from .config import ExperimentConfig
@@ -25,6 +25,10 @@ from .plugin_config import PluginConfig
 from .plugin_manager import KINDS_BY_NAME
 from .stages import empty_slot_reason, required_slots
 
+if TYPE_CHECKING:
+    from .plugin_manager import PluginHost
+
+
 SensorRole = Literal["source", "target", "paired"]
 SENSOR_SLOTS: dict[str, str] = {"source": "sensor", "target": "target_sensor", "paired": "paired_sensor"}
 
@@ -32,7 +36,7 @@ SENSOR_SLOTS: dict[str, str] = {"source": "sensor", "target": "target_sensor", "
 class Assembly:
     """Builds the components of one experiment for one host (see the module docstring)."""
 
-    def __init__(self, config: ExperimentConfig, host: Any, *, context: BuildContext | None = None) -> None:
+    def __init__(self, config: ExperimentConfig, host: PluginHost, *, context: BuildContext | None = None) -> None:
         self.config = config
         self.host = host
         self.context = context or BuildContext(image_size=config.data.image_size)
@@ -137,7 +141,7 @@ class Assembly:
                     break
 
 
-def build_components(config: ExperimentConfig, host: Any, *, slots: list[str] | None = None,
+def build_components(config: ExperimentConfig, host: PluginHost, *, slots: list[str] | None = None,
                      context: BuildContext | None = None) -> dict[str, Any]:
     """Deprecated (0.1.0): ``Assembly(config, host, context=context).build_slots(slots)``.
 

@@ -29,7 +29,7 @@ import re
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from pydantic import ValidationError
@@ -40,6 +40,10 @@ from torch import nn
 from .components import BuildContext, fill_missing_with_zeros
 from .deprecations import current_kind
 from .errors import CheckpointError, ConfigError, UnknownPluginError, VqtouchError
+
+if TYPE_CHECKING:
+    from .plugin_manager import PluginHost
+
 
 FORMAT_VERSION = "1"
 RESERVED_PREFIXES = ("vqtouch.", "format")
@@ -169,7 +173,7 @@ def write_checkpoint_file(path: str | Path, write: Any) -> Path:
     raise CheckpointWriteError(path, cause, fix) from None
 
 
-def checkpoint_metadata(component: nn.Module, step: int, host: Any = None,
+def checkpoint_metadata(component: nn.Module, step: int, host: PluginHost | None = None,
                         extra: Mapping[str, str] | None = None) -> dict[str, str]:
     """The header metadata for ``component`` (which must have been built by a PluginHost): the
     reserved entries, the plugins' (``vqtouch_checkpoint_metadata``) and the caller's ``extra``
@@ -203,7 +207,7 @@ def checkpoint_metadata(component: nn.Module, step: int, host: Any = None,
     return metadata
 
 
-def save(component: nn.Module, path: str | Path, *, step: int = 0, host: Any = None,
+def save(component: nn.Module, path: str | Path, *, step: int = 0, host: PluginHost | None = None,
          metadata: Mapping[str, str] | None = None) -> Path:
     """Write ``component`` to ``path`` (a ``.safetensors`` file) atomically; returns the path.
     ``metadata`` adds namespaced header entries (read back with :func:`read_metadata`).
@@ -244,7 +248,7 @@ def _first_line(exc: BaseException) -> str:
     return text[0] if text else type(exc).__name__
 
 
-def load(path: str | Path, *, host: Any = None, map_location: str | torch.device = "cpu") -> nn.Module:
+def load(path: str | Path, *, host: PluginHost | None = None, map_location: str | torch.device = "cpu") -> nn.Module:
     """Rebuild a component from a checkpoint's header with ``host``'s plugins and load its weights
     strictly.
 
@@ -334,3 +338,26 @@ def load_state_strict(module: nn.Module, tensors: Mapping[str, torch.Tensor], pa
                 f"{path}: tensor {name!r} has shape {tuple(tensors[name].shape)} in the file but "
                 f"{tuple(value.shape)} in the model built from its config")
     module.load_state_dict(tensors, strict=True)
+
+
+#: ``pretrained:NAME`` names bundled weights wherever a run or a tokenizer is asked for
+#: (``--run pretrained:tour``); a plugin that ships bundles opens them (``vqtouch_open_pretrained``).
+PRETRAINED_PREFIX = "pretrained:"
+
+
+def is_pretrained(spec: Any) -> bool:
+    """Whether ``spec`` names bundled weights (``pretrained:NAME``) rather than a folder."""
+    return isinstance(spec, str) and spec.startswith(PRETRAINED_PREFIX)
+
+
+def open_pretrained(spec: str, host: PluginHost, device: str | torch.device = "cpu", *, tokenizer_only: bool = False) -> Any:
+    """The bundle ``spec`` (``pretrained:NAME``) names, opened on ``device`` by the plugin that ships it:
+    an object with ``tokenizer``, ``generator``, ``conditioners``, ``run_config`` and ``folder`` (see
+    :func:`vqtouch.core.hookspecs.vqtouch_open_pretrained`; ``tokenizer_only`` builds the tokenizer alone).
+    One-line ConfigError when no plugin has it."""
+    name = spec[len(PRETRAINED_PREFIX):]
+    bundle = host.pm.hook.vqtouch_open_pretrained(name=name, host=host, device=device, tokenizer_only=tokenizer_only)
+    if bundle is None:
+        raise ConfigError(f"{spec}: no installed plugin ships bundled weights (the built-in 'pretrained' plugin may "
+                          "be blocked by VQTOUCH_BLOCK_PLUGINS)")
+    return bundle

@@ -21,7 +21,7 @@ from pathlib import Path
 import types
 import typing
 from dataclasses import dataclass
-from typing import Annotated, Any, Literal, Union
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Union
 
 from pydantic import AfterValidator, BaseModel, Field, SerializeAsAny, ValidationError, ValidationInfo, WrapValidator
 from pydantic_core import PydanticCustomError
@@ -32,6 +32,10 @@ from .errors import (ConfigError, PluginError, UnknownPluginError, format_valida
                      unknown_name_message)
 from .image_size import ImageSizeOption
 from .plugin_config import PluginConfig, StrictModel
+
+if TYPE_CHECKING:
+    from .plugin_manager import PluginHost
+
 
 @dataclass(frozen=True)
 class SlotMarker:
@@ -312,7 +316,7 @@ def _list_index(part: str, node: list[Any], where: Sequence[str]) -> int:
     return int(part)
 
 
-def validate_experiment(data: Mapping[str, Any], host: Any) -> ExperimentConfig:
+def validate_experiment(data: Mapping[str, Any], host: PluginHost) -> ExperimentConfig:
     """Validate a raw dict into the host's experiment model (its stages' sections included)
     against ``host``'s registries.
 
@@ -345,7 +349,7 @@ def validate_experiment(data: Mapping[str, Any], host: Any) -> ExperimentConfig:
 
 
 def resolve_config(scene: str | None = None, files: Iterable[str | Path] = (), overrides: Iterable[str] = (), *,
-                   host: Any) -> ExperimentConfig:
+                   host: PluginHost) -> ExperimentConfig:
     """Build the experiment config from a scene preset, config files and ``--set`` overrides."""
     data: dict[str, Any] = {}
     if scene is not None:

@@ -13,7 +13,7 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import nn
@@ -32,12 +32,15 @@ from .runs import RunDir, read_run_json
 from .seeding import make_generator
 from .stages import empty_slot_reason, missing_slots, required_slots, run_stage
 
+if TYPE_CHECKING:
+    from .plugin_manager import PluginHost
+
 
 def _parameter_count(component: Any) -> int:
     return sum(p.numel() for p in component.parameters()) if isinstance(component, nn.Module) else 0
 
 
-def _roundtrip(component: nn.Module, path: Any, host: Any) -> str:
+def _roundtrip(component: nn.Module, path: Any, host: PluginHost) -> str:
     save(component, path, step=0, host=host)
     reloaded = load(path, host=host)
     original, restored = component.state_dict(), reloaded.state_dict()
@@ -93,7 +96,7 @@ def _capped(data: dict[str, Any], path: str, cap: Any) -> None:
         node[last] = min(node[last], cap)
 
 
-def scale_for_demo(config: ExperimentConfig, host: Any) -> ExperimentConfig:
+def scale_for_demo(config: ExperimentConfig, host: PluginHost) -> ExperimentConfig:
     """``config`` scaled down to minutes on a laptop CPU: core's caps, each stage's ``demo`` caps on
     its section and each selected plugin's ``demo`` caps on its options."""
     data = config.to_dict()
@@ -116,7 +119,7 @@ def scale_for_demo(config: ExperimentConfig, host: Any) -> ExperimentConfig:
     return validate_experiment(data, host)
 
 
-def run_demo(config: ExperimentConfig, host: Any, run: RunDir) -> dict[str, Any]:
+def run_demo(config: ExperimentConfig, host: PluginHost, run: RunDir) -> dict[str, Any]:
     """Run every stage of ``config`` in ``run``, then describe each component the stages need.
 
     Stages run through :func:`run_stage` with one shared :class:`Assembly`, so every component

@@ -33,7 +33,9 @@ import pluggy
 from .errors import VqtouchDeprecationWarning
 
 if TYPE_CHECKING:
+    from .plugin_manager import PluginHost
     from .config import ExperimentConfig
+
 
 PROJECT_NAME = "vqtouch"
 
@@ -148,12 +150,13 @@ def vqtouch_checkpoint_metadata(kind: str, name: str, config: dict[str, Any]) ->
 
 
 @hookspec(firstresult=True)
-def vqtouch_open_pretrained(name: str, host: Any, device: Any) -> Any:
+def vqtouch_open_pretrained(name: str, host: PluginHost, device: Any, tokenizer_only: bool) -> Any:
     """Open the bundled pretrained weights ``name`` (what ``--run pretrained:NAME`` names), or return
     None when this plugin ships none.
 
     The answer has the attributes ``tokenizer``, ``generator``, ``conditioners`` (built, in eval mode,
-    on ``device``), ``run_config`` (the config dict of the run that trained them) and ``folder``.  The
+    on ``device``; with ``tokenizer_only`` the generator is None and the conditioners empty, so nothing
+    else is built), ``run_config`` (the config dict of the run that trained them) and ``folder``.  The
     first plugin that answers wins; a plugin that knows the name but cannot open it raises a one-line
     ``vqtouch.core.ConfigError``.  Through this hook the generation pipeline opens bundles without
     importing the package that ships them.

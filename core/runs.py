@@ -34,11 +34,15 @@ import warnings
 import weakref
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .checkpoint import atomic_write, read_metadata
 from .config import ExperimentConfig, validate_experiment
 from .errors import CheckpointError, ConfigError, VqtouchWarning
+
+if TYPE_CHECKING:
+    from .plugin_manager import PluginHost
+
 
 try:
     import fcntl
@@ -87,7 +91,7 @@ def _git_revision() -> str | None:
     return result.stdout.strip() or None if result.returncode == 0 else None
 
 
-def environment_record(config: ExperimentConfig, argv: Sequence[str] | None, host: Any = None) -> dict[str, Any]:
+def environment_record(config: ExperimentConfig, argv: Sequence[str] | None, host: PluginHost | None = None) -> dict[str, Any]:
     """What env.json holds: enough to say later exactly what produced a run."""
     import torch
 
@@ -115,7 +119,7 @@ def environment_record(config: ExperimentConfig, argv: Sequence[str] | None, hos
     }
 
 
-def used_sections(config: ExperimentConfig, host: Any) -> set[str]:
+def used_sections(config: ExperimentConfig, host: PluginHost) -> set[str]:
     """The stage sections a run of ``config`` uses: its stages' own, and those holding a slot its stages
     need or use (the generator stage reads ``tokenizer``).  Core's fields are always used."""
     used = set()
@@ -131,7 +135,7 @@ def stage_section_names(config: ExperimentConfig) -> list[str]:
     return [name for name in type(config).model_fields if name not in ExperimentConfig.model_fields]
 
 
-def recorded_config(config: ExperimentConfig, host: Any = None) -> dict[str, Any]:
+def recorded_config(config: ExperimentConfig, host: PluginHost | None = None) -> dict[str, Any]:
     """What a run's config.json holds: the resolved config without the sections of stages the run does
     not use, so installing or removing an unrelated stage plugin never changes or breaks it (without
     ``host`` to say which stages use which sections: all of it)."""
@@ -145,7 +149,7 @@ def recorded_config(config: ExperimentConfig, host: Any = None) -> dict[str, Any
     return data
 
 
-def section_sources(config: ExperimentConfig, host: Any) -> dict[str, dict[str, Any]]:
+def section_sources(config: ExperimentConfig, host: PluginHost) -> dict[str, dict[str, Any]]:
     """For every stage section the run records: the stage that owns it and where that came from."""
     sources = {}
     owners = {stage.name: stage for stage in host.stages.values() if stage.section is not None}
@@ -157,7 +161,7 @@ def section_sources(config: ExperimentConfig, host: Any) -> dict[str, dict[str, 
     return sources
 
 
-def component_sources(config: ExperimentConfig, host: Any) -> dict[str, dict[str, Any]]:
+def component_sources(config: ExperimentConfig, host: PluginHost) -> dict[str, dict[str, Any]]:
     """For every filled slot (``metrics.0`` for list items) of the sections the run records: the plugin
     name and where it came from, so a later reader of the run can name a distribution that has since
     been uninstalled."""
@@ -191,7 +195,7 @@ class RunDir:
         self._unlock: weakref.finalize | None = None
 
     @classmethod
-    def create(cls, config: ExperimentConfig, *, argv: Sequence[str] | None = None, host: Any = None,
+    def create(cls, config: ExperimentConfig, *, argv: Sequence[str] | None = None, host: PluginHost | None = None,
                path: str | Path | None = None, overwrite: bool = False) -> RunDir:
         """Make the folder (under ``config.output_dir`` unless ``path`` is given), lock it and write
         config/env.
@@ -306,7 +310,7 @@ class RunDir:
         # garbage-collected, and the OS when the process dies.
         self._unlock = weakref.finalize(self, os.close, fd)
 
-    def checkpoint(self, host: Any, step: int | str | None = None, required_files: Sequence[str] = (),
+    def checkpoint(self, host: PluginHost, step: int | str | None = None, required_files: Sequence[str] = (),
                    stage: str | None = None) -> Path:
         """The run's checkpoint folder to read: the newest complete, readable ``checkpoints/step-*``
         folder, the one of ``step``, or with ``step="best"`` the one with the lowest validation
@@ -348,7 +352,7 @@ class RunDir:
         self._check_files(folder, host)
         return folder
 
-    def resume(self, trainer: Any, host: Any, *, stage: str | None = None, required_files: Sequence[str] = ()) -> bool:
+    def resume(self, trainer: Any, host: PluginHost, *, stage: str | None = None, required_files: Sequence[str] = ()) -> bool:
         """Put ``trainer`` at this run's newest good checkpoint (of ``stage``'s folder, see
         :meth:`checkpoint`), checked against the run's config; prints where it resumed.
 
@@ -367,7 +371,7 @@ class RunDir:
         print(f"resumed {self.path} at step {trainer.state.step} ({folder.name})")
         return True
 
-    def best_step(self, host: Any, required_files: Sequence[str] = (), stage: str | None = None) -> int:
+    def best_step(self, host: PluginHost, required_files: Sequence[str] = (), stage: str | None = None) -> int:
         """The step whose checkpoint scored best on the held-out split, as the newest good checkpoint's
         trainer state records it; MissingCheckpointError when the run kept none."""
         from .training import read_trainer_meta
@@ -379,7 +383,7 @@ class RunDir:
                                          "samples: train.keep_best=false or data.val_fraction=0); give a step number")
         return int(best)
 
-    def _check_files(self, folder: Path, host: Any) -> None:
+    def _check_files(self, folder: Path, host: PluginHost) -> None:
         from .training import TRAINER_STATE
 
         config = self.load_config(host)
@@ -407,7 +411,7 @@ class RunDir:
                                   "this folder mixes two runs: pick one of this run's own steps with --step, or "
                                   "retrain into an empty --out")
 
-    def load_config(self, host: Any) -> ExperimentConfig:
+    def load_config(self, host: PluginHost) -> ExperimentConfig:
         """The run's resolved config, validated against ``host``.
 
         A plugin the run used that is no longer installed is named with its distribution (from

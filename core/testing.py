@@ -44,7 +44,7 @@ import tempfile
 from collections.abc import Callable, Iterable, Mapping
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 from pydantic import ValidationError
@@ -56,6 +56,10 @@ from .components import (Autoencoder, BuildContext, Clusterer, Conditioner, Cond
 from .errors import MissingWeightsError, VqtouchError
 from .image_size import ImageSize, image_hw, pixel_centres_mm, size_text
 from .plugin_config import PluginConfig, literal_name_of
+
+if TYPE_CHECKING:
+    from .plugin_manager import PluginHost
+
 
 __all__ = [
     "DEFAULT_CONTEXT", "SAMPLE_KEYS", "build_for_check", "check_autoencoder", "check_clusterer", "check_conditioner",
@@ -80,7 +84,7 @@ RTOL, ATOL = 1e-5, 1e-6
 
 # -- the entry point ---------------------------------------------------------------------------------
 
-def check_plugin(host: Any, kind: str, name: str, options: Mapping[str, Any] | None = None,
+def check_plugin(host: PluginHost, kind: str, name: str, options: Mapping[str, Any] | None = None,
                  context: BuildContext | None = None, *, inputs: Mapping[str, Any] | None = None,
                  condition: Any = None, tmp_dir: str | Path | None = None,
                  missing_weights: Literal["skip", "raise"] = "skip") -> Any:
@@ -118,7 +122,7 @@ def check_plugin(host: Any, kind: str, name: str, options: Mapping[str, Any] | N
     return component
 
 
-def check_stage(host: Any, name: str) -> Any:
+def check_stage(host: PluginHost, name: str) -> Any:
     """The contract of a registered stage (``check_plugin(host, "stage", name)``); returns its entry.
 
     ``run`` is a callable of one argument (the :class:`~vqtouch.core.StageJob`); the stage has a
@@ -166,7 +170,7 @@ def check_stage(host: Any, name: str) -> Any:
     return stage
 
 
-def build_for_check(host: Any, kind: str, name: str, options: Mapping[str, Any] | None = None,
+def build_for_check(host: PluginHost, kind: str, name: str, options: Mapping[str, Any] | None = None,
                     context: BuildContext | None = None, *, inputs: Mapping[str, Any] | None = None,
                     missing_weights: Literal["skip", "raise"] = "skip") -> Any:
     """Build ``name`` of ``kind`` through ``host`` and check it is an instance of the kind's base class.
@@ -201,7 +205,7 @@ def build_for_check(host: Any, kind: str, name: str, options: Mapping[str, Any] 
 
 # -- registration ------------------------------------------------------------------------------------
 
-def check_registration(host: Any, kind: str, name: str) -> Any:
+def check_registration(host: PluginHost, kind: str, name: str) -> Any:
     """The registration contract of one entry; returns the entry.
 
     The options model is a :class:`~vqtouch.core.PluginConfig`, strict (unknown keys fail) and
@@ -596,7 +600,7 @@ def check_sampler(sampler: Sampler, context: BuildContext | None = None, *, sche
     _require(bool((batch < size).all()), label, "the output holds MASK tokens")
 
 
-def schedule_from_host(host: Any, context: BuildContext | None = None) -> Any:
+def schedule_from_host(host: PluginHost, context: BuildContext | None = None) -> Any:
     """The forward process of the first registered generator that has one (``generator.schedule``),
     built in ``context`` with its default options; None when no generator has a schedule."""
     context = context or DEFAULT_CONTEXT
@@ -610,7 +614,7 @@ def schedule_from_host(host: Any, context: BuildContext | None = None) -> Any:
     return None
 
 
-def _check_sampler_with_host(sampler: Sampler, context: BuildContext, *, label: str, host: Any) -> None:
+def _check_sampler_with_host(sampler: Sampler, context: BuildContext, *, label: str, host: PluginHost) -> None:
     schedule = schedule_from_host(host, context)
     if schedule is None:
         _skip(f"{label}: no installed generator provides a forward process (generator.schedule) to sample from",
@@ -739,7 +743,7 @@ _BEHAVIOUR_CHECKS: tuple[tuple[type, Callable[..., None]], ...] = (
 
 # -- checkpoint round trip ------------------------------------------------------------------------------
 
-def check_round_trip(host: Any, component: nn.Module, tmp_dir: str | Path | None = None, *, condition: Any = None,
+def check_round_trip(host: PluginHost, component: nn.Module, tmp_dir: str | Path | None = None, *, condition: Any = None,
                      step: int = 42, label: str | None = None) -> nn.Module:
     """Save ``component`` (built by ``host``) and load it back: the reloaded one must be the same.
 

@@ -49,7 +49,7 @@ import warnings
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import torch
 from pydantic import Field, field_validator
@@ -63,6 +63,10 @@ from .checkpoint import (CheckpointWriteError, atomic_write, load_state_strict, 
 from .config import Section
 from .errors import CheckpointError, VqtouchError, VqtouchWarning
 from .progress import progress
+
+if TYPE_CHECKING:
+    from .plugin_manager import PluginHost
+
 
 TRAINER_STATE = "trainer_state.safetensors"
 #: Checkpoint folders are named ``step-NNNNNNNN`` (8 digits): the most steps a run can have.
@@ -359,7 +363,7 @@ class Trainer:
 
     def __init__(self, task: TrainingTask, dataset: Any, config: TrainConfig, *, batch_size: int, seed: int,
                  device: torch.device, checkpoint_dir: Path | None, run: Any = None, num_workers: int = 0,
-                 host: Any = None, stage: str = "train", val_dataset: Any = None) -> None:
+                 host: PluginHost | None = None, stage: str = "train", val_dataset: Any = None) -> None:
         self.task = task
         self.dataset = dataset
         #: Held-out samples scored at every checkpoint (``keep_best``); None or empty: no scoring.

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from vqtouch.core import PluginHost
 from .gelsight import load_taxim_calibration
 
 #: Ball radius (mm) of the real presses: 2.0 mm as in Taxim's sensor parameters.  The Mini's
@@ -75,7 +76,7 @@ def _crops(images: torch.Tensor, centres_xy: np.ndarray, native_size: tuple[int,
     return torch.stack(out)
 
 
-def evaluate_fidelity(sensor_name: str, host: Any, resolution: tuple[int, int] = (240, 320), crop_px: int = 64,
+def evaluate_fidelity(sensor_name: str, host: PluginHost, resolution: tuple[int, int] = (240, 320), crop_px: int = 64,
                       ball_radius_mm: float | None = None, sensor_options: dict[str, Any] | None = None
                       ) -> FidelityResult:
     """Render every real press of ``sensor_name`` and score it against the real frames."""

@@ -25,7 +25,7 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import ConfigError, DatasetError, VqtouchError
+from vqtouch.core import ConfigError, DatasetError, PluginHost, VqtouchError
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 
 from .families import SensorFamilies, folder_of, save_families, sensor_images
@@ -110,7 +110,7 @@ def check_contacts(images_N3HW: torch.Tensor, name: str) -> None:
             "of objects pressed into the gel")
 
 
-def target_images(spec: str, host: Any, *, shots: int, eval_images: int, image_size: ImageSize,
+def target_images(spec: str, host: PluginHost, *, shots: int, eval_images: int, image_size: ImageSize,
                   seed: int) -> tuple[str, str, torch.Tensor, torch.Tensor]:
     """(name, source, shots, held-out images) of the unseen sensor ``spec``.
 
@@ -140,7 +140,7 @@ def target_images(spec: str, host: Any, *, shots: int, eval_images: int, image_s
     return trained.name, trained.source, trained.images, held_out.images
 
 
-def family_images(families: SensorFamilies, family: int, host: Any, *, count: int, image_size: ImageSize, seed: int,
+def family_images(families: SensorFamilies, family: int, host: PluginHost, *, count: int, image_size: ImageSize, seed: int,
                   exclude: str = "") -> tuple[torch.Tensor, list[str]]:
     """``count`` images of ``family``'s members (but the sensor whose source is ``exclude``), drawn
     evenly from every member: rendered scenes (new seeds) or a folder's images (repeated when it
@@ -160,7 +160,7 @@ def family_images(families: SensorFamilies, family: int, host: Any, *, count: in
     return torch.cat(chunks), [member["name"] for member in members]
 
 
-def reconstruction_scores(tokenizer: Any, images_N3HW: torch.Tensor, host: Any, batch_size: int = 32,
+def reconstruction_scores(tokenizer: Any, images_N3HW: torch.Tensor, host: PluginHost, batch_size: int = 32,
                           metrics: tuple[str, ...] = ("ssim", "psnr"),
                           background_3HW: torch.Tensor | None = None) -> dict[str, Any]:
     """The ``metrics`` (plugin names), codebook usage and codes used of ``tokenizer`` reconstructing
@@ -183,7 +183,7 @@ def reconstruction_scores(tokenizer: Any, images_N3HW: torch.Tensor, host: Any, 
             if key in kept or key.startswith(compared)}
 
 
-def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, host: Any, out: Path,
+def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, host: PluginHost, out: Path,
                     settings: AdaptSettings, *, step: int | str | None = None, overwrite: bool = False,
                     report: Any = print, background_3HW: torch.Tensor | None = None) -> dict[str, Any]:
     """Adapt the tokenizer of ``run_or_folder`` to the unseen sensor ``target`` (see the module
@@ -306,7 +306,7 @@ def refuse_existing(out: Path, overwrite: bool) -> None:
         raise ConfigError(f"{out} already holds an adapted tokenizer; choose another --out or pass --overwrite")
 
 
-def _run_config(folder: Path, host: Any) -> Any:
+def _run_config(folder: Path, host: PluginHost) -> Any:
     """The config of the run a checkpoint folder belongs to, or None for a loose folder."""
     from vqtouch.core import RunDir
 
@@ -316,7 +316,7 @@ def _run_config(folder: Path, host: Any) -> Any:
     return None
 
 
-def _discriminator(folder: Path, loss: Any, host: Any) -> tuple[Any, str]:
+def _discriminator(folder: Path, loss: Any, host: PluginHost) -> tuple[Any, str]:
     """The run's discriminator when its objective is adversarial and it was saved, and why not otherwise."""
     from vqtouch.core import load
 
@@ -328,7 +328,7 @@ def _discriminator(folder: Path, loss: Any, host: Any) -> tuple[Any, str]:
     return load(path, host=host), "on (the run's discriminator, fine-tuned too)"
 
 
-def _real_frames(target: str, host: Any, image_size: ImageSize) -> torch.Tensor | None:
+def _real_frames(target: str, host: PluginHost, image_size: ImageSize) -> torch.Tensor | None:
     """The captured frames of ``target`` when it is a registered sensor family (no variant: a
     variant's perturbations are not in the family's frames) that ships some."""
     if folder_of(target) is not None:
@@ -341,7 +341,7 @@ def _real_frames(target: str, host: Any, image_size: ImageSize) -> torch.Tensor 
     return host.build("sensor_family", config).reference_frames(*image_hw(image_size))
 
 
-def default_families(tokenizer: Any, host: Any, *, image_size: ImageSize, tokenizer_source: str, exclude: str = "",
+def default_families(tokenizer: Any, host: PluginHost, *, image_size: ImageSize, tokenizer_source: str, exclude: str = "",
                      clusterer: dict[str, Any] | None = None, variants_per_family: int = 3, images: int = 32,
                      seed: int = 0, report: Any = print) -> SensorFamilies:
     """Families of every registered sensor family and ``variants_per_family`` environmental

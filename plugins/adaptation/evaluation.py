@@ -29,7 +29,7 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import ConfigError
+from vqtouch.core import ConfigError, PluginHost
 from vqtouch.core.experiments import markdown_table, mean_spread
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 
@@ -45,7 +45,7 @@ def _family_of(source: str) -> str:
     return json.loads(source)["name"]
 
 
-def family_recovery(tokenizer: Any, host: Any, *, seed: int, variants: int, held_out_variants: int, images: int,
+def family_recovery(tokenizer: Any, host: PluginHost, *, seed: int, variants: int, held_out_variants: int, images: int,
                     image_size: ImageSize, clusterers: list[str], tokenizer_source: str) -> tuple[list[dict], SensorFamilies]:
     """One seed of part 1: per clusterer, the families found, the ARI and the held-out assignment
     accuracy.  Returns the rows and the first clusterer's families (used by the transfer arms)."""
@@ -92,7 +92,7 @@ def _arm_row(arm: str, summary: dict[str, Any], *, zero_shot: bool = False) -> d
             "family_psnr": family["psnr"], "seconds": 0.0 if zero_shot else summary["seconds"]}
 
 
-def transfer_arms(run: Any, target: str, families: SensorFamilies, host: Any, out: Path, *, seed: int, steps: int,
+def transfer_arms(run: Any, target: str, families: SensorFamilies, host: PluginHost, out: Path, *, seed: int, steps: int,
                   shots: list[int], ratios: list[float], main_shots: int, main_ratio: float, everything: int,
                   eval_images: int, family: int | None = None) -> list[dict[str, Any]]:
     """One seed of part 2 (or 3, with a folder target): every arm's held-out scores."""
@@ -118,7 +118,7 @@ def transfer_arms(run: Any, target: str, families: SensorFamilies, host: Any, ou
     return rows
 
 
-def train_fresh_tokenizer(run: Any, images_N3HW: torch.Tensor, host: Any, *, seed: int, steps: int | None = None,
+def train_fresh_tokenizer(run: Any, images_N3HW: torch.Tensor, host: PluginHost, *, seed: int, steps: int | None = None,
                           out: Path | None = None,
                           metadata: dict[str, str] | None = None) -> tuple[Any, dict[str, Any]]:
     """A fresh tokenizer built from the run's config and trained with its objective and batch size
@@ -160,7 +160,7 @@ def train_fresh_tokenizer(run: Any, images_N3HW: torch.Tensor, host: Any, *, see
                        "batch_size": batch_size}
 
 
-def scratch_cost(run: Any, target: str, families: SensorFamilies, host: Any, *, seed: int, everything: int,
+def scratch_cost(run: Any, target: str, families: SensorFamilies, host: PluginHost, *, seed: int, everything: int,
                  eval_images: int, family: int) -> dict[str, Any]:
     """Train a fresh tokenizer (the run's config and steps) on everything; its wall time and scores."""
     image_size = families.summary["image_size"]
@@ -216,7 +216,7 @@ def plot_transfer(transfer: list[dict[str, Any]], path: Path, title: str) -> Non
     figure.savefig(path)
 
 
-def real_frames_folder(host: Any, family: str, image_size: ImageSize, folder: Path) -> Path | None:
+def real_frames_folder(host: PluginHost, family: str, image_size: ImageSize, folder: Path) -> Path | None:
     """Write the captured frames ``family`` ships (e.g. taxim's GelSight Mini) as PNGs; None without any."""
     from vqtouch.core.images import save_png
 
@@ -229,7 +229,7 @@ def real_frames_folder(host: Any, family: str, image_size: ImageSize, folder: Pa
     return folder
 
 
-def evaluate_cross_sensor(run: Any, host: Any, out: Path, *, target: str, seeds: list[int], steps: int,
+def evaluate_cross_sensor(run: Any, host: PluginHost, out: Path, *, target: str, seeds: list[int], steps: int,
                           shots: list[int], ratios: list[float], main_shots: int, main_ratio: float, everything: int,
                           eval_images: int, variants: int, held_out_variants: int, images: int,
                           clusterers: list[str], real_family: str | None, real_shots: list[int],

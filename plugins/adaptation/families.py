@@ -24,7 +24,7 @@ from typing import Any, Literal
 
 import torch
 
-from vqtouch.core import ConfigError, DatasetError
+from vqtouch.core import ConfigError, DatasetError, PluginHost
 from vqtouch.core.image_size import ImageSize
 
 FeatureKind = Literal["pooled", "codes"]
@@ -76,7 +76,7 @@ class SensorImages:
     images: torch.Tensor
 
 
-def sensor_images(spec: str, host: Any, *, count: int, image_size: ImageSize, seed: int = 0,
+def sensor_images(spec: str, host: PluginHost, *, count: int, image_size: ImageSize, seed: int = 0,
                   files: list[Path] | None = None) -> SensorImages:
     """The images of ``spec``: a folder of image files (the first ``count`` in natural order, or
     the given ``files`` of it), or a registered sensor family given by name or JSON
@@ -166,7 +166,7 @@ def check_one_resolution(folder: Path, files: list[Path]) -> None:
                                "folder, or resize them to one size first")
 
 
-def family_sensor_specs(host: Any, variants_per_family: int = 3, *, strength: float = 1.0,
+def family_sensor_specs(host: PluginHost, variants_per_family: int = 3, *, strength: float = 1.0,
                         first_seed: int = 101) -> list[str]:
     """Sensor specs (JSON) for clustering: every registered sensor family, then
     ``variants_per_family`` random environmental variants of each
@@ -335,7 +335,7 @@ class SensorFamilies:
                                 self.summary["refusal_threshold"] if threshold is None else threshold)
 
 
-def fit_families(tokenizer: Any, specs: list[str], host: Any, *, clusterer: Any, images: int = 64,
+def fit_families(tokenizer: Any, specs: list[str], host: PluginHost, *, clusterer: Any, images: int = 64,
                  image_size: ImageSize = 64, features: FeatureKind = "pooled", refine_steps: int = 3, keep: float = 0.8,
                  seed: int = 0, tokenizer_source: str = "", report: Any = print) -> SensorFamilies:
     """Group the sensors ``specs`` (see :func:`sensor_images`) into families with ``clusterer``
@@ -363,7 +363,7 @@ def fit_families(tokenizer: Any, specs: list[str], host: Any, *, clusterer: Any,
     return SensorFamilies(summary, clusterer, prototypes_SF, features_by_sensor)
 
 
-def save_families(families: SensorFamilies, folder: Path, host: Any, extra: dict[str, Any] | None = None,
+def save_families(families: SensorFamilies, folder: Path, host: PluginHost, extra: dict[str, Any] | None = None,
                   unseen: list[UnseenSensor] = ()) -> Path:
     """Write ``cluster.json`` (the summary plus ``extra``), the fitted clusterer and, when the
     features are at hand, ``families.png`` (with the ``unseen`` sensors) into ``folder``; returns
@@ -384,7 +384,7 @@ def save_families(families: SensorFamilies, folder: Path, host: Any, extra: dict
     return path
 
 
-def load_families(folder: str | Path, host: Any) -> SensorFamilies:
+def load_families(folder: str | Path, host: PluginHost) -> SensorFamilies:
     """Families written by ``vqtouch cluster`` (or the ``cluster`` stage) into ``folder``."""
     from vqtouch.core import load
 

@@ -48,7 +48,7 @@ from typing import Any, Callable, Sequence
 
 import torch
 
-from vqtouch.core import ConfigError
+from vqtouch.core import ConfigError, PluginHost
 from vqtouch.core.experiments import (ExperimentRecord, check_seeds, gap_verdict, markdown_table, mean_spread,
                                       plot_against_count)
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
@@ -109,7 +109,7 @@ def held_out_count(target: str, counts: Sequence[int], eval_images: int) -> int:
     return min(eval_images, images - max(counts))
 
 
-def sensor_background(target: str, host: Any, image_size: ImageSize) -> tuple[torch.Tensor, str]:
+def sensor_background(target: str, host: PluginHost, image_size: ImageSize) -> tuple[torch.Tensor, str]:
     """The unseen sensor's no-contact image (3, H, W) and how it was made: a registered sensor (name
     or JSON variant) rendering no contact; for a folder, which holds no such frame, the per-pixel
     median of its images (at most :data:`MAX_BACKGROUND_IMAGES`, evenly spaced: contacts move
@@ -130,7 +130,7 @@ def sensor_background(target: str, host: Any, image_size: ImageSize) -> tuple[to
                                        "images (the folder holds no no-contact frame)")
 
 
-def _families(families: str | Path | None, tokenizer: Any, folder: Path, target: str, host: Any, out: Path,
+def _families(families: str | Path | None, tokenizer: Any, folder: Path, target: str, host: PluginHost, out: Path,
               image_size: ImageSize) -> tuple[SensorFamilies, str]:
     """The families the fine-tuned arms mix from and where they came from: ``families`` (a cluster
     output of this tokenizer), or the registered sensor families and 3 variants of each clustered
@@ -168,7 +168,7 @@ def _background_row(n: int, seed: int, scores: dict[str, Any]) -> dict[str, Any]
             "contact_fraction": scores.get("contact_fraction")}
 
 
-def seed_arms(run: Any, target: str, families: SensorFamilies, family: int, host: Any, out: Path, *, seed: int,
+def seed_arms(run: Any, target: str, families: SensorFamilies, family: int, host: PluginHost, out: Path, *, seed: int,
               counts: Sequence[int], ratio: float, steps: int, scratch_steps: int, held_out: int, batch_size: int,
               background_3HW: torch.Tensor, image_size: ImageSize,
               report: Callable[[str], None] = print) -> tuple[list[dict[str, Any]], dict[str, str]]:
@@ -210,7 +210,7 @@ def seed_arms(run: Any, target: str, families: SensorFamilies, family: int, host
     return rows, skipped
 
 
-def evaluate_fewshot(run: str | Path, host: Any, out: str | Path, *, target: str, seeds: Sequence[int],
+def evaluate_fewshot(run: str | Path, host: PluginHost, out: str | Path, *, target: str, seeds: Sequence[int],
                      counts: Sequence[int] = (500, 2000), ratio: float = 5.0, steps: int = 200,
                      scratch_steps: int | None = None, eval_images: int = 64, families: str | Path | None = None,
                      overwrite: bool = False, report: Callable[[str], None] = print) -> dict[str, Any]:

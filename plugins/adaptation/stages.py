@@ -42,6 +42,11 @@ class ClusterSection(Section):
     keep: float = Field(0.8, gt=0.0, le=1.0, description="Fraction of images kept at each refinement step.")
     threshold: float | None = Field(None, ge=0.0, description="Refuse an unseen sensor farther than this from every "
                                                               "family; null: derived from the within-family spread.")
+    family_tokenizer: str | None = Field(
+        None, description="The tokenizer the families are fitted with (and adapted from): null, this run's own "
+                          "tokenizer stage; a tokenizer run or checkpoint folder; or pretrained:NAME, a bundled one "
+                          "(the tour demo's: a tokenizer trained for demo minutes has features too weak to show "
+                          "families).  The cluster and adapt stages of one run must name the same.")
 
 
 class AdaptSection(Section):
@@ -56,17 +61,45 @@ class AdaptSection(Section):
     eval_images: int = Field(64, ge=1, le=100_000, description="Held-out target images scored before and after.")
     threshold: float | None = Field(None, ge=0.0, description="Refuse a target farther than this from every family; "
                                                               "null: the clustering's threshold.")
+    family_tokenizer: str | None = Field(
+        None, description="The tokenizer the families are fitted with (and adapted from): null, this run's own "
+                          "tokenizer stage; a tokenizer run or checkpoint folder; or pretrained:NAME, a bundled one "
+                          "(the tour demo's: a tokenizer trained for demo minutes has features too weak to show "
+                          "families).  The cluster and adapt stages of one run must name the same.")
     family: int | None = Field(None, ge=0, description="Adapt from this family whatever the assignment says.")
 
 
 def _family_tokenizer(job: StageJob) -> tuple[Any, Any]:
+    """The tokenizer the section's ``family_tokenizer`` names (see its description) and its checkpoint folder."""
+    from vqtouch.core.checkpoint import is_pretrained, open_pretrained
     from vqtouch.core.runs import MissingCheckpointError
-    from vqtouch.plugins.tokenizer import load_tokenizer
+    from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_location
 
+    spec = job.section.family_tokenizer
+    if is_pretrained(spec):
+        bundle = open_pretrained(spec, job.host, tokenizer_only=True)
+        return bundle.tokenizer, bundle.folder / "tokenizer"
     try:
-        return load_tokenizer(job.run, job.host)
+        return load_tokenizer(tokenizer_location(spec) if spec else job.run, job.host)
     except MissingCheckpointError as exc:
-        raise StageUnavailable(f"no trained tokenizer in this run ({exc}); run the tokenizer stage first") from None
+        where = spec or "this run"
+        raise StageUnavailable(f"no trained tokenizer in {where} ({exc}); run the tokenizer stage first or set "
+                               f"{job.stage}.family_tokenizer") from None
+
+
+def _tokenizer_note(job: StageJob) -> dict[str, Any]:
+    """The tokenizer a stage used, when it is not the run's own (for the result and its caption)."""
+    spec = job.section.family_tokenizer
+    return {"family_tokenizer": spec} if spec else {}
+
+
+def _caption(job: StageJob, caption: str) -> str:
+    """``caption``, first saying which tokenizer the stage used when it is not the run's own."""
+    spec = job.section.family_tokenizer
+    if not spec:
+        return caption
+    kind = "the bundled tokenizer" if spec.startswith("pretrained:") else "the tokenizer"
+    return f"With {kind} {spec}, not this run's. {caption}"
 
 
 def target_spec(job: StageJob) -> str:
@@ -94,7 +127,8 @@ def run_cluster_stage(job: StageJob) -> dict[str, Any]:
                             refine_steps=section.refine_steps, keep=section.keep, seed=config.seed,
                             tokenizer_source=str(folder), report=lambda line: None)
     result: dict[str, Any] = {"sensors": len(specs), "families": len(families.summary["families"]),
-                              "members": "; ".join(", ".join(members) for members in families.summary["families"])}
+                              "members": "; ".join(", ".join(members) for members in families.summary["families"]),
+                              **_tokenizer_note(job)}
     extra: dict[str, Any] = {}
     plotted = []
     if target is not None:
@@ -108,9 +142,9 @@ def run_cluster_stage(job: StageJob) -> dict[str, Any]:
                    **experiment_metrics(job, reconstruct_all(tokenizer, sensor.images), sensor.images, "zero_shot_")}
     save_families(families, job.run.path / CLUSTER_FOLDER, job.host, extra, plotted)
     return {**result, "picture": f"{CLUSTER_FOLDER}/families.png",
-            "caption": "2-D PCA of the tokenizer's image features: each sensor's images (small points) and prototype "
-                       "(large marker, coloured by family); the unseen target sensor is a black star labelled with "
-                       "the family it was assigned to."}
+            "caption": _caption(job, "2-D PCA of the tokenizer's image features: each sensor's images (small "
+                                     "points) and prototype (large marker, coloured by family); the unseen target "
+                                     "sensor is a black star labelled with the family it was assigned to.")}
 
 
 def run_adapt_stage(job: StageJob) -> dict[str, Any]:
@@ -132,10 +166,11 @@ def run_adapt_stage(job: StageJob) -> dict[str, Any]:
     settings = AdaptSettings(shots=section.shots, ratio=section.ratio, steps=section.steps,
                              learning_rate=section.learning_rate, eval_images=section.eval_images,
                              threshold=section.threshold, family=section.family, seed=config.seed)
-    summary = adapt_tokenizer(job.run, target, families, job.host, job.run.path / ADAPTED_FOLDER, settings,
-                              overwrite=True, report=lambda line: None)
+    summary = adapt_tokenizer(folder if job.section.family_tokenizer else job.run, target, families, job.host,
+                              job.run.path / ADAPTED_FOLDER, settings, overwrite=True, report=lambda line: None)
     result = {"target": summary["target"], "family": summary["family"], "shots": summary["shots"],
-              "ratio": summary["ratio"], "steps": summary["steps"], "seconds": summary["seconds"]}
+              "ratio": summary["ratio"], "steps": summary["steps"], "seconds": summary["seconds"],
+              **_tokenizer_note(job)}
     # The adapted tokenizer's scores, each beside the family tokenizer's before adaptation (before_*).
     result |= {key: summary["after"][key] for key in ("ssim", "psnr")}
     result |= {f"before_{key}": summary["before"][key] for key in ("ssim", "psnr")}
@@ -144,8 +179,8 @@ def run_adapt_stage(job: StageJob) -> dict[str, Any]:
         result |= {f"{when}real_frames_{key}": real[moment][key] for when, moment in (("", "after"), ("before_", "before"))
                    for key in ("ssim", "psnr")}
     return {**result, "picture": f"{ADAPTED_FOLDER}/before_after.png",
-            "caption": "Held-out images of the target sensor (top row), the family tokenizer's reconstructions "
-                       "before adaptation (middle row) and after (bottom row)."}
+            "caption": _caption(job, "Held-out images of the target sensor (top row), the family tokenizer's "
+                                     "reconstructions before adaptation (middle row) and after (bottom row).")}
 
 
 @hookimpl

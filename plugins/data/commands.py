@@ -19,7 +19,7 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import ConfigError, VqtouchError, hookimpl
+from vqtouch.core import ConfigError, PluginHost, VqtouchError, hookimpl
 from vqtouch.core.checkpoint import atomic_write
 from vqtouch.core.cli import plugin_block
 from vqtouch.core.config import DataConfig, ExperimentConfig
@@ -80,7 +80,7 @@ def _fidelity_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def _build_dataset(host: Any, text: str, flag: str, sensor: dict[str, Any]) -> Any:
+def _build_dataset(host: PluginHost, text: str, flag: str, sensor: dict[str, Any]) -> Any:
     """The dataset ``text`` names, built as an experiment would (with ``sensor`` if it renders one);
     every error names ``flag``."""
     try:

@@ -18,7 +18,7 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import ConfigError, hookimpl
+from vqtouch.core import ConfigError, PluginHost, hookimpl
 from vqtouch.core.checkpoint import atomic_write
 from vqtouch.core.cli import command_group
 from vqtouch.core.image_size import image_hw
@@ -62,7 +62,7 @@ def load_pairs(generated: dict[str, Path], real: dict[str, Path], ids: list[str]
             torch.stack([loader.load(real[key]) for key in ids]))
 
 
-def evaluate_pairs(generated_folder: Path, real_folder: Path, protocol_name: str, host: Any,
+def evaluate_pairs(generated_folder: Path, real_folder: Path, protocol_name: str, host: PluginHost,
                    overrides: dict[str, dict[str, Any]] | None = None, batch_size: int = 64) -> dict[str, Any]:
     """Score ``generated_folder`` against ``real_folder`` under the named protocol; returns the result
     (protocol, its description, pair count, image size, scores and any skipped metrics)."""

@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field
 
-from vqtouch.core import ConfigError, MetricSet
+from vqtouch.core import ConfigError, MetricSet, PluginHost
 from vqtouch.core.errors import unknown_name_message
 
 
@@ -54,7 +54,7 @@ class EvaluationProtocol(BaseModel):
                                 antialias=True, align_corners=False)
         return resized.clamp(0, 1)
 
-    def build_metrics(self, host: Any, overrides: Mapping[str, Mapping[str, Any]] | None = None) -> MetricSet:
+    def build_metrics(self, host: PluginHost, overrides: Mapping[str, Mapping[str, Any]] | None = None) -> MetricSet:
         """The protocol's metrics, built by ``host``; ``overrides``: extra options by metric name (e.g.
         ``{"lpips": {"weights": PATH}}``).  A metric whose weights are missing is built skipped."""
         overrides = overrides or {}

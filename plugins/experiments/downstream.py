@@ -58,7 +58,7 @@ from typing import Any, Callable, Sequence
 
 import torch
 
-from vqtouch.core import ConfigError, hookimpl
+from vqtouch.core import ConfigError, PluginHost, hookimpl
 from vqtouch.core.cli import non_negative_int, positive_int
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.core.experiments import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
@@ -212,7 +212,7 @@ def _feature_metric(config: Any, assembly: Any, feature_size: int | None) -> Any
     return assembly.build("metric", {"name": "fd_effnetlite0", "image_size": feature_size})
 
 
-def evaluate_downstream(run: str | Path, host: Any, out: str | Path, *, seeds: Sequence[int], shots: int = 5,
+def evaluate_downstream(run: str | Path, host: PluginHost, out: str | Path, *, seeds: Sequence[int], shots: int = 5,
                         generated_per_class: int = 10, conditioner: int | None = None, step: Any = None,
                         steps: int | None = None, sampler: str | None = None, guidance: float | None = None,
                         feature_size: int | None = None, train_images: int = 0, batch_size: int = 16,

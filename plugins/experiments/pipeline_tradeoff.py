@@ -65,7 +65,8 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import Assembly, ConfigError, RunDir, hookimpl, resolve_device, run_stage, validate_experiment
+from vqtouch.core import (Assembly, ConfigError, PluginHost, RunDir, hookimpl, resolve_device, run_stage,
+                          validate_experiment)
 from vqtouch.core.cli import add_config_arguments, command_group, config_from_args, positive_int, stage_failure
 from vqtouch.core.experiments import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
 from vqtouch.core.image_size import image_hw, size_text
@@ -136,7 +137,7 @@ def _guidance(text: str) -> float:
     return value
 
 
-def _deformable_baseline(config: Any, host: Any) -> str:
+def _deformable_baseline(config: Any, host: PluginHost) -> str:
     name = config.tokenizer.autoencoder.name if config.tokenizer.autoencoder is not None else None
     if name not in ("dm_vqgan", "vqgan"):
         raise ConfigError(f"the deformable knob swaps dm_vqgan and vqgan, but the baseline's autoencoder is {name!r}; "
@@ -144,7 +145,7 @@ def _deformable_baseline(config: Any, host: Any) -> str:
     return "on" if name == "dm_vqgan" else "off"
 
 
-def _set_deformable(data: dict[str, Any], value: str, host: Any) -> None:
+def _set_deformable(data: dict[str, Any], value: str, host: PluginHost) -> None:
     # Keep the options both encoders have (channels, levels, ...): only the deformable parts change.
     name = "dm_vqgan" if value == "on" else "vqgan"
     block = data["tokenizer"]["autoencoder"]
@@ -153,7 +154,7 @@ def _set_deformable(data: dict[str, Any], value: str, host: Any) -> None:
                                                          if key in fields and key != "name"}}
 
 
-def _codebook_baseline(config: Any, host: Any) -> int:
+def _codebook_baseline(config: Any, host: PluginHost) -> int:
     size = getattr(config.tokenizer.quantizer, "codebook_size", None)
     if size is None:
         raise ConfigError("the codebook knob needs a quantizer with a codebook_size; leave it out of --knobs")
@@ -161,7 +162,7 @@ def _codebook_baseline(config: Any, host: Any) -> int:
 
 
 def _set(path: str) -> Callable[[dict[str, Any], Any, Any], None]:
-    def apply(data: dict[str, Any], value: Any, host: Any) -> None:
+    def apply(data: dict[str, Any], value: Any, host: PluginHost) -> None:
         *parents, last = path.split(".")
         node = data
         for part in parents:
@@ -170,18 +171,18 @@ def _set(path: str) -> Callable[[dict[str, Any], Any, Any], None]:
     return apply
 
 
-def _resolution_alternatives(config: Any, host: Any, baseline: Any) -> list[Any]:
+def _resolution_alternatives(config: Any, host: PluginHost, baseline: Any) -> list[Any]:
     height, width = image_hw(baseline)
     return [2 * height if height == width else (2 * height, 2 * width)]
 
 
-def _precision_baseline(config: Any, host: Any) -> str:
+def _precision_baseline(config: Any, host: PluginHost) -> str:
     from vqtouch.core.training import resolve_precision
 
     return resolve_precision(config.tokenizer.train.precision, resolve_device(config.device))
 
 
-def _downsampling_baseline(config: Any, host: Any) -> int:
+def _downsampling_baseline(config: Any, host: PluginHost) -> int:
     multipliers = getattr(config.tokenizer.autoencoder, "channel_multipliers", None)
     if not multipliers:
         raise ConfigError("the downsampling knob needs an autoencoder with channel_multipliers (vqgan, dm_vqgan); "
@@ -189,7 +190,7 @@ def _downsampling_baseline(config: Any, host: Any) -> int:
     return 2 ** (len(multipliers) - 1)
 
 
-def _set_downsampling(data: dict[str, Any], value: int, host: Any) -> None:
+def _set_downsampling(data: dict[str, Any], value: int, host: PluginHost) -> None:
     # f = 2^(levels - 1): drop levels, or add levels at the last level's width.
     multipliers = list(data["tokenizer"]["autoencoder"]["channel_multipliers"])
     levels = int(math.log2(value)) + 1
@@ -197,7 +198,7 @@ def _set_downsampling(data: dict[str, Any], value: int, host: Any) -> None:
                                                                max(0, levels - len(multipliers)))
 
 
-def _other_samplers(config: Any, host: Any, baseline: str) -> list[str]:
+def _other_samplers(config: Any, host: PluginHost, baseline: str) -> list[str]:
     return [name for name in host.registry("sampler").names() if name != baseline]
 
 
@@ -238,7 +239,7 @@ def known_knobs() -> str:
     return ", ".join(KNOBS)
 
 
-def parse_knobs(specs: list[str] | None, config: Any, host: Any) -> dict[str, list[Any]]:
+def parse_knobs(specs: list[str] | None, config: Any, host: PluginHost) -> dict[str, list[Any]]:
     """The knobs to measure and their values, from ``--knobs NAME[=V1,V2,...] ...`` (None: every
     knob of the parts the baseline trains, at its default values).  One-line errors for an unknown
     knob (listing the known ones), a value that does not parse, a knob given twice and a value that
@@ -278,7 +279,7 @@ def parse_knobs(specs: list[str] | None, config: Any, host: Any) -> dict[str, li
 
 # -- configs --------------------------------------------------------------------------------------
 
-def scaled_config(config: Any, host: Any, full: bool) -> Any:
+def scaled_config(config: Any, host: PluginHost, full: bool) -> Any:
     """``config`` scaled down like ``vqtouch demo`` (unless ``full``): the sizes the knobs' default
     values and the baseline derive from."""
     from vqtouch.core.demo import scale_for_demo
@@ -291,7 +292,7 @@ def scaled_config(config: Any, host: Any, full: bool) -> Any:
     return config if full else scale_for_demo(config, host)
 
 
-def baseline_config(config: Any, host: Any, *, tokenizer_steps: int, generator_steps: int, generator: bool) -> Any:
+def baseline_config(config: Any, host: PluginHost, *, tokenizer_steps: int, generator_steps: int, generator: bool) -> Any:
     """The baseline: ``config`` (see :func:`scaled_config`) with the tokenizer (and with
     ``generator`` the generator) trained for the given steps, one checkpoint at the end, and only
     the stages the experiment runs.  The generator stage scores no samples itself: the experiment
@@ -307,7 +308,7 @@ def baseline_config(config: Any, host: Any, *, tokenizer_steps: int, generator_s
     return validate_experiment(data, host)
 
 
-def variant_config(baseline: Any, host: Any, seed: int, knob: str | None = None, value: Any = None) -> Any:
+def variant_config(baseline: Any, host: PluginHost, seed: int, knob: str | None = None, value: Any = None) -> Any:
     """The baseline at ``seed`` (initialisation, data order and held-out split), with ``knob`` set
     to ``value`` (a tokenizer knob: the variant trains the tokenizer only)."""
     data = copy.deepcopy(baseline.to_dict()) | {"seed": seed}
@@ -320,7 +321,7 @@ def variant_config(baseline: Any, host: Any, seed: int, knob: str | None = None,
         raise ConfigError(f"--knobs {knob}={value}: {exc}") from None
 
 
-def baseline_text(config: Any, host: Any) -> str:
+def baseline_text(config: Any, host: PluginHost) -> str:
     """The baseline tokenizer's value of every tokenizer knob, e.g. ``on (dm_vqgan), K = 512, 64 px``."""
     shown = []
     for knob in KNOBS.values():
@@ -332,7 +333,7 @@ def baseline_text(config: Any, host: Any) -> str:
     return ", ".join(shown)
 
 
-def check_sampling_values(config: Any, host: Any, knobs: dict[str, list[Any]]) -> None:
+def check_sampling_values(config: Any, host: PluginHost, knobs: dict[str, list[Any]]) -> None:
     """One-line errors for a sampler that is not registered and for more sampling steps than the
     generator's diffusion steps, before anything trains."""
     for name in knobs.get("sampler", []):
@@ -353,7 +354,7 @@ def generator_base(config: Any) -> dict[str, Any]:
 
 # -- training and timing --------------------------------------------------------------------------
 
-def train_tokenizer_run(config: Any, host: Any, folder: Path, argv: list[str]) -> tuple[Path, float]:
+def train_tokenizer_run(config: Any, host: PluginHost, folder: Path, argv: list[str]) -> tuple[Path, float]:
     """Train ``config``'s tokenizer through :func:`run_stage` in a new run ``folder`` (replacing an
     earlier run there; a folder that holds no run is refused); the folder and the stage's seconds."""
     run = RunDir.create(config, argv=argv, host=host, path=folder, overwrite=True)
@@ -368,7 +369,7 @@ class TokenizerTimer:
     """One trained tokenizer's costs: seconds per training step (the run's objective, optimiser,
     precision and batch through the trainer) and encode + decode seconds per held-out image."""
 
-    def __init__(self, config: Any, run: Path, host: Any, steps: int) -> None:
+    def __init__(self, config: Any, run: Path, host: PluginHost, steps: int) -> None:
         from vqtouch.core.data import experiment_split
         from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_task
 
@@ -440,7 +441,7 @@ def _quality(scores: dict[str, Any]) -> dict[str, Any]:
     return {key: scores[key] for key in keys if isinstance(scores.get(key), (int, float))}
 
 
-def tokenizer_rows(baseline: Any, host: Any, knobs: dict[str, list[Any]], *, seed: int, out: Path, rounds: int,
+def tokenizer_rows(baseline: Any, host: PluginHost, knobs: dict[str, list[Any]], *, seed: int, out: Path, rounds: int,
                    timing_steps: int, argv: list[str], report: Callable[[str], None]) -> tuple[list[dict], Path]:
     """One seed of part 1: the baseline's and every tokenizer knob value's row (scores, costs and
     costs relative to the baseline), then the baseline's drift row.  Also returns the baseline's
@@ -474,7 +475,7 @@ def tokenizer_rows(baseline: Any, host: Any, knobs: dict[str, list[Any]], *, see
     return rows, runs[0]
 
 
-def generator_rows(run: Path, config: Any, host: Any, knobs: dict[str, list[Any]], *, seed: int, n: int,
+def generator_rows(run: Path, config: Any, host: PluginHost, knobs: dict[str, list[Any]], *, seed: int, n: int,
                    rounds: int, batch_size: int, distribution: bool,
                    report: Callable[[str], None]) -> list[dict[str, Any]]:
     """One seed of part 2: train the generator in the baseline's ``run`` (on its tokenizer's codes),
@@ -670,7 +671,7 @@ def plot_tradeoff(summary: list[dict[str, Any]], key: str, path: Path, title: st
 
 # -- the experiment -------------------------------------------------------------------------------
 
-def evaluate_tradeoff(config: Any, host: Any, out: Path, *, seeds: list[int], knobs: dict[str, list[Any]],
+def evaluate_tradeoff(config: Any, host: PluginHost, out: Path, *, seeds: list[int], knobs: dict[str, list[Any]],
                       full: bool, tokenizer_steps: int, generator_steps: int, rounds: int, timing_steps: int, n: int,
                       batch_size: int, distribution: bool, argv: list[str],
                       report: Callable[[str], None] = print) -> dict[str, Any]:

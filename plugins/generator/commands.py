@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from vqtouch.core import Assembly, ConfigError, RunDir, atomic_write, hookimpl, run_stage
+from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, atomic_write, hookimpl, run_stage
 from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group, plugin_block,
                               positive_int, stage_failure, training_run)
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
@@ -24,7 +24,7 @@ from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
 
 
-def _with_tokenizer_run(config: Any, tokenizer_run: str, host: Any) -> Any:
+def _with_tokenizer_run(config: Any, tokenizer_run: str, host: PluginHost) -> Any:
     """``config`` set to learn the codes of the tokenizer trained in ``tokenizer_run`` (a run, or a
     tokenizer checkpoint folder such as an adapted tokenizer): its tokenizer section and image
     size, the generator stage alone."""

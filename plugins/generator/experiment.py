@@ -31,7 +31,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from vqtouch.core import Assembly, ConfigError, RunDir, run_stage
+from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, run_stage
 from vqtouch.core.cli import stage_failure
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.experiments import ExperimentRecord, gap_verdict, markdown_table, mean_spread
@@ -127,7 +127,7 @@ def plot(summary: list[dict[str, Any]], path: Path, title: str) -> None:
     figure.savefig(path)
 
 
-def _tokenizer_run(config: Any, tokenizer: str | None, out: Path, host: Any) -> str:
+def _tokenizer_run(config: Any, tokenizer: str | None, out: Path, host: PluginHost) -> str:
     """The tokenizer every seed's generator learns: ``tokenizer``, or the scene's trained once in ``out``."""
     if tokenizer:
         return tokenizer
@@ -142,7 +142,7 @@ def _tokenizer_run(config: Any, tokenizer: str | None, out: Path, host: Any) -> 
     return str(folder)
 
 
-def evaluate_generation_experiment(config: Any, host: Any, out: Path, *, seeds: list[int], n: int,
+def evaluate_generation_experiment(config: Any, host: PluginHost, out: Path, *, seeds: list[int], n: int,
                                    tokenizer: str | None = None, overwrite: bool = False, distribution: bool = True,
                                    report: Any = print) -> dict[str, Any]:
     """Train a generator per seed over one tokenizer, score every conditioner against the baselines;

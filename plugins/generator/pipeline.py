@@ -19,7 +19,8 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import ConfigError, RunDir, VqtouchError, load, load_plugins, resolve_device
+from vqtouch.core import ConfigError, PluginHost, RunDir, VqtouchError, load, load_plugins, resolve_device
+from vqtouch.core.checkpoint import PRETRAINED_PREFIX, is_pretrained, open_pretrained  # noqa: F401 - re-exported
 from vqtouch.core.image_size import ImageSize
 from vqtouch.core.training import collate_samples
 
@@ -38,7 +39,7 @@ class GenerationPipeline:
     settings: dict[str, Any]
     class_names: list[str]
     image_size: ImageSize
-    host: Any
+    host: PluginHost
     device: torch.device
     checkpoint: Path
     #: The experiment config the generator was trained with (its run's, or the bundle's recorded one).
@@ -148,16 +149,7 @@ class GenerationPipeline:
         return torch.cat(images)
 
 
-#: ``--run pretrained:NAME`` names a bundled checkpoint (``vqtouch pretrained list``) instead of a run folder.
-PRETRAINED_PREFIX = "pretrained:"
-
-
-def is_pretrained(run: str | Path) -> bool:
-    """Whether ``run`` names a bundle (``pretrained:NAME``) rather than a run folder."""
-    return isinstance(run, str) and run.startswith(PRETRAINED_PREFIX)
-
-
-def load_pipeline(run: str | Path, *, host: Any = None, step: int | str | None = None,
+def load_pipeline(run: str | Path, *, host: PluginHost | None = None, step: int | str | None = None,
                   device: str | None = None) -> GenerationPipeline:
     """The generation pipeline of a run whose ``generator`` stage trained (its newest good checkpoint,
     ``step``, or ``"best"``), with the tokenizer it was trained on; or of a bundle, ``pretrained:NAME``
@@ -191,17 +183,14 @@ def load_pipeline(run: str | Path, *, host: Any = None, step: int | str | None =
                               config.data.image_size, host, device_, folder, config, run_dir)
 
 
-def _bundle_pipeline(name: str, host: Any, device: str | None) -> GenerationPipeline:
+def _bundle_pipeline(name: str, host: PluginHost, device: str | None) -> GenerationPipeline:
     """The pipeline of bundle ``name``: its weights, and the generator settings, classes and image size
     of the config recorded in its headers."""
     from vqtouch.core import validate_experiment
 
     device_ = resolve_device(device or "auto")
     # The package that ships bundles builds on this one, so it is asked through its hook, not imported.
-    bundle = host.pm.hook.vqtouch_open_pretrained(name=name, host=host, device=device_)
-    if bundle is None:
-        raise ConfigError(f"pretrained:{name}: no installed plugin ships bundled weights (the built-in 'pretrained' "
-                          "plugin may be blocked by VQTOUCH_BLOCK_PLUGINS)")
+    bundle = open_pretrained(PRETRAINED_PREFIX + name, host, device_)
     if not bundle.run_config:
         raise ConfigError(f"pretrained:{name}: its headers record no run config; export it again with "
                           "`vqtouch pretrained export`")
@@ -214,7 +203,7 @@ def _bundle_pipeline(name: str, host: Any, device: str | None) -> GenerationPipe
                               bundle.folder / "generator", config, None)
 
 
-def _class_names(config: Any, host: Any) -> list[str]:
+def _class_names(config: Any, host: PluginHost) -> list[str]:
     """The class names of the run's dataset (labels can then be given by name), without rendering it."""
     from vqtouch.core import Assembly
 

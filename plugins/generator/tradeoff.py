@@ -37,7 +37,7 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import Assembly, ConfigError
+from vqtouch.core import Assembly, ConfigError, PluginHost
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.plugins.evaluation.contact import dataset_background
 
@@ -182,7 +182,7 @@ def synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def load_tradeoff_bench(run: str | Path, host: Any, *, n: int, step: int | str | None = None, seed: int | None = None,
+def load_tradeoff_bench(run: str | Path, host: PluginHost, *, n: int, step: int | str | None = None, seed: int | None = None,
                         batch_size: int = 16, distribution: bool = True,
                         feature_size: int | None = None) -> TradeoffBench:
     """The run's pipeline, its first ``n`` held-out conditions (the split of

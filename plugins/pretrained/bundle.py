@@ -29,7 +29,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from vqtouch.core import ConfigError, RunDir, load, read_metadata, save
+from vqtouch.core import ConfigError, PluginHost, RunDir, load, read_metadata, save
 
 #: Where the bundles live inside the installed package.
 BUNDLES = Path(__file__).parent / "weights"
@@ -85,7 +85,7 @@ def _provenance(run: RunDir) -> dict[str, str]:
     return {COMMAND_KEY: command, RUN_CONFIG_KEY: (run.path / "config.json").read_text()}
 
 
-def export_bundle(generator_run: str | Path, name: str, host: Any, *, root: Path | None = None,
+def export_bundle(generator_run: str | Path, name: str, host: PluginHost, *, root: Path | None = None,
                   precision: str = "fp16", overwrite: bool = False) -> Path:
     """Write the newest checkpoint of ``generator_run`` (its generator, conditioners and the tokenizer
     it was trained on) as bundle ``name`` under ``root``; returns the bundle's folder."""
@@ -136,7 +136,8 @@ class Bundle:
     name: str
     folder: Path
     tokenizer: Any
-    generator: nn.Module
+    #: None when opened with ``tokenizer_only``.
+    generator: nn.Module | None
     conditioners: list[nn.Module]
     tokenizer_step: int
     generator_step: int
@@ -171,20 +172,24 @@ def describe_bundle(folder: Path) -> dict[str, Any]:
             "megabytes": round(sum(path.stat().st_size for path in files) / 1e6, 2)}
 
 
-def load_bundle(name: str, host: Any, *, device: str | torch.device = "cpu", root: Path | None = None) -> Bundle:
-    """Load bundle ``name`` strictly (every tensor by name and shape) onto ``device``, in eval mode."""
+def load_bundle(name: str, host: PluginHost, *, device: str | torch.device = "cpu", root: Path | None = None,
+                tokenizer_only: bool = False) -> Bundle:
+    """Load bundle ``name`` strictly (every tensor by name and shape) onto ``device``, in eval mode;
+    ``tokenizer_only``: the tokenizer alone (no generator, no conditioners built)."""
     from vqtouch.plugins.tokenizer.training import Tokenizer
 
     folder = bundle_folder(name, root)
     autoencoder = load(folder / TOKENIZER / "autoencoder.safetensors", host=host, map_location=device)
     quantizer = load(folder / TOKENIZER / "quantizer.safetensors", host=host, map_location=device)
-    generator = load(folder / GENERATOR / "generator.safetensors", host=host, map_location=device).eval()
-    paths = sorted((folder / GENERATOR).glob("conditioner_*.safetensors"), key=lambda p: int(p.stem.split("_")[1]))
-    conditioners = [load(path, host=host, map_location=device).eval() for path in paths]
+    generator, conditioners = None, []
+    if not tokenizer_only:
+        generator = load(folder / GENERATOR / "generator.safetensors", host=host, map_location=device).eval()
+        paths = sorted((folder / GENERATOR).glob("conditioner_*.safetensors"), key=lambda p: int(p.stem.split("_")[1]))
+        conditioners = [load(path, host=host, map_location=device).eval() for path in paths]
     headers = read_metadata(folder / GENERATOR / "generator.safetensors")
     tokenizer_headers = read_metadata(folder / TOKENIZER / "autoencoder.safetensors")
     return Bundle(name=name, folder=folder, tokenizer=Tokenizer(autoencoder, quantizer).eval(), generator=generator,
                   conditioners=conditioners, tokenizer_step=autoencoder.vqtouch_step,
-                  generator_step=generator.vqtouch_step, tokenizer_command=tokenizer_headers.get(COMMAND_KEY, "?"),
+                  generator_step=int(headers["vqtouch.step"]), tokenizer_command=tokenizer_headers.get(COMMAND_KEY, "?"),
                   generator_command=headers.get(COMMAND_KEY, "?"),
                   run_config=json.loads(headers.get(RUN_CONFIG_KEY, "{}")))

@@ -121,9 +121,10 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
 
 
 @hookimpl
-def vqtouch_open_pretrained(name, host, device):
-    """Open a bundle of this package for ``--run pretrained:NAME`` (the generation pipeline asks)."""
-    return load_bundle(name, host, device=device)
+def vqtouch_open_pretrained(name, host, device, tokenizer_only):
+    """Open a bundle of this package for ``pretrained:NAME`` (the generation pipeline and the family
+    stages ask)."""
+    return load_bundle(name, host, device=device, tokenizer_only=tokenizer_only)
 
 
 @hookimpl

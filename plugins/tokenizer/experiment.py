@@ -42,7 +42,7 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-from vqtouch.core import Assembly, ConfigError, RunDir, VqtouchError, run_stage
+from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, VqtouchError, run_stage
 from vqtouch.core.cli import stage_failure
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.data import experiment_split
@@ -60,7 +60,7 @@ BACKGROUND = "no-contact background"
 ROW_FILE = "experiment_row.json"
 
 
-def autoencoder_block(scene_block: dict[str, Any] | None, name: str, host: Any, **options: Any) -> dict[str, Any]:
+def autoencoder_block(scene_block: dict[str, Any] | None, name: str, host: PluginHost, **options: Any) -> dict[str, Any]:
     """The autoencoder ``name`` with the scene's options that it also has (so ``--set
     tokenizer.autoencoder.channels=32`` holds for every model compared) and ``options``."""
     fields = host.registry("autoencoder").get(name).config_model.model_fields
@@ -68,7 +68,7 @@ def autoencoder_block(scene_block: dict[str, Any] | None, name: str, host: Any, 
     return {"name": name, **kept, **options}
 
 
-def tokenizer_section(scene_section: dict[str, Any], model: str, mask_ratio: float | None, host: Any) -> dict[str, Any]:
+def tokenizer_section(scene_section: dict[str, Any], model: str, mask_ratio: float | None, host: PluginHost) -> dict[str, Any]:
     """The scene's tokenizer section with ``model``'s autoencoder swapped in (quantizer, discriminator
     and objective unchanged), or the MAE baseline at ``mask_ratio`` with the identity quantizer and no
     discriminator (it reconstructs continuously: the non-tokenizing reference)."""
@@ -83,7 +83,7 @@ def model_label(model: str, mask_ratio: float | None) -> str:
     return model if mask_ratio is None else f"mae (mask {mask_ratio:g})"
 
 
-def plan_configs(config: Any, host: Any, *, samples: Sequence[int], models: Sequence[str],
+def plan_configs(config: Any, host: PluginHost, *, samples: Sequence[int], models: Sequence[str],
                  mae_ratios: Sequence[float], held_out: int | None, seed: int) -> list[tuple[str, int, Any]]:
     """(model label, N, validated config) of every run of one seed, after checking that the data
     can give each N training samples and the held-out images."""
@@ -110,7 +110,7 @@ def plan_configs(config: Any, host: Any, *, samples: Sequence[int], models: Sequ
     return runs
 
 
-def _check_sizes(runs: list[tuple[str, int, Any]], host: Any) -> None:
+def _check_sizes(runs: list[tuple[str, int, Any]], host: PluginHost) -> None:
     """Refuse, before anything trains, an N larger than the training split (one split per seed)."""
     _, count, config = max(runs, key=lambda run: run[1])
     dataset = Assembly(config, host).component("data.dataset")
@@ -120,7 +120,7 @@ def _check_sizes(runs: list[tuple[str, int, Any]], host: Any) -> None:
                           f"samples ({len(dataset)} in the dataset); use --samples up to {largest}, or more data")
 
 
-def train_and_score(config: Any, host: Any, folder: Path) -> dict[str, Any]:
+def train_and_score(config: Any, host: PluginHost, folder: Path) -> dict[str, Any]:
     """Train the tokenizer of ``config`` in ``folder`` and return its eval.json with the wall time,
     or the row a finished run with the same config left there."""
     row_file = folder / ROW_FILE
@@ -170,7 +170,7 @@ def verdict_lines(summary: list[dict[str, Any]], key: str = "contact_psnr") -> l
     return lines
 
 
-def sample_grid(folders: list[tuple[str, Path]], config: Any, host: Any, path: Path, count: int = 8) -> None:
+def sample_grid(folders: list[tuple[str, Path]], config: Any, host: PluginHost, path: Path, count: int = 8) -> None:
     """The first ``count`` held-out images (top row) above each run's reconstructions of them."""
     import torch
 
@@ -188,7 +188,7 @@ def sample_grid(folders: list[tuple[str, Path]], config: Any, host: Any, path: P
     save_png(image_grid(torch.cat(rows), columns=len(originals)), path)
 
 
-def evaluate_reconstruction_experiment(config: Any, host: Any, out: Path, *, seeds: list[int],
+def evaluate_reconstruction_experiment(config: Any, host: PluginHost, out: Path, *, seeds: list[int],
                                        samples: Sequence[int], models: Sequence[str], mae_ratios: Sequence[float],
                                        held_out: int | None, distribution: bool = True, overwrite: bool = False,
                                        report: Any = print) -> dict[str, Any]:

@@ -12,7 +12,7 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import RunDir, load, read_metadata
+from vqtouch.core import PluginHost, RunDir, load, read_metadata
 
 from .training import Tokenizer
 
@@ -20,7 +20,7 @@ from .training import Tokenizer
 TOKENIZER_FILES = ("autoencoder.safetensors", "quantizer.safetensors")
 
 
-def load_tokenizer(run_or_folder: str | Path | RunDir, host: Any, step: int | str | None = None,
+def load_tokenizer(run_or_folder: str | Path | RunDir, host: PluginHost, step: int | str | None = None,
                    device: str = "cpu") -> tuple[Tokenizer, Path]:
     """Load the autoencoder and quantizer of a run (its newest good checkpoint, ``step``, or with
     ``step="best"`` the one that scored best on the held-out split) or of a checkpoint folder.
