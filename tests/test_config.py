@@ -37,7 +37,7 @@ def test_every_scene_lists_only_registered_stages(host, scene):
 
 
 def test_builtin_stages_and_their_sections(host):
-    assert sorted(host.stages) == BUILTIN_STAGES
+    assert set(BUILTIN_STAGES) <= set(host.stages)
     sections = {name: entry.section.__name__ if entry.section else None for name, entry in host.stages.items()}
     assert sections == {"render": "RenderSection", "tokenizer": "TokenizerSection", "reconstruct": None,
                         "cluster": "ClusterSection", "adapt": "AdaptSection", "generator": "GeneratorSection",
@@ -57,12 +57,11 @@ def test_builtin_stages_and_their_sections(host):
 
 
 def test_unknown_stage_lists_the_registered_stages(host):
+    available = ", ".join(sorted(host.stages))
     with pytest.raises(ConfigError) as info:
-        resolve_config(None, overrides=['stages=["tokenizer", "evaluate"]'], host=host)
-    assert str(info.value).startswith("invalid configuration: stages: unknown stage 'evaluate'; available: "
-                                      "adapt, cluster, generator, pretrained, reconstruct, render, tokenizer")
-    with pytest.raises(UnknownPluginError, match="unknown stage 'evaluate'; available: adapt, cluster, generator, "
-                                                 "pretrained, reconstruct, render, tokenizer"):
+        resolve_config(None, overrides=['stages=["tokenizer", "evaluatee"]'], host=host)
+    assert str(info.value).startswith(f"invalid configuration: stages: unknown stage 'evaluatee'; available: {available}")
+    with pytest.raises(UnknownPluginError, match=f"unknown stage 'evaluate'; available: {available}"):
         host.stage("evaluate")
     with pytest.raises(ConfigError, match="a stage is listed twice"):
         resolve_config(None, overrides=['stages=["tokenizer", "tokenizer"]'], host=host)
