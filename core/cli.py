@@ -1,8 +1,9 @@
 """The ``vqtouch`` command line.
 
-``main(argv) -> int`` builds an argparse parser whose subcommands come from core
-(``plugins``, ``config``, ``demo``, ``report``) and from plugins (``vqtouch_add_commands``).  User
-errors print one line, ``vqtouch: error: ...``, and exit with status 2.
+``main(argv) -> int`` builds an argparse parser whose subcommands come from core (``plugins``,
+``config``) and from plugins (``vqtouch_add_commands``; the built-in ``demo`` and ``report`` come from
+the report plugin, every ``train``/``evaluate`` command from its stage's).  User errors print one
+line, ``vqtouch: error: ...``, and exit with status 2.
 """
 
 from __future__ import annotations
@@ -214,33 +215,6 @@ def stage_failure(outcome: StageOutcome) -> VqtouchError:
     return VqtouchError(f"stage {outcome.stage!r} {outcome.describe()}")
 
 
-def _cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import run_demo, scale_for_demo
-    from .runs import RunDir
-
-    host = args.host
-    config = config_from_args(args, host)
-    if not args.full:
-        config = scale_for_demo(config, host)
-    run = RunDir.create(config, argv=args.argv, host=host, path=args.out, overwrite=args.overwrite)
-    with run:  # releases the run's lock however the demo ends
-        report = run_demo(config, host, run)
-    print(f"report: {run.path / 'report.html'}")
-    ran = sum(stage["status"].startswith("ran") for stage in report["stages"])
-    blocked = sum(stage["status"].startswith("cannot run") for stage in report["stages"])
-    failed = sum(stage["status"].startswith("failed") for stage in report["stages"])
-    print(f"scene {config.scene}: {ran} of {len(report['stages'])} stages ran, {blocked} cannot run, {failed} failed "
-          "(reasons in the report)")
-    return 0
-
-
-def _cmd_report(args: argparse.Namespace) -> int:
-    from .demo import rebuild_report
-
-    print(f"report: {rebuild_report(args.run_dir)}")
-    return 0
-
-
 def build_parser(host: PluginHost) -> argparse.ArgumentParser:
     """The full parser, including subcommands contributed by ``host``'s plugins."""
     from . import __version__
@@ -271,18 +245,6 @@ def build_parser(host: PluginHost) -> argparse.ArgumentParser:
     stages = config_sub.add_parser("stages", help="list the pipeline stages: section, slots, plugin")
     stages.set_defaults(handler=_cmd_config_stages)
 
-    demo = sub.add_parser("demo", help="run a scene end to end on the embedded data and write a report")
-    add_config_arguments(demo, default_scene="tour")
-    demo.add_argument("--out", help="run directory (default: <output_dir>/<name>-<time>-<hash>)")
-    demo.add_argument("--overwrite", action="store_true",
-                      help="empty the --out run directory first (refused for a folder that holds no run)")
-    demo.add_argument("--full", action="store_true",
-                      help="run the scene at its configured size (default: scaled down to minutes on a CPU)")
-    demo.set_defaults(handler=_cmd_demo)
-
-    report = sub.add_parser("report", help="rebuild report.html and report.md of a demo run from its report.json")
-    report.add_argument("run_dir", metavar="RUN_DIR", help="the folder of a `vqtouch demo` run (its --out)")
-    report.set_defaults(handler=_cmd_report)
 
     host.pm.hook.vqtouch_add_commands(subparsers=sub)
     parser.set_defaults(host=host)

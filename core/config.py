@@ -481,3 +481,43 @@ def _node(data: Any, path: list[str]) -> Any:
             return None
         data = data.get(part)
     return data
+
+
+# -- the demo's size ------------------------------------------------------------------------------
+
+#: Caps on core's own options for ``vqtouch demo`` (plugins and stages declare their own caps
+#: when they register: ``demo={...}``).
+CORE_DEMO_CAPS = {"data.batch_size": 8}
+
+
+def _capped(data: dict[str, Any], path: str, cap: Any) -> None:
+    """Lower the number at ``path`` of the nested dict ``data`` to ``cap`` (other values are left alone)."""
+    node: Any = data
+    *parents, last = path.split(".")
+    for part in parents:
+        node = node.get(part) if isinstance(node, dict) else None
+    if isinstance(node, dict) and isinstance(node.get(last), (int, float)) and not isinstance(node.get(last), bool):
+        node[last] = min(node[last], cap)
+
+
+def scale_for_demo(config: ExperimentConfig, host: PluginHost) -> ExperimentConfig:
+    """``config`` scaled down to minutes on a laptop CPU: core's caps, each stage's ``demo`` caps on
+    its section and each selected plugin's ``demo`` caps on its options."""
+    data = config.to_dict()
+    for path, cap in CORE_DEMO_CAPS.items():
+        _capped(data, path, cap)
+    for name in config.stages:
+        for path, cap in host.stage(name).demo.items():
+            _capped(data, f"{name}.{path}", cap)
+    for path, info in host.slots.items():
+        value = config.slot(path)
+        for index, item in (enumerate(value) if info.many else [(None, value)]):
+            if item is None:
+                continue
+            prefix = path if index is None else f"{path}.{index}"
+            for option, cap in host.registry(info.kind).get(item.name).demo.items():
+                node = data
+                for part in prefix.split("."):
+                    node = node[int(part)] if isinstance(node, list) else node[part]
+                _capped(node, option, cap)
+    return validate_experiment(data, host)

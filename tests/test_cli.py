@@ -8,7 +8,7 @@ from pydantic import Field
 
 from vqtouch.core import ConfigError, PluginConfig, Section, hookimpl, load_plugins, resolve_config
 from vqtouch.core.cli import build_parser, main
-from vqtouch.core.demo import scale_for_demo
+from vqtouch.core.config import scale_for_demo
 
 #: The installed stages, as an unknown stage's message lists them.
 STAGES = ", ".join(sorted(load_plugins(autoload=False).stages))

@@ -258,7 +258,7 @@ def test_keeping_revealed_tokens_warns_only_with_real_replacement_noise():
 
 
 def test_contact_centroid_error_is_the_distance_between_contact_centres():
-    from vqtouch.core.report_html import lower_is_better
+    from vqtouch.plugins.evaluation.directions import lower_is_better
     from vqtouch.plugins.evaluation.contact import contact_centroid_errors, contact_centroids
 
     background = torch.full((1, 3, 32, 32), 0.5)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from vqtouch.core import ConfigError
-from vqtouch.core.experiments import ExperimentRecord, check_seeds, format_cell, markdown_table, mean_spread
+from vqtouch.plugins.evaluation.records import ExperimentRecord, check_seeds, format_cell, markdown_table, mean_spread
 
 
 def _rows():

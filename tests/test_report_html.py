@@ -14,9 +14,9 @@ from pathlib import Path
 from PIL import Image
 
 from vqtouch.core.cli import main
-from vqtouch.core.demo import render_report
-from vqtouch.core.report_html import (COMPARISON_PREFIXES, contact_verdict, format_value, lower_is_better, render_html,
-                                      score_table, skipped_items)
+from vqtouch.plugins.report.demo import render_report
+from vqtouch.plugins.evaluation.directions import lower_is_better
+from vqtouch.plugins.report.html import COMPARISON_PREFIXES, contact_verdict, format_value, render_html, score_table, skipped_items
 
 _SPEC = importlib.util.spec_from_file_location("report_runs", Path(__file__).with_name("report_runs.py"))
 report_runs = importlib.util.module_from_spec(_SPEC)

@@ -11,7 +11,7 @@ import pytest
 
 from vqtouch.core import ConfigError, RunDir, load_plugins, resolve_config, run_stage
 from vqtouch.core.assembly import Assembly
-from vqtouch.core.demo import run_demo
+from vqtouch.plugins.report.demo import run_demo
 from vqtouch.core.stages import required_slots
 
 HEAVY = ("open_clip", "torchvision.models", "timm", "efficientnet_lite_pytorch")

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from vqtouch.core import ConfigError, hookimpl
 from vqtouch.core.cli import add_step_argument, non_negative_int, positive_int
-from vqtouch.core.experiments import add_experiment_arguments
+from vqtouch.plugins.evaluation.records import add_experiment_arguments
 from vqtouch.core.image_size import image_size_argument
 
 

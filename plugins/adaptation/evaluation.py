@@ -30,7 +30,7 @@ from typing import Any
 import torch
 
 from vqtouch.core import ConfigError, PluginHost
-from vqtouch.core.experiments import markdown_table, mean_spread
+from vqtouch.plugins.evaluation.records import markdown_table, mean_spread
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 
 from .adapt import AdaptSettings, ImageSet, adapt_tokenizer, family_images, reconstruction_scores, target_images

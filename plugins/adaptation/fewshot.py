@@ -49,10 +49,10 @@ from typing import Any, Callable, Sequence
 import torch
 
 from vqtouch.core import ConfigError, PluginHost
-from vqtouch.core.experiments import (ExperimentRecord, check_seeds, gap_verdict, markdown_table, mean_spread,
+from vqtouch.plugins.evaluation.records import (ExperimentRecord, check_seeds, gap_verdict, markdown_table, mean_spread,
                                       plot_against_count)
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
-from vqtouch.core.report_html import direction_arrow
+from vqtouch.plugins.evaluation.directions import direction_arrow
 from vqtouch.plugins.evaluation.contact import (MAX_BACKGROUND_IMAGES, RENDERED_BACKGROUND, evenly_spaced,
                                                 median_background, no_contact_image)
 
@@ -288,7 +288,7 @@ def evaluate_fewshot(run: str | Path, host: PluginHost, out: str | Path, *, targ
 def verdict_lines(summary: Sequence[dict[str, Any]], counts: Sequence[int], ratio: float,
                   key: str = VERDICT_KEY) -> list[str]:
     """Per N, the mixed arm against every other arm and the background on the contact-region score
-    ``key`` (:func:`vqtouch.core.experiments.gap_verdict`: a gap counts beyond both spreads)."""
+    ``key`` (:func:`vqtouch.plugins.evaluation.records.gap_verdict`: a gap counts beyond both spreads)."""
     lines = []
     mixed = mixed_arm(ratio)
     for n in counts:

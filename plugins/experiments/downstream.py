@@ -38,7 +38,7 @@ folder in a supported reader's layout (``image_folder`` class sub-folders or a C
 train generator --scene label-to-touch``; the demo's ``tour`` scene trains one) and its dataset
 labels; unlabelled samples (label -1) are left out and counted.
 
-Writes into ``--out`` (:class:`vqtouch.core.experiments.ExperimentRecord`): ``downstream.json``
+Writes into ``--out`` (:class:`vqtouch.plugins.evaluation.records.ExperimentRecord`): ``downstream.json``
 (every arm x seed row with the dataset indices of the real images it trained on, the held-out
 indices, the mean/std summary, chance and majority rates, the first seed's confusion matrices
 per arm, provenance),
@@ -61,7 +61,7 @@ import torch
 from vqtouch.core import ConfigError, PluginHost, hookimpl
 from vqtouch.core.cli import non_negative_int, positive_int
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
-from vqtouch.core.experiments import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
+from vqtouch.plugins.evaluation.records import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
 
 GENERATED, FEW, FEW_AND_GENERATED, CEILING, BACKGROUND = (
     "generated only", "real few", "real few + generated", "all real (ceiling)", "no-contact background")

@@ -68,7 +68,7 @@ import torch
 from vqtouch.core import (Assembly, ConfigError, PluginHost, RunDir, hookimpl, resolve_device, run_stage,
                           validate_experiment)
 from vqtouch.core.cli import add_config_arguments, command_group, config_from_args, positive_int, stage_failure
-from vqtouch.core.experiments import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
+from vqtouch.plugins.evaluation.records import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
 from vqtouch.core.image_size import image_hw, size_text
 
 #: The scene whose baseline the command measures when none is named: a tokenizer and a generator.
@@ -282,7 +282,7 @@ def parse_knobs(specs: list[str] | None, config: Any, host: PluginHost) -> dict[
 def scaled_config(config: Any, host: PluginHost, full: bool) -> Any:
     """``config`` scaled down like ``vqtouch demo`` (unless ``full``): the sizes the knobs' default
     values and the baseline derive from."""
-    from vqtouch.core.demo import scale_for_demo
+    from vqtouch.core.config import scale_for_demo
 
     if "tokenizer" not in config.stages:
         raise ConfigError(f"the scene {config.scene!r} trains no tokenizer; use e.g. --scene {DEFAULT_SCENE}")

@@ -34,8 +34,8 @@ from typing import Any
 from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, run_stage
 from vqtouch.core.cli import stage_failure
 from vqtouch.core.config import validate_experiment
-from vqtouch.core.experiments import ExperimentRecord, gap_verdict, markdown_table, mean_spread
-from vqtouch.core.report_html import direction_arrow, lower_is_better
+from vqtouch.plugins.evaluation.records import ExperimentRecord, gap_verdict, markdown_table, mean_spread
+from vqtouch.plugins.evaluation.directions import direction_arrow, lower_is_better
 
 #: Numbers of a score dict that describe the sampling, not the quality.
 FACTS = ("samples", "steps", "guidance", "truncation", "contact_fraction")

@@ -18,7 +18,7 @@ from vqtouch.core import Assembly, ConfigError, MetricSet, RunDir, hookimpl, run
 from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group, plugin_block,
                               positive_int, stage_failure, training_run)
 from vqtouch.core.config import parse_override, resolve_config
-from vqtouch.core.experiments import DEFAULT_SEEDS
+from vqtouch.plugins.evaluation.records import DEFAULT_SEEDS
 from vqtouch.core.data import experiment_split
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process

@@ -46,9 +46,9 @@ from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, VqtouchError
 from vqtouch.core.cli import stage_failure
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.data import experiment_split
-from vqtouch.core.experiments import (ExperimentRecord, check_seeds, gap_verdict, markdown_table, mean_spread,
+from vqtouch.plugins.evaluation.records import (ExperimentRecord, check_seeds, gap_verdict, markdown_table, mean_spread,
                                       plot_against_count)
-from vqtouch.core.report_html import direction_arrow, lower_is_better
+from vqtouch.plugins.evaluation.directions import direction_arrow, lower_is_better
 
 #: The columns of the table, in order, when some row has them.
 COLUMNS = ("ssim", "psnr", "ms_ssim", "lpips", "contact_psnr", "contact_ssim", "contact_mae", "fd_effnetlite0",

@@ -27,7 +27,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
-from .errors import ConfigError
+from vqtouch.core.errors import ConfigError
 
 #: The seeds an experiment repeats over unless told otherwise (the issue asks for three).
 DEFAULT_SEEDS = (0, 1, 2)
@@ -100,8 +100,8 @@ def gap_verdict(model: dict[str, Any], rival: dict[str, Any], key: str, rival_na
     """How ``model``'s mean of ``key`` compares with ``rival``'s (rows of :func:`mean_spread`), e.g.
     "beats VQGAN by 0.8": "beats", "is behind" or "is level with", a gap counting only when it
     exceeds the two standard deviations added; the score's direction comes from
-    :func:`.report_html.lower_is_better`."""
-    from .report_html import lower_is_better
+    :func:`.directions.lower_is_better`."""
+    from .directions import lower_is_better
 
     sign = -1 if lower_is_better(key) else 1
     gap = sign * (model[key] - rival[key])
@@ -122,7 +122,7 @@ def plot_against_count(summary: Sequence[dict[str, Any]], *, count: str, line: s
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from .report_html import direction_arrow
+    from .directions import direction_arrow
 
     keys = [key for key in keys if any(key in row for row in summary)]
     counts = sorted({row[count] for row in summary})
@@ -165,7 +165,7 @@ def provenance() -> dict[str, Any]:
     """Where and how an experiment ran: enough to judge whether two records are comparable."""
     import torch
 
-    from . import __version__
+    from vqtouch.core import __version__
 
     return {"command": " ".join(["vqtouch", *sys.argv[1:]]) if Path(sys.argv[0]).name == "vqtouch" else " ".join(sys.argv),
             "vqtouch": __version__, "torch": torch.__version__, "python": platform.python_version(),

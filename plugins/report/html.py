@@ -2,10 +2,10 @@
 
 Everything the page shows is inside it: images are base64 ``data:`` URIs, the style sheet is
 inline, nothing is fetched and no script runs, so the file can be mailed, archived or opened
-offline.  It reads a run folder's report.json (see :func:`vqtouch.core.demo.run_demo`), the
+offline.  It reads a run folder's report.json (see :func:`vqtouch.plugins.report.demo.run_demo`), the
 pictures that report names, the run's metrics.jsonl (the training-loss curves) and env.json.
 
-Like the rest of core it knows no stage in particular: a stage's section is built from the
+It knows no stage in particular: a stage's section is built from the
 generic keys of its result only (``picture`` with an optional ``caption``, ``pictures``, the
 scores, ``skipped``); anything a stage wants said about its picture it says in its ``caption``.
 
@@ -29,6 +29,8 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from vqtouch.plugins.evaluation.directions import LOWER_IS_BETTER, direction_arrow, lower_is_better  # noqa: F401
 
 #: Result keys that describe pictures rather than score anything.
 PICTURE_KEYS = frozenset({"picture", "pictures", "caption"})
@@ -270,20 +272,8 @@ COMPARISON_PREFIXES = {
 #: whole-image score flatters a model that draws only that.
 BACKGROUND_PREFIX = "background_"
 
-#: Scores (unprefixed names) where lower is better; report.json does not say, and every other score is
-#: taken as higher-is-better.  Names ending in one of :data:`LOWER_IS_BETTER_SUFFIXES` are lower-is-better too.
-LOWER_IS_BETTER = frozenset({"mae", "mse", "loss", "contact_mae", "lpips", "fid", "kid", "fd_effnetlite0",
-                             "kid_effnetlite0"})
-LOWER_IS_BETTER_SUFFIXES = ("_mae", "_loss", "_error_px")
-
 #: The contact-region scores a verdict is given on, first found first: (score, how it is named, unit).
 CONTACT_VERDICT_SCORES = (("contact_psnr", "contact PSNR", " dB"), ("contact_mae", "contact MAE", ""))
-
-
-def lower_is_better(score: str) -> bool:
-    """Whether a lower value of ``score`` (an unprefixed result key such as ``contact_mae``) is better:
-    see :data:`LOWER_IS_BETTER`."""
-    return score in LOWER_IS_BETTER or score.endswith(LOWER_IS_BETTER_SUFFIXES)
 
 
 def _is_number(value: Any) -> bool:
@@ -349,11 +339,6 @@ def contact_verdict(result: Mapping[str, Any]) -> tuple[bool, str] | None:
         return better, (f"On the contact region{share} the model is {comparison} the no-contact background: "
                         f"{name} {shown[0]} vs {shown[1]}{unit}.")
     return None
-
-
-def direction_arrow(score: str) -> str:
-    """``↓`` for a lower-is-better score, ``↑`` for the others."""
-    return "↓" if lower_is_better(score) else "↑"
 
 
 def _direction_text(score: str) -> str:

@@ -18,22 +18,23 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import nn
 
-from .assembly import Assembly
-from .checkpoint import atomic_write, load, save
-from .components import Metric, SensorFamily, TactileDataset
-from .config import ExperimentConfig, validate_experiment
-from .errors import ConfigError, VqtouchError
-from .image_size import ImageSize, image_hw, pixel_centres_mm
-from .images import image_grid, save_png
-from .progress import progress
-from .report_html import (BACKGROUND_PREFIX, beats, contact_verdict, direction_arrow, format_value, render_html,
-                          score_table, stage_parts)
-from .runs import RunDir, read_run_json
-from .seeding import make_generator
-from .stages import empty_slot_reason, missing_slots, required_slots, run_stage
+from vqtouch.core.assembly import Assembly
+from vqtouch.core.checkpoint import atomic_write, load, save
+from vqtouch.core.components import Metric, SensorFamily, TactileDataset
+from vqtouch.core.config import ExperimentConfig, scale_for_demo, validate_experiment  # noqa: F401 - re-exported
+from vqtouch.core.errors import ConfigError, VqtouchError
+from vqtouch.core.image_size import ImageSize, image_hw, pixel_centres_mm
+from vqtouch.core.images import image_grid, save_png
+from vqtouch.core.progress import progress
+from vqtouch.core.runs import RunDir, read_run_json
+from vqtouch.core.seeding import make_generator
+from vqtouch.core.stages import empty_slot_reason, missing_slots, required_slots, run_stage
+
+from .html import (BACKGROUND_PREFIX, beats, contact_verdict, direction_arrow, format_value, render_html, score_table,
+                   stage_parts)
 
 if TYPE_CHECKING:
-    from .plugin_manager import PluginHost
+    from vqtouch.core.plugin_manager import PluginHost
 
 
 def _parameter_count(component: Any) -> int:
@@ -79,44 +80,6 @@ def _preview_dataset(dataset: TactileDataset, run: RunDir, slot: str, count: int
     path = save_png(image_grid(torch.stack(images), columns=8), run.path / f"preview_{slot.replace('.', '_')}.png")
     labels = [dataset.class_names[s["label"]] for s in samples if s["label"] >= 0 and dataset.class_names]
     return {"samples": len(dataset), "classes": dataset.num_classes, "preview": str(path), "first_labels": labels[:8], "example_text": samples[0].get("text", "")}
-
-
-#: Caps on core's own options for ``vqtouch demo`` (plugins and stages declare their own caps
-#: when they register: ``demo={...}``).
-CORE_DEMO_CAPS = {"data.batch_size": 8}
-
-
-def _capped(data: dict[str, Any], path: str, cap: Any) -> None:
-    """Lower the number at ``path`` of the nested dict ``data`` to ``cap`` (other values are left alone)."""
-    node: Any = data
-    *parents, last = path.split(".")
-    for part in parents:
-        node = node.get(part) if isinstance(node, dict) else None
-    if isinstance(node, dict) and isinstance(node.get(last), (int, float)) and not isinstance(node.get(last), bool):
-        node[last] = min(node[last], cap)
-
-
-def scale_for_demo(config: ExperimentConfig, host: PluginHost) -> ExperimentConfig:
-    """``config`` scaled down to minutes on a laptop CPU: core's caps, each stage's ``demo`` caps on
-    its section and each selected plugin's ``demo`` caps on its options."""
-    data = config.to_dict()
-    for path, cap in CORE_DEMO_CAPS.items():
-        _capped(data, path, cap)
-    for name in config.stages:
-        for path, cap in host.stage(name).demo.items():
-            _capped(data, f"{name}.{path}", cap)
-    for path, info in host.slots.items():
-        value = config.slot(path)
-        for index, item in (enumerate(value) if info.many else [(None, value)]):
-            if item is None:
-                continue
-            prefix = path if index is None else f"{path}.{index}"
-            for option, cap in host.registry(info.kind).get(item.name).demo.items():
-                node = data
-                for part in prefix.split("."):
-                    node = node[int(part)] if isinstance(node, list) else node[part]
-                _capped(node, option, cap)
-    return validate_experiment(data, host)
 
 
 def run_demo(config: ExperimentConfig, host: PluginHost, run: RunDir) -> dict[str, Any]:
@@ -222,7 +185,7 @@ WORSE_MARK, BETTER_MARK = "✗", "✓"
 
 
 def _markdown_scores(table: Any) -> list[str]:
-    """A stage's scores with comparisons (a :class:`~vqtouch.core.report_html.ScoreTable`) as markdown
+    """A stage's scores with comparisons (a :class:`~vqtouch.plugins.report.html.ScoreTable`) as markdown
     table lines: one row per score, the model's column then one per comparison, each model score
     marked by whether it beats the no-contact background (as report.html colours it)."""
     if not table.rows:
