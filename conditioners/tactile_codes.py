@@ -23,6 +23,8 @@ from torch import nn
 from vqtouch.core import BuildContext, ConfigError, Conditioner, PluginConfig, hookimpl
 from vqtouch.core.image_size import ImageSize, image_hw
 from vqtouch.core.frozen import FrozenModule
+from vqtouch.core import VqtouchError, load_plugins
+from vqtouch.plugins.tokenizer import load_tokenizer
 
 
 class TactileCodesConditionerConfig(PluginConfig):
@@ -87,8 +89,6 @@ def build_tactile_codes_conditioner(config: TactileCodesConditionerConfig,
     """Factory: loads the source sensor's tokenizer from ``config.tokenizer`` (frozen, on the CPU;
     the generator's ``.to(device)`` moves it) and sizes the tokens by its code grid at the
     experiment's image size."""
-    from vqtouch.core import VqtouchError, load_plugins
-    from vqtouch.plugins.tokenizer import load_tokenizer
 
     if config.tokenizer is None:
         raise ConfigError("conditioner 'tactile_codes' needs the source sensor's tokenizer: set "

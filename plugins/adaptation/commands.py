@@ -27,6 +27,9 @@ from vqtouch.core import ConfigError, hookimpl
 from vqtouch.core.cli import add_step_argument, non_negative_int, positive_int
 from vqtouch.plugins.evaluation.records import add_experiment_arguments
 from vqtouch.core.image_size import image_size_argument
+from vqtouch.plugins.tokenizer import load_tokenizer
+from vqtouch.core.cli import command_group
+from vqtouch.plugins.scenes import GELSIGHT_DERIVATIVE_II
 
 
 
@@ -46,7 +49,6 @@ def _non_negative_float(text: str) -> float:
 
 
 def _cluster_command(args: argparse.Namespace) -> int:
-    from vqtouch.plugins.tokenizer import load_tokenizer
 
     from .families import fit_families, save_families, sensor_images
 
@@ -85,7 +87,6 @@ def describe_assignment(assigned: dict) -> str:
 
 
 def _adapt_command(args: argparse.Namespace) -> int:
-    from vqtouch.plugins.tokenizer import load_tokenizer
 
     from .adapt import AdaptSettings, adapt_tokenizer, check_same_tokenizer, default_families, refuse_existing
     from .families import load_families, registered_source
@@ -196,8 +197,6 @@ def vqtouch_add_commands(subparsers):
     adapt.add_argument("--overwrite", action="store_true", help="replace an adapted tokenizer already in --out")
     adapt.set_defaults(handler=_adapt_command)
 
-    from vqtouch.core.cli import command_group
-    from vqtouch.plugins.scenes import GELSIGHT_DERIVATIVE_II
 
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
     cross = evaluate.add_parser("cross-sensor", help="family recovery, few-shot transfer arms, real frames and cost "

@@ -19,6 +19,10 @@ from typing import Any, Literal
 from pydantic import Field
 
 from vqtouch.core import Section, Slot, StageJob, StageUnavailable, hookimpl
+from vqtouch.core.checkpoint import is_pretrained, open_pretrained
+from vqtouch.core.runs import MissingCheckpointError
+from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all, tokenizer_location
+from vqtouch.plugins.tokenizer.stages import experiment_metrics
 
 #: Where the stages write inside a run.
 CLUSTER_FOLDER, ADAPTED_FOLDER = "cluster", "adapted"
@@ -71,9 +75,6 @@ class AdaptSection(Section):
 
 def _family_tokenizer(job: StageJob) -> tuple[Any, Any]:
     """The tokenizer the section's ``family_tokenizer`` names (see its description) and its checkpoint folder."""
-    from vqtouch.core.checkpoint import is_pretrained, open_pretrained
-    from vqtouch.core.runs import MissingCheckpointError
-    from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_location
 
     spec = job.section.family_tokenizer
     if is_pretrained(spec):
@@ -110,8 +111,6 @@ def target_spec(job: StageJob) -> str:
 
 def run_cluster_stage(job: StageJob) -> dict[str, Any]:
     """Group the section's sensors into families; assign and score the target sensor when there is one."""
-    from vqtouch.plugins.tokenizer import reconstruct_all
-    from vqtouch.plugins.tokenizer.stages import experiment_metrics
 
     from .families import family_sensor_specs, fit_families, save_families, sensor_images
 

@@ -28,6 +28,7 @@ from vqtouch.core.image_size import image_size_argument
 
 from .export import export_samples
 from .leakage import COMPARE_SIZE, DEFAULT_THRESHOLD
+from vqtouch.core.data import split_dataset
 
 
 def _sensor_argument(text: str) -> Any:
@@ -103,7 +104,6 @@ def _build_dataset(host: PluginHost, text: str, flag: str, sensor: dict[str, Any
 
 
 def _leakage_command(args: argparse.Namespace) -> int:
-    from vqtouch.core.data import split_dataset
 
     from .leakage import check_leakage, closest_pairs_picture, read_thumbnails
 

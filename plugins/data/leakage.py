@@ -48,6 +48,7 @@ from vqtouch.core.image_size import size_text
 from vqtouch.core.progress import progress
 
 from .export import sample_batches
+from vqtouch.core.images import image_grid
 
 #: Side of the square images are compared at.
 COMPARE_SIZE = 32
@@ -197,7 +198,6 @@ def closest_pairs_picture(report: LeakageReport, train: TactileDataset, test: Ta
                           count: int) -> torch.Tensor:
     """The ``count`` closest pairs as one image: test images on the top row, their nearest training
     images below, closest pair first, at the test images' size."""
-    from vqtouch.core.images import image_grid
 
     pairs = report.closest(count)
     tops = torch.stack([test[test_index]["tactile"] for test_index, _, _ in pairs])

@@ -25,12 +25,12 @@ from vqtouch.core.image_size import image_hw
 from vqtouch.core.images import ImageLoader
 
 from .protocols import PROTOCOLS, get_protocol, pair_by_id
+from vqtouch.plugins.data.readers import is_image_file, read_image_size
 
 
 def images_by_id(folder: Path) -> dict[str, Path]:
     """Every image file below ``folder`` by id (relative path without extension); a ConfigError for
     a missing or image-less folder, or two files with one id (``a.png`` and ``a.jpg``)."""
-    from vqtouch.plugins.data.readers import is_image_file
 
     if not folder.is_dir():
         raise ConfigError(f"{folder} is not a folder of images")
@@ -50,7 +50,6 @@ def load_pairs(generated: dict[str, Path], real: dict[str, Path], ids: list[str]
                image_size: int | None) -> tuple[torch.Tensor, torch.Tensor]:
     """The paired images, both at ``image_size`` x ``image_size`` (None: the first generated image's size),
     resized whole (no crop), bicubic as Pillow resizes."""
-    from vqtouch.plugins.data.readers import read_image_size
 
     if image_size is None:
         width, height = read_image_size(generated[ids[0]])

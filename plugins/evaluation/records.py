@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 from vqtouch.core.errors import ConfigError
+from vqtouch.core import __version__
 
 #: The seeds an experiment repeats over unless told otherwise (the issue asks for three).
 DEFAULT_SEEDS = (0, 1, 2)
@@ -165,7 +166,6 @@ def provenance() -> dict[str, Any]:
     """Where and how an experiment ran: enough to judge whether two records are comparable."""
     import torch
 
-    from vqtouch.core import __version__
 
     return {"command": " ".join(["vqtouch", *sys.argv[1:]]) if Path(sys.argv[0]).name == "vqtouch" else " ".join(sys.argv),
             "vqtouch": __version__, "torch": torch.__version__, "python": platform.python_version(),

@@ -62,6 +62,13 @@ from vqtouch.core import ConfigError, PluginHost, hookimpl
 from vqtouch.core.cli import non_negative_int, positive_int
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.plugins.evaluation.records import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
+from vqtouch.core.training import collate_samples
+from vqtouch.plugins.generator.stage import sample_images
+from vqtouch.core import Assembly
+from vqtouch.core.data import experiment_split
+from vqtouch.plugins.evaluation.contact import dataset_background
+from vqtouch.core.images import image_grid, save_png
+from vqtouch.core.cli import add_step_argument, command_group
 
 GENERATED, FEW, FEW_AND_GENERATED, CEILING, BACKGROUND = (
     "generated only", "real few", "real few + generated", "all real (ceiling)", "no-contact background")
@@ -175,8 +182,6 @@ def generate_per_class(pipe: Any, conditioner: Any, sampler: Any, classes: Seque
                        batch_size: int) -> tuple[torch.Tensor, list[int]]:
     """``per_class`` images (N, 3, H, W) of every class (class-major) from the label ``conditioner``,
     and their labels; image i is drawn with a generator seeded from (``seed``, i)."""
-    from vqtouch.core.training import collate_samples
-    from vqtouch.plugins.generator.stage import sample_images
 
     labels = [label for label in classes for _ in range(per_class)]
     images = []
@@ -226,9 +231,6 @@ def evaluate_downstream(run: str | Path, host: PluginHost, out: str | Path, *, s
     the run's ``fd_effnetlite0`` metric's, else 224); ``train_images``: featurize at most this many
     real training images, drawn once at random (0: all; the ceiling arm then trains on them);
     ``batch_size``: labels generated per forward pass.  Returns what ``downstream.json`` holds."""
-    from vqtouch.core import Assembly
-    from vqtouch.core.data import experiment_split
-    from vqtouch.plugins.evaluation.contact import dataset_background
     from vqtouch.plugins.generator.pipeline import load_pipeline
 
     pipe = load_pipeline(run, host=host, step=step)
@@ -410,7 +412,6 @@ def plot_confusions(confusion: dict[str, list[list[int]]], class_names: Sequence
 
 def save_generated(images_N3HW: torch.Tensor, per_class: int, path: Path) -> None:
     """The generated images, one row per class (at most 8 a row)."""
-    from vqtouch.core.images import image_grid, save_png
 
     shown = min(per_class, 8)
     rows = images_N3HW.view(-1, per_class, *images_N3HW.shape[1:])[:, :shown]
@@ -435,7 +436,6 @@ def _evaluate_downstream_command(args: argparse.Namespace) -> int:
 
 @hookimpl
 def vqtouch_add_commands(subparsers: Any) -> None:
-    from vqtouch.core.cli import add_step_argument, command_group
 
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
     downstream = evaluate.add_parser(

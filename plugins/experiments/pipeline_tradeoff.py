@@ -70,6 +70,10 @@ from vqtouch.core import (Assembly, ConfigError, PluginHost, RunDir, hookimpl, r
 from vqtouch.core.cli import add_config_arguments, command_group, config_from_args, positive_int, stage_failure
 from vqtouch.plugins.evaluation.records import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
 from vqtouch.core.image_size import image_hw, size_text
+from vqtouch.core.training import Trainer, resolve_precision
+from vqtouch.core.config import scale_for_demo
+from vqtouch.core.data import experiment_split
+from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all, tokenizer_task
 
 #: The scene whose baseline the command measures when none is named: a tokenizer and a generator.
 DEFAULT_SCENE = "label-to-touch"
@@ -177,7 +181,6 @@ def _resolution_alternatives(config: Any, host: PluginHost, baseline: Any) -> li
 
 
 def _precision_baseline(config: Any, host: PluginHost) -> str:
-    from vqtouch.core.training import resolve_precision
 
     return resolve_precision(config.tokenizer.train.precision, resolve_device(config.device))
 
@@ -282,7 +285,6 @@ def parse_knobs(specs: list[str] | None, config: Any, host: PluginHost) -> dict[
 def scaled_config(config: Any, host: PluginHost, full: bool) -> Any:
     """``config`` scaled down like ``vqtouch demo`` (unless ``full``): the sizes the knobs' default
     values and the baseline derive from."""
-    from vqtouch.core.config import scale_for_demo
 
     if "tokenizer" not in config.stages:
         raise ConfigError(f"the scene {config.scene!r} trains no tokenizer; use e.g. --scene {DEFAULT_SCENE}")
@@ -370,8 +372,6 @@ class TokenizerTimer:
     precision and batch through the trainer) and encode + decode seconds per held-out image."""
 
     def __init__(self, config: Any, run: Path, host: PluginHost, steps: int) -> None:
-        from vqtouch.core.data import experiment_split
-        from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_task
 
         self.config, self.host, self.steps = config, host, steps
         self.device = resolve_device(config.device)
@@ -391,7 +391,6 @@ class TokenizerTimer:
     def training_seconds_per_step(self) -> float:
         """Seconds per step of ``steps`` training steps (a fresh optimiser; the weights go on training,
         which does not change what a step costs)."""
-        from vqtouch.core.training import Trainer
         from vqtouch.plugins.generator.tradeoff import synchronize
 
         trainer = Trainer(self.task, self.train_set, self.train_config, batch_size=self.config.data.batch_size,
@@ -406,7 +405,6 @@ class TokenizerTimer:
     def seconds_per_image(self) -> float:
         """Seconds to encode and decode one held-out image (batches of the run's batch size)."""
         from vqtouch.plugins.generator.tradeoff import synchronize
-        from vqtouch.plugins.tokenizer import reconstruct_all
 
         self.tokenizer.eval()
         synchronize(self.device)

@@ -22,13 +22,17 @@ from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
+from vqtouch.plugins.tokenizer import tokenizer_configs, tokenizer_location
+from vqtouch.core.cli import config_from_args
+from vqtouch.core.data import experiment_split
+from vqtouch.core.image_size import image_hw
+from vqtouch.plugins.evaluation.contact import dataset_background
 
 
 def _with_tokenizer_run(config: Any, tokenizer_run: str, host: PluginHost) -> Any:
     """``config`` set to learn the codes of the tokenizer trained in ``tokenizer_run`` (a run, or a
     tokenizer checkpoint folder such as an adapted tokenizer): its tokenizer section and image
     size, the generator stage alone."""
-    from vqtouch.plugins.tokenizer import tokenizer_configs, tokenizer_location
 
     source = tokenizer_location(tokenizer_run)
     data = config.to_dict()
@@ -130,7 +134,6 @@ _RUN_ONLY_DEFAULTS = {"classifier_on": "real"}
 
 
 def _generation_experiment_command(args: argparse.Namespace) -> int:
-    from vqtouch.core.cli import config_from_args
 
     from .experiment import evaluate_generation_experiment
 
@@ -153,9 +156,6 @@ def _generation_experiment_command(args: argparse.Namespace) -> int:
 
 
 def _evaluate_generation_command(args: argparse.Namespace) -> int:
-    from vqtouch.core.data import experiment_split
-    from vqtouch.core.image_size import image_hw
-    from vqtouch.plugins.evaluation.contact import dataset_background
 
     if not args.run and not args.out:
         raise ConfigError("give --run RUN (score a trained generator or pretrained:NAME) or --out DIR (run the "

@@ -31,6 +31,7 @@ from vqtouch.core.training import Trainer, collate_samples
 from vqtouch.plugins.evaluation.contact import contact_centroid_errors, contact_region_scores, dataset_background
 
 from .training import CodesDataset, GeneratorTask, GeneratorTrainConfig
+from vqtouch.plugins.tokenizer import TOKENIZER_FILES, load_tokenizer, tokenizer_location
 
 if TYPE_CHECKING:
     from vqtouch.plugins.evaluation.distribution import DistributionScorer
@@ -79,7 +80,6 @@ class GeneratorSection(Section):
 def tokenizer_source(job: StageJob) -> RunDir | Path:
     """Where the tokenizer is: ``generator.tokenizer_run`` (a run or a tokenizer checkpoint
     folder), else this run."""
-    from vqtouch.plugins.tokenizer import tokenizer_location
 
     path = job.section.tokenizer_run
     return tokenizer_location(path) if path else job.run
@@ -87,7 +87,6 @@ def tokenizer_source(job: StageJob) -> RunDir | Path:
 
 def load_run_tokenizer(job: StageJob, device: torch.device) -> tuple[Any, Path]:
     """The trained tokenizer the generator works with, and its checkpoint folder."""
-    from vqtouch.plugins.tokenizer import load_tokenizer
 
     source = tokenizer_source(job)
     try:
@@ -108,7 +107,6 @@ def images_config(config: Any) -> dict[str, Any]:
 
 def train_generator(job: StageJob) -> dict[str, Any]:
     """Train the configured generator in ``job.run`` and score samples of the held-out conditions."""
-    from vqtouch.plugins.tokenizer import TOKENIZER_FILES
 
     from .codes import dataset_codes
 

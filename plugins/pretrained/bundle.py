@@ -30,6 +30,8 @@ import torch
 from torch import nn
 
 from vqtouch.core import ConfigError, PluginHost, RunDir, load, read_metadata, save
+from vqtouch.plugins.tokenizer import tokenizer_location
+from vqtouch.plugins.tokenizer.training import Tokenizer
 
 #: Where the bundles live inside the installed package.
 BUNDLES = Path(__file__).parent / "weights"
@@ -90,7 +92,6 @@ def export_bundle(generator_run: str | Path, name: str, host: PluginHost, *, roo
     """Write the newest checkpoint of ``generator_run`` (its generator, conditioners and the tokenizer
     it was trained on) as bundle ``name`` under ``root``; returns the bundle's folder."""
     from vqtouch.plugins.generator.pipeline import load_pipeline
-    from vqtouch.plugins.tokenizer import tokenizer_location
 
     if precision not in ("fp16", "fp32"):
         raise ConfigError(f"--precision {precision!r}: choose fp16 or fp32")
@@ -176,7 +177,6 @@ def load_bundle(name: str, host: PluginHost, *, device: str | torch.device = "cp
                 tokenizer_only: bool = False) -> Bundle:
     """Load bundle ``name`` strictly (every tensor by name and shape) onto ``device``, in eval mode;
     ``tokenizer_only``: the tokenizer alone (no generator, no conditioners built)."""
-    from vqtouch.plugins.tokenizer.training import Tokenizer
 
     folder = bundle_folder(name, root)
     autoencoder = load(folder / TOKENIZER / "autoencoder.safetensors", host=host, map_location=device)

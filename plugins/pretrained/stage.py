@@ -24,6 +24,10 @@ from vqtouch.core.image_size import image_hw
 from vqtouch.plugins.evaluation.contact import dataset_background
 
 from .bundle import Bundle, bundle_folder, load_bundle
+from vqtouch.core import MetricSet
+from vqtouch.plugins.generator.stage import SAMPLES_CAPTION, SHOWN_SCORES, baseline_pool, held_out_conditions, score_generation
+from vqtouch.plugins.tokenizer.stages import SHOWN_SCORES as TOKENIZER_SCORES, printable, save_pairs
+from vqtouch.plugins.tokenizer.training import evaluate_reconstruction
 
 #: The folder of the stage's pictures inside the run.
 PICTURES = "pretrained"
@@ -65,12 +69,6 @@ def check_compatible(bundle: Bundle, config: Any) -> None:
 
 def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
     """Load the bundle, check it fits the scene, score its tokenizer and each of its conditioners."""
-    from vqtouch.core import MetricSet
-    from vqtouch.plugins.generator.stage import (SAMPLES_CAPTION, SHOWN_SCORES, baseline_pool, held_out_conditions,
-                                                 score_generation)
-    from vqtouch.plugins.tokenizer.stages import SHOWN_SCORES as TOKENIZER_SCORES
-    from vqtouch.plugins.tokenizer.stages import printable, save_pairs
-    from vqtouch.plugins.tokenizer.training import evaluate_reconstruction
 
     config, section = job.config, job.section
     try:

@@ -28,6 +28,7 @@ from vqtouch.core.training import collate_samples
 
 from .discriminator import adaptive_weight, hinge_discriminator_loss
 from .quantizers import perplexity_of_counts
+from vqtouch.plugins.evaluation.contact import ContactRegionScores
 
 
 class TokenizerLossConfig(Section):
@@ -204,7 +205,6 @@ def evaluate_reconstruction(tokenizer: Tokenizer, dataset: Any, metrics: Mapping
     caller may then skip the evaluation and say why), and :class:`VqtouchError` when the
     reconstructions are not finite: no metric can score them.
     """
-    from vqtouch.plugins.evaluation.contact import ContactRegionScores
 
     if len(dataset) == 0:
         raise NothingToEvaluateError(
