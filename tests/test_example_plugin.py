@@ -149,9 +149,9 @@ def test_a_run_made_with_an_uninstalled_plugin_names_its_distribution(run_cli, e
     result = run_cli("evaluate", "reconstruction", "--run", str(out), python_path=example_plugin_site,
                      env_extra={"VQTOUCH_DISABLE_PLUGIN_AUTOLOAD": "1"})
     assert result.returncode == 2
-    assert result.stderr.strip() == (f"vqtouch: error: {out}: sensor uses sensor_family 'toy_sensor' from "
-                                     "vqtouch-example-plugin 0.3.0 (plugin 'example'), which is not installed here; "
-                                     "pip install vqtouch-example-plugin")
+    assert result.stderr.strip() == (f"vqtouch: error: {out}: its config section 'gallery' belongs to stage "
+                                     "'gallery' from vqtouch-example-plugin 0.3.0 (plugin 'example'), which is not "
+                                     "installed here; pip install vqtouch-example-plugin")
 
 
 def test_a_checkpoint_made_by_an_uninstalled_plugin_names_its_distribution(run_cli, example_plugin_site, tmp_path):

@@ -71,10 +71,10 @@ def test_block_removes_a_builtin():
 
 
 def test_block_from_environment(monkeypatch):
+    full = load_plugins(autoload=False)
     monkeypatch.setenv("VQTOUCH_BLOCK_PLUGINS", "metrics, label")
     host = load_plugins(autoload=False)
     # psnr, ssim, ms_ssim and lpips came from "metrics": none is left, the other plugins' metrics are.
-    full = load_plugins(autoload=False)
     from_metrics = {entry.name for entry in full.registry("metric") if entry.source.plugin == "metrics"}
     assert {"psnr", "ssim", "ms_ssim", "lpips"} <= from_metrics
     assert set(host.registry("metric").names()) == set(full.registry("metric").names()) - from_metrics

@@ -3,7 +3,7 @@ import json
 import pytest
 
 from vqtouch.core import RunDir, resolve_config, seed_everything
-from vqtouch.core.runs import config_hash
+from vqtouch.core.runs import config_hash, recorded_config
 
 
 def test_run_dir_name_and_files(host, tmp_path):
@@ -11,7 +11,11 @@ def test_run_dir_name_and_files(host, tmp_path):
     run = RunDir.create(config, argv=["vqtouch", "demo"], host=host)
     assert run.path.parent == tmp_path
     assert run.path.name.startswith("label-to-touch-") and run.path.name.endswith(config_hash(config))
-    assert json.loads((run.path / "config.json").read_text()) == config.to_dict()
+    recorded = json.loads((run.path / "config.json").read_text())
+    assert recorded == recorded_config(config, host)
+    # Only the sections of the stages it runs (and those holding their slots); it reads back as the config.
+    assert "generator" in recorded and "cluster" not in recorded and "cluster" in config.to_dict()
+    assert RunDir.open(run.path).load_config(host) == config
     env = json.loads((run.path / "env.json").read_text())
     assert env["argv"] == ["vqtouch", "demo"] and env["seed"] == 3
     assert {"torch", "torchvision", "pydantic", "pluggy", "safetensors"} <= set(env["versions"])
