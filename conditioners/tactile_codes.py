@@ -20,10 +20,9 @@ import torch
 from pydantic import Field
 from torch import nn
 
-from vqtouch.core import BuildContext, ConfigError, Conditioner, PluginConfig, hookimpl
+from vqtouch.core import BuildContext, Conditioner, ConfigError, PluginConfig, VqtouchError, hookimpl, load_plugins
 from vqtouch.core.image_size import ImageSize, image_hw
 from vqtouch.core.frozen import FrozenModule
-from vqtouch.core import VqtouchError, load_plugins
 from vqtouch.plugins.tokenizer import load_tokenizer
 
 

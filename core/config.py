@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal, Union
 from pydantic import AfterValidator, BaseModel, Field, SerializeAsAny, ValidationError, ValidationInfo, WrapValidator
 from pydantic_core import PydanticCustomError
 
-from .deprecations import (CONFIG_REMOVED, CONFIG_RENAMES, RENAMED_IN, STAGE_RENAMES, STAGES_REMOVED, ConfigRename,
+from .deprecations import (CONFIG_REMOVED, CONFIG_RENAMES, RENAMED_IN, STAGES_REMOVED, ConfigRename,
                            warn_renamed)
 from .errors import (ConfigError, PluginError, UnknownPluginError, format_validation_error, one_line,
                      unknown_name_message)
@@ -413,17 +413,9 @@ def migrate_config(data: Mapping[str, Any], registered_stages: Iterable[str] = (
     for rename in CONFIG_RENAMES:
         _apply_rename(migrated, rename, experiment_model)
     stages = migrated.get("stages")
-    if isinstance(stages, list):
-        renamed = []
-        for stage in stages:
-            if isinstance(stage, str) and stage in STAGES_REMOVED and stage not in registered:
-                raise ConfigError(f"stage {stage!r} (vqtouch 0.1.0) was removed in {RENAMED_IN}: "
-                                  f"{STAGES_REMOVED[stage]}")
-            if isinstance(stage, str) and stage in STAGE_RENAMES:
-                warn_renamed(stage, STAGE_RENAMES[stage], what="stage", stacklevel=4)
-                stage = STAGE_RENAMES[stage]
-            renamed.append(stage)
-        migrated["stages"] = renamed
+    for stage in stages if isinstance(stages, list) else []:
+        if isinstance(stage, str) and stage in STAGES_REMOVED and stage not in registered:
+            raise ConfigError(f"stage {stage!r} (vqtouch 0.1.0) was removed in {RENAMED_IN}: {STAGES_REMOVED[stage]}")
     return migrated
 
 

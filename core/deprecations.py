@@ -4,7 +4,7 @@ Each rename either keeps working with a one-line :class:`VqtouchDeprecationWarni
 name (the old spelling is removed in :data:`REMOVAL_VERSION`), or fails at load time with a one-line
 error naming what replaced it.  Nothing that changed is left to fail later with a traceback.
 
-- **config keys** (:data:`CONFIG_RENAMES`, :data:`CONFIG_REMOVED`, :data:`STAGE_RENAMES`): applied by
+- **config keys** (:data:`CONFIG_RENAMES`, :data:`CONFIG_REMOVED`, :data:`STAGES_REMOVED`): applied by
   :func:`vqtouch.core.config.migrate_config` to every configuration before it is validated (scenes, files, ``--set``
   and the ``config.json`` of old runs);
 - **registry kinds** (:data:`KIND_RENAMES`): checkpoints whose header names an old kind load under
@@ -68,9 +68,7 @@ CONFIG_REMOVED: dict[str, str] = {
               "move its options under the stage they were meant for, e.g. --set tokenizer.train.steps=200"),
 }
 
-#: Stage names of 0.1.0: the new name, or None when the stage is gone (with the reason in
-#: :data:`STAGES_REMOVED`).
-STAGE_RENAMES: dict[str, str] = {}
+#: Stage names of 0.1.0 that are gone, and what replaced them.
 STAGES_REMOVED: dict[str, str] = {
     "evaluate": ("each stage now scores its own product, and `vqtouch evaluate reconstruction|generation` "
                  "scores a finished run; remove 'evaluate' from stages"),

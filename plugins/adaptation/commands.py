@@ -24,11 +24,10 @@ import json
 from pathlib import Path
 
 from vqtouch.core import ConfigError, hookimpl
-from vqtouch.core.cli import add_step_argument, non_negative_int, positive_int
+from vqtouch.core.cli import add_step_argument, command_group, non_negative_int, positive_int
 from vqtouch.plugins.evaluation.records import add_experiment_arguments
 from vqtouch.core.image_size import image_size_argument
 from vqtouch.plugins.tokenizer import load_tokenizer
-from vqtouch.core.cli import command_group
 from vqtouch.plugins.scenes import GELSIGHT_DERIVATIVE_II
 
 

@@ -99,7 +99,7 @@ def _caption(job: StageJob, caption: str) -> str:
     spec = job.section.family_tokenizer
     if not spec:
         return caption
-    kind = "the bundled tokenizer" if spec.startswith("pretrained:") else "the tokenizer"
+    kind = "the bundled tokenizer" if is_pretrained(spec) else "the tokenizer"
     return f"With {kind} {spec}, not this run's. {caption}"
 
 

@@ -58,17 +58,15 @@ from typing import Any, Callable, Sequence
 
 import torch
 
-from vqtouch.core import ConfigError, PluginHost, hookimpl
-from vqtouch.core.cli import non_negative_int, positive_int
+from vqtouch.core import Assembly, ConfigError, PluginHost, hookimpl
+from vqtouch.core.cli import add_step_argument, command_group, non_negative_int, positive_int
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.plugins.evaluation.records import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
 from vqtouch.core.training import collate_samples
 from vqtouch.plugins.generator.stage import sample_images
-from vqtouch.core import Assembly
 from vqtouch.core.data import experiment_split
 from vqtouch.plugins.evaluation.contact import dataset_background
 from vqtouch.core.images import image_grid, save_png
-from vqtouch.core.cli import add_step_argument, command_group
 
 GENERATED, FEW, FEW_AND_GENERATED, CEILING, BACKGROUND = (
     "generated only", "real few", "real few + generated", "all real (ceiling)", "no-contact background")

@@ -16,14 +16,14 @@ from pathlib import Path
 from typing import Any
 
 from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, atomic_write, hookimpl, run_stage
-from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group, plugin_block,
-                              positive_int, stage_failure, training_run)
+from vqtouch.core.checkpoint import is_pretrained
+from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group,
+                              config_from_args, plugin_block, positive_int, stage_failure, training_run)
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
 from vqtouch.plugins.tokenizer import tokenizer_configs, tokenizer_location
-from vqtouch.core.cli import config_from_args
 from vqtouch.core.data import experiment_split
 from vqtouch.core.image_size import image_hw
 from vqtouch.plugins.evaluation.contact import dataset_background
@@ -107,9 +107,9 @@ def _generate_command(args: argparse.Namespace) -> int:
     values = values * args.n if len(values) == 1 else values
     if len(values) != args.n and args.n_given:
         raise ConfigError(f"{len(values)} --{key} values for --n {args.n}; give one value or --n values")
+    chosen = pipe.conditioner_index(key, args.conditioner)
     images = pipe(**{key: values}, steps=args.steps, sampler=args.sampler, guidance=args.guidance,
-                  truncation=args.truncation, seed=args.seed, batch_size=args.batch_size,
-                  conditioner=args.conditioner)
+                  truncation=args.truncation, seed=args.seed, batch_size=args.batch_size, conditioner=chosen)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for index, image in enumerate(images):
@@ -121,7 +121,7 @@ def _generate_command(args: argparse.Namespace) -> int:
                 "guidance": pipe.settings["guidance"] if args.guidance is None else args.guidance,
                 "truncation": pipe.settings["truncation"] if args.truncation is None else args.truncation,
                 "seed": args.seed, "batch_size": args.batch_size,
-                "conditioner": pipe.conditioner_names()[pipe.conditioner_index(key, args.conditioner)]}
+                "conditioner": pipe.conditioner_names()[chosen]}
     (out / "generate.json").write_text(json.dumps(settings, indent=2) + "\n")
     print(f"{len(images)} images -> {out} (sample_*.png, grid.png, generate.json)")
     return 0
@@ -166,7 +166,7 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
         raise ConfigError("--set/--config/--tokenizer/--overwrite belong to the experiment (--out without --run); "
                           "scoring a run (--run) uses the run's own config")
 
-    from .pipeline import is_pretrained, load_pipeline
+    from .pipeline import load_pipeline
     from .stage import baseline_pool, distribution_scorer, held_out_conditions, score_generation
 
     host = args.host

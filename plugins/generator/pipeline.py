@@ -20,7 +20,7 @@ from typing import Any
 import torch
 
 from vqtouch.core import ConfigError, PluginHost, RunDir, VqtouchError, load, load_plugins, resolve_device
-from vqtouch.core.checkpoint import PRETRAINED_PREFIX, is_pretrained, open_pretrained  # noqa: F401 - re-exported
+from vqtouch.core.checkpoint import is_pretrained, open_pretrained
 from vqtouch.core.image_size import ImageSize
 from vqtouch.core.training import collate_samples
 
@@ -113,7 +113,8 @@ class GenerationPipeline:
         ``key=[v1, v2, ...]`` (one per image); a single value is repeated ``n`` times.
 
         Unset settings take the run's own (``generator.steps``, ``sampler``, ``guidance``,
-        ``truncation``).  ``conditioner``: which conditioner (index or name) when several read ``key``.  Values are what :meth:`vqtouch.core.Conditioner.parse_condition` takes
+        ``truncation``).  ``conditioner``: which conditioner (index or name) when several read ``key``.
+        Values are what :meth:`vqtouch.core.Conditioner.parse_condition` takes
         (a class index or name, an image path or tensor, a text).
         """
         if len(conditions) != 1:
@@ -160,7 +161,7 @@ def load_pipeline(run: str | Path, *, host: PluginHost | None = None, step: int 
     if is_pretrained(run):
         if step is not None:
             raise ConfigError(f"--step belongs to runs; {run} is a bundle with one checkpoint")
-        return _bundle_pipeline(str(run)[len(PRETRAINED_PREFIX):], host, device)
+        return _bundle_pipeline(str(run), host, device)
     run_dir = RunDir.open(run)
     config = run_dir.load_config(host)
     section = getattr(config, "generator", None)
@@ -183,16 +184,16 @@ def load_pipeline(run: str | Path, *, host: PluginHost | None = None, step: int 
                               config.data.image_size, host, device_, folder, config, run_dir)
 
 
-def _bundle_pipeline(name: str, host: PluginHost, device: str | None) -> GenerationPipeline:
-    """The pipeline of bundle ``name``: its weights, and the generator settings, classes and image size
+def _bundle_pipeline(spec: str, host: PluginHost, device: str | None) -> GenerationPipeline:
+    """The pipeline of the bundle ``spec`` (``pretrained:NAME``) names: its weights, and the generator settings, classes and image size
     of the config recorded in its headers."""
     from vqtouch.core import validate_experiment
 
     device_ = resolve_device(device or "auto")
     # The package that ships bundles builds on this one, so it is asked through its hook, not imported.
-    bundle = open_pretrained(PRETRAINED_PREFIX + name, host, device_)
+    bundle = open_pretrained(spec, host, device_)
     if not bundle.run_config:
-        raise ConfigError(f"pretrained:{name}: its headers record no run config; export it again with "
+        raise ConfigError(f"{spec}: its headers record no run config; export it again with "
                           "`vqtouch pretrained export`")
     config = validate_experiment(bundle.run_config, host)
     section = config.generator

@@ -18,13 +18,12 @@ from typing import Any
 
 from pydantic import Field
 
-from vqtouch.core import ConfigError, Section, StageJob, StageUnavailable, hookimpl, resolve_device
+from vqtouch.core import ConfigError, MetricSet, Section, StageJob, StageUnavailable, hookimpl, resolve_device
 from vqtouch.core.data import DatasetSubset, experiment_split
 from vqtouch.core.image_size import image_hw
 from vqtouch.plugins.evaluation.contact import dataset_background
 
 from .bundle import Bundle, bundle_folder, load_bundle
-from vqtouch.core import MetricSet
 from vqtouch.plugins.generator.stage import SAMPLES_CAPTION, SHOWN_SCORES, baseline_pool, held_out_conditions, score_generation
 from vqtouch.plugins.tokenizer.stages import SHOWN_SCORES as TOKENIZER_SCORES, printable, save_pairs
 from vqtouch.plugins.tokenizer.training import evaluate_reconstruction
