@@ -124,11 +124,12 @@ def vqtouch_add_commands(subparsers: argparse._SubParsersAction) -> None:
 @hookspec
 def vqtouch_register_stages(register: Callable[..., None]) -> None:
     """Register pipeline stages: ``register(name, run, *, section=None, needs=(), uses=(),
-    description="", demo=None)``.
+    description="", demo=None, makes=())``.
 
     ``run(job: vqtouch.core.StageJob) -> dict | None`` does the stage's work; ``section`` is the
     stage's own config model (validated at ``config.<name>``); ``needs``/``uses`` are the slot
-    paths it requires / uses when set.  See :mod:`vqtouch.core.stages`.
+    paths it requires / uses when set; ``makes`` the products it publishes in its run for later
+    stages (``job.publish``, ``job.product``).  See :mod:`vqtouch.core.stages`.
     """
 
 

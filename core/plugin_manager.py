@@ -338,7 +338,8 @@ def _assemble_experiment_model(host: PluginHost) -> None:
 
 def _stage_register(host: PluginHost, source: PluginSource) -> Any:
     def register(name: str, run: Any, *, section: type[Section] | None = None, needs: Iterable[str] = (),
-                 uses: Iterable[str] = (), description: str = "", demo: Mapping[str, Any] | None = None) -> None:
+                 uses: Iterable[str] = (), description: str = "", demo: Mapping[str, Any] | None = None,
+                 makes: Iterable[str] = ()) -> None:
         if name in host.stages:
             raise PluginError(f"duplicate stage {name!r}: registered by {host.stages[name].source.describe()} "
                               f"and again by {source.describe()}; block one with {ENV_BLOCK}")
@@ -347,8 +348,15 @@ def _stage_register(host: PluginHost, source: PluginSource) -> Any:
         if section is not None and not (isinstance(section, type) and issubclass(section, Section)):
             raise PluginError(f"{source.describe()}: stage {name!r} section must subclass vqtouch.core.Section, "
                               f"got {section!r}")
+        makes = (makes,) if isinstance(makes, str) else tuple(makes)
+        for product in makes:
+            other = next((stage for stage in host.stages.values() if product in stage.makes), None)
+            if other is not None:
+                raise PluginError(f"{source.describe()}: stage {name!r} makes product {product!r}, which stage "
+                                  f"{other.name!r} ({other.source.describe()}) already makes; a product has one "
+                                  "maker, so rename one")
         host.stages[name] = StageEntry(name, run, section, tuple(needs), tuple(uses), description, source,
-                                       dict(demo or {}))
+                                       dict(demo or {}), makes)
     return register
 
 

@@ -6,6 +6,7 @@ Layout::
         config.json     the fully resolved ExperimentConfig
         env.json        versions, plugins, command line, seed, git revision
         metrics.jsonl   one JSON object per logged step
+        products.json   what each stage made, by product name (see :meth:`RunDir.publish`)
         checkpoints/    step-NNNNNNNN/ folders, one safetensors file per trained component (the
                         tokenizer's; another trained stage keeps its own in checkpoints/<stage>/)
         .vqtouch.lock   advisory lock of the process writing the run (holds its pid)
@@ -16,6 +17,11 @@ time writes a run: :meth:`RunDir.create` and ``RunDir.open(..., for_writing=True
 ``fcntl.flock`` on ``.vqtouch.lock``, which the operating system releases when the process ends,
 however it ends.  Readers take no lock.  Whatever reads a run's weights asks :meth:`RunDir.checkpoint`,
 which also checks that the files were made with the run's own config.
+
+Stages hand what they made to later stages and commands through the run, not through imports:
+a stage publishes a product (``job.publish("families", "cluster")``) under a name its
+registration declares (``makes=("families",)``), and a reader asks the run for it
+(``run.product("families", host)``), which names the stage that makes it when it is missing.
 """
 
 from __future__ import annotations
@@ -33,12 +39,13 @@ import time
 import warnings
 import weakref
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from .checkpoint import atomic_write, read_metadata
 from .config import ExperimentConfig, validate_experiment
-from .errors import CheckpointError, ConfigError, VqtouchWarning
+from .errors import CheckpointError, ConfigError, VqtouchError, VqtouchWarning, unknown_name_message
 
 if TYPE_CHECKING:
     from .plugin_manager import PluginHost
@@ -53,6 +60,23 @@ except ImportError:  # pragma: no cover - Windows has no flock; runs there are s
 #: lock two different files of the same name).  Only RunDir makes it, so it also marks a run
 #: directory whose config.json is not written yet.
 LOCK_NAME = ".vqtouch.lock"
+#: The index of what the run's stages made (:meth:`RunDir.publish`, :meth:`RunDir.product`).
+PRODUCTS_FILE = "products.json"
+
+
+@dataclass(frozen=True)
+class Product:
+    """Something a stage made and published in its run: ``path`` (a file or folder inside the
+    run), the ``stage`` that made it, and ``facts`` the stage recorded with it (e.g. ``step``)."""
+
+    name: str
+    stage: str
+    path: Path
+    facts: dict[str, Any] = field(default_factory=dict)
+
+
+class MissingProductError(VqtouchError):
+    """A run does not hold the product asked for; the message names the stage that makes it."""
 
 
 class StartedAfreshWarning(VqtouchWarning):
@@ -436,6 +460,65 @@ class RunDir:
                                   f"(plugin {source['plugin']!r}), which is not installed here; pip install {package}")
         return validate_experiment(data, host)
 
+    def publish(self, name: str, path: str | Path, *, stage: str, **facts: Any) -> Product:
+        """Record that ``stage`` made product ``name`` at ``path`` (inside the run; relative to it
+        or absolute), with JSON-ready ``facts``.  Publishing a name again replaces its entry;
+        the index is rewritten atomically, so a reader never sees half of it.  Stages publish
+        through :meth:`StageJob.publish <vqtouch.core.StageJob.publish>`, which checks the name
+        against the stage's ``makes``."""
+        target = Path(path) if Path(path).is_absolute() else self.path / path
+        try:
+            relative = target.resolve().relative_to(self.path.resolve())
+        except ValueError:
+            raise ValueError(f"product {name!r} of stage {stage!r}: {target} is outside the run {self.path}; "
+                             "a stage publishes only what it wrote inside its run") from None
+        if not target.exists():
+            raise ValueError(f"product {name!r} of stage {stage!r}: {target} does not exist; publish a product "
+                             "after writing it")
+        index = self._product_index()
+        index[name] = {"stage": stage, "path": relative.as_posix(), "facts": json.loads(json.dumps(facts))}
+        self.write_json(PRODUCTS_FILE, index)
+        return self._product(name, index[name])
+
+    def products(self) -> dict[str, Product]:
+        """Every product the run's stages published, by name."""
+        return {name: self._product(name, entry) for name, entry in self._product_index().items()}
+
+    def product(self, name: str, host: PluginHost | None = None) -> Product:
+        """The product ``name`` a stage of this run published.
+
+        :class:`MissingProductError` when the run holds none (naming the stage that makes it,
+        when ``host`` is given) or when its file is gone.  With ``host``, a name no registered
+        stage makes is refused listing the names that exist.
+        """
+        makers = product_makers(host) if host is not None else {}
+        if host is not None and name not in makers:
+            raise MissingProductError(unknown_name_message("product", name, makers) + " (no stage makes it)")
+        entry = self._product_index().get(name)
+        if entry is None:
+            made = ", ".join(sorted(self._product_index())) or "nothing yet"
+            maker = f"; the {makers[name]!r} stage makes it: run it in this run first" if name in makers else ""
+            raise MissingProductError(f"{self.path}: no {name!r} in this run (it holds {made}){maker}")
+        product = self._product(name, entry)
+        if not product.path.exists():
+            raise MissingProductError(f"{self.path}: the {name!r} that stage {product.stage!r} made is gone "
+                                      f"({product.path}); run that stage again")
+        return product
+
+    def _product_index(self) -> dict[str, Any]:
+        path = self.path / PRODUCTS_FILE
+        if not path.is_file():
+            return {}
+        index = read_run_json(path)
+        if not isinstance(index, dict) or not all(isinstance(entry, dict) and {"stage", "path"} <= entry.keys()
+                                                  for entry in index.values()):
+            raise ConfigError(f"{path}: not a products index (expected {{name: {{stage, path, facts}}}}); "
+                                  "run the stages that made them again, or delete the file")
+        return index
+
+    def _product(self, name: str, entry: Mapping[str, Any]) -> Product:
+        return Product(name, entry["stage"], self.path / entry["path"], dict(entry.get("facts") or {}))
+
     def write_json(self, name: str, data: Any) -> Path:
         """Write ``data`` as indented JSON to ``name`` inside the run, atomically."""
         text = json.dumps(data, indent=2, sort_keys=True, default=str) + "\n"
@@ -450,6 +533,11 @@ class RunDir:
         record = {"stage": stage, "step": step, **{key: float(value) for key, value in metrics.items()}}
         with open(self.path / "metrics.jsonl", "a", encoding="utf-8") as handle:
             handle.write(json.dumps(record, sort_keys=True) + "\n")
+
+
+def product_makers(host: PluginHost) -> dict[str, str]:
+    """Which registered stage makes each product name (the stages' ``makes``)."""
+    return {product: stage.name for stage in host.stages.values() for product in stage.makes}
 
 
 def _canonical(value: Any) -> str:

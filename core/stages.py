@@ -4,7 +4,7 @@ A stage plugin registers, through ``vqtouch_register_stages``::
 
     register("tokenizer", run_tokenizer_stage, section=TokenizerSection,
              needs=("data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer"),
-             uses=("tokenizer.discriminator", "metrics"),
+             uses=("tokenizer.discriminator", "metrics"), makes=("tokenizer",),
              description="Train the tactile tokenizer ...", demo={"train.steps": 40})
 
 - ``section``: the stage's own config model (a :class:`~vqtouch.core.config.Section`),
@@ -13,6 +13,9 @@ A stage plugin registers, through ``vqtouch_register_stages``::
 - ``needs``: slot paths the stage cannot run without; ``uses``: slots it uses when set.
   Both may name slots of any section (core's ``sensor``, ``data.dataset``, ``metrics``, or
   another stage's).  Unknown paths fail when plugins load.
+- ``makes``: the products the stage publishes in its run (``job.publish(name, path, **facts)``)
+  for later stages and commands, which ask the run for them (``job.product(name)``,
+  ``RunDir.product``) instead of importing the stage's code.  A product name belongs to one stage.
 - ``run(job)`` does the work and returns a JSON-ready report (scores; ``"picture"``: a file
   name inside the run, ``"caption"``: what its rows and columns show; ``"skipped"``: what could
   not be scored and why), or raises :class:`StageUnavailable` saying why it cannot run.
@@ -27,9 +30,10 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .errors import VqtouchError
+from .errors import PluginError, VqtouchError
 from .seeding import seed_everything
 
 if TYPE_CHECKING:
@@ -37,7 +41,7 @@ if TYPE_CHECKING:
     from .config import ExperimentConfig, Section
     from .plugin_manager import PluginHost
     from .registry import PluginSource
-    from .runs import RunDir
+    from .runs import Product, RunDir
 
 
 class StageUnavailable(VqtouchError):
@@ -56,6 +60,7 @@ class StageEntry:
     description: str
     source: PluginSource
     demo: Mapping[str, Any] = field(default_factory=dict)
+    makes: tuple[str, ...] = ()
 
     @property
     def slots(self) -> tuple[str, ...]:
@@ -79,6 +84,21 @@ class StageJob:
     assembly: Assembly
     section: Any = None
     resume: bool = False
+
+    def publish(self, name: str, path: str | Path, **facts: Any) -> Product:
+        """Publish what this stage made at ``path`` (inside the run) as product ``name``, one of
+        the names its registration declares in ``makes``."""
+        makes = self.host.stage(self.stage).makes
+        if name not in makes:
+            declared = ", ".join(makes) or "none"
+            raise PluginError(f"{self.host.stage(self.stage).source.describe()}: stage {self.stage!r} published "
+                              f"{name!r} but declares makes={declared}; add it to the stage's registration")
+        return self.run.publish(name, path, stage=self.stage, **facts)
+
+    def product(self, name: str) -> Product:
+        """The product ``name`` an earlier stage published in this run (MissingProductError
+        naming the stage that makes it when the run holds none)."""
+        return self.run.product(name, self.host)
 
 
 @dataclass

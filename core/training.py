@@ -619,6 +619,12 @@ class Trainer:
             if deferred.received is not None:
                 signal.raise_signal(deferred.received)  # now to the handler it was meant for
 
+    @property
+    def last_checkpoint(self) -> Path | None:
+        """The step folder this trainer last wrote or resumed from (None before either): after
+        :meth:`fit`, the finished model's, which a stage publishes as its product."""
+        return self._saved[1] if self._saved is not None else None
+
     def _save_unless_saved(self) -> Path | None:
         if self._saved is not None and self._saved[0] == self.state.step and self._saved[1].is_dir():
             return self._saved[1]

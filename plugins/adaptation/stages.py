@@ -140,6 +140,7 @@ def run_cluster_stage(job: StageJob) -> dict[str, Any]:
                    "margin": assigned["margin"],
                    **experiment_metrics(job, reconstruct_all(tokenizer, sensor.images), sensor.images, "zero_shot_")}
     save_families(families, job.run.path / CLUSTER_FOLDER, job.host, extra, plotted)
+    job.publish("families", CLUSTER_FOLDER, count=result["families"], tokenizer=str(folder))
     return {**result, "picture": f"{CLUSTER_FOLDER}/families.png",
             "caption": _caption(job, "2-D PCA of the tokenizer's image features: each sensor's images (small "
                                      "points) and prototype (large marker, coloured by family); the unseen target "
@@ -149,14 +150,13 @@ def run_cluster_stage(job: StageJob) -> dict[str, Any]:
 def run_adapt_stage(job: StageJob) -> dict[str, Any]:
     """Adapt the run's tokenizer to the target sensor (see the module docstring)."""
     from .adapt import AdaptSettings, adapt_tokenizer, check_same_tokenizer, default_families
-    from .families import CLUSTER_JSON, load_families
+    from .families import load_families
 
     section, config = job.section, job.config
     tokenizer, folder = _family_tokenizer(job)
     target = target_spec(job)
-    clustered = job.run.path / CLUSTER_FOLDER
-    if (clustered / CLUSTER_JSON).is_file():
-        families = load_families(clustered, job.host)
+    if "families" in job.run.products():
+        families = load_families(job.product("families").path, job.host)
         check_same_tokenizer(families, folder, "the cluster stage's families")
     else:
         families = default_families(tokenizer, job.host, image_size=tokenizer.autoencoder.vqtouch_spec.context.image_size,
@@ -167,6 +167,8 @@ def run_adapt_stage(job: StageJob) -> dict[str, Any]:
                              threshold=section.threshold, family=section.family, seed=config.seed)
     summary = adapt_tokenizer(folder if job.section.family_tokenizer else job.run, target, families, job.host,
                               job.run.path / ADAPTED_FOLDER, settings, overwrite=True, report=lambda line: None)
+    job.publish("adapted_tokenizer", ADAPTED_FOLDER, target=summary["target"], family=summary["family"],
+                shots=summary["shots"])
     result = {"target": summary["target"], "family": summary["family"], "shots": summary["shots"],
               "ratio": summary["ratio"], "steps": summary["steps"], "seconds": summary["seconds"],
               **_tokenizer_note(job)}
@@ -186,10 +188,10 @@ def run_adapt_stage(job: StageJob) -> dict[str, Any]:
 def vqtouch_register_stages(register):
     register("cluster", run_cluster_stage, section=ClusterSection,
              needs=("tokenizer.autoencoder", "tokenizer.quantizer", "cluster.clusterer"), uses=("metrics",),
-             demo={"images_per_sensor": 16, "variants_per_family": 2},
+             makes=("families",), demo={"images_per_sensor": 16, "variants_per_family": 2},
              description="Cluster sensors into families from tokenizer features; assign an unseen sensor to one.")
     register("adapt", run_adapt_stage, section=AdaptSection,
              needs=("tokenizer.autoencoder", "tokenizer.quantizer", "sensor", "target_sensor"),
-             demo={"steps": 30, "shots": 20, "eval_images": 16},
+             makes=("adapted_tokenizer",), demo={"steps": 30, "shots": 20, "eval_images": 16},
              description="Adapt the family tokenizer to the target sensor from a few of its images mixed 1:5 with "
                          "family data.")

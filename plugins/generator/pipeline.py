@@ -19,10 +19,12 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import ConfigError, PluginHost, RunDir, VqtouchError, load, load_plugins, resolve_device
+from vqtouch.core import CheckpointError, ConfigError, PluginHost, RunDir, VqtouchError, load, load_plugins, resolve_device
 from vqtouch.core.checkpoint import is_pretrained, open_pretrained
 from vqtouch.core.image_size import ImageSize
 from vqtouch.core.training import collate_samples
+
+from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_location
 
 from .stage import CHECKPOINT_FOLDER
 
@@ -155,8 +157,6 @@ def load_pipeline(run: str | Path, *, host: PluginHost | None = None, step: int 
     """The generation pipeline of a run whose ``generator`` stage trained (its newest good checkpoint,
     ``step``, or ``"best"``), with the tokenizer it was trained on; or of a bundle, ``pretrained:NAME``
     (its tokenizer, generator and conditioners, with the config of the run that trained them)."""
-    from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_location
-
     host = host or load_plugins()
     if is_pretrained(run):
         if step is not None:
@@ -173,8 +173,7 @@ def load_pipeline(run: str | Path, *, host: PluginHost | None = None, step: int 
     generator = load(folder / "generator.safetensors", host=host, map_location=device_).eval()
     conditioners = [load(folder / f"conditioner_{index}.safetensors", host=host, map_location=device_).eval()
                     for index in range(len(section.conditioners))]
-    tokenizer, _ = load_tokenizer(tokenizer_location(section.tokenizer_run) if section.tokenizer_run else run_dir,
-                                  host, device=str(device_))
+    tokenizer, _ = load_tokenizer(generator_tokenizer(run_dir, section), host, device=str(device_))
     if section.sampler is None:
         raise ConfigError(f"{run_dir.path}: generator.sampler is empty; pass sampler=NAME")
     sampler = host.build("sampler", section.sampler)
@@ -182,6 +181,22 @@ def load_pipeline(run: str | Path, *, host: PluginHost | None = None, step: int 
     settings = {"steps": section.steps, "guidance": section.guidance, "truncation": section.truncation}
     return GenerationPipeline(tokenizer, generator, conditioners, sampler, section.sampler.name, settings, class_names,
                               config.data.image_size, host, device_, folder, config, run_dir)
+
+
+def generator_tokenizer(run_dir: RunDir, section: Any) -> RunDir | Path:
+    """Where the tokenizer a run's generator was trained on lives: the checkpoint folder its
+    ``generator`` product records, so that a tokenizer trained further afterwards is not picked up
+    in its place; for runs without products (made before vqtouch 0.2.0), the section's
+    ``tokenizer_run`` or the run itself (its newest tokenizer checkpoint)."""
+    generator = run_dir.products().get("generator")
+    if generator is None or "tokenizer" not in generator.facts:
+        return tokenizer_location(section.tokenizer_run) if section.tokenizer_run else run_dir
+    recorded = Path(generator.facts["tokenizer"])
+    folder = recorded if recorded.is_absolute() else run_dir.path / recorded
+    if not folder.is_dir():
+        raise CheckpointError(f"{run_dir.path}: its generator was trained on the tokenizer in {folder}, which is "
+                              "gone; restore that folder or train the generator again")
+    return folder
 
 
 def _bundle_pipeline(spec: str, host: PluginHost, device: str | None) -> GenerationPipeline:

@@ -153,6 +153,11 @@ def train_generator(job: StageJob) -> dict[str, Any]:
     if trainer.validates():
         result |= {"best_step": state.best_step, "best_val_loss": state.best_score}
     if trainer.dist.is_main:
+        # The tokenizer is recorded by its step folder, relative to the run when it is the run's own, so
+        # that readers use the codes the generator learned even after the tokenizer trains on.
+        inside = tokenizer_folder.resolve().is_relative_to(job.run.path.resolve())
+        recorded = tokenizer_folder.resolve().relative_to(job.run.path.resolve()) if inside else tokenizer_folder.resolve()
+        job.publish("generator", trainer.last_checkpoint, step=state.step, tokenizer=recorded.as_posix())
         if section.num_samples and len(val_set) and section.sampler is not None:
             result |= score_samples(job, tokenizer, task, val_set, train_set, dataset, device)
         job.run.write_json("generation.json", result)
@@ -473,7 +478,7 @@ def vqtouch_register_stages(register):
     register("generator", run_generator_stage, section=GeneratorSection,
              needs=("data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer", "generator.model",
                     "generator.conditioners"),
-             uses=("generator.sampler", "metrics"),
+             uses=("generator.sampler", "metrics"), makes=("generator",),
              demo={"train.steps": 60, "train.checkpoint_every": 60, "train.log_every": 10, "num_samples": 8,
                    "steps": 10},
              description="Train a generator over the tokenizer's codes, conditioned on a visual image, a tactile "

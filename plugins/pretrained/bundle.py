@@ -30,8 +30,7 @@ import torch
 from torch import nn
 
 from vqtouch.core import ConfigError, PluginHost, RunDir, load, read_metadata, save
-from vqtouch.plugins.tokenizer import tokenizer_location
-from vqtouch.plugins.tokenizer.training import Tokenizer
+from vqtouch.plugins.tokenizer import Tokenizer
 
 #: Where the bundles live inside the installed package.
 BUNDLES = Path(__file__).parent / "weights"
@@ -91,7 +90,7 @@ def export_bundle(generator_run: str | Path, name: str, host: PluginHost, *, roo
                   precision: str = "fp16", overwrite: bool = False) -> Path:
     """Write the newest checkpoint of ``generator_run`` (its generator, conditioners and the tokenizer
     it was trained on) as bundle ``name`` under ``root``; returns the bundle's folder."""
-    from vqtouch.plugins.generator.pipeline import load_pipeline
+    from vqtouch.plugins.generator.pipeline import generator_tokenizer, load_pipeline
 
     if precision not in ("fp16", "fp32"):
         raise ConfigError(f"--precision {precision!r}: choose fp16 or fp32")
@@ -103,7 +102,9 @@ def export_bundle(generator_run: str | Path, name: str, host: PluginHost, *, roo
     pipe = load_pipeline(generator_run, host=host, device="cpu")
     run = RunDir.open(generator_run)
     section = run.load_config(host).generator
-    source = tokenizer_location(section.tokenizer_run) if section.tokenizer_run else run
+    source = generator_tokenizer(run, section)
+    if isinstance(source, Path) and source.parent.name == "checkpoints" and (source.parent.parent / "config.json").is_file():
+        source = RunDir.open(source.parent.parent)  # a step folder of a run: that run's provenance
     generator_headers = _provenance(run)
     if isinstance(source, RunDir):
         tokenizer_headers = _provenance(source)

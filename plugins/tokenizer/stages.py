@@ -64,6 +64,7 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
     except NothingToEvaluateError:  # data.val_fraction=0 holds nothing out: keep the training, say why
         scores = {"evaluation": f"skipped: no held-out samples (data.val_fraction={config.data.val_fraction:g})"}
     if trainer.dist.is_main:
+        job.publish("tokenizer", trainer.last_checkpoint, step=state.step)
         if "examples" in scores:
             save_pairs(*scores["examples"], job.run.path / "reconstructions.png")
         best = {"best_step": state.best_step, "best_val_loss": state.best_score} if trainer.validates() else {}
@@ -130,7 +131,7 @@ def experiment_metrics(job: StageJob, predicted_B3HW: torch.Tensor, truth_B3HW: 
 def vqtouch_register_stages(register):
     register("tokenizer", run_tokenizer_stage, section=TokenizerSection,
              needs=("data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer"),
-             uses=("tokenizer.discriminator", "metrics", "sensor"),
+             uses=("tokenizer.discriminator", "metrics", "sensor"), makes=("tokenizer",),
              demo={"train.steps": 40, "train.checkpoint_every": 40, "train.log_every": 10},
              description="Train the tactile tokenizer (autoencoder + quantizer [+ GAN]) and score the held-out "
                          "split.")
