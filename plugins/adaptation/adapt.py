@@ -121,7 +121,7 @@ def target_images(spec: str, host: PluginHost, *, shots: int, eval_images: int, 
     """
     path = folder_of(spec)
     if path is not None:
-        from vqtouch.plugins.data.readers._io import list_images
+        from vqtouch.plugins.data.readers import list_images
 
         files = list_images(path)
         if len(files) < 2:
@@ -169,9 +169,9 @@ def reconstruction_scores(tokenizer: Any, images_N3HW: torch.Tensor, host: Plugi
     Given the sensor's no-contact image ``background_3HW``, also that image's scores against the
     same images (``background_<metric>``: what a tokenizer that draws only the background gets)
     and both on the contact region (``contact_*``, ``background_contact_*``, ``contact_fraction``;
-    :func:`~vqtouch.plugins.tokenizer.training.evaluate_reconstruction`).
+    :func:`~vqtouch.plugins.tokenizer.evaluate_reconstruction`).
     """
-    from vqtouch.plugins.tokenizer.training import evaluate_reconstruction
+    from vqtouch.plugins.tokenizer import evaluate_reconstruction
 
     built = {name: host.build("metric", {"name": name}) for name in metrics}
     scores = evaluate_reconstruction(tokenizer, ImageSet(images_N3HW), built, batch_size=batch_size,
@@ -196,7 +196,7 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
     from vqtouch.core.images import image_grid, save_png
     from vqtouch.core.training import Trainer
     from vqtouch.plugins.tokenizer import TOKENIZER_FILES, load_tokenizer, reconstruct_all, tokenizer_task
-    from vqtouch.plugins.tokenizer.training import TokenizerLossConfig, TokenizerTrainConfig
+    from vqtouch.plugins.tokenizer import TokenizerLossConfig, TokenizerTrainConfig
 
     refuse_existing(out, overwrite)
     if settings.shots < 1 or settings.ratio < 0:

@@ -129,7 +129,7 @@ def train_fresh_tokenizer(run: Any, images_N3HW: torch.Tensor, host: PluginHost,
     from vqtouch.core import Assembly, RunDir, resolve_device, save
     from vqtouch.core.training import Trainer
     from vqtouch.plugins.tokenizer import TOKENIZER_FILES, tokenizer_task
-    from vqtouch.plugins.tokenizer.training import Tokenizer
+    from vqtouch.plugins.tokenizer import Tokenizer
 
     config = RunDir.open(run).load_config(host)
     assembly = Assembly(config, host)

@@ -84,7 +84,7 @@ def sensor_images(spec: str, host: PluginHost, *, count: int, image_size: ImageS
     (scene seed ``seed``)."""
     from vqtouch.core import BuildContext
     from vqtouch.core.images import ImageLoader
-    from vqtouch.plugins.data.readers._io import list_images
+    from vqtouch.plugins.data.readers import list_images
 
     path = folder_of(spec)
     if path is not None:

@@ -93,7 +93,7 @@ def held_out_count(target: str, counts: Sequence[int], eval_images: int) -> int:
     """How many held-out images score every arm: ``eval_images``, or for a folder as many as the
     largest N leaves (its shuffle's last ones are held out; every N must leave the same ones).
     A one-line ConfigError when the folder cannot spare the largest N plus one held-out image."""
-    from vqtouch.plugins.data.readers._io import list_images
+    from vqtouch.plugins.data.readers import list_images
 
     path = folder_of(target)
     if path is None:
@@ -115,7 +115,7 @@ def sensor_background(target: str, host: PluginHost, image_size: ImageSize) -> t
     median of its images (at most :data:`MAX_BACKGROUND_IMAGES`, evenly spaced: contacts move
     around, the background stays; :func:`~vqtouch.plugins.evaluation.contact.median_background`, the
     estimate every stage makes of captured frames)."""
-    from vqtouch.plugins.data.readers._io import list_images
+    from vqtouch.plugins.data.readers import list_images
 
     path = folder_of(target)
     if path is None:

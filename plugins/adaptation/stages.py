@@ -21,8 +21,7 @@ from pydantic import Field
 from vqtouch.core import Section, Slot, StageJob, StageUnavailable, hookimpl
 from vqtouch.core.checkpoint import is_pretrained, open_pretrained
 from vqtouch.core.runs import MissingCheckpointError
-from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all, tokenizer_location
-from vqtouch.plugins.tokenizer.stages import experiment_metrics
+from vqtouch.plugins.tokenizer import experiment_metrics, load_tokenizer, reconstruct_all, tokenizer_location
 
 #: Where the stages write inside a run.
 CLUSTER_FOLDER, ADAPTED_FOLDER = "cluster", "adapted"

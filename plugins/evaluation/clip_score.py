@@ -9,7 +9,7 @@ CLIP embedding of the condition it was generated from:
 - a label (``label``): the text embedding of the ``prompt`` option filled with the class name
   (``"a tactile sensor image of {label}"`` by default).
 
-Generation scoring (:func:`vqtouch.plugins.generator.stage.score_generation`, behind the generator
+Generation scoring (:func:`vqtouch.plugins.generator.score_generation`, behind the generator
 stage and ``vqtouch evaluate generation``) reports the mean as ``clip_score`` beside the same score
 of every comparison it carries: the real ground-truth tactile images (``real_clip_score``), the
 sensor's no-contact background image (``background_clip_score``), the tokenizer's reconstruction

@@ -63,7 +63,7 @@ from vqtouch.core.cli import add_step_argument, command_group, non_negative_int,
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.plugins.evaluation.records import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
 from vqtouch.core.training import collate_samples
-from vqtouch.plugins.generator.stage import sample_images
+from vqtouch.plugins.generator import sample_images
 from vqtouch.core.data import experiment_split
 from vqtouch.plugins.evaluation.contact import dataset_background
 from vqtouch.core.images import image_grid, save_png
@@ -229,7 +229,7 @@ def evaluate_downstream(run: str | Path, host: PluginHost, out: str | Path, *, s
     the run's ``fd_effnetlite0`` metric's, else 224); ``train_images``: featurize at most this many
     real training images, drawn once at random (0: all; the ceiling arm then trains on them);
     ``batch_size``: labels generated per forward pass.  Returns what ``downstream.json`` holds."""
-    from vqtouch.plugins.generator.pipeline import load_pipeline
+    from vqtouch.plugins.generator import load_pipeline
 
     pipe = load_pipeline(run, host=host, step=step)
     config = pipe.config

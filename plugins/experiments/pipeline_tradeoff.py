@@ -391,7 +391,7 @@ class TokenizerTimer:
     def training_seconds_per_step(self) -> float:
         """Seconds per step of ``steps`` training steps (a fresh optimiser; the weights go on training,
         which does not change what a step costs)."""
-        from vqtouch.plugins.generator.tradeoff import synchronize
+        from vqtouch.plugins.generator import synchronize
 
         trainer = Trainer(self.task, self.train_set, self.train_config, batch_size=self.config.data.batch_size,
                           seed=self.config.seed, device=self.device, checkpoint_dir=None,
@@ -404,7 +404,7 @@ class TokenizerTimer:
 
     def seconds_per_image(self) -> float:
         """Seconds to encode and decode one held-out image (batches of the run's batch size)."""
-        from vqtouch.plugins.generator.tradeoff import synchronize
+        from vqtouch.plugins.generator import synchronize
 
         self.tokenizer.eval()
         synchronize(self.device)
@@ -479,7 +479,7 @@ def generator_rows(run: Path, config: Any, host: PluginHost, knobs: dict[str, li
     """One seed of part 2: train the generator in the baseline's ``run`` (on its tokenizer's codes),
     then time and score every sampling setting with ``vqtouch tradeoff generator``'s functions, the
     configured setting first and again last (drift)."""
-    from vqtouch.plugins.generator.tradeoff import check_settings, load_tradeoff_bench, measure, sweep_settings
+    from vqtouch.plugins.generator import check_settings, load_tradeoff_bench, measure, sweep_settings
 
     with RunDir.open(run, for_writing=True) as run_dir:
         outcome = run_stage("generator", Assembly(config, host), run_dir)
@@ -571,7 +571,7 @@ def summarize(rows: list[dict[str, Any]]) -> tuple[list[dict[str, Any]], str]:
 
 def pareto_front(costs: list[float], qualities: list[float | None]) -> list[int]:
     """:func:`vqtouch.plugins.generator.tradeoff.pareto_front`, higher quality better."""
-    from vqtouch.plugins.generator.tradeoff import pareto_front as front
+    from vqtouch.plugins.generator import pareto_front as front
 
     return front(costs, qualities, higher_is_better=True)
 

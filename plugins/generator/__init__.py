@@ -1,10 +1,51 @@
 """Generator stage: the discrete-diffusion decoder over the tokenizer's code grid, its samplers, training and
-generation (``load_pipeline``)."""
+generation.
+
+The public API other packages use (imported on first use, so importing this package stays light):
+generation from a trained run or a bundle (:func:`load_pipeline`, :func:`generator_tokenizer`,
+:func:`sample_images`), scoring generated samples against held-out conditions
+(:func:`score_generation`, :func:`held_out_conditions`, :func:`baseline_pool`, with
+:data:`GENERATION_SHOWN_SCORES` and :data:`SAMPLES_CAPTION` for reports), and the sampling
+speed/quality sweep (:func:`sweep_settings`, :func:`measure`, :func:`check_settings`,
+:func:`load_tradeoff_bench`, :func:`pareto_front`, :func:`synchronize`).  Other packages import
+these names from here, never the modules behind them (``make lint`` checks it).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+#: Public name -> (module of this package, name there).
+_PUBLIC = {
+    "GenerationPipeline": ("pipeline", "GenerationPipeline"),
+    "load_pipeline": ("pipeline", "load_pipeline"),
+    "generator_tokenizer": ("pipeline", "generator_tokenizer"),
+    "sample_images": ("stage", "sample_images"),
+    "score_generation": ("stage", "score_generation"),
+    "held_out_conditions": ("stage", "held_out_conditions"),
+    "baseline_pool": ("stage", "baseline_pool"),
+    "GENERATION_SHOWN_SCORES": ("stage", "SHOWN_SCORES"),
+    "SAMPLES_CAPTION": ("stage", "SAMPLES_CAPTION"),
+    "sweep_settings": ("tradeoff", "sweep_settings"),
+    "measure": ("tradeoff", "measure"),
+    "check_settings": ("tradeoff", "check_settings"),
+    "load_tradeoff_bench": ("tradeoff", "load_tradeoff_bench"),
+    "pareto_front": ("tradeoff", "pareto_front"),
+    "synchronize": ("tradeoff", "synchronize"),
+}
+
+__all__ = sorted(_PUBLIC)
 
 
-def load_pipeline(*args, **kwargs):
-    """The generation pipeline of a trained run; see :func:`vqtouch.plugins.generator.pipeline.load_pipeline`
-    (imported on first use, so importing this package stays light)."""
-    from .pipeline import load_pipeline as load
+def __getattr__(name: str) -> Any:
+    if name not in _PUBLIC:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module, attribute = _PUBLIC[name]
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), attribute)
+    globals()[name] = value  # later lookups skip this function
+    return value
 
-    return load(*args, **kwargs)
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_PUBLIC])

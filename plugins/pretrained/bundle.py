@@ -90,7 +90,7 @@ def export_bundle(generator_run: str | Path, name: str, host: PluginHost, *, roo
                   precision: str = "fp16", overwrite: bool = False) -> Path:
     """Write the newest checkpoint of ``generator_run`` (its generator, conditioners and the tokenizer
     it was trained on) as bundle ``name`` under ``root``; returns the bundle's folder."""
-    from vqtouch.plugins.generator.pipeline import generator_tokenizer, load_pipeline
+    from vqtouch.plugins.generator import generator_tokenizer, load_pipeline
 
     if precision not in ("fp16", "fp32"):
         raise ConfigError(f"--precision {precision!r}: choose fp16 or fp32")

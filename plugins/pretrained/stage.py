@@ -24,9 +24,9 @@ from vqtouch.core.image_size import image_hw
 from vqtouch.plugins.evaluation.contact import dataset_background
 
 from .bundle import Bundle, bundle_folder, load_bundle
-from vqtouch.plugins.generator.stage import SAMPLES_CAPTION, SHOWN_SCORES, baseline_pool, held_out_conditions, score_generation
-from vqtouch.plugins.tokenizer.stages import SHOWN_SCORES as TOKENIZER_SCORES, printable, save_pairs
-from vqtouch.plugins.tokenizer.training import evaluate_reconstruction
+from vqtouch.plugins.generator import (GENERATION_SHOWN_SCORES, SAMPLES_CAPTION, baseline_pool, held_out_conditions,
+                                       score_generation)
+from vqtouch.plugins.tokenizer import TOKENIZER_SHOWN_SCORES, evaluate_reconstruction, printable, save_pairs
 
 #: The folder of the stage's pictures inside the run.
 PICTURES = "pretrained"
@@ -90,7 +90,7 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
                                      batch_size=config.data.batch_size, background_3HW=background)
     save_pairs(*scores.pop("examples"), job.run.path / PICTURES / "reconstructions.png")
     parts: dict[str, Any] = {"bundled tokenizer": {
-        **{key: value for key, value in printable(scores).items() if key in TOKENIZER_SCORES},
+        **{key: value for key, value in printable(scores).items() if key in TOKENIZER_SHOWN_SCORES},
         "picture": f"{PICTURES}/reconstructions.png",
         "caption": "Held-out images of this run (top row) above the bundled tokenizer's reconstructions (bottom row)."}}
 
@@ -109,7 +109,7 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
                                      background_3HW=background,
                                      steps=section.steps, guidance=1.0, truncation=1.0, seed=config.seed,
                                      device=device, picture=job.run.path / picture, pool=pool)
-        parts[f"bundled generator from {name}"] = ({key: generated[key] for key in SHOWN_SCORES if key in generated}
+        parts[f"bundled generator from {name}"] = ({key: generated[key] for key in GENERATION_SHOWN_SCORES if key in generated}
                                                    | {"picture": picture, "caption": SAMPLES_CAPTION})
     return {"bundle": bundle.name, "bundled": True, "megabytes": round(bundle.size_bytes / 1e6, 2),
             "tokenizer_step": bundle.tokenizer_step, "generator_step": bundle.generator_step,
