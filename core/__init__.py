@@ -57,13 +57,21 @@ try:
 except _metadata.PackageNotFoundError:  # running from an uninstalled checkout
     __version__ = "0+unknown"
 
+#: The author-facing API: what a plugin package or a script needs, covered by the versioning promise
+#: in CHANGELOG.md.  The other names imported above stay importable from here for the built-ins and
+#: for code written against 0.1.0, but are internal: import them from their modules (e.g.
+#: ``vqtouch.core.runs.RunDir``) and expect them to move between minor releases.
 __all__ = [
-    "Assembly", "Autoencoder", "BuildContext", "CheckpointError", "Clusterer", "ConditionTokens", "Conditioner",
-    "ConfigError", "DatasetError", "Discriminator", "ExperimentConfig", "FrozenModule", "Generator", "Metric", "MetricSet",
-    "MissingWeightsError", "PerImageMetric", "PluginConfig", "PluginError", "PluginHost", "ProvidesContext",
-    "Quantizer", "QuantizerOutput", "RunDir", "Sampler", "Section", "SensorFamily", "SkippedMetric", "Slot", "StageJob", "StageOutcome",
-    "StageUnavailable", "TactileDataset", "TrainConfig", "UnknownPluginError", "VqtouchDeprecationWarning", "VqtouchError", "VqtouchWarning", "WeightsSpec",
-    "__version__", "atomic_write", "hookimpl", "load", "load_config_file", "load_missing_as_zeros", "load_plugins", "make_generator",
-    "read_metadata", "required_slots", "resolve_config", "resolve_device", "resolve_weights", "run_stage", "save",
-    "seed_everything", "validate_experiment",
+    # plugins: hooks, loading, options
+    "hookimpl", "load_plugins", "PluginHost", "PluginConfig", "BuildContext",
+    # the contracts a plugin implements
+    "SensorFamily", "TactileDataset", "Autoencoder", "Quantizer", "QuantizerOutput", "Discriminator",
+    "Conditioner", "ConditionTokens", "Generator", "Sampler", "Clusterer", "Metric",
+    # stages
+    "Section", "Slot", "StageJob", "StageUnavailable",
+    # errors a plugin raises
+    "VqtouchError", "ConfigError", "MissingWeightsError",
+    # checkpoints
+    "save", "load",
+    "__version__",
 ]
