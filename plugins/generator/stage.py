@@ -29,6 +29,7 @@ from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.core.training import Trainer, collate_samples
 from vqtouch.plugins.evaluation.contact import contact_centroid_errors, contact_region_scores, dataset_background
+from vqtouch.plugins.evaluation.directions import shown_scores
 
 from .training import CodesDataset, GeneratorTask, GeneratorTrainConfig
 from vqtouch.plugins.tokenizer import TOKENIZER_FILES, load_tokenizer, tokenizer_location
@@ -462,14 +463,15 @@ def run_generator_stage(job: StageJob) -> dict[str, Any]:
     """The ``generator`` stage: train, then the sample scores for the report."""
     result = train_generator(job)
     facts = {key: result[key] for key in ("step", "sampler", "steps", "best_step", "split_unit") if key in result}
+    metric_names = [metric.name for metric in job.config.metrics]
     if "by_conditioner" in result:  # several conditions: one part each, with its own sample grid
         parts = {}
         for key, scores in result["by_conditioner"].items():
             index, name = key.split(":", 1)
-            parts[f"from {name}"] = ({k: scores[k] for k in SHOWN_SCORES if k in scores}
+            parts[f"from {name}"] = (shown_scores(scores, SHOWN_SCORES, metric_names)
                                      | {"picture": samples_picture(int(index), name), "caption": SAMPLES_CAPTION})
         return {**facts, "parts": parts}
-    shown = {key: result[key] for key in SHOWN_SCORES if key in result}
+    shown = shown_scores(result, SHOWN_SCORES, metric_names)
     return {**facts, **shown, **({"picture": "samples.png", "caption": SAMPLES_CAPTION} if "samples" in result else {})}
 
 

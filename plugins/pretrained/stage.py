@@ -22,6 +22,7 @@ from vqtouch.core import ConfigError, MetricSet, Section, StageJob, StageUnavail
 from vqtouch.core.data import DatasetSubset, experiment_split
 from vqtouch.core.image_size import image_hw
 from vqtouch.plugins.evaluation.contact import dataset_background
+from vqtouch.plugins.evaluation.directions import shown_scores
 
 from .bundle import Bundle, bundle_folder, load_bundle
 from vqtouch.plugins.generator import (GENERATION_SHOWN_SCORES, SAMPLES_CAPTION, baseline_pool, held_out_conditions,
@@ -90,7 +91,7 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
                                      batch_size=config.data.batch_size, background_3HW=background)
     save_pairs(*scores.pop("examples"), job.run.path / PICTURES / "reconstructions.png")
     parts: dict[str, Any] = {"bundled tokenizer": {
-        **{key: value for key, value in printable(scores).items() if key in TOKENIZER_SHOWN_SCORES},
+        **shown_scores(printable(scores), TOKENIZER_SHOWN_SCORES, [name for name, _ in metrics]),
         "picture": f"{PICTURES}/reconstructions.png",
         "caption": "Held-out images of this run (top row) above the bundled tokenizer's reconstructions (bottom row)."}}
 
@@ -109,7 +110,8 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
                                      background_3HW=background,
                                      steps=section.steps, guidance=1.0, truncation=1.0, seed=config.seed,
                                      device=device, picture=job.run.path / picture, pool=pool)
-        parts[f"bundled generator from {name}"] = ({key: generated[key] for key in GENERATION_SHOWN_SCORES if key in generated}
+        parts[f"bundled generator from {name}"] = (shown_scores(generated, GENERATION_SHOWN_SCORES,
+                                                                [name for name, _ in metrics])
                                                    | {"picture": picture, "caption": SAMPLES_CAPTION})
     return {"bundle": bundle.name, "bundled": True, "megabytes": round(bundle.size_bytes / 1e6, 2),
             "tokenizer_step": bundle.tokenizer_step, "generator_step": bundle.generator_step,

@@ -30,6 +30,8 @@ from vqtouch.core.runs import RunDir, read_run_json
 from vqtouch.core.seeding import make_generator
 from vqtouch.core.stages import empty_slot_reason, missing_slots, required_slots, run_stage
 
+from vqtouch.plugins.evaluation.directions import declared_directions, metric_directions
+
 from .html import (BACKGROUND_PREFIX, beats, contact_verdict, direction_arrow, format_value, render_html, score_table,
                    stage_parts)
 
@@ -131,6 +133,8 @@ def run_demo(config: ExperimentConfig, host: PluginHost, run: RunDir) -> dict[st
                     presses = _ball_presses(config.data.image_size, component)
                     images = component.render(presses, generator=generator)
                 record["render"] = str(save_png(image_grid(images), run.path / f"render_{slot}.png"))
+            if isinstance(component, Metric):  # the report shows its scores the way the metric declares
+                report.setdefault("directions", {}).update(metric_directions({item.name: component}))
             if isinstance(component, Metric) and component.skipped is not None:
                 record["status"] = f"skipped: {component.skipped}"
             elif isinstance(component, Metric):
@@ -160,7 +164,9 @@ def write_reports(run_dir: str | Path, report: dict[str, Any]) -> Path:
     """Write report.md and the self-contained report.html of ``report`` into ``run_dir``, atomically;
     returns report.html's path."""
     run_dir = Path(run_dir)
-    for name, text in (("report.md", render_report(report)), ("report.html", render_html(report, run_dir))):
+    with declared_directions(report.get("directions", {})):
+        pages = (("report.md", render_report(report)), ("report.html", render_html(report, run_dir)))
+    for name, text in pages:
         atomic_write(run_dir / name, lambda tmp, text=text: tmp.write_text(text, encoding="utf-8"))
     return run_dir / "report.html"
 

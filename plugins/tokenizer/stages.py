@@ -22,6 +22,7 @@ from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.core.training import Trainer
 from vqtouch.plugins.evaluation.contact import contact_region_scores, dataset_background, no_contact_image
+from vqtouch.plugins.evaluation.directions import shown_scores
 
 from .loading import TOKENIZER_FILES, load_tokenizer, reconstruct_all
 from .training import Tokenizer, TokenizerSection, evaluate_reconstruction, tokenizer_task
@@ -85,7 +86,7 @@ def run_tokenizer_stage(job: StageJob) -> dict[str, Any]:
     """The ``tokenizer`` stage: train, then the held-out scores for the report."""
     scores = printable(train_tokenizer(job))
     return {"steps": job.section.train.steps,
-            **{k: v for k, v in scores.items() if k in SHOWN_SCORES},
+            **shown_scores(scores, SHOWN_SCORES, [metric.name for metric in job.config.metrics]),
             **({} if "evaluation" in scores else {
                 "picture": "reconstructions.png",
                 "caption": "Held-out images (top row) above the trained tokenizer's reconstructions of them (bottom row)."})}
