@@ -33,6 +33,7 @@ demo: $(STAMP)
 # ruff's rules and the packages' import layers (import-linter) are in pyproject.toml.
 lint: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 	$(BIN)/lint-imports --no-cache
 
 test: lint

@@ -6,8 +6,12 @@ by walking each folder instead of being written by hand.
 
 from setuptools import find_packages, setup
 
-FOLDERS = {"core": "vqtouch.core", "plugins": "vqtouch.plugins",
-           "conditioners": "vqtouch.conditioners", "sensors": "vqtouch.sensors"}
+FOLDERS = {
+    "core": "vqtouch.core",
+    "plugins": "vqtouch.plugins",
+    "conditioners": "vqtouch.conditioners",
+    "sensors": "vqtouch.sensors",
+}
 
 package_dir = {}
 packages = []

@@ -19,8 +19,11 @@ from typing import Callable
 import torch
 import torch.nn.functional as F
 
-from vqtouch.plugins.tokenizer.deformable import (deform_conv2d_gather, deform_conv2d_grid_sample,
-                                                  deform_conv2d_torchvision)
+from vqtouch.plugins.tokenizer.deformable import (
+    deform_conv2d_gather,
+    deform_conv2d_grid_sample,
+    deform_conv2d_torchvision,
+)
 
 # (batch, channels, height, width); channels in = channels out, as in a ResNet block's second conv.
 SHAPES = [(8, 64, 32, 32), (8, 128, 32, 32), (8, 64, 16, 16), (8, 128, 16, 16), (8, 64, 8, 8), (8, 128, 8, 8)]
@@ -47,8 +50,9 @@ def best_milliseconds(functions: list[Callable[[], None]], repeats: int, device:
     return [1000.0 * seconds for seconds in best]
 
 
-def forward_backward(deform_conv: Callable | None, shape: tuple[int, int, int, int],
-                     device: torch.device) -> Callable[[], None]:
+def forward_backward(
+    deform_conv: Callable | None, shape: tuple[int, int, int, int], device: torch.device
+) -> Callable[[], None]:
     """A closure running forward + backward of ``deform_conv`` (None: plain conv2d) on fixed random data."""
     generator = torch.Generator().manual_seed(0)
     batch, channels, height, width = shape
@@ -77,9 +81,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="device to time on")
     parser.add_argument("--repeats", type=int, default=5, help="timed calls per measurement; the best is kept")
-    parser.add_argument("--threads", type=int, default=None,
-                        help="CPU threads (default: torch's).  On a machine shared with other jobs use 1: "
-                             "OpenMP with more threads than free cores can run 10-100x slower")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="CPU threads (default: torch's).  On a machine shared with other jobs use 1: "
+        "OpenMP with more threads than free cores can run 10-100x slower",
+    )
     args = parser.parse_args()
     if args.threads is not None:
         torch.set_num_threads(args.threads)
@@ -87,20 +95,30 @@ def main() -> None:
     import torchvision  # only for the version line; the backend imports it on its own
 
     where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu, {torch.get_num_threads()} threads"
-    print(f"torch {torch.__version__}, torchvision {torchvision.__version__}, {where}; "
-          f"3x3 DCNv2 forward+backward, float32, best of {args.repeats}")
-    header = f"{'B x C x H x W':>16s} {'conv2d ms':>10s} {'grid_sample ms':>15s} {'gather ms':>10s} " \
-             f"{'torchvision ms':>15s} {'gs / gather':>12s} {'tv / gs':>8s} {'gather / conv2d':>16s}"
+    print(
+        f"torch {torch.__version__}, torchvision {torchvision.__version__}, {where}; "
+        f"3x3 DCNv2 forward+backward, float32, best of {args.repeats}"
+    )
+    header = (
+        f"{'B x C x H x W':>16s} {'conv2d ms':>10s} {'grid_sample ms':>15s} {'gather ms':>10s} "
+        f"{'torchvision ms':>15s} {'gs / gather':>12s} {'tv / gs':>8s} {'gather / conv2d':>16s}"
+    )
     print(header)
     print("-" * len(header))
     for shape in SHAPES:
         conv_ms, grid_ms, gather_ms, vision_ms = best_milliseconds(
-            [forward_backward(function, shape, device)
-             for function in (None, deform_conv2d_grid_sample, deform_conv2d_gather, deform_conv2d_torchvision)],
-            args.repeats, device)
+            [
+                forward_backward(function, shape, device)
+                for function in (None, deform_conv2d_grid_sample, deform_conv2d_gather, deform_conv2d_torchvision)
+            ],
+            args.repeats,
+            device,
+        )
         label = "x".join(str(n) for n in shape)
-        print(f"{label:>16s} {conv_ms:10.2f} {grid_ms:15.2f} {gather_ms:10.2f} {vision_ms:15.2f} "
-              f"{grid_ms / gather_ms:12.2f} {vision_ms / grid_ms:8.2f} {gather_ms / conv_ms:16.2f}")
+        print(
+            f"{label:>16s} {conv_ms:10.2f} {grid_ms:15.2f} {gather_ms:10.2f} {vision_ms:15.2f} "
+            f"{grid_ms / gather_ms:12.2f} {vision_ms / grid_ms:8.2f} {gather_ms / conv_ms:16.2f}"
+        )
 
 
 if __name__ == "__main__":

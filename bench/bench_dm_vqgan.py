@@ -31,13 +31,21 @@ import torch
 
 #: taming-transformers' ImageNet VQGAN (vqgan_imagenet_f16_1024: ch 128, ch_mult 1,1,2,2,4, 2 ResNet blocks,
 #: attention at 16 px, z and embed 256); vqtouch's VQGAN has its parameter count at this config.
-TAMING_F16 = {"channels": 128, "channel_multipliers": [1, 1, 2, 2, 4], "num_res_blocks": 2,
-              "attention_resolutions": [16], "z_channels": 256, "embed_dim": 256}
-CONTENDERS = {"vqgan": {"name": "vqgan"},
-              "dm_vqgan (grid_sample)": {"name": "dm_vqgan", "deformable_backend": "grid_sample"},
-              "dm_vqgan (gather)": {"name": "dm_vqgan", "deformable_backend": "gather"},
-              "vqgan, taming f16": {"name": "vqgan", **TAMING_F16},
-              "dm_vqgan (gather), taming f16": {"name": "dm_vqgan", "deformable_backend": "gather", **TAMING_F16}}
+TAMING_F16 = {
+    "channels": 128,
+    "channel_multipliers": [1, 1, 2, 2, 4],
+    "num_res_blocks": 2,
+    "attention_resolutions": [16],
+    "z_channels": 256,
+    "embed_dim": 256,
+}
+CONTENDERS = {
+    "vqgan": {"name": "vqgan"},
+    "dm_vqgan (grid_sample)": {"name": "dm_vqgan", "deformable_backend": "grid_sample"},
+    "dm_vqgan (gather)": {"name": "dm_vqgan", "deformable_backend": "gather"},
+    "vqgan, taming f16": {"name": "vqgan", **TAMING_F16},
+    "dm_vqgan (gather), taming f16": {"name": "dm_vqgan", "deformable_backend": "gather", **TAMING_F16},
+}
 
 MEMORY_WORKER = r"""
 import json, sys
@@ -72,8 +80,11 @@ def build(config: dict, size: int, batch: int, channels: int, device: torch.devi
     host = load_plugins(autoload=False)
     context = BuildContext(image_size=size)
     encoder = host.build("autoencoder", {"channels": channels, **config}, context).to(device)
-    quantizer = host.build("quantizer", {"name": "vq", "codebook_size": 512},
-                           context.model_copy(update={"latent_dim": encoder.latent_channels})).to(device)
+    quantizer = host.build(
+        "quantizer",
+        {"name": "vq", "codebook_size": 512},
+        context.model_copy(update={"latent_dim": encoder.latent_channels}),
+    ).to(device)
     optimizer = torch.optim.AdamW(list(encoder.parameters()) + list(quantizer.parameters()), lr=1e-4)
     images = torch.rand(batch, 3, size, size, device=device) * 2 - 1
     return encoder, quantizer, optimizer, images
@@ -81,12 +92,14 @@ def build(config: dict, size: int, batch: int, channels: int, device: torch.devi
 
 def train_step(encoder, quantizer, optimizer, images):
     """One L1 + VQ training step of the tokenizer, as a callable."""
+
     def step() -> None:
         output = quantizer(encoder.encode(images))
         loss = (encoder.decode(output.quantized_BDhw) - images).abs().mean() + output.loss
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
+
     return step
 
 
@@ -149,17 +162,21 @@ def main() -> None:
     matmul_peak, conv_peak = matmul_peak_gflops(device), conv_peak_gflops(device)
     where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu, {torch.get_num_threads()} threads"
     print(f"torch {torch.__version__}, {where}; {args.size} px, batch {args.batch}, base channels {args.channels}")
-    print(f"fp32 peaks: matmul {matmul_peak:.1f} GFLOP/s (best 2048x2048 product), 3x3 conv {conv_peak:.1f} GFLOP/s "
-          f"(128 ch, 32 px, forward)")
-    steps = {label: train_step(*build(config, args.size, args.batch, args.channels, device))
-             for label, config in CONTENDERS.items()}
+    print(
+        f"fp32 peaks: matmul {matmul_peak:.1f} GFLOP/s (best 2048x2048 product), 3x3 conv {conv_peak:.1f} GFLOP/s "
+        f"(128 ch, 32 px, forward)"
+    )
+    steps = {
+        label: train_step(*build(config, args.size, args.batch, args.channels, device))
+        for label, config in CONTENDERS.items()
+    }
     flops = {label: counted_flops(step) for label, step in steps.items()}
     for step in steps.values():  # warm-up
         step()
     times: dict[str, list[float]] = {label: [] for label in steps}
     labels = list(steps)
     for round_index in range(args.rounds):
-        order = labels[round_index % len(labels):] + labels[:round_index % len(labels)]
+        order = labels[round_index % len(labels) :] + labels[: round_index % len(labels)]
         for label in order:
             _sync(device)
             tic = time.perf_counter()
@@ -167,22 +184,45 @@ def main() -> None:
             _sync(device)
             times[label].append(time.perf_counter() - tic)
     bench_folder = str(__import__("pathlib").Path(__file__).resolve().parent)
-    header = (f"{'contender':30s} {'step ms':>8s} {'x VQGAN':>8s} {'GFLOP':>7s} {'% matmul':>8s} {'% conv':>7s} "
-              f"{'peak MB':>8s} {'import torch MB':>15s}")
+    header = (
+        f"{'contender':30s} {'step ms':>8s} {'x VQGAN':>8s} {'GFLOP':>7s} {'% matmul':>8s} {'% conv':>7s} "
+        f"{'peak MB':>8s} {'import torch MB':>15s}"
+    )
     print(header)
     print("-" * len(header))
     for label in labels:
         median = statistics.median(times[label])
         baseline = "vqgan, taming f16" if "taming" in label else "vqgan"  # VQGAN at the same configuration
         paired = statistics.median(t / v for t, v in zip(times[label], times[baseline]))
-        memory = json.loads(subprocess.run(
-            [sys.executable, "-c", MEMORY_WORKER, json.dumps({
-                "bench": bench_folder, "config": CONTENDERS[label], "size": args.size, "batch": args.batch,
-                "channels": args.channels, "device": args.device})],
-            capture_output=True, text=True, check=True).stdout.strip().splitlines()[-1])
+        memory = json.loads(
+            subprocess.run(
+                [
+                    sys.executable,
+                    "-c",
+                    MEMORY_WORKER,
+                    json.dumps(
+                        {
+                            "bench": bench_folder,
+                            "config": CONTENDERS[label],
+                            "size": args.size,
+                            "batch": args.batch,
+                            "channels": args.channels,
+                            "device": args.device,
+                        }
+                    ),
+                ],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
+            .stdout.strip()
+            .splitlines()[-1]
+        )
         gflops = flops[label] / median / 1e9
-        print(f"{label:30s} {median * 1e3:8.1f} {paired:8.2f} {flops[label] / 1e9:7.2f} {gflops / matmul_peak:8.1%} "
-              f"{gflops / conv_peak:7.1%} {memory['peak_mb']:8.0f} {memory['import_torch_mb']:15.0f}")
+        print(
+            f"{label:30s} {median * 1e3:8.1f} {paired:8.2f} {flops[label] / 1e9:7.2f} {gflops / matmul_peak:8.1%} "
+            f"{gflops / conv_peak:7.1%} {memory['peak_mb']:8.0f} {memory['import_torch_mb']:15.0f}"
+        )
 
 
 if __name__ == "__main__":

@@ -103,14 +103,24 @@ def main() -> None:
     parser.add_argument("--n", type=int, default=32, help="held-out conditions generated per setting")
     parser.add_argument("--rounds", type=int, default=2, help="interleaved repetitions (median reported)")
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--fd", action="store_true", help="also score fd_effnetlite0 and the accuracy of a classifier "
-                                                          "trained on real images (slower)")
-    parser.add_argument("--feature-size", type=int, help="EfficientNet-Lite0 input side for --fd (default: the run's "
-                                                        "fd_effnetlite0 metric's, else 224)")
-    parser.add_argument("--only", choices=["steps", "grid"], default="steps",
-                        help="'steps': vary one knob at a time around the first sampler, guidance, precision and "
-                             "batch and the middle --steps value (posterior/25/unguided/fp32/16 by default); "
-                             "'grid': every combination")
+    parser.add_argument(
+        "--fd",
+        action="store_true",
+        help="also score fd_effnetlite0 and the accuracy of a classifier trained on real images (slower)",
+    )
+    parser.add_argument(
+        "--feature-size",
+        type=int,
+        help="EfficientNet-Lite0 input side for --fd (default: the run's fd_effnetlite0 metric's, else 224)",
+    )
+    parser.add_argument(
+        "--only",
+        choices=["steps", "grid"],
+        default="steps",
+        help="'steps': vary one knob at a time around the first sampler, guidance, precision and "
+        "batch and the middle --steps value (posterior/25/unguided/fp32/16 by default); "
+        "'grid': every combination",
+    )
     parser.add_argument("--train", action="store_true", help="also measure training with and without the code cache")
     parser.add_argument("--json", help="write every measurement to this file")
     args = parser.parse_args()
@@ -120,8 +130,14 @@ def main() -> None:
     grid = args.only == "grid"
     # One knob at a time also measures batch 1 (the latency of a single image).
     batches = args.batches if grid else list(dict.fromkeys([*args.batches, 1]))
-    settings = sweep_settings(steps=args.steps, samplers=args.samplers, guidance=args.guidance,
-                              precisions=args.precisions, grid=grid, batches=batches)
+    settings = sweep_settings(
+        steps=args.steps,
+        samplers=args.samplers,
+        guidance=args.guidance,
+        precisions=args.precisions,
+        grid=grid,
+        batches=batches,
+    )
     common = {"run": args.run, "n": args.n, "threads": args.threads, "fd": args.fd, "feature_size": args.feature_size}
     measured: list[list[dict]] = [[] for _ in settings]
     for round_index in range(args.rounds):
@@ -129,32 +145,56 @@ def main() -> None:
             measured[index].append(run_worker(WORKER, {**common, **setting}))
             print(f"round {round_index + 1}/{args.rounds}, setting {index + 1}/{len(settings)}", file=sys.stderr)
     reference = statistics.median(m["img_per_s"] for m in measured[0])
-    header = (f"{'sampler':10s} {'steps':>5s} {'guid':>4s} {'prec':4s} {'batch':>5s} {'img/s':>7s} {'cost':>6s} "
-              f"{'SSIM':>6s} {'PSNR':>6s}" + (f" {'FD':>7s} {'cls acc':>7s}" if args.fd else "")
-              + f" {'peak MB':>8s} {'+load MB':>8s}")
-    print(f"run {args.run}; {measured[0][0]['images']} held-out conditions; {args.threads} threads; "
-          f"median of {args.rounds} interleaved rounds; cost = time per image / that of the first row")
+    header = (
+        f"{'sampler':10s} {'steps':>5s} {'guid':>4s} {'prec':4s} {'batch':>5s} {'img/s':>7s} {'cost':>6s} "
+        f"{'SSIM':>6s} {'PSNR':>6s}"
+        + (f" {'FD':>7s} {'cls acc':>7s}" if args.fd else "")
+        + f" {'peak MB':>8s} {'+load MB':>8s}"
+    )
+    print(
+        f"run {args.run}; {measured[0][0]['images']} held-out conditions; {args.threads} threads; "
+        f"median of {args.rounds} interleaved rounds; cost = time per image / that of the first row"
+    )
     print(header)
     print("-" * len(header))
     rows = []
     for setting, results in zip(settings, measured):
         rate = statistics.median(r["img_per_s"] for r in results)
-        row = {**setting, "img_per_s": rate, "cost": reference / rate,
-               **{k: results[0][k] for k in ("ssim", "psnr", "contact_psnr", "fd_effnetlite0", "classifier_accuracy",
-                                             "peak_mb", "loaded_mb", "finite") if k in results[0]}}
+        row = {
+            **setting,
+            "img_per_s": rate,
+            "cost": reference / rate,
+            **{
+                k: results[0][k]
+                for k in (
+                    "ssim",
+                    "psnr",
+                    "contact_psnr",
+                    "fd_effnetlite0",
+                    "classifier_accuracy",
+                    "peak_mb",
+                    "loaded_mb",
+                    "finite",
+                )
+                if k in results[0]
+            },
+        }
         rows.append(row)
         accuracy = row.get("classifier_accuracy")
-        fd = (f" {row['fd_effnetlite0']:7.2f} {'-' if accuracy is None else f'{accuracy:.3f}':>7s}"
-              if args.fd else "")
-        print(f"{setting['sampler']:10s} {setting['steps']:5d} {setting['guidance']:4g} {setting['precision']:4s} "
-              f"{setting['batch']:5d} {rate:7.2f} {row['cost']:5.2f}x {row['ssim']:6.4f} {row['psnr']:6.2f}{fd} "
-              f"{row['peak_mb']:8.0f} {row['peak_mb'] - row['loaded_mb']:8.0f}")
+        fd = f" {row['fd_effnetlite0']:7.2f} {'-' if accuracy is None else f'{accuracy:.3f}':>7s}" if args.fd else ""
+        print(
+            f"{setting['sampler']:10s} {setting['steps']:5d} {setting['guidance']:4g} {setting['precision']:4s} "
+            f"{setting['batch']:5d} {rate:7.2f} {row['cost']:5.2f}x {row['ssim']:6.4f} {row['psnr']:6.2f}{fd} "
+            f"{row['peak_mb']:8.0f} {row['peak_mb'] - row['loaded_mb']:8.0f}"
+        )
     train = None
     if args.train:
         train = run_worker(TRAIN_WORKER, {"run": args.run, "batch": 16, "repeats": 10, "threads": args.threads})
-        print(f"\ntraining, batch 16: {train['cached']:.1f} code grids/s from the cache ({train['cached_again']:.1f} "
-              f"measured again after), {train['encoded']:.1f}/s encoding each batch with the tokenizer: the cache is "
-              f"{min(train['cached'], train['cached_again']) / train['encoded']:.2f}x faster per step")
+        print(
+            f"\ntraining, batch 16: {train['cached']:.1f} code grids/s from the cache ({train['cached_again']:.1f} "
+            f"measured again after), {train['encoded']:.1f}/s encoding each batch with the tokenizer: the cache is "
+            f"{min(train['cached'], train['cached_again']) / train['encoded']:.2f}x faster per step"
+        )
     if args.json:
         with open(args.json, "w", encoding="utf-8") as handle:
             json.dump({"settings": rows, "train": train, "rounds": args.rounds}, handle, indent=2)

@@ -45,8 +45,10 @@ def main() -> None:
     host = load_plugins(autoload=False)
     device = torch.device(args.device)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, sensor render on {device}")
-    header = (f"{'sensor':14s} {'size':>5s} {'geometry/s':>11s} {'visual/s':>9s} {'tactile/s':>10s} "
-              f"{'batched/s':>10s} {'samples/s':>10s} {'cost vs 64px':>13s}")
+    header = (
+        f"{'sensor':14s} {'size':>5s} {'geometry/s':>11s} {'visual/s':>9s} {'tactile/s':>10s} "
+        f"{'batched/s':>10s} {'samples/s':>10s} {'cost vs 64px':>13s}"
+    )
     print(header)
     print("-" * len(header))
     for sensor_name in host.registry("sensor_family").names():
@@ -57,21 +59,36 @@ def main() -> None:
             classes = [(OBJECT_CLASSES[i % len(OBJECT_CLASSES)], i % len(OBJECT_CLASSES)) for i in range(count)]
             contacts = [sample_contact(c, label, generator, size, sensor.field_of_view_mm) for c, label in classes]
             heights = torch.stack([c.indentation_mm_HW for c in contacts]).to(device)
-            geometry = best_rate(lambda: [sample_contact(c, label, torch.Generator().manual_seed(1), size,
-                                                         sensor.field_of_view_mm) for c, label in classes],
-                                 count, args.repeats)
-            visual = best_rate(lambda: [render_visual(c, contact, torch.Generator().manual_seed(2),
-                                                      sensor.field_of_view_mm)
-                                        for (c, _), contact in zip(classes, contacts)], count, args.repeats)
+            geometry = best_rate(
+                lambda: [
+                    sample_contact(c, label, torch.Generator().manual_seed(1), size, sensor.field_of_view_mm)
+                    for c, label in classes
+                ],
+                count,
+                args.repeats,
+            )
+            visual = best_rate(
+                lambda: [
+                    render_visual(c, contact, torch.Generator().manual_seed(2), sensor.field_of_view_mm)
+                    for (c, _), contact in zip(classes, contacts)
+                ],
+                count,
+                args.repeats,
+            )
             with torch.no_grad():
                 single = best_rate(lambda: [sensor.render(h[None]) for h in heights], count, args.repeats)
                 batched = best_rate(lambda: sensor.render(heights), count, args.repeats)
-            dataset = host.build("dataset", {"name": "procedural", "num_samples": count, "image_size": size,
-                                             "cache": False}, sensor=sensor)
+            dataset = host.build(
+                "dataset",
+                {"name": "procedural", "num_samples": count, "image_size": size, "cache": False},
+                sensor=sensor,
+            )
             whole = best_rate(lambda: dataset.render_batch(list(range(count))), count, args.repeats)
             baseline = baseline or whole
-            print(f"{sensor_name:14s} {size:5d} {geometry:11.1f} {visual:9.1f} {single:10.1f} {batched:10.1f} "
-                  f"{whole:10.1f} {baseline / whole:12.1f}x")
+            print(
+                f"{sensor_name:14s} {size:5d} {geometry:11.1f} {visual:9.1f} {single:10.1f} {batched:10.1f} "
+                f"{whole:10.1f} {baseline / whole:12.1f}x"
+            )
 
 
 if __name__ == "__main__":

@@ -102,9 +102,14 @@ def contenders(backends: list[str], no_mid_attention: bool) -> list[tuple[str, s
     rows = [("vqgan", "vqgan", {})]
     rows += [(f"dm_vqgan ({backend})", "dm_vqgan", {"deformable_backend": backend}) for backend in backends]
     if no_mid_attention:
-        rows += [("vqgan, no mid attn", "vqgan", {"mid_attention": False}),
-                 (f"dm_vqgan ({backends[0]}), no mid attn", "dm_vqgan",
-                  {"deformable_backend": backends[0], "mid_attention": False})]
+        rows += [
+            ("vqgan, no mid attn", "vqgan", {"mid_attention": False}),
+            (
+                f"dm_vqgan ({backends[0]}), no mid attn",
+                "dm_vqgan",
+                {"deformable_backend": backends[0], "mid_attention": False},
+            ),
+        ]
     return rows
 
 
@@ -113,39 +118,74 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    parser.add_argument("--sizes", type=image_size_argument, nargs="+", default=[64, 128],
-                        help="image sizes, S or HEIGHTxWIDTH (default 64 128)")
+    parser.add_argument(
+        "--sizes",
+        type=image_size_argument,
+        nargs="+",
+        default=[64, 128],
+        help="image sizes, S or HEIGHTxWIDTH (default 64 128)",
+    )
     parser.add_argument("--batch", type=int, default=8)
     parser.add_argument("--channels", type=int, default=64, help="base channels of both encoders (scene default 64)")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--backends", nargs="+", default=["gather", "grid_sample"],
-                        choices=["gather", "grid_sample", "torchvision"], help="DM-VQGAN's deformable backends")
-    parser.add_argument("--no-mid-attention", action="store_true",
-                        help="also measure VQGAN and DM-VQGAN without the mid-block attention (mid_attention=false)")
+    parser.add_argument(
+        "--backends",
+        nargs="+",
+        default=["gather", "grid_sample"],
+        choices=["gather", "grid_sample", "torchvision"],
+        help="DM-VQGAN's deformable backends",
+    )
+    parser.add_argument(
+        "--no-mid-attention",
+        action="store_true",
+        help="also measure VQGAN and DM-VQGAN without the mid-block attention (mid_attention=false)",
+    )
     args = parser.parse_args()
-    print(f"device {args.device}, batch {args.batch}, base channels {args.channels}, codebook 512 (vq); "
-          "peak MB includes import torch")
-    header = (f"{'size':>7s} {'encoder':30s} {'params M':>8s} {'GFLOP':>7s} {'train img/s':>11s} {'train MB':>8s} "
-              f"{'encode img/s':>12s} {'decode img/s':>12s} {'infer MB':>8s}  cost vs VQGAN (train, encode, decode)")
+    print(
+        f"device {args.device}, batch {args.batch}, base channels {args.channels}, codebook 512 (vq); "
+        "peak MB includes import torch"
+    )
+    header = (
+        f"{'size':>7s} {'encoder':30s} {'params M':>8s} {'GFLOP':>7s} {'train img/s':>11s} {'train MB':>8s} "
+        f"{'encode img/s':>12s} {'decode img/s':>12s} {'infer MB':>8s}  cost vs VQGAN (train, encode, decode)"
+    )
     print(header)
     print("-" * len(header))
     results: list[dict] = []
     for size in args.sizes:
         by_label = {}
         for label, encoder, options in contenders(args.backends, args.no_mid_attention):
-            settings = {"encoder": encoder, "options": options, "size": size, "batch": args.batch,
-                        "channels": args.channels, "device": args.device, "repeats": args.repeats}
+            settings = {
+                "encoder": encoder,
+                "options": options,
+                "size": size,
+                "batch": args.batch,
+                "channels": args.channels,
+                "device": args.device,
+                "repeats": args.repeats,
+            }
             train, infer = measure({**settings, "mode": "train"}), measure({**settings, "mode": "infer"})
-            r = by_label[label] = {"size": list(image_hw(size)), "encoder": label, **train,
-                                   "train_peak_mb": train.pop("peak_mb"), "encode": infer["encode"],
-                                   "decode": infer["decode"], "infer_peak_mb": infer["peak_mb"]}
+            r = by_label[label] = {
+                "size": list(image_hw(size)),
+                "encoder": label,
+                **train,
+                "train_peak_mb": train.pop("peak_mb"),
+                "encode": infer["encode"],
+                "decode": infer["decode"],
+                "infer_peak_mb": infer["peak_mb"],
+            }
             r.pop("peak_mb", None)
             v = by_label["vqgan"]
-            ratio = "" if label == "vqgan" else "  " + ", ".join(f"{v[k] / r[k]:.2f}x" for k in ("train", "encode",
-                                                                                                 "decode"))
-            print(f"{size_text(size):>7s} {label:30s} {r['params_m']:8.2f} {r['gflop']:7.1f} {r['train']:11.2f} "
-                  f"{r['train_peak_mb']:8.0f} {r['encode']:12.1f} {r['decode']:12.1f} {r['infer_peak_mb']:8.0f}{ratio}",
-                  flush=True)
+            ratio = (
+                ""
+                if label == "vqgan"
+                else "  " + ", ".join(f"{v[k] / r[k]:.2f}x" for k in ("train", "encode", "decode"))
+            )
+            print(
+                f"{size_text(size):>7s} {label:30s} {r['params_m']:8.2f} {r['gflop']:7.1f} {r['train']:11.2f} "
+                f"{r['train_peak_mb']:8.0f} {r['encode']:12.1f} {r['decode']:12.1f} {r['infer_peak_mb']:8.0f}{ratio}",
+                flush=True,
+            )
             results.append(r)
     print(f"import torch alone: {results[0]['import_torch_mb']:.0f} MB RSS")
     print(json.dumps(results))

@@ -1,4 +1,5 @@
-"""The tokenizer experiment (VQGAN vs DM-VQGAN vs MAE by training-set size): now ``vqtouch evaluate reconstruction --out``.
+"""The tokenizer experiment (VQGAN vs DM-VQGAN vs MAE by training-set size): now
+``vqtouch evaluate reconstruction --out``.
 
 Run:  .venv/bin/python bench/experiment_tokenizers.py --out runs/exp_tokenizers [--steps 600]
       [any other `vqtouch evaluate reconstruction --out` flag, e.g. --samples 100 1000 --seeds 0 1 2]
@@ -18,14 +19,21 @@ import sys
 from vqtouch.core.cli import main as vqtouch
 
 #: The old script's settings as ``--set`` overrides of the reconstruction scene.
-SETTINGS = ["tokenizer.autoencoder.channels=32", "data.batch_size=8", "tokenizer.train.learning_rate=0.0002",
-            "tokenizer.loss.disc_start=300"]
+SETTINGS = [
+    "tokenizer.autoencoder.channels=32",
+    "data.batch_size=8",
+    "tokenizer.train.learning_rate=0.0002",
+    "tokenizer.loss.disc_start=300",
+]
 
 
 def command(out: str, steps: int, extra: list[str]) -> list[str]:
     """The ``vqtouch`` arguments of the reconstruction experiment at the old script's settings."""
-    overrides = [item for override in [*SETTINGS, f"tokenizer.train.steps={steps}",
-                                       f"tokenizer.train.checkpoint_every={steps}"] for item in ("--set", override)]
+    overrides = [
+        item
+        for override in [*SETTINGS, f"tokenizer.train.steps={steps}", f"tokenizer.train.checkpoint_every={steps}"]
+        for item in ("--set", override)
+    ]
     return ["--no-progress", "evaluate", "reconstruction", "--out", out, "--held-out", "200", *overrides, *extra]
 
 

@@ -36,14 +36,19 @@ from vqtouch.plugins.generator.codes import canonical_background
 from vqtouch.plugins.pretrained.bundle import load_bundle
 
 #: Conditioners a diagnosis can train, with the sample key each reads.
-CONDITIONERS = {"tactile": {"name": "tactile"}, "label": {"name": "label"}, "visual": {"name": "visual", "input_size": 128},
-                "text_scratch": {"name": "text_scratch", "vocab_buckets": 1024}}
+CONDITIONERS = {
+    "tactile": {"name": "tactile"},
+    "label": {"name": "label"},
+    "visual": {"name": "visual", "input_size": 128},
+    "text_scratch": {"name": "text_scratch", "vocab_buckets": 1024},
+}
 
 
 def tour_data(host: Any, seed: int, count: int) -> tuple[Any, dict[str, Any]]:
     """The tour scene's dataset (procedural ``seed``) and its first ``count`` samples, batched."""
-    config = resolve_config("tour", overrides=[f"data.dataset.seed={seed}", f"data.dataset.num_samples={count}"],
-                            host=host)
+    config = resolve_config(
+        "tour", overrides=[f"data.dataset.seed={seed}", f"data.dataset.num_samples={count}"], host=host
+    )
     dataset = Assembly(config, host).component("data.dataset")
     return dataset, dataset.render_batch(list(range(count)))
 
@@ -61,12 +66,12 @@ def contact_tokens(images_B3HW: torch.Tensor, background_3HW: torch.Tensor, grid
 
 @torch.no_grad()
 def encode(tokenizer: Any, images: torch.Tensor, batch: int = 64) -> torch.Tensor:
-    return torch.cat([tokenizer.encode_codes(images[i:i + batch]) for i in range(0, len(images), batch)])
+    return torch.cat([tokenizer.encode_codes(images[i : i + batch]) for i in range(0, len(images), batch)])
 
 
 @torch.no_grad()
 def decode(tokenizer: Any, codes: torch.Tensor, batch: int = 64) -> torch.Tensor:
-    return torch.cat([tokenizer.decode_codes(codes[i:i + batch]) for i in range(0, len(codes), batch)]).clamp(0, 1)
+    return torch.cat([tokenizer.decode_codes(codes[i : i + batch]) for i in range(0, len(codes), batch)]).clamp(0, 1)
 
 
 def entropy_bits(codes: torch.Tensor) -> float:
@@ -77,37 +82,45 @@ def entropy_bits(codes: torch.Tensor) -> float:
 
 # -- codes: what the tokenizer does to the no-contact area ----------------------------------------
 
+
 def codes_report(args: argparse.Namespace) -> dict[str, Any]:
     host = load_plugins()
     bundle = load_bundle(args.bundle, host)
     dataset, batch = tour_data(host, args.seed, args.n)
     background = background_of(dataset)
-    renders = torch.cat([dataset.sensor.render(torch.zeros(1, 64, 64), generator=torch.Generator().manual_seed(s))
-                         for s in range(64)])
+    renders = torch.cat(
+        [dataset.sensor.render(torch.zeros(1, 64, 64), generator=torch.Generator().manual_seed(s)) for s in range(64)]
+    )
     flat_codes = encode(bundle.tokenizer, renders).flatten(1)  # (64 noise draws, L)
     codes_BL = encode(bundle.tokenizer, batch["tactile"]).flatten(1)
     grid = int(math.isqrt(codes_BL.shape[1]))
     in_contact = contact_tokens(batch["tactile"], background, grid)
     mode_L = flat_codes.mode(dim=0).values
     return {
-        "code_grid": grid, "codebook_size": bundle.tokenizer.quantizer.codebook_size,
+        "code_grid": grid,
+        "codebook_size": bundle.tokenizer.quantizer.codebook_size,
         "no_contact_renders": {
             "distinct_codes": int(flat_codes.unique().numel()),
-            "distinct_codes_per_position_mean": float(torch.tensor([len(c.unique()) for c in flat_codes.T]).float().mean()),
+            "distinct_codes_per_position_mean": float(
+                torch.tensor([len(c.unique()) for c in flat_codes.T]).float().mean()
+            ),
             "share_of_tokens_not_their_position_mode": float((flat_codes != mode_L).float().mean()),
-            "entropy_bits_per_token": entropy_bits(flat_codes)},
+            "entropy_bits_per_token": entropy_bits(flat_codes),
+        },
         "dataset": {
-            "images": args.n, "contact_token_share": float(in_contact.float().mean()),
+            "images": args.n,
+            "contact_token_share": float(in_contact.float().mean()),
             "distinct_codes_background_tokens": int(codes_BL[~in_contact].unique().numel()),
             "distinct_codes_contact_tokens": int(codes_BL[in_contact].unique().numel()),
-            "background_tokens_equal_to_no_contact_mode": float(
-                (codes_BL == mode_L)[~in_contact].float().mean()),
+            "background_tokens_equal_to_no_contact_mode": float((codes_BL == mode_L)[~in_contact].float().mean()),
             "entropy_bits_background_tokens": entropy_bits(codes_BL[~in_contact]),
-            "entropy_bits_contact_tokens": entropy_bits(codes_BL[in_contact])},
+            "entropy_bits_contact_tokens": entropy_bits(codes_BL[in_contact]),
+        },
     }
 
 
 # -- overfit: can a fresh generator learn a fixed set of pairs? -----------------------------------
+
 
 def build_generator(host: Any, tokenizer: Any, conditioner_name: str, overrides: list[str], num_classes: int) -> tuple:
     """A fresh vq_diffusion generator (the bundle's width and depth unless overridden) and conditioner."""
@@ -118,8 +131,7 @@ def build_generator(host: Any, tokenizer: Any, conditioner_name: str, overrides:
         target = generator_cfg if path[0] == "model" else conditioner_cfg
         target[path[-1]] = value
     codebook = tokenizer.quantizer.codebook_size
-    context = BuildContext(image_size=64, channels=3, num_classes=num_classes, codebook_size=codebook,
-                           code_grid=16)
+    context = BuildContext(image_size=64, channels=3, num_classes=num_classes, codebook_size=codebook, code_grid=16)
     generator = host.build("generator", generator_cfg, context)
     conditioner = host.build("conditioner", conditioner_cfg, context)
     return generator, conditioner, generator_cfg, conditioner_cfg
@@ -131,8 +143,19 @@ def _condition(conditioner: Any, batch: dict[str, Any], index: torch.Tensor) -> 
 
 
 @torch.no_grad()
-def sample_codes(host: Any, generator: Any, conditioner: Any, batch: dict[str, Any], count: int, *, steps: int,
-                 guidance: float, seed: int, sampler_name: str = "posterior", offset: int = 0) -> torch.Tensor:
+def sample_codes(
+    host: Any,
+    generator: Any,
+    conditioner: Any,
+    batch: dict[str, Any],
+    count: int,
+    *,
+    steps: int,
+    guidance: float,
+    seed: int,
+    sampler_name: str = "posterior",
+    offset: int = 0,
+) -> torch.Tensor:
     sampler = host.build("sampler", {"name": sampler_name})
     generator.eval(), conditioner.eval()
     rows = []
@@ -140,12 +163,17 @@ def sample_codes(host: Any, generator: Any, conditioner: Any, batch: dict[str, A
         index = torch.arange(offset + start, offset + min(count, start + 32))
         condition = conditioner(_condition(conditioner, batch, index))
         draws = [torch.Generator().manual_seed(seed * 100_003 + int(i)) for i in index]
-        rows.append(generator.sample(condition, sampler, steps=steps, null=conditioner.null(len(index)),
-                                     guidance=guidance, generators=draws))
+        rows.append(
+            generator.sample(
+                condition, sampler, steps=steps, null=conditioner.null(len(index)), guidance=guidance, generators=draws
+            )
+        )
     return torch.cat(rows)
 
 
-def contact_psnr(candidates: dict[str, torch.Tensor], truth: torch.Tensor, background: torch.Tensor) -> dict[str, float]:
+def contact_psnr(
+    candidates: dict[str, torch.Tensor], truth: torch.Tensor, background: torch.Tensor
+) -> dict[str, float]:
     scores = contact_region_scores(candidates, truth, background.expand_as(truth))
     return {key: round(value, 3) for key, value in scores.items() if key.endswith("contact_psnr")}
 
@@ -153,6 +181,7 @@ def contact_psnr(candidates: dict[str, torch.Tensor], truth: torch.Tensor, backg
 def centroid_error_px(images: torch.Tensor, truth: torch.Tensor, background: torch.Tensor) -> float:
     """Mean distance in pixels between the contact-region centroids of images and truth (contact
     weighted by the absolute difference to the background, so a faint contact still has a centre)."""
+
     def centres(x: torch.Tensor) -> torch.Tensor:
         weight = (x - background).abs().mean(1)
         weight = (weight - weight.flatten(1).median(1).values[:, None, None]).clamp_min(0)
@@ -160,15 +189,19 @@ def centroid_error_px(images: torch.Tensor, truth: torch.Tensor, background: tor
         cols = torch.arange(x.shape[-1]).float()[None, None, :]
         total = weight.sum((1, 2)).clamp_min(1e-8)
         return torch.stack([(weight * rows).sum((1, 2)) / total, (weight * cols).sum((1, 2)) / total], 1)
+
     return float((centres(images) - centres(truth)).norm(dim=1).mean())
 
 
-def nearest_label_accuracy(images: torch.Tensor, labels: torch.Tensor, pool: torch.Tensor,
-                           pool_labels: torch.Tensor) -> float:
+def nearest_label_accuracy(
+    images: torch.Tensor, labels: torch.Tensor, pool: torch.Tensor, pool_labels: torch.Tensor
+) -> float:
     """Share of images whose nearest training image (pixel distance at 16x16, background included)
     has the image's condition label: a crude, classifier-free check that a label is followed."""
+
     def small(x: torch.Tensor) -> torch.Tensor:
         return F.adaptive_avg_pool2d(x, 16).flatten(1)
+
     nearest = torch.cdist(small(images), small(pool)).argmin(1)
     return float((pool_labels[nearest] == labels).float().mean())
 
@@ -186,8 +219,9 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
     if args.canonical:
         codes, changed = canonical_background(codes, tokenizer, background)
     codes = codes.flatten(1)
-    generator, conditioner, gcfg, ccfg = build_generator(host, tokenizer, args.conditioner, args.set,
-                                                         len(dataset.class_names))
+    generator, conditioner, gcfg, ccfg = build_generator(
+        host, tokenizer, args.conditioner, args.set, len(dataset.class_names)
+    )
     train_index = torch.arange(args.pairs)
     params = [p for m in (generator, conditioner) for p in m.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=args.lr, betas=(0.9, 0.96), weight_decay=4.5e-2)
@@ -208,39 +242,84 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
         schedule.step()
         step += 1
         if step % 50 == 0:
-            log.append({"step": step, "minutes": round((time.perf_counter() - start) / 60, 2),
-                        "loss": round(float(loss.detach()), 4)})
+            log.append(
+                {
+                    "step": step,
+                    "minutes": round((time.perf_counter() - start) / 60, 2),
+                    "loss": round(float(loss.detach()), 4),
+                }
+            )
             print(json.dumps(log[-1]), flush=True)
     minutes = (time.perf_counter() - start) / 60
-    result: dict[str, Any] = {"conditioner": ccfg, "generator": gcfg, "pairs": args.pairs, "steps": step,
-                              "canonical_background_cells_changed": round(changed, 4),
-                              "train_minutes": round(minutes, 2), "lr": args.lr, "warmup": warmup, "log": log}
+    result: dict[str, Any] = {
+        "conditioner": ccfg,
+        "generator": gcfg,
+        "pairs": args.pairs,
+        "steps": step,
+        "canonical_background_cells_changed": round(changed, 4),
+        "train_minutes": round(minutes, 2),
+        "lr": args.lr,
+        "warmup": warmup,
+        "log": log,
+    }
     truth = batch["tactile"]
     for name, offset, count in (("train", 0, min(args.pairs, 64)), ("held_out", args.pairs, min(args.held_out, 64))):
         if not count:
             continue
-        sampled = sample_codes(host, generator, conditioner, batch, count, steps=args.sample_steps, guidance=args.guidance,
-                               seed=1, offset=offset)
+        sampled = sample_codes(
+            host,
+            generator,
+            conditioner,
+            batch,
+            count,
+            steps=args.sample_steps,
+            guidance=args.guidance,
+            seed=1,
+            offset=offset,
+        )
         rows = slice(offset, offset + count)
         images = decode(tokenizer, sampled)
         result[name] = {
             "token_accuracy": round(float((sampled.flatten(1) == codes[rows]).float().mean()), 4),
-            **contact_psnr({"": images, "ceiling_": decode(tokenizer, codes[rows].view(-1, 16, 16)),
-                            "background_": background.expand_as(truth[rows])}, truth[rows], background),
+            **contact_psnr(
+                {
+                    "": images,
+                    "ceiling_": decode(tokenizer, codes[rows].view(-1, 16, 16)),
+                    "background_": background.expand_as(truth[rows]),
+                },
+                truth[rows],
+                background,
+            ),
             "centroid_error_px": round(centroid_error_px(images, truth[rows], background), 2),
-            "nearest_training_image_label_accuracy": round(nearest_label_accuracy(
-                images, batch["label"][rows], truth[:args.pairs], batch["label"][:args.pairs]), 3)}
+            "nearest_training_image_label_accuracy": round(
+                nearest_label_accuracy(images, batch["label"][rows], truth[: args.pairs], batch["label"][: args.pairs]),
+                3,
+            ),
+        }
     result |= split_scores(generator, conditioner, batch, codes, background, train_index[:64])
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=1))
-        torch.save({"generator": generator.state_dict(), "conditioner": conditioner.state_dict(),
-                    "generator_cfg": gcfg, "conditioner_cfg": ccfg}, args.out + ".pt")
+        torch.save(
+            {
+                "generator": generator.state_dict(),
+                "conditioner": conditioner.state_dict(),
+                "generator_cfg": gcfg,
+                "conditioner_cfg": ccfg,
+            },
+            args.out + ".pt",
+        )
     return result
 
 
 @torch.no_grad()
-def split_scores(generator: Any, conditioner: Any, batch: dict[str, Any], codes: torch.Tensor,
-                 background: torch.Tensor, index: torch.Tensor) -> dict[str, Any]:
+def split_scores(
+    generator: Any,
+    conditioner: Any,
+    batch: dict[str, Any],
+    codes: torch.Tensor,
+    background: torch.Tensor,
+    index: torch.Tensor,
+) -> dict[str, Any]:
     """Cross-entropy and x0 accuracy of masked tokens, split by contact/background token and by t
     (five bins), from the condition and from the null condition."""
     generator.eval(), conditioner.eval()
@@ -268,7 +347,8 @@ def split_scores(generator: Any, conditioner: Any, batch: dict[str, Any], codes:
                 if picked:
                     table[f"t{lo}-{lo + steps // 5 - 1}:{region}"] = {
                         "ce": round(sum(r[2] for r in picked) / len(picked), 3),
-                        "x0_acc": round(sum(r[3] for r in picked) / len(picked), 3)}
+                        "x0_acc": round(sum(r[3] for r in picked) / len(picked), 3),
+                    }
         out[f"split_{label}"] = table
     return out
 
@@ -285,8 +365,11 @@ def split(args: argparse.Namespace) -> dict[str, Any]:
     dataset, batch = tour_data(host, 0, 64)
     background = background_of(dataset)
     codes = encode(tokenizer, batch["tactile"]).flatten(1)
-    return {"bundle": args.bundle, "conditioner": args.conditioner,
-            **split_scores(generator, conditioner, batch, codes, background, torch.arange(64))}
+    return {
+        "bundle": args.bundle,
+        "conditioner": args.conditioner,
+        **split_scores(generator, conditioner, batch, codes, background, torch.arange(64)),
+    }
 
 
 def sensitivity(args: argparse.Namespace) -> dict[str, Any]:
@@ -297,20 +380,41 @@ def sensitivity(args: argparse.Namespace) -> dict[str, Any]:
     dataset, batch = tour_data(host, 0, args.n)
     background = background_of(dataset)
     truth = batch["tactile"]
-    images = decode(tokenizer, sample_codes(host, generator, conditioner, batch, args.n, steps=args.sample_steps,
-                                            guidance=args.guidance, seed=1))
+    images = decode(
+        tokenizer,
+        sample_codes(
+            host, generator, conditioner, batch, args.n, steps=args.sample_steps, guidance=args.guidance, seed=1
+        ),
+    )
     permutation = torch.roll(torch.arange(args.n), 1)
-    shuffled_batch = {k: ([v[int(i)] for i in permutation] if isinstance(v, list) else v[permutation])
-                      for k, v in batch.items()}
-    shuffled = decode(tokenizer, sample_codes(host, generator, conditioner, shuffled_batch, args.n, steps=args.sample_steps,
-                                              guidance=args.guidance, seed=1))
-    return {"bundle": args.bundle, "conditioner": args.conditioner, "n": args.n,
-            "centroid_error_px_to_own_truth": round(centroid_error_px(images, truth, background), 2),
-            "centroid_error_px_shuffled_condition_to_own_truth": round(centroid_error_px(shuffled, truth, background), 2),
-            "centroid_error_px_shuffled_condition_to_its_truth": round(
-                centroid_error_px(shuffled, truth[permutation], background), 2),
-            "mean_abs_change_when_condition_changes": round(float((images - shuffled).abs().mean()), 4),
-            "mean_abs_truth_difference_between_conditions": round(float((truth - truth[permutation]).abs().mean()), 4)}
+    shuffled_batch = {
+        k: ([v[int(i)] for i in permutation] if isinstance(v, list) else v[permutation]) for k, v in batch.items()
+    }
+    shuffled = decode(
+        tokenizer,
+        sample_codes(
+            host,
+            generator,
+            conditioner,
+            shuffled_batch,
+            args.n,
+            steps=args.sample_steps,
+            guidance=args.guidance,
+            seed=1,
+        ),
+    )
+    return {
+        "bundle": args.bundle,
+        "conditioner": args.conditioner,
+        "n": args.n,
+        "centroid_error_px_to_own_truth": round(centroid_error_px(images, truth, background), 2),
+        "centroid_error_px_shuffled_condition_to_own_truth": round(centroid_error_px(shuffled, truth, background), 2),
+        "centroid_error_px_shuffled_condition_to_its_truth": round(
+            centroid_error_px(shuffled, truth[permutation], background), 2
+        ),
+        "mean_abs_change_when_condition_changes": round(float((images - shuffled).abs().mean()), 4),
+        "mean_abs_truth_difference_between_conditions": round(float((truth - truth[permutation]).abs().mean()), 4),
+    }
 
 
 def main() -> None:

@@ -51,8 +51,13 @@ class PressRecordings(TactileDataset):
         return len(self.images)
 
     def __getitem__(self, index: int) -> dict[str, Any]:
-        return {"tactile": self.images[index], "label": -1, "text": "", "sensor": "bench",
-                "id": f"r{index // self.frames:04d}/f{index % self.frames:03d}"}
+        return {
+            "tactile": self.images[index],
+            "label": -1,
+            "text": "",
+            "sensor": "bench",
+            "id": f"r{index // self.frames:04d}/f{index % self.frames:03d}",
+        }
 
     def split_groups(self) -> list[str] | None:
         """The recording of each frame, or None to split frame by frame (the leaking split)."""
@@ -77,13 +82,14 @@ def main() -> None:
     print("|---|---|---|" + "---|" * len(THRESHOLDS))
     for sensor_name in ("gelsight", "gelsight_mini"):
         sensor = host.build("sensor_family", sensor_name)
-        rows = [("procedural", host.build("dataset", {"name": "procedural", "num_samples": args.samples},
-                                          sensor=sensor))]
+        rows = [
+            ("procedural", host.build("dataset", {"name": "procedural", "num_samples": args.samples}, sensor=sensor))
+        ]
         for frames in args.frames:
             recordings = PressRecordings(sensor, args.samples // frames, frames)
             rows.append((f"video, {frames} frames/recording", recordings))
         for data, dataset in rows:
-            for grouped in ((False, True) if isinstance(dataset, PressRecordings) else (True,)):
+            for grouped in (False, True) if isinstance(dataset, PressRecordings) else (True,):
                 dataset.grouped = grouped  # the same images, split by frame then by recording
                 unit, shares = flagged_shares(dataset)
                 print(f"| {sensor_name} | {data} | {unit} | " + " | ".join(f"{share:.0%}" for share in shares) + " |")

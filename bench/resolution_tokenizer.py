@@ -35,12 +35,21 @@ from vqtouch.core.image_size import ImageSize, image_hw, image_size_argument, si
 def configurations(sizes: list[ImageSize], encoder: str) -> list[tuple[str, ImageSize, list[str]]]:
     """(label, image size, --set overrides) of every configuration: each size with and without mid attention;
     a non-square size images GelSight's whole frame (view full)."""
-    return [(f"{size_text(size)} px{'' if attention else ', no mid attention'}", size,
-             [f"tokenizer.autoencoder.name={encoder}", "tokenizer.autoencoder.channels=32",
-              f"tokenizer.autoencoder.mid_attention={'true' if attention else 'false'}",
-              f"data.image_size={json.dumps(list(image_hw(size)))}",
-              *(["sensor.view=full"] if image_hw(size)[0] != image_hw(size)[1] else [])])
-            for size in sizes for attention in (True, False)]
+    return [
+        (
+            f"{size_text(size)} px{'' if attention else ', no mid attention'}",
+            size,
+            [
+                f"tokenizer.autoencoder.name={encoder}",
+                "tokenizer.autoencoder.channels=32",
+                f"tokenizer.autoencoder.mid_attention={'true' if attention else 'false'}",
+                f"data.image_size={json.dumps(list(image_hw(size)))}",
+                *(["sensor.view=full"] if image_hw(size)[0] != image_hw(size)[1] else []),
+            ],
+        )
+        for size in sizes
+        for attention in (True, False)
+    ]
 
 
 def scores_at_64(run: Path, image_size: ImageSize) -> dict[str, float]:
@@ -70,32 +79,57 @@ def scores_at_64(run: Path, image_size: ImageSize) -> dict[str, float]:
         scores[f"{name}_at_64"] = float(metric.compute())
     return scores
 
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True)
     parser.add_argument("--steps", type=int, default=150)
-    parser.add_argument("--sizes", type=image_size_argument, nargs="+", default=[64, 128, 256],
-                        help="image sizes: S or HEIGHTxWIDTH (default 64 128 256)")
+    parser.add_argument(
+        "--sizes",
+        type=image_size_argument,
+        nargs="+",
+        default=[64, 128, 256],
+        help="image sizes: S or HEIGHTxWIDTH (default 64 128 256)",
+    )
     parser.add_argument("--encoder", default="dm_vqgan", choices=["vqgan", "dm_vqgan"])
     args = parser.parse_args()
     out = Path(args.out)
-    base = ["data.dataset.num_samples=1000", "data.batch_size=8", f"tokenizer.train.steps={args.steps}",
-            f"tokenizer.train.checkpoint_every={args.steps}", "tokenizer.train.learning_rate=0.0002",
-            "tokenizer.loss.disc_start=100000", "seed=0"]
+    base = [
+        "data.dataset.num_samples=1000",
+        "data.batch_size=8",
+        f"tokenizer.train.steps={args.steps}",
+        f"tokenizer.train.checkpoint_every={args.steps}",
+        "tokenizer.train.learning_rate=0.0002",
+        "tokenizer.loss.disc_start=100000",
+        "seed=0",
+    ]
     rows = []
     for label, size, changes in configurations(args.sizes, args.encoder):
         run = out / label.replace(" ", "").replace(",", "_")
         seconds, scores = train_and_score(run, changes + base, "ssim,psnr", size)
-        rows.append({"configuration": label, "image_size": list(image_hw(size)), "seconds_per_step": seconds / args.steps,
-                     "reconstructions_per_second": scores["reconstructions_per_second"], "ssim": scores["ssim"],
-                     "psnr": scores["psnr"], **scores_at_64(run, size), "codes_used": scores["codes_used"]})
+        rows.append(
+            {
+                "configuration": label,
+                "image_size": list(image_hw(size)),
+                "seconds_per_step": seconds / args.steps,
+                "reconstructions_per_second": scores["reconstructions_per_second"],
+                "ssim": scores["ssim"],
+                "psnr": scores["psnr"],
+                **scores_at_64(run, size),
+                "codes_used": scores["codes_used"],
+            }
+        )
         print(json.dumps(rows[-1]), flush=True)
     (out / "resolution.json").write_text(json.dumps(rows, indent=2) + "\n")
-    print(f"\n{'configuration':28s} {'s/step':>7s} {'rec img/s':>9s} {'SSIM':>7s} {'PSNR':>7s} {'SSIM@64':>8s} "
-          f"{'PSNR@64':>8s} {'codes':>6s}")
+    print(
+        f"\n{'configuration':28s} {'s/step':>7s} {'rec img/s':>9s} {'SSIM':>7s} {'PSNR':>7s} {'SSIM@64':>8s} "
+        f"{'PSNR@64':>8s} {'codes':>6s}"
+    )
     for r in rows:
-        print(f"{r['configuration']:28s} {r['seconds_per_step']:7.3f} {r['reconstructions_per_second']:9.1f} "
-              f"{r['ssim']:7.4f} {r['psnr']:7.2f} {r['ssim_at_64']:8.4f} {r['psnr_at_64']:8.2f} {r['codes_used']:6d}")
+        print(
+            f"{r['configuration']:28s} {r['seconds_per_step']:7.3f} {r['reconstructions_per_second']:9.1f} "
+            f"{r['ssim']:7.4f} {r['psnr']:7.2f} {r['ssim_at_64']:8.4f} {r['psnr_at_64']:8.2f} {r['codes_used']:6d}"
+        )
 
 
 if __name__ == "__main__":

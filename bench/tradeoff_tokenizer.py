@@ -25,16 +25,33 @@ from vqtouch.core.cli import main as vqtouch
 
 #: The old script's baseline as ``--set`` overrides of the reconstruction scene (the encoder's
 #: name first: selecting a plugin resets its options).
-BASELINE = ["tokenizer.autoencoder.name=vqgan", "tokenizer.autoencoder.channels=32", "data.dataset.num_samples=1000",
-            "data.batch_size=8", "tokenizer.train.learning_rate=0.0002", "tokenizer.loss.disc_start=100000"]
+BASELINE = [
+    "tokenizer.autoencoder.name=vqgan",
+    "tokenizer.autoencoder.channels=32",
+    "data.dataset.num_samples=1000",
+    "data.batch_size=8",
+    "tokenizer.train.learning_rate=0.0002",
+    "tokenizer.loss.disc_start=100000",
+]
 
 
 def command(out: str, steps: int, extra: list[str]) -> list[str]:
     """The ``vqtouch`` arguments of the tokenizer trade-off at the old script's baseline (the
     reconstruction scene trains no generator: the tokenizer knobs only, at their defaults)."""
     overrides = [item for override in BASELINE for item in ("--set", override)]
-    return ["--no-progress", "evaluate", "tradeoff", "reconstruction", "--full", "--out", out,
-            "--tokenizer-steps", str(steps), *overrides, *extra]
+    return [
+        "--no-progress",
+        "evaluate",
+        "tradeoff",
+        "reconstruction",
+        "--full",
+        "--out",
+        out,
+        "--tokenizer-steps",
+        str(steps),
+        *overrides,
+        *extra,
+    ]
 
 
 def main() -> int:

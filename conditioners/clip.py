@@ -18,9 +18,16 @@ from torch import nn
 
 from vqtouch.core import BuildContext, Conditioner, PluginConfig, WeightsSpec, hookimpl, resolve_weights
 from vqtouch.core.frozen import FrozenModule
-from vqtouch.plugins.evaluation.open_clip_towers import (OPEN_CLIP_ENV_VAR, OPEN_CLIP_FILENAMES, OPEN_CLIP_SOURCE,
-                                                        check_open_clip_architecture, clip_image_embeddings,
-                                                        clip_image_geometry, create_open_clip_model, import_open_clip)
+from vqtouch.plugins.evaluation.open_clip_towers import (
+    OPEN_CLIP_ENV_VAR,
+    OPEN_CLIP_FILENAMES,
+    OPEN_CLIP_SOURCE,
+    check_open_clip_architecture,
+    clip_image_embeddings,
+    clip_image_geometry,
+    create_open_clip_model,
+    import_open_clip,
+)
 
 CLIP_WEIGHTS = WeightsSpec(
     description="conditioner 'clip' (frozen open_clip image encoder)",
@@ -35,15 +42,20 @@ class ClipConditionerConfig(PluginConfig):
     """Options of the ``clip`` conditioner."""
 
     name: Literal["clip"] = "clip"
-    architecture: str = Field("ViT-B-32", min_length=1,
-                              description="open_clip model name whose weights the checkpoint file holds.")
+    architecture: str = Field(
+        "ViT-B-32", min_length=1, description="open_clip model name whose weights the checkpoint file holds."
+    )
     checkpoint: str | None = Field(
-        None, description="Path to the open_clip weights (.safetensors/.pt/.bin); else VQTOUCH_CLIP_CKPT or "
-                          "VQTOUCH_WEIGHTS_DIR. Never downloaded.")
+        None,
+        description="Path to the open_clip weights (.safetensors/.pt/.bin); else VQTOUCH_CLIP_CKPT or "
+        "VQTOUCH_WEIGHTS_DIR. Never downloaded.",
+    )
     num_tokens: int = Field(4, ge=1, le=77, description="Condition tokens projected from the image embedding.")
     model_overrides: dict[str, Any] = Field(
-        default_factory=dict, description="Keyword overrides passed to open_clip.create_model (e.g. a small "
-                                          "vision_cfg for a custom-trained model); must match the checkpoint.")
+        default_factory=dict,
+        description="Keyword overrides passed to open_clip.create_model (e.g. a small "
+        "vision_cfg for a custom-trained model); must match the checkpoint.",
+    )
 
 
 class ClipConditioner(Conditioner):
@@ -65,8 +77,9 @@ class ClipConditioner(Conditioner):
         images = condition
         if images.ndim != 4 or images.shape[1] != 3:
             raise ValueError(f"clip conditioner expects RGB images (B, 3, H, W) in [0, 1], got {tuple(images.shape)}")
-        embedding_BE = clip_image_embeddings(self.encoder.network, images, self.clip_image_size, self.mean_C,
-                                             self.std_C, dtype=self.encoder.dtype)
+        embedding_BE = clip_image_embeddings(
+            self.encoder.network, images, self.clip_image_size, self.mean_C, self.std_C, dtype=self.encoder.dtype
+        )
         return self.project(embedding_BE).view(-1, self.num_tokens, self.cond_dim)
 
 
@@ -88,5 +101,9 @@ def build_clip_conditioner(config: ClipConditionerConfig, context: BuildContext)
 
 @hookimpl
 def vqtouch_register_conditioners(register):
-    register("clip", build_clip_conditioner, ClipConditionerConfig,
-             description="Frozen open_clip image encoder from a local file + trainable projection (vision-to-touch).")
+    register(
+        "clip",
+        build_clip_conditioner,
+        ClipConditionerConfig,
+        description="Frozen open_clip image encoder from a local file + trainable projection (vision-to-touch).",
+    )

@@ -33,42 +33,58 @@ import torch.nn.functional as F
 from pydantic import Field
 from torch import nn
 
-from vqtouch.core import (BuildContext, Conditioner, ConfigError, PluginConfig, WeightsSpec, hookimpl,
-                          resolve_weights)
+from vqtouch.core import BuildContext, Conditioner, ConfigError, PluginConfig, WeightsSpec, hookimpl, resolve_weights
 from vqtouch.core.frozen import FrozenModule
 
-from vqtouch.plugins.evaluation.open_clip_towers import (builtin_tokenizer, check_open_clip_architecture,
-                                                        create_open_clip_model, import_open_clip)
+from vqtouch.plugins.evaluation.open_clip_towers import (
+    builtin_tokenizer,
+    check_open_clip_architecture,
+    create_open_clip_model,
+    import_open_clip,
+)
 
 from .clip import CLIP_WEIGHTS
 
 #: The same open_clip checkpoint file the ``clip`` conditioner reads (it holds both towers), found the same way.
 TEXT_WEIGHTS = WeightsSpec(
     description="conditioner 'text' (frozen open_clip text encoder)",
-    filenames=CLIP_WEIGHTS.filenames, env_var=CLIP_WEIGHTS.env_var, source_url=CLIP_WEIGHTS.source_url,
-    config_hint="the text conditioner's checkpoint option (e.g. --set generator.conditioners.0.checkpoint=PATH)")
+    filenames=CLIP_WEIGHTS.filenames,
+    env_var=CLIP_WEIGHTS.env_var,
+    source_url=CLIP_WEIGHTS.source_url,
+    config_hint="the text conditioner's checkpoint option (e.g. --set generator.conditioners.0.checkpoint=PATH)",
+)
 
 
 class TextConditionerConfig(PluginConfig):
     """Options of the ``text`` conditioner (frozen open_clip text tower from a local file)."""
 
     name: Literal["text"] = "text"
-    architecture: str = Field("ViT-B-32", min_length=1,
-                              description="open_clip model name whose weights the checkpoint file holds; its "
-                                          "tokenizer must be open_clip's built-in BPE tokenizer (no Hugging Face "
-                                          "tokenizer, which would be downloaded).")
+    architecture: str = Field(
+        "ViT-B-32",
+        min_length=1,
+        description="open_clip model name whose weights the checkpoint file holds; its "
+        "tokenizer must be open_clip's built-in BPE tokenizer (no Hugging Face "
+        "tokenizer, which would be downloaded).",
+    )
     checkpoint: str | None = Field(
-        None, description="Path to the open_clip weights (.safetensors/.pt/.bin; the whole model, as for the clip "
-                          "conditioner); else VQTOUCH_CLIP_CKPT or VQTOUCH_WEIGHTS_DIR. Never downloaded.")
+        None,
+        description="Path to the open_clip weights (.safetensors/.pt/.bin; the whole model, as for the clip "
+        "conditioner); else VQTOUCH_CLIP_CKPT or VQTOUCH_WEIGHTS_DIR. Never downloaded.",
+    )
     context_length: int = Field(
-        32, ge=2, le=77,
+        32,
+        ge=2,
+        le=77,
         description="Text token positions kept, start- and end-of-text included, which is also the number of "
-                    "condition tokens: each is the frozen text transformer's final hidden state at that position, "
-                    "projected to cond_dim by a trainable linear layer. Longer texts are truncated (the last kept "
-                    "position becomes end-of-text); at most the model's own context length (77 for CLIP).")
+        "condition tokens: each is the frozen text transformer's final hidden state at that position, "
+        "projected to cond_dim by a trainable linear layer. Longer texts are truncated (the last kept "
+        "position becomes end-of-text); at most the model's own context length (77 for CLIP).",
+    )
     model_overrides: dict[str, Any] = Field(
-        default_factory=dict, description="Keyword overrides passed to open_clip.create_model (e.g. a small "
-                                          "text_cfg for a custom-trained model); must match the checkpoint.")
+        default_factory=dict,
+        description="Keyword overrides passed to open_clip.create_model (e.g. a small "
+        "text_cfg for a custom-trained model); must match the checkpoint.",
+    )
 
 
 def text_hidden_states(model: nn.Module, ids_BL: torch.Tensor) -> torch.Tensor:
@@ -79,8 +95,9 @@ def text_hidden_states(model: nn.Module, ids_BL: torch.Tensor) -> torch.Tensor:
     Uses open_clip's ``forward_intermediates`` (last block, final norm applied), which both
     ``CLIP`` and ``CustomTextCLIP`` models implement.
     """
-    output = model.forward_intermediates(text=ids_BL, text_indices=1, normalize_intermediates=True,
-                                         intermediates_only=True)
+    output = model.forward_intermediates(
+        text=ids_BL, text_indices=1, normalize_intermediates=True, intermediates_only=True
+    )
     return output["text_intermediates"][-1]
 
 
@@ -90,8 +107,15 @@ class TextConditioner(Conditioner):
 
     sample_key = "text"
 
-    def __init__(self, clip_model: nn.Module, tokenizer: Any, width: int, model_context_length: int,
-                 cond_dim: int, context_length: int) -> None:
+    def __init__(
+        self,
+        clip_model: nn.Module,
+        tokenizer: Any,
+        width: int,
+        model_context_length: int,
+        cond_dim: int,
+        context_length: int,
+    ) -> None:
         """``clip_model``: the loaded open_clip model (frozen here); ``tokenizer``: its built-in tokenizer
         (see :func:`builtin_tokenizer`); ``width``: its text transformer's width; ``model_context_length``:
         the length its position embeddings need; ``context_length``: positions kept (condition tokens)."""
@@ -114,14 +138,17 @@ class TextConditioner(Conditioner):
         ids_BL = F.pad(ids_BN, (0, self.model_context_length - self.context_length))  # causal: changes no kept state
         with torch.no_grad():
             hidden_BLW = text_hidden_states(self.encoder.network, ids_BL.to(self.project.weight.device))
-        return hidden_BLW[:, :self.context_length].float()
+        return hidden_BLW[:, : self.context_length].float()
 
     def encode(self, condition: Sequence[str]) -> torch.Tensor:
         """Texts (a list or tuple of B strings) to tokens (B, context_length, cond_dim)."""
         texts = condition
         if not isinstance(texts, (list, tuple)) or not all(isinstance(text, str) for text in texts):
-            got = f"a {type(texts).__name__} with non-strings" if isinstance(texts, (list, tuple)) else (
-                type(texts).__name__)
+            got = (
+                f"a {type(texts).__name__} with non-strings"
+                if isinstance(texts, (list, tuple))
+                else (type(texts).__name__)
+            )
             raise ValueError(f"text conditioner expects a list of B strings, got {got}")
         return self.project(self.hidden_states(texts))
 
@@ -140,28 +167,38 @@ def build_text_conditioner(config: TextConditionerConfig, context: BuildContext)
     model = create_open_clip_model(open_clip, config.architecture, path, config.model_overrides, "text")
     model_context_length = getattr(model, "context_length", None)
     if not isinstance(model_context_length, int) or not hasattr(model, "forward_intermediates"):
-        raise ConfigError(f"conditioner 'text': open_clip architecture {config.architecture!r} has no text "
-                          "transformer this conditioner can read; choose a CLIP model (e.g. ViT-B-32)")
+        raise ConfigError(
+            f"conditioner 'text': open_clip architecture {config.architecture!r} has no text "
+            "transformer this conditioner can read; choose a CLIP model (e.g. ViT-B-32)"
+        )
     if config.context_length > model_context_length:
-        raise ConfigError(f"conditioner 'text': context_length={config.context_length} exceeds "
-                          f"{config.architecture}'s context length {model_context_length}")
+        raise ConfigError(
+            f"conditioner 'text': context_length={config.context_length} exceeds "
+            f"{config.architecture}'s context length {model_context_length}"
+        )
     model.visual = nn.Identity()  # text-to-touch never uses the image tower: do not keep its weights in memory
     model.eval().requires_grad_(False)
     with torch.no_grad():
         try:
-            probe = F.pad(tokenizer([""], context_length=config.context_length),
-                          (0, model_context_length - config.context_length))
+            probe = F.pad(
+                tokenizer([""], context_length=config.context_length), (0, model_context_length - config.context_length)
+            )
             width = text_hidden_states(model, probe).shape[-1]
         except (IndexError, RuntimeError) as exc:
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            raise ConfigError(f"conditioner 'text': {config.architecture}'s text tower cannot read open_clip's "
-                              f"tokens ({first})") from None
+            raise ConfigError(
+                f"conditioner 'text': {config.architecture}'s text tower cannot read open_clip's tokens ({first})"
+            ) from None
     return TextConditioner(model, tokenizer, width, model_context_length, context.cond_dim, config.context_length)
 
 
 @hookimpl
 def vqtouch_register_conditioners(register):
     """Register the ``text`` conditioner (the conditioner hook; the entry point is in pyproject.toml)."""
-    register("text", build_text_conditioner, TextConditionerConfig,
-             description="Frozen open_clip text tower from a local file, per-token final hidden states + trainable "
-                         "projection (text-to-touch).")
+    register(
+        "text",
+        build_text_conditioner,
+        TextConditionerConfig,
+        description="Frozen open_clip text tower from a local file, per-token final hidden states + trainable "
+        "projection (text-to-touch).",
+    )

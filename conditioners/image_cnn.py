@@ -29,9 +29,12 @@ class ImageCnnOptions(PluginConfig):
     width: int = Field(64, ge=8, le=1024, description="Channels of the convolutional trunk.")
     depth: int = Field(3, ge=1, le=6, description="Stride-2 convolution stages before pooling.")
     token_grid: int = Field(4, ge=1, le=32, description="Tokens form a token_grid x token_grid grid.")
-    spatial: bool = Field(True, description="Also hand the generator a feature map aligned with the target image "
-                                            "(from the trunk stage nearest the code grid), added at each code's "
-                                            "position; false: cross-attention tokens only (the ablation).")
+    spatial: bool = Field(
+        True,
+        description="Also hand the generator a feature map aligned with the target image "
+        "(from the trunk stage nearest the code grid), added at each code's "
+        "position; false: cross-attention tokens only (the ablation).",
+    )
 
 
 class ImageCnnConditioner(Conditioner):
@@ -47,8 +50,16 @@ class ImageCnnConditioner(Conditioner):
     to ``cond_dim`` by a 1x1 convolution: the condition at each place of the target image.
     """
 
-    def __init__(self, sample_key: str, cond_dim: int, width: int, depth: int, token_grid: int,
-                 channels: int = 3, grid_stage: int | None = None) -> None:
+    def __init__(
+        self,
+        sample_key: str,
+        cond_dim: int,
+        width: int,
+        depth: int,
+        token_grid: int,
+        channels: int = 3,
+        grid_stage: int | None = None,
+    ) -> None:
         """``sample_key``: the sample entry read; ``channels``: its image channels (3 for RGB);
         ``grid_stage``: the trunk stage (0-based) whose map is the condition grid, None for none."""
         if sample_key not in IMAGE_SAMPLE_KEYS:
@@ -84,8 +95,10 @@ class ImageCnnConditioner(Conditioner):
         ``grid_stage``, that stage's projected map (B, cond_dim, h, w)."""
         images_BCHW = condition
         if images_BCHW.ndim != 4 or images_BCHW.shape[1] != self.channels:
-            raise ValueError(f"{self.sample_key} conditioner expects images (B, {self.channels}, H, W), "
-                             f"got {tuple(images_BCHW.shape)}")
+            raise ValueError(
+                f"{self.sample_key} conditioner expects images (B, {self.channels}, H, W), "
+                f"got {tuple(images_BCHW.shape)}"
+            )
         features_BWhw = images_BCHW.to(self.project.weight.dtype) * 2 - 1
         grid_BDhw = None
         layers_per_stage = 3
@@ -98,8 +111,10 @@ class ImageCnnConditioner(Conditioner):
         return self.project(cells_BNW) + self.position_ND, grid_BDhw
 
     def extra_repr(self) -> str:
-        return (f"sample_key={self.sample_key!r}, channels={self.channels}, token_grid={self.token_grid}, "
-                f"grid_stage={self.grid_stage}")
+        return (
+            f"sample_key={self.sample_key!r}, channels={self.channels}, token_grid={self.token_grid}, "
+            f"grid_stage={self.grid_stage}"
+        )
 
 
 def grid_stage_for(image_size: Any, code_grid: Any, depth: int) -> int | None:

@@ -15,8 +15,9 @@ class LabelConditionerConfig(PluginConfig):
     """Options of the ``label`` conditioner."""
 
     name: Literal["label"] = "label"
-    num_classes: int = Field(0, ge=0, le=1_000_000,
-                             description="Number of labels; 0 takes the dataset's count from the build context.")
+    num_classes: int = Field(
+        0, ge=0, le=1_000_000, description="Number of labels; 0 takes the dataset's count from the build context."
+    )
     num_tokens: int = Field(1, ge=1, le=64, description="Condition tokens emitted per label.")
 
 
@@ -35,11 +36,15 @@ class LabelConditioner(Conditioner):
         """Labels (B,) of integer dtype in [0, num_classes) to tokens (B, num_tokens, cond_dim)."""
         labels_B = torch.as_tensor(condition, device=self.embedding.weight.device)
         if labels_B.dtype.is_floating_point or labels_B.dtype == torch.bool or labels_B.ndim != 1:
-            raise ValueError(f"label conditioner expects a 1-D integer tensor of labels, got "
-                             f"{labels_B.dtype} with shape {tuple(labels_B.shape)}")
+            raise ValueError(
+                f"label conditioner expects a 1-D integer tensor of labels, got "
+                f"{labels_B.dtype} with shape {tuple(labels_B.shape)}"
+            )
         if labels_B.numel() and (labels_B.min() < 0 or labels_B.max() >= self.num_classes):
-            raise ValueError(f"labels must be in [0, {self.num_classes}); got min {int(labels_B.min())}, "
-                             f"max {int(labels_B.max())}. Use the drop mask for 'no label'")
+            raise ValueError(
+                f"labels must be in [0, {self.num_classes}); got min {int(labels_B.min())}, "
+                f"max {int(labels_B.max())}. Use the drop mask for 'no label'"
+            )
         return self.embedding(labels_B.long()).view(-1, self.num_tokens, self.cond_dim)
 
 
@@ -49,17 +54,24 @@ def build_label_conditioner(config: LabelConditionerConfig, context: BuildContex
     if config.num_classes and context.num_classes > config.num_classes:
         from vqtouch.core import ConfigError
 
-        raise ConfigError(f"conditioner 'label' has num_classes={config.num_classes} but the dataset has "
-                          f"{context.num_classes} classes; set num_classes=0 to take the dataset's count")
+        raise ConfigError(
+            f"conditioner 'label' has num_classes={config.num_classes} but the dataset has "
+            f"{context.num_classes} classes; set num_classes=0 to take the dataset's count"
+        )
     if num_classes < 1:
         from vqtouch.core import ConfigError
 
-        raise ConfigError("conditioner 'label' needs the number of classes: set conditioner.num_classes=N "
-                          "or use a labelled dataset")
+        raise ConfigError(
+            "conditioner 'label' needs the number of classes: set conditioner.num_classes=N or use a labelled dataset"
+        )
     return LabelConditioner(num_classes, context.cond_dim, config.num_tokens)
 
 
 @hookimpl
 def vqtouch_register_conditioners(register):
-    register("label", build_label_conditioner, LabelConditionerConfig,
-             description="Learned embedding tokens per class label (label-to-touch).")
+    register(
+        "label",
+        build_label_conditioner,
+        LabelConditionerConfig,
+        description="Learned embedding tokens per class label (label-to-touch).",
+    )

@@ -26,19 +26,32 @@ class TactileConditionerConfig(ImageCnnOptions):
 
     name: Literal["tactile"] = "tactile"
     reads: Literal["tactile_source", "tactile"] = Field(
-        "tactile_source", description="Sample entry encoded: 'tactile_source' (the paired sensor's image of the same "
-                                      "contact; set the experiment's paired_sensor) or 'tactile' (the target image "
-                                      "itself: a sanity check, not a task).")
+        "tactile_source",
+        description="Sample entry encoded: 'tactile_source' (the paired sensor's image of the same "
+        "contact; set the experiment's paired_sensor) or 'tactile' (the target image "
+        "itself: a sanity check, not a task).",
+    )
 
 
 def build_tactile_conditioner(config: TactileConditionerConfig, context: BuildContext) -> ImageCnnConditioner:
     """Factory for the ``tactile`` conditioner: the tactile image has the context's channel count."""
     grid_stage = grid_stage_for(context.image_size, context.code_grid, config.depth) if config.spatial else None
-    return ImageCnnConditioner(config.reads, context.cond_dim, config.width, config.depth, config.token_grid,
-                               context.channels, grid_stage=grid_stage)
+    return ImageCnnConditioner(
+        config.reads,
+        context.cond_dim,
+        config.width,
+        config.depth,
+        config.token_grid,
+        context.channels,
+        grid_stage=grid_stage,
+    )
 
 
 @hookimpl
 def vqtouch_register_conditioners(register):
-    register("tactile", build_tactile_conditioner, TactileConditionerConfig,
-             description="Trainable CNN tokens from another sensor's tactile image of the contact (touch-to-touch).")
+    register(
+        "tactile",
+        build_tactile_conditioner,
+        TactileConditionerConfig,
+        description="Trainable CNN tokens from another sensor's tactile image of the contact (touch-to-touch).",
+    )

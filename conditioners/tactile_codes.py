@@ -31,12 +31,16 @@ class TactileCodesConditionerConfig(PluginConfig):
 
     name: Literal["tactile_codes"] = "tactile_codes"
     tokenizer: str | None = Field(
-        None, min_length=1,
+        None,
+        min_length=1,
         description="The source sensor's tokenizer: a run directory whose tokenizer stage trained (its newest good "
-                    "checkpoint) or a checkpoint folder holding autoencoder.safetensors and quantizer.safetensors.")
+        "checkpoint) or a checkpoint folder holding autoencoder.safetensors and quantizer.safetensors.",
+    )
     reads: Literal["tactile_source", "tactile"] = Field(
-        "tactile_source", description="Sample entry encoded: 'tactile_source' (the paired sensor's image of the same "
-                                      "contact) or 'tactile' (the target image itself: a sanity check, not a task).")
+        "tactile_source",
+        description="Sample entry encoded: 'tactile_source' (the paired sensor's image of the same "
+        "contact) or 'tactile' (the target image itself: a sanity check, not a task).",
+    )
 
 
 class TactileCodesConditioner(Conditioner):
@@ -55,8 +59,9 @@ class TactileCodesConditioner(Conditioner):
         self.grid_hw = grid_hw
         self.num_codes = tokenizer.quantizer.codebook_size
         # Frozen and unregistered: out of state_dict and parameters(), moved with .to() all the same.
-        self.frozen_tokenizer = FrozenModule(nn.ModuleDict({"autoencoder": tokenizer.autoencoder,
-                                                            "quantizer": tokenizer.quantizer}))
+        self.frozen_tokenizer = FrozenModule(
+            nn.ModuleDict({"autoencoder": tokenizer.autoencoder, "quantizer": tokenizer.quantizer})
+        )
         self.code_embedding = nn.Embedding(self.num_codes, cond_dim)
         nn.init.normal_(self.code_embedding.weight, std=0.02)
         self.position_ND = nn.Parameter(torch.randn(self.num_tokens, cond_dim) * 0.02)
@@ -70,8 +75,10 @@ class TactileCodesConditioner(Conditioner):
         with torch.autocast(images_B3HW.device.type, enabled=False):
             codes_Bhw = self.source.encode_codes(images_B3HW.float())
         if tuple(codes_Bhw.shape[1:]) != self.grid_hw:
-            raise ValueError(f"the source tokenizer made {tuple(codes_Bhw.shape[1:])} code grids from "
-                             f"{tuple(images_B3HW.shape[2:])} images; this conditioner was built for {self.grid_hw}")
+            raise ValueError(
+                f"the source tokenizer made {tuple(codes_Bhw.shape[1:])} code grids from "
+                f"{tuple(images_B3HW.shape[2:])} images; this conditioner was built for {self.grid_hw}"
+            )
         return codes_Bhw
 
     def encode(self, condition: torch.Tensor) -> torch.Tensor:
@@ -83,20 +90,25 @@ class TactileCodesConditioner(Conditioner):
         return f"sample_key={self.sample_key!r}, grid={self.grid_hw}, num_codes={self.num_codes}"
 
 
-def build_tactile_codes_conditioner(config: TactileCodesConditionerConfig,
-                                    context: BuildContext) -> TactileCodesConditioner:
+def build_tactile_codes_conditioner(
+    config: TactileCodesConditionerConfig, context: BuildContext
+) -> TactileCodesConditioner:
     """Factory: loads the source sensor's tokenizer from ``config.tokenizer`` (frozen, on the CPU;
     the generator's ``.to(device)`` moves it) and sizes the tokens by its code grid at the
     experiment's image size."""
 
     if config.tokenizer is None:
-        raise ConfigError("conditioner 'tactile_codes' needs the source sensor's tokenizer: set "
-                          "generator.conditioners.N.tokenizer=RUN (a run whose tokenizer stage trained on that sensor)")
+        raise ConfigError(
+            "conditioner 'tactile_codes' needs the source sensor's tokenizer: set "
+            "generator.conditioners.N.tokenizer=RUN (a run whose tokenizer stage trained on that sensor)"
+        )
     path = Path(config.tokenizer).expanduser()
     if not path.exists():
-        raise ConfigError(f"conditioner 'tactile_codes': tokenizer {config.tokenizer} does not exist; train the source "
-                          "sensor's tokenizer (vqtouch train tokenizer --set sensor.name=... --out RUN) and set "
-                          "tokenizer=RUN")
+        raise ConfigError(
+            f"conditioner 'tactile_codes': tokenizer {config.tokenizer} does not exist; train the source "
+            "sensor's tokenizer (vqtouch train tokenizer --set sensor.name=... --out RUN) and set "
+            "tokenizer=RUN"
+        )
     try:
         tokenizer, _ = load_tokenizer(path, load_plugins())
     except VqtouchError as exc:
@@ -106,6 +118,10 @@ def build_tactile_codes_conditioner(config: TactileCodesConditionerConfig,
 
 @hookimpl
 def vqtouch_register_conditioners(register):
-    register("tactile_codes", build_tactile_codes_conditioner, TactileCodesConditionerConfig,
-             description="A source tactile image as its codes under its own sensor's frozen tokenizer, embedded "
-                         "(VQ-Touch's touch-to-touch condition).")
+    register(
+        "tactile_codes",
+        build_tactile_codes_conditioner,
+        TactileCodesConditionerConfig,
+        description="A source tactile image as its codes under its own sensor's frozen tokenizer, embedded "
+        "(VQ-Touch's touch-to-touch condition).",
+    )

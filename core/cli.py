@@ -26,20 +26,33 @@ from .progress import disable_progress
 from .stages import StageOutcome, empty_slot_reason, missing_slots
 
 
-def add_config_arguments(parser: argparse.ArgumentParser, *, scene_required: bool = False,
-                         default_scene: str | None = None) -> None:
+def add_config_arguments(
+    parser: argparse.ArgumentParser, *, scene_required: bool = False, default_scene: str | None = None
+) -> None:
     """Add ``SCENE``/``--scene``, ``--config`` and ``--set`` to a subcommand (for plugin commands too)."""
     if scene_required:
-        parser.add_argument("scene_positional", nargs="?", metavar="SCENE",
-                            help="scene preset name (see `vqtouch config scenes`)")
+        parser.add_argument(
+            "scene_positional", nargs="?", metavar="SCENE", help="scene preset name (see `vqtouch config scenes`)"
+        )
         parser.add_argument("--scene", help="the scene as an option, as the other commands take it")
         parser.set_defaults(scene_required=True)
     else:
         parser.add_argument("--scene", default=default_scene, help=f"scene preset (default: {default_scene})")
-    parser.add_argument("--config", action="append", default=[], metavar="FILE",
-                        help="TOML or JSON config merged over the scene (repeatable, in order)")
-    parser.add_argument("--set", action="append", default=[], dest="overrides", metavar="PATH=VALUE",
-                        help="override one value, e.g. --set tokenizer.train.steps=200 (JSON values; repeatable)")
+    parser.add_argument(
+        "--config",
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="TOML or JSON config merged over the scene (repeatable, in order)",
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        dest="overrides",
+        metavar="PATH=VALUE",
+        help="override one value, e.g. --set tokenizer.train.steps=200 (JSON values; repeatable)",
+    )
 
 
 def checkpoint_step(text: str) -> int | str:
@@ -74,9 +87,12 @@ def non_negative_int(text: str) -> int:
 
 def add_step_argument(parser: argparse.ArgumentParser) -> None:
     """Add ``--step N|best`` (default: the run's newest good checkpoint) to a command that reads a run."""
-    parser.add_argument("--step", type=checkpoint_step, metavar="N|best",
-                        help="checkpoint step, or 'best' for the lowest validation loss (default: the newest "
-                             "complete checkpoint)")
+    parser.add_argument(
+        "--step",
+        type=checkpoint_step,
+        metavar="N|best",
+        help="checkpoint step, or 'best' for the lowest validation loss (default: the newest complete checkpoint)",
+    )
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
@@ -84,12 +100,16 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     (see :func:`training_run`)."""
     parser.add_argument("--out", help="run directory (default: <output_dir>/<name>-<time>-<hash>)")
     parser.add_argument("--resume", metavar="RUN", help="continue an interrupted run from its last checkpoint")
-    parser.add_argument("--overwrite", action="store_true",
-                        help="empty the --out run directory first (refused for a folder that holds no run)")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="empty the --out run directory first (refused for a folder that holds no run)",
+    )
 
 
-def training_run(args: argparse.Namespace, host: PluginHost,
-                 prepare: Callable[[Any], Any] | None = None) -> tuple[Any, Any]:
+def training_run(
+    args: argparse.Namespace, host: PluginHost, prepare: Callable[[Any], Any] | None = None
+) -> tuple[Any, Any]:
     """The run directory and config of a training command (:func:`add_run_arguments`): the run named
     by ``--resume`` (locked for writing, its saved config), else a new run of the config the
     command's arguments resolve to, after ``prepare(config)`` (e.g. a command's own flags)."""
@@ -122,8 +142,9 @@ def plugin_block(text: str, flag: str, default_name: str | None = None) -> dict[
     if isinstance(block, dict) and default_name is not None:
         block = {"name": default_name, **block}
     if not isinstance(block, dict) or "name" not in block:
-        raise ConfigError(f'{flag}: a JSON block needs the plugin\'s "name", e.g. {{"name": "image_folder", '
-                          f'"root": "data/frames"}}')
+        raise ConfigError(
+            f'{flag}: a JSON block needs the plugin\'s "name", e.g. {{"name": "image_folder", "root": "data/frames"}}'
+        )
     return block
 
 
@@ -204,9 +225,11 @@ def _cmd_config_stages(args: argparse.Namespace) -> int:
         stage = host.stages[name]
         section = f"[{name}]" if stage.section else "-"
         print(f"{name:12s} {stage.description}")
-        print(f"{'':12s}   section: {section}; needs: {', '.join(stage.needs) or '-'}; "
-              f"uses: {', '.join(p for p in stage.uses if p not in stage.needs) or '-'}; "
-              f"from {stage.source.describe()}")
+        print(
+            f"{'':12s}   section: {section}; needs: {', '.join(stage.needs) or '-'}; "
+            f"uses: {', '.join(p for p in stage.uses if p not in stage.needs) or '-'}; "
+            f"from {stage.source.describe()}"
+        )
     return 0
 
 
@@ -220,7 +243,8 @@ def build_parser(host: PluginHost) -> argparse.ArgumentParser:
     from . import __version__
 
     parser = argparse.ArgumentParser(
-        prog="vqtouch", description="Data-efficient tactile image generation across sensors (VQ-Touch).")
+        prog="vqtouch", description="Data-efficient tactile image generation across sensors (VQ-Touch)."
+    )
     parser.add_argument("--version", action="version", version=f"vqtouch {__version__}")
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars (also VQTOUCH_NO_PROGRESS=1)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -244,7 +268,6 @@ def build_parser(host: PluginHost) -> argparse.ArgumentParser:
     scenes.set_defaults(handler=_cmd_config_scenes)
     stages = config_sub.add_parser("stages", help="list the pipeline stages: section, slots, plugin")
     stages.set_defaults(handler=_cmd_config_stages)
-
 
     host.pm.hook.vqtouch_add_commands(subparsers=sub)
     parser.set_defaults(host=host)
@@ -306,8 +329,10 @@ def user_error_message(exc: BaseException) -> str | None:
         return _os_error_message(exc)
     if isinstance(exc, json.JSONDecodeError):
         # The decoder does not know the file; the callers that read run files name it themselves.
-        return (f"a JSON file is not valid JSON ({exc.msg}: line {exc.lineno} column {exc.colno}); if it is a run's "
-                "config.json or env.json, restore it from a copy (run with --debug to see which file)")
+        return (
+            f"a JSON file is not valid JSON ({exc.msg}: line {exc.lineno} column {exc.colno}); if it is a run's "
+            "config.json or env.json, restore it from a copy (run with --debug to see which file)"
+        )
     return None
 
 
@@ -324,8 +349,16 @@ def _silence_stdout() -> None:
         pass
 
 
-def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int, file: Any = None,
-                  line: str | None = None, *, default: Any = warnings.showwarning) -> None:
+def _show_warning(
+    message: Warning | str,
+    category: type[Warning],
+    filename: str,
+    lineno: int,
+    file: Any = None,
+    line: str | None = None,
+    *,
+    default: Any = warnings.showwarning,
+) -> None:
     """vqtouch's own warnings as one line on stderr; every other warning as Python shows it."""
     if issubclass(category, VqtouchWarning):
         print(f"vqtouch: warning: {one_line(str(message))}", file=sys.stderr if file is None else file)
@@ -350,8 +383,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _main(argv: list[str], debug: bool) -> int:
     try:
         parser = build_parser(load_plugins())
-        parser.add_argument("--debug", action="store_true",
-                            help=f"on an error, show the full traceback (also {ENV_DEBUG}=1)")
+        parser.add_argument(
+            "--debug", action="store_true", help=f"on an error, show the full traceback (also {ENV_DEBUG}=1)"
+        )
         args = parser.parse_args(argv)
         if args.no_progress:
             disable_progress()

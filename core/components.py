@@ -32,20 +32,29 @@ class BuildContext(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    image_size: ImageSizeOption = Field(64, description="Size of the tactile images: S for S x S pixels, or "
-                                                        "(height, width).")
+    image_size: ImageSizeOption = Field(
+        64, description="Size of the tactile images: S for S x S pixels, or (height, width)."
+    )
     channels: int = Field(3, ge=1, le=16, description="Image channels (3 for RGB tactile images).")
     num_classes: int = Field(0, ge=0, description="Number of labels in the dataset (0 when unlabelled).")
-    class_names: tuple[str, ...] = Field((), description="The dataset's class names, indexed by label (empty when "
-                                                         "unlabelled or unknown): what a condition derived from the "
-                                                         "class (a material, a hardness) reads.")
+    class_names: tuple[str, ...] = Field(
+        (),
+        description="The dataset's class names, indexed by label (empty when "
+        "unlabelled or unknown): what a condition derived from the "
+        "class (a material, a hardness) reads.",
+    )
     cond_dim: int = Field(256, ge=1, description="Width of the condition tokens a conditioner must emit.")
     codebook_size: int = Field(0, ge=0, description="Codebook size of the tokenizer (0 when not yet known).")
-    latent_dim: int = Field(0, ge=0, description="Channels of the autoencoder's latents, which the quantizer must "
-                                                 "match (0 when not yet known).")
+    latent_dim: int = Field(
+        0,
+        ge=0,
+        description="Channels of the autoencoder's latents, which the quantizer must match (0 when not yet known).",
+    )
     code_grid: int | tuple[int, int] = Field(
-        0, description="The tokenizer's code grid, image_size / the autoencoder's downsampling factor: S for S x S, "
-                       "or (rows, columns); 0 when not yet known.")
+        0,
+        description="The tokenizer's code grid, image_size / the autoencoder's downsampling factor: S for S x S, "
+        "or (rows, columns); 0 when not yet known.",
+    )
 
 
 class ProvidesContext:
@@ -163,15 +172,18 @@ class Conditioner(nn.Module, abc.ABC):
         if self.derived_from and all(key in batch for key in self.derived_from):
             return self.derive(batch)
         wanted = " or ".join(repr(key) for key in (self.sample_key, *self.derived_from))
-        raise KeyError(f"{type(self).__name__} reads samples' {wanted}, which this batch lacks "
-                       f"(keys: {', '.join(sorted(batch))}); use a dataset that provides it")
+        raise KeyError(
+            f"{type(self).__name__} reads samples' {wanted}, which this batch lacks "
+            f"(keys: {', '.join(sorted(batch))}); use a dataset that provides it"
+        )
 
     def derive(self, batch: dict[str, Any]) -> Any:
         """A derived condition of a collated batch from its :attr:`derived_from` entries (e.g. each row's
         material from its label, through the class names the build context carries).  Conditioners that
         set :attr:`derived_from` implement it."""
-        raise NotImplementedError(f"{type(self).__name__} sets derived_from={self.derived_from}; it must implement "
-                                  "derive(batch)")
+        raise NotImplementedError(
+            f"{type(self).__name__} sets derived_from={self.derived_from}; it must implement derive(batch)"
+        )
 
     def parse_condition(self, value: Any, *, image_size: ImageSize, class_names: Sequence[str] = ()) -> Any:
         """One sample's raw condition (what :meth:`condition_of` finds in one sample) from what a user
@@ -207,13 +219,17 @@ class Conditioner(nn.Module, abc.ABC):
             else:
                 raise ConfigError(f"--label: {unknown_name_message('class', text, class_names)} (or give an index)")
             if class_names and not 0 <= label < len(class_names):
-                raise ConfigError(f"--label {label}: out of range; this run's classes are 0..{len(class_names) - 1} "
-                                  f"({', '.join(class_names)})")
+                raise ConfigError(
+                    f"--label {label}: out of range; this run's classes are 0..{len(class_names) - 1} "
+                    f"({', '.join(class_names)})"
+                )
             return label
         if key == "text":
             return str(value)
-        raise NotImplementedError(f"{type(self).__name__} reads samples' {key!r}; it must override parse_condition "
-                                  "to turn a user's value into that entry")
+        raise NotImplementedError(
+            f"{type(self).__name__} reads samples' {key!r}; it must override parse_condition "
+            "to turn a user's value into that entry"
+        )
 
     def forward(self, condition: Any, drop_mask_B: torch.Tensor | None = None) -> ConditionTokens:
         """Encode ``condition``; rows where ``drop_mask_B`` is True get the null tokens (and a zero grid)
@@ -222,7 +238,8 @@ class Conditioner(nn.Module, abc.ABC):
         if tokens_BND.ndim != 3 or tokens_BND.shape[1:] != (self.num_tokens, self.cond_dim):
             raise RuntimeError(
                 f"{type(self).__name__}.encode returned shape {tuple(tokens_BND.shape)}; "
-                f"expected (B, {self.num_tokens}, {self.cond_dim})")
+                f"expected (B, {self.num_tokens}, {self.cond_dim})"
+            )
         batch = tokens_BND.shape[0]
         if drop_mask_B is None:
             drop_mask_B = torch.zeros(batch, dtype=torch.bool, device=tokens_BND.device)
@@ -230,8 +247,10 @@ class Conditioner(nn.Module, abc.ABC):
         tokens_BND = torch.where(drop_mask_B[:, None, None], null_BND, tokens_BND)
         if grid_BDhw is not None:
             if grid_BDhw.ndim != 4 or grid_BDhw.shape[:2] != (batch, self.cond_dim):
-                raise RuntimeError(f"{type(self).__name__}.encode_with_grid returned a grid of shape "
-                                   f"{tuple(grid_BDhw.shape)}; expected (B, {self.cond_dim}, h, w)")
+                raise RuntimeError(
+                    f"{type(self).__name__}.encode_with_grid returned a grid of shape "
+                    f"{tuple(grid_BDhw.shape)}; expected (B, {self.cond_dim}, h, w)"
+                )
             grid_BDhw = torch.where(drop_mask_B[:, None, None, None], torch.zeros_like(grid_BDhw), grid_BDhw)
         return ConditionTokens(tokens_BND, drop_mask_B, grid_BDhw)
 
@@ -469,8 +488,9 @@ class MetricSet:
             values["skipped"] = self.skipped()
         return values
 
-    def score(self, predicted_B3HW: torch.Tensor, target_B3HW: torch.Tensor, prefix: str = "",
-              digits: int | None = 4) -> dict[str, Any]:
+    def score(
+        self, predicted_B3HW: torch.Tensor, target_B3HW: torch.Tensor, prefix: str = "", digits: int | None = 4
+    ) -> dict[str, Any]:
         """:meth:`reset`, one :meth:`update` with these pairs, then :meth:`scores`."""
         self.reset()
         self.update(predicted_B3HW, target_B3HW)
@@ -511,15 +531,24 @@ class Generator(nn.Module, abc.ABC):
     """
 
     @abc.abstractmethod
-    def training_loss(self, codes_BHW: torch.Tensor, condition: ConditionTokens,
-                      generator: torch.Generator | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    def training_loss(
+        self, codes_BHW: torch.Tensor, condition: ConditionTokens, generator: torch.Generator | None = None
+    ) -> tuple[torch.Tensor, dict[str, float]]:
         """The loss (scalar, fp32) of one batch of code grids under its conditions, and scalars to log.
         Random draws (timesteps, noise) come from ``generator``."""
 
     @abc.abstractmethod
-    def sample(self, condition: ConditionTokens, sampler: Sampler, *, steps: int, null: ConditionTokens | None = None,
-               guidance: float = 1.0, truncation: float = 1.0,
-               generators: list[torch.Generator] | None = None) -> torch.Tensor:
+    def sample(
+        self,
+        condition: ConditionTokens,
+        sampler: Sampler,
+        *,
+        steps: int,
+        null: ConditionTokens | None = None,
+        guidance: float = 1.0,
+        truncation: float = 1.0,
+        generators: list[torch.Generator] | None = None,
+    ) -> torch.Tensor:
         """Code grids (B, H, W) for a batch of conditions, drawn by ``sampler`` in ``steps`` steps.
 
         ``null``: the null condition's tokens for classifier-free guidance (``guidance`` != 1);
@@ -541,8 +570,15 @@ class Sampler(abc.ABC):
     """
 
     @abc.abstractmethod
-    def sample(self, denoise: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], schedule: Any, *, length: int,
-               steps: int, generators: list[torch.Generator]) -> torch.Tensor:
+    def sample(
+        self,
+        denoise: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+        schedule: Any,
+        *,
+        length: int,
+        steps: int,
+        generators: list[torch.Generator],
+    ) -> torch.Tensor:
         """Codes (B, length) in [0, K) for B = len(generators) rows, starting from all MASK and
         calling ``denoise`` about ``steps`` times; row b's random draws come from ``generators[b]``."""
 

@@ -26,10 +26,15 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal, Union
 from pydantic import AfterValidator, BaseModel, Field, SerializeAsAny, ValidationError, ValidationInfo, WrapValidator
 from pydantic_core import PydanticCustomError
 
-from .deprecations import (CONFIG_REMOVED, CONFIG_RENAMES, RENAMED_IN, STAGES_REMOVED, ConfigRename,
-                           warn_renamed)
-from .errors import (ConfigError, PluginError, UnknownPluginError, format_validation_error, one_line,
-                     unknown_name_message)
+from .deprecations import CONFIG_REMOVED, CONFIG_RENAMES, RENAMED_IN, STAGES_REMOVED, ConfigRename, warn_renamed
+from .errors import (
+    ConfigError,
+    PluginError,
+    UnknownPluginError,
+    format_validation_error,
+    one_line,
+    unknown_name_message,
+)
 from .image_size import ImageSizeOption
 from .plugin_config import PluginConfig, StrictModel
 
@@ -59,8 +64,10 @@ def _host_from(info: ValidationInfo) -> Any:
     if host is None:
         # No hidden global host: which plugins exist must be decided by the caller.
         raise PydanticCustomError(
-            "no_plugin_host", "validating a plugin slot needs the PluginHost whose registries to use: pass it in the "
-                              "validation context under the key 'host' (see vqtouch.core.validate_experiment)")
+            "no_plugin_host",
+            "validating a plugin slot needs the PluginHost whose registries to use: pass it in the "
+            "validation context under the key 'host' (see vqtouch.core.validate_experiment)",
+        )
     return host
 
 
@@ -71,6 +78,7 @@ def _slot_validator(kind: str) -> Any:
             return _host_from(info).registry(kind).validate_config(value, context=info.context)
         except UnknownPluginError as exc:
             raise PydanticCustomError("unknown_plugin", "{message}", {"message": str(exc)}) from None
+
     return validate
 
 
@@ -113,7 +121,8 @@ def slots_of(model: type[BaseModel], prefix: str = "") -> dict[str, SlotInfo]:
     for name, field in model.model_fields.items():
         path = f"{prefix}{name}"
         slot = _slot_in(field.annotation) or next(
-            ((meta.kind, False) for meta in field.metadata if isinstance(meta, SlotMarker)), None)
+            ((meta.kind, False) for meta in field.metadata if isinstance(meta, SlotMarker)), None
+        )
         if slot is not None:
             found[path] = SlotInfo(path, *slot)
         elif isinstance(field.annotation, type) and issubclass(field.annotation, Section):
@@ -133,25 +142,37 @@ class DataConfig(Section):
     """Where the training and evaluation images come from and how they are shaped."""
 
     dataset: Slot("dataset") | None = Field(
-        None, description="Dataset plugin and its options: a reader of real data (e.g. touch_and_go with its root) "
-                          "or the embedded procedural scenes, which render with the experiment's sensor.")
+        None,
+        description="Dataset plugin and its options: a reader of real data (e.g. touch_and_go with its root) "
+        "or the embedded procedural scenes, which render with the experiment's sensor.",
+    )
     # Strict: in lax mode `true` would validate as 1 (and `false` as val_fraction 0) or "16" as
     # 16, a config that runs but is not what was written.  Strict floats still take integers.
     image_size: ImageSizeOption = Field(
-        64, description="Size of the images fed to the models, in pixels: 64 for 64x64, or [height, width] such as "
-                        "[240, 320] for a sensor's native aspect (readers crop to that aspect, then resize).")
-    batch_size: int = Field(16, ge=1, le=65536, strict=True,
-                            description="Images per optimisation step (per process).")
-    num_workers: int = Field(0, ge=0, le=256, strict=True,
-                             description="DataLoader worker processes (0 loads in the main process).")
-    val_fraction: float = Field(0.1, ge=0.0, lt=1.0, strict=True,
-                                description="Fraction of samples held out for evaluation; 0 trains on every "
-                                            "sample and skips the held-out evaluation.")
+        64,
+        description="Size of the images fed to the models, in pixels: 64 for 64x64, or [height, width] such as "
+        "[240, 320] for a sensor's native aspect (readers crop to that aspect, then resize).",
+    )
+    batch_size: int = Field(16, ge=1, le=65536, strict=True, description="Images per optimisation step (per process).")
+    num_workers: int = Field(
+        0, ge=0, le=256, strict=True, description="DataLoader worker processes (0 loads in the main process)."
+    )
+    val_fraction: float = Field(
+        0.1,
+        ge=0.0,
+        lt=1.0,
+        strict=True,
+        description="Fraction of samples held out for evaluation; 0 trains on every "
+        "sample and skips the held-out evaluation.",
+    )
     train_samples: int | None = Field(
-        None, ge=1, strict=True,
+        None,
+        ge=1,
+        strict=True,
         description="Train on only this many samples of the training split (a seeded draw: with one seed, a "
-                    "smaller count is a subset of a larger one); the held-out split does not change.  None: "
-                    "every training sample.  What `vqtouch evaluate reconstruction --out` varies.")
+        "smaller count is a subset of a larger one); the held-out split does not change.  None: "
+        "every training sample.  What `vqtouch evaluate reconstruction --out` varies.",
+    )
 
 
 def _known_stages(stages: list[str], info: ValidationInfo) -> list[str]:
@@ -160,8 +181,9 @@ def _known_stages(stages: list[str], info: ValidationInfo) -> list[str]:
         return stages
     for name in stages:
         if name not in host.stages:
-            raise PydanticCustomError("unknown_plugin", "{message}",
-                                      {"message": unknown_name_message("stage", name, host.stages)})
+            raise PydanticCustomError(
+                "unknown_plugin", "{message}", {"message": unknown_name_message("stage", name, host.stages)}
+            )
     if len(set(stages)) != len(stages):
         raise PydanticCustomError("repeated_stage", "a stage is listed twice: {stages}", {"stages": stages})
     return stages
@@ -178,29 +200,41 @@ class ExperimentConfig(Section):
     """
 
     schema_version: Literal[1] = Field(1, description="Version of this configuration schema.")
-    name: str = Field("experiment", min_length=1, max_length=100, pattern=r"^[A-Za-z0-9._-]+$",
-                      description="Experiment name, used in the run directory name.")
+    name: str = Field(
+        "experiment",
+        min_length=1,
+        max_length=100,
+        pattern=r"^[A-Za-z0-9._-]+$",
+        description="Experiment name, used in the run directory name.",
+    )
     scene: str | None = Field(None, description="Scene preset this config started from (informational).")
     description: str = Field("", description="Free text describing the experiment.")
     stages: Annotated[list[str], AfterValidator(_known_stages)] = Field(
-        default_factory=list, description="Pipeline stages this experiment runs, in order (see `vqtouch config "
-                                          "stages`).")
+        default_factory=list,
+        description="Pipeline stages this experiment runs, in order (see `vqtouch config stages`).",
+    )
     seed: int = Field(0, ge=0, lt=2**63, description="Seed for every random number generator.")
     deterministic: bool = Field(False, description="Ask PyTorch for deterministic algorithms (slower).")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Compute device; auto picks CUDA when present.")
     output_dir: str = Field("runs", min_length=1, description="Folder under which run directories are created.")
     sensor: Slot("sensor_family") | None = Field(
-        None, description="The experiment's sensor: the family (and variant) whose images the data are, or that "
-                          "renders them (procedural scenes). The one source of truth for the source sensor.")
+        None,
+        description="The experiment's sensor: the family (and variant) whose images the data are, or that "
+        "renders them (procedural scenes). The one source of truth for the source sensor.",
+    )
     target_sensor: Slot("sensor_family") | None = Field(
-        None, description="The unseen sensor a cross-sensor scene adapts to (few-shot, zero-shot, cross-sensor).")
+        None, description="The unseen sensor a cross-sensor scene adapts to (few-shot, zero-shot, cross-sensor)."
+    )
     paired_sensor: Slot("sensor_family") | None = Field(
-        None, description="A second sensor that renders the same contacts as `sensor`: datasets that can render "
-                          "pairs add its image of each sample as 'tactile_source' (the source image of touch-to-touch "
-                          "generation, e.g. GelSight -> DIGIT with sensor=digit, paired_sensor=gelsight).")
+        None,
+        description="A second sensor that renders the same contacts as `sensor`: datasets that can render "
+        "pairs add its image of each sample as 'tactile_source' (the source image of touch-to-touch "
+        "generation, e.g. GelSight -> DIGIT with sensor=digit, paired_sensor=gelsight).",
+    )
     data: DataConfig = Field(default_factory=DataConfig, description="Data source and shapes.")
-    metrics: list[Slot("metric")] = Field(default_factory=list,
-                                          description="Image metrics that stages report (e.g. psnr, ssim).")
+    metrics: list[Slot("metric")] = Field(
+        default_factory=list, description="Image metrics that stages report (e.g. psnr, ssim)."
+    )
 
     def slot(self, path: str) -> PluginConfig | list[PluginConfig] | None:
         """The config in slot ``path`` (e.g. ``"tokenizer.quantizer"``)."""
@@ -216,6 +250,7 @@ class ExperimentConfig(Section):
 
 # -- loading and merging --------------------------------------------------------------------
 
+
 def load_config_file(path: str | Path) -> dict[str, Any]:
     """Read a TOML or JSON config file into a dict; errors name the file and the problem."""
     path = Path(path)
@@ -225,8 +260,10 @@ def load_config_file(path: str | Path) -> dict[str, Any]:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
         # TOML and JSON are UTF-8 by definition; a file saved in another encoding is the usual cause.
-        raise ConfigError(f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at position {exc.start}); "
-                          "save it as UTF-8 (TOML and JSON config files are UTF-8)") from None
+        raise ConfigError(
+            f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at position {exc.start}); "
+            "save it as UTF-8 (TOML and JSON config files are UTF-8)"
+        ) from None
     suffix = path.suffix.lower()
     try:
         if suffix == ".toml":
@@ -294,8 +331,10 @@ def apply_override(config: dict[str, Any], path: Sequence[str], value: Any) -> d
         if child is None:
             child = node[part] = {}
         elif not isinstance(child, (dict, list)):
-            raise ConfigError(f"cannot set {'.'.join(path)}: {'.'.join(path[:depth + 1])} is "
-                              f"{type(child).__name__} {child!r}, not a section")
+            raise ConfigError(
+                f"cannot set {'.'.join(path)}: {'.'.join(path[: depth + 1])} is "
+                f"{type(child).__name__} {child!r}, not a section"
+            )
         node = child
     last = path[-1]
     if isinstance(node, list):
@@ -303,7 +342,9 @@ def apply_override(config: dict[str, Any], path: Sequence[str], value: Any) -> d
     elif last == "name" and len(path) > 1 and "name" in node and node["name"] != value:
         node.clear()
         node["name"] = value
-    elif isinstance(value, Mapping) and isinstance(node.get(last), dict) and not _selects_other_plugin(node[last], value):
+    elif (
+        isinstance(value, Mapping) and isinstance(node.get(last), dict) and not _selects_other_plugin(node[last], value)
+    ):
         node[last] = merge_configs(node[last], value)
     else:
         node[last] = value
@@ -342,14 +383,17 @@ def validate_experiment(data: Mapping[str, Any], host: PluginHost) -> Experiment
         except Exception as exc:  # noqa: BLE001 - a plugin's bug, reported in one line naming it
             source = host.sources.get(impl.plugin_name)
             who = source.describe() if source is not None else f"plugin {impl.plugin_name!r}"
-            raise PluginError(f"{who} failed in vqtouch_validate_experiment: {type(exc).__name__}: "
-                              f"{one_line(str(exc))}; fix or update that plugin, or block it with "
-                              f"VQTOUCH_BLOCK_PLUGINS={impl.plugin_name}") from exc
+            raise PluginError(
+                f"{who} failed in vqtouch_validate_experiment: {type(exc).__name__}: "
+                f"{one_line(str(exc))}; fix or update that plugin, or block it with "
+                f"VQTOUCH_BLOCK_PLUGINS={impl.plugin_name}"
+            ) from exc
     return config
 
 
-def resolve_config(scene: str | None = None, files: Iterable[str | Path] = (), overrides: Iterable[str] = (), *,
-                   host: PluginHost) -> ExperimentConfig:
+def resolve_config(
+    scene: str | None = None, files: Iterable[str | Path] = (), overrides: Iterable[str] = (), *, host: PluginHost
+) -> ExperimentConfig:
     """Build the experiment config from a scene preset, config files and ``--set`` overrides."""
     data: dict[str, Any] = {}
     if scene is not None:
@@ -366,8 +410,9 @@ def resolve_config(scene: str | None = None, files: Iterable[str | Path] = (), o
     return validate_experiment(data, host)
 
 
-def _refuse_lost_overrides(data: dict[str, Any], path: list[str], value: Any,
-                           applied: list[tuple[str, list[str]]], text: str) -> None:
+def _refuse_lost_overrides(
+    data: dict[str, Any], path: list[str], value: Any, applied: list[tuple[str, list[str]]], text: str
+) -> None:
     """ConfigError when ``path=value`` selects another plugin for a slot whose options an earlier
     ``--set`` changed: the reset would silently drop them (and run something the user did not ask for)."""
     if path[-1] == "name" and len(path) > 1:
@@ -389,18 +434,25 @@ def _refuse_lost_overrides(data: dict[str, Any], path: list[str], value: Any,
     if not isinstance(node, dict) or node.get("name") in (None, new_name):
         return
     depth = len(slot)
-    lost = [earlier for earlier, earlier_path in applied
-            if len(earlier_path) > depth and earlier_path[:depth] == slot and earlier_path[depth] != "name"]
+    lost = [
+        earlier
+        for earlier, earlier_path in applied
+        if len(earlier_path) > depth and earlier_path[:depth] == slot and earlier_path[depth] != "name"
+    ]
     if lost:
         where = ".".join(slot)
-        raise ConfigError(f"--set {text} selects another plugin for {where}, which resets its options and would "
-                          f"drop the earlier {', '.join('--set ' + t for t in lost)}; put --set {text} before them")
+        raise ConfigError(
+            f"--set {text} selects another plugin for {where}, which resets its options and would "
+            f"drop the earlier {', '.join('--set ' + t for t in lost)}; put --set {text} before them"
+        )
 
 
 # -- configs written for vqtouch 0.1.0 ---------------------------------------------------------
 
-def migrate_config(data: Mapping[str, Any], registered_stages: Iterable[str] = (),
-                   experiment_model: type[BaseModel] = ExperimentConfig) -> dict[str, Any]:
+
+def migrate_config(
+    data: Mapping[str, Any], registered_stages: Iterable[str] = (), experiment_model: type[BaseModel] = ExperimentConfig
+) -> dict[str, Any]:
     """``data`` with every 0.1.0 key moved to its new place (one warning each), or ConfigError
     naming a removed key or stage and what replaced it.  Today's configs come back unchanged.
     ``registered_stages``: stage names installed now (a plugin may register a removed name anew);
@@ -446,14 +498,17 @@ def _apply_rename(data: dict[str, Any], rename: ConfigRename, experiment_model: 
         if child is None:
             child = target[part] = {}
         elif not isinstance(child, dict):
-            raise ConfigError(f"config key {rename.old!r} moved to {rename.new!r}, but {part!r} is "
-                              f"{type(child).__name__} {child!r} here; write it under {rename.new!r}")
+            raise ConfigError(
+                f"config key {rename.old!r} moved to {rename.new!r}, but {part!r} is "
+                f"{type(child).__name__} {child!r} here; write it under {rename.new!r}"
+            )
         target = child
     current = target.get(new_key)
     # Only a user's file or --set can hold an old key, so it is what they asked for: it goes over what
     # a scene put at the new key (a block naming another plugin replaces it whole).
-    target[new_key] = merge_configs(current, value) if isinstance(current, dict) and isinstance(value, Mapping) \
-        else value
+    target[new_key] = (
+        merge_configs(current, value) if isinstance(current, dict) and isinstance(value, Mapping) else value
+    )
 
 
 def _section_fields(model: type[BaseModel], path: str) -> set[str]:
@@ -503,7 +558,7 @@ def scale_for_demo(config: ExperimentConfig, host: PluginHost) -> ExperimentConf
             _capped(data, f"{name}.{path}", cap)
     for path, info in host.slots.items():
         value = config.slot(path)
-        for index, item in (enumerate(value) if info.many else [(None, value)]):
+        for index, item in enumerate(value) if info.many else [(None, value)]:
             if item is None:
                 continue
             prefix = path if index is None else f"{path}.{index}"

@@ -49,8 +49,10 @@ def dataset_groups(dataset: TactileDataset) -> list[str] | None:
     split_groups = getattr(dataset, "split_groups", None)
     groups = split_groups() if split_groups is not None else None
     if groups is not None and len(groups) != len(dataset):
-        raise PluginError(f"{type(dataset).__name__}.split_groups() returned {len(groups)} keys for {len(dataset)} "
-                          f"samples; it must return one key per sample, in index order")
+        raise PluginError(
+            f"{type(dataset).__name__}.split_groups() returned {len(groups)} keys for {len(dataset)} "
+            f"samples; it must return one key per sample, in index order"
+        )
     return groups
 
 
@@ -87,9 +89,11 @@ def experiment_split(dataset: TactileDataset, data: Any, seed: int) -> tuple[Dat
     count = getattr(data, "train_samples", None)
     if count is not None:
         if count > len(train):
-            raise ConfigError(f"data.train_samples={count}, but the training split holds {len(train)} samples "
-                              f"({len(dataset)} in the dataset, {len(held_out)} held out); lower "
-                              "data.train_samples or give the dataset more samples")
+            raise ConfigError(
+                f"data.train_samples={count}, but the training split holds {len(train)} samples "
+                f"({len(dataset)} in the dataset, {len(held_out)} held out); lower "
+                "data.train_samples or give the dataset more samples"
+            )
         train = first_samples(train, count, seed)
     return train, held_out
 
@@ -121,8 +125,10 @@ def _split_groups(groups: list[str], val_fraction: float, seed: int, unit: str) 
     if val_fraction <= 0:
         return list(range(len(groups))), []
     if len(members) < 2:
-        raise ConfigError(f"the dataset's {len(groups)} samples are all one {unit}: too few to hold out whole "
-                          f"{unit}s for evaluation; add samples of other {unit}s or set data.val_fraction=0")
+        raise ConfigError(
+            f"the dataset's {len(groups)} samples are all one {unit}: too few to hold out whole "
+            f"{unit}s for evaluation; add samples of other {unit}s or set data.val_fraction=0"
+        )
     # Sorted keys: the split must not depend on the order the reader listed its samples in.
     keys = sorted(members)
     order = torch.randperm(len(keys), generator=torch.Generator().manual_seed(seed + _SPLIT_SEED_OFFSET)).tolist()

@@ -35,8 +35,12 @@ REMOVAL_VERSION = "0.3.0"
 
 def warn_renamed(old: str, new: str, *, what: str = "name", stacklevel: int = 3) -> None:
     """One-line :class:`VqtouchDeprecationWarning`: ``old`` was renamed ``new`` in 0.2.0."""
-    warnings.warn(f"{what} {old!r} was renamed to {new!r} in vqtouch {RENAMED_IN}; use {new!r} "
-                  f"('{old}' stops working in {REMOVAL_VERSION})", VqtouchDeprecationWarning, stacklevel=stacklevel)
+    warnings.warn(
+        f"{what} {old!r} was renamed to {new!r} in vqtouch {RENAMED_IN}; use {new!r} "
+        f"('{old}' stops working in {REMOVAL_VERSION})",
+        VqtouchDeprecationWarning,
+        stacklevel=stacklevel,
+    )
 
 
 @dataclass(frozen=True)
@@ -64,14 +68,18 @@ CONFIG_RENAMES: tuple[ConfigRename, ...] = (
 
 #: Config keys of 0.1.0 with no single new home: refused in one line that says where they went.
 CONFIG_REMOVED: dict[str, str] = {
-    "train": ("was split into tokenizer.train and generator.train (each stage trains with its own settings); "
-              "move its options under the stage they were meant for, e.g. --set tokenizer.train.steps=200"),
+    "train": (
+        "was split into tokenizer.train and generator.train (each stage trains with its own settings); "
+        "move its options under the stage they were meant for, e.g. --set tokenizer.train.steps=200"
+    ),
 }
 
 #: Stage names of 0.1.0 that are gone, and what replaced them.
 STAGES_REMOVED: dict[str, str] = {
-    "evaluate": ("each stage now scores its own product, and `vqtouch evaluate reconstruction|generation` "
-                 "scores a finished run; remove 'evaluate' from stages"),
+    "evaluate": (
+        "each stage now scores its own product, and `vqtouch evaluate reconstruction|generation` "
+        "scores a finished run; remove 'evaluate' from stages"
+    ),
 }
 
 #: Registry kinds of 0.1.0 (checkpoint headers' ``vqtouch.component``) and their new names.
@@ -81,8 +89,9 @@ KIND_RENAMES: dict[str, str] = {"encoder": "autoencoder"}
 HOOK_RENAMES: dict[str, str] = {"vqtouch_register_encoders": "vqtouch_register_autoencoders"}
 #: Hooks of 0.1.0 that are gone, and what replaced them.
 HOOKS_REMOVED: dict[str, str] = {
-    "vqtouch_run_stage": ("stages are registered with vqtouch_register_stages(register) and run as "
-                          "run(job) (see docs/extending.md)"),
+    "vqtouch_run_stage": (
+        "stages are registered with vqtouch_register_stages(register) and run as run(job) (see docs/extending.md)"
+    ),
 }
 
 

@@ -67,7 +67,8 @@ class VqtouchDeprecationWarning(VqtouchWarning, FutureWarning):
 _WORKER_ERROR = re.compile(
     r"Caught (?P<type>\w+) in DataLoader worker process \d+\.\s*\n"
     r"Original Traceback \(most recent call last\):\n.*\n(?:[\w.]+\.)?(?P=type): (?P<message>[^\n]*)\s*\Z",
-    re.DOTALL)
+    re.DOTALL,
+)
 
 
 def one_line(message: str) -> str:
@@ -103,8 +104,7 @@ def format_validation_error(exc: Any, prefix: str = "") -> str:
     for error in exc.errors(include_url=False):
         loc = ".".join(str(part) for part in (prefix, *error["loc"]) if part != "")
         message = error["msg"]
-        if error["type"] not in {"unknown_plugin", "unknown_option", "missing", "repeated_stage",
-                                 "no_plugin_host"}:
+        if error["type"] not in {"unknown_plugin", "unknown_option", "missing", "repeated_stage", "no_plugin_host"}:
             shown = repr(error.get("input"))
             message += f" (got {shown if len(shown) <= 60 else shown[:57] + '...'})"
         problems.append(f"{loc or '<root>'}: {message}")

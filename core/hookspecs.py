@@ -50,9 +50,12 @@ def vqtouch_register_autoencoders(register: Register) -> None:
     """Register tokenizer autoencoders (``vqtouch.core.Autoencoder`` subclasses), e.g. ``vqgan``."""
 
 
-@hookspec(warn_on_impl=VqtouchDeprecationWarning(
-    "hook 'vqtouch_register_encoders' was renamed to 'vqtouch_register_autoencoders' in vqtouch 0.2.0; rename the "
-    "function ('vqtouch_register_encoders' stops working in 0.3.0)"))
+@hookspec(
+    warn_on_impl=VqtouchDeprecationWarning(
+        "hook 'vqtouch_register_encoders' was renamed to 'vqtouch_register_autoencoders' in vqtouch 0.2.0; rename the "
+        "function ('vqtouch_register_encoders' stops working in 0.3.0)"
+    )
+)
 def vqtouch_register_encoders(register: Register) -> None:
     """Deprecated 0.1.0 name of :func:`vqtouch_register_autoencoders` (its registrations still count)."""
 

@@ -31,8 +31,9 @@ def extent_hw(extent_mm: float | tuple[float, float]) -> tuple[float, float]:
     return float(rows_mm), float(cols_mm)
 
 
-def pixel_centres_mm(height: int, width: int, extent_mm: float | tuple[float, float]
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
+def pixel_centres_mm(
+    height: int, width: int, extent_mm: float | tuple[float, float]
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(ys, xs), each (height, width): the centre of every pixel of a height x width image of a
     centred area ``extent_mm`` (a side, or (rows, columns)), in mm from the area's centre."""
     rows_mm, cols_mm = extent_hw(extent_mm)
@@ -52,11 +53,17 @@ def _checked_size(value: object) -> ImageSize:
     two pydantic types would report a line per alternative)."""
     sides = list(value) if isinstance(value, (list, tuple)) else [value]
     # Strict integers: ``true`` is not 1 and "64" is not 64, in a config that must train as written.
-    if len(sides) in (1, 2) and all(type(side) is int and 8 <= side <= 4096 for side in sides) \
-            and not (len(sides) == 1 and isinstance(value, (list, tuple))):
+    if (
+        len(sides) in (1, 2)
+        and all(type(side) is int and 8 <= side <= 4096 for side in sides)
+        and not (len(sides) == 1 and isinstance(value, (list, tuple)))
+    ):
         return square_or_pair(sides[0], sides[-1])
-    raise PydanticCustomError("image_size", "expected a side S (S x S pixels) or [height, width] such as "
-                                            "[240, 320], whole numbers of pixels from 8 to 4096")
+    raise PydanticCustomError(
+        "image_size",
+        "expected a side S (S x S pixels) or [height, width] such as "
+        "[240, 320], whole numbers of pixels from 8 to 4096",
+    )
 
 
 #: An :data:`ImageSize` config value: ``64`` or ``[240, 320]`` (height, width); a square pair reads as its int.
@@ -77,5 +84,6 @@ def image_size_argument(text: str) -> ImageSize:
         sides = [int(part) for part in text.lower().replace(",", "x").split("x")]
         return _checked_size(sides if len(sides) > 1 else sides[0])
     except (ValueError, PydanticCustomError):
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a side S (S x S pixels) or HEIGHTxWIDTH such as "
-                                         f"240x320, each 8 to 4096") from None
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected a side S (S x S pixels) or HEIGHTxWIDTH such as 240x320, each 8 to 4096"
+        ) from None

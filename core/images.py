@@ -31,7 +31,7 @@ def image_grid(images_B3HW: torch.Tensor, columns: int | None = None, padding: i
     for index in range(batch):
         row, col = divmod(index, columns)
         top, left = padding + row * (height + padding), padding + col * (width + padding)
-        grid[:, top:top + height, left:left + width] = images[index]
+        grid[:, top : top + height, left : left + width] = images[index]
     return grid
 
 
@@ -60,8 +60,9 @@ def mode_problem(path: Path, mode: str, allow_greyscale: bool) -> str | None:
     return None
 
 
-def crop_box(width: int, height: int, mode: CropMode, aspect_hw: tuple[int, int] = (1, 1)
-             ) -> tuple[float, float, float, float]:
+def crop_box(
+    width: int, height: int, mode: CropMode, aspect_hw: tuple[int, int] = (1, 1)
+) -> tuple[float, float, float, float]:
     """The region (left, top, right, bottom) of a width x height image that becomes an output of
     ``aspect_hw``'s aspect ratio: the largest such box, centred ("center") or at the top ("top"),
     or the whole image ("stretch")."""
@@ -69,8 +70,11 @@ def crop_box(width: int, height: int, mode: CropMode, aspect_hw: tuple[int, int]
         return (0.0, 0.0, float(width), float(height))
     out_h, out_w = aspect_hw
     # The largest out_h:out_w box inside the image.
-    box_w, box_h = (float(width), width * out_h / out_w) if width * out_h <= height * out_w \
+    box_w, box_h = (
+        (float(width), width * out_h / out_w)
+        if width * out_h <= height * out_w
         else (height * out_w / out_h, float(height))
+    )
     left = (width - box_w) / 2
     top = (height - box_h) / 2 if mode == "center" else 0.0
     return (left, top, left + box_w, top + box_h)
@@ -102,8 +106,11 @@ class ImageLoader:
                 rgb = self._as_rgb(image, path)
                 # One resampling pass over the crop box: the same as resizing and cropping
                 # afterwards, without rounding twice.  Pillow's resize antialiases.
-                square = rgb.resize((width, height), Image.Resampling.BICUBIC,
-                                    box=crop_box(rgb.width, rgb.height, self.crop, (height, width)))
+                square = rgb.resize(
+                    (width, height),
+                    Image.Resampling.BICUBIC,
+                    box=crop_box(rgb.width, rgb.height, self.crop, (height, width)),
+                )
         except DatasetError:
             raise
         except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
@@ -130,8 +137,11 @@ class ImageLoader:
             return self._drop_opaque_alpha(image, path) if "A" in mode or "a" in mode else image.convert("RGB")
         if mode == "P":
             # A palette image may mark one entry transparent; only then does it carry alpha.
-            return self._drop_opaque_alpha(image.convert("RGBA"), path) if "transparency" in image.info \
+            return (
+                self._drop_opaque_alpha(image.convert("RGBA"), path)
+                if "transparency" in image.info
                 else image.convert("RGB")
+            )
         if mode in {"RGBA", "RGBa", "PA"}:
             return self._drop_opaque_alpha(image, path)
         return image.convert("RGB")
@@ -140,6 +150,8 @@ class ImageLoader:
         alpha = image.getchannel(image.getbands()[-1])
         lowest, _ = alpha.getextrema()
         if lowest < 255:
-            raise DatasetError(f"image {path} has transparent pixels (mode {image.mode}, alpha down to {lowest}); "
-                               f"expected an opaque RGB image")
+            raise DatasetError(
+                f"image {path} has transparent pixels (mode {image.mode}, alpha down to {lowest}); "
+                f"expected an opaque RGB image"
+            )
         return image.convert("RGB")

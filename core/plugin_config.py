@@ -32,9 +32,14 @@ class StrictModel(BaseModel):
                 if key not in allowed:
                     hint = closest_match(str(key), allowed)
                     raise PydanticCustomError(
-                        "unknown_option", "unknown option {key}; allowed: {allowed}{hint}",
-                        {"key": repr(key), "allowed": ", ".join(sorted(allowed)),
-                         "hint": f"; did you mean {hint!r}?" if hint else ""})
+                        "unknown_option",
+                        "unknown option {key}; allowed: {allowed}{hint}",
+                        {
+                            "key": repr(key),
+                            "allowed": ", ".join(sorted(allowed)),
+                            "hint": f"; did you mean {hint!r}?" if hint else "",
+                        },
+                    )
         return data
 
 

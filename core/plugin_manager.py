@@ -35,8 +35,19 @@ import pluggy
 from pydantic import Field, ValidationError, create_model
 
 from . import hookspecs
-from .components import (Autoencoder, BuildContext, Clusterer, Conditioner, Discriminator, Generator, Metric,
-                         Quantizer, Sampler, SensorFamily, TactileDataset)
+from .components import (
+    Autoencoder,
+    BuildContext,
+    Clusterer,
+    Conditioner,
+    Discriminator,
+    Generator,
+    Metric,
+    Quantizer,
+    Sampler,
+    SensorFamily,
+    TactileDataset,
+)
 from .config import ExperimentConfig, Section, SlotInfo, slots_of
 from .deprecations import HOOK_RENAMES, HOOKS_REMOVED, RENAMED_IN
 from .errors import ConfigError, PluginError, UnknownPluginError, format_validation_error, unknown_name_message
@@ -70,20 +81,42 @@ class RegistryKind:
 
 
 REGISTRY_KINDS: tuple[RegistryKind, ...] = (
-    RegistryKind("autoencoder", "vqtouch_register_autoencoders", "tokenizer autoencoders", Autoencoder,
-                 provides=("latent_dim",)),
-    RegistryKind("quantizer", "vqtouch_register_quantizers", "latent quantizers", Quantizer,
-                 provides=("codebook_size",), reads=("latent_dim",)),
+    RegistryKind(
+        "autoencoder", "vqtouch_register_autoencoders", "tokenizer autoencoders", Autoencoder, provides=("latent_dim",)
+    ),
+    RegistryKind(
+        "quantizer",
+        "vqtouch_register_quantizers",
+        "latent quantizers",
+        Quantizer,
+        provides=("codebook_size",),
+        reads=("latent_dim",),
+    ),
     RegistryKind("discriminator", "vqtouch_register_discriminators", "GAN discriminators", Discriminator),
-    RegistryKind("conditioner", "vqtouch_register_conditioners", "condition encoders", Conditioner,
-                 reads=("num_classes", "class_names")),
+    RegistryKind(
+        "conditioner",
+        "vqtouch_register_conditioners",
+        "condition encoders",
+        Conditioner,
+        reads=("num_classes", "class_names"),
+    ),
     RegistryKind("sensor_family", "vqtouch_register_sensor_families", "tactile sensor renderers", SensorFamily),
-    RegistryKind("generator", "vqtouch_register_generators", "code-grid generators", Generator,
-                 reads=("codebook_size", "num_classes", "code_grid")),
+    RegistryKind(
+        "generator",
+        "vqtouch_register_generators",
+        "code-grid generators",
+        Generator,
+        reads=("codebook_size", "num_classes", "code_grid"),
+    ),
     RegistryKind("sampler", "vqtouch_register_samplers", "discrete-diffusion samplers", Sampler),
     RegistryKind("clusterer", "vqtouch_register_clusterers", "sensor-family clusterers", Clusterer),
-    RegistryKind("dataset", "vqtouch_register_datasets", "tactile dataset readers", TactileDataset,
-                 provides=("num_classes", "class_names")),
+    RegistryKind(
+        "dataset",
+        "vqtouch_register_datasets",
+        "tactile dataset readers",
+        TactileDataset,
+        provides=("num_classes", "class_names"),
+    ),
     RegistryKind("metric", "vqtouch_register_metrics", "image metrics", Metric),
 )
 KINDS_BY_NAME = {kind.name: kind for kind in REGISTRY_KINDS}
@@ -128,7 +161,8 @@ class PluginHost:
         self.pm = pm
         self.sources = sources
         self.registries: dict[str, Registry] = {
-            kind.name: Registry(kind.name, kind.description, kind.base_type) for kind in REGISTRY_KINDS}
+            kind.name: Registry(kind.name, kind.description, kind.base_type) for kind in REGISTRY_KINDS
+        }
         self.stages: dict[str, StageEntry] = {}
         self.scenes: dict[str, SceneEntry] = {}
         #: The experiment config model: core's fields plus one section per stage that has one.
@@ -170,8 +204,9 @@ class PluginHost:
         except ValidationError as exc:
             raise ConfigError(format_validation_error(exc, prefix=kind)) from None
 
-    def build(self, kind: str, config: PluginConfig | dict[str, Any] | str,
-              context: BuildContext | None = None, **inputs: Any) -> Any:
+    def build(
+        self, kind: str, config: PluginConfig | dict[str, Any] | str, context: BuildContext | None = None, **inputs: Any
+    ) -> Any:
         """Build one component of ``kind`` from its config, the experiment context and the built
         ``inputs`` its plugin declared (e.g. ``sensor=...`` for a dataset that renders).
 
@@ -183,17 +218,22 @@ class PluginHost:
         entry = registry.get(config.name)
         missing = [name for name in entry.inputs if inputs.get(name) is None]
         if missing:
-            raise ConfigError(f"{kind} {entry.name!r} needs {', '.join(missing)}: build it through the experiment's "
-                              f"Assembly (which supplies the experiment's {missing[0]}) or pass {missing[0]}=...")
+            raise ConfigError(
+                f"{kind} {entry.name!r} needs {', '.join(missing)}: build it through the experiment's "
+                f"Assembly (which supplies the experiment's {missing[0]}) or pass {missing[0]}=..."
+            )
         extra = sorted(set(inputs) - set(entry.inputs) - set(entry.optional_inputs))
         if extra:
-            raise PluginError(f"{kind} {entry.name!r} takes no input {extra[0]!r} (it declares "
-                              f"{list(entry.inputs + entry.optional_inputs)})")
+            raise PluginError(
+                f"{kind} {entry.name!r} takes no input {extra[0]!r} (it declares "
+                f"{list(entry.inputs + entry.optional_inputs)})"
+            )
         component = entry.factory(config, context, **inputs)
         if registry.base_type is not None and not isinstance(component, registry.base_type):
             raise PluginError(
                 f"{entry.source.describe()}: factory of {kind} {entry.name!r} returned "
-                f"{type(component).__name__}, which is not a vqtouch.core.{registry.base_type.__name__}")
+                f"{type(component).__name__}, which is not a vqtouch.core.{registry.base_type.__name__}"
+            )
         object.__setattr__(component, "vqtouch_spec", ComponentSpec(kind, config, context, entry.source))
         return component
 
@@ -202,17 +242,38 @@ class PluginHost:
         """One row per registered component and scene: kind, name, plugin, package, version."""
         rows = []
         for entry in self.entries():
-            rows.append({"kind": entry.kind, "name": entry.name, "plugin": entry.source.plugin,
-                         "package": entry.source.distribution, "version": entry.source.version,
-                         "description": entry.description})
+            rows.append(
+                {
+                    "kind": entry.kind,
+                    "name": entry.name,
+                    "plugin": entry.source.plugin,
+                    "package": entry.source.distribution,
+                    "version": entry.source.version,
+                    "description": entry.description,
+                }
+            )
         for stage in sorted(self.stages.values(), key=lambda s: s.name):
-            rows.append({"kind": "stage", "name": stage.name, "plugin": stage.source.plugin,
-                         "package": stage.source.distribution, "version": stage.source.version,
-                         "description": stage.description})
+            rows.append(
+                {
+                    "kind": "stage",
+                    "name": stage.name,
+                    "plugin": stage.source.plugin,
+                    "package": stage.source.distribution,
+                    "version": stage.source.version,
+                    "description": stage.description,
+                }
+            )
         for scene in sorted(self.scenes.values(), key=lambda s: s.name):
-            rows.append({"kind": "scene", "name": scene.name, "plugin": scene.source.plugin,
-                         "package": scene.source.distribution, "version": scene.source.version,
-                         "description": scene.description})
+            rows.append(
+                {
+                    "kind": "scene",
+                    "name": scene.name,
+                    "plugin": scene.source.plugin,
+                    "package": scene.source.distribution,
+                    "version": scene.source.version,
+                    "description": scene.description,
+                }
+            )
         return rows
 
 
@@ -228,8 +289,9 @@ def _builtin(ep: importlib_metadata.EntryPoint) -> bool:
     return dist is not None and dist.metadata["Name"].lower().replace("_", "-") == BUILTIN_DISTRIBUTION
 
 
-def load_plugins(*, autoload: bool | None = None, extra: Iterable[str | Any] = (),
-                 block: Iterable[str] = ()) -> PluginHost:
+def load_plugins(
+    *, autoload: bool | None = None, extra: Iterable[str | Any] = (), block: Iterable[str] = ()
+) -> PluginHost:
     """Load built-in and third-party plugins into a fresh :class:`PluginHost`.
 
     ``autoload``: load third-party entry points (default: unless
@@ -247,8 +309,9 @@ def load_plugins(*, autoload: bool | None = None, extra: Iterable[str | Any] = (
         pm.enable_tracing()
     sources: dict[str, PluginSource] = {}
 
-    entry_points = sorted(importlib_metadata.entry_points(group=ENTRY_POINT_GROUP),
-                          key=lambda ep: (not _builtin(ep), ep.name))
+    entry_points = sorted(
+        importlib_metadata.entry_points(group=ENTRY_POINT_GROUP), key=lambda ep: (not _builtin(ep), ep.name)
+    )
     for ep in entry_points:
         if ep.name in blocked or (not autoload and not _builtin(ep)):
             continue
@@ -256,7 +319,8 @@ def load_plugins(*, autoload: bool | None = None, extra: Iterable[str | Any] = (
             previous = sources[ep.name]
             raise PluginError(
                 f"two plugins are named {ep.name!r}: {previous.describe()} and one from "
-                f"{ep.dist.metadata['Name'] if ep.dist else ep.value}; block one with {ENV_BLOCK}={ep.name}")
+                f"{ep.dist.metadata['Name'] if ep.dist else ep.value}; block one with {ENV_BLOCK}={ep.name}"
+            )
         dist = getattr(ep, "dist", None)
         try:
             module = ep.load()
@@ -264,7 +328,8 @@ def load_plugins(*, autoload: bool | None = None, extra: Iterable[str | Any] = (
             origin = f" from {dist.metadata['Name']} {dist.version}" if dist else ""
             raise PluginError(
                 f"error loading plugin {ep.name!r}{origin}: {type(exc).__name__}: {exc}. "
-                f"Block it with {ENV_BLOCK}={ep.name}") from exc
+                f"Block it with {ENV_BLOCK}={ep.name}"
+            ) from exc
         pm.register(module, name=ep.name)
         sources[ep.name] = _source_for(ep.name, module, dist)
 
@@ -310,8 +375,10 @@ def _refuse_removed_hooks(pm: pluggy.PluginManager, sources: dict[str, PluginSou
     for name, plugin in pm.list_name_plugin():
         for hook, replacement in HOOKS_REMOVED.items():
             if callable(getattr(plugin, hook, None)):
-                raise PluginError(f"{sources[name].describe()} implements {hook}, which vqtouch {RENAMED_IN} removed: "
-                                  f"{replacement}; update the plugin or block it with {ENV_BLOCK}={name}")
+                raise PluginError(
+                    f"{sources[name].describe()} implements {hook}, which vqtouch {RENAMED_IN} removed: "
+                    f"{replacement}; update the plugin or block it with {ENV_BLOCK}={name}"
+                )
 
 
 def _assemble_experiment_model(host: PluginHost) -> None:
@@ -321,42 +388,68 @@ def _assemble_experiment_model(host: PluginHost) -> None:
         if stage.section is None:
             continue
         if stage.name in ExperimentConfig.model_fields:
-            raise PluginError(f"{stage.source.describe()} registered stage {stage.name!r}, whose section would "
-                              f"replace core's {stage.name!r} field; rename the stage")
-        sections[stage.name] = (stage.section, Field(default_factory=stage.section,
-                                                     description=stage.description or f"The {stage.name} stage."))
+            raise PluginError(
+                f"{stage.source.describe()} registered stage {stage.name!r}, whose section would "
+                f"replace core's {stage.name!r} field; rename the stage"
+            )
+        sections[stage.name] = (
+            stage.section,
+            Field(default_factory=stage.section, description=stage.description or f"The {stage.name} stage."),
+        )
     if sections:
-        host.experiment_model = create_model("ExperimentConfig", __base__=ExperimentConfig, __doc__=ExperimentConfig.__doc__,
-                                             __module__=ExperimentConfig.__module__, **sections)
+        host.experiment_model = create_model(
+            "ExperimentConfig",
+            __base__=ExperimentConfig,
+            __doc__=ExperimentConfig.__doc__,
+            __module__=ExperimentConfig.__module__,
+            **sections,
+        )
     host.slots = slots_of(host.experiment_model)
     for stage in host.stages.values():
         for path in stage.slots:
             if path not in host.slots:
-                raise PluginError(f"{stage.source.describe()}: stage {stage.name!r} declares slot {path!r}, which "
-                                  f"the experiment config does not have; slots: {', '.join(host.slots)}")
+                raise PluginError(
+                    f"{stage.source.describe()}: stage {stage.name!r} declares slot {path!r}, which "
+                    f"the experiment config does not have; slots: {', '.join(host.slots)}"
+                )
 
 
 def _stage_register(host: PluginHost, source: PluginSource) -> Any:
-    def register(name: str, run: Any, *, section: type[Section] | None = None, needs: Iterable[str] = (),
-                 uses: Iterable[str] = (), description: str = "", demo: Mapping[str, Any] | None = None,
-                 makes: Iterable[str] = ()) -> None:
+    def register(
+        name: str,
+        run: Any,
+        *,
+        section: type[Section] | None = None,
+        needs: Iterable[str] = (),
+        uses: Iterable[str] = (),
+        description: str = "",
+        demo: Mapping[str, Any] | None = None,
+        makes: Iterable[str] = (),
+    ) -> None:
         if name in host.stages:
-            raise PluginError(f"duplicate stage {name!r}: registered by {host.stages[name].source.describe()} "
-                              f"and again by {source.describe()}; block one with {ENV_BLOCK}")
+            raise PluginError(
+                f"duplicate stage {name!r}: registered by {host.stages[name].source.describe()} "
+                f"and again by {source.describe()}; block one with {ENV_BLOCK}"
+            )
         if not callable(run):
             raise PluginError(f"{source.describe()}: stage {name!r} must be registered with a callable run(job)")
         if section is not None and not (isinstance(section, type) and issubclass(section, Section)):
-            raise PluginError(f"{source.describe()}: stage {name!r} section must subclass vqtouch.core.Section, "
-                              f"got {section!r}")
+            raise PluginError(
+                f"{source.describe()}: stage {name!r} section must subclass vqtouch.core.Section, got {section!r}"
+            )
         makes = (makes,) if isinstance(makes, str) else tuple(makes)
         for product in makes:
             other = next((stage for stage in host.stages.values() if product in stage.makes), None)
             if other is not None:
-                raise PluginError(f"{source.describe()}: stage {name!r} makes product {product!r}, which stage "
-                                  f"{other.name!r} ({other.source.describe()}) already makes; a product has one "
-                                  "maker, so rename one")
-        host.stages[name] = StageEntry(name, run, section, tuple(needs), tuple(uses), description, source,
-                                       dict(demo or {}), makes)
+                raise PluginError(
+                    f"{source.describe()}: stage {name!r} makes product {product!r}, which stage "
+                    f"{other.name!r} ({other.source.describe()}) already makes; a product has one "
+                    "maker, so rename one"
+                )
+        host.stages[name] = StageEntry(
+            name, run, section, tuple(needs), tuple(uses), description, source, dict(demo or {}), makes
+        )
+
     return register
 
 
@@ -371,27 +464,54 @@ def _run_registration_hook(host: PluginHost, hook_name: str, make_register: Any)
         except PluginError:
             raise
         except Exception as exc:  # noqa: BLE001
-            raise PluginError(f"{source.describe()} failed in {hook_name}: {type(exc).__name__}: {exc}. "
-                              f"Block it with {ENV_BLOCK}={source.plugin}") from exc
+            raise PluginError(
+                f"{source.describe()} failed in {hook_name}: {type(exc).__name__}: {exc}. "
+                f"Block it with {ENV_BLOCK}={source.plugin}"
+            ) from exc
 
 
 def _component_register(registry: Registry) -> Any:
     def bind(source: PluginSource) -> Any:
-        def register(name: str, factory: Any, config: type[PluginConfig], *, description: str = "",
-                     aliases: Iterable[str] = (), inputs: Iterable[str] = (),
-                     demo: Mapping[str, Any] | None = None, optional_inputs: Iterable[str] = ()) -> None:
-            registry.add(PluginEntry(registry.kind, name, factory, config, description, source, tuple(aliases),
-                                     tuple(inputs), dict(demo or {}), tuple(optional_inputs)))
+        def register(
+            name: str,
+            factory: Any,
+            config: type[PluginConfig],
+            *,
+            description: str = "",
+            aliases: Iterable[str] = (),
+            inputs: Iterable[str] = (),
+            demo: Mapping[str, Any] | None = None,
+            optional_inputs: Iterable[str] = (),
+        ) -> None:
+            registry.add(
+                PluginEntry(
+                    registry.kind,
+                    name,
+                    factory,
+                    config,
+                    description,
+                    source,
+                    tuple(aliases),
+                    tuple(inputs),
+                    dict(demo or {}),
+                    tuple(optional_inputs),
+                )
+            )
+
         return register
+
     return bind
 
 
 def _scene_register(host: PluginHost, source: PluginSource) -> Any:
     def register(name: str, config: dict[str, Any], *, description: str = "") -> None:
         if name in host.scenes:
-            raise PluginError(f"duplicate scene {name!r}: registered by {host.scenes[name].source.describe()} "
-                              f"and again by {source.describe()}")
+            raise PluginError(
+                f"duplicate scene {name!r}: registered by {host.scenes[name].source.describe()} "
+                f"and again by {source.describe()}"
+            )
         if not isinstance(config, dict):
             raise PluginError(f"{source.describe()}: scene {name!r} config must be a dict, got {type(config).__name__}")
         host.scenes[name] = SceneEntry(name, config, description, source)
+
     return register

@@ -30,9 +30,17 @@ def progress_enabled() -> bool | None:
     return None
 
 
-def progress(iterable: Iterable[T] | None = None, *, total: int | None = None, desc: str = "",
-             unit: str = "it", **kwargs: Any) -> Any:
+def progress(
+    iterable: Iterable[T] | None = None, *, total: int | None = None, desc: str = "", unit: str = "it", **kwargs: Any
+) -> Any:
     """A tqdm bar over ``iterable`` that respects the global and environment switches."""
     enabled = progress_enabled()
-    return tqdm(iterable, total=total, desc=desc, unit=unit, dynamic_ncols=True,
-                disable=True if enabled is False else None, **kwargs)
+    return tqdm(
+        iterable,
+        total=total,
+        desc=desc,
+        unit=unit,
+        dynamic_ncols=True,
+        disable=True if enabled is False else None,
+        **kwargs,
+    )

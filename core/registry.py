@@ -74,13 +74,15 @@ class Registry:
         if not isinstance(entry.config_model, type) or not issubclass(entry.config_model, PluginConfig):
             raise PluginError(
                 f"{entry.source.describe()} registered {self.kind} {entry.name!r} with config "
-                f"{entry.config_model!r}; it must be a subclass of vqtouch.core.PluginConfig")
+                f"{entry.config_model!r}; it must be a subclass of vqtouch.core.PluginConfig"
+            )
         declared = literal_name_of(entry.config_model)
         if declared != entry.name:
             raise PluginError(
                 f"{entry.source.describe()} registered {self.kind} {entry.name!r} but its config "
                 f"{entry.config_model.__name__} declares name {declared!r}; declare "
-                f"`name: Literal[{entry.name!r}] = {entry.name!r}`")
+                f"`name: Literal[{entry.name!r}] = {entry.name!r}`"
+            )
         if not callable(entry.factory):
             raise PluginError(f"{entry.source.describe()}: factory of {self.kind} {entry.name!r} is not callable")
         for key in (entry.name, *entry.aliases):
@@ -88,7 +90,8 @@ class Registry:
             if existing is not None:
                 raise PluginError(
                     f"duplicate {self.kind} name {key!r}: registered by {existing.source.describe()} "
-                    f"and again by {entry.source.describe()}; block one with VQTOUCH_BLOCK_PLUGINS")
+                    f"and again by {entry.source.describe()}; block one with VQTOUCH_BLOCK_PLUGINS"
+                )
         self._entries[entry.name] = entry
         for alias in entry.aliases:
             self._aliases[alias] = entry.name
@@ -136,7 +139,8 @@ class Registry:
         if not isinstance(value, dict) or "name" not in value:
             raise UnknownPluginError(
                 f"a {self.kind} block needs a 'name' key choosing the plugin; available: "
-                f"{', '.join(self.names()) or '(none installed)'}")
+                f"{', '.join(self.names()) or '(none installed)'}"
+            )
         entry = self.get(str(value["name"]))
         # The name is already resolved, so validate against that plugin's model directly:
         # error paths then read like --set paths (conditioner.num_tokens, not conditioner.label.num_tokens).

@@ -108,14 +108,17 @@ def _version(distribution: str) -> str | None:
 
 def _git_revision() -> str | None:
     try:
-        result = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
-                                cwd=Path(__file__).resolve().parent)
+        result = subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, cwd=Path(__file__).resolve().parent
+        )
     except (OSError, subprocess.SubprocessError):
         return None
     return result.stdout.strip() or None if result.returncode == 0 else None
 
 
-def environment_record(config: ExperimentConfig, argv: Sequence[str] | None, host: PluginHost | None = None) -> dict[str, Any]:
+def environment_record(
+    config: ExperimentConfig, argv: Sequence[str] | None, host: PluginHost | None = None
+) -> dict[str, Any]:
     """What env.json holds: enough to say later exactly what produced a run."""
     import torch
 
@@ -131,9 +134,20 @@ def environment_record(config: ExperimentConfig, argv: Sequence[str] | None, hos
         "seed": config.seed,
         "python": sys.version.split()[0],
         "platform": platform.platform(),
-        "versions": {name: _version(name) for name in
-                     ("vqtouch", "torch", "torchvision", "pluggy", "pydantic", "safetensors", "numpy",
-                      "scikit-learn", "open_clip_torch")},
+        "versions": {
+            name: _version(name)
+            for name in (
+                "vqtouch",
+                "torch",
+                "torchvision",
+                "pluggy",
+                "pydantic",
+                "safetensors",
+                "numpy",
+                "scikit-learn",
+                "open_clip_torch",
+            )
+        },
         "cuda_available": torch.cuda.is_available(),
         "device_name": torch.cuda.get_device_name(0) if torch.cuda.is_available() else platform.processor() or "cpu",
         "git_revision": _git_revision(),
@@ -180,8 +194,12 @@ def section_sources(config: ExperimentConfig, host: PluginHost) -> dict[str, dic
     for name in sorted(used_sections(config, host) & set(stage_section_names(config))):
         stage = owners.get(name)
         if stage is not None:
-            sources[name] = {"stage": stage.name, "plugin": stage.source.plugin,
-                             "package": stage.source.distribution, "version": stage.source.version}
+            sources[name] = {
+                "stage": stage.name,
+                "plugin": stage.source.plugin,
+                "package": stage.source.distribution,
+                "version": stage.source.version,
+            }
     return sources
 
 
@@ -201,8 +219,13 @@ def component_sources(config: ExperimentConfig, host: PluginHost) -> dict[str, d
                 continue
             source = host.registry(info.kind).get(item.name).source
             key = path if index is None else f"{path}.{index}"
-            sources[key] = {"kind": info.kind, "name": item.name, "plugin": source.plugin,
-                            "package": source.distribution, "version": source.version}
+            sources[key] = {
+                "kind": info.kind,
+                "name": item.name,
+                "plugin": source.plugin,
+                "package": source.distribution,
+                "version": source.version,
+            }
     return sources
 
 
@@ -219,8 +242,15 @@ class RunDir:
         self._unlock: weakref.finalize | None = None
 
     @classmethod
-    def create(cls, config: ExperimentConfig, *, argv: Sequence[str] | None = None, host: PluginHost | None = None,
-               path: str | Path | None = None, overwrite: bool = False) -> RunDir:
+    def create(
+        cls,
+        config: ExperimentConfig,
+        *,
+        argv: Sequence[str] | None = None,
+        host: PluginHost | None = None,
+        path: str | Path | None = None,
+        overwrite: bool = False,
+    ) -> RunDir:
         """Make the folder (under ``config.output_dir`` unless ``path`` is given), lock it and write
         config/env.
 
@@ -247,13 +277,18 @@ class RunDir:
             if run._contents() and not overwrite and run._holds_no_results():
                 # A run that stopped before writing anything (bad data, a full disk) holds only its
                 # config: starting it again must not need --overwrite.
-                warnings.warn(f"{run.path} holds a run that stopped before writing any result; starting afresh "
-                              "in it", StartedAfreshWarning, stacklevel=2)
+                warnings.warn(
+                    f"{run.path} holds a run that stopped before writing any result; starting afresh in it",
+                    StartedAfreshWarning,
+                    stacklevel=2,
+                )
                 overwrite = True
             if run._contents():
                 if not overwrite:
-                    raise ConfigError(f"{run.path} already holds a run; continue it with --resume {run.path}, start it "
-                                      "afresh with --overwrite, or choose another --out")
+                    raise ConfigError(
+                        f"{run.path} already holds a run; continue it with --resume {run.path}, start it "
+                        "afresh with --overwrite, or choose another --out"
+                    )
                 for entry in run._contents():
                     if entry.is_dir() and not entry.is_symlink():
                         shutil.rmtree(entry)
@@ -310,8 +345,10 @@ class RunDir:
     def _refuse_foreign_folder(self) -> None:
         # The lock file counts: a run being created holds only it and config.json's temporary file.
         if self._contents() and not any((self.path / name).is_file() for name in ("config.json", LOCK_NAME)):
-            raise ConfigError(f"{self.path} is not empty and is not a run directory (no config.json); choose an "
-                              "empty or new --out (--overwrite only empties run directories)")
+            raise ConfigError(
+                f"{self.path} is not empty and is not a run directory (no config.json); choose an "
+                "empty or new --out (--overwrite only empties run directories)"
+            )
 
     def _lock(self) -> None:
         if fcntl is None:  # pragma: no cover
@@ -323,8 +360,10 @@ class RunDir:
         except BlockingIOError:
             holder = _lock_holder(fd)
             os.close(fd)
-            raise ConfigError(f"{self.path} is in use by another vqtouch process (pid {holder}); wait for it to "
-                              "finish or stop it, or choose another --out") from None
+            raise ConfigError(
+                f"{self.path} is in use by another vqtouch process (pid {holder}); wait for it to "
+                "finish or stop it, or choose another --out"
+            ) from None
         except BaseException:
             os.close(fd)
             raise
@@ -334,8 +373,13 @@ class RunDir:
         # garbage-collected, and the OS when the process dies.
         self._unlock = weakref.finalize(self, os.close, fd)
 
-    def checkpoint(self, host: PluginHost, step: int | str | None = None, required_files: Sequence[str] = (),
-                   stage: str | None = None) -> Path:
+    def checkpoint(
+        self,
+        host: PluginHost,
+        step: int | str | None = None,
+        required_files: Sequence[str] = (),
+        stage: str | None = None,
+    ) -> Path:
         """The run's checkpoint folder to read: the newest complete, readable ``checkpoints/step-*``
         folder, the one of ``step``, or with ``step="best"`` the one with the lowest validation
         loss (recorded by the trainer, see ``keep_best``); the one function every reader of a
@@ -362,8 +406,10 @@ class RunDir:
                 if not step_folders(checkpoints):
                     where = f"checkpoints/{stage}/" if stage else "checkpoints/"
                     raise MissingCheckpointError(f"{self.path}: no checkpoint in {where}; train this run first")
-                raise MissingCheckpointError(f"{no_good_checkpoint(checkpoints, required_files)}; restore a step "
-                                             "folder from a copy, or train the run again with --overwrite")
+                raise MissingCheckpointError(
+                    f"{no_good_checkpoint(checkpoints, required_files)}; restore a step "
+                    "folder from a copy, or train the run again with --overwrite"
+                )
         else:
             folder = checkpoints / f"step-{step:08d}"
             if not folder.is_dir():
@@ -376,7 +422,9 @@ class RunDir:
         self._check_files(folder, host)
         return folder
 
-    def resume(self, trainer: Any, host: PluginHost, *, stage: str | None = None, required_files: Sequence[str] = ()) -> bool:
+    def resume(
+        self, trainer: Any, host: PluginHost, *, stage: str | None = None, required_files: Sequence[str] = ()
+    ) -> bool:
         """Put ``trainer`` at this run's newest good checkpoint (of ``stage``'s folder, see
         :meth:`checkpoint`), checked against the run's config; prints where it resumed.
 
@@ -388,8 +436,11 @@ class RunDir:
         from .training import step_folders
 
         checkpoints = self.checkpoints / stage if stage else self.checkpoints
-        folder = (self.checkpoint(host, stage=stage, required_files=required_files)
-                  if step_folders(checkpoints) else checkpoints)
+        folder = (
+            self.checkpoint(host, stage=stage, required_files=required_files)
+            if step_folders(checkpoints)
+            else checkpoints
+        )
         if not trainer.resume(folder):
             return False
         print(f"resumed {self.path} at step {trainer.state.step} ({folder.name})")
@@ -403,8 +454,10 @@ class RunDir:
         newest = self.checkpoint(host, required_files=required_files, stage=stage)
         best = read_trainer_meta(newest).get("best_step")
         if best is None:
-            raise MissingCheckpointError(f"{self.path}: no best checkpoint recorded (the run scored no held-out "
-                                         "samples: train.keep_best=false or data.val_fraction=0); give a step number")
+            raise MissingCheckpointError(
+                f"{self.path}: no best checkpoint recorded (the run scored no held-out "
+                "samples: train.keep_best=false or data.val_fraction=0); give a step number"
+            )
         return int(best)
 
     def _check_files(self, folder: Path, host: PluginHost) -> None:
@@ -431,9 +484,11 @@ class RunDir:
             candidates = slots.get(kind, [])
             if any(_canonical(made_with) == _canonical(slot_config) for _, slot_config in candidates):
                 continue
-            raise CheckpointError(f"{file} was made with {kind} {plugin!r}{_mismatch(made_with, candidates)}; "
-                                  "this folder mixes two runs: pick one of this run's own steps with --step, or "
-                                  "retrain into an empty --out")
+            raise CheckpointError(
+                f"{file} was made with {kind} {plugin!r}{_mismatch(made_with, candidates)}; "
+                "this folder mixes two runs: pick one of this run's own steps with --step, or "
+                "retrain into an empty --out"
+            )
 
     def load_config(self, host: PluginHost) -> ExperimentConfig:
         """The run's resolved config, validated against ``host``.
@@ -448,16 +503,20 @@ class RunDir:
             if name in data and name not in host.experiment_model.model_fields:
                 package = source.get("package") or source.get("plugin")
                 version = f" {source['version']}" if source.get("version") else ""
-                raise ConfigError(f"{self.path}: its config section {name!r} belongs to stage {source['stage']!r} from "
-                                  f"{package}{version} (plugin {source['plugin']!r}), which is not installed here; "
-                                  f"pip install {package}")
+                raise ConfigError(
+                    f"{self.path}: its config section {name!r} belongs to stage {source['stage']!r} from "
+                    f"{package}{version} (plugin {source['plugin']!r}), which is not installed here; "
+                    f"pip install {package}"
+                )
         recorded = env.get("components", {})
         for key, source in recorded.items():
             if source["name"] not in host.registry(source["kind"]):
                 package = source.get("package") or source.get("plugin")
                 version = f" {source['version']}" if source.get("version") else ""
-                raise ConfigError(f"{self.path}: {key} uses {source['kind']} {source['name']!r} from {package}{version} "
-                                  f"(plugin {source['plugin']!r}), which is not installed here; pip install {package}")
+                raise ConfigError(
+                    f"{self.path}: {key} uses {source['kind']} {source['name']!r} from {package}{version} "
+                    f"(plugin {source['plugin']!r}), which is not installed here; pip install {package}"
+                )
         return validate_experiment(data, host)
 
     def publish(self, name: str, path: str | Path, *, stage: str, **facts: Any) -> Product:
@@ -470,11 +529,14 @@ class RunDir:
         try:
             relative = target.resolve().relative_to(self.path.resolve())
         except ValueError:
-            raise ValueError(f"product {name!r} of stage {stage!r}: {target} is outside the run {self.path}; "
-                             "a stage publishes only what it wrote inside its run") from None
+            raise ValueError(
+                f"product {name!r} of stage {stage!r}: {target} is outside the run {self.path}; "
+                "a stage publishes only what it wrote inside its run"
+            ) from None
         if not target.exists():
-            raise ValueError(f"product {name!r} of stage {stage!r}: {target} does not exist; publish a product "
-                             "after writing it")
+            raise ValueError(
+                f"product {name!r} of stage {stage!r}: {target} does not exist; publish a product after writing it"
+            )
         index = self._product_index()
         index[name] = {"stage": stage, "path": relative.as_posix(), "facts": json.loads(json.dumps(facts))}
         self.write_json(PRODUCTS_FILE, index)
@@ -501,8 +563,10 @@ class RunDir:
             raise MissingProductError(f"{self.path}: no {name!r} in this run (it holds {made}){maker}")
         product = self._product(name, entry)
         if not product.path.exists():
-            raise MissingProductError(f"{self.path}: the {name!r} that stage {product.stage!r} made is gone "
-                                      f"({product.path}); run that stage again")
+            raise MissingProductError(
+                f"{self.path}: the {name!r} that stage {product.stage!r} made is gone "
+                f"({product.path}); run that stage again"
+            )
         return product
 
     def _product_index(self) -> dict[str, Any]:
@@ -510,10 +574,13 @@ class RunDir:
         if not path.is_file():
             return {}
         index = read_run_json(path)
-        if not isinstance(index, dict) or not all(isinstance(entry, dict) and {"stage", "path"} <= entry.keys()
-                                                  for entry in index.values()):
-            raise ConfigError(f"{path}: not a products index (expected {{name: {{stage, path, facts}}}}); "
-                                  "run the stages that made them again, or delete the file")
+        if not isinstance(index, dict) or not all(
+            isinstance(entry, dict) and {"stage", "path"} <= entry.keys() for entry in index.values()
+        ):
+            raise ConfigError(
+                f"{path}: not a products index (expected {{name: {{stage, path, facts}}}}); "
+                "run the stages that made them again, or delete the file"
+            )
         return index
 
     def _product(self, name: str, entry: Mapping[str, Any]) -> Product:
@@ -566,8 +633,9 @@ def _mismatch(made_with: dict[str, Any], candidates: list[tuple[str, dict[str, A
         return f" but the run's config.json says {said}"
 
     def differing(config: dict[str, Any]) -> list[str]:
-        return sorted(key for key in set(made_with) | set(config)
-                      if _canonical(made_with.get(key)) != _canonical(config.get(key)))
+        return sorted(
+            key for key in set(made_with) | set(config) if _canonical(made_with.get(key)) != _canonical(config.get(key))
+        )
 
     slot, config = min(same_plugin, key=lambda candidate: len(differing(candidate[1])))
     keys = differing(config)
@@ -596,8 +664,10 @@ def interrupted_message(exc: BaseException, run: RunDir, command: str) -> str:
     cause = str(exc) if isinstance(exc, TrainingInterrupted) else "interrupted"
     if folder is not None:
         return f"vqtouch: {cause}; the run's last complete checkpoint is {folder}; resume with: {resume}"
-    return (f"vqtouch: {cause} before any checkpoint was written; nothing to resume: start again with "
-            f"--overwrite --out {run.path}")
+    return (
+        f"vqtouch: {cause} before any checkpoint was written; nothing to resume: start again with "
+        f"--overwrite --out {run.path}"
+    )
 
 
 def interrupted_status(exc: BaseException) -> int:

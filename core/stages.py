@@ -91,8 +91,10 @@ class StageJob:
         makes = self.host.stage(self.stage).makes
         if name not in makes:
             declared = ", ".join(makes) or "none"
-            raise PluginError(f"{self.host.stage(self.stage).source.describe()}: stage {self.stage!r} published "
-                              f"{name!r} but declares makes={declared}; add it to the stage's registration")
+            raise PluginError(
+                f"{self.host.stage(self.stage).source.describe()}: stage {self.stage!r} published "
+                f"{name!r} but declares makes={declared}; add it to the stage's registration"
+            )
         return self.run.publish(name, path, stage=self.stage, **facts)
 
     def product(self, name: str) -> Product:
@@ -146,7 +148,7 @@ def empty_slot_reason(path: str, host: PluginHost) -> str:
     names = host.registry(info.kind).names()
     if not names:
         return f"needs {path}, and no {info.kind} plugin is installed"
-    how = f"--set {path}='[{{\"name\": \"{names[0]}\"}}]'" if info.many else f"--set {path}.name=<{'|'.join(names)}>"
+    how = f'--set {path}=\'[{{"name": "{names[0]}"}}]\'' if info.many else f"--set {path}.name=<{'|'.join(names)}>"
     return f"needs {path}, which the config leaves empty; choose with {how}"
 
 
@@ -173,8 +175,7 @@ def run_stage(stage: str, assembly: Assembly, run: RunDir, *, resume: bool = Fal
     if reason is not None:
         return StageOutcome(stage, "unavailable", reason)
     seed_everything(config.seed, config.deterministic)
-    job = StageJob(stage, config, host, run, assembly, getattr(config, stage, None) if entry.section else None,
-                   resume)
+    job = StageJob(stage, config, host, run, assembly, getattr(config, stage, None) if entry.section else None, resume)
     start = time.perf_counter()
     try:
         result = entry.run(job)

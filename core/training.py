@@ -58,8 +58,14 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 from torch import nn
 
-from .checkpoint import (CheckpointWriteError, atomic_write, load_state_strict, remove_stale_temporaries, save,
-                         write_checkpoint_file)
+from .checkpoint import (
+    CheckpointWriteError,
+    atomic_write,
+    load_state_strict,
+    remove_stale_temporaries,
+    save,
+    write_checkpoint_file,
+)
 from .config import Section
 from .errors import CheckpointError, VqtouchError, VqtouchWarning
 from .progress import progress
@@ -84,43 +90,84 @@ class TrainConfig(Section):
 
     # Counts are strict integers (true is not 1) and floats refuse booleans and strings: a
     # config value that validates must also train.
-    steps: int = Field(1000, ge=0, le=MAX_STEPS, strict=True,
-                       description="Optimisation steps (at most 99999999: checkpoint folders have 8 digits).")
+    steps: int = Field(
+        1000,
+        ge=0,
+        le=MAX_STEPS,
+        strict=True,
+        description="Optimisation steps (at most 99999999: checkpoint folders have 8 digits).",
+    )
     learning_rate: float = Field(1e-4, gt=0, le=10, strict=True, description="Peak learning rate.")
     weight_decay: float = Field(0.0, ge=0, le=1, strict=True, description="Decoupled weight decay (AdamW).")
-    grad_clip: float | None = Field(1.0, gt=0, strict=True,
-                                    description="Clip the gradient norm to this value; null disables.")
+    grad_clip: float | None = Field(
+        1.0, gt=0, strict=True, description="Clip the gradient norm to this value; null disables."
+    )
     precision: Literal["auto", "fp32", "bf16"] = Field(
-        "auto", description="Autocast precision of the networks (quantizer and diffusion maths stay fp32): fp32, "
-                            "bf16, or auto, the measured choice for the device the run trains on "
-                            "(AUTO_PRECISION: fp32 on CPU, bf16 on a CUDA GPU that supports it).")
+        "auto",
+        description="Autocast precision of the networks (quantizer and diffusion maths stay fp32): fp32, "
+        "bf16, or auto, the measured choice for the device the run trains on "
+        "(AUTO_PRECISION: fp32 on CPU, bf16 on a CUDA GPU that supports it).",
+    )
     optimizer: Literal["adamw", "adam"] = Field("adamw", description="Optimizer of every trained module.")
-    warmup_steps: int = Field(0, ge=0, le=MAX_STEPS, strict=True,
-                              description="Raise the learning rate linearly from 1/warmup_steps of its peak to the "
-                                          "peak over this many first steps (0: start at the peak).")
+    warmup_steps: int = Field(
+        0,
+        ge=0,
+        le=MAX_STEPS,
+        strict=True,
+        description="Raise the learning rate linearly from 1/warmup_steps of its peak to the "
+        "peak over this many first steps (0: start at the peak).",
+    )
     lr_schedule: Literal["constant", "cosine"] = Field(
-        "constant", description="After warm-up: keep the peak learning rate ('constant') or lower it along a half "
-                                "cosine to min_lr_ratio of the peak at the last step ('cosine').")
-    min_lr_ratio: float = Field(0.1, ge=0.0, le=1.0, strict=True,
-                                description="Where the cosine schedule ends, as a share of the peak learning rate.")
+        "constant",
+        description="After warm-up: keep the peak learning rate ('constant') or lower it along a half "
+        "cosine to min_lr_ratio of the peak at the last step ('cosine').",
+    )
+    min_lr_ratio: float = Field(
+        0.1,
+        ge=0.0,
+        le=1.0,
+        strict=True,
+        description="Where the cosine schedule ends, as a share of the peak learning rate.",
+    )
     betas: tuple[float, float] = Field((0.9, 0.999), description="Adam betas, each in [0, 1).")
-    ema_decay: float | None = Field(None, gt=0.0, lt=1.0, strict=True,
-                                    description="Keep an exponential moving average of the weights with this decay "
-                                                "(saved next to the raw weights); null disables.")
-    checkpoint_every: int = Field(500, ge=1, le=MAX_STEPS, strict=True,
-                                  description="Write a checkpoint every this many steps.")
-    log_every: int = Field(50, ge=1, le=MAX_STEPS, strict=True, description="Write metrics.jsonl every this many steps.")
-    max_skipped_steps: int = Field(20, ge=1, le=MAX_STEPS, strict=True,
-                                   description="Abort after this many consecutive steps with a non-finite loss (each "
-                                               "one is skipped and reported).")
-    keep_last: int = Field(3, ge=1, le=1_000_000, strict=True,
-                           description="Keep the newest this many complete checkpoints of the run; older step folders "
-                                       "are deleted after each save (the one just written is always kept).")
-    keep_best: bool = Field(True, strict=True,
-                            description="At every checkpoint, score the held-out split with the task's validation "
-                                        "loss (logged as val_loss) and keep the checkpoint with the lowest score too, "
-                                        "beside the newest keep_last; `--step best` reads it.  Skipped when the run "
-                                        "holds out no samples (data.val_fraction=0).")
+    ema_decay: float | None = Field(
+        None,
+        gt=0.0,
+        lt=1.0,
+        strict=True,
+        description="Keep an exponential moving average of the weights with this decay "
+        "(saved next to the raw weights); null disables.",
+    )
+    checkpoint_every: int = Field(
+        500, ge=1, le=MAX_STEPS, strict=True, description="Write a checkpoint every this many steps."
+    )
+    log_every: int = Field(
+        50, ge=1, le=MAX_STEPS, strict=True, description="Write metrics.jsonl every this many steps."
+    )
+    max_skipped_steps: int = Field(
+        20,
+        ge=1,
+        le=MAX_STEPS,
+        strict=True,
+        description="Abort after this many consecutive steps with a non-finite loss (each "
+        "one is skipped and reported).",
+    )
+    keep_last: int = Field(
+        3,
+        ge=1,
+        le=1_000_000,
+        strict=True,
+        description="Keep the newest this many complete checkpoints of the run; older step folders "
+        "are deleted after each save (the one just written is always kept).",
+    )
+    keep_best: bool = Field(
+        True,
+        strict=True,
+        description="At every checkpoint, score the held-out split with the task's validation "
+        "loss (logged as val_loss) and keep the checkpoint with the lowest score too, "
+        "beside the newest keep_last; `--step best` reads it.  Skipped when the run "
+        "holds out no samples (data.val_fraction=0).",
+    )
 
     # A validator, not a bounded type: stages redeclare ``betas`` with their own default
     # (TokenizerTrainConfig), and field validators apply to the redeclared field too.
@@ -242,7 +289,7 @@ def batch_indices(seed: int, step: int, batch_size: int, size: int, rank: int = 
     epoch, position = divmod(step, per_epoch)
     order = epoch_order(seed, epoch, size)
     start = position * global_batch
-    return list(order[start:start + global_batch][rank::world])
+    return list(order[start : start + global_batch][rank::world])
 
 
 class _StepBatches:
@@ -311,13 +358,17 @@ class _StopSignals:
         if first:
             self.received = signum
         if self.saving:
-            _notice(f"vqtouch: {name} received while writing a checkpoint; stopping once it is complete "
-                    "(kill -9 stops at once, keeping the last complete checkpoint)")
+            _notice(
+                f"vqtouch: {name} received while writing a checkpoint; stopping once it is complete "
+                "(kill -9 stops at once, keeping the last complete checkpoint)"
+            )
         elif first:
             _notice(f"vqtouch: {name} received; stopping after the current step, once its checkpoint is written")
         else:
-            _notice(f"vqtouch: {name} received again; still finishing the current step and its checkpoint "
-                    "(kill -9 stops at once, keeping the last complete checkpoint)")
+            _notice(
+                f"vqtouch: {name} received again; still finishing the current step and its checkpoint "
+                "(kill -9 stops at once, keeping the last complete checkpoint)"
+            )
 
 
 @dataclass
@@ -361,9 +412,22 @@ class TrainerState:
 class Trainer:
     """Runs a :class:`TrainingTask` for ``config.steps`` steps (see the module docstring)."""
 
-    def __init__(self, task: TrainingTask, dataset: Any, config: TrainConfig, *, batch_size: int, seed: int,
-                 device: torch.device, checkpoint_dir: Path | None, run: Any = None, num_workers: int = 0,
-                 host: PluginHost | None = None, stage: str = "train", val_dataset: Any = None) -> None:
+    def __init__(
+        self,
+        task: TrainingTask,
+        dataset: Any,
+        config: TrainConfig,
+        *,
+        batch_size: int,
+        seed: int,
+        device: torch.device,
+        checkpoint_dir: Path | None,
+        run: Any = None,
+        num_workers: int = 0,
+        host: PluginHost | None = None,
+        stage: str = "train",
+        val_dataset: Any = None,
+    ) -> None:
         self.task = task
         self.dataset = dataset
         #: Held-out samples scored at every checkpoint (``keep_best``); None or empty: no scoring.
@@ -400,8 +464,10 @@ class Trainer:
         self.optimizers = {name: self._make_optimizer(name, params) for name, params in task.parameter_groups().items()}
         self.ema: dict[str, dict[str, torch.Tensor]] = {}
         if config.ema_decay is not None:
-            self.ema = {name: {k: v.detach().clone() for k, v in module.state_dict().items()
-                               if v.dtype.is_floating_point} for name, module in task.modules.items()}
+            self.ema = {
+                name: {k: v.detach().clone() for k, v in module.state_dict().items() if v.dtype.is_floating_point}
+                for name, module in task.modules.items()
+            }
 
     # -- optimisation ---------------------------------------------------------------------
     def _make_optimizer(self, name: str, params: list[nn.Parameter] | list[dict[str, Any]]) -> torch.optim.Optimizer:
@@ -411,16 +477,20 @@ class Trainer:
         for group in groups:
             unknown = set(group) - {"params", "lr_scale"}
             if unknown:
-                raise ValueError(f"parameter group of optimizer {name!r} has unknown keys {sorted(unknown)}; "
-                                 "allowed: 'params' and 'lr_scale'")
+                raise ValueError(
+                    f"parameter group of optimizer {name!r} has unknown keys {sorted(unknown)}; "
+                    "allowed: 'params' and 'lr_scale'"
+                )
             scale = float(group.get("lr_scale", 1.0))
             if not (math.isfinite(scale) and scale > 0):
                 raise ValueError(f"optimizer {name!r}: lr_scale must be a positive finite number, got {scale}")
             # lr_scale stays in the group (and so in checkpoints) to show why its lr differs.
-            param_groups.append({"params": list(group["params"]), "lr": self.config.learning_rate * scale,
-                                 "lr_scale": scale})
-        return kind(param_groups, lr=self.config.learning_rate, betas=self.config.betas,
-                    weight_decay=self.config.weight_decay)
+            param_groups.append(
+                {"params": list(group["params"]), "lr": self.config.learning_rate * scale, "lr_scale": scale}
+            )
+        return kind(
+            param_groups, lr=self.config.learning_rate, betas=self.config.betas, weight_decay=self.config.weight_decay
+        )
 
     def autocast(self) -> contextlib.AbstractContextManager:
         """The autocast context of the configured precision (a no-op in fp32; ``auto`` as :func:`resolve_precision`)."""
@@ -489,15 +559,22 @@ class Trainer:
     def _batches(self, start_step: int) -> Iterator[dict[str, Any]]:
         size = len(self.dataset)
         if size < self.batch_size * self.dist.world:
-            raise VqtouchError(f"the dataset has {size} samples, fewer than one global batch "
-                               f"({self.batch_size} x {self.dist.world} processes); lower data.batch_size")
-        index_batches = _StepBatches(self.seed, start_step, self.config.steps, self.batch_size, size, self.dist.rank,
-                                     self.dist.world)
+            raise VqtouchError(
+                f"the dataset has {size} samples, fewer than one global batch "
+                f"({self.batch_size} x {self.dist.world} processes); lower data.batch_size"
+            )
+        index_batches = _StepBatches(
+            self.seed, start_step, self.config.steps, self.batch_size, size, self.dist.rank, self.dist.world
+        )
         # A private generator: creating the iterator would otherwise draw its worker seed from
         # the global RNG, and a resumed run (which creates it at another moment) would diverge.
-        loader = torch.utils.data.DataLoader(self.dataset, batch_sampler=index_batches, collate_fn=collate_samples,
-                                             num_workers=self.num_workers,
-                                             generator=torch.Generator().manual_seed(self.seed + start_step))
+        loader = torch.utils.data.DataLoader(
+            self.dataset,
+            batch_sampler=index_batches,
+            collate_fn=collate_samples,
+            num_workers=self.num_workers,
+            generator=torch.Generator().manual_seed(self.seed + start_step),
+        )
         yield from loader
 
     # -- the loop ---------------------------------------------------------------------------
@@ -536,9 +613,11 @@ class Trainer:
 
     def _run_steps(self, signals: _StopSignals) -> None:
         start = self.state.step
-        bar = progress(total=self.config.steps, initial=start, desc=f"training ({self.precision})",
-                       unit="step") if self.dist.is_main \
+        bar = (
+            progress(total=self.config.steps, initial=start, desc=f"training ({self.precision})", unit="step")
+            if self.dist.is_main
             else None
+        )
         images_seen, tic = 0, time.perf_counter()
         try:
             for batch in self._batches(start):
@@ -553,7 +632,8 @@ class Trainer:
                         raise NonFiniteLossError(
                             f"{self.state.consecutive_skips} consecutive steps had a non-finite loss (last at step "
                             f"{step}); lower the stage's train.learning_rate or check the data. The last good "
-                            "checkpoint is kept")
+                            "checkpoint is kept"
+                        )
                 else:
                     self.state.consecutive_skips = 0
                 if self.ema:
@@ -569,8 +649,9 @@ class Trainer:
                     self.save_checkpoint()
                 if bar is not None:
                     rate = images_seen / max(time.perf_counter() - tic, 1e-9)
-                    bar.set_postfix({k: f"{v:.4g}" for k, v in list(scalars.items())[:3]} | {"img/s": f"{rate:.1f}"},
-                                    refresh=False)
+                    bar.set_postfix(
+                        {k: f"{v:.4g}" for k, v in list(scalars.items())[:3]} | {"img/s": f"{rate:.1f}"}, refresh=False
+                    )
                     bar.update(1)
                 if self._stop_agreed(signals):
                     break
@@ -639,24 +720,37 @@ class Trainer:
             try:
                 folder.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
-                raise CheckpointError(f"{folder}: cannot create the checkpoint folder ({exc.strerror or exc}); make "
-                                      f"{self.checkpoint_dir} writable") from None
+                raise CheckpointError(
+                    f"{folder}: cannot create the checkpoint folder ({exc.strerror or exc}); make "
+                    f"{self.checkpoint_dir} writable"
+                ) from None
             for name, module in self.task.modules.items():
                 save(module, folder / f"{name}.safetensors", step=step, host=self.host)
             tensors, meta = self._trainer_tensors()
             # Written last: its presence is what makes the folder a complete checkpoint.
-            write_checkpoint_file(folder / TRAINER_STATE,
-                                  lambda tmp: save_file(tensors, str(tmp), metadata={
-                                      "format": "pt", "vqtouch.format_version": "1",
-                                      "vqtouch.component": "trainer_state",
-                                      "vqtouch.trainer": json.dumps(meta, sort_keys=True)}))
+            write_checkpoint_file(
+                folder / TRAINER_STATE,
+                lambda tmp: save_file(
+                    tensors,
+                    str(tmp),
+                    metadata={
+                        "format": "pt",
+                        "vqtouch.format_version": "1",
+                        "vqtouch.component": "trainer_state",
+                        "vqtouch.trainer": json.dumps(meta, sort_keys=True),
+                    },
+                ),
+            )
         except BaseException as exc:
             if created:
                 shutil.rmtree(folder, ignore_errors=True)  # only this save's files: an incomplete step
             if isinstance(exc, CheckpointWriteError):
                 previous = latest_checkpoint(self.checkpoint_dir)
-                kept = (f"nothing was replaced; the run's last complete checkpoint is {previous.name}"
-                        if previous is not None else "nothing was replaced; the run has no complete checkpoint yet")
+                kept = (
+                    f"nothing was replaced; the run's last complete checkpoint is {previous.name}"
+                    if previous is not None
+                    else "nothing was replaced; the run has no complete checkpoint yet"
+                )
                 raise exc.keeping(kept) from None
             raise
         self._saved = (step, folder)
@@ -665,8 +759,12 @@ class Trainer:
 
     def validates(self) -> bool:
         """Whether checkpoints are scored on held-out samples (and the best one kept)."""
-        return (self.config.keep_best and hasattr(self.task, "validation_loss") and self.val_dataset is not None
-                and len(self.val_dataset) > 0)
+        return (
+            self.config.keep_best
+            and hasattr(self.task, "validation_loss")
+            and self.val_dataset is not None
+            and len(self.val_dataset) > 0
+        )
 
     @torch.no_grad()
     def _validate(self, step: int) -> None:
@@ -683,9 +781,13 @@ class Trainer:
         total, count = 0.0, 0
         try:
             for start in range(0, len(self.val_dataset), self.batch_size):
-                samples = [self.val_dataset[i] for i in range(start, min(start + self.batch_size, len(self.val_dataset)))]
-                batch = {k: v.to(self.device) if isinstance(v, torch.Tensor) else v
-                         for k, v in collate_samples(samples).items()}
+                samples = [
+                    self.val_dataset[i] for i in range(start, min(start + self.batch_size, len(self.val_dataset)))
+                ]
+                batch = {
+                    k: v.to(self.device) if isinstance(v, torch.Tensor) else v
+                    for k, v in collate_samples(samples).items()
+                }
                 losses_B = self.task.validation_loss(batch, self)
                 total += float(losses_B.double().sum())
                 count += len(samples)
@@ -706,17 +808,23 @@ class Trainer:
         # Only complete folders older than the one just written count; newer ones (left by a run
         # that was resumed from an earlier step) are overwritten when training reaches them.  The
         # best-scoring folder is kept apart from the keep_last newest.
-        older = [folder for number, folder in step_folders(self.checkpoint_dir)
-                 if number < step and number != self.state.best_step and (folder / TRAINER_STATE).is_file()]
-        for folder in older[:max(0, len(older) - (self.config.keep_last - 1))]:
+        older = [
+            folder
+            for number, folder in step_folders(self.checkpoint_dir)
+            if number < step and number != self.state.best_step and (folder / TRAINER_STATE).is_file()
+        ]
+        for folder in older[: max(0, len(older) - (self.config.keep_last - 1))]:
             try:
                 # The trainer state first: a deletion cut short leaves an incomplete folder, never
                 # one that looks complete but lacks a module file.
                 (folder / TRAINER_STATE).unlink()
                 shutil.rmtree(folder)
             except OSError as exc:
-                warnings.warn(f"could not delete the old checkpoint {folder} ({exc.strerror or exc}); delete it by "
-                              "hand to free its space", stacklevel=3)
+                warnings.warn(
+                    f"could not delete the old checkpoint {folder} ({exc.strerror or exc}); delete it by "
+                    "hand to free its space",
+                    stacklevel=3,
+                )
 
     def _trainer_tensors(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
         tensors: dict[str, torch.Tensor] = {"rng.torch_cpu": torch.get_rng_state()}
@@ -737,12 +845,20 @@ class Trainer:
         for module_name, shadow in self.ema.items():
             for key, value in shadow.items():
                 tensors[f"ema.{module_name}.{key}"] = value.detach().cpu().contiguous()
-        meta = {"step": self.state.step, "skipped_steps": self.state.skipped_steps,
-                "consecutive_skips": self.state.consecutive_skips, "history": self.state.history,
-                "best_step": self.state.best_step, "best_score": self.state.best_score,
-                "optimizers": optim_meta, "seed": self.seed, "batch_size": self.batch_size, "world": self.dist.world,
-                # Lets readers check that every module file of the step is there.
-                "modules": sorted(self.task.modules)}
+        meta = {
+            "step": self.state.step,
+            "skipped_steps": self.state.skipped_steps,
+            "consecutive_skips": self.state.consecutive_skips,
+            "history": self.state.history,
+            "best_step": self.state.best_step,
+            "best_score": self.state.best_score,
+            "optimizers": optim_meta,
+            "seed": self.seed,
+            "batch_size": self.batch_size,
+            "world": self.dist.world,
+            # Lets readers check that every module file of the step is there.
+            "modules": sorted(self.task.modules),
+        }
         return tensors, meta
 
     def resume(self, checkpoint_dir: Path) -> bool:
@@ -765,8 +881,10 @@ class Trainer:
             folder = latest_good_checkpoint(checkpoint_dir, required_files=required)
             if folder is None:
                 if step_folders(checkpoint_dir):
-                    raise CheckpointError(f"{no_good_checkpoint(checkpoint_dir, required)}; resuming would silently "
-                                          f"restart from step 0: delete {checkpoint_dir} to start over")
+                    raise CheckpointError(
+                        f"{no_good_checkpoint(checkpoint_dir, required)}; resuming would silently "
+                        f"restart from step 0: delete {checkpoint_dir} to start over"
+                    )
                 self._rewind_run_metrics(0)
                 return False
         path = folder / TRAINER_STATE
@@ -777,8 +895,10 @@ class Trainer:
         except Exception as exc:  # noqa: BLE001
             raise CheckpointError(f"{path}: unreadable trainer state ({_first_line(exc)})") from None
         if meta["batch_size"] != self.batch_size or meta["seed"] != self.seed or meta["world"] != self.dist.world:
-            raise CheckpointError(f"{path}: saved with batch_size={meta['batch_size']}, seed={meta['seed']}, "
-                                  f"world={meta['world']}; resuming needs the same values to continue exactly")
+            raise CheckpointError(
+                f"{path}: saved with batch_size={meta['batch_size']}, seed={meta['seed']}, "
+                f"world={meta['world']}; resuming needs the same values to continue exactly"
+            )
         from safetensors.torch import load_file
 
         for name, module in self.task.modules.items():
@@ -794,7 +914,7 @@ class Trainer:
             for key, value in tensors.items():
                 prefix = f"optim.{name}."
                 if key.startswith(prefix):
-                    index, state_key = key[len(prefix):].split(".", 1)
+                    index, state_key = key[len(prefix) :].split(".", 1)
                     state.setdefault(int(index), {})[state_key] = value.to(self.device)
             for index, values in saved["scalars"].items():
                 state.setdefault(int(index), {}).update(values)
@@ -807,8 +927,14 @@ class Trainer:
             cuda_states = [tensors[k] for k in sorted(tensors) if k.startswith("rng.cuda")]
             if cuda_states:
                 torch.cuda.set_rng_state_all(cuda_states)
-        self.state = TrainerState(meta["step"], meta["skipped_steps"], meta["consecutive_skips"], meta["history"],
-                                  meta.get("best_step"), meta.get("best_score"))
+        self.state = TrainerState(
+            meta["step"],
+            meta["skipped_steps"],
+            meta["consecutive_skips"],
+            meta["history"],
+            meta.get("best_step"),
+            meta.get("best_score"),
+        )
         self._saved = (self.state.step, folder)
         self._rewind_run_metrics(self.state.step)
         return True
@@ -837,8 +963,10 @@ def no_good_checkpoint(checkpoint_dir: Path, required_files: Iterable[str] = ())
     callers add what to do."""
     folders = step_folders(checkpoint_dir)
     newest = folders[-1][1]
-    return (f"{checkpoint_dir}: holds {len(folders)} checkpoint folder(s) but no complete one (the newest, "
-            f"{newest.name}, {_as_clause(checkpoint_problem(newest, required_files))})")
+    return (
+        f"{checkpoint_dir}: holds {len(folders)} checkpoint folder(s) but no complete one (the newest, "
+        f"{newest.name}, {_as_clause(checkpoint_problem(newest, required_files))})"
+    )
 
 
 def step_folders(checkpoint_dir: Path) -> list[tuple[int, Path]]:
@@ -961,8 +1089,12 @@ def rewind_metrics(path: Path, stage: str, step: int) -> int:
             if not line.endswith("\n"):
                 dropped, changed = dropped + 1, True
                 continue
-        if (isinstance(record, dict) and record.get("stage") == stage and isinstance(record.get("step"), int)
-                and record["step"] > step):
+        if (
+            isinstance(record, dict)
+            and record.get("stage") == stage
+            and isinstance(record.get("step"), int)
+            and record["step"] > step
+        ):
             dropped, changed = dropped + 1, True
             continue
         if not line.endswith("\n"):

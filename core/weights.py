@@ -40,7 +40,9 @@ def resolve_weights(spec: WeightsSpec, explicit: str | os.PathLike[str] | None =
     if explicit:
         path = Path(explicit).expanduser()
         if not path.is_file():
-            raise MissingWeightsError(f"{spec.description}: file {str(path)!r} (from {spec.config_hint}) does not exist")
+            raise MissingWeightsError(
+                f"{spec.description}: file {str(path)!r} (from {spec.config_hint}) does not exist"
+            )
         return _checked(spec, path)
     from_env = os.environ.get(spec.env_var, "").strip()
     if from_env:
@@ -59,7 +61,8 @@ def resolve_weights(spec: WeightsSpec, explicit: str | os.PathLike[str] | None =
     raise MissingWeightsError(
         f"{spec.description} needs {names}{where}; provide it with {spec.config_hint}, "
         f"the environment variable {spec.env_var}=PATH, or put it in the folder named by {ENV_WEIGHTS_DIR}. "
-        "vqtouch never downloads weights and never substitutes random ones")
+        "vqtouch never downloads weights and never substitutes random ones"
+    )
 
 
 def _checked(spec: WeightsSpec, path: Path) -> Path:
@@ -68,7 +71,8 @@ def _checked(spec: WeightsSpec, path: Path) -> Path:
         if not digest.startswith(spec.sha256_prefix):
             raise MissingWeightsError(
                 f"{spec.description}: {path} has sha256 {digest[:12]}..., expected a digest starting with "
-                f"{spec.sha256_prefix}; the file is corrupt or a different model")
+                f"{spec.sha256_prefix}; the file is corrupt or a different model"
+            )
     return path
 
 

@@ -16,5 +16,13 @@ so this import stays light (no calibration data, no numpy file reads).
 from .base import RenderedSensor, check_height_map, surface_slopes
 from .variants import SensorVariant, apply_variant, drifted_background, environment_variant, gaussian_blur
 
-__all__ = ["RenderedSensor", "SensorVariant", "apply_variant", "check_height_map", "drifted_background",
-           "environment_variant", "gaussian_blur", "surface_slopes"]
+__all__ = [
+    "RenderedSensor",
+    "SensorVariant",
+    "apply_variant",
+    "check_height_map",
+    "drifted_background",
+    "environment_variant",
+    "gaussian_blur",
+    "surface_slopes",
+]

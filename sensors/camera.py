@@ -52,20 +52,24 @@ def material_albedo(object_class: ObjectClass, contact: Contact, generator: torc
     return (base[:, None, None] * (1 + texture)).clamp(0, 1)
 
 
-def render_visual(object_class: ObjectClass, contact: Contact, generator: torch.Generator,
-                  field_of_view_mm: float | tuple[float, float]) -> torch.Tensor:
+def render_visual(
+    object_class: ObjectClass,
+    contact: Contact,
+    generator: torch.Generator,
+    field_of_view_mm: float | tuple[float, float],
+) -> torch.Tensor:
     """(3, H, W) visual image in [0, 1] of the contact region, shaded from the object's surface;
     ``field_of_view_mm`` as :func:`~vqtouch.sensors.objects.sample_contact` (a side, or (rows, columns))."""
     surface = contact.surface_mm_HW
     rows_mm, cols_mm = extent_hw(field_of_view_mm)
-    slope_row, slope_col = torch.gradient(surface, spacing=(rows_mm / surface.shape[-2],
-                                                            cols_mm / surface.shape[-1]))
+    slope_row, slope_col = torch.gradient(surface, spacing=(rows_mm / surface.shape[-2], cols_mm / surface.shape[-1]))
     normal = torch.stack([-slope_col, -slope_row, torch.ones_like(surface)])
     normal = normal / normal.norm(dim=0, keepdim=True)
     azimuth = 2 * math.pi * float(torch.rand(1, generator=generator))
     elevation = math.radians(35 + 40 * float(torch.rand(1, generator=generator)))
-    light = torch.tensor([math.cos(azimuth) * math.cos(elevation), math.sin(azimuth) * math.cos(elevation),
-                          math.sin(elevation)])
+    light = torch.tensor(
+        [math.cos(azimuth) * math.cos(elevation), math.sin(azimuth) * math.cos(elevation), math.sin(elevation)]
+    )
     diffuse = (normal * light[:, None, None]).sum(0).clamp_min(0)
     halfway = light + torch.tensor([0.0, 0.0, 1.0])
     halfway = halfway / halfway.norm()

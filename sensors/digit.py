@@ -102,11 +102,18 @@ class DigitDesign:
 
 
 #: vqtouch's earlier hand-set values, used with ``design="builtin"`` and when tacto's file is missing.
-BUILTIN_DESIGN = DigitDesign(source="builtin", field_of_view_mm=16.0, led_elevation_deg=(25.0, 25.0, 25.0),
-                             led_azimuth_deg=(90.0, 210.0, 330.0), led_colours=LED_COLOURS, camera_noise_std=0.0)
+BUILTIN_DESIGN = DigitDesign(
+    source="builtin",
+    field_of_view_mm=16.0,
+    led_elevation_deg=(25.0, 25.0, 25.0),
+    led_azimuth_deg=(90.0, 210.0, 330.0),
+    led_colours=LED_COLOURS,
+    camera_noise_std=0.0,
+)
 
 
 # -- reading tacto's file ------------------------------------------------------------------------
+
 
 def tacto_config_path() -> Path | None:
     """Path of ``config_digit.yml`` in the installed ``tacto`` package, or None when it is not installed.
@@ -167,12 +174,16 @@ def design_from_tacto_config(document: dict[str, Any], source: str = "tacto") ->
     origin = np.asarray(lights["origin"], dtype=float)
     if lights["polar"]:
         polar = lights["xrtheta"]
-        offsets = [(x, r * math.cos(math.radians(t)), r * math.sin(math.radians(t)))
-                   for x, r, t in zip(polar["xs"], polar["rs"], polar["thetas"], strict=True)]
+        offsets = [
+            (x, r * math.cos(math.radians(t)), r * math.sin(math.radians(t)))
+            for x, r, t in zip(polar["xs"], polar["rs"], polar["thetas"], strict=True)
+        ]
     else:
         offsets = lights["xyz"]["coords"]
-    colours = [tuple(float(c) * float(i) for c in colour)
-               for colour, i in zip(lights["colors"], lights["intensities"], strict=True)]
+    colours = [
+        tuple(float(c) * float(i) for c in colour)
+        for colour, i in zip(lights["colors"], lights["intensities"], strict=True)
+    ]
     if len(offsets) != 3 or len(colours) != 3 or any(len(c) != 3 for c in colours):
         raise ValueError(f"expected three RGB lights, got {len(offsets)} positions and {len(colours)} colours")
     elevations, azimuths = [], []
@@ -189,9 +200,14 @@ def design_from_tacto_config(document: dict[str, Any], source: str = "tacto") ->
     # view at the gel's distance is smaller still.
     seen_m = 2 * distance_m * math.tan(math.radians(float(camera["yfov"])) / 2)
     field_of_view_mm = 1000 * min(float(gel["width"]), float(gel["height"]), seen_m)
-    return DigitDesign(source=source, field_of_view_mm=field_of_view_mm, led_elevation_deg=tuple(elevations),
-                       led_azimuth_deg=tuple(azimuths), led_colours=tuple(colours),
-                       camera_noise_std=float(noise["std"]) / 255.0)
+    return DigitDesign(
+        source=source,
+        field_of_view_mm=field_of_view_mm,
+        led_elevation_deg=tuple(elevations),
+        led_azimuth_deg=tuple(azimuths),
+        led_colours=tuple(colours),
+        camera_noise_std=float(noise["std"]) / 255.0,
+    )
 
 
 @functools.lru_cache(maxsize=4)
@@ -204,8 +220,10 @@ def read_tacto_design(path: Path) -> DigitDesign:
         return design_from_tacto_config(load_yaml(Path(path).read_text()), source=f"tacto ({path})")
     except (OSError, KeyError, TypeError, ValueError, IndexError) as exc:
         detail = f"missing entry {exc}" if isinstance(exc, KeyError) else str(exc)
-        raise PluginError(f"cannot read DIGIT's design from {path}: {detail}; reinstall it with {TACTO_INSTALL} "
-                          "or set design='builtin'") from None
+        raise PluginError(
+            f"cannot read DIGIT's design from {path}: {detail}; reinstall it with {TACTO_INSTALL} "
+            "or set design='builtin'"
+        ) from None
 
 
 _warned_missing_tacto = False
@@ -225,12 +243,17 @@ def digit_design(design: Literal["tacto", "builtin"]) -> DigitDesign:
     global _warned_missing_tacto
     if not _warned_missing_tacto:
         _warned_missing_tacto = True
-        warnings.warn(f"DIGIT's published design (tacto's config_digit.yml) is not installed, so the digit sensor "
-                      f"family uses vqtouch's built-in values; {TACTO_INSTALL} to use it", UserWarning, stacklevel=2)
+        warnings.warn(
+            f"DIGIT's published design (tacto's config_digit.yml) is not installed, so the digit sensor "
+            f"family uses vqtouch's built-in values; {TACTO_INSTALL} to use it",
+            UserWarning,
+            stacklevel=2,
+        )
     return BUILTIN_DESIGN
 
 
 # -- the family ---------------------------------------------------------------------------------
+
 
 class DigitConfig(PluginConfig):
     """Options of the ``digit`` sensor family (photometric model).
@@ -241,32 +264,52 @@ class DigitConfig(PluginConfig):
 
     name: Literal["digit"] = "digit"
     design: Literal["tacto", "builtin"] = Field(
-        "tacto", description="Source of the geometry, light and noise defaults: 'tacto' reads DIGIT's published "
-                             f"design from tacto's config_digit.yml ({TACTO_INSTALL}; without it: a warning and "
-                             "the built-in values), 'builtin' uses vqtouch's earlier hand-set values.")
-    field_of_view_mm: float | None = Field(None, ge=4.0, le=60.0,
-                                           description="Side of the imaged gel square in mm; None: the design's "
-                                                       "(tacto: 20, the gel's width; builtin: 16).")
+        "tacto",
+        description="Source of the geometry, light and noise defaults: 'tacto' reads DIGIT's published "
+        f"design from tacto's config_digit.yml ({TACTO_INSTALL}; without it: a warning and "
+        "the built-in values), 'builtin' uses vqtouch's earlier hand-set values.",
+    )
+    field_of_view_mm: float | None = Field(
+        None,
+        ge=4.0,
+        le=60.0,
+        description="Side of the imaged gel square in mm; None: the design's "
+        "(tacto: 20, the gel's width; builtin: 16).",
+    )
     led_elevation_deg: float | None = Field(
-        None, ge=5.0, le=85.0, description="Elevation of the three LEDs above the gel; None: the design's "
-                                           "(tacto: 40.4, from the light ring's radius and distance; builtin: 25).")
+        None,
+        ge=5.0,
+        le=85.0,
+        description="Elevation of the three LEDs above the gel; None: the design's "
+        "(tacto: 40.4, from the light ring's radius and distance; builtin: 25).",
+    )
     led_azimuth_deg: float | None = Field(
-        None, ge=-180.0, le=180.0,
+        None,
+        ge=-180.0,
+        le=180.0,
         description="Image azimuth of the red LED (0 = +column, 90 = +row, i.e. down); green and blue follow at "
-                    "+120 and +240. None: the design's (tacto: -150, -30, 90; builtin: 90, 210, 330).")
+        "+120 and +240. None: the design's (tacto: -150, -30, 90; builtin: 90, 210, 330).",
+    )
     camera_noise_std: float | None = Field(
-        None, ge=0.0, le=0.3, description="Std of the camera's Gaussian pixel noise on [0, 1], drawn from the render "
-                                          "generator after the variant; None: the design's (tacto: 7/255; "
-                                          "builtin: 0).")
+        None,
+        ge=0.0,
+        le=0.3,
+        description="Std of the camera's Gaussian pixel noise on [0, 1], drawn from the render "
+        "generator after the variant; None: the design's (tacto: 7/255; "
+        "builtin: 0).",
+    )
     response_gain: float = Field(0.9, ge=0.0, le=5.0, description="Strength of the contact shading (assumed).")
     background_level: float = Field(0.42, ge=0.0, le=1.0, description="Base intensity of the unlit gel (assumed).")
-    led_glow: float = Field(0.25, ge=0.0, le=1.0,
-                            description="Brightness of each LED's glow at its gel edge (assumed).")
+    led_glow: float = Field(
+        0.25, ge=0.0, le=1.0, description="Brightness of each LED's glow at its gel edge (assumed)."
+    )
     vignetting: float = Field(0.25, ge=0.0, le=1.0, description="Darkening at the image corners (assumed).")
-    gel_blur_mm: float = Field(0.25, ge=0.0, le=2.0,
-                               description="Gaussian smoothing of the indentation in mm (assumed).")
-    variant: SensorVariant = Field(default_factory=SensorVariant,
-                                   description="Environmental perturbations making this a derived sensor.")
+    gel_blur_mm: float = Field(
+        0.25, ge=0.0, le=2.0, description="Gaussian smoothing of the indentation in mm (assumed)."
+    )
+    variant: SensorVariant = Field(
+        default_factory=SensorVariant, description="Environmental perturbations making this a derived sensor."
+    )
 
 
 class DigitSensor(RenderedSensor):
@@ -286,19 +329,24 @@ class DigitSensor(RenderedSensor):
         self.field_of_view_mm = design.field_of_view_mm if config.field_of_view_mm is None else config.field_of_view_mm
         self.camera_noise_std = design.camera_noise_std if config.camera_noise_std is None else config.camera_noise_std
         elevations = design.led_elevation_deg if config.led_elevation_deg is None else (config.led_elevation_deg,) * 3
-        azimuths = (design.led_azimuth_deg if config.led_azimuth_deg is None
-                    else tuple(config.led_azimuth_deg + 120 * k for k in range(3)))
+        azimuths = (
+            design.led_azimuth_deg
+            if config.led_azimuth_deg is None
+            else tuple(config.led_azimuth_deg + 120 * k for k in range(3))
+        )
         elevations, azimuths = [math.radians(e) for e in elevations], [math.radians(a) for a in azimuths]
         # Light directions (x = column, y = row, z = towards the camera), one per LED.
-        directions = [(math.cos(a) * math.cos(e), math.sin(a) * math.cos(e), math.sin(e))
-                      for a, e in zip(azimuths, elevations)]
+        directions = [
+            (math.cos(a) * math.cos(e), math.sin(a) * math.cos(e), math.sin(e)) for a, e in zip(azimuths, elevations)
+        ]
         self.register_buffer("light_L3", torch.tensor(directions), persistent=False)
         self.register_buffer("colour_L3", torch.tensor(design.led_colours), persistent=False)
         self.register_buffer("azimuth_L", torch.tensor(azimuths), persistent=False)
 
     def background(self, height: int, width: int, device: torch.device) -> torch.Tensor:
-        ys, xs = torch.meshgrid(torch.linspace(-1, 1, height, device=device),
-                                torch.linspace(-1, 1, width, device=device), indexing="ij")
+        ys, xs = torch.meshgrid(
+            torch.linspace(-1, 1, height, device=device), torch.linspace(-1, 1, width, device=device), indexing="ij"
+        )
         image = torch.full((3, height, width), self.config.background_level, device=device)
         for azimuth, colour in zip(self.azimuth_L.to(device), self.colour_L3.to(device)):
             # Each LED sits just outside the gel edge in its azimuth direction.
@@ -324,8 +372,11 @@ class DigitSensor(RenderedSensor):
         images = super().render(height_mm_BHW, generator)
         if self.camera_noise_std == 0:
             return images
-        noise = (torch.randn(images.shape, generator=generator, dtype=images.dtype) if generator is not None
-                 else torch.randn_like(images))
+        noise = (
+            torch.randn(images.shape, generator=generator, dtype=images.dtype)
+            if generator is not None
+            else torch.randn_like(images)
+        )
         return (images + self.camera_noise_std * noise.to(images.device)).clamp(0.0, 1.0)
 
 
@@ -336,7 +387,11 @@ def build_digit(config: DigitConfig, context: BuildContext) -> DigitSensor:
 
 @hookimpl
 def vqtouch_register_sensor_families(register):
-    register("digit", build_digit, DigitConfig,
-             description="DIGIT three-LED photometric model: geometry, light colours and camera noise from "
-                         "DIGIT's published design (tacto's config_digit.yml); shading strength and background "
-                         "assumed.")
+    register(
+        "digit",
+        build_digit,
+        DigitConfig,
+        description="DIGIT three-LED photometric model: geometry, light colours and camera noise from "
+        "DIGIT's published design (tacto's config_digit.yml); shading strength and background "
+        "assumed.",
+    )

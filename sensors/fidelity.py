@@ -44,14 +44,26 @@ class FidelityResult:
 
     def summary(self) -> dict[str, Any]:
         """The numbers, JSON-ready."""
-        return {"sensor": self.sensor, "frames": self.frames, "crop_px": self.crop_px,
-                "resolution": list(self.resolution), "ssim": round(self.ssim, 4), "psnr_db": round(self.psnr, 2),
-                "background_only_ssim": round(self.background_ssim, 4),
-                "background_only_psnr_db": round(self.background_psnr, 2)}
+        return {
+            "sensor": self.sensor,
+            "frames": self.frames,
+            "crop_px": self.crop_px,
+            "resolution": list(self.resolution),
+            "ssim": round(self.ssim, 4),
+            "psnr_db": round(self.psnr, 2),
+            "background_only_ssim": round(self.background_ssim, 4),
+            "background_only_psnr_db": round(self.background_psnr, 2),
+        }
 
 
-def ball_press_heights(centres_xy: np.ndarray, contact_radii: np.ndarray, ball_radius_mm: float, pixel_mm: float,
-                       native_size: tuple[int, int], size: tuple[int, int]) -> torch.Tensor:
+def ball_press_heights(
+    centres_xy: np.ndarray,
+    contact_radii: np.ndarray,
+    ball_radius_mm: float,
+    pixel_mm: float,
+    native_size: tuple[int, int],
+    size: tuple[int, int],
+) -> torch.Tensor:
     """Spherical-cap height maps (B, H, W) in mm for presses given in full-resolution pixels."""
     rows_native, cols_native = native_size
     rows = (torch.arange(size[0], dtype=torch.float64) + 0.5) * rows_native / size[0] - 0.5
@@ -72,13 +84,18 @@ def _crops(images: torch.Tensor, centres_xy: np.ndarray, native_size: tuple[int,
     for index, (cx, cy) in enumerate(centres_xy.astype(np.float64)):
         top = int(np.clip(round(cy * rows / native_size[0]) - crop // 2, 0, rows - crop))
         left = int(np.clip(round(cx * cols / native_size[1]) - crop // 2, 0, cols - crop))
-        out.append(images[index, :, top:top + crop, left:left + crop])
+        out.append(images[index, :, top : top + crop, left : left + crop])
     return torch.stack(out)
 
 
-def evaluate_fidelity(sensor_name: str, host: PluginHost, resolution: tuple[int, int] = (240, 320), crop_px: int = 64,
-                      ball_radius_mm: float | None = None, sensor_options: dict[str, Any] | None = None
-                      ) -> FidelityResult:
+def evaluate_fidelity(
+    sensor_name: str,
+    host: PluginHost,
+    resolution: tuple[int, int] = (240, 320),
+    crop_px: int = 64,
+    ball_radius_mm: float | None = None,
+    sensor_options: dict[str, Any] | None = None,
+) -> FidelityResult:
     """Render every real press of ``sensor_name`` and score it against the real frames."""
     calibration = load_taxim_calibration(sensor_name)
     sensor = host.build("sensor_family", {"name": sensor_name, **(sensor_options or {}), "view": "full"})
@@ -102,6 +119,15 @@ def evaluate_fidelity(sensor_name: str, host: PluginHost, resolution: tuple[int,
             metric.reset()
             metric.update(crops, real_crops)
             scores[(metric_name, label)] = metric.compute()
-    return FidelityResult(sensor_name, len(real), crop_px, resolution, scores[("ssim", "render")],
-                          scores[("psnr", "render")], scores[("ssim", "background")], scores[("psnr", "background")],
-                          real_crops, rendered_crops)
+    return FidelityResult(
+        sensor_name,
+        len(real),
+        crop_px,
+        resolution,
+        scores[("ssim", "render")],
+        scores[("psnr", "render")],
+        scores[("ssim", "background")],
+        scores[("psnr", "background")],
+        real_crops,
+        rendered_crops,
+    )

@@ -60,8 +60,9 @@ def calibration_folder(sensor: str) -> Path:
     try:
         import taxim
     except ImportError as exc:
-        raise PluginError(f"sensor family {sensor!r} reads its calibration from the taxim package ({exc}); "
-                          "pip install taxim") from None
+        raise PluginError(
+            f"sensor family {sensor!r} reads its calibration from the taxim package ({exc}); pip install taxim"
+        ) from None
     return Path(getattr(taxim, TAXIM_FOLDERS[sensor]))
 
 
@@ -102,29 +103,44 @@ class GelSightConfig(PluginConfig):
 
     name: Literal["gelsight"] = "gelsight"
     view: Literal["center_square", "full"] = Field(
-        "center_square", description="Imaged area: the centred square of the 640x480 frame, or the full frame "
-                                     "(height maps must then be 3:4).")
-    gel_blur_mm: float = Field(0.2, ge=0.0, le=2.0,
-                               description="Gaussian smoothing of the indentation (elastic spread), in mm; the "
-                                           "default fits taxim's real ball presses best (see sensors/fidelity.py).")
+        "center_square",
+        description="Imaged area: the centred square of the 640x480 frame, or the full frame "
+        "(height maps must then be 3:4).",
+    )
+    gel_blur_mm: float = Field(
+        0.2,
+        ge=0.0,
+        le=2.0,
+        description="Gaussian smoothing of the indentation (elastic spread), in mm; the "
+        "default fits taxim's real ball presses best (see sensors/fidelity.py).",
+    )
     zero_slope_offset: Literal["keep", "remove"] = Field(
-        "keep", description="The table's response at zero slope: 'keep' it inside the contact (it carries signal "
-                            "for GelSight), or 'remove' it so flat gel equals the real frame (a fitting bias for "
-                            "the Mini). Defaults are the better choice on taxim's real presses.")
-    variant: SensorVariant = Field(default_factory=SensorVariant,
-                                   description="Environmental perturbations making this a derived sensor.")
+        "keep",
+        description="The table's response at zero slope: 'keep' it inside the contact (it carries signal "
+        "for GelSight), or 'remove' it so flat gel equals the real frame (a fitting bias for "
+        "the Mini). Defaults are the better choice on taxim's real presses.",
+    )
+    variant: SensorVariant = Field(
+        default_factory=SensorVariant, description="Environmental perturbations making this a derived sensor."
+    )
 
 
 class GelSightMiniConfig(GelSightConfig):
     """Options of the ``gelsight_mini`` sensor family (real taxim calibration)."""
 
     name: Literal["gelsight_mini"] = "gelsight_mini"
-    gel_blur_mm: float = Field(0.5, ge=0.0, le=2.0,
-                               description="Gaussian smoothing of the indentation in mm (the Mini's thicker gel "
-                                           "spreads more); fitted on taxim's real ball presses.")
+    gel_blur_mm: float = Field(
+        0.5,
+        ge=0.0,
+        le=2.0,
+        description="Gaussian smoothing of the indentation in mm (the Mini's thicker gel "
+        "spreads more); fitted on taxim's real ball presses.",
+    )
     zero_slope_offset: Literal["keep", "remove"] = Field(
-        "remove", description="The table's response at zero slope (about +0.04/+0.05/+0.11 RGB for the Mini, a "
-                              "fitting bias): 'remove' keeps flat gel equal to the real frame.")
+        "remove",
+        description="The table's response at zero slope (about +0.04/+0.05/+0.11 RGB for the Mini, a "
+        "fitting bias): 'remove' keeps flat gel equal to the real frame.",
+    )
 
 
 class GelSightSensor(RenderedSensor):
@@ -138,8 +154,15 @@ class GelSightSensor(RenderedSensor):
     imaged area.
     """
 
-    def __init__(self, calibration: TaximCalibration, sensor_id: str, view: str, gel_blur_mm: float,
-                 variant: SensorVariant, zero_slope_offset: str = "keep") -> None:
+    def __init__(
+        self,
+        calibration: TaximCalibration,
+        sensor_id: str,
+        view: str,
+        gel_blur_mm: float,
+        variant: SensorVariant,
+        zero_slope_offset: str = "keep",
+    ) -> None:
         super().__init__(variant, gel_blur_mm)
         self.sensor_id = sensor_id
         self.taxim_sensor = calibration.sensor
@@ -167,7 +190,7 @@ class GelSightSensor(RenderedSensor):
 
     def _imaged_area(self, frames_N3HW: torch.Tensor, height: int, width: int) -> torch.Tensor:
         """Native-resolution frames cropped to the imaged area (``view``) and resized to height x width."""
-        cropped = frames_N3HW[:, :, :, self.crop_cols:self.crop_cols + self.crop_size[1]]
+        cropped = frames_N3HW[:, :, :, self.crop_cols : self.crop_cols + self.crop_size[1]]
         return F.interpolate(cropped, size=(height, width), mode="bilinear", antialias=True, align_corners=False)
 
     def background(self, height: int, width: int, device: torch.device) -> torch.Tensor:
@@ -214,15 +237,30 @@ class GelSightSensor(RenderedSensor):
 
 def _build(sensor: str):
     def build(config: GelSightConfig, context: BuildContext) -> GelSightSensor:
-        return GelSightSensor(load_taxim_calibration(sensor), sensor, config.view, config.gel_blur_mm, config.variant,
-                              config.zero_slope_offset)
+        return GelSightSensor(
+            load_taxim_calibration(sensor),
+            sensor,
+            config.view,
+            config.gel_blur_mm,
+            config.variant,
+            config.zero_slope_offset,
+        )
+
     build.__doc__ = f"Factory for the {sensor!r} sensor family."
     return build
 
 
 @hookimpl
 def vqtouch_register_sensor_families(register):
-    register("gelsight", _build("gelsight"), GelSightConfig,
-             description="GelSight, rendered from taxim's real measured calibration.")
-    register("gelsight_mini", _build("gelsight_mini"), GelSightMiniConfig,
-             description="GelSight Mini, rendered from taxim's real measured calibration.")
+    register(
+        "gelsight",
+        _build("gelsight"),
+        GelSightConfig,
+        description="GelSight, rendered from taxim's real measured calibration.",
+    )
+    register(
+        "gelsight_mini",
+        _build("gelsight_mini"),
+        GelSightMiniConfig,
+        description="GelSight Mini, rendered from taxim's real measured calibration.",
+    )

@@ -94,8 +94,15 @@ def _dots(g: torch.Generator, u: torch.Tensor, v: torch.Tensor, scale: float) ->
 
 
 # Seven-segment layout on a unit cell (x in [0, 1], y in [0, 2]): (x0, y0, x1, y1) per segment.
-_SEGMENTS = {"a": (0, 0, 1, 0), "b": (1, 0, 1, 1), "c": (1, 1, 1, 2), "d": (0, 2, 1, 2), "e": (0, 1, 0, 2),
-             "f": (0, 0, 0, 1), "g": (0, 1, 1, 1)}
+_SEGMENTS = {
+    "a": (0, 0, 1, 0),
+    "b": (1, 0, 1, 1),
+    "c": (1, 1, 1, 2),
+    "d": (0, 2, 1, 2),
+    "e": (0, 1, 0, 2),
+    "f": (0, 0, 0, 1),
+    "g": (0, 1, 1, 1),
+}
 _DIGIT_SEGMENTS = ["abcdef", "bc", "abged", "abgcd", "fgbc", "afgcd", "afgcde", "abc", "abcdefg", "abcdfg"]
 
 
@@ -124,8 +131,9 @@ def _digits(g: torch.Generator, u: torch.Tensor, v: torch.Tensor, scale: float, 
 
 def _rock(g: torch.Generator, u: torch.Tensor, v: torch.Tensor, scale: float) -> torch.Tensor:
     size = u.shape
-    relief = sum(_smooth_noise(g, size, cells) * amplitude
-                 for cells, amplitude in ((4, 0.5), (8, 0.25), (16, 0.12), (32, 0.06)))
+    relief = sum(
+        _smooth_noise(g, size, cells) * amplitude for cells, amplitude in ((4, 0.5), (8, 0.25), (16, 0.12), (32, 0.06))
+    )
     return 0.6 * relief * scale + _dome(u, v, 6.0 * scale)
 
 
@@ -135,8 +143,9 @@ def _cloth_folds(g: torch.Generator, u: torch.Tensor, v: torch.Tensor, scale: fl
         angle = _uniform(g, 0, math.pi)
         wavelength = _uniform(g, 3.0, 7.0) * scale
         phase = _uniform(g, 0, 2 * math.pi)
-        surface = surface + 0.4 * torch.sin(2 * math.pi * (u * math.cos(angle) + v * math.sin(angle)) / wavelength
-                                             + phase)
+        surface = surface + 0.4 * torch.sin(
+            2 * math.pi * (u * math.cos(angle) + v * math.sin(angle)) / wavelength + phase
+        )
     return surface + 0.03 * _smooth_noise(g, u.shape, 24) + _dome(u, v, 14.0)
 
 
@@ -188,9 +197,14 @@ class Contact:
         return f"{subject} in {material}, pressed {self.depth_mm:.2f} mm into the gel"
 
 
-def sample_contact(object_class: ObjectClass, class_index: int, generator: torch.Generator, size: ImageSize,
-                   field_of_view_mm: float | tuple[float, float],
-                   depth_range_mm: tuple[float, float] = (0.2, 1.0)) -> Contact:
+def sample_contact(
+    object_class: ObjectClass,
+    class_index: int,
+    generator: torch.Generator,
+    size: ImageSize,
+    field_of_view_mm: float | tuple[float, float],
+    depth_range_mm: tuple[float, float] = (0.2, 1.0),
+) -> Contact:
     """Draw one object of ``object_class`` at a random pose and press it into the gel.
 
     ``size``: the height map's S (S x S) or (height, width); ``field_of_view_mm``: the side of the

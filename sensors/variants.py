@@ -24,18 +24,27 @@ from vqtouch.core.plugin_config import StrictModel
 class SensorVariant(StrictModel):
     """Perturbations of one sensor relative to its family's calibration (defaults: none)."""
 
-    illumination_shift: float = Field(0.0, ge=-0.5, le=0.5,
-                                      description="Brightness offset added to every channel (LED intensity drift).")
+    illumination_shift: float = Field(
+        0.0, ge=-0.5, le=0.5, description="Brightness offset added to every channel (LED intensity drift)."
+    )
     colour_gain: tuple[float, float, float] = Field(
-        (1.0, 1.0, 1.0), description="Per-channel RGB gain (LED colour or camera white-balance change).")
-    background_drift: float = Field(0.0, ge=0.0, le=0.3,
-                                    description="Amplitude of a smooth colour field added to the no-contact "
-                                                "background (calibration drift).")
-    response_scale: float = Field(1.0, ge=0.0, le=3.0,
-                                  description="Scale of the contact response relative to the calibration table "
-                                              "(gel stiffness or table drift).")
-    wear_blur: float = Field(0.0, ge=0.0, le=0.1,
-                             description="Gaussian blur sigma as a fraction of the image side (worn, hazy gel).")
+        (1.0, 1.0, 1.0), description="Per-channel RGB gain (LED colour or camera white-balance change)."
+    )
+    background_drift: float = Field(
+        0.0,
+        ge=0.0,
+        le=0.3,
+        description="Amplitude of a smooth colour field added to the no-contact background (calibration drift).",
+    )
+    response_scale: float = Field(
+        1.0,
+        ge=0.0,
+        le=3.0,
+        description="Scale of the contact response relative to the calibration table (gel stiffness or table drift).",
+    )
+    wear_blur: float = Field(
+        0.0, ge=0.0, le=0.1, description="Gaussian blur sigma as a fraction of the image side (worn, hazy gel)."
+    )
     damage_spots: int = Field(0, ge=0, le=64, description="Number of damaged gel spots (darkened blotches).")
     damage_strength: float = Field(0.5, ge=0.0, le=1.0, description="How dark a damaged spot gets at its centre.")
     noise_std: float = Field(0.0, ge=0.0, le=0.3, description="Std of per-image Gaussian pixel noise (camera noise).")
@@ -77,7 +86,8 @@ def environment_variant(seed: int, strength: float = 1.0) -> SensorVariant:
         noise_std=strength * uniform(0.0, 0.015),
         shift=(strength * uniform(-0.02, 0.02), strength * uniform(-0.02, 0.02)),
         rotation_deg=strength * uniform(-2.0, 2.0),
-        seed=seed)
+        seed=seed,
+    )
 
 
 def _variant_generator(variant: SensorVariant, salt: int) -> torch.Generator:
@@ -126,8 +136,9 @@ def _damage_mask(variant: SensorVariant, height: int, width: int) -> torch.Tenso
     return mask.unsqueeze(0)
 
 
-def apply_variant(images_B3HW: torch.Tensor, variant: SensorVariant,
-                  generator: torch.Generator | None = None) -> torch.Tensor:
+def apply_variant(
+    images_B3HW: torch.Tensor, variant: SensorVariant, generator: torch.Generator | None = None
+) -> torch.Tensor:
     """Apply the variant's image-space effects: misalignment, wear, damage, colour, noise."""
     if variant.is_identity():
         return images_B3HW
@@ -135,8 +146,13 @@ def apply_variant(images_B3HW: torch.Tensor, variant: SensorVariant,
     images = images_B3HW
     if variant.shift != (0.0, 0.0) or variant.rotation_deg != 0:
         angle = math.radians(variant.rotation_deg)
-        theta = torch.tensor([[math.cos(angle), -math.sin(angle), 2 * variant.shift[0]],
-                              [math.sin(angle), math.cos(angle), 2 * variant.shift[1]]], dtype=images.dtype)
+        theta = torch.tensor(
+            [
+                [math.cos(angle), -math.sin(angle), 2 * variant.shift[0]],
+                [math.sin(angle), math.cos(angle), 2 * variant.shift[1]],
+            ],
+            dtype=images.dtype,
+        )
         grid = F.affine_grid(theta.expand(batch, 2, 3).to(images.device), list(images.shape), align_corners=False)
         images = F.grid_sample(images, grid, mode="bilinear", padding_mode="border", align_corners=False)
     images = gaussian_blur(images, variant.wear_blur * max(height, width))
@@ -145,7 +161,10 @@ def apply_variant(images_B3HW: torch.Tensor, variant: SensorVariant,
     gain = torch.tensor(variant.colour_gain, dtype=images.dtype, device=images.device).view(1, 3, 1, 1)
     images = images * gain + variant.illumination_shift
     if variant.noise_std:
-        noise = torch.randn(images.shape, generator=generator, dtype=images.dtype) if generator is not None \
+        noise = (
+            torch.randn(images.shape, generator=generator, dtype=images.dtype)
+            if generator is not None
             else torch.randn_like(images)
+        )
         images = images + variant.noise_std * noise.to(images.device)
     return images

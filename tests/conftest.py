@@ -16,8 +16,15 @@ os.environ["VQTOUCH_DISABLE_PLUGIN_AUTOLOAD"] = "1"
 os.environ["VQTOUCH_NO_PROGRESS"] = "1"
 # Reader header caches go to a throwaway folder, never the user's ~/.cache.
 os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="vqtouch-test-cache-")
-for variable in ("VQTOUCH_BLOCK_PLUGINS", "VQTOUCH_PLUGINS", "VQTOUCH_CLIP_CKPT", "VQTOUCH_WEIGHTS_DIR", "VQTOUCH_LPIPS_VGG",
-                 "VQTOUCH_LPIPS_BACKBONE", "VQTOUCH_FID_INCEPTION"):
+for variable in (
+    "VQTOUCH_BLOCK_PLUGINS",
+    "VQTOUCH_PLUGINS",
+    "VQTOUCH_CLIP_CKPT",
+    "VQTOUCH_WEIGHTS_DIR",
+    "VQTOUCH_LPIPS_VGG",
+    "VQTOUCH_LPIPS_BACKBONE",
+    "VQTOUCH_FID_INCEPTION",
+):
     os.environ.pop(variable, None)
 
 import torch  # noqa: E402
@@ -59,9 +66,25 @@ def example_plugin_site(tmp_path_factory) -> Path:
     """The example third-party plugin, pip-installed (with its entry points) into a folder."""
     target = tmp_path_factory.mktemp("example_site")
     build_dir = tmp_path_factory.mktemp("example_build")
-    subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
-                    "--no-index", "--target", str(target), str(TESTS / "example_plugin")],
-                   check=True, cwd=build_dir, capture_output=True, text=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--no-deps",
+            "--no-build-isolation",
+            "--no-index",
+            "--target",
+            str(target),
+            str(TESTS / "example_plugin"),
+        ],
+        check=True,
+        cwd=build_dir,
+        capture_output=True,
+        text=True,
+    )
     assert list(target.glob("vqtouch_example_plugin-*.dist-info"))
     return target
 
@@ -129,14 +152,21 @@ def run_cli():
     return _run_cli
 
 
-def _run_cli(*args: str, env_extra: dict[str, str] | None = None, cwd: Path | None = None,
-             python_path: Path | None = None) -> subprocess.CompletedProcess:
+def _run_cli(
+    *args: str, env_extra: dict[str, str] | None = None, cwd: Path | None = None, python_path: Path | None = None
+) -> subprocess.CompletedProcess:
     env = dict(os.environ)
     env.update(env_extra or {})
     if python_path is not None:
         env["PYTHONPATH"] = str(python_path) + os.pathsep + env.get("PYTHONPATH", "")
-    return subprocess.run([sys.executable, "-m", "vqtouch.core.cli", *args], capture_output=True, text=True,
-                          env=env, cwd=cwd or REPO, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "vqtouch.core.cli", *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=cwd or REPO,
+        timeout=300,
+    )
 
 
 PACKAGE_FOLDERS = ("core", "plugins", "conditioners", "sensors")

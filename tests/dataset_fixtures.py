@@ -33,8 +33,9 @@ def colour(number: int, modality: str) -> tuple[int, int, int]:
     return (number * STEP, green, blue)
 
 
-def write_image(path: Path, rgb: tuple[int, int, int], size: tuple[int, int] = TACTILE_SIZE,
-                mode: str = "RGB", alpha: int = 255) -> Path:
+def write_image(
+    path: Path, rgb: tuple[int, int, int], size: tuple[int, int] = TACTILE_SIZE, mode: str = "RGB", alpha: int = 255
+) -> Path:
     """Write a flat-colour image (format from the suffix) in ``mode``: RGB, L or RGBA."""
     from PIL import Image
 
@@ -113,12 +114,35 @@ def modality(image_3HW: torch.Tensor) -> str:
 # Touch and Go
 # --------------------------------------------------------------------------------------------
 TAG_RECORDINGS = ("20220410_031604", "20220517_192217")
-TAG_CLASSES = ["Concrete", "Plastic", "Glass", "Wood", "Metal", "Brick", "Tile", "Leather", "Synthetic Fabric",
-               "Natural Fabric", "Rubber", "Paper", "Tree", "Grass", "Soil", "Rock", "Gravel", "Sand", "Plants",
-               "Others (foam: soft)"]
+TAG_CLASSES = [
+    "Concrete",
+    "Plastic",
+    "Glass",
+    "Wood",
+    "Metal",
+    "Brick",
+    "Tile",
+    "Leather",
+    "Synthetic Fabric",
+    "Natural Fabric",
+    "Rubber",
+    "Paper",
+    "Tree",
+    "Grass",
+    "Soil",
+    "Rock",
+    "Gravel",
+    "Sand",
+    "Plants",
+    "Others (foam: soft)",
+]
 # (sample number, label) per list; -1 is "Inconclusive".
-TAG_LISTS = {"train": [(0, 8), (1, 3), (2, -1), (3, 13)], "test": [(4, 0), (5, 19)],
-             "train_rough": [(0, 1), (1, 0)], "test_rough": [(4, 0)]}
+TAG_LISTS = {
+    "train": [(0, 8), (1, 3), (2, -1), (3, 13)],
+    "test": [(4, 0), (5, 19)],
+    "train_rough": [(0, 1), (1, 0)],
+    "test_rough": [(4, 0)],
+}
 
 
 def tag_key(number: int) -> str:
@@ -164,10 +188,19 @@ def build_visgel(root: Path) -> Path:
     for number in VISGEL_NUMBERS:
         write_sample(root / visgel_frame(number, "tactile"), number, "tactile")
         write_sample(root / visgel_frame(number, "visual"), number, "visual")
-    for direction, (src, des) in {"vision2touch": ("visual", "tactile"),
-                                  "touch2vision": ("tactile", "visual")}.items():
-        lines = [" ".join([visgel_frame(0, src), visgel_frame(0, des), visgel_frame(n, src), visgel_frame(n, des),
-                           *[visgel_frame(n, src)] * 4]) for n in VISGEL_NUMBERS]
+    for direction, (src, des) in {"vision2touch": ("visual", "tactile"), "touch2vision": ("tactile", "visual")}.items():
+        lines = [
+            " ".join(
+                [
+                    visgel_frame(0, src),
+                    visgel_frame(0, des),
+                    visgel_frame(n, src),
+                    visgel_frame(n, des),
+                    *[visgel_frame(n, src)] * 4,
+                ]
+            )
+            for n in VISGEL_NUMBERS
+        ]
         write_text(root / "data_lst" / f"train_{direction}.txt", "\n".join(lines) + "\n")
         write_text(root / "data_lst" / f"eval_{direction}.txt", lines[0] + "\n")
     return root
@@ -177,8 +210,10 @@ def build_visgel(root: Path) -> Path:
 # TVL HCT and SSVTP
 # --------------------------------------------------------------------------------------------
 # Per run: sample numbers in train.csv and test.csv.
-HCT_RUNS = {"data1": {"train": list(range(0, 6)), "test": [11, 12]},
-            "data2": {"train": list(range(6, 11)), "test": [13]}}
+HCT_RUNS = {
+    "data1": {"train": list(range(0, 6)), "test": [11, 12]},
+    "data2": {"train": list(range(6, 11)), "test": [13]},
+}
 
 
 def hct_paths(number: int) -> tuple[str, str, str]:
@@ -207,8 +242,10 @@ def build_tvl_hct(root: Path) -> Path:
             rows += [",".join(hct_paths(n)) + f',"{hct_caption(n)}"' for n in splits[split]]
             write_text(root / run / f"{split}.csv", "\n".join(rows) + "\n")
         columns = list(zip(*(hct_paths(n) for n in numbers)))
-        write_text(root / run / "contact.json", json.dumps({"vision": list(columns[0]), "tactile": list(columns[1]),
-                                                            "background": list(columns[2])}))
+        write_text(
+            root / run / "contact.json",
+            json.dumps({"vision": list(columns[0]), "tactile": list(columns[1]), "background": list(columns[2])}),
+        )
     return root
 
 
@@ -286,9 +323,11 @@ def build_objectfolder_cross(root: Path) -> Path:
 FABRICS = {"Material_1": 2, "Material_10": 1, "Material_2": 1}  # fabric -> tactile images
 FABRIC_ATTRIBUTES = ["soft", "rough", "shinny"]
 # Three annotators' votes per fabric, in FABRIC_ATTRIBUTES order.
-FABRIC_VOTES = {"Material_1": [(1, 0, 1), (1, 0, 0), (0, 1, 0)],
-                "Material_10": [(0, 1, 1), (0, 1, 1), (0, 0, 1)],
-                "Material_2": [(1, 1, 0), (0, 0, 0), (0, 1, 0)]}
+FABRIC_VOTES = {
+    "Material_1": [(1, 0, 1), (1, 0, 0), (0, 1, 0)],
+    "Material_10": [(0, 1, 1), (0, 1, 1), (0, 0, 1)],
+    "Material_2": [(1, 1, 0), (0, 0, 0), (0, 1, 0)],
+}
 
 
 def build_fabricvst(root: Path, flat: bool = False) -> Path:
@@ -373,6 +412,7 @@ def _empty_list(relative: str, keep_header: bool = False) -> Callable[[Path], No
         path = root / relative
         header = path.read_text().splitlines()[0] + "\n" if keep_header else ""
         path.write_text(header)
+
     return empty
 
 
@@ -402,21 +442,68 @@ def _empty_objectfolder_cross(root: Path) -> None:
 
 
 READER_CASES = [
-    ReaderCase("touch_and_go", "vqtouch.plugins.data.readers.touch_and_go", build_touch_and_go, {"split": "train"}, 3,
-               lambda root: root / "dataset" / "train.txt", _empty_list("dataset/train.txt")),
-    ReaderCase("visgel", "vqtouch.plugins.data.readers.visgel", build_visgel, {}, 3,
-               lambda root: root / "data_lst" / "train_vision2touch.txt",
-               _empty_list("data_lst/train_vision2touch.txt")),
-    ReaderCase("tvl_hct", "vqtouch.plugins.data.readers.tvl", build_tvl_hct,
-               {"split": "test", "runs": ["data1", "data2"]}, 3,
-               lambda root: root / "data2" / "test.csv", _empty_hct),
-    ReaderCase("tvl_ssvtp", "vqtouch.plugins.data.readers.tvl", build_tvl_ssvtp, {"split": "test"}, 2,
-               lambda root: root / "test.csv", _empty_list("test.csv")),
-    ReaderCase("objectfolder_real", "vqtouch.plugins.data.readers.objectfolder", build_objectfolder_real, {}, 7,
-               None, _empty_objectfolder_real),
-    ReaderCase("objectfolder_cross", "vqtouch.plugins.data.readers.objectfolder", build_objectfolder_cross,
-               {"split": "train"}, 4, lambda root: root / "split.json", _empty_objectfolder_cross),
+    ReaderCase(
+        "touch_and_go",
+        "vqtouch.plugins.data.readers.touch_and_go",
+        build_touch_and_go,
+        {"split": "train"},
+        3,
+        lambda root: root / "dataset" / "train.txt",
+        _empty_list("dataset/train.txt"),
+    ),
+    ReaderCase(
+        "visgel",
+        "vqtouch.plugins.data.readers.visgel",
+        build_visgel,
+        {},
+        3,
+        lambda root: root / "data_lst" / "train_vision2touch.txt",
+        _empty_list("data_lst/train_vision2touch.txt"),
+    ),
+    ReaderCase(
+        "tvl_hct",
+        "vqtouch.plugins.data.readers.tvl",
+        build_tvl_hct,
+        {"split": "test", "runs": ["data1", "data2"]},
+        3,
+        lambda root: root / "data2" / "test.csv",
+        _empty_hct,
+    ),
+    ReaderCase(
+        "tvl_ssvtp",
+        "vqtouch.plugins.data.readers.tvl",
+        build_tvl_ssvtp,
+        {"split": "test"},
+        2,
+        lambda root: root / "test.csv",
+        _empty_list("test.csv"),
+    ),
+    ReaderCase(
+        "objectfolder_real",
+        "vqtouch.plugins.data.readers.objectfolder",
+        build_objectfolder_real,
+        {},
+        7,
+        None,
+        _empty_objectfolder_real,
+    ),
+    ReaderCase(
+        "objectfolder_cross",
+        "vqtouch.plugins.data.readers.objectfolder",
+        build_objectfolder_cross,
+        {"split": "train"},
+        4,
+        lambda root: root / "split.json",
+        _empty_objectfolder_cross,
+    ),
     ReaderCase("fabricvst", "vqtouch.plugins.data.readers.fabricvst", build_fabricvst, {}, 4, None, _empty_fabricvst),
-    ReaderCase("image_folder", "vqtouch.plugins.data.readers.image_folder",
-               lambda root: build_image_folder(root) / "classes", {}, 3, None, _empty_image_folder),
+    ReaderCase(
+        "image_folder",
+        "vqtouch.plugins.data.readers.image_folder",
+        lambda root: build_image_folder(root) / "classes",
+        {},
+        3,
+        None,
+        _empty_image_folder,
+    ),
 ]

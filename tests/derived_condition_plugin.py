@@ -39,8 +39,9 @@ class MaterialConditioner(Conditioner):
 
     def derive(self, batch: dict[str, Any]) -> torch.Tensor:
         labels = batch["label"].tolist()
-        return torch.tensor([MATERIALS.index(material_of(self.class_names[label])) for label in labels],
-                            device=batch["label"].device)
+        return torch.tensor(
+            [MATERIALS.index(material_of(self.class_names[label])) for label in labels], device=batch["label"].device
+        )
 
     def parse_condition(self, value: Any, **_: Any) -> int:
         if str(value) not in MATERIALS:

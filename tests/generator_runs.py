@@ -9,30 +9,63 @@ from pathlib import Path
 
 import torch
 
-TINY = ["tokenizer.autoencoder.channels=16", "tokenizer.autoencoder.norm_groups=8",
-        "tokenizer.autoencoder.channel_multipliers=[1,2]", "tokenizer.autoencoder.z_channels=16",
-        "tokenizer.autoencoder.embed_dim=8", "tokenizer.quantizer.codebook_size=32", "data.image_size=32",
-        "data.batch_size=4", "data.dataset.num_samples=24", "data.val_fraction=0.25", "tokenizer.train.steps=2",
-        "tokenizer.loss.perceptual=none", "tokenizer.discriminator=null", 'metrics=[{"name": "psnr"}]',
-        "generator.model.depth=1", "generator.model.width=32", "generator.model.num_steps=20",
-        "generator.train.steps=6", "generator.train.checkpoint_every=3", "generator.train.log_every=1",
-        "generator.num_samples=4", "generator.steps=4"]
+TINY = [
+    "tokenizer.autoencoder.channels=16",
+    "tokenizer.autoencoder.norm_groups=8",
+    "tokenizer.autoencoder.channel_multipliers=[1,2]",
+    "tokenizer.autoencoder.z_channels=16",
+    "tokenizer.autoencoder.embed_dim=8",
+    "tokenizer.quantizer.codebook_size=32",
+    "data.image_size=32",
+    "data.batch_size=4",
+    "data.dataset.num_samples=24",
+    "data.val_fraction=0.25",
+    "tokenizer.train.steps=2",
+    "tokenizer.loss.perceptual=none",
+    "tokenizer.discriminator=null",
+    'metrics=[{"name": "psnr"}]',
+    "generator.model.depth=1",
+    "generator.model.width=32",
+    "generator.model.num_steps=20",
+    "generator.train.steps=6",
+    "generator.train.checkpoint_every=3",
+    "generator.train.log_every=1",
+    "generator.num_samples=4",
+    "generator.steps=4",
+]
 
 
 #: A tiny VQGAN tokenizer run of the reconstruction scene (32 px, 2 steps, no GAN): the family
 #: tokenizer of the cross-sensor and few-shot experiments' tests.
-TINY_TOKENIZER = ["tokenizer.autoencoder.name=vqgan", "tokenizer.autoencoder.channels=16",
-                  "tokenizer.autoencoder.norm_groups=8", "tokenizer.autoencoder.channel_multipliers=[1,2]",
-                  "tokenizer.autoencoder.z_channels=16", "tokenizer.autoencoder.embed_dim=8",
-                  "tokenizer.quantizer.codebook_size=32", "data.image_size=32", "data.batch_size=4",
-                  "data.dataset.num_samples=16", "tokenizer.train.steps=2", "tokenizer.loss.perceptual=none",
-                  "tokenizer.discriminator=null"]
+TINY_TOKENIZER = [
+    "tokenizer.autoencoder.name=vqgan",
+    "tokenizer.autoencoder.channels=16",
+    "tokenizer.autoencoder.norm_groups=8",
+    "tokenizer.autoencoder.channel_multipliers=[1,2]",
+    "tokenizer.autoencoder.z_channels=16",
+    "tokenizer.autoencoder.embed_dim=8",
+    "tokenizer.quantizer.codebook_size=32",
+    "data.image_size=32",
+    "data.batch_size=4",
+    "data.dataset.num_samples=16",
+    "tokenizer.train.steps=2",
+    "tokenizer.loss.perceptual=none",
+    "tokenizer.discriminator=null",
+]
 
 
 def tiny_tokenizer_args(out: Path) -> list[str]:
     """``vqtouch train tokenizer`` arguments of the :data:`TINY_TOKENIZER` run in ``out``."""
-    return ["--no-progress", "train", "tokenizer", "--scene", "reconstruction", "--out", str(out),
-            *[item for override in TINY_TOKENIZER for item in ("--set", override)]]
+    return [
+        "--no-progress",
+        "train",
+        "tokenizer",
+        "--scene",
+        "reconstruction",
+        "--out",
+        str(out),
+        *[item for override in TINY_TOKENIZER for item in ("--set", override)],
+    ]
 
 
 def train_args(out: Path, *extra: str, scene: str = "label-to-touch", flags: tuple[str, ...] = ()) -> list[str]:
@@ -56,9 +89,18 @@ def tiny_tokenizer_folder(folder: Path) -> Path:
         path.mkdir(parents=True, exist_ok=True)
         with torch.random.fork_rng():  # the same weights on every run: tests that use them are repeatable
             torch.manual_seed(0)
-            autoencoder = host.build("autoencoder", {"name": "vqgan", "channels": 8, "channel_multipliers": [1, 2],
-                                                     "z_channels": 8, "embed_dim": 8, "norm_groups": 4},
-                                     DEFAULT_CONTEXT)
+            autoencoder = host.build(
+                "autoencoder",
+                {
+                    "name": "vqgan",
+                    "channels": 8,
+                    "channel_multipliers": [1, 2],
+                    "z_channels": 8,
+                    "embed_dim": 8,
+                    "norm_groups": 4,
+                },
+                DEFAULT_CONTEXT,
+            )
             context = DEFAULT_CONTEXT.model_copy(update=autoencoder.context_facts())
             quantizer = host.build("quantizer", {"name": "vq", "codebook_size": 16}, context)
         save(autoencoder, path / "autoencoder.safetensors", host=host)

@@ -49,8 +49,10 @@ def fabricated_inception(folder: Path) -> Path:
     if not path.is_file():
         path.parent.mkdir(parents=True, exist_ok=True)
         # The network loads its weights in __init__ (downloading them by default): build it without loading.
-        with mock.patch("torch_fidelity.feature_extractor_inceptionv3.load_state_dict_from_url", lambda *a, **k: {}), \
-                mock.patch.object(nn.Module, "load_state_dict", lambda self, *a, **k: None):
+        with (
+            mock.patch("torch_fidelity.feature_extractor_inceptionv3.load_state_dict_from_url", lambda *a, **k: {}),
+            mock.patch.object(nn.Module, "load_state_dict", lambda self, *a, **k: None),
+        ):
             network = NoTrainInceptionV3(name="inception-v3-compat", features_list=["2048"])
         _variance_preserving(network, torch.Generator().manual_seed(0))
         torch.save(network.state_dict(), path)

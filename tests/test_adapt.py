@@ -28,20 +28,62 @@ def tokenizer_folder(tmp_path_factory):
 @pytest.fixture(scope="module")
 def families_folder(tokenizer_folder, tmp_path_factory):
     out = tmp_path_factory.mktemp("families")
-    assert main(["cluster", "--run", str(tokenizer_folder), "--image-size", "32", "--images", "8", "--out", str(out),
-                 "--families", "2", "--sensors", "gelsight", _variant("gelsight", 1, colour_gain=[1.05, 0.95, 0.95]),
-                 "digit", _variant("digit", 2, noise_std=0.02)]) == 0
+    assert (
+        main(
+            [
+                "cluster",
+                "--run",
+                str(tokenizer_folder),
+                "--image-size",
+                "32",
+                "--images",
+                "8",
+                "--out",
+                str(out),
+                "--families",
+                "2",
+                "--sensors",
+                "gelsight",
+                _variant("gelsight", 1, colour_gain=[1.05, 0.95, 0.95]),
+                "digit",
+                _variant("digit", 2, noise_std=0.02),
+            ]
+        )
+        == 0
+    )
     return out
 
 
 def _adapt(tokenizer_folder, families_folder, out, images, *extra):
-    return main(["adapt", "--run", str(tokenizer_folder), "--families", str(families_folder), "--images", images,
-                 "--out", str(out), "--shots", "4", "--ratio", "2", "--steps", "2", "--eval-images", "4",
-                 "--batch-size", "4", *extra])
+    return main(
+        [
+            "adapt",
+            "--run",
+            str(tokenizer_folder),
+            "--families",
+            str(families_folder),
+            "--images",
+            images,
+            "--out",
+            str(out),
+            "--shots",
+            "4",
+            "--ratio",
+            "2",
+            "--steps",
+            "2",
+            "--eval-images",
+            "4",
+            "--batch-size",
+            "4",
+            *extra,
+        ]
+    )
 
 
-def test_adapt_writes_its_own_tokenizer_whose_header_names_the_family_and_the_shots(tokenizer_folder, families_folder,
-                                                                                   tmp_path, capsys):
+def test_adapt_writes_its_own_tokenizer_whose_header_names_the_family_and_the_shots(
+    tokenizer_folder, families_folder, tmp_path, capsys
+):
     from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all
 
     target = _variant("gelsight", 7, illumination_shift=0.04, noise_std=0.01)
@@ -77,21 +119,31 @@ def test_adapt_writes_its_own_tokenizer_whose_header_names_the_family_and_the_sh
 
 
 def test_the_mixed_set_draws_evenly_from_the_family_but_the_unseen_sensor():
-    sources = ['{"name": "gelsight"}', _variant("gelsight", 1, noise_std=0.02), '{"name": "digit"}',
-               _variant("gelsight", 2, colour_gain=[1.1, 1, 1])]
-    summary = {"sensors": [{"name": f"s{i}", "source": source, "images": 4} for i, source in enumerate(sources)],
-               "sensor_family": {"s0": 0, "s1": 0, "s2": 1, "s3": 0}}
+    sources = [
+        '{"name": "gelsight"}',
+        _variant("gelsight", 1, noise_std=0.02),
+        '{"name": "digit"}',
+        _variant("gelsight", 2, colour_gain=[1.1, 1, 1]),
+    ]
+    summary = {
+        "sensors": [{"name": f"s{i}", "source": source, "images": 4} for i, source in enumerate(sources)],
+        "sensor_family": {"s0": 0, "s1": 0, "s2": 1, "s3": 0},
+    }
     families = SensorFamilies(summary, clusterer=None, prototypes_SF=torch.zeros(4, 2))
     images, members = family_images(families, 0, HOST, count=7, image_size=16, seed=3, exclude=sources[3])
     assert members == ["s0", "s1"] and images.shape == (7, 3, 16, 16)
-    torch.testing.assert_close(images[:4], sensor_images(sources[0], HOST, count=4, image_size=16, seed=3 + 1009).images)
-    torch.testing.assert_close(images[4:], sensor_images(sources[1], HOST, count=3, image_size=16, seed=3 + 2018).images)
+    torch.testing.assert_close(
+        images[:4], sensor_images(sources[0], HOST, count=4, image_size=16, seed=3 + 1009).images
+    )
+    torch.testing.assert_close(
+        images[4:], sensor_images(sources[1], HOST, count=3, image_size=16, seed=3 + 2018).images
+    )
 
 
 def test_contact_fraction_is_the_share_of_pixels_off_the_background():
     images = torch.full((4, 3, 10, 10), 0.5)
     for index in range(4):  # each image presses a different 2 x (index + 1) patch: the median stays background
-        images[index, :, 2 * index:2 * index + 2, :index + 1] += 0.2
+        images[index, :, 2 * index : 2 * index + 2, : index + 1] += 0.2
     torch.testing.assert_close(contact_fraction(images), torch.tensor([0.02, 0.04, 0.06, 0.08], dtype=torch.float64))
     images[3, :, 6:8, :4] = 0.5 + 0.03  # below the contact threshold: no longer a contact
     assert float(contact_fraction(images)[3]) == 0.0
@@ -116,8 +168,9 @@ def test_adapt_bad_inputs_get_one_line_errors(tokenizer_folder, families_folder,
     (corrupt / "frame_03.png").write_bytes(b"not a png")
     flat = _frames(tmp_path / "flat", no_contact)
     digit = HOST.build("sensor_family", "digit")  # with DIGIT's published camera noise (7/255)
-    noisy_flat = _frames(tmp_path / "noisy_flat",
-                         digit.render(torch.zeros(6, 32, 32), generator=torch.Generator().manual_seed(0)))
+    noisy_flat = _frames(
+        tmp_path / "noisy_flat", digit.render(torch.zeros(6, 32, 32), generator=torch.Generator().manual_seed(0))
+    )
     cases = [
         (one, [], "1 image(s); adaptation needs the shots plus at least one held-out image"),
         (three, [], "--shots 4: the folder " + str(three) + " holds 3 images; use at most 2 shots"),
@@ -135,8 +188,21 @@ def test_adapt_bad_inputs_get_one_line_errors(tokenizer_folder, families_folder,
         assert err.startswith("vqtouch: error: ") and message in err and err.count("\n") == 1, err
         assert not (tmp_path / "out" / "autoencoder.safetensors").exists()
     # A forced family adapts a sensor the threshold refuses, and says so.
-    assert _adapt(tokenizer_folder, families_folder, tmp_path / "out", str(tmp_path / "ok"), "--threshold", "0",
-                  "--family", "1", "--shots", "3") == 0
+    assert (
+        _adapt(
+            tokenizer_folder,
+            families_folder,
+            tmp_path / "out",
+            str(tmp_path / "ok"),
+            "--threshold",
+            "0",
+            "--family",
+            "1",
+            "--shots",
+            "3",
+        )
+        == 0
+    )
     summary = json.loads((tmp_path / "out" / "adapt.json").read_text())
     assert summary["forced_family"] and summary["assignment"]["refused"] and summary["family"] == 1
 

@@ -13,8 +13,15 @@ from vqtouch.core.cli import main
 HOST = load_plugins(autoload=False)
 #: Tiny stages; an untrained tokenizer's families are tight, so the thresholds are generous here
 #: (refusals are tested in test_adapt.py).
-TINY_ADAPTATION = ["cluster.images_per_sensor=4", "cluster.variants_per_family=1", "cluster.threshold=100",
-                   "adapt.steps=2", "adapt.shots=4", "adapt.eval_images=4", "adapt.threshold=100"]
+TINY_ADAPTATION = [
+    "cluster.images_per_sensor=4",
+    "cluster.variants_per_family=1",
+    "cluster.threshold=100",
+    "adapt.steps=2",
+    "adapt.shots=4",
+    "adapt.eval_images=4",
+    "adapt.threshold=100",
+]
 
 
 def _demo(out, scene, *extra):

@@ -35,10 +35,22 @@ MODULE_ENTRIES = [(kind, name) for kind in MODULE_KINDS for name in load_plugins
 
 
 def test_every_module_kind_is_round_tripped():
-    assert set(MODULE_KINDS) == {"autoencoder", "quantizer", "discriminator", "conditioner", "sensor_family",
-                                 "generator", "clusterer"}
-    assert {kind for kind, _ in MODULE_ENTRIES} >= {"autoencoder", "quantizer", "discriminator", "conditioner",
-                                                    "sensor_family"}
+    assert set(MODULE_KINDS) == {
+        "autoencoder",
+        "quantizer",
+        "discriminator",
+        "conditioner",
+        "sensor_family",
+        "generator",
+        "clusterer",
+    }
+    assert {kind for kind, _ in MODULE_ENTRIES} >= {
+        "autoencoder",
+        "quantizer",
+        "discriminator",
+        "conditioner",
+        "sensor_family",
+    }
 
 
 @pytest.mark.parametrize("kind, name", MODULE_ENTRIES)
@@ -52,16 +64,13 @@ def test_every_module_component_round_trips(host, tmp_path, tmp_path_factory, ki
 
 
 # A checker that cannot fail proves nothing: break the round trip and watch it fail.
-STATEFUL = [("autoencoder", "vqgan"), ("quantizer", "ema_vq"), ("discriminator", "patchgan"),
-            ("conditioner", "label")]
+STATEFUL = [("autoencoder", "vqgan"), ("quantizer", "ema_vq"), ("discriminator", "patchgan"), ("conditioner", "label")]
 
 
 @pytest.mark.parametrize("kind, name", STATEFUL)
-def test_round_trip_check_fails_when_load_skips_the_weights(host, tmp_path, tmp_path_factory, monkeypatch, kind,
-                                                            name):
+def test_round_trip_check_fails_when_load_skips_the_weights(host, tmp_path, tmp_path_factory, monkeypatch, kind, name):
     monkeypatch.setattr(checkpoint_module, "load_state_strict", lambda module, tensors, path: None)
-    component = build_for_check(host, kind, name, CASES.builtin_case(kind, name, tmp_path_factory)["options"],
-                                CONTEXT)
+    component = build_for_check(host, kind, name, CASES.builtin_case(kind, name, tmp_path_factory)["options"], CONTEXT)
     with pytest.raises(AssertionError, match=f"{kind} '{name}': tensor .* changed in the checkpoint round trip"):
         check_round_trip(host, component, tmp_path)
 
@@ -76,8 +85,7 @@ def test_round_trip_check_fails_when_save_drops_a_tensor(host, tmp_path, tmp_pat
         save_file(tensors, filename, metadata=metadata)
 
     monkeypatch.setattr(checkpoint_module, "save_model", save_all_but_one)
-    component = build_for_check(host, kind, name, CASES.builtin_case(kind, name, tmp_path_factory)["options"],
-                                CONTEXT)
+    component = build_for_check(host, kind, name, CASES.builtin_case(kind, name, tmp_path_factory)["options"], CONTEXT)
     with pytest.raises(AssertionError, match=r"round trip failed: CheckpointError: .*missing 1 tensor"):
         check_round_trip(host, component, tmp_path)
 
@@ -163,8 +171,10 @@ def test_disk_full_gives_one_line_error_and_keeps_the_previous_file(host, tmp_pa
     monkeypatch.setattr(checkpoint_module, "save_model", no_space)
     with pytest.raises(CheckpointError) as info:
         save(component, path, step=2, host=host)
-    assert str(info.value) == (f"{path}: could not write the checkpoint file: No space left on device; free disk "
-                               "space and run again (nothing was replaced)")
+    assert str(info.value) == (
+        f"{path}: could not write the checkpoint file: No space left on device; free disk "
+        "space and run again (nothing was replaced)"
+    )
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["ckpt.safetensors"]
 
@@ -173,14 +183,17 @@ def test_a_safetensors_write_error_is_one_line_too(host, tmp_path, monkeypatch):
     from safetensors import SafetensorError
 
     def read_only(module, filename, metadata=None):
-        raise SafetensorError(f"Error while serializing: I/O error: Read-only file system (os error 30) at path "
-                              f"\"{tmp_path}/.tmpAbCdEf\"")
+        raise SafetensorError(
+            f'Error while serializing: I/O error: Read-only file system (os error 30) at path "{tmp_path}/.tmpAbCdEf"'
+        )
 
     monkeypatch.setattr(checkpoint_module, "save_model", read_only)
     with pytest.raises(CheckpointError) as info:
         save(host.build("conditioner", "label", CONTEXT), tmp_path / "c.safetensors", host=host)
-    assert str(info.value) == (f"{tmp_path / 'c.safetensors'}: could not write the checkpoint file: Read-only file "
-                               f"system; make {tmp_path} writable or write elsewhere (nothing was replaced)")
+    assert str(info.value) == (
+        f"{tmp_path / 'c.safetensors'}: could not write the checkpoint file: Read-only file "
+        f"system; make {tmp_path} writable or write elsewhere (nothing was replaced)"
+    )
 
 
 def test_written_files_follow_the_umask(host, tmp_path):
@@ -203,8 +216,9 @@ def test_truncated_file_gives_one_line_error(host, tmp_path):
     assert str(path) in str(info.value) and "\n" not in str(info.value)
 
 
-@pytest.mark.parametrize("content", [b"", b"not a checkpoint at all", struct.pack("<Q", 10**12) + b"{}",
-                                     struct.pack("<Q", 2) + b"{]"])
+@pytest.mark.parametrize(
+    "content", [b"", b"not a checkpoint at all", struct.pack("<Q", 10**12) + b"{}", struct.pack("<Q", 2) + b"{]"]
+)
 def test_not_safetensors_gives_one_line_error(host, tmp_path, content):
     path = tmp_path / "bad.safetensors"
     path.write_bytes(content)
@@ -236,8 +250,10 @@ def test_missing_plugin_is_named_with_its_distribution(tmp_path):
     without = load_plugins(autoload=False, block=["tactile"])
     with pytest.raises(CheckpointError) as info:
         load(path, host=without)
-    assert str(info.value) == (f"{path}: made by conditioner 'tactile' from vqtouch {__version__}, which is not "
-                               "installed here; pip install vqtouch")
+    assert str(info.value) == (
+        f"{path}: made by conditioner 'tactile' from vqtouch {__version__}, which is not "
+        "installed here; pip install vqtouch"
+    )
 
 
 def test_missing_third_party_plugin_names_the_distribution_from_the_header(tmp_path, third_party_conditioner):
@@ -251,8 +267,9 @@ def test_missing_third_party_plugin_names_the_distribution_from_the_header(tmp_p
     save_model(component, str(tmp_path / "x.safetensors"), metadata=metadata)
     with pytest.raises(CheckpointError) as info:
         load(tmp_path / "x.safetensors", host=load_plugins(autoload=False))
-    assert str(info.value).endswith("made by conditioner 'x' from pkg 1.0, which is not installed here; "
-                                    "pip install pkg")
+    assert str(info.value).endswith(
+        "made by conditioner 'x' from pkg 1.0, which is not installed here; pip install pkg"
+    )
     assert isinstance(load(tmp_path / "x.safetensors", host=with_plugin), third_party_conditioner.Extra)
 
 
@@ -263,8 +280,11 @@ def test_shape_mismatch_names_tensor(host, tmp_path):
     metadata = read_metadata(save(component, tmp_path / "ok.safetensors", host=host))
     metadata["vqtouch.context"] = json.dumps({**json.loads(metadata["vqtouch.context"]), "num_classes": 6})
     save_model(component, str(tmp_path / "bad.safetensors"), metadata=metadata)
-    with pytest.raises(CheckpointError, match=r"tensor 'embedding.weight' has shape \(5, 16\) in the file but "
-                                              r"\(6, 16\) in the model"):
+    with pytest.raises(
+        CheckpointError,
+        match=r"tensor 'embedding.weight' has shape \(5, 16\) in the file but "
+        r"\(6, 16\) in the model",
+    ):
         load(tmp_path / "bad.safetensors", host=host)
 
 

@@ -26,12 +26,28 @@ def test_plugins_lists_kind_package_version(capsys):
 def test_plugins_json_and_kind_filter(capsys):
     assert main(["plugins", "--json", "--kind", "metric"]) == 0
     rows = json.loads(capsys.readouterr().out)
-    assert {row["name"] for row in rows} == {"fd_effnetlite0", "psnr", "ssim", "ms_ssim", "lpips", "fid", "kid",
-                                             "kid_effnetlite0", "clip_score"}
+    assert {row["name"] for row in rows} == {
+        "fd_effnetlite0",
+        "psnr",
+        "ssim",
+        "ms_ssim",
+        "lpips",
+        "fid",
+        "kid",
+        "kid_effnetlite0",
+        "clip_score",
+    }
     assert all(row["package"] == "vqtouch" and row["version"] for row in rows)
     assert main(["plugins", "--json", "--kind", "stage"]) == 0
     assert {row["name"] for row in json.loads(capsys.readouterr().out)} == {
-        "render", "tokenizer", "reconstruct", "cluster", "adapt", "generator", "pretrained"}
+        "render",
+        "tokenizer",
+        "reconstruct",
+        "cluster",
+        "adapt",
+        "generator",
+        "pretrained",
+    }
 
 
 def test_config_show_prints_resolved_json_and_notes_empty_slots(capsys):
@@ -41,8 +57,10 @@ def test_config_show_prints_resolved_json_and_notes_empty_slots(capsys):
     assert config["seed"] == 5 and config["generator"]["conditioners"][0]["name"] == "label"
     assert captured.err == ""  # every slot the scene's stages need is filled
     assert main(["config", "show", "label-to-touch", "--set", "generator.model=null"]) == 0
-    assert capsys.readouterr().err == ("note: stage(s) generator cannot run yet: needs generator.model, which the "
-                                       "config leaves empty; choose with --set generator.model.name=<vq_diffusion>\n")
+    assert capsys.readouterr().err == (
+        "note: stage(s) generator cannot run yet: needs generator.model, which the "
+        "config leaves empty; choose with --set generator.model.name=<vq_diffusion>\n"
+    )
 
 
 def test_config_show_output_feeds_back_as_config_file(capsys, tmp_path):
@@ -68,7 +86,7 @@ def test_config_stages_lists_each_stage_with_its_section_and_slots(capsys, host)
     for head, detail in zip(lines[::2], lines[1::2]):
         name = head.split()[0]
         listed[name] = detail.strip()
-        assert head[len(name):].strip() == host.stage(name).description
+        assert head[len(name) :].strip() == host.stage(name).description
     assert sorted(listed) == sorted(host.stages)
     for name, detail in listed.items():
         stage = host.stage(name)
@@ -78,11 +96,14 @@ def test_config_stages_lists_each_stage_with_its_section_and_slots(capsys, host)
         optional = [path for path in stage.uses if path not in stage.needs]
         assert fields["uses"] == (", ".join(optional) or "-")
         assert detail.endswith(f"from {stage.source.describe()}")
-    assert listed["tokenizer"].startswith("section: [tokenizer]; needs: data.dataset, tokenizer.autoencoder, "
-                                          "tokenizer.quantizer; uses: tokenizer.discriminator, metrics, sensor; "
-                                          "from plugin 'tokenizer-stages'")
-    assert listed["reconstruct"].startswith("section: -; needs: sensor, tokenizer.autoencoder, tokenizer.quantizer; "
-                                            "uses: metrics;")
+    assert listed["tokenizer"].startswith(
+        "section: [tokenizer]; needs: data.dataset, tokenizer.autoencoder, "
+        "tokenizer.quantizer; uses: tokenizer.discriminator, metrics, sensor; "
+        "from plugin 'tokenizer-stages'"
+    )
+    assert listed["reconstruct"].startswith(
+        "section: -; needs: sensor, tokenizer.autoencoder, tokenizer.quantizer; uses: metrics;"
+    )
     assert "needs: data.dataset; uses: sensor;" in listed["render"]
     assert "generator.model, generator.conditioners;" in listed["generator"]
     assert "cluster.clusterer" in listed["cluster"] and "target_sensor" in listed["adapt"]
@@ -95,22 +116,33 @@ def test_config_show_takes_the_scene_as_argument_or_option(capsys):
     assert capsys.readouterr().out == positional and '"scene": "few-shot"' in positional
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["config", "show", "lable-to-touch"], "unknown scene 'lable-to-touch'; available: "),
-    (["config", "show", "label-to-touch", "--set", "generator.conditioners.0.name=clipp"], "did you mean 'clip'?"),
-    (["config", "show", "label-to-touch", "--set", "tokenizer.train.steps=-1"],
-     "tokenizer.train.steps: Input should be greater than or equal to 0 (got -1)"),
-    (["config", "show", "label-to-touch", "--set", "train.steps=3"],
-     "config key 'train' (vqtouch 0.1.0) was split into tokenizer.train and generator.train"),
-    (["config", "show", "label-to-touch", "--set", 'stages=["evaluate"]'],
-     "stage 'evaluate' (vqtouch 0.1.0) was removed in 0.2.0"),
-    (["config", "show", "label-to-touch", "--set", 'stages=["evaluat"]'],
-     f"stages: unknown stage 'evaluat'; available: {STAGES}"),
-    (["config", "show", "label-to-touch", "--set", "oops"], "bad override 'oops'"),
-    (["config", "validate", "/nonexistent.toml"], "config file '/nonexistent.toml' does not exist"),
-    (["config", "show"], "name a scene, e.g. `vqtouch config show reconstruction`"),
-    (["config", "show", "few-shot", "--scene", "zero-shot"], "two different scenes given: 'few-shot' and --scene"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["config", "show", "lable-to-touch"], "unknown scene 'lable-to-touch'; available: "),
+        (["config", "show", "label-to-touch", "--set", "generator.conditioners.0.name=clipp"], "did you mean 'clip'?"),
+        (
+            ["config", "show", "label-to-touch", "--set", "tokenizer.train.steps=-1"],
+            "tokenizer.train.steps: Input should be greater than or equal to 0 (got -1)",
+        ),
+        (
+            ["config", "show", "label-to-touch", "--set", "train.steps=3"],
+            "config key 'train' (vqtouch 0.1.0) was split into tokenizer.train and generator.train",
+        ),
+        (
+            ["config", "show", "label-to-touch", "--set", 'stages=["evaluate"]'],
+            "stage 'evaluate' (vqtouch 0.1.0) was removed in 0.2.0",
+        ),
+        (
+            ["config", "show", "label-to-touch", "--set", 'stages=["evaluat"]'],
+            f"stages: unknown stage 'evaluat'; available: {STAGES}",
+        ),
+        (["config", "show", "label-to-touch", "--set", "oops"], "bad override 'oops'"),
+        (["config", "validate", "/nonexistent.toml"], "config file '/nonexistent.toml' does not exist"),
+        (["config", "show"], "name a scene, e.g. `vqtouch config show reconstruction`"),
+        (["config", "show", "few-shot", "--scene", "zero-shot"], "two different scenes given: 'few-shot' and --scene"),
+    ],
+)
 def test_user_errors_are_one_line_with_exit_2(capsys, argv, message):
     assert main(argv) == 2
     err = capsys.readouterr().err
@@ -131,8 +163,13 @@ def test_broken_checkpoint_via_demo_free_api_is_one_line(tmp_path, host):
 
 
 def test_help_everywhere(capsys):
-    for argv in (["--help"], ["plugins", "--help"], ["config", "show", "--help"], ["config", "stages", "--help"],
-                 ["demo", "--help"]):
+    for argv in (
+        ["--help"],
+        ["plugins", "--help"],
+        ["config", "show", "--help"],
+        ["config", "stages", "--help"],
+        ["demo", "--help"],
+    ):
         with pytest.raises(SystemExit) as info:
             main(argv)
         assert info.value.code == 0
@@ -151,30 +188,77 @@ def test_handlers_get_the_parsers_host(host):
         build_parser()
 
 
-TINY_DEMO = ["--set", "tokenizer.train.steps=2", "--set", "data.dataset.num_samples=12", "--set", "data.image_size=32",
-             "--set", "tokenizer.loss.perceptual=none", "--set", "tokenizer.autoencoder.channels=16",
-             "--set", "tokenizer.autoencoder.norm_groups=8", "--set", "tokenizer.autoencoder.channel_multipliers=[1,2]",
-             "--set", "tokenizer.quantizer.codebook_size=32"]
+TINY_DEMO = [
+    "--set",
+    "tokenizer.train.steps=2",
+    "--set",
+    "data.dataset.num_samples=12",
+    "--set",
+    "data.image_size=32",
+    "--set",
+    "tokenizer.loss.perceptual=none",
+    "--set",
+    "tokenizer.autoencoder.channels=16",
+    "--set",
+    "tokenizer.autoencoder.norm_groups=8",
+    "--set",
+    "tokenizer.autoencoder.channel_multipliers=[1,2]",
+    "--set",
+    "tokenizer.quantizer.codebook_size=32",
+]
 
 
 def test_demo_writes_run_directory(tmp_path, capsys):
     out = tmp_path / "run"
-    assert main(["--no-progress", "demo", "--scene", "label-to-touch", "--out", str(out), *TINY_DEMO,
-                 "--set", "generator.model.depth=1", "--set", "generator.model.width=16", "--set",
-                 "generator.model.heads=2", "--set", "generator.train.steps=2", "--set", "generator.num_samples=2",
-                 "--set", "generator.steps=2"]) == 0
+    assert (
+        main(
+            [
+                "--no-progress",
+                "demo",
+                "--scene",
+                "label-to-touch",
+                "--out",
+                str(out),
+                *TINY_DEMO,
+                "--set",
+                "generator.model.depth=1",
+                "--set",
+                "generator.model.width=16",
+                "--set",
+                "generator.model.heads=2",
+                "--set",
+                "generator.train.steps=2",
+                "--set",
+                "generator.num_samples=2",
+                "--set",
+                "generator.steps=2",
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "scene label-to-touch: 2 of 2 stages ran, 0 cannot run, 0 failed (reasons in the report)" in printed
-    for name in ("config.json", "env.json", "report.md", "report.json", "samples.png", "generation.json",
-                 "checkpoints/generator_conditioners[0].safetensors"):
+    for name in (
+        "config.json",
+        "env.json",
+        "report.md",
+        "report.json",
+        "samples.png",
+        "generation.json",
+        "checkpoints/generator_conditioners[0].safetensors",
+    ):
         assert (out / name).is_file(), name
     assert not (out / "checkpoints" / "latest").exists()  # the trainer no longer writes a `latest` file
     env = json.loads((out / "env.json").read_text())
     assert env["seed"] == 0 and env["versions"]["torch"] and "label" in env["plugins"]
     assert env["argv"][:2] == ["vqtouch", "--no-progress"]
     assert env["components"]["generator.conditioners.0"] == {
-        "kind": "conditioner", "name": "label", "plugin": "label", "package": "vqtouch",
-        "version": env["plugins"]["label"]["version"]}
+        "kind": "conditioner",
+        "name": "label",
+        "plugin": "label",
+        "package": "vqtouch",
+        "version": env["plugins"]["label"]["version"],
+    }
     assert env["components"]["tokenizer.autoencoder"]["kind"] == "autoencoder"
     assert env["components"]["sensor"]["name"] == "gelsight"
     report = json.loads((out / "report.json").read_text())
@@ -183,7 +267,9 @@ def test_demo_writes_run_directory(tmp_path, capsys):
     assert by_slot["generator.model"]["checkpoint"].startswith("ok")
     assert by_slot["metrics[0]"]["sanity"]["noise_sigma=0.0"] == 100.0
     stages = {s["stage"]: s for s in report["stages"]}
-    assert stages["generator"]["status"].startswith("ran (") and stages["generator"]["result"]["samples"] == 1  # 1 held out
+    assert (
+        stages["generator"]["status"].startswith("ran (") and stages["generator"]["result"]["samples"] == 1
+    )  # 1 held out
     assert stages["tokenizer"]["status"].startswith("ran (") and stages["tokenizer"]["result"]["steps"] == 2
     assert "evaluate" not in stages
 
@@ -244,19 +330,29 @@ def test_demo_caps_come_from_the_registrations(host, make_plugin):
     def vqtouch_register_metrics(register):
         register("probe_metric", lambda config, context: None, ProbeMetricConfig, demo={"window": 5})
 
-    extended = load_plugins(autoload=False, extra=[make_plugin("probe_plugin", vqtouch_register_stages,
-                                                               vqtouch_register_metrics)])
+    extended = load_plugins(
+        autoload=False, extra=[make_plugin("probe_plugin", vqtouch_register_stages, vqtouch_register_metrics)]
+    )
     probe = resolve_config(None, overrides=['stages=["probe"]', 'metrics=["psnr", "probe_metric"]'], host=extended)
     scaled = scale_for_demo(probe, extended)
     assert (probe.probe.width, probe.metrics[1].window) == (100, 99)
     assert (scaled.probe.width, scaled.metrics[1].window) == (3, 5)
 
 
-DEMO_SIZE_PROBE = ['stages=["tokenizer"]', "tokenizer.quantizer=null", "tokenizer.discriminator=null",
-                   "tokenizer.train.steps=500", "tokenizer.train.checkpoint_every=500", "tokenizer.train.log_every=50",
-                   "data.image_size=16", "tokenizer.autoencoder.channels=48", "tokenizer.autoencoder.norm_groups=8",
-                   "tokenizer.autoencoder.channel_multipliers=[1,2]", "tokenizer.autoencoder.z_channels=8",
-                   "tokenizer.autoencoder.embed_dim=4"]
+DEMO_SIZE_PROBE = [
+    'stages=["tokenizer"]',
+    "tokenizer.quantizer=null",
+    "tokenizer.discriminator=null",
+    "tokenizer.train.steps=500",
+    "tokenizer.train.checkpoint_every=500",
+    "tokenizer.train.log_every=50",
+    "data.image_size=16",
+    "tokenizer.autoencoder.channels=48",
+    "tokenizer.autoencoder.norm_groups=8",
+    "tokenizer.autoencoder.channel_multipliers=[1,2]",
+    "tokenizer.autoencoder.z_channels=8",
+    "tokenizer.autoencoder.embed_dim=4",
+]
 
 
 @pytest.mark.parametrize("full", [True, False])
@@ -270,8 +366,14 @@ def test_demo_full_keeps_the_configured_size_and_scaled_uses_the_caps(tmp_path, 
     assert "scene reconstruction: 0 of 1 stages ran, 1 cannot run, 0 failed" in capsys.readouterr().out
     config = json.loads((out / "config.json").read_text())
     train = config["tokenizer"]["train"]
-    sizes = (train["steps"], train["checkpoint_every"], train["log_every"], config["data"]["batch_size"],
-             config["data"]["dataset"]["num_samples"], config["tokenizer"]["autoencoder"]["channels"])
+    sizes = (
+        train["steps"],
+        train["checkpoint_every"],
+        train["log_every"],
+        config["data"]["batch_size"],
+        config["data"]["dataset"]["num_samples"],
+        config["tokenizer"]["autoencoder"]["channels"],
+    )
     assert sizes == ((500, 500, 50, 16, 1000, 48) if full else (40, 40, 10, 8, 240, 32))
     (stage,) = json.loads((out / "report.json").read_text())["stages"]
     assert stage["status"].startswith("cannot run: needs tokenizer.quantizer, which the config leaves empty")
@@ -279,8 +381,9 @@ def test_demo_full_keeps_the_configured_size_and_scaled_uses_the_caps(tmp_path, 
 
 def test_closed_stdout_pipe_exits_quietly():
     """`vqtouch plugins | head`: the reader goes away; no traceback, the usual SIGPIPE status."""
-    process = subprocess.Popen([sys.executable, "-m", "vqtouch.core.cli", "plugins"], stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE)
+    process = subprocess.Popen(
+        [sys.executable, "-m", "vqtouch.core.cli", "plugins"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
     process.stdout.close()  # before the command has imported anything, let alone printed
     err = process.stderr.read().decode()
     assert process.wait(timeout=300) == 141
@@ -320,11 +423,33 @@ def test_the_default_demo_is_the_tour_of_every_stage_with_a_sample_grid_per_cond
     """`vqtouch demo` (and `make demo`) runs the tour: tokenizer, real frames, families, adaptation and one
     generator from each of its four conditions, each condition shown with its own scores and samples."""
     out = tmp_path / "run"
-    tiny = [*TINY_DEMO, "--set", "cluster.images_per_sensor=4", "--set", "cluster.variants_per_family=1",
-            "--set", "adapt.steps=2", "--set", "adapt.shots=4", "--set", "adapt.eval_images=4",
-            "--set", "generator.train.steps=2", "--set", "generator.train.checkpoint_every=2",
-            "--set", "generator.num_samples=2", "--set", "generator.steps=2", "--set", "generator.model.depth=1",
-            "--set", "generator.model.width=16", "--set", "generator.model.heads=2"]
+    tiny = [
+        *TINY_DEMO,
+        "--set",
+        "cluster.images_per_sensor=4",
+        "--set",
+        "cluster.variants_per_family=1",
+        "--set",
+        "adapt.steps=2",
+        "--set",
+        "adapt.shots=4",
+        "--set",
+        "adapt.eval_images=4",
+        "--set",
+        "generator.train.steps=2",
+        "--set",
+        "generator.train.checkpoint_every=2",
+        "--set",
+        "generator.num_samples=2",
+        "--set",
+        "generator.steps=2",
+        "--set",
+        "generator.model.depth=1",
+        "--set",
+        "generator.model.width=16",
+        "--set",
+        "generator.model.heads=2",
+    ]
     assert main(["--no-progress", "demo", "--out", str(out), *tiny]) == 0
     # The bundled checkpoints work at 64 px: at this test's 32 px the pretrained stage says it cannot run.
     assert "scene tour: 5 of 6 stages ran, 1 cannot run" in capsys.readouterr().out
@@ -346,7 +471,9 @@ def test_a_plugin_on_the_command_line_is_a_name_or_a_json_block():
     assert plugin_block(" gelsight ", "--sensor") == {"name": "gelsight"}
     assert plugin_block('{"name": "digit", "view": "full"}', "--sensor") == {"name": "digit", "view": "full"}
     assert plugin_block('{"root": "frames"}', "--images", default_name="image_folder") == {
-        "name": "image_folder", "root": "frames"}
+        "name": "image_folder",
+        "root": "frames",
+    }
     with pytest.raises(ConfigError, match="--sensor is not valid JSON"):
         plugin_block('{"name": ', "--sensor")
     with pytest.raises(ConfigError, match='--dataset: a JSON block needs the plugin\'s "name"'):

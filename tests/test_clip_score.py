@@ -25,6 +25,7 @@ from generator_runs import train_args  # noqa: E402  (registered by conftest)
 
 HOST = load_plugins(autoload=False)
 from metric_weights import TINY_RANDOM_CLIP  # noqa: E402  (registered by conftest)
+
 CLASS_NAMES = ["sphere", "edge", "ridge"]
 
 
@@ -44,8 +45,13 @@ def tiny_clip(tmp_path_factory):
 
 def options(path, **more):
     """The clip_score block for the tiny model in ``path``."""
-    return {"name": "clip_score", "architecture": "ViT-S-32", "checkpoint": str(path),
-            "model_overrides": TINY_RANDOM_CLIP, **more}
+    return {
+        "name": "clip_score",
+        "architecture": "ViT-S-32",
+        "checkpoint": str(path),
+        "model_overrides": TINY_RANDOM_CLIP,
+        **more,
+    }
 
 
 @pytest.fixture(scope="module")
@@ -60,6 +66,7 @@ def smooth_images(count: int, seed: int, size: int = 32) -> torch.Tensor:
 
 
 # -- an independent reference: open_clip called directly ----------------------------------------------
+
 
 def reference_images(model, images_B3HW):
     """CLIP image embeddings written out here: bicubic resize to the tower's 64 px, OpenAI normalisation,
@@ -95,6 +102,7 @@ def reference_scores(images_BE, conditions_BE, condition_keys):
 
 # -- the score ------------------------------------------------------------------------------------------
 
+
 def test_an_image_scored_against_itself_as_its_tactile_condition_scores_one(metric):
     images = smooth_images(4, seed=1)
     scores = metric.condition_scores({"": images}, images, "tactile_source", digits=None)
@@ -121,8 +129,10 @@ def test_scores_agree_with_open_clip_called_directly(tiny_clip, kind):
     generated = smooth_images(5, seed=4)
     background = generated[:1].expand_as(generated)
     if kind == "label":
-        condition, keys = torch.tensor([0, 2, 1, 2, 0]), [f"{name} pressed into a gel" for name in
-                                                         ("sphere", "ridge", "edge", "ridge", "sphere")]
+        condition, keys = (
+            torch.tensor([0, 2, 1, 2, 0]),
+            [f"{name} pressed into a gel" for name in ("sphere", "ridge", "edge", "ridge", "sphere")],
+        )
         conditions_BE = reference_texts(model, keys)
     elif kind == "text":
         condition = keys = ["a round bump", "a sharp edge", "a round bump", "three dots", "a flat press"]
@@ -131,8 +141,9 @@ def test_scores_agree_with_open_clip_called_directly(tiny_clip, kind):
         condition = smooth_images(5, seed=6)
         keys = list(range(5))
         conditions_BE = reference_images(model, condition)
-    scores = metric.condition_scores({"": generated, "background_": background}, condition, kind, CLASS_NAMES,
-                                     digits=None)
+    scores = metric.condition_scores(
+        {"": generated, "background_": background}, condition, kind, CLASS_NAMES, digits=None
+    )
     for prefix, images in (("", generated), ("background_", background)):
         expected_score, expected_top1 = reference_scores(reference_images(model, images), conditions_BE, keys)
         assert scores[f"{prefix}clip_score"] == pytest.approx(expected_score, abs=1e-5)
@@ -145,12 +156,15 @@ def test_one_distinct_condition_gives_no_retrieval_figure(metric):
     assert "clip_score" in scores and "clip_top1" not in scores
 
 
-@pytest.mark.parametrize("key, condition, class_names, reason", [
-    ("label", torch.tensor([0, -1]), CLASS_NAMES, "label -1 is not a class of this dataset"),
-    ("label", torch.tensor([0, 1]), [], "need the dataset's class names"),
-    ("text", ["a round bump", " "], [], "are empty texts"),
-    ("depth_mm", torch.rand(2, 32, 32), [], "conditions read from samples' 'depth_mm' cannot be embedded by CLIP"),
-])
+@pytest.mark.parametrize(
+    "key, condition, class_names, reason",
+    [
+        ("label", torch.tensor([0, -1]), CLASS_NAMES, "label -1 is not a class of this dataset"),
+        ("label", torch.tensor([0, 1]), [], "need the dataset's class names"),
+        ("text", ["a round bump", " "], [], "are empty texts"),
+        ("depth_mm", torch.rand(2, 32, 32), [], "conditions read from samples' 'depth_mm' cannot be embedded by CLIP"),
+    ],
+)
 def test_conditions_clip_cannot_embed_are_skipped_with_the_reason(metric, key, condition, class_names, reason):
     scores = metric.condition_scores({"": smooth_images(2, seed=8)}, condition, key, class_names)
     assert list(scores) == ["skipped"] and reason in scores["skipped"]["clip_score"]
@@ -159,13 +173,20 @@ def test_conditions_clip_cannot_embed_are_skipped_with_the_reason(metric, key, c
 
 # -- weights: found, missing, wrong -------------------------------------------------------------------
 
+
 def test_without_weights_the_metric_is_skipped_naming_the_file_and_where_to_put_it(monkeypatch):
     monkeypatch.delenv("VQTOUCH_CLIP_CKPT", raising=False)
     monkeypatch.delenv("VQTOUCH_WEIGHTS_DIR", raising=False)
     skipped = HOST.build("metric", "clip_score")
     assert isinstance(skipped, SkippedMetric) and "\n" not in skipped.skipped
-    for needle in ("metric 'clip_score'", "open_clip_model.safetensors", "--clip-checkpoint", "VQTOUCH_CLIP_CKPT",
-                   "VQTOUCH_WEIGHTS_DIR", "never downloads"):
+    for needle in (
+        "metric 'clip_score'",
+        "open_clip_model.safetensors",
+        "--clip-checkpoint",
+        "VQTOUCH_CLIP_CKPT",
+        "VQTOUCH_WEIGHTS_DIR",
+        "never downloads",
+    ):
         assert needle in skipped.skipped, needle
     assert MetricSet({"clip_score": skipped}).scores() == {"skipped": {"clip_score": skipped.skipped}}
 
@@ -184,13 +205,19 @@ def _write_other_weights(path):
     save_file({"not_clip": torch.zeros(1)}, str(path))
 
 
-@pytest.mark.parametrize("filename, write, reason", [
-    ("absent.safetensors", None, "does not exist"),
-    ("other.safetensors", _write_other_weights, "does not hold ViT-S-32 weights"),
-    ("garbage.safetensors", lambda path: path.write_bytes(b"not a safetensors file" * 8),
-     "does not hold ViT-S-32 weights"),
-    ("garbage.pt", lambda path: path.write_bytes(b"not a tensor pickle" * 8), "does not hold ViT-S-32 weights"),
-])
+@pytest.mark.parametrize(
+    "filename, write, reason",
+    [
+        ("absent.safetensors", None, "does not exist"),
+        ("other.safetensors", _write_other_weights, "does not hold ViT-S-32 weights"),
+        (
+            "garbage.safetensors",
+            lambda path: path.write_bytes(b"not a safetensors file" * 8),
+            "does not hold ViT-S-32 weights",
+        ),
+        ("garbage.pt", lambda path: path.write_bytes(b"not a tensor pickle" * 8), "does not hold ViT-S-32 weights"),
+    ],
+)
 def test_a_missing_or_wrong_weights_file_is_skipped_naming_it(tmp_path, filename, write, reason):
     pytest.importorskip("open_clip")
     path = tmp_path / filename
@@ -207,13 +234,18 @@ def test_without_open_clip_the_metric_is_skipped_naming_the_extra(monkeypatch, t
     assert skipped.skipped == "metric 'clip_score' needs open_clip_torch: pip install 'vqtouch[clip]'"
 
 
-@pytest.mark.parametrize("more, pattern", [
-    ({"architecture": "ViT-S-33"}, "metric 'clip_score': unknown open_clip architecture 'ViT-S-33'.*did you mean "
-                                   "'ViT-S-32'"),
-    ({"prompt": "a tactile image"}, r"must contain \{label\} exactly once"),
-    ({"prompt": "{label} on {sensor}"}, r"must contain \{label\} exactly once"),
-    ({"prompt": "{label"}, "is not a format string"),
-])
+@pytest.mark.parametrize(
+    "more, pattern",
+    [
+        (
+            {"architecture": "ViT-S-33"},
+            "metric 'clip_score': unknown open_clip architecture 'ViT-S-33'.*did you mean 'ViT-S-32'",
+        ),
+        ({"prompt": "a tactile image"}, r"must contain \{label\} exactly once"),
+        ({"prompt": "{label} on {sensor}"}, r"must contain \{label\} exactly once"),
+        ({"prompt": "{label"}, "is not a format string"),
+    ],
+)
 def test_bad_options_are_one_line_config_errors(tiny_clip, more, pattern):
     with pytest.raises(ConfigError, match=pattern) as info:
         HOST.build("metric", options(tiny_clip[0], **more))
@@ -221,6 +253,7 @@ def test_bad_options_are_one_line_config_errors(tiny_clip, more, pattern):
 
 
 # -- generation scoring: the generator stage and `vqtouch evaluate generation` -------------------------
+
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory, tiny_clip):
@@ -233,8 +266,9 @@ def trained(tmp_path_factory, tiny_clip):
 
 def _evaluate(run, capsys, *flags):
     capsys.readouterr()
-    status = main(["evaluate", "generation", "--run", str(run), "--n", "4", "--steps", "2", "--no-distribution",
-                   *flags])
+    status = main(
+        ["evaluate", "generation", "--run", str(run), "--n", "4", "--steps", "2", "--no-distribution", *flags]
+    )
     out, err = capsys.readouterr()
     return status, (json.loads(out) if status == 0 else err)
 
@@ -261,8 +295,9 @@ def test_evaluate_generation_scores_the_real_images_as_open_clip_does(trained, t
     samples = [dataset[held_out.indices[i]] for i in range(4)]
     prompts = [f"a tactile sensor image of {dataset.class_names[sample['label']]}" for sample in samples]
     model = tiny_clip[1]
-    expected, _ = reference_scores(reference_images(model, torch.stack([s["tactile"] for s in samples])),
-                                   reference_texts(model, prompts), prompts)
+    expected, _ = reference_scores(
+        reference_images(model, torch.stack([s["tactile"] for s in samples])), reference_texts(model, prompts), prompts
+    )
     assert result["real_clip_score"] == pytest.approx(expected, abs=1e-4)
     assert "clip_score" in result and "clip_score" not in result.get("skipped", {})
 
@@ -276,8 +311,9 @@ def test_evaluate_generation_without_clip_weights_says_clip_score_is_skipped(tra
 
 def test_evaluate_generation_takes_clip_weights_from_its_flags(trained, tiny_clip, capsys):
     block = json.dumps(["psnr", {"name": "clip_score", "model_overrides": TINY_RANDOM_CLIP}])
-    status, result = _evaluate(trained, capsys, "--metrics", block, "--clip-checkpoint", str(tiny_clip[0]),
-                               "--clip-architecture", "ViT-S-32")
+    status, result = _evaluate(
+        trained, capsys, "--metrics", block, "--clip-checkpoint", str(tiny_clip[0]), "--clip-architecture", "ViT-S-32"
+    )
     assert status == 0 and "psnr" in result and "skipped" not in result
     assert -1 <= result["clip_score"] <= 1 and -1 <= result["background_clip_score"] <= 1
     status, err = _evaluate(trained, capsys, "--clip-checkpoint", str(tiny_clip[0].with_name("absent.pt")))
@@ -299,10 +335,24 @@ def test_score_generation_lists_conditions_clip_cannot_read_as_skipped(trained, 
     dataset = Assembly(config, HOST).component("data.dataset")
     held_out = split_dataset(dataset, config.data.val_fraction, config.seed)[1]
     conditions = replace(held_out_conditions(held_out, dataset, 2, pipe.device), class_names=[])
-    metrics = [("psnr", HOST.build("metric", "psnr")), ("lpips", HOST.build("metric", "lpips")),  # no weights: skipped
-               ("clip_score", HOST.build("metric", options(tiny_clip[0])))]
-    scores = score_generation(generator=pipe.generator, conditioner=pipe.conditioners[0], tokenizer=pipe.tokenizer,
-                              sampler=HOST.build("sampler", "posterior"), conditions=conditions, metrics=metrics,
-                              background_3HW=None, steps=2, guidance=1.0, truncation=1.0, seed=0, device=pipe.device)
+    metrics = [
+        ("psnr", HOST.build("metric", "psnr")),
+        ("lpips", HOST.build("metric", "lpips")),  # no weights: skipped
+        ("clip_score", HOST.build("metric", options(tiny_clip[0]))),
+    ]
+    scores = score_generation(
+        generator=pipe.generator,
+        conditioner=pipe.conditioners[0],
+        tokenizer=pipe.tokenizer,
+        sampler=HOST.build("sampler", "posterior"),
+        conditions=conditions,
+        metrics=metrics,
+        background_3HW=None,
+        steps=2,
+        guidance=1.0,
+        truncation=1.0,
+        seed=0,
+        device=pipe.device,
+    )
     assert set(scores["skipped"]) == {"lpips", "clip_score"} and "class names" in scores["skipped"]["clip_score"]
     assert "psnr" in scores and not any("clip" in key for key in scores if key != "skipped")

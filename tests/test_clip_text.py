@@ -22,6 +22,7 @@ from vqtouch.core.training import collate_samples
 
 CONTEXT = BuildContext(image_size=32, cond_dim=16)
 from metric_weights import TINY_RANDOM_CLIP  # noqa: E402  (registered by conftest)
+
 TEXTS = ["a smooth sphere pressed into the gel", "a coarse woven fabric", "a sharp metal edge"]
 
 
@@ -51,8 +52,14 @@ def tiny_random_clip(tmp_path_factory):
 
 
 def _options(path, **more):
-    return {"name": "text", "architecture": "ViT-S-32", "checkpoint": str(path), "model_overrides": TINY_RANDOM_CLIP,
-            "context_length": 8, **more}
+    return {
+        "name": "text",
+        "architecture": "ViT-S-32",
+        "checkpoint": str(path),
+        "model_overrides": TINY_RANDOM_CLIP,
+        "context_length": 8,
+        **more,
+    }
 
 
 @pytest.fixture(scope="module")
@@ -99,7 +106,10 @@ def test_frozen_tower_gets_no_gradient_while_the_projection_does(host, tiny_rand
         assert parameter.grad is not None and torch.isfinite(parameter.grad).all() and parameter.grad.abs().sum() > 0
     # Only the projection and the null tokens are trainable and saved; the tower (image tower dropped) is not.
     assert {name for name, p in built.named_parameters() if p.requires_grad} == {
-        "null_tokens_ND", "project.weight", "project.bias"}
+        "null_tokens_ND",
+        "project.weight",
+        "project.bias",
+    }
     assert set(built.state_dict()) == {"null_tokens_ND", "project.weight", "project.bias"}
     assert not any(name.startswith("visual.") for name, _ in network.named_parameters())
 
@@ -127,8 +137,10 @@ def test_token_ids_are_open_clips_bpe_truncated_with_end_of_text(conditioner):
     assert ids[0].tolist()[:2] == [sot, 320] and ids[0, 4] == eot and ids[0, 5:].eq(0).all()  # 320: BPE "a</w>"
     assert ids[1, 0] == sot and ids[1, -1] == eot and ids[1, 1:-1].ne(0).all()  # truncated: end-of-text kept last
     with torch.no_grad():
-        short, longer = conditioner.encode(["one two three four five six"]), conditioner.encode(
-            ["one two three four five six seven"])
+        short, longer = (
+            conditioner.encode(["one two three four five six"]),
+            conditioner.encode(["one two three four five six seven"]),
+        )
     # Same first 7 ids (causal tower): same first 7 tokens; the last differs (a word vs end-of-text there).
     torch.testing.assert_close(longer[:, :7], short[:, :7], atol=1e-6, rtol=1e-5)
 
@@ -141,9 +153,15 @@ def test_missing_weights_file_is_a_one_line_error_naming_the_file_and_how_to_giv
         host.build("conditioner", "text", CONTEXT)
     message = str(info.value)
     assert "\n" not in message
-    for needle in ("conditioner 'text'", "open_clip_model.safetensors", "checkpoint option",
-                   "generator.conditioners.0.checkpoint", "VQTOUCH_CLIP_CKPT", "VQTOUCH_WEIGHTS_DIR",
-                   "never downloads"):
+    for needle in (
+        "conditioner 'text'",
+        "open_clip_model.safetensors",
+        "checkpoint option",
+        "generator.conditioners.0.checkpoint",
+        "VQTOUCH_CLIP_CKPT",
+        "VQTOUCH_WEIGHTS_DIR",
+        "never downloads",
+    ):
         assert needle in message, needle
     missing = tmp_path / "nowhere.safetensors"
     with pytest.raises(MissingWeightsError) as info:
@@ -190,12 +208,16 @@ def test_parses_a_users_string_and_reads_a_batchs_texts(conditioner):
         conditioner.encode(["a", 3])
 
 
-@pytest.mark.parametrize("architecture, needle", [("ViT-B-16-SigLIP", "SigLIP"),
-                                                  ("xlm-roberta-base-ViT-B-32", "xlm-roberta-base")])
+@pytest.mark.parametrize(
+    "architecture, needle", [("ViT-B-16-SigLIP", "SigLIP"), ("xlm-roberta-base-ViT-B-32", "xlm-roberta-base")]
+)
 def test_tokenizers_that_would_be_downloaded_are_refused(host, tiny_random_clip, architecture, needle):
     with pytest.raises(ConfigError, match=f"{needle}.*never downloads") as info:
-        host.build("conditioner", {"name": "text", "architecture": architecture,
-                                   "checkpoint": str(tiny_random_clip[0])}, CONTEXT)
+        host.build(
+            "conditioner",
+            {"name": "text", "architecture": architecture, "checkpoint": str(tiny_random_clip[0])},
+            CONTEXT,
+        )
     assert "\n" not in str(info.value)
 
 
@@ -206,15 +228,17 @@ def test_context_length_beyond_the_models_is_refused(host, tmp_path):
     _save_tiny_random_model(open_clip, path, text_cfg=short["text_cfg"])
     with pytest.raises(ConfigError, match="context_length=8 exceeds ViT-S-32's context length 6"):
         host.build("conditioner", _options(path, model_overrides=short), CONTEXT)
-    assert host.build("conditioner", _options(path, model_overrides=short, context_length=6),
-                      CONTEXT)(TEXTS).tokens_BND.shape == (3, 6, 16)
+    assert host.build("conditioner", _options(path, model_overrides=short, context_length=6), CONTEXT)(
+        TEXTS
+    ).tokens_BND.shape == (3, 6, 16)
 
 
 def test_unknown_architecture_and_wrong_file_are_clear_errors(host, tiny_random_clip, tmp_path):
     from safetensors.torch import save_file
 
-    with pytest.raises(ConfigError, match="conditioner 'text': unknown open_clip architecture 'ViT-S-33'.*did you "
-                                          "mean"):
+    with pytest.raises(
+        ConfigError, match="conditioner 'text': unknown open_clip architecture 'ViT-S-33'.*did you mean"
+    ):
         host.build("conditioner", _options(tiny_random_clip[0], architecture="ViT-S-33"), CONTEXT)
     wrong = tmp_path / "wrong.safetensors"
     save_file({"not_clip": torch.zeros(1)}, str(wrong))
@@ -250,7 +274,12 @@ def test_open_clip_is_imported_only_when_the_text_conditioner_is_built():
     """In a fresh interpreter: loading plugins and building label/text_scratch never imports open_clip;
     building ``text`` does (and then stops at its missing weights file)."""
     pytest.importorskip("open_clip")
-    result = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, timeout=300,
-                            env={"VQTOUCH_DISABLE_PLUGIN_AUTOLOAD": "1", "PATH": "/usr/bin:/bin"})
+    result = subprocess.run(
+        [sys.executable, "-c", PROBE],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={"VQTOUCH_DISABLE_PLUGIN_AUTOLOAD": "1", "PATH": "/usr/bin:/bin"},
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     assert result.stdout.strip().splitlines()[-3:] == ["BEFORE:False", "ERROR:MissingWeightsError", "AFTER:True"]

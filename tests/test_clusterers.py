@@ -70,8 +70,11 @@ def test_degenerate_sets_and_bad_input(name):
     # One sensor, or identical prototypes: one family, nothing to compare.
     assert clusterer.fit(torch.ones(1, 4)).tolist() == [0] and clusterer.num_families == 1
     assert clusterer.fit(torch.zeros(5, 4)).tolist() == [0] * 5 and clusterer.num_families == 1
-    with pytest.raises(ConfigError, match=r"^3 families asked of 2 distinct sensor feature\(s\); set num_families "
-                                          r"<= 2, or 0 to choose by silhouette$"):
+    with pytest.raises(
+        ConfigError,
+        match=r"^3 families asked of 2 distinct sensor feature\(s\); set num_families "
+        r"<= 2, or 0 to choose by silhouette$",
+    ):
         HOST.build("clusterer", {"name": name, "num_families": 3}).fit(torch.tensor([[0.0], [1.0], [1.0]]))
     with pytest.raises(ValueError, match="features contain NaN or Inf"):
         clusterer.fit(torch.tensor([[0.0, float("nan")], [1.0, 1.0]]))

@@ -55,8 +55,9 @@ def test_a_grid_of_another_size_is_resized_to_the_code_grid():
     coarse = F.interpolate(fine, size=(8, 8), mode="area")
     tokens = torch.randn(1, 2, 24)
     codes, t = torch.full((1, 64), 16), torch.tensor([3])
-    torch.testing.assert_close(net(codes, t, condition=tokens, condition_grid=fine),
-                               net(codes, t, condition=tokens, condition_grid=coarse))
+    torch.testing.assert_close(
+        net(codes, t, condition=tokens, condition_grid=fine), net(codes, t, condition=tokens, condition_grid=coarse)
+    )
     with pytest.raises(ValueError, match="condition grid"):
         net(codes, t, condition=tokens, condition_grid=torch.randn(1, 5, 8, 8))
 
@@ -101,22 +102,28 @@ def test_image_conditioners_hand_an_aligned_grid_and_zero_for_null_rows():
     assert tokens.grid_BDhw.shape == (3, 24, 8, 8)
     assert tokens.grid_BDhw[1].abs().sum() == 0 and tokens.grid_BDhw[0].abs().sum() > 0
     # A shifted contact shifts the grid with it (the map is computed, not learned per position).
-    wide = HOST.build("conditioner", {"name": "tactile", "reads": "tactile"},
-                      CONTEXT.model_copy(update={"image_size": 64, "code_grid": 16}))
+    wide = HOST.build(
+        "conditioner",
+        {"name": "tactile", "reads": "tactile"},
+        CONTEXT.model_copy(update={"image_size": 64, "code_grid": 16}),
+    )
     blob = torch.zeros(1, 3, 64, 64)
     blob[..., 16:24, 16:24] = 1.0
     grid_a = wide.encode_with_grid(blob)[1]
     grid_b = wide.encode_with_grid(torch.roll(blob, shifts=(16, 16), dims=(-2, -1)))[1]
-    torch.testing.assert_close(torch.roll(grid_a, shifts=(4, 4), dims=(-2, -1))[..., 6:12, 6:12],
-                               grid_b[..., 6:12, 6:12], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(
+        torch.roll(grid_a, shifts=(4, 4), dims=(-2, -1))[..., 6:12, 6:12], grid_b[..., 6:12, 6:12], atol=1e-5, rtol=1e-5
+    )
     assert not torch.allclose(grid_a[..., 6:12, 6:12], grid_b[..., 6:12, 6:12], atol=1e-3)
     without = HOST.build("conditioner", {"name": "tactile", "reads": "tactile", "spatial": False}, CONTEXT)
     assert without(images).grid_BDhw is None
     assert HOST.build("conditioner", {"name": "label"}, CONTEXT)(torch.tensor([0, 2])).grid_BDhw is None
 
 
-@pytest.mark.parametrize("image, grid, depth, stage", [(64, 16, 3, 1), (64, 8, 3, 2), (64, 32, 3, 0),
-                                                       (64, 4, 3, 2), (256, 16, 6, 3), (64, 0, 3, None)])
+@pytest.mark.parametrize(
+    "image, grid, depth, stage",
+    [(64, 16, 3, 1), (64, 8, 3, 2), (64, 32, 3, 0), (64, 4, 3, 2), (256, 16, 6, 3), (64, 0, 3, None)],
+)
 def test_grid_stage_is_the_smallest_trunk_map_covering_the_code_grid(image, grid, depth, stage):
     assert grid_stage_for(image, grid, depth) == stage
     if stage is not None:
@@ -250,11 +257,13 @@ def test_keeping_revealed_tokens_warns_only_with_real_replacement_noise():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         PosteriorSampler().sample(denoise, MaskReplaceSchedule(8, 10), length=4, steps=3, generators=generators)
-        PosteriorSampler(keep_unmasked=False).sample(denoise, MaskReplaceSchedule(8, 10, att_T=0.0, ctt_T=0.9),
-                                                     length=4, steps=3, generators=generators)
+        PosteriorSampler(keep_unmasked=False).sample(
+            denoise, MaskReplaceSchedule(8, 10, att_T=0.0, ctt_T=0.9), length=4, steps=3, generators=generators
+        )
     with pytest.warns(KeepUnmaskedWarning, match="keep_unmasked=false"):
-        PosteriorSampler().sample(denoise, MaskReplaceSchedule(8, 10, att_T=0.0, ctt_T=0.9), length=4, steps=3,
-                                  generators=generators)
+        PosteriorSampler().sample(
+            denoise, MaskReplaceSchedule(8, 10, att_T=0.0, ctt_T=0.9), length=4, steps=3, generators=generators
+        )
 
 
 def test_contact_centroid_error_is_the_distance_between_contact_centres():
@@ -263,7 +272,7 @@ def test_contact_centroid_error_is_the_distance_between_contact_centres():
 
     background = torch.full((1, 3, 32, 32), 0.5)
     truth = background.repeat(2, 1, 1, 1)
-    truth[0, :, 4:8, 10:14] = 0.9   # centre (5.5, 11.5)
+    truth[0, :, 4:8, 10:14] = 0.9  # centre (5.5, 11.5)
     truth[1, :, 20:22, 16:26] = 0.1  # centre (20.5, 20.5)
     torch.testing.assert_close(contact_centroids(truth, background), torch.tensor([[5.5, 11.5], [20.5, 20.5]]))
     moved = torch.roll(truth, shifts=(3, 4), dims=(-2, -1))
@@ -285,19 +294,61 @@ def test_evaluate_generation_scores_a_bundle_into_out(touch_run, tmp_path, monke
     bundle_module.export_bundle(touch_run, "tiny", HOST, root=bundles)
     monkeypatch.setattr(bundle_module, "BUNDLES", bundles)
     out = tmp_path / "scores"
-    assert main(["--no-progress", "evaluate", "generation", "--run", "pretrained:tiny", "--n", "3", "--steps", "2",
-                 "--metrics", "psnr", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "--no-progress",
+                "evaluate",
+                "generation",
+                "--run",
+                "pretrained:tiny",
+                "--n",
+                "3",
+                "--steps",
+                "2",
+                "--metrics",
+                "psnr",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     result = json.loads((out / "generation.json").read_text())
     assert result["checkpoint"] == "pretrained:tiny"
-    (name, scores), = result["by_conditioner"].items()
+    ((name, scores),) = result["by_conditioner"].items()
     assert name == "0:tactile" and scores["samples"] == 3 and scores["steps"] == 2
-    for key in ("contact_psnr", "retrieval_contact_psnr", "ceiling_contact_psnr", "background_contact_psnr",
-                "contact_centroid_error_px", "retrieval_contact_centroid_error_px"):
+    for key in (
+        "contact_psnr",
+        "retrieval_contact_psnr",
+        "ceiling_contact_psnr",
+        "background_contact_psnr",
+        "contact_centroid_error_px",
+        "retrieval_contact_centroid_error_px",
+    ):
         assert math.isfinite(scores[key]), key
     assert (out / "samples_0_tactile.png").is_file()
     # The same scores as scoring the run itself (the bundle holds its weights in fp16: close, not equal).
-    assert main(["--no-progress", "evaluate", "generation", "--run", str(touch_run), "--n", "3", "--steps", "2",
-                 "--metrics", "psnr", "--out", str(tmp_path / "run_scores")]) == 0
+    assert (
+        main(
+            [
+                "--no-progress",
+                "evaluate",
+                "generation",
+                "--run",
+                str(touch_run),
+                "--n",
+                "3",
+                "--steps",
+                "2",
+                "--metrics",
+                "psnr",
+                "--out",
+                str(tmp_path / "run_scores"),
+            ]
+        )
+        == 0
+    )
     direct = json.loads((tmp_path / "run_scores" / "generation.json").read_text())["by_conditioner"]["0:tactile"]
     assert direct["ceiling_contact_psnr"] == pytest.approx(scores["ceiling_contact_psnr"], abs=0.5)
     capsys.readouterr()

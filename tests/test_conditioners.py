@@ -21,6 +21,7 @@ def build(host, tmp_path_factory):
         if name == "tactile_codes":
             config["tokenizer"] = str(generator_runs.tiny_tokenizer_folder(tmp_path_factory.getbasetemp()))
         return host.build("conditioner", config, context)
+
     return build_conditioner
 
 
@@ -33,8 +34,9 @@ def example_condition(conditioner, batch):
     return contract_example(conditioner, batch, BuildContext(image_size=32))
 
 
-OFFLINE_CONDITIONERS = [name for name in load_plugins(autoload=False).registry("conditioner").names()
-                        if name not in ("clip", "text")]  # these two need a local open_clip weights file
+OFFLINE_CONDITIONERS = [
+    name for name in load_plugins(autoload=False).registry("conditioner").names() if name not in ("clip", "text")
+]  # these two need a local open_clip weights file
 
 
 # The shape / null-token / drop-mask contract of every conditioner is checked by
@@ -115,15 +117,25 @@ def test_clip_without_weights_names_file_and_ways_to_provide(host, monkeypatch):
     with pytest.raises(MissingWeightsError) as info:
         host.build("conditioner", "clip", CONTEXT)
     message = str(info.value)
-    for needle in ("open_clip_model.safetensors", "checkpoint option", "VQTOUCH_CLIP_CKPT",
-                   "VQTOUCH_WEIGHTS_DIR", "never downloads"):
+    for needle in (
+        "open_clip_model.safetensors",
+        "checkpoint option",
+        "VQTOUCH_CLIP_CKPT",
+        "VQTOUCH_WEIGHTS_DIR",
+        "never downloads",
+    ):
         assert needle in message
 
 
 def test_clip_loads_local_weights_and_stays_frozen(host, tiny_clip_file, tmp_path):
     path, reference = tiny_clip_file
-    config = {"name": "clip", "architecture": "ViT-S-32", "checkpoint": str(path), "model_overrides": TINY_CLIP,
-              "num_tokens": 2}
+    config = {
+        "name": "clip",
+        "architecture": "ViT-S-32",
+        "checkpoint": str(path),
+        "model_overrides": TINY_CLIP,
+        "num_tokens": 2,
+    }
     conditioner = host.build("conditioner", config, CONTEXT)
     images = torch.rand(2, 3, 40, 40)
     out = conditioner(images)
@@ -169,8 +181,11 @@ def test_clip_with_a_broken_open_clip_says_it_is_installed(host, monkeypatch, tm
 
     monkeypatch.delitem(sys.modules, "open_clip", raising=False)
     monkeypatch.setattr(builtins, "__import__", failing_import)
-    with pytest.raises(PluginError, match=r"installed but does not import \(operator torchvision::nms does not "
-                                          r"exist\).*pip install 'vqtouch\[clip\]'") as info:
+    with pytest.raises(
+        PluginError,
+        match=r"installed but does not import \(operator torchvision::nms does not "
+        r"exist\).*pip install 'vqtouch\[clip\]'",
+    ) as info:
         host.build("conditioner", {"name": "clip", "checkpoint": str(weights)}, CONTEXT)
     assert "\n" not in str(info.value)
 
@@ -181,8 +196,11 @@ def test_clip_with_wrong_weights_file_is_a_clear_error(host, tmp_path):
     path = tmp_path / "wrong.safetensors"
     save_file({"not_clip": torch.zeros(1)}, str(path))
     with pytest.raises(MissingWeightsError, match="does not hold ViT-S-32 weights"):
-        host.build("conditioner", {"name": "clip", "architecture": "ViT-S-32", "checkpoint": str(path),
-                                   "model_overrides": TINY_CLIP}, CONTEXT)
+        host.build(
+            "conditioner",
+            {"name": "clip", "architecture": "ViT-S-32", "checkpoint": str(path), "model_overrides": TINY_CLIP},
+            CONTEXT,
+        )
 
 
 def test_clip_unknown_architecture(host, tiny_clip_file):
@@ -197,9 +215,13 @@ def test_each_conditioner_reads_its_own_entry_of_a_dataset_batch(host, build, na
     one) to the right conditioner input."""
     from vqtouch.core.training import collate_samples
 
-    dataset = host.build("dataset", {"name": "procedural", "num_samples": 3, "image_size": 32},
-                         BuildContext(image_size=32), sensor=host.build("sensor_family", "gelsight"),
-                         paired_sensor=host.build("sensor_family", "digit"))
+    dataset = host.build(
+        "dataset",
+        {"name": "procedural", "num_samples": 3, "image_size": 32},
+        BuildContext(image_size=32),
+        sensor=host.build("sensor_family", "gelsight"),
+        paired_sensor=host.build("sensor_family", "digit"),
+    )
     batch = collate_samples([dataset[i] for i in range(3)])
     conditioner = build(name, BuildContext(image_size=32, num_classes=dataset.num_classes, cond_dim=16))
     condition = conditioner.condition_of(batch)

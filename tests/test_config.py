@@ -3,13 +3,31 @@ import json
 import pytest
 from pydantic import Field, ValidationError
 
-from vqtouch.core import (ConfigError, VqtouchDeprecationWarning, ExperimentConfig, Section, UnknownPluginError, hookimpl, load_plugins,
-                          resolve_config, validate_experiment)
+from vqtouch.core import (
+    ConfigError,
+    VqtouchDeprecationWarning,
+    ExperimentConfig,
+    Section,
+    UnknownPluginError,
+    hookimpl,
+    load_plugins,
+    resolve_config,
+    validate_experiment,
+)
 from vqtouch.core.config import apply_override, merge_configs, parse_override
 from vqtouch.core.stages import missing_slots, required_slots
 
-SCENES = ["reconstruction", "few-shot", "zero-shot", "cross-sensor", "vision-to-touch", "label-to-touch",
-          "text-to-touch", "mixed-to-touch", "touch-to-touch"]
+SCENES = [
+    "reconstruction",
+    "few-shot",
+    "zero-shot",
+    "cross-sensor",
+    "vision-to-touch",
+    "label-to-touch",
+    "text-to-touch",
+    "mixed-to-touch",
+    "touch-to-touch",
+]
 BUILTIN_STAGES = ["adapt", "cluster", "generator", "pretrained", "reconstruct", "render", "tokenizer"]
 
 
@@ -39,28 +57,51 @@ def test_every_scene_lists_only_registered_stages(host, scene):
 def test_builtin_stages_and_their_sections(host):
     assert set(BUILTIN_STAGES) <= set(host.stages)
     sections = {name: entry.section.__name__ if entry.section else None for name, entry in host.stages.items()}
-    assert sections == {"render": "RenderSection", "tokenizer": "TokenizerSection", "reconstruct": None,
-                        "cluster": "ClusterSection", "adapt": "AdaptSection", "generator": "GeneratorSection",
-                        "pretrained": "PretrainedSection"}
+    assert sections == {
+        "render": "RenderSection",
+        "tokenizer": "TokenizerSection",
+        "reconstruct": None,
+        "cluster": "ClusterSection",
+        "adapt": "AdaptSection",
+        "generator": "GeneratorSection",
+        "pretrained": "PretrainedSection",
+    }
     fields = set(host.experiment_model.model_fields)
     assert {"render", "tokenizer", "cluster", "adapt", "generator"} <= fields
     assert not {"reconstruct", "train", "conditioner", "clusterer", "evaluate"} & fields
     # The base model holds only core's fields: stage sections come from the registrations.
     assert not {"render", "tokenizer", "cluster", "generator"} & set(ExperimentConfig.model_fields)
-    assert set(host.slots) == {"sensor", "target_sensor", "paired_sensor", "data.dataset", "metrics", "tokenizer.autoencoder",
-                               "tokenizer.quantizer", "tokenizer.discriminator", "cluster.clusterer",
-                               "generator.model", "generator.conditioners", "generator.sampler"}
+    assert set(host.slots) == {
+        "sensor",
+        "target_sensor",
+        "paired_sensor",
+        "data.dataset",
+        "metrics",
+        "tokenizer.autoencoder",
+        "tokenizer.quantizer",
+        "tokenizer.discriminator",
+        "cluster.clusterer",
+        "generator.model",
+        "generator.conditioners",
+        "generator.sampler",
+    }
     assert (host.slots["generator.conditioners"].kind, host.slots["generator.conditioners"].many) == (
-        "conditioner", True)
+        "conditioner",
+        True,
+    )
     assert (host.slots["tokenizer.autoencoder"].kind, host.slots["tokenizer.autoencoder"].many) == (
-        "autoencoder", False)
+        "autoencoder",
+        False,
+    )
 
 
 def test_unknown_stage_lists_the_registered_stages(host):
     available = ", ".join(sorted(host.stages))
     with pytest.raises(ConfigError) as info:
         resolve_config(None, overrides=['stages=["tokenizer", "evaluatee"]'], host=host)
-    assert str(info.value).startswith(f"invalid configuration: stages: unknown stage 'evaluatee'; available: {available}")
+    assert str(info.value).startswith(
+        f"invalid configuration: stages: unknown stage 'evaluatee'; available: {available}"
+    )
     with pytest.raises(UnknownPluginError, match=f"unknown stage 'evaluate'; available: {available}"):
         host.stage("evaluate")
     with pytest.raises(ConfigError, match="a stage is listed twice"):
@@ -73,11 +114,17 @@ def test_a_scene_validates_against_the_stages_its_host_registered(make_plugin):
     without = load_plugins(autoload=False, block=["adaptation"])
     assert "cluster" not in without.stages and "adapt" not in without.stages
     for scene in ("few-shot", "zero-shot"):
-        with pytest.raises(ConfigError, match=r"stages: unknown stage 'cluster'; available: generator, "
-                                              r"pretrained, reconstruct, render, tokenizer"):
+        with pytest.raises(
+            ConfigError,
+            match=r"stages: unknown stage 'cluster'; available: generator, "
+            r"pretrained, reconstruct, render, tokenizer",
+        ):
             resolve_config(scene, host=without)
-    with pytest.raises(ConfigError, match=r"stages: unknown stage 'adapt'; available: generator, pretrained, "
-                                          r"reconstruct, render, tokenizer"):
+    with pytest.raises(
+        ConfigError,
+        match=r"stages: unknown stage 'adapt'; available: generator, pretrained, "
+        r"reconstruct, render, tokenizer",
+    ):
         resolve_config("cross-sensor", host=without)
     assert resolve_config("reconstruction", host=without).stages == ["tokenizer", "reconstruct"]
 
@@ -92,8 +139,11 @@ def test_a_scene_validates_against_the_stages_its_host_registered(make_plugin):
     extended = load_plugins(autoload=False, extra=[make_plugin("probe_plugin", vqtouch_register_stages)])
     config = resolve_config(None, overrides=['stages=["probe"]', "probe.width=7"], host=extended)
     assert config.stages == ["probe"] and config.probe.width == 7
-    with pytest.raises(ConfigError, match=r"invalid configuration: probe.width: Input should be greater than or "
-                                          r"equal to 1 \(got 0\)"):
+    with pytest.raises(
+        ConfigError,
+        match=r"invalid configuration: probe.width: Input should be greater than or "
+        r"equal to 1 \(got 0\)",
+    ):
         resolve_config(None, overrides=['stages=["probe"]', "probe.width=0"], host=extended)
     with pytest.raises(ConfigError, match=r"unknown stage 'probe'; available: adapt, cluster, generator"):
         resolve_config(None, overrides=['stages=["probe"]'], host=load_plugins(autoload=False))
@@ -111,8 +161,10 @@ def test_validating_a_slot_without_a_host_says_to_pass_it():
         ExperimentConfig.model_validate({"sensor": {"name": "gelsight"}})
     (error,) = info.value.errors(include_url=False)
     assert error["loc"] == ("sensor",) and error["type"] == "no_plugin_host"
-    assert error["msg"].startswith("validating a plugin slot needs the PluginHost whose registries to use: "
-                                   "pass it in the validation context under the key 'host'")
+    assert error["msg"].startswith(
+        "validating a plugin slot needs the PluginHost whose registries to use: "
+        "pass it in the validation context under the key 'host'"
+    )
     assert "vqtouch.core.validate_experiment" in error["msg"]
     # Fields that are not slots need no host.
     assert ExperimentConfig.model_validate({"seed": 3}).seed == 3
@@ -121,19 +173,22 @@ def test_validating_a_slot_without_a_host_says_to_pass_it():
 def test_slot_options_are_validated_at_load_with_exact_path(host):
     with pytest.raises(ConfigError) as info:
         resolve_config("label-to-touch", overrides=["generator.conditioners.0.num_tokens=0"], host=host)
-    assert str(info.value) == ("invalid configuration: generator.conditioners.0.num_tokens: "
-                               "Input should be greater than or equal to 1 (got 0)")
+    assert str(info.value) == (
+        "invalid configuration: generator.conditioners.0.num_tokens: Input should be greater than or equal to 1 (got 0)"
+    )
 
 
 def test_stage_section_options_are_validated_with_exact_path(host):
     with pytest.raises(ConfigError) as info:
         resolve_config("reconstruction", overrides=["tokenizer.train.steps=-1"], host=host)
-    assert str(info.value) == ("invalid configuration: tokenizer.train.steps: "
-                               "Input should be greater than or equal to 0 (got -1)")
+    assert str(info.value) == (
+        "invalid configuration: tokenizer.train.steps: Input should be greater than or equal to 0 (got -1)"
+    )
     with pytest.raises(ConfigError) as info:
         resolve_config("reconstruction", overrides=["render.num_samples=0"], host=host)
-    assert str(info.value) == ("invalid configuration: render.num_samples: "
-                               "Input should be greater than or equal to 1 (got 0)")
+    assert str(info.value) == (
+        "invalid configuration: render.num_samples: Input should be greater than or equal to 1 (got 0)"
+    )
     # The old top-level paths are refused or moved to their new homes (tests/test_deprecations.py): never a
     # misleading "did you mean".
     with pytest.raises(ConfigError, match="config key 'train' .* split into tokenizer.train and generator.train"):
@@ -153,15 +208,21 @@ def test_tokenizer_train_keeps_vqgan_betas_while_core_defaults_to_adamw(host):
 
 
 def test_unknown_plugin_lists_choices_and_closest(host):
-    with pytest.raises(ConfigError, match=r"generator.conditioners.0: unknown conditioner 'lable'; available: clip, "
-                                          r"label, tactile, tactile_codes, text, text_scratch, visual, visual_cnn; "
-                                          r"did you mean 'label'\?"):
+    with pytest.raises(
+        ConfigError,
+        match=r"generator.conditioners.0: unknown conditioner 'lable'; available: clip, "
+        r"label, tactile, tactile_codes, text, text_scratch, visual, visual_cnn; "
+        r"did you mean 'label'\?",
+    ):
         resolve_config("label-to-touch", overrides=["generator.conditioners.0.name=lable"], host=host)
 
 
 def test_unknown_option_lists_allowed(host):
-    with pytest.raises(ConfigError, match=r"tokenizer.train: unknown option 'step'; allowed: .*steps.*"
-                                          r"did you mean 'steps'"):
+    with pytest.raises(
+        ConfigError,
+        match=r"tokenizer.train: unknown option 'step'; allowed: .*steps.*"
+        r"did you mean 'steps'",
+    ):
         resolve_config("label-to-touch", overrides=["tokenizer.train.step=3"], host=host)
 
 
@@ -171,10 +232,19 @@ def test_literal_error_lists_allowed_values(host):
 
 
 def test_changing_slot_name_resets_its_options(host):
-    config = resolve_config("label-to-touch", overrides=["generator.conditioners.0.name=tactile",
-                                                         "generator.conditioners.0.width=16"], host=host)
-    assert config.generator.conditioners[0].model_dump() == {"name": "tactile", "width": 16, "depth": 3,
-                                                             "token_grid": 4, "spatial": True, "reads": "tactile_source"}
+    config = resolve_config(
+        "label-to-touch",
+        overrides=["generator.conditioners.0.name=tactile", "generator.conditioners.0.width=16"],
+        host=host,
+    )
+    assert config.generator.conditioners[0].model_dump() == {
+        "name": "tactile",
+        "width": 16,
+        "depth": 3,
+        "token_grid": 4,
+        "spatial": True,
+        "reads": "tactile_source",
+    }
     config = resolve_config("reconstruction", overrides=["tokenizer.quantizer.name=ema_vq"], host=host)
     assert "lookup_dim" not in config.tokenizer.quantizer.model_dump()  # the scene's vq options are dropped
 
@@ -182,14 +252,18 @@ def test_changing_slot_name_resets_its_options(host):
 def test_slot_given_as_string(host):
     config = resolve_config("label-to-touch", overrides=["generator.conditioners.0=tactile"], host=host)
     assert config.generator.conditioners[0].name == "tactile"
-    config = resolve_config("reconstruction", overrides=["cluster.clusterer=null", "tokenizer.quantizer=ema_vq"],
-                            host=host)
+    config = resolve_config(
+        "reconstruction", overrides=["cluster.clusterer=null", "tokenizer.quantizer=ema_vq"], host=host
+    )
     assert config.tokenizer.quantizer.name == "ema_vq" and config.cluster.clusterer is None
 
 
 def test_list_slot_set_whole_as_json(host):
-    config = resolve_config("reconstruction", overrides=['generator.conditioners=[{"name": "label"}, "tactile"]',
-                                                         "generator.conditioners.0.num_tokens=2"], host=host)
+    config = resolve_config(
+        "reconstruction",
+        overrides=['generator.conditioners=[{"name": "label"}, "tactile"]', "generator.conditioners.0.num_tokens=2"],
+        host=host,
+    )
     assert [item.name for item in config.generator.conditioners] == ["label", "tactile"]
     assert config.generator.conditioners[0].num_tokens == 2
 
@@ -197,7 +271,7 @@ def test_list_slot_set_whole_as_json(host):
 def test_override_values_are_json_or_string():
     assert parse_override("tokenizer.train.steps=5") == (["tokenizer", "train", "steps"], 5)
     assert parse_override("name=my-run") == (["name"], "my-run")
-    assert parse_override("metrics=[{\"name\": \"psnr\"}]") == (["metrics"], [{"name": "psnr"}])
+    assert parse_override('metrics=[{"name": "psnr"}]') == (["metrics"], [{"name": "psnr"}])
     for bad in ("tokenizer.train.steps", "=3", "a..b=1"):
         with pytest.raises(ConfigError, match="bad override"):
             parse_override(bad)
@@ -222,8 +296,7 @@ def test_top_level_name_is_not_a_slot_reset():
 
 
 def test_merge_replaces_block_when_plugin_changes():
-    base = {"tokenizer": {"quantizer": {"name": "vq", "codebook_size": 2},
-                          "train": {"steps": 1, "learning_rate": 0.1}}}
+    base = {"tokenizer": {"quantizer": {"name": "vq", "codebook_size": 2}, "train": {"steps": 1, "learning_rate": 0.1}}}
     merged = merge_configs(base, {"tokenizer": {"quantizer": {"name": "ema_vq"}, "train": {"steps": 2}}})
     assert merged == {"tokenizer": {"quantizer": {"name": "ema_vq"}, "train": {"steps": 2, "learning_rate": 0.1}}}
     assert base["tokenizer"]["train"]["steps"] == 1  # inputs untouched
@@ -231,8 +304,9 @@ def test_merge_replaces_block_when_plugin_changes():
 
 def test_toml_and_json_files_merge_in_order(host, tmp_path):
     toml_file = tmp_path / "a.toml"
-    toml_file.write_text('seed = 7\n[tokenizer.train]\nsteps = 11\n'
-                         '[[generator.conditioners]]\nname = "tactile"\nwidth = 32\n')
+    toml_file.write_text(
+        'seed = 7\n[tokenizer.train]\nsteps = 11\n[[generator.conditioners]]\nname = "tactile"\nwidth = 32\n'
+    )
     json_file = tmp_path / "b.json"
     json_file.write_text(json.dumps({"tokenizer": {"train": {"learning_rate": 0.01}}}))
     config = resolve_config("label-to-touch", [toml_file, json_file], ["tokenizer.train.steps=12"], host=host)
@@ -242,13 +316,16 @@ def test_toml_and_json_files_merge_in_order(host, tmp_path):
     assert config.tokenizer.autoencoder.name == "dm_vqgan"  # the scene's other tokenizer options are kept
 
 
-@pytest.mark.parametrize("name, text, message", [
-    ("missing.toml", None, "does not exist"),
-    ("bad.toml", "seed = = 1", "cannot parse"),
-    ("bad.json", "{", "cannot parse"),
-    ("list.json", "[1, 2]", "top level must be a table"),
-    ("conf.ini", "x", "unsupported config format '.ini'"),
-])
+@pytest.mark.parametrize(
+    "name, text, message",
+    [
+        ("missing.toml", None, "does not exist"),
+        ("bad.toml", "seed = = 1", "cannot parse"),
+        ("bad.json", "{", "cannot parse"),
+        ("list.json", "[1, 2]", "top level must be a table"),
+        ("conf.ini", "x", "unsupported config format '.ini'"),
+    ],
+)
 def test_config_file_errors_name_the_file(host, tmp_path, name, text, message):
     path = tmp_path / name
     if text is not None:
@@ -265,9 +342,17 @@ def test_multiple_problems_are_reported_together(host):
 
 def test_required_and_missing_slots(host):
     config = resolve_config("label-to-touch", host=host)
-    assert required_slots(config, host) == ["data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer",
-                                            "tokenizer.discriminator", "metrics", "sensor", "generator.model",
-                                            "generator.conditioners", "generator.sampler"]
+    assert required_slots(config, host) == [
+        "data.dataset",
+        "tokenizer.autoencoder",
+        "tokenizer.quantizer",
+        "tokenizer.discriminator",
+        "metrics",
+        "sensor",
+        "generator.model",
+        "generator.conditioners",
+        "generator.sampler",
+    ]
     assert missing_slots(config, host) == []
     no_model = resolve_config("label-to-touch", overrides=["generator.model=null"], host=host)
     assert ("generator", "generator.model") in missing_slots(no_model, host)
@@ -302,40 +387,70 @@ def test_config_is_frozen(host):
 
 def test_switching_a_slots_plugin_after_setting_its_options_is_refused(host):
     # The reset would silently drop channels=32 and train the default width instead.
-    with pytest.raises(ConfigError, match=r"--set tokenizer.autoencoder.name=vqgan selects another plugin for "
-                                          r"tokenizer.autoencoder.*--set tokenizer.autoencoder.channels=32; put"):
-        resolve_config("reconstruction", overrides=["tokenizer.autoencoder.channels=32",
-                                                    "tokenizer.autoencoder.name=vqgan"], host=host)
+    with pytest.raises(
+        ConfigError,
+        match=r"--set tokenizer.autoencoder.name=vqgan selects another plugin for "
+        r"tokenizer.autoencoder.*--set tokenizer.autoencoder.channels=32; put",
+    ):
+        resolve_config(
+            "reconstruction",
+            overrides=["tokenizer.autoencoder.channels=32", "tokenizer.autoencoder.name=vqgan"],
+            host=host,
+        )
     with pytest.raises(ConfigError, match="drop the earlier --set tokenizer.quantizer.codebook_size=8"):
-        resolve_config("reconstruction", overrides=["tokenizer.quantizer.codebook_size=8",
-                                                    'tokenizer.quantizer={"name": "ema_vq"}'], host=host)
+        resolve_config(
+            "reconstruction",
+            overrides=["tokenizer.quantizer.codebook_size=8", 'tokenizer.quantizer={"name": "ema_vq"}'],
+            host=host,
+        )
     # Name first, options after: both kept.  Re-stating the same plugin resets nothing, so it is allowed.
-    config = resolve_config("reconstruction", overrides=["tokenizer.autoencoder.name=vqgan",
-                                                         "tokenizer.autoencoder.channels=32",
-                                                         "tokenizer.autoencoder.name=vqgan"], host=host)
+    config = resolve_config(
+        "reconstruction",
+        overrides=[
+            "tokenizer.autoencoder.name=vqgan",
+            "tokenizer.autoencoder.channels=32",
+            "tokenizer.autoencoder.name=vqgan",
+        ],
+        host=host,
+    )
     assert config.tokenizer.autoencoder.name == "vqgan" and config.tokenizer.autoencoder.channels == 32
 
 
 @pytest.mark.parametrize("switch", ["generator.conditioners.0=label", "generator.conditioners.0.name=label"])
 def test_switching_a_list_slot_items_plugin_after_setting_its_options_is_refused(host, switch):
     # The item of a list slot (the old top-level `conditioner`) is protected like a single slot.
-    with pytest.raises(ConfigError, match=f"--set {switch} selects another plugin for generator.conditioners.0.*"
-                                          "drop the earlier --set generator.conditioners.0.width=16"):
+    with pytest.raises(
+        ConfigError,
+        match=f"--set {switch} selects another plugin for generator.conditioners.0.*"
+        "drop the earlier --set generator.conditioners.0.width=16",
+    ):
         resolve_config("touch-to-touch", overrides=["generator.conditioners.0.width=16", switch], host=host)
 
 
-@pytest.mark.parametrize("override, problem", [
-    ("data.batch_size=true", "data.batch_size: Input should be a valid integer (got True)"),
-    ("data.num_workers=true", "data.num_workers: Input should be a valid integer (got True)"),
-    ("data.image_size=true", "data.image_size: expected a side S (S x S pixels) or [height, width] such as "
-                             "[240, 320], whole numbers of pixels from 8 to 4096 (got True)"),
-    ("data.image_size=[240]", "data.image_size: expected a side S (S x S pixels) or [height, width] such as "
-                              "[240, 320], whole numbers of pixels from 8 to 4096 (got [240])"),
-    ("data.image_size=[4, 320]", "data.image_size: expected a side S (S x S pixels) or [height, width] such as "
-                                 "[240, 320], whole numbers of pixels from 8 to 4096 (got [4, 320])"),
-    ('data.batch_size="16"', "data.batch_size: Input should be a valid integer (got '16')"),
-    ("data.val_fraction=false", "data.val_fraction: Input should be a valid number (got False)"),
-])
+@pytest.mark.parametrize(
+    "override, problem",
+    [
+        ("data.batch_size=true", "data.batch_size: Input should be a valid integer (got True)"),
+        ("data.num_workers=true", "data.num_workers: Input should be a valid integer (got True)"),
+        (
+            "data.image_size=true",
+            "data.image_size: expected a side S (S x S pixels) or [height, width] such as "
+            "[240, 320], whole numbers of pixels from 8 to 4096 (got True)",
+        ),
+        (
+            "data.image_size=[240]",
+            "data.image_size: expected a side S (S x S pixels) or [height, width] such as "
+            "[240, 320], whole numbers of pixels from 8 to 4096 (got [240])",
+        ),
+        (
+            "data.image_size=[4, 320]",
+            "data.image_size: expected a side S (S x S pixels) or [height, width] such as "
+            "[240, 320], whole numbers of pixels from 8 to 4096 (got [4, 320])",
+        ),
+        ('data.batch_size="16"', "data.batch_size: Input should be a valid integer (got '16')"),
+        ("data.val_fraction=false", "data.val_fraction: Input should be a valid number (got False)"),
+    ],
+)
 def test_data_counts_refuse_booleans_instead_of_reading_them_as_numbers(host, override, problem):
     # In lax mode `true` became batch_size=1 and `false` val_fraction=0: valid, and not what was meant.
     with pytest.raises(ConfigError) as info:
@@ -344,8 +459,11 @@ def test_data_counts_refuse_booleans_instead_of_reading_them_as_numbers(host, ov
 
 
 def test_data_counts_still_take_plain_numbers(host):
-    config = resolve_config("reconstruction", overrides=["data.batch_size=4", "data.num_workers=0",
-                                                         "data.image_size=32", "data.val_fraction=0"], host=host)
+    config = resolve_config(
+        "reconstruction",
+        overrides=["data.batch_size=4", "data.num_workers=0", "data.image_size=32", "data.val_fraction=0"],
+        host=host,
+    )
     assert (config.data.batch_size, config.data.num_workers, config.data.image_size) == (4, 0, 32)
     assert config.data.val_fraction == 0.0 and isinstance(config.data.val_fraction, float)
 
@@ -357,5 +475,6 @@ def test_non_utf8_config_file_names_the_file(tmp_path):
     path.write_bytes('{"description": "Kraftsensor f\u00fcr Gelsight"}'.encode("latin-1"))
     with pytest.raises(ConfigError) as info:
         load_config_file(path)
-    assert str(info.value) == (f"{path}: not UTF-8 text (byte 0xfc at position 30); save it as UTF-8 "
-                               "(TOML and JSON config files are UTF-8)")
+    assert str(info.value) == (
+        f"{path}: not UTF-8 text (byte 0xfc at position 30); save it as UTF-8 (TOML and JSON config files are UTF-8)"
+    )

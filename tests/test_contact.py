@@ -49,8 +49,7 @@ def test_camera_noise_alone_is_not_contact_and_a_press_shows_through_it():
 
 from vqtouch.core import BuildContext, TactileDataset, load_plugins  # noqa: E402
 from vqtouch.core.data import split_dataset  # noqa: E402
-from vqtouch.plugins.evaluation.contact import (RENDERED_BACKGROUND, dataset_background,  # noqa: E402
-                                                evenly_spaced)
+from vqtouch.plugins.evaluation.contact import RENDERED_BACKGROUND, dataset_background, evenly_spaced  # noqa: E402
 
 HOST = load_plugins(autoload=False)
 SIZE = 32
@@ -74,7 +73,7 @@ def _frames(count, size=SIZE):
     for index in range(count):
         top, left = (index // per_row) * BLOB, (index % per_row) * BLOB
         mask = torch.zeros(size, size, dtype=torch.bool)
-        mask[top:top + BLOB, left:left + BLOB] = True
+        mask[top : top + BLOB, left : left + BLOB] = True
         frames.append(torch.where(mask, (background + 64 / 255).clamp(max=1), background))
         masks.append(mask)
     return torch.stack(frames), torch.stack(masks), background
@@ -98,8 +97,12 @@ class CapturedFrames(TactileDataset):
 
 def test_a_rendered_datasets_background_is_its_sensors_no_contact_render_exactly():
     sensor = HOST.build("sensor_family", {"name": "digit"})  # camera noise: the render depends on the seed
-    dataset = HOST.build("dataset", {"name": "procedural", "num_samples": 12, "image_size": SIZE, "seed": 0},
-                         BuildContext(image_size=SIZE), sensor=sensor)
+    dataset = HOST.build(
+        "dataset",
+        {"name": "procedural", "num_samples": 12, "image_size": SIZE, "seed": 0},
+        BuildContext(image_size=SIZE),
+        sensor=sensor,
+    )
     assert dataset.rendering_sensor() is sensor
     expected = sensor.render(torch.zeros(1, SIZE, SIZE), generator=torch.Generator().manual_seed(0))[0]
     train, _ = split_dataset(dataset, 0.25, seed=0)
@@ -120,7 +123,7 @@ def test_captured_frames_get_the_per_pixel_median_which_recovers_the_background_
     assert torch.equal(background, known)
     assert source.startswith("the per-pixel median of 10 of 10 training images")
     for index in (0, 4, 9):
-        mask = contact_mask(frames[index:index + 1], background[None])[0]
+        mask = contact_mask(frames[index : index + 1], background[None])[0]
         assert torch.equal(mask, masks[index])  # the frame's press and nothing else
     # At most max_images samples, evenly spaced from the first to the last, are read.
     dataset.read.clear()
@@ -152,9 +155,18 @@ def test_the_tokenizer_stage_scores_captured_frames_without_a_sensor_beside_thei
         path.parent.mkdir(parents=True, exist_ok=True)
         Image.fromarray((frame * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()).save(path)
     overrides = [item for item in TINY_TOKENIZER if not item.startswith("data.dataset")]
-    config = resolve_config("reconstruction", host=HOST, overrides=[
-        *overrides, "sensor=null", 'stages=["tokenizer"]', 'metrics=[{"name": "psnr"}]', "data.val_fraction=0.25",
-        json.dumps({"name": "image_folder", "root": str(tmp_path / "frames")}).join(["data.dataset=", ""])])
+    config = resolve_config(
+        "reconstruction",
+        host=HOST,
+        overrides=[
+            *overrides,
+            "sensor=null",
+            'stages=["tokenizer"]',
+            'metrics=[{"name": "psnr"}]',
+            "data.val_fraction=0.25",
+            json.dumps({"name": "image_folder", "root": str(tmp_path / "frames")}).join(["data.dataset=", ""]),
+        ],
+    )
     run = RunDir.create(config, host=HOST, path=tmp_path / "run")
     outcome = run_stage("tokenizer", Assembly(config, HOST), run)
     assert outcome.status == "ran", outcome.describe()

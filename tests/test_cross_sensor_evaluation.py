@@ -20,17 +20,63 @@ def tokenizer_run(tmp_path_factory):
 
 def test_cross_sensor_evaluation_writes_every_part(tokenizer_run, tmp_path, capsys):
     out = tmp_path / "eval"
-    assert main(["--no-progress", "evaluate", "cross-sensor", "--run", str(tokenizer_run), "--out", str(out),
-                 "--seeds", "0", "1", "--steps", "1", "--shots", "2", "3", "--main-shots", "3", "--ratios", "1", "2",
-                 "--main-ratio", "2", "--everything", "4", "--eval-images", "2", "--variants", "2",
-                 "--held-out-variants", "1", "--images", "3", "--clusterers", "kmeans", "--real-shots", "2"]) == 0
+    assert (
+        main(
+            [
+                "--no-progress",
+                "evaluate",
+                "cross-sensor",
+                "--run",
+                str(tokenizer_run),
+                "--out",
+                str(out),
+                "--seeds",
+                "0",
+                "1",
+                "--steps",
+                "1",
+                "--shots",
+                "2",
+                "3",
+                "--main-shots",
+                "3",
+                "--ratios",
+                "1",
+                "2",
+                "--main-ratio",
+                "2",
+                "--everything",
+                "4",
+                "--eval-images",
+                "2",
+                "--variants",
+                "2",
+                "--held-out-variants",
+                "1",
+                "--images",
+                "3",
+                "--clusterers",
+                "kmeans",
+                "--real-shots",
+                "2",
+            ]
+        )
+        == 0
+    )
     result = json.loads((out / "cross_sensor.json").read_text())
     recovery = result["family_recovery"]["rows"]
     assert [(row["clusterer"], row["seed"]) for row in recovery] == [("kmeans", 0), ("kmeans", 1)]
     assert all(-1 <= row["ari"] <= 1 and row["sensors"] == 3 * 3 and row["held_out_sensors"] == 3 for row in recovery)
     transfer = [row for row in result["transfer"]["rows"] if row["seed"] == 0]
     assert [(row["arm"][0], row["shots"], row["ratio"]) for row in transfer] == [
-        ("a", 0, None), ("b", 2, 0.0), ("b", 3, 0.0), ("c", 2, 2.0), ("c", 3, 2.0), ("c", 3, 1.0), ("d", 4, 1.0)]
+        ("a", 0, None),
+        ("b", 2, 0.0),
+        ("b", 3, 0.0),
+        ("c", 2, 2.0),
+        ("c", 3, 2.0),
+        ("c", 3, 1.0),
+        ("d", 4, 1.0),
+    ]
     # Each arm's tokenizer says how it was made; the zero-shot row is the family tokenizer's "before".
     arm = json.loads((out / "arms" / "seed0" / "c-3-2" / "adapt.json").read_text())
     assert arm["shots"] == 3 and arm["family_images"] == 6 and arm["steps"] == 1 and arm["held_out"] == 2
@@ -39,10 +85,16 @@ def test_cross_sensor_evaluation_writes_every_part(tokenizer_run, tmp_path, caps
     assert transfer[4]["family_ssim"] == arm["family_held_out"]["after"]["ssim"]
     assert transfer[0]["family_psnr"] == arm["family_held_out"]["before"]["psnr"]
     # The summary is the mean and spread over the seeds of the rows.
-    rows = [row for row in result["transfer"]["rows"] if row["arm"].startswith("c") and row["shots"] == 3
-            and row["ratio"] == 2.0]
-    summary = next(row for row in result["transfer"]["summary"] if row["arm"].startswith("c") and row["shots"] == 3
-                   and row["ratio"] == 2.0)
+    rows = [
+        row
+        for row in result["transfer"]["rows"]
+        if row["arm"].startswith("c") and row["shots"] == 3 and row["ratio"] == 2.0
+    ]
+    summary = next(
+        row
+        for row in result["transfer"]["summary"]
+        if row["arm"].startswith("c") and row["shots"] == 3 and row["ratio"] == 2.0
+    )
     assert summary["seeds"] == 2
     assert summary["psnr"] == pytest.approx(statistics.fmean(row["psnr"] for row in rows), abs=1e-4)
     assert summary["psnr_std"] == pytest.approx(statistics.pstdev(row["psnr"] for row in rows), abs=1e-4)
@@ -58,6 +110,22 @@ def test_cross_sensor_evaluation_writes_every_part(tokenizer_run, tmp_path, caps
 
 
 def test_main_shots_must_be_swept(tokenizer_run, tmp_path, capsys):
-    assert main(["evaluate", "cross-sensor", "--run", str(tokenizer_run), "--out", str(tmp_path / "x"),
-                 "--shots", "2", "3", "--main-shots", "5"]) == 2
+    assert (
+        main(
+            [
+                "evaluate",
+                "cross-sensor",
+                "--run",
+                str(tokenizer_run),
+                "--out",
+                str(tmp_path / "x"),
+                "--shots",
+                "2",
+                "3",
+                "--main-shots",
+                "5",
+            ]
+        )
+        == 2
+    )
     assert "--main-shots 5 must be one of --shots [2, 3]" in capsys.readouterr().err

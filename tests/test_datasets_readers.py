@@ -25,6 +25,7 @@ from vqtouch.plugins.data.readers._io import ImageLoader, SkippedSamplesWarning
 
 
 import dataset_fixtures as layouts  # noqa: E402  (registered by conftest)
+
 CASES = layouts.READER_CASES
 HOST = load_plugins(autoload=False, extra=sorted({case.module for case in CASES}))
 SIZE = 16
@@ -159,9 +160,11 @@ def test_empty_split_is_an_error(case, lenient, tmp_path):
         build(case.config(root, lenient=lenient))
 
 
-@pytest.mark.parametrize("case", [case for case in CASES if case.name not in {"objectfolder_real", "fabricvst",
-                                                                              "image_folder"}],
-                         ids=lambda case: case.name)
+@pytest.mark.parametrize(
+    "case",
+    [case for case in CASES if case.name not in {"objectfolder_real", "fabricvst", "image_folder"}],
+    ids=lambda case: case.name,
+)
 def test_pair_with_missing_visual_fails_or_is_skipped(case, tmp_path):
     root, dataset = build_case(case, tmp_path)
     victim = first_file(dataset, "visual")
@@ -173,16 +176,24 @@ def test_pair_with_missing_visual_fails_or_is_skipped(case, tmp_path):
 
 
 BAD_FILES = {  # damage -> (how to damage the file, the strict error; {path} is the escaped file name)
-    "not_an_image": (lambda path: path.write_bytes(b"definitely not an image"),
-                     r"cannot read image {path}: not an image file Pillow can read"),
+    "not_an_image": (
+        lambda path: path.write_bytes(b"definitely not an image"),
+        r"cannot read image {path}: not an image file Pillow can read",
+    ),
     "empty": (lambda path: path.write_bytes(b""), r"cannot read image {path}: not an image file Pillow can read"),
     "broken_link": (layouts.break_link, r"image {path} is a broken symbolic link to .*\.gone; fix or remove it"),
-    "animated_gif": (lambda path: layouts.write_frames(path, "GIF"),
-                     r"image {path} has 2 frames \(GIF\); expected a single still image: save one frame of it"),
-    "animated_png": (lambda path: layouts.write_frames(path, "PNG"),
-                     r"image {path} has 2 frames \(PNG\); expected a single still image: save one frame of it"),
-    "multipage_tiff": (lambda path: layouts.write_frames(path, "TIFF", count=3),
-                       r"image {path} has 3 frames \(TIFF\); expected a single still image: save one frame of it"),
+    "animated_gif": (
+        lambda path: layouts.write_frames(path, "GIF"),
+        r"image {path} has 2 frames \(GIF\); expected a single still image: save one frame of it",
+    ),
+    "animated_png": (
+        lambda path: layouts.write_frames(path, "PNG"),
+        r"image {path} has 2 frames \(PNG\); expected a single still image: save one frame of it",
+    ),
+    "multipage_tiff": (
+        lambda path: layouts.write_frames(path, "TIFF", count=3),
+        r"image {path} has 3 frames \(TIFF\); expected a single still image: save one frame of it",
+    ),
     "16_bit": (layouts.write_16_bit, r"image {path} has unsupported mode I;16; expected 8-bit RGB"),
 }
 
@@ -245,10 +256,15 @@ def test_header_check_stops_at_max_samples(tmp_path):
         build(tag_config(root, max_samples=3))
 
 
-@pytest.mark.parametrize("case", [case for case in CASES if case.name in {"visgel", "objectfolder_real",
-                                                                          "objectfolder_cross", "fabricvst",
-                                                                          "image_folder"}],
-                         ids=lambda case: case.name)
+@pytest.mark.parametrize(
+    "case",
+    [
+        case
+        for case in CASES
+        if case.name in {"visgel", "objectfolder_real", "objectfolder_cross", "fabricvst", "image_folder"}
+    ],
+    ids=lambda case: case.name,
+)
 def test_rgba_is_accepted_only_when_opaque(case, tmp_path):
     root, dataset = build_case(case, tmp_path)
     victim = first_file(dataset)
@@ -389,8 +405,9 @@ def test_header_cache_can_be_turned_off(tmp_path, header_opens, _own_cache_folde
     assert len(header_opens) == 12 and cache_files(_own_cache_folder) == []
 
 
-def test_header_cache_is_written_atomically_and_damage_is_ignored(tmp_path, header_opens, _own_cache_folder,
-                                                                   monkeypatch):
+def test_header_cache_is_written_atomically_and_damage_is_ignored(
+    tmp_path, header_opens, _own_cache_folder, monkeypatch
+):
     root = layouts.build_touch_and_go(tmp_path)
     build(tag_config(root))
     [cache] = cache_files(_own_cache_folder)
@@ -491,8 +508,9 @@ def test_visgel_pairs_source_and_destination(direction, tmp_path):
 @pytest.mark.parametrize("direction", ["vision2touch", "touch2vision"])
 def test_visgel_subtracts_the_tactile_reference_frame(direction, tmp_path):
     root = layouts.build_visgel(tmp_path)
-    dataset = build({"name": "visgel", "root": str(root), "image_size": SIZE, "direction": direction,
-                     "subtract_reference": True})
+    dataset = build(
+        {"name": "visgel", "root": str(root), "image_size": SIZE, "direction": direction, "subtract_reference": True}
+    )
     tactile = torch.tensor(layouts.colour(1, "tactile"), dtype=torch.float32)
     expected = ((tactile - torch.tensor(layouts.REFERENCE_COLOUR)) / 255 + 0.5).clamp(0, 1)
     assert torch.allclose(dataset[0]["tactile"].mean(dim=(1, 2)), expected, atol=1.5 / 255)
@@ -774,16 +792,26 @@ def test_image_folder_class_folders(tmp_path):
     assert len(build_lenient({"name": "image_folder", "root": str(root)})[0]) == 3
 
 
-@pytest.mark.parametrize("labels, class_names, expected_names, expected_labels", [
-    (["b", "a", "", "b"], [], ["a", "b"], [1, 0, -1, 1]),
-    (["2", "0", "-1", "1"], [], ["0", "1", "2"], [2, 0, -1, 1]),
-    (["z", "1", "", "x"], ["x", "y", "z"], ["x", "y", "z"], [2, 1, -1, 0]),
-])
+@pytest.mark.parametrize(
+    "labels, class_names, expected_names, expected_labels",
+    [
+        (["b", "a", "", "b"], [], ["a", "b"], [1, 0, -1, 1]),
+        (["2", "0", "-1", "1"], [], ["0", "1", "2"], [2, 0, -1, 1]),
+        (["z", "1", "", "x"], ["x", "y", "z"], ["x", "y", "z"], [2, 1, -1, 0]),
+    ],
+)
 def test_image_folder_csv_labels_and_visual_pairs(labels, class_names, expected_names, expected_labels, tmp_path):
     root = layouts.build_image_folder(tmp_path)
     layouts.write_image_folder_csv(root, labels)
-    dataset = build({"name": "image_folder", "root": str(root), "csv": "listed/list.csv", "image_size": SIZE,
-                     "class_names": class_names})
+    dataset = build(
+        {
+            "name": "image_folder",
+            "root": str(root),
+            "csv": "listed/list.csv",
+            "image_size": SIZE,
+            "class_names": class_names,
+        }
+    )
     assert dataset.class_names == expected_names and [record.label for record in dataset.records] == expected_labels
     for index, number in enumerate(range(3, 7)):
         check_pair(dataset[index], number)
@@ -835,8 +863,10 @@ def test_each_reader_groups_samples_by_what_its_layout_records(tmp_path):
     assert groups("tvl_ssvtp") == ("sample", None)
     assert groups("objectfolder_real") == ("trial", [f"{obj}/{trial}" for obj, trial, _, _ in layouts.of_real_frames()])
     assert groups("objectfolder_cross") == ("sample", None)
-    assert groups("fabricvst") == ("fabric", [fabric for fabric, numbers in layouts.fabric_numbers().items()
-                                              for _ in numbers])
+    assert groups("fabricvst") == (
+        "fabric",
+        [fabric for fabric, numbers in layouts.fabric_numbers().items() for _ in numbers],
+    )
     unit, folder_groups = groups("image_folder")
     # rough/img0.png and smooth/img2.png sit in their class folders: each its own group.
     assert unit == "folder" and folder_groups[1] == "rough/nested" and len(set(folder_groups)) == 3
@@ -853,8 +883,9 @@ def test_image_folder_groups_come_from_the_group_column(tmp_path):
     config = {"name": "image_folder", "root": str(root), "csv": "listed/list.csv", "image_size": SIZE}
     csv_path = layouts.write_image_folder_csv(root, ["0", "0", "1", "1"])
     assert build(config).split_groups() is None and build(config).split_unit == "sample"
-    csv_path.write_text("path,group,label\ntouch/3.png,rec_a,0\ntouch/4.png,rec_b,0\ntouch/5.png,rec_a,1\n"
-                        "touch/6.png,,1\n")
+    csv_path.write_text(
+        "path,group,label\ntouch/3.png,rec_a,0\ntouch/4.png,rec_b,0\ntouch/5.png,rec_a,1\ntouch/6.png,,1\n"
+    )
     dataset = build(config)
     assert dataset.split_unit == "group"
     assert dataset.split_groups()[:3] == ["rec_a", "rec_b", "rec_a"]

@@ -17,9 +17,13 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from vqtouch.plugins.tokenizer.deformable import (DeformableConv2d, bilinear_taps, deform_conv2d_gather,
-                                                  deform_conv2d_grid_sample, deform_conv2d_torchvision)
-
+from vqtouch.plugins.tokenizer.deformable import (
+    DeformableConv2d,
+    bilinear_taps,
+    deform_conv2d_gather,
+    deform_conv2d_grid_sample,
+    deform_conv2d_torchvision,
+)
 
 
 def _import_torchvision_ops():
@@ -33,15 +37,21 @@ def _import_torchvision_ops():
 
 torchvision_ops = _import_torchvision_ops()
 needs_torchvision = pytest.mark.skipif(
-    torchvision_ops is None, reason="torchvision.ops is not importable: torchvision-backend test skipped "
-                                    "(the pure-PyTorch backends are tested without it)")
+    torchvision_ops is None,
+    reason="torchvision.ops is not importable: torchvision-backend test skipped "
+    "(the pure-PyTorch backends are tested without it)",
+)
 # Parametrisations over both backends: only the torchvision case carries the skip.
 BACKENDS = ["grid_sample", "gather", pytest.param("torchvision", marks=needs_torchvision)]
-FUNCTIONS = [pytest.param(deform_conv2d_grid_sample, id="grid_sample"),
-             pytest.param(deform_conv2d_gather, id="gather"),
-             pytest.param(deform_conv2d_torchvision, id="torchvision", marks=needs_torchvision)]
-PURE_FUNCTIONS = [pytest.param(deform_conv2d_grid_sample, id="grid_sample"),
-                  pytest.param(deform_conv2d_gather, id="gather")]
+FUNCTIONS = [
+    pytest.param(deform_conv2d_grid_sample, id="grid_sample"),
+    pytest.param(deform_conv2d_gather, id="gather"),
+    pytest.param(deform_conv2d_torchvision, id="torchvision", marks=needs_torchvision),
+]
+PURE_FUNCTIONS = [
+    pytest.param(deform_conv2d_grid_sample, id="grid_sample"),
+    pytest.param(deform_conv2d_gather, id="gather"),
+]
 
 HEIGHT, WIDTH = 9, 11  # non-square on purpose: catches (dy, dx) / (x, y) swaps
 
@@ -60,20 +70,32 @@ def out_size(size: int, kernel: int, stride: int, padding: int, dilation: int) -
     return (size + 2 * padding - dilation * (kernel - 1) - 1) // stride + 1
 
 
-def random_problem(kernel=3, stride=1, padding=1, dilation=1, with_mask=True, offset_groups=1, in_channels=4,
-                   out_channels=6, batch=2, offset_scale=3.0, dtype=torch.float32, seed=0):
+def random_problem(
+    kernel=3,
+    stride=1,
+    padding=1,
+    dilation=1,
+    with_mask=True,
+    offset_groups=1,
+    in_channels=4,
+    out_channels=6,
+    batch=2,
+    offset_scale=3.0,
+    dtype=torch.float32,
+    seed=0,
+):
     """Input, offset, weight, bias, mask with random non-integer offsets, some far outside the image."""
     generator = torch.Generator().manual_seed(seed)
     out_h = out_size(HEIGHT, kernel, stride, padding, dilation)
     out_w = out_size(WIDTH, kernel, stride, padding, dilation)
     taps = kernel * kernel
     x = torch.randn(batch, in_channels, HEIGHT, WIDTH, generator=generator, dtype=dtype)
-    offset = offset_scale * torch.randn(batch, 2 * offset_groups * taps, out_h, out_w, generator=generator,
-                                        dtype=dtype)
+    offset = offset_scale * torch.randn(batch, 2 * offset_groups * taps, out_h, out_w, generator=generator, dtype=dtype)
     weight = torch.randn(out_channels, in_channels, kernel, kernel, generator=generator, dtype=dtype)
     bias = torch.randn(out_channels, generator=generator, dtype=dtype)
-    mask = torch.rand(batch, offset_groups * taps, out_h, out_w, generator=generator, dtype=dtype) \
-        if with_mask else None
+    mask = (
+        torch.rand(batch, offset_groups * taps, out_h, out_w, generator=generator, dtype=dtype) if with_mask else None
+    )
     return x, offset, weight, bias, mask
 
 
@@ -92,8 +114,9 @@ def test_grid_sample_matches_torchvision(kernel, stride, padding, dilation, with
     assert offset.abs().max() > WIDTH / 2
     assert not torch.equal(offset, offset.round())
     ours = deform_conv2d_grid_sample(x, offset, weight, bias, stride, padding, dilation, mask)
-    reference = torchvision_ops.deform_conv2d(x, offset, weight, bias, stride=stride, padding=padding,
-                                              dilation=dilation, mask=mask)
+    reference = torchvision_ops.deform_conv2d(
+        x, offset, weight, bias, stride=stride, padding=padding, dilation=dilation, mask=mask
+    )
     assert ours.shape == reference.shape
     torch.testing.assert_close(ours, reference, atol=1e-4, rtol=1e-4)
 
@@ -108,8 +131,7 @@ def test_offset_groups_weight_groups_and_pair_arguments_match_torchvision():
     grouped_weight = torch.randn(6, 2, 3, 3, generator=generator)  # 2 weight groups of 2 input channels
     bias = torch.randn(6, generator=generator)
     ours = deform_conv2d_grid_sample(x, offset, grouped_weight, bias, (1, 2), (1, 2), (1, 1), mask)
-    reference = torchvision_ops.deform_conv2d(x, offset, grouped_weight, bias, stride=(1, 2), padding=(1, 2),
-                                              mask=mask)
+    reference = torchvision_ops.deform_conv2d(x, offset, grouped_weight, bias, stride=(1, 2), padding=(1, 2), mask=mask)
     torch.testing.assert_close(ours, reference, atol=1e-4, rtol=1e-4)
 
 
@@ -119,10 +141,12 @@ def test_zero_offsets_and_unit_mask_equal_conv2d(stride, padding, dilation, func
     x, offset, weight, bias, mask = random_problem(3, stride, padding, dilation)
     offset, mask = torch.zeros_like(offset), torch.ones_like(mask)
     expected = F.conv2d(x, weight, bias, stride=stride, padding=padding, dilation=dilation)
-    torch.testing.assert_close(function(x, offset, weight, bias, stride, padding, dilation, mask), expected,
-                               atol=1e-5, rtol=1e-5)
-    torch.testing.assert_close(function(x, offset, weight, bias, stride, padding, dilation, None), expected,
-                               atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(
+        function(x, offset, weight, bias, stride, padding, dilation, mask), expected, atol=1e-5, rtol=1e-5
+    )
+    torch.testing.assert_close(
+        function(x, offset, weight, bias, stride, padding, dilation, None), expected, atol=1e-5, rtol=1e-5
+    )
 
 
 # -- the layer ---------------------------------------------------------------------------------
@@ -275,14 +299,15 @@ def test_gather_backend_equals_grid_sample_in_float32(kernel, stride, padding, d
     weight groups."""
     generator = torch.Generator().manual_seed(11)
     in_channels, out_channels, weight_groups = 4, 6, 2
-    out_h, out_w = (out_size(HEIGHT, kernel, stride, padding, dilation), out_size(WIDTH, kernel, stride, padding,
-                                                                                 dilation))
+    out_h, out_w = (
+        out_size(HEIGHT, kernel, stride, padding, dilation),
+        out_size(WIDTH, kernel, stride, padding, dilation),
+    )
     x = torch.randn(2, in_channels, HEIGHT, WIDTH, generator=generator)
     offset = 4 * torch.randn(2, 2 * offset_groups * kernel * kernel, out_h, out_w, generator=generator)
     weight = torch.randn(out_channels, in_channels // weight_groups, kernel, kernel, generator=generator)
     bias = torch.randn(out_channels, generator=generator)
-    mask = (torch.rand(2, offset_groups * kernel * kernel, out_h, out_w, generator=generator) if with_mask
-            else None)
+    mask = torch.rand(2, offset_groups * kernel * kernel, out_h, out_w, generator=generator) if with_mask else None
     results = []
     for function in (deform_conv2d_grid_sample, deform_conv2d_gather):
         leaves = [t.detach().clone().requires_grad_() for t in (x, offset, weight, bias)]
@@ -426,25 +451,38 @@ def test_functions_reject_bad_shapes(function):
 
 
 def test_importing_the_module_does_not_import_torchvision():
-    code = ("import sys, vqtouch.plugins.tokenizer.deformable as d; "
-            "assert 'torchvision' not in sys.modules, sorted(m for m in sys.modules if 'torchvision' in m)[:5]")
+    code = (
+        "import sys, vqtouch.plugins.tokenizer.deformable as d; "
+        "assert 'torchvision' not in sys.modules, sorted(m for m in sys.modules if 'torchvision' in m)[:5]"
+    )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
 
 
 def test_without_torchvision_only_the_torchvision_tests_skip():
     """Run a few of this file's tests in a fresh interpreter where ``import torchvision.ops`` fails."""
     selection = "test_layer_at_init_equals_plain_conv or test_functions_reject_bad_shapes"
-    code = ("import sys; sys.modules['torchvision'] = None; sys.modules['torchvision.ops'] = None; import pytest; "
-            f"raise SystemExit(pytest.main([{__file__!r}, '-q', '-rs', '-p', 'no:cacheprovider', "
-            f"'-k', {selection!r}]))")
-    completed = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
-                               cwd=Path(__file__).resolve().parent.parent, env=dict(os.environ))
+    code = (
+        "import sys; sys.modules['torchvision'] = None; sys.modules['torchvision.ops'] = None; import pytest; "
+        f"raise SystemExit(pytest.main([{__file__!r}, '-q', '-rs', '-p', 'no:cacheprovider', "
+        f"'-k', {selection!r}]))"
+    )
+    completed = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=Path(__file__).resolve().parent.parent,
+        env=dict(os.environ),
+    )
     assert completed.returncode == 0, completed.stdout[-3000:] + completed.stderr[-2000:]
-    counts = dict((word, int(number)) for number, word in re.findall(r"(\d+) (passed|skipped|failed|error)",
-                                                                    completed.stdout.strip().splitlines()[-1]))
+    counts = dict(
+        (word, int(number))
+        for number, word in re.findall(
+            r"(\d+) (passed|skipped|failed|error)", completed.stdout.strip().splitlines()[-1]
+        )
+    )
     # Every grid_sample and gather case runs and passes; exactly their torchvision twin skips, with the reason.
-    assert counts.get("passed", 0) == 2 * counts.get("skipped", 0) > 0 and set(counts) == {"passed", "skipped"}, \
-        counts
+    assert counts.get("passed", 0) == 2 * counts.get("skipped", 0) > 0 and set(counts) == {"passed", "skipped"}, counts
     assert "torchvision.ops is not importable" in completed.stdout
 
 
@@ -456,10 +494,14 @@ def test_torchvision_backend_without_torchvision_fails_when_built(monkeypatch):
     from vqtouch.plugins.tokenizer.deformable import DeformableConv2d
 
     real_find_spec = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec",
-                        lambda name, *a: None if name == "torchvision" else real_find_spec(name, *a))
-    with pytest.raises(ConfigError, match=r"deformable_backend 'torchvision' needs torchvision, which is not "
-                                          r"installed: pip install torchvision"):
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "torchvision" else real_find_spec(name, *a)
+    )
+    with pytest.raises(
+        ConfigError,
+        match=r"deformable_backend 'torchvision' needs torchvision, which is not "
+        r"installed: pip install torchvision",
+    ):
         DeformableConv2d(4, 4, 3, padding=1, backend="torchvision")
     DeformableConv2d(4, 4, 3, padding=1)  # the default (gather) needs nothing
     DeformableConv2d(4, 4, 3, padding=1, backend="grid_sample")

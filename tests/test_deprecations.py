@@ -13,8 +13,19 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import save_file
 
-from vqtouch.core import (Assembly, BuildContext, Conditioner, ConfigError, PluginError,
-                          VqtouchDeprecationWarning, hookimpl, load, load_plugins, resolve_config, save)
+from vqtouch.core import (
+    Assembly,
+    BuildContext,
+    Conditioner,
+    ConfigError,
+    PluginError,
+    VqtouchDeprecationWarning,
+    hookimpl,
+    load,
+    load_plugins,
+    resolve_config,
+    save,
+)
 from vqtouch.core import deprecations
 from vqtouch.core.config import migrate_config
 
@@ -25,12 +36,15 @@ def _deprecations(record) -> list[str]:
     return [str(w.message) for w in record if issubclass(w.category, VqtouchDeprecationWarning)]
 
 
-@pytest.mark.parametrize("override, new_path, expected", [
-    ('conditioner={"name": "label"}', "generator.conditioners", "label"),
-    ("tokenizer.encoder.name=vqgan", "tokenizer.autoencoder", "vqgan"),
-    ("clusterer.name=kmeans", "cluster.clusterer", "kmeans"),
-    ('generator={"name": "vq_diffusion", "depth": 3}', "generator.model", "vq_diffusion"),
-])
+@pytest.mark.parametrize(
+    "override, new_path, expected",
+    [
+        ('conditioner={"name": "label"}', "generator.conditioners", "label"),
+        ("tokenizer.encoder.name=vqgan", "tokenizer.autoencoder", "vqgan"),
+        ("clusterer.name=kmeans", "cluster.clusterer", "kmeans"),
+        ('generator={"name": "vq_diffusion", "depth": 3}', "generator.model", "vq_diffusion"),
+    ],
+)
 def test_a_0_1_0_config_key_still_works_with_one_warning_naming_the_new_key(host, override, new_path, expected):
     with warnings.catch_warnings(record=True) as record:
         warnings.simplefilter("always")
@@ -72,6 +86,7 @@ def test_todays_scenes_need_no_migration(host):
 
 def test_a_0_1_0_conditioner_declaring_modality_reads_that_key():
     with pytest.warns(VqtouchDeprecationWarning, match=r"OldStyle\.modality' was renamed to 'OldStyle\.sample_key'"):
+
         class OldStyle(Conditioner):
             modality = "text"
 
@@ -95,8 +110,12 @@ def test_old_python_names_still_work_with_a_warning(host):
 
 
 def _label_checkpoint(host, path: Path) -> Path:
-    return save(host.build("conditioner", {"name": "label", "num_tokens": 2}, BuildContext(num_classes=3, cond_dim=8)),
-                path, step=1, host=host)
+    return save(
+        host.build("conditioner", {"name": "label", "num_tokens": 2}, BuildContext(num_classes=3, cond_dim=8)),
+        path,
+        step=1,
+        host=host,
+    )
 
 
 def test_load_without_host_is_refused_in_one_line_saying_what_to_pass(host, tmp_path):
@@ -107,8 +126,18 @@ def test_load_without_host_is_refused_in_one_line_saying_what_to_pass(host, tmp_
 
 
 def test_a_checkpoint_under_an_old_kind_name_loads_under_the_new_one(host, tmp_path):
-    encoder = host.build("autoencoder", {"name": "vqgan", "channels": 8, "channel_multipliers": [1, 1],
-                                          "z_channels": 4, "embed_dim": 4, "norm_groups": 4}, BuildContext())
+    encoder = host.build(
+        "autoencoder",
+        {
+            "name": "vqgan",
+            "channels": 8,
+            "channel_multipliers": [1, 1],
+            "z_channels": 4,
+            "embed_dim": 4,
+            "norm_groups": 4,
+        },
+        BuildContext(),
+    )
     path = save(encoder, tmp_path / "enc.safetensors", step=2, host=host)
     with safe_open(str(path), "pt") as handle:
         metadata = handle.metadata()
@@ -161,8 +190,10 @@ def test_the_cli_prints_a_rename_as_one_warning_line_and_a_removed_key_as_one_er
     renamed = run_cli("config", "show", "label-to-touch", "--set", 'conditioner={"name": "label"}')
     assert renamed.returncode == 0, renamed.stderr
     lines = [line for line in renamed.stderr.splitlines() if "renamed" in line]
-    assert lines == ["vqtouch: warning: config key 'conditioner' was renamed to 'generator.conditioners' in vqtouch "
-                     "0.2.0; use 'generator.conditioners' ('conditioner' stops working in 0.3.0)"]
+    assert lines == [
+        "vqtouch: warning: config key 'conditioner' was renamed to 'generator.conditioners' in vqtouch "
+        "0.2.0; use 'generator.conditioners' ('conditioner' stops working in 0.3.0)"
+    ]
     removed = run_cli("config", "show", "label-to-touch", "--set", "train.steps=3")
     assert removed.returncode == 2
     assert removed.stderr.count("\n") == 1 and "tokenizer.train" in removed.stderr
@@ -171,14 +202,26 @@ def test_the_cli_prints_a_rename_as_one_warning_line_and_a_removed_key_as_one_er
 def test_every_rename_is_in_the_changelog_and_the_version_says_so():
     changelog = (REPO / "CHANGELOG.md").read_text(encoding="utf-8")
     section = changelog.split(f"## {deprecations.RENAMED_IN}", 1)[1].split("\n## ", 1)[0]
-    names = ([r.old for r in deprecations.CONFIG_RENAMES] + list(deprecations.CONFIG_REMOVED)
-             + list(deprecations.STAGES_REMOVED) + list(deprecations.KIND_RENAMES) + list(deprecations.HOOK_RENAMES)
-             + list(deprecations.HOOKS_REMOVED) + ["modality", "Encoder", "build_components", "load"])
+    names = (
+        [r.old for r in deprecations.CONFIG_RENAMES]
+        + list(deprecations.CONFIG_REMOVED)
+        + list(deprecations.STAGES_REMOVED)
+        + list(deprecations.KIND_RENAMES)
+        + list(deprecations.HOOK_RENAMES)
+        + list(deprecations.HOOKS_REMOVED)
+        + ["modality", "Encoder", "build_components", "load"]
+    )
     # The old name is the first quoted name of a table row or a bullet (the "0.1.0" side).
-    first_spans = [re.search(r"`([^`]+)`", line).group(1) for line in section.splitlines()
-                   if line.startswith(("| ", "- ")) and "`" in line]
-    missing = [name for name in names if not any(span == name or span.endswith("." + name) or
-                                                 span.startswith(name + "(") for span in first_spans)]
+    first_spans = [
+        re.search(r"`([^`]+)`", line).group(1)
+        for line in section.splitlines()
+        if line.startswith(("| ", "- ")) and "`" in line
+    ]
+    missing = [
+        name
+        for name in names
+        if not any(span == name or span.endswith("." + name) or span.startswith(name + "(") for span in first_spans)
+    ]
     assert not missing, f"CHANGELOG {deprecations.RENAMED_IN} does not describe {missing}"
     version = re.search(r'^version = "([^"]+)"', (REPO / "pyproject.toml").read_text(), re.M).group(1)
     assert version == deprecations.RENAMED_IN

@@ -29,8 +29,13 @@ def test_the_derived_condition_follows_the_class_names():
     assert [MATERIALS[i] for i in derived.tolist()] == [material_of(names[i]) for i in (0, 1, 2, 1)]
     # A batch that already holds the material (what `generate --condition` gives) is used as it is.
     assert conditioner.condition_of({"material": torch.tensor([2])}).tolist() == [2]
-    check_plugin(host, "conditioner", "material", context=BuildContext(num_classes=3, class_names=names, cond_dim=8),
-                 condition=torch.tensor([0, 1, 2]))
+    check_plugin(
+        host,
+        "conditioner",
+        "material",
+        context=BuildContext(num_classes=3, class_names=names, cond_dim=8),
+        condition=torch.tensor([0, 1, 2]),
+    )
 
 
 def test_a_derived_condition_trains_and_samples(with_plugin, tmp_path, capsys):
@@ -40,12 +45,40 @@ def test_a_derived_condition_trains_and_samples(with_plugin, tmp_path, capsys):
     class_names = json.loads(header["vqtouch.context"])["class_names"]
     assert len(class_names) > 1  # the dataset's names reached the factory through the build context
     out = tmp_path / "soft"
-    assert main(["--no-progress", "generate", "--run", str(run), "--condition", "material=soft", "--n", "2",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "--no-progress",
+                "generate",
+                "--run",
+                str(run),
+                "--condition",
+                "material=soft",
+                "--n",
+                "2",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     settings = json.loads((out / "generate.json").read_text())
     assert settings["condition"] == "material" and settings["conditioner"] == "0:material"
     assert len(list(out.glob("sample_*.png"))) == 2
     capsys.readouterr()
-    assert main(["--no-progress", "generate", "--run", str(run), "--condition", "material=glass", "--out",
-                 str(tmp_path / "bad")]) == 2
+    assert (
+        main(
+            [
+                "--no-progress",
+                "generate",
+                "--run",
+                str(run),
+                "--condition",
+                "material=glass",
+                "--out",
+                str(tmp_path / "bad"),
+            ]
+        )
+        == 2
+    )
     assert "choose one of rigid, soft, textured" in capsys.readouterr().err

@@ -32,8 +32,10 @@ def gen(seed: int) -> torch.Generator:
 
 # -- independent float64 references ---------------------------------------------------------------
 
-def per_step_float64(num_codes: int, num_steps: int, att_1: float, att_T: float, ctt_1: float,
-                     ctt_T: float) -> list[tuple[float, float, float]]:
+
+def per_step_float64(
+    num_codes: int, num_steps: int, att_1: float, att_T: float, ctt_1: float, ctt_T: float
+) -> list[tuple[float, float, float]]:
     """(alpha_t, beta_t, gamma_t) for t = 0..T-1 from the linear cumulative end points (docs/diffusion.md section 1)."""
     alpha_bar = [att_1 + t / (num_steps - 1) * (att_T - att_1) for t in range(num_steps)]
     gamma_bar = [ctt_1 + t / (num_steps - 1) * (ctt_T - ctt_1) for t in range(num_steps)]
@@ -76,8 +78,13 @@ class DenseProcess:
         return joint / self.between(-1, t)[x0, xt]
 
 
-def assert_log_close(log_actual: torch.Tensor, reference: torch.Tensor, prob_atol: float = 1e-6,
-                     log_atol: float = 1e-4, significant: float = 1e-9) -> None:
+def assert_log_close(
+    log_actual: torch.Tensor,
+    reference: torch.Tensor,
+    prob_atol: float = 1e-6,
+    log_atol: float = 1e-4,
+    significant: float = 1e-9,
+) -> None:
     """Probabilities agree to ``prob_atol`` everywhere, and logs agree to ``log_atol`` wherever the
     reference probability is above ``significant`` (so tiny replace probabilities are checked too)."""
     actual = log_actual.double().exp()
@@ -88,17 +95,20 @@ def assert_log_close(log_actual: torch.Tensor, reference: torch.Tensor, prob_ato
 
 # -- log-space helpers ----------------------------------------------------------------------------
 
+
 def test_log1mexp_matches_float64_reference():
     values = [-1e-10, -1e-7, -1e-3, -0.3, -math.log(2.0), -0.7, -1.0, -5.0, -20.0, -50.0]
     # 50-digit decimal arithmetic: independent of either float64 formula and of their cancellations.
     with decimal.localcontext() as context:
         context.prec = 50
         reference = torch.tensor([float((1 - decimal.Decimal(a).exp()).ln()) for a in values], dtype=torch.float64)
-    torch.testing.assert_close(D.log1mexp(torch.tensor(values, dtype=torch.float64)), reference,
-                               rtol=1e-12, atol=1e-300)
+    torch.testing.assert_close(
+        D.log1mexp(torch.tensor(values, dtype=torch.float64)), reference, rtol=1e-12, atol=1e-300
+    )
     # float32: -1e-10 is where log(1 - exp(a)) gives log(0) = -inf.
-    torch.testing.assert_close(D.log1mexp(torch.tensor(values, dtype=torch.float32)), reference.float(),
-                               rtol=2e-6, atol=1e-30)
+    torch.testing.assert_close(
+        D.log1mexp(torch.tensor(values, dtype=torch.float32)), reference.float(), rtol=2e-6, atol=1e-30
+    )
 
 
 def test_log1mexp_and_log_add_exp_never_leave_the_floor():
@@ -108,8 +118,9 @@ def test_log1mexp_and_log_add_exp_never_leave_the_floor():
     value.sum().backward()
     assert torch.isfinite(a.grad).all()
     inf = float("-inf")
-    result = D.log_add_exp(torch.tensor([inf, inf, D.LOG_ZERO, -1e30, 0.0]),
-                           torch.tensor([inf, 0.0, D.LOG_ZERO, -1e30, 0.0]))
+    result = D.log_add_exp(
+        torch.tensor([inf, inf, D.LOG_ZERO, -1e30, 0.0]), torch.tensor([inf, 0.0, D.LOG_ZERO, -1e30, 0.0])
+    )
     assert torch.isfinite(result).all() and (result >= D.LOG_ZERO).all()
     torch.testing.assert_close(result[[1, 4]], torch.tensor([0.0, math.log(2.0)]))
 
@@ -127,10 +138,11 @@ def test_log_onehot_and_predict_x0_layout():
 
 # -- schedule -------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("name", SCHEDULES)
 def test_q_pred_rows_sum_to_one_at_every_step(name):
     schedule = D.MaskReplaceSchedule(K, T, **SCHEDULES[name])
-    codes = torch.arange(K + 1).repeat(T + 1, 1)                  # every x_0, MASK included
+    codes = torch.arange(K + 1).repeat(T + 1, 1)  # every x_0, MASK included
     t = torch.arange(-1, T)
     log_q = schedule.q_pred(D.log_onehot(codes, K + 1), t)
     assert torch.isfinite(log_q).all()
@@ -143,18 +155,19 @@ def test_q_pred_equals_product_of_step_matrices(name):
     dense = DenseProcess(K, T, SCHEDULES[name])
     x0 = torch.arange(K + 1)
     for t in range(-1, T):
-        log_q = schedule.q_pred(D.log_onehot(x0.unsqueeze(0), K + 1), torch.tensor([t]))[0]   # (C, L = x0)
+        log_q = schedule.q_pred(D.log_onehot(x0.unsqueeze(0), K + 1), torch.tensor([t]))[0]  # (C, L = x0)
         assert_log_close(log_q.T, dense.between(-1, t))
     # The float64 per-step values the schedule exposes are those of the end points.
     reference = torch.tensor(per_step_float64(K, T, **SCHEDULES[name]), dtype=torch.float64)
-    torch.testing.assert_close(torch.stack([schedule.alpha, schedule.beta, schedule.gamma], 1), reference,
-                               atol=1e-12, rtol=0)
+    torch.testing.assert_close(
+        torch.stack([schedule.alpha, schedule.beta, schedule.gamma], 1), reference, atol=1e-12, rtol=0
+    )
 
 
 def test_q_pred_of_a_distribution_is_the_mixture():
     schedule = D.MaskReplaceSchedule(K, T, **REPLACE_ENDS)
     dense = DenseProcess(K, T, REPLACE_ENDS)
-    probs = torch.softmax(torch.randn(K + 1, 3, generator=gen(3), dtype=torch.float64), 0)   # MASK mass too
+    probs = torch.softmax(torch.randn(K + 1, 3, generator=gen(3), dtype=torch.float64), 0)  # MASK mass too
     for t in (0, 4, T - 1):
         log_q = schedule.q_pred(probs.log().float().unsqueeze(0), torch.tensor([t]))[0]
         assert_log_close(log_q, dense.between(-1, t).T @ probs)
@@ -191,13 +204,16 @@ def test_replace_mass_of_released_and_custom_schedules():
     assert custom.replace_mass(-1).item() == 0.0
 
 
-@pytest.mark.parametrize("ends, named", [
-    ({"att_T": 0.2, "ctt_T": 0.9}, "att_T + ctt_T"),
-    ({"att_1": 0.5, "att_T": 0.6}, "att_T > att_1"),
-    ({"ctt_1": 0.5, "ctt_T": 0.4}, "ctt_T < ctt_1"),
-    ({"ctt_T": 1.5}, "ctt_T"),
-    ({"att_1": 0.5, "att_T": 0.5, "ctt_1": 0.0, "ctt_T": 0.5}, "beta_t is negative"),
-])
+@pytest.mark.parametrize(
+    "ends, named",
+    [
+        ({"att_T": 0.2, "ctt_T": 0.9}, "att_T + ctt_T"),
+        ({"att_1": 0.5, "att_T": 0.6}, "att_T > att_1"),
+        ({"ctt_1": 0.5, "ctt_T": 0.4}, "ctt_T < ctt_1"),
+        ({"ctt_T": 1.5}, "ctt_T"),
+        ({"att_1": 0.5, "att_T": 0.5, "ctt_1": 0.0, "ctt_T": 0.5}, "beta_t is negative"),
+    ],
+)
 def test_invalid_end_points_are_refused(ends, named):
     with pytest.raises(ValueError, match=r"att_1=.*ctt_T=") as caught:
         D.MaskReplaceSchedule(K, T, **ends)
@@ -231,7 +247,7 @@ def test_posterior_of_predicted_x0_is_the_mixture_of_bayes_posteriors(name):
     schedule = D.MaskReplaceSchedule(K, T, **SCHEDULES[name])
     dense = DenseProcess(K, T, SCHEDULES[name])
     log_x0 = D.log_predict_x0(2.0 * torch.randn(1, K, L, generator=gen(2)))
-    p_x0 = log_x0[0, :K].double().exp()                                  # (K, L)
+    p_x0 = log_x0[0, :K].double().exp()  # (K, L)
     x_t = torch.randint(0, K + 1, (1, L), generator=gen(4))
     for t, s in POSTERIOR_PAIRS:
         log_post = schedule.posterior(log_x0, x_t, torch.tensor([t]), torch.tensor([s]))[0]
@@ -245,8 +261,10 @@ def test_posterior_of_predicted_x0_is_the_mixture_of_bayes_posteriors(name):
 def test_posterior_and_losses_stay_finite_at_the_edges(name):
     schedule = D.MaskReplaceSchedule(K, T, **SCHEDULES[name])
     x0 = torch.randint(0, K, (4, L), generator=gen(5))
-    saturated = 1e4 * (2.0 * torch.nn.functional.one_hot(torch.randint(0, K, (4, L), generator=gen(6)), K)
-                       .permute(0, 2, 1).float() - 1.0)
+    saturated = 1e4 * (
+        2.0 * torch.nn.functional.one_hot(torch.randint(0, K, (4, L), generator=gen(6)), K).permute(0, 2, 1).float()
+        - 1.0
+    )
     for logits in (torch.randn(4, K, L), saturated):
         logits = logits.clone().requires_grad_(True)
         for t in (0, 1, T - 1):
@@ -273,6 +291,7 @@ def test_posterior_refuses_non_forward_pairs():
 
 # -- losses ---------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("name", SCHEDULES)
 def test_vb_loss_is_nonnegative_and_vanishes_for_the_true_x0(name):
     schedule = D.MaskReplaceSchedule(K, T, **SCHEDULES[name])
@@ -282,7 +301,7 @@ def test_vb_loss_is_nonnegative_and_vanishes_for_the_true_x0(name):
     x_t = schedule.q_sample(x0, t_B, gen(8))
     random_loss = D.vb_loss(D.log_predict_x0(torch.randn(batch, K, L, generator=gen(9))), x0, x_t, t_B, schedule)
     assert (random_loss.lt_B >= -1e-5).all() and (random_loss.loss_B >= -1e-5).all()
-    assert random_loss.lt_B[t_B > 0].max() > 0.1                          # a wrong prediction costs
+    assert random_loss.lt_B[t_B > 0].max() > 0.1  # a wrong prediction costs
     onehot_logits = 30.0 * torch.nn.functional.one_hot(x0, K).permute(0, 2, 1).float()
     exact = D.vb_loss(D.log_predict_x0(onehot_logits), x0, x_t, t_B, schedule)
     assert exact.lt_B[t_B > 0].abs().max() < 1e-4
@@ -315,24 +334,25 @@ def test_vb_loss_matches_masked_ce_on_a_pure_absorbing_schedule():
 def test_masked_ce_loss_ignores_unmasked_tokens_and_matches_a_hand_value():
     schedule = D.MaskReplaceSchedule(4, 10, **DEFAULT_ENDS)
     x0 = torch.tensor([[1, 2]])
-    x_t = torch.tensor([[4, 2]])                                             # first token masked, second not
+    x_t = torch.tensor([[4, 2]])  # first token masked, second not
     t = torch.tensor([3])
-    logits = torch.tensor([[[0.5, 3.0], [-1.0, 0.0], [2.0, 1.0], [0.0, -2.0]]])   # (1, K=4, L=2)
+    logits = torch.tensor([[[0.5, 3.0], [-1.0, 0.0], [2.0, 1.0], [0.0, -2.0]]])  # (1, K=4, L=2)
     loss = D.masked_ce_loss(logits, x0, x_t, t, schedule)
     gamma_bar = [DEFAULT_ENDS["ctt_1"] + s / 9 * (DEFAULT_ENDS["ctt_T"] - DEFAULT_ENDS["ctt_1"]) for s in range(10)]
     weight = (gamma_bar[3] - gamma_bar[2]) / gamma_bar[3]
     cross_entropy = -(-1.0 - math.log(math.exp(0.5) + math.exp(-1.0) + math.exp(2.0) + math.exp(0.0)))
     assert loss.item() == pytest.approx(weight * cross_entropy, rel=1e-6)
     changed = logits.clone()
-    changed[0, :, 1] = torch.tensor([9.0, -9.0, -5.0, 4.0])                   # the unmasked token
+    changed[0, :, 1] = torch.tensor([9.0, -9.0, -5.0, 4.0])  # the unmasked token
     assert D.masked_ce_loss(changed, x0, x_t, t, schedule).item() == loss.item()
-    changed[0, :, 0] = torch.tensor([9.0, -9.0, -5.0, 4.0])                   # the masked token
+    changed[0, :, 0] = torch.tensor([9.0, -9.0, -5.0, 4.0])  # the masked token
     assert D.masked_ce_loss(changed, x0, x_t, t, schedule).item() != pytest.approx(loss.item())
     # t = 0: gamma_bar_{-1} = 0, so the weight is 1.
     assert D.masked_ce_loss(logits, x0, x_t, torch.tensor([0]), schedule).item() == pytest.approx(cross_entropy)
 
 
 # -- timestep sampler -----------------------------------------------------------------------------
+
 
 def fill(sampler: D.TimestepSampler, rounds: int, big_step: int = 3) -> None:
     for _ in range(rounds):
@@ -342,7 +362,7 @@ def fill(sampler: D.TimestepSampler, rounds: int, big_step: int = 3) -> None:
 
 def test_timestep_sampler_is_uniform_until_every_step_was_seen():
     sampler = D.TimestepSampler(T)
-    fill(sampler, 10)                                                        # 10 each: not yet > 10
+    fill(sampler, 10)  # 10 each: not yet > 10
     assert not sampler.ready
     t_B, p_B = sampler.sample(6000, gen(0))
     assert torch.allclose(p_B, torch.full((6000,), 1.0 / T))
@@ -355,7 +375,7 @@ def test_timestep_sampler_favours_steps_with_larger_losses():
     fill(sampler, 12)
     assert sampler.ready
     # E[L^2] after 12 EMA updates from 0 is L^2 (1 - 0.9^12); p_t is proportional to its root + 1e-4.
-    root = math.sqrt(1.0 - 0.9 ** 12)
+    root = math.sqrt(1.0 - 0.9**12)
     weights = torch.tensor([(10.0 if t == 3 else 1.0) * root + 1e-4 for t in range(T)], dtype=torch.float64)
     torch.testing.assert_close(sampler.probabilities().double(), weights / weights.sum(), rtol=1e-5, atol=0)
     t_B, p_B = sampler.sample(8000, gen(1))
@@ -380,6 +400,7 @@ def test_timestep_sampler_state_round_trips():
 
 # -- guidance, truncation, Gumbel -----------------------------------------------------------------
 
+
 def random_log_x0(seed: int, batch: int = 2) -> torch.Tensor:
     return D.log_predict_x0(3.0 * torch.randn(batch, K, L, generator=gen(seed)))
 
@@ -389,8 +410,9 @@ def test_guidance_end_points_and_stability():
     torch.testing.assert_close(D.guided_log_x0(cond, null, 1.0), cond, atol=1e-6, rtol=0)
     torch.testing.assert_close(D.guided_log_x0(cond, null, 0.0), null, atol=1e-6, rtol=0)
     reference = torch.log_softmax(null[:, :K].double() + 3.0 * (cond[:, :K].double() - null[:, :K].double()), 1)
-    torch.testing.assert_close(D.guided_log_x0(cond, null, 3.0)[:, :K].double(), reference.clamp_min(D.LOG_ZERO),
-                               atol=1e-4, rtol=0)
+    torch.testing.assert_close(
+        D.guided_log_x0(cond, null, 3.0)[:, :K].double(), reference.clamp_min(D.LOG_ZERO), atol=1e-4, rtol=0
+    )
     extreme = cond.clone()
     extreme[:, 0] = float("-inf")
     extreme[:, 1] = -1e30
@@ -468,8 +490,8 @@ def test_denoiser_shapes_batch_one_and_bf16_autocast():
         low = model(codes, t, condition)
         cache = model.precompute_condition(condition)
     assert low.dtype == torch.float32 and torch.isfinite(low).all()
-    assert torch.isfinite(model(codes, t, cache=cache)).all()                # bf16 cache outside autocast
-    huge = model(codes, t, 1e6 * condition)                                   # tokens are L2-normalised
+    assert torch.isfinite(model(codes, t, cache=cache)).all()  # bf16 cache outside autocast
+    huge = model(codes, t, 1e6 * condition)  # tokens are L2-normalised
     torch.testing.assert_close(huge, logits, atol=1e-4, rtol=1e-4)
 
 
@@ -481,10 +503,13 @@ def test_denoiser_condition_cache_gives_the_same_logits():
         cache = model.precompute_condition(condition, token_mask)
         direct = model(codes, t, condition, condition_mask=token_mask)
         torch.testing.assert_close(model(codes, t, cache=cache), direct, atol=1e-6, rtol=1e-6)
-        for step in range(3):                                                 # reused across steps
-            torch.testing.assert_close(model(codes, (t + step) % T, cache=cache),
-                                       model(codes, (t + step) % T, condition, condition_mask=token_mask),
-                                       atol=1e-6, rtol=1e-6)
+        for step in range(3):  # reused across steps
+            torch.testing.assert_close(
+                model(codes, (t + step) % T, cache=cache),
+                model(codes, (t + step) % T, condition, condition_mask=token_mask),
+                atol=1e-6,
+                rtol=1e-6,
+            )
     # Padding is ignored: changing a masked-out token changes nothing; a row without tokens stays finite.
     changed = condition.clone()
     changed[0, 2] += 5.0
@@ -506,7 +531,7 @@ def test_denoiser_depends_on_condition_and_timestep():
 def test_denoiser_gradient_reaches_every_parameter():
     model = tiny_model(dropout=0.1).train()
     codes, t, condition = denoiser_inputs(batch=4)
-    codes[:, : K + 1] = torch.arange(K + 1)                                   # every token embedding row
+    codes[:, : K + 1] = torch.arange(K + 1)  # every token embedding row
     grid = torch.randn(4, COND_DIM, 4, 4, generator=gen(2))  # an aligned condition image's map: the grid path
     logits = model(codes, t, condition, condition_mask=torch.tensor([[True, True, False]] * 4), condition_grid=grid)
     (logits * torch.randn(logits.shape, generator=gen(1))).sum().backward()

@@ -33,6 +33,7 @@ def _clean_digit(**options):
 
 # -- reading the file ---------------------------------------------------------------------------
 
+
 def test_tacto_file_is_located_without_importing_tacto():
     assert "tacto" not in sys.modules
     path = digit_sensor.tacto_config_path()
@@ -58,8 +59,9 @@ def test_design_values_are_the_files(tacto_yaml):
     seen = 2 * distance * math.tan(math.radians(camera["yfov"]) / 2)
     assert design.led_azimuth_deg == pytest.approx(expected_azimuths, abs=1e-9)
     assert design.led_elevation_deg == pytest.approx(expected_elevations, abs=1e-9)
-    assert design.led_colours == tuple(tuple(float(c) * i for c in colour)
-                                       for colour, i in zip(lights["colors"], lights["intensities"]))
+    assert design.led_colours == tuple(
+        tuple(float(c) * i for c in colour) for colour, i in zip(lights["colors"], lights["intensities"])
+    )
     assert design.camera_noise_std == sensor["noise"]["color"]["std"] / 255
     assert design.field_of_view_mm == pytest.approx(1000 * min(gel["width"], gel["height"], seen))
     # The values docs/guide.md and the module docstring cite.
@@ -78,10 +80,13 @@ def test_polar_and_cartesian_light_positions_agree(tacto_yaml):
     assert cartesian.led_elevation_deg == pytest.approx(polar.led_elevation_deg, abs=0.01)
 
 
-@pytest.mark.parametrize("old, new, message", [
-    ("noise:", "noises:", "missing entry 'noise'"),
-    ("yfov: 60", "yfov: [60", "line|column|unterminated"),  # a YAML syntax error, whichever parser reads it
-])
+@pytest.mark.parametrize(
+    "old, new, message",
+    [
+        ("noise:", "noises:", "missing entry 'noise'"),
+        ("yfov: 60", "yfov: [60", "line|column|unterminated"),  # a YAML syntax error, whichever parser reads it
+    ],
+)
 def test_a_broken_design_file_is_a_one_line_error(tmp_path, old, new, message):
     path = tmp_path / "config_digit.yml"
     path.write_text(digit_sensor.tacto_config_path().read_text().replace(old, new))
@@ -91,6 +96,7 @@ def test_a_broken_design_file_is_a_one_line_error(tmp_path, old, new, message):
 
 
 # -- the renderer uses it -----------------------------------------------------------------------
+
 
 def test_default_digit_renders_the_published_design():
     sensor = HOST.build("sensor_family", "digit")
@@ -132,8 +138,16 @@ def test_light_colours_show_in_the_shading_of_a_press():
 
 
 def test_explicit_options_override_the_design():
-    sensor = HOST.build("sensor_family", {"name": "digit", "field_of_view_mm": 16.0, "led_elevation_deg": 25.0,
-                                          "led_azimuth_deg": 90.0, "camera_noise_std": 0.01})
+    sensor = HOST.build(
+        "sensor_family",
+        {
+            "name": "digit",
+            "field_of_view_mm": 16.0,
+            "led_elevation_deg": 25.0,
+            "led_azimuth_deg": 90.0,
+            "camera_noise_std": 0.01,
+        },
+    )
     assert sensor.field_of_view_mm == 16.0 and sensor.camera_noise_std == 0.01
     light = sensor.light_L3.double()
     assert torch.rad2deg(torch.atan2(light[:, 1], light[:, 0])).tolist() == pytest.approx([90, -150, -30], abs=1e-4)
@@ -141,6 +155,7 @@ def test_explicit_options_override_the_design():
 
 
 # -- without tacto's file -----------------------------------------------------------------------
+
 
 def test_missing_tacto_falls_back_to_builtin_and_warns_once(monkeypatch):
     monkeypatch.setattr(digit_sensor, "tacto_config_path", lambda: None)

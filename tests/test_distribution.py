@@ -86,7 +86,7 @@ def test_the_fd_metric_streams_batches_to_the_same_number(monkeypatch):
         monkeypatch.setattr(metric, "pooled_features", lambda images: features[id(images)], raising=False)
         for start in range(0, rows, 4):
             a, b = torch.zeros(1), torch.zeros(1)
-            features[id(a)], features[id(b)] = predicted[start:start + 4], target[start:start + 4]
+            features[id(a)], features[id(b)] = predicted[start : start + 4], target[start : start + 4]
             metric.update(a, b)
         moments = []
         for rows_NF in (predicted, target):
@@ -109,16 +109,20 @@ def test_the_scores_are_deterministic(separable, metric):
     _, held_out, labels = separable
     train, train_labels = two_classes(6, seed=1)
     noisy = (held_out + 0.2 * torch.rand(held_out.shape, generator=torch.Generator().manual_seed(5))).clamp(0, 1)
-    first, second = (DistributionScorer(held_out, labels, train, train_labels, metric=metric, seed=0).score(noisy)
-                     for _ in range(2))
+    first, second = (
+        DistributionScorer(held_out, labels, train, train_labels, metric=metric, seed=0).score(noisy) for _ in range(2)
+    )
     assert first == second
 
 
-@pytest.mark.parametrize("labels, train_labels, reason", [
-    (None, [0] * 6 + [1] * 6, "the dataset has no labels"),
-    ([0] * 4 + [1] * 4, None, "the dataset has no labels"),
-    ([0] * 8, [3] * 12, "the training images have only one class ([3]); a classifier needs two"),
-])
+@pytest.mark.parametrize(
+    "labels, train_labels, reason",
+    [
+        (None, [0] * 6 + [1] * 6, "the dataset has no labels"),
+        ([0] * 4 + [1] * 4, None, "the dataset has no labels"),
+        ([0] * 8, [3] * 12, "the training images have only one class ([3]); a classifier needs two"),
+    ],
+)
 def test_the_classifier_is_skipped_with_a_reason(metric, labels, train_labels, reason):
     held_out, _ = two_classes(4, seed=2)
     train, _ = two_classes(6, seed=1)

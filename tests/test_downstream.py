@@ -16,8 +16,16 @@ from vqtouch.core import Assembly, ConfigError, RunDir
 from vqtouch.core.cli import main
 from vqtouch.core.data import split_dataset
 from vqtouch.core.images import save_png
-from vqtouch.plugins.experiments.downstream import (ARMS, CEILING, FEW, FEW_AND_GENERATED, GENERATED, draw_shots,
-                                                   label_conditioner_index, recognition_scores)
+from vqtouch.plugins.experiments.downstream import (
+    ARMS,
+    CEILING,
+    FEW,
+    FEW_AND_GENERATED,
+    GENERATED,
+    draw_shots,
+    label_conditioner_index,
+    recognition_scores,
+)
 
 CLASSES = ["sphere", "edge", "ridges"]
 #: Small enough to run in seconds: 32-px features, 2 seeds, 2 shots, 2 generated images per class.
@@ -28,8 +36,17 @@ FAST = ["--seeds", "0", "1", "--shots", "2", "--generated-per-class", "2", "--fe
 def label_run(tmp_path_factory):
     """A tiny label-to-touch run over 3 classes: 27 training and 9 held-out samples."""
     out = tmp_path_factory.mktemp("downstream") / "run"
-    assert main(generator_runs.train_args(out, f"data.dataset.classes={json.dumps(CLASSES)}",
-                                           "data.dataset.num_samples=36", "generator.num_samples=0")) == 0
+    assert (
+        main(
+            generator_runs.train_args(
+                out,
+                f"data.dataset.classes={json.dumps(CLASSES)}",
+                "data.dataset.num_samples=36",
+                "generator.num_samples=0",
+            )
+        )
+        == 0
+    )
     return out
 
 
@@ -109,10 +126,18 @@ def test_macro_scores_match_the_closed_form_of_a_known_confusion():
     assert scores["recall"] == pytest.approx(statistics.fmean(r for _, r in per_class), abs=1e-4)
     assert scores["f1"] == pytest.approx(statistics.fmean(f1s), abs=1e-4)
     # A class never predicted counts with precision 0; a predicted class the test lacks is only a miss.
-    assert recognition_scores([0, 0, 1, 1], [0, 0, 0, 0]) == {"top1": 0.5, "precision": 0.25, "recall": 0.5,
-                                                               "f1": pytest.approx(1 / 3, abs=1e-4)}
-    assert recognition_scores([0, 0, 1, 1], [0, 7, 1, 1]) == {"top1": 0.75, "precision": 1.0, "recall": 0.75,
-                                                               "f1": pytest.approx((2 / 3 + 1) / 2, abs=1e-4)}
+    assert recognition_scores([0, 0, 1, 1], [0, 0, 0, 0]) == {
+        "top1": 0.5,
+        "precision": 0.25,
+        "recall": 0.5,
+        "f1": pytest.approx(1 / 3, abs=1e-4),
+    }
+    assert recognition_scores([0, 0, 1, 1], [0, 7, 1, 1]) == {
+        "top1": 0.75,
+        "precision": 1.0,
+        "recall": 0.75,
+        "f1": pytest.approx((2 / 3 + 1) / 2, abs=1e-4),
+    }
 
 
 def test_shots_are_distinct_images_of_each_class_and_too_many_are_refused():
@@ -120,27 +145,48 @@ def test_shots_are_distinct_images_of_each_class_and_too_many_are_refused():
     chosen = draw_shots(labels, 3, seed=4)
     assert len(set(chosen)) == 9 and Counter(labels[p] for p in chosen) == {0: 3, 1: 3, 2: 3}
     assert draw_shots(labels, 3, seed=4) == chosen and draw_shots(labels, 2, seed=5) != draw_shots(labels, 2, seed=6)
-    with pytest.raises(ConfigError, match=r"--shots 4: class 'edge' \(1\) has only 3 real training images in the "
-                                          r"run's split; give --shots 3 or fewer"):
+    with pytest.raises(
+        ConfigError,
+        match=r"--shots 4: class 'edge' \(1\) has only 3 real training images in the "
+        r"run's split; give --shots 3 or fewer",
+    ):
         draw_shots(labels, 4, seed=0, class_names=CLASSES)
 
 
 def test_the_label_conditioner_is_found_or_refused():
     assert label_conditioner_index(["visual", "label", "text"], ["visual", "label", "text_scratch"], None) == 1
-    with pytest.raises(ConfigError, match=r"this run's generator has no label conditioner \(0:visual \(reads "
-                                          r"'visual'\), 1:text_scratch \(reads 'text'\)\); .*--scene label-to-touch"):
+    with pytest.raises(
+        ConfigError,
+        match=r"this run's generator has no label conditioner \(0:visual \(reads "
+        r"'visual'\), 1:text_scratch \(reads 'text'\)\); .*--scene label-to-touch",
+    ):
         label_conditioner_index(["visual", "text"], ["visual", "text_scratch"], None)
     with pytest.raises(ConfigError, match="--conditioner 0 \\(visual\\) reads samples' 'visual', not 'label'"):
         label_conditioner_index(["visual", "label"], ["visual", "label"], 0)
 
 
-@pytest.mark.parametrize(("flags", "message"), [
-    (["--shots", "50"], "--shots 50: class "),
-    (["--conditioner", "1"], "--conditioner 1: this generator has conditioners 0..0 (0:label (reads 'label'))"),
-])
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--shots", "50"], "--shots 50: class "),
+        (["--conditioner", "1"], "--conditioner 1: this generator has conditioners 0..0 (0:label (reads 'label'))"),
+    ],
+)
 def test_bad_requests_are_one_line_errors(label_run, tmp_path, capsys, flags, message):
-    code = main(["--no-progress", "evaluate", "downstream", "--run", str(label_run), "--out", str(tmp_path / "x"),
-                 "--feature-size", "32", *flags])
+    code = main(
+        [
+            "--no-progress",
+            "evaluate",
+            "downstream",
+            "--run",
+            str(label_run),
+            "--out",
+            str(tmp_path / "x"),
+            "--feature-size",
+            "32",
+            *flags,
+        ]
+    )
     error = capsys.readouterr().err
     assert code == 2 and message in error and len(error.strip().splitlines()) == 1
     assert not (tmp_path / "x" / "downstream.json").exists()
@@ -161,19 +207,42 @@ def test_a_run_on_a_class_folder_works_and_an_unlabelled_one_is_refused(label_ru
     for index in range(len(dataset)):
         sample = dataset[index]
         save_png(sample["tactile"], root / CLASSES[sample["label"]] / f"{index:03d}.png")
-    folder_run = _folder_run(label_run, tmp_path / "folder_run",
-                             {"name": "image_folder", "root": str(root), "class_names": CLASSES})
+    folder_run = _folder_run(
+        label_run, tmp_path / "folder_run", {"name": "image_folder", "root": str(root), "class_names": CLASSES}
+    )
     out = tmp_path / "folder_out"
-    assert main(["--no-progress", "evaluate", "downstream", "--run", str(folder_run), "--out", str(out),
-                 "--seeds", "0", "--shots", "1", "--generated-per-class", "1", "--feature-size", "32"]) == 0
+    assert (
+        main(
+            [
+                "--no-progress",
+                "evaluate",
+                "downstream",
+                "--run",
+                str(folder_run),
+                "--out",
+                str(out),
+                "--seeds",
+                "0",
+                "--shots",
+                "1",
+                "--generated-per-class",
+                "1",
+                "--feature-size",
+                "32",
+            ]
+        )
+        == 0
+    )
     result = json.loads((out / "downstream.json").read_text())
     assert result["dataset"] == "image_folder" and {row["arm"] for row in result["rows"]} == set(ARMS)
     assert result["test_images"] + result["real_train_images"] == 36
 
-    (root / "list.csv").write_text("path,label\n" + "".join(f"{p.relative_to(root).as_posix()},\n"
-                                                          for p in sorted(root.rglob("*.png"))))
-    unlabelled = _folder_run(label_run, tmp_path / "unlabelled_run",
-                             {"name": "image_folder", "root": str(root), "csv": "list.csv"})
+    (root / "list.csv").write_text(
+        "path,label\n" + "".join(f"{p.relative_to(root).as_posix()},\n" for p in sorted(root.rglob("*.png")))
+    )
+    unlabelled = _folder_run(
+        label_run, tmp_path / "unlabelled_run", {"name": "image_folder", "root": str(root), "csv": "list.csv"}
+    )
     capsys.readouterr()
     assert main(["evaluate", "downstream", "--run", str(unlabelled), "--out", str(tmp_path / "y")]) == 2
     assert "the run's dataset (image_folder) has no class labels" in capsys.readouterr().err

@@ -19,11 +19,20 @@ from safetensors.torch import save_file
 from vqtouch.core import DatasetError, VqtouchError
 from vqtouch.core.cli import main
 
-TINY_TRAIN = ["tokenizer.autoencoder.channels=16", "tokenizer.autoencoder.norm_groups=8",
-              "tokenizer.autoencoder.channel_multipliers=[1,2]", "tokenizer.autoencoder.z_channels=16",
-              "tokenizer.autoencoder.embed_dim=8", "tokenizer.quantizer.codebook_size=32", "data.image_size=32",
-              "data.batch_size=4", "tokenizer.train.steps=2", "tokenizer.loss.perceptual=none",
-              "tokenizer.discriminator=null", 'metrics=[{"name": "psnr"}, {"name": "ssim"}]']
+TINY_TRAIN = [
+    "tokenizer.autoencoder.channels=16",
+    "tokenizer.autoencoder.norm_groups=8",
+    "tokenizer.autoencoder.channel_multipliers=[1,2]",
+    "tokenizer.autoencoder.z_channels=16",
+    "tokenizer.autoencoder.embed_dim=8",
+    "tokenizer.quantizer.codebook_size=32",
+    "data.image_size=32",
+    "data.batch_size=4",
+    "tokenizer.train.steps=2",
+    "tokenizer.loss.perceptual=none",
+    "tokenizer.discriminator=null",
+    'metrics=[{"name": "psnr"}, {"name": "ssim"}]',
+]
 
 
 def train_args(out, *extra):
@@ -38,7 +47,7 @@ def one_error_line(capsys) -> str:
     """The single stderr line of a failed command, without its prefix (asserts it is one line)."""
     err = capsys.readouterr().err
     assert err.startswith("vqtouch: error: ") and err.count("\n") == 1, err
-    return err[len("vqtouch: error: "):].rstrip("\n")
+    return err[len("vqtouch: error: ") :].rstrip("\n")
 
 
 @pytest.fixture(scope="module")
@@ -63,6 +72,7 @@ def rewrite_checkpoint(path, tensors=None, **metadata):
 
 
 # -- OSError while creating the run ------------------------------------------------------------
+
 
 @pytest.fixture
 def refuse_mkdir(monkeypatch):
@@ -105,13 +115,16 @@ def test_out_naming_an_existing_file_is_one_line(tmp_path, capsys, below):
 
 # -- --debug and VQTOUCH_DEBUG ------------------------------------------------------------------
 
+
 def test_debug_flag_shows_the_traceback_then_the_line(tmp_path, capsys, refuse_mkdir):
     refuse_mkdir(tmp_path / "run", errno.EACCES)
     assert main(["--debug", "demo", "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("Traceback (most recent call last):") and "\nPermissionError: [Errno 13]" in err
-    assert err.splitlines()[-1] == (f"vqtouch: error: {tmp_path / 'run'}: Permission denied; fix its permissions, or "
-                                    "write the run elsewhere (--out or output_dir)")
+    assert err.splitlines()[-1] == (
+        f"vqtouch: error: {tmp_path / 'run'}: Permission denied; fix its permissions, or "
+        "write the run elsewhere (--out or output_dir)"
+    )
 
 
 @pytest.mark.parametrize("value, shown", [("1", True), ("0", False), ("", False)])
@@ -124,6 +137,7 @@ def test_vqtouch_debug_environment_variable(capsys, monkeypatch, value, shown):
 
 
 # -- reading runs and config files --------------------------------------------------------------
+
 
 def test_evaluate_a_missing_run_directory_is_one_line(tmp_path, capsys):
     missing = tmp_path / "nowhere"
@@ -154,6 +168,7 @@ def test_non_utf8_config_file_is_one_line(tmp_path, capsys):
 
 # -- checkpoints and trained weights ----------------------------------------------------------
 
+
 def test_unparsable_step_header_is_one_line(run_copy, capsys):
     path = run_copy / "checkpoints" / "step-00000002" / "autoencoder.safetensors"
     rewrite_checkpoint(path, **{"vqtouch.step": "two"})
@@ -161,7 +176,8 @@ def test_unparsable_step_header_is_one_line(run_copy, capsys):
     assert one_error_line(capsys) == (
         f"{run_copy / 'checkpoints'}: holds 1 checkpoint folder(s) but no complete one (the newest, step-00000002, "
         "is unusable: autoencoder.safetensors has a damaged vqtouch header (vqtouch.step is 'two', not a step "
-        "number)); restore a step folder from a copy, or train the run again with --overwrite")
+        "number)); restore a step folder from a copy, or train the run again with --overwrite"
+    )
     # load() itself refuses it too, naming the file (a checkpoint file used outside a run).
     from vqtouch.core import CheckpointError, load, load_plugins
 
@@ -173,16 +189,23 @@ def test_nan_weights_are_refused_before_the_metrics(run_copy, capsys):
     path = run_copy / "checkpoints" / "step-00000002" / "autoencoder.safetensors"
     with safe_open(str(path), framework="pt") as handle:
         tensors = {key: handle.get_tensor(key) for key in handle.keys()}
-    rewrite_checkpoint(path, {key: torch.full_like(value, float("nan")) if value.is_floating_point() else value
-                              for key, value in tensors.items()})
+    rewrite_checkpoint(
+        path,
+        {
+            key: torch.full_like(value, float("nan")) if value.is_floating_point() else value
+            for key, value in tensors.items()
+        },
+    )
     assert main(["evaluate", "reconstruction", "--run", str(run_copy)]) == 2
     line = one_error_line(capsys)
-    assert line.startswith("the tokenizer (checkpoint step 2) produced NaN/Inf reconstructions; its weights are "
-                           "not finite (autoencoder: ")
+    assert line.startswith(
+        "the tokenizer (checkpoint step 2) produced NaN/Inf reconstructions; its weights are not finite (autoencoder: "
+    )
     assert "--step" in line and "learning_rate" in line
 
 
 # -- data ------------------------------------------------------------------------------------
+
 
 class _Failing(torch.utils.data.Dataset):
     def __len__(self):
@@ -201,18 +224,30 @@ def test_one_line_recovers_the_message_of_a_dataloader_worker_error():
     assert "\n" in str(info.value)  # PyTorch re-raises it with the worker's traceback in the message
     assert one_line(str(info.value)) == "cannot decode image /data/0.png: OSError: image file is truncated"
     assert one_line(f"stage 'tokenizer' failed: {info.value}") == (
-        "stage 'tokenizer' failed: cannot decode image /data/0.png: OSError: image file is truncated")
+        "stage 'tokenizer' failed: cannot decode image /data/0.png: OSError: image file is truncated"
+    )
     assert one_line("first\n  second\n") == "first; second"
 
 
 def test_dataset_error_in_a_dataloader_worker_is_its_own_one_line(tmp_path, capsys):
     images = tmp_path / "images"
     for number in range(8):
-        dataset_fixtures.truncate_pixels(dataset_fixtures.write_sample(images / "a" / f"{number}.png", number,
-                                                                       "tactile"))
-    args = ["--no-progress", "train", "tokenizer", "--out", str(tmp_path / "run"),
-            "--set", "data.dataset.name=image_folder", "--set", f"data.dataset.root={images}",
-            "--set", "data.num_workers=1"]
+        dataset_fixtures.truncate_pixels(
+            dataset_fixtures.write_sample(images / "a" / f"{number}.png", number, "tactile")
+        )
+    args = [
+        "--no-progress",
+        "train",
+        "tokenizer",
+        "--out",
+        str(tmp_path / "run"),
+        "--set",
+        "data.dataset.name=image_folder",
+        "--set",
+        f"data.dataset.root={images}",
+        "--set",
+        "data.num_workers=1",
+    ]
     for override in TINY_TRAIN:
         args += ["--set", override]
     assert main(args) == 2
@@ -227,10 +262,23 @@ def test_evaluate_reconstruction_refuses_an_empty_dataset(host):
     from vqtouch.plugins.tokenizer.training import Tokenizer, evaluate_reconstruction
 
     context = BuildContext(image_size=32)
-    autoencoder = host.build("autoencoder", {"name": "vqgan", "channels": 16, "norm_groups": 8,
-                                             "channel_multipliers": [1, 2], "z_channels": 16, "embed_dim": 8}, context)
-    quantizer = host.build("quantizer", {"name": "vq", "codebook_size": 8},
-                           context.model_copy(update={"latent_dim": autoencoder.latent_channels}))
+    autoencoder = host.build(
+        "autoencoder",
+        {
+            "name": "vqgan",
+            "channels": 16,
+            "norm_groups": 8,
+            "channel_multipliers": [1, 2],
+            "z_channels": 16,
+            "embed_dim": 8,
+        },
+        context,
+    )
+    quantizer = host.build(
+        "quantizer",
+        {"name": "vq", "codebook_size": 8},
+        context.model_copy(update={"latent_dim": autoencoder.latent_channels}),
+    )
     metrics = {"psnr": host.build("metric", "psnr")}
     with pytest.raises(NothingToEvaluateError) as info:
         evaluate_reconstruction(Tokenizer(autoencoder, quantizer), [], metrics)
@@ -260,6 +308,8 @@ def test_val_fraction_0_trains_and_states_why_evaluation_was_skipped(tmp_path, c
 def test_batch_larger_than_the_training_split_fails_before_training(tmp_path, capsys):
     out = tmp_path / "run"
     assert main(train_args(out, "data.batch_size=20")) == 2
-    assert one_error_line(capsys) == ("stage 'tokenizer' failed: the dataset has 11 samples, fewer than one global "
-                                      "batch (20 x 1 processes); lower data.batch_size")
+    assert one_error_line(capsys) == (
+        "stage 'tokenizer' failed: the dataset has 11 samples, fewer than one global "
+        "batch (20 x 1 processes); lower data.batch_size"
+    )
     assert not list((out / "checkpoints").iterdir())

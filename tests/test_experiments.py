@@ -14,8 +14,11 @@ from vqtouch.plugins.evaluation.records import ExperimentRecord, check_seeds, fo
 
 def _rows():
     # Two configurations x three seeds; the numbers are arbitrary but distinct.
-    return [{"arm": arm, "n": n, "seed": seed, "ssim": 0.1 * seed + (0.5 if arm == "b" else 0.0), "psnr": 20.0 + seed * n}
-            for arm, n in (("a", 1), ("b", 2)) for seed in (0, 1, 2)]
+    return [
+        {"arm": arm, "n": n, "seed": seed, "ssim": 0.1 * seed + (0.5 if arm == "b" else 0.0), "psnr": 20.0 + seed * n}
+        for arm, n in (("a", 1), ("b", 2))
+        for seed in (0, 1, 2)
+    ]
 
 
 def test_mean_spread_matches_numpy_per_group():
@@ -32,15 +35,20 @@ def test_mean_spread_matches_numpy_per_group():
 
 
 def test_mean_spread_skips_missing_and_non_finite_values_and_says_so():
-    rows = [{"arm": "a", "fid": 1.0}, {"arm": "a", "fid": None}, {"arm": "a", "fid": math.nan}, {"arm": "a", "fid": 3.0},
-            {"arm": "a"}]
-    entry, = mean_spread(rows, ("fid", "never"), group=("arm",))
+    rows = [
+        {"arm": "a", "fid": 1.0},
+        {"arm": "a", "fid": None},
+        {"arm": "a", "fid": math.nan},
+        {"arm": "a", "fid": 3.0},
+        {"arm": "a"},
+    ]
+    (entry,) = mean_spread(rows, ("fid", "never"), group=("arm",))
     assert entry["fid"] == 2.0 and entry["fid_std"] == 1.0 and entry["fid_n"] == 2 and entry["seeds"] == 5
     assert "never" not in entry and "never_std" not in entry
 
 
 def test_one_seed_has_zero_spread_and_no_plus_minus_in_the_table():
-    entry, = mean_spread([{"arm": "a", "ssim": 0.25}], ("ssim",), group=("arm",))
+    (entry,) = mean_spread([{"arm": "a", "ssim": 0.25}], ("ssim",), group=("arm",))
     assert entry["ssim_std"] == 0.0
     lines = markdown_table([entry], ("arm",), ("ssim",))
     assert lines[-1] == "| a | 0.25 |"

@@ -10,8 +10,13 @@ import torch
 import generator_runs
 from vqtouch.core import load_plugins
 from vqtouch.core.cli import main
-from vqtouch.plugins.adaptation.families import (assign_to_family, image_features, refusal_threshold, sensor_prototype,
-                                                 within_family_spread)
+from vqtouch.plugins.adaptation.families import (
+    assign_to_family,
+    image_features,
+    refusal_threshold,
+    sensor_prototype,
+    within_family_spread,
+)
 
 HOST = load_plugins(autoload=False)
 
@@ -29,8 +34,10 @@ def tokenizer(tokenizer_folder):
 
 
 def test_the_prototype_drops_the_farthest_images_and_is_the_mean_of_the_rest():
-    inliers = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0], [0.5, 0.5], [0.2, 0.8], [0.8, 0.2],
-                            [0.5, 0.4]], dtype=torch.float64)
+    inliers = torch.tensor(
+        [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0], [0.5, 0.5], [0.2, 0.8], [0.8, 0.2], [0.5, 0.4]],
+        dtype=torch.float64,
+    )
     outliers = torch.tensor([[40.0, 40.0], [-30.0, 50.0]], dtype=torch.float64)
     features = torch.cat([inliers, outliers])
     torch.testing.assert_close(sensor_prototype(features, refine_steps=0), features.mean(dim=0))
@@ -86,14 +93,35 @@ def test_cluster_groups_variants_with_their_family_and_a_folder_joins_its_sensor
 
     folder = tmp_path / "my_digit"
     folder.mkdir()
-    digit = HOST.build("dataset", {"name": "procedural", "num_samples": 8, "image_size": 32, "seed": 5},
-                       sensor=HOST.build("sensor_family", "digit"))
+    digit = HOST.build(
+        "dataset",
+        {"name": "procedural", "num_samples": 8, "image_size": 32, "seed": 5},
+        sensor=HOST.build("sensor_family", "digit"),
+    )
     for index in range(8):
         save_png(digit[index]["tactile"], folder / f"frame_{index}.png")
     out = tmp_path / "families"
-    args = ["cluster", "--run", str(tokenizer_folder), "--image-size", "32", "--images", "8", "--out", str(out),
-            "--families", "2", "--sensors", "gelsight", _variant("gelsight", 1, colour_gain=[1.05, 0.95, 0.95]),
-            "digit", _variant("digit", 2, noise_std=0.02), str(folder), "--unseen", _variant("digit", 4)]
+    args = [
+        "cluster",
+        "--run",
+        str(tokenizer_folder),
+        "--image-size",
+        "32",
+        "--images",
+        "8",
+        "--out",
+        str(out),
+        "--families",
+        "2",
+        "--sensors",
+        "gelsight",
+        _variant("gelsight", 1, colour_gain=[1.05, 0.95, 0.95]),
+        "digit",
+        _variant("digit", 2, noise_std=0.02),
+        str(folder),
+        "--unseen",
+        _variant("digit", 4),
+    ]
     assert main(args) == 0
     result = json.loads((out / "cluster.json").read_text())
     assigned = result["assignments"]["digit/v4"]
@@ -111,29 +139,66 @@ def test_cluster_groups_variants_with_their_family_and_a_folder_joins_its_sensor
     assert "unseen digit/v4: refused: " in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("sensors, message", [
-    (["gelsight"], "--sensors: give at least two sensors to group into families"),
-    (["gelsight", "gelsite"], "sensor 'gelsite' is neither a folder nor a registered sensor family (digit, "
-                              "gelsight, gelsight_mini)"),
-    (["gelsight", "{bad json"], "sensor '{bad json': not a folder, a sensor name or valid JSON"),
-])
+@pytest.mark.parametrize(
+    "sensors, message",
+    [
+        (["gelsight"], "--sensors: give at least two sensors to group into families"),
+        (
+            ["gelsight", "gelsite"],
+            "sensor 'gelsite' is neither a folder nor a registered sensor family (digit, gelsight, gelsight_mini)",
+        ),
+        (["gelsight", "{bad json"], "sensor '{bad json': not a folder, a sensor name or valid JSON"),
+    ],
+)
 def test_cluster_errors_are_one_line(tokenizer_folder, tmp_path, capsys, sensors, message):
     capsys.readouterr()
-    assert main(["cluster", "--run", str(tokenizer_folder), "--image-size", "32", "--images", "4", "--out",
-                 str(tmp_path / "x"), "--sensors", *sensors]) == 2
+    assert (
+        main(
+            [
+                "cluster",
+                "--run",
+                str(tokenizer_folder),
+                "--image-size",
+                "32",
+                "--images",
+                "4",
+                "--out",
+                str(tmp_path / "x"),
+                "--sensors",
+                *sensors,
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.startswith(f"vqtouch: error: {message}") and err.count("\n") == 1, err
 
 
-@pytest.mark.parametrize("option, value, message", [("--keep", "0", "argument --keep: 0: must lie in (0, 1]"),
-                                                    ("--refine-steps", "-1", "argument --refine-steps: -1: must be "
-                                                                             "0 or more"),
-                                                    ("--families", "-2", "argument --families: -2: must be 0 or more")])
+@pytest.mark.parametrize(
+    "option, value, message",
+    [
+        ("--keep", "0", "argument --keep: 0: must lie in (0, 1]"),
+        ("--refine-steps", "-1", "argument --refine-steps: -1: must be 0 or more"),
+        ("--families", "-2", "argument --families: -2: must be 0 or more"),
+    ],
+)
 def test_cluster_options_are_checked_in_one_line(tokenizer_folder, tmp_path, capsys, option, value, message):
     capsys.readouterr()
     with pytest.raises(SystemExit) as exit_info:
-        main(["cluster", "--run", str(tokenizer_folder), "--out", str(tmp_path / "x"), "--sensors", "gelsight",
-              "digit", option, value])
+        main(
+            [
+                "cluster",
+                "--run",
+                str(tokenizer_folder),
+                "--out",
+                str(tmp_path / "x"),
+                "--sensors",
+                "gelsight",
+                "digit",
+                option,
+                value,
+            ]
+        )
     assert exit_info.value.code == 2 and message in capsys.readouterr().err
 
 
@@ -142,10 +207,26 @@ def test_cluster_refuses_an_empty_folder_and_names_a_corrupt_file(tokenizer_fold
     empty.mkdir()
     corrupt.mkdir()
     (corrupt / "broken.png").write_bytes(b"not a png")
-    for folder, message in ((empty, "no image files (png, jpg, ...) in this folder"),
-                            (corrupt, "cannot decode image")):
+    for folder, message in ((empty, "no image files (png, jpg, ...) in this folder"), (corrupt, "cannot decode image")):
         capsys.readouterr()
-        assert main(["cluster", "--run", str(tokenizer_folder), "--image-size", "32", "--images", "4", "--out",
-                     str(tmp_path / "x"), "--sensors", "gelsight", str(folder)]) == 2
+        assert (
+            main(
+                [
+                    "cluster",
+                    "--run",
+                    str(tokenizer_folder),
+                    "--image-size",
+                    "32",
+                    "--images",
+                    "4",
+                    "--out",
+                    str(tmp_path / "x"),
+                    "--sensors",
+                    "gelsight",
+                    str(folder),
+                ]
+            )
+            == 2
+        )
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1, err

@@ -32,8 +32,26 @@ def tokenizer_run(tmp_path_factory):
 def families_folder(tokenizer_run, tmp_path_factory):
     out = tmp_path_factory.mktemp("families")
     variant = json.dumps({"name": "gelsight", "variant": {"seed": 1, "colour_gain": [1.05, 0.95, 0.95]}})
-    assert main(["cluster", "--run", str(tokenizer_run), "--images", "8", "--out", str(out), "--families", "2",
-                 "--sensors", "gelsight", variant, "digit"]) == 0
+    assert (
+        main(
+            [
+                "cluster",
+                "--run",
+                str(tokenizer_run),
+                "--images",
+                "8",
+                "--out",
+                str(out),
+                "--families",
+                "2",
+                "--sensors",
+                "gelsight",
+                variant,
+                "digit",
+            ]
+        )
+        == 0
+    )
     return out
 
 
@@ -66,19 +84,32 @@ def _frames(folder, images):
     return folder
 
 
-def test_every_arm_trains_on_its_own_images_and_scores_the_same_held_out_images(tokenizer_run, families_folder,
-                                                                                 trainer_calls, tmp_path):
+def test_every_arm_trains_on_its_own_images_and_scores_the_same_held_out_images(
+    tokenizer_run, families_folder, trainer_calls, tmp_path
+):
     from vqtouch.plugins.evaluation.contact import contact_region_scores, no_contact_image
     from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all
 
     out = tmp_path / "fewshot"
-    result = evaluate_fewshot(tokenizer_run, HOST, out, target=TARGET, seeds=[0, 1], counts=(8, 4), ratio=2.0,
-                              steps=2, scratch_steps=3, eval_images=4, families=families_folder,
-                              report=lambda line: None)
+    result = evaluate_fewshot(
+        tokenizer_run,
+        HOST,
+        out,
+        target=TARGET,
+        seeds=[0, 1],
+        counts=(8, 4),
+        ratio=2.0,
+        steps=2,
+        scratch_steps=3,
+        eval_images=4,
+        families=families_folder,
+        report=lambda line: None,
+    )
     rows = result["rows"]
     arms = [SCRATCH, ZERO_SHOT, SHOTS_ALONE, "mixed 1:2", BACKGROUND]
     assert sorted((row["n"], row["arm"], row["seed"]) for row in rows) == sorted(
-        (n, arm, seed) for n in (4, 8) for arm in arms for seed in (0, 1))
+        (n, arm, seed) for n in (4, 8) for arm in arms for seed in (0, 1)
+    )
 
     # Each trainer got exactly its arm's images: the scratch arm and the shots-alone arm the N target
     # images alone, the mixed arm those N followed by ratio x N images of the seed's family.
@@ -88,13 +119,20 @@ def test_every_arm_trains_on_its_own_images_and_scores_the_same_held_out_images(
         seed = assigned["seed"]
         for n in (4, 8):
             _, source, shots, _ = target_images(TARGET, HOST, shots=n, eval_images=4, image_size=32, seed=seed)
-            family_N, _ = family_images(families, assigned["family"], HOST, count=2 * n, image_size=32, seed=seed,
-                                        exclude=source)
+            family_N, _ = family_images(
+                families, assigned["family"], HOST, count=2 * n, image_size=32, seed=seed, exclude=source
+            )
             expected += [("scratch", shots, 3), ("adapt", shots, 2), ("adapt", torch.cat([shots, family_N]), 2)]
     assert len(trainer_calls) == len(expected) == 12
     for stage, images, steps in expected:
-        matches = [call for call in trainer_calls if call["stage"] == stage and call["steps"] == steps
-                   and call["images"].shape == images.shape and torch.equal(call["images"], images)]
+        matches = [
+            call
+            for call in trainer_calls
+            if call["stage"] == stage
+            and call["steps"] == steps
+            and call["images"].shape == images.shape
+            and torch.equal(call["images"], images)
+        ]
         assert len(matches) == 1, (stage, len(images))
     mixed_sizes = sorted(len(call["images"]) for call in trainer_calls if len(call["images"]) not in (4, 8))
     assert mixed_sizes == [12, 12, 24, 24]  # N (1 + ratio), counted from what the trainers received
@@ -146,12 +184,31 @@ def test_every_arm_trains_on_its_own_images_and_scores_the_same_held_out_images(
     assert "| 4 | no-contact background |" in markdown and "- N = 8: mixed 1:2 " in markdown
 
 
-def test_a_folder_target_too_small_for_n_is_refused_before_anything_trains(tokenizer_run, families_folder,
-                                                                            trainer_calls, tmp_path, capsys):
+def test_a_folder_target_too_small_for_n_is_refused_before_anything_trains(
+    tokenizer_run, families_folder, trainer_calls, tmp_path, capsys
+):
     folder = _frames(tmp_path / "frames", sensor_images("gelsight", HOST, count=8, image_size=32).images)
     out = tmp_path / "fewshot"
-    assert main(["evaluate", "fewshot", "--run", str(tokenizer_run), "--out", str(out), "--target", str(folder),
-                 "--n", "4", "8", "--families", str(families_folder)]) == 2
+    assert (
+        main(
+            [
+                "evaluate",
+                "fewshot",
+                "--run",
+                str(tokenizer_run),
+                "--out",
+                str(out),
+                "--target",
+                str(folder),
+                "--n",
+                "4",
+                "8",
+                "--families",
+                str(families_folder),
+            ]
+        )
+        == 2
+    )
     error = capsys.readouterr().err
     assert error.count("\n") == 1
     assert f"vqtouch: error: --n 8: the folder {folder} holds 8 images; the largest usable --n is 7" in error
@@ -161,20 +218,51 @@ def test_a_folder_target_too_small_for_n_is_refused_before_anything_trains(token
     exported = tmp_path / "exported"
     (exported / "tactile").mkdir(parents=True)
     folder.rename(exported / "tactile" / "frames")
-    assert main(["evaluate", "fewshot", "--run", str(tokenizer_run), "--out", str(out), "--target", str(exported),
-                 "--n", "4", "--families", str(families_folder)]) == 2
+    assert (
+        main(
+            [
+                "evaluate",
+                "fewshot",
+                "--run",
+                str(tokenizer_run),
+                "--out",
+                str(out),
+                "--target",
+                str(exported),
+                "--n",
+                "4",
+                "--families",
+                str(families_folder),
+            ]
+        )
+        == 2
+    )
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and "holds 0 images" in error
-    assert f"not its sub-folders (tactile): point --target at the one holding its frames, e.g. {exported / 'tactile'}" in error
+    assert (
+        f"not its sub-folders (tactile): point --target at the one holding its frames, e.g. {exported / 'tactile'}"
+        in error
+    )
     assert trainer_calls == [] and not out.exists()
 
 
 def test_a_folder_targets_background_is_the_median_of_its_images(tokenizer_run, families_folder, tmp_path):
     images = sensor_images("gelsight", HOST, count=10, image_size=32, seed=5).images
     folder = _frames(tmp_path / "frames", images)
-    result = evaluate_fewshot(tokenizer_run, HOST, tmp_path / "fewshot", target=str(folder), seeds=[0], counts=[4],
-                              ratio=1.0, steps=1, scratch_steps=1, eval_images=64, families=families_folder,
-                              report=lambda line: None)
+    result = evaluate_fewshot(
+        tokenizer_run,
+        HOST,
+        tmp_path / "fewshot",
+        target=str(folder),
+        seeds=[0],
+        counts=[4],
+        ratio=1.0,
+        steps=1,
+        scratch_steps=1,
+        eval_images=64,
+        families=families_folder,
+        report=lambda line: None,
+    )
     assert result["held_out"] == 6  # the 10 images minus the largest N
     _, _, _, held_out = target_images(str(folder), HOST, shots=4, eval_images=6, image_size=32, seed=0)
     stored = sensor_images(str(folder), HOST, count=10, image_size=32).images  # as the PNGs read back
@@ -184,11 +272,14 @@ def test_a_folder_targets_background_is_the_median_of_its_images(tokenizer_run, 
     assert "the per-pixel median of 10 of the folder's 10 images" in (tmp_path / "fewshot" / "fewshot.md").read_text()
 
 
-@pytest.mark.parametrize("flags, message", [
-    (["--n", "4", "4"], "--n 4 4 repeats a count"),
-    (["--ratio", "0"], "--ratio 0: the mixed arm needs family images"),
-    (["--seeds", "1", "1"], "--seeds 1 1 repeats a seed"),
-])
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (["--n", "4", "4"], "--n 4 4 repeats a count"),
+        (["--ratio", "0"], "--ratio 0: the mixed arm needs family images"),
+        (["--seeds", "1", "1"], "--seeds 1 1 repeats a seed"),
+    ],
+)
 def test_bad_settings_get_one_line_errors(tokenizer_run, tmp_path, capsys, flags, message):
     assert main(["evaluate", "fewshot", "--run", str(tokenizer_run), "--out", str(tmp_path / "x"), *flags]) == 2
     error = capsys.readouterr().err
@@ -198,15 +289,34 @@ def test_bad_settings_get_one_line_errors(tokenizer_run, tmp_path, capsys, flags
 def test_a_checkpoint_folder_is_not_a_run(tokenizer_run, tmp_path):
     step_folder = next((tokenizer_run / "checkpoints").iterdir())
     with pytest.raises(ConfigError, match="the scratch arm trains a fresh tokenizer with the run's config"):
-        evaluate_fewshot(step_folder, HOST, tmp_path / "x", target=TARGET, seeds=[0], counts=[4], steps=1,
-                         eval_images=2)
+        evaluate_fewshot(
+            step_folder, HOST, tmp_path / "x", target=TARGET, seeds=[0], counts=[4], steps=1, eval_images=2
+        )
 
 
 def test_the_command_writes_its_files_and_refuses_to_overwrite_them(tokenizer_run, families_folder, tmp_path, capsys):
     out = tmp_path / "fewshot"
-    args = ["--no-progress", "evaluate", "fewshot", "--run", str(tokenizer_run), "--out", str(out), "--n", "4",
-            "--steps", "1", "--scratch-steps", "1", "--eval-images", "2", "--seeds", "3", "--families",
-            str(families_folder)]
+    args = [
+        "--no-progress",
+        "evaluate",
+        "fewshot",
+        "--run",
+        str(tokenizer_run),
+        "--out",
+        str(out),
+        "--n",
+        "4",
+        "--steps",
+        "1",
+        "--scratch-steps",
+        "1",
+        "--eval-images",
+        "2",
+        "--seeds",
+        "3",
+        "--families",
+        str(families_folder),
+    ]
     assert main(args) == 0
     printed = capsys.readouterr().out
     result = json.loads((out / "fewshot.json").read_text())

@@ -27,19 +27,25 @@ def test_one_conditioner_per_key_needs_no_choice():
 
 def test_two_conditioners_on_one_key_must_be_chosen_by_index_or_name():
     pipe = _pipeline(("label", "label"), ("clip", "visual"), ("visual", "visual"))
-    with pytest.raises(ConfigError, match=r"2 conditioners reading 'visual' \(1:clip, 2:visual\); choose one with "
-                                          r"--conditioner INDEX\|NAME"):
+    with pytest.raises(
+        ConfigError,
+        match=r"2 conditioners reading 'visual' \(1:clip, 2:visual\); choose one with "
+        r"--conditioner INDEX\|NAME",
+    ):
         pipe.conditioner_index("visual")
     assert pipe.conditioner_index("visual", "clip") == 1
     assert pipe.conditioner_index("visual", "visual") == 2
     assert pipe.conditioner_index("visual", 2) == 2 and pipe.conditioner_index("visual", "1") == 1
 
 
-@pytest.mark.parametrize("which, message", [
-    ("0", r"conditioner 0:label reads samples' 'label', not 'visual'; give a --label condition"),
-    ("text", r"--conditioner text is none of this generator's conditioners \(0:label, 1:visual\)"),
-    ("7", r"--conditioner 7 is none of"),
-])
+@pytest.mark.parametrize(
+    "which, message",
+    [
+        ("0", r"conditioner 0:label reads samples' 'label', not 'visual'; give a --label condition"),
+        ("text", r"--conditioner text is none of this generator's conditioners \(0:label, 1:visual\)"),
+        ("7", r"--conditioner 7 is none of"),
+    ],
+)
 def test_a_wrong_choice_is_one_line_naming_the_conditioners(which, message):
     pipe = _pipeline(("label", "label"), ("visual", "visual"))
     with pytest.raises(ConfigError, match=message) as error:

@@ -33,17 +33,45 @@ def test_train_generator_writes_its_run_and_scores_samples(trained):
     result = json.loads((trained / "generation.json").read_text())
     assert result["step"] == 6 and result["samples"] == 4 and result["sampler"] == "posterior"
     assert result["code_cache"]["cache"] in ("miss", "hit") and 0 < result["psnr"] < 100
-    assert sorted(p.name for p in (trained / "checkpoints" / "generator").iterdir()) == ["step-00000003",
-                                                                                         "step-00000006"]
+    assert sorted(p.name for p in (trained / "checkpoints" / "generator").iterdir()) == [
+        "step-00000003",
+        "step-00000006",
+    ]
     assert (trained / "samples.png").is_file()
     assert [r["step"] for r in lines(trained) if "loss" in r] == [1, 2, 3, 4, 5, 6]
 
 
 def test_generate_is_deterministic_and_independent_of_the_batch(trained, tmp_path, capsys):
     def generate(out, *extra):
-        assert main(["generate", "--run", str(trained), "--label", "0", "--label", "3", "--label", "5", "--n", "3",
-                     "--steps", "3", "--guidance", "2", "--truncation", "0.9", "--seed", "7", "--out", str(out),
-                     *extra]) == 0
+        assert (
+            main(
+                [
+                    "generate",
+                    "--run",
+                    str(trained),
+                    "--label",
+                    "0",
+                    "--label",
+                    "3",
+                    "--label",
+                    "5",
+                    "--n",
+                    "3",
+                    "--steps",
+                    "3",
+                    "--guidance",
+                    "2",
+                    "--truncation",
+                    "0.9",
+                    "--seed",
+                    "7",
+                    "--out",
+                    str(out),
+                    *extra,
+                ]
+            )
+            == 0
+        )
         return [(out / f"sample_{i:04d}.png").read_bytes() for i in range(3)]
 
     first = generate(tmp_path / "a")
@@ -66,14 +94,17 @@ def test_the_python_pipeline_takes_every_sampler_and_class_names(trained, sample
     assert torch.equal(images, pipe(label=["sphere", 2], steps=3, sampler=sampler, seed=0))
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--label", "blob"], "--label: unknown class 'blob'; available: "),
-    (["--label", "99"], "--label 99: out of range; this run's classes are 0..11"),
-    (["--visual", "photo.png"], "this generator was not trained with a 'visual' condition; it takes: label"),
-    (["--label", "1", "--label", "2", "--n", "3"], "2 --label values for --n 3; give one value or --n values"),
-    ([], "give exactly one kind of condition"),
-    (["--label", "1", "--steps", "21"], "steps must be an integer in [1, 20]"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--label", "blob"], "--label: unknown class 'blob'; available: "),
+        (["--label", "99"], "--label 99: out of range; this run's classes are 0..11"),
+        (["--visual", "photo.png"], "this generator was not trained with a 'visual' condition; it takes: label"),
+        (["--label", "1", "--label", "2", "--n", "3"], "2 --label values for --n 3; give one value or --n values"),
+        ([], "give exactly one kind of condition"),
+        (["--label", "1", "--steps", "21"], "steps must be an integer in [1, 20]"),
+    ],
+)
 def test_generate_errors_are_one_line(trained, tmp_path, capsys, args, message):
     capsys.readouterr()
     assert main(["generate", "--run", str(trained), *args, "--out", str(tmp_path / "out")]) == 2
@@ -116,8 +147,14 @@ def test_a_generator_on_another_runs_tokenizer_and_exact_resume(trained, tmp_pat
 
 def test_the_generator_contract(tmp_path):
     context = BuildContext(image_size=32, num_classes=4, cond_dim=16, codebook_size=16, code_grid=4)
-    check_plugin(HOST, "generator", "vq_diffusion", {"depth": 1, "width": 16, "heads": 2, "num_steps": 10}, context,
-                 tmp_dir=tmp_path)
+    check_plugin(
+        HOST,
+        "generator",
+        "vq_diffusion",
+        {"depth": 1, "width": 16, "heads": 2, "num_steps": 10},
+        context,
+        tmp_dir=tmp_path,
+    )
 
 
 @pytest.mark.parametrize("codebook_size, grid", [(2, 1), (16384, 2), (16, 32)])
@@ -125,8 +162,11 @@ def test_the_generator_contract(tmp_path):
 def test_training_and_sampling_stay_finite_at_the_extremes(codebook_size, grid, loss):
     """K = 2 and K = 16384, a 1x1 and a 32x32 grid, batch 1, bf16, guidance 0 and 20, truncation near 0."""
     context = BuildContext(image_size=32, cond_dim=8, codebook_size=codebook_size, code_grid=grid)
-    generator = HOST.build("generator", {"name": "vq_diffusion", "depth": 1, "width": 16, "heads": 2,
-                                         "num_steps": 10, "loss": loss}, context)
+    generator = HOST.build(
+        "generator",
+        {"name": "vq_diffusion", "depth": 1, "width": 16, "heads": 2, "num_steps": 10, "loss": loss},
+        context,
+    )
     condition = ConditionTokens(torch.randn(1, 2, 8), torch.zeros(1, dtype=torch.bool))
     codes = torch.randint(codebook_size, (1, grid, grid))
     for t_draws in range(3):  # several t, t = 0 and t = T-1 among them with these seeds
@@ -137,15 +177,23 @@ def test_training_and_sampling_stay_finite_at_the_extremes(codebook_size, grid, 
     sampler = HOST.build("sampler", "posterior")
     null = ConditionTokens(torch.randn(1, 2, 8), torch.ones(1, dtype=torch.bool))
     for guidance, truncation in ((0.0, 1.0), (20.0, 1e-6), (1.0, 0.5)):
-        sampled = generator.sample(condition, sampler, steps=3, null=null, guidance=guidance, truncation=truncation,
-                                   generators=[torch.Generator().manual_seed(0)])
+        sampled = generator.sample(
+            condition,
+            sampler,
+            steps=3,
+            null=null,
+            guidance=guidance,
+            truncation=truncation,
+            generators=[torch.Generator().manual_seed(0)],
+        )
         assert sampled.shape == (1, grid, grid) and int(sampled.max()) < codebook_size and int(sampled.min()) >= 0
 
 
 def test_guidance_needs_the_null_condition():
     context = BuildContext(image_size=32, cond_dim=8, codebook_size=8, code_grid=2)
-    generator = HOST.build("generator", {"name": "vq_diffusion", "depth": 1, "width": 16, "heads": 2,
-                                         "num_steps": 10}, context)
+    generator = HOST.build(
+        "generator", {"name": "vq_diffusion", "depth": 1, "width": 16, "heads": 2, "num_steps": 10}, context
+    )
     condition = ConditionTokens(torch.randn(1, 2, 8), torch.zeros(1, dtype=torch.bool))
     with pytest.raises(ValueError, match="guidance != 1 needs the null condition"):
         generator.sample(condition, HOST.build("sampler", "posterior"), steps=2, guidance=3.0)
@@ -161,9 +209,11 @@ def test_a_generator_without_the_tokenizers_facts_is_refused():
 def test_label_to_touch_in_a_fresh_interpreter_never_imports_open_clip(trained, run_cli):
     """Model only what the scene requires: generating from a label run imports neither open_clip nor
     torchvision's models."""
-    code = ("import sys; from vqtouch.plugins.generator import load_pipeline; "
-            f"pipe = load_pipeline({str(trained)!r}); pipe(label=1, steps=2); "
-            "print('open_clip' in sys.modules, 'torchvision.models' in sys.modules)")
+    code = (
+        "import sys; from vqtouch.plugins.generator import load_pipeline; "
+        f"pipe = load_pipeline({str(trained)!r}); pipe(label=1, steps=2); "
+        "print('open_clip' in sys.modules, 'torchvision.models' in sys.modules)"
+    )
     import subprocess
     import sys
 
@@ -204,17 +254,32 @@ def test_evaluate_generation_rescores_a_run_reproducibly(trained, capsys):
     assert main(args) == 0 and json.loads(out.read_text()) == first
     capsys.readouterr()
     assert main([*args, "--conditioner", "1"]) == 2
-    assert capsys.readouterr().err == ("vqtouch: error: --conditioner 1: this generator has conditioners 0..0 "
-                                       "(label)\n")
+    assert capsys.readouterr().err == (
+        "vqtouch: error: --conditioner 1: this generator has conditioners 0..0 (label)\n"
+    )
 
 
-
-def touch_to_touch_args(out, trained, *extra, conditioner=("generator.conditioners.0.width=8",
-                                                            "generator.conditioners.0.depth=1")):
+def touch_to_touch_args(
+    out, trained, *extra, conditioner=("generator.conditioners.0.width=8", "generator.conditioners.0.depth=1")
+):
     overrides = [o for o in TINY if not o.startswith("tokenizer.")] + [
-        *conditioner, "generator.train.steps=1", "generator.num_samples=2", "generator.steps=1", *extra]
-    args = ["--no-progress", "train", "generator", "--scene", "touch-to-touch", "--tokenizer", str(trained),
-            "--out", str(out)]
+        *conditioner,
+        "generator.train.steps=1",
+        "generator.num_samples=2",
+        "generator.steps=1",
+        *extra,
+    ]
+    args = [
+        "--no-progress",
+        "train",
+        "generator",
+        "--scene",
+        "touch-to-touch",
+        "--tokenizer",
+        str(trained),
+        "--out",
+        str(out),
+    ]
     for override in overrides:
         args += ["--set", override]
     return args
@@ -224,8 +289,10 @@ def test_a_condition_that_is_the_target_image_is_flagged(trained, tmp_path, caps
     """A tactile conditioner told to read the image it must produce could learn to copy it."""
     capsys.readouterr()
     assert main(touch_to_touch_args(tmp_path / "t2t", trained, "generator.conditioners.0.reads=tactile")) == 0
-    assert ("vqtouch: warning: a conditioner reads samples' 'tactile' image, which is also the image the generator "
-            "learns to produce") in capsys.readouterr().err
+    assert (
+        "vqtouch: warning: a conditioner reads samples' 'tactile' image, which is also the image the generator "
+        "learns to produce"
+    ) in capsys.readouterr().err
 
 
 def test_touch_to_touch_conditions_on_the_paired_sensors_image(trained, tmp_path, capsys):
@@ -254,14 +321,16 @@ def test_touch_to_touch_conditions_on_the_paired_sensors_image(trained, tmp_path
     _, held_out = split_dataset(dataset, run_config.data.val_fraction, run_config.seed)
     for row, key in ((0, "tactile_source"), (2, "tactile")):
         expected = (held_out[1][key].permute(1, 2, 0).numpy() * 255).round()
-        cell = grid_HW3[2 + row * 34:2 + row * 34 + 32, 36:68].astype(float)
+        cell = grid_HW3[2 + row * 34 : 2 + row * 34 + 32, 36:68].astype(float)
         assert np.abs(cell - expected).max() <= 1, key
     pipe = load_pipeline(run, host=HOST)
     assert [c.sample_key for c in pipe.conditioners] == ["tactile_source"]
     image = tmp_path / "gelsight.png"
     save_png(torch.rand(3, 32, 32), image)
-    assert main(["generate", "--run", str(run), "--tactile", str(image), "--steps", "1", "--out",
-                 str(tmp_path / "gen")]) == 0
+    assert (
+        main(["generate", "--run", str(run), "--tactile", str(image), "--steps", "1", "--out", str(tmp_path / "gen")])
+        == 0
+    )
     assert json.loads((tmp_path / "gen" / "generate.json").read_text())["condition"] == "tactile"
     assert (tmp_path / "gen" / "sample_0000.png").is_file()
 
@@ -270,7 +339,9 @@ def test_the_baselines_stand_beside_every_score(trained):
     result = json.loads((trained / "generation.json").read_text())
     for prefix in ("ceiling_", "retrieval_", "class_mean_", "background_"):
         assert isinstance(result[prefix + "psnr"], float) and isinstance(result[prefix + "contact_psnr"], float), prefix
-    assert len({result[prefix + "psnr"] for prefix in ("", "ceiling_", "retrieval_", "class_mean_", "background_")}) == 5
+    assert (
+        len({result[prefix + "psnr"] for prefix in ("", "ceiling_", "retrieval_", "class_mean_", "background_")}) == 5
+    )
 
 
 def test_retrieval_and_class_mean_against_hand_built_training_data():
@@ -284,8 +355,10 @@ def test_retrieval_and_class_mean_against_hand_built_training_data():
             return torch.nn.functional.one_hot(torch.as_tensor(condition), 3).float().unsqueeze(1)
 
     conditioner = Onehot(cond_dim=3, num_tokens=1)
-    train = [{"label": label, "tactile": torch.full((3, 2, 2), value)}
-             for label, value in ((0, 0.1), (1, 0.5), (0, 0.3), (2, 0.9))]
+    train = [
+        {"label": label, "tactile": torch.full((3, 2, 2), value)}
+        for label, value in ((0, 0.1), (1, 0.5), (0, 0.3), (2, 0.9))
+    ]
     batch = {"label": torch.tensor([0, 2])}
     baselines = training_baselines(conditioner, conditioner(batch["label"]), batch, train, torch.device("cpu"))
     assert baselines["retrieval_"][:, 0, 0, 0].tolist() == pytest.approx([0.1, 0.9])  # first image of each label
@@ -331,9 +404,21 @@ def test_a_mixed_generator_is_scored_with_each_of_its_conditioners(trained, tmp_
     run = tmp_path / "mixed"
     overrides = [o for o in TINY if not o.startswith("tokenizer.")] + [
         'generator.conditioners=[{"name": "label"}, {"name": "text_scratch", "depth": 1, "width": 16, "heads": 2}]',
-        "generator.train.steps=2", "generator.num_samples=2", "generator.steps=2"]
-    args = ["--no-progress", "train", "generator", "--scene", "label-to-touch", "--tokenizer", str(trained),
-            "--out", str(run)]
+        "generator.train.steps=2",
+        "generator.num_samples=2",
+        "generator.steps=2",
+    ]
+    args = [
+        "--no-progress",
+        "train",
+        "generator",
+        "--scene",
+        "label-to-touch",
+        "--tokenizer",
+        str(trained),
+        "--out",
+        str(run),
+    ]
     for override in overrides:
         args += ["--set", override]
     assert main(args) == 0

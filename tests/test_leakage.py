@@ -32,8 +32,13 @@ class TinyDataset(TactileDataset):
         return self.size
 
     def __getitem__(self, index: int) -> dict:
-        return {"tactile": torch.full((3, 8, 8), index / 255), "label": -1, "text": "", "sensor": "test",
-                "id": f"s{index}"}
+        return {
+            "tactile": torch.full((3, 8, 8), index / 255),
+            "label": -1,
+            "text": "",
+            "sensor": "test",
+            "id": f"s{index}",
+        }
 
     def split_groups(self) -> list[str] | None:
         return self.groups
@@ -134,16 +139,21 @@ def test_the_generators_code_dataset_splits_as_its_source_dataset():
     source = TinyDataset(uneven_groups(5))
     codes = CodesDataset.collect(torch.zeros(len(source), 2, 2, dtype=torch.long), source, ["label"])
     for fraction in (0.2, 0.4):
-        (train_codes, held_out_codes), (train, held_out) = (split_dataset(codes, fraction, 1),
-                                                            split_dataset(source, fraction, 1))
+        (train_codes, held_out_codes), (train, held_out) = (
+            split_dataset(codes, fraction, 1),
+            split_dataset(source, fraction, 1),
+        )
         assert (held_out_codes.indices, train_codes.indices) == (held_out.indices, train.indices)
         assert held_out_codes.split_unit == "recording"
         assert not groups_of(train_codes) & groups_of(held_out_codes)
 
 
 def test_procedural_samples_are_each_their_own_group(host):
-    dataset = host.build("dataset", {"name": "procedural", "num_samples": 20, "image_size": 16},
-                         sensor=host.build("sensor_family", "gelsight"))
+    dataset = host.build(
+        "dataset",
+        {"name": "procedural", "num_samples": 20, "image_size": 16},
+        sensor=host.build("sensor_family", "gelsight"),
+    )
     assert dataset.split_groups() is None
     assert split_dataset(dataset, 0.25, 0)[1].indices == FRAME_SPLITS[20, 0.25, 0]
 
@@ -233,12 +243,38 @@ def folder_spec(root: Path, csv: str, **options) -> str:
 
 def test_command_shows_leakage_of_a_frame_split_and_none_of_a_recording_split(tmp_path, capsys):
     root = write_recordings(tmp_path / "video")
-    assert main(["data", "leakage", "--dataset", folder_spec(root, "frames.csv"), "--val-fraction", "0.2",
-                 "--out", str(tmp_path / "frames")]) == 0
+    assert (
+        main(
+            [
+                "data",
+                "leakage",
+                "--dataset",
+                folder_spec(root, "frames.csv"),
+                "--val-fraction",
+                "0.2",
+                "--out",
+                str(tmp_path / "frames"),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "split by sample" in out and "12 of 12 test images have a near-duplicate in train (threshold 0.25)" in out
-    assert main(["data", "leakage", "--dataset", folder_spec(root, "grouped.csv"), "--val-fraction", "0.2",
-                 "--out", str(tmp_path / "groups")]) == 0
+    assert (
+        main(
+            [
+                "data",
+                "leakage",
+                "--dataset",
+                folder_spec(root, "grouped.csv"),
+                "--val-fraction",
+                "0.2",
+                "--out",
+                str(tmp_path / "groups"),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "split by group" in out and "0 of 12 test images have a near-duplicate in train" in out
     record = json.loads((tmp_path / "groups" / "leakage.json").read_text())
@@ -255,8 +291,16 @@ def test_command_shows_leakage_of_a_frame_split_and_none_of_a_recording_split(tm
 
 def test_command_compares_two_datasets_and_can_fail_for_ci(tmp_path, capsys):
     root = write_recordings(tmp_path / "video")
-    argv = ["data", "leakage", "--train", folder_spec(root, "frames.csv"), "--test", folder_spec(root, "grouped.csv"),
-            "--show", "3"]
+    argv = [
+        "data",
+        "leakage",
+        "--train",
+        folder_spec(root, "frames.csv"),
+        "--test",
+        folder_spec(root, "grouped.csv"),
+        "--show",
+        "3",
+    ]
     assert main(argv) == 0
     out = capsys.readouterr().out
     assert "60 of 60 test images have a near-duplicate in train" in out
@@ -266,26 +310,49 @@ def test_command_compares_two_datasets_and_can_fail_for_ci(tmp_path, capsys):
 
 
 def test_command_checks_the_procedural_split(capsys):
-    assert main(["data", "leakage", "--dataset", '{"name": "procedural", "num_samples": 12}', "--sensor",
-                 "gelsight_mini", "--show", "0"]) == 0
+    assert (
+        main(
+            [
+                "data",
+                "leakage",
+                "--dataset",
+                '{"name": "procedural", "num_samples": 12}',
+                "--sensor",
+                "gelsight_mini",
+                "--show",
+                "0",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "split by sample (val_fraction 0.1, seed 0): 11 train, 1 held out" in out
     assert "of 1 test images have a near-duplicate" in out and "closest pairs" not in out
 
 
-@pytest.mark.parametrize(("argv", "message"), [
-    (["--dataset", "touch_and_goo"], "--dataset: unknown dataset 'touch_and_goo'"),
-    (["--train", "procedural"], "give --dataset SPEC to check the train/held-out split of one dataset, or both"),
-    (["--dataset", "procedural", "--train", "procedural", "--test", "procedural"], "not both"),
-    (["--dataset", '{"name": "procedural", '], "--dataset is not valid JSON"),
-    (["--dataset", "image_folder"], "--dataset: dataset 'image_folder' needs its folder"),
-    (["--dataset", "procedural", "--val-fraction", "0"], "--val-fraction 0: give a fraction between 0 and 1"),
-    (["--dataset", "procedural", "--threshold", "-1"], "--threshold -1"),
-    (["--dataset", "procedural", "--show", "-1"], "--show -1"),
-    (["--dataset", "procedural", "--sensor", "gelsite"], "--sensor: unknown sensor_family 'gelsite'"),
-    (["--train", '{"name": "procedural", "num_samples": 2, "image_size": [16, 32]}', "--test",
-      '{"name": "procedural", "num_samples": 2, "image_size": 16}'], "of different aspects"),
-])
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--dataset", "touch_and_goo"], "--dataset: unknown dataset 'touch_and_goo'"),
+        (["--train", "procedural"], "give --dataset SPEC to check the train/held-out split of one dataset, or both"),
+        (["--dataset", "procedural", "--train", "procedural", "--test", "procedural"], "not both"),
+        (["--dataset", '{"name": "procedural", '], "--dataset is not valid JSON"),
+        (["--dataset", "image_folder"], "--dataset: dataset 'image_folder' needs its folder"),
+        (["--dataset", "procedural", "--val-fraction", "0"], "--val-fraction 0: give a fraction between 0 and 1"),
+        (["--dataset", "procedural", "--threshold", "-1"], "--threshold -1"),
+        (["--dataset", "procedural", "--show", "-1"], "--show -1"),
+        (["--dataset", "procedural", "--sensor", "gelsite"], "--sensor: unknown sensor_family 'gelsite'"),
+        (
+            [
+                "--train",
+                '{"name": "procedural", "num_samples": 2, "image_size": [16, 32]}',
+                "--test",
+                '{"name": "procedural", "num_samples": 2, "image_size": 16}',
+            ],
+            "of different aspects",
+        ),
+    ],
+)
 def test_bad_input_is_one_line_with_exit_2(capsys, argv, message):
     assert main(["data", "leakage", *argv]) == 2
     err = capsys.readouterr().err

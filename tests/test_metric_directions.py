@@ -42,8 +42,12 @@ class RoughnessGap(Metric):
 
 @hookimpl
 def vqtouch_register_metrics(register):
-    register("roughness_gap", lambda config, context: RoughnessGap(), RoughnessGapConfig,
-             description="Local-contrast gap (lower is better).")
+    register(
+        "roughness_gap",
+        lambda config, context: RoughnessGap(),
+        RoughnessGapConfig,
+        description="Local-contrast gap (lower is better).",
+    )
 
 
 def test_declared_directions_decide_named_scores_and_only_inside_the_block():
@@ -62,19 +66,26 @@ def test_declared_directions_decide_named_scores_and_only_inside_the_block():
 
 def test_the_report_shows_a_plugin_metric_the_way_it_declares(tmp_path, make_plugin):
     host = load_plugins(autoload=False, extra=[make_plugin("roughness_metric", vqtouch_register_metrics)])
-    overrides = ['stages=["tokenizer"]', "tokenizer.train.steps=1", "data.batch_size=4", "data.dataset.num_samples=12",
-                 "data.image_size=16", "tokenizer.loss.perceptual=none", "tokenizer.discriminator=null",
-                 'tokenizer.autoencoder={"name": "vqgan", "channels": 8, "norm_groups": 8, '
-                 '"channel_multipliers": [1, 2], "z_channels": 8, "embed_dim": 4, "mid_attention": false}',
-                 'metrics=[{"name": "psnr"}, {"name": "roughness_gap"}]']
+    overrides = [
+        'stages=["tokenizer"]',
+        "tokenizer.train.steps=1",
+        "data.batch_size=4",
+        "data.dataset.num_samples=12",
+        "data.image_size=16",
+        "tokenizer.loss.perceptual=none",
+        "tokenizer.discriminator=null",
+        'tokenizer.autoencoder={"name": "vqgan", "channels": 8, "norm_groups": 8, '
+        '"channel_multipliers": [1, 2], "z_channels": 8, "embed_dim": 4, "mid_attention": false}',
+        'metrics=[{"name": "psnr"}, {"name": "roughness_gap"}]',
+    ]
     config = resolve_config("reconstruction", overrides=overrides, host=host)
     run = RunDir.create(config, host=host, path=tmp_path / "run")
     run_demo(config, host, run)
     recorded = json.loads((run.path / "report.json").read_text())
     assert recorded["directions"] == {"psnr": "higher", "roughness_gap": "lower"}
     html = (run.path / "report.html").read_text()
-    row = html[html.index("<td>roughness_gap "):]
-    row = row[:row.index("</tr>")]
+    row = html[html.index("<td>roughness_gap ") :]
+    row = row[: row.index("</tr>")]
     assert 'title="lower is better">↓' in row
     markdown = (run.path / "report.md").read_text()
     assert "| roughness_gap ↓ |" in markdown

@@ -35,6 +35,7 @@ def score(metric, predicted, target) -> float:
 
 # -- PSNR -----------------------------------------------------------------------------------------
 
+
 def test_psnr_closed_form(host):
     target = torch.full((1, 3, 16, 16), 0.5, dtype=torch.float64)
     # torchmetrics divides in float32: agreement to its precision.
@@ -63,6 +64,7 @@ def test_psnr_data_range_scales_the_peak(host):
 
 # -- SSIM -----------------------------------------------------------------------------------------
 
+
 def reference_ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
     """Wang et al.'s SSIM written out (float64, Gaussian window) as torchmetrics defines its mean: over every
     pixel, the images reflect-padded by half a window, negative variances from round-off clamped to 0.
@@ -70,7 +72,7 @@ def reference_ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: fl
     half = (window - 1) // 2
     x, y = (F.pad(images.double(), (half, half, half, half), mode="reflect") for images in (x, y))
     coords = torch.arange(window, dtype=torch.float64) - (window - 1) / 2
-    gauss = torch.exp(-coords**2 / (2 * sigma**2))
+    gauss = torch.exp(-(coords**2) / (2 * sigma**2))
     gauss = gauss / gauss.sum()
     kernel = (gauss[:, None] * gauss[None, :]).expand(x.shape[1], 1, -1, -1)
 
@@ -121,6 +123,7 @@ def test_similarity_is_symmetric_and_falls_as_noise_grows(host, name):
 
 # -- MS-SSIM --------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("side, scales", [(32, 2), (64, 3), (128, 4), (175, 4), (176, 5), (512, 5)])
 def test_ms_ssim_uses_as_many_scales_as_the_size_allows(side, scales):
     assert metrics.ms_ssim_scales(side, side) == scales
@@ -130,8 +133,9 @@ def test_ms_ssim_with_one_scale_is_ssim(host):
     target = smooth_images(3, 48)
     predicted = with_noise(target, 0.05)
     one_scale = host.build("metric", {"name": "ms_ssim", "scales": 1}, CONTEXT)
-    torch.testing.assert_close(one_scale.per_image(predicted, target), reference_ssim(predicted, target),
-                               rtol=0, atol=1e-12)
+    torch.testing.assert_close(
+        one_scale.per_image(predicted, target), reference_ssim(predicted, target), rtol=0, atol=1e-12
+    )
 
 
 def test_ms_ssim_is_one_for_identical_images_and_refuses_too_small_ones(host):
@@ -147,6 +151,7 @@ def test_ms_ssim_of_opposite_images_is_a_number_not_nan(host):
 
 
 # -- LPIPS ----------------------------------------------------------------------------------------
+
 
 @pytest.fixture
 def lpips_vgg(host, tmp_path_factory, monkeypatch):
@@ -186,8 +191,12 @@ def test_lpips_without_weights_is_skipped_naming_the_file(host, monkeypatch):
     monkeypatch.delenv("VQTOUCH_LPIPS_VGG", raising=False)
     metric = host.build("metric", "lpips", CONTEXT)
     assert isinstance(metric, SkippedMetric) and not metric.higher_is_better
-    for needed in ("vgg16-397923af.pth", "VQTOUCH_LPIPS_VGG", "https://download.pytorch.org/models/vgg16-397923af.pth",
-                   "never downloads"):
+    for needed in (
+        "vgg16-397923af.pth",
+        "VQTOUCH_LPIPS_VGG",
+        "https://download.pytorch.org/models/vgg16-397923af.pth",
+        "never downloads",
+    ):
         assert needed in metric.skipped
     with pytest.raises(Exception, match="skipped"):
         metric.update(torch.zeros(1, 3, 16, 16), torch.zeros(1, 3, 16, 16))
@@ -208,10 +217,12 @@ def test_lpips_checks_the_real_files_sha256(host, tmp_path_factory):
 
 # -- the metric set: skipped metrics are reported, never scored --------------------------------------
 
+
 def test_metric_set_reports_skipped_metrics_with_their_reason_and_no_number(host, monkeypatch):
     monkeypatch.delenv("VQTOUCH_FID_INCEPTION", raising=False)
-    metric_set = MetricSet([("ssim", host.build("metric", "ssim", CONTEXT)),
-                            ("fid", host.build("metric", "fid", CONTEXT))])
+    metric_set = MetricSet(
+        [("ssim", host.build("metric", "ssim", CONTEXT)), ("fid", host.build("metric", "fid", CONTEXT))]
+    )
     images = smooth_images(2, 32)
     scores = metric_set.score(images, images, prefix="background_")
     assert scores["background_ssim"] == pytest.approx(1.0)
@@ -226,13 +237,15 @@ def test_a_skipped_metric_needs_a_reason():
 
 # -- FID and KID ----------------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def inception_file(tmp_path_factory):
     return metric_weights.fabricated_inception(tmp_path_factory.getbasetemp())
 
 
 def test_fid_is_zero_for_identical_sets_symmetric_grows_with_noise_and_is_the_features_frechet_distance(
-        host, inception_file):
+    host, inception_file
+):
     """FID's invariants, and torchmetrics' FID equals vqtouch's row-space Fréchet distance
     (fd_effnetlite0's computation, written independently) on the same Inception features."""
     from vqtouch.plugins.evaluation.fd_metric import feature_frechet_distance
@@ -258,8 +271,11 @@ def unbiased_polynomial_mmd(x: torch.Tensor, y: torch.Tensor) -> float:
 
     n, m = len(x), len(y)
     k_xx, k_yy, k_xy = kernel(x, x), kernel(y, y), kernel(x, y)
-    return float((k_xx.sum() - k_xx.diag().sum()) / (n * (n - 1)) + (k_yy.sum() - k_yy.diag().sum()) / (m * (m - 1))
-                 - 2 * k_xy.mean())
+    return float(
+        (k_xx.sum() - k_xx.diag().sum()) / (n * (n - 1))
+        + (k_yy.sum() - k_yy.diag().sum()) / (m * (m - 1))
+        - 2 * k_xy.mean()
+    )
 
 
 def test_kid_effnetlite0_is_the_unbiased_polynomial_mmd_of_fd_effnetlite0s_features(host):
@@ -276,8 +292,11 @@ def test_kid_subsets_are_seeded(host):
     real, generated = smooth_images(8, 32, seed=1), smooth_images(8, 32, seed=2)
     values = []
     for seed in (0, 0, 1):
-        kid = host.build("metric", {"name": "kid_effnetlite0", "image_size": 32, "subsets": 4, "subset_size": 4,
-                                    "seed": seed}, CONTEXT)
+        kid = host.build(
+            "metric",
+            {"name": "kid_effnetlite0", "image_size": 32, "subsets": 4, "subset_size": 4, "seed": seed},
+            CONTEXT,
+        )
         values.append(score(kid, generated, real))
     assert values[0] == values[1] != values[2]
 
@@ -316,6 +335,7 @@ def test_inception_metrics_see_uint8_like_torchmetrics_fid():
 
 
 # -- input checks ---------------------------------------------------------------------------------
+
 
 def test_metrics_reject_bad_input(host):
     psnr = host.build("metric", "psnr", CONTEXT)

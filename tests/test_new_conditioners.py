@@ -31,6 +31,7 @@ def _images(batch: int, seed: int) -> torch.Tensor:
 
 # -- visual: frozen ImageNet EfficientNet-Lite0 ------------------------------------------------------
 
+
 def test_visual_tokens_are_the_projected_normalised_feature_grid(host):
     conditioner = host.build("conditioner", VISUAL, CONTEXT).eval()
     images = _images(2, 1)
@@ -65,8 +66,14 @@ def test_visual_tokens_depend_on_the_image_and_nothing_else(host):
 def test_visual_frozen_network_is_out_of_checkpoints_and_gets_no_gradient(host):
     conditioner = host.build("conditioner", VISUAL, CONTEXT)
     network = conditioner.features.network
-    assert set(conditioner.state_dict()) == {"null_tokens_ND", "position_ND", "project.weight", "project.bias",
-                                             "grid_project.weight", "grid_project.bias"}
+    assert set(conditioner.state_dict()) == {
+        "null_tokens_ND",
+        "position_ND",
+        "project.weight",
+        "project.bias",
+        "grid_project.weight",
+        "grid_project.bias",
+    }
     assert not any(name.startswith("features") for name, _ in conditioner.named_parameters())
     conditioner.train().requires_grad_(True)  # what a trainer does: the frozen network must stay frozen
     assert not network.training and not any(p.requires_grad for p in network.parameters())
@@ -96,6 +103,7 @@ def test_visual_input_size_is_bounded(host):
 
 # -- visual_cnn and tactile: one CNN, two sample keys --------------------------------------------------
 
+
 def test_visual_cnn_and_tactile_share_one_implementation_reading_different_keys(host):
     from vqtouch.conditioners import image_cnn, tactile
 
@@ -117,28 +125,59 @@ def test_tactile_checkpoint_keys_are_unchanged_by_the_refactor(host):
     """The tactile conditioner's weights keep their names (old checkpoints still load); ``reads``,
     which sample entry it encodes, is a config option, not a weight."""
     touch = host.build("conditioner", {"name": "tactile", "width": 8, "depth": 2, "token_grid": 2}, CONTEXT)
-    assert set(touch.state_dict()) == {"null_tokens_ND", "position_ND", "project.weight", "project.bias",
-                                       "trunk.0.weight", "trunk.0.bias", "trunk.1.weight", "trunk.1.bias",
-                                       "trunk.3.weight", "trunk.3.bias", "trunk.4.weight", "trunk.4.bias"}
+    assert set(touch.state_dict()) == {
+        "null_tokens_ND",
+        "position_ND",
+        "project.weight",
+        "project.bias",
+        "trunk.0.weight",
+        "trunk.0.bias",
+        "trunk.1.weight",
+        "trunk.1.bias",
+        "trunk.3.weight",
+        "trunk.3.bias",
+        "trunk.4.weight",
+        "trunk.4.bias",
+    }
     assert list(host.registry("conditioner").get("tactile").config_model.model_fields) == [
-        "name", "width", "depth", "token_grid", "spatial", "reads"]
+        "name",
+        "width",
+        "depth",
+        "token_grid",
+        "spatial",
+        "reads",
+    ]
 
 
 # -- text_scratch -------------------------------------------------------------------------------------
 
+
 def test_words_are_split_and_hashed_stably(host):
     from vqtouch.conditioners.text_scratch import split_words, word_bucket, word_ids
 
-    assert split_words("A smooth-sphere, PRESSED_into the gel!") == ["a", "smooth", "sphere", "pressed", "into",
-                                                                     "the", "gel"]
+    assert split_words("A smooth-sphere, PRESSED_into the gel!") == [
+        "a",
+        "smooth",
+        "sphere",
+        "pressed",
+        "into",
+        "the",
+        "gel",
+    ]
     # CRC-32 buckets, computed once and written down: the same on every machine and in every process.
     assert word_bucket("gel", 4096) == 1575 and word_bucket("sphere", 4096) == 1672
     assert word_bucket("gel", 64) == 39 and word_ids("Gel, sphere.", 64, 16) == [39, 8]
     # Python's own str hash is salted per process; ours must not be.
     probe = "from vqtouch.conditioners.text_scratch import word_ids; print(word_ids('a coarse woven fabric', 4096, 16))"
     seed = "2" if os.environ.get("PYTHONHASHSEED") == "1" else "1"  # a salt other than this process's
-    output = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True, timeout=120,
-                            env={**os.environ, "PYTHONHASHSEED": seed}).stdout.strip()
+    output = subprocess.run(
+        [sys.executable, "-c", probe],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=120,
+        env={**os.environ, "PYTHONHASHSEED": seed},
+    ).stdout.strip()
     assert output == str(word_ids("a coarse woven fabric", 4096, 16))
 
 
@@ -219,6 +258,7 @@ def test_text_heads_must_divide_width(host):
 
 # -- parse_condition: a user's value on the command line ------------------------------------------------
 
+
 @pytest.mark.parametrize("name", ["visual", "visual_cnn"])
 def test_image_conditioners_parse_an_image_path(host, name, tmp_path):
     options = VISUAL if name == "visual" else {"name": "visual_cnn", "width": 8, "depth": 2, "token_grid": 2}
@@ -263,8 +303,13 @@ print("AFTER_VISUAL:" + ",".join(m for m in effnet if m in sys.modules))
 
 
 def test_only_building_the_visual_conditioner_imports_efficientnet():
-    result = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, timeout=300,
-                            env={"VQTOUCH_DISABLE_PLUGIN_AUTOLOAD": "1", "PATH": "/usr/bin:/bin"})
+    result = subprocess.run(
+        [sys.executable, "-c", PROBE],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={"VQTOUCH_DISABLE_PLUGIN_AUTOLOAD": "1", "PATH": "/usr/bin:/bin"},
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     last = result.stdout.strip().splitlines()[-1]
     assert last == "AFTER_VISUAL:" + ",".join(EFFNET_MODULES)

@@ -41,21 +41,46 @@ def test_every_package_folder_has_an_init():
 
 def test_wheel_installs_one_namespace_and_imports_outside_checkout(tmp_path):
     dist = tmp_path / "dist"
-    build = subprocess.run([sys.executable, "-m", "build", "--wheel", "--no-isolation", "--outdir", str(dist),
-                            str(REPO)], capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    build = subprocess.run(
+        [sys.executable, "-m", "build", "--wheel", "--no-isolation", "--outdir", str(dist), str(REPO)],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=600,
+    )
     assert build.returncode == 0, build.stderr[-2000:]
     wheel = next(dist.glob("vqtouch-*.whl"))
 
     env_dir = tmp_path / "venv"
     venv.EnvBuilder(with_pip=False).create(env_dir)
     python = env_dir / "bin" / "python"
-    site = Path(subprocess.check_output([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
-                                        text=True).strip())
-    install = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-index",
-                              "--target", str(site), str(wheel)], capture_output=True, text=True, timeout=600)
+    site = Path(
+        subprocess.check_output(
+            [str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], text=True
+        ).strip()
+    )
+    install = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--no-deps",
+            "--no-index",
+            "--target",
+            str(site),
+            str(wheel),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert install.returncode == 0, install.stderr[-2000:]
 
-    top_level = sorted(p.name for p in site.iterdir() if not p.name.endswith((".dist-info", ".pth")) and p.name != "__pycache__")
+    top_level = sorted(
+        p.name for p in site.iterdir() if not p.name.endswith((".dist-info", ".pth")) and p.name != "__pycache__"
+    )
     assert top_level == ["bin", "vqtouch"] or top_level == ["vqtouch"], top_level
     installed = {p.relative_to(site / "vqtouch").parts[0] for p in (site / "vqtouch").rglob("*.py")}
     assert installed == set(PACKAGE_FOLDERS)
@@ -64,13 +89,17 @@ def test_wheel_installs_one_namespace_and_imports_outside_checkout(tmp_path):
     # Dependencies (torch, pydantic, ...) come from the test environment, appended after the fresh site.
     deps = [p for p in sys.path if p.endswith("site-packages")]
     (site / "zz_deps.pth").write_text("\n".join(deps) + "\n")
-    code = ("import vqtouch.core, sys; from vqtouch.core import load_plugins; host = load_plugins(autoload=False); "
-            "print(vqtouch.core.__file__); print(sorted(host.registry('conditioner').names()));"
-            "import importlib.util as u; print(u.find_spec('core'), u.find_spec('plugins'))")
+    code = (
+        "import vqtouch.core, sys; from vqtouch.core import load_plugins; host = load_plugins(autoload=False); "
+        "print(vqtouch.core.__file__); print(sorted(host.registry('conditioner').names()));"
+        "import importlib.util as u; print(u.find_spec('core'), u.find_spec('plugins'))"
+    )
     outside = tmp_path / "elsewhere"
     outside.mkdir()
     env = {k: v for k, v in os.environ.items() if k not in {"PYTHONPATH"}}
-    result = subprocess.run([str(python), "-c", code], capture_output=True, text=True, cwd=outside, env=env, timeout=300)
+    result = subprocess.run(
+        [str(python), "-c", code], capture_output=True, text=True, cwd=outside, env=env, timeout=300
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     lines = result.stdout.strip().splitlines()
     assert lines[0].startswith(str(site)), lines
@@ -79,6 +108,7 @@ def test_wheel_installs_one_namespace_and_imports_outside_checkout(tmp_path):
 
 
 # -- dependencies: lower bounds in the library, the verified pair in constraints.txt ---------------
+
 
 def _project():
     import tomllib
@@ -106,12 +136,22 @@ def test_constraints_pin_exactly_the_verified_torch_pair_and_tacto():
     pins = {r.name: str(r.specifier) for r in _requirements(line for line in lines if line)}
     # tacto: the release whose config_digit.yml the digit family reads (tests/test_digit_design.py);
     # torchmetrics and torch-fidelity: the metric implementations the tests' closed forms were checked on.
-    assert pins == {"torch": "==2.15.0", "torchvision": "==0.29.2", "tacto": "==0.0.3", "torchmetrics": "==1.9.0",
-                    "torch-fidelity": "==0.4.0"}
+    assert pins == {
+        "torch": "==2.15.0",
+        "torchvision": "==0.29.2",
+        "tacto": "==0.0.3",
+        "torchmetrics": "==1.9.0",
+        "torch-fidelity": "==0.4.0",
+    }
     # The pinned versions satisfy the library's own bounds (else pip could not resolve with the file).
     project = _project()
-    bounds = _requirements([*project["dependencies"], *project["optional-dependencies"]["clip"],
-                            *project["optional-dependencies"]["metrics"]])
+    bounds = _requirements(
+        [
+            *project["dependencies"],
+            *project["optional-dependencies"]["clip"],
+            *project["optional-dependencies"]["metrics"],
+        ]
+    )
     for requirement in bounds:
         if requirement.name in pins:
             assert requirement.specifier.contains(pins[requirement.name].removeprefix("==")), requirement
@@ -119,20 +159,31 @@ def test_constraints_pin_exactly_the_verified_torch_pair_and_tacto():
 
 def test_open_clip_is_only_in_the_clip_extra_and_imported_only_lazily(package_sources):
     project = _project()
-    owners = [group for group, lines in [("dependencies", project["dependencies"]),
-                                         *project["optional-dependencies"].items()]
-              if any(r.name == "open_clip_torch" for r in _requirements(lines))]
+    owners = [
+        group
+        for group, lines in [("dependencies", project["dependencies"]), *project["optional-dependencies"].items()]
+        if any(r.name == "open_clip_torch" for r in _requirements(lines))
+    ]
     assert owners == ["clip"]
     # Only the one open_clip module imports open_clip, and only inside a function (importing vqtouch never
     # needs it): the clip and text conditioners and the clip_score metric all go through it.
     importers = []
     for path in package_sources:
         tree = ast.parse(path.read_text())
-        in_functions = {id(inner) for node in ast.walk(tree) if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
-                        for inner in ast.walk(node)}
+        in_functions = {
+            id(inner)
+            for node in ast.walk(tree)
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+            for inner in ast.walk(node)
+        }
         for node in ast.walk(tree):
-            names = ([alias.name for alias in node.names] if isinstance(node, ast.Import) else
-                     [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            names = (
+                [alias.name for alias in node.names]
+                if isinstance(node, ast.Import)
+                else [node.module or ""]
+                if isinstance(node, ast.ImportFrom)
+                else []
+            )
             if any(name.split(".")[0] == "open_clip" for name in names):
                 importers.append((path.relative_to(REPO).as_posix(), id(node) not in in_functions))
     assert importers and {path for path, _ in importers} == {"plugins/evaluation/open_clip_towers.py"}, importers

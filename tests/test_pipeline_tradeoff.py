@@ -15,21 +15,40 @@ from vqtouch.plugins.experiments import pipeline_tradeoff as tradeoff
 
 #: A tiny VQGAN tokenizer and generator at 32 px (tests/generator_runs.py's sizes); the encoder's
 #: name first: selecting a plugin resets its options.
-TINY = ["tokenizer.autoencoder.name=vqgan", "tokenizer.autoencoder.channels=16", "tokenizer.autoencoder.norm_groups=8",
-        "tokenizer.autoencoder.channel_multipliers=[1,2]", "tokenizer.autoencoder.z_channels=16",
-        "tokenizer.autoencoder.embed_dim=8", "tokenizer.quantizer.codebook_size=32", "data.image_size=32",
-        "data.batch_size=4", "data.dataset.num_samples=16", "data.val_fraction=0.25", "tokenizer.loss.perceptual=none",
-        "tokenizer.discriminator=null", 'metrics=[{"name": "psnr"}, {"name": "ssim"}]', "generator.model.depth=1",
-        "generator.model.width=32", "generator.model.num_steps=20", "generator.steps=4"]
+TINY = [
+    "tokenizer.autoencoder.name=vqgan",
+    "tokenizer.autoencoder.channels=16",
+    "tokenizer.autoencoder.norm_groups=8",
+    "tokenizer.autoencoder.channel_multipliers=[1,2]",
+    "tokenizer.autoencoder.z_channels=16",
+    "tokenizer.autoencoder.embed_dim=8",
+    "tokenizer.quantizer.codebook_size=32",
+    "data.image_size=32",
+    "data.batch_size=4",
+    "data.dataset.num_samples=16",
+    "data.val_fraction=0.25",
+    "tokenizer.loss.perceptual=none",
+    "tokenizer.discriminator=null",
+    'metrics=[{"name": "psnr"}, {"name": "ssim"}]',
+    "generator.model.depth=1",
+    "generator.model.width=32",
+    "generator.model.num_steps=20",
+    "generator.steps=4",
+]
 KNOBS = ["codebook=16,64", "downsampling", "steps=2", "sampler=confidence"]
 SEEDS = (0, 1)
 #: Every (part, knob, setting) the run must measure once per seed.
-EXPECTED = {("tokenizer", "baseline", "off (vqgan), K = 32, 32 px, train fp32, f = 2"),
-            ("tokenizer", "codebook", "K = 16"), ("tokenizer", "codebook", "K = 64"),
-            ("tokenizer", "downsampling", "f = 4"),
-            ("tokenizer", "baseline", tradeoff.DRIFT), ("generator", "baseline", "posterior 4"),
-            ("generator", "steps", "2 steps"), ("generator", "sampler", "confidence"),
-            ("generator", "baseline", tradeoff.DRIFT)}
+EXPECTED = {
+    ("tokenizer", "baseline", "off (vqgan), K = 32, 32 px, train fp32, f = 2"),
+    ("tokenizer", "codebook", "K = 16"),
+    ("tokenizer", "codebook", "K = 64"),
+    ("tokenizer", "downsampling", "f = 4"),
+    ("tokenizer", "baseline", tradeoff.DRIFT),
+    ("generator", "baseline", "posterior 4"),
+    ("generator", "steps", "2 steps"),
+    ("generator", "sampler", "confidence"),
+    ("generator", "baseline", tradeoff.DRIFT),
+}
 
 
 def tiny_args(out, *extra):
@@ -44,9 +63,30 @@ def experiment(tmp_path_factory):
     out = tmp_path_factory.mktemp("pipeline_tradeoff") / "trade"
     threads = torch.get_num_threads()
     try:  # one thread: on a shared CPU, two spinning OpenMP threads per process cost 10x
-        assert main(tiny_args(out, "--seeds", *map(str, SEEDS), "--tokenizer-steps", "2", "--generator-steps", "2",
-                              "--rounds", "2", "--timing-steps", "1", "--n", "3", "--threads", "1",
-                              "--knobs", *KNOBS)) == 0
+        assert (
+            main(
+                tiny_args(
+                    out,
+                    "--seeds",
+                    *map(str, SEEDS),
+                    "--tokenizer-steps",
+                    "2",
+                    "--generator-steps",
+                    "2",
+                    "--rounds",
+                    "2",
+                    "--timing-steps",
+                    "1",
+                    "--n",
+                    "3",
+                    "--threads",
+                    "1",
+                    "--knobs",
+                    *KNOBS,
+                )
+            )
+            == 0
+        )
     finally:
         torch.set_num_threads(threads)
     return out, json.loads((out / "tradeoff.json").read_text())
@@ -77,8 +117,10 @@ def test_costs_are_relative_to_the_same_seeds_baseline(experiment):
     _, result = experiment
     for seed in SEEDS:
         rows = [row for row in result["rows"] if row["seed"] == seed]
-        for part, keys in (("tokenizer", (("train_cost", "train_s_per_step"), ("inference_cost", "seconds_per_image"))),
-                           ("generator", (("inference_cost", "seconds_per_image"),))):
+        for part, keys in (
+            ("tokenizer", (("train_cost", "train_s_per_step"), ("inference_cost", "seconds_per_image"))),
+            ("generator", (("inference_cost", "seconds_per_image"),)),
+        ):
             members = [row for row in rows if row["part"] == part]
             base = members[0]
             assert base["knob"] == "baseline" and base["setting"] != tradeoff.DRIFT
@@ -94,8 +136,11 @@ def dominated_brute_force(points):
     better in one; of identical points only the first."""
     front = set()
     for i, (cost, quality) in enumerate(points):
-        beaten = any((c <= cost and q >= quality and (c < cost or q > quality)) or ((c, q) == (cost, quality) and j < i)
-                     for j, (c, q) in enumerate(points) if j != i)
+        beaten = any(
+            (c <= cost and q >= quality and (c < cost or q > quality)) or ((c, q) == (cost, quality) and j < i)
+            for j, (c, q) in enumerate(points)
+            if j != i
+        )
         if not beaten:
             front.add(i)
     return front
@@ -105,8 +150,11 @@ def test_pareto_flags_agree_with_a_brute_force_check_of_the_written_rows(experim
     _, result = experiment
     summary = result["summary"]
     checked = 0
-    for part, cost, name in (("tokenizer", "train_cost", "training"), ("tokenizer", "inference_cost", "inference"),
-                             ("generator", "inference_cost", "generation")):
+    for part, cost, name in (
+        ("tokenizer", "train_cost", "training"),
+        ("tokenizer", "inference_cost", "inference"),
+        ("generator", "inference_cost", "generation"),
+    ):
         contenders = [row for row in summary if row["part"] == part and row["setting"] != tradeoff.DRIFT]
         front = dominated_brute_force([(row[cost], row["contact_ssim"]) for row in contenders])
         assert {i for i, row in enumerate(contenders) if name in row["pareto"]} == front, name
@@ -169,16 +217,22 @@ def test_timing_rounds_are_interleaved_with_the_baseline_first_and_last():
     assert [train for train, _ in costs] == [1.1, 6.0, 1.4]  # medians, not means
 
 
-@pytest.mark.parametrize("knobs, message", [
-    (["bogus"], "--knobs bogus: unknown knob 'bogus'; known knobs: deformable, codebook, resolution, precision, "
-                "downsampling, steps, sampler, guidance, sampling-precision"),
-    (["codebook=32"], "--knobs codebook=32: K = 32 is the baseline's own value"),
-    (["codebook=many"], "--knobs codebook=many: 'many': 'many' is not an integer"),
-    (["downsampling=6"], "--knobs downsampling=6: '6': expected a power of two >= 2"),
-    (["codebook", "codebook=8"], "--knobs codebook=8: the knob 'codebook' is given twice"),
-    (["steps=50"], "--knobs steps=50: more sampling steps than the generator's 20 diffusion steps"),
-    (["sampler=nope"], "nope"),
-])
+@pytest.mark.parametrize(
+    "knobs, message",
+    [
+        (
+            ["bogus"],
+            "--knobs bogus: unknown knob 'bogus'; known knobs: deformable, codebook, resolution, precision, "
+            "downsampling, steps, sampler, guidance, sampling-precision",
+        ),
+        (["codebook=32"], "--knobs codebook=32: K = 32 is the baseline's own value"),
+        (["codebook=many"], "--knobs codebook=many: 'many': 'many' is not an integer"),
+        (["downsampling=6"], "--knobs downsampling=6: '6': expected a power of two >= 2"),
+        (["codebook", "codebook=8"], "--knobs codebook=8: the knob 'codebook' is given twice"),
+        (["steps=50"], "--knobs steps=50: more sampling steps than the generator's 20 diffusion steps"),
+        (["sampler=nope"], "nope"),
+    ],
+)
 def test_bad_knobs_are_one_line_errors(tmp_path, capsys, knobs, message):
     assert main(tiny_args(tmp_path / "x", "--knobs", *knobs)) == 2
     err = capsys.readouterr().err.strip()
@@ -188,30 +242,50 @@ def test_bad_knobs_are_one_line_errors(tmp_path, capsys, knobs, message):
 
 def test_a_generator_knob_needs_a_scene_with_a_generator(tmp_path, capsys):
     assert main(["evaluate", "tradeoff", "reconstruction", "--out", str(tmp_path / "x"), "--knobs", "steps"]) == 2
-    assert "the steps knob is a generator knob, but the scene 'reconstruction' trains no generator" in \
-        capsys.readouterr().err
+    assert (
+        "the steps knob is a generator knob, but the scene 'reconstruction' trains no generator"
+        in capsys.readouterr().err
+    )
 
 
 def test_default_knob_values_derive_from_the_baseline(host):
     config = resolve_config("label-to-touch", host=host)
     tiny_dm_vqgan = resolve_config("label-to-touch", overrides=TINY[1:], host=host)
     knobs = tradeoff.parse_knobs(None, config, host)
-    assert knobs == {"deformable": ["off"], "codebook": [128, 2048], "resolution": [128], "precision": ["bf16"],
-                     "downsampling": [8], "steps": [50, 12], "sampler": ["confidence", "purity"], "guidance": [3.0],
-                     "sampling-precision": ["bf16"]}
+    assert knobs == {
+        "deformable": ["off"],
+        "codebook": [128, 2048],
+        "resolution": [128],
+        "precision": ["bf16"],
+        "downsampling": [8],
+        "steps": [50, 12],
+        "sampler": ["confidence", "purity"],
+        "guidance": [3.0],
+        "sampling-precision": ["bf16"],
+    }
     # Scaled like the demo, the configured sampling steps (and so their defaults) are the demo's.
     assert tradeoff.parse_knobs(["steps"], tradeoff.scaled_config(config, host, full=False), host) == {"steps": [20, 5]}
     assert set(tradeoff.parse_knobs(None, resolve_config("reconstruction", host=host), host)) == {
-        "deformable", "codebook", "resolution", "precision", "downsampling"}
+        "deformable",
+        "codebook",
+        "resolution",
+        "precision",
+        "downsampling",
+    }
     # Deformable layers off: vqgan with every option the two encoders share.
     baseline = tradeoff.baseline_config(tiny_dm_vqgan, host, tokenizer_steps=3, generator_steps=3, generator=True)
     variant = tradeoff.variant_config(baseline, host, 5, "deformable", "off")
     shared = set(type(variant.tokenizer.autoencoder).model_fields) - {"name"}
     assert variant.tokenizer.autoencoder.name == "vqgan" and variant.seed == 5 and variant.stages == ["tokenizer"]
     assert {key: getattr(variant.tokenizer.autoencoder, key) for key in shared} == {
-        key: getattr(baseline.tokenizer.autoencoder, key) for key in shared}
+        key: getattr(baseline.tokenizer.autoencoder, key) for key in shared
+    }
     assert baseline.tokenizer.train.steps == 3 == baseline.generator.train.steps and baseline.generator.num_samples == 0
     assert baseline.tokenizer.autoencoder.name == "dm_vqgan" and variant.tokenizer.autoencoder.channels == 16
     assert variant.tokenizer.autoencoder.z_channels == 16 and variant.tokenizer.autoencoder.embed_dim == 8
-    assert tradeoff.variant_config(baseline, host, 0, "downsampling", 8).tokenizer.autoencoder.channel_multipliers == \
-        (1, 2, 2, 2)
+    assert tradeoff.variant_config(baseline, host, 0, "downsampling", 8).tokenizer.autoencoder.channel_multipliers == (
+        1,
+        2,
+        2,
+        2,
+    )

@@ -15,8 +15,16 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
-from vqtouch.core import (Conditioner, Metric, MissingWeightsError, PluginConfig, SensorFamily, TactileDataset,
-                          hookimpl, load_plugins)
+from vqtouch.core import (
+    Conditioner,
+    Metric,
+    MissingWeightsError,
+    PluginConfig,
+    SensorFamily,
+    TactileDataset,
+    hookimpl,
+    load_plugins,
+)
 from vqtouch.core.plugin_manager import KINDS_BY_NAME
 from vqtouch.core.testing import DEFAULT_CONTEXT, check_plugin, check_registration
 
@@ -28,12 +36,29 @@ ENTRIES = [(entry.kind, entry.name) for entry in HOST.entries()]
 
 #: Options that make each built-in small enough to build and run in a fraction of a second.
 TINY_OPTIONS: dict[tuple[str, str], dict[str, Any]] = {
-    ("autoencoder", "vqgan"): {"channels": 8, "channel_multipliers": [1, 2], "z_channels": 8, "embed_dim": 8,
-                               "norm_groups": 4},
-    ("autoencoder", "dm_vqgan"): {"channels": 8, "channel_multipliers": [1, 2], "z_channels": 8, "embed_dim": 8,
-                                  "norm_groups": 4, "deformable_levels": 1},
-    ("autoencoder", "mae"): {"patch_size": 8, "width": 16, "depth": 1, "heads": 2, "decoder_width": 16,
-                             "decoder_depth": 1},
+    ("autoencoder", "vqgan"): {
+        "channels": 8,
+        "channel_multipliers": [1, 2],
+        "z_channels": 8,
+        "embed_dim": 8,
+        "norm_groups": 4,
+    },
+    ("autoencoder", "dm_vqgan"): {
+        "channels": 8,
+        "channel_multipliers": [1, 2],
+        "z_channels": 8,
+        "embed_dim": 8,
+        "norm_groups": 4,
+        "deformable_levels": 1,
+    },
+    ("autoencoder", "mae"): {
+        "patch_size": 8,
+        "width": 16,
+        "depth": 1,
+        "heads": 2,
+        "decoder_width": 16,
+        "decoder_depth": 1,
+    },
     ("quantizer", "vq"): {"codebook_size": 16},
     ("quantizer", "ema_vq"): {"codebook_size": 16},
     ("discriminator", "patchgan"): {"channels": 8, "layers": 2},
@@ -44,8 +69,10 @@ TINY_OPTIONS: dict[tuple[str, str], dict[str, Any]] = {
     ("conditioner", "text_scratch"): {"depth": 1, "width": 16, "heads": 2, "vocab_buckets": 64, "max_words": 6},
     ("dataset", "procedural"): {"num_samples": 4},
     # A worn, noisy variant: its options must survive checkpoints and its noise follow the generator.
-    **{("sensor_family", name): {"variant": {"response_scale": 0.8, "noise_std": 0.02, "damage_spots": 2, "seed": 3}}
-       for name in ("gelsight", "gelsight_mini", "digit")},
+    **{
+        ("sensor_family", name): {"variant": {"response_scale": 0.8, "noise_std": 0.02, "damage_spots": 2, "seed": 3}}
+        for name in ("gelsight", "gelsight_mini", "digit")
+    },
     ("metric", "fd_effnetlite0"): {"image_size": 32, "batch_size": 4},
     ("metric", "kid_effnetlite0"): {"image_size": 32, "batch_size": 4, "subsets": 10},
     ("metric", "kid"): {"subsets": 10},
@@ -75,24 +102,28 @@ def tiny_clip_weights(folder: Path) -> Path:
     return path
 
 
-def builtin_case(kind: str, name: str, tmp_path_factory: pytest.TempPathFactory,
-                 monkeypatch: pytest.MonkeyPatch | None = None) -> dict[str, Any]:
+def builtin_case(
+    kind: str, name: str, tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch | None = None
+) -> dict[str, Any]:
     """The keyword arguments of ``check_plugin`` for one built-in: its tiny options, the files it
     reads (a dataset layout in miniature, a tiny CLIP, weights files of the real layouts: metrics
     need ``monkeypatch`` to accept those files' digests) and the inputs it declares."""
     options = dict(TINY_OPTIONS.get((kind, name), {}))
     if kind == "metric":
-        options.update(metric_weights.weighted_metric_options((kind, name), tmp_path_factory.getbasetemp(),
-                                                              monkeypatch))
+        options.update(
+            metric_weights.weighted_metric_options((kind, name), tmp_path_factory.getbasetemp(), monkeypatch)
+        )
     case: dict[str, Any] = {"options": options}
     if (kind, name) == ("conditioner", "clip"):
         weights = tiny_clip_weights(tmp_path_factory.getbasetemp())
-        options.update({"architecture": "ViT-S-32", "checkpoint": str(weights), "model_overrides": TINY_CLIP,
-                        "num_tokens": 2})
+        options.update(
+            {"architecture": "ViT-S-32", "checkpoint": str(weights), "model_overrides": TINY_CLIP, "num_tokens": 2}
+        )
     if (kind, name) == ("conditioner", "text"):
         weights = tiny_clip_weights(tmp_path_factory.getbasetemp())
-        options.update({"architecture": "ViT-S-32", "checkpoint": str(weights), "model_overrides": TINY_CLIP,
-                        "context_length": 4})
+        options.update(
+            {"architecture": "ViT-S-32", "checkpoint": str(weights), "model_overrides": TINY_CLIP, "context_length": 4}
+        )
     if (kind, name) == ("metric", "clip_score"):
         weights = tiny_clip_weights(tmp_path_factory.getbasetemp())
         options.update({"architecture": "ViT-S-32", "checkpoint": str(weights), "model_overrides": TINY_CLIP})
@@ -100,8 +131,9 @@ def builtin_case(kind: str, name: str, tmp_path_factory: pytest.TempPathFactory,
         options["tokenizer"] = str(generator_runs.tiny_tokenizer_folder(tmp_path_factory.getbasetemp()))
     if kind == "dataset" and name in READER_CASES:
         reader = READER_CASES[name]
-        options.update({k: v for k, v in reader.config(reader.build(tmp_path_factory.mktemp(name))).items()
-                        if k != "name"})
+        options.update(
+            {k: v for k, v in reader.config(reader.build(tmp_path_factory.mktemp(name))).items() if k != "name"}
+        )
     entry = HOST.registry(kind).get(name)
     if "sensor" in entry.inputs:
         case["inputs"] = {"sensor": HOST.build("sensor_family", "gelsight")}
@@ -109,6 +141,7 @@ def builtin_case(kind: str, name: str, tmp_path_factory: pytest.TempPathFactory,
 
 
 # -- every built-in meets its kind's contract ------------------------------------------------------
+
 
 @pytest.mark.parametrize("kind, name", ENTRIES)
 def test_registration_contract(kind, name):
@@ -145,8 +178,14 @@ ASPECT_BLIND = {("metric", "fid"), ("metric", "kid")}
 @pytest.mark.parametrize("kind, name", [entry for entry in ENTRIES if entry not in ASPECT_BLIND])
 def test_builtin_meets_its_contract_at_a_native_aspect(kind, name, tmp_path, tmp_path_factory, monkeypatch):
     """The same contract with (32, 48) images and an (8, 12) code grid: shapes follow the aspect."""
-    check_plugin(HOST, kind, name, context=NATIVE_ASPECT, tmp_dir=tmp_path,
-                 **builtin_case(kind, name, tmp_path_factory, monkeypatch))
+    check_plugin(
+        HOST,
+        kind,
+        name,
+        context=NATIVE_ASPECT,
+        tmp_dir=tmp_path,
+        **builtin_case(kind, name, tmp_path_factory, monkeypatch),
+    )
 
 
 def test_every_registry_kind_is_checked():
@@ -154,8 +193,9 @@ def test_every_registry_kind_is_checked():
     from vqtouch.core import testing
 
     checked = [base for base, _ in testing._BEHAVIOUR_CHECKS]
-    unchecked = [kind.name for kind in KINDS_BY_NAME.values()
-                 if not any(issubclass(kind.base_type, base) for base in checked)]
+    unchecked = [
+        kind.name for kind in KINDS_BY_NAME.values() if not any(issubclass(kind.base_type, base) for base in checked)
+    ]
     assert unchecked == []
 
 
@@ -197,6 +237,7 @@ def test_host_experiment_model_keeps_the_documentation():
 # -- the helpers catch broken plugins ----------------------------------------------------------------
 # In-memory third-party plugins, registered as "probe" through their kind's hook.
 
+
 class ProbeConfig(PluginConfig):
     """Options of the in-memory plugins the contract checks are tried on."""
 
@@ -206,9 +247,14 @@ class ProbeConfig(PluginConfig):
 
 def probe_host(make_plugin, kind: str, component_type: type, config: type[PluginConfig] = ProbeConfig):
     """A host with ``component_type(config, context)`` registered as ``probe`` of ``kind``."""
+
     def register_hook(register):
-        register("probe", lambda options, context: component_type(options, context), config,
-                 description="An in-memory plugin for the contract checks.")
+        register(
+            "probe",
+            lambda options, context: component_type(options, context),
+            config,
+            description="An in-memory plugin for the contract checks.",
+        )
 
     register_hook.__name__ = KINDS_BY_NAME[kind].hook
     return load_plugins(autoload=False, extra=[make_plugin(f"probe_{kind}", hookimpl(register_hook))])
@@ -352,8 +398,13 @@ class GoodDataset(TactileDataset):
 
     def __getitem__(self, index):
         colour = torch.rand(3, 1, 1, generator=torch.Generator().manual_seed(index))
-        return {"tactile": colour.expand(3, self.size, self.size).clone(), "label": index % 2, "text": "",
-                "sensor": "probe", "id": f"sample-{index}"}
+        return {
+            "tactile": colour.expand(3, self.size, self.size).clone(),
+            "label": index % 2,
+            "text": "",
+            "sensor": "probe",
+            "id": f"sample-{index}",
+        }
 
 
 class AnonymousDataset(GoodDataset):
@@ -369,8 +420,12 @@ class BrightDataset(GoodDataset):
         return {**sample, "tactile": sample["tactile"] * 255}
 
 
-GOOD = [("sensor_family", GoodGel), ("conditioner", GoodConditioner), ("metric", MeanAbsError),
-        ("dataset", GoodDataset)]
+GOOD = [
+    ("sensor_family", GoodGel),
+    ("conditioner", GoodConditioner),
+    ("metric", MeanAbsError),
+    ("dataset", GoodDataset),
+]
 
 
 @pytest.mark.parametrize("kind, component_type", GOOD, ids=[kind for kind, _ in GOOD])
@@ -427,12 +482,16 @@ class NoDocstringConfig(PluginConfig):
     name: Literal["probe"] = "probe"
 
 
-@pytest.mark.parametrize("config, message", [
-    (LooseConfig, "accepts unknown keys"),
-    (UndocumentedConfig, r"fields without description: \['width'\]"),
-    (RequiredOptionConfig, "options without a default"),
-    (NoDocstringConfig, "has no docstring"),
-], ids=["strict", "documented", "defaults", "docstring"])
+@pytest.mark.parametrize(
+    "config, message",
+    [
+        (LooseConfig, "accepts unknown keys"),
+        (UndocumentedConfig, r"fields without description: \['width'\]"),
+        (RequiredOptionConfig, "options without a default"),
+        (NoDocstringConfig, "has no docstring"),
+    ],
+    ids=["strict", "documented", "defaults", "docstring"],
+)
 def test_check_registration_catches_a_broken_config(make_plugin, config, message):
     host = probe_host(make_plugin, "sensor_family", GoodGel, config)
     with pytest.raises(AssertionError, match=message):

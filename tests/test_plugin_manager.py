@@ -7,15 +7,43 @@ import pytest
 import torch
 from pydantic import Field
 
-from vqtouch.core import (Autoencoder, Clusterer, Conditioner, ConfigError, Discriminator, Generator, PluginConfig,
-                          PluginError, Quantizer, Sampler, Section, SensorFamily, Slot, StageUnavailable, TactileDataset,
-                          UnknownPluginError, hookimpl, hookspecs, load_plugins, resolve_config)
+from vqtouch.core import (
+    Autoencoder,
+    Clusterer,
+    Conditioner,
+    ConfigError,
+    Discriminator,
+    Generator,
+    PluginConfig,
+    PluginError,
+    Quantizer,
+    Sampler,
+    Section,
+    SensorFamily,
+    Slot,
+    StageUnavailable,
+    TactileDataset,
+    UnknownPluginError,
+    hookimpl,
+    hookspecs,
+    load_plugins,
+    resolve_config,
+)
 from vqtouch.core.plugin_manager import REGISTRY_KINDS
 
 TESTS = Path(__file__).resolve().parent
 
-BUILTIN_PLUGINS = {"label", "tactile", "clip", "metrics", "scenes", "tokenizer-stages", "data-stages", "generator",
-                   "adaptation"}
+BUILTIN_PLUGINS = {
+    "label",
+    "tactile",
+    "clip",
+    "metrics",
+    "scenes",
+    "tokenizer-stages",
+    "data-stages",
+    "generator",
+    "adaptation",
+}
 BUILTIN_STAGES = {"render", "tokenizer", "reconstruct", "cluster", "adapt", "generator", "pretrained"}
 
 
@@ -25,11 +53,14 @@ def test_builtins_load_through_entry_points_with_autoload_off(host):
         assert host.sources[name].distribution == "vqtouch"
     conditioners = host.registry("conditioner").names()
     assert conditioners == sorted(conditioners)
-    assert {"label", "tactile", "tactile_codes", "visual", "visual_cnn", "clip", "text", "text_scratch"} <= set(conditioners)
+    assert {"label", "tactile", "tactile_codes", "visual", "visual_cnn", "clip", "text", "text_scratch"} <= set(
+        conditioners
+    )
     assert all(entry.source.distribution == "vqtouch" for entry in host.registry("conditioner"))
     assert {"psnr", "ssim", "fd_effnetlite0"} <= set(host.registry("metric").names())
-    assert {"few-shot", "zero-shot", "cross-sensor", "vision-to-touch", "label-to-touch",
-            "touch-to-touch"} <= set(host.scenes)
+    assert {"few-shot", "zero-shot", "cross-sensor", "vision-to-touch", "label-to-touch", "touch-to-touch"} <= set(
+        host.scenes
+    )
     assert set(host.stages) == BUILTIN_STAGES
     for stage in host.stages.values():
         assert stage.source.distribution == "vqtouch" and stage.description
@@ -46,8 +77,12 @@ def test_there_is_no_process_wide_host(make_plugin):
 
     @hookimpl
     def vqtouch_register_conditioners(register):
-        register("extra_cond", lambda config, context: ExtraConditioner(context.cond_dim, 1), ExtraConfig,
-                 description="extra")
+        register(
+            "extra_cond",
+            lambda config, context: ExtraConditioner(context.cond_dim, 1),
+            ExtraConfig,
+            description="extra",
+        )
 
     with_extra = load_plugins(autoload=False, extra=[make_plugin("my_extra", vqtouch_register_conditioners)])
     plain = load_plugins(autoload=False)
@@ -93,8 +128,12 @@ class ExtraConditioner(Conditioner):
 def test_extra_module_registers_and_source_is_recorded(make_plugin):
     @hookimpl
     def vqtouch_register_conditioners(register):
-        register("extra_cond", lambda config, context: ExtraConditioner(context.cond_dim, 1), ExtraConfig,
-                 description="extra")
+        register(
+            "extra_cond",
+            lambda config, context: ExtraConditioner(context.cond_dim, 1),
+            ExtraConfig,
+            description="extra",
+        )
 
     host = load_plugins(autoload=False, extra=[make_plugin("my_extra", vqtouch_register_conditioners)])
     entry = host.registry("conditioner").get("extra_cond")
@@ -123,7 +162,9 @@ def test_exception_in_registration_hook_names_plugin_and_block_hint(make_plugin)
     def vqtouch_register_metrics(register):
         raise RuntimeError("boom")
 
-    with pytest.raises(PluginError, match=r"plugin 'broken'.*vqtouch_register_metrics.*boom.*VQTOUCH_BLOCK_PLUGINS=broken"):
+    with pytest.raises(
+        PluginError, match=r"plugin 'broken'.*vqtouch_register_metrics.*boom.*VQTOUCH_BLOCK_PLUGINS=broken"
+    ):
         load_plugins(autoload=False, extra=[make_plugin("broken", vqtouch_register_metrics)])
 
 
@@ -132,9 +173,12 @@ def test_duplicate_registration_across_plugins_names_both(make_plugin):
     def vqtouch_register_conditioners(register):
         class LabelConfig(PluginConfig):
             name: Literal["label"] = "label"
+
         register("label", lambda c, x: None, LabelConfig)
 
-    with pytest.raises(PluginError, match=r"duplicate conditioner name 'label'.*plugin 'label' \(vqtouch .*\).*plugin 'dup'"):
+    with pytest.raises(
+        PluginError, match=r"duplicate conditioner name 'label'.*plugin 'label' \(vqtouch .*\).*plugin 'dup'"
+    ):
         load_plugins(autoload=False, extra=[make_plugin("dup", vqtouch_register_conditioners)])
 
 
@@ -283,6 +327,7 @@ def test_describe_rows_have_versions(host):
 
 # -- inputs and demo caps of a registration -----------------------------------------------------------
 
+
 class _RenderedDataset(_Dataset):
     def __init__(self, sensor):
         self.sensor = sensor
@@ -298,14 +343,23 @@ class RenderedConfig(PluginConfig):
 def test_declared_inputs_are_supplied_by_the_caller(make_plugin, host):
     @hookimpl
     def vqtouch_register_datasets(register):
-        register("rendered", lambda config, context, sensor: _RenderedDataset(sensor), RenderedConfig,
-                 description="rendered", inputs=("sensor",), demo={"num_samples": 2})
+        register(
+            "rendered",
+            lambda config, context, sensor: _RenderedDataset(sensor),
+            RenderedConfig,
+            description="rendered",
+            inputs=("sensor",),
+            demo={"num_samples": 2},
+        )
 
     with_plugin = load_plugins(autoload=False, extra=[make_plugin("rendered_plugin", vqtouch_register_datasets)])
     entry = with_plugin.registry("dataset").get("rendered")
     assert entry.inputs == ("sensor",) and entry.demo == {"num_samples": 2}
-    with pytest.raises(ConfigError, match=r"dataset 'rendered' needs sensor: build it through the experiment's "
-                                          r"Assembly .* or pass sensor=\.\.\."):
+    with pytest.raises(
+        ConfigError,
+        match=r"dataset 'rendered' needs sensor: build it through the experiment's "
+        r"Assembly .* or pass sensor=\.\.\.",
+    ):
         with_plugin.build("dataset", "rendered")
     sensor = with_plugin.build("sensor_family", "gelsight")
     assert with_plugin.build("dataset", "rendered", sensor=sensor).sensor is sensor
@@ -320,6 +374,7 @@ def test_declared_inputs_are_supplied_by_the_caller(make_plugin, host):
 
 # -- stages are a registry kind owned by plugins ----------------------------------------------------
 
+
 class GallerySection(Section):
     """Options of the test's ``gallery`` stage."""
 
@@ -330,13 +385,21 @@ class GallerySection(Section):
 def _run_gallery(job):
     if job.section.columns > 10:
         raise StageUnavailable("too many columns")
-    return {"columns": job.section.columns, "sensor": job.config.sensor.name,
-            "renders": isinstance(job.assembly.sensor(), SensorFamily)}
+    return {
+        "columns": job.section.columns,
+        "sensor": job.config.sensor.name,
+        "renders": isinstance(job.assembly.sensor(), SensorFamily),
+    }
 
 
 def _stage_plugin(make_plugin, name="gallery", **options):
-    options = {"section": GallerySection, "needs": ("sensor",), "uses": ("gallery.backdrop",),
-               "description": "A test stage.", **options}
+    options = {
+        "section": GallerySection,
+        "needs": ("sensor",),
+        "uses": ("gallery.backdrop",),
+        "description": "A test stage.",
+        **options,
+    }
 
     @hookimpl
     def vqtouch_register_stages(register):
@@ -356,7 +419,9 @@ def test_stage_registers_its_section_and_slots_and_runs(make_plugin, tmp_path):
     assert host.experiment_model.model_fields["gallery"].description == "A test stage."
     config = resolve_config(overrides=['stages=["gallery"]', "gallery.columns=4", "sensor.name=digit"], host=host)
     assert config.gallery.columns == 4
-    with pytest.raises(ConfigError, match=r"gallery: unknown option 'colums'; allowed: backdrop, columns; did you mean 'columns'"):
+    with pytest.raises(
+        ConfigError, match=r"gallery: unknown option 'colums'; allowed: backdrop, columns; did you mean 'columns'"
+    ):
         resolve_config(overrides=["gallery.colums=4"], host=host)
 
     def run(overrides, folder):
@@ -378,12 +443,16 @@ def test_stage_registers_its_section_and_slots_and_runs(make_plugin, tmp_path):
         resolve_config(overrides=['stages=["gallery"]'], host=plain)
 
 
-@pytest.mark.parametrize("options, message", [
-    ({"name": "tokenizer"}, r"duplicate stage 'tokenizer'.*plugin 'tokenizer-stages'.*plugin 'stage_tokenizer'"),
-    ({"name": "seed"}, "section would replace core's 'seed' field"),
-    ({"needs": ("gallery.nothing",)}, "declares slot 'gallery.nothing', which the experiment config does not have"),
-    ({"section": dict}, "section must subclass vqtouch.core.Section"),
-], ids=["duplicate", "core-field", "unknown-slot", "bad-section"])
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"name": "tokenizer"}, r"duplicate stage 'tokenizer'.*plugin 'tokenizer-stages'.*plugin 'stage_tokenizer'"),
+        ({"name": "seed"}, "section would replace core's 'seed' field"),
+        ({"needs": ("gallery.nothing",)}, "declares slot 'gallery.nothing', which the experiment config does not have"),
+        ({"section": dict}, "section must subclass vqtouch.core.Section"),
+    ],
+    ids=["duplicate", "core-field", "unknown-slot", "bad-section"],
+)
 def test_bad_stage_registrations_fail_when_plugins_load(make_plugin, options, message):
     with pytest.raises(PluginError, match=message):
         load_plugins(autoload=False, extra=[_stage_plugin(make_plugin, **options)])
@@ -392,6 +461,7 @@ def test_bad_stage_registrations_fail_when_plugins_load(make_plugin, options, me
 def test_removed_hooks_fail_loudly(make_plugin):
     """vqtouch_run_stage is gone: a plugin still using it fails to load (vqtouch_register_encoders still
     registers, with a deprecation warning: tests/test_deprecations.py)."""
+
     @hookimpl
     def vqtouch_run_stage(stage, config, run):
         return None
@@ -423,8 +493,10 @@ def test_a_stage_plugins_section_does_not_leak_into_runs_that_do_not_use_it(make
     with pytest.raises(ConfigError) as error:
         RunDir.open(used_run.path).load_config(plain)
     # An in-memory plugin has no distribution, so its plugin name stands for it.
-    assert str(error.value).endswith("its config section 'gallery' belongs to stage 'gallery' from stage_gallery "
-                                     "(plugin 'stage_gallery'), which is not installed here; pip install stage_gallery")
+    assert str(error.value).endswith(
+        "its config section 'gallery' belongs to stage 'gallery' from stage_gallery "
+        "(plugin 'stage_gallery'), which is not installed here; pip install stage_gallery"
+    )
     assert "\n" not in str(error.value)
 
 

@@ -13,8 +13,15 @@ from vqtouch.core import Assembly, ConfigError, RunDir, load_plugins, read_metad
 from vqtouch.core.cli import main
 from vqtouch.plugins.generator.pipeline import load_pipeline
 from vqtouch.plugins.pretrained import bundle as bundle_module
-from vqtouch.plugins.pretrained.bundle import (COMMAND_KEY, RUN_CONFIG_KEY, bundle_folder, describe_bundle,
-                                               export_bundle, half_precision_copy, load_bundle)
+from vqtouch.plugins.pretrained.bundle import (
+    COMMAND_KEY,
+    RUN_CONFIG_KEY,
+    bundle_folder,
+    describe_bundle,
+    export_bundle,
+    half_precision_copy,
+    load_bundle,
+)
 
 HOST = load_plugins()
 
@@ -31,7 +38,7 @@ def trained(tmp_path_factory):
 
 
 def scene_config(*extra: str):
-    overrides = [*TINY, "stages=[\"pretrained\"]", "pretrained.num_samples=3", "pretrained.steps=3", *extra]
+    overrides = [*TINY, 'stages=["pretrained"]', "pretrained.num_samples=3", "pretrained.steps=3", *extra]
     return resolve_config("label-to-touch", (), overrides, host=HOST)
 
 
@@ -44,7 +51,11 @@ def test_headers_say_how_and_when_each_file_was_trained(trained):
         header = read_metadata(path)
         assert header[COMMAND_KEY].startswith(" ".join(env["argv"]))
         assert json.loads(header[RUN_CONFIG_KEY]) == config
-    assert int(read_metadata(folder / "generator" / "generator.safetensors")["vqtouch.step"]) == pipe.generator.vqtouch_step == 6
+    assert (
+        int(read_metadata(folder / "generator" / "generator.safetensors")["vqtouch.step"])
+        == pipe.generator.vqtouch_step
+        == 6
+    )
     facts = describe_bundle(folder)
     assert facts["conditioners"] == ["label"] and facts["files"] == 4 and facts["generator_step"] == 6
     assert facts["megabytes"] == round(sum(p.stat().st_size for p in folder.rglob("*.safetensors")) / 1e6, 2)
@@ -60,7 +71,10 @@ def test_parameters_are_stored_in_fp16_except_the_quantizers_and_load_back_as_fp
         assert all(handle.get_tensor(key).dtype != torch.float16 for key in handle.keys())
     original = load_pipeline(run, host=HOST)
     loaded = load_bundle("tiny", HOST, root=bundles)
-    for mine, theirs in ((loaded.generator, original.generator), (loaded.tokenizer.autoencoder, original.tokenizer.autoencoder)):
+    for mine, theirs in (
+        (loaded.generator, original.generator),
+        (loaded.tokenizer.autoencoder, original.tokenizer.autoencoder),
+    ):
         for (name, value), (_, reference) in zip(mine.named_parameters(), theirs.named_parameters()):
             assert value.dtype == torch.float32
             assert torch.equal(value, reference.half().float()), name
@@ -104,11 +118,14 @@ def test_the_stage_scores_the_bundle_on_another_datasets_held_out_split(trained,
     assert result["parts"]["bundled generator from label"]["samples"] == 3
 
 
-@pytest.mark.parametrize("extra, reason", [
-    (("data.dataset.seed=0",), "very dataset"),
-    (("data.dataset.seed=5", "data.image_size=64"), "data.image_size: bundle 32, scene 64"),
-    (("pretrained.bundle=missing",), "no bundled checkpoints named 'missing'"),
-])
+@pytest.mark.parametrize(
+    "extra, reason",
+    [
+        (("data.dataset.seed=0",), "very dataset"),
+        (("data.dataset.seed=5", "data.image_size=64"), "data.image_size: bundle 32, scene 64"),
+        (("pretrained.bundle=missing",), "no bundled checkpoints named 'missing'"),
+    ],
+)
 def test_the_stage_refuses_data_the_bundle_cannot_speak_for(trained, tmp_path, monkeypatch, extra, reason):
     _, bundles = trained
     monkeypatch.setattr(bundle_module, "BUNDLES", bundles)

@@ -19,8 +19,12 @@ def make_sensor(config="gelsight"):
 
 def dataset(sensor_config="gelsight", context=None, **options):
     """The procedural dataset outside an experiment: the caller supplies the sensor that renders it."""
-    return HOST.build("dataset", {"name": "procedural", "num_samples": 24, "image_size": 32, **options},
-                      context or BuildContext(), sensor=make_sensor(sensor_config))
+    return HOST.build(
+        "dataset",
+        {"name": "procedural", "num_samples": 24, "image_size": 32, **options},
+        context or BuildContext(),
+        sensor=make_sensor(sensor_config),
+    )
 
 
 def test_at_least_twelve_labelled_classes_with_materials():
@@ -74,9 +78,14 @@ def test_cache_stores_8_bit_images():
 
 def appearance(image: torch.Tensor) -> torch.Tensor:
     """Colour (mean, spread) and texture (mean absolute neighbour differences) of an image."""
-    return torch.cat([image.mean(dim=(1, 2)), image.std(dim=(1, 2)),
-                      (image[:, :, 1:] - image[:, :, :-1]).abs().mean(dim=(1, 2)),
-                      (image[:, 1:] - image[:, :-1]).abs().mean(dim=(1, 2))])
+    return torch.cat(
+        [
+            image.mean(dim=(1, 2)),
+            image.std(dim=(1, 2)),
+            (image[:, :, 1:] - image[:, :, :-1]).abs().mean(dim=(1, 2)),
+            (image[:, 1:] - image[:, :-1]).abs().mean(dim=(1, 2)),
+        ]
+    )
 
 
 def test_visual_appearance_differs_by_material():
@@ -105,25 +114,37 @@ def test_image_size_comes_from_the_experiment_when_unset():
     data = dataset(context=BuildContext(image_size=40), num_samples=2, image_size=None)
     assert data[0]["tactile"].shape == (3, 40, 40)
     # Inside an experiment the context comes from data.image_size.
-    config = resolve_config("reconstruction", overrides=["data.image_size=24", "data.dataset.num_samples=2"],
-                            host=HOST)
+    config = resolve_config("reconstruction", overrides=["data.image_size=24", "data.dataset.num_samples=2"], host=HOST)
     assert Assembly(config, HOST).component("data.dataset")[0]["tactile"].shape == (3, 24, 24)
 
 
 def test_the_sensor_is_an_input_not_an_option():
-    with pytest.raises(ConfigError, match=r"dataset: unknown option 'sensor'; allowed: cache, classes, depth_mm, "
-                                          r"image_size, name, num_samples, seed"):
+    with pytest.raises(
+        ConfigError,
+        match=r"dataset: unknown option 'sensor'; allowed: cache, classes, depth_mm, "
+        r"image_size, name, num_samples, seed",
+    ):
         HOST.build("dataset", {"name": "procedural", "sensor": {"name": "digit"}}, sensor=make_sensor())
-    with pytest.raises(ConfigError, match=r"dataset 'procedural' needs sensor: build it through the experiment's "
-                                          r"Assembly .* or pass sensor=\.\.\."):
+    with pytest.raises(
+        ConfigError,
+        match=r"dataset 'procedural' needs sensor: build it through the experiment's "
+        r"Assembly .* or pass sensor=\.\.\.",
+    ):
         HOST.build("dataset", {"name": "procedural", "num_samples": 2})
     assert HOST.registry("dataset").get("procedural").inputs == ("sensor",)
 
 
 def test_an_experiment_renders_with_its_own_sensor():
-    config = resolve_config(None, overrides=['data.dataset={"name": "procedural", "num_samples": 3}',
-                                             "data.image_size=16", "sensor=digit", "target_sensor=gelsight_mini"],
-                            host=HOST)
+    config = resolve_config(
+        None,
+        overrides=[
+            'data.dataset={"name": "procedural", "num_samples": 3}',
+            "data.image_size=16",
+            "sensor=digit",
+            "target_sensor=gelsight_mini",
+        ],
+        host=HOST,
+    )
     assembly = Assembly(config, HOST)
     data = assembly.component("data.dataset")
     assert data is assembly.component("data.dataset")  # built once per experiment
@@ -146,13 +167,16 @@ def test_a_paired_sensor_renders_the_same_contacts_and_changes_nothing_else():
         assert "tactile_source" not in one and two["tactile_source"].shape == (3, 32, 32)
         assert two["sensor"] == "digit" and two["source_sensor"] == "gelsight"
         # Adding the pair leaves the sample's own entries exactly as they were.
-        assert all(torch.equal(one[key], two[key]) if isinstance(one[key], torch.Tensor) else one[key] == two[key]
-                   for key in one)
+        assert all(
+            torch.equal(one[key], two[key]) if isinstance(one[key], torch.Tensor) else one[key] == two[key]
+            for key in one
+        )
         # The pair is GelSight's own rendering: its no-contact border is GelSight's background, not DIGIT's.
         assert not torch.allclose(two["tactile_source"], two["tactile"], atol=0.05)
     # Rendered on demand, cached, and the same in a fresh dataset: a pure function of (seed, index).
-    again = Assembly(resolve_config(None, overrides=[*overrides, "paired_sensor=gelsight"], host=HOST),
-                     HOST).component("data.dataset")
+    again = Assembly(resolve_config(None, overrides=[*overrides, "paired_sensor=gelsight"], host=HOST), HOST).component(
+        "data.dataset"
+    )
     assert torch.equal(again[2]["tactile_source"], paired[2]["tactile_source"])
     # The cache keeps 8-bit images: a batch render differs from the cached sample by rounding only.
     assert (paired.render_batch([2])["tactile_source"][0] - paired[2]["tactile_source"]).abs().max() <= 0.5 / 255 + 1e-6
@@ -178,11 +202,18 @@ def test_reframing_a_press_matches_the_press_drawn_on_the_other_sensors_grid():
 
 def test_a_dataset_built_without_an_experiment_takes_the_paired_sensor_as_an_input():
     data = HOST.build(
-        "dataset", {"name": "procedural", "num_samples": 2, "image_size": 16}, BuildContext(),
-        sensor=make_sensor("digit"), paired_sensor=make_sensor("gelsight_mini"))
+        "dataset",
+        {"name": "procedural", "num_samples": 2, "image_size": 16},
+        BuildContext(),
+        sensor=make_sensor("digit"),
+        paired_sensor=make_sensor("gelsight_mini"),
+    )
     assert data[0]["source_sensor"] == "gelsight_mini" and data[0]["tactile_source"].shape == (3, 16, 16)
-    with pytest.raises(Exception, match=r"dataset 'procedural' takes no input 'camera' \(it declares \['sensor', "
-                                        r"'paired_sensor'\]\)"):
+    with pytest.raises(
+        Exception,
+        match=r"dataset 'procedural' takes no input 'camera' \(it declares \['sensor', "
+        r"'paired_sensor'\]\)",
+    ):
         HOST.build("dataset", {"name": "procedural", "num_samples": 2}, sensor=make_sensor(), camera=make_sensor())
 
 
@@ -192,19 +223,33 @@ def test_an_experiment_without_a_sensor_fails_in_one_line():
     with pytest.raises(ConfigError) as info:
         Assembly(config, HOST).component("data.dataset")
     message = str(info.value)
-    assert "\n" not in message and message == ("this run needs sensor, which the config leaves empty; choose with "
-                                               "--set sensor.name=<digit|gelsight|gelsight_mini>")
-    with pytest.raises(ConfigError, match=r"this run needs target_sensor, which the config leaves empty; choose with "
-                                          r"--set target_sensor.name=<digit\|gelsight\|gelsight_mini>"):
+    assert "\n" not in message and message == (
+        "this run needs sensor, which the config leaves empty; choose with "
+        "--set sensor.name=<digit|gelsight|gelsight_mini>"
+    )
+    with pytest.raises(
+        ConfigError,
+        match=r"this run needs target_sensor, which the config leaves empty; choose with "
+        r"--set target_sensor.name=<digit\|gelsight\|gelsight_mini>",
+    ):
         Assembly(config, HOST).sensor_config("target")
 
 
 def test_render_stage_writes_the_experiments_data_rendered_by_its_sensor(tmp_path):
     from vqtouch.core import RunDir, run_stage
 
-    config = resolve_config(None, overrides=['stages=["render"]', "sensor=digit", "data.image_size=16",
-                                             'data.dataset={"name": "procedural", "num_samples": 5}',
-                                             "render.num_samples=3", "render.folder=scenes"], host=HOST)
+    config = resolve_config(
+        None,
+        overrides=[
+            'stages=["render"]',
+            "sensor=digit",
+            "data.image_size=16",
+            'data.dataset={"name": "procedural", "num_samples": 5}',
+            "render.num_samples=3",
+            "render.folder=scenes",
+        ],
+        host=HOST,
+    )
     run = RunDir.create(config, host=HOST, path=tmp_path / "run")
     outcome = run_stage("render", Assembly(config, HOST), run)
     assert outcome.status == "ran", outcome.describe()
@@ -216,17 +261,42 @@ def test_render_stage_writes_the_experiments_data_rendered_by_its_sensor(tmp_pat
     empty = resolve_config(None, overrides=['stages=["render"]', "sensor=digit"], host=HOST)
     outcome = run_stage("render", Assembly(empty, HOST), RunDir.create(empty, host=HOST, path=tmp_path / "empty"))
     assert outcome.status == "unavailable"
-    assert outcome.describe().startswith("cannot run: needs data.dataset, which the config leaves empty; choose with "
-                                         "--set data.dataset.name=<")
+    assert outcome.describe().startswith(
+        "cannot run: needs data.dataset, which the config leaves empty; choose with --set data.dataset.name=<"
+    )
 
 
-@pytest.mark.parametrize("sensor", ["gelsight", "gelsight_mini", "digit",
-                                    '{"name": "gelsight", "variant": {"colour_gain": [1.2, 1, 0.8], "wear_blur": 0.02,'
-                                    ' "noise_std": 0.02, "seed": 5}}'])
+@pytest.mark.parametrize(
+    "sensor",
+    [
+        "gelsight",
+        "gelsight_mini",
+        "digit",
+        '{"name": "gelsight", "variant": {"colour_gain": [1.2, 1, 0.8], "wear_blur": 0.02,'
+        ' "noise_std": 0.02, "seed": 5}}',
+    ],
+)
 def test_data_render_writes_a_browsable_folder_readable_back(tmp_path, capsys, sensor):
     out = tmp_path / "render"
-    assert main(["data", "render", "--sensor", sensor, "--n", "6", "--out", str(out), "--image-size", "32",
-                 "--batch-size", "4"]) == 0
+    assert (
+        main(
+            [
+                "data",
+                "render",
+                "--sensor",
+                sensor,
+                "--n",
+                "6",
+                "--out",
+                str(out),
+                "--image-size",
+                "32",
+                "--batch-size",
+                "4",
+            ]
+        )
+        == 0
+    )
     assert "wrote 6 samples" in capsys.readouterr().out
     rows = list(csv.DictReader(open(out / "index.csv")))
     assert len(rows) == 6 and set(rows[0]) >= {"path", "label", "visual", "class_name", "text", "sensor"}
@@ -238,8 +308,7 @@ def test_data_render_writes_a_browsable_folder_readable_back(tmp_path, capsys, s
     assert record["dataset"]["name"] == "procedural" and "sensor" not in record["dataset"]
     assert {row["sensor"] for row in rows} == {sensor_config["name"]}
     # The export is an ordinary image-folder dataset: read it back and compare with the source samples.
-    exported = HOST.build("dataset", {"name": "image_folder", "root": str(out), "csv": "index.csv",
-                                      "image_size": 32})
+    exported = HOST.build("dataset", {"name": "image_folder", "root": str(out), "csv": "index.csv", "image_size": 32})
     source = dataset(sensor_config, num_samples=6, cache=False)
     for index in range(6):
         back, original = exported[index], source[index]
@@ -255,8 +324,10 @@ def test_data_render_refuses_to_overwrite(tmp_path, capsys):
 
 
 def test_data_fidelity_writes_pictures_and_numbers(tmp_path, capsys):
-    assert main(["data", "fidelity", "--out", str(tmp_path), "--sensors", "gelsight", "--height", "120",
-                 "--crop", "32"]) == 0
+    assert (
+        main(["data", "fidelity", "--out", str(tmp_path), "--sensors", "gelsight", "--height", "120", "--crop", "32"])
+        == 0
+    )
     assert "gelsight       SSIM" in capsys.readouterr().out
     assert (tmp_path / "real_vs_rendered_gelsight.png").is_file()
     assert json.loads((tmp_path / "fidelity.json").read_text())[0]["sensor"] == "gelsight"

@@ -10,8 +10,18 @@ import pytest
 import torch
 from generator_runs import train_args
 
-from vqtouch.core import (Assembly, ConfigError, PluginError, RunDir, hookimpl, load, load_plugins, resolve_config,
-                          run_stage, save)
+from vqtouch.core import (
+    Assembly,
+    ConfigError,
+    PluginError,
+    RunDir,
+    hookimpl,
+    load,
+    load_plugins,
+    resolve_config,
+    run_stage,
+    save,
+)
 from vqtouch.core.cli import main
 from vqtouch.core.runs import PRODUCTS_FILE, MissingProductError
 
@@ -66,7 +76,9 @@ def test_a_missing_product_names_the_stage_that_makes_it(make_plugin, tmp_path):
     run, outcomes = _run(host, tmp_path, ["reader"])
     assert outcomes[0].status == "failed"
     assert "no 'atlas' in this run (it holds nothing yet); the 'atlas' stage makes it" in outcomes[0].reason
-    with pytest.raises(MissingProductError, match="unknown product 'atlsa'; available: .*atlas.*; did you mean 'atlas'"):
+    with pytest.raises(
+        MissingProductError, match="unknown product 'atlsa'; available: .*atlas.*; did you mean 'atlas'"
+    ):
         run.product("atlsa", host)
 
 
@@ -82,7 +94,9 @@ def test_a_stage_publishes_only_what_it_declares(make_plugin, tmp_path):
     host = _host(make_plugin, rogue=(_rogue_stage, ()))
     _, [outcome] = _run(host, tmp_path, ["rogue"])
     assert outcome.status == "failed"
-    assert "stage 'rogue' published 'atlas' but declares makes=none; add it to the stage's registration" in outcome.reason
+    assert (
+        "stage 'rogue' published 'atlas' but declares makes=none; add it to the stage's registration" in outcome.reason
+    )
     assert not (tmp_path / "run" / PRODUCTS_FILE).exists()
 
 
@@ -112,8 +126,12 @@ def test_a_damaged_products_index_is_named(make_plugin, tmp_path):
 
 def test_the_built_in_stages_declare_their_products(host):
     makers = {product: stage.name for stage in host.stages.values() for product in stage.makes}
-    assert {"tokenizer": "tokenizer", "families": "cluster", "adapted_tokenizer": "adapt",
-            "generator": "generator"}.items() <= makers.items()
+    assert {
+        "tokenizer": "tokenizer",
+        "families": "cluster",
+        "adapted_tokenizer": "adapt",
+        "generator": "generator",
+    }.items() <= makers.items()
 
 
 def test_a_generator_keeps_the_tokenizer_it_was_trained_on(tmp_path, host):

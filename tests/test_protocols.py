@@ -23,7 +23,10 @@ def test_the_published_protocol_is_the_papers(host):
     published = get_protocol("published")
     assert published.image_size == 512
     assert [dict(metric) for metric in published.metrics] == [
-        {"name": "ssim"}, {"name": "psnr", "pooled": True}, {"name": "lpips", "backbone": "vgg"}]
+        {"name": "ssim"},
+        {"name": "psnr", "pooled": True},
+        {"name": "lpips", "backbone": "vgg"},
+    ]
     metrics = published.build_metrics(host)
     ssim = metrics.metrics["ssim"]
     assert (ssim.data_range, ssim.window_size, ssim.sigma) == (1.0, 11, 1.5)
@@ -75,8 +78,10 @@ def test_without_weights_lpips_is_listed_as_skipped_never_scored(host, monkeypat
 
 
 def test_unknown_protocol_and_unknown_override_are_one_line_errors(host):
-    with pytest.raises(ConfigError, match="unknown evaluation protocol 'publishd'.*available: default, published.*"
-                                          "did you mean 'published'"):
+    with pytest.raises(
+        ConfigError,
+        match="unknown evaluation protocol 'publishd'.*available: default, published.*did you mean 'published'",
+    ):
         get_protocol("publishd")
     with pytest.raises(ConfigError, match="protocol 'published' has no metric 'fid'"):
         get_protocol("published").build_metrics(host, {"fid": {"weights": "x"}})
@@ -84,8 +89,11 @@ def test_unknown_protocol_and_unknown_override_are_one_line_errors(host):
 
 def test_pairs_are_matched_by_id_and_mismatches_named():
     assert pair_by_id({"b": 1, "a": 2}, {"a": 3, "b": 4}) == ["a", "b"]
-    with pytest.raises(ConfigError, match=r"1 generated image\(s\) without a real one \(c\); 1 real image\(s\) "
-                                          r"without a generated one \(d\)"):
+    with pytest.raises(
+        ConfigError,
+        match=r"1 generated image\(s\) without a real one \(c\); 1 real image\(s\) "
+        r"without a generated one \(d\)",
+    ):
         pair_by_id({"a": 1, "c": 2}, {"a": 3, "d": 4})
 
 
@@ -101,8 +109,23 @@ def test_evaluate_pairs_scores_folders_by_file_name(tmp_path, capsys):
     # The generated folder lists the same ids in another order, so pairing by position would mismatch.
     _write_folder(tmp_path / "generated", generated.flip(0), names[::-1])
     out = tmp_path / "scores.json"
-    assert main(["evaluate", "pairs", "--generated", str(tmp_path / "generated"), "--real", str(tmp_path / "real"),
-                 "--protocol", "default", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "pairs",
+                "--generated",
+                str(tmp_path / "generated"),
+                "--real",
+                str(tmp_path / "real"),
+                "--protocol",
+                "default",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     result = json.loads(out.read_text())
     assert result["protocol"] == "default" and result["pairs"] == 3 and result["image_size"] == [64, 64]
     expected = get_protocol("default").build_metrics(load_plugins(autoload=False))
@@ -116,8 +139,9 @@ def test_evaluate_pairs_scores_folders_by_file_name(tmp_path, capsys):
 def test_evaluate_pairs_names_unmatched_files_in_one_line(tmp_path, capsys):
     _write_folder(tmp_path / "real", smooth_images(2, 32), ["a", "b"])
     _write_folder(tmp_path / "generated", smooth_images(2, 32), ["a", "c"])
-    assert main(["evaluate", "pairs", "--generated", str(tmp_path / "generated"), "--real",
-                 str(tmp_path / "real")]) == 2
+    assert (
+        main(["evaluate", "pairs", "--generated", str(tmp_path / "generated"), "--real", str(tmp_path / "real")]) == 2
+    )
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and "(c)" in error and "(b)" in error
     assert main(["evaluate", "pairs", "--generated", str(tmp_path / "nowhere"), "--real", str(tmp_path / "real")]) == 2

@@ -13,7 +13,7 @@ DOCS = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
 
 def _api_section() -> str:
     text = DOCS.read_text(encoding="utf-8")
-    return text[text.index("### The API"):text.index("### Versions and renames")]
+    return text[text.index("### The API") : text.index("### Versions and renames")]
 
 
 def test_the_api_is_small_and_every_name_resolves():
@@ -39,8 +39,11 @@ def test_the_api_takes_a_typed_plugin_host():
         value = getattr(core, name)
         if not callable(value) or name == "__version__":
             continue
-        targets = [value] if not inspect.isclass(value) else [member for _, member in inspect.getmembers(value)
-                                                               if inspect.isfunction(member)]
+        targets = (
+            [value]
+            if not inspect.isclass(value)
+            else [member for _, member in inspect.getmembers(value) if inspect.isfunction(member)]
+        )
         for target in targets:
             parameter = inspect.signature(target).parameters.get("host")
             if parameter is not None:

@@ -166,8 +166,9 @@ def test_ema_update_follows_the_laplace_smoothed_formula():
     torch.testing.assert_close(quantizer.codebook_KC, expected_sum_KD / smoothed_K.unsqueeze(1))
 
 
-def clustered_latents(centres_MD: torch.Tensor, batch: int, side: int, noise: float,
-                      generator: torch.Generator) -> torch.Tensor:
+def clustered_latents(
+    centres_MD: torch.Tensor, batch: int, side: int, noise: float, generator: torch.Generator
+) -> torch.Tensor:
     """Latents (batch, D, side, side), each vector a random centre plus Gaussian noise."""
     count = batch * side * side
     picks = torch.randint(len(centres_MD), (count,), generator=generator)
@@ -280,7 +281,8 @@ def test_numerical_extremes_stay_finite(name, options, codebook_size, grid, scal
     batch, height, width = grid
     shape = (batch, LATENT_DIM, height, width)
     latents_BDhw = {"constant": lambda: torch.full(shape, 0.5), "zeros": lambda: torch.zeros(shape)}.get(
-        scale, lambda: scale * randn(*shape))().requires_grad_()
+        scale, lambda: scale * randn(*shape)
+    )().requires_grad_()
     for _ in range(2):  # the second call sees the EMA update / restarts of the first
         output = quantizer(latents_BDhw)
     output.loss.backward()
@@ -316,15 +318,18 @@ def test_embedding_dim_comes_from_the_config_or_the_context(name):
 
 
 @pytest.mark.parametrize("name", QUANTIZERS)
-@pytest.mark.parametrize("options, context, message", [
-    ({}, BuildContext(), "embedding_dim"),
-    ({"embedding_dim": 4}, BuildContext(latent_dim=8), "embedding_dim=4"),
-    ({"codebook_size": 64}, BuildContext(latent_dim=8, codebook_size=128), "codebook_size=64"),
-    ({"codebok_size": 64}, CONTEXT, "codebook_size"),
-    ({"codebook_size": 1}, CONTEXT, "codebook_size"),
-    ({"beta": -1.0}, CONTEXT, "beta"),
-    ({"init": "kmeans"}, CONTEXT, "init"),
-])
+@pytest.mark.parametrize(
+    "options, context, message",
+    [
+        ({}, BuildContext(), "embedding_dim"),
+        ({"embedding_dim": 4}, BuildContext(latent_dim=8), "embedding_dim=4"),
+        ({"codebook_size": 64}, BuildContext(latent_dim=8, codebook_size=128), "codebook_size=64"),
+        ({"codebok_size": 64}, CONTEXT, "codebook_size"),
+        ({"codebook_size": 1}, CONTEXT, "codebook_size"),
+        ({"beta": -1.0}, CONTEXT, "beta"),
+        ({"init": "kmeans"}, CONTEXT, "init"),
+    ],
+)
 def test_config_errors_are_config_errors(name, options, context, message):
     with pytest.raises(ConfigError, match=message):
         HOST.build("quantizer", {"name": name, **options}, context)
@@ -338,10 +343,17 @@ def test_ema_only_options_are_rejected_by_vq_and_vice_versa():
 
 
 @pytest.mark.parametrize("name", QUANTIZERS)
-@pytest.mark.parametrize("codes", [
-    torch.tensor([[[0, 16]]]), torch.tensor([[[-1, 0]]]), torch.zeros(1, 2, 2),  # out of range, float
-    torch.zeros(2, 2, dtype=torch.long), torch.zeros(1, 2, 2, dtype=torch.bool),  # wrong rank, bool
-], ids=["too-large", "negative", "float", "2-d", "bool"])
+@pytest.mark.parametrize(
+    "codes",
+    [
+        torch.tensor([[[0, 16]]]),
+        torch.tensor([[[-1, 0]]]),
+        torch.zeros(1, 2, 2),  # out of range, float
+        torch.zeros(2, 2, dtype=torch.long),
+        torch.zeros(1, 2, 2, dtype=torch.bool),  # wrong rank, bool
+    ],
+    ids=["too-large", "negative", "float", "2-d", "bool"],
+)
 def test_bad_codes_in_lookup_raise_value_error(name, codes):
     quantizer = build(name, codebook_size=16)
     with pytest.raises(ValueError, match="codes"):
@@ -349,10 +361,16 @@ def test_bad_codes_in_lookup_raise_value_error(name, codes):
 
 
 @pytest.mark.parametrize("name", QUANTIZERS)
-@pytest.mark.parametrize("latents", [
-    torch.zeros(2, LATENT_DIM, 4), torch.zeros(2, LATENT_DIM + 1, 4, 4),
-    torch.zeros(2, LATENT_DIM, 4, 4, dtype=torch.long), torch.zeros(0, LATENT_DIM, 4, 4),
-], ids=["3-d", "wrong-channels", "integer", "empty"])
+@pytest.mark.parametrize(
+    "latents",
+    [
+        torch.zeros(2, LATENT_DIM, 4),
+        torch.zeros(2, LATENT_DIM + 1, 4, 4),
+        torch.zeros(2, LATENT_DIM, 4, 4, dtype=torch.long),
+        torch.zeros(0, LATENT_DIM, 4, 4),
+    ],
+    ids=["3-d", "wrong-channels", "integer", "empty"],
+)
 def test_bad_latents_raise_value_error(name, latents):
     with pytest.raises(ValueError, match="latent"):
         build(name, codebook_size=16)(latents)

@@ -53,18 +53,27 @@ def test_train_samples_are_nested_draws_of_the_training_split_and_leave_the_held
 
 
 def test_more_train_samples_than_the_training_split_holds_is_one_line():
-    with pytest.raises(ConfigError, match=r"^data.train_samples=41, but the training split holds 40 samples "
-                                          r"\(50 in the dataset, 10 held out\); lower data.train_samples"):
+    with pytest.raises(
+        ConfigError,
+        match=r"^data.train_samples=41, but the training split holds 40 samples "
+        r"\(50 in the dataset, 10 held out\); lower data.train_samples",
+    ):
         experiment_split(Numbered(50), DataConfig(val_fraction=0.2, train_samples=41), 0)
 
 
 def test_the_models_keep_the_scenes_shared_options_and_the_mae_is_continuous(host):
     config = resolve_config("reconstruction", overrides=["tokenizer.autoencoder.channels=32"], host=host)
-    runs = plan_configs(config, host, samples=[10, 30], models=["vqgan", "dm_vqgan"], mae_ratios=[0.5],
-                        held_out=12, seed=4)
+    runs = plan_configs(
+        config, host, samples=[10, 30], models=["vqgan", "dm_vqgan"], mae_ratios=[0.5], held_out=12, seed=4
+    )
     assert [(label, count) for label, count, _ in runs] == [
-        ("vqgan", 10), ("vqgan", 30), ("dm_vqgan", 10), ("dm_vqgan", 30), ("mae (mask 0.5)", 10),
-        ("mae (mask 0.5)", 30)]
+        ("vqgan", 10),
+        ("vqgan", 30),
+        ("dm_vqgan", 10),
+        ("dm_vqgan", 30),
+        ("mae (mask 0.5)", 10),
+        ("mae (mask 0.5)", 30),
+    ]
     by_label = {label: run for label, _, run in runs}
     assert by_label["vqgan"].tokenizer.autoencoder.name == "vqgan"
     assert by_label["vqgan"].tokenizer.autoencoder.channels == 32  # the scene's option holds for every model
@@ -73,7 +82,11 @@ def test_the_models_keep_the_scenes_shared_options_and_the_mae_is_continuous(hos
     assert by_label["vqgan"].tokenizer.discriminator == config.tokenizer.discriminator
     mae = by_label["mae (mask 0.5)"].tokenizer
     assert (mae.autoencoder.name, mae.autoencoder.mask_ratio, mae.quantizer.name, mae.discriminator) == (
-        "mae", 0.5, "identity", None)
+        "mae",
+        0.5,
+        "identity",
+        None,
+    )
     for _, count, run in runs:
         assert run.stages == ["tokenizer"] and run.seed == 4 and run.data.train_samples == count
         # Exactly --held-out procedural samples are held out, the same ones for every model and N.
@@ -91,31 +104,63 @@ def test_a_size_the_data_cannot_give_is_refused_before_anything_trains(host, tmp
         folder.mkdir(parents=True, exist_ok=True)
         Image.new("RGB", (40, 40), (index * 20, 90, 120)).save(folder / f"{index}.png")
     monkeypatch.setattr(table1, "train_and_score", lambda *args: pytest.fail("trained before refusing"))
-    config = resolve_config("reconstruction", overrides=[f'data.dataset={{"name": "image_folder", "root": "{root}"}}',
-                                                         "data.val_fraction=0.25"], host=host)
-    with pytest.raises(ConfigError, match=r"^--samples 10: the training split of 'image_folder' holds 9 samples "
-                                          r"\(12 in the dataset\); use --samples up to 9"):
-        table1.evaluate_reconstruction_experiment(config, host, tmp_path / "out", seeds=[0], samples=[4, 10],
-                                                  models=["vqgan"], mae_ratios=[], held_out=None)
-    with pytest.raises(ConfigError, match="--held-out sets how many procedural samples are held out; the dataset "
-                                          "'image_folder' holds out data.val_fraction=0.25"):
+    config = resolve_config(
+        "reconstruction",
+        overrides=[f'data.dataset={{"name": "image_folder", "root": "{root}"}}', "data.val_fraction=0.25"],
+        host=host,
+    )
+    with pytest.raises(
+        ConfigError,
+        match=r"^--samples 10: the training split of 'image_folder' holds 9 samples "
+        r"\(12 in the dataset\); use --samples up to 9",
+    ):
+        table1.evaluate_reconstruction_experiment(
+            config, host, tmp_path / "out", seeds=[0], samples=[4, 10], models=["vqgan"], mae_ratios=[], held_out=None
+        )
+    with pytest.raises(
+        ConfigError,
+        match="--held-out sets how many procedural samples are held out; the dataset "
+        "'image_folder' holds out data.val_fraction=0.25",
+    ):
         plan_configs(config, host, samples=[4], models=["vqgan"], mae_ratios=[], held_out=5, seed=0)
 
 
 def test_verdicts_name_the_best_model_and_count_gaps_beyond_the_spread():
-    summary = [{"model": "vqgan", "samples": 100, "contact_psnr": 20.0, "contact_psnr_std": 0.2},
-               {"model": "dm_vqgan", "samples": 100, "contact_psnr": 21.0, "contact_psnr_std": 0.2},
-               {"model": "mae (mask 0.5)", "samples": 100, "contact_psnr": 20.9, "contact_psnr_std": 0.0},
-               {"model": BACKGROUND, "samples": 100, "contact_psnr": 25.0, "contact_psnr_std": 0.1}]
+    summary = [
+        {"model": "vqgan", "samples": 100, "contact_psnr": 20.0, "contact_psnr_std": 0.2},
+        {"model": "dm_vqgan", "samples": 100, "contact_psnr": 21.0, "contact_psnr_std": 0.2},
+        {"model": "mae (mask 0.5)", "samples": 100, "contact_psnr": 20.9, "contact_psnr_std": 0.0},
+        {"model": BACKGROUND, "samples": 100, "contact_psnr": 25.0, "contact_psnr_std": 0.1},
+    ]
     assert verdict_lines(summary) == [
         "- N = 100: `dm_vqgan` is level with `mae (mask 0.5)` (gap +0.1 within the spread 0.2) on contact_psnr.",
         "- N = 100: `dm_vqgan` beats `vqgan` by 1 on contact_psnr.",
-        "- N = 100: `dm_vqgan` is behind `no-contact background` by 4 on contact_psnr."]
+        "- N = 100: `dm_vqgan` is behind `no-contact background` by 4 on contact_psnr.",
+    ]
 
 
 def experiment_args(out, *extra):
-    args = ["--no-progress", "evaluate", "reconstruction", "--out", str(out), "--samples", "4", "8", "--seeds", "0",
-            "1", "--held-out", "6", "--models", "vqgan", "--mae-ratios", "0.5", "--no-distribution", *extra]
+    args = [
+        "--no-progress",
+        "evaluate",
+        "reconstruction",
+        "--out",
+        str(out),
+        "--samples",
+        "4",
+        "8",
+        "--seeds",
+        "0",
+        "1",
+        "--held-out",
+        "6",
+        "--models",
+        "vqgan",
+        "--mae-ratios",
+        "0.5",
+        "--no-distribution",
+        *extra,
+    ]
     for override in [*TOKENIZER, "tokenizer.train.checkpoint_every=2"]:
         args += ["--set", override]
     return args
@@ -135,7 +180,8 @@ def test_every_seed_size_and_model_trains_on_exactly_n_samples_and_is_scored_on_
     models = {("vqgan", "vqgan"), ("mae (mask 0.5)", "mae-mask0.5")}
     trained = [row for row in result["rows"] if row["model"] != BACKGROUND]
     assert sorted((row["model"], row["samples"], row["seed"]) for row in trained) == sorted(
-        (label, count, seed) for label, _ in models for count in (4, 8) for seed in (0, 1))
+        (label, count, seed) for label, _ in models for count in (4, 8) for seed in (0, 1)
+    )
     for label, folder in models:
         for count in (4, 8):
             for seed in (0, 1):
@@ -156,8 +202,11 @@ def test_every_seed_size_and_model_trains_on_exactly_n_samples_and_is_scored_on_
 def test_the_summary_is_the_mean_and_spread_of_the_seeds(experiment):
     _, result = experiment
     for entry in result["summary"]:
-        values = [row["psnr"] for row in result["rows"]
-                  if row["model"] == entry["model"] and row["samples"] == entry["samples"]]
+        values = [
+            row["psnr"]
+            for row in result["rows"]
+            if row["model"] == entry["model"] and row["samples"] == entry["samples"]
+        ]
         assert entry["psnr"] == pytest.approx(sum(values) / len(values), abs=1e-6)
         assert entry["psnr_std"] == pytest.approx(statistics.pstdev(values), abs=1e-6)
 

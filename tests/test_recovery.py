@@ -21,8 +21,15 @@ import torch
 
 from vqtouch.core import CheckpointError, TrainConfig, load_plugins
 from vqtouch.core.runs import RunDir
-from vqtouch.core.training import (TRAINER_STATE, SkippedCheckpointWarning, Trainer, latest_checkpoint,
-                                   latest_good_checkpoint, no_good_checkpoint, rewind_metrics)
+from vqtouch.core.training import (
+    TRAINER_STATE,
+    SkippedCheckpointWarning,
+    Trainer,
+    latest_checkpoint,
+    latest_good_checkpoint,
+    no_good_checkpoint,
+    rewind_metrics,
+)
 
 TESTS = Path(__file__).resolve().parent
 
@@ -49,9 +56,18 @@ def make_trainer(host, tmp_path, steps=12, run=None, stage="train", **config):
     torch.manual_seed(0)  # the same initial weights as the training subprocess
     task = toy.ToyTask(host)
     options = {"steps": steps, "learning_rate": 0.05, "checkpoint_every": 4, "log_every": 1, **config}
-    trainer = Trainer(task, toy.ToyDataset(), TrainConfig(**options), batch_size=4, seed=3,
-                      device=torch.device("cpu"), checkpoint_dir=tmp_path / "checkpoints", host=host, run=run,
-                      stage=stage)
+    trainer = Trainer(
+        task,
+        toy.ToyDataset(),
+        TrainConfig(**options),
+        batch_size=4,
+        seed=3,
+        device=torch.device("cpu"),
+        checkpoint_dir=tmp_path / "checkpoints",
+        host=host,
+        run=run,
+        stage=stage,
+    )
     return trainer, task
 
 
@@ -114,9 +130,14 @@ def start_training(tmp_path, save_seconds):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     # SIGINT's default action in the child: a suite started in the background (`make test &`) inherits
     # SIGINT ignored, and Python then never turns it into KeyboardInterrupt, so the Ctrl-C tests would hang.
-    process = subprocess.Popen([sys.executable, str(script), str(tmp_path), str(save_seconds)],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    process = subprocess.Popen(
+        [sys.executable, str(script), str(tmp_path), str(save_seconds)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     wait_for(tmp_path / "training", process)
     return process
 
@@ -178,7 +199,8 @@ def test_a_second_signal_during_the_save_waits_for_it(host, tmp_path):
     assert notices == [
         "vqtouch: SIGINT received; stopping after the current step, once its checkpoint is written",
         "vqtouch: SIGINT received while writing a checkpoint; stopping once it is complete (kill -9 stops at "
-        "once, keeping the last complete checkpoint)"], stderr[-3000:]
+        "once, keeping the last complete checkpoint)",
+    ], stderr[-3000:]
 
 
 def test_sigterm_saves_a_checkpoint_like_ctrl_c(host, tmp_path):
@@ -220,7 +242,8 @@ def test_resume_refuses_a_run_whose_checkpoints_are_all_incomplete(host, tmp_pat
     assert str(info.value) == (
         f"{checkpoints}: holds 1 checkpoint folder(s) but no complete one (the newest, step-00000004, has no "
         f"{TRAINER_STATE}: its save was interrupted); resuming would silently restart from step 0: delete "
-        f"{checkpoints} to start over")
+        f"{checkpoints} to start over"
+    )
     # A run that never wrote a checkpoint still starts from step 0.
     (checkpoints / "step-00000004" / "model.safetensors").unlink()
     (checkpoints / "step-00000004").rmdir()
@@ -228,6 +251,7 @@ def test_resume_refuses_a_run_whose_checkpoints_are_all_incomplete(host, tmp_pat
 
 
 # -- falling back past a damaged newest checkpoint ------------------------------------------------
+
 
 def trained(host, tmp_path):
     trainer, _ = make_trainer(host, tmp_path, steps=12)
@@ -248,9 +272,14 @@ def test_resume_falls_back_past_a_truncated_module_file(host, tmp_path):
     checkpoints = trained(host, tmp_path)
     module_file = checkpoints / "step-00000012" / "model.safetensors"
     module_file.write_bytes(module_file.read_bytes()[:-7])
-    resume_with_warning(host, tmp_path, checkpoints, "model.safetensors is not a readable safetensors file "
-                                                     "(Error while deserializing header: incomplete metadata, file "
-                                                     "not fully covered)")
+    resume_with_warning(
+        host,
+        tmp_path,
+        checkpoints,
+        "model.safetensors is not a readable safetensors file "
+        "(Error while deserializing header: incomplete metadata, file "
+        "not fully covered)",
+    )
 
 
 def test_resume_falls_back_past_a_missing_module_file(host, tmp_path):
@@ -262,8 +291,12 @@ def test_resume_falls_back_past_a_missing_module_file(host, tmp_path):
 def test_resume_falls_back_past_an_unreadable_trainer_state(host, tmp_path):
     checkpoints = trained(host, tmp_path)
     (checkpoints / "step-00000012" / TRAINER_STATE).write_bytes(b"\x00" * 5)
-    resume_with_warning(host, tmp_path, checkpoints, f"{TRAINER_STATE} is unreadable (Error while deserializing "
-                                                     "header: header too small)")
+    resume_with_warning(
+        host,
+        tmp_path,
+        checkpoints,
+        f"{TRAINER_STATE} is unreadable (Error while deserializing header: header too small)",
+    )
 
 
 def test_resume_falls_back_past_an_interrupted_save(host, tmp_path):
@@ -279,13 +312,16 @@ def test_readers_name_the_files_they_need(host, tmp_path):
         assert latest_good_checkpoint(checkpoints, required_files=("decoder.safetensors",)) is None
     assert no_good_checkpoint(checkpoints, ("decoder.safetensors",)) == (
         f"{checkpoints}: holds 3 checkpoint folder(s) but no complete one (the newest, step-00000012, is unusable: "
-        "decoder.safetensors is missing)")
-    (checkpoints / "step-00000004" / "decoder.safetensors").write_bytes((checkpoints / "step-00000004" /
-                                                                         "model.safetensors").read_bytes())
+        "decoder.safetensors is missing)"
+    )
+    (checkpoints / "step-00000004" / "decoder.safetensors").write_bytes(
+        (checkpoints / "step-00000004" / "model.safetensors").read_bytes()
+    )
     with pytest.warns(SkippedCheckpointWarning) as caught:
         assert latest_good_checkpoint(checkpoints, required_files=("decoder.safetensors",)).name == "step-00000004"
-    assert [str(w.message) for w in caught] == [f"checkpoint {checkpoints / f'step-{step:08d}'} skipped: "
-                                                "decoder.safetensors is missing" for step in (12, 8)]
+    assert [str(w.message) for w in caught] == [
+        f"checkpoint {checkpoints / f'step-{step:08d}'} skipped: decoder.safetensors is missing" for step in (12, 8)
+    ]
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert latest_good_checkpoint(checkpoints, required_files=("model.safetensors",)).name == "step-00000012"
@@ -312,6 +348,7 @@ def test_resume_from_a_named_step_folder(host, tmp_path):
 
 # -- a full disk ------------------------------------------------------------------------------------
 
+
 def test_disk_full_while_saving_keeps_the_previous_checkpoint(host, tmp_path, monkeypatch):
     import vqtouch.core.training as training
 
@@ -322,15 +359,21 @@ def test_disk_full_while_saving_keeps_the_previous_checkpoint(host, tmp_path, mo
 
     with monkeypatch.context() as patch:
         real = training.save_file
-        patch.setattr(training, "save_file",
-                      lambda tensors, path, metadata=None: no_space(tensors, path) if trainer.state.step == 8 else
-                      real(tensors, path, metadata=metadata))
+        patch.setattr(
+            training,
+            "save_file",
+            lambda tensors, path, metadata=None: (
+                no_space(tensors, path) if trainer.state.step == 8 else real(tensors, path, metadata=metadata)
+            ),
+        )
         with pytest.raises(CheckpointError) as info:
             trainer.fit()
     checkpoints = tmp_path / "checkpoints"
-    assert str(info.value) == (f"{checkpoints / 'step-00000008' / TRAINER_STATE}: could not write the checkpoint "
-                               "file: No space left on device; free disk space and run again (nothing was "
-                               "replaced; the run's last complete checkpoint is step-00000004)")
+    assert str(info.value) == (
+        f"{checkpoints / 'step-00000008' / TRAINER_STATE}: could not write the checkpoint "
+        "file: No space left on device; free disk space and run again (nothing was "
+        "replaced; the run's last complete checkpoint is step-00000004)"
+    )
     # The half-written step is removed, the previous one is intact and resumable.
     assert sorted(p.name for p in checkpoints.iterdir()) == ["step-00000004"]
     assert not list(checkpoints.rglob("*.tmp"))
@@ -339,6 +382,7 @@ def test_disk_full_while_saving_keeps_the_previous_checkpoint(host, tmp_path, mo
 
 
 # -- leftovers ----------------------------------------------------------------------------------
+
 
 def test_resume_drops_the_metric_lines_after_the_resumed_step(host, tmp_path):
     run = RunDir(tmp_path)
@@ -370,11 +414,17 @@ def test_rewind_metrics_rewrites_only_when_needed(tmp_path):
 def test_a_new_trainer_removes_leftovers_of_interrupted_writes(host, tmp_path):
     trained(host, tmp_path)
     checkpoints = tmp_path / "checkpoints"
-    leftovers = [checkpoints / "step-00000012" / ".model.safetensors.k2x9_a1b.tmp",  # atomic_write's temporary
-                 checkpoints / "step-00000012" / ".tmpAb3xYz",  # the one safetensors writes inside it
-                 checkpoints / ".notes.txt.abcd1234.tmp"]
-    kept = [checkpoints / "step-00000012" / "notes.tmp", checkpoints / "step-00000012" / ".model.safetensors.tmp",
-            tmp_path / ".model.safetensors.k2x9_a1b.tmp", checkpoints / ".tmpAb3xYz"]
+    leftovers = [
+        checkpoints / "step-00000012" / ".model.safetensors.k2x9_a1b.tmp",  # atomic_write's temporary
+        checkpoints / "step-00000012" / ".tmpAb3xYz",  # the one safetensors writes inside it
+        checkpoints / ".notes.txt.abcd1234.tmp",
+    ]
+    kept = [
+        checkpoints / "step-00000012" / "notes.tmp",
+        checkpoints / "step-00000012" / ".model.safetensors.tmp",
+        tmp_path / ".model.safetensors.k2x9_a1b.tmp",
+        checkpoints / ".tmpAb3xYz",
+    ]
     for path in leftovers + kept:
         path.write_bytes(b"x" * 1000)
     make_trainer(host, tmp_path)
@@ -404,6 +454,7 @@ def test_keep_last_is_documented_and_bounded():
 
 # -- the best checkpoint by validation score ------------------------------------------------------
 
+
 class ScoredTask(toy.ToyTask):
     """The toy task with a scripted held-out score per checkpoint step, drawing random numbers while it
     scores (which must not change the training)."""
@@ -422,8 +473,18 @@ def scored_trainer(host, tmp_path, scores, steps=20, run=None, **config):
     torch.manual_seed(0)
     options = {"steps": steps, "learning_rate": 0.05, "checkpoint_every": 4, "log_every": 1, "keep_last": 2, **config}
     task = ScoredTask(host, scores)
-    return Trainer(task, toy.ToyDataset(), TrainConfig(**options), batch_size=4, seed=3, device=torch.device("cpu"),
-                   checkpoint_dir=tmp_path / "checkpoints", host=host, run=run, val_dataset=toy.ToyDataset(6)), task
+    return Trainer(
+        task,
+        toy.ToyDataset(),
+        TrainConfig(**options),
+        batch_size=4,
+        seed=3,
+        device=torch.device("cpu"),
+        checkpoint_dir=tmp_path / "checkpoints",
+        host=host,
+        run=run,
+        val_dataset=toy.ToyDataset(6),
+    ), task
 
 
 SCORES = {4: 0.5, 8: 0.2, 12: 0.9, 16: 0.7, 20: 0.8, 24: 0.1, 28: 0.6}
@@ -433,8 +494,9 @@ def test_the_best_checkpoint_is_kept_beside_the_newest(host, tmp_path):
     from vqtouch.core import resolve_config
 
     # A run whose config names the toy module, so that the run's checkpoint check accepts its files.
-    config = resolve_config("label-to-touch", overrides=['generator.conditioners=[{"name": "toy_regressor"}]'],
-                            host=host)
+    config = resolve_config(
+        "label-to-touch", overrides=['generator.conditioners=[{"name": "toy_regressor"}]'], host=host
+    )
     run = RunDir.create(config, host=host, path=tmp_path / "run")
     trainer, task = scored_trainer(host, tmp_path / "run", SCORES, run=run)
     state = trainer.fit()
@@ -443,7 +505,8 @@ def test_the_best_checkpoint_is_kept_beside_the_newest(host, tmp_path):
     assert (state.best_step, state.best_score) == (8, pytest.approx(0.2))
     logged = [json.loads(line) for line in (run.path / "metrics.jsonl").read_text().splitlines()]
     assert [(line["step"], round(line["val_loss"], 6)) for line in logged if "val_loss" in line] == [
-        (step, SCORES[step]) for step in (4, 8, 12, 16, 20)]
+        (step, SCORES[step]) for step in (4, 8, 12, 16, 20)
+    ]
     assert run.checkpoint(host, step="best") == checkpoints / "step-00000008"
     # Scoring changed nothing in the training: the same losses as without it.
     plain, plain_task = scored_trainer(host, tmp_path / "plain", SCORES, keep_best=False)

@@ -12,12 +12,23 @@ from PIL import Image
 
 from vqtouch.core.cli import main
 
-TINY = ["tokenizer.autoencoder.channels=16", "tokenizer.autoencoder.norm_groups=8",
-        "tokenizer.autoencoder.channel_multipliers=[1,2]", "tokenizer.autoencoder.z_channels=16",
-        "tokenizer.autoencoder.embed_dim=8", "tokenizer.quantizer.codebook_size=32", "data.image_size=32",
-        "data.batch_size=4", "data.dataset.num_samples=12", "tokenizer.train.steps=4",
-        "tokenizer.train.checkpoint_every=2", "tokenizer.train.log_every=1", "tokenizer.loss.perceptual=none",
-        "tokenizer.discriminator=null", 'metrics=[{"name": "psnr"}]']
+TINY = [
+    "tokenizer.autoencoder.channels=16",
+    "tokenizer.autoencoder.norm_groups=8",
+    "tokenizer.autoencoder.channel_multipliers=[1,2]",
+    "tokenizer.autoencoder.z_channels=16",
+    "tokenizer.autoencoder.embed_dim=8",
+    "tokenizer.quantizer.codebook_size=32",
+    "data.image_size=32",
+    "data.batch_size=4",
+    "data.dataset.num_samples=12",
+    "tokenizer.train.steps=4",
+    "tokenizer.train.checkpoint_every=2",
+    "tokenizer.train.log_every=1",
+    "tokenizer.loss.perceptual=none",
+    "tokenizer.discriminator=null",
+    'metrics=[{"name": "psnr"}]',
+]
 
 
 def train_args(out, *extra):
@@ -70,10 +81,14 @@ def test_reconstruct_falls_back_past_a_damaged_newest_step_with_a_one_line_warni
     out = tmp_path / "recon"
     assert main(["reconstruct", "--run", str(run_copy), "--real-frames", "gelsight", "--out", str(out)]) == 0
     err = capsys.readouterr().err.strip().splitlines()
-    why = {"missing": "is missing", "truncated": "is not a readable safetensors file",
-           "header": "has a damaged vqtouch header (vqtouch.step is 'two', not a step number)"}[damage]
-    assert len(err) == 1 and err[0].startswith(f"vqtouch: warning: checkpoint {module.parent} skipped: "
-                                               f"autoencoder.safetensors {why}"), err
+    why = {
+        "missing": "is missing",
+        "truncated": "is not a readable safetensors file",
+        "header": "has a damaged vqtouch header (vqtouch.step is 'two', not a step number)",
+    }[damage]
+    assert len(err) == 1 and err[0].startswith(
+        f"vqtouch: warning: checkpoint {module.parent} skipped: autoencoder.safetensors {why}"
+    ), err
     assert json.loads((out / "reconstruct.json").read_text())["checkpoint"].endswith("step-00000002")
 
 
@@ -97,10 +112,12 @@ def test_resume_of_a_run_without_any_usable_step_is_refused_not_restarted(run_co
     assert main(["--no-progress", "train", "tokenizer", "--resume", str(run_copy)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1, err
-    assert err.strip() == (f"vqtouch: error: stage 'tokenizer' failed: {run_copy / 'checkpoints'}: holds 2 "
-                           "checkpoint folder(s) but no complete one (the newest, step-00000004, has no "
-                           "trainer_state.safetensors: its save was interrupted); restore a step folder from a copy, "
-                           "or train the run again with --overwrite")
+    assert err.strip() == (
+        f"vqtouch: error: stage 'tokenizer' failed: {run_copy / 'checkpoints'}: holds 2 "
+        "checkpoint folder(s) but no complete one (the newest, step-00000004, has no "
+        "trainer_state.safetensors: its save was interrupted); restore a step folder from a copy, "
+        "or train the run again with --overwrite"
+    )
     assert (run_copy / "metrics.jsonl").read_text() == metrics_before  # nothing rewound, nothing trained
 
 
@@ -132,11 +149,15 @@ def test_an_interrupted_training_says_only_what_it_saved(tmp_path, capsys, monke
     err = capsys.readouterr().err.strip()
     assert "checkpoint is saved" not in err
     if saved:
-        assert err == (f"vqtouch: training stopped by SIGINT after step 3; checkpoint saved: {folder}; resume with: "
-                       f"vqtouch train tokenizer --resume {out}")
+        assert err == (
+            f"vqtouch: training stopped by SIGINT after step 3; checkpoint saved: {folder}; resume with: "
+            f"vqtouch train tokenizer --resume {out}"
+        )
     else:
-        assert err == ("vqtouch: interrupted before any checkpoint was written; nothing to resume: start again with "
-                       f"--overwrite --out {out}")
+        assert err == (
+            "vqtouch: interrupted before any checkpoint was written; nothing to resume: start again with "
+            f"--overwrite --out {out}"
+        )
 
 
 def _image_folder(root, corrupt=True):
@@ -156,8 +177,22 @@ def test_reconstruct_images_takes_the_reader_options_its_errors_name(trained_run
     assert main(["reconstruct", "--run", str(trained_run), "--images", str(images), "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "broken.png" in err and "set lenient=true" in err
-    assert main(["reconstruct", "--run", str(trained_run), "--images", str(images), "--images-option", "lenient=true",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "reconstruct",
+                "--run",
+                str(trained_run),
+                "--images",
+                str(images),
+                "--images-option",
+                "lenient=true",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     result = json.loads((out / "reconstruct.json").read_text())
     assert result["images"] == 3 and result["checkpoint"].endswith("step-00000004")
     # The same options as a dataset block.
@@ -165,28 +200,52 @@ def test_reconstruct_images_takes_the_reader_options_its_errors_name(trained_run
     assert main(["reconstruct", "--run", str(trained_run), "--images", block, "--out", str(tmp_path / "b")]) == 0
 
 
-@pytest.mark.parametrize("option, message", [
-    ("lenient", "--images-option 'lenient': give one reader option as KEY=VALUE"),
-    ("image_size=64", "--images-option 'image_size=64': give one reader option as KEY=VALUE"),
-    ("lenent=true", "unknown option 'lenent'"),
-])
+@pytest.mark.parametrize(
+    "option, message",
+    [
+        ("lenient", "--images-option 'lenient': give one reader option as KEY=VALUE"),
+        ("image_size=64", "--images-option 'image_size=64': give one reader option as KEY=VALUE"),
+        ("lenent=true", "unknown option 'lenent'"),
+    ],
+)
 def test_reconstruct_images_option_errors_are_one_line(trained_run, tmp_path, capsys, option, message):
     images = _image_folder(tmp_path / "images", corrupt=False)
     capsys.readouterr()
-    assert main(["reconstruct", "--run", str(trained_run), "--images", str(images), "--images-option", option,
-                 "--out", str(tmp_path / "out")]) == 2
+    assert (
+        main(
+            [
+                "reconstruct",
+                "--run",
+                str(trained_run),
+                "--images",
+                str(images),
+                "--images-option",
+                option,
+                "--out",
+                str(tmp_path / "out"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.startswith("vqtouch: error: ") and err.count("\n") == 1 and message in err, err
 
 
 def test_step_best_reads_the_checkpoint_that_scored_best_on_the_held_out_split(trained_run, tmp_path, capsys):
     evaluation = json.loads((trained_run / "eval.json").read_text())
-    losses = {json.loads(line)["step"]: json.loads(line)["val_loss"]
-              for line in (trained_run / "metrics.jsonl").read_text().splitlines() if "val_loss" in line}
+    losses = {
+        json.loads(line)["step"]: json.loads(line)["val_loss"]
+        for line in (trained_run / "metrics.jsonl").read_text().splitlines()
+        if "val_loss" in line
+    }
     assert sorted(losses) == [2, 4] and evaluation["best_step"] == min(losses, key=losses.get)
     out = tmp_path / "best"
-    assert main(["reconstruct", "--run", str(trained_run), "--step", "best", "--real-frames", "gelsight",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            ["reconstruct", "--run", str(trained_run), "--step", "best", "--real-frames", "gelsight", "--out", str(out)]
+        )
+        == 0
+    )
     folder = json.loads((out / "reconstruct.json").read_text())["checkpoint"]
     assert folder == str(trained_run / "checkpoints" / f"step-{evaluation['best_step']:08d}")
 
@@ -196,9 +255,11 @@ def test_step_best_of_a_run_that_held_out_nothing_is_one_line(tmp_path, capsys):
     assert main(train_args(run, "data.val_fraction=0")) == 0
     capsys.readouterr()
     assert main(["evaluate", "reconstruction", "--run", str(run), "--step", "best", "--split", "all"]) == 2
-    assert capsys.readouterr().err == (f"vqtouch: error: {run}: no best checkpoint recorded (the run scored no "
-                                       "held-out samples: train.keep_best=false or data.val_fraction=0); give a step "
-                                       "number\n")
+    assert capsys.readouterr().err == (
+        f"vqtouch: error: {run}: no best checkpoint recorded (the run scored no "
+        "held-out samples: train.keep_best=false or data.val_fraction=0); give a step "
+        "number\n"
+    )
 
 
 def test_a_command_stopped_by_sigterm_exits_as_a_shell_reports_it(tmp_path, capsys, monkeypatch):

@@ -27,9 +27,17 @@ ARTIFACTS = Path(__file__).resolve().parent.parent / "runs" / "test-artifacts"
 
 #: Headless Chromium on a machine without network: the background-networking flags stop the
 #: connections a closed network refuses; a fresh profile per call keeps runs independent.
-CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--hide-scrollbars"]
+CHROMIUM_FLAGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--hide-scrollbars",
+]
 
 #: Injected into a copy of the page (report.html itself runs no script): once everything has
 #: loaded, what the browser made of each image and table goes into an attribute of <html>.
@@ -58,15 +66,21 @@ def chromium() -> str:
         path = shutil.which(name)
         if path:
             return path
-    pytest.skip("Chromium is not installed: install the Debian package with `apt-get install chromium` "
-                "to run the browser tests (CI's .ci/run does)")
+    pytest.skip(
+        "Chromium is not installed: install the Debian package with `apt-get install chromium` "
+        "to run the browser tests (CI's .ci/run does)"
+    )
 
 
 def run_chromium(*arguments: str) -> str:
     """Chromium's stdout for ``arguments``, with a throwaway profile."""
     with tempfile.TemporaryDirectory(prefix="vqtouch-chromium-") as profile:
-        result = subprocess.run([chromium(), *CHROMIUM_FLAGS, f"--user-data-dir={profile}", *arguments],
-                                capture_output=True, text=True, timeout=120)
+        result = subprocess.run(
+            [chromium(), *CHROMIUM_FLAGS, f"--user-data-dir={profile}", *arguments],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
     assert result.returncode == 0, result.stderr[-2000:]
     return result.stdout
 
@@ -85,8 +99,7 @@ def screenshot(report: Path, height: int, path: Path) -> Path:
     """A full-page screenshot of ``report`` at 1280 px wide, written to ``path`` and kept as an
     artifact in runs/test-artifacts/ (gitignored)."""
     height = max(600, min(height, 12000))
-    run_chromium(f"--window-size=1280,{height}", f"--screenshot={path}", "--virtual-time-budget=5000",
-                 report.as_uri())
+    run_chromium(f"--window-size=1280,{height}", f"--screenshot={path}", "--virtual-time-budget=5000", report.as_uri())
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(path, ARTIFACTS / path.name)
     return path
@@ -134,8 +147,16 @@ def test_the_synthetic_report_renders_in_chromium(tmp_path):
 
 def test_a_tiny_demo_ends_in_a_report_that_renders_in_chromium(tmp_path, capsys):
     out = tmp_path / "demo"
-    args = ["--no-progress", "demo", "--scene", "label-to-touch", "--out", str(out),
-            "--set", 'stages=["tokenizer", "reconstruct", "generator"]']
+    args = [
+        "--no-progress",
+        "demo",
+        "--scene",
+        "label-to-touch",
+        "--out",
+        str(out),
+        "--set",
+        'stages=["tokenizer", "reconstruct", "generator"]',
+    ]
     for override in [*TINY, "tokenizer.train.log_every=1"]:
         args += ["--set", override]
     assert main(args) == 0
@@ -150,7 +171,16 @@ def test_a_tiny_demo_ends_in_a_report_that_renders_in_chromium(tmp_path, capsys)
     # The three stage pictures, the sensor's ball presses, the data preview and two loss curves
     # (one per training stage).
     sources = [image["source"] for image in seen["images"]]
-    assert sorted(sources) == sorted(["reconstructions.png", "real_frames.png", "samples.png", "render_sensor.png",
-                                      "preview_data_dataset.png", "metrics.jsonl", "metrics.jsonl"])
+    assert sorted(sources) == sorted(
+        [
+            "reconstructions.png",
+            "real_frames.png",
+            "samples.png",
+            "render_sensor.png",
+            "preview_data_dataset.png",
+            "metrics.jsonl",
+            "metrics.jsonl",
+        ]
+    )
     assert_rendered(seen, set(sources))
     assert_not_blank(screenshot(out / "report.html", seen["height"], tmp_path / "report_screenshot.png"))

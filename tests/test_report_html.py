@@ -16,7 +16,14 @@ from PIL import Image
 from vqtouch.core.cli import main
 from vqtouch.plugins.report.demo import render_report
 from vqtouch.plugins.evaluation.directions import lower_is_better
-from vqtouch.plugins.report.html import COMPARISON_PREFIXES, contact_verdict, format_value, render_html, score_table, skipped_items
+from vqtouch.plugins.report.html import (
+    COMPARISON_PREFIXES,
+    contact_verdict,
+    format_value,
+    render_html,
+    score_table,
+    skipped_items,
+)
 
 _SPEC = importlib.util.spec_from_file_location("report_runs", Path(__file__).with_name("report_runs.py"))
 report_runs = importlib.util.module_from_spec(_SPEC)
@@ -62,7 +69,7 @@ class Page(HTMLParser):
 def _decoded_png(src: str) -> bytes:
     prefix = "data:image/png;base64,"
     assert src.startswith(prefix), src[:40]
-    return base64.b64decode(src[len(prefix):], validate=True)
+    return base64.b64decode(src[len(prefix) :], validate=True)
 
 
 def test_the_report_is_one_self_contained_page_with_every_picture_embedded(tmp_path, capsys):
@@ -100,8 +107,14 @@ def test_the_report_is_one_self_contained_page_with_every_picture_embedded(tmp_p
     assert page.rows_by_table["stages"] == 1 + 3 and page.rows_by_table["components"] == 1 + 3
     assert page.rows_by_table["skipped"] == 1 + len(report_runs.SKIP_REASONS)
     assert page.rows_by_table["sanity"] == 1 + 1
-    for shown in ("29.16", "0.8271", "1,234,567", "Held-out images (top) above their reconstructions.",
-                  "Generated (top rows) above the ground truth.", "no trained tokenizer in this run"):
+    for shown in (
+        "29.16",
+        "0.8271",
+        "1,234,567",
+        "Held-out images (top) above their reconstructions.",
+        "Generated (top rows) above the ground truth.",
+        "no trained tokenizer in this run",
+    ):
         assert shown in text, shown
     for reason in report_runs.SKIP_REASONS:
         assert reason in text, reason
@@ -120,8 +133,9 @@ def test_a_missing_picture_is_said_not_hidden(tmp_path):
 def test_the_report_command_on_a_folder_without_a_report_is_one_line(tmp_path, capsys):
     assert main(["report", str(tmp_path)]) == 2
     captured = capsys.readouterr()
-    assert captured.err == (f"vqtouch: error: {tmp_path}: no report.json in it; give the folder of a `vqtouch demo` "
-                            "run (its --out)\n")
+    assert captured.err == (
+        f"vqtouch: error: {tmp_path}: no report.json in it; give the folder of a `vqtouch demo` run (its --out)\n"
+    )
     assert main(["report", str(tmp_path / "absent")]) == 2
     assert capsys.readouterr().err.count("\n") == 1
     (tmp_path / "report.json").write_text("[1, 2]")
@@ -131,24 +145,42 @@ def test_the_report_command_on_a_folder_without_a_report_is_one_line(tmp_path, c
 
 
 def test_skips_are_found_in_every_form_they_are_reported_in():
-    report = {"stages": [{"stage": "generator", "status": "ran (1 s)",
-                          "result": {"skipped": {"fd_effnetlite0": "no weights"}, "classifier_skipped": "no labels",
-                                     "by_conditioner": {"0:label": {"evaluation": "skipped: nothing held out"}},
-                                     "skipped_steps": 0, "distribution_skipped": None}}],
-              "components": [{"slot": "tokenizer.discriminator", "plugin": "patchgan",
-                              "status": "skipped: needs weights"}],
-              "skipped": ["the sensor renders were not asked for"]}
+    report = {
+        "stages": [
+            {
+                "stage": "generator",
+                "status": "ran (1 s)",
+                "result": {
+                    "skipped": {"fd_effnetlite0": "no weights"},
+                    "classifier_skipped": "no labels",
+                    "by_conditioner": {"0:label": {"evaluation": "skipped: nothing held out"}},
+                    "skipped_steps": 0,
+                    "distribution_skipped": None,
+                },
+            }
+        ],
+        "components": [{"slot": "tokenizer.discriminator", "plugin": "patchgan", "status": "skipped: needs weights"}],
+        "skipped": ["the sensor renders were not asked for"],
+    }
     assert skipped_items(report) == [
         ("stage generator", "fd_effnetlite0", "no weights"),
         ("stage generator", "classifier", "no labels"),
         ("stage generator", "by_conditioner / 0:label / evaluation", "nothing held out"),
         ("component tokenizer.discriminator", "-", "needs weights"),
-        ("demo", "-", "the sensor renders were not asked for")]
+        ("demo", "-", "the sensor renders were not asked for"),
+    ]
 
 
 def test_numbers_are_shown_to_four_significant_digits():
     assert [format_value(value) for value in (29.16341, 0.000123456, 100.0, 1624977, 0.5734, True, None)] == [
-        "29.16", "0.0001235", "100", "1,624,977", "0.5734", "true", "-"]
+        "29.16",
+        "0.0001235",
+        "100",
+        "1,624,977",
+        "0.5734",
+        "true",
+        "-",
+    ]
 
 
 def test_a_report_copied_elsewhere_keeps_its_pictures(tmp_path):
@@ -210,13 +242,28 @@ class Tables(HTMLParser):
 #: A generator's scores as a stage reports them (comparison keys before and after their score, in no
 #: particular order) and the facts beside them.
 GENERATOR_RESULT = {
-    "steps": 10, "ceiling_psnr": 29.34, "psnr": 24.2953, "background_psnr": 32.52, "sampler": "posterior",
-    "contact_mae": 0.05838, "background_contact_mae": 0.04048, "ceiling_contact_mae": 0.03671,
-    "lpips": 0.21, "background_lpips": 0.5, "retrieval_lpips": 0.3,
-    "contact_psnr": 27.5, "background_contact_psnr": 25.5256, "ssim": 0.9, "class_mean_ssim": 0.92,
+    "steps": 10,
+    "ceiling_psnr": 29.34,
+    "psnr": 24.2953,
+    "background_psnr": 32.52,
+    "sampler": "posterior",
+    "contact_mae": 0.05838,
+    "background_contact_mae": 0.04048,
+    "ceiling_contact_mae": 0.03671,
+    "lpips": 0.21,
+    "background_lpips": 0.5,
+    "retrieval_lpips": 0.3,
+    "contact_psnr": 27.5,
+    "background_contact_psnr": 25.5256,
+    "ssim": 0.9,
+    "class_mean_ssim": 0.92,
     "background_ssim": 0.9,
-    "contact_fraction": 0.2744, "samples": 8, "codebook_usage": 0.332, "background_fid": 12.0,
-    "picture": "samples.png", "caption": "Generated above the ground truth.",
+    "contact_fraction": 0.2744,
+    "samples": 8,
+    "codebook_usage": 0.332,
+    "background_fid": 12.0,
+    "picture": "samples.png",
+    "caption": "Generated above the ground truth.",
 }
 
 
@@ -238,7 +285,8 @@ def test_scores_are_one_table_with_a_row_per_score_and_a_column_per_comparison()
         ["contact_mae ↓", "0.05838", "0.04048", "0.03671", "-", "-"],
         ["lpips ↓", "0.21", "0.5", "-", "0.3", "-"],
         ["contact_psnr ↑", "27.5", "25.53", "-", "-", "-"],
-        ["ssim ↑", "0.9", "0.9", "-", "-", "0.92"]]
+        ["ssim ↑", "0.9", "0.9", "-", "-", "0.92"],
+    ]
     # Each comparison column says what it is.
     header = page.by_class["scores comparison"][0]
     assert [title for _, _, title in header[2:]] == [COMPARISON_PREFIXES[prefix] for prefix in table.columns]
@@ -249,17 +297,34 @@ def test_keys_without_a_comparison_are_other_facts():
     # background_fid has no fid beside it; the pictures are not facts.
     assert list(facts) == ["steps", "sampler", "contact_fraction", "samples", "codebook_usage", "background_fid"]
     assert _stage_page(GENERATOR_RESULT).texts("scores facts") == [
-        ["other facts", "value"], ["steps", "10"], ["sampler", "posterior"], ["contact_fraction", "0.2744"],
-        ["samples", "8"], ["codebook_usage", "0.332"], ["background_fid", "12"]]
+        ["other facts", "value"],
+        ["steps", "10"],
+        ["sampler", "posterior"],
+        ["contact_fraction", "0.2744"],
+        ["samples", "8"],
+        ["codebook_usage", "0.332"],
+        ["background_fid", "12"],
+    ]
     # A result with no comparison at all has no comparison table, only its facts.
     plain = _stage_page({"steps": 40, "psnr": 29.16})
-    assert "scores comparison" not in plain.by_class and plain.texts("scores facts")[1:] == [["steps", "40"],
-                                                                                             ["psnr", "29.16"]]
+    assert "scores comparison" not in plain.by_class and plain.texts("scores facts")[1:] == [
+        ["steps", "40"],
+        ["psnr", "29.16"],
+    ]
 
 
 def test_a_model_score_is_green_only_where_it_beats_the_background_in_the_scores_direction():
-    for score in ("mae", "contact_mae", "lpips", "fid", "kid", "fd_effnetlite0", "kid_effnetlite0", "pixel_mae",
-                  "val_loss"):
+    for score in (
+        "mae",
+        "contact_mae",
+        "lpips",
+        "fid",
+        "kid",
+        "fd_effnetlite0",
+        "kid_effnetlite0",
+        "pixel_mae",
+        "val_loss",
+    ):
         assert lower_is_better(score), score
     for score in ("psnr", "ssim", "contact_psnr", "classifier_accuracy", "codebook_usage"):
         assert not lower_is_better(score), score
@@ -278,14 +343,17 @@ def test_a_model_score_is_green_only_where_it_beats_the_background_in_the_scores
 
 def test_the_verdict_is_on_the_contact_region_and_says_worse_when_it_is():
     better = {"contact_fraction": 0.2744, "contact_psnr": 25.9237, "background_contact_psnr": 25.2733}
-    sentence = ("On the contact region (27% of pixels) the model is better than the no-contact background: "
-                "contact PSNR 25.92 vs 25.27 dB.")
+    sentence = (
+        "On the contact region (27% of pixels) the model is better than the no-contact background: "
+        "contact PSNR 25.92 vs 25.27 dB."
+    )
     assert contact_verdict(better) == (True, sentence)
     assert _stage_page(better).paragraphs["verdict better"] == [sentence]
 
     worse = {"contact_psnr": 21.8278, "background_contact_psnr": 25.5256, "psnr": 24.3, "background_psnr": 32.5}
-    sentence = ("On the contact region the model is worse than the no-contact background: "
-                "contact PSNR 21.83 vs 25.53 dB.")
+    sentence = (
+        "On the contact region the model is worse than the no-contact background: contact PSNR 21.83 vs 25.53 dB."
+    )
     assert contact_verdict(worse) == (False, sentence)
     assert _stage_page(worse).paragraphs["verdict worse"] == [sentence]
 
@@ -300,21 +368,30 @@ def test_the_verdict_is_on_the_contact_region_and_says_worse_when_it_is():
 
 
 def test_report_md_has_the_same_comparison_table_and_verdict():
-    report = {"scene": "label-to-touch", "run_dir": "/runs/x", "components": [],
-              "stages": [{"stage": "generator", "status": "ran (1 s)", "result": GENERATOR_RESULT}]}
+    report = {
+        "scene": "label-to-touch",
+        "run_dir": "/runs/x",
+        "components": [],
+        "stages": [{"stage": "generator", "status": "ran (1 s)", "result": GENERATOR_RESULT}],
+    }
     text = render_report(report)
-    table = ("| score | model | background | ceiling | retrieval | class_mean |\n|---|---|---|---|---|---|\n"
-             "| psnr ↑ | 24.3 ✗ | 32.52 | 29.34 | - | - |\n"
-             "| contact_mae ↓ | 0.05838 ✗ | 0.04048 | 0.03671 | - | - |\n"
-             "| lpips ↓ | 0.21 ✓ | 0.5 | - | 0.3 | - |\n"
-             "| contact_psnr ↑ | 27.5 ✓ | 25.53 | - | - | - |\n"
-             "| ssim ↑ | 0.9 ✗ | 0.9 | - | - | 0.92 |\n")
+    table = (
+        "| score | model | background | ceiling | retrieval | class_mean |\n|---|---|---|---|---|---|\n"
+        "| psnr ↑ | 24.3 ✗ | 32.52 | 29.34 | - | - |\n"
+        "| contact_mae ↓ | 0.05838 ✗ | 0.04048 | 0.03671 | - | - |\n"
+        "| lpips ↓ | 0.21 ✓ | 0.5 | - | 0.3 | - |\n"
+        "| contact_psnr ↑ | 27.5 ✓ | 25.53 | - | - | - |\n"
+        "| ssim ↑ | 0.9 ✗ | 0.9 | - | - | 0.92 |\n"
+    )
     assert table in text
     assert "✗ it is worse than the background (a tie counts as worse)" in text
-    assert ("On the contact region (27% of pixels) the model is better than the no-contact background: "
-            "contact PSNR 27.50 vs 25.53 dB.") in text
-    assert ("steps 10, sampler posterior, contact_fraction 0.2744, samples 8, codebook_usage 0.332, "
-            "background_fid 12") in text
+    assert (
+        "On the contact region (27% of pixels) the model is better than the no-contact background: "
+        "contact PSNR 27.50 vs 25.53 dB."
+    ) in text
+    assert (
+        "steps 10, sampler posterior, contact_fraction 0.2744, samples 8, codebook_usage 0.332, background_fid 12"
+    ) in text
     # No comparison, no table: the score is a fact.
     alone = render_report({**report, "stages": [{"stage": "s", "status": "ran", "result": {"lpips": 0.2}}]})
     assert "| score |" not in alone and "lpips 0.2" in alone
@@ -325,10 +402,17 @@ def test_a_reason_skipped_by_several_stages_and_parts_is_listed_once_and_each_pa
     a stage's parts (one per condition) each get their own scores table and picture caption."""
     reason = "metric 'lpips' needs vgg16-397923af.pth"
     part = {"psnr": 24.0, "background_psnr": 25.0, "skipped": {"lpips": reason}, "caption": "from label grid"}
-    report = {"scene": "tour", "stages": [
-        {"stage": "tokenizer", "status": "ran (1 s)", "result": {"psnr": 30.0, "skipped": {"lpips": reason}}},
-        {"stage": "generator", "status": "ran (1 s)",
-         "result": {"step": 60, "parts": {"from label": part, "from text": dict(part, psnr=26.0)}}}]}
+    report = {
+        "scene": "tour",
+        "stages": [
+            {"stage": "tokenizer", "status": "ran (1 s)", "result": {"psnr": 30.0, "skipped": {"lpips": reason}}},
+            {
+                "stage": "generator",
+                "status": "ran (1 s)",
+                "result": {"step": 60, "parts": {"from label": part, "from text": dict(part, psnr=26.0)}},
+            },
+        ],
+    }
     page = render_html(report, Path("/nonexistent-run"))
     assert page.count(html.escape(reason)) == 1 and "Skipped (1)" in page
     assert "stage tokenizer, stage generator" in page

@@ -47,8 +47,13 @@ def test_env_records_where_every_component_came_from(host, tmp_path):
     config = resolve_config("label-to-touch", overrides=[f"output_dir={tmp_path}"], host=host)
     env = json.loads((RunDir.create(config, host=host).path / "env.json").read_text())
     components = env["components"]
-    assert components["generator.conditioners.0"] == {"kind": "conditioner", "name": "label", "plugin": "label",
-                                                      "package": "vqtouch", "version": __version__}
+    assert components["generator.conditioners.0"] == {
+        "kind": "conditioner",
+        "name": "label",
+        "plugin": "label",
+        "package": "vqtouch",
+        "version": __version__,
+    }
     assert components["metrics.1"]["name"] == "ssim" and components["tokenizer.autoencoder"]["kind"] == "autoencoder"
     filled = {path for path, info in host.slots.items() if config.slot(path) not in (None, [])}
     assert {key.rsplit(".", 1)[0] if key.rsplit(".", 1)[-1].isdigit() else key for key in components} == filled
@@ -75,22 +80,30 @@ def test_reloading_a_run_whose_plugin_is_gone_names_its_distribution(host, tmp_p
     without = load_plugins(autoload=False, block=["label"])
     with pytest.raises(ConfigError) as info:
         run.load_config(without)
-    assert str(info.value) == (f"{run.path}: generator.conditioners.0 uses conditioner 'label' from vqtouch "
-                               f"{__version__} (plugin 'label'), which is not installed here; pip install vqtouch")
+    assert str(info.value) == (
+        f"{run.path}: generator.conditioners.0 uses conditioner 'label' from vqtouch "
+        f"{__version__} (plugin 'label'), which is not installed here; pip install vqtouch"
+    )
 
 
 def test_third_party_run_component_is_named_from_env(third_party_conditioner, tmp_path):
     from vqtouch.core import ConfigError, load_plugins
 
     with_plugin = load_plugins(autoload=False, extra=[third_party_conditioner])
-    config = resolve_config("label-to-touch", overrides=[f"output_dir={tmp_path}",
-                                                         'generator.conditioners=[{"name": "x"}]'], host=with_plugin)
+    config = resolve_config(
+        "label-to-touch",
+        overrides=[f"output_dir={tmp_path}", 'generator.conditioners=[{"name": "x"}]'],
+        host=with_plugin,
+    )
     run = RunDir.create(config, host=with_plugin)
     assert run.load_config(with_plugin) == config
     plain = load_plugins(autoload=False)
     # An in-memory module has no distribution: the plugin name is all there is to name.
-    with pytest.raises(ConfigError, match=r"uses conditioner 'x' from pkg_plugin \(plugin 'pkg_plugin'\), which is "
-                                          r"not installed here; pip install pkg_plugin"):
+    with pytest.raises(
+        ConfigError,
+        match=r"uses conditioner 'x' from pkg_plugin \(plugin 'pkg_plugin'\), which is "
+        r"not installed here; pip install pkg_plugin",
+    ):
         run.load_config(plain)
     # What an installed distribution records in env.json.
     env = json.loads((run.path / "env.json").read_text())
@@ -98,18 +111,32 @@ def test_third_party_run_component_is_named_from_env(third_party_conditioner, tm
     run.write_json("env.json", env)
     with pytest.raises(ConfigError) as info:
         run.load_config(plain)
-    assert str(info.value).endswith("generator.conditioners.0 uses conditioner 'x' from pkg 1.0 (plugin 'pkg_plugin'), "
-                                    "which is not installed here; pip install pkg")
+    assert str(info.value).endswith(
+        "generator.conditioners.0 uses conditioner 'x' from pkg 1.0 (plugin 'pkg_plugin'), "
+        "which is not installed here; pip install pkg"
+    )
 
 
 # -- one run per directory (issue 9) -----------------------------------------------------------
 
+
 def _tiny_config(host, tmp_path, *overrides, autoencoder="dm_vqgan"):
-    return resolve_config("reconstruction", overrides=[
-        f"output_dir={tmp_path}", f"tokenizer.autoencoder.name={autoencoder}", "tokenizer.autoencoder.channels=16",
-        "tokenizer.autoencoder.norm_groups=8", "tokenizer.autoencoder.channel_multipliers=[1,2]",
-        "tokenizer.autoencoder.z_channels=16", "tokenizer.autoencoder.embed_dim=8",
-        "tokenizer.quantizer.codebook_size=32", "data.image_size=32", *overrides], host=host)
+    return resolve_config(
+        "reconstruction",
+        overrides=[
+            f"output_dir={tmp_path}",
+            f"tokenizer.autoencoder.name={autoencoder}",
+            "tokenizer.autoencoder.channels=16",
+            "tokenizer.autoencoder.norm_groups=8",
+            "tokenizer.autoencoder.channel_multipliers=[1,2]",
+            "tokenizer.autoencoder.z_channels=16",
+            "tokenizer.autoencoder.embed_dim=8",
+            "tokenizer.quantizer.codebook_size=32",
+            "data.image_size=32",
+            *overrides,
+        ],
+        host=host,
+    )
 
 
 def test_create_into_a_directory_holding_a_run_is_refused_unless_overwrite(host, tmp_path):
@@ -123,8 +150,10 @@ def test_create_into_a_directory_holding_a_run_is_refused_unless_overwrite(host,
     second = _tiny_config(host, tmp_path, "tokenizer.quantizer.codebook_size=64")
     with pytest.raises(ConfigError) as info:
         RunDir.create(second, host=host, path=path)
-    assert str(info.value) == (f"{path} already holds a run; continue it with --resume {path}, start it afresh "
-                               "with --overwrite, or choose another --out")
+    assert str(info.value) == (
+        f"{path} already holds a run; continue it with --resume {path}, start it afresh "
+        "with --overwrite, or choose another --out"
+    )
     assert json.loads((path / "config.json").read_text())["tokenizer"]["quantizer"]["codebook_size"] == 32
     with RunDir.create(second, host=host, path=path, overwrite=True) as run:
         assert json.loads((path / "config.json").read_text())["tokenizer"]["quantizer"]["codebook_size"] == 64
@@ -144,8 +173,10 @@ def test_create_accepts_an_empty_directory_and_refuses_to_wipe_a_non_run_folder(
     for overwrite in (False, True):
         with pytest.raises(ConfigError) as info:
             RunDir.create(_tiny_config(host, tmp_path), host=host, path=folder, overwrite=overwrite)
-        assert str(info.value) == (f"{folder} is not empty and is not a run directory (no config.json); choose an "
-                                   "empty or new --out (--overwrite only empties run directories)")
+        assert str(info.value) == (
+            f"{folder} is not empty and is not a run directory (no config.json); choose an "
+            "empty or new --out (--overwrite only empties run directories)"
+        )
     assert sorted(p.name for p in folder.iterdir()) == ["holiday.png"]  # untouched, not even a lock file
 
 
@@ -195,8 +226,11 @@ def _save_step(run, host, config, step, complete=True):
     if complete:
         # The header readers check: the trainer's JSON, naming the module files of the step.
         meta = {"step": step, "modules": ["autoencoder", "quantizer"]}
-        save_file({"rng.torch_cpu": torch.get_rng_state()}, str(folder / TRAINER_STATE),
-                  metadata={"format": "pt", "vqtouch.trainer": json.dumps(meta)})
+        save_file(
+            {"rng.torch_cpu": torch.get_rng_state()},
+            str(folder / TRAINER_STATE),
+            metadata={"format": "pt", "vqtouch.trainer": json.dumps(meta)},
+        )
     return folder
 
 
@@ -218,8 +252,10 @@ def test_checkpoint_is_the_newest_complete_step_of_this_run(host, tmp_path):
     assert run.checkpoint(host, step=2) == two
     with pytest.raises(MissingCheckpointError) as info:
         run.checkpoint(host, step=4)
-    assert str(info.value) == (f"{run.checkpoints / 'step-00000004'}: unusable checkpoint (no "
-                               "trainer_state.safetensors: its save was interrupted); choose another step")
+    assert str(info.value) == (
+        f"{run.checkpoints / 'step-00000004'}: unusable checkpoint (no "
+        "trainer_state.safetensors: its save was interrupted); choose another step"
+    )
     with pytest.raises(MissingCheckpointError, match=r"step-00000003: no such checkpoint; this run has steps 2"):
         run.checkpoint(host, step=3)
     # An older run's folder left behind, newer than this run's own steps.
@@ -229,7 +265,8 @@ def test_checkpoint_is_the_newest_complete_step_of_this_run(host, tmp_path):
     assert str(info.value) == (
         f"{run.checkpoints / 'step-00000006' / 'quantizer.safetensors'} was made with quantizer 'vq' "
         '{"codebook_size": 64} but the run\'s config.json says tokenizer.quantizer {"codebook_size": 32}; this folder '
-        "mixes two runs: pick one of this run's own steps with --step, or retrain into an empty --out")
+        "mixes two runs: pick one of this run's own steps with --step, or retrain into an empty --out"
+    )
     assert run.checkpoint(host, step=2) == two  # a step of this run is still readable
 
 
@@ -241,6 +278,8 @@ def test_checkpoint_names_another_plugin_in_a_mixed_folder(host, tmp_path):
     _save_step(run, host, _tiny_config(host, tmp_path, autoencoder="vqgan"), 2)
     with pytest.raises(CheckpointError) as info:
         run.checkpoint(host)
-    assert str(info.value).startswith(f"{run.checkpoints / 'step-00000002' / 'autoencoder.safetensors'} was made with "
-                                      "autoencoder 'vqgan' but the run's config.json says tokenizer.autoencoder "
-                                      "is 'dm_vqgan'; this folder mixes two runs")
+    assert str(info.value).startswith(
+        f"{run.checkpoints / 'step-00000002' / 'autoencoder.safetensors'} was made with "
+        "autoencoder 'vqgan' but the run's config.json says tokenizer.autoencoder "
+        "is 'dm_vqgan'; this folder mixes two runs"
+    )

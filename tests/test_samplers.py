@@ -27,7 +27,8 @@ REPLACE_ENDS = {"att_1": 0.99, "att_T": 0.05, "ctt_1": 0.005, "ctt_T": 0.9}
 def make(name: str, **options) -> Sampler:
     """The sampler registered as ``name``, built directly (the host is tested separately)."""
     return {"posterior": S.PosteriorSampler, "purity": S.PuritySampler, "confidence": S.ConfidenceSampler}[name](
-        **options)
+        **options
+    )
 
 
 def gens(*seeds: int) -> list[torch.Generator]:
@@ -58,8 +59,10 @@ class Recorder:
 
 def oracle(target_L: torch.Tensor, num_codes: int):
     """p(x0 | x_t) = one-hot of ``target_L`` at every step."""
+
     def denoise(codes_BL: torch.Tensor, t_B: torch.Tensor) -> torch.Tensor:
         return log_onehot(target_L.expand(codes_BL.shape[0], -1), num_codes + 1)
+
     return denoise
 
 
@@ -69,6 +72,7 @@ def fixed(probs_KL: torch.Tensor):
 
     def denoise(codes_BL: torch.Tensor, t_B: torch.Tensor) -> torch.Tensor:
         return log_x0_CL.expand(codes_BL.shape[0], -1, -1).clone()
+
     return denoise
 
 
@@ -83,10 +87,12 @@ def contextual(num_codes: int, length: int, seed: int = 0):
         logits_BKL = base_KL + bonus_BKL[:, :num_codes]
         logits_BKL[:, 0] += 0.2 * t_B.view(-1, 1).float()
         return log_predict_x0(logits_BKL)
+
     return denoise
 
 
 # -- correctness with an oracle ---------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("name", NAMES)
 @pytest.mark.parametrize("steps", [1, 2, 5, T])
@@ -103,8 +109,9 @@ def test_posterior_without_keeping_follows_the_posterior_to_the_oracle_target_un
     schedule = MaskReplaceSchedule(K, T, **REPLACE_ENDS)
     target_L = torch.arange(16) % K
     for steps in (1, 3, T):
-        codes_BL = S.PosteriorSampler(keep_unmasked=False).sample(oracle(target_L, K), schedule, length=16,
-                                                                 steps=steps, generators=gens(*range(8)))
+        codes_BL = S.PosteriorSampler(keep_unmasked=False).sample(
+            oracle(target_L, K), schedule, length=16, steps=steps, generators=gens(*range(8))
+        )
         assert torch.equal(codes_BL, target_L.expand(8, -1))
 
 
@@ -119,6 +126,7 @@ def test_schedules_without_gamma_bar_map_the_mask_ratio_linearly():
 
 
 # -- number of calls and timesteps ------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("name", NAMES)
 @pytest.mark.parametrize("steps", [1, 2, 5, T])
@@ -193,6 +201,7 @@ def test_mask_decoders_pass_the_timestep_matching_the_masked_fraction(name):
 
 # -- schedules of revealed tokens -------------------------------------------------------------------
 
+
 def test_confidence_follows_the_cosine_schedule():
     schedule = MaskReplaceSchedule(K, T)
     recorder = Recorder(contextual(K, 16))
@@ -216,8 +225,9 @@ def test_greedy_purity_reveals_the_purest_positions_first():
     peaks = torch.tensor([0.3, 0.9, 0.5, 0.99, 0.4, 0.7, 0.35, 0.8])
     probs_KL = torch.stack([peaks, *[(1 - peaks) / 3] * 3])  # code 0 has the peak; 4 codes
     recorder = Recorder(fixed(probs_KL))
-    S.PuritySampler(randomness=0.0).sample(recorder, MaskReplaceSchedule(4, T), length=8, steps=4,
-                                           generators=gens(0, 1))
+    S.PuritySampler(randomness=0.0).sample(
+        recorder, MaskReplaceSchedule(4, T), length=8, steps=4, generators=gens(0, 1)
+    )
     revealed = [set(torch.nonzero(codes_BL[0] != 4).flatten().tolist()) for codes_BL in recorder.codes]
     assert revealed == [set(), {3, 1}, {3, 1, 7, 5}, {3, 1, 7, 5, 2, 4}]
 
@@ -227,8 +237,9 @@ def test_purity_randomness_draws_positions_in_proportion_to_purity():
     probs_KL = torch.stack([peaks, *[(1 - peaks) / 3] * 3])
     rows = 2000
     recorder = Recorder(fixed(probs_KL))
-    S.PuritySampler(randomness=1.0).sample(recorder, MaskReplaceSchedule(4, T), length=8, steps=8,
-                                           generators=gens(*range(rows)))
+    S.PuritySampler(randomness=1.0).sample(
+        recorder, MaskReplaceSchedule(4, T), length=8, steps=8, generators=gens(*range(rows))
+    )
     # One token per round; with Gumbel noise of scale 1 on log-purity the first is position j with
     # probability peak_j / sum(peaks) (Gumbel-max), as Improved VQ-Diffusion's multinomial draw.
     first_B = (recorder.codes[1] != 4).float().argmax(dim=1)
@@ -243,8 +254,9 @@ def test_confidence_without_temperature_keeps_the_most_confident_draws():
     probs_KL = torch.full((4, 8), 0.25)
     probs_KL[:, :4] = torch.tensor([1.0, 0.0, 0.0, 0.0]).view(4, 1).clamp_min(1e-12)
     recorder = Recorder(fixed(probs_KL))
-    S.ConfidenceSampler(temperature=0.0).sample(recorder, MaskReplaceSchedule(4, T), length=8, steps=4,
-                                                generators=gens(0, 1))
+    S.ConfidenceSampler(temperature=0.0).sample(
+        recorder, MaskReplaceSchedule(4, T), length=8, steps=4, generators=gens(0, 1)
+    )
     revealed = [set(torch.nonzero(codes_BL[0] != 4).flatten().tolist()) for codes_BL in recorder.codes]
     # 8 cos(pi/8) -> 7 and 8 cos(pi/4) -> 5 stay masked: the 1 and then 3 revealed are certain positions.
     assert len(revealed[1]) == 1 and len(revealed[2]) == 3
@@ -252,8 +264,9 @@ def test_confidence_without_temperature_keeps_the_most_confident_draws():
     # With MaskGIT's temperature the noise (scale 4.5 * 3/4 at the first iteration) sometimes keeps an
     # uncertain draw first.
     recorder = Recorder(fixed(probs_KL))
-    S.ConfidenceSampler(temperature=4.5).sample(recorder, MaskReplaceSchedule(4, T), length=8, steps=4,
-                                                generators=gens(*range(200)))
+    S.ConfidenceSampler(temperature=4.5).sample(
+        recorder, MaskReplaceSchedule(4, T), length=8, steps=4, generators=gens(*range(200))
+    )
     first_uncertain_B = (recorder.codes[1][:, 4:] != 4).any(dim=1)
     assert 0 < int(first_uncertain_B.sum()) < 200
 
@@ -263,8 +276,9 @@ def test_posterior_keeps_revealed_tokens_unless_asked_not_to():
     schedule = MaskReplaceSchedule(K, T)
     for keep in (True, False):
         recorder = Recorder(fixed(probs_KL))
-        codes_BL = S.PosteriorSampler(keep_unmasked=keep).sample(recorder, schedule, length=16, steps=T,
-                                                                 generators=gens(*range(4)))
+        codes_BL = S.PosteriorSampler(keep_unmasked=keep).sample(
+            recorder, schedule, length=16, steps=T, generators=gens(*range(4))
+        )
         states = [*recorder.codes, codes_BL]
         changed = any(((before != K) & (after != before)).any() for before, after in zip(states, states[1:]))
         # With p(x0 | x_t) not one-hot the posterior itself moves revealed tokens (the released schedule's
@@ -274,13 +288,20 @@ def test_posterior_keeps_revealed_tokens_unless_asked_not_to():
 
 # -- distribution -----------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("name,steps", [("posterior", T), ("posterior", 3), ("posterior", 1), ("purity", T),
-                                        ("confidence", T)])
+
+@pytest.mark.parametrize(
+    "name,steps", [("posterior", T), ("posterior", 3), ("posterior", 1), ("purity", T), ("confidence", T)]
+)
 def test_samples_follow_a_fixed_target_distribution(name, steps):
     probs_K = torch.tensor([0.1, 0.2, 0.3, 0.4])
     rows = 4000
-    codes_BL = make(name).sample(fixed(probs_K.view(4, 1)), MaskReplaceSchedule(4, T), length=1, steps=steps,
-                                 generators=gens(*range(1000, 1000 + rows)))
+    codes_BL = make(name).sample(
+        fixed(probs_K.view(4, 1)),
+        MaskReplaceSchedule(4, T),
+        length=1,
+        steps=steps,
+        generators=gens(*range(1000, 1000 + rows)),
+    )
     counts_K = torch.bincount(codes_BL.flatten(), minlength=4).double()
     expected_K = rows * probs_K.double()
     chi_square = float(((counts_K - expected_K) ** 2 / expected_K).sum())
@@ -288,6 +309,7 @@ def test_samples_follow_a_fixed_target_distribution(name, steps):
 
 
 # -- randomness: determinism and batch-size invariance ----------------------------------------------
+
 
 @pytest.mark.parametrize("name", NAMES)
 def test_same_seeds_same_codes_and_rows_independent_of_their_batch(name):
@@ -305,6 +327,7 @@ def test_same_seeds_same_codes_and_rows_independent_of_their_batch(name):
 
 
 # -- outputs and arguments --------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("name", NAMES)
 @pytest.mark.parametrize("num_codes,length", [(2, 9), (16384, 3)])
@@ -337,8 +360,13 @@ def test_mass_on_mask_from_a_denoiser_never_becomes_a_mask_output(name):
 @pytest.mark.parametrize("steps", [0, T + 1, -1, 2.0, True])
 def test_steps_out_of_range_are_refused_naming_the_range(name, steps):
     with pytest.raises(ValueError, match=rf"steps must be an integer in \[1, {T}\]"):
-        make(name).sample(oracle(torch.zeros(4, dtype=torch.long), K), MaskReplaceSchedule(K, T), length=4,
-                          steps=steps, generators=gens(0))
+        make(name).sample(
+            oracle(torch.zeros(4, dtype=torch.long), K),
+            MaskReplaceSchedule(K, T),
+            length=4,
+            steps=steps,
+            generators=gens(0),
+        )
 
 
 def test_bad_lengths_generators_and_denoiser_outputs_are_refused():
@@ -349,16 +377,19 @@ def test_bad_lengths_generators_and_denoiser_outputs_are_refused():
     with pytest.raises(ValueError, match="generators"):
         S.PosteriorSampler().sample(denoise, schedule, length=4, steps=2, generators=[])
     with pytest.raises(ValueError, match=r"expected \(B, K\+1, L\)"):
-        S.ConfidenceSampler().sample(lambda codes_BL, t_B: denoise(codes_BL, t_B)[:, :K], schedule, length=4,
-                                     steps=2, generators=gens(0))
+        S.ConfidenceSampler().sample(
+            lambda codes_BL, t_B: denoise(codes_BL, t_B)[:, :K], schedule, length=4, steps=2, generators=gens(0)
+        )
 
 
 def test_cosine_target_matches_maskgit():
     assert [S.cosine_masked_target(16, 8, i) for i in range(8)] == [
-        math.floor(16 * math.cos(math.pi / 2 * (i + 1) / 8)) for i in range(7)] + [0]
+        math.floor(16 * math.cos(math.pi / 2 * (i + 1) / 8)) for i in range(7)
+    ] + [0]
 
 
 # -- registration -----------------------------------------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def sampler_host():
@@ -377,12 +408,15 @@ def test_every_sampler_is_registered_and_builds(sampler_host):
     assert sampler_host.build("sampler", {"name": "confidence"}).temperature == 4.5
 
 
-@pytest.mark.parametrize("options,message", [
-    ({"name": "posterior", "bogus": 1}, "bogus"),
-    ({"name": "confidence", "temprature": 2.0}, "temprature"),
-    ({"name": "confidence", "temperature": -1.0}, "temperature"),
-    ({"name": "purity", "randomness": float("nan")}, "randomness"),
-])
+@pytest.mark.parametrize(
+    "options,message",
+    [
+        ({"name": "posterior", "bogus": 1}, "bogus"),
+        ({"name": "confidence", "temprature": 2.0}, "temprature"),
+        ({"name": "confidence", "temperature": -1.0}, "temperature"),
+        ({"name": "purity", "randomness": float("nan")}, "randomness"),
+    ],
+)
 def test_bad_sampler_options_are_refused_naming_the_option(sampler_host, options, message):
     with pytest.raises(ConfigError, match=message):
         sampler_host.build("sampler", options)

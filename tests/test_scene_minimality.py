@@ -19,9 +19,16 @@ HOST = load_plugins(autoload=False)
 
 
 def _modules_after(code: str) -> set[str]:
-    probe = code + "\nimport sys\nprint('HEAVY:' + ','.join(m for m in {heavy!r} if m in sys.modules))".format(heavy=HEAVY)
-    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300,
-                            env={"VQTOUCH_DISABLE_PLUGIN_AUTOLOAD": "1", "PATH": "/usr/bin:/bin"})
+    probe = code + "\nimport sys\nprint('HEAVY:' + ','.join(m for m in {heavy!r} if m in sys.modules))".format(
+        heavy=HEAVY
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", probe],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={"VQTOUCH_DISABLE_PLUGIN_AUTOLOAD": "1", "PATH": "/usr/bin:/bin"},
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     last = result.stdout.strip().splitlines()[-1]
     assert last.startswith("HEAVY:"), result.stdout
@@ -43,9 +50,11 @@ for path in required_slots(config, host):
 
 
 def test_importing_vqtouch_and_loading_plugins_imports_no_heavy_model_code():
-    code = ("import vqtouch, vqtouch.core, vqtouch.plugins, vqtouch.conditioners, vqtouch.sensors\n"
-            "host = vqtouch.core.load_plugins()\n"
-            "import vqtouch.core.cli; vqtouch.core.cli.build_parser(host)")
+    code = (
+        "import vqtouch, vqtouch.core, vqtouch.plugins, vqtouch.conditioners, vqtouch.sensors\n"
+        "host = vqtouch.core.load_plugins()\n"
+        "import vqtouch.core.cli; vqtouch.core.cli.build_parser(host)"
+    )
     assert _modules_after(code) == set()
 
 
@@ -54,26 +63,30 @@ def test_building_every_component_a_label_scene_needs_never_imports_open_clip():
     # conditioner: a plugin that imported open_clip at build time would fail this.
     code = BUILD_SCENE.format(scene="label-to-touch") + (
         "assert [type(c).__name__ for c in built['generator.conditioners']] == ['LabelConditioner'], built\n"
-        "assert type(built['tokenizer.autoencoder']).__name__ == 'VqganAutoencoder', built")
+        "assert type(built['tokenizer.autoencoder']).__name__ == 'VqganAutoencoder', built"
+    )
     assert _modules_after(code) == set()  # neither open_clip nor the EfficientNet of the visual conditioner
 
 
 def test_building_the_vision_scene_imports_its_encoder_exactly_when_its_conditioner_is_built():
-    resolve_only = ("from vqtouch.core import load_plugins, resolve_config\n"
-                    "host = load_plugins()\n"
-                    "config = resolve_config('vision-to-touch', host=host)\n"
-                    "assert config.generator.conditioners[0].name == 'visual'")
+    resolve_only = (
+        "from vqtouch.core import load_plugins, resolve_config\n"
+        "host = load_plugins()\n"
+        "config = resolve_config('vision-to-touch', host=host)\n"
+        "assert config.generator.conditioners[0].name == 'visual'"
+    )
     assert _modules_after(resolve_only) == set()
     # Building the scene's components imports the frozen EfficientNet, and nothing else heavy: this
     # also checks the probe itself can see a module being imported.
     code = BUILD_SCENE.format(scene="vision-to-touch") + (
-        "assert type(built['generator.conditioners'][0]).__name__ == 'VisualConditioner', built")
+        "assert type(built['generator.conditioners'][0]).__name__ == 'VisualConditioner', built"
+    )
     assert _modules_after(code) == {"efficientnet_lite_pytorch"}
     # With the clip conditioner, open_clip (which then stops at its missing weights file).
     clip = BUILD_SCENE.format(scene="vision-to-touch").replace(
         "config = resolve_config('vision-to-touch', host=host)",
-        "config = resolve_config('vision-to-touch', overrides=['generator.conditioners.0.name=clip'], host=host)") + (
-        "assert built['generator.conditioners'] == 'MissingWeightsError', built")
+        "config = resolve_config('vision-to-touch', overrides=['generator.conditioners.0.name=clip'], host=host)",
+    ) + ("assert built['generator.conditioners'] == 'MissingWeightsError', built")
     assert "open_clip" in _modules_after(clip) and "efficientnet_lite_pytorch" not in _modules_after(clip)
 
 
@@ -87,11 +100,17 @@ def test_required_slots_come_from_the_stages_declarations():
     assert "generator.conditioners" not in expected and "tokenizer.autoencoder" in expected
 
 
-TINY_RUN = ['stages=["tokenizer"]', "tokenizer.train.steps=1", "data.batch_size=4",
-            "data.dataset.num_samples=12", "data.image_size=16",
-            'tokenizer.autoencoder={"name": "vqgan", "channels": 8, "norm_groups": 8, "channel_multipliers": [1, 2], '
-            '"z_channels": 8, "embed_dim": 4, "mid_attention": false}',
-            "tokenizer.loss.perceptual=none", 'generator.conditioners=[{"name": "tactile"}]']
+TINY_RUN = [
+    'stages=["tokenizer"]',
+    "tokenizer.train.steps=1",
+    "data.batch_size=4",
+    "data.dataset.num_samples=12",
+    "data.image_size=16",
+    'tokenizer.autoencoder={"name": "vqgan", "channels": 8, "norm_groups": 8, "channel_multipliers": [1, 2], '
+    '"z_channels": 8, "embed_dim": 4, "mid_attention": false}',
+    "tokenizer.loss.perceptual=none",
+    'generator.conditioners=[{"name": "tactile"}]',
+]
 
 
 def test_a_run_builds_exactly_the_slots_its_stages_need(tmp_path, built_kinds):
@@ -105,8 +124,16 @@ def test_a_run_builds_exactly_the_slots_its_stages_need(tmp_path, built_kinds):
     assert "conditioner" not in built_kinds
     assert {"dataset", "sensor_family", "autoencoder", "quantizer", "discriminator", "metric"} <= set(built_kinds)
     assert {c["slot"] for c in report["components"]} == {
-        "data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer", "tokenizer.discriminator",
-        "metrics[0]", "metrics[1]", "metrics[2]", "metrics[3]", "sensor"}
+        "data.dataset",
+        "tokenizer.autoencoder",
+        "tokenizer.quantizer",
+        "tokenizer.discriminator",
+        "metrics[0]",
+        "metrics[1]",
+        "metrics[2]",
+        "metrics[3]",
+        "sensor",
+    }
 
 
 def test_each_component_is_built_once_per_run(tmp_path, built_kinds):
@@ -125,17 +152,24 @@ def test_a_stage_with_an_empty_needed_slot_says_which_and_the_choices(tmp_path):
     config = resolve_config("label-to-touch", overrides=["generator.model=null"], host=HOST)
     outcome = run_stage("generator", Assembly(config, HOST), RunDir.create(config, host=HOST, path=tmp_path / "r"))
     assert outcome.status == "unavailable"
-    assert outcome.describe() == ("cannot run: needs generator.model, which the config leaves empty; choose with "
-                                  "--set generator.model.name=<vq_diffusion>")
+    assert outcome.describe() == (
+        "cannot run: needs generator.model, which the config leaves empty; choose with "
+        "--set generator.model.name=<vq_diffusion>"
+    )
     emptied = resolve_config("label-to-touch", overrides=["tokenizer.autoencoder=null"], host=HOST)
     outcome = run_stage("tokenizer", Assembly(emptied, HOST), RunDir.create(emptied, host=HOST, path=tmp_path / "e"))
     assert outcome.status == "unavailable"
-    assert outcome.reason.startswith("needs tokenizer.autoencoder, which the config leaves empty; choose with "
-                                     "--set tokenizer.autoencoder.name=<dm_vqgan|mae|vqgan>")
+    assert outcome.reason.startswith(
+        "needs tokenizer.autoencoder, which the config leaves empty; choose with "
+        "--set tokenizer.autoencoder.name=<dm_vqgan|mae|vqgan>"
+    )
 
 
 def test_an_empty_slot_asked_for_directly_names_the_choices():
     config = resolve_config("label-to-touch", overrides=["tokenizer.quantizer=null"], host=HOST)
-    with pytest.raises(ConfigError, match=r"^this run needs tokenizer.quantizer, which the config leaves empty; "
-                                          r"choose with --set tokenizer.quantizer.name=<ema_vq\|identity\|vq>$"):
+    with pytest.raises(
+        ConfigError,
+        match=r"^this run needs tokenizer.quantizer, which the config leaves empty; "
+        r"choose with --set tokenizer.quantizer.name=<ema_vq\|identity\|vq>$",
+    ):
         Assembly(config, HOST).component("tokenizer.quantizer")

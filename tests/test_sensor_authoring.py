@@ -16,8 +16,16 @@ from vqtouch.core import PluginConfig, SensorFamily, load_plugins
 
 EXAMPLE = Path(__file__).parent / "example_plugin"
 MARKER_MODULE = EXAMPLE / "vqtouch_example_plugin" / "marker_sensor.py"
-AUTHORING_KIT = ["RenderedSensor", "SensorVariant", "apply_variant", "check_height_map", "drifted_background",
-                 "environment_variant", "gaussian_blur", "surface_slopes"]
+AUTHORING_KIT = [
+    "RenderedSensor",
+    "SensorVariant",
+    "apply_variant",
+    "check_height_map",
+    "drifted_background",
+    "environment_variant",
+    "gaussian_blur",
+    "surface_slopes",
+]
 
 # Grid geometry for the marker tests: 18 mm imaged at 108 px is 1/6 mm a pixel, so the default
 # 1.5 mm marker pitch is 9 px and the markers' centres, at (k + 1/2) pitches, fall exactly on
@@ -47,6 +55,7 @@ def press(size: int = SIZE, fov_mm: float = 18.0, radius_mm: float = 4.0, contac
 
 # -- the public API ---------------------------------------------------------------------------
 
+
 def test_public_api_exports_the_authoring_kit_documented():
     assert sorted(public.__all__) == AUTHORING_KIT
     for name in AUTHORING_KIT:
@@ -61,8 +70,10 @@ def test_public_api_exports_the_authoring_kit_documented():
 
 
 def test_public_api_import_is_light():
-    code = ("import sys, vqtouch.sensors; "
-            "print(sorted(m for m in sys.modules if m == 'taxim' or m.startswith('vqtouch.sensors.')))")
+    code = (
+        "import sys, vqtouch.sensors; "
+        "print(sorted(m for m in sys.modules if m == 'taxim' or m.startswith('vqtouch.sensors.')))"
+    )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert result.stdout.split("\n")[0] == "['vqtouch.sensors.base', 'vqtouch.sensors.variants']"
 
@@ -81,8 +92,9 @@ def test_marker_plugin_has_its_own_entry_point():
 
 
 def test_installed_package_registers_marker_gel_through_its_entry_point(run_cli, example_plugin_site):
-    result = run_cli("plugins", "--json", python_path=example_plugin_site,
-                     env_extra={"VQTOUCH_DISABLE_PLUGIN_AUTOLOAD": ""})
+    result = run_cli(
+        "plugins", "--json", python_path=example_plugin_site, env_extra={"VQTOUCH_DISABLE_PLUGIN_AUTOLOAD": ""}
+    )
     assert result.returncode == 0, result.stderr
     rows = {(row["kind"], row["name"]): row for row in json.loads(result.stdout)}
     row = rows[("sensor_family", "marker_gel")]
@@ -90,6 +102,7 @@ def test_installed_package_registers_marker_gel_through_its_entry_point(run_cli,
 
 
 # -- the marker_gel family ----------------------------------------------------------------------
+
 
 def test_marker_config_is_strict_documented_and_bounded(host):
     from vqtouch.core import ConfigError
@@ -171,6 +184,7 @@ def test_surface_effects_come_before_the_variant(host):
 
 
 # -- the surface-effects step, on a sensor written in the test ------------------------------------
+
 
 class _SpySensor(public.RenderedSensor):
     """Flat grey gel, a response equal to the (smoothed) depth, and a surface effect that records its inputs."""

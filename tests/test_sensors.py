@@ -93,9 +93,18 @@ def test_resolution_independent_physical_scale(name):
 
 
 BUILTIN = ["gelsight", "gelsight_mini", "digit"]
-EVERY_FACTOR = {"illumination_shift": 0.05, "colour_gain": (1.1, 0.9, 0.95), "background_drift": 0.1,
-                "response_scale": 1.4, "wear_blur": 0.02, "damage_spots": 3, "noise_std": 0.05,
-                "shift": (0.03, -0.02), "rotation_deg": 4.0, "seed": 5}
+EVERY_FACTOR = {
+    "illumination_shift": 0.05,
+    "colour_gain": (1.1, 0.9, 0.95),
+    "background_drift": 0.1,
+    "response_scale": 1.4,
+    "wear_blur": 0.02,
+    "damage_spots": 3,
+    "noise_std": 0.05,
+    "shift": (0.03, -0.02),
+    "rotation_deg": 4.0,
+    "seed": 5,
+}
 
 
 @pytest.mark.parametrize("variant", [{}, EVERY_FACTOR], ids=["plain", "every_factor"])
@@ -112,8 +121,10 @@ def test_builtin_render_is_background_plus_response_then_variant(name, variant):
     smoothed = check_height_map(heights)
     sigma_px = sensor.gel_blur_mm / min(sensor.pixel_size_mm(40, 48))
     smoothed = gaussian_blur(smoothed.unsqueeze(1), sigma_px).squeeze(1)
-    shaded = (drifted_background(sensor.background(40, 48, torch.device("cpu")), sensor.variant).unsqueeze(0)
-              + sensor.contact_response(smoothed) * sensor.variant.response_scale)
+    shaded = (
+        drifted_background(sensor.background(40, 48, torch.device("cpu")), sensor.variant).unsqueeze(0)
+        + sensor.contact_response(smoothed) * sensor.variant.response_scale
+    )
     generator = torch.Generator().manual_seed(7)
     expected = apply_variant(shaded, sensor.variant, generator).clamp(0, 1)
     if name == "digit":
@@ -135,16 +146,26 @@ def test_render_on_gpu_matches_cpu(name):
 
 # -- variants ----------------------------------------------------------------------------------
 
+
 def test_identity_variant_changes_nothing():
     images = torch.rand(2, 3, 16, 16)
     assert apply_variant(images, SensorVariant()) is images
 
 
-@pytest.mark.parametrize("option", [
-    {"illumination_shift": 0.1}, {"colour_gain": (1.2, 1.0, 0.8)}, {"background_drift": 0.1},
-    {"response_scale": 0.5}, {"wear_blur": 0.03}, {"damage_spots": 3}, {"noise_std": 0.05},
-    {"shift": (0.05, 0.0)}, {"rotation_deg": 5.0},
-])
+@pytest.mark.parametrize(
+    "option",
+    [
+        {"illumination_shift": 0.1},
+        {"colour_gain": (1.2, 1.0, 0.8)},
+        {"background_drift": 0.1},
+        {"response_scale": 0.5},
+        {"wear_blur": 0.03},
+        {"damage_spots": 3},
+        {"noise_std": 0.05},
+        {"shift": (0.05, 0.0)},
+        {"rotation_deg": 5.0},
+    ],
+)
 def test_each_variant_factor_changes_the_image(option):
     base = HOST.build("sensor_family", "gelsight")
     derived = HOST.build("sensor_family", {"name": "gelsight", "variant": option})
@@ -185,6 +206,7 @@ def test_missing_taxim_is_a_clear_error(monkeypatch):
 
 # -- taxim's real frames -----------------------------------------------------------------------
 
+
 def _taxim_presses_from_the_file(name: str) -> torch.Tensor:
     """taxim's ball-press frames decoded here, independently of vqtouch: BGR uint8 -> RGB float."""
     import taxim
@@ -207,7 +229,7 @@ def test_reference_frames_are_taxims_real_presses_over_the_imaged_area(name, cou
 
     square = HOST.build("sensor_family", name).reference_frames(64, 64)
     assert square.shape == (count, 3, 64, 64) and square.dtype == torch.float32
-    assert torch.equal(square, resize(frames[..., left:left + rows], (64, 64)))
+    assert torch.equal(square, resize(frames[..., left : left + rows], (64, 64)))
     full = HOST.build("sensor_family", {"name": name, "view": "full"}).reference_frames(48, 64)
     assert torch.equal(full, resize(frames, (48, 64)))
     assert square.min() >= 0 and square.max() <= 1
@@ -232,6 +254,7 @@ def test_gelsight_background_is_taxims_no_contact_frame():
 
 # -- fidelity against taxim's real frames -------------------------------------------------------
 
+
 @pytest.mark.parametrize("sensor, min_ssim, min_psnr", [("gelsight", 0.93, 29.0), ("gelsight_mini", 0.85, 23.3)])
 def test_render_matches_real_ball_presses(sensor, min_ssim, min_psnr):
     """Measured (torchmetrics' SSIM): GelSight SSIM 0.936 / PSNR 29.9 dB, Mini 0.862 / 23.8 dB (64 px contact
@@ -252,7 +275,10 @@ def test_rgb_channel_order_matches_the_real_frames(monkeypatch):
     sensor = HOST.build("sensor_family", {"name": "gelsight", "view": "full"})
     sensor.table_K36 = sensor.table_K36.flip(1)
     original_build = HOST.build
-    monkeypatch.setattr(HOST, "build", lambda kind, config, context=None:
-                        sensor if kind == "sensor_family" else original_build(kind, config, context))
+    monkeypatch.setattr(
+        HOST,
+        "build",
+        lambda kind, config, context=None: sensor if kind == "sensor_family" else original_build(kind, config, context),
+    )
     swapped = evaluate_fidelity("gelsight", HOST, resolution=(120, 160), crop_px=32)
     assert good.psnr > swapped.psnr + 2.0

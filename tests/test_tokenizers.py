@@ -10,8 +10,11 @@ from vqtouch.core import Autoencoder, BuildContext, ConfigError, load_plugins, r
 HOST = load_plugins(autoload=False)
 ENCODERS = HOST.registry("autoencoder").names()
 TINY = {"channels": 16, "norm_groups": 8, "channel_multipliers": [1, 2], "z_channels": 16, "embed_dim": 8}
-TINY_OPTIONS = {"vqgan": TINY, "dm_vqgan": TINY,
-                "mae": {"patch_size": 8, "width": 32, "heads": 2, "decoder_width": 16, "depth": 1, "decoder_depth": 1}}
+TINY_OPTIONS = {
+    "vqgan": TINY,
+    "dm_vqgan": TINY,
+    "mae": {"patch_size": 8, "width": 32, "heads": 2, "decoder_width": 16, "depth": 1, "decoder_depth": 1},
+}
 CONTEXT = BuildContext(image_size=32)
 
 
@@ -83,8 +86,11 @@ def test_dm_options_ablate_each_part():
 def deformable_layers(image_size, **options):
     """Names of the DeformableConv2d modules of a narrow dm_vqgan (default channel_multipliers (1, 2, 2))."""
     torch.manual_seed(0)
-    model = HOST.build("autoencoder", {"name": "dm_vqgan", "channels": 8, "norm_groups": 8, "z_channels": 8,
-                                       "embed_dim": 8, **options}, BuildContext(image_size=image_size))
+    model = HOST.build(
+        "autoencoder",
+        {"name": "dm_vqgan", "channels": 8, "norm_groups": 8, "z_channels": 8, "embed_dim": 8, **options},
+        BuildContext(image_size=image_size),
+    )
     return [name for name, module in model.named_modules() if type(module).__name__ == "DeformableConv2d"]
 
 
@@ -100,13 +106,20 @@ def test_deformable_levels_count_from_the_latent_end():
     assert counts == [0, 7, 10, 13]
     # One level: the lowest one only (dec_levels runs from the latent end, so its index 0 is the lowest).
     assert deformable_layers(32, deformable_levels=1) == [
-        "enc_levels.2.blocks.0.conv2", "enc_mid.0.conv2", "enc_mid.2.conv2", "dec_mid.0.conv2", "dec_mid.2.conv2",
-        "dec_levels.0.blocks.0.conv2", "dec_levels.0.blocks.1.conv2"]
+        "enc_levels.2.blocks.0.conv2",
+        "enc_mid.0.conv2",
+        "enc_mid.2.conv2",
+        "dec_mid.0.conv2",
+        "dec_mid.2.conv2",
+        "dec_levels.0.blocks.0.conv2",
+        "dec_levels.0.blocks.1.conv2",
+    ]
 
 
 def test_too_many_deformable_levels_is_an_error_not_a_clamp():
-    with pytest.raises(ConfigError, match=r"deformable_levels = 4 exceeds the 3 feature level\(s\).*allowed 0 to 3") \
-            as error:
+    with pytest.raises(
+        ConfigError, match=r"deformable_levels = 4 exceeds the 3 feature level\(s\).*allowed 0 to 3"
+    ) as error:
         deformable_layers(64, deformable_levels=4)
     assert "\n" not in str(error.value)
     with pytest.raises(ConfigError, match="allowed 0 to 2"):
@@ -135,8 +148,11 @@ def test_bad_configs_are_clear():
     with pytest.raises(ConfigError, match="multiple of norm_groups"):
         HOST.build("autoencoder", {"name": "vqgan", "channels": 20, "norm_groups": 8}, CONTEXT)
     with pytest.raises(ConfigError, match="not divisible by the tokenizer's downsampling factor"):
-        HOST.build("autoencoder", {"name": "vqgan", **TINY, "channel_multipliers": [1, 1, 1, 1, 1, 1]},
-                   BuildContext(image_size=48))
+        HOST.build(
+            "autoencoder",
+            {"name": "vqgan", **TINY, "channel_multipliers": [1, 1, 1, 1, 1, 1]},
+            BuildContext(image_size=48),
+        )
     with pytest.raises(ConfigError, match="unknown option 'max_offset'"):
         HOST.build("autoencoder", {"name": "vqgan", "max_offset": 2.0}, CONTEXT)  # a DM option on vanilla VQGAN
 
@@ -158,18 +174,22 @@ def test_reconstruct_stage_never_builds_a_discriminator_dataset_or_generator(tmp
 def test_reconstruct_stage_says_why_when_the_sensor_has_no_real_frames(tmp_path):
     from vqtouch.core import Assembly, RunDir, run_stage
 
-    config = resolve_config("reconstruction", overrides=[*TRAIN_OVERRIDES, 'stages=["tokenizer"]', "sensor=digit"],
-                            host=HOST)
+    config = resolve_config(
+        "reconstruction", overrides=[*TRAIN_OVERRIDES, 'stages=["tokenizer"]', "sensor=digit"], host=HOST
+    )
     run = RunDir.create(config, host=HOST, path=tmp_path / "run")
     before = run_stage("reconstruct", Assembly(config, HOST), run)
     assert before.describe().startswith("cannot run: no trained tokenizer in this run")
     assert run_stage("tokenizer", Assembly(config, HOST), run).status == "ran"
     after = run_stage("reconstruct", Assembly(config, HOST), run)
-    assert after.describe() == ("cannot run: sensor family 'digit' declares no real reference frames "
-                                "(SensorFamily.reference_frames) to reconstruct")
+    assert after.describe() == (
+        "cannot run: sensor family 'digit' declares no real reference frames "
+        "(SensorFamily.reference_frames) to reconstruct"
+    )
 
 
 # -- the objective ----------------------------------------------------------------------------
+
 
 def test_adaptive_weight_is_guarded_against_non_finite_values():
     from vqtouch.plugins.tokenizer.discriminator import adaptive_weight
@@ -191,15 +211,27 @@ def test_hinge_loss_closed_form():
     assert float(hinge_discriminator_loss(real, fake)) == pytest.approx(0.375)
 
 
-TRAIN_OVERRIDES = ["tokenizer.autoencoder.channels=16", "tokenizer.autoencoder.norm_groups=8",
-                   "tokenizer.autoencoder.channel_multipliers=[1,2]", "tokenizer.autoencoder.z_channels=16",
-                   "tokenizer.autoencoder.embed_dim=8", "tokenizer.quantizer.codebook_size=32",
-                   "data.image_size=32", "data.batch_size=4", "data.dataset.num_samples=24", "tokenizer.train.steps=4",
-                   "tokenizer.train.log_every=1", "tokenizer.train.checkpoint_every=2", "tokenizer.loss.perceptual=none",
-                   "tokenizer.loss.disc_start=2", "metrics=[{\"name\": \"psnr\"}, {\"name\": \"ssim\"}]"]
+TRAIN_OVERRIDES = [
+    "tokenizer.autoencoder.channels=16",
+    "tokenizer.autoencoder.norm_groups=8",
+    "tokenizer.autoencoder.channel_multipliers=[1,2]",
+    "tokenizer.autoencoder.z_channels=16",
+    "tokenizer.autoencoder.embed_dim=8",
+    "tokenizer.quantizer.codebook_size=32",
+    "data.image_size=32",
+    "data.batch_size=4",
+    "data.dataset.num_samples=24",
+    "tokenizer.train.steps=4",
+    "tokenizer.train.log_every=1",
+    "tokenizer.train.checkpoint_every=2",
+    "tokenizer.loss.perceptual=none",
+    "tokenizer.loss.disc_start=2",
+    'metrics=[{"name": "psnr"}, {"name": "ssim"}]',
+]
 
 
 # -- MAE baseline -------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("ratio", [0.25, 0.5, 0.75])
 def test_mae_hides_the_configured_fraction_and_pastes_visible_patches(ratio):
@@ -262,7 +294,11 @@ def test_train_tokenizer_end_to_end_then_reconstruct_and_evaluate(tmp_path, caps
     lines = [line for line in lines if "val_loss" not in line]  # the training lines (checkpoints add scores)
     assert "d_loss" not in lines[1] and "d_loss" in lines[2]  # the discriminator starts at disc_start=2
     assert {p.name for p in (run / "checkpoints" / "step-00000004").iterdir()} == {
-        "autoencoder.safetensors", "quantizer.safetensors", "discriminator.safetensors", "trainer_state.safetensors"}
+        "autoencoder.safetensors",
+        "quantizer.safetensors",
+        "discriminator.safetensors",
+        "trainer_state.safetensors",
+    }
     capsys.readouterr()
     assert main(["reconstruct", "--run", str(run), "--real-frames", "gelsight", "--out", str(tmp_path / "rec")]) == 0
     assert "48 images from real gelsight frames" in capsys.readouterr().out
@@ -280,9 +316,15 @@ def test_mae_trains_through_the_tokenizer_pipeline(tmp_path):
     for override in TRAIN_OVERRIDES:
         if not override.startswith(("tokenizer.autoencoder", "tokenizer.quantizer")):
             args += ["--set", override]
-    args += ["--set", "tokenizer.autoencoder={\"name\": \"mae\", \"patch_size\": 8, \"width\": 32, \"heads\": 2, "
-                      "\"decoder_width\": 16, \"depth\": 1, \"decoder_depth\": 1, \"mask_ratio\": 0.75}",
-             "--set", "tokenizer.quantizer=identity", "--set", "tokenizer.discriminator=null"]
+    args += [
+        "--set",
+        'tokenizer.autoencoder={"name": "mae", "patch_size": 8, "width": 32, "heads": 2, '
+        '"decoder_width": 16, "depth": 1, "decoder_depth": 1, "mask_ratio": 0.75}',
+        "--set",
+        "tokenizer.quantizer=identity",
+        "--set",
+        "tokenizer.discriminator=null",
+    ]
     assert main(args) == 0
     result = json.loads((run / "eval.json").read_text())
     # Continuous latents: no codebook, so no codebook usage is reported (not a fake "1 code used").
@@ -311,16 +353,27 @@ def test_tiny_and_huge_codebooks_train_without_nan(tmp_path, codebook_size):
     from vqtouch.core.cli import main
 
     run = tmp_path / "run"
-    args = ["--no-progress", "train", "tokenizer", "--out", str(run), "--set", "tokenizer.autoencoder.name=vqgan",
-            "--set", "tokenizer.train.precision=bf16"]
+    args = [
+        "--no-progress",
+        "train",
+        "tokenizer",
+        "--out",
+        str(run),
+        "--set",
+        "tokenizer.autoencoder.name=vqgan",
+        "--set",
+        "tokenizer.train.precision=bf16",
+    ]
     for override in TRAIN_OVERRIDES:
         args += ["--set", override]
     args += ["--set", f"tokenizer.quantizer.codebook_size={codebook_size}"]
     assert main(args) == 0
     lines = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     lines = [line for line in lines if "val_loss" not in line]  # the training lines (checkpoints add scores)
-    assert all(all(value == value and abs(value) != float("inf") for value in line.values()
-                   if isinstance(value, float)) for line in lines)
+    assert all(
+        all(value == value and abs(value) != float("inf") for value in line.values() if isinstance(value, float))
+        for line in lines
+    )
     assert lines[-1]["skipped_steps"] == 0.0
 
 
@@ -330,11 +383,13 @@ def test_evaluation_reports_the_codes_the_held_out_images_use(host):
     from vqtouch.plugins.tokenizer.training import Tokenizer, evaluate_reconstruction
 
     sensor = host.build("sensor_family", "gelsight")
-    dataset = host.build("dataset", {"name": "procedural", "num_samples": 10, "image_size": 32}, CONTEXT,
-                         sensor=sensor)
+    dataset = host.build("dataset", {"name": "procedural", "num_samples": 10, "image_size": 32}, CONTEXT, sensor=sensor)
     autoencoder = tiny_encoder("vqgan")
-    quantizer = host.build("quantizer", {"name": "vq", "codebook_size": 64},
-                           CONTEXT.model_copy(update={"latent_dim": autoencoder.latent_channels}))
+    quantizer = host.build(
+        "quantizer",
+        {"name": "vq", "codebook_size": 64},
+        CONTEXT.model_copy(update={"latent_dim": autoencoder.latent_channels}),
+    )
     tokenizer = Tokenizer(autoencoder, quantizer)
     tokenizer.quantizer(torch.randn(4, autoencoder.latent_channels, 8, 8))  # usage from before must not count
     scores = evaluate_reconstruction(tokenizer, dataset, {}, batch_size=4)
@@ -345,5 +400,6 @@ def test_evaluation_reports_the_codes_the_held_out_images_use(host):
     probabilities = counts[counts > 0] / counts.sum()
     assert scores["codes_used"] == int((counts > 0).sum())
     assert scores["codebook_usage"] == pytest.approx(scores["codes_used"] / 64)
-    assert scores["perplexity"] == pytest.approx(float(torch.exp(-(probabilities * probabilities.log()).sum())),
-                                                 rel=1e-9)
+    assert scores["perplexity"] == pytest.approx(
+        float(torch.exp(-(probabilities * probabilities.log()).sum())), rel=1e-9
+    )

@@ -49,15 +49,21 @@ def test_evaluate_generation_scores_the_distribution_unless_told_not_to(trained,
         assert plain[key] == pytest.approx(scored[key], rel=1e-4, abs=1e-3), key
     # The same generated images either way.
     assert {key: value for key, value in scored.items() if key in plain and "fd_" not in key} == {
-        key: value for key, value in plain.items() if "fd_" not in key}
+        key: value for key, value in plain.items() if "fd_" not in key
+    }
 
 
 def independent_front(costs, qualities, higher):
     """A point is on the front iff no other point is both cheaper and better."""
     better = (lambda a, b: a > b) if higher else (lambda a, b: a < b)
-    return sorted((i for i in range(len(costs))
-                   if not any(costs[j] < costs[i] and better(qualities[j], qualities[i]) for j in range(len(costs)))),
-                  key=lambda i: costs[i])
+    return sorted(
+        (
+            i
+            for i in range(len(costs))
+            if not any(costs[j] < costs[i] and better(qualities[j], qualities[i]) for j in range(len(costs)))
+        ),
+        key=lambda i: costs[i],
+    )
 
 
 @pytest.mark.parametrize("higher", [True, False])
@@ -78,28 +84,71 @@ def test_the_pareto_front_on_hand_built_points():
 
 
 def test_the_settings_vary_one_knob_at_a_time_or_all():
-    knobs = dict(steps=[100, 50, 25, 10, 5], samplers=["posterior", "purity", "confidence"], guidance=[1.0, 3.0],
-                 precisions=["fp32", "bf16"])
+    knobs = dict(
+        steps=[100, 50, 25, 10, 5],
+        samplers=["posterior", "purity", "confidence"],
+        guidance=[1.0, 3.0],
+        precisions=["fp32", "bf16"],
+    )
     settings = sweep_settings(**knobs)
     assert settings[0] == {"sampler": "posterior", "steps": 100, "guidance": 1.0, "precision": "fp32"}
     assert [s["steps"] for s in settings] == [100, 50, 25, 10, 5, 25, 25, 25, 25]
     assert [(s["sampler"], s["guidance"], s["precision"]) for s in settings[5:]] == [
-        ("purity", 1.0, "fp32"), ("confidence", 1.0, "fp32"), ("posterior", 3.0, "fp32"), ("posterior", 1.0, "bf16")]
+        ("purity", 1.0, "fp32"),
+        ("confidence", 1.0, "fp32"),
+        ("posterior", 3.0, "fp32"),
+        ("posterior", 1.0, "bf16"),
+    ]
     assert len(sweep_settings(**knobs, grid=True)) == 5 * 3 * 2 * 2
     assert len(sweep_settings(**{**knobs, "guidance": [1.0, 1.0]})) == 8  # duplicates dropped
 
 
 def test_tradeoff_generator_writes_the_table_the_json_and_the_pareto_plot(trained, tmp_path, capsys):
     out = tmp_path / "trade"
-    assert main(["tradeoff", "generator", "--run", str(trained), "--out", str(out), "--n", "3", "--rounds", "2",
-                 "--steps", "4", "2", "--samplers", "posterior", "confidence", "--guidance", "1", "2",
-                 "--precisions", "fp32", "bf16", "--batch-size", "2", "--threads", "1"]) == 0
+    assert (
+        main(
+            [
+                "tradeoff",
+                "generator",
+                "--run",
+                str(trained),
+                "--out",
+                str(out),
+                "--n",
+                "3",
+                "--rounds",
+                "2",
+                "--steps",
+                "4",
+                "2",
+                "--samplers",
+                "posterior",
+                "confidence",
+                "--guidance",
+                "1",
+                "2",
+                "--precisions",
+                "fp32",
+                "bf16",
+                "--batch-size",
+                "2",
+                "--threads",
+                "1",
+            ]
+        )
+        == 0
+    )
     captured = capsys.readouterr()
     assert captured.err.count("[round ") == 2 * 5  # progress per setting and round
     result = json.loads((out / "tradeoff.json").read_text())
     rows = result["settings"]
-    assert [row["label"] for row in rows] == ["posterior 4", "posterior 2", "confidence 2", "posterior 2 g2",
-                                              "posterior 2 bf16"]
+    assert [row["label"] for row in rows] == [
+        "posterior 4",
+        "posterior 2",
+        "confidence 2",
+        "posterior 2 g2",
+        "posterior 2 bf16",
+    ]
     assert result["n"] == 3 and result["rounds"] == 2 and result["threads"] == 1 and result["feature_size"] == 32
     assert rows[0]["cost"] == 1.0 and all(len(row["seconds"]) == 2 and row["reproducible"] for row in rows)
     for row in rows:
@@ -117,22 +166,45 @@ def test_tradeoff_generator_writes_the_table_the_json_and_the_pareto_plot(traine
     assert "pareto.png" in captured.out
     # A row's scores are those `vqtouch evaluate generation` gives the same setting (same conditions and seeds).
     for row in (rows[0], rows[3]):
-        assert main(["evaluate", "generation", "--run", str(trained), "--n", "3", "--steps", str(row["steps"]),
-                     "--guidance", str(row["guidance"]), "--metrics", "ssim,psnr", "--no-distribution"]) == 0
+        assert (
+            main(
+                [
+                    "evaluate",
+                    "generation",
+                    "--run",
+                    str(trained),
+                    "--n",
+                    "3",
+                    "--steps",
+                    str(row["steps"]),
+                    "--guidance",
+                    str(row["guidance"]),
+                    "--metrics",
+                    "ssim,psnr",
+                    "--no-distribution",
+                ]
+            )
+            == 0
+        )
         name = f"evaluation_generation_step-00000006_posterior_{row['steps']}.json"
         evaluated = json.loads((trained / name).read_text())
         for key in ("ssim", "psnr", "contact_psnr"):
             assert row[key] == pytest.approx(evaluated[key], abs=2e-4), (row["label"], key)
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--steps", "4", "--samplers", "posterior", "nope"],
-     "unknown sampler 'nope'; available: confidence, posterior, purity"),
-    (["--steps", "4", "0"], "--steps 0: steps must be an integer in [1, 20]"),
-    (["--steps", "21"], "--steps 21: steps must be an integer in [1, 20]"),
-    (["--steps", "4", "--guidance", "-1"], "--guidance -1: the guidance scale must be a finite number >= 0"),
-    (["--steps", "4", "--precisions", "fp16"], "--precisions fp16: expected fp32 or bf16"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (
+            ["--steps", "4", "--samplers", "posterior", "nope"],
+            "unknown sampler 'nope'; available: confidence, posterior, purity",
+        ),
+        (["--steps", "4", "0"], "--steps 0: steps must be an integer in [1, 20]"),
+        (["--steps", "21"], "--steps 21: steps must be an integer in [1, 20]"),
+        (["--steps", "4", "--guidance", "-1"], "--guidance -1: the guidance scale must be a finite number >= 0"),
+        (["--steps", "4", "--precisions", "fp16"], "--precisions fp16: expected fp32 or bf16"),
+    ],
+)
 def test_tradeoff_errors_are_one_line(trained, tmp_path, capsys, args, message):
     capsys.readouterr()
     assert main(["tradeoff", "generator", "--run", str(trained), "--out", str(tmp_path / "t"), *args]) == 2

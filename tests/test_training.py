@@ -11,8 +11,14 @@ import torch
 from torch import nn
 
 from vqtouch.core import BuildContext, Conditioner, PluginConfig, TrainConfig, hookimpl, load_plugins
-from vqtouch.core.training import (TRAINER_STATE, NonFiniteLossError, SkippedCheckpointWarning, Trainer, batch_indices,
-                                   latest_checkpoint)
+from vqtouch.core.training import (
+    TRAINER_STATE,
+    NonFiniteLossError,
+    SkippedCheckpointWarning,
+    Trainer,
+    batch_indices,
+    latest_checkpoint,
+)
 
 
 class ToyDataset:
@@ -88,8 +94,16 @@ def make_trainer(host, tmp_path, steps=12, task_options=None, **config):
     torch.manual_seed(0)  # same initial weights for every trainer a test makes
     task = ToyTask(host, **(task_options or {}))
     options = {"steps": steps, "learning_rate": 0.05, "checkpoint_every": 4, "log_every": 1, **config}
-    return Trainer(task, ToyDataset(), TrainConfig(**options), batch_size=4, seed=3, device=torch.device("cpu"),
-                   checkpoint_dir=tmp_path / "checkpoints", host=host), task
+    return Trainer(
+        task,
+        ToyDataset(),
+        TrainConfig(**options),
+        batch_size=4,
+        seed=3,
+        device=torch.device("cpu"),
+        checkpoint_dir=tmp_path / "checkpoints",
+        host=host,
+    ), task
 
 
 def test_training_reduces_the_loss_and_writes_checkpoints(host, tmp_path):
@@ -100,9 +114,12 @@ def test_training_reduces_the_loss_and_writes_checkpoints(host, tmp_path):
     # The newest complete step-* folder is the one source of truth: no pointer file to fall out of date;
     # the newest keep_last (3) are kept.
     assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == [
-        f"step-{step:08d}" for step in range(32, 41, 4)]
+        f"step-{step:08d}" for step in range(32, 41, 4)
+    ]
     assert {p.name for p in (tmp_path / "checkpoints" / "step-00000040").iterdir()} == {
-        "model.safetensors", "trainer_state.safetensors"}
+        "model.safetensors",
+        "trainer_state.safetensors",
+    }
 
 
 def test_resume_reproduces_the_uninterrupted_run_exactly(host, tmp_path):
@@ -145,12 +162,26 @@ def test_bad_parameter_groups_are_refused(host, tmp_path):
     task = ToyTask(host)
     task.parameter_groups = lambda: {"main": [{"params": list(task.modules["model"].parameters()), "lr": 1.0}]}
     with pytest.raises(ValueError, match="unknown keys \\['lr'\\].*'lr_scale'"):
-        Trainer(task, ToyDataset(), TrainConfig(steps=1), batch_size=4, seed=0, device=torch.device("cpu"),
-                checkpoint_dir=None)
+        Trainer(
+            task,
+            ToyDataset(),
+            TrainConfig(steps=1),
+            batch_size=4,
+            seed=0,
+            device=torch.device("cpu"),
+            checkpoint_dir=None,
+        )
     task.parameter_groups = lambda: {"main": [{"params": list(task.modules["model"].parameters()), "lr_scale": 0}]}
     with pytest.raises(ValueError, match="lr_scale must be a positive finite number"):
-        Trainer(task, ToyDataset(), TrainConfig(steps=1), batch_size=4, seed=0, device=torch.device("cpu"),
-                checkpoint_dir=None)
+        Trainer(
+            task,
+            ToyDataset(),
+            TrainConfig(steps=1),
+            batch_size=4,
+            seed=0,
+            device=torch.device("cpu"),
+            checkpoint_dir=None,
+        )
 
 
 def test_resume_without_checkpoint_returns_false(host, tmp_path):
@@ -173,7 +204,8 @@ def test_incomplete_checkpoint_folder_is_ignored(host, tmp_path):
         assert resumed.resume(checkpoints) and resumed.state.step == 8
     assert [str(w.message) for w in caught] == [
         f"checkpoint {checkpoints / name} skipped: no {TRAINER_STATE}: its save was interrupted"
-        for name in ("step-00000099", "step-00000012")]
+        for name in ("step-00000099", "step-00000012")
+    ]
     # Once the newer folder is complete, it is the latest.
     (newer / TRAINER_STATE).write_bytes((checkpoints / "step-00000008" / TRAINER_STATE).read_bytes())
     assert latest_checkpoint(checkpoints).name == "step-00000012"
@@ -195,22 +227,25 @@ def test_train_config_defaults_are_generic_and_stages_subclass_them(host, tmp_pa
     assert "train" not in type(config).model_fields
 
 
-@pytest.mark.parametrize("override, problem", [
-    ("betas=[2,3]", "betas: each Adam beta must be a number in [0, 1), e.g. [0.9, 0.999] (got [2, 3])"),
-    ("betas=[0.9,1.0]", "betas: each Adam beta must be a number in [0, 1), e.g. [0.9, 0.999] (got [0.9, 1.0])"),
-    ("betas=[-0.1,0.9]", "betas: each Adam beta must be a number in [0, 1), e.g. [0.9, 0.999] (got [-0.1, 0.9])"),
-    ("betas=[0.9,NaN]", "betas: each Adam beta must be a number in [0, 1), e.g. [0.9, 0.999] (got [0.9, nan])"),
-    ("betas=[false,0.9]", "betas: each Adam beta must be a number in [0, 1), e.g. [0.9, 0.999] (got [False, 0.9])"),
-    ("steps=true", "steps: Input should be a valid integer (got True)"),
-    ("steps=2.0", "steps: Input should be a valid integer (got 2.0)"),
-    ("steps=100000000", "steps: Input should be less than or equal to 99999999 (got 100000000)"),
-    ("checkpoint_every=true", "checkpoint_every: Input should be a valid integer (got True)"),
-    ("log_every=false", "log_every: Input should be a valid integer (got False)"),
-    ("max_skipped_steps=true", "max_skipped_steps: Input should be a valid integer (got True)"),
-    ("keep_last=0", "keep_last: Input should be greater than or equal to 1 (got 0)"),
-    ("learning_rate=true", "learning_rate: Input should be a valid number (got True)"),
-    ("grad_clip=true", "grad_clip: Input should be a valid number (got True)"),
-])
+@pytest.mark.parametrize(
+    "override, problem",
+    [
+        ("betas=[2,3]", "betas: each Adam beta must be a number in [0, 1), e.g. [0.9, 0.999] (got [2, 3])"),
+        ("betas=[0.9,1.0]", "betas: each Adam beta must be a number in [0, 1), e.g. [0.9, 0.999] (got [0.9, 1.0])"),
+        ("betas=[-0.1,0.9]", "betas: each Adam beta must be a number in [0, 1), e.g. [0.9, 0.999] (got [-0.1, 0.9])"),
+        ("betas=[0.9,NaN]", "betas: each Adam beta must be a number in [0, 1), e.g. [0.9, 0.999] (got [0.9, nan])"),
+        ("betas=[false,0.9]", "betas: each Adam beta must be a number in [0, 1), e.g. [0.9, 0.999] (got [False, 0.9])"),
+        ("steps=true", "steps: Input should be a valid integer (got True)"),
+        ("steps=2.0", "steps: Input should be a valid integer (got 2.0)"),
+        ("steps=100000000", "steps: Input should be less than or equal to 99999999 (got 100000000)"),
+        ("checkpoint_every=true", "checkpoint_every: Input should be a valid integer (got True)"),
+        ("log_every=false", "log_every: Input should be a valid integer (got False)"),
+        ("max_skipped_steps=true", "max_skipped_steps: Input should be a valid integer (got True)"),
+        ("keep_last=0", "keep_last: Input should be greater than or equal to 1 (got 0)"),
+        ("learning_rate=true", "learning_rate: Input should be a valid number (got True)"),
+        ("grad_clip=true", "grad_clip: Input should be a valid number (got True)"),
+    ],
+)
 def test_train_config_refuses_values_that_would_crash_or_mislead_later(override, problem):
     from vqtouch.core import ConfigError, resolve_config
 
@@ -226,8 +261,9 @@ def test_train_config_keeps_accepting_what_is_sensible():
 
 
 def test_a_long_run_does_not_build_every_batch_up_front(host, tmp_path):
-    trainer, task = make_trainer(host, tmp_path, steps=99_999_999, checkpoint_every=99_999_999,
-                                 task_options={"interrupt_at": 3})
+    trainer, task = make_trainer(
+        host, tmp_path, steps=99_999_999, checkpoint_every=99_999_999, task_options={"interrupt_at": 3}
+    )
     with pytest.raises(KeyboardInterrupt):
         trainer.fit()
     assert len(task.losses) == 3
@@ -238,8 +274,16 @@ def test_resume_with_different_batch_size_is_refused(host, tmp_path):
 
     trainer, _ = make_trainer(host, tmp_path, steps=4)
     trainer.fit()
-    other = Trainer(ToyTask(host), ToyDataset(), TrainConfig(steps=8), batch_size=8, seed=3,
-                    device=torch.device("cpu"), checkpoint_dir=tmp_path / "checkpoints", host=host)
+    other = Trainer(
+        ToyTask(host),
+        ToyDataset(),
+        TrainConfig(steps=8),
+        batch_size=8,
+        seed=3,
+        device=torch.device("cpu"),
+        checkpoint_dir=tmp_path / "checkpoints",
+        host=host,
+    )
     with pytest.raises(CheckpointError, match="batch_size=4"):
         other.resume(tmp_path / "checkpoints")
 
@@ -253,15 +297,15 @@ def test_non_finite_loss_skips_the_step_and_is_reported(host, tmp_path):
 
 
 def test_too_many_consecutive_non_finite_steps_abort(host, tmp_path):
-    trainer, _ = make_trainer(host, tmp_path, steps=30, task_options={"poison_steps": set(range(3, 30))},
-                              max_skipped_steps=5)
+    trainer, _ = make_trainer(
+        host, tmp_path, steps=30, task_options={"poison_steps": set(range(3, 30))}, max_skipped_steps=5
+    )
     with pytest.raises(NonFiniteLossError, match="5 consecutive steps"):
         trainer.fit()
 
 
 def test_extreme_learning_rate_never_writes_non_finite_weights(host, tmp_path):
-    trainer, task = make_trainer(host, tmp_path, steps=30, learning_rate=10.0, grad_clip=None,
-                                 max_skipped_steps=30)
+    trainer, task = make_trainer(host, tmp_path, steps=30, learning_rate=10.0, grad_clip=None, max_skipped_steps=30)
     try:
         trainer.fit()
     except NonFiniteLossError:
@@ -285,8 +329,9 @@ def test_bf16_autocast_trains(host, tmp_path):
     assert task.losses[-1] < task.losses[0] and all(torch.isfinite(torch.tensor(task.losses)))
 
 
-@pytest.mark.parametrize("precision, expected", [("auto", torch.float32), ("fp32", torch.float32),
-                                                  ("bf16", torch.bfloat16)])
+@pytest.mark.parametrize(
+    "precision, expected", [("auto", torch.float32), ("fp32", torch.float32), ("bf16", torch.bfloat16)]
+)
 def test_precision_sets_the_networks_dtype_and_auto_trains_fp32_on_cpu(host, tmp_path, precision, expected):
     """``auto`` (the default) runs the networks in fp32 on CPU, where bf16 measured slower to infer and worse."""
     trainer, task = make_trainer(host, tmp_path, steps=2, **({} if precision == "auto" else {"precision": precision}))
@@ -298,8 +343,11 @@ def test_auto_precision_is_bf16_only_on_a_cuda_device_that_supports_it(monkeypat
     from vqtouch.core.training import resolve_precision
 
     monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *args, **kwargs: True)
-    assert [resolve_precision("auto", torch.device(kind)) for kind in ("cpu", "cuda", "meta")] == \
-        ["fp32", "bf16", "fp32"]
+    assert [resolve_precision("auto", torch.device(kind)) for kind in ("cpu", "cuda", "meta")] == [
+        "fp32",
+        "bf16",
+        "fp32",
+    ]
     assert resolve_precision("fp32", torch.device("cuda")) == "fp32"
     assert resolve_precision("bf16", torch.device("cpu")) == "bf16"
     monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *args, **kwargs: False)
@@ -320,9 +368,23 @@ DDP_SCRIPT = Path(__file__).parent / "helpers" / "ddp_train.py"
 
 def test_two_process_data_parallel_keeps_parameters_identical(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).parent / "helpers")}
-    result = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
-                             "--master_port", "29517", str(DDP_SCRIPT), str(tmp_path)],
-                            capture_output=True, text=True, timeout=240, env=env)
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--nproc_per_node",
+            "2",
+            "--master_port",
+            "29517",
+            str(DDP_SCRIPT),
+            str(tmp_path),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=240,
+        env=env,
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     params = [torch.load(tmp_path / f"rank{rank}.pt", weights_only=True) for rank in range(2)]
     assert torch.equal(params[0], params[1])
@@ -332,9 +394,24 @@ def test_two_process_data_parallel_keeps_parameters_identical(tmp_path):
 def test_a_signal_to_one_rank_stops_every_rank_at_the_same_step(tmp_path):
     """Under torchrun a rank that stopped alone would leave the others waiting in their next all-reduce."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).parent / "helpers")}
-    result = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
-                             "--master_port", "29519", str(DDP_SCRIPT), str(tmp_path), "signal"],
-                            capture_output=True, text=True, timeout=240, env=env)
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--nproc_per_node",
+            "2",
+            "--master_port",
+            "29519",
+            str(DDP_SCRIPT),
+            str(tmp_path),
+            "signal",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=240,
+        env=env,
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     checkpoint = tmp_path / "checkpoints" / "step-00000004"
     assert (tmp_path / "rank1.stopped").read_text() == "4 SIGTERM None"  # rank 1 writes no file
@@ -345,8 +422,16 @@ def test_a_signal_to_one_rank_stops_every_rank_at_the_same_step(tmp_path):
 
 
 def test_warm_up_and_cosine_move_each_step_by_the_scheduled_rate(host, tmp_path):
-    trainer, _ = make_trainer(host, tmp_path, steps=6, task_options={"bias_lr_scale": 0.1}, grad_clip=None,
-                              warmup_steps=2, lr_schedule="cosine", min_lr_ratio=0.2)
+    trainer, _ = make_trainer(
+        host,
+        tmp_path,
+        steps=6,
+        task_options={"bias_lr_scale": 0.1},
+        grad_clip=None,
+        warmup_steps=2,
+        lr_schedule="cosine",
+        min_lr_ratio=0.2,
+    )
     linear = trainer.task.modules["model"].linear
     before = linear.weight.detach().clone()
     trainer.config = trainer.config.model_copy(update={"steps": 1})

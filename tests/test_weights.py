@@ -6,8 +6,13 @@ import pytest
 from vqtouch.core import MissingWeightsError, WeightsSpec, resolve_weights
 
 REPO = Path(__file__).resolve().parents[1]
-SPEC = WeightsSpec(description="metric 'fid'", filenames=("inception.pth",), env_var="VQTOUCH_TEST_WEIGHTS",
-                   config_hint="--set evaluate.fid_weights=PATH", source_url="https://example.org/inception.pth")
+SPEC = WeightsSpec(
+    description="metric 'fid'",
+    filenames=("inception.pth",),
+    env_var="VQTOUCH_TEST_WEIGHTS",
+    config_hint="--set evaluate.fid_weights=PATH",
+    source_url="https://example.org/inception.pth",
+)
 
 
 @pytest.fixture(autouse=True)
@@ -20,8 +25,14 @@ def test_missing_everywhere_explains_all_three_ways():
     with pytest.raises(MissingWeightsError) as info:
         resolve_weights(SPEC)
     message = str(info.value)
-    for needle in ("inception.pth", "https://example.org/inception.pth", "--set evaluate.fid_weights=PATH",
-                   "VQTOUCH_TEST_WEIGHTS=PATH", "VQTOUCH_WEIGHTS_DIR", "never downloads"):
+    for needle in (
+        "inception.pth",
+        "https://example.org/inception.pth",
+        "--set evaluate.fid_weights=PATH",
+        "VQTOUCH_TEST_WEIGHTS=PATH",
+        "VQTOUCH_WEIGHTS_DIR",
+        "never downloads",
+    ):
         assert needle in message
 
 
@@ -54,6 +65,7 @@ def test_sha256_prefix_is_checked(tmp_path):
 
 
 # -- every WeightsSpec of the code base tells users a way to give the file that really exists ------
+
 
 def _module_name(path):
     parts = path.relative_to(REPO).with_suffix("").parts
@@ -92,8 +104,9 @@ def _is_config_path(host, parts):
                 return False
             rest = rest[1:]
         registry = host.registry(slot.kind)
-        return len(rest) <= 1 and (not rest or any(rest[0] in registry.get(name).config_model.model_fields
-                                                   for name in registry.names()))
+        return len(rest) <= 1 and (
+            not rest or any(rest[0] in registry.get(name).config_model.model_fields for name in registry.names())
+        )
     model = host.experiment_model
     for part in parts:
         if not isinstance(model, type) or part not in getattr(model, "model_fields", {}):
@@ -116,8 +129,11 @@ def test_every_weights_spec_hint_names_a_real_option(host, package_sources):
                 specs.setdefault(id(value), (f"{module.__name__}.{name}", value))
     written = sum(path.read_text().count("WeightsSpec(") for path in package_sources)
     assert len(specs) == written, "a WeightsSpec is not a module attribute, so this test cannot check its hint"
-    assert {spec.env_var for _, spec in specs.values()} >= {"VQTOUCH_CLIP_CKPT", "VQTOUCH_LPIPS_BACKBONE",
-                                                            "VQTOUCH_LPIPS_HEADS"}
+    assert {spec.env_var for _, spec in specs.values()} >= {
+        "VQTOUCH_CLIP_CKPT",
+        "VQTOUCH_LPIPS_BACKBONE",
+        "VQTOUCH_LPIPS_HEADS",
+    }
 
     cli_options = _cli_options(build_parser(host))
     for name, spec in specs.values():

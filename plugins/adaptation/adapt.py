@@ -92,9 +92,11 @@ def contact_fraction(images_N3HW: torch.Tensor) -> torch.Tensor:
         raise ValueError("the contact fraction needs at least 2 images (the others make the background)")
     fractions = []
     for index in range(len(images_N3HW)):
-        others = torch.cat([images_N3HW[:index], images_N3HW[index + 1:]])
+        others = torch.cat([images_N3HW[:index], images_N3HW[index + 1 :]])
         background = median_background(others)[None]
-        fractions.append(contact_mask(images_N3HW[index:index + 1], background, CONTACT_PIXEL_THRESHOLD).double().mean())
+        fractions.append(
+            contact_mask(images_N3HW[index : index + 1], background, CONTACT_PIXEL_THRESHOLD).double().mean()
+        )
     return torch.stack(fractions)
 
 
@@ -107,11 +109,13 @@ def check_contacts(images_N3HW: torch.Tensor, name: str) -> None:
         raise AdaptationRefused(
             f"{name}: the {len(images_N3HW)} images look like no-contact frames (no image differs from the "
             f"others' background on more than {float(fraction.max()):.2%} of its pixels); adaptation needs frames "
-            "of objects pressed into the gel")
+            "of objects pressed into the gel"
+        )
 
 
-def target_images(spec: str, host: PluginHost, *, shots: int, eval_images: int, image_size: ImageSize,
-                  seed: int) -> tuple[str, str, torch.Tensor, torch.Tensor]:
+def target_images(
+    spec: str, host: PluginHost, *, shots: int, eval_images: int, image_size: ImageSize, seed: int
+) -> tuple[str, str, torch.Tensor, torch.Tensor]:
     """(name, source, shots, held-out images) of the unseen sensor ``spec``.
 
     A folder's images are shuffled with ``seed``; the first ``shots`` are the shots and the last
@@ -125,14 +129,18 @@ def target_images(spec: str, host: PluginHost, *, shots: int, eval_images: int, 
 
         files = list_images(path)
         if len(files) < 2:
-            raise DatasetError(f"{path}: {len(files)} image(s); adaptation needs the shots plus at least one "
-                               "held-out image to score it")
+            raise DatasetError(
+                f"{path}: {len(files)} image(s); adaptation needs the shots plus at least one "
+                "held-out image to score it"
+            )
         if shots >= len(files):
-            raise ConfigError(f"--shots {shots}: the folder {path} holds {len(files)} images; use at most "
-                              f"{len(files) - 1} shots (the rest are held out to score the adaptation)")
+            raise ConfigError(
+                f"--shots {shots}: the folder {path} holds {len(files)} images; use at most "
+                f"{len(files) - 1} shots (the rest are held out to score the adaptation)"
+            )
         order = torch.randperm(len(files), generator=torch.Generator().manual_seed(seed)).tolist()
         held_out = min(eval_images, len(files) - shots)
-        chosen = [files[i] for i in order[:shots] + order[len(files) - held_out:]]
+        chosen = [files[i] for i in order[:shots] + order[len(files) - held_out :]]
         sensor = sensor_images(str(path), host, count=len(chosen), image_size=image_size, files=chosen)
         return sensor.name, sensor.source, sensor.images[:shots], sensor.images[shots:]
     trained = sensor_images(spec, host, count=shots, image_size=image_size, seed=seed + 101)
@@ -140,29 +148,44 @@ def target_images(spec: str, host: PluginHost, *, shots: int, eval_images: int, 
     return trained.name, trained.source, trained.images, held_out.images
 
 
-def family_images(families: SensorFamilies, family: int, host: PluginHost, *, count: int, image_size: ImageSize, seed: int,
-                  exclude: str = "") -> tuple[torch.Tensor, list[str]]:
+def family_images(
+    families: SensorFamilies,
+    family: int,
+    host: PluginHost,
+    *,
+    count: int,
+    image_size: ImageSize,
+    seed: int,
+    exclude: str = "",
+) -> tuple[torch.Tensor, list[str]]:
     """``count`` images of ``family``'s members (but the sensor whose source is ``exclude``), drawn
     evenly from every member: rendered scenes (new seeds) or a folder's images (repeated when it
     holds fewer).  Returns the images and the members used."""
     members = [member for member in families.members(family) if member["source"] != exclude]
     if not members:
-        raise AdaptationRefused(f"family {family} has no member other than the unseen sensor itself: no family "
-                                "data to mix with the shots")
+        raise AdaptationRefused(
+            f"family {family} has no member other than the unseen sensor itself: no family data to mix with the shots"
+        )
     per_member = [count // len(members) + (index < count % len(members)) for index in range(len(members))]
     chunks = []
     for index, (member, wanted) in enumerate(zip(members, per_member)):
         if wanted == 0:
             continue
-        images = sensor_images(member["source"], host, count=wanted, image_size=image_size,
-                               seed=seed + 1009 * (index + 1)).images
+        images = sensor_images(
+            member["source"], host, count=wanted, image_size=image_size, seed=seed + 1009 * (index + 1)
+        ).images
         chunks.append(images.repeat(math.ceil(wanted / len(images)), 1, 1, 1)[:wanted])
     return torch.cat(chunks), [member["name"] for member in members]
 
 
-def reconstruction_scores(tokenizer: Any, images_N3HW: torch.Tensor, host: PluginHost, batch_size: int = 32,
-                          metrics: tuple[str, ...] = ("ssim", "psnr"),
-                          background_3HW: torch.Tensor | None = None) -> dict[str, Any]:
+def reconstruction_scores(
+    tokenizer: Any,
+    images_N3HW: torch.Tensor,
+    host: PluginHost,
+    batch_size: int = 32,
+    metrics: tuple[str, ...] = ("ssim", "psnr"),
+    background_3HW: torch.Tensor | None = None,
+) -> dict[str, Any]:
     """The ``metrics`` (plugin names), codebook usage and codes used of ``tokenizer`` reconstructing
     ``images_N3HW`` (on the tokenizer's device).
 
@@ -174,18 +197,37 @@ def reconstruction_scores(tokenizer: Any, images_N3HW: torch.Tensor, host: Plugi
     from vqtouch.plugins.tokenizer import evaluate_reconstruction
 
     built = {name: host.build("metric", {"name": name}) for name in metrics}
-    scores = evaluate_reconstruction(tokenizer, ImageSet(images_N3HW), built, batch_size=batch_size,
-                                     device=tokenizer.device, background_3HW=background_3HW)
+    scores = evaluate_reconstruction(
+        tokenizer,
+        ImageSet(images_N3HW),
+        built,
+        batch_size=batch_size,
+        device=tokenizer.device,
+        background_3HW=background_3HW,
+    )
     kept = (*metrics, "codebook_usage", "codes_used", "samples", "skipped")
     # The background and contact-region entries exist only when a background was given.
     compared = ("background_", "contact_")
-    return {key: (round(value, 4) if isinstance(value, float) else value) for key, value in scores.items()
-            if key in kept or key.startswith(compared)}
+    return {
+        key: (round(value, 4) if isinstance(value, float) else value)
+        for key, value in scores.items()
+        if key in kept or key.startswith(compared)
+    }
 
 
-def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, host: PluginHost, out: Path,
-                    settings: AdaptSettings, *, step: int | str | None = None, overwrite: bool = False,
-                    report: Any = print, background_3HW: torch.Tensor | None = None) -> dict[str, Any]:
+def adapt_tokenizer(
+    run_or_folder: Any,
+    target: str,
+    families: SensorFamilies,
+    host: PluginHost,
+    out: Path,
+    settings: AdaptSettings,
+    *,
+    step: int | str | None = None,
+    overwrite: bool = False,
+    report: Any = print,
+    background_3HW: torch.Tensor | None = None,
+) -> dict[str, Any]:
     """Adapt the tokenizer of ``run_or_folder`` to the unseen sensor ``target`` (see the module
     docstring); writes the adapted tokenizer, ``adapt.json`` and ``before_after.png`` into ``out``
     and returns the summary.  Raises :class:`AdaptationRefused` when the sensor matches no family
@@ -207,29 +249,38 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
     tokenizer.to(device)
     image_size = families.summary["image_size"]
     if image_hw(tokenizer.autoencoder.vqtouch_spec.context.image_size) != image_hw(image_size):
-        raise ConfigError(f"the families were fitted at {size_text(image_size)} px, the tokenizer works at "
-                          f"{size_text(tokenizer.autoencoder.vqtouch_spec.context.image_size)} px: cluster with "
-                          "this tokenizer")
+        raise ConfigError(
+            f"the families were fitted at {size_text(image_size)} px, the tokenizer works at "
+            f"{size_text(tokenizer.autoencoder.vqtouch_spec.context.image_size)} px: cluster with "
+            "this tokenizer"
+        )
     section = run_config.tokenizer if run_config is not None else None
     loss = section.loss if section is not None else TokenizerLossConfig()
-    train = (section.train if section is not None else TokenizerTrainConfig()).model_copy(update={
-        "steps": settings.steps, "checkpoint_every": max(1, settings.steps), "keep_best": False,
-        **({"learning_rate": settings.learning_rate} if settings.learning_rate is not None else {})})
+    train = (section.train if section is not None else TokenizerTrainConfig()).model_copy(
+        update={
+            "steps": settings.steps,
+            "checkpoint_every": max(1, settings.steps),
+            "keep_best": False,
+            **({"learning_rate": settings.learning_rate} if settings.learning_rate is not None else {}),
+        }
+    )
     batch_size = settings.batch_size or (run_config.data.batch_size if run_config is not None else 16)
 
-    name, source, shots_N, held_out_M = target_images(target, host, shots=settings.shots,
-                                                      eval_images=settings.eval_images, image_size=image_size,
-                                                      seed=settings.seed)
+    name, source, shots_N, held_out_M = target_images(
+        target, host, shots=settings.shots, eval_images=settings.eval_images, image_size=image_size, seed=settings.seed
+    )
     check_contacts(torch.cat([shots_N, held_out_M]), name)
     assignment, shown = families.unseen(tokenizer, name, shots_N, settings.threshold)
     if families.features is not None:  # fitted for this adaptation (not read back): write them, with the sensor
-        save_families(families, out / FAMILIES_FOLDER, host, {"assignments": {name: {"source": source, **assignment}}},
-                      [shown])
+        save_families(
+            families, out / FAMILIES_FOLDER, host, {"assignments": {name: {"source": source, **assignment}}}, [shown]
+        )
     family = assignment["family"]
     if settings.family is not None:
         if not 0 <= settings.family < len(families.summary["families"]):
-            raise ConfigError(f"--family {settings.family}: the families are numbered 0 to "
-                              f"{len(families.summary['families']) - 1}")
+            raise ConfigError(
+                f"--family {settings.family}: the families are numbered 0 to {len(families.summary['families']) - 1}"
+            )
         family = settings.family
     elif assignment["refused"]:
         nearest = assignment["nearest_family"]
@@ -237,15 +288,19 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
             f"{name} matches no sensor family: {assignment['distances'][nearest]:.4g} from the nearest (family "
             f"{nearest}: {', '.join(families.summary['families'][nearest])}), beyond the threshold "
             f"{assignment['threshold']:.4g}; cluster it with more sensors, raise --threshold, or name a family with "
-            "--family")
-    report(f"{name}: family {family} ({', '.join(families.summary['families'][family])}); distances "
-           f"{assignment['distances']}, margin {assignment['margin']:.4g}")
+            "--family"
+        )
+    report(
+        f"{name}: family {family} ({', '.join(families.summary['families'][family])}); distances "
+        f"{assignment['distances']}, margin {assignment['margin']:.4g}"
+    )
     family_count = round(settings.shots * settings.ratio)
     mixed = [shots_N]
     members: list[str] = []
     if family_count > 0:
-        family_N, members = family_images(families, family, host, count=family_count, image_size=image_size,
-                                          seed=settings.seed, exclude=source)
+        family_N, members = family_images(
+            families, family, host, count=family_count, image_size=image_size, seed=settings.seed, exclude=source
+        )
         mixed.append(family_N)
     mixed_set = ImageSet(torch.cat(mixed), name)
     if len(mixed_set) < batch_size:
@@ -253,19 +308,37 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
 
     before = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics, background_3HW)
     # Held-out family images (new scenes): what the adaptation keeps of the family, or forgets.
-    family_held_out, _ = family_images(families, family, host, count=settings.eval_images, image_size=image_size,
-                                       seed=settings.seed + 77_777, exclude=source)
+    family_held_out, _ = family_images(
+        families,
+        family,
+        host,
+        count=settings.eval_images,
+        image_size=image_size,
+        seed=settings.seed + 77_777,
+        exclude=source,
+    )
     family_before = reconstruction_scores(tokenizer, family_held_out, host, batch_size)
     before_images = reconstruct_all(tokenizer, held_out_M[:8].to(device)).cpu()
     real = _real_frames(target, host, image_size)  # the sensor's own captured frames, when it ships some (taxim)
-    real_before = reconstruction_scores(tokenizer, real, host, batch_size, settings.metrics) if real is not None else None
+    real_before = (
+        reconstruction_scores(tokenizer, real, host, batch_size, settings.metrics) if real is not None else None
+    )
     discriminator, adversarial = _discriminator(folder, loss, host)
     if discriminator is not None:
         start = getattr(tokenizer.autoencoder, "vqtouch_step", 0)
         loss = loss.model_copy(update={"disc_start": max(0, loss.disc_start - start)})
     task = tokenizer_task(tokenizer, loss, device, discriminator)
-    trainer = Trainer(task, mixed_set, train, batch_size=batch_size, seed=settings.seed, device=device,
-                      checkpoint_dir=None, host=host, stage="adapt")
+    trainer = Trainer(
+        task,
+        mixed_set,
+        train,
+        batch_size=batch_size,
+        seed=settings.seed,
+        device=device,
+        checkpoint_dir=None,
+        host=host,
+        stage="adapt",
+    )
     tic = time.perf_counter()
     trainer.fit()
     seconds = time.perf_counter() - tic
@@ -275,27 +348,49 @@ def adapt_tokenizer(run_or_folder: Any, target: str, families: SensorFamilies, h
     after_images = reconstruct_all(tokenizer, held_out_M[:8].to(device)).cpu()
 
     summary: dict[str, Any] = {
-        "target": name, "target_source": source, "adapted_from": str(folder), "family": family,
-        "family_members": families.summary["families"][family], "members_used": members,
-        "assignment": assignment, "forced_family": settings.family is not None,
-        "shots": len(shots_N), "ratio": settings.ratio, "family_images": family_count, "held_out": len(held_out_M),
-        "steps": settings.steps, "learning_rate": train.learning_rate, "batch_size": batch_size,
-        "adversarial": adversarial, "seconds": round(seconds, 2), "before": before, "after": after,
-        "family_held_out": {"images": len(family_held_out), "before": family_before, "after": family_after}}
+        "target": name,
+        "target_source": source,
+        "adapted_from": str(folder),
+        "family": family,
+        "family_members": families.summary["families"][family],
+        "members_used": members,
+        "assignment": assignment,
+        "forced_family": settings.family is not None,
+        "shots": len(shots_N),
+        "ratio": settings.ratio,
+        "family_images": family_count,
+        "held_out": len(held_out_M),
+        "steps": settings.steps,
+        "learning_rate": train.learning_rate,
+        "batch_size": batch_size,
+        "adversarial": adversarial,
+        "seconds": round(seconds, 2),
+        "before": before,
+        "after": after,
+        "family_held_out": {"images": len(family_held_out), "before": family_before, "after": family_after},
+    }
     if real is not None:
-        summary["real_frames"] = {"count": len(real), "before": real_before,
-                                  "after": reconstruction_scores(tokenizer, real, host, batch_size, settings.metrics)}
+        summary["real_frames"] = {
+            "count": len(real),
+            "before": real_before,
+            "after": reconstruction_scores(tokenizer, real, host, batch_size, settings.metrics),
+        }
     out.mkdir(parents=True, exist_ok=True)
-    header = {"adaptation.target": source, "adaptation.family": str(family),
-              "adaptation.family_members": json.dumps(summary["family_members"]),
-              "adaptation.shots": str(len(shots_N)), "adaptation.ratio": f"{settings.ratio:g}",
-              "adaptation.adapted_from": str(folder)}
+    header = {
+        "adaptation.target": source,
+        "adaptation.family": str(family),
+        "adaptation.family_members": json.dumps(summary["family_members"]),
+        "adaptation.shots": str(len(shots_N)),
+        "adaptation.ratio": f"{settings.ratio:g}",
+        "adaptation.adapted_from": str(folder),
+    }
     step_reached = getattr(tokenizer.autoencoder, "vqtouch_step", 0) + settings.steps
     for file, module in zip(TOKENIZER_FILES, (tokenizer.autoencoder, tokenizer.quantizer)):
         save(module, out / file, step=step_reached, host=host, metadata=header)
     count = len(before_images)
-    save_png(image_grid(torch.cat([held_out_M[:count], before_images, after_images]), columns=count),
-             out / BEFORE_AFTER_PNG)
+    save_png(
+        image_grid(torch.cat([held_out_M[:count], before_images, after_images]), columns=count), out / BEFORE_AFTER_PNG
+    )
     atomic_write(out / ADAPT_JSON, lambda tmp: tmp.write_text(json.dumps(summary, indent=2) + "\n"))
     return summary
 
@@ -341,9 +436,19 @@ def _real_frames(target: str, host: PluginHost, image_size: ImageSize) -> torch.
     return host.build("sensor_family", config).reference_frames(*image_hw(image_size))
 
 
-def default_families(tokenizer: Any, host: PluginHost, *, image_size: ImageSize, tokenizer_source: str, exclude: str = "",
-                     clusterer: dict[str, Any] | None = None, variants_per_family: int = 3, images: int = 32,
-                     seed: int = 0, report: Any = print) -> SensorFamilies:
+def default_families(
+    tokenizer: Any,
+    host: PluginHost,
+    *,
+    image_size: ImageSize,
+    tokenizer_source: str,
+    exclude: str = "",
+    clusterer: dict[str, Any] | None = None,
+    variants_per_family: int = 3,
+    images: int = 32,
+    seed: int = 0,
+    report: Any = print,
+) -> SensorFamilies:
     """Families of every registered sensor family and ``variants_per_family`` environmental
     variants of each (:func:`.families.family_sensor_specs`), clustered with ``clusterer``
     (default: k-means, the family count by silhouette); the sensor whose source is ``exclude``
@@ -351,14 +456,24 @@ def default_families(tokenizer: Any, host: PluginHost, *, image_size: ImageSize,
     from .families import family_sensor_specs, fit_families
 
     specs = [spec for spec in family_sensor_specs(host, variants_per_family) if spec != exclude]
-    return fit_families(tokenizer, specs, host, clusterer=host.build("clusterer", clusterer or {"name": "kmeans"}),
-                        images=images, image_size=image_size, seed=seed, tokenizer_source=tokenizer_source,
-                        report=report)
+    return fit_families(
+        tokenizer,
+        specs,
+        host,
+        clusterer=host.build("clusterer", clusterer or {"name": "kmeans"}),
+        images=images,
+        image_size=image_size,
+        seed=seed,
+        tokenizer_source=tokenizer_source,
+        report=report,
+    )
 
 
 def check_same_tokenizer(families: SensorFamilies, tokenizer_folder: Path, where: str) -> None:
     """Refuse families fitted on another tokenizer's features: distances to them mean nothing."""
     fitted = families.summary.get("tokenizer", "")
     if fitted and Path(fitted).resolve() != tokenizer_folder.resolve():
-        raise ConfigError(f"{where} were fitted on the features of {fitted}, not of {tokenizer_folder} (the tokenizer "
-                          "being adapted); run `vqtouch cluster` with this tokenizer, or adapt that one")
+        raise ConfigError(
+            f"{where} were fitted on the features of {fitted}, not of {tokenizer_folder} (the tokenizer "
+            "being adapted); run `vqtouch cluster` with this tokenizer, or adapt that one"
+        )

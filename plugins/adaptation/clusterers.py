@@ -27,8 +27,12 @@ from vqtouch.core import BuildContext, Clusterer, ConfigError, PluginConfig, hoo
 class FamilyClustererOptions(PluginConfig):
     """Options shared by the family clusterers; subclasses narrow ``name``."""
 
-    num_families: int = Field(0, ge=0, le=1000, description="Number of sensor families; 0 chooses it in "
-                                                            "[2, max_families] by the best silhouette score.")
+    num_families: int = Field(
+        0,
+        ge=0,
+        le=1000,
+        description="Number of sensor families; 0 chooses it in [2, max_families] by the best silhouette score.",
+    )
     max_families: int = Field(8, ge=2, le=1000, description="Largest family count tried when num_families is 0.")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed of the clustering's random starts (k-means).")
 
@@ -66,8 +70,10 @@ class FamilyClusterer(Clusterer):
         distinct = int(torch.unique(features, dim=0).shape[0])
         if self.options.num_families:
             if self.options.num_families > distinct:
-                raise ConfigError(f"{self.options.num_families} families asked of {distinct} distinct sensor "
-                                  f"feature(s); set num_families <= {distinct}, or 0 to choose by silhouette")
+                raise ConfigError(
+                    f"{self.options.num_families} families asked of {distinct} distinct sensor "
+                    f"feature(s); set num_families <= {distinct}, or 0 to choose by silhouette"
+                )
             labels = self._labels(features.numpy(), self.options.num_families)
         else:
             labels = self._best_by_silhouette(features.numpy(), min(self.options.max_families, distinct - 1))
@@ -101,8 +107,10 @@ class FamilyClusterer(Clusterer):
             raise RuntimeError("the clusterer is not fitted: call fit() first (or load a fitted checkpoint)")
         features = self._check(features_NF)
         if features.shape[1] != self.centroids_KF.shape[1]:
-            raise ValueError(f"features have {features.shape[1]} dimensions; the families were fitted on "
-                             f"{self.centroids_KF.shape[1]}")
+            raise ValueError(
+                f"features have {features.shape[1]} dimensions; the families were fitted on "
+                f"{self.centroids_KF.shape[1]}"
+            )
         return torch.cdist(features, self.centroids_KF.cpu())
 
     def predict(self, features_NF: torch.Tensor) -> torch.Tensor:
@@ -140,7 +148,8 @@ class KMeansClusterer(FamilyClusterer):
         from sklearn.cluster import KMeans
 
         return KMeans(n_clusters=count, n_init=self.options.restarts, random_state=self.options.seed).fit_predict(
-            features)
+            features
+        )
 
 
 class AgglomerativeConfig(FamilyClustererOptions):
@@ -170,9 +179,17 @@ def build_agglomerative(config: AgglomerativeConfig, context: BuildContext) -> A
 
 @hookimpl
 def vqtouch_register_clusterers(register):
-    register("kmeans", build_kmeans, KMeansConfig,
-             description="Sensor families by k-means over sensor prototypes (count given or by silhouette); "
-                         "an unseen sensor joins the nearest family mean.")
-    register("agglomerative", build_agglomerative, AgglomerativeConfig,
-             description="Sensor families by Ward agglomerative clustering (deterministic); an unseen sensor joins "
-                         "the nearest family mean.")
+    register(
+        "kmeans",
+        build_kmeans,
+        KMeansConfig,
+        description="Sensor families by k-means over sensor prototypes (count given or by silhouette); "
+        "an unseen sensor joins the nearest family mean.",
+    )
+    register(
+        "agglomerative",
+        build_agglomerative,
+        AgglomerativeConfig,
+        description="Sensor families by Ward agglomerative clustering (deterministic); an unseen sensor joins "
+        "the nearest family mean.",
+    )

@@ -31,7 +31,6 @@ from vqtouch.plugins.tokenizer import load_tokenizer
 from vqtouch.plugins.scenes import GELSIGHT_DERIVATIVE_II
 
 
-
 def _fraction(text: str) -> float:
     value = float(text)
     if not 0 < value <= 1:
@@ -46,7 +45,6 @@ def _non_negative_float(text: str) -> float:
     return value
 
 
-
 def _cluster_command(args: argparse.Namespace) -> int:
 
     from .families import fit_families, save_families, sensor_images
@@ -57,10 +55,20 @@ def _cluster_command(args: argparse.Namespace) -> int:
     tokenizer, folder = load_tokenizer(args.run, host, step=args.step)
     image_size = args.image_size or tokenizer.autoencoder.vqtouch_spec.context.image_size
     clusterer = host.build("clusterer", {"name": args.clusterer, "num_families": args.families})
-    families = fit_families(tokenizer, args.sensors, host, clusterer=clusterer, images=args.images,
-                            image_size=image_size, features=args.features, refine_steps=args.refine_steps,
-                            keep=args.keep, seed=args.seed, tokenizer_source=str(folder),
-                            report=lambda line: print(line, flush=True))
+    families = fit_families(
+        tokenizer,
+        args.sensors,
+        host,
+        clusterer=clusterer,
+        images=args.images,
+        image_size=image_size,
+        features=args.features,
+        refine_steps=args.refine_steps,
+        keep=args.keep,
+        seed=args.seed,
+        tokenizer_source=str(folder),
+        report=lambda line: print(line, flush=True),
+    )
     assignments, plotted = {}, []
     for spec in args.unseen:
         sensor = sensor_images(spec, host, count=args.images, image_size=image_size, seed=args.seed + 1)
@@ -80,8 +88,10 @@ def _cluster_command(args: argparse.Namespace) -> int:
 def describe_assignment(assigned: dict) -> str:
     """One line: the family an unseen sensor joins and the margin, or why it is refused."""
     if assigned["refused"]:
-        return (f"refused: {min(assigned['distances']):.4g} from the nearest family, beyond the threshold "
-                f"{assigned['threshold']:.4g}")
+        return (
+            f"refused: {min(assigned['distances']):.4g} from the nearest family, beyond the threshold "
+            f"{assigned['threshold']:.4g}"
+        )
     return f"family {assigned['family']} (distance {min(assigned['distances']):.4g}, margin {assigned['margin']:.4g})"
 
 
@@ -100,21 +110,49 @@ def _adapt_command(args: argparse.Namespace) -> int:
     else:
         print("no --families: clustering the registered sensor families and 3 variants of each", flush=True)
         exclude = registered_source(args.images)
-        families = default_families(tokenizer, host, image_size=tokenizer.autoencoder.vqtouch_spec.context.image_size,
-                                    tokenizer_source=str(folder), exclude=exclude, seed=args.seed,
-                                    report=lambda line: None)
-    settings = AdaptSettings(shots=args.shots, ratio=args.ratio, steps=args.steps, learning_rate=args.learning_rate,
-                             batch_size=args.batch_size, eval_images=args.eval_images, threshold=args.threshold,
-                             family=args.family, seed=args.seed)
-    summary = adapt_tokenizer(args.run, args.images, families, host, out, settings, step=args.step,
-                              overwrite=args.overwrite, report=lambda line: print(line, flush=True))
+        families = default_families(
+            tokenizer,
+            host,
+            image_size=tokenizer.autoencoder.vqtouch_spec.context.image_size,
+            tokenizer_source=str(folder),
+            exclude=exclude,
+            seed=args.seed,
+            report=lambda line: None,
+        )
+    settings = AdaptSettings(
+        shots=args.shots,
+        ratio=args.ratio,
+        steps=args.steps,
+        learning_rate=args.learning_rate,
+        batch_size=args.batch_size,
+        eval_images=args.eval_images,
+        threshold=args.threshold,
+        family=args.family,
+        seed=args.seed,
+    )
+    summary = adapt_tokenizer(
+        args.run,
+        args.images,
+        families,
+        host,
+        out,
+        settings,
+        step=args.step,
+        overwrite=args.overwrite,
+        report=lambda line: print(line, flush=True),
+    )
     before, after = summary["before"], summary["after"]
-    print(f"held-out {summary['target']} ({summary['held_out']} images): SSIM {before['ssim']:.4f} -> {after['ssim']:.4f}, "
-          f"PSNR {before['psnr']:.2f} -> {after['psnr']:.2f} dB ({summary['steps']} steps, {summary['seconds']:.1f} s)")
+    print(
+        f"held-out {summary['target']} ({summary['held_out']} images): "
+        f"SSIM {before['ssim']:.4f} -> {after['ssim']:.4f}, "
+        f"PSNR {before['psnr']:.2f} -> {after['psnr']:.2f} dB ({summary['steps']} steps, {summary['seconds']:.1f} s)"
+    )
     if "real_frames" in summary:
         real = summary["real_frames"]
-        print(f"{real['count']} real frames: SSIM {real['before']['ssim']:.4f} -> {real['after']['ssim']:.4f}, "
-              f"PSNR {real['before']['psnr']:.2f} -> {real['after']['psnr']:.2f} dB")
+        print(
+            f"{real['count']} real frames: SSIM {real['before']['ssim']:.4f} -> {real['after']['ssim']:.4f}, "
+            f"PSNR {real['before']['psnr']:.2f} -> {real['after']['psnr']:.2f} dB"
+        )
     print(f"-> {out} (autoencoder.safetensors, quantizer.safetensors, adapt.json, before_after.png)")
     return 0
 
@@ -123,12 +161,27 @@ def _evaluate_cross_sensor_command(args: argparse.Namespace) -> int:
     from .evaluation import evaluate_cross_sensor
 
     out = Path(args.out)
-    evaluate_cross_sensor(args.run, args.host, out, target=args.target, seeds=args.seeds, steps=args.steps,
-                          shots=args.shots, ratios=args.ratios, main_shots=args.main_shots, main_ratio=args.main_ratio,
-                          everything=args.everything, eval_images=args.eval_images, variants=args.variants,
-                          held_out_variants=args.held_out_variants, images=args.images, clusterers=args.clusterers,
-                          real_family=None if args.real == "none" else args.real, real_shots=args.real_shots,
-                          report=lambda line: print(line, flush=True))
+    evaluate_cross_sensor(
+        args.run,
+        args.host,
+        out,
+        target=args.target,
+        seeds=args.seeds,
+        steps=args.steps,
+        shots=args.shots,
+        ratios=args.ratios,
+        main_shots=args.main_shots,
+        main_ratio=args.main_ratio,
+        everything=args.everything,
+        eval_images=args.eval_images,
+        variants=args.variants,
+        held_out_variants=args.held_out_variants,
+        images=args.images,
+        clusterers=args.clusterers,
+        real_family=None if args.real == "none" else args.real,
+        real_shots=args.real_shots,
+        report=lambda line: print(line, flush=True),
+    )
     print((out / "cross_sensor.md").read_text())
     print(f"-> {out} (cross_sensor.json, cross_sensor.md, cross_sensor.png)")
     return 0
@@ -138,9 +191,21 @@ def _evaluate_fewshot_command(args: argparse.Namespace) -> int:
     from .fewshot import evaluate_fewshot
 
     out = Path(args.out)
-    evaluate_fewshot(args.run, args.host, out, target=args.target, seeds=args.seeds, counts=args.n, ratio=args.ratio,
-                     steps=args.steps, scratch_steps=args.scratch_steps, eval_images=args.eval_images,
-                     families=args.families, overwrite=args.overwrite, report=lambda line: print(line, flush=True))
+    evaluate_fewshot(
+        args.run,
+        args.host,
+        out,
+        target=args.target,
+        seeds=args.seeds,
+        counts=args.n,
+        ratio=args.ratio,
+        steps=args.steps,
+        scratch_steps=args.scratch_steps,
+        eval_images=args.eval_images,
+        families=args.families,
+        overwrite=args.overwrite,
+        report=lambda line: print(line, flush=True),
+    )
     print((out / "fewshot.md").read_text())
     print(f"-> {out} (fewshot.json, fewshot.md, fewshot.png; the trained arms' tokenizers in seed<S>/<arm>-<N>/)")
     return 0
@@ -151,100 +216,199 @@ def vqtouch_add_commands(subparsers):
     cluster = subparsers.add_parser("cluster", help="group sensors into families from a trained tokenizer's features")
     cluster.add_argument("--run", required=True, help="a run whose tokenizer trained (or a checkpoint folder)")
     add_step_argument(cluster)
-    cluster.add_argument("--sensors", nargs="+", required=True, metavar="SPEC",
-                         help="sensors: registered family names, JSON with a variant, or folders of images")
+    cluster.add_argument(
+        "--sensors",
+        nargs="+",
+        required=True,
+        metavar="SPEC",
+        help="sensors: registered family names, JSON with a variant, or folders of images",
+    )
     cluster.add_argument("--out", required=True, help="folder for cluster.json and families.png")
     cluster.add_argument("--images", type=positive_int, default=64, help="images per sensor (default 64)")
-    cluster.add_argument("--image-size", type=image_size_argument,
-                         help="image size, S or HEIGHTxWIDTH (default: the tokenizer's)")
-    cluster.add_argument("--features", choices=("pooled", "codes"), default="pooled",
-                         help="pooled encoder features or code histograms (default pooled)")
+    cluster.add_argument(
+        "--image-size", type=image_size_argument, help="image size, S or HEIGHTxWIDTH (default: the tokenizer's)"
+    )
+    cluster.add_argument(
+        "--features",
+        choices=("pooled", "codes"),
+        default="pooled",
+        help="pooled encoder features or code histograms (default pooled)",
+    )
     cluster.add_argument("--clusterer", default="kmeans", help="clusterer plugin (default kmeans)")
-    cluster.add_argument("--families", type=non_negative_int, default=0, help="number of families (0: chosen by silhouette)")
-    cluster.add_argument("--refine-steps", type=non_negative_int, default=3, help="prototype refinement steps (default 3)")
+    cluster.add_argument(
+        "--families", type=non_negative_int, default=0, help="number of families (0: chosen by silhouette)"
+    )
+    cluster.add_argument(
+        "--refine-steps", type=non_negative_int, default=3, help="prototype refinement steps (default 3)"
+    )
     cluster.add_argument("--keep", type=_fraction, default=0.8, help="fraction of images kept per refinement step")
     cluster.add_argument("--seed", type=int, default=0, help="seed of the rendered scenes")
-    cluster.add_argument("--unseen", nargs="+", default=[], metavar="SPEC",
-                         help="sensors to assign to the fitted families without joining them (zero-shot)")
-    cluster.add_argument("--threshold", type=float,
-                         help="refuse an unseen sensor farther than this from every family (default: 3x the "
-                              "largest within-family spread, at least half the nearest two families' distance)")
+    cluster.add_argument(
+        "--unseen",
+        nargs="+",
+        default=[],
+        metavar="SPEC",
+        help="sensors to assign to the fitted families without joining them (zero-shot)",
+    )
+    cluster.add_argument(
+        "--threshold",
+        type=float,
+        help="refuse an unseen sensor farther than this from every family (default: 3x the "
+        "largest within-family spread, at least half the nearest two families' distance)",
+    )
     cluster.set_defaults(handler=_cluster_command)
 
     adapt = subparsers.add_parser("adapt", help="adapt a family tokenizer to an unseen sensor from a few of its images")
-    adapt.add_argument("--run", required=True, help="the family tokenizer: a run whose tokenizer trained (or a "
-                                                    "checkpoint folder)")
+    adapt.add_argument(
+        "--run", required=True, help="the family tokenizer: a run whose tokenizer trained (or a checkpoint folder)"
+    )
     add_step_argument(adapt)
-    adapt.add_argument("--images", required=True, metavar="DIR_OR_SPEC",
-                       help="the unseen sensor: a folder of its images, or a registered sensor (name or JSON variant)")
+    adapt.add_argument(
+        "--images",
+        required=True,
+        metavar="DIR_OR_SPEC",
+        help="the unseen sensor: a folder of its images, or a registered sensor (name or JSON variant)",
+    )
     adapt.add_argument("--out", required=True, help="folder for the adapted tokenizer, adapt.json and before_after.png")
     adapt.add_argument("--shots", type=positive_int, default=50, help="unseen-sensor images to train on (default 50)")
-    adapt.add_argument("--ratio", type=_non_negative_float, default=5.0,
-                       help="family images per shot in the mixed set (default 5: the paper's 1:5)")
+    adapt.add_argument(
+        "--ratio",
+        type=_non_negative_float,
+        default=5.0,
+        help="family images per shot in the mixed set (default 5: the paper's 1:5)",
+    )
     adapt.add_argument("--steps", type=positive_int, default=200, help="fine-tuning steps (default 200)")
     adapt.add_argument("--learning-rate", type=float, help="default: the run's tokenizer.train.learning_rate")
     adapt.add_argument("--batch-size", type=positive_int, help="default: the run's data.batch_size")
-    adapt.add_argument("--eval-images", type=positive_int, default=64,
-                       help="held-out unseen-sensor images scored before and after (default 64)")
-    adapt.add_argument("--families", help="a `vqtouch cluster` output folder (default: cluster the registered "
-                                          "sensor families and 3 variants of each, written with the sensor's "
-                                          "assignment to OUT/families)")
-    adapt.add_argument("--threshold", type=float, help="refuse a sensor farther than this from every family "
-                                                       "(default: the clustering's refusal threshold)")
+    adapt.add_argument(
+        "--eval-images",
+        type=positive_int,
+        default=64,
+        help="held-out unseen-sensor images scored before and after (default 64)",
+    )
+    adapt.add_argument(
+        "--families",
+        help="a `vqtouch cluster` output folder (default: cluster the registered "
+        "sensor families and 3 variants of each, written with the sensor's "
+        "assignment to OUT/families)",
+    )
+    adapt.add_argument(
+        "--threshold",
+        type=float,
+        help="refuse a sensor farther than this from every family (default: the clustering's refusal threshold)",
+    )
     adapt.add_argument("--family", type=non_negative_int, help="adapt from this family, whatever the assignment says")
     adapt.add_argument("--seed", type=int, default=0, help="seed of the shots' draw and the rendered scenes")
     adapt.add_argument("--overwrite", action="store_true", help="replace an adapted tokenizer already in --out")
     adapt.set_defaults(handler=_adapt_command)
 
-
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
-    cross = evaluate.add_parser("cross-sensor", help="family recovery, few-shot transfer arms, real frames and cost "
-                                                     "of adapting a family tokenizer (JSON, markdown, PNG)")
+    cross = evaluate.add_parser(
+        "cross-sensor",
+        help="family recovery, few-shot transfer arms, real frames and cost "
+        "of adapting a family tokenizer (JSON, markdown, PNG)",
+    )
     cross.add_argument("--run", required=True, help="the family tokenizer's run")
     cross.add_argument("--out", required=True, help="folder for cross_sensor.json/.md/.png and the arms' tokenizers")
-    cross.add_argument("--target", default=json.dumps(GELSIGHT_DERIVATIVE_II),
-                       help="the unseen sensor (default: the zero-shot scene's damaged, drifted GelSight)")
+    cross.add_argument(
+        "--target",
+        default=json.dumps(GELSIGHT_DERIVATIVE_II),
+        help="the unseen sensor (default: the zero-shot scene's damaged, drifted GelSight)",
+    )
     cross.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (default 0 1 2)")
     cross.add_argument("--steps", type=positive_int, default=200, help="fine-tuning steps of every arm (default 200)")
-    cross.add_argument("--shots", type=positive_int, nargs="+", default=[10, 25, 50, 100],
-                       help="shot counts of arms b and c (default 10 25 50 100)")
+    cross.add_argument(
+        "--shots",
+        type=positive_int,
+        nargs="+",
+        default=[10, 25, 50, 100],
+        help="shot counts of arms b and c (default 10 25 50 100)",
+    )
     cross.add_argument("--main-shots", type=positive_int, default=50, help="shots of the ratio sweep (default 50)")
-    cross.add_argument("--ratios", type=_non_negative_float, nargs="+", default=[1.0, 5.0, 20.0],
-                       help="family images per shot in arm c (default 1 5 20)")
+    cross.add_argument(
+        "--ratios",
+        type=_non_negative_float,
+        nargs="+",
+        default=[1.0, 5.0, 20.0],
+        help="family images per shot in arm c (default 1 5 20)",
+    )
     cross.add_argument("--main-ratio", type=_non_negative_float, default=5.0, help="ratio of the shots sweep (5)")
-    cross.add_argument("--everything", type=non_negative_int, default=1000,
-                       help="target images of arm d, mixed 1:1 with family data (0 skips arm d and the cost)")
+    cross.add_argument(
+        "--everything",
+        type=non_negative_int,
+        default=1000,
+        help="target images of arm d, mixed 1:1 with family data (0 skips arm d and the cost)",
+    )
     cross.add_argument("--eval-images", type=positive_int, default=64, help="held-out target images (default 64)")
     cross.add_argument("--variants", type=positive_int, default=4, help="variants per family to cluster (default 4)")
-    cross.add_argument("--held-out-variants", type=positive_int, default=2,
-                       help="further variants per family to assign (default 2)")
+    cross.add_argument(
+        "--held-out-variants", type=positive_int, default=2, help="further variants per family to assign (default 2)"
+    )
     cross.add_argument("--images", type=positive_int, default=32, help="images per sensor for clustering (default 32)")
     cross.add_argument("--clusterers", nargs="+", default=["kmeans", "agglomerative"], help="clusterer plugins")
-    cross.add_argument("--real", default="gelsight_mini",
-                       help="a sensor family whose captured frames play the unseen sensor ('none' skips)")
-    cross.add_argument("--real-shots", type=positive_int, nargs="+", default=[4, 8, 16],
-                       help="shots from the real frames (default 4 8 16; the rest are held out)")
+    cross.add_argument(
+        "--real",
+        default="gelsight_mini",
+        help="a sensor family whose captured frames play the unseen sensor ('none' skips)",
+    )
+    cross.add_argument(
+        "--real-shots",
+        type=positive_int,
+        nargs="+",
+        default=[4, 8, 16],
+        help="shots from the real frames (default 4 8 16; the rest are held out)",
+    )
     cross.set_defaults(handler=_evaluate_cross_sensor_command)
 
-    fewshot = evaluate.add_parser("fewshot", help="few-shot reconstruction of an unseen sensor from N of its images "
-                                                  "(Table 4): from scratch, zero-shot, fine-tuned on the N alone, "
-                                                  "mixed 1:ratio with family data (JSON, markdown, PNG)")
+    fewshot = evaluate.add_parser(
+        "fewshot",
+        help="few-shot reconstruction of an unseen sensor from N of its images "
+        "(Table 4): from scratch, zero-shot, fine-tuned on the N alone, "
+        "mixed 1:ratio with family data (JSON, markdown, PNG)",
+    )
     fewshot.add_argument("--run", required=True, help="the family tokenizer's run (its config trains the scratch arm)")
     add_experiment_arguments(fewshot)
-    fewshot.add_argument("--target", default=json.dumps(GELSIGHT_DERIVATIVE_II),
-                         help="the unseen sensor: a registered sensor (name or JSON variant) or a folder of its "
-                              "images (default: the zero-shot scene's damaged, drifted GelSight)")
-    fewshot.add_argument("--n", type=positive_int, nargs="+", default=[500, 2000], metavar="N",
-                         help="unseen-sensor images each arm learns from (default 500 2000)")
-    fewshot.add_argument("--ratio", type=_non_negative_float, default=5.0,
-                         help="family images per target image in the mixed arm (default 5: the paper's 1:5)")
-    fewshot.add_argument("--steps", type=positive_int, default=200,
-                         help="fine-tuning steps of the shots-alone and mixed arms (default 200)")
-    fewshot.add_argument("--scratch-steps", type=positive_int,
-                         help="training steps of the scratch arm (default: the run's tokenizer.train.steps)")
-    fewshot.add_argument("--eval-images", type=positive_int, default=64,
-                         help="held-out unseen-sensor images every arm is scored on (default 64)")
-    fewshot.add_argument("--families", help="a `vqtouch cluster` output of this tokenizer (default: cluster the "
-                                            "registered sensor families and 3 variants of each into OUT/families)")
+    fewshot.add_argument(
+        "--target",
+        default=json.dumps(GELSIGHT_DERIVATIVE_II),
+        help="the unseen sensor: a registered sensor (name or JSON variant) or a folder of its "
+        "images (default: the zero-shot scene's damaged, drifted GelSight)",
+    )
+    fewshot.add_argument(
+        "--n",
+        type=positive_int,
+        nargs="+",
+        default=[500, 2000],
+        metavar="N",
+        help="unseen-sensor images each arm learns from (default 500 2000)",
+    )
+    fewshot.add_argument(
+        "--ratio",
+        type=_non_negative_float,
+        default=5.0,
+        help="family images per target image in the mixed arm (default 5: the paper's 1:5)",
+    )
+    fewshot.add_argument(
+        "--steps",
+        type=positive_int,
+        default=200,
+        help="fine-tuning steps of the shots-alone and mixed arms (default 200)",
+    )
+    fewshot.add_argument(
+        "--scratch-steps",
+        type=positive_int,
+        help="training steps of the scratch arm (default: the run's tokenizer.train.steps)",
+    )
+    fewshot.add_argument(
+        "--eval-images",
+        type=positive_int,
+        default=64,
+        help="held-out unseen-sensor images every arm is scored on (default 64)",
+    )
+    fewshot.add_argument(
+        "--families",
+        help="a `vqtouch cluster` output of this tokenizer (default: cluster the "
+        "registered sensor families and 3 variants of each into OUT/families)",
+    )
     fewshot.add_argument("--overwrite", action="store_true", help="run again into an --out that holds fewshot.json")
     fewshot.set_defaults(handler=_evaluate_fewshot_command)

@@ -45,63 +45,127 @@ def _family_of(source: str) -> str:
     return json.loads(source)["name"]
 
 
-def family_recovery(tokenizer: Any, host: PluginHost, *, seed: int, variants: int, held_out_variants: int, images: int,
-                    image_size: ImageSize, clusterers: list[str], tokenizer_source: str) -> tuple[list[dict], SensorFamilies]:
+def family_recovery(
+    tokenizer: Any,
+    host: PluginHost,
+    *,
+    seed: int,
+    variants: int,
+    held_out_variants: int,
+    images: int,
+    image_size: ImageSize,
+    clusterers: list[str],
+    tokenizer_source: str,
+) -> tuple[list[dict], SensorFamilies]:
     """One seed of part 1: per clusterer, the families found, the ARI and the held-out assignment
     accuracy.  Returns the rows and the first clusterer's families (used by the transfer arms)."""
     from sklearn.metrics import adjusted_rand_score
 
     specs = family_sensor_specs(host, variants, first_seed=1000 + 100 * seed)
-    unseen = [spec for spec in family_sensor_specs(host, held_out_variants, first_seed=1050 + 100 * seed)
-              if "variant" in json.loads(spec)]
+    unseen = [
+        spec
+        for spec in family_sensor_specs(host, held_out_variants, first_seed=1050 + 100 * seed)
+        if "variant" in json.loads(spec)
+    ]
     rows, first = [], None
     for name in clusterers:
-        families = fit_families(tokenizer, specs, host, clusterer=host.build("clusterer", {"name": name, "seed": seed}),
-                                images=images, image_size=image_size, seed=seed, tokenizer_source=tokenizer_source,
-                                report=lambda line: None)
+        families = fit_families(
+            tokenizer,
+            specs,
+            host,
+            clusterer=host.build("clusterer", {"name": name, "seed": seed}),
+            images=images,
+            image_size=image_size,
+            seed=seed,
+            tokenizer_source=tokenizer_source,
+            report=lambda line: None,
+        )
         summary = families.summary
         truth = [_family_of(sensor["source"]) for sensor in summary["sensors"]]
         found = [summary["sensor_family"][sensor["name"]] for sensor in summary["sensors"]]
-        majority = {family: max(set(members), key=members.count) for family in set(found)
-                    for members in [[t for t, f in zip(truth, found) if f == family]]}
+        majority = {
+            family: max(set(members), key=members.count)
+            for family in set(found)
+            for members in [[t for t, f in zip(truth, found) if f == family]]
+        }
         correct = refused = 0
         for spec in unseen:
             sensor = sensor_images(spec, host, count=images, image_size=image_size, seed=seed + 1)
             assigned, _ = families.unseen(tokenizer, sensor.name, sensor.images)
             refused += assigned["refused"]
             correct += (not assigned["refused"]) and majority[assigned["family"]] == _family_of(spec)
-        rows.append({"clusterer": name, "seed": seed, "sensors": len(specs), "true_families": len(set(truth)),
-                     "families": len(summary["families"]), "ari": round(adjusted_rand_score(truth, found), 4),
-                     "assignment_accuracy": round(correct / len(unseen), 4), "refused": refused,
-                     "held_out_sensors": len(unseen)})
+        rows.append(
+            {
+                "clusterer": name,
+                "seed": seed,
+                "sensors": len(specs),
+                "true_families": len(set(truth)),
+                "families": len(summary["families"]),
+                "ari": round(adjusted_rand_score(truth, found), 4),
+                "assignment_accuracy": round(correct / len(unseen), 4),
+                "refused": refused,
+                "held_out_sensors": len(unseen),
+            }
+        )
         first = first or families
     return rows, first
 
 
 def _arm_settings(shots: int, ratio: float, steps: int, eval_images: int, seed: int, **extra: Any) -> AdaptSettings:
-    return AdaptSettings(shots=shots, ratio=ratio, steps=steps, eval_images=eval_images, seed=seed, metrics=METRICS,
-                         **extra)
+    return AdaptSettings(
+        shots=shots, ratio=ratio, steps=steps, eval_images=eval_images, seed=seed, metrics=METRICS, **extra
+    )
 
 
 def _arm_row(arm: str, summary: dict[str, Any], *, zero_shot: bool = False) -> dict[str, Any]:
     when = "before" if zero_shot else "after"
     scores, family = summary[when], summary["family_held_out"][when]
-    return {"arm": arm, "shots": 0 if zero_shot else summary["shots"], "ratio": None if zero_shot else summary["ratio"],
-            "held_out": summary["held_out"], **{key: scores.get(key) for key in METRICS},
-            "codebook_usage": scores.get("codebook_usage"), "family": summary["family"], "family_ssim": family["ssim"],
-            "family_psnr": family["psnr"], "seconds": 0.0 if zero_shot else summary["seconds"]}
+    return {
+        "arm": arm,
+        "shots": 0 if zero_shot else summary["shots"],
+        "ratio": None if zero_shot else summary["ratio"],
+        "held_out": summary["held_out"],
+        **{key: scores.get(key) for key in METRICS},
+        "codebook_usage": scores.get("codebook_usage"),
+        "family": summary["family"],
+        "family_ssim": family["ssim"],
+        "family_psnr": family["psnr"],
+        "seconds": 0.0 if zero_shot else summary["seconds"],
+    }
 
 
-def transfer_arms(run: Any, target: str, families: SensorFamilies, host: PluginHost, out: Path, *, seed: int, steps: int,
-                  shots: list[int], ratios: list[float], main_shots: int, main_ratio: float, everything: int,
-                  eval_images: int, family: int | None = None) -> list[dict[str, Any]]:
+def transfer_arms(
+    run: Any,
+    target: str,
+    families: SensorFamilies,
+    host: PluginHost,
+    out: Path,
+    *,
+    seed: int,
+    steps: int,
+    shots: list[int],
+    ratios: list[float],
+    main_shots: int,
+    main_ratio: float,
+    everything: int,
+    eval_images: int,
+    family: int | None = None,
+) -> list[dict[str, Any]]:
     """One seed of part 2 (or 3, with a folder target): every arm's held-out scores."""
     rows = []
 
     def arm(name: str, shot_count: int, ratio: float) -> dict[str, Any]:
         settings = _arm_settings(shot_count, ratio, steps, eval_images, seed, family=family)
-        return adapt_tokenizer(run, target, families, host, out / f"seed{seed}" / f"{name}-{shot_count}-{ratio:g}",
-                               settings, overwrite=True, report=lambda line: None)
+        return adapt_tokenizer(
+            run,
+            target,
+            families,
+            host,
+            out / f"seed{seed}" / f"{name}-{shot_count}-{ratio:g}",
+            settings,
+            overwrite=True,
+            report=lambda line: None,
+        )
 
     first = arm("b", shots[0], 0.0)
     rows.append(_arm_row("a: zero-shot", first, zero_shot=True))
@@ -118,9 +182,16 @@ def transfer_arms(run: Any, target: str, families: SensorFamilies, host: PluginH
     return rows
 
 
-def train_fresh_tokenizer(run: Any, images_N3HW: torch.Tensor, host: PluginHost, *, seed: int, steps: int | None = None,
-                          out: Path | None = None,
-                          metadata: dict[str, str] | None = None) -> tuple[Any, dict[str, Any]]:
+def train_fresh_tokenizer(
+    run: Any,
+    images_N3HW: torch.Tensor,
+    host: PluginHost,
+    *,
+    seed: int,
+    steps: int | None = None,
+    out: Path | None = None,
+    metadata: dict[str, str] | None = None,
+) -> tuple[Any, dict[str, Any]]:
     """A fresh tokenizer built from the run's config and trained with its objective and batch size
     on ``images_N3HW`` alone, for ``steps`` (default: the run's ``tokenizer.train.steps``): the
     baseline an adaptation is measured against.  Saved into ``out`` (autoencoder and quantizer,
@@ -139,15 +210,26 @@ def train_fresh_tokenizer(run: Any, images_N3HW: torch.Tensor, host: PluginHost,
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         tokenizer = Tokenizer(assembly.component("tokenizer.autoencoder"), assembly.component("tokenizer.quantizer"))
-        discriminator = (assembly.component("tokenizer.discriminator")
-                         if section.discriminator is not None and section.loss.adversarial_weight > 0 else None)
+        discriminator = (
+            assembly.component("tokenizer.discriminator")
+            if section.discriminator is not None and section.loss.adversarial_weight > 0
+            else None
+        )
     device = resolve_device(config.device)
     steps = section.train.steps if steps is None else steps
     # A set smaller than the run's batch still trains (few-shot arms): one batch then holds every image.
     batch_size = min(config.data.batch_size, len(images_N3HW))
-    trainer = Trainer(tokenizer_task(tokenizer, section.loss, device, discriminator), ImageSet(images_N3HW),
-                      section.train.model_copy(update={"steps": steps, "keep_best": False}), batch_size=batch_size,
-                      seed=seed, device=device, checkpoint_dir=None, host=host, stage="scratch")
+    trainer = Trainer(
+        tokenizer_task(tokenizer, section.loss, device, discriminator),
+        ImageSet(images_N3HW),
+        section.train.model_copy(update={"steps": steps, "keep_best": False}),
+        batch_size=batch_size,
+        seed=seed,
+        device=device,
+        checkpoint_dir=None,
+        host=host,
+        stage="scratch",
+    )
     tic = time.perf_counter()
     trainer.fit()
     seconds = time.perf_counter() - tic
@@ -156,23 +238,45 @@ def train_fresh_tokenizer(run: Any, images_N3HW: torch.Tensor, host: PluginHost,
         out.mkdir(parents=True, exist_ok=True)
         for file, module in zip(TOKENIZER_FILES, (tokenizer.autoencoder, tokenizer.quantizer)):
             save(module, out / file, step=steps, host=host, metadata=metadata)
-    return tokenizer, {"steps": steps, "seconds": round(seconds, 2), "train_images": len(images_N3HW),
-                       "batch_size": batch_size}
+    return tokenizer, {
+        "steps": steps,
+        "seconds": round(seconds, 2),
+        "train_images": len(images_N3HW),
+        "batch_size": batch_size,
+    }
 
 
-def scratch_cost(run: Any, target: str, families: SensorFamilies, host: PluginHost, *, seed: int, everything: int,
-                 eval_images: int, family: int) -> dict[str, Any]:
+def scratch_cost(
+    run: Any,
+    target: str,
+    families: SensorFamilies,
+    host: PluginHost,
+    *,
+    seed: int,
+    everything: int,
+    eval_images: int,
+    family: int,
+) -> dict[str, Any]:
     """Train a fresh tokenizer (the run's config and steps) on everything; its wall time and scores."""
     image_size = families.summary["image_size"]
-    _, source, target_N, held_out = target_images(target, host, shots=everything, eval_images=eval_images,
-                                                  image_size=image_size, seed=seed)
-    family_N, _ = family_images(families, family, host, count=everything, image_size=image_size, seed=seed,
-                                exclude=source)
+    _, source, target_N, held_out = target_images(
+        target, host, shots=everything, eval_images=eval_images, image_size=image_size, seed=seed
+    )
+    family_N, _ = family_images(
+        families, family, host, count=everything, image_size=image_size, seed=seed, exclude=source
+    )
     tokenizer, trained = train_fresh_tokenizer(run, torch.cat([target_N, family_N]), host, seed=seed)
     scores = reconstruction_scores(tokenizer, held_out, host, metrics=METRICS)
-    return {"arm": "fresh tokenizer on everything", "shots": everything, "ratio": 1.0, "held_out": len(held_out),
-            **{key: scores.get(key) for key in METRICS}, "codebook_usage": scores.get("codebook_usage"),
-            "steps": trained["steps"], "seconds": trained["seconds"]}
+    return {
+        "arm": "fresh tokenizer on everything",
+        "shots": everything,
+        "ratio": 1.0,
+        "held_out": len(held_out),
+        **{key: scores.get(key) for key in METRICS},
+        "codebook_usage": scores.get("codebook_usage"),
+        "steps": trained["steps"],
+        "seconds": trained["seconds"],
+    }
 
 
 def plot_transfer(transfer: list[dict[str, Any]], path: Path, title: str) -> None:
@@ -183,11 +287,16 @@ def plot_transfer(transfer: list[dict[str, Any]], path: Path, title: str) -> Non
     figure = Figure(figsize=(10, 4), dpi=110)
     FigureCanvasAgg(figure)
     by_shots, by_ratio = figure.add_subplot(1, 2, 1), figure.add_subplot(1, 2, 2)
-    main_ratio = max((row["ratio"] for row in transfer if row["arm"] == "c: mixed"),
-                     key=lambda r: sum(1 for row in transfer if row["arm"] == "c: mixed" and row["ratio"] == r))
+    main_ratio = max(
+        (row["ratio"] for row in transfer if row["arm"] == "c: mixed"),
+        key=lambda r: sum(1 for row in transfer if row["arm"] == "c: mixed" and row["ratio"] == r),
+    )
     for arm, marker in (("b: shots alone", "o"), ("c: mixed", "s")):
-        points = sorted((row["shots"], row["ssim"], row.get("ssim_std", 0)) for row in transfer
-                        if row["arm"] == arm and (arm != "c: mixed" or row["ratio"] == main_ratio))
+        points = sorted(
+            (row["shots"], row["ssim"], row.get("ssim_std", 0))
+            for row in transfer
+            if row["arm"] == arm and (arm != "c: mixed" or row["ratio"] == main_ratio)
+        )
         if points:
             xs, ys, errors = zip(*points)
             label = arm if arm != "c: mixed" else f"c: mixed 1:{main_ratio:g}"
@@ -201,11 +310,16 @@ def plot_transfer(transfer: list[dict[str, Any]], path: Path, title: str) -> Non
     by_shots.set_ylabel("held-out SSIM")
     by_shots.legend(fontsize=8)
     by_shots.grid(alpha=0.3)
-    mixed = sorted({row["shots"] for row in transfer if row["arm"] == "c: mixed"},
-                   key=lambda s: -sum(1 for row in transfer if row["arm"] == "c: mixed" and row["shots"] == s))
+    mixed = sorted(
+        {row["shots"] for row in transfer if row["arm"] == "c: mixed"},
+        key=lambda s: -sum(1 for row in transfer if row["arm"] == "c: mixed" and row["shots"] == s),
+    )
     if mixed:
-        points = sorted((row["ratio"], row["ssim"], row.get("ssim_std", 0)) for row in transfer
-                        if row["arm"] == "c: mixed" and row["shots"] == mixed[0])
+        points = sorted(
+            (row["ratio"], row["ssim"], row.get("ssim_std", 0))
+            for row in transfer
+            if row["arm"] == "c: mixed" and row["shots"] == mixed[0]
+        )
         xs, ys, errors = zip(*points)
         by_ratio.errorbar(xs, ys, yerr=errors, marker="s", capsize=3)
         by_ratio.set_xlabel(f"family images per shot ({mixed[0]} shots)")
@@ -229,11 +343,28 @@ def real_frames_folder(host: PluginHost, family: str, image_size: ImageSize, fol
     return folder
 
 
-def evaluate_cross_sensor(run: Any, host: PluginHost, out: Path, *, target: str, seeds: list[int], steps: int,
-                          shots: list[int], ratios: list[float], main_shots: int, main_ratio: float, everything: int,
-                          eval_images: int, variants: int, held_out_variants: int, images: int,
-                          clusterers: list[str], real_family: str | None, real_shots: list[int],
-                          report: Any = print) -> dict[str, Any]:
+def evaluate_cross_sensor(
+    run: Any,
+    host: PluginHost,
+    out: Path,
+    *,
+    target: str,
+    seeds: list[int],
+    steps: int,
+    shots: list[int],
+    ratios: list[float],
+    main_shots: int,
+    main_ratio: float,
+    everything: int,
+    eval_images: int,
+    variants: int,
+    held_out_variants: int,
+    images: int,
+    clusterers: list[str],
+    real_family: str | None,
+    real_shots: list[int],
+    report: Any = print,
+) -> dict[str, Any]:
     """Run the three parts and the cost (see the module docstring); write the JSON, markdown and PNG."""
     from vqtouch.plugins.tokenizer import load_tokenizer
 
@@ -250,74 +381,169 @@ def evaluate_cross_sensor(run: Any, host: PluginHost, out: Path, *, target: str,
             usable = [count for count in real_shots if count < len(real.images)]
     recovery, transfer, real_rows, costs = [], [], [], []
     for seed in seeds:
-        rows, families = family_recovery(tokenizer, host, seed=seed, variants=variants,
-                                         held_out_variants=held_out_variants, images=images, image_size=image_size,
-                                         clusterers=clusterers, tokenizer_source=str(folder))
+        rows, families = family_recovery(
+            tokenizer,
+            host,
+            seed=seed,
+            variants=variants,
+            held_out_variants=held_out_variants,
+            images=images,
+            image_size=image_size,
+            clusterers=clusterers,
+            tokenizer_source=str(folder),
+        )
         recovery += rows
         report(f"seed {seed}: family recovery " + ", ".join(f"{r['clusterer']} ARI {r['ari']}" for r in rows))
-        seed_rows = transfer_arms(run, target, families, host, out / "arms", seed=seed, steps=steps, shots=shots,
-                                  ratios=ratios, main_shots=main_shots, main_ratio=main_ratio, everything=everything,
-                                  eval_images=eval_images)
+        seed_rows = transfer_arms(
+            run,
+            target,
+            families,
+            host,
+            out / "arms",
+            seed=seed,
+            steps=steps,
+            shots=shots,
+            ratios=ratios,
+            main_shots=main_shots,
+            main_ratio=main_ratio,
+            everything=everything,
+            eval_images=eval_images,
+        )
         transfer += [{**row, "seed": seed} for row in seed_rows]
-        report(f"seed {seed}: transfer " + ", ".join(f"{r['arm'][0]}{r['shots']}/{r['ratio']} {r['ssim']}"
-                                                    for r in seed_rows))
-        adapted = next(row for row in seed_rows if row["arm"] == "c: mixed" and row["shots"] == main_shots
-                       and row["ratio"] == main_ratio)
+        report(
+            f"seed {seed}: transfer "
+            + ", ".join(f"{r['arm'][0]}{r['shots']}/{r['ratio']} {r['ssim']}" for r in seed_rows)
+        )
+        adapted = next(
+            row
+            for row in seed_rows
+            if row["arm"] == "c: mixed" and row["shots"] == main_shots and row["ratio"] == main_ratio
+        )
         if everything and (Path(run) / "config.json").is_file():
-            scratch = scratch_cost(run, target, families, host, seed=seed, everything=everything,
-                                   eval_images=eval_images, family=adapted["family"])
-            costs.append({"seed": seed, "adaptation_seconds": adapted["seconds"],
-                          "scratch_seconds": scratch["seconds"], "scratch_steps": scratch["steps"],
-                          "ratio": float(f"{adapted['seconds'] / scratch['seconds']:.4g}"), "scratch_ssim": scratch["ssim"],
-                          "scratch_psnr": scratch["psnr"], "adapted_ssim": adapted["ssim"]})
+            scratch = scratch_cost(
+                run,
+                target,
+                families,
+                host,
+                seed=seed,
+                everything=everything,
+                eval_images=eval_images,
+                family=adapted["family"],
+            )
+            costs.append(
+                {
+                    "seed": seed,
+                    "adaptation_seconds": adapted["seconds"],
+                    "scratch_seconds": scratch["seconds"],
+                    "scratch_steps": scratch["steps"],
+                    "ratio": float(f"{adapted['seconds'] / scratch['seconds']:.4g}"),
+                    "scratch_ssim": scratch["ssim"],
+                    "scratch_psnr": scratch["psnr"],
+                    "adapted_ssim": adapted["ssim"],
+                }
+            )
             report(f"seed {seed}: adaptation {adapted['seconds']} s vs fresh training {scratch['seconds']} s")
         if real is not None:
             assigned, _ = families.unseen(tokenizer, real.name, real.images)
             nearest = assigned["nearest_family"]
-            rows = transfer_arms(run, real.source, families, host, out / "real_arms", seed=seed, steps=steps,
-                                 shots=usable, ratios=[main_ratio], main_shots=usable[-1], main_ratio=main_ratio,
-                                 everything=0, eval_images=len(real.images) - max(usable), family=nearest)
-            real_rows += [{**row, "seed": seed, "assigned_family": assigned["family"], "nearest_family": nearest,
-                           "refused": assigned["refused"], "margin": assigned["margin"]} for row in rows]
+            rows = transfer_arms(
+                run,
+                real.source,
+                families,
+                host,
+                out / "real_arms",
+                seed=seed,
+                steps=steps,
+                shots=usable,
+                ratios=[main_ratio],
+                main_shots=usable[-1],
+                main_ratio=main_ratio,
+                everything=0,
+                eval_images=len(real.images) - max(usable),
+                family=nearest,
+            )
+            real_rows += [
+                {
+                    **row,
+                    "seed": seed,
+                    "assigned_family": assigned["family"],
+                    "nearest_family": nearest,
+                    "refused": assigned["refused"],
+                    "margin": assigned["margin"],
+                }
+                for row in rows
+            ]
     group = ("arm", "shots", "ratio")
     result = {
-        "tokenizer": str(folder), "target": target, "seeds": seeds, "steps": steps, "image_size": image_size,
-        "family_recovery": {"rows": recovery, "summary": mean_spread(
-            recovery, ("ari", "assignment_accuracy", "families", "refused"), ("clusterer",))},
+        "tokenizer": str(folder),
+        "target": target,
+        "seeds": seeds,
+        "steps": steps,
+        "image_size": image_size,
+        "family_recovery": {
+            "rows": recovery,
+            "summary": mean_spread(recovery, ("ari", "assignment_accuracy", "families", "refused"), ("clusterer",)),
+        },
         "transfer": {"rows": transfer, "summary": mean_spread(transfer, TABLE_COLUMNS, group)},
-        "real_frames": {"family": real_family, "rows": real_rows,
-                        "summary": mean_spread(real_rows, TABLE_COLUMNS, group)},
-        "cost": {"rows": costs, "summary": mean_spread(costs, ("adaptation_seconds", "scratch_seconds", "ratio",
-                                                                "scratch_ssim", "adapted_ssim"), ())}}
+        "real_frames": {
+            "family": real_family,
+            "rows": real_rows,
+            "summary": mean_spread(real_rows, TABLE_COLUMNS, group),
+        },
+        "cost": {
+            "rows": costs,
+            "summary": mean_spread(
+                costs, ("adaptation_seconds", "scratch_seconds", "ratio", "scratch_ssim", "adapted_ssim"), ()
+            ),
+        },
+    }
     (out / "cross_sensor.json").write_text(json.dumps(result, indent=2) + "\n")
     (out / "cross_sensor.md").write_text(render_markdown(result) + "\n")
-    plot_transfer(result["transfer"]["summary"], out / "cross_sensor.png",
-                  f"transfer to {json.loads(target)['name'] if target.startswith('{') else target} "
-                  f"({steps} steps per arm, {len(seeds)} seeds)")
+    plot_transfer(
+        result["transfer"]["summary"],
+        out / "cross_sensor.png",
+        f"transfer to {json.loads(target)['name'] if target.startswith('{') else target} "
+        f"({steps} steps per arm, {len(seeds)} seeds)",
+    )
     return result
 
 
 def render_markdown(result: dict[str, Any]) -> str:
     """The tables of ``cross_sensor.json`` for people."""
     seeds = len(result["seeds"])
-    lines = [f"# Cross-sensor evaluation ({seeds} seeds: mean ± std)", "",
-             f"Tokenizer `{result['tokenizer']}`, {size_text(result['image_size'])} px; every arm fine-tunes "
-             f"{result['steps']} steps.  `ssim` to `codebook_usage`: held-out images of the unseen sensor; "
-             "`family_ssim`, `family_psnr`: held-out images of the family's members (what an adaptation keeps of "
-             "the family); `seconds`: fine-tuning wall time.", "", "## Family recovery", ""]
-    lines += markdown_table(result["family_recovery"]["summary"], ("clusterer",),
-                             ("ari", "assignment_accuracy", "families", "refused"))
+    lines = [
+        f"# Cross-sensor evaluation ({seeds} seeds: mean ± std)",
+        "",
+        f"Tokenizer `{result['tokenizer']}`, {size_text(result['image_size'])} px; every arm fine-tunes "
+        f"{result['steps']} steps.  `ssim` to `codebook_usage`: held-out images of the unseen sensor; "
+        "`family_ssim`, `family_psnr`: held-out images of the family's members (what an adaptation keeps of "
+        "the family); `seconds`: fine-tuning wall time.",
+        "",
+        "## Family recovery",
+        "",
+    ]
+    lines += markdown_table(
+        result["family_recovery"]["summary"], ("clusterer",), ("ari", "assignment_accuracy", "families", "refused")
+    )
     lines += ["", f"## Transfer to `{result['target']}`", ""]
     lines += markdown_table(result["transfer"]["summary"], ("arm", "shots", "ratio"), TABLE_COLUMNS)
     if result["real_frames"]["rows"]:
         rows = result["real_frames"]["rows"]
         refused = sum(row["refused"] for row in rows if row["arm"].startswith("a"))
-        lines += ["", f"## Real {result['real_frames']['family']} frames as the unseen sensor", "",
-                  f"Assigned family (nearest): {sorted({row['nearest_family'] for row in rows})}; refused by the "
-                  f"threshold in {refused} of {seeds} seeds; every arm adapts from the nearest family.", ""]
+        lines += [
+            "",
+            f"## Real {result['real_frames']['family']} frames as the unseen sensor",
+            "",
+            f"Assigned family (nearest): {sorted({row['nearest_family'] for row in rows})}; refused by the "
+            f"threshold in {refused} of {seeds} seeds; every arm adapts from the nearest family.",
+            "",
+        ]
         lines += markdown_table(result["real_frames"]["summary"], ("arm", "shots", "ratio"), TABLE_COLUMNS)
     if result["cost"]["rows"]:
         lines += ["", "## Cost", ""]
-        lines += markdown_table(result["cost"]["summary"], (),
-                                 ("adaptation_seconds", "scratch_seconds", "ratio", "adapted_ssim", "scratch_ssim"))
+        lines += markdown_table(
+            result["cost"]["summary"],
+            (),
+            ("adaptation_seconds", "scratch_seconds", "ratio", "adapted_ssim", "scratch_ssim"),
+        )
     return "\n".join(lines)

@@ -31,8 +31,9 @@ FeatureKind = Literal["pooled", "codes"]
 
 
 @torch.no_grad()
-def image_features(tokenizer: Any, images_B3HW: torch.Tensor, kind: FeatureKind = "pooled",
-                   batch_size: int = 32) -> torch.Tensor:
+def image_features(
+    tokenizer: Any, images_B3HW: torch.Tensor, kind: FeatureKind = "pooled", batch_size: int = 32
+) -> torch.Tensor:
     """Tokenizer features (B, F) of images in [0, 1] (float64; see the module docstring)."""
     if kind not in ("pooled", "codes"):
         raise ValueError(f"feature kind {kind!r}: expected 'pooled' or 'codes'")
@@ -76,8 +77,9 @@ class SensorImages:
     images: torch.Tensor
 
 
-def sensor_images(spec: str, host: PluginHost, *, count: int, image_size: ImageSize, seed: int = 0,
-                  files: list[Path] | None = None) -> SensorImages:
+def sensor_images(
+    spec: str, host: PluginHost, *, count: int, image_size: ImageSize, seed: int = 0, files: list[Path] | None = None
+) -> SensorImages:
     """The images of ``spec``: a folder of image files (the first ``count`` in natural order, or
     the given ``files`` of it), or a registered sensor family given by name or JSON
     (``{"name": "gelsight", "variant": {...}}``), which renders ``count`` procedural scenes
@@ -101,13 +103,19 @@ def sensor_images(spec: str, host: PluginHost, *, count: int, image_size: ImageS
     except json.JSONDecodeError as exc:
         raise ConfigError(f"sensor {spec!r}: not a folder, a sensor name or valid JSON ({exc})") from None
     if not isinstance(config, dict) or "name" not in config:
-        raise ConfigError(f"sensor {spec!r}: a JSON sensor needs a 'name', e.g. {{\"name\": \"gelsight\"}}")
+        raise ConfigError(f'sensor {spec!r}: a JSON sensor needs a \'name\', e.g. {{"name": "gelsight"}}')
     if config["name"] not in host.registry("sensor_family").names():
-        raise ConfigError(f"sensor {spec!r} is neither a folder nor a registered sensor family "
-                          f"({', '.join(host.registry('sensor_family').names())})")
+        raise ConfigError(
+            f"sensor {spec!r} is neither a folder nor a registered sensor family "
+            f"({', '.join(host.registry('sensor_family').names())})"
+        )
     sensor = host.build("sensor_family", config)
-    dataset = host.build("dataset", {"name": "procedural", "num_samples": count, "image_size": image_size,
-                                     "seed": seed}, BuildContext(image_size=image_size), sensor=sensor)
+    dataset = host.build(
+        "dataset",
+        {"name": "procedural", "num_samples": count, "image_size": image_size, "seed": seed},
+        BuildContext(image_size=image_size),
+        sensor=sensor,
+    )
     images = dataset.render_batch(list(range(count)))["tactile"]
     return SensorImages(sensor_label(config), json.dumps(config, sort_keys=True), images)
 
@@ -161,13 +169,16 @@ def check_one_resolution(folder: Path, files: list[Path]) -> None:
             raise DatasetError(f"cannot decode image {file}: {type(exc).__name__}: {exc}") from None
         if len(sizes) > 1:
             (a, first), (b, second) = list(sizes.items())[:2]
-            raise DatasetError(f"{folder}: images of different sizes ({first.name} is {a[0]}x{a[1]}, {second.name} is "
-                               f"{b[0]}x{b[1]}); a sensor's frames share one resolution: give each sensor its own "
-                               "folder, or resize them to one size first")
+            raise DatasetError(
+                f"{folder}: images of different sizes ({first.name} is {a[0]}x{a[1]}, {second.name} is "
+                f"{b[0]}x{b[1]}); a sensor's frames share one resolution: give each sensor its own "
+                "folder, or resize them to one size first"
+            )
 
 
-def family_sensor_specs(host: PluginHost, variants_per_family: int = 3, *, strength: float = 1.0,
-                        first_seed: int = 101) -> list[str]:
+def family_sensor_specs(
+    host: PluginHost, variants_per_family: int = 3, *, strength: float = 1.0, first_seed: int = 101
+) -> list[str]:
     """Sensor specs (JSON) for clustering: every registered sensor family, then
     ``variants_per_family`` random environmental variants of each
     (:func:`vqtouch.sensors.environment_variant`, seeds ``first_seed``, ``first_seed + 1``, ...)."""
@@ -195,11 +206,15 @@ def cluster_prototypes(names: list[str], prototypes_SF: torch.Tensor, clusterer:
     return {
         "within_family_spread": [round(value, 6) for value in spreads],
         "refusal_threshold": round(refusal_threshold(spreads, centroids), 6),
-        "families": [[names[i] for i in range(len(names)) if int(labels[i]) == family]
-                     for family in range(clusterer.num_families)],
+        "families": [
+            [names[i] for i in range(len(names)) if int(labels[i]) == family]
+            for family in range(clusterer.num_families)
+        ],
         "sensor_family": {name: int(label) for name, label in zip(names, labels)},
         "family_distances": [[round(float(value), 6) for value in row] for row in distances],
-        "sensor_to_family_distances": {name: [round(float(v), 6) for v in row] for name, row in zip(names, to_families)},
+        "sensor_to_family_distances": {
+            name: [round(float(v), 6) for v in row] for name, row in zip(names, to_families)
+        },
     }
 
 
@@ -208,7 +223,9 @@ def cluster_prototypes(names: list[str], prototypes_SF: torch.Tensor, clusterer:
 REFUSAL_FACTOR = 3.0
 
 
-def within_family_spread(prototypes_SF: torch.Tensor, labels_S: torch.Tensor, centroids_KF: torch.Tensor) -> list[float]:
+def within_family_spread(
+    prototypes_SF: torch.Tensor, labels_S: torch.Tensor, centroids_KF: torch.Tensor
+) -> list[float]:
     """Each family's spread: the largest distance of a member's prototype to the family mean."""
     distances = (prototypes_SF.double() - centroids_KF.double()[labels_S]).norm(dim=1)
     return [float(distances[labels_S == family].max()) for family in range(len(centroids_KF))]
@@ -235,9 +252,14 @@ def assign_to_family(clusterer: Any, prototype_F: torch.Tensor, threshold: float
     nearest = int(order[0])
     margin = float(distances[order[1]] - distances[nearest]) if len(order) > 1 else float("inf")
     refused = float(distances[nearest]) > threshold
-    return {"family": None if refused else nearest, "nearest_family": nearest, "refused": refused,
-            "distances": [round(float(v), 6) for v in distances], "margin": round(margin, 6),
-            "threshold": round(threshold, 6)}
+    return {
+        "family": None if refused else nearest,
+        "nearest_family": nearest,
+        "refused": refused,
+        "distances": [round(float(v), 6) for v in distances],
+        "margin": round(margin, 6),
+        "threshold": round(threshold, 6),
+    }
 
 
 @dataclass
@@ -250,8 +272,15 @@ class UnseenSensor:
     verdict: str
 
 
-def plot_families(names: list[str], features_by_sensor: list[torch.Tensor], prototypes_SF: torch.Tensor,
-                  labels: list[int], path: Path, title: str, unseen: list[UnseenSensor] = ()) -> None:
+def plot_families(
+    names: list[str],
+    features_by_sensor: list[torch.Tensor],
+    prototypes_SF: torch.Tensor,
+    labels: list[int],
+    path: Path,
+    title: str,
+    unseen: list[UnseenSensor] = (),
+) -> None:
     """A 2-D PCA embedding (fitted on every clustered image feature) of the images (small points)
     and the prototypes (large markers, coloured by family, labelled by sensor); unseen sensors are
     black stars labelled with where they were assigned."""
@@ -267,8 +296,9 @@ def plot_families(names: list[str], features_by_sensor: list[torch.Tensor], prot
     colours = [f"C{label % 10}" for label in labels]
     for features, colour in zip(features_by_sensor, colours):
         points = pca.transform(features.numpy())
-        axes.scatter(points[:, 0], points[:, 1] if points.shape[1] > 1 else 0 * points[:, 0], s=6, alpha=0.3,
-                     color=colour)
+        axes.scatter(
+            points[:, 0], points[:, 1] if points.shape[1] > 1 else 0 * points[:, 0], s=6, alpha=0.3, color=colour
+        )
     centres = pca.transform(prototypes_SF.numpy())
     for (x, *rest), name, colour, label in zip(centres, names, colours, labels):
         y = rest[0] if rest else 0.0
@@ -276,13 +306,20 @@ def plot_families(names: list[str], features_by_sensor: list[torch.Tensor], prot
         axes.annotate(f"{name} (family {label})", (x, y), textcoords="offset points", xytext=(6, 6), fontsize=8)
     for sensor in unseen:
         points = pca.transform(sensor.features.numpy())
-        axes.scatter(points[:, 0], points[:, 1] if points.shape[1] > 1 else 0 * points[:, 0], s=6, alpha=0.3,
-                     color="black")
+        axes.scatter(
+            points[:, 0], points[:, 1] if points.shape[1] > 1 else 0 * points[:, 0], s=6, alpha=0.3, color="black"
+        )
         x, *rest = pca.transform(sensor.prototype.unsqueeze(0).numpy())[0]
         y = rest[0] if rest else 0.0
         axes.scatter([x], [y], s=260, marker="*", color="black", zorder=4)
-        axes.annotate(f"{sensor.name} (unseen: {sensor.verdict})", (x, y), textcoords="offset points",
-                      xytext=(6, -12), fontsize=8, fontweight="bold")
+        axes.annotate(
+            f"{sensor.name} (unseen: {sensor.verdict})",
+            (x, y),
+            textcoords="offset points",
+            xytext=(6, -12),
+            fontsize=8,
+            fontweight="bold",
+        )
     axes.set_xlabel("PCA 1 of the tokenizer features")
     axes.set_ylabel("PCA 2")
     axes.set_title(title, fontsize=9)
@@ -319,8 +356,9 @@ class SensorFamilies:
         """The sensors (name, source, images) of ``family``."""
         return [sensor for sensor in self.summary["sensors"] if self.summary["sensor_family"][sensor["name"]] == family]
 
-    def unseen(self, tokenizer: Any, name: str, images_B3HW: torch.Tensor,
-               threshold: float | None = None) -> tuple[dict[str, Any], UnseenSensor]:
+    def unseen(
+        self, tokenizer: Any, name: str, images_B3HW: torch.Tensor, threshold: float | None = None
+    ) -> tuple[dict[str, Any], UnseenSensor]:
         """Assign an unseen sensor's images (its prototype computed exactly as the members' were):
         the assignment and the sensor as the plot shows it."""
         features = image_features(tokenizer, images_B3HW, self.summary["features"])
@@ -331,13 +369,26 @@ class SensorFamilies:
 
     def assign(self, prototype_F: torch.Tensor, threshold: float | None = None) -> dict[str, Any]:
         """:func:`assign_to_family` with the fitted threshold unless one is given."""
-        return assign_to_family(self.clusterer, prototype_F,
-                                self.summary["refusal_threshold"] if threshold is None else threshold)
+        return assign_to_family(
+            self.clusterer, prototype_F, self.summary["refusal_threshold"] if threshold is None else threshold
+        )
 
 
-def fit_families(tokenizer: Any, specs: list[str], host: PluginHost, *, clusterer: Any, images: int = 64,
-                 image_size: ImageSize = 64, features: FeatureKind = "pooled", refine_steps: int = 3, keep: float = 0.8,
-                 seed: int = 0, tokenizer_source: str = "", report: Any = print) -> SensorFamilies:
+def fit_families(
+    tokenizer: Any,
+    specs: list[str],
+    host: PluginHost,
+    *,
+    clusterer: Any,
+    images: int = 64,
+    image_size: ImageSize = 64,
+    features: FeatureKind = "pooled",
+    refine_steps: int = 3,
+    keep: float = 0.8,
+    seed: int = 0,
+    tokenizer_source: str = "",
+    report: Any = print,
+) -> SensorFamilies:
     """Group the sensors ``specs`` (see :func:`sensor_images`) into families with ``clusterer``
     (a built clusterer plugin, fitted here) from ``tokenizer``'s ``features``; ``report`` is called
     with one line per sensor."""
@@ -355,16 +406,29 @@ def fit_families(tokenizer: Any, specs: list[str], host: PluginHost, *, clustere
         prototypes.append(sensor_prototype(rows, refine_steps, keep))
         report(f"{name}: {len(rows)} images")
     prototypes_SF = torch.stack(prototypes)
-    summary = {"tokenizer": tokenizer_source, "features": features, "images_per_sensor": images,
-               "image_size": image_size, "refine_steps": refine_steps, "keep": keep, "seed": seed,
-               "clusterer": clusterer.vqtouch_spec.config.model_dump(mode="json"), "sensors": sensors,
-               **cluster_prototypes(names, prototypes_SF, clusterer),
-               "prototypes": {name: [round(float(v), 6) for v in row] for name, row in zip(names, prototypes_SF)}}
+    summary = {
+        "tokenizer": tokenizer_source,
+        "features": features,
+        "images_per_sensor": images,
+        "image_size": image_size,
+        "refine_steps": refine_steps,
+        "keep": keep,
+        "seed": seed,
+        "clusterer": clusterer.vqtouch_spec.config.model_dump(mode="json"),
+        "sensors": sensors,
+        **cluster_prototypes(names, prototypes_SF, clusterer),
+        "prototypes": {name: [round(float(v), 6) for v in row] for name, row in zip(names, prototypes_SF)},
+    }
     return SensorFamilies(summary, clusterer, prototypes_SF, features_by_sensor)
 
 
-def save_families(families: SensorFamilies, folder: Path, host: PluginHost, extra: dict[str, Any] | None = None,
-                  unseen: list[UnseenSensor] = ()) -> Path:
+def save_families(
+    families: SensorFamilies,
+    folder: Path,
+    host: PluginHost,
+    extra: dict[str, Any] | None = None,
+    unseen: list[UnseenSensor] = (),
+) -> Path:
     """Write ``cluster.json`` (the summary plus ``extra``), the fitted clusterer and, when the
     features are at hand, ``families.png`` (with the ``unseen`` sensors) into ``folder``; returns
     the JSON's path."""
@@ -377,10 +441,16 @@ def save_families(families: SensorFamilies, folder: Path, host: PluginHost, extr
     path = atomic_write(folder / CLUSTER_JSON, lambda tmp: tmp.write_text(json.dumps(summary, indent=2) + "\n"))
     if families.features is not None:
         count = len(summary["families"])
-        plot_families(families.names, families.features, families.prototypes_SF,
-                      [summary["sensor_family"][name] for name in families.names], folder / FAMILIES_PNG,
-                      f"{count} families of {len(families.names)} sensors ({summary['features']} features, "
-                      f"{summary['clusterer']['name']})", unseen)
+        plot_families(
+            families.names,
+            families.features,
+            families.prototypes_SF,
+            [summary["sensor_family"][name] for name in families.names],
+            folder / FAMILIES_PNG,
+            f"{count} families of {len(families.names)} sensors ({summary['features']} features, "
+            f"{summary['clusterer']['name']})",
+            unseen,
+        )
     return path
 
 
@@ -390,8 +460,10 @@ def load_families(folder: str | Path, host: PluginHost) -> SensorFamilies:
 
     folder = Path(folder)
     if not (folder / CLUSTER_JSON).is_file() or not (folder / CLUSTERER_FILE).is_file():
-        raise ConfigError(f"{folder}: no sensor families here ({CLUSTER_JSON} and {CLUSTERER_FILE}); make them with "
-                          f"`vqtouch cluster --run TOKRUN --sensors ... --out {folder}`")
+        raise ConfigError(
+            f"{folder}: no sensor families here ({CLUSTER_JSON} and {CLUSTERER_FILE}); make them with "
+            f"`vqtouch cluster --run TOKRUN --sensors ... --out {folder}`"
+        )
     try:
         summary = json.loads((folder / CLUSTER_JSON).read_text())
     except (OSError, json.JSONDecodeError) as exc:

@@ -49,15 +49,32 @@ from typing import Any, Callable, Sequence
 import torch
 
 from vqtouch.core import ConfigError, PluginHost
-from vqtouch.plugins.evaluation.records import (ExperimentRecord, check_seeds, gap_verdict, markdown_table, mean_spread,
-                                      plot_against_count)
+from vqtouch.plugins.evaluation.records import (
+    ExperimentRecord,
+    check_seeds,
+    gap_verdict,
+    markdown_table,
+    mean_spread,
+    plot_against_count,
+)
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 from vqtouch.plugins.evaluation.directions import direction_arrow
-from vqtouch.plugins.evaluation.contact import (MAX_BACKGROUND_IMAGES, RENDERED_BACKGROUND, evenly_spaced,
-                                                median_background, no_contact_image)
+from vqtouch.plugins.evaluation.contact import (
+    MAX_BACKGROUND_IMAGES,
+    RENDERED_BACKGROUND,
+    evenly_spaced,
+    median_background,
+    no_contact_image,
+)
 
-from .adapt import (AdaptSettings, adapt_tokenizer, check_same_tokenizer, default_families, reconstruction_scores,
-                    target_images)
+from .adapt import (
+    AdaptSettings,
+    adapt_tokenizer,
+    check_same_tokenizer,
+    default_families,
+    reconstruction_scores,
+    target_images,
+)
 from .evaluation import METRICS, train_fresh_tokenizer
 from .families import SensorFamilies, folder_of, load_families, registered_source, save_families, sensor_images
 
@@ -65,11 +82,27 @@ SCRATCH, ZERO_SHOT, SHOTS_ALONE, BACKGROUND = "scratch", "zero-shot", "shots alo
 #: The held-out scores every arm carries, and its background's under the ``background_`` prefix.
 SCORES = ("ssim", "psnr", "contact_ssim", "contact_psnr", "contact_mae", "fd_effnetlite0")
 #: What the table shows per (N, arm), in order.
-TABLE_COLUMNS = ("train_images", "ssim", "psnr", "contact_ssim", "contact_psnr", "fd_effnetlite0", "codebook_usage",
-                 "family_psnr", "seconds")
+TABLE_COLUMNS = (
+    "train_images",
+    "ssim",
+    "psnr",
+    "contact_ssim",
+    "contact_psnr",
+    "fd_effnetlite0",
+    "codebook_usage",
+    "family_psnr",
+    "seconds",
+)
 #: Numbers of a row averaged over the seeds (the table's and the JSON's).
-SUMMARY_KEYS = (*TABLE_COLUMNS, "contact_mae", "family_images", "family_ssim", "family_psnr",
-                *(f"background_{key}" for key in SCORES), "contact_fraction")
+SUMMARY_KEYS = (
+    *TABLE_COLUMNS,
+    "contact_mae",
+    "family_images",
+    "family_ssim",
+    "family_psnr",
+    *(f"background_{key}" for key in SCORES),
+    "contact_fraction",
+)
 #: The verdicts compare on this contact-region score only (whole-image scores flatter the background).
 VERDICT_KEY = "contact_psnr"
 
@@ -102,10 +135,16 @@ def held_out_count(target: str, counts: Sequence[int], eval_images: int) -> int:
     if max(counts) + 1 > images:
         usable = f"the largest usable --n is {images - 1}" if images > 1 else "few-shot needs at least 2 images"
         deeper = [sub.name for sub in sorted(path.iterdir()) if sub.is_dir() and list_images(sub, recursive=True)]
-        hint = (f"; the sensor's images are read from the folder itself, not its sub-folders ({', '.join(deeper)}): "
-                f"point --target at the one holding its frames, e.g. {path / deeper[0]}" if deeper else "")
-        raise ConfigError(f"--n {max(counts)}: the folder {path} holds {images} images; {usable} (the rest are held "
-                          f"out to score every arm){hint}")
+        hint = (
+            f"; the sensor's images are read from the folder itself, not its sub-folders ({', '.join(deeper)}): "
+            f"point --target at the one holding its frames, e.g. {path / deeper[0]}"
+            if deeper
+            else ""
+        )
+        raise ConfigError(
+            f"--n {max(counts)}: the folder {path} holds {images} images; {usable} (the rest are held "
+            f"out to score every arm){hint}"
+        )
     return min(eval_images, images - max(counts))
 
 
@@ -126,12 +165,21 @@ def sensor_background(target: str, host: PluginHost, image_size: ImageSize) -> t
     files = list_images(path)
     chosen = [files[index] for index in evenly_spaced(len(files), MAX_BACKGROUND_IMAGES)]
     images = sensor_images(str(path), host, count=len(chosen), image_size=image_size, files=chosen).images
-    return median_background(images), (f"the per-pixel median of {len(chosen)} of the folder's {len(files)} "
-                                       "images (the folder holds no no-contact frame)")
+    return median_background(images), (
+        f"the per-pixel median of {len(chosen)} of the folder's {len(files)} "
+        "images (the folder holds no no-contact frame)"
+    )
 
 
-def _families(families: str | Path | None, tokenizer: Any, folder: Path, target: str, host: PluginHost, out: Path,
-              image_size: ImageSize) -> tuple[SensorFamilies, str]:
+def _families(
+    families: str | Path | None,
+    tokenizer: Any,
+    folder: Path,
+    target: str,
+    host: PluginHost,
+    out: Path,
+    image_size: ImageSize,
+) -> tuple[SensorFamilies, str]:
     """The families the fine-tuned arms mix from and where they came from: ``families`` (a cluster
     output of this tokenizer), or the registered sensor families and 3 variants of each clustered
     once (written to ``out/families`` and read back, so no arm writes them again)."""
@@ -140,8 +188,9 @@ def _families(families: str | Path | None, tokenizer: Any, folder: Path, target:
         check_same_tokenizer(loaded, folder, f"the families in {families}")
         return loaded, str(families)
     exclude = registered_source(target)
-    fitted = default_families(tokenizer, host, image_size=image_size, tokenizer_source=str(folder), exclude=exclude,
-                              report=lambda line: None)
+    fitted = default_families(
+        tokenizer, host, image_size=image_size, tokenizer_source=str(folder), exclude=exclude, report=lambda line: None
+    )
     save_families(fitted, out / "families", host)
     return load_families(out / "families", host), f"{out / 'families'} (registered sensor families, 3 variants each)"
 
@@ -155,23 +204,53 @@ def _scores(scores: dict[str, Any]) -> dict[str, Any]:
 def _adapted_row(n: int, arm: str, seed: int, summary: dict[str, Any]) -> dict[str, Any]:
     """A fine-tuned arm's row from its ``adapt.json`` summary."""
     family = summary["family_held_out"]["after"]
-    return {"n": n, "arm": arm, "seed": seed, "train_images": summary["shots"] + summary["family_images"],
-            "family_images": summary["family_images"], "steps": summary["steps"], "held_out": summary["held_out"],
-            **_scores(summary["after"]), "family_ssim": family["ssim"], "family_psnr": family["psnr"],
-            "seconds": summary["seconds"]}
+    return {
+        "n": n,
+        "arm": arm,
+        "seed": seed,
+        "train_images": summary["shots"] + summary["family_images"],
+        "family_images": summary["family_images"],
+        "steps": summary["steps"],
+        "held_out": summary["held_out"],
+        **_scores(summary["after"]),
+        "family_ssim": family["ssim"],
+        "family_psnr": family["psnr"],
+        "seconds": summary["seconds"],
+    }
 
 
 def _background_row(n: int, seed: int, scores: dict[str, Any]) -> dict[str, Any]:
     """The no-contact background's row: its ``background_*`` scores without the prefix, beside the arms'."""
-    return {"n": n, "arm": BACKGROUND, "seed": seed, "train_images": 0, "held_out": scores["samples"],
-            **{key: scores[f"background_{key}"] for key in SCORES if f"background_{key}" in scores},
-            "contact_fraction": scores.get("contact_fraction")}
+    return {
+        "n": n,
+        "arm": BACKGROUND,
+        "seed": seed,
+        "train_images": 0,
+        "held_out": scores["samples"],
+        **{key: scores[f"background_{key}"] for key in SCORES if f"background_{key}" in scores},
+        "contact_fraction": scores.get("contact_fraction"),
+    }
 
 
-def seed_arms(run: Any, target: str, families: SensorFamilies, family: int, host: PluginHost, out: Path, *, seed: int,
-              counts: Sequence[int], ratio: float, steps: int, scratch_steps: int, held_out: int, batch_size: int,
-              background_3HW: torch.Tensor, image_size: ImageSize,
-              report: Callable[[str], None] = print) -> tuple[list[dict[str, Any]], dict[str, str]]:
+def seed_arms(
+    run: Any,
+    target: str,
+    families: SensorFamilies,
+    family: int,
+    host: PluginHost,
+    out: Path,
+    *,
+    seed: int,
+    counts: Sequence[int],
+    ratio: float,
+    steps: int,
+    scratch_steps: int,
+    held_out: int,
+    batch_size: int,
+    background_3HW: torch.Tensor,
+    image_size: ImageSize,
+    report: Callable[[str], None] = print,
+) -> tuple[list[dict[str, Any]], dict[str, str]]:
     """One seed's rows: at every N the four arms and the background, in the table's order, and the
     metrics skipped with their reasons.  Every arm scores the same ``held_out`` images in batches of
     ``batch_size`` (the fine-tuning batch too)."""
@@ -181,39 +260,100 @@ def seed_arms(run: Any, target: str, families: SensorFamilies, family: int, host
     for n in counts:
         summaries = {}
         for arm, arm_ratio, name in ((SHOTS_ALONE, 0.0, "shots"), (mixed_arm(ratio), ratio, "mixed")):
-            settings = AdaptSettings(shots=n, ratio=arm_ratio, steps=steps, eval_images=held_out, seed=seed,
-                                     family=family, batch_size=batch_size, metrics=METRICS)
-            summaries[arm] = adapt_tokenizer(run, target, families, host, out / f"seed{seed}" / f"{name}-{n}", settings,
-                                             overwrite=True, report=lambda line: None, background_3HW=background_3HW)
+            settings = AdaptSettings(
+                shots=n,
+                ratio=arm_ratio,
+                steps=steps,
+                eval_images=held_out,
+                seed=seed,
+                family=family,
+                batch_size=batch_size,
+                metrics=METRICS,
+            )
+            summaries[arm] = adapt_tokenizer(
+                run,
+                target,
+                families,
+                host,
+                out / f"seed{seed}" / f"{name}-{n}",
+                settings,
+                overwrite=True,
+                report=lambda line: None,
+                background_3HW=background_3HW,
+            )
         # The family tokenizer before any fine-tuning, on the same held-out images: the zero-shot arm (and
         # its score on the family's held-out images, what the fine-tuned arms keep or forget of the family).
         zero_shot = zero_shot or summaries[SHOTS_ALONE]["before"]
         family_before = summaries[SHOTS_ALONE]["family_held_out"]["before"]
-        _, source, shots_N, held_out_M = target_images(target, host, shots=n, eval_images=held_out,
-                                                       image_size=image_size, seed=seed)
+        _, source, shots_N, held_out_M = target_images(
+            target, host, shots=n, eval_images=held_out, image_size=image_size, seed=seed
+        )
         metadata = {"fewshot.arm": SCRATCH, "fewshot.target": source, "fewshot.train_images": str(n)}
-        tokenizer, trained = train_fresh_tokenizer(run, shots_N, host, seed=seed, steps=scratch_steps,
-                                                   out=out / f"seed{seed}" / f"{SCRATCH}-{n}", metadata=metadata)
+        tokenizer, trained = train_fresh_tokenizer(
+            run,
+            shots_N,
+            host,
+            seed=seed,
+            steps=scratch_steps,
+            out=out / f"seed{seed}" / f"{SCRATCH}-{n}",
+            metadata=metadata,
+        )
         scratch = reconstruction_scores(tokenizer, held_out_M, host, batch_size, METRICS, background_3HW)
-        rows.append({"n": n, "arm": SCRATCH, "seed": seed, "train_images": trained["train_images"],
-                     "family_images": 0, "steps": trained["steps"], "held_out": len(held_out_M), **_scores(scratch),
-                     "seconds": trained["seconds"]})
-        rows.append({"n": n, "arm": ZERO_SHOT, "seed": seed, "train_images": 0, "family_images": 0, "steps": 0,
-                     "held_out": zero_shot["samples"], **_scores(zero_shot), "family_ssim": family_before["ssim"],
-                     "family_psnr": family_before["psnr"], "seconds": 0.0})
+        rows.append(
+            {
+                "n": n,
+                "arm": SCRATCH,
+                "seed": seed,
+                "train_images": trained["train_images"],
+                "family_images": 0,
+                "steps": trained["steps"],
+                "held_out": len(held_out_M),
+                **_scores(scratch),
+                "seconds": trained["seconds"],
+            }
+        )
+        rows.append(
+            {
+                "n": n,
+                "arm": ZERO_SHOT,
+                "seed": seed,
+                "train_images": 0,
+                "family_images": 0,
+                "steps": 0,
+                "held_out": zero_shot["samples"],
+                **_scores(zero_shot),
+                "family_ssim": family_before["ssim"],
+                "family_psnr": family_before["psnr"],
+                "seconds": 0.0,
+            }
+        )
         rows += [_adapted_row(n, arm, seed, summary) for arm, summary in summaries.items()]
         rows.append(_background_row(n, seed, zero_shot))
         for scores in (scratch, zero_shot, *(summary["after"] for summary in summaries.values())):
             skipped |= scores.get("skipped") or {}
-        report(f"seed {seed}, N {n}: contact PSNR " + ", ".join(
-            f"{row['arm']} {row.get(VERDICT_KEY, '-')}" for row in rows if row["n"] == n))
+        report(
+            f"seed {seed}, N {n}: contact PSNR "
+            + ", ".join(f"{row['arm']} {row.get(VERDICT_KEY, '-')}" for row in rows if row["n"] == n)
+        )
     return rows, skipped
 
 
-def evaluate_fewshot(run: str | Path, host: PluginHost, out: str | Path, *, target: str, seeds: Sequence[int],
-                     counts: Sequence[int] = (500, 2000), ratio: float = 5.0, steps: int = 200,
-                     scratch_steps: int | None = None, eval_images: int = 64, families: str | Path | None = None,
-                     overwrite: bool = False, report: Callable[[str], None] = print) -> dict[str, Any]:
+def evaluate_fewshot(
+    run: str | Path,
+    host: PluginHost,
+    out: str | Path,
+    *,
+    target: str,
+    seeds: Sequence[int],
+    counts: Sequence[int] = (500, 2000),
+    ratio: float = 5.0,
+    steps: int = 200,
+    scratch_steps: int | None = None,
+    eval_images: int = 64,
+    families: str | Path | None = None,
+    overwrite: bool = False,
+    report: Callable[[str], None] = print,
+) -> dict[str, Any]:
     """Run the experiment of the module docstring and write its files into ``out``.
 
     ``run``: the family tokenizer's run (its config builds the scratch arm); ``target``: the unseen
@@ -228,16 +368,20 @@ def evaluate_fewshot(run: str | Path, host: PluginHost, out: str | Path, *, targ
 
     out = Path(out)
     if (out / "fewshot.json").is_file() and not overwrite:
-        raise ConfigError(f"{out} already holds a fewshot experiment; pass --overwrite to run it again, or choose "
-                          "another --out")
+        raise ConfigError(
+            f"{out} already holds a fewshot experiment; pass --overwrite to run it again, or choose another --out"
+        )
     seeds = check_seeds(seeds)
     counts = check_counts(counts)
     if not (ratio > 0 and math.isfinite(ratio)):
-        raise ConfigError(f"--ratio {ratio:g}: the mixed arm needs family images (a finite ratio > 0; the "
-                          "shots-alone arm is ratio 0)")
+        raise ConfigError(
+            f"--ratio {ratio:g}: the mixed arm needs family images (a finite ratio > 0; the shots-alone arm is ratio 0)"
+        )
     if not (run and (Path(run) / "config.json").is_file()):
-        raise ConfigError(f"--run {run}: not a run directory (no config.json); the scratch arm trains a fresh "
-                          "tokenizer with the run's config, so give the family tokenizer's run")
+        raise ConfigError(
+            f"--run {run}: not a run directory (no config.json); the scratch arm trains a fresh "
+            "tokenizer with the run's config, so give the family tokenizer's run"
+        )
     config = RunDir.open(run).load_config(host)
     scratch_steps = scratch_steps or config.tokenizer.train.steps
     tokenizer, folder = load_tokenizer(run, host)
@@ -257,36 +401,80 @@ def evaluate_fewshot(run: str | Path, host: PluginHost, out: str | Path, *, targ
     for seed in record.seeds:
         # One family per seed, from the smallest N's shots (what every arm has): only N changes between the
         # fine-tuned arms of a seed.
-        name, source, shots_N, _ = target_images(target, host, shots=counts[0], eval_images=held_out,
-                                                 image_size=image_size, seed=seed)
+        name, source, shots_N, _ = target_images(
+            target, host, shots=counts[0], eval_images=held_out, image_size=image_size, seed=seed
+        )
         assigned, _ = fitted.unseen(tokenizer, name, shots_N)
         family = assigned["nearest_family"] if assigned["refused"] else assigned["family"]
-        assignments.append({"seed": seed, "family": family, "members": fitted.summary["families"][family],
-                            **{key: assigned[key] for key in ("refused", "nearest_family", "margin", "threshold")}})
-        report(f"seed {seed}: {name} -> family {family} ({', '.join(fitted.summary['families'][family])})"
-               + (", nearest: the assignment was refused" if assigned["refused"] else ""))
-        seed_rows, seed_skipped = seed_arms(run, target, fitted, family, host, out, seed=seed, counts=counts,
-                                            ratio=ratio, steps=steps, scratch_steps=scratch_steps, held_out=held_out,
-                                            batch_size=batch_size, background_3HW=background, image_size=image_size,
-                                            report=report)
+        assignments.append(
+            {
+                "seed": seed,
+                "family": family,
+                "members": fitted.summary["families"][family],
+                **{key: assigned[key] for key in ("refused", "nearest_family", "margin", "threshold")},
+            }
+        )
+        report(
+            f"seed {seed}: {name} -> family {family} ({', '.join(fitted.summary['families'][family])})"
+            + (", nearest: the assignment was refused" if assigned["refused"] else "")
+        )
+        seed_rows, seed_skipped = seed_arms(
+            run,
+            target,
+            fitted,
+            family,
+            host,
+            out,
+            seed=seed,
+            counts=counts,
+            ratio=ratio,
+            steps=steps,
+            scratch_steps=scratch_steps,
+            held_out=held_out,
+            batch_size=batch_size,
+            background_3HW=background,
+            image_size=image_size,
+            report=report,
+        )
         rows += seed_rows
         skipped |= seed_skipped
     summary = mean_spread(rows, SUMMARY_KEYS, ("n", "arm"))
-    result = {"run": str(run), "tokenizer": str(folder), "target": name, "target_source": source,
-              "background": background_source, "image_size": image_size, "counts": counts, "ratio": ratio,
-              "steps": steps, "scratch_steps": scratch_steps, "batch_size": batch_size, "held_out": held_out,
-              "families": families_source,
-              "assignments": assignments, "rows": rows, "summary": summary, "skipped": skipped}
-    plot_against_count(summary, count="n", line="arm", keys=("contact_psnr", "contact_ssim"),
-                       path=record.path("fewshot.png"), xlabel="N: unseen-sensor images", dashed=(BACKGROUND,),
-                       title=f"few-shot reconstruction of {name} ({len(record.seeds)} seeds, {steps} "
-                             "fine-tuning steps)")
+    result = {
+        "run": str(run),
+        "tokenizer": str(folder),
+        "target": name,
+        "target_source": source,
+        "background": background_source,
+        "image_size": image_size,
+        "counts": counts,
+        "ratio": ratio,
+        "steps": steps,
+        "scratch_steps": scratch_steps,
+        "batch_size": batch_size,
+        "held_out": held_out,
+        "families": families_source,
+        "assignments": assignments,
+        "rows": rows,
+        "summary": summary,
+        "skipped": skipped,
+    }
+    plot_against_count(
+        summary,
+        count="n",
+        line="arm",
+        keys=("contact_psnr", "contact_ssim"),
+        path=record.path("fewshot.png"),
+        xlabel="N: unseen-sensor images",
+        dashed=(BACKGROUND,),
+        title=f"few-shot reconstruction of {name} ({len(record.seeds)} seeds, {steps} fine-tuning steps)",
+    )
     record.write(result, render_markdown(result))
     return result
 
 
-def verdict_lines(summary: Sequence[dict[str, Any]], counts: Sequence[int], ratio: float,
-                  key: str = VERDICT_KEY) -> list[str]:
+def verdict_lines(
+    summary: Sequence[dict[str, Any]], counts: Sequence[int], ratio: float, key: str = VERDICT_KEY
+) -> list[str]:
     """Per N, the mixed arm against every other arm and the background on the contact-region score
     ``key`` (:func:`vqtouch.plugins.evaluation.records.gap_verdict`: a gap counts beyond both spreads)."""
     lines = []
@@ -304,36 +492,60 @@ def verdict_lines(summary: Sequence[dict[str, Any]], counts: Sequence[int], rati
 def render_markdown(result: dict[str, Any]) -> list[str]:
     """The table and verdicts of ``fewshot.json`` for people."""
     mixed = mixed_arm(result["ratio"])
-    fractions = [row["contact_fraction"] for row in result["rows"] if row["arm"] == BACKGROUND
-                 and row.get("contact_fraction") is not None]
-    region = (f"the contact region is {100 * sum(fractions) / len(fractions):.3g}% of their pixels"
-              if fractions else "no contact region was found")
+    fractions = [
+        row["contact_fraction"]
+        for row in result["rows"]
+        if row["arm"] == BACKGROUND and row.get("contact_fraction") is not None
+    ]
+    region = (
+        f"the contact region is {100 * sum(fractions) / len(fractions):.3g}% of their pixels"
+        if fractions
+        else "no contact region was found"
+    )
     refused = [entry["seed"] for entry in result["assignments"] if entry["refused"]]
-    lines = [f"# Few-shot reconstruction of an unseen sensor (Table 4; {len(result['assignments'])} seeds: "
-             "mean ± std)", "",
-             f"Family tokenizer `{result['tokenizer']}`, {size_text(result['image_size'])} px; unseen sensor "
-             f"`{result['target']}`.  At every N: `{SCRATCH}` trains a fresh tokenizer with the run's config on the N "
-             f"images alone ({result['scratch_steps']} steps); `{ZERO_SHOT}` is the family tokenizer unchanged (the "
-             f"same at every N); `{SHOTS_ALONE}` fine-tunes it {result['steps']} steps on the N images; `{mixed}` "
-             f"fine-tunes it {result['steps']} steps on the N images plus {result['ratio']:g} x N images of its "
-             f"family.  Every arm of a seed scores the same {result['held_out']} held-out images of the sensor; "
-             f"{region}.  `{BACKGROUND}`: {result['background']}, scored against the same images.  `contact_*`: "
-             "scores on the contact region only; `family_psnr`: PSNR on held-out images of the family's members (what "
-             "an arm keeps of the family, the mix's purpose); `seconds`: training wall time.  Arrows: "
-             + ", ".join(f"{key} {direction_arrow(key)}" for key in TABLE_COLUMNS[1:-1]) + ".", "",
-             *markdown_table(result["summary"], ("n", "arm"), TABLE_COLUMNS,
-                             {"n": "N", "train_images": "train images"}), "",
-             f"Verdicts ({mixed} against each other arm, on the contact region only; a gap counts when it exceeds "
-             "both spreads):", "",
-             *(verdict_lines(result["summary"], result["counts"], result["ratio"])
-               or ["- no contact-region score to compare"]), "",
-             "Families: " + result["families"] + "; " + "; ".join(
-                 f"seed {entry['seed']}: family {entry['family']} ({', '.join(entry['members'])})"
-                 for entry in result["assignments"]) + "."]
+    lines = [
+        f"# Few-shot reconstruction of an unseen sensor (Table 4; {len(result['assignments'])} seeds: mean ± std)",
+        "",
+        f"Family tokenizer `{result['tokenizer']}`, {size_text(result['image_size'])} px; unseen sensor "
+        f"`{result['target']}`.  At every N: `{SCRATCH}` trains a fresh tokenizer with the run's config on the N "
+        f"images alone ({result['scratch_steps']} steps); `{ZERO_SHOT}` is the family tokenizer unchanged (the "
+        f"same at every N); `{SHOTS_ALONE}` fine-tunes it {result['steps']} steps on the N images; `{mixed}` "
+        f"fine-tunes it {result['steps']} steps on the N images plus {result['ratio']:g} x N images of its "
+        f"family.  Every arm of a seed scores the same {result['held_out']} held-out images of the sensor; "
+        f"{region}.  `{BACKGROUND}`: {result['background']}, scored against the same images.  `contact_*`: "
+        "scores on the contact region only; `family_psnr`: PSNR on held-out images of the family's members (what "
+        "an arm keeps of the family, the mix's purpose); `seconds`: training wall time.  Arrows: "
+        + ", ".join(f"{key} {direction_arrow(key)}" for key in TABLE_COLUMNS[1:-1])
+        + ".",
+        "",
+        *markdown_table(result["summary"], ("n", "arm"), TABLE_COLUMNS, {"n": "N", "train_images": "train images"}),
+        "",
+        f"Verdicts ({mixed} against each other arm, on the contact region only; a gap counts when it exceeds "
+        "both spreads):",
+        "",
+        *(
+            verdict_lines(result["summary"], result["counts"], result["ratio"])
+            or ["- no contact-region score to compare"]
+        ),
+        "",
+        "Families: "
+        + result["families"]
+        + "; "
+        + "; ".join(
+            f"seed {entry['seed']}: family {entry['family']} ({', '.join(entry['members'])})"
+            for entry in result["assignments"]
+        )
+        + ".",
+    ]
     if refused:
-        lines += ["", f"The assignment was refused (beyond the threshold) for seed(s) {refused}: those seeds adapt "
-                      "from the nearest family."]
+        lines += [
+            "",
+            f"The assignment was refused (beyond the threshold) for seed(s) {refused}: those seeds adapt "
+            "from the nearest family.",
+        ]
     if result["skipped"]:
-        lines += ["", "Skipped: " + "; ".join(f"`{name}`: {reason}"
-                                              for name, reason in sorted(result["skipped"].items()))]
+        lines += [
+            "",
+            "Skipped: " + "; ".join(f"`{name}`: {reason}" for name, reason in sorted(result["skipped"].items())),
+        ]
     return lines

@@ -30,45 +30,63 @@ CLUSTER_FOLDER, ADAPTED_FOLDER = "cluster", "adapted"
 class ClusterSection(Section):
     """The ``cluster`` stage's section."""
 
-    clusterer: Slot("clusterer") | None = Field(None, description="Clustering plugin that groups sensors into "
-                                                                  "families from tokenizer features.")
+    clusterer: Slot("clusterer") | None = Field(
+        None, description="Clustering plugin that groups sensors into families from tokenizer features."
+    )
     sensors: list[str] | None = Field(
-        None, description="Sensors to group: registered family names, JSON sensor configs with a variant, or "
-                          "folders of a real sensor's images; null: every registered family plus "
-                          "`variants_per_family` random environmental variants of each.")
-    variants_per_family: int = Field(3, ge=0, le=50, description="Random environmental variants per registered "
-                                                                 "family when `sensors` is null.")
+        None,
+        description="Sensors to group: registered family names, JSON sensor configs with a variant, or "
+        "folders of a real sensor's images; null: every registered family plus "
+        "`variants_per_family` random environmental variants of each.",
+    )
+    variants_per_family: int = Field(
+        3, ge=0, le=50, description="Random environmental variants per registered family when `sensors` is null."
+    )
     images_per_sensor: int = Field(32, ge=1, le=10_000, description="Images of each sensor that make its prototype.")
     features: Literal["pooled", "codes"] = Field("pooled", description="Pooled encoder features or code histograms.")
-    refine_steps: int = Field(3, ge=0, le=100, description="Prototype refinement steps (drop the farthest images, "
-                                                           "re-average).")
+    refine_steps: int = Field(
+        3, ge=0, le=100, description="Prototype refinement steps (drop the farthest images, re-average)."
+    )
     keep: float = Field(0.8, gt=0.0, le=1.0, description="Fraction of images kept at each refinement step.")
-    threshold: float | None = Field(None, ge=0.0, description="Refuse an unseen sensor farther than this from every "
-                                                              "family; null: derived from the within-family spread.")
+    threshold: float | None = Field(
+        None,
+        ge=0.0,
+        description="Refuse an unseen sensor farther than this from every "
+        "family; null: derived from the within-family spread.",
+    )
     family_tokenizer: str | None = Field(
-        None, description="The tokenizer the families are fitted with (and adapted from): null, this run's own "
-                          "tokenizer stage; a tokenizer run or checkpoint folder; or pretrained:NAME, a bundled one "
-                          "(the tour demo's: a tokenizer trained for demo minutes has features too weak to show "
-                          "families).  The cluster and adapt stages of one run must name the same.")
+        None,
+        description="The tokenizer the families are fitted with (and adapted from): null, this run's own "
+        "tokenizer stage; a tokenizer run or checkpoint folder; or pretrained:NAME, a bundled one "
+        "(the tour demo's: a tokenizer trained for demo minutes has features too weak to show "
+        "families).  The cluster and adapt stages of one run must name the same.",
+    )
 
 
 class AdaptSection(Section):
     """The ``adapt`` stage's section: how the family tokenizer is adapted to the target sensor."""
 
     shots: int = Field(50, ge=1, le=100_000, description="Target-sensor images to train on.")
-    ratio: float = Field(5.0, ge=0.0, le=1000.0, description="Family images per shot in the mixed set (the paper's "
-                                                             "1:5).")
+    ratio: float = Field(
+        5.0, ge=0.0, le=1000.0, description="Family images per shot in the mixed set (the paper's 1:5)."
+    )
     steps: int = Field(200, ge=1, le=1_000_000, description="Fine-tuning steps.")
-    learning_rate: float | None = Field(None, gt=0.0, le=10.0, description="Fine-tuning learning rate; null: the "
-                                                                           "tokenizer's own.")
+    learning_rate: float | None = Field(
+        None, gt=0.0, le=10.0, description="Fine-tuning learning rate; null: the tokenizer's own."
+    )
     eval_images: int = Field(64, ge=1, le=100_000, description="Held-out target images scored before and after.")
-    threshold: float | None = Field(None, ge=0.0, description="Refuse a target farther than this from every family; "
-                                                              "null: the clustering's threshold.")
+    threshold: float | None = Field(
+        None,
+        ge=0.0,
+        description="Refuse a target farther than this from every family; null: the clustering's threshold.",
+    )
     family_tokenizer: str | None = Field(
-        None, description="The tokenizer the families are fitted with (and adapted from): null, this run's own "
-                          "tokenizer stage; a tokenizer run or checkpoint folder; or pretrained:NAME, a bundled one "
-                          "(the tour demo's: a tokenizer trained for demo minutes has features too weak to show "
-                          "families).  The cluster and adapt stages of one run must name the same.")
+        None,
+        description="The tokenizer the families are fitted with (and adapted from): null, this run's own "
+        "tokenizer stage; a tokenizer run or checkpoint folder; or pretrained:NAME, a bundled one "
+        "(the tour demo's: a tokenizer trained for demo minutes has features too weak to show "
+        "families).  The cluster and adapt stages of one run must name the same.",
+    )
     family: int | None = Field(None, ge=0, description="Adapt from this family whatever the assignment says.")
 
 
@@ -83,8 +101,10 @@ def _family_tokenizer(job: StageJob) -> tuple[Any, Any]:
         return load_tokenizer(tokenizer_location(spec) if spec else job.run, job.host)
     except MissingCheckpointError as exc:
         where = spec or "this run"
-        raise StageUnavailable(f"no trained tokenizer in {where} ({exc}); run the tokenizer stage first or set "
-                               f"{job.stage}.family_tokenizer") from None
+        raise StageUnavailable(
+            f"no trained tokenizer in {where} ({exc}); run the tokenizer stage first or set "
+            f"{job.stage}.family_tokenizer"
+        ) from None
 
 
 def _tokenizer_note(job: StageJob) -> dict[str, Any]:
@@ -117,33 +137,57 @@ def run_cluster_stage(job: StageJob) -> dict[str, Any]:
     tokenizer, folder = _family_tokenizer(job)
     image_size = tokenizer.autoencoder.vqtouch_spec.context.image_size
     target = target_spec(job) if config.target_sensor is not None else None
-    specs = section.sensors if section.sensors is not None else family_sensor_specs(job.host,
-                                                                                    section.variants_per_family)
+    specs = (
+        section.sensors if section.sensors is not None else family_sensor_specs(job.host, section.variants_per_family)
+    )
     specs = [spec for spec in specs if spec != target]  # the unseen sensor is assigned, not clustered
-    families = fit_families(tokenizer, specs, job.host, clusterer=job.assembly.component("cluster.clusterer"),
-                            images=section.images_per_sensor, image_size=image_size, features=section.features,
-                            refine_steps=section.refine_steps, keep=section.keep, seed=config.seed,
-                            tokenizer_source=str(folder), report=lambda line: None)
-    result: dict[str, Any] = {"sensors": len(specs), "families": len(families.summary["families"]),
-                              "members": "; ".join(", ".join(members) for members in families.summary["families"]),
-                              **_tokenizer_note(job)}
+    families = fit_families(
+        tokenizer,
+        specs,
+        job.host,
+        clusterer=job.assembly.component("cluster.clusterer"),
+        images=section.images_per_sensor,
+        image_size=image_size,
+        features=section.features,
+        refine_steps=section.refine_steps,
+        keep=section.keep,
+        seed=config.seed,
+        tokenizer_source=str(folder),
+        report=lambda line: None,
+    )
+    result: dict[str, Any] = {
+        "sensors": len(specs),
+        "families": len(families.summary["families"]),
+        "members": "; ".join(", ".join(members) for members in families.summary["families"]),
+        **_tokenizer_note(job),
+    }
     extra: dict[str, Any] = {}
     plotted = []
     if target is not None:
-        sensor = sensor_images(target, job.host, count=section.images_per_sensor, image_size=image_size,
-                               seed=config.seed + 1)
+        sensor = sensor_images(
+            target, job.host, count=section.images_per_sensor, image_size=image_size, seed=config.seed + 1
+        )
         assigned, shown = families.unseen(tokenizer, sensor.name, sensor.images, section.threshold)
         plotted.append(shown)
         extra["assignments"] = {sensor.name: {"source": target, **assigned}}
-        result |= {"target": sensor.name, "target_family": "refused" if assigned["refused"] else assigned["family"],
-                   "margin": assigned["margin"],
-                   **experiment_metrics(job, reconstruct_all(tokenizer, sensor.images), sensor.images, "zero_shot_")}
+        result |= {
+            "target": sensor.name,
+            "target_family": "refused" if assigned["refused"] else assigned["family"],
+            "margin": assigned["margin"],
+            **experiment_metrics(job, reconstruct_all(tokenizer, sensor.images), sensor.images, "zero_shot_"),
+        }
     save_families(families, job.run.path / CLUSTER_FOLDER, job.host, extra, plotted)
     job.publish("families", CLUSTER_FOLDER, count=result["families"], tokenizer=str(folder))
-    return {**result, "picture": f"{CLUSTER_FOLDER}/families.png",
-            "caption": _caption(job, "2-D PCA of the tokenizer's image features: each sensor's images (small "
-                                     "points) and prototype (large marker, coloured by family); the unseen target "
-                                     "sensor is a black star labelled with the family it was assigned to.")}
+    return {
+        **result,
+        "picture": f"{CLUSTER_FOLDER}/families.png",
+        "caption": _caption(
+            job,
+            "2-D PCA of the tokenizer's image features: each sensor's images (small "
+            "points) and prototype (large marker, coloured by family); the unseen target "
+            "sensor is a black star labelled with the family it was assigned to.",
+        ),
+    }
 
 
 def run_adapt_stage(job: StageJob) -> dict[str, Any]:
@@ -158,39 +202,87 @@ def run_adapt_stage(job: StageJob) -> dict[str, Any]:
         families = load_families(job.product("families").path, job.host)
         check_same_tokenizer(families, folder, "the cluster stage's families")
     else:
-        families = default_families(tokenizer, job.host, image_size=tokenizer.autoencoder.vqtouch_spec.context.image_size,
-                                     tokenizer_source=str(folder), exclude=target, seed=config.seed,
-                                     report=lambda line: None)
-    settings = AdaptSettings(shots=section.shots, ratio=section.ratio, steps=section.steps,
-                             learning_rate=section.learning_rate, eval_images=section.eval_images,
-                             threshold=section.threshold, family=section.family, seed=config.seed)
-    summary = adapt_tokenizer(folder if job.section.family_tokenizer else job.run, target, families, job.host,
-                              job.run.path / ADAPTED_FOLDER, settings, overwrite=True, report=lambda line: None)
-    job.publish("adapted_tokenizer", ADAPTED_FOLDER, target=summary["target"], family=summary["family"],
-                shots=summary["shots"])
-    result = {"target": summary["target"], "family": summary["family"], "shots": summary["shots"],
-              "ratio": summary["ratio"], "steps": summary["steps"], "seconds": summary["seconds"],
-              **_tokenizer_note(job)}
+        families = default_families(
+            tokenizer,
+            job.host,
+            image_size=tokenizer.autoencoder.vqtouch_spec.context.image_size,
+            tokenizer_source=str(folder),
+            exclude=target,
+            seed=config.seed,
+            report=lambda line: None,
+        )
+    settings = AdaptSettings(
+        shots=section.shots,
+        ratio=section.ratio,
+        steps=section.steps,
+        learning_rate=section.learning_rate,
+        eval_images=section.eval_images,
+        threshold=section.threshold,
+        family=section.family,
+        seed=config.seed,
+    )
+    summary = adapt_tokenizer(
+        folder if job.section.family_tokenizer else job.run,
+        target,
+        families,
+        job.host,
+        job.run.path / ADAPTED_FOLDER,
+        settings,
+        overwrite=True,
+        report=lambda line: None,
+    )
+    job.publish(
+        "adapted_tokenizer", ADAPTED_FOLDER, target=summary["target"], family=summary["family"], shots=summary["shots"]
+    )
+    result = {
+        "target": summary["target"],
+        "family": summary["family"],
+        "shots": summary["shots"],
+        "ratio": summary["ratio"],
+        "steps": summary["steps"],
+        "seconds": summary["seconds"],
+        **_tokenizer_note(job),
+    }
     # The adapted tokenizer's scores, each beside the family tokenizer's before adaptation (before_*).
     result |= {key: summary["after"][key] for key in ("ssim", "psnr")}
     result |= {f"before_{key}": summary["before"][key] for key in ("ssim", "psnr")}
     if "real_frames" in summary:
         real = summary["real_frames"]
-        result |= {f"{when}real_frames_{key}": real[moment][key] for when, moment in (("", "after"), ("before_", "before"))
-                   for key in ("ssim", "psnr")}
-    return {**result, "picture": f"{ADAPTED_FOLDER}/before_after.png",
-            "caption": _caption(job, "Held-out images of the target sensor (top row), the family tokenizer's "
-                                     "reconstructions before adaptation (middle row) and after (bottom row).")}
+        result |= {
+            f"{when}real_frames_{key}": real[moment][key]
+            for when, moment in (("", "after"), ("before_", "before"))
+            for key in ("ssim", "psnr")
+        }
+    return {
+        **result,
+        "picture": f"{ADAPTED_FOLDER}/before_after.png",
+        "caption": _caption(
+            job,
+            "Held-out images of the target sensor (top row), the family tokenizer's "
+            "reconstructions before adaptation (middle row) and after (bottom row).",
+        ),
+    }
 
 
 @hookimpl
 def vqtouch_register_stages(register):
-    register("cluster", run_cluster_stage, section=ClusterSection,
-             needs=("tokenizer.autoencoder", "tokenizer.quantizer", "cluster.clusterer"), uses=("metrics",),
-             makes=("families",), demo={"images_per_sensor": 16, "variants_per_family": 2},
-             description="Cluster sensors into families from tokenizer features; assign an unseen sensor to one.")
-    register("adapt", run_adapt_stage, section=AdaptSection,
-             needs=("tokenizer.autoencoder", "tokenizer.quantizer", "sensor", "target_sensor"),
-             makes=("adapted_tokenizer",), demo={"steps": 30, "shots": 20, "eval_images": 16},
-             description="Adapt the family tokenizer to the target sensor from a few of its images mixed 1:5 with "
-                         "family data.")
+    register(
+        "cluster",
+        run_cluster_stage,
+        section=ClusterSection,
+        needs=("tokenizer.autoencoder", "tokenizer.quantizer", "cluster.clusterer"),
+        uses=("metrics",),
+        makes=("families",),
+        demo={"images_per_sensor": 16, "variants_per_family": 2},
+        description="Cluster sensors into families from tokenizer features; assign an unseen sensor to one.",
+    )
+    register(
+        "adapt",
+        run_adapt_stage,
+        section=AdaptSection,
+        needs=("tokenizer.autoencoder", "tokenizer.quantizer", "sensor", "target_sensor"),
+        makes=("adapted_tokenizer",),
+        demo={"steps": 30, "shots": 20, "eval_images": 16},
+        description="Adapt the family tokenizer to the target sensor from a few of its images mixed 1:5 with "
+        "family data.",
+    )

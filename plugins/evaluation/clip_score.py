@@ -45,20 +45,42 @@ import torch.nn.functional as F
 from pydantic import Field, field_validator
 from torch import nn
 
-from vqtouch.core import (BuildContext, ConfigError, Metric, MissingWeightsError, PerImageMetric, PluginConfig,
-                          PluginError, SkippedMetric, WeightsSpec, hookimpl, resolve_weights)
+from vqtouch.core import (
+    BuildContext,
+    ConfigError,
+    Metric,
+    MissingWeightsError,
+    PerImageMetric,
+    PluginConfig,
+    PluginError,
+    SkippedMetric,
+    WeightsSpec,
+    hookimpl,
+    resolve_weights,
+)
 
 from .metrics import check_pair
-from .open_clip_towers import (OPEN_CLIP_ENV_VAR, OPEN_CLIP_FILENAMES, OPEN_CLIP_SOURCE, builtin_tokenizer,
-                               check_open_clip_architecture, clip_image_embeddings, clip_image_geometry,
-                               create_open_clip_model, import_open_clip)
+from .open_clip_towers import (
+    OPEN_CLIP_ENV_VAR,
+    OPEN_CLIP_FILENAMES,
+    OPEN_CLIP_SOURCE,
+    builtin_tokenizer,
+    check_open_clip_architecture,
+    clip_image_embeddings,
+    clip_image_geometry,
+    create_open_clip_model,
+    import_open_clip,
+)
 
 #: The same open_clip checkpoint the clip and text conditioners read (it holds both towers), found the same way.
 CLIP_SCORE_WEIGHTS = WeightsSpec(
     description="metric 'clip_score' (open_clip image and text encoders)",
-    filenames=OPEN_CLIP_FILENAMES, env_var=OPEN_CLIP_ENV_VAR, source_url=OPEN_CLIP_SOURCE,
+    filenames=OPEN_CLIP_FILENAMES,
+    env_var=OPEN_CLIP_ENV_VAR,
+    source_url=OPEN_CLIP_SOURCE,
     config_hint="the clip_score metric's checkpoint option (e.g. --set metrics.4.checkpoint=PATH, 4 being its place "
-                "in metrics) or `vqtouch evaluate generation --clip-checkpoint PATH`")
+    "in metrics) or `vqtouch evaluate generation --clip-checkpoint PATH`",
+)
 
 #: Result keys: the mean cosine, and the retrieval figure (see the module docstring).
 SCORE_KEY = "clip_score"
@@ -69,18 +91,28 @@ class ClipScoreConfig(PluginConfig):
     """Options of the ``clip_score`` metric (CLIP-space consistency of generated images with their conditions)."""
 
     name: Literal["clip_score"] = "clip_score"
-    architecture: str = Field("ViT-B-32", min_length=1,
-                              description="open_clip model name whose weights the checkpoint file holds; texts and "
-                                          "labels need its built-in BPE tokenizer (e.g. ViT-B-32, ViT-L-14).")
+    architecture: str = Field(
+        "ViT-B-32",
+        min_length=1,
+        description="open_clip model name whose weights the checkpoint file holds; texts and "
+        "labels need its built-in BPE tokenizer (e.g. ViT-B-32, ViT-L-14).",
+    )
     checkpoint: str | None = Field(
-        None, description="Path to the open_clip weights (.safetensors/.pt/.bin; the whole model, as for the clip "
-                          "conditioner); else VQTOUCH_CLIP_CKPT or VQTOUCH_WEIGHTS_DIR. Never downloaded: without "
-                          "it the metric is reported as skipped.")
-    prompt: str = Field("a tactile sensor image of {label}", min_length=1,
-                        description="Text a label condition is embedded as: {label} is replaced by the class name.")
+        None,
+        description="Path to the open_clip weights (.safetensors/.pt/.bin; the whole model, as for the clip "
+        "conditioner); else VQTOUCH_CLIP_CKPT or VQTOUCH_WEIGHTS_DIR. Never downloaded: without "
+        "it the metric is reported as skipped.",
+    )
+    prompt: str = Field(
+        "a tactile sensor image of {label}",
+        min_length=1,
+        description="Text a label condition is embedded as: {label} is replaced by the class name.",
+    )
     model_overrides: dict[str, Any] = Field(
-        default_factory=dict, description="Keyword overrides passed to open_clip.create_model (e.g. a small "
-                                          "vision_cfg for a custom-trained model); must match the checkpoint.")
+        default_factory=dict,
+        description="Keyword overrides passed to open_clip.create_model (e.g. a small "
+        "vision_cfg for a custom-trained model); must match the checkpoint.",
+    )
     batch_size: int = Field(32, ge=1, le=1024, description="Images or texts per CLIP forward pass.")
 
     @field_validator("prompt")
@@ -90,11 +122,14 @@ class ClipScoreConfig(PluginConfig):
         try:
             fields = [field for _, field, _, _ in string.Formatter().parse(prompt) if field is not None]
         except ValueError as error:
-            raise ValueError(f"prompt {prompt!r} is not a format string ({error}); write e.g. "
-                             "'a tactile sensor image of {label}'") from None
+            raise ValueError(
+                f"prompt {prompt!r} is not a format string ({error}); write e.g. 'a tactile sensor image of {{label}}'"
+            ) from None
         if fields != ["label"]:
-            raise ValueError(f"prompt {prompt!r} must contain {{label}} exactly once and no other {{...}} field, "
-                             "e.g. 'a tactile sensor image of {label}'")
+            raise ValueError(
+                f"prompt {prompt!r} must contain {{label}} exactly once and no other {{...}} field, "
+                "e.g. 'a tactile sensor image of {label}'"
+            )
         return prompt
 
 
@@ -108,8 +143,14 @@ class ClipConditionScore(PerImageMetric):
 
     higher_is_better = True
 
-    def __init__(self, clip_model: nn.Module, tokenizer: Any, prompt: str, batch_size: int = 32,
-                 texts_unavailable: str | None = None) -> None:
+    def __init__(
+        self,
+        clip_model: nn.Module,
+        tokenizer: Any,
+        prompt: str,
+        batch_size: int = 32,
+        texts_unavailable: str | None = None,
+    ) -> None:
         """``clip_model``: a loaded open_clip model (kept frozen, in eval mode, float32); ``tokenizer``:
         its built-in tokenizer, or None with ``texts_unavailable`` saying why texts and labels cannot be
         embedded; ``prompt``: the label template; ``batch_size``: inputs per forward pass."""
@@ -130,8 +171,12 @@ class ClipConditionScore(PerImageMetric):
         if not torch.isfinite(images_B3HW).all():
             raise ValueError("clip_score: images contain NaN or Inf")
         self.model.to(images_B3HW.device)
-        return torch.cat([clip_image_embeddings(self.model, chunk, self.size_hw, self.mean_C, self.std_C)
-                          for chunk in images_B3HW.split(self.batch_size)])
+        return torch.cat(
+            [
+                clip_image_embeddings(self.model, chunk, self.size_hw, self.mean_C, self.std_C)
+                for chunk in images_B3HW.split(self.batch_size)
+            ]
+        )
 
     @torch.no_grad()
     def text_embeddings(self, texts: Sequence[str]) -> torch.Tensor:
@@ -142,7 +187,7 @@ class ClipConditionScore(PerImageMetric):
         device = next(self.model.parameters()).device
         embeddings = []
         for start in range(0, len(texts), self.batch_size):
-            ids_BL = self.tokenizer(list(texts[start:start + self.batch_size])).to(device)
+            ids_BL = self.tokenizer(list(texts[start : start + self.batch_size])).to(device)
             embeddings.append(F.normalize(self.model.encode_text(ids_BL).float(), dim=-1, eps=1e-6))
         return torch.cat(embeddings)
 
@@ -150,16 +195,20 @@ class ClipConditionScore(PerImageMetric):
         """The prompt of each label (class index): ``prompt`` filled with its class name."""
         labels = [int(label) for label in torch.as_tensor(labels).flatten().tolist()]
         if not class_names:
-            raise UnembeddableCondition("label conditions need the dataset's class names to be written as prompts, "
-                                        "and this dataset has none")
+            raise UnembeddableCondition(
+                "label conditions need the dataset's class names to be written as prompts, and this dataset has none"
+            )
         outside = [label for label in labels if not 0 <= label < len(class_names)]
         if outside:
-            raise UnembeddableCondition(f"label {outside[0]} is not a class of this dataset "
-                                        f"(0..{len(class_names) - 1}; -1: an unlabelled sample)")
+            raise UnembeddableCondition(
+                f"label {outside[0]} is not a class of this dataset "
+                f"(0..{len(class_names) - 1}; -1: an unlabelled sample)"
+            )
         return [self.prompt.format(label=class_names[label]) for label in labels]
 
-    def condition_embeddings(self, condition: Any, sample_key: str,
-                             class_names: Sequence[str] = ()) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def condition_embeddings(
+        self, condition: Any, sample_key: str, class_names: Sequence[str] = ()
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """CLIP embeddings (B, E) of a batch of raw conditions (what ``conditioner.condition_of(batch)``
         gives for samples' ``sample_key``), then which distinct condition each row is (B,) and the first row
         of each distinct condition (U,), as :func:`distinct_rows` (equal labels, texts or images are one
@@ -174,8 +223,10 @@ class ClipConditionScore(PerImageMetric):
             return self.text_embeddings(condition), *distinct_rows(list(condition))
         if isinstance(condition, torch.Tensor) and condition.ndim == 4 and condition.shape[1] == 3:
             return self.image_embeddings(condition), *distinct_rows(condition)
-        raise UnembeddableCondition(f"conditions read from samples' {sample_key!r} cannot be embedded by CLIP: it "
-                                    "embeds RGB images (visual, tactile_source), texts and labels (as prompts)")
+        raise UnembeddableCondition(
+            f"conditions read from samples' {sample_key!r} cannot be embedded by CLIP: it "
+            "embeds RGB images (visual, tactile_source), texts and labels (as prompts)"
+        )
 
     # -- scores -------------------------------------------------------------------------------------------
 
@@ -186,8 +237,14 @@ class ClipConditionScore(PerImageMetric):
         predicted_BE, target_BE = self.image_embeddings(torch.cat([predicted_B3HW, target_B3HW])).chunk(2)
         return (predicted_BE * target_BE).sum(dim=-1).clamp(-1, 1).double().cpu()
 
-    def condition_scores(self, candidates: Mapping[str, torch.Tensor], condition: Any, sample_key: str,
-                         class_names: Sequence[str] = (), digits: int | None = 4) -> dict[str, Any]:
+    def condition_scores(
+        self,
+        candidates: Mapping[str, torch.Tensor],
+        condition: Any,
+        sample_key: str,
+        class_names: Sequence[str] = (),
+        digits: int | None = 4,
+    ) -> dict[str, Any]:
         """``{prefix}clip_score`` (mean cosine of each image with its own condition) and, given at least two
         distinct conditions, ``{prefix}clip_top1`` (share of images whose own condition is the most similar
         of the distinct ones) for each candidate image set ``{prefix: images (B, 3, H, W)}``, image i
@@ -201,8 +258,9 @@ class ClipConditionScore(PerImageMetric):
         scores: dict[str, Any] = {}
         for prefix, images_B3HW in candidates.items():
             if len(images_B3HW) != len(which_B):
-                raise ValueError(f"clip_score: {len(images_B3HW)} {prefix or 'generated '}images for "
-                                 f"{len(which_B)} conditions")
+                raise ValueError(
+                    f"clip_score: {len(images_B3HW)} {prefix or 'generated '}images for {len(which_B)} conditions"
+                )
             # A repeated image (the background, a class mean) is embedded once.
             image_rows_B, first_image_rows_U = distinct_rows(images_B3HW)
             images_BE = self.image_embeddings(images_B3HW[first_image_rows_U.to(images_B3HW.device)])
@@ -211,8 +269,9 @@ class ClipConditionScore(PerImageMetric):
             if len(distinct_UE) >= 2:
                 nearest_B = (images_BE @ distinct_UE.T).argmax(dim=1)
                 values[TOP1_KEY] = float((nearest_B == which_B.to(nearest_B.device)).double().mean())
-            scores |= {prefix + key: round(value, digits) if digits is not None else value
-                       for key, value in values.items()}
+            scores |= {
+                prefix + key: round(value, digits) if digits is not None else value for key, value in values.items()
+            }
         return scores
 
 
@@ -244,8 +303,9 @@ def build_clip_score(config: ClipScoreConfig, context: BuildContext) -> Metric:
         return SkippedMetric(str(error))
     check_open_clip_architecture(open_clip, config.architecture, "clip_score", kind="metric")
     try:
-        model = create_open_clip_model(open_clip, config.architecture, path, config.model_overrides, "clip_score",
-                                       kind="metric")
+        model = create_open_clip_model(
+            open_clip, config.architecture, path, config.model_overrides, "clip_score", kind="metric"
+        )
     except MissingWeightsError as error:  # a file, but not this architecture's weights: as good as missing
         return SkippedMetric(str(error))
     tokenizer, texts_unavailable = None, None
@@ -254,8 +314,9 @@ def build_clip_score(config: ClipScoreConfig, context: BuildContext) -> Metric:
         texts_unavailable = f"open_clip architecture {config.architecture!r} has no text tower"
     else:
         try:
-            tokenizer = builtin_tokenizer(open_clip, config.architecture, context_length, config.model_overrides,
-                                          "clip_score", kind="metric")
+            tokenizer = builtin_tokenizer(
+                open_clip, config.architecture, context_length, config.model_overrides, "clip_score", kind="metric"
+            )
         except ConfigError as error:  # images can still be scored; texts and labels are skipped with this reason
             texts_unavailable = str(error)
     return ClipConditionScore(model, tokenizer, config.prompt, config.batch_size, texts_unavailable)
@@ -264,6 +325,10 @@ def build_clip_score(config: ClipScoreConfig, context: BuildContext) -> Metric:
 @hookimpl
 def vqtouch_register_metrics(register: Any) -> None:
     """Register the ``clip_score`` metric (the metric hook; the entry point is in pyproject.toml)."""
-    register("clip_score", build_clip_score, ClipScoreConfig,
-             description="CLIP-space cosine between generated tactile images and their conditions (image, text, "
-                         "label prompt), with an open_clip checkpoint from a local file; skipped without it.")
+    register(
+        "clip_score",
+        build_clip_score,
+        ClipScoreConfig,
+        description="CLIP-space cosine between generated tactile images and their conditions (image, text, "
+        "label prompt), with an open_clip checkpoint from a local file; skipped without it.",
+    )

@@ -46,8 +46,9 @@ def images_by_id(folder: Path) -> dict[str, Path]:
     return found
 
 
-def load_pairs(generated: dict[str, Path], real: dict[str, Path], ids: list[str],
-               image_size: int | None) -> tuple[torch.Tensor, torch.Tensor]:
+def load_pairs(
+    generated: dict[str, Path], real: dict[str, Path], ids: list[str], image_size: int | None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The paired images, both at ``image_size`` x ``image_size`` (None: the first generated image's size),
     resized whole (no crop), bicubic as Pillow resizes."""
 
@@ -57,12 +58,20 @@ def load_pairs(generated: dict[str, Path], real: dict[str, Path], ids: list[str]
     else:
         size = image_size
     loader = ImageLoader(size=size, crop="stretch")
-    return (torch.stack([loader.load(generated[key]) for key in ids]),
-            torch.stack([loader.load(real[key]) for key in ids]))
+    return (
+        torch.stack([loader.load(generated[key]) for key in ids]),
+        torch.stack([loader.load(real[key]) for key in ids]),
+    )
 
 
-def evaluate_pairs(generated_folder: Path, real_folder: Path, protocol_name: str, host: PluginHost,
-                   overrides: dict[str, dict[str, Any]] | None = None, batch_size: int = 64) -> dict[str, Any]:
+def evaluate_pairs(
+    generated_folder: Path,
+    real_folder: Path,
+    protocol_name: str,
+    host: PluginHost,
+    overrides: dict[str, dict[str, Any]] | None = None,
+    batch_size: int = 64,
+) -> dict[str, Any]:
     """Score ``generated_folder`` against ``real_folder`` under the named protocol; returns the result
     (protocol, its description, pair count, image size, scores and any skipped metrics)."""
     protocol = get_protocol(protocol_name)
@@ -72,12 +81,18 @@ def evaluate_pairs(generated_folder: Path, real_folder: Path, protocol_name: str
     metrics.reset()
     size = None
     for start in range(0, len(ids), batch_size):
-        generated_B3HW, real_B3HW = load_pairs(generated, real, ids[start:start + batch_size], protocol.image_size)
+        generated_B3HW, real_B3HW = load_pairs(generated, real, ids[start : start + batch_size], protocol.image_size)
         size = tuple(generated_B3HW.shape[-2:])
         metrics.update(generated_B3HW, real_B3HW)
-    return {"protocol": protocol.name, "protocol_description": protocol.description, "pairs": len(ids),
-            "image_size": list(image_hw(size)), "generated": str(generated_folder), "real": str(real_folder),
-            **metrics.scores()}
+    return {
+        "protocol": protocol.name,
+        "protocol_description": protocol.description,
+        "pairs": len(ids),
+        "image_size": list(image_hw(size)),
+        "generated": str(generated_folder),
+        "real": str(real_folder),
+        **metrics.scores(),
+    }
 
 
 def _evaluate_pairs_command(args: argparse.Namespace) -> int:
@@ -101,15 +116,25 @@ def _evaluate_pairs_command(args: argparse.Namespace) -> int:
 @hookimpl
 def vqtouch_add_commands(subparsers: Any) -> None:
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
-    pairs = evaluate.add_parser("pairs", help="score a folder of generated images against a folder of real ones, "
-                                              "paired by file name, under a named protocol")
+    pairs = evaluate.add_parser(
+        "pairs",
+        help="score a folder of generated images against a folder of real ones, "
+        "paired by file name, under a named protocol",
+    )
     pairs.add_argument("--generated", required=True, help="folder of generated images (any depth)")
     pairs.add_argument("--real", required=True, help="folder of real images with the same relative names")
-    pairs.add_argument("--protocol", default="published", choices=sorted(PROTOCOLS),
-                       help="published: 512 px, LPIPS-VGG, SSIM, pooled PSNR (the papers' tables); default: "
-                            "vqtouch's own-size protocol (default: published)")
-    pairs.add_argument("--lpips-weights", metavar="PATH",
-                       help="torchvision's vgg16-397923af.pth (else VQTOUCH_LPIPS_VGG or VQTOUCH_WEIGHTS_DIR; "
-                            "without it LPIPS is skipped)")
+    pairs.add_argument(
+        "--protocol",
+        default="published",
+        choices=sorted(PROTOCOLS),
+        help="published: 512 px, LPIPS-VGG, SSIM, pooled PSNR (the papers' tables); default: "
+        "vqtouch's own-size protocol (default: published)",
+    )
+    pairs.add_argument(
+        "--lpips-weights",
+        metavar="PATH",
+        help="torchvision's vgg16-397923af.pth (else VQTOUCH_LPIPS_VGG or VQTOUCH_WEIGHTS_DIR; "
+        "without it LPIPS is skipped)",
+    )
     pairs.add_argument("--out", help="also write the result to this JSON file")
     pairs.set_defaults(handler=_evaluate_pairs_command)

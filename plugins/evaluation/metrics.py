@@ -21,8 +21,16 @@ from typing import Any, Literal
 import torch
 from pydantic import Field
 
-from vqtouch.core import (BuildContext, MissingWeightsError, PerImageMetric, PluginConfig, SkippedMetric, WeightsSpec,
-                          hookimpl, resolve_weights)
+from vqtouch.core import (
+    BuildContext,
+    MissingWeightsError,
+    PerImageMetric,
+    PluginConfig,
+    SkippedMetric,
+    WeightsSpec,
+    hookimpl,
+    resolve_weights,
+)
 from vqtouch.core.components import Metric
 
 from .feature_networks import ALEXNET_WEIGHTS
@@ -31,8 +39,10 @@ from .feature_networks import ALEXNET_WEIGHTS
 def check_pair(predicted: torch.Tensor, target: torch.Tensor, metric: str = "metrics") -> None:
     """Raise ValueError unless ``predicted`` and ``target`` are finite image batches of one shape (B, C, H, W)."""
     if predicted.shape != target.shape or predicted.ndim != 4:
-        raise ValueError(f"{metric} need two image batches of equal shape (B, C, H, W); got "
-                         f"{tuple(predicted.shape)} and {tuple(target.shape)}")
+        raise ValueError(
+            f"{metric} need two image batches of equal shape (B, C, H, W); got "
+            f"{tuple(predicted.shape)} and {tuple(target.shape)}"
+        )
     for name, images in (("predicted", predicted), ("target", target)):
         if not torch.isfinite(images).all():
             raise ValueError(f"{name} images contain NaN or Inf")
@@ -40,14 +50,18 @@ def check_pair(predicted: torch.Tensor, target: torch.Tensor, metric: str = "met
 
 # -- PSNR -----------------------------------------------------------------------------------------
 
+
 class PsnrConfig(PluginConfig):
     """Options of the ``psnr`` metric."""
 
     name: Literal["psnr"] = "psnr"
     data_range: float = Field(1.0, gt=0, description="Value range of the images (1.0 for [0, 1]).")
-    pooled: bool = Field(False, description="One PSNR of the squared error pooled over every pixel of every image "
-                                            "(torchmetrics' default reduction, the published protocol's) instead of "
-                                            "the mean of per-image PSNRs.")
+    pooled: bool = Field(
+        False,
+        description="One PSNR of the squared error pooled over every pixel of every image "
+        "(torchmetrics' default reduction, the published protocol's) instead of "
+        "the mean of per-image PSNRs.",
+    )
     max_db: float = Field(100.0, gt=0, description="Cap for identical images, whose PSNR is infinite.")
 
 
@@ -76,7 +90,9 @@ class Psnr(Metric):
                 self._pooled = PeakSignalNoiseRatio(data_range=self.data_range).double()
             self._pooled.update(predicted, target)
             return
-        values_B = peak_signal_noise_ratio(predicted, target, data_range=self.data_range, reduction="none", dim=(1, 2, 3))
+        values_B = peak_signal_noise_ratio(
+            predicted, target, data_range=self.data_range, reduction="none", dim=(1, 2, 3)
+        )
         # An exact match has infinite PSNR: report the cap instead of Inf.
         self._sum += float(values_B.clamp(max=self.max_db).sum())
 
@@ -95,6 +111,7 @@ class Psnr(Metric):
 
 
 # -- SSIM and MS-SSIM -------------------------------------------------------------------------------
+
 
 class SsimConfig(PluginConfig):
     """Options of the ``ssim`` metric (Wang et al. 2004, Gaussian window)."""
@@ -126,9 +143,14 @@ class Ssim(PerImageMetric):
             raise ValueError(f"ssim needs images of at least {self.window_size} px, got {tuple(predicted.shape[-2:])}")
         from torchmetrics.functional.image import structural_similarity_index_measure
 
-        return structural_similarity_index_measure(predicted.double().cpu(), target.double().cpu(),
-                                                   data_range=self.data_range, kernel_size=self.window_size,
-                                                   sigma=self.sigma, reduction="none")
+        return structural_similarity_index_measure(
+            predicted.double().cpu(),
+            target.double().cpu(),
+            data_range=self.data_range,
+            kernel_size=self.window_size,
+            sigma=self.sigma,
+            reduction="none",
+        )
 
 
 #: Wang, Simoncelli and Bovik's five scale weights (2003), finest first.
@@ -150,10 +172,14 @@ class MsSsimConfig(PluginConfig):
 
     name: Literal["ms_ssim"] = "ms_ssim"
     data_range: float = Field(1.0, gt=0, description="Value range of the images (1.0 for [0, 1]).")
-    scales: int | None = Field(None, ge=1, le=5,
-                               description="Scales to use (the first of Wang's five weights, renormalised to sum 1). "
-                                           "None: 5 when the images allow it (176 px or more), else the most they allow "
-                                           "(3 at 64 px, 4 at 128 px); only compare numbers with equal scales.")
+    scales: int | None = Field(
+        None,
+        ge=1,
+        le=5,
+        description="Scales to use (the first of Wang's five weights, renormalised to sum 1). "
+        "None: 5 when the images allow it (176 px or more), else the most they allow "
+        "(3 at 64 px, 4 at 128 px); only compare numbers with equal scales.",
+    )
 
 
 class MsSsim(PerImageMetric):
@@ -172,15 +198,21 @@ class MsSsim(PerImageMetric):
         possible = ms_ssim_scales(*predicted.shape[-2:])
         scales = self.scales or possible
         if scales == 0 or scales > possible:
-            raise ValueError(f"ms_ssim with {scales or 1} scale(s) needs larger images than "
-                             f"{tuple(predicted.shape[-2:])} (at most {possible} scale(s) fit); set scales or use ssim")
+            raise ValueError(
+                f"ms_ssim with {scales or 1} scale(s) needs larger images than "
+                f"{tuple(predicted.shape[-2:])} (at most {possible} scale(s) fit); set scales or use ssim"
+            )
         betas = torch.tensor(MS_SSIM_BETAS[:scales], dtype=torch.float64)
         from torchmetrics.functional.image import multiscale_structural_similarity_index_measure
 
-        return multiscale_structural_similarity_index_measure(predicted.double().cpu(), target.double().cpu(),
-                                                              data_range=self.data_range,
-                                                              betas=tuple((betas / betas.sum()).tolist()),
-                                                              normalize="relu", reduction="none")
+        return multiscale_structural_similarity_index_measure(
+            predicted.double().cpu(),
+            target.double().cpu(),
+            data_range=self.data_range,
+            betas=tuple((betas / betas.sum()).tolist()),
+            normalize="relu",
+            reduction="none",
+        )
 
 
 # -- LPIPS ----------------------------------------------------------------------------------------
@@ -188,10 +220,13 @@ class MsSsim(PerImageMetric):
 #: The ImageNet trunks LPIPS compares features of (torchvision's files; never downloaded).
 LPIPS_VGG_WEIGHTS = WeightsSpec(
     description="metric 'lpips' (VGG16 trunk: torchvision's ImageNet VGG16 weights)",
-    filenames=("vgg16-397923af.pth",), env_var="VQTOUCH_LPIPS_VGG",
+    filenames=("vgg16-397923af.pth",),
+    env_var="VQTOUCH_LPIPS_VGG",
     config_hint="the lpips metric's weights option (e.g. --set metrics.3.weights=PATH, 3 being lpips' place in "
-                "metrics) or `vqtouch evaluate pairs --lpips-weights PATH`",
-    source_url="https://download.pytorch.org/models/vgg16-397923af.pth", sha256_prefix="397923af")
+    "metrics) or `vqtouch evaluate pairs --lpips-weights PATH`",
+    source_url="https://download.pytorch.org/models/vgg16-397923af.pth",
+    sha256_prefix="397923af",
+)
 #: AlexNet: the same file as the tokenizer's LPIPS loss, found the same way.
 LPIPS_TRUNK_WEIGHTS = {"vgg": LPIPS_VGG_WEIGHTS, "alex": ALEXNET_WEIGHTS}
 
@@ -200,12 +235,17 @@ class LpipsConfig(PluginConfig):
     """Options of the ``lpips`` metric (Zhang et al. 2018, v0.1 heads, via torchmetrics)."""
 
     name: Literal["lpips"] = "lpips"
-    backbone: Literal["vgg", "alex"] = Field("vgg", description="ImageNet trunk: vgg (the published tactile protocol's) "
-                                                                "or alex (the LPIPS authors' default).")
-    weights: str | None = Field(None, description="Path to torchvision's ImageNet weights of the trunk "
-                                                  "(vgg16-397923af.pth or alexnet-owt-7be5be79.pth); else "
-                                                  "VQTOUCH_LPIPS_VGG / VQTOUCH_LPIPS_BACKBONE or VQTOUCH_WEIGHTS_DIR. "
-                                                  "Without it the metric is reported as skipped.")
+    backbone: Literal["vgg", "alex"] = Field(
+        "vgg",
+        description="ImageNet trunk: vgg (the published tactile protocol's) or alex (the LPIPS authors' default).",
+    )
+    weights: str | None = Field(
+        None,
+        description="Path to torchvision's ImageNet weights of the trunk "
+        "(vgg16-397923af.pth or alexnet-owt-7be5be79.pth); else "
+        "VQTOUCH_LPIPS_VGG / VQTOUCH_LPIPS_BACKBONE or VQTOUCH_WEIGHTS_DIR. "
+        "Without it the metric is reported as skipped.",
+    )
     batch_size: int = Field(8, ge=1, le=1024, description="Image pairs per forward pass (bounds memory at 512 px).")
 
 
@@ -217,8 +257,10 @@ def load_trunk_into_lpips(lpips_net: torch.nn.Module, state_dict: dict[str, torc
         _, index, kind = name.split(".")
         key = f"features.{index}.{kind}"
         if key not in state_dict or state_dict[key].shape != tensor.shape:
-            raise MissingWeightsError(f"the LPIPS trunk file lacks {key} of shape {tuple(tensor.shape)}: it is not "
-                                      "torchvision's ImageNet weights of this backbone")
+            raise MissingWeightsError(
+                f"the LPIPS trunk file lacks {key} of shape {tuple(tensor.shape)}: it is not "
+                "torchvision's ImageNet weights of this backbone"
+            )
         trunk[name] = state_dict[key]
     lpips_net.net.load_state_dict(trunk, strict=True)
 
@@ -240,11 +282,15 @@ class Lpips(PerImageMetric):
         if predicted.shape[1] != 3:
             raise ValueError(f"lpips needs RGB images (B, 3, H, W), got {tuple(predicted.shape)}")
         if min(predicted.shape[-2:]) < 16:
-            raise ValueError(f"lpips needs images of at least 16 px (its trunk halves them 4 times), got "
-                             f"{tuple(predicted.shape[-2:])}")
+            raise ValueError(
+                f"lpips needs images of at least 16 px (its trunk halves them 4 times), got "
+                f"{tuple(predicted.shape[-2:])}"
+            )
         self.net.to(predicted.device)
-        values = [self.net(p.float().clamp(0, 1), t.float().clamp(0, 1), normalize=True).flatten().double().cpu()
-                  for p, t in zip(predicted.split(self.batch_size), target.split(self.batch_size))]
+        values = [
+            self.net(p.float().clamp(0, 1), t.float().clamp(0, 1), normalize=True).flatten().double().cpu()
+            for p, t in zip(predicted.split(self.batch_size), target.split(self.batch_size))
+        ]
         return torch.cat(values)
 
 
@@ -259,8 +305,9 @@ def build_lpips(config: LpipsConfig, context: BuildContext) -> Metric:
     try:
         from torchmetrics.functional.image.lpips import _NoTrainLpips
     except (ImportError, ModuleNotFoundError) as error:
-        return SkippedMetric(f"metric 'lpips' needs torchvision ({error}): pip install 'vqtouch[metrics]'",
-                             higher_is_better=False)
+        return SkippedMetric(
+            f"metric 'lpips' needs torchvision ({error}): pip install 'vqtouch[metrics]'", higher_is_better=False
+        )
     # pnet_rand builds the trunk without torchvision's download; the file's weights are then loaded
     # into it, and the linear heads come from the file inside torchmetrics (pretrained=True).
     net = _NoTrainLpips(net=config.backbone, pnet_rand=True)
@@ -288,11 +335,25 @@ def build_ms_ssim(config: MsSsimConfig, context: BuildContext) -> MsSsim:
 
 @hookimpl
 def vqtouch_register_metrics(register: Any) -> None:
-    register("psnr", build_psnr, PsnrConfig, description="Peak signal-to-noise ratio in dB (torchmetrics; per image, "
-                                                         "averaged).")
-    register("ssim", build_ssim, SsimConfig, description="Structural similarity (torchmetrics; Gaussian 11x11, "
-                                                         "sigma 1.5).")
-    register("ms_ssim", build_ms_ssim, MsSsimConfig, description="Multi-scale structural similarity (torchmetrics; "
-                                                                 "5 scales from 176 px, fewer below).")
-    register("lpips", build_lpips, LpipsConfig, description="LPIPS v0.1 (torchmetrics) with a VGG16 or AlexNet trunk "
-                                                            "from a user-supplied file; skipped without it.")
+    register(
+        "psnr",
+        build_psnr,
+        PsnrConfig,
+        description="Peak signal-to-noise ratio in dB (torchmetrics; per image, averaged).",
+    )
+    register(
+        "ssim", build_ssim, SsimConfig, description="Structural similarity (torchmetrics; Gaussian 11x11, sigma 1.5)."
+    )
+    register(
+        "ms_ssim",
+        build_ms_ssim,
+        MsSsimConfig,
+        description="Multi-scale structural similarity (torchmetrics; 5 scales from 176 px, fewer below).",
+    )
+    register(
+        "lpips",
+        build_lpips,
+        LpipsConfig,
+        description="LPIPS v0.1 (torchmetrics) with a VGG16 or AlexNet trunk "
+        "from a user-supplied file; skipped without it.",
+    )

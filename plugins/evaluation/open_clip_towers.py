@@ -40,16 +40,22 @@ def clip_image_geometry(clip_model: nn.Module) -> tuple[tuple[int, int], tuple[f
     return size_hw, tuple(mean), tuple(std)
 
 
-def clip_image_embeddings(clip_model: nn.Module, images_B3HW: torch.Tensor, size_hw: tuple[int, int],
-                          mean_C: torch.Tensor, std_C: torch.Tensor,
-                          dtype: torch.dtype = torch.float32) -> torch.Tensor:
+def clip_image_embeddings(
+    clip_model: nn.Module,
+    images_B3HW: torch.Tensor,
+    size_hw: tuple[int, int],
+    mean_C: torch.Tensor,
+    std_C: torch.Tensor,
+    dtype: torch.dtype = torch.float32,
+) -> torch.Tensor:
     """L2-normalised float32 CLIP image embeddings (B, E) of RGB images (B, 3, H, W) in [0, 1]: resized
     (bicubic, antialiased, squashed to the tower's ``size_hw`` rather than cropped, so a sensor's
     non-square frame is seen whole), normalised with ``mean_C``/``std_C`` (see
     :func:`clip_image_geometry`) and encoded by ``clip_model`` in ``dtype`` without gradients.  The one
     CLIP image preprocessing of vqtouch: the ``clip`` conditioner and the ``clip_score`` metric share it."""
-    images = F.interpolate(images_B3HW.float(), size=size_hw, mode="bicubic", antialias=True,
-                           align_corners=False).clamp(0, 1)
+    images = F.interpolate(
+        images_B3HW.float(), size=size_hw, mode="bicubic", antialias=True, align_corners=False
+    ).clamp(0, 1)
     images = (images - mean_C.to(images)[:, None, None]) / std_C.to(images)[:, None, None]
     with torch.no_grad():
         embedding_BE = clip_model.encode_image(images.to(dtype)).float()
@@ -67,27 +73,38 @@ def import_open_clip(conditioner: str = "clip", *, kind: str = "conditioner") ->
         import open_clip
     except ImportError as exc:
         if isinstance(exc, ModuleNotFoundError) and exc.name == "open_clip":
-            raise PluginError(f"{kind} {conditioner!r} needs open_clip_torch: "
-                              "pip install 'vqtouch[clip]'") from None
+            raise PluginError(f"{kind} {conditioner!r} needs open_clip_torch: pip install 'vqtouch[clip]'") from None
         # Installed but broken, typically a torchvision that does not match torch: say so, not "install it".
         first_line = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        raise PluginError(f"{kind} {conditioner!r}: open_clip_torch is installed but does not import "
-                          f"({first_line}); reinstall it with a torchvision that matches torch: "
-                          "pip install 'vqtouch[clip]'") from None
+        raise PluginError(
+            f"{kind} {conditioner!r}: open_clip_torch is installed but does not import "
+            f"({first_line}); reinstall it with a torchvision that matches torch: "
+            "pip install 'vqtouch[clip]'"
+        ) from None
     return open_clip
 
 
-def check_open_clip_architecture(open_clip: Any, architecture: str, conditioner: str = "clip", *,
-                                 kind: str = "conditioner") -> None:
+def check_open_clip_architecture(
+    open_clip: Any, architecture: str, conditioner: str = "clip", *, kind: str = "conditioner"
+) -> None:
     """Raise :class:`~vqtouch.core.ConfigError` (one line, with the closest names) unless ``architecture``
     is one of open_clip's model names; ``kind`` and ``conditioner`` (the plugin) start the message."""
     if architecture not in open_clip.list_models():
-        raise ConfigError(f"{kind} {conditioner!r}: " + unknown_name_message(
-            "open_clip architecture", architecture, open_clip.list_models()))
+        raise ConfigError(
+            f"{kind} {conditioner!r}: "
+            + unknown_name_message("open_clip architecture", architecture, open_clip.list_models())
+        )
 
 
-def create_open_clip_model(open_clip: Any, architecture: str, path: Path, model_overrides: dict[str, Any],
-                           conditioner: str = "clip", *, kind: str = "conditioner") -> nn.Module:
+def create_open_clip_model(
+    open_clip: Any,
+    architecture: str,
+    path: Path,
+    model_overrides: dict[str, Any],
+    conditioner: str = "clip",
+    *,
+    kind: str = "conditioner",
+) -> nn.Module:
     """Build open_clip's ``architecture`` (with ``model_overrides``) holding the weights of the local file
     ``path``; never downloads.  A file that does not hold that model's weights raises
     :class:`~vqtouch.core.MissingWeightsError` in one line; ``kind`` and ``conditioner`` (the plugin)
@@ -99,17 +116,26 @@ def create_open_clip_model(open_clip: Any, architecture: str, path: Path, model_
     except Exception as exc:
         # Wrong keys or shapes, and files that are not weights at all: not safetensors, or not a tensor
         # file torch.load accepts (its UnpicklingError, matched by name: the package never imports pickle).
-        if not (isinstance(exc, (RuntimeError, ValueError, KeyError, EOFError, SafetensorError))
-                or type(exc).__name__ == "UnpicklingError"):
+        if not (
+            isinstance(exc, (RuntimeError, ValueError, KeyError, EOFError, SafetensorError))
+            or type(exc).__name__ == "UnpicklingError"
+        ):
             raise
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise MissingWeightsError(f"{kind} {conditioner!r}: {path} does not hold {architecture} weights "
-                                  f"({first})") from None
+        raise MissingWeightsError(
+            f"{kind} {conditioner!r}: {path} does not hold {architecture} weights ({first})"
+        ) from None
 
 
-def builtin_tokenizer(open_clip: Any, architecture: str, context_length: int,
-                      model_overrides: dict[str, Any], conditioner: str = "text", *,
-                      kind: str = "conditioner") -> Any:
+def builtin_tokenizer(
+    open_clip: Any,
+    architecture: str,
+    context_length: int,
+    model_overrides: dict[str, Any],
+    conditioner: str = "text",
+    *,
+    kind: str = "conditioner",
+) -> Any:
     """open_clip's tokenizer for ``architecture``, which must be its built-in BPE ``SimpleTokenizer``
     (vocabulary shipped in the wheel, so it works offline) producing ``context_length`` ids per text.
 
@@ -119,20 +145,29 @@ def builtin_tokenizer(open_clip: Any, architecture: str, context_length: int,
     downloads, or when it would shorten texts at random.
     """
     plugin = f"{kind} {conditioner!r}"
-    text_cfg = {**(open_clip.get_model_config(architecture) or {}).get("text_cfg", {}),
-                **model_overrides.get("text_cfg", {})}
+    text_cfg = {
+        **(open_clip.get_model_config(architecture) or {}).get("text_cfg", {}),
+        **model_overrides.get("text_cfg", {}),
+    }
     hub_source = text_cfg.get("hf_tokenizer_name") or text_cfg.get("hf_model_name")
     if hub_source or "siglip" in architecture.lower():
         what = f"the Hugging Face tokenizer {hub_source!r}" if hub_source else "a SigLIP (Hugging Face) tokenizer"
-        raise ConfigError(f"{plugin}: open_clip architecture {architecture!r} uses {what}, which would be "
-                          "downloaded; vqtouch never downloads: choose an architecture with open_clip's built-in BPE "
-                          "tokenizer (e.g. ViT-B-32)")
-    tokenizer = open_clip.get_tokenizer(architecture, context_length=context_length,
-                                        **text_cfg.get("tokenizer_kwargs", {}))
+        raise ConfigError(
+            f"{plugin}: open_clip architecture {architecture!r} uses {what}, which would be "
+            "downloaded; vqtouch never downloads: choose an architecture with open_clip's built-in BPE "
+            "tokenizer (e.g. ViT-B-32)"
+        )
+    tokenizer = open_clip.get_tokenizer(
+        architecture, context_length=context_length, **text_cfg.get("tokenizer_kwargs", {})
+    )
     if not isinstance(tokenizer, open_clip.tokenizer.SimpleTokenizer):
-        raise ConfigError(f"{plugin}: open_clip gave {type(tokenizer).__name__} for {architecture!r}, not "
-                          "its built-in BPE tokenizer; choose another architecture (e.g. ViT-B-32)")
+        raise ConfigError(
+            f"{plugin}: open_clip gave {type(tokenizer).__name__} for {architecture!r}, not "
+            "its built-in BPE tokenizer; choose another architecture (e.g. ViT-B-32)"
+        )
     if tokenizer.reduction_fn is not None:
-        raise ConfigError(f"{plugin}: {architecture!r}'s tokenizer shortens long texts at random "
-                          "(tokenizer_kwargs.reduction_mask); remove it so a text always gives the same tokens")
+        raise ConfigError(
+            f"{plugin}: {architecture!r}'s tokenizer shortens long texts at random "
+            "(tokenizer_kwargs.reduction_mask); remove it so a text always gives the same tokens"
+        )
     return tokenizer

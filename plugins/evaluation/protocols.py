@@ -40,9 +40,13 @@ class EvaluationProtocol(BaseModel):
 
     name: str = Field(description="The protocol's name, written next to its numbers.")
     description: str = Field(description="What it does, in a sentence a reader of a results table needs.")
-    image_size: int | None = Field(None, ge=16, le=4096,
-                                   description="Side both image sets are resized to (bicubic, no crop) before "
-                                               "scoring; None: scored at their own size.")
+    image_size: int | None = Field(
+        None,
+        ge=16,
+        le=4096,
+        description="Side both image sets are resized to (bicubic, no crop) before "
+        "scoring; None: scored at their own size.",
+    )
     metrics: tuple[dict[str, Any], ...] = Field(description="The metric plugin configs, in table order.")
 
     def prepare(self, images_B3HW: torch.Tensor) -> torch.Tensor:
@@ -50,8 +54,13 @@ class EvaluationProtocol(BaseModel):
         (bicubic overshoots at edges); unchanged when the protocol keeps sizes or they already match."""
         if self.image_size is None or tuple(images_B3HW.shape[-2:]) == (self.image_size, self.image_size):
             return images_B3HW
-        resized = F.interpolate(images_B3HW.float(), size=(self.image_size, self.image_size), mode="bicubic",
-                                antialias=True, align_corners=False)
+        resized = F.interpolate(
+            images_B3HW.float(),
+            size=(self.image_size, self.image_size),
+            mode="bicubic",
+            antialias=True,
+            align_corners=False,
+        )
         return resized.clamp(0, 1)
 
     def build_metrics(self, host: PluginHost, overrides: Mapping[str, Mapping[str, Any]] | None = None) -> MetricSet:
@@ -60,35 +69,51 @@ class EvaluationProtocol(BaseModel):
         overrides = overrides or {}
         unknown = sorted(set(overrides) - {metric["name"] for metric in self.metrics})
         if unknown:
-            raise ConfigError(f"protocol {self.name!r} has no metric {unknown[0]!r}; its metrics: "
-                              f"{', '.join(metric['name'] for metric in self.metrics)}")
-        return MetricSet((metric["name"], host.build("metric", {**metric, **overrides.get(metric["name"], {})}))
-                         for metric in self.metrics)
+            raise ConfigError(
+                f"protocol {self.name!r} has no metric {unknown[0]!r}; its metrics: "
+                f"{', '.join(metric['name'] for metric in self.metrics)}"
+            )
+        return MetricSet(
+            (metric["name"], host.build("metric", {**metric, **overrides.get(metric["name"], {})}))
+            for metric in self.metrics
+        )
 
-    def score(self, metrics: MetricSet, generated_B3HW: torch.Tensor, real_B3HW: torch.Tensor,
-              prefix: str = "") -> dict[str, Any]:
+    def score(
+        self, metrics: MetricSet, generated_B3HW: torch.Tensor, real_B3HW: torch.Tensor, prefix: str = ""
+    ) -> dict[str, Any]:
         """``metrics`` (from :meth:`build_metrics`) of generated image i against real image i, both prepared."""
         if generated_B3HW.shape[0] != real_B3HW.shape[0]:
-            raise ConfigError(f"protocol {self.name!r} scores pairs: got {generated_B3HW.shape[0]} generated and "
-                              f"{real_B3HW.shape[0]} real images")
+            raise ConfigError(
+                f"protocol {self.name!r} scores pairs: got {generated_B3HW.shape[0]} generated and "
+                f"{real_B3HW.shape[0]} real images"
+            )
         return metrics.score(self.prepare(generated_B3HW), self.prepare(real_B3HW), prefix)
 
 
 PROTOCOLS: dict[str, EvaluationProtocol] = {
-    protocol.name: protocol for protocol in (
+    protocol.name: protocol
+    for protocol in (
         EvaluationProtocol(
             name="published",
             description="the tactile-generation papers' protocol: 512 x 512 (bicubic), LPIPS-VGG, SSIM (data range "
-                        "1), PSNR of the pooled error, pairs by id",
+            "1), PSNR of the pooled error, pairs by id",
             image_size=512,
-            metrics=({"name": "ssim"}, {"name": "psnr", "pooled": True}, {"name": "lpips", "backbone": "vgg"})),
+            metrics=({"name": "ssim"}, {"name": "psnr", "pooled": True}, {"name": "lpips", "backbone": "vgg"}),
+        ),
         EvaluationProtocol(
             name="default",
             description="vqtouch's protocol for the embedded data: own size, per-image SSIM / PSNR / MS-SSIM "
-                        "averaged, LPIPS-VGG when its weights are present, fd_effnetlite0 and kid_effnetlite0",
+            "averaged, LPIPS-VGG when its weights are present, fd_effnetlite0 and kid_effnetlite0",
             image_size=None,
-            metrics=({"name": "ssim"}, {"name": "psnr"}, {"name": "ms_ssim"}, {"name": "lpips", "backbone": "vgg"},
-                     {"name": "fd_effnetlite0"}, {"name": "kid_effnetlite0"})),
+            metrics=(
+                {"name": "ssim"},
+                {"name": "psnr"},
+                {"name": "ms_ssim"},
+                {"name": "lpips", "backbone": "vgg"},
+                {"name": "fd_effnetlite0"},
+                {"name": "kid_effnetlite0"},
+            ),
+        ),
     )
 }
 
@@ -106,12 +131,17 @@ def pair_by_id(generated: Mapping[str, Any], real: Mapping[str, Any]) -> list[st
     only_generated = sorted(set(generated) - set(real))
     only_real = sorted(set(real) - set(generated))
     if only_generated or only_real:
+
         def few(ids: list[str]) -> str:
             return ", ".join(ids[:3]) + (f" and {len(ids) - 3} more" if len(ids) > 3 else "")
 
-        parts = ([f"{len(only_generated)} generated image(s) without a real one ({few(only_generated)})"]
-                 if only_generated else []) + ([f"{len(only_real)} real image(s) without a generated one "
-                                                f"({few(only_real)})"] if only_real else [])
-        raise ConfigError(f"pairs are matched by id (file path without extension): {'; '.join(parts)}; give both "
-                          "folders the same file names")
+        parts = (
+            [f"{len(only_generated)} generated image(s) without a real one ({few(only_generated)})"]
+            if only_generated
+            else []
+        ) + ([f"{len(only_real)} real image(s) without a generated one ({few(only_real)})"] if only_real else [])
+        raise ConfigError(
+            f"pairs are matched by id (file path without extension): {'; '.join(parts)}; give both "
+            "folders the same file names"
+        )
     return sorted(generated)

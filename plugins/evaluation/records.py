@@ -37,9 +37,14 @@ DEFAULT_SEEDS = (0, 1, 2)
 def add_experiment_arguments(parser: argparse.ArgumentParser, default_seeds: Sequence[int] = DEFAULT_SEEDS) -> None:
     """``--out`` and ``--seeds``, the two flags every experiment takes."""
     parser.add_argument("--out", required=True, help="folder for the experiment's JSON, markdown and PNG files")
-    parser.add_argument("--seeds", type=int, nargs="+", default=list(default_seeds),
-                        help=f"seeds to repeat over (default {' '.join(map(str, default_seeds))}); tables give "
-                             "mean ± standard deviation over them")
+    parser.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        default=list(default_seeds),
+        help=f"seeds to repeat over (default {' '.join(map(str, default_seeds))}); tables give "
+        "mean ± standard deviation over them",
+    )
 
 
 def _is_number(value: Any) -> bool:
@@ -83,8 +88,9 @@ def format_cell(value: Any, spread: Any = None) -> str:
     return text + (f" ± {spread:.2g}" if _is_number(spread) and spread else "")
 
 
-def markdown_table(rows: Sequence[dict[str, Any]], group: Sequence[str], keys: Sequence[str],
-                   headers: dict[str, str] | None = None) -> list[str]:
+def markdown_table(
+    rows: Sequence[dict[str, Any]], group: Sequence[str], keys: Sequence[str], headers: dict[str, str] | None = None
+) -> list[str]:
     """Markdown lines of ``rows`` (e.g. :func:`mean_spread`'s): the ``group`` columns as they are,
     each of ``keys`` as ``mean ± std``.  ``headers`` renames columns for people."""
     headers = headers or {}
@@ -114,8 +120,17 @@ def gap_verdict(model: dict[str, Any], rival: dict[str, Any], key: str, rival_na
     return f"is level with {rival_name} (gap {gap:+.3g} within the spread {noise:.2g})"
 
 
-def plot_against_count(summary: Sequence[dict[str, Any]], *, count: str, line: str, keys: Sequence[str], path: Path,
-                       title: str, xlabel: str, dashed: Sequence[str] = ()) -> None:
+def plot_against_count(
+    summary: Sequence[dict[str, Any]],
+    *,
+    count: str,
+    line: str,
+    keys: Sequence[str],
+    path: Path,
+    title: str,
+    xlabel: str,
+    dashed: Sequence[str] = (),
+) -> None:
     """One panel per score of ``keys`` (those some row has): the score's mean against the row's
     ``count`` column on a log axis (ticks at the counts), one line per value of the ``line`` column
     with the seeds' spread as error bars; lines named in ``dashed`` (a no-contact background) grey
@@ -132,8 +147,11 @@ def plot_against_count(summary: Sequence[dict[str, Any]], *, count: str, line: s
     for panel, key in enumerate(keys):
         axes = figure.add_subplot(1, len(keys), panel + 1)
         for name in dict.fromkeys(row[line] for row in summary):
-            points = sorted((row[count], row[key], row.get(f"{key}_std") or 0.0) for row in summary
-                            if row[line] == name and key in row)
+            points = sorted(
+                (row[count], row[key], row.get(f"{key}_std") or 0.0)
+                for row in summary
+                if row[line] == name and key in row
+            )
             if not points:
                 continue
             xs, ys, errors = zip(*points)
@@ -166,12 +184,17 @@ def provenance() -> dict[str, Any]:
     """Where and how an experiment ran: enough to judge whether two records are comparable."""
     import torch
 
-
-    return {"command": " ".join(["vqtouch", *sys.argv[1:]]) if Path(sys.argv[0]).name == "vqtouch" else " ".join(sys.argv),
-            "vqtouch": __version__, "torch": torch.__version__, "python": platform.python_version(),
-            "machine": platform.machine(), "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
-            "started": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+    return {
+        "command": " ".join(["vqtouch", *sys.argv[1:]]) if Path(sys.argv[0]).name == "vqtouch" else " ".join(sys.argv),
+        "vqtouch": __version__,
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+        "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    }
 
 
 class ExperimentRecord:
@@ -197,13 +220,20 @@ class ExperimentRecord:
         """Write ``<name>.json`` (``result`` plus seeds, provenance and wall time) and ``<name>.md``
         (``markdown`` lines under a provenance footer); returns the JSON's path."""
         seconds = round(time.perf_counter() - self._tic, 1)
-        record = {"experiment": self.name, "seeds": self.seeds, **result,
-                  "provenance": {**self.provenance, "wall_seconds": seconds}}
+        record = {
+            "experiment": self.name,
+            "seeds": self.seeds,
+            **result,
+            "provenance": {**self.provenance, "wall_seconds": seconds},
+        }
         json_path = self.path(f"{self.name}.json")
         json_path.write_text(json.dumps(record, indent=2, default=str) + "\n")
         where = self.provenance["cuda"] or f"{self.provenance['cpu_count']} CPU cores"
-        footer = ["", f"_{len(self.seeds)} seeds ({', '.join(map(str, self.seeds))}); mean ± std over them. "
-                      f"Ran `{self.provenance['command']}` in {seconds:.0f} s on {where}, "
-                      f"vqtouch {self.provenance['vqtouch']}, torch {self.provenance['torch']}._"]
+        footer = [
+            "",
+            f"_{len(self.seeds)} seeds ({', '.join(map(str, self.seeds))}); mean ± std over them. "
+            f"Ran `{self.provenance['command']}` in {seconds:.0f} s on {where}, "
+            f"vqtouch {self.provenance['vqtouch']}, torch {self.provenance['torch']}._",
+        ]
         self.path(f"{self.name}.md").write_text("\n".join([*markdown, *footer]) + "\n")
         return json_path

@@ -69,7 +69,12 @@ from vqtouch.plugins.evaluation.contact import dataset_background
 from vqtouch.core.images import image_grid, save_png
 
 GENERATED, FEW, FEW_AND_GENERATED, CEILING, BACKGROUND = (
-    "generated only", "real few", "real few + generated", "all real (ceiling)", "no-contact background")
+    "generated only",
+    "real few",
+    "real few + generated",
+    "all real (ceiling)",
+    "no-contact background",
+)
 #: The arms in table order (the background row last: it is the floor of ``generated only``).
 ARMS = (GENERATED, FEW, FEW_AND_GENERATED, CEILING, BACKGROUND)
 #: The recognition scores of each arm, all in [0, 1].
@@ -92,15 +97,20 @@ class LabelledFeatures:
     def take(self, positions: Sequence[int]) -> LabelledFeatures:
         """The rows at ``positions``."""
         positions = list(positions)
-        return LabelledFeatures(self.features_NF[positions], [self.labels[p] for p in positions],
-                                [self.indices[p] for p in positions] if self.indices else [])
+        return LabelledFeatures(
+            self.features_NF[positions],
+            [self.labels[p] for p in positions],
+            [self.indices[p] for p in positions] if self.indices else [],
+        )
 
     @staticmethod
     def join(*parts: LabelledFeatures) -> LabelledFeatures:
         """The rows of every part, in order."""
-        return LabelledFeatures(torch.cat([part.features_NF for part in parts]),
-                                [label for part in parts for label in part.labels],
-                                [index for part in parts for index in part.indices])
+        return LabelledFeatures(
+            torch.cat([part.features_NF for part in parts]),
+            [label for part in parts for label in part.labels],
+            [index for part in parts for index in part.indices],
+        )
 
 
 def recognition_scores(true_labels: Sequence[int], predicted: Sequence[int]) -> dict[str, float]:
@@ -109,30 +119,41 @@ def recognition_scores(true_labels: Sequence[int], predicted: Sequence[int]) -> 
     mean of the per-class F1s, not the F1 of the macro precision and recall)."""
     from sklearn.metrics import accuracy_score, precision_recall_fscore_support
 
-    precision, recall, f1, _ = precision_recall_fscore_support(true_labels, predicted, labels=sorted(set(true_labels)),
-                                                               average="macro", zero_division=0)
-    return {"top1": round(float(accuracy_score(true_labels, predicted)), 4), "precision": round(float(precision), 4),
-            "recall": round(float(recall), 4), "f1": round(float(f1), 4)}
+    precision, recall, f1, _ = precision_recall_fscore_support(
+        true_labels, predicted, labels=sorted(set(true_labels)), average="macro", zero_division=0
+    )
+    return {
+        "top1": round(float(accuracy_score(true_labels, predicted)), 4),
+        "precision": round(float(precision), 4),
+        "recall": round(float(recall), 4),
+        "f1": round(float(f1), 4),
+    }
 
 
 def label_conditioner_index(sample_keys: Sequence[str], names: Sequence[str], chosen: int | None) -> int:
     """The generator's conditioner to generate from: ``chosen``, which must read samples' ``label``,
     else the first that does; a one-line ConfigError when there is none."""
-    described = ", ".join(f"{index}:{name} (reads {key!r})"
-                          for index, (name, key) in enumerate(zip(names, sample_keys)))
+    described = ", ".join(
+        f"{index}:{name} (reads {key!r})" for index, (name, key) in enumerate(zip(names, sample_keys))
+    )
     if chosen is not None:
         if not 0 <= chosen < len(names):
-            raise ConfigError(f"--conditioner {chosen}: this generator has conditioners 0..{len(names) - 1} "
-                              f"({described})")
+            raise ConfigError(
+                f"--conditioner {chosen}: this generator has conditioners 0..{len(names) - 1} ({described})"
+            )
         if sample_keys[chosen] != "label":
-            raise ConfigError(f"--conditioner {chosen} ({names[chosen]}) reads samples' {sample_keys[chosen]!r}, not "
-                              f"'label'; downstream recognition generates from class labels ({described})")
+            raise ConfigError(
+                f"--conditioner {chosen} ({names[chosen]}) reads samples' {sample_keys[chosen]!r}, not "
+                f"'label'; downstream recognition generates from class labels ({described})"
+            )
         return chosen
     for index, key in enumerate(sample_keys):
         if key == "label":
             return index
-    raise ConfigError(f"this run's generator has no label conditioner ({described}); downstream recognition "
-                      "generates from class labels: train one with `vqtouch train generator --scene label-to-touch`")
+    raise ConfigError(
+        f"this run's generator has no label conditioner ({described}); downstream recognition "
+        "generates from class labels: train one with `vqtouch train generator --scene label-to-touch`"
+    )
 
 
 @torch.no_grad()
@@ -141,14 +162,18 @@ def real_features(dataset: Any, indices: Sequence[int], metric: Any) -> tuple[La
     and how many were left out for having no label (-1 or None)."""
     features, labels, kept, unlabelled = [], [], [], 0
     for start in range(0, len(indices), FEATURE_CHUNK):
-        chunk = list(indices[start:start + FEATURE_CHUNK])
+        chunk = list(indices[start : start + FEATURE_CHUNK])
         samples = [dataset[index] for index in chunk]
-        labelled = [(index, sample) for index, sample in zip(chunk, samples)
-                    if sample.get("label") is not None and int(sample["label"]) >= 0]
+        labelled = [
+            (index, sample)
+            for index, sample in zip(chunk, samples)
+            if sample.get("label") is not None and int(sample["label"]) >= 0
+        ]
         unlabelled += len(chunk) - len(labelled)
         if labelled:
-            features.append(metric.pooled_features(torch.stack([sample["tactile"] for _, sample in labelled]).float())
-                            .float())
+            features.append(
+                metric.pooled_features(torch.stack([sample["tactile"] for _, sample in labelled]).float()).float()
+            )
             labels += [int(sample["label"]) for _, sample in labelled]
             kept += [index for index, _ in labelled]
     width = features[0].shape[1] if features else 0
@@ -164,8 +189,10 @@ def draw_shots(labels: Sequence[int], shots: int, seed: int, class_names: Sequen
     scarcest = min(by_class, key=lambda label: (len(by_class[label]), label))
     if len(by_class[scarcest]) < shots:
         name = f"{class_names[scarcest]!r} ({scarcest})" if scarcest < len(class_names) else str(scarcest)
-        raise ConfigError(f"--shots {shots}: class {name} has only {len(by_class[scarcest])} real training images in "
-                          f"the run's split; give --shots {len(by_class[scarcest])} or fewer")
+        raise ConfigError(
+            f"--shots {shots}: class {name} has only {len(by_class[scarcest])} real training images in "
+            f"the run's split; give --shots {len(by_class[scarcest])} or fewer"
+        )
     draw = torch.Generator().manual_seed(seed)
     chosen = []
     for label in sorted(by_class):
@@ -175,25 +202,56 @@ def draw_shots(labels: Sequence[int], shots: int, seed: int, class_names: Sequen
 
 
 @torch.no_grad()
-def generate_per_class(pipe: Any, conditioner: Any, sampler: Any, classes: Sequence[int], per_class: int, *,
-                       steps: int, guidance: float, truncation: float, seed: int,
-                       batch_size: int) -> tuple[torch.Tensor, list[int]]:
+def generate_per_class(
+    pipe: Any,
+    conditioner: Any,
+    sampler: Any,
+    classes: Sequence[int],
+    per_class: int,
+    *,
+    steps: int,
+    guidance: float,
+    truncation: float,
+    seed: int,
+    batch_size: int,
+) -> tuple[torch.Tensor, list[int]]:
     """``per_class`` images (N, 3, H, W) of every class (class-major) from the label ``conditioner``,
     and their labels; image i is drawn with a generator seeded from (``seed``, i)."""
 
     labels = [label for label in classes for _ in range(per_class)]
     images = []
     for start in range(0, len(labels), batch_size):
-        rows = labels[start:start + batch_size]
-        parsed = [{conditioner.sample_key: conditioner.parse_condition(label, image_size=pipe.image_size,
-                                                                       class_names=pipe.class_names)}
-                  for label in rows]
-        batch = {key: value.to(pipe.device) if isinstance(value, torch.Tensor) else value
-                 for key, value in collate_samples(parsed).items()}
+        rows = labels[start : start + batch_size]
+        parsed = [
+            {
+                conditioner.sample_key: conditioner.parse_condition(
+                    label, image_size=pipe.image_size, class_names=pipe.class_names
+                )
+            }
+            for label in rows
+        ]
+        batch = {
+            key: value.to(pipe.device) if isinstance(value, torch.Tensor) else value
+            for key, value in collate_samples(parsed).items()
+        }
         condition = conditioner(conditioner.condition_of(batch))
-        images.append(sample_images(pipe.generator, conditioner, pipe.tokenizer, sampler, condition,
-                                    list(range(start, start + len(rows))), steps=steps, guidance=guidance,
-                                    truncation=truncation, seed=seed, device=pipe.device).float().cpu())
+        images.append(
+            sample_images(
+                pipe.generator,
+                conditioner,
+                pipe.tokenizer,
+                sampler,
+                condition,
+                list(range(start, start + len(rows))),
+                steps=steps,
+                guidance=guidance,
+                truncation=truncation,
+                seed=seed,
+                device=pipe.device,
+            )
+            .float()
+            .cpu()
+        )
     return torch.cat(images), labels
 
 
@@ -215,11 +273,24 @@ def _feature_metric(config: Any, assembly: Any, feature_size: int | None) -> Any
     return assembly.build("metric", {"name": "fd_effnetlite0", "image_size": feature_size})
 
 
-def evaluate_downstream(run: str | Path, host: PluginHost, out: str | Path, *, seeds: Sequence[int], shots: int = 5,
-                        generated_per_class: int = 10, conditioner: int | None = None, step: Any = None,
-                        steps: int | None = None, sampler: str | None = None, guidance: float | None = None,
-                        feature_size: int | None = None, train_images: int = 0, batch_size: int = 16,
-                        report: Callable[[str], None] = print) -> dict[str, Any]:
+def evaluate_downstream(
+    run: str | Path,
+    host: PluginHost,
+    out: str | Path,
+    *,
+    seeds: Sequence[int],
+    shots: int = 5,
+    generated_per_class: int = 10,
+    conditioner: int | None = None,
+    step: Any = None,
+    steps: int | None = None,
+    sampler: str | None = None,
+    guidance: float | None = None,
+    feature_size: int | None = None,
+    train_images: int = 0,
+    batch_size: int = 16,
+    report: Callable[[str], None] = print,
+) -> dict[str, Any]:
     """Run the experiment of the module docstring on ``run`` and write its files into ``out``.
 
     ``shots``: real training images per class of the few-shot arms; ``generated_per_class``: images
@@ -245,12 +316,16 @@ def evaluate_downstream(run: str | Path, host: PluginHost, out: str | Path, *, s
     dataset_name = config.data.dataset.name
     class_names = list(getattr(dataset, "class_names", []))
     if not class_names:
-        raise ConfigError(f"the run's dataset ({dataset_name}) has no class labels; downstream recognition needs "
-                          "them (e.g. image_folder with one sub-folder per class, or a CSV with a label column)")
+        raise ConfigError(
+            f"the run's dataset ({dataset_name}) has no class labels; downstream recognition needs "
+            "them (e.g. image_folder with one sub-folder per class, or a CSV with a label column)"
+        )
     train_split, test_split = experiment_split(dataset, config.data, config.seed)
     if not len(test_split):
-        raise ConfigError(f"the run holds out no images (data.val_fraction={config.data.val_fraction}); downstream "
-                          "recognition tests on the run's held-out split: use a run trained with data.val_fraction > 0")
+        raise ConfigError(
+            f"the run holds out no images (data.val_fraction={config.data.val_fraction}); downstream "
+            "recognition tests on the run's held-out split: use a run trained with data.val_fraction > 0"
+        )
     metric = _feature_metric(config, assembly, feature_size)
     record = ExperimentRecord("downstream", out, seeds=seeds)  # from here on the wall time counts
     pool = list(train_split.indices)
@@ -260,15 +335,21 @@ def evaluate_downstream(run: str | Path, host: PluginHost, out: str | Path, *, s
     tic = time.perf_counter()
     real_train, train_unlabelled = real_features(dataset, pool, metric)
     test, test_unlabelled = real_features(dataset, test_split.indices, metric)
-    report(f"features of {len(real_train.labels)} real training and {len(test.labels)} held-out images at "
-           f"{metric.image_size} px in {time.perf_counter() - tic:.0f} s")
+    report(
+        f"features of {len(real_train.labels)} real training and {len(test.labels)} held-out images at "
+        f"{metric.image_size} px in {time.perf_counter() - tic:.0f} s"
+    )
     classes = sorted(set(real_train.labels))
     if len(classes) < 2:
-        raise ConfigError(f"the run's training split holds {len(classes)} labelled class(es) of {dataset_name}; "
-                          "a classifier needs at least 2")
+        raise ConfigError(
+            f"the run's training split holds {len(classes)} labelled class(es) of {dataset_name}; "
+            "a classifier needs at least 2"
+        )
     if not test.labels:
-        raise ConfigError(f"none of the run's {len(test_split)} held-out images of {dataset_name} has a label; "
-                          "downstream recognition tests on labelled held-out images")
+        raise ConfigError(
+            f"none of the run's {len(test_split)} held-out images of {dataset_name} has a label; "
+            "downstream recognition tests on labelled held-out images"
+        )
     draw_shots(real_train.labels, shots, 0, class_names)  # refuses too many shots before anything is generated
     background, background_source = dataset_background(train_split, tuple(test_split[0]["tactile"].shape[-2:]))
     background_features = None if background is None else metric.pooled_features(background[None]).float()
@@ -279,51 +360,99 @@ def evaluate_downstream(run: str | Path, host: PluginHost, out: str | Path, *, s
     shown = None
     for seed in record.seeds:
         tic = time.perf_counter()
-        images, labels = generate_per_class(pipe, label_conditioner, sampler_plugin, classes, generated_per_class,
-                                            steps=steps, guidance=guidance, truncation=pipe.settings["truncation"],
-                                            seed=seed, batch_size=batch_size)
+        images, labels = generate_per_class(
+            pipe,
+            label_conditioner,
+            sampler_plugin,
+            classes,
+            generated_per_class,
+            steps=steps,
+            guidance=guidance,
+            truncation=pipe.settings["truncation"],
+            seed=seed,
+            batch_size=batch_size,
+        )
         shown = images if shown is None else shown
         generated = LabelledFeatures(metric.pooled_features(images).float(), labels, [])
         few = real_train.take(draw_shots(real_train.labels, shots, seed, class_names))
-        arms = {GENERATED: (generated, 0, generated_per_class), FEW: (few, shots, 0),
-                FEW_AND_GENERATED: (LabelledFeatures.join(few, generated), shots, generated_per_class),
-                CEILING: (real_train, "all", 0)}
+        arms = {
+            GENERATED: (generated, 0, generated_per_class),
+            FEW: (few, shots, 0),
+            FEW_AND_GENERATED: (LabelledFeatures.join(few, generated), shots, generated_per_class),
+            CEILING: (real_train, "all", 0),
+        }
         if background_features is not None:
-            arms[BACKGROUND] = (LabelledFeatures(background_features.expand(len(labels), -1), labels, []), 0,
-                                generated_per_class)
+            arms[BACKGROUND] = (
+                LabelledFeatures(background_features.expand(len(labels), -1), labels, []),
+                0,
+                generated_per_class,
+            )
         for arm, (train, real_per_class, generated_count) in arms.items():
             scores, predicted = train_and_test(train, test, seed)
-            rows.append({"arm": arm, "seed": seed, "real_per_class": real_per_class,
-                         "generated_per_class": generated_count, "train_images": len(train.labels), **scores,
-                         "real_indices": train.indices})
+            rows.append(
+                {
+                    "arm": arm,
+                    "seed": seed,
+                    "real_per_class": real_per_class,
+                    "generated_per_class": generated_count,
+                    "train_images": len(train.labels),
+                    **scores,
+                    "real_indices": train.indices,
+                }
+            )
             if seed == record.seeds[0]:
                 from sklearn.metrics import confusion_matrix
 
                 confusion[arm] = confusion_matrix(test.labels, predicted, labels=every_class).tolist()
-        report(f"seed {seed}: " + ", ".join(f"{row['arm']} top-1 {row['top1']:.3f}" for row in rows
-                                           if row["seed"] == seed) + f" ({time.perf_counter() - tic:.0f} s)")
+        report(
+            f"seed {seed}: "
+            + ", ".join(f"{row['arm']} top-1 {row['top1']:.3f}" for row in rows if row["seed"] == seed)
+            + f" ({time.perf_counter() - tic:.0f} s)"
+        )
     summary = mean_spread(rows, ("train_images", *SCORES), GROUP)
     result = {
-        "run": str(pipe.run.path if pipe.run is not None else run), "checkpoint": str(pipe.checkpoint), "conditioner": f"{chosen}:{names[chosen]}",
-        "sampler": sampler_name, "steps": steps, "guidance": guidance, "dataset": dataset_name,
+        "run": str(pipe.run.path if pipe.run is not None else run),
+        "checkpoint": str(pipe.checkpoint),
+        "conditioner": f"{chosen}:{names[chosen]}",
+        "sampler": sampler_name,
+        "steps": steps,
+        "guidance": guidance,
+        "dataset": dataset_name,
         "classes": {label: class_names[label] if label < len(class_names) else str(label) for label in every_class},
         "classifier": f"logistic regression on standardized frozen EfficientNet-Lite0 pooled features at "
-                      f"{metric.image_size} px (vqtouch.plugins.evaluation.distribution.RealImageClassifier)",
-        "feature_size": metric.image_size, "shots": shots, "generated_per_class": generated_per_class,
-        "split_unit": test_split.split_unit, "generator_train_images": len(train_split),
-        "real_train_images": len(real_train.labels), "train_unlabelled": train_unlabelled,
-        "test_images": len(test.labels), "test_unlabelled": test_unlabelled, "test_indices": test.indices,
+        f"{metric.image_size} px (vqtouch.plugins.evaluation.distribution.RealImageClassifier)",
+        "feature_size": metric.image_size,
+        "shots": shots,
+        "generated_per_class": generated_per_class,
+        "split_unit": test_split.split_unit,
+        "generator_train_images": len(train_split),
+        "real_train_images": len(real_train.labels),
+        "train_unlabelled": train_unlabelled,
+        "test_images": len(test.labels),
+        "test_unlabelled": test_unlabelled,
+        "test_indices": test.indices,
         "test_class_counts": {str(label): count for label, count in sorted(test_counts.items())},
         "classes_without_training_images": sorted(set(test.labels) - set(classes)),
         "chance": round(1 / len(every_class), 4),
         "majority": round(max(test_counts.values()) / len(test.labels), 4),
         "background": None if background is None else background_source,
-        "rows": rows, "summary": summary,
-        "confusion": {"seed": record.seeds[0], "labels": every_class, "matrices": confusion}}
-    plot_scores(summary, result["chance"], result["majority"], record.path("downstream.png"),
-                f"downstream recognition on {len(test.labels)} real held-out images ({len(record.seeds)} seeds)")
-    plot_confusions(confusion, [result["classes"][label] for label in every_class],
-                    record.path("downstream_confusion.png"), f"seed {record.seeds[0]}")
+        "rows": rows,
+        "summary": summary,
+        "confusion": {"seed": record.seeds[0], "labels": every_class, "matrices": confusion},
+    }
+    plot_scores(
+        summary,
+        result["chance"],
+        result["majority"],
+        record.path("downstream.png"),
+        f"downstream recognition on {len(test.labels)} real held-out images ({len(record.seeds)} seeds)",
+    )
+    plot_confusions(
+        confusion,
+        [result["classes"][label] for label in every_class],
+        record.path("downstream_confusion.png"),
+        f"seed {record.seeds[0]}",
+    )
     save_generated(shown, generated_per_class, record.path("downstream_generated.png"))
     record.write(result, render_markdown(result))
     return result
@@ -331,32 +460,53 @@ def evaluate_downstream(run: str | Path, host: PluginHost, out: str | Path, *, s
 
 def render_markdown(result: dict[str, Any]) -> list[str]:
     """The table of ``downstream.json`` for people."""
-    ceiling = ("every real training image of the run's split" if result["real_train_images"] +
-               result["train_unlabelled"] == result["generator_train_images"]
-               else f"{result['real_train_images']} of the run's {result['generator_train_images']} real training "
-                    "images (--train-images)")
-    lines = ["# Downstream recognition (Table 3)", "",
-             f"A classifier trained on each arm's images, tested on the run's {result['test_images']} real held-out "
-             f"images ({len(result['classes'])} classes, held out by {result['split_unit']}; never trained on).  "
-             f"Classifier: {result['classifier']}.  Top-1 accuracy; precision, recall and F1 macro-averaged over the "
-             f"test set's classes.  Generated with `{result['conditioner']}`, sampler {result['sampler']}, "
-             f"{result['steps']} steps, guidance {result['guidance']:g}.", ""]
-    headers = {"real_per_class": "real / class", "generated_per_class": "generated / class",
-               "train_images": "train images", "top1": "top-1", "f1": "F1"}
+    ceiling = (
+        "every real training image of the run's split"
+        if result["real_train_images"] + result["train_unlabelled"] == result["generator_train_images"]
+        else f"{result['real_train_images']} of the run's {result['generator_train_images']} real training "
+        "images (--train-images)"
+    )
+    lines = [
+        "# Downstream recognition (Table 3)",
+        "",
+        f"A classifier trained on each arm's images, tested on the run's {result['test_images']} real held-out "
+        f"images ({len(result['classes'])} classes, held out by {result['split_unit']}; never trained on).  "
+        f"Classifier: {result['classifier']}.  Top-1 accuracy; precision, recall and F1 macro-averaged over the "
+        f"test set's classes.  Generated with `{result['conditioner']}`, sampler {result['sampler']}, "
+        f"{result['steps']} steps, guidance {result['guidance']:g}.",
+        "",
+    ]
+    headers = {
+        "real_per_class": "real / class",
+        "generated_per_class": "generated / class",
+        "train_images": "train images",
+        "top1": "top-1",
+        "f1": "F1",
+    }
     lines += markdown_table(result["summary"], GROUP, ("train_images", *SCORES), headers)
-    lines += ["", f"Chance (1 / {len(result['classes'])} classes): {result['chance']:.4g}.  Majority-class rate "
-                  f"(always naming the test set's most common class): {result['majority']:.4g}.", "",
-              f"`{CEILING}` is the ceiling: {ceiling}.  The generator itself was trained on the run's "
-              f"{result['generator_train_images']} training images, so `{GENERATED}` measures whether its images carry "
-              "the class, not what K real images would teach it."]
+    lines += [
+        "",
+        f"Chance (1 / {len(result['classes'])} classes): {result['chance']:.4g}.  Majority-class rate "
+        f"(always naming the test set's most common class): {result['majority']:.4g}.",
+        "",
+        f"`{CEILING}` is the ceiling: {ceiling}.  The generator itself was trained on the run's "
+        f"{result['generator_train_images']} training images, so `{GENERATED}` measures whether its images carry "
+        "the class, not what K real images would teach it.",
+    ]
     if result["background"]:
-        lines += ["", f"`{BACKGROUND}`: the no-contact image ({result['background']}) as every class's training "
-                      f"images, what a generator that draws only the background would give `{GENERATED}` (a classifier "
-                      "that names one class: at most the majority-class rate).  Claim `better` on the real held-out "
-                      "scores above it."]
+        lines += [
+            "",
+            f"`{BACKGROUND}`: the no-contact image ({result['background']}) as every class's training "
+            f"images, what a generator that draws only the background would give `{GENERATED}` (a classifier "
+            "that names one class: at most the majority-class rate).  Claim `better` on the real held-out "
+            "scores above it.",
+        ]
     if result["classes_without_training_images"]:
-        lines += ["", f"Held-out classes with no training image (no arm can learn them): "
-                      f"{result['classes_without_training_images']}."]
+        lines += [
+            "",
+            f"Held-out classes with no training image (no arm can learn them): "
+            f"{result['classes_without_training_images']}.",
+        ]
     return lines
 
 
@@ -372,8 +522,14 @@ def plot_scores(summary: list[dict[str, Any]], chance: float, majority: float, p
     width = 0.8 / len(SCORES)
     for offset, score in enumerate(SCORES):
         positions = [index + (offset - (len(SCORES) - 1) / 2) * width for index in range(len(summary))]
-        axes.bar(positions, [row[score] for row in summary], width, yerr=[row[f"{score}_std"] for row in summary],
-                 capsize=3, label=score)
+        axes.bar(
+            positions,
+            [row[score] for row in summary],
+            width,
+            yerr=[row[f"{score}_std"] for row in summary],
+            capsize=3,
+            label=score,
+        )
     axes.axhline(chance, linestyle="--", color="grey", label="chance")
     axes.axhline(majority, linestyle=":", color="black", label="majority class")
     axes.set_xticks(range(len(summary)), [row["arm"] for row in summary], fontsize=8)
@@ -402,8 +558,9 @@ def plot_confusions(confusion: dict[str, list[list[int]]], class_names: Sequence
         size = 7 if len(class_names) <= 12 else 4
         axes.set_xticks(ticks, class_names, rotation=90, fontsize=size)
         axes.set_yticks(ticks, class_names if index == 0 else [""] * len(class_names), fontsize=size)
-    figure.suptitle(f"confusion on the real held-out images ({title}; rows: true class, columns: predicted)",
-                    fontsize=9)
+    figure.suptitle(
+        f"confusion on the real held-out images ({title}; rows: true class, columns: predicted)", fontsize=9
+    )
     figure.tight_layout()
     figure.savefig(path, bbox_inches="tight")  # rotated class names reach below the axes
 
@@ -416,19 +573,29 @@ def save_generated(images_N3HW: torch.Tensor, per_class: int, path: Path) -> Non
     save_png(image_grid(rows.reshape(-1, *images_N3HW.shape[1:]), columns=shown), path)
 
 
-
-
-
 def _evaluate_downstream_command(args: argparse.Namespace) -> int:
     out = Path(args.out)
-    evaluate_downstream(args.run, args.host, out, seeds=args.seeds, shots=args.shots,
-                        generated_per_class=args.generated_per_class, conditioner=args.conditioner, step=args.step,
-                        steps=args.steps, sampler=args.sampler, guidance=args.guidance, feature_size=args.feature_size,
-                        train_images=args.train_images, batch_size=args.batch_size,
-                        report=lambda line: print(line, flush=True))
+    evaluate_downstream(
+        args.run,
+        args.host,
+        out,
+        seeds=args.seeds,
+        shots=args.shots,
+        generated_per_class=args.generated_per_class,
+        conditioner=args.conditioner,
+        step=args.step,
+        steps=args.steps,
+        sampler=args.sampler,
+        guidance=args.guidance,
+        feature_size=args.feature_size,
+        train_images=args.train_images,
+        batch_size=args.batch_size,
+        report=lambda line: print(line, flush=True),
+    )
     print((out / "downstream.md").read_text())
-    print(f"-> {out} (downstream.json, downstream.md, downstream.png, downstream_confusion.png, "
-          "downstream_generated.png)")
+    print(
+        f"-> {out} (downstream.json, downstream.md, downstream.png, downstream_confusion.png, downstream_generated.png)"
+    )
     return 0
 
 
@@ -437,27 +604,44 @@ def vqtouch_add_commands(subparsers: Any) -> None:
 
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
     downstream = evaluate.add_parser(
-        "downstream", help="downstream recognition (Table 3): a classifier trained on generated, few real, both, or "
-                           "all real images, tested on the run's real held-out images (JSON, markdown, PNG)")
-    downstream.add_argument("--run", required=True, help="a run whose generator trained with a label conditioner "
-                                                         "(e.g. `vqtouch train generator --scene label-to-touch`), "
-                                                         "or a bundle (pretrained:NAME)")
+        "downstream",
+        help="downstream recognition (Table 3): a classifier trained on generated, few real, both, or "
+        "all real images, tested on the run's real held-out images (JSON, markdown, PNG)",
+    )
+    downstream.add_argument(
+        "--run",
+        required=True,
+        help="a run whose generator trained with a label conditioner "
+        "(e.g. `vqtouch train generator --scene label-to-touch`), "
+        "or a bundle (pretrained:NAME)",
+    )
     add_step_argument(downstream)
     add_experiment_arguments(downstream)
-    downstream.add_argument("--shots", type=positive_int, default=5,
-                            help="real training images per class of the few-shot arms (default 5)")
-    downstream.add_argument("--generated-per-class", type=positive_int, default=10,
-                            help="images generated per class and seed (default 10)")
-    downstream.add_argument("--conditioner", type=int,
-                            help="which of the generator's conditioners (index; default the first label conditioner)")
+    downstream.add_argument(
+        "--shots", type=positive_int, default=5, help="real training images per class of the few-shot arms (default 5)"
+    )
+    downstream.add_argument(
+        "--generated-per-class", type=positive_int, default=10, help="images generated per class and seed (default 10)"
+    )
+    downstream.add_argument(
+        "--conditioner",
+        type=int,
+        help="which of the generator's conditioners (index; default the first label conditioner)",
+    )
     downstream.add_argument("--steps", type=positive_int, help="sampling steps (default: the run's generator.steps)")
     downstream.add_argument("--sampler", help="sampler plugin (default: the run's generator.sampler)")
     downstream.add_argument("--guidance", type=float, help="classifier-free guidance scale (default: the run's)")
-    downstream.add_argument("--feature-size", type=feature_size_argument,
-                            help="side EfficientNet-Lite0 sees the images at (default: the run's fd_effnetlite0 "
-                                 "metric's, else 224)")
-    downstream.add_argument("--train-images", type=non_negative_int, default=0,
-                            help="featurize at most this many real training images, drawn once at random (default 0: "
-                                 "all; the ceiling arm trains on them)")
+    downstream.add_argument(
+        "--feature-size",
+        type=feature_size_argument,
+        help="side EfficientNet-Lite0 sees the images at (default: the run's fd_effnetlite0 metric's, else 224)",
+    )
+    downstream.add_argument(
+        "--train-images",
+        type=non_negative_int,
+        default=0,
+        help="featurize at most this many real training images, drawn once at random (default 0: "
+        "all; the ceiling arm trains on them)",
+    )
     downstream.add_argument("--batch-size", type=positive_int, default=16, help="labels generated per forward pass")
     downstream.set_defaults(handler=_evaluate_downstream_command)

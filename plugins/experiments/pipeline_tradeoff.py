@@ -65,8 +65,16 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import (Assembly, ConfigError, PluginHost, RunDir, hookimpl, resolve_device, run_stage,
-                          validate_experiment)
+from vqtouch.core import (
+    Assembly,
+    ConfigError,
+    PluginHost,
+    RunDir,
+    hookimpl,
+    resolve_device,
+    run_stage,
+    validate_experiment,
+)
 from vqtouch.core.cli import add_config_arguments, command_group, config_from_args, positive_int, stage_failure
 from vqtouch.plugins.evaluation.records import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
 from vqtouch.core.image_size import image_hw, size_text
@@ -84,14 +92,25 @@ TIMED_IMAGES = 64
 #: Whole-image and contact-region quality columns; each stands next to its ``background_`` score.
 QUALITY_KEYS = ("ssim", "psnr", "contact_ssim", "contact_psnr")
 COST_KEYS = ("train_s_per_step", "train_cost", "img_per_s", "seconds_per_image", "inference_cost", "stage_seconds")
-SUMMARY_KEYS = (*COST_KEYS, *QUALITY_KEYS, *(f"background_{key}" for key in QUALITY_KEYS), "codes_used",
-                "contact_fraction", "fd_effnetlite0", "classifier_accuracy")
+SUMMARY_KEYS = (
+    *COST_KEYS,
+    *QUALITY_KEYS,
+    *(f"background_{key}" for key in QUALITY_KEYS),
+    "codes_used",
+    "contact_fraction",
+    "fd_effnetlite0",
+    "classifier_accuracy",
+)
 #: The Pareto fronts: (part, cost column, name in the table).
-FRONTS = (("tokenizer", "train_cost", "training"), ("tokenizer", "inference_cost", "inference"),
-          ("generator", "inference_cost", "generation"))
+FRONTS = (
+    ("tokenizer", "train_cost", "training"),
+    ("tokenizer", "inference_cost", "inference"),
+    ("generator", "inference_cost", "generation"),
+)
 
 
 # -- knobs ----------------------------------------------------------------------------------------
+
 
 @dataclass(frozen=True)
 class Knob:
@@ -116,6 +135,7 @@ def _choice(*options: str) -> Callable[[str], str]:
         if text not in options:
             raise ValueError(f"expected {' or '.join(options)}")
         return text
+
     return parse
 
 
@@ -128,6 +148,7 @@ def _integer(minimum: int, power_of_two: bool = False) -> Callable[[str], int]:
         if value < minimum or (power_of_two and value & (value - 1)):
             raise ValueError(f"expected {'a power of two' if power_of_two else 'an integer'} >= {minimum}")
         return value
+
     return parse
 
 
@@ -144,8 +165,10 @@ def _guidance(text: str) -> float:
 def _deformable_baseline(config: Any, host: PluginHost) -> str:
     name = config.tokenizer.autoencoder.name if config.tokenizer.autoencoder is not None else None
     if name not in ("dm_vqgan", "vqgan"):
-        raise ConfigError(f"the deformable knob swaps dm_vqgan and vqgan, but the baseline's autoencoder is {name!r}; "
-                          "leave it out of --knobs")
+        raise ConfigError(
+            f"the deformable knob swaps dm_vqgan and vqgan, but the baseline's autoencoder is {name!r}; "
+            "leave it out of --knobs"
+        )
     return "on" if name == "dm_vqgan" else "off"
 
 
@@ -154,8 +177,10 @@ def _set_deformable(data: dict[str, Any], value: str, host: PluginHost) -> None:
     name = "dm_vqgan" if value == "on" else "vqgan"
     block = data["tokenizer"]["autoencoder"]
     fields = host.registry("autoencoder").get(name).config_model.model_fields
-    data["tokenizer"]["autoencoder"] = {"name": name, **{key: item for key, item in block.items()
-                                                         if key in fields and key != "name"}}
+    data["tokenizer"]["autoencoder"] = {
+        "name": name,
+        **{key: item for key, item in block.items() if key in fields and key != "name"},
+    }
 
 
 def _codebook_baseline(config: Any, host: PluginHost) -> int:
@@ -172,6 +197,7 @@ def _set(path: str) -> Callable[[dict[str, Any], Any, Any], None]:
         for part in parents:
             node = node[part]
         node[last] = value
+
     return apply
 
 
@@ -188,8 +214,10 @@ def _precision_baseline(config: Any, host: PluginHost) -> str:
 def _downsampling_baseline(config: Any, host: PluginHost) -> int:
     multipliers = getattr(config.tokenizer.autoencoder, "channel_multipliers", None)
     if not multipliers:
-        raise ConfigError("the downsampling knob needs an autoencoder with channel_multipliers (vqgan, dm_vqgan); "
-                          "leave it out of --knobs")
+        raise ConfigError(
+            "the downsampling knob needs an autoencoder with channel_multipliers (vqgan, dm_vqgan); "
+            "leave it out of --knobs"
+        )
     return 2 ** (len(multipliers) - 1)
 
 
@@ -197,44 +225,112 @@ def _set_downsampling(data: dict[str, Any], value: int, host: PluginHost) -> Non
     # f = 2^(levels - 1): drop levels, or add levels at the last level's width.
     multipliers = list(data["tokenizer"]["autoencoder"]["channel_multipliers"])
     levels = int(math.log2(value)) + 1
-    data["tokenizer"]["autoencoder"]["channel_multipliers"] = (multipliers[:levels] + [multipliers[-1]] *
-                                                               max(0, levels - len(multipliers)))
+    data["tokenizer"]["autoencoder"]["channel_multipliers"] = multipliers[:levels] + [multipliers[-1]] * max(
+        0, levels - len(multipliers)
+    )
 
 
 def _other_samplers(config: Any, host: PluginHost, baseline: str) -> list[str]:
     return [name for name in host.registry("sampler").names() if name != baseline]
 
 
-KNOBS: dict[str, Knob] = {knob.name: knob for knob in (
-    Knob("deformable", "tokenizer", "deformable layers on (dm_vqgan) or off (vqgan), the other options kept",
-         _choice("on", "off"), _deformable_baseline, lambda c, h, base: ["off" if base == "on" else "on"],
-         apply=_set_deformable, show=lambda value: f"{value} ({'dm_vqgan' if value == 'on' else 'vqgan'})"),
-    Knob("codebook", "tokenizer", "codebook size (default: a quarter and 4x the baseline's)", _integer(2),
-         _codebook_baseline, lambda c, h, base: [max(2, base // 4), base * 4],
-         apply=_set("tokenizer.quantizer.codebook_size"), show=lambda value: f"K = {value}"),
-    Knob("resolution", "tokenizer", "image size in pixels (default: twice the baseline's)", _integer(16),
-         lambda config, host: config.data.image_size, _resolution_alternatives, apply=_set("data.image_size"),
-         show=lambda value: f"{size_text(value)} px"),
-    Knob("precision", "tokenizer", "training precision, fp32 or bf16 autocast (inference stays fp32, as the stage "
-                                   "scores it)", _choice("fp32", "bf16"), _precision_baseline,
-         lambda c, h, base: ["bf16" if base == "fp32" else "fp32"], apply=_set("tokenizer.train.precision"),
-         show=lambda value: f"train {value}"),
-    Knob("downsampling", "tokenizer", "downsampling factor f of the code grid, a power of two (default: twice the "
-                                      "baseline's)", _integer(2, power_of_two=True), _downsampling_baseline,
-         lambda c, h, base: [base * 2], apply=_set_downsampling, show=lambda value: f"f = {value}"),
-    Knob("steps", "generator", "sampling steps (default: twice and half the configured)", _integer(1),
-         lambda config, host: config.generator.steps,
-         lambda c, h, base: [value for value in dict.fromkeys([base * 2, max(1, base // 2)])
-                             if value != base and value <= getattr(c.generator.model, "num_steps", value)],
-         setting_key="steps", show=lambda value: f"{value} steps"),
-    Knob("sampler", "generator", "sampler plugin (default: every other registered one)", str,
-         lambda config, host: config.generator.sampler.name, _other_samplers, setting_key="sampler"),
-    Knob("guidance", "generator", "classifier-free guidance scale (default: 3, or 1 when the baseline is guided)",
-         _guidance, lambda config, host: config.generator.guidance,
-         lambda c, h, base: [3.0 if base == 1 else 1.0], setting_key="guidance", show=lambda value: f"g = {value:g}"),
-    Knob("sampling-precision", "generator", "precision of sampling and decoding, fp32 or bf16 autocast",
-         _choice("fp32", "bf16"), lambda config, host: "fp32", lambda c, h, base: ["bf16"], setting_key="precision"),
-)}
+KNOBS: dict[str, Knob] = {
+    knob.name: knob
+    for knob in (
+        Knob(
+            "deformable",
+            "tokenizer",
+            "deformable layers on (dm_vqgan) or off (vqgan), the other options kept",
+            _choice("on", "off"),
+            _deformable_baseline,
+            lambda c, h, base: ["off" if base == "on" else "on"],
+            apply=_set_deformable,
+            show=lambda value: f"{value} ({'dm_vqgan' if value == 'on' else 'vqgan'})",
+        ),
+        Knob(
+            "codebook",
+            "tokenizer",
+            "codebook size (default: a quarter and 4x the baseline's)",
+            _integer(2),
+            _codebook_baseline,
+            lambda c, h, base: [max(2, base // 4), base * 4],
+            apply=_set("tokenizer.quantizer.codebook_size"),
+            show=lambda value: f"K = {value}",
+        ),
+        Knob(
+            "resolution",
+            "tokenizer",
+            "image size in pixels (default: twice the baseline's)",
+            _integer(16),
+            lambda config, host: config.data.image_size,
+            _resolution_alternatives,
+            apply=_set("data.image_size"),
+            show=lambda value: f"{size_text(value)} px",
+        ),
+        Knob(
+            "precision",
+            "tokenizer",
+            "training precision, fp32 or bf16 autocast (inference stays fp32, as the stage scores it)",
+            _choice("fp32", "bf16"),
+            _precision_baseline,
+            lambda c, h, base: ["bf16" if base == "fp32" else "fp32"],
+            apply=_set("tokenizer.train.precision"),
+            show=lambda value: f"train {value}",
+        ),
+        Knob(
+            "downsampling",
+            "tokenizer",
+            "downsampling factor f of the code grid, a power of two (default: twice the baseline's)",
+            _integer(2, power_of_two=True),
+            _downsampling_baseline,
+            lambda c, h, base: [base * 2],
+            apply=_set_downsampling,
+            show=lambda value: f"f = {value}",
+        ),
+        Knob(
+            "steps",
+            "generator",
+            "sampling steps (default: twice and half the configured)",
+            _integer(1),
+            lambda config, host: config.generator.steps,
+            lambda c, h, base: [
+                value
+                for value in dict.fromkeys([base * 2, max(1, base // 2)])
+                if value != base and value <= getattr(c.generator.model, "num_steps", value)
+            ],
+            setting_key="steps",
+            show=lambda value: f"{value} steps",
+        ),
+        Knob(
+            "sampler",
+            "generator",
+            "sampler plugin (default: every other registered one)",
+            str,
+            lambda config, host: config.generator.sampler.name,
+            _other_samplers,
+            setting_key="sampler",
+        ),
+        Knob(
+            "guidance",
+            "generator",
+            "classifier-free guidance scale (default: 3, or 1 when the baseline is guided)",
+            _guidance,
+            lambda config, host: config.generator.guidance,
+            lambda c, h, base: [3.0 if base == 1 else 1.0],
+            setting_key="guidance",
+            show=lambda value: f"g = {value:g}",
+        ),
+        Knob(
+            "sampling-precision",
+            "generator",
+            "precision of sampling and decoding, fp32 or bf16 autocast",
+            _choice("fp32", "bf16"),
+            lambda config, host: "fp32",
+            lambda c, h, base: ["bf16"],
+            setting_key="precision",
+        ),
+    )
+}
 
 
 def known_knobs() -> str:
@@ -257,12 +353,15 @@ def parse_knobs(specs: list[str] | None, config: Any, host: PluginHost) -> dict[
         if name not in KNOBS:
             raise ConfigError(f"--knobs {spec}: unknown knob {name!r}; known knobs: {known_knobs()}")
         if name in chosen:
-            raise ConfigError(f"--knobs {spec}: the knob {name!r} is given twice; give its values once, "
-                              f"e.g. {name}=A,B")
+            raise ConfigError(
+                f"--knobs {spec}: the knob {name!r} is given twice; give its values once, e.g. {name}=A,B"
+            )
         knob = KNOBS[name]
         if knob.part == "generator" and not has_generator:
-            raise ConfigError(f"--knobs {spec}: the {name} knob is a generator knob, but the scene "
-                              f"{config.scene!r} trains no generator; use e.g. --scene {DEFAULT_SCENE}")
+            raise ConfigError(
+                f"--knobs {spec}: the {name} knob is a generator knob, but the scene "
+                f"{config.scene!r} trains no generator; use e.g. --scene {DEFAULT_SCENE}"
+            )
         baseline = knob.baseline(config, host)
         if separator:
             values = []
@@ -272,8 +371,10 @@ def parse_knobs(specs: list[str] | None, config: Any, host: PluginHost) -> dict[
                 except ValueError as exc:
                     raise ConfigError(f"--knobs {spec}: {item.strip()!r}: {exc} ({knob.meaning})") from None
             if baseline in values:
-                raise ConfigError(f"--knobs {spec}: {knob.show(baseline)} is the baseline's own value, measured "
-                                  "anyway; give other values")
+                raise ConfigError(
+                    f"--knobs {spec}: {knob.show(baseline)} is the baseline's own value, measured "
+                    "anyway; give other values"
+                )
         else:
             values = knob.alternatives(config, host, baseline)
         chosen[name] = list(dict.fromkeys(values))
@@ -282,6 +383,7 @@ def parse_knobs(specs: list[str] | None, config: Any, host: PluginHost) -> dict[
 
 # -- configs --------------------------------------------------------------------------------------
 
+
 def scaled_config(config: Any, host: PluginHost, full: bool) -> Any:
     """``config`` scaled down like ``vqtouch demo`` (unless ``full``): the sizes the knobs' default
     values and the baseline derive from."""
@@ -289,12 +391,15 @@ def scaled_config(config: Any, host: PluginHost, full: bool) -> Any:
     if "tokenizer" not in config.stages:
         raise ConfigError(f"the scene {config.scene!r} trains no tokenizer; use e.g. --scene {DEFAULT_SCENE}")
     if config.data.val_fraction == 0:
-        raise ConfigError("data.val_fraction=0 holds no images out: nothing to score the settings on; "
-                          "set data.val_fraction=0.1")
+        raise ConfigError(
+            "data.val_fraction=0 holds no images out: nothing to score the settings on; set data.val_fraction=0.1"
+        )
     return config if full else scale_for_demo(config, host)
 
 
-def baseline_config(config: Any, host: PluginHost, *, tokenizer_steps: int, generator_steps: int, generator: bool) -> Any:
+def baseline_config(
+    config: Any, host: PluginHost, *, tokenizer_steps: int, generator_steps: int, generator: bool
+) -> Any:
     """The baseline: ``config`` (see :func:`scaled_config`) with the tokenizer (and with
     ``generator`` the generator) trained for the given steps, one checkpoint at the end, and only
     the stages the experiment runs.  The generator stage scores no samples itself: the experiment
@@ -343,18 +448,20 @@ def check_sampling_values(config: Any, host: PluginHost, knobs: dict[str, list[A
     limit = getattr(config.generator.model, "num_steps", None) if "steps" in knobs else None
     too_many = [value for value in knobs.get("steps", []) if limit and value > limit]
     if too_many:
-        raise ConfigError(f"--knobs steps={too_many[0]}: more sampling steps than the generator's {limit} diffusion "
-                          f"steps (generator.model.num_steps); give at most {limit}")
+        raise ConfigError(
+            f"--knobs steps={too_many[0]}: more sampling steps than the generator's {limit} diffusion "
+            f"steps (generator.model.num_steps); give at most {limit}"
+        )
 
 
 def generator_base(config: Any) -> dict[str, Any]:
     """The configured sampling setting (the generator part's baseline)."""
     section = config.generator
-    return {"sampler": section.sampler.name, "steps": section.steps, "guidance": section.guidance,
-            "precision": "fp32"}
+    return {"sampler": section.sampler.name, "steps": section.steps, "guidance": section.guidance, "precision": "fp32"}
 
 
 # -- training and timing --------------------------------------------------------------------------
+
 
 def train_tokenizer_run(config: Any, host: PluginHost, folder: Path, argv: list[str]) -> tuple[Path, float]:
     """Train ``config``'s tokenizer through :func:`run_stage` in a new run ``folder`` (replacing an
@@ -382,20 +489,33 @@ class TokenizerTimer:
         count = min(len(held_out), TIMED_IMAGES)
         self.images_B3HW = torch.stack([held_out[index]["tactile"] for index in range(count)]).to(self.device)
         section = config.tokenizer
-        discriminator = (assembly.component("tokenizer.discriminator")
-                         if section.discriminator is not None and section.loss.adversarial_weight > 0 else None)
+        discriminator = (
+            assembly.component("tokenizer.discriminator")
+            if section.discriminator is not None and section.loss.adversarial_weight > 0
+            else None
+        )
         self.task = tokenizer_task(self.tokenizer, section.loss, self.device, discriminator)
-        self.train_config = section.train.model_copy(update={"steps": steps, "checkpoint_every": steps,
-                                                             "keep_best": False})
+        self.train_config = section.train.model_copy(
+            update={"steps": steps, "checkpoint_every": steps, "keep_best": False}
+        )
 
     def training_seconds_per_step(self) -> float:
         """Seconds per step of ``steps`` training steps (a fresh optimiser; the weights go on training,
         which does not change what a step costs)."""
         from vqtouch.plugins.generator import synchronize
 
-        trainer = Trainer(self.task, self.train_set, self.train_config, batch_size=self.config.data.batch_size,
-                          seed=self.config.seed, device=self.device, checkpoint_dir=None,
-                          num_workers=self.config.data.num_workers, host=self.host, stage="timing")
+        trainer = Trainer(
+            self.task,
+            self.train_set,
+            self.train_config,
+            batch_size=self.config.data.batch_size,
+            seed=self.config.seed,
+            device=self.device,
+            checkpoint_dir=None,
+            num_workers=self.config.data.num_workers,
+            host=self.host,
+            stage="timing",
+        )
         synchronize(self.device)
         tic = time.perf_counter()
         trainer.fit()
@@ -414,8 +534,9 @@ class TokenizerTimer:
         return (time.perf_counter() - tic) / len(self.images_B3HW)
 
 
-def time_tokenizers(timers: list[TokenizerTimer], rounds: int, report: Callable[[str], None]
-                    ) -> list[tuple[float, float]]:
+def time_tokenizers(
+    timers: list[TokenizerTimer], rounds: int, report: Callable[[str], None]
+) -> list[tuple[float, float]]:
     """(training seconds per step, seconds per image) of each timer, the median of ``rounds``
     interleaved rounds, and last the baseline's (``timers[0]``) second timing of every round.  One
     untimed round first pays the first-call costs (allocation, the data's first renders)."""
@@ -429,8 +550,9 @@ def time_tokenizers(timers: list[TokenizerTimer], rounds: int, report: Callable[
         for position, index in enumerate(order):
             training[position].append(timers[index].training_seconds_per_step())
             inference[position].append(timers[index].seconds_per_image())
-        report(f"  timing round {round_index + 1}/{rounds}: " + ", ".join(
-            f"{times[-1]:.3f} s/step" for times in training))
+        report(
+            f"  timing round {round_index + 1}/{rounds}: " + ", ".join(f"{times[-1]:.3f} s/step" for times in training)
+        )
     return [(statistics.median(train), statistics.median(infer)) for train, infer in zip(training, inference)]
 
 
@@ -439,43 +561,82 @@ def _quality(scores: dict[str, Any]) -> dict[str, Any]:
     return {key: scores[key] for key in keys if isinstance(scores.get(key), (int, float))}
 
 
-def tokenizer_rows(baseline: Any, host: PluginHost, knobs: dict[str, list[Any]], *, seed: int, out: Path, rounds: int,
-                   timing_steps: int, argv: list[str], report: Callable[[str], None]) -> tuple[list[dict], Path]:
+def tokenizer_rows(
+    baseline: Any,
+    host: PluginHost,
+    knobs: dict[str, list[Any]],
+    *,
+    seed: int,
+    out: Path,
+    rounds: int,
+    timing_steps: int,
+    argv: list[str],
+    report: Callable[[str], None],
+) -> tuple[list[dict], Path]:
     """One seed of part 1: the baseline's and every tokenizer knob value's row (scores, costs and
     costs relative to the baseline), then the baseline's drift row.  Also returns the baseline's
     run (where the generator trains)."""
-    variants = [(None, None)] + [(name, value) for name, values in knobs.items() if KNOBS[name].part == "tokenizer"
-                                 for value in values]
+    variants = [(None, None)] + [
+        (name, value) for name, values in knobs.items() if KNOBS[name].part == "tokenizer" for value in values
+    ]
     configs = [variant_config(baseline, host, seed, name, value) for name, value in variants]
     rows, runs = [], []
     for (name, value), config in zip(variants, configs):
-        folder = out / "runs" / f"seed{seed}" / ("baseline" if name is None else
-                                                  re.sub(r"[^A-Za-z0-9.]+", "_", f"{name}-{value}").strip("_"))
+        folder = (
+            out
+            / "runs"
+            / f"seed{seed}"
+            / ("baseline" if name is None else re.sub(r"[^A-Za-z0-9.]+", "_", f"{name}-{value}").strip("_"))
+        )
         # The baseline's generator trains in the same run later (generator_rows), on this tokenizer.
         path, seconds = train_tokenizer_run(config, host, folder, argv)
         scores = json.loads((path / "eval.json").read_text())
         runs.append(path)
-        rows.append({"part": "tokenizer", "knob": name or "baseline",
-                     "setting": baseline_text(config, host) if name is None else KNOBS[name].show(value),
-                     "seed": seed, "stage_seconds": round(seconds, 2), "run": str(path), **_quality(scores)})
-        report(f"seed {seed}: tokenizer {rows[-1]['knob']} {rows[-1]['setting']}: SSIM {scores.get('ssim')}, "
-               f"contact SSIM {scores.get('contact_ssim')} (background {scores.get('background_contact_ssim')}), "
-               f"{seconds:.0f} s")
+        rows.append(
+            {
+                "part": "tokenizer",
+                "knob": name or "baseline",
+                "setting": baseline_text(config, host) if name is None else KNOBS[name].show(value),
+                "seed": seed,
+                "stage_seconds": round(seconds, 2),
+                "run": str(path),
+                **_quality(scores),
+            }
+        )
+        report(
+            f"seed {seed}: tokenizer {rows[-1]['knob']} {rows[-1]['setting']}: SSIM {scores.get('ssim')}, "
+            f"contact SSIM {scores.get('contact_ssim')} (background {scores.get('background_contact_ssim')}), "
+            f"{seconds:.0f} s"
+        )
     report(f"seed {seed}: timing {len(configs)} tokenizers, {rounds} interleaved rounds of {timing_steps} steps")
     timers = [TokenizerTimer(config, path, host, timing_steps) for config, path in zip(configs, runs)]
     costs = time_tokenizers(timers, rounds, report)
     rows.append({"part": "tokenizer", "knob": "baseline", "setting": DRIFT, "seed": seed})
     base_step, base_image = costs[0]
     for row, (per_step, per_image) in zip(rows, costs):
-        row |= {"train_s_per_step": round(per_step, 6), "train_cost": round(per_step / base_step, 4),
-                "seconds_per_image": round(per_image, 6), "img_per_s": round(1 / per_image, 4),
-                "inference_cost": round(per_image / base_image, 4)}
+        row |= {
+            "train_s_per_step": round(per_step, 6),
+            "train_cost": round(per_step / base_step, 4),
+            "seconds_per_image": round(per_image, 6),
+            "img_per_s": round(1 / per_image, 4),
+            "inference_cost": round(per_image / base_image, 4),
+        }
     return rows, runs[0]
 
 
-def generator_rows(run: Path, config: Any, host: PluginHost, knobs: dict[str, list[Any]], *, seed: int, n: int,
-                   rounds: int, batch_size: int, distribution: bool,
-                   report: Callable[[str], None]) -> list[dict[str, Any]]:
+def generator_rows(
+    run: Path,
+    config: Any,
+    host: PluginHost,
+    knobs: dict[str, list[Any]],
+    *,
+    seed: int,
+    n: int,
+    rounds: int,
+    batch_size: int,
+    distribution: bool,
+    report: Callable[[str], None],
+) -> list[dict[str, Any]]:
     """One seed of part 2: train the generator in the baseline's ``run`` (on its tokenizer's codes),
     then time and score every sampling setting with ``vqtouch tradeoff generator``'s functions, the
     configured setting first and again last (drift)."""
@@ -495,8 +656,13 @@ def generator_rows(run: Path, config: Any, host: PluginHost, knobs: dict[str, li
     check_settings(bench, lists["steps"], lists["sampler"], lists["guidance"], lists["precision"])
     if distribution:
         bench.fit_distribution()
-    settings = sweep_settings(steps=lists["steps"], samplers=lists["sampler"], guidance=lists["guidance"],
-                              precisions=lists["precision"], base=base)
+    settings = sweep_settings(
+        steps=lists["steps"],
+        samplers=lists["sampler"],
+        guidance=lists["guidance"],
+        precisions=lists["precision"],
+        base=base,
+    )
     measured = measure(bench, [*settings, base], rounds, log=_ReportLog(report))
     background = bench.score(bench.background, "background_") if bench.background is not None else {}
     knob_of = {KNOBS[name].setting_key: name for name in KNOBS if KNOBS[name].part == "generator"}
@@ -509,12 +675,29 @@ def generator_rows(run: Path, config: Any, host: PluginHost, knobs: dict[str, li
         else:
             knob, text = "baseline", DRIFT if index == len(settings) else result["label"]
         # The drift row repeats the baseline's images: a timing, not a contender.
-        quality = {} if text == DRIFT else {
-            **_quality(result | background),
-            **{key: result[key] for key in ("classifier_accuracy", "fd_effnetlite0") if key in result}}
-        rows.append({"part": "generator", "knob": knob, "setting": text, "seed": seed, "sampling": setting, **quality,
-                     "seconds_per_image": result["seconds_per_image"], "img_per_s": result["img_per_s"],
-                     "inference_cost": result["cost"], "reproducible": result["reproducible"], "run": str(run)})
+        quality = (
+            {}
+            if text == DRIFT
+            else {
+                **_quality(result | background),
+                **{key: result[key] for key in ("classifier_accuracy", "fd_effnetlite0") if key in result},
+            }
+        )
+        rows.append(
+            {
+                "part": "generator",
+                "knob": knob,
+                "setting": text,
+                "seed": seed,
+                "sampling": setting,
+                **quality,
+                "seconds_per_image": result["seconds_per_image"],
+                "img_per_s": result["img_per_s"],
+                "inference_cost": result["cost"],
+                "reproducible": result["reproducible"],
+                "run": str(run),
+            }
+        )
     return rows
 
 
@@ -537,12 +720,14 @@ class _ReportLog:
 #: The scores the fronts are drawn on, the first one the rows have: contact SSIM; contact PSNR for
 #: images narrower than SSIM's window; whole-image SSIM only without a background (no contact region).
 FRONT_QUALITIES = ("contact_ssim", "contact_psnr", "ssim")
-FRONT_TEXT = {"contact_ssim": "the contact region's SSIM: claims of 'better' rest on it, not on the whole-image scores",
-              "contact_psnr": "the contact region's PSNR (the images are narrower than SSIM's window): claims of "
-                              "'better' rest on it, not on the whole-image scores",
-              "ssim": "whole-image SSIM, because the training split is too small for a no-contact image: without one "
-                      "there is no contact region, and whole-image scores flatter a model that draws only the "
-                      "background"}
+FRONT_TEXT = {
+    "contact_ssim": "the contact region's SSIM: claims of 'better' rest on it, not on the whole-image scores",
+    "contact_psnr": "the contact region's PSNR (the images are narrower than SSIM's window): claims of "
+    "'better' rest on it, not on the whole-image scores",
+    "ssim": "whole-image SSIM, because the training split is too small for a no-contact image: without one "
+    "there is no contact region, and whole-image scores flatter a model that draws only the "
+    "background",
+}
 AXIS_LABELS = {"contact_ssim": "contact SSIM", "contact_psnr": "contact PSNR (dB)", "ssim": "whole-image SSIM"}
 
 
@@ -576,46 +761,84 @@ def pareto_front(costs: list[float], qualities: list[float | None]) -> list[int]
     return front(costs, qualities, higher_is_better=True)
 
 
-TABLE_KEYS = ("train_s_per_step", "train_cost", "img_per_s", "inference_cost", "ssim", "background_ssim", "psnr",
-              "background_psnr", "contact_ssim", "background_contact_ssim", "contact_psnr", "background_contact_psnr",
-              "codes_used", "pareto_front")
-TABLE_HEADERS = {"train_s_per_step": "train s/step", "train_cost": "train x base", "img_per_s": "img/s",
-                 "inference_cost": "img cost x base", "ssim": "SSIM", "background_ssim": "bg SSIM", "psnr": "PSNR dB",
-                 "background_psnr": "bg PSNR", "contact_ssim": "contact SSIM",
-                 "background_contact_ssim": "bg contact SSIM", "contact_psnr": "contact PSNR dB",
-                 "background_contact_psnr": "bg contact PSNR", "codes_used": "codes used",
-                 "pareto_front": "Pareto front"}
+TABLE_KEYS = (
+    "train_s_per_step",
+    "train_cost",
+    "img_per_s",
+    "inference_cost",
+    "ssim",
+    "background_ssim",
+    "psnr",
+    "background_psnr",
+    "contact_ssim",
+    "background_contact_ssim",
+    "contact_psnr",
+    "background_contact_psnr",
+    "codes_used",
+    "pareto_front",
+)
+TABLE_HEADERS = {
+    "train_s_per_step": "train s/step",
+    "train_cost": "train x base",
+    "img_per_s": "img/s",
+    "inference_cost": "img cost x base",
+    "ssim": "SSIM",
+    "background_ssim": "bg SSIM",
+    "psnr": "PSNR dB",
+    "background_psnr": "bg PSNR",
+    "contact_ssim": "contact SSIM",
+    "background_contact_ssim": "bg contact SSIM",
+    "contact_psnr": "contact PSNR dB",
+    "background_contact_psnr": "bg contact PSNR",
+    "codes_used": "codes used",
+    "pareto_front": "Pareto front",
+}
 
 
 def render_markdown(result: dict[str, Any]) -> list[str]:
     """``tradeoff.md``: what was measured, the one table and how to read it."""
     seeds, settings = len(result["seeds"]), result["settings"]
     drift = [row for row in result["summary"] if row["setting"] == DRIFT]
-    lines = [f"# Speed/accuracy trade of the whole pipeline ({seeds} seeds: mean ± std)", "",
-             f"Baseline: scene `{result['scene']}`{'' if settings['full'] else ' scaled like `vqtouch demo`'}; "
-             f"tokenizer {result['baseline']}, {settings['tokenizer_steps']} training steps per tokenizer"
-             + (f"; generator {settings['generator_steps']} steps on the baseline tokenizer's codes, sampling "
-                f"{result['generator_baseline']}" if result["generator_baseline"] else "") + ".", "",
-             f"Costs: `train s/step` is the median of {settings['rounds']} interleaved rounds of "
-             f"{settings['timing_steps']} training steps; `img/s` encodes and decodes held-out images (tokenizer) or "
-             "encodes the condition, samples and decodes (generator: the whole pipeline's cost of a generated image); "
-             "`x base` is the ratio to the baseline timed in the same process, per seed, then averaged.  The "
-             f"`{DRIFT}` rows time the baseline again at the end of every round: their `x base` is the machine's "
-             "drift, the error bar of every ratio.", "",
-             "Quality on the held-out split: `bg` is the data's no-contact image scored the same way (a model that "
-             "draws only the background gets it); `contact` scores only the pixels in contact.  The Pareto fronts "
-             "(training and inference cost of the tokenizers, generation cost of the samplings) use "
-             f"{FRONT_TEXT[result['front_quality']]}.", ""]
+    lines = [
+        f"# Speed/accuracy trade of the whole pipeline ({seeds} seeds: mean ± std)",
+        "",
+        f"Baseline: scene `{result['scene']}`{'' if settings['full'] else ' scaled like `vqtouch demo`'}; "
+        f"tokenizer {result['baseline']}, {settings['tokenizer_steps']} training steps per tokenizer"
+        + (
+            f"; generator {settings['generator_steps']} steps on the baseline tokenizer's codes, sampling "
+            f"{result['generator_baseline']}"
+            if result["generator_baseline"]
+            else ""
+        )
+        + ".",
+        "",
+        f"Costs: `train s/step` is the median of {settings['rounds']} interleaved rounds of "
+        f"{settings['timing_steps']} training steps; `img/s` encodes and decodes held-out images (tokenizer) or "
+        "encodes the condition, samples and decodes (generator: the whole pipeline's cost of a generated image); "
+        "`x base` is the ratio to the baseline timed in the same process, per seed, then averaged.  The "
+        f"`{DRIFT}` rows time the baseline again at the end of every round: their `x base` is the machine's "
+        "drift, the error bar of every ratio.",
+        "",
+        "Quality on the held-out split: `bg` is the data's no-contact image scored the same way (a model that "
+        "draws only the background gets it); `contact` scores only the pixels in contact.  The Pareto fronts "
+        "(training and inference cost of the tokenizers, generation cost of the samplings) use "
+        f"{FRONT_TEXT[result['front_quality']]}.",
+        "",
+    ]
     lines += markdown_table(result["summary"], ("part", "knob", "setting"), TABLE_KEYS, TABLE_HEADERS)
     notes = []
     if any(row["knob"] == "resolution" for row in result["summary"]):
-        notes.append("The resolution rows are scored at their own resolution (the same scenes rendered larger): "
-                     "their quality is not the same measurement as the other rows'.")
+        notes.append(
+            "The resolution rows are scored at their own resolution (the same scenes rendered larger): "
+            "their quality is not the same measurement as the other rows'."
+        )
     for row in drift:
         for key in ("train_cost", "inference_cost"):
             if isinstance(row.get(key), float) and abs(row[key] - 1) > 0.1:
-                notes.append(f"The {row['part']} baseline's {key.replace('_', ' ')} drifted by "
-                             f"{100 * (row[key] - 1):+.0f}% within a round: ratios closer to 1 than that are noise.")
+                notes.append(
+                    f"The {row['part']} baseline's {key.replace('_', ' ')} drifted by "
+                    f"{100 * (row[key] - 1):+.0f}% within a round: ratios closer to 1 than that are noise."
+                )
     if notes:
         lines += ["", *notes]
     return lines
@@ -629,30 +852,55 @@ def plot_tradeoff(summary: list[dict[str, Any]], key: str, path: Path, title: st
     from matplotlib.figure import Figure
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-    panels = [(part, cost, name) for part, cost, name in FRONTS
-              if any(row["part"] == part and isinstance(row.get(key), (int, float)) for row in summary)]
+    panels = [
+        (part, cost, name)
+        for part, cost, name in FRONTS
+        if any(row["part"] == part and isinstance(row.get(key), (int, float)) for row in summary)
+    ]
     figure = Figure(figsize=(5.5 * max(len(panels), 1), 4.6), layout="constrained")
     FigureCanvasAgg(figure)
     label = AXIS_LABELS[key]
-    axis_names = {"training": "tokenizer training s/step", "inference": "tokenizer encode + decode s/image",
-                  "generation": "generation (sample + decode) s/image"}
+    axis_names = {
+        "training": "tokenizer training s/step",
+        "inference": "tokenizer encode + decode s/image",
+        "generation": "generation (sample + decode) s/image",
+    }
     for number, (part, cost, name) in enumerate(panels):
         axes = figure.add_subplot(1, len(panels), number + 1)
-        rows = [row for row in summary if row["part"] == part and row["setting"] != DRIFT
-                and isinstance(row.get(key), (int, float)) and isinstance(row.get(cost), (int, float))]
-        axes.errorbar([row[cost] for row in rows], [row[key] for row in rows],
-                      xerr=[row.get(f"{cost}_std", 0) for row in rows], yerr=[row.get(f"{key}_std", 0) for row in rows],
-                      fmt="o", markersize=4, capsize=2, color="tab:blue", zorder=3)
+        rows = [
+            row
+            for row in summary
+            if row["part"] == part
+            and row["setting"] != DRIFT
+            and isinstance(row.get(key), (int, float))
+            and isinstance(row.get(cost), (int, float))
+        ]
+        axes.errorbar(
+            [row[cost] for row in rows],
+            [row[key] for row in rows],
+            xerr=[row.get(f"{cost}_std", 0) for row in rows],
+            yerr=[row.get(f"{key}_std", 0) for row in rows],
+            fmt="o",
+            markersize=4,
+            capsize=2,
+            color="tab:blue",
+            zorder=3,
+        )
         for row in rows:
             text = "baseline" if row["knob"] == "baseline" else f"{row['knob']}: {row['setting']}"
             axes.annotate(text, (row[cost], row[key]), textcoords="offset points", xytext=(4, 3), fontsize=7)
         front = sorted((row for row in rows if name in row["pareto"]), key=lambda row: row[cost])
-        axes.plot([row[cost] for row in front], [row[key] for row in front], color="tab:red", linewidth=1.5,
-                  label="Pareto front", zorder=2)
+        axes.plot(
+            [row[cost] for row in front],
+            [row[key] for row in front],
+            color="tab:red",
+            linewidth=1.5,
+            label="Pareto front",
+            zorder=2,
+        )
         base = next((row for row in rows if row["knob"] == "baseline"), None)
         if base is not None and isinstance(base.get(f"background_{key}"), (int, float)):
-            axes.axhline(base[f"background_{key}"], linestyle="--", color="grey", linewidth=1,
-                         label="no-contact image")
+            axes.axhline(base[f"background_{key}"], linestyle="--", color="grey", linewidth=1, label="no-contact image")
         axes.set_xscale("log")
         # Ratios span less than a decade: label 0.5x, 1x, 2x ... rather than powers of ten.
         axes.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
@@ -669,17 +917,33 @@ def plot_tradeoff(summary: list[dict[str, Any]], key: str, path: Path, title: st
 
 # -- the experiment -------------------------------------------------------------------------------
 
-def evaluate_tradeoff(config: Any, host: PluginHost, out: Path, *, seeds: list[int], knobs: dict[str, list[Any]],
-                      full: bool, tokenizer_steps: int, generator_steps: int, rounds: int, timing_steps: int, n: int,
-                      batch_size: int, distribution: bool, argv: list[str],
-                      report: Callable[[str], None] = print) -> dict[str, Any]:
+
+def evaluate_tradeoff(
+    config: Any,
+    host: PluginHost,
+    out: Path,
+    *,
+    seeds: list[int],
+    knobs: dict[str, list[Any]],
+    full: bool,
+    tokenizer_steps: int,
+    generator_steps: int,
+    rounds: int,
+    timing_steps: int,
+    n: int,
+    batch_size: int,
+    distribution: bool,
+    argv: list[str],
+    report: Callable[[str], None] = print,
+) -> dict[str, Any]:
     """Both parts for every seed (see the module docstring) around ``config`` (already
     :func:`scaled_config`; ``full`` says whether it was scaled down); writes ``tradeoff.json``,
     ``tradeoff.md`` and ``tradeoff.png`` into ``out`` and returns the result."""
     record = ExperimentRecord("tradeoff", out, seeds)
     generator = any(KNOBS[name].part == "generator" for name in knobs)
-    baseline = baseline_config(config, host, tokenizer_steps=tokenizer_steps, generator_steps=generator_steps,
-                               generator=generator)
+    baseline = baseline_config(
+        config, host, tokenizer_steps=tokenizer_steps, generator_steps=generator_steps, generator=generator
+    )
     # Every value is checked before anything trains: a bad one would otherwise fail an hour in.
     for name, values in knobs.items():
         if KNOBS[name].part == "tokenizer":
@@ -688,27 +952,65 @@ def evaluate_tradeoff(config: Any, host: PluginHost, out: Path, *, seeds: list[i
     check_sampling_values(baseline, host, knobs)
     rows: list[dict[str, Any]] = []
     for seed in seeds:
-        seed_rows, baseline_run = tokenizer_rows(baseline, host, knobs, seed=seed, out=out, rounds=rounds,
-                                                 timing_steps=timing_steps, argv=argv, report=report)
+        seed_rows, baseline_run = tokenizer_rows(
+            baseline,
+            host,
+            knobs,
+            seed=seed,
+            out=out,
+            rounds=rounds,
+            timing_steps=timing_steps,
+            argv=argv,
+            report=report,
+        )
         rows += seed_rows
         if generator:
-            rows += generator_rows(baseline_run, variant_config(baseline, host, seed), host, knobs, seed=seed, n=n,
-                                   rounds=rounds, batch_size=batch_size, distribution=distribution,
-                                   report=report)
+            rows += generator_rows(
+                baseline_run,
+                variant_config(baseline, host, seed),
+                host,
+                knobs,
+                seed=seed,
+                n=n,
+                rounds=rounds,
+                batch_size=batch_size,
+                distribution=distribution,
+                report=report,
+            )
     summary, key = summarize(rows)
     base = generator_base(baseline) if generator else None
-    result = {"seeds": seeds, "scene": baseline.scene, "baseline": baseline_text(baseline, host),
-              "generator_baseline": (f"{base['sampler']}, {base['steps']} steps, guidance {base['guidance']:g}, "
-                                     f"{base['precision']}") if base else None,
-              "knobs": {name: [KNOBS[name].show(value) for value in values] for name, values in knobs.items()},
-              "settings": {"full": full, "tokenizer_steps": tokenizer_steps, "generator_steps": generator_steps,
-                           "rounds": rounds, "timing_steps": timing_steps, "n": n, "batch_size": batch_size,
-                           "distribution": distribution},
-              "front_quality": key, "config": baseline.to_dict(), "rows": rows, "summary": summary}
+    result = {
+        "seeds": seeds,
+        "scene": baseline.scene,
+        "baseline": baseline_text(baseline, host),
+        "generator_baseline": (
+            f"{base['sampler']}, {base['steps']} steps, guidance {base['guidance']:g}, {base['precision']}"
+        )
+        if base
+        else None,
+        "knobs": {name: [KNOBS[name].show(value) for value in values] for name, values in knobs.items()},
+        "settings": {
+            "full": full,
+            "tokenizer_steps": tokenizer_steps,
+            "generator_steps": generator_steps,
+            "rounds": rounds,
+            "timing_steps": timing_steps,
+            "n": n,
+            "batch_size": batch_size,
+            "distribution": distribution,
+        },
+        "front_quality": key,
+        "config": baseline.to_dict(),
+        "rows": rows,
+        "summary": summary,
+    }
     record.write(result, render_markdown(result))
-    plot_tradeoff(summary, key, record.path("tradeoff.png"),
-                  f"{baseline.scene}: {len(seeds)} seeds, {tokenizer_steps} tokenizer steps, "
-                  f"{torch.get_num_threads()} threads")
+    plot_tradeoff(
+        summary,
+        key,
+        record.path("tradeoff.png"),
+        f"{baseline.scene}: {len(seeds)} seeds, {tokenizer_steps} tokenizer steps, {torch.get_num_threads()} threads",
+    )
     return result
 
 
@@ -716,7 +1018,6 @@ def evaluate_tradeoff(config: Any, host: PluginHost, out: Path, *, seeds: list[i
 STANDARD = {"tokenizer_steps": 150, "generator_steps": 300, "rounds": 3, "timing_steps": 3, "n": 32}
 QUICK = {"tokenizer_steps": 40, "generator_steps": 60, "rounds": 2, "timing_steps": 2, "n": 16}
 QUICK_KNOBS = ["deformable", "codebook", "precision", "steps", "sampler"]
-
 
 
 def _command(args: argparse.Namespace) -> int:
@@ -733,9 +1034,19 @@ def _command(args: argparse.Namespace) -> int:
         specs = [name for name in QUICK_KNOBS if KNOBS[name].part == "tokenizer" or "generator" in config.stages]
     knobs = parse_knobs(specs, config, host)
     out = Path(args.out)
-    evaluate_tradeoff(config, host, out, seeds=args.seeds, knobs=knobs, full=args.full,
-                      batch_size=args.batch_size, distribution=args.distribution, argv=args.argv,
-                      report=lambda line: print(line, file=sys.stderr, flush=True), **chosen)
+    evaluate_tradeoff(
+        config,
+        host,
+        out,
+        seeds=args.seeds,
+        knobs=knobs,
+        full=args.full,
+        batch_size=args.batch_size,
+        distribution=args.distribution,
+        argv=args.argv,
+        report=lambda line: print(line, file=sys.stderr, flush=True),
+        **chosen,
+    )
     print((out / "tradeoff.md").read_text())
     print(f"-> {out} (tradeoff.json, tradeoff.md, tradeoff.png; the trained runs in {out / 'runs'})")
     return 0
@@ -745,42 +1056,73 @@ def _command(args: argparse.Namespace) -> int:
 def vqtouch_add_commands(subparsers):
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
     parser = evaluate.add_parser(
-        "tradeoff", help="the whole pipeline's speed/accuracy trade: tokenizer and generator knobs, one table, "
-                         "Pareto plots (JSON, markdown, PNG)",
+        "tradeoff",
+        help="the whole pipeline's speed/accuracy trade: tokenizer and generator knobs, one table, "
+        "Pareto plots (JSON, markdown, PNG)",
         description="Train a tokenizer per tokenizer knob value and a generator on the baseline tokenizer, time them "
-                    "in interleaved rounds and score them on the held-out split (contact region and no-contact "
-                    f"background included).  Default ({STANDARD['tokenizer_steps']} tokenizer steps, every knob, "
-                    "3 seeds): about 1 h on a quiet 2-core CPU, 3 h on a shared one; --quick: about 15 min quiet, "
-                    "40 min shared.  On a CPU without bf16 units the precision knob alone trains about 15 times "
-                    "slower (16 to 25 min per seed measured on a shared 2-core CPU at --quick): leave it out with "
-                    "--knobs deformable codebook steps sampler.  On a shared CPU give --threads 1.")
+        "in interleaved rounds and score them on the held-out split (contact region and no-contact "
+        f"background included).  Default ({STANDARD['tokenizer_steps']} tokenizer steps, every knob, "
+        "3 seeds): about 1 h on a quiet 2-core CPU, 3 h on a shared one; --quick: about 15 min quiet, "
+        "40 min shared.  On a CPU without bf16 units the precision knob alone trains about 15 times "
+        "slower (16 to 25 min per seed measured on a shared 2-core CPU at --quick): leave it out with "
+        "--knobs deformable codebook steps sampler.  On a shared CPU give --threads 1.",
+    )
     add_config_arguments(parser, scene_required=True)
     parser.set_defaults(scene_required=False)  # the default scene is filled in by the command
     add_experiment_arguments(parser)
-    parser.add_argument("--knobs", nargs="+", metavar="KNOB[=V1,V2]",
-                        help=f"knobs to measure, each at its default values or the ones given (known: "
-                             f"{known_knobs()}; default: every knob of the parts the scene trains)")
-    parser.add_argument("--tokenizer-steps", type=positive_int,
-                        help=f"training steps of every tokenizer (default {STANDARD['tokenizer_steps']}, "
-                             f"--quick {QUICK['tokenizer_steps']})")
-    parser.add_argument("--generator-steps", type=positive_int,
-                        help=f"training steps of the generator (default {STANDARD['generator_steps']}, "
-                             f"--quick {QUICK['generator_steps']})")
-    parser.add_argument("--rounds", type=positive_int, help=f"interleaved timing rounds, the median kept (default "
-                                                         f"{STANDARD['rounds']}, --quick {QUICK['rounds']})")
-    parser.add_argument("--timing-steps", type=positive_int,
-                        help=f"training steps per tokenizer per timing round (default {STANDARD['timing_steps']}, "
-                             f"--quick {QUICK['timing_steps']})")
-    parser.add_argument("--n", type=positive_int, help=f"held-out conditions each sampling setting generates (at most "
-                                                    f"the held-out split; default {STANDARD['n']}, --quick "
-                                                    f"{QUICK['n']})")
+    parser.add_argument(
+        "--knobs",
+        nargs="+",
+        metavar="KNOB[=V1,V2]",
+        help=f"knobs to measure, each at its default values or the ones given (known: "
+        f"{known_knobs()}; default: every knob of the parts the scene trains)",
+    )
+    parser.add_argument(
+        "--tokenizer-steps",
+        type=positive_int,
+        help=f"training steps of every tokenizer (default {STANDARD['tokenizer_steps']}, "
+        f"--quick {QUICK['tokenizer_steps']})",
+    )
+    parser.add_argument(
+        "--generator-steps",
+        type=positive_int,
+        help=f"training steps of the generator (default {STANDARD['generator_steps']}, "
+        f"--quick {QUICK['generator_steps']})",
+    )
+    parser.add_argument(
+        "--rounds",
+        type=positive_int,
+        help=f"interleaved timing rounds, the median kept (default {STANDARD['rounds']}, --quick {QUICK['rounds']})",
+    )
+    parser.add_argument(
+        "--timing-steps",
+        type=positive_int,
+        help=f"training steps per tokenizer per timing round (default {STANDARD['timing_steps']}, "
+        f"--quick {QUICK['timing_steps']})",
+    )
+    parser.add_argument(
+        "--n",
+        type=positive_int,
+        help=f"held-out conditions each sampling setting generates (at most "
+        f"the held-out split; default {STANDARD['n']}, --quick "
+        f"{QUICK['n']})",
+    )
     parser.add_argument("--batch-size", type=positive_int, default=16, help="conditions sampled at once (default 16)")
-    parser.add_argument("--distribution", action="store_true",
-                        help="also score every sampling setting's fd_effnetlite0 and classifier accuracy (slower)")
-    parser.add_argument("--quick", action="store_true",
-                        help=f"small defaults: {QUICK['tokenizer_steps']} tokenizer and {QUICK['generator_steps']} "
-                             f"generator steps, {QUICK['rounds']} rounds, knobs {' '.join(QUICK_KNOBS)}")
-    parser.add_argument("--full", action="store_true",
-                        help="keep the scene's model and data sizes (default: scaled down like `vqtouch demo`)")
+    parser.add_argument(
+        "--distribution",
+        action="store_true",
+        help="also score every sampling setting's fd_effnetlite0 and classifier accuracy (slower)",
+    )
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"small defaults: {QUICK['tokenizer_steps']} tokenizer and {QUICK['generator_steps']} "
+        f"generator steps, {QUICK['rounds']} rounds, knobs {' '.join(QUICK_KNOBS)}",
+    )
+    parser.add_argument(
+        "--full",
+        action="store_true",
+        help="keep the scene's model and data sizes (default: scaled down like `vqtouch demo`)",
+    )
     parser.add_argument("--threads", type=positive_int, help="torch CPU threads (default: torch's)")
     parser.set_defaults(handler=_command)

@@ -64,8 +64,14 @@ def cache_key(tokenizer_files: Sequence[Path], images_config: dict[str, Any]) ->
 
 
 @torch.no_grad()
-def encode_dataset(tokenizer: Any, dataset: Any, *, batch_size: int = 32, device: torch.device | str = "cpu",
-                   desc: str = "encoding codes") -> torch.Tensor:
+def encode_dataset(
+    tokenizer: Any,
+    dataset: Any,
+    *,
+    batch_size: int = 32,
+    device: torch.device | str = "cpu",
+    desc: str = "encoding codes",
+) -> torch.Tensor:
     """Codes (N, h, w) int64 of every sample's tactile image, in dataset order."""
     tokenizer.eval()
     codes = []
@@ -75,9 +81,17 @@ def encode_dataset(tokenizer: Any, dataset: Any, *, batch_size: int = 32, device
     return torch.cat(codes)
 
 
-def dataset_codes(tokenizer: Any, tokenizer_files: Sequence[Path], dataset: Any, images_config: dict[str, Any], *,
-                  batch_size: int = 32, device: torch.device | str = "cpu", use_cache: bool = True,
-                  cache_folder: Path | None = None) -> tuple[torch.Tensor, dict[str, Any]]:
+def dataset_codes(
+    tokenizer: Any,
+    tokenizer_files: Sequence[Path],
+    dataset: Any,
+    images_config: dict[str, Any],
+    *,
+    batch_size: int = 32,
+    device: torch.device | str = "cpu",
+    use_cache: bool = True,
+    cache_folder: Path | None = None,
+) -> tuple[torch.Tensor, dict[str, Any]]:
     """The codes (N, h, w) of ``dataset`` under ``tokenizer``, from the cache when it holds them.
 
     Returns the codes and a record of where they came from (``{"cache": "hit"|"miss"|"off",
@@ -98,15 +112,24 @@ def dataset_codes(tokenizer: Any, tokenizer_files: Sequence[Path], dataset: Any,
     seconds = time.perf_counter() - tic
     if path is not None:
         try:
-            metadata = {"vqtouch.codes_version": CACHE_VERSION, "vqtouch.images": json.dumps(images_config, default=str),
-                        "vqtouch.tokenizer": json.dumps([str(p) for p in tokenizer_files])}
+            metadata = {
+                "vqtouch.codes_version": CACHE_VERSION,
+                "vqtouch.images": json.dumps(images_config, default=str),
+                "vqtouch.tokenizer": json.dumps([str(p) for p in tokenizer_files]),
+            }
             atomic_write(path, lambda tmp: save_file({"codes": codes.to(torch.int32)}, str(tmp), metadata=metadata))
         except OSError as exc:  # a read-only or full cache folder: the codes are still good
-            warnings.warn(f"could not cache the codes in {path} ({exc.strerror or exc}); they will be computed again "
-                          "next time", CodeCacheWarning, stacklevel=2)
+            warnings.warn(
+                f"could not cache the codes in {path} ({exc.strerror or exc}); they will be computed again next time",
+                CodeCacheWarning,
+                stacklevel=2,
+            )
             path = None
-    return codes, {"cache": "miss" if path is not None else "off", "path": str(path) if path else None,
-                   "seconds": round(seconds, 3)}
+    return codes, {
+        "cache": "miss" if path is not None else "off",
+        "path": str(path) if path else None,
+        "seconds": round(seconds, 3),
+    }
 
 
 def _read(path: Path, count: int, codebook_size: int) -> torch.Tensor | None:
@@ -117,19 +140,28 @@ def _read(path: Path, count: int, codebook_size: int) -> torch.Tensor | None:
         with safe_open(str(path), framework="pt") as handle:
             codes = handle.get_tensor("codes").long()
     except Exception as exc:  # noqa: BLE001 - safetensors raises several error types
-        warnings.warn(f"the code cache {path} is unreadable ({str(exc).splitlines()[0] if str(exc) else exc}); "
-                      "computing the codes again", CodeCacheWarning, stacklevel=3)
+        warnings.warn(
+            f"the code cache {path} is unreadable ({str(exc).splitlines()[0] if str(exc) else exc}); "
+            "computing the codes again",
+            CodeCacheWarning,
+            stacklevel=3,
+        )
         return None
     if codes.ndim != 3 or len(codes) != count or (codes.numel() and (codes.min() < 0 or codes.max() >= codebook_size)):
-        warnings.warn(f"the code cache {path} does not fit this dataset and tokenizer (shape {tuple(codes.shape)}); "
-                      "computing the codes again", CodeCacheWarning, stacklevel=3)
+        warnings.warn(
+            f"the code cache {path} does not fit this dataset and tokenizer (shape {tuple(codes.shape)}); "
+            "computing the codes again",
+            CodeCacheWarning,
+            stacklevel=3,
+        )
         return None
     return codes
 
 
 @torch.no_grad()
-def canonical_background(codes_NHW: torch.Tensor, tokenizer: Any, background_3HW: torch.Tensor, *, margin: int = 1,
-                         batch_size: int = 64) -> tuple[torch.Tensor, float]:
+def canonical_background(
+    codes_NHW: torch.Tensor, tokenizer: Any, background_3HW: torch.Tensor, *, margin: int = 1, batch_size: int = 64
+) -> tuple[torch.Tensor, float]:
     """The codes with every cell away from the contact set to the no-contact image's own code there,
     and the share of cells changed.
 
@@ -151,11 +183,13 @@ def canonical_background(codes_NHW: torch.Tensor, tokenizer: Any, background_3HW
     device = tokenizer.device
     background_codes_HW = tokenizer.encode_codes(background_3HW[None].to(device)).cpu()[0]
     if background_codes_HW.shape != codes_NHW.shape[1:]:
-        raise ValueError(f"the background's code grid {tuple(background_codes_HW.shape)} is not the codes' "
-                         f"{tuple(codes_NHW.shape[1:])}")
+        raise ValueError(
+            f"the background's code grid {tuple(background_codes_HW.shape)} is not the codes' "
+            f"{tuple(codes_NHW.shape[1:])}"
+        )
     rows = []
     for start in range(0, len(codes_NHW), batch_size):
-        codes_BHW = codes_NHW[start:start + batch_size]
+        codes_BHW = codes_NHW[start : start + batch_size]
         decoded_B3HW = tokenizer.decode_codes(codes_BHW.to(device)).float().cpu()
         pixels_BHW = contact_mask(decoded_B3HW, background_3HW.float().cpu().expand_as(decoded_B3HW))
         cells_B1hw = F.adaptive_max_pool2d(pixels_BHW[:, None].float(), tuple(codes_NHW.shape[1:]))

@@ -17,8 +17,17 @@ from typing import Any
 
 from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, atomic_write, hookimpl, run_stage
 from vqtouch.core.checkpoint import is_pretrained
-from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group,
-                              config_from_args, plugin_block, positive_int, stage_failure, training_run)
+from vqtouch.core.cli import (
+    add_config_arguments,
+    add_run_arguments,
+    add_step_argument,
+    command_group,
+    config_from_args,
+    plugin_block,
+    positive_int,
+    stage_failure,
+    training_run,
+)
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.images import image_grid, save_png
@@ -61,7 +70,7 @@ def _train_generator_command(args: argparse.Namespace) -> int:
             raise ConfigError(f"scene {config.scene!r} has no generator stage; use e.g. --scene label-to-touch")
         if args.tokenizer:
             return _with_tokenizer_run(config, args.tokenizer, host)
-        stages = config.stages[:config.stages.index("generator") + 1]
+        stages = config.stages[: config.stages.index("generator") + 1]
         return validate_experiment({**config.to_dict(), "stages": stages}, host)
 
     run, config = training_run(args, host, up_to_the_generator)
@@ -93,35 +102,52 @@ def _condition_arguments(args: argparse.Namespace) -> dict[str, list[str]]:
             raise ConfigError(f"--condition {item!r}: expected KEY=VALUE, e.g. --condition material=steel")
         given.setdefault(key, []).append(value)
     if len(given) != 1:
-        raise ConfigError("give exactly one kind of condition: --label, --visual, --tactile, --text or --condition "
-                          f"KEY=VALUE (got {', '.join(sorted(given)) or 'none'})")
+        raise ConfigError(
+            "give exactly one kind of condition: --label, --visual, --tactile, --text or --condition "
+            f"KEY=VALUE (got {', '.join(sorted(given)) or 'none'})"
+        )
     return given
 
 
 def _generate_command(args: argparse.Namespace) -> int:
     from .pipeline import load_pipeline
 
-    (key, values), = _condition_arguments(args).items()
+    ((key, values),) = _condition_arguments(args).items()
     pipe = load_pipeline(args.run, host=args.host, step=args.step)
     # One value per image, or one value for all --n images.
     values = values * args.n if len(values) == 1 else values
     if len(values) != args.n and args.n_given:
         raise ConfigError(f"{len(values)} --{key} values for --n {args.n}; give one value or --n values")
     chosen = pipe.conditioner_index(key, args.conditioner)
-    images = pipe(**{key: values}, steps=args.steps, sampler=args.sampler, guidance=args.guidance,
-                  truncation=args.truncation, seed=args.seed, batch_size=args.batch_size, conditioner=chosen)
+    images = pipe(
+        **{key: values},
+        steps=args.steps,
+        sampler=args.sampler,
+        guidance=args.guidance,
+        truncation=args.truncation,
+        seed=args.seed,
+        batch_size=args.batch_size,
+        conditioner=chosen,
+    )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for index, image in enumerate(images):
         save_png(image, out / f"sample_{index:04d}.png")
     save_png(image_grid(images), out / "grid.png")
-    settings = {"run": str(pipe.run.path.resolve()) if pipe.run is not None else args.run, "checkpoint": str(pipe.checkpoint), "condition": key,
-                "values": values, "n": len(images), "steps": args.steps or pipe.settings["steps"],
-                "sampler": args.sampler or pipe.sampler_name,
-                "guidance": pipe.settings["guidance"] if args.guidance is None else args.guidance,
-                "truncation": pipe.settings["truncation"] if args.truncation is None else args.truncation,
-                "seed": args.seed, "batch_size": args.batch_size,
-                "conditioner": pipe.conditioner_names()[chosen]}
+    settings = {
+        "run": str(pipe.run.path.resolve()) if pipe.run is not None else args.run,
+        "checkpoint": str(pipe.checkpoint),
+        "condition": key,
+        "values": values,
+        "n": len(images),
+        "steps": args.steps or pipe.settings["steps"],
+        "sampler": args.sampler or pipe.sampler_name,
+        "guidance": pipe.settings["guidance"] if args.guidance is None else args.guidance,
+        "truncation": pipe.settings["truncation"] if args.truncation is None else args.truncation,
+        "seed": args.seed,
+        "batch_size": args.batch_size,
+        "conditioner": pipe.conditioner_names()[chosen],
+    }
     (out / "generate.json").write_text(json.dumps(settings, indent=2) + "\n")
     print(f"{len(images)} images -> {out} (sample_*.png, grid.png, generate.json)")
     return 0
@@ -138,17 +164,30 @@ def _generation_experiment_command(args: argparse.Namespace) -> int:
     from .experiment import evaluate_generation_experiment
 
     given = [f"--{name.replace('_', '-')}" for name in _RUN_ONLY if getattr(args, name, None) is not None]
-    given += [f"--{name.replace('_', '-')}" for name, default in _RUN_ONLY_DEFAULTS.items()
-              if getattr(args, name, default) != default]
+    given += [
+        f"--{name.replace('_', '-')}"
+        for name, default in _RUN_ONLY_DEFAULTS.items()
+        if getattr(args, name, default) != default
+    ]
     if given:
-        raise ConfigError(f"{', '.join(given)} only apply to scoring one run (--run); the experiment (--out) samples "
-                          "with the scene's generator settings: set them with --set generator.steps=N ...")
+        raise ConfigError(
+            f"{', '.join(given)} only apply to scoring one run (--run); the experiment (--out) samples "
+            "with the scene's generator settings: set them with --set generator.steps=N ..."
+        )
     host = args.host
     config = config_from_args(args, host)
     if args.metrics or args.clip_checkpoint or args.clip_architecture:
         config = validate_experiment({**config.to_dict(), "metrics": _metric_blocks(args, config)}, host)
-    evaluate_generation_experiment(config, host, Path(args.out), seeds=args.seeds, n=args.n,
-                                   tokenizer=args.tokenizer, overwrite=args.overwrite, distribution=args.distribution)
+    evaluate_generation_experiment(
+        config,
+        host,
+        Path(args.out),
+        seeds=args.seeds,
+        n=args.n,
+        tokenizer=args.tokenizer,
+        overwrite=args.overwrite,
+        distribution=args.distribution,
+    )
     out = Path(args.out)
     print((out / "generation.md").read_text())
     print(f"-> {out} (generation.json, generation.md, generation.png, seed*/ runs)")
@@ -158,13 +197,16 @@ def _generation_experiment_command(args: argparse.Namespace) -> int:
 def _evaluate_generation_command(args: argparse.Namespace) -> int:
 
     if not args.run and not args.out:
-        raise ConfigError("give --run RUN (score a trained generator or pretrained:NAME) or --out DIR (run the "
-                          "experiment)")
+        raise ConfigError(
+            "give --run RUN (score a trained generator or pretrained:NAME) or --out DIR (run the experiment)"
+        )
     if not args.run:
         return _generation_experiment_command(args)
     if args.overrides or args.config or args.tokenizer or args.overwrite:
-        raise ConfigError("--set/--config/--tokenizer/--overwrite belong to the experiment (--out without --run); "
-                          "scoring a run (--run) uses the run's own config")
+        raise ConfigError(
+            "--set/--config/--tokenizer/--overwrite belong to the experiment (--out without --run); "
+            "scoring a run (--run) uses the run's own config"
+        )
 
     from .pipeline import load_pipeline
     from .stage import baseline_pool, distribution_scorer, held_out_conditions, score_generation
@@ -173,8 +215,10 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
     if is_pretrained(args.run) and not args.out:
         raise ConfigError(f"--run {args.run}: a bundle is read-only; give --out DIR for its scores")
     if args.clip_checkpoint and not Path(args.clip_checkpoint).expanduser().is_file():
-        raise ConfigError(f"--clip-checkpoint {args.clip_checkpoint}: no such file; give the open_clip weights file "
-                          "(.safetensors, .pt or .bin)")
+        raise ConfigError(
+            f"--clip-checkpoint {args.clip_checkpoint}: no such file; give the open_clip weights file "
+            "(.safetensors, .pt or .bin)"
+        )
     pipe = load_pipeline(args.run, host=host, step=args.step)
     config = pipe.config
     assembly = Assembly(config, host)
@@ -182,8 +226,10 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
     train, held_out = experiment_split(dataset, config.data, config.seed)
     names = [item.name for item in config.generator.conditioners]
     if args.conditioner is not None and not 0 <= args.conditioner < len(names):
-        raise ConfigError(f"--conditioner {args.conditioner}: this generator has conditioners 0..{len(names) - 1} "
-                          f"({', '.join(names)})")
+        raise ConfigError(
+            f"--conditioner {args.conditioner}: this generator has conditioners 0..{len(names) - 1} "
+            f"({', '.join(names)})"
+        )
     out = Path(args.out) if args.out else None
     if out is not None:
         if out.exists() and not out.is_dir():
@@ -196,30 +242,48 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
     metrics = [(block["name"], assembly.build("metric", block)) for block in _metric_blocks(args, config)]
     if args.feature_size is not None:
         metrics = [(name, metric) for name, metric in metrics if name != "fd_effnetlite0"]
-        metrics.append(("fd_effnetlite0", assembly.build("metric", {"name": "fd_effnetlite0",
-                                                                    "image_size": args.feature_size})))
+        metrics.append(
+            ("fd_effnetlite0", assembly.build("metric", {"name": "fd_effnetlite0", "image_size": args.feature_size}))
+        )
     tag = f"{pipe.checkpoint.name}_{sampler_name}_{steps}"
     background, background_source = dataset_background(train, image_hw(config.data.image_size))
     conditions = held_out_conditions(held_out, dataset, args.n, pipe.device)
     pool = baseline_pool(train)
     scorer = False
     if args.distribution:
-        scorer = distribution_scorer(conditions, pool, metrics, config.seed,
-                                     tokenizer=pipe.tokenizer if args.classifier_on == "reconstructions" else None)
+        scorer = distribution_scorer(
+            conditions,
+            pool,
+            metrics,
+            config.seed,
+            tokenizer=pipe.tokenizer if args.classifier_on == "reconstructions" else None,
+        )
     folder = out if out is not None else pipe.run.path
     by_conditioner = {}
     for index in indices:
         picture = f"samples_{index}_{names[index]}.png" if out is not None else f"samples_{tag}.png"
         by_conditioner[f"{index}:{names[index]}"] = score_generation(
-            generator=pipe.generator, conditioner=pipe.conditioners[index], tokenizer=pipe.tokenizer,
-            sampler=host.build("sampler", sampler_name), conditions=conditions, pool=pool, metrics=metrics,
-            background_3HW=background, steps=steps,
+            generator=pipe.generator,
+            conditioner=pipe.conditioners[index],
+            tokenizer=pipe.tokenizer,
+            sampler=host.build("sampler", sampler_name),
+            conditions=conditions,
+            pool=pool,
+            metrics=metrics,
+            background_3HW=background,
+            steps=steps,
             guidance=pipe.settings["guidance"] if args.guidance is None else args.guidance,
             truncation=pipe.settings["truncation"] if args.truncation is None else args.truncation,
-            seed=config.seed if args.seed is None else args.seed, device=pipe.device,
-            picture=folder / picture, distribution=scorer)
-    head = {"checkpoint": str(args.run if is_pretrained(args.run) else pipe.checkpoint), "sampler": sampler_name,
-            "background": background_source}
+            seed=config.seed if args.seed is None else args.seed,
+            device=pipe.device,
+            picture=folder / picture,
+            distribution=scorer,
+        )
+    head = {
+        "checkpoint": str(args.run if is_pretrained(args.run) else pipe.checkpoint),
+        "sampler": sampler_name,
+        "background": background_source,
+    }
     if args.distribution:
         head["classifier_trained_on"] = f"the {args.classifier_on} of the training images"
     if out is not None:
@@ -227,7 +291,7 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
         text = json.dumps(result, indent=2) + "\n"
         atomic_write(out / "generation.json", lambda tmp: Path(tmp).write_text(text))
     else:
-        (name, scores), = by_conditioner.items()
+        ((name, scores),) = by_conditioner.items()
         result = head | {"conditioner": name, **scores}
         pipe.run.write_json(f"evaluation_generation_{tag}.json", result)
     print(json.dumps(result, indent=2))
@@ -246,12 +310,16 @@ def _metric_blocks(args: argparse.Namespace, config: Any) -> list[dict[str, Any]
             items = json.loads(text)
         except json.JSONDecodeError as exc:
             raise ConfigError(f"--metrics is not valid JSON: {exc}") from None
-        blocks = [plugin_block(json.dumps(item) if isinstance(item, dict) else str(item), "--metrics")
-                  for item in items]
+        blocks = [
+            plugin_block(json.dumps(item) if isinstance(item, dict) else str(item), "--metrics") for item in items
+        ]
     else:
         blocks = [plugin_block(name, "--metrics") for name in text.split(",")]
-    clip = {key: value for key, value in (("checkpoint", args.clip_checkpoint),
-                                          ("architecture", args.clip_architecture)) if value}
+    clip = {
+        key: value
+        for key, value in (("checkpoint", args.clip_checkpoint), ("architecture", args.clip_architecture))
+        if value
+    }
     if clip:
         given = next((block for block in blocks if block["name"] == "clip_score"), {"name": "clip_score"})
         blocks = [block for block in blocks if block["name"] != "clip_score"] + [given | clip]
@@ -266,21 +334,40 @@ def _tradeoff_generator_command(args: argparse.Namespace) -> int:
 
 def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of ``vqtouch tradeoff generator``."""
-    parser.add_argument("--run", required=True, help="a run whose generator stage trained, or a bundle (pretrained:NAME)")
+    parser.add_argument(
+        "--run", required=True, help="a run whose generator stage trained, or a bundle (pretrained:NAME)"
+    )
     parser.add_argument("--out", required=True, help="folder for tradeoff.json, tradeoff.md and pareto.png")
     parser.add_argument("--n", type=positive_int, default=64, help="held-out conditions per setting (at most all)")
     parser.add_argument("--rounds", type=positive_int, default=2, help="interleaved timing rounds (median reported)")
     parser.add_argument("--steps", type=int, nargs="+", default=[100, 50, 25, 10, 5], help="sampling steps")
-    parser.add_argument("--samplers", nargs="+", default=["posterior", "purity", "confidence"],
-                        help="sampler plugins (the first is the base)")
-    parser.add_argument("--guidance", type=float, nargs="+", default=[1.0, 3.0],
-                        help="classifier-free guidance scales (1: unguided; the first is the base)")
-    parser.add_argument("--precisions", nargs="+", default=["fp32", "bf16"], metavar="{fp32,bf16}",
-                        help="fp32, or bf16 autocast (the first is the base)")
+    parser.add_argument(
+        "--samplers",
+        nargs="+",
+        default=["posterior", "purity", "confidence"],
+        help="sampler plugins (the first is the base)",
+    )
+    parser.add_argument(
+        "--guidance",
+        type=float,
+        nargs="+",
+        default=[1.0, 3.0],
+        help="classifier-free guidance scales (1: unguided; the first is the base)",
+    )
+    parser.add_argument(
+        "--precisions",
+        nargs="+",
+        default=["fp32", "bf16"],
+        metavar="{fp32,bf16}",
+        help="fp32, or bf16 autocast (the first is the base)",
+    )
     parser.add_argument("--batch-size", type=positive_int, default=16, help="conditions per forward pass")
-    parser.add_argument("--grid", action="store_true",
-                        help="every combination (default: one knob at a time around the first sampler, guidance and "
-                             "precision and the middle --steps value)")
+    parser.add_argument(
+        "--grid",
+        action="store_true",
+        help="every combination (default: one knob at a time around the first sampler, guidance and "
+        "precision and the middle --steps value)",
+    )
     parser.add_argument("--seed", type=int, help="seed of the sampling draws (default: the run's)")
     parser.add_argument("--threads", type=positive_int, help="torch CPU threads (default: torch's)")
     _add_distribution_arguments(parser)
@@ -289,13 +376,18 @@ def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
 def _add_distribution_arguments(parser: argparse.ArgumentParser) -> None:
     """``--distribution/--no-distribution`` and ``--feature-size``, shared by ``evaluate generation``
     and ``tradeoff generator``."""
-    parser.add_argument("--distribution", action=argparse.BooleanOptionalAction, default=True,
-                        help="also score fd_effnetlite0 against the real held-out images and the accuracy of a "
-                             "classifier trained on real training images (default: on)")
-    parser.add_argument("--feature-size", type=feature_size_argument,
-                        help="side EfficientNet-Lite0 sees the images at (default: the run's fd_effnetlite0 metric's, "
-                             "else 224)")
-
+    parser.add_argument(
+        "--distribution",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="also score fd_effnetlite0 against the real held-out images and the accuracy of a "
+        "classifier trained on real training images (default: on)",
+    )
+    parser.add_argument(
+        "--feature-size",
+        type=feature_size_argument,
+        help="side EfficientNet-Lite0 sees the images at (default: the run's fd_effnetlite0 metric's, else 224)",
+    )
 
 
 class _CountAction(argparse.Action):
@@ -306,34 +398,51 @@ class _CountAction(argparse.Action):
         namespace.n_given = True
 
 
-
 @hookimpl
 def vqtouch_add_commands(subparsers):
     train = command_group(subparsers, "train", "train a component (tokenizer, ...)")
-    generator = train.add_parser("generator", help="train a discrete-diffusion generator over a tokenizer's codes "
-                                                   "(trains the tokenizer first unless --tokenizer is given)")
+    generator = train.add_parser(
+        "generator",
+        help="train a discrete-diffusion generator over a tokenizer's codes "
+        "(trains the tokenizer first unless --tokenizer is given)",
+    )
     add_config_arguments(generator, default_scene="label-to-touch")
     add_run_arguments(generator)
     generator.add_argument("--tokenizer", metavar="RUN", help="use the tokenizer trained in this run")
     generator.set_defaults(handler=_train_generator_command)
 
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
-    scored = evaluate.add_parser("generation", help="generate the run's held-out conditions and score them against "
-                                                    "their ground truth, the no-contact background and the contact "
-                                                    "region; with --out, the per-conditioner experiment over seeds "
-                                                    "(Table 2: JSON, markdown, PNG)")
-    scored.add_argument("--run", help="a run whose generator stage trained, or a bundle (pretrained:NAME): score it "
-                                      "(with --out DIR, into DIR/generation.json; a bundle is read-only and needs "
-                                      "--out)")
-    scored.add_argument("--out", help="without --run: run the experiment into this folder: train the scene's "
-                                      "generator once per seed over one tokenizer and score every conditioner against "
-                                      "the baselines; with --run: where the run's scores go")
-    scored.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2],
-                        help="with --out: generator seeds (default 0 1 2)")
-    scored.add_argument("--tokenizer", metavar="RUN", help="with --out: the trained tokenizer every seed's generator "
-                                                           "learns (default: the scene's, trained once into OUT/tokenizer)")
-    scored.add_argument("--overwrite", action="store_true", help="with --out: run again into a folder that holds "
-                                                                 "an earlier result")
+    scored = evaluate.add_parser(
+        "generation",
+        help="generate the run's held-out conditions and score them against "
+        "their ground truth, the no-contact background and the contact "
+        "region; with --out, the per-conditioner experiment over seeds "
+        "(Table 2: JSON, markdown, PNG)",
+    )
+    scored.add_argument(
+        "--run",
+        help="a run whose generator stage trained, or a bundle (pretrained:NAME): score it "
+        "(with --out DIR, into DIR/generation.json; a bundle is read-only and needs "
+        "--out)",
+    )
+    scored.add_argument(
+        "--out",
+        help="without --run: run the experiment into this folder: train the scene's "
+        "generator once per seed over one tokenizer and score every conditioner against "
+        "the baselines; with --run: where the run's scores go",
+    )
+    scored.add_argument(
+        "--seeds", type=int, nargs="+", default=[0, 1, 2], help="with --out: generator seeds (default 0 1 2)"
+    )
+    scored.add_argument(
+        "--tokenizer",
+        metavar="RUN",
+        help="with --out: the trained tokenizer every seed's generator "
+        "learns (default: the scene's, trained once into OUT/tokenizer)",
+    )
+    scored.add_argument(
+        "--overwrite", action="store_true", help="with --out: run again into a folder that holds an earlier result"
+    )
     add_config_arguments(scored, default_scene="tour")
     add_step_argument(scored)
     scored.add_argument("--conditioner", type=int, help="which of the generator's conditioners (index; default 0)")
@@ -343,44 +452,74 @@ def vqtouch_add_commands(subparsers):
     scored.add_argument("--guidance", type=float, help="classifier-free guidance scale (1: none)")
     scored.add_argument("--truncation", type=float, help="keep the most likely codes holding this mass (1: all)")
     scored.add_argument("--seed", type=int, help="seed of the sampling draws (default: the run's)")
-    scored.add_argument("--metrics", help="comma-separated metric plugins, or a JSON list of names and "
-                                          "{\"name\": ..., options} blocks (default: the run's metrics)")
-    scored.add_argument("--clip-checkpoint", metavar="PATH",
-                        help="open_clip weights file of the clip_score metric (CLIP-space agreement of each "
-                             "generated image with its condition), added to the metrics; a clip_score listed "
-                             "without it reads VQTOUCH_CLIP_CKPT or VQTOUCH_WEIGHTS_DIR, else is reported as skipped")
-    scored.add_argument("--clip-architecture", metavar="NAME",
-                        help="open_clip model name the --clip-checkpoint file holds (default: ViT-B-32)")
+    scored.add_argument(
+        "--metrics",
+        help="comma-separated metric plugins, or a JSON list of names and "
+        '{"name": ..., options} blocks (default: the run\'s metrics)',
+    )
+    scored.add_argument(
+        "--clip-checkpoint",
+        metavar="PATH",
+        help="open_clip weights file of the clip_score metric (CLIP-space agreement of each "
+        "generated image with its condition), added to the metrics; a clip_score listed "
+        "without it reads VQTOUCH_CLIP_CKPT or VQTOUCH_WEIGHTS_DIR, else is reported as skipped",
+    )
+    scored.add_argument(
+        "--clip-architecture",
+        metavar="NAME",
+        help="open_clip model name the --clip-checkpoint file holds (default: ViT-B-32)",
+    )
     _add_distribution_arguments(scored)
-    scored.add_argument("--classifier-on", choices=["real", "reconstructions"], default="real",
-                        help="with --run: train the distribution scores' classifier on the real training images "
-                             "(default) or on the tokenizer's reconstructions of them, which judges decoded images "
-                             "(samples and the tokenizer's ceiling) fairly")
+    scored.add_argument(
+        "--classifier-on",
+        choices=["real", "reconstructions"],
+        default="real",
+        help="with --run: train the distribution scores' classifier on the real training images "
+        "(default) or on the tokenizer's reconstructions of them, which judges decoded images "
+        "(samples and the tokenizer's ceiling) fairly",
+    )
     scored.set_defaults(handler=_evaluate_generation_command)
 
     tradeoff = command_group(subparsers, "tradeoff", "measure the speed/quality trade-off of a trained component")
-    traded = tradeoff.add_parser("generator", help="time and score a trained generator at each sampler, steps, "
-                                                   "guidance and precision setting (tradeoff.json, tradeoff.md, "
-                                                   "pareto.png)")
+    traded = tradeoff.add_parser(
+        "generator",
+        help="time and score a trained generator at each sampler, steps, "
+        "guidance and precision setting (tradeoff.json, tradeoff.md, "
+        "pareto.png)",
+    )
     _add_tradeoff_arguments(traded)
     add_step_argument(traded)
     traded.set_defaults(handler=_tradeoff_generator_command)
 
     generate = subparsers.add_parser("generate", help="generate tactile images with a trained generator run")
-    generate.add_argument("--run", required=True, help="a run whose generator stage trained, or a bundle "
-                                                        "(pretrained:NAME)")
+    generate.add_argument(
+        "--run", required=True, help="a run whose generator stage trained, or a bundle (pretrained:NAME)"
+    )
     add_step_argument(generate)
     generate.add_argument("--label", action="append", help="class index or name (repeatable: one per image)")
     generate.add_argument("--visual", action="append", metavar="IMG", help="visual image file (repeatable)")
     generate.add_argument("--tactile", action="append", metavar="IMG", help="conditioning tactile image (repeatable)")
     generate.add_argument("--text", action="append", help="text description (repeatable)")
-    generate.add_argument("--condition", action="append", default=[], metavar="KEY=VALUE",
-                          help="a condition a third-party conditioner reads (sample key = value)")
-    generate.add_argument("--conditioner", metavar="INDEX|NAME",
-                          help="which of the generator's conditioners encodes the condition (index or name, e.g. "
-                               "1 or visual); needed only when several read the same kind of condition")
-    generate.add_argument("--n", type=positive_int, default=1, action=_CountAction,
-                          help="number of images (a single condition value is repeated)")
+    generate.add_argument(
+        "--condition",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a condition a third-party conditioner reads (sample key = value)",
+    )
+    generate.add_argument(
+        "--conditioner",
+        metavar="INDEX|NAME",
+        help="which of the generator's conditioners encodes the condition (index or name, e.g. "
+        "1 or visual); needed only when several read the same kind of condition",
+    )
+    generate.add_argument(
+        "--n",
+        type=positive_int,
+        default=1,
+        action=_CountAction,
+        help="number of images (a single condition value is repeated)",
+    )
     generate.add_argument("--steps", type=positive_int, help="sampling steps (default: the run's generator.steps)")
     generate.add_argument("--sampler", help="sampler plugin (default: the run's generator.sampler)")
     generate.add_argument("--guidance", type=float, help="classifier-free guidance scale (1: none)")

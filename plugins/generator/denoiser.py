@@ -54,12 +54,18 @@ class ConditionCache:
         return self.keys_values[0][0].shape[0]
 
 
-def _layer_norm(x_BLd: torch.Tensor, weight: torch.Tensor | None = None,
-                bias: torch.Tensor | None = None) -> torch.Tensor:
+def _layer_norm(
+    x_BLd: torch.Tensor, weight: torch.Tensor | None = None, bias: torch.Tensor | None = None
+) -> torch.Tensor:
     """LayerNorm in float32 whatever the autocast: bf16 statistics of a float32 residual lose the
     small differences between tokens."""
-    return F.layer_norm(x_BLd.float(), x_BLd.shape[-1:], None if weight is None else weight.float(),
-                        None if bias is None else bias.float(), eps=1e-6)
+    return F.layer_norm(
+        x_BLd.float(),
+        x_BLd.shape[-1:],
+        None if weight is None else weight.float(),
+        None if bias is None else bias.float(),
+        eps=1e-6,
+    )
 
 
 class _SelfAttention(nn.Module):
@@ -92,14 +98,20 @@ class _CrossAttention(nn.Module):
         k, v = self.kv(cond_BMd).view(batch, tokens, 2, self.heads, width // self.heads).permute(2, 0, 3, 1, 4)
         return k, v
 
-    def forward(self, h_BLd: torch.Tensor, keys_values: tuple[torch.Tensor, torch.Tensor],
-                attn_mask_B11M: torch.Tensor | None, has_tokens_B: torch.Tensor | None) -> torch.Tensor:
+    def forward(
+        self,
+        h_BLd: torch.Tensor,
+        keys_values: tuple[torch.Tensor, torch.Tensor],
+        attn_mask_B11M: torch.Tensor | None,
+        has_tokens_B: torch.Tensor | None,
+    ) -> torch.Tensor:
         batch, length, width = h_BLd.shape
         q = self.q(h_BLd).view(batch, length, self.heads, width // self.heads).transpose(1, 2)
         # A cache made outside autocast may meet queries made inside it (or the reverse).
         k, v = (tensor.to(q.dtype) for tensor in keys_values)
-        out_BhLc = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask_B11M,
-                                                  dropout_p=self.dropout if self.training else 0.0)
+        out_BhLc = F.scaled_dot_product_attention(
+            q, k, v, attn_mask=attn_mask_B11M, dropout_p=self.dropout if self.training else 0.0
+        )
         out_BLd = self.proj(out_BhLc.transpose(1, 2).reshape(batch, length, width))
         if has_tokens_B is not None:
             out_BLd = out_BLd * has_tokens_B.view(-1, 1, 1).to(out_BLd.dtype)
@@ -119,8 +131,14 @@ class _Block(nn.Module):
         self.mlp = nn.Sequential(nn.Linear(width, hidden), nn.GELU(), nn.Linear(hidden, width), nn.Dropout(dropout))
         self.drop = nn.Dropout(dropout)
 
-    def forward(self, x_BLd: torch.Tensor, time_Bd: torch.Tensor, keys_values: tuple[torch.Tensor, torch.Tensor],
-                attn_mask_B11M: torch.Tensor | None, has_tokens_B: torch.Tensor | None) -> torch.Tensor:
+    def forward(
+        self,
+        x_BLd: torch.Tensor,
+        time_Bd: torch.Tensor,
+        keys_values: tuple[torch.Tensor, torch.Tensor],
+        attn_mask_B11M: torch.Tensor | None,
+        has_tokens_B: torch.Tensor | None,
+    ) -> torch.Tensor:
         modulation = self.modulation(time_Bd).float().unsqueeze(1).chunk(6, dim=-1)
 
         def adaptive_norm(x: torch.Tensor, index: int) -> torch.Tensor:
@@ -128,8 +146,10 @@ class _Block(nn.Module):
             return _layer_norm(x) * (1.0 + scale) + shift
 
         x_BLd = x_BLd + self.drop(self.self_attn(adaptive_norm(x_BLd, 0))).float()
-        x_BLd = x_BLd + self.drop(self.cross_attn(adaptive_norm(x_BLd, 1), keys_values, attn_mask_B11M,
-                                                  has_tokens_B)).float()
+        x_BLd = (
+            x_BLd
+            + self.drop(self.cross_attn(adaptive_norm(x_BLd, 1), keys_values, attn_mask_B11M, has_tokens_B)).float()
+        )
         return x_BLd + self.mlp(adaptive_norm(x_BLd, 2)).float()
 
 
@@ -152,13 +172,30 @@ class DiffusionTransformer(nn.Module):
     block derives its own keys and values from that projection.
     """
 
-    def __init__(self, num_codes: int, num_steps: int, grid_hw: tuple[int, int], cond_dim: int, depth: int = 8,
-                 width: int = 256, heads: int = 8, mlp_ratio: float = 4.0, dropout: float = 0.0) -> None:
+    def __init__(
+        self,
+        num_codes: int,
+        num_steps: int,
+        grid_hw: tuple[int, int],
+        cond_dim: int,
+        depth: int = 8,
+        width: int = 256,
+        heads: int = 8,
+        mlp_ratio: float = 4.0,
+        dropout: float = 0.0,
+    ) -> None:
         super().__init__()
         height, grid_width = grid_hw
-        for name, value in (("num_codes", num_codes), ("num_steps", num_steps), ("grid height", height),
-                            ("grid width", grid_width), ("cond_dim", cond_dim), ("depth", depth),
-                            ("width", width), ("heads", heads)):
+        for name, value in (
+            ("num_codes", num_codes),
+            ("num_steps", num_steps),
+            ("grid height", height),
+            ("grid width", grid_width),
+            ("cond_dim", cond_dim),
+            ("depth", depth),
+            ("width", width),
+            ("heads", heads),
+        ):
             if value < 1:
                 raise ValueError(f"DiffusionTransformer: {name} must be >= 1; got {value}")
         if width % heads:
@@ -198,8 +235,9 @@ class DiffusionTransformer(nn.Module):
         if isinstance(module, nn.Linear) and module.bias is not None:
             nn.init.zeros_(module.bias)
 
-    def precompute_condition(self, cond_BMD: torch.Tensor, mask: torch.Tensor | None = None,
-                             grid_BDhw: torch.Tensor | None = None) -> ConditionCache:
+    def precompute_condition(
+        self, cond_BMD: torch.Tensor, mask: torch.Tensor | None = None, grid_BDhw: torch.Tensor | None = None
+    ) -> ConditionCache:
         """Encode condition tokens (B, M, cond_dim), and the aligned condition grid (B, cond_dim, h, w)
         when there is one, once for every block.
 
@@ -215,8 +253,9 @@ class DiffusionTransformer(nn.Module):
         attn_mask_B11M = has_tokens_B = None
         if mask is not None:
             if mask.shape != cond_BMD.shape[:2]:
-                raise ValueError(f"condition mask must be (B, M) = {tuple(cond_BMD.shape[:2])}; "
-                                 f"got {tuple(mask.shape)}")
+                raise ValueError(
+                    f"condition mask must be (B, M) = {tuple(cond_BMD.shape[:2])}; got {tuple(mask.shape)}"
+                )
             mask = mask.to(device=cond_BMD.device, dtype=torch.bool)
             has_tokens_B = mask.any(dim=1)
             # An all-False row would make softmax NaN; let it attend everywhere and zero its output.
@@ -239,15 +278,24 @@ class DiffusionTransformer(nn.Module):
         if tuple(grid_BDhw.shape[-2:]) != self.grid_hw:
             larger = grid_BDhw.shape[-2] >= self.grid_hw[0] and grid_BDhw.shape[-1] >= self.grid_hw[1]
             # Area averaging when shrinking (every condition pixel counts), bilinear when enlarging.
-            grid_BDhw = F.interpolate(grid_BDhw, size=self.grid_hw, mode="area") if larger else \
-                F.interpolate(grid_BDhw, size=self.grid_hw, mode="bilinear", align_corners=False)
+            grid_BDhw = (
+                F.interpolate(grid_BDhw, size=self.grid_hw, mode="area")
+                if larger
+                else F.interpolate(grid_BDhw, size=self.grid_hw, mode="bilinear", align_corners=False)
+            )
         # Per-position L2 normalisation, as for the tokens; a null row's zeros stay zeros.
         cells_BLD = F.normalize(grid_BDhw.flatten(2).transpose(1, 2), dim=-1, eps=1e-6)
         return self.grid_proj(cells_BLD)
 
-    def forward(self, codes_BL: torch.Tensor, t_B: torch.Tensor, condition: torch.Tensor | None = None,
-                cache: ConditionCache | None = None, condition_mask: torch.Tensor | None = None,
-                condition_grid: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(
+        self,
+        codes_BL: torch.Tensor,
+        t_B: torch.Tensor,
+        condition: torch.Tensor | None = None,
+        cache: ConditionCache | None = None,
+        condition_mask: torch.Tensor | None = None,
+        condition_grid: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """x_0 logits (B, K, L) in float32 for codes (B, L) in [0, K] at timesteps (B,) in [0, T-1].
 
         Give either ``condition`` (B, M, cond_dim), with its optional ``condition_mask`` (B, M) and
@@ -262,8 +310,10 @@ class DiffusionTransformer(nn.Module):
             raise ValueError("condition_mask and condition_grid belong to precompute_condition when a cache is passed")
         height, grid_width = self.grid_hw
         if codes_BL.ndim != 2 or codes_BL.shape[1] != height * grid_width:
-            raise ValueError(f"expected codes (B, {height * grid_width}) on the {height}x{grid_width} grid; "
-                             f"got {tuple(codes_BL.shape)}")
+            raise ValueError(
+                f"expected codes (B, {height * grid_width}) on the {height}x{grid_width} grid; "
+                f"got {tuple(codes_BL.shape)}"
+            )
         if t_B.shape != (codes_BL.shape[0],):
             raise ValueError(f"expected timesteps ({codes_BL.shape[0]},); got {tuple(t_B.shape)}")
         if cache.batch_size != codes_BL.shape[0]:

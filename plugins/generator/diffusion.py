@@ -49,6 +49,7 @@ _ROUNDING_ZERO = 1e-14
 
 # -- log-space helpers --------------------------------------------------------------------------
 
+
 def log1mexp(a: torch.Tensor | float) -> torch.Tensor:
     """log(1 - exp(a)) for a <= 0, accurate over the whole range and never below ``LOG_ZERO``.
 
@@ -109,6 +110,7 @@ def log_predict_x0(logits_BKL: torch.Tensor) -> torch.Tensor:
 # b = beta_bar_{t|s}, g = gamma_bar_{t|s}, a + K b + g = 1).  Because Q is "a I + b J" on the codes,
 # both products below cost O(K) per token instead of O(K^2).  la, lb, lg are their logs, (B, 1, 1).
 
+
 def _forward_codes(log_u_BKL: torch.Tensor, la: torch.Tensor, lb: torch.Tensor, lg: torch.Tensor) -> torch.Tensor:
     """log(x Q) for an (unnormalised) x with no MASK mass, given as its K code rows -> (B, K+1, L)."""
     code_mass_B1L = torch.logsumexp(log_u_BKL, dim=1, keepdim=True)
@@ -137,8 +139,10 @@ def _likelihood(log_y_BCL: torch.Tensor, la: torch.Tensor, lb: torch.Tensor, lg:
 
 # -- schedule -----------------------------------------------------------------------------------
 
-def _schedule_tables(num_codes: int, num_steps: int, att_1: float, att_T: float, ctt_1: float,
-                     ctt_T: float) -> dict[str, torch.Tensor]:
+
+def _schedule_tables(
+    num_codes: int, num_steps: int, att_1: float, att_T: float, ctt_1: float, ctt_T: float
+) -> dict[str, torch.Tensor]:
     """The float64 mask-and-replace schedule, validated; raises a one-line ValueError when invalid.
 
     Returns per-step ``alpha``, ``beta``, ``gamma`` (T,), cumulative ``alpha_bar``, ``beta_bar``,
@@ -167,13 +171,15 @@ def _schedule_tables(num_codes: int, num_steps: int, att_1: float, att_T: float,
         raise refuse("ctt_T < ctt_1, but gamma_bar (the probability of MASK, which is absorbing) cannot decrease")
     for suffix, alpha_end, gamma_end in (("1", att_1, ctt_1), ("T", att_T, ctt_T)):
         if alpha_end + gamma_end > 1.0 + _SCHEDULE_TOLERANCE:
-            raise refuse(f"att_{suffix} + ctt_{suffix} = {alpha_end + gamma_end:.9g} > 1 "
-                         f"(the replace mass K*beta_bar = 1 - att - ctt would be negative)")
+            raise refuse(
+                f"att_{suffix} + ctt_{suffix} = {alpha_end + gamma_end:.9g} > 1 "
+                f"(the replace mass K*beta_bar = 1 - att - ctt would be negative)"
+            )
 
     f64 = torch.float64
     fraction_T = torch.arange(num_steps, dtype=f64) / (num_steps - 1)
     one = torch.ones(1, dtype=f64)
-    alpha_bar = torch.cat([att_1 + fraction_T * (att_T - att_1), one])    # index T: identity
+    alpha_bar = torch.cat([att_1 + fraction_T * (att_T - att_1), one])  # index T: identity
     # keep_bar = 1 - gamma_bar, gamma_bar being the cumulative mask mass from ctt_1 to ctt_T (so > 0 except at
     # the end), interpolated directly from 1 - ctt_1 and 1 - ctt_T: computing 1 - gamma_bar with ctt_1 near 1
     # would cancel and make a pure-mask schedule's beta_t slightly negative (refused) at late steps.
@@ -200,9 +206,11 @@ def _schedule_tables(num_codes: int, num_steps: int, att_1: float, att_T: float,
     bad_beta = B[per_step, previous] < -_SCHEDULE_TOLERANCE
     if bad_beta.any():
         step = int(per_step[bad_beta][0])
-        raise refuse(f"the per-step replace probability beta_t is negative from t = {step}: alpha_bar falls "
-                     f"too slowly for how fast gamma_bar rises (a token kept with probability alpha_t cannot "
-                     f"also be masked with probability gamma_t)")
+        raise refuse(
+            f"the per-step replace probability beta_t is negative from t = {step}: alpha_bar falls "
+            f"too slowly for how fast gamma_bar rises (a token kept with probability alpha_t cannot "
+            f"also be masked with probability gamma_t)"
+        )
     if (B[forward] < -_SCHEDULE_TOLERANCE).any():
         raise refuse("a multi-step replace probability beta_bar_{t|s} is negative")
     # Below _ROUNDING_ZERO a probability is float64 rounding (e.g. 1 - 0.95 - 0.05 = 4e-17), not noise the
@@ -213,9 +221,15 @@ def _schedule_tables(num_codes: int, num_steps: int, att_1: float, att_T: float,
     if (total - 1.0).abs().max() > 1e-6:
         raise refuse("alpha_bar + K beta_bar + gamma_bar != 1")
     return {
-        "alpha": A[per_step, previous], "beta": B[per_step, previous], "gamma": G[per_step, previous],
-        "alpha_bar": A[:, num_steps], "beta_bar": B[:, num_steps], "gamma_bar": G[:, num_steps],
-        "A": A, "B": B, "G": G,
+        "alpha": A[per_step, previous],
+        "beta": B[per_step, previous],
+        "gamma": G[per_step, previous],
+        "alpha_bar": A[:, num_steps],
+        "beta_bar": B[:, num_steps],
+        "gamma_bar": G[:, num_steps],
+        "A": A,
+        "B": B,
+        "G": G,
     }
 
 
@@ -241,8 +255,15 @@ class MaskReplaceSchedule(nn.Module):
     its inputs to float32, but rounded tables stay rounded).
     """
 
-    def __init__(self, num_codes: int, num_steps: int, att_1: float = 0.99999, att_T: float = 0.000009,
-                 ctt_1: float = 0.000009, ctt_T: float = 0.99999) -> None:
+    def __init__(
+        self,
+        num_codes: int,
+        num_steps: int,
+        att_1: float = 0.99999,
+        att_T: float = 0.000009,
+        ctt_1: float = 0.000009,
+        ctt_T: float = 0.99999,
+    ) -> None:
         super().__init__()
         tables = _schedule_tables(num_codes, num_steps, att_1, att_T, ctt_1, ctt_T)
         #: Number of code classes K (MASK is class K).
@@ -268,8 +289,10 @@ class MaskReplaceSchedule(nn.Module):
         # zero masking probability into exp(-70), which a uniform draw of exactly 0 would hit.
         self.register_buffer("gamma_bar_T1", tables["gamma_bar"].float(), persistent=False)
         self.register_buffer("replace_mass_T1", (num_codes * tables["beta_bar"]).float(), persistent=False)
-        gamma_bar, gamma_bar_prev = tables["gamma_bar"][:num_steps], torch.cat([torch.zeros(1, dtype=A.dtype),
-                                                                                 tables["gamma_bar"][:num_steps - 1]])
+        gamma_bar, gamma_bar_prev = (
+            tables["gamma_bar"][:num_steps],
+            torch.cat([torch.zeros(1, dtype=A.dtype), tables["gamma_bar"][: num_steps - 1]]),
+        )
         # clamp: where gamma_bar barely moves, float64 rounding can make the difference a hair negative.
         weight = torch.where(gamma_bar > 0, (gamma_bar - gamma_bar_prev) / gamma_bar.clamp_min(1e-300), 0.0).clamp(0, 1)
         self.register_buffer("masked_ce_weight_T", weight.float(), persistent=False)
@@ -279,8 +302,9 @@ class MaskReplaceSchedule(nn.Module):
         """t as a long tensor on the schedule's device, checked to lie in [low, T-1]."""
         t = torch.as_tensor(t, device=self.log_alpha_TS.device).long()
         if t.numel() and (t.min() < low or t.max() >= self.num_steps):
-            raise ValueError(f"timesteps must lie in [{low}, {self.num_steps - 1}]; got "
-                             f"[{int(t.min())}, {int(t.max())}]")
+            raise ValueError(
+                f"timesteps must lie in [{low}, {self.num_steps - 1}]; got [{int(t.min())}, {int(t.max())}]"
+            )
         return t
 
     def _table_index(self, t: torch.Tensor) -> torch.Tensor:
@@ -291,15 +315,16 @@ class MaskReplaceSchedule(nn.Module):
         each (B, 1, 1) (s = -1: from x_0)."""
         s_B = torch.as_tensor(s_B, device=t_B.device).long().expand_as(t_B)
         rows, cols = self._table_index(t_B), self._table_index(s_B)
-        return tuple(table[rows, cols].view(-1, 1, 1)
-                     for table in (self.log_alpha_TS, self.log_beta_TS, self.log_gamma_TS, self.log_stay_TS))
+        return tuple(
+            table[rows, cols].view(-1, 1, 1)
+            for table in (self.log_alpha_TS, self.log_beta_TS, self.log_gamma_TS, self.log_stay_TS)
+        )
 
     def _check_layout(self, log_x_BCL: torch.Tensor, t_B: torch.Tensor) -> None:
         if log_x_BCL.ndim != 3 or log_x_BCL.shape[1] != self.num_classes:
             raise ValueError(f"expected log-probabilities (B, {self.num_classes}, L); got {tuple(log_x_BCL.shape)}")
         if t_B.shape != (log_x_BCL.shape[0],):
-            raise ValueError(f"expected one timestep per sample, shape ({log_x_BCL.shape[0]},); "
-                             f"got {tuple(t_B.shape)}")
+            raise ValueError(f"expected one timestep per sample, shape ({log_x_BCL.shape[0]},); got {tuple(t_B.shape)}")
 
     # -- public API -------------------------------------------------------------------------------
     def replace_mass(self, t: torch.Tensor | int) -> torch.Tensor:
@@ -324,8 +349,9 @@ class MaskReplaceSchedule(nn.Module):
         la, lb, lg, _ = self._params(t_B, t_B - 1)
         return _likelihood(_as_log_probs(log_x_t_BCL), la, lb, lg).clamp(LOG_ZERO, 0.0)
 
-    def q_sample(self, codes_BL: torch.Tensor, t_B: torch.Tensor,
-                 generator: torch.Generator | None = None) -> torch.Tensor:
+    def q_sample(
+        self, codes_BL: torch.Tensor, t_B: torch.Tensor, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
         """Draw x_t ~ q(x_t | x_0) for integer codes x_0 (B, L) in [0, K); returns long codes in [0, K].
 
         One uniform u per token: MASK if u < gamma_bar_t, else a uniformly drawn code if
@@ -334,8 +360,9 @@ class MaskReplaceSchedule(nn.Module):
         """
         t_B = self._steps(t_B)
         if codes_BL.ndim != 2 or t_B.shape != (codes_BL.shape[0],):
-            raise ValueError(f"expected codes (B, L) and timesteps (B,); got {tuple(codes_BL.shape)} and "
-                             f"{tuple(t_B.shape)}")
+            raise ValueError(
+                f"expected codes (B, L) and timesteps (B,); got {tuple(codes_BL.shape)} and {tuple(t_B.shape)}"
+            )
         codes_BL = codes_BL.long()
         uniform_BL = torch.rand(codes_BL.shape, generator=generator, device=codes_BL.device, dtype=torch.float32)
         replacement_BL = torch.randint(0, self.num_codes, codes_BL.shape, generator=generator, device=codes_BL.device)
@@ -345,8 +372,9 @@ class MaskReplaceSchedule(nn.Module):
         noised_BL = torch.where(uniform_BL < gamma_bar_B1 + replace_B1, replacement_BL, codes_BL)
         return torch.where(uniform_BL < gamma_bar_B1, torch.full_like(codes_BL, self.mask_index), noised_BL)
 
-    def posterior(self, log_x0_BCL: torch.Tensor, codes_t_BL: torch.Tensor, t_B: torch.Tensor,
-                  s_B: torch.Tensor | None = None) -> torch.Tensor:
+    def posterior(
+        self, log_x0_BCL: torch.Tensor, codes_t_BL: torch.Tensor, t_B: torch.Tensor, s_B: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """log p(x_s | x_t) (B, C, L), normalised over classes and clamped to [LOG_ZERO, 0].
 
         For a one-hot x_0 this is q(x_s | x_t, x_0) = q(x_t | x_s) q(x_s | x_0) / q(x_t | x_0).  For a
@@ -376,8 +404,9 @@ class MaskReplaceSchedule(nn.Module):
         if s_B.numel() and ((s_B < -1) | (s_B >= t_B)).any():
             raise ValueError("posterior needs -1 <= s < t for every sample")
         if codes_t_BL.shape != (log_x0_BCL.shape[0], log_x0_BCL.shape[2]):
-            raise ValueError(f"codes_t must be (B, L) = {(log_x0_BCL.shape[0], log_x0_BCL.shape[2])}; "
-                             f"got {tuple(codes_t_BL.shape)}")
+            raise ValueError(
+                f"codes_t must be (B, L) = {(log_x0_BCL.shape[0], log_x0_BCL.shape[2])}; got {tuple(codes_t_BL.shape)}"
+            )
         num_codes = self.num_codes
         log_x0_BKL = _as_log_probs(log_x0_BCL)[:, :num_codes]
         codes_t_BL = codes_t_BL.long()
@@ -404,6 +433,7 @@ class MaskReplaceSchedule(nn.Module):
 
 # -- losses ---------------------------------------------------------------------------------------
 
+
 def _categorical_kl(log_p_BCL: torch.Tensor, log_q_BCL: torch.Tensor) -> torch.Tensor:
     """sum over classes and tokens of p (log p - log q), per sample (B,)."""
     return (log_p_BCL.exp() * (log_p_BCL - log_q_BCL)).sum(dim=(1, 2))
@@ -424,8 +454,15 @@ class VBLoss:
     aux_B: torch.Tensor
 
 
-def vb_loss(log_x0_pred_BCL: torch.Tensor, codes_x0_BL: torch.Tensor, codes_t_BL: torch.Tensor, t_B: torch.Tensor,
-            schedule: MaskReplaceSchedule, aux_weight: float = 1e-3, p_t_B: torch.Tensor | None = None) -> VBLoss:
+def vb_loss(
+    log_x0_pred_BCL: torch.Tensor,
+    codes_x0_BL: torch.Tensor,
+    codes_t_BL: torch.Tensor,
+    t_B: torch.Tensor,
+    schedule: MaskReplaceSchedule,
+    aux_weight: float = 1e-3,
+    p_t_B: torch.Tensor | None = None,
+) -> VBLoss:
     """VQ-Diffusion's training loss (docs/diffusion.md section 3) for x_t ~ q(x_t | x_0) at steps ``t_B``.
 
     ``log_x0_pred_BCL`` is the network's x_0 distribution (:func:`log_predict_x0`); ``p_t_B`` the
@@ -453,8 +490,14 @@ def vb_loss(log_x0_pred_BCL: torch.Tensor, codes_x0_BL: torch.Tensor, codes_t_BL
     return VBLoss(loss_B, lt_B, aux_B)
 
 
-def masked_ce_loss(logits_BKL: torch.Tensor, codes_x0_BL: torch.Tensor, codes_t_BL: torch.Tensor, t_B: torch.Tensor,
-                   schedule: MaskReplaceSchedule, weighting: str = "elbo") -> torch.Tensor:
+def masked_ce_loss(
+    logits_BKL: torch.Tensor,
+    codes_x0_BL: torch.Tensor,
+    codes_t_BL: torch.Tensor,
+    t_B: torch.Tensor,
+    schedule: MaskReplaceSchedule,
+    weighting: str = "elbo",
+) -> torch.Tensor:
     """The absorbing-state loss L_t (MD4/MDLM, docs/diffusion.md section 3), per sample (B,): w_t times the summed
     cross-entropy -log p(x_0 | x_t) of the masked tokens only; unmasked tokens contribute nothing.
 
@@ -554,8 +597,7 @@ class TimestepSampler(nn.Module):
         finite_B = torch.isfinite(loss_B)
         t_B, loss_sq_B = t_B[finite_B], loss_B[finite_B].square()
         sums_T = torch.zeros(self.num_steps, device=device).index_add_(0, t_B, loss_sq_B)
-        counts_T = torch.zeros(self.num_steps, dtype=torch.long, device=device).index_add_(
-            0, t_B, torch.ones_like(t_B))
+        counts_T = torch.zeros(self.num_steps, dtype=torch.long, device=device).index_add_(0, t_B, torch.ones_like(t_B))
         mean_T = sums_T / counts_T.clamp_min(1)
         updated_T = self.decay * self.loss_sq_T + (1.0 - self.decay) * mean_T
         self.loss_sq_T.copy_(torch.where(counts_T > 0, updated_T, self.loss_sq_T))
@@ -564,8 +606,10 @@ class TimestepSampler(nn.Module):
 
 # -- sampling helpers -----------------------------------------------------------------------------
 
-def guided_log_x0(log_p_cond_BCL: torch.Tensor, log_p_null_BCL: torch.Tensor,
-                  scale: float | torch.Tensor) -> torch.Tensor:
+
+def guided_log_x0(
+    log_p_cond_BCL: torch.Tensor, log_p_null_BCL: torch.Tensor, scale: float | torch.Tensor
+) -> torch.Tensor:
     """Classifier-free guidance on x_0 predictions: log p_null + s (log p_cond - log p_null) over the
     K codes, renormalised, MASK row ``LOG_ZERO``, clamped to [LOG_ZERO, 0] -> (B, K+1, L) float32.
 
@@ -575,8 +619,10 @@ def guided_log_x0(log_p_cond_BCL: torch.Tensor, log_p_null_BCL: torch.Tensor,
     ``scale`` may be a float or a per-sample tensor (B,).
     """
     if log_p_cond_BCL.shape != log_p_null_BCL.shape:
-        raise ValueError(f"conditional and null predictions differ in shape: {tuple(log_p_cond_BCL.shape)} vs "
-                         f"{tuple(log_p_null_BCL.shape)}")
+        raise ValueError(
+            f"conditional and null predictions differ in shape: {tuple(log_p_cond_BCL.shape)} vs "
+            f"{tuple(log_p_null_BCL.shape)}"
+        )
     num_codes = log_p_cond_BCL.shape[1] - 1
     cond_BKL = _as_log_probs(log_p_cond_BCL)[:, :num_codes]
     null_BKL = _as_log_probs(log_p_null_BCL)[:, :num_codes]
@@ -618,8 +664,9 @@ def truncate(log_x0_BCL: torch.Tensor, r: float) -> torch.Tensor:
     return torch.cat([truncated_BKL, torch.full_like(truncated_BKL[:, :1], LOG_ZERO)], dim=1)
 
 
-def gumbel_sample(log_probs_BCL: torch.Tensor,
-                  generator: torch.Generator | Sequence[torch.Generator] | None = None) -> torch.Tensor:
+def gumbel_sample(
+    log_probs_BCL: torch.Tensor, generator: torch.Generator | Sequence[torch.Generator] | None = None
+) -> torch.Tensor:
     """Sample one class per token (B, L) long: argmax over axis 1 of log p + Gumbel noise, with the
     noise -log(-log(u + 1e-30) + 1e-30), u ~ U[0, 1) in float32 (the guards keep u = 0 finite).
 
@@ -633,15 +680,20 @@ def gumbel_sample(log_probs_BCL: torch.Tensor,
     """
     log_probs_BCL = log_probs_BCL.to(torch.promote_types(log_probs_BCL.dtype, torch.float32))
     if generator is None or isinstance(generator, torch.Generator):
-        uniform_BCL = torch.rand(log_probs_BCL.shape, generator=generator, device=log_probs_BCL.device,
-                                 dtype=torch.float32)
+        uniform_BCL = torch.rand(
+            log_probs_BCL.shape, generator=generator, device=log_probs_BCL.device, dtype=torch.float32
+        )
     else:
         generators = list(generator)
         if len(generators) != log_probs_BCL.shape[0]:
             raise ValueError(f"got {len(generators)} generators for a batch of {log_probs_BCL.shape[0]}")
-        uniform_BCL = torch.stack([
-            torch.rand(log_probs_BCL.shape[1:], generator=row_generator, device=log_probs_BCL.device,
-                       dtype=torch.float32)
-            for row_generator in generators])
+        uniform_BCL = torch.stack(
+            [
+                torch.rand(
+                    log_probs_BCL.shape[1:], generator=row_generator, device=log_probs_BCL.device, dtype=torch.float32
+                )
+                for row_generator in generators
+            ]
+        )
     gumbel_BCL = -torch.log(-torch.log(uniform_BCL + 1e-30) + 1e-30)
     return (log_probs_BCL + gumbel_BCL).argmax(dim=1)

@@ -40,12 +40,25 @@ from vqtouch.plugins.evaluation.directions import direction_arrow, lower_is_bett
 #: Numbers of a score dict that describe the sampling, not the quality.
 FACTS = ("samples", "steps", "guidance", "truncation", "contact_fraction")
 #: The comparisons the generator stage scores beside every generated image, by key prefix.
-BASELINES = {"background_": "no-contact image", "retrieval_": "retrieval by condition tokens",
-             "class_mean_": "label's mean training image", "real_": "real image (same condition)",
-             "ceiling_": "ceiling: tokenizer reconstruction"}
+BASELINES = {
+    "background_": "no-contact image",
+    "retrieval_": "retrieval by condition tokens",
+    "class_mean_": "label's mean training image",
+    "real_": "real image (same condition)",
+    "ceiling_": "ceiling: tokenizer reconstruction",
+}
 #: Columns of the table, in order, when present; any other score follows them.
-PREFERRED = ("ssim", "psnr", "ms_ssim", "lpips", "contact_psnr", "contact_mae", "contact_centroid_error_px",
-             "fd_effnetlite0", "classifier_accuracy")
+PREFERRED = (
+    "ssim",
+    "psnr",
+    "ms_ssim",
+    "lpips",
+    "contact_psnr",
+    "contact_mae",
+    "contact_centroid_error_px",
+    "fd_effnetlite0",
+    "classifier_accuracy",
+)
 
 
 def _is_score(value: Any) -> bool:
@@ -55,14 +68,18 @@ def _is_score(value: Any) -> bool:
 def score_keys(scores: dict[str, Any]) -> list[str]:
     """The generator's own scores in a conditioner's score dict: numbers that are neither facts of
     the sampling nor a baseline's (prefixed) copy."""
-    return in_column_order(key for key, value in scores.items() if _is_score(value) and key not in FACTS
-                           and not key.startswith(tuple(BASELINES)))
+    return in_column_order(
+        key
+        for key, value in scores.items()
+        if _is_score(value) and key not in FACTS and not key.startswith(tuple(BASELINES))
+    )
 
 
 def in_column_order(keys: Any) -> list[str]:
     """``keys`` without repeats, the :data:`PREFERRED` columns first in that order, then the others by name."""
-    return sorted(dict.fromkeys(keys), key=lambda key: (PREFERRED.index(key) if key in PREFERRED else len(PREFERRED),
-                                                        key))
+    return sorted(
+        dict.fromkeys(keys), key=lambda key: (PREFERRED.index(key) if key in PREFERRED else len(PREFERRED), key)
+    )
 
 
 def rows_of(generation: dict[str, Any], seed: int) -> list[dict[str, Any]]:
@@ -73,8 +90,9 @@ def rows_of(generation: dict[str, Any], seed: int) -> list[dict[str, Any]]:
     for key, scores in by_conditioner.items():
         name = key.split(":", 1)[1]
         keys = score_keys(scores)
-        rows.append({"conditioner": name, "method": "generator", "seed": seed,
-                     **{score: scores[score] for score in keys}})
+        rows.append(
+            {"conditioner": name, "method": "generator", "seed": seed, **{score: scores[score] for score in keys}}
+        )
         for prefix, method in BASELINES.items():
             values = {score: scores[prefix + score] for score in keys if _is_score(scores.get(prefix + score))}
             if values:
@@ -112,11 +130,19 @@ def plot(summary: list[dict[str, Any]], path: Path, title: str) -> None:
     for panel, key in enumerate(keys):
         axes = figure.add_subplot(1, len(keys), panel + 1)
         for index, method in enumerate(methods):
-            cells = [next((row for row in summary if row["conditioner"] == c and row["method"] == method), {})
-                     for c in conditioners]
+            cells = [
+                next((row for row in summary if row["conditioner"] == c and row["method"] == method), {})
+                for c in conditioners
+            ]
             xs = [position + index * width for position in range(len(conditioners))]
-            axes.bar(xs, [cell.get(key, float("nan")) for cell in cells], width,
-                     yerr=[cell.get(f"{key}_std", 0.0) for cell in cells], capsize=2, label=method)
+            axes.bar(
+                xs,
+                [cell.get(key, float("nan")) for cell in cells],
+                width,
+                yerr=[cell.get(f"{key}_std", 0.0) for cell in cells],
+                capsize=2,
+                label=method,
+            )
         axes.set_xticks([position + 0.4 - width / 2 for position in range(len(conditioners))], conditioners)
         axes.set_ylabel(key + (" (lower is better)" if lower_is_better(key) else " (higher is better)"))
         axes.grid(axis="y", alpha=0.3)
@@ -142,9 +168,18 @@ def _tokenizer_run(config: Any, tokenizer: str | None, out: Path, host: PluginHo
     return str(folder)
 
 
-def evaluate_generation_experiment(config: Any, host: PluginHost, out: Path, *, seeds: list[int], n: int,
-                                   tokenizer: str | None = None, overwrite: bool = False, distribution: bool = True,
-                                   report: Any = print) -> dict[str, Any]:
+def evaluate_generation_experiment(
+    config: Any,
+    host: PluginHost,
+    out: Path,
+    *,
+    seeds: list[int],
+    n: int,
+    tokenizer: str | None = None,
+    overwrite: bool = False,
+    distribution: bool = True,
+    report: Any = print,
+) -> dict[str, Any]:
     """Train a generator per seed over one tokenizer, score every conditioner against the baselines;
     write generation.json/.md/.png into ``out`` (see the module docstring).  ``distribution=False``
     leaves out ``fd_effnetlite0`` and the classifier (EfficientNet-Lite0 at 224 px: the slow part on a CPU)."""
@@ -155,8 +190,9 @@ def evaluate_generation_experiment(config: Any, host: PluginHost, out: Path, *, 
     if not config.generator.conditioners:
         raise ConfigError("the scene's generator has no conditioners (generator.conditioners) to compare")
     if (out / "generation.json").is_file() and not overwrite:
-        raise ConfigError(f"{out} already holds a generation experiment; pass --overwrite to run it again, or "
-                          "choose another --out")
+        raise ConfigError(
+            f"{out} already holds a generation experiment; pass --overwrite to run it again, or choose another --out"
+        )
     record = ExperimentRecord("generation", out, seeds)
     base = _with_tokenizer_run(config, _tokenizer_run(config, tokenizer, out, host), host)
     rows: list[dict[str, Any]] = []
@@ -175,25 +211,48 @@ def evaluate_generation_experiment(config: Any, host: PluginHost, out: Path, *, 
         rows += seed_rows
         for scores in (generation.get("by_conditioner") or {"": generation}).values():
             skipped |= scores.get("skipped") or {}
-        report(f"seed {seed}: " + ", ".join(f"{row['conditioner']} contact PSNR {row.get('contact_psnr', '-')}"
-                                           for row in seed_rows if row["method"] == "generator"))
+        report(
+            f"seed {seed}: "
+            + ", ".join(
+                f"{row['conditioner']} contact PSNR {row.get('contact_psnr', '-')}"
+                for row in seed_rows
+                if row["method"] == "generator"
+            )
+        )
     keys = in_column_order(key for row in rows for key in row if key not in ("conditioner", "method", "seed"))
     summary = mean_spread(rows, keys, ("conditioner", "method"))
-    result = {"scene": config.scene, "tokenizer": base.generator.tokenizer_run, "n": n,
-              "generator_steps": base.generator.train.steps, "sampling_steps": base.generator.steps,
-              "sampler": base.generator.sampler.name if base.generator.sampler else None,
-              "rows": rows, "summary": summary, "skipped": skipped}
-    lines = [f"# Generation per conditioner ({len(record.seeds)} seeds: mean ± std)", "",
-             f"Scene `{config.scene}`; tokenizer `{result['tokenizer']}`; one generator per seed trained "
-             f"{result['generator_steps']} steps with every conditioner; {n} held-out conditions generated with "
-             f"`{result['sampler']}`, {result['sampling_steps']} steps, unguided.  Arrows: "
-             + ", ".join(f"{key} {direction_arrow(key)}" for key in keys) + ".", "",
-             *markdown_table(summary, ("conditioner", "method"), keys), "",
-             "Verdicts (contact region only, a gap counts when it exceeds both spreads):", "",
-             *(verdicts(summary) or ["- no contact-region score to compare"])]
+    result = {
+        "scene": config.scene,
+        "tokenizer": base.generator.tokenizer_run,
+        "n": n,
+        "generator_steps": base.generator.train.steps,
+        "sampling_steps": base.generator.steps,
+        "sampler": base.generator.sampler.name if base.generator.sampler else None,
+        "rows": rows,
+        "summary": summary,
+        "skipped": skipped,
+    }
+    lines = [
+        f"# Generation per conditioner ({len(record.seeds)} seeds: mean ± std)",
+        "",
+        f"Scene `{config.scene}`; tokenizer `{result['tokenizer']}`; one generator per seed trained "
+        f"{result['generator_steps']} steps with every conditioner; {n} held-out conditions generated with "
+        f"`{result['sampler']}`, {result['sampling_steps']} steps, unguided.  Arrows: "
+        + ", ".join(f"{key} {direction_arrow(key)}" for key in keys)
+        + ".",
+        "",
+        *markdown_table(summary, ("conditioner", "method"), keys),
+        "",
+        "Verdicts (contact region only, a gap counts when it exceeds both spreads):",
+        "",
+        *(verdicts(summary) or ["- no contact-region score to compare"]),
+    ]
     if skipped:
         lines += ["", "Skipped: " + "; ".join(f"`{name}`: {reason}" for name, reason in sorted(skipped.items()))]
-    plot(summary, record.path("generation.png"),
-         f"generation per conditioner ({len(record.seeds)} seeds, {result['generator_steps']} training steps)")
+    plot(
+        summary,
+        record.path("generation.png"),
+        f"generation per conditioner ({len(record.seeds)} seeds, {result['generator_steps']} training steps)",
+    )
     record.write(result, lines)
     return result

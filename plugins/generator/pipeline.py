@@ -19,7 +19,16 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import CheckpointError, ConfigError, PluginHost, RunDir, VqtouchError, load, load_plugins, resolve_device
+from vqtouch.core import (
+    CheckpointError,
+    ConfigError,
+    PluginHost,
+    RunDir,
+    VqtouchError,
+    load,
+    load_plugins,
+    resolve_device,
+)
 from vqtouch.core.checkpoint import is_pretrained, open_pretrained
 from vqtouch.core.image_size import ImageSize
 from vqtouch.core.training import collate_samples
@@ -54,15 +63,21 @@ class GenerationPipeline:
         generator's diffusion steps; any positive integer for a generator that has no limit)."""
         limit = getattr(self.generator, "max_steps", None)
         if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1 or (limit and steps > limit):
-            raise ConfigError(f"--steps {steps}: steps must be an integer in [1, {limit}] (the generator's diffusion "
-                              "steps)" if limit else f"--steps {steps}: steps must be a positive integer")
+            raise ConfigError(
+                f"--steps {steps}: steps must be an integer in [1, {limit}] (the generator's diffusion steps)"
+                if limit
+                else f"--steps {steps}: steps must be a positive integer"
+            )
         return steps
 
     def conditioner_names(self) -> list[str]:
         """``INDEX:NAME`` of each conditioner, in training order (``0:label``, ``1:visual``, ...)."""
         blocks = self.config.generator.conditioners if self.config is not None else []
-        names = [block.name for block in blocks] if len(blocks) == len(self.conditioners) else \
-            [type(c).__name__ for c in self.conditioners]
+        names = (
+            [block.name for block in blocks]
+            if len(blocks) == len(self.conditioners)
+            else [type(c).__name__ for c in self.conditioners]
+        )
         return [f"{index}:{name}" for index, name in enumerate(names)]
 
     def conditioner_for(self, key: str, which: int | str | None = None) -> Any:
@@ -79,17 +94,21 @@ class GenerationPipeline:
         if which is not None:
             index = self._conditioner_index(which, names)
             if self.conditioners[index].sample_key not in wanted:
-                raise ConfigError(f"--conditioner {which}: conditioner {names[index]} reads samples' "
-                                  f"{self.conditioners[index].sample_key!r}, not {key!r}; give a "
-                                  f"--{self.conditioners[index].sample_key.removesuffix('_source')} condition or "
-                                  "choose another conditioner")
+                raise ConfigError(
+                    f"--conditioner {which}: conditioner {names[index]} reads samples' "
+                    f"{self.conditioners[index].sample_key!r}, not {key!r}; give a "
+                    f"--{self.conditioners[index].sample_key.removesuffix('_source')} condition or "
+                    "choose another conditioner"
+                )
             return index
         for accepted in wanted:
             matching = [i for i, conditioner in enumerate(self.conditioners) if conditioner.sample_key == accepted]
             if len(matching) > 1:
-                raise ConfigError(f"this generator has {len(matching)} conditioners reading {accepted!r} "
-                                  f"({', '.join(names[i] for i in matching)}); choose one with --conditioner "
-                                  "INDEX|NAME")
+                raise ConfigError(
+                    f"this generator has {len(matching)} conditioners reading {accepted!r} "
+                    f"({', '.join(names[i] for i in matching)}); choose one with --conditioner "
+                    "INDEX|NAME"
+                )
             if matching:
                 return matching[0]
         have = ", ".join(sorted({c.sample_key for c in self.conditioners}))
@@ -104,13 +123,24 @@ class GenerationPipeline:
         if len(by_name) == 1:
             return by_name[0]
         reason = "names several" if by_name else "is none of"
-        raise ConfigError(f"--conditioner {which} {reason} this generator's conditioners ({', '.join(names)}); "
-                          "give its index")
+        raise ConfigError(
+            f"--conditioner {which} {reason} this generator's conditioners ({', '.join(names)}); give its index"
+        )
 
     @torch.no_grad()
-    def __call__(self, n: int | None = None, *, steps: int | None = None, sampler: str | None = None,
-                 guidance: float | None = None, truncation: float | None = None, seed: int = 0,
-                 batch_size: int = 16, conditioner: int | str | None = None, **conditions: Any) -> torch.Tensor:
+    def __call__(
+        self,
+        n: int | None = None,
+        *,
+        steps: int | None = None,
+        sampler: str | None = None,
+        guidance: float | None = None,
+        truncation: float | None = None,
+        seed: int = 0,
+        batch_size: int = 16,
+        conditioner: int | str | None = None,
+        **conditions: Any,
+    ) -> torch.Tensor:
         """Images (n, 3, S, S) in [0, 1] for one condition, given as ``key=value`` (``label=3``) or
         ``key=[v1, v2, ...]`` (one per image); a single value is repeated ``n`` times.
 
@@ -120,9 +150,11 @@ class GenerationPipeline:
         (a class index or name, an image path or tensor, a text).
         """
         if len(conditions) != 1:
-            raise ConfigError("give exactly one condition, e.g. label=3, visual='photo.png' or text='...' "
-                              f"(got {', '.join(conditions) or 'none'})")
-        (key, value), = conditions.items()
+            raise ConfigError(
+                "give exactly one condition, e.g. label=3, visual='photo.png' or text='...' "
+                f"(got {', '.join(conditions) or 'none'})"
+            )
+        ((key, value),) = conditions.items()
         values = list(value) if isinstance(value, (list, tuple)) else [value] * (n or 1)
         if n is not None and len(values) != n:
             raise ConfigError(f"{len(values)} values of {key} for n={n} images; give one value or n values")
@@ -134,26 +166,37 @@ class GenerationPipeline:
         self.check_steps(steps)
         chosen = self.sampler if sampler in (None, self.sampler_name) else self.host.build("sampler", sampler)
         conditioner = self.conditioner_for(key, conditioner)
-        parsed = [conditioner.parse_condition(v, image_size=self.image_size, class_names=self.class_names)
-                  for v in values]
+        parsed = [
+            conditioner.parse_condition(v, image_size=self.image_size, class_names=self.class_names) for v in values
+        ]
         images = []
         for start in range(0, len(parsed), batch_size):
-            rows = parsed[start:start + batch_size]
+            rows = parsed[start : start + batch_size]
             batch = collate_samples([{conditioner.sample_key: row} for row in rows])
             batch = {k: v.to(self.device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
             condition = conditioner(conditioner.condition_of(batch))
-            generators = [torch.Generator(device=self.device).manual_seed(seed * 1_000_003 + start + row)
-                          for row in range(len(rows))]
-            codes = self.generator.sample(condition, chosen, steps=steps, null=conditioner.null(len(rows)),
-                                          guidance=guidance, truncation=truncation, generators=generators)
+            generators = [
+                torch.Generator(device=self.device).manual_seed(seed * 1_000_003 + start + row)
+                for row in range(len(rows))
+            ]
+            codes = self.generator.sample(
+                condition,
+                chosen,
+                steps=steps,
+                null=conditioner.null(len(rows)),
+                guidance=guidance,
+                truncation=truncation,
+                generators=generators,
+            )
             # Decoded one by one: the decoder's float rounding depends on the batch size (1e-6), which
             # could flip a pixel's 8-bit value, and a sample must not depend on its batch.
             images.extend(self.tokenizer.decode_codes(grid.unsqueeze(0)).cpu() for grid in codes)
         return torch.cat(images)
 
 
-def load_pipeline(run: str | Path, *, host: PluginHost | None = None, step: int | str | None = None,
-                  device: str | None = None) -> GenerationPipeline:
+def load_pipeline(
+    run: str | Path, *, host: PluginHost | None = None, step: int | str | None = None, device: str | None = None
+) -> GenerationPipeline:
     """The generation pipeline of a run whose ``generator`` stage trained (its newest good checkpoint,
     ``step``, or ``"best"``), with the tokenizer it was trained on; or of a bundle, ``pretrained:NAME``
     (its tokenizer, generator and conditioners, with the config of the run that trained them)."""
@@ -166,21 +209,37 @@ def load_pipeline(run: str | Path, *, host: PluginHost | None = None, step: int 
     config = run_dir.load_config(host)
     section = getattr(config, "generator", None)
     if section is None or section.model is None:
-        raise ConfigError(f"{run_dir.path}: its config has no generator (generator.model); train one with "
-                          "`vqtouch train generator`")
+        raise ConfigError(
+            f"{run_dir.path}: its config has no generator (generator.model); train one with `vqtouch train generator`"
+        )
     device_ = resolve_device(device or config.device)
     folder = run_dir.checkpoint(host, step, required_files=("generator.safetensors",), stage=CHECKPOINT_FOLDER)
     generator = load(folder / "generator.safetensors", host=host, map_location=device_).eval()
-    conditioners = [load(folder / f"conditioner_{index}.safetensors", host=host, map_location=device_).eval()
-                    for index in range(len(section.conditioners))]
+    conditioners = [
+        load(folder / f"conditioner_{index}.safetensors", host=host, map_location=device_).eval()
+        for index in range(len(section.conditioners))
+    ]
     tokenizer, _ = load_tokenizer(generator_tokenizer(run_dir, section), host, device=str(device_))
     if section.sampler is None:
         raise ConfigError(f"{run_dir.path}: generator.sampler is empty; pass sampler=NAME")
     sampler = host.build("sampler", section.sampler)
     class_names = _class_names(config, host)
     settings = {"steps": section.steps, "guidance": section.guidance, "truncation": section.truncation}
-    return GenerationPipeline(tokenizer, generator, conditioners, sampler, section.sampler.name, settings, class_names,
-                              config.data.image_size, host, device_, folder, config, run_dir)
+    return GenerationPipeline(
+        tokenizer,
+        generator,
+        conditioners,
+        sampler,
+        section.sampler.name,
+        settings,
+        class_names,
+        config.data.image_size,
+        host,
+        device_,
+        folder,
+        config,
+        run_dir,
+    )
 
 
 def generator_tokenizer(run_dir: RunDir, section: Any) -> RunDir | Path:
@@ -194,13 +253,16 @@ def generator_tokenizer(run_dir: RunDir, section: Any) -> RunDir | Path:
     recorded = Path(generator.facts["tokenizer"])
     folder = recorded if recorded.is_absolute() else run_dir.path / recorded
     if not folder.is_dir():
-        raise CheckpointError(f"{run_dir.path}: its generator was trained on the tokenizer in {folder}, which is "
-                              "gone; restore that folder or train the generator again")
+        raise CheckpointError(
+            f"{run_dir.path}: its generator was trained on the tokenizer in {folder}, which is "
+            "gone; restore that folder or train the generator again"
+        )
     return folder
 
 
 def _bundle_pipeline(spec: str, host: PluginHost, device: str | None) -> GenerationPipeline:
-    """The pipeline of the bundle ``spec`` (``pretrained:NAME``) names: its weights, and the generator settings, classes and image size
+    """The pipeline of the bundle ``spec`` (``pretrained:NAME``) names: its weights, and the generator
+    settings, classes and image size
     of the config recorded in its headers."""
     from vqtouch.core import validate_experiment
 
@@ -208,15 +270,26 @@ def _bundle_pipeline(spec: str, host: PluginHost, device: str | None) -> Generat
     # The package that ships bundles builds on this one, so it is asked through its hook, not imported.
     bundle = open_pretrained(spec, host, device_)
     if not bundle.run_config:
-        raise ConfigError(f"{spec}: its headers record no run config; export it again with "
-                          "`vqtouch pretrained export`")
+        raise ConfigError(f"{spec}: its headers record no run config; export it again with `vqtouch pretrained export`")
     config = validate_experiment(bundle.run_config, host)
     section = config.generator
     sampler = host.build("sampler", section.sampler)
     settings = {"steps": section.steps, "guidance": section.guidance, "truncation": section.truncation}
-    return GenerationPipeline(bundle.tokenizer, bundle.generator, bundle.conditioners, sampler, section.sampler.name,
-                              settings, _class_names(config, host), config.data.image_size, host, device_,
-                              bundle.folder / "generator", config, None)
+    return GenerationPipeline(
+        bundle.tokenizer,
+        bundle.generator,
+        bundle.conditioners,
+        sampler,
+        section.sampler.name,
+        settings,
+        _class_names(config, host),
+        config.data.image_size,
+        host,
+        device_,
+        bundle.folder / "generator",
+        config,
+        None,
+    )
 
 
 def _class_names(config: Any, host: PluginHost) -> list[str]:
@@ -228,4 +301,3 @@ def _class_names(config: Any, host: PluginHost) -> list[str]:
     except VqtouchError:  # a dataset that cannot be built here (e.g. its folder is elsewhere) only loses the names
         return []
     return list(getattr(dataset, "class_names", []))
-

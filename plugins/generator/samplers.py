@@ -36,11 +36,14 @@ Denoise = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
 # -- shared helpers ---------------------------------------------------------------------------------
 
+
 def check_steps(steps: Any, num_steps: int) -> int:
     """``steps`` as an int, or a one-line ValueError naming the allowed range [1, T]."""
     if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= num_steps:
-        raise ValueError(f"steps must be an integer in [1, {num_steps}] (the schedule's T = {num_steps} diffusion "
-                         f"steps); got {steps!r}")
+        raise ValueError(
+            f"steps must be an integer in [1, {num_steps}] (the schedule's T = {num_steps} diffusion "
+            f"steps); got {steps!r}"
+        )
     return steps
 
 
@@ -62,8 +65,13 @@ def _all_mask(schedule: Any, length: Any, steps: Any, generators: Sequence[torch
     return torch.full((len(generators), length), schedule.mask_index, dtype=torch.long, device=device)
 
 
-def _draw_masked(denoise: Denoise, schedule: Any, codes_BL: torch.Tensor, masked_B: torch.Tensor,
-                 generators: Sequence[torch.Generator]) -> tuple[torch.Tensor, torch.Tensor]:
+def _draw_masked(
+    denoise: Denoise,
+    schedule: Any,
+    codes_BL: torch.Tensor,
+    masked_B: torch.Tensor,
+    generators: Sequence[torch.Generator],
+) -> tuple[torch.Tensor, torch.Tensor]:
     """One step of the revealing samplers: denoise at the timestep matching each row's masked fraction
     and draw a code for every position; returns log p(x0 | x_t) (B, K+1, L) and the draws (B, L)."""
     t_B = timesteps_for_mask_ratio(schedule, masked_B / codes_BL.shape[1])
@@ -95,8 +103,9 @@ def _without_mask(log_probs_BCL: torch.Tensor, mask_index: int) -> torch.Tensor:
 def _row_gumbel(generators: Sequence[torch.Generator], length: int, device: torch.device) -> torch.Tensor:
     """Standard Gumbel noise (B, L), row b drawn from ``generators[b]`` only (the guards of
     :func:`gumbel_sample` keep u = 0 finite)."""
-    uniform_BL = torch.stack([torch.rand(length, generator=generator, device=device, dtype=torch.float32)
-                              for generator in generators])
+    uniform_BL = torch.stack(
+        [torch.rand(length, generator=generator, device=device, dtype=torch.float32) for generator in generators]
+    )
     return -torch.log(-torch.log(uniform_BL + 1e-30) + 1e-30)
 
 
@@ -131,6 +140,7 @@ def _ranks(score_BL: torch.Tensor, descending: bool) -> torch.Tensor:
 
 # -- posterior: the reverse chain with strided timesteps --------------------------------------------
 
+
 def strided_timesteps(num_steps: int, steps: int) -> list[int]:
     """``steps`` timesteps evenly spaced from T-1 down to 0: t_i = round((T-1)(S-1-i)/(S-1)), rounding
     halves up, so [T-1] for S = 1, [T-1, 0] for S = 2 and T-1, T-2, ..., 0 for S = T.
@@ -151,10 +161,12 @@ class PosteriorSamplerConfig(PluginConfig):
 
     name: Literal["posterior"] = "posterior"
     keep_unmasked: bool = Field(
-        True, description="Keep tokens fixed once revealed. Exact for a pure-mask schedule (an unmasked x_t was "
-                          "that code at every earlier step) and right for the released one (replace mass 1e-6): "
-                          "the posterior otherwise trusts p(x0 | x_t) for other codes and can change revealed "
-                          "tokens. Set false with real replace noise to follow the posterior exactly.")
+        True,
+        description="Keep tokens fixed once revealed. Exact for a pure-mask schedule (an unmasked x_t was "
+        "that code at every earlier step) and right for the released one (replace mass 1e-6): "
+        "the posterior otherwise trusts p(x0 | x_t) for other codes and can change revealed "
+        "tokens. Set false with real replace noise to follow the posterior exactly.",
+    )
 
 
 #: Replacement mass K * beta_bar_{T-1} above which keeping revealed tokens is no longer exact (the
@@ -181,18 +193,23 @@ class PosteriorSampler(Sampler):
         self.keep_unmasked = keep_unmasked
 
     @torch.no_grad()
-    def sample(self, denoise: Denoise, schedule: Any, *, length: int, steps: int,
-               generators: list[torch.Generator]) -> torch.Tensor:
+    def sample(
+        self, denoise: Denoise, schedule: Any, *, length: int, steps: int, generators: list[torch.Generator]
+    ) -> torch.Tensor:
         """Codes (B, length) in [0, K) for B = len(generators), from all MASK in ``steps`` denoise calls."""
         codes_BL = _all_mask(schedule, length, steps, generators)
         mask_index, batch, device = schedule.mask_index, len(generators), codes_BL.device
         if self.keep_unmasked and hasattr(schedule, "replace_mass"):
             replace = float(schedule.replace_mass(schedule.num_steps - 1))
             if replace > REPLACE_NOISE_WARNING:
-                warnings.warn(f"the posterior sampler keeps revealed tokens (keep_unmasked=true) but this schedule "
-                              f"has real replacement noise ({replace:.3g} at the last step): revealed tokens are then "
-                              "not final and keeping them biases samples (measured 0.04-0.1 per token); set "
-                              "generator.sampler.keep_unmasked=false", KeepUnmaskedWarning, stacklevel=2)
+                warnings.warn(
+                    f"the posterior sampler keeps revealed tokens (keep_unmasked=true) but this schedule "
+                    f"has real replacement noise ({replace:.3g} at the last step): revealed tokens are then "
+                    "not final and keeping them biases samples (measured 0.04-0.1 per token); set "
+                    "generator.sampler.keep_unmasked=false",
+                    KeepUnmaskedWarning,
+                    stacklevel=2,
+                )
         points = strided_timesteps(schedule.num_steps, steps)
         for i, t in enumerate(points):
             s = points[i + 1] if i + 1 < len(points) else -1
@@ -207,6 +224,7 @@ class PosteriorSampler(Sampler):
 
 
 # -- purity: Improved VQ-Diffusion's high-quality inference -----------------------------------------
+
 
 def linear_masked_counts(length: int, steps: int) -> list[int]:
     """Tokens still masked after each of ``steps`` purity rounds: L - floor(L (i+1) / S), so each round
@@ -224,11 +242,14 @@ class PuritySamplerConfig(PluginConfig):
 
     name: Literal["purity"] = "purity"
     randomness: float = Field(
-        1.0, ge=0.0, le=100.0,
+        1.0,
+        ge=0.0,
+        le=100.0,
         description="Scale of the Gumbel noise added to log-purity when choosing which masked tokens to reveal. "
-                    "1 draws the positions without replacement with probability proportional to purity "
-                    "(Gumbel-top-k; Improved VQ-Diffusion's purity prior); 0 is greedy (highest purity first); "
-                    "large values approach a uniformly random order.")
+        "1 draws the positions without replacement with probability proportional to purity "
+        "(Gumbel-top-k; Improved VQ-Diffusion's purity prior); 0 is greedy (highest purity first); "
+        "large values approach a uniformly random order.",
+    )
 
 
 class PuritySampler(Sampler):
@@ -245,8 +266,9 @@ class PuritySampler(Sampler):
         self.randomness = randomness
 
     @torch.no_grad()
-    def sample(self, denoise: Denoise, schedule: Any, *, length: int, steps: int,
-               generators: list[torch.Generator]) -> torch.Tensor:
+    def sample(
+        self, denoise: Denoise, schedule: Any, *, length: int, steps: int, generators: list[torch.Generator]
+    ) -> torch.Tensor:
         """Codes (B, length) in [0, K) for B = len(generators), from all MASK in ``min(steps, length)`` calls."""
         codes_BL = _all_mask(schedule, length, steps, generators)
         mask_index, num_codes, device = schedule.mask_index, schedule.num_codes, codes_BL.device
@@ -268,6 +290,7 @@ class PuritySampler(Sampler):
 
 # -- confidence: MaskGIT decoding -------------------------------------------------------------------
 
+
 def cosine_masked_target(length: int, steps: int, iteration: int) -> int:
     """MaskGIT's cosine schedule: floor(L cos(pi/2 (i+1)/S)) tokens should stay masked after iteration i
     (0 after the last).  The sampler clamps it to [0, #masked - 1] so each iteration reveals at least one."""
@@ -281,10 +304,13 @@ class ConfidenceSamplerConfig(PluginConfig):
 
     name: Literal["confidence"] = "confidence"
     temperature: float = Field(
-        4.5, ge=0.0, le=100.0,
+        4.5,
+        ge=0.0,
+        le=100.0,
         description="MaskGIT's choice temperature tau: confidence = log p(sampled code) + tau (1 - (i+1)/S) "
-                    "Gumbel noise, so early iterations choose which tokens to keep more randomly; 4.5 as MaskGIT, "
-                    "0 keeps the most probable draws.")
+        "Gumbel noise, so early iterations choose which tokens to keep more randomly; 4.5 as MaskGIT, "
+        "0 keeps the most probable draws.",
+    )
 
 
 class ConfidenceSampler(Sampler):
@@ -302,8 +328,9 @@ class ConfidenceSampler(Sampler):
         self.temperature = temperature
 
     @torch.no_grad()
-    def sample(self, denoise: Denoise, schedule: Any, *, length: int, steps: int,
-               generators: list[torch.Generator]) -> torch.Tensor:
+    def sample(
+        self, denoise: Denoise, schedule: Any, *, length: int, steps: int, generators: list[torch.Generator]
+    ) -> torch.Tensor:
         """Codes (B, length) in [0, K) for B = len(generators), from all MASK in at most ``steps`` calls."""
         codes_BL = _all_mask(schedule, length, steps, generators)
         mask_index, device = schedule.mask_index, codes_BL.device
@@ -329,6 +356,7 @@ class ConfidenceSampler(Sampler):
 
 # -- registration -----------------------------------------------------------------------------------
 
+
 def build_posterior_sampler(config: PosteriorSamplerConfig, context: BuildContext) -> PosteriorSampler:
     """Factory of the ``posterior`` sampler (the context is not needed: the schedule comes at sampling)."""
     return PosteriorSampler(keep_unmasked=config.keep_unmasked)
@@ -347,11 +375,23 @@ def build_confidence_sampler(config: ConfidenceSamplerConfig, context: BuildCont
 @hookimpl
 def vqtouch_register_samplers(register):
     """Register the three samplers."""
-    register("posterior", build_posterior_sampler, PosteriorSamplerConfig,
-             description="VQ-Diffusion reverse chain over `steps` strided timesteps, each jump an exact posterior.")
-    register("purity", build_purity_sampler, PuritySamplerConfig,
-             description="Improved VQ-Diffusion purity sampling: reveal the highest-purity masked tokens, "
-                         "a linear number per step.")
-    register("confidence", build_confidence_sampler, ConfidenceSamplerConfig,
-             description="MaskGIT decoding: sample all masked tokens, re-mask the least confident on a cosine "
-                         "schedule (temperature 4.5).")
+    register(
+        "posterior",
+        build_posterior_sampler,
+        PosteriorSamplerConfig,
+        description="VQ-Diffusion reverse chain over `steps` strided timesteps, each jump an exact posterior.",
+    )
+    register(
+        "purity",
+        build_purity_sampler,
+        PuritySamplerConfig,
+        description="Improved VQ-Diffusion purity sampling: reveal the highest-purity masked tokens, "
+        "a linear number per step.",
+    )
+    register(
+        "confidence",
+        build_confidence_sampler,
+        ConfidenceSamplerConfig,
+        description="MaskGIT decoding: sample all masked tokens, re-mask the least confident on a cosine "
+        "schedule (temperature 4.5).",
+    )

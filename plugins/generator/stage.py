@@ -37,6 +37,7 @@ from vqtouch.plugins.tokenizer import TOKENIZER_FILES, load_tokenizer, tokenizer
 if TYPE_CHECKING:
     from vqtouch.plugins.evaluation.distribution import DistributionScorer
 
+
 class ConditionIsTargetWarning(VqtouchWarning):
     """A conditioner reads the very image the generator learns to produce."""
 
@@ -51,30 +52,50 @@ class GeneratorSection(Section):
 
     model: Slot("generator") | None = Field(None, description="Generator over the code grid (e.g. vq_diffusion).")
     conditioners: list[Slot("conditioner")] = Field(
-        default_factory=list, description="Condition encoders the generator is trained with (label, tactile, "
-                                          "clip, ...); each reads its own entry of a sample, one per training step.")
-    sampler: Slot("sampler") | None = Field(None, description="How codes are drawn from the generator (e.g. "
-                                                              "posterior, purity, confidence).")
-    tokenizer_run: str | None = Field(None, description="Run directory of the trained tokenizer whose codes the "
-                                                        "generator learns, or a tokenizer checkpoint folder (e.g. "
-                                                        "from `vqtouch adapt`); null: this run's own tokenizer stage.")
+        default_factory=list,
+        description="Condition encoders the generator is trained with (label, tactile, "
+        "clip, ...); each reads its own entry of a sample, one per training step.",
+    )
+    sampler: Slot("sampler") | None = Field(
+        None, description="How codes are drawn from the generator (e.g. posterior, purity, confidence)."
+    )
+    tokenizer_run: str | None = Field(
+        None,
+        description="Run directory of the trained tokenizer whose codes the "
+        "generator learns, or a tokenizer checkpoint folder (e.g. "
+        "from `vqtouch adapt`); null: this run's own tokenizer stage.",
+    )
     steps: int = Field(25, ge=1, le=1000, strict=True, description="Sampling steps (denoiser calls) per sample.")
     guidance: float = Field(1.0, ge=0, le=1000, description="Classifier-free guidance scale; 1 is unguided.")
-    truncation: float = Field(1.0, gt=0, le=1, description="Keep only the most likely codes holding this much "
-                                                           "probability at each step; 1 keeps all.")
-    num_samples: int = Field(16, ge=0, le=100_000, strict=True,
-                             description="Held-out conditions generated and scored after training (0: none).")
-    distribution: bool = Field(False, description="Also score the held-out samples' fd_effnetlite0 and the accuracy "
-                                                   "of a classifier trained on real images (EfficientNet-Lite0 "
-                                                   "features at 224 px; slower on a CPU).")
+    truncation: float = Field(
+        1.0,
+        gt=0,
+        le=1,
+        description="Keep only the most likely codes holding this much probability at each step; 1 keeps all.",
+    )
+    num_samples: int = Field(
+        16,
+        ge=0,
+        le=100_000,
+        strict=True,
+        description="Held-out conditions generated and scored after training (0: none).",
+    )
+    distribution: bool = Field(
+        False,
+        description="Also score the held-out samples' fd_effnetlite0 and the accuracy "
+        "of a classifier trained on real images (EfficientNet-Lite0 "
+        "features at 224 px; slower on a CPU).",
+    )
     train: GeneratorTrainConfig = Field(default_factory=GeneratorTrainConfig, description="Optimisation settings.")
 
     @model_validator(mode="after")
     def _one_weight_per_conditioner(self) -> GeneratorSection:
         weights = self.train.conditioner_weights
         if weights is not None and len(weights) != len(self.conditioners):
-            raise ValueError(f"train.conditioner_weights has {len(weights)} weights for {len(self.conditioners)} "
-                             "conditioners; give one per entry of generator.conditioners, in their order")
+            raise ValueError(
+                f"train.conditioner_weights has {len(weights)} weights for {len(self.conditioners)} "
+                "conditioners; give one per entry of generator.conditioners, in their order"
+            )
         return self
 
 
@@ -94,16 +115,21 @@ def load_run_tokenizer(job: StageJob, device: torch.device) -> tuple[Any, Path]:
         tokenizer, folder = load_tokenizer(source, job.host, device=str(device))
     except MissingCheckpointError as exc:
         where = "this run" if source is job.run else str(getattr(source, "path", source))
-        raise StageUnavailable(f"no trained tokenizer in {where} ({exc}); run the tokenizer stage first or give "
-                               "--tokenizer RUN") from None
+        raise StageUnavailable(
+            f"no trained tokenizer in {where} ({exc}); run the tokenizer stage first or give --tokenizer RUN"
+        ) from None
     return tokenizer, folder
 
 
 def images_config(config: Any) -> dict[str, Any]:
     """What decides the dataset's images (and so its codes): the code cache's key."""
     data = config.to_dict()
-    return {"dataset": data["data"]["dataset"], "image_size": data["data"]["image_size"],
-            "sensor": data.get("sensor"), "target_sensor": data.get("target_sensor")}
+    return {
+        "dataset": data["data"]["dataset"],
+        "image_size": data["data"]["image_size"],
+        "sensor": data.get("sensor"),
+        "target_sensor": data.get("target_sensor"),
+    }
 
 
 def train_generator(job: StageJob) -> dict[str, Any]:
@@ -118,46 +144,79 @@ def train_generator(job: StageJob) -> dict[str, Any]:
     conditioners = assembly.component("generator.conditioners")
     codebook = tokenizer.quantizer.codebook_size
     if getattr(generator, "num_codes", codebook) != codebook:
-        raise StageUnavailable(f"the generator was built for {generator.num_codes} codes but the tokenizer in "
-                               f"{tokenizer_folder} has {codebook}; the run's tokenizer section must match that "
-                               "tokenizer's config")
+        raise StageUnavailable(
+            f"the generator was built for {generator.num_codes} codes but the tokenizer in "
+            f"{tokenizer_folder} has {codebook}; the run's tokenizer section must match that "
+            "tokenizer's config"
+        )
     dataset = assembly.component("data.dataset")
-    codes_NHW, cache = dataset_codes(tokenizer, [tokenizer_folder / name for name in TOKENIZER_FILES], dataset,
-                                     images_config(config), batch_size=config.data.batch_size, device=device,
-                                     use_cache=section.train.code_cache)
+    codes_NHW, cache = dataset_codes(
+        tokenizer,
+        [tokenizer_folder / name for name in TOKENIZER_FILES],
+        dataset,
+        images_config(config),
+        batch_size=config.data.batch_size,
+        device=device,
+        use_cache=section.train.code_cache,
+    )
     grid = getattr(generator, "grid_hw", tuple(codes_NHW.shape[1:]))
     if tuple(codes_NHW.shape[1:]) != tuple(grid):
-        raise StageUnavailable(f"the tokenizer makes {tuple(codes_NHW.shape[1:])} code grids but the generator was "
-                               f"built for {tuple(grid)}; data.image_size must be the tokenizer's")
+        raise StageUnavailable(
+            f"the tokenizer makes {tuple(codes_NHW.shape[1:])} code grids but the generator was "
+            f"built for {tuple(grid)}; data.image_size must be the tokenizer's"
+        )
     keys = list(dict.fromkeys(key for conditioner in conditioners for key in conditioner.sample_entries()))
     if "tactile" in keys:
-        warnings.warn("a conditioner reads samples' 'tactile' image, which is also the image the generator learns to "
-                      "produce: it can learn to copy its condition; for touch-to-touch, condition on a second sensor's "
-                      "image of the same contact (tactile conditioner reads=tactile_source, with paired_sensor set)",
-                      ConditionIsTargetWarning, stacklevel=2)
+        warnings.warn(
+            "a conditioner reads samples' 'tactile' image, which is also the image the generator learns to "
+            "produce: it can learn to copy its condition; for touch-to-touch, condition on a second sensor's "
+            "image of the same contact (tactile conditioner reads=tactile_source, with paired_sensor set)",
+            ConditionIsTargetWarning,
+            stacklevel=2,
+        )
     data = CodesDataset.collect(codes_NHW, dataset, keys)
     train_set, val_set = experiment_split(data, config.data, config.seed)
     background_note = None
     if section.train.canonical_background:
         background_note = canonicalise_codes(data, train_set, dataset, tokenizer, image_hw(config.data.image_size))
-    task = GeneratorTask(generator, conditioners, section.train.condition_dropout, config.seed,
-                         section.train.conditioner_weights)
-    trainer = Trainer(task, train_set, section.train, batch_size=config.data.batch_size, seed=config.seed,
-                      device=device, checkpoint_dir=job.run.checkpoints / CHECKPOINT_FOLDER, run=job.run,
-                      num_workers=0, host=job.host, stage=job.stage, val_dataset=val_set)
+    task = GeneratorTask(
+        generator, conditioners, section.train.condition_dropout, config.seed, section.train.conditioner_weights
+    )
+    trainer = Trainer(
+        task,
+        train_set,
+        section.train,
+        batch_size=config.data.batch_size,
+        seed=config.seed,
+        device=device,
+        checkpoint_dir=job.run.checkpoints / CHECKPOINT_FOLDER,
+        run=job.run,
+        num_workers=0,
+        host=job.host,
+        stage=job.stage,
+        val_dataset=val_set,
+    )
     if job.resume:
         job.run.resume(trainer, job.host, stage=CHECKPOINT_FOLDER)
     state = trainer.fit()
-    result: dict[str, Any] = {"step": state.step, "train_samples": len(train_set), "val_samples": len(val_set),
-                              "split_unit": val_set.split_unit, "code_cache": cache, "tokenizer": str(tokenizer_folder),
-                              "canonical_background": background_note}
+    result: dict[str, Any] = {
+        "step": state.step,
+        "train_samples": len(train_set),
+        "val_samples": len(val_set),
+        "split_unit": val_set.split_unit,
+        "code_cache": cache,
+        "tokenizer": str(tokenizer_folder),
+        "canonical_background": background_note,
+    }
     if trainer.validates():
         result |= {"best_step": state.best_step, "best_val_loss": state.best_score}
     if trainer.dist.is_main:
         # The tokenizer is recorded by its step folder, relative to the run when it is the run's own, so
         # that readers use the codes the generator learned even after the tokenizer trains on.
         inside = tokenizer_folder.resolve().is_relative_to(job.run.path.resolve())
-        recorded = tokenizer_folder.resolve().relative_to(job.run.path.resolve()) if inside else tokenizer_folder.resolve()
+        recorded = (
+            tokenizer_folder.resolve().relative_to(job.run.path.resolve()) if inside else tokenizer_folder.resolve()
+        )
         job.publish("generator", trainer.last_checkpoint, step=state.step, tokenizer=recorded.as_posix())
         if section.num_samples and len(val_set) and section.sampler is not None:
             result |= score_samples(job, tokenizer, task, val_set, train_set, dataset, device)
@@ -165,27 +224,44 @@ def train_generator(job: StageJob) -> dict[str, Any]:
     return result
 
 
-def canonicalise_codes(data: CodesDataset, train_set: Any, dataset: Any, tokenizer: Any,
-                       size_hw: tuple[int, int]) -> dict[str, Any]:
+def canonicalise_codes(
+    data: CodesDataset, train_set: Any, dataset: Any, tokenizer: Any, size_hw: tuple[int, int]
+) -> dict[str, Any]:
     """Replace ``data``'s codes by their canonical-background form (:func:`.codes.canonical_background`)
     in place, with the no-contact image of the training split; what was done, for generation.json."""
     from .codes import canonical_background
 
     background, source = dataset_background(DatasetSubset(dataset, train_set.indices), size_hw)
     if background is None:
-        warnings.warn(f"generator.train.canonical_background: no no-contact background ({source}); training on "
-                      "the raw codes", VqtouchWarning, stacklevel=2)
+        warnings.warn(
+            f"generator.train.canonical_background: no no-contact background ({source}); training on the raw codes",
+            VqtouchWarning,
+            stacklevel=2,
+        )
         return {"applied": False, "reason": source}
     data.codes_NHW, changed = canonical_background(data.codes_NHW, tokenizer, background)
     return {"applied": True, "cells_changed": round(changed, 4), "background": source}
 
 
 @torch.no_grad()
-def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sampler: Any, conditions: HeldOutConditions,
-                     metrics: list[tuple[str, Any]], background_3HW: torch.Tensor | None, steps: int, guidance: float,
-                     truncation: float, seed: int, device: torch.device, picture: Path | None = None,
-                     pool: list[dict[str, Any]] | None = None,
-                     distribution: bool | DistributionScorer = False) -> dict[str, Any]:
+def score_generation(
+    *,
+    generator: Any,
+    conditioner: Any,
+    tokenizer: Any,
+    sampler: Any,
+    conditions: HeldOutConditions,
+    metrics: list[tuple[str, Any]],
+    background_3HW: torch.Tensor | None,
+    steps: int,
+    guidance: float,
+    truncation: float,
+    seed: int,
+    device: torch.device,
+    picture: Path | None = None,
+    pool: list[dict[str, Any]] | None = None,
+    distribution: bool | DistributionScorer = False,
+) -> dict[str, Any]:
     """Generate the held-out ``conditions`` (:func:`held_out_conditions`, read once and shared by every
     conditioner scored) with ``conditioner`` and score them against their ground-truth tactile images.
 
@@ -193,7 +269,8 @@ def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sample
     ``background_3HW`` (``background_*``; none without one: see
     :func:`~vqtouch.plugins.evaluation.contact.dataset_background`), the tokenizer's own reconstruction
     of the ground truth (``ceiling_*``: no generator over these codes can do better) and, given training
-    samples (``pool``, see :func:`baseline_pool`), the nearest training image by condition tokens (``retrieval_*``) and, for a
+    samples (``pool``, see :func:`baseline_pool`), the nearest training image by condition tokens
+    (``retrieval_*``) and, for a
     label condition, the mean training image of the label (``class_mean_*``).  Every one is also
     scored on the contact region (``contact_*``).  Sample i is drawn with a generator seeded from
     (seed, its dataset index), so a score does not depend on how many are scored.  ``picture``: where to save
@@ -215,8 +292,19 @@ def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sample
     generator.eval()
     conditioner.eval()
     condition = conditioner(conditioner.condition_of(batch))
-    images = sample_images(generator, conditioner, tokenizer, sampler, condition, indices, steps=steps,
-                           guidance=guidance, truncation=truncation, seed=seed, device=device)
+    images = sample_images(
+        generator,
+        conditioner,
+        tokenizer,
+        sampler,
+        condition,
+        indices,
+        steps=steps,
+        guidance=guidance,
+        truncation=truncation,
+        seed=seed,
+        device=device,
+    )
     scores: dict[str, Any] = {"samples": count, "steps": steps, "guidance": guidance, "truncation": truncation}
     background = None if background_3HW is None else background_3HW.to(truth).expand_as(truth)
     compared = {"": images, "ceiling_": tokenizer.decode_codes(tokenizer.encode_codes(truth))}
@@ -230,16 +318,19 @@ def score_generation(*, generator: Any, conditioner: Any, tokenizer: Any, sample
     by_truth = [(name, metric) for name, metric in metrics if not hasattr(metric, "condition_scores")]
     scores |= score_images(compared, truth, by_truth, background, scorer)
     for metric in (metric for _, metric in metrics if hasattr(metric, "condition_scores")):
-        found = metric.condition_scores(compared | {"real_": truth}, conditioner.condition_of(batch),
-                                        conditioner.sample_key, conditions.class_names)
+        found = metric.condition_scores(
+            compared | {"real_": truth}, conditioner.condition_of(batch), conditioner.sample_key, conditions.class_names
+        )
         if "skipped" in found:
             scores["skipped"] = scores.get("skipped", {}) | found.pop("skipped")
         scores |= found
     if picture is not None:
         columns = min(count, 8)
         shown = condition_images(conditioner, batch)
-        rows = ([shown[:columns].float().cpu()] if shown is not None else []) + [images[:columns].cpu(),
-                                                                                 truth[:columns].cpu()]
+        rows = ([shown[:columns].float().cpu()] if shown is not None else []) + [
+            images[:columns].cpu(),
+            truth[:columns].cpu(),
+        ]
         save_png(image_grid(torch.cat(rows), columns=columns), picture)
     return scores
 
@@ -281,18 +372,38 @@ def held_out_conditions(held_out: Any, dataset: Any, count: int, device: torch.d
     indices = [held_out.indices[i] for i in range(count)]
     real = [dataset[index] for index in indices]
     truth = torch.stack([sample["tactile"] for sample in real]).to(device)
-    return HeldOutConditions([held_out[i] for i in range(count)], indices, truth, labels_of(real),
-                             list(getattr(dataset, "class_names", [])))
+    return HeldOutConditions(
+        [held_out[i] for i in range(count)], indices, truth, labels_of(real), list(getattr(dataset, "class_names", []))
+    )
 
 
 @torch.no_grad()
-def sample_images(generator: Any, conditioner: Any, tokenizer: Any, sampler: Any, condition: Any, indices: list[int],
-                  *, steps: int, guidance: float, truncation: float, seed: int, device: torch.device) -> torch.Tensor:
+def sample_images(
+    generator: Any,
+    conditioner: Any,
+    tokenizer: Any,
+    sampler: Any,
+    condition: Any,
+    indices: list[int],
+    *,
+    steps: int,
+    guidance: float,
+    truncation: float,
+    seed: int,
+    device: torch.device,
+) -> torch.Tensor:
     """Decoded images (B, 3, H, W) of encoded ``condition`` (one row per entry of ``indices``): row i
     drawn with a generator seeded from (seed, ``indices[i]``), its dataset index."""
     draws = [torch.Generator(device=device).manual_seed(seed * 100_003 + index) for index in indices]
-    codes = generator.sample(condition, sampler, steps=steps, null=conditioner.null(len(indices)), guidance=guidance,
-                             truncation=truncation, generators=draws)
+    codes = generator.sample(
+        condition,
+        sampler,
+        steps=steps,
+        null=conditioner.null(len(indices)),
+        guidance=guidance,
+        truncation=truncation,
+        generators=draws,
+    )
     return tokenizer.decode_codes(codes)
 
 
@@ -301,9 +412,21 @@ PRECISIONS = ("fp32", "bf16")
 
 
 @torch.no_grad()
-def generate_held_out(generator: Any, conditioner: Any, tokenizer: Any, sampler: Any, conditions: HeldOutConditions,
-                      *, steps: int, guidance: float, truncation: float, seed: int, device: torch.device,
-                      batch_size: int | None = None, precision: str = "fp32") -> torch.Tensor:
+def generate_held_out(
+    generator: Any,
+    conditioner: Any,
+    tokenizer: Any,
+    sampler: Any,
+    conditions: HeldOutConditions,
+    *,
+    steps: int,
+    guidance: float,
+    truncation: float,
+    seed: int,
+    device: torch.device,
+    batch_size: int | None = None,
+    precision: str = "fp32",
+) -> torch.Tensor:
     """Float32 images (N, 3, H, W) of ``conditions``, encoded and sampled ``batch_size`` at a time
     (None: all at once, as :func:`score_generation` does) in ``precision`` (``fp32``, or ``bf16``
     autocast); the seeds of :func:`sample_images`, so image i does not depend on the batching
@@ -315,20 +438,36 @@ def generate_held_out(generator: Any, conditioner: Any, tokenizer: Any, sampler:
     count = len(conditions.indices)
     size = batch_size or count
     images = []
-    autocast = (torch.autocast(device.type, dtype=torch.bfloat16) if precision == "bf16"
-                else contextlib.nullcontext())
+    autocast = torch.autocast(device.type, dtype=torch.bfloat16) if precision == "bf16" else contextlib.nullcontext()
     with autocast:
         for start in range(0, count, size):
             batch = conditions.batch(start, start + size, device=device)
             condition = conditioner(conditioner.condition_of(batch))
-            images.append(sample_images(generator, conditioner, tokenizer, sampler, condition,
-                                        conditions.indices[start:start + size], steps=steps, guidance=guidance,
-                                        truncation=truncation, seed=seed, device=device).float())
+            images.append(
+                sample_images(
+                    generator,
+                    conditioner,
+                    tokenizer,
+                    sampler,
+                    condition,
+                    conditions.indices[start : start + size],
+                    steps=steps,
+                    guidance=guidance,
+                    truncation=truncation,
+                    seed=seed,
+                    device=device,
+                ).float()
+            )
     return torch.cat(images)
 
 
-def distribution_scorer(conditions: HeldOutConditions, pool: list[dict[str, Any]] | None,
-                        metrics: list[tuple[str, Any]], seed: int, tokenizer: Any = None) -> DistributionScorer:
+def distribution_scorer(
+    conditions: HeldOutConditions,
+    pool: list[dict[str, Any]] | None,
+    metrics: list[tuple[str, Any]],
+    seed: int,
+    tokenizer: Any = None,
+) -> DistributionScorer:
     """The distribution scores of ``conditions``: ``fd_effnetlite0`` against their ground truth and
     a classifier trained on the real training images of ``pool`` (their dataset labels).  The
     features are those of the ``fd_effnetlite0`` metric among ``metrics`` (its options), else of
@@ -346,15 +485,29 @@ def distribution_scorer(conditions: HeldOutConditions, pool: list[dict[str, Any]
     if tokenizer is not None and images:
         stacked = torch.stack(images)
         with torch.no_grad():
-            images = list(torch.cat([tokenizer.decode_codes(tokenizer.encode_codes(stacked[i:i + 64].to(tokenizer.device)))
-                                     .float().clamp(0, 1).cpu() for i in range(0, len(stacked), 64)]))
-    return DistributionScorer(conditions.truth, conditions.labels, images,
-                              labels_of(pool) if pool else None, metric=metric, seed=seed)
+            images = list(
+                torch.cat(
+                    [
+                        tokenizer.decode_codes(tokenizer.encode_codes(stacked[i : i + 64].to(tokenizer.device)))
+                        .float()
+                        .clamp(0, 1)
+                        .cpu()
+                        for i in range(0, len(stacked), 64)
+                    ]
+                )
+            )
+    return DistributionScorer(
+        conditions.truth, conditions.labels, images, labels_of(pool) if pool else None, metric=metric, seed=seed
+    )
 
 
-def score_images(candidates: dict[str, torch.Tensor], truth_B3HW: torch.Tensor, metrics: list[tuple[str, Any]],
-                 background_B3HW: torch.Tensor | None = None,
-                 distribution: DistributionScorer | None = None) -> dict[str, Any]:
+def score_images(
+    candidates: dict[str, torch.Tensor],
+    truth_B3HW: torch.Tensor,
+    metrics: list[tuple[str, Any]],
+    background_B3HW: torch.Tensor | None = None,
+    distribution: DistributionScorer | None = None,
+) -> dict[str, Any]:
     """Scores of each candidate image set (``{prefix: images}``, image i for held-out condition i)
     against the ground truth: ``{prefix}{metric}`` for each metric, the contact-region scores (given
     the no-contact image) and, given a scorer, ``{prefix}fd_effnetlite0`` and
@@ -362,8 +515,9 @@ def score_images(candidates: dict[str, torch.Tensor], truth_B3HW: torch.Tensor, 
     name: the same quantity, its real features computed once).  A metric that cannot run here is
     listed under ``"skipped"`` with its reason."""
     scores: dict[str, Any] = {}
-    metric_set = MetricSet((name, metric) for name, metric in metrics
-                           if distribution is None or name != "fd_effnetlite0")
+    metric_set = MetricSet(
+        (name, metric) for name, metric in metrics if distribution is None or name != "fd_effnetlite0"
+    )
     for prefix, predicted in candidates.items():
         scores |= metric_set.score(predicted.cpu(), truth_B3HW.cpu(), prefix)
     if background_B3HW is not None:
@@ -387,8 +541,9 @@ def baseline_pool(train: Any) -> list[dict[str, Any]]:
 
 
 @torch.no_grad()
-def training_baselines(conditioner: Any, condition: Any, batch: dict[str, Any], pool: list[dict[str, Any]],
-                       device: torch.device) -> dict[str, torch.Tensor]:
+def training_baselines(
+    conditioner: Any, condition: Any, batch: dict[str, Any], pool: list[dict[str, Any]], device: torch.device
+) -> dict[str, torch.Tensor]:
     """Baselines from training samples (``pool``): for each held-out condition, the training tactile
     image whose condition tokens are nearest (cosine similarity of the mean token; ties go to the
     earlier sample), and for labels the mean training image of the label (the mean of all pool
@@ -397,30 +552,36 @@ def training_baselines(conditioner: Any, condition: Any, batch: dict[str, Any], 
     entries = conditioner.sample_entries()
     keys_ND = []
     for start in range(0, len(pool), 64):
-        chunk = collate_samples([{key: sample[key] for key in entries} for sample in pool[start:start + 64]])
+        chunk = collate_samples([{key: sample[key] for key in entries} for sample in pool[start : start + 64]])
         chunk = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in chunk.items()}
         keys_ND.append(conditioner(conditioner.condition_of(chunk)).tokens_BND.float().mean(dim=1))
-    similarity_BN = (torch.nn.functional.normalize(condition.tokens_BND.float().mean(dim=1), dim=-1)
-                     @ torch.nn.functional.normalize(torch.cat(keys_ND), dim=-1).T)
+    similarity_BN = (
+        torch.nn.functional.normalize(condition.tokens_BND.float().mean(dim=1), dim=-1)
+        @ torch.nn.functional.normalize(torch.cat(keys_ND), dim=-1).T
+    )
     # argmax returns the first of equal maxima: a label's nearest is its first training image.
     baselines = {"retrieval_": images_N3HW[similarity_BN.argmax(dim=1)]}
     if conditioner.sample_key == "label":
         labels_N = torch.as_tensor([int(sample["label"]) for sample in pool], device=device)
         overall = images_N3HW.mean(dim=0)
-        means = [images_N3HW[labels_N == int(label)].mean(dim=0) if bool((labels_N == int(label)).any()) else overall
-                 for label in batch["label"]]
+        means = [
+            images_N3HW[labels_N == int(label)].mean(dim=0) if bool((labels_N == int(label)).any()) else overall
+            for label in batch["label"]
+        ]
         baselines["class_mean_"] = torch.stack(means)
     return baselines
 
 
-def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: Any, train_set: Any, dataset: Any,
-                  device: torch.device) -> dict[str, Any]:
+def score_samples(
+    job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: Any, train_set: Any, dataset: Any, device: torch.device
+) -> dict[str, Any]:
     """The stage's scores: :func:`score_generation` of the held-out conditions with the first
     conditioner (``samples.png``) and, for a generator trained with several, with each of them
     (``by_conditioner``); with ``generator.distribution``, the distribution scores too."""
     section, config = job.section, job.config
-    metrics = list(zip((item.name for item in config.metrics),
-                       job.assembly.build_slots(["metrics"]).get("metrics", [])))
+    metrics = list(
+        zip((item.name for item in config.metrics), job.assembly.build_slots(["metrics"]).get("metrics", []))
+    )
     # The training split of the dataset itself (the codes dataset's samples hold no images).
     train_images = DatasetSubset(dataset, train_set.indices)
     pool = baseline_pool(train_images)
@@ -429,18 +590,32 @@ def score_samples(job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: A
     # every conditioner.
     conditions = held_out_conditions(val_set, dataset, section.num_samples, device)
     scorer = distribution_scorer(conditions, pool, metrics, config.seed) if section.distribution else None
-    common = dict(generator=task.generator, tokenizer=tokenizer, sampler=job.assembly.component("generator.sampler"),
-                  conditions=conditions, metrics=metrics, background_3HW=background,
-                  steps=section.steps, guidance=section.guidance, truncation=section.truncation, seed=config.seed,
-                  device=device, pool=pool, distribution=scorer or False)
+    common = dict(
+        generator=task.generator,
+        tokenizer=tokenizer,
+        sampler=job.assembly.component("generator.sampler"),
+        conditions=conditions,
+        metrics=metrics,
+        background_3HW=background,
+        steps=section.steps,
+        guidance=section.guidance,
+        truncation=section.truncation,
+        seed=config.seed,
+        device=device,
+        pool=pool,
+        distribution=scorer or False,
+    )
     names = [item.name for item in config.generator.conditioners]
     first = score_generation(conditioner=task.conditioners[0], picture=job.run.path / "samples.png", **common)
     scores = {"sampler": section.sampler.name, "conditioner": names[0], "background": background_source, **first}
     if len(names) > 1:
         scores["by_conditioner"] = {f"0:{names[0]}": first} | {
-            f"{index}:{name}": score_generation(conditioner=conditioner, picture=job.run.path / samples_picture(index, name),
-                                                **common)
-            for index, (name, conditioner) in enumerate(zip(names, task.conditioners)) if index > 0}
+            f"{index}:{name}": score_generation(
+                conditioner=conditioner, picture=job.run.path / samples_picture(index, name), **common
+            )
+            for index, (name, conditioner) in enumerate(zip(names, task.conditioners))
+            if index > 0
+        }
     return scores
 
 
@@ -451,12 +626,32 @@ def samples_picture(index: int, name: str) -> str:
 
 
 #: The generation scores shown in the run report (generation.json holds them all).
-SHOWN_SCORES = ("samples", "ssim", "background_ssim", "ceiling_ssim", "psnr", "background_psnr", "ceiling_psnr",
-                "contact_psnr", "background_contact_psnr", "ceiling_contact_psnr", "retrieval_contact_psnr",
-                "class_mean_contact_psnr", "ms_ssim", "background_ms_ssim", "lpips", "background_lpips", "clip_score",
-                "background_clip_score", "real_clip_score", "skipped")
-SAMPLES_CAPTION = ("One column per held-out sample: its condition when that is an image (top row), the generated "
-                   "tactile image, then the ground truth (bottom row).")
+SHOWN_SCORES = (
+    "samples",
+    "ssim",
+    "background_ssim",
+    "ceiling_ssim",
+    "psnr",
+    "background_psnr",
+    "ceiling_psnr",
+    "contact_psnr",
+    "background_contact_psnr",
+    "ceiling_contact_psnr",
+    "retrieval_contact_psnr",
+    "class_mean_contact_psnr",
+    "ms_ssim",
+    "background_ms_ssim",
+    "lpips",
+    "background_lpips",
+    "clip_score",
+    "background_clip_score",
+    "real_clip_score",
+    "skipped",
+)
+SAMPLES_CAPTION = (
+    "One column per held-out sample: its condition when that is an image (top row), the generated "
+    "tactile image, then the ground truth (bottom row)."
+)
 
 
 def run_generator_stage(job: StageJob) -> dict[str, Any]:
@@ -468,8 +663,10 @@ def run_generator_stage(job: StageJob) -> dict[str, Any]:
         parts = {}
         for key, scores in result["by_conditioner"].items():
             index, name = key.split(":", 1)
-            parts[f"from {name}"] = (shown_scores(scores, SHOWN_SCORES, metric_names)
-                                     | {"picture": samples_picture(int(index), name), "caption": SAMPLES_CAPTION})
+            parts[f"from {name}"] = shown_scores(scores, SHOWN_SCORES, metric_names) | {
+                "picture": samples_picture(int(index), name),
+                "caption": SAMPLES_CAPTION,
+            }
         return {**facts, "parts": parts}
     shown = shown_scores(result, SHOWN_SCORES, metric_names)
     return {**facts, **shown, **({"picture": "samples.png", "caption": SAMPLES_CAPTION} if "samples" in result else {})}
@@ -477,11 +674,20 @@ def run_generator_stage(job: StageJob) -> dict[str, Any]:
 
 @hookimpl
 def vqtouch_register_stages(register):
-    register("generator", run_generator_stage, section=GeneratorSection,
-             needs=("data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer", "generator.model",
-                    "generator.conditioners"),
-             uses=("generator.sampler", "metrics"), makes=("generator",),
-             demo={"train.steps": 60, "train.checkpoint_every": 60, "train.log_every": 10, "num_samples": 8,
-                   "steps": 10},
-             description="Train a generator over the tokenizer's codes, conditioned on a visual image, a tactile "
-                         "image, a label or text; then generate the held-out conditions and score them.")
+    register(
+        "generator",
+        run_generator_stage,
+        section=GeneratorSection,
+        needs=(
+            "data.dataset",
+            "tokenizer.autoencoder",
+            "tokenizer.quantizer",
+            "generator.model",
+            "generator.conditioners",
+        ),
+        uses=("generator.sampler", "metrics"),
+        makes=("generator",),
+        demo={"train.steps": 60, "train.checkpoint_every": 60, "train.log_every": 10, "num_samples": 8, "steps": 10},
+        description="Train a generator over the tokenizer's codes, conditioned on a visual image, a tactile "
+        "image, a label or text; then generate the held-out conditions and score them.",
+    )

@@ -41,21 +41,38 @@ from vqtouch.core import Assembly, ConfigError, PluginHost
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.plugins.evaluation.contact import dataset_background
 
-from .stage import (PRECISIONS, HeldOutConditions, baseline_pool, distribution_scorer, generate_held_out,
-                    held_out_conditions, score_images)
+from .stage import (
+    PRECISIONS,
+    HeldOutConditions,
+    baseline_pool,
+    distribution_scorer,
+    generate_held_out,
+    held_out_conditions,
+    score_images,
+)
 
 #: The knobs of a setting, in the order of the table's columns.
 KNOBS = ("sampler", "steps", "guidance", "precision")
 
 #: Quality columns: (key, label, higher is better).  ``contact_psnr`` falls back to ``psnr``
 #: without a background (no no-contact image, no contact region).
-QUALITIES = (("contact_psnr", "contact PSNR (dB)", True), ("fd_effnetlite0", "fd_effnetlite0", False),
-             ("classifier_accuracy", "classifier accuracy", True))
+QUALITIES = (
+    ("contact_psnr", "contact PSNR (dB)", True),
+    ("fd_effnetlite0", "fd_effnetlite0", False),
+    ("classifier_accuracy", "classifier accuracy", True),
+)
 
 
-def sweep_settings(*, steps: list[int], samplers: list[str], guidance: list[float], precisions: list[str],
-                   grid: bool = False, batches: list[int] | None = None,
-                   base: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+def sweep_settings(
+    *,
+    steps: list[int],
+    samplers: list[str],
+    guidance: list[float],
+    precisions: list[str],
+    grid: bool = False,
+    batches: list[int] | None = None,
+    base: dict[str, Any] | None = None,
+) -> list[dict[str, Any]]:
     """The settings to measure.  ``grid``: every combination.  Otherwise one knob at a time around
     the base (the first sampler, guidance, precision and batch, and the middle of ``steps``; or
     ``base``, e.g. a run's configured setting, each list then starting with its value): first every
@@ -95,8 +112,11 @@ def pareto_front(costs: list[float], qualities: list[float | None], higher_is_be
     the two (of identical points only the first).  Points without a quality (None, NaN) are on no
     front."""
     sign = 1.0 if higher_is_better else -1.0
-    usable = [i for i, quality in enumerate(qualities)
-              if quality is not None and not math.isnan(quality) and not math.isnan(costs[i])]
+    usable = [
+        i
+        for i, quality in enumerate(qualities)
+        if quality is not None and not math.isnan(quality) and not math.isnan(costs[i])
+    ]
     # Cheapest first, and at equal cost the best first: a point is on the front when it beats the
     # best quality of every point before it.
     order = sorted(usable, key=lambda i: (costs[i], -sign * qualities[i], i))
@@ -135,8 +155,9 @@ class TradeoffBench:
         if feature_size is not None:
             self.feature_size = feature_size
         metric = FdEffNetLite0(image_size=self.feature_size)
-        self.scorer = distribution_scorer(self.conditions, baseline_pool(self.train), [("fd_effnetlite0", metric)],
-                                          self.seed)
+        self.scorer = distribution_scorer(
+            self.conditions, baseline_pool(self.train), [("fd_effnetlite0", metric)], self.seed
+        )
 
     def sampler(self, name: str) -> Any:
         """The sampler plugin ``name`` (the registry's error lists the samplers there are)."""
@@ -145,10 +166,20 @@ class TradeoffBench:
     def generate(self, setting: dict[str, Any], conditions: HeldOutConditions | None = None) -> torch.Tensor:
         """The images of the held-out conditions (or ``conditions``) under ``setting``."""
         pipe = self.pipe
-        return generate_held_out(pipe.generator, pipe.conditioners[0], pipe.tokenizer, self.sampler(setting["sampler"]),
-                                 conditions or self.conditions, steps=setting["steps"], guidance=setting["guidance"],
-                                 truncation=pipe.settings["truncation"], seed=self.seed, device=pipe.device,
-                                 batch_size=setting.get("batch", self.batch_size), precision=setting["precision"])
+        return generate_held_out(
+            pipe.generator,
+            pipe.conditioners[0],
+            pipe.tokenizer,
+            self.sampler(setting["sampler"]),
+            conditions or self.conditions,
+            steps=setting["steps"],
+            guidance=setting["guidance"],
+            truncation=pipe.settings["truncation"],
+            seed=self.seed,
+            device=pipe.device,
+            batch_size=setting.get("batch", self.batch_size),
+            precision=setting["precision"],
+        )
 
     def timed(self, setting: dict[str, Any]) -> tuple[float, torch.Tensor]:
         """Seconds to generate (encode, sample, decode) the held-out conditions, and the images."""
@@ -162,8 +193,9 @@ class TradeoffBench:
         """One step on one batch for each sampler x precision x (guided or not) among ``settings``:
         lazy initialisation and first-call costs stay out of the timings."""
         rows = min(self.batch_size, len(self.conditions.indices))
-        first = HeldOutConditions(self.conditions.samples[:rows], self.conditions.indices[:rows],
-                                  self.conditions.truth[:rows], None)
+        first = HeldOutConditions(
+            self.conditions.samples[:rows], self.conditions.indices[:rows], self.conditions.truth[:rows], None
+        )
         seen = set()
         for setting in settings:
             key = (setting["sampler"], setting["precision"], setting["guidance"] != 1, setting.get("batch"))
@@ -182,9 +214,17 @@ def synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def load_tradeoff_bench(run: str | Path, host: PluginHost, *, n: int, step: int | str | None = None, seed: int | None = None,
-                        batch_size: int = 16, distribution: bool = True,
-                        feature_size: int | None = None) -> TradeoffBench:
+def load_tradeoff_bench(
+    run: str | Path,
+    host: PluginHost,
+    *,
+    n: int,
+    step: int | str | None = None,
+    seed: int | None = None,
+    batch_size: int = 16,
+    distribution: bool = True,
+    feature_size: int | None = None,
+) -> TradeoffBench:
     """The run's pipeline, its first ``n`` held-out conditions (the split of
     ``vqtouch evaluate generation``), SSIM and PSNR, the no-contact image (of the training split:
     :func:`~vqtouch.plugins.evaluation.contact.dataset_background`) and, with
@@ -210,16 +250,26 @@ def load_tradeoff_bench(run: str | Path, host: PluginHost, *, n: int, step: int 
     background_3HW, background_source = dataset_background(train, tuple(conditions.truth.shape[-2:]))
     background = None if background_3HW is None else background_3HW.to(conditions.truth).expand_as(conditions.truth)
     run_size = next((item.image_size for item in config.metrics if item.name == "fd_effnetlite0"), 224)
-    bench = TradeoffBench(pipe, where, conditions, metrics, background, seed, batch_size, train,
-                          feature_size if feature_size is not None else run_size,
-                          background_source=background_source)
+    bench = TradeoffBench(
+        pipe,
+        where,
+        conditions,
+        metrics,
+        background,
+        seed,
+        batch_size,
+        train,
+        feature_size if feature_size is not None else run_size,
+        background_source=background_source,
+    )
     if distribution:
         bench.fit_distribution()
     return bench
 
 
-def check_settings(bench: TradeoffBench, steps: list[int], samplers: list[str], guidance: list[float],
-                   precisions: list[str]) -> None:
+def check_settings(
+    bench: TradeoffBench, steps: list[int], samplers: list[str], guidance: list[float], precisions: list[str]
+) -> None:
     """One-line errors for values no setting can take, before anything is timed."""
     if not (steps and samplers and guidance and precisions):
         raise ConfigError("give at least one value of each of --steps, --samplers, --guidance and --precisions")
@@ -251,18 +301,34 @@ def measure(bench: TradeoffBench, settings: list[dict[str, Any]], rounds: int, l
             digests[index].add(hashlib.sha256(images.cpu().numpy().tobytes()).hexdigest())
             if round_index == 0:
                 scores[index] = bench.score(images)
-            shown = ", ".join(f"{key} {scores[index][key]:g}" for key in ("ssim", *(q[0] for q in QUALITIES))
-                              if isinstance(scores[index].get(key), float))
-            print(f"[round {round_index + 1}/{rounds}, setting {index + 1}/{len(settings)}] {setting_label(setting)}: "
-                  f"{count / elapsed:.2f} img/s; {shown}", file=log, flush=True)
+            shown = ", ".join(
+                f"{key} {scores[index][key]:g}"
+                for key in ("ssim", *(q[0] for q in QUALITIES))
+                if isinstance(scores[index].get(key), float)
+            )
+            print(
+                f"[round {round_index + 1}/{rounds}, setting {index + 1}/{len(settings)}] {setting_label(setting)}: "
+                f"{count / elapsed:.2f} img/s; {shown}",
+                file=log,
+                flush=True,
+            )
     reference = statistics.median(seconds[0]) / count
     rows = []
     for setting, times, score, digest in zip(settings, seconds, scores, digests):
         per_image = statistics.median(times) / count
-        rows.append({**setting, "label": setting_label(setting), "img_per_s": round(1 / per_image, 4),
-                     "seconds_per_image": round(per_image, 6), "cost": round(per_image / reference, 4),
-                     "seconds": [round(t, 4) for t in times], "reproducible": len(digest) == 1, **score,
-                     "pareto": []})
+        rows.append(
+            {
+                **setting,
+                "label": setting_label(setting),
+                "img_per_s": round(1 / per_image, 4),
+                "seconds_per_image": round(per_image, 6),
+                "cost": round(per_image / reference, 4),
+                "seconds": [round(t, 4) for t in times],
+                "reproducible": len(digest) == 1,
+                **score,
+                "pareto": [],
+            }
+        )
     for key, _, higher in QUALITIES:
         key = quality_key(rows, key)
         for index in pareto_front([row["seconds_per_image"] for row in rows], [row.get(key) for row in rows], higher):
@@ -283,20 +349,29 @@ def _cell(value: Any, digits: int) -> str:
 
 def markdown_table(rows: list[dict[str, Any]], header: str, reference: dict[str, Any]) -> str:
     """``tradeoff.md``: the header line, the table (one row per setting) and the reference scores."""
-    lines = [header, "",
-             "| sampler | steps | guidance | precision | img/s | ms/img | cost | SSIM | PSNR dB | contact PSNR dB "
-             "| fd_effnetlite0 | classifier acc | Pareto front |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        header,
+        "",
+        "| sampler | steps | guidance | precision | img/s | ms/img | cost | SSIM | PSNR dB | contact PSNR dB "
+        "| fd_effnetlite0 | classifier acc | Pareto front |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for row in rows:
-        lines.append(f"| {row['sampler']} | {row['steps']} | {row['guidance']:g} | {row['precision']} | "
-                     f"{row['img_per_s']:.2f} | {row['seconds_per_image'] * 1000:.1f} | {row['cost']:.2f}x | "
-                     f"{_cell(row.get('ssim'), 4)} | {_cell(row.get('psnr'), 2)} | "
-                     f"{_cell(row.get('contact_psnr'), 2)} | "
-                     f"{_cell(row.get('fd_effnetlite0'), 2)} | {_cell(row.get('classifier_accuracy'), 3)} | "
-                     f"{', '.join(row.get('pareto', [])) or '–'} |")
+        lines.append(
+            f"| {row['sampler']} | {row['steps']} | {row['guidance']:g} | {row['precision']} | "
+            f"{row['img_per_s']:.2f} | {row['seconds_per_image'] * 1000:.1f} | {row['cost']:.2f}x | "
+            f"{_cell(row.get('ssim'), 4)} | {_cell(row.get('psnr'), 2)} | "
+            f"{_cell(row.get('contact_psnr'), 2)} | "
+            f"{_cell(row.get('fd_effnetlite0'), 2)} | {_cell(row.get('classifier_accuracy'), 3)} | "
+            f"{', '.join(row.get('pareto', [])) or '–'} |"
+        )
     if reference:
-        lines += ["", "References on the same conditions: " + "; ".join(f"{key} {value}" for key, value in
-                                                                        reference.items()) + "."]
+        lines += [
+            "",
+            "References on the same conditions: "
+            + "; ".join(f"{key} {value}" for key, value in reference.items())
+            + ".",
+        ]
     return "\n".join(lines) + "\n"
 
 
@@ -309,25 +384,41 @@ def plot_pareto(rows: list[dict[str, Any]], path: Path, title: str, reference: d
     from matplotlib.ticker import NullFormatter
 
     panels = [(quality_key(rows, key), label, higher) for key, label, higher in QUALITIES]
-    panels = [(key, "PSNR (dB)" if key == "psnr" else label, higher) for key, label, higher in panels
-              if any(isinstance(row.get(key), (int, float)) for row in rows)]
+    panels = [
+        (key, "PSNR (dB)" if key == "psnr" else label, higher)
+        for key, label, higher in panels
+        if any(isinstance(row.get(key), (int, float)) for row in rows)
+    ]
     figure = Figure(figsize=(5.5 * len(panels), 4.5), layout="constrained")
     FigureCanvasAgg(figure)
     costs = [row["seconds_per_image"] for row in rows]
     for number, (key, label, higher) in enumerate(panels):
         axes = figure.add_subplot(1, len(panels), number + 1)
-        points = [(cost, row[key], row["label"]) for cost, row in zip(costs, rows)
-                  if isinstance(row.get(key), (int, float))]
+        points = [
+            (cost, row[key], row["label"]) for cost, row in zip(costs, rows) if isinstance(row.get(key), (int, float))
+        ]
         axes.scatter([p[0] for p in points], [p[1] for p in points], s=18, color="tab:blue", zorder=3)
         for x, y, text in points:
             axes.annotate(text, (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7)
         front = pareto_front(costs, [row.get(key) for row in rows], higher)
-        axes.plot([costs[i] for i in front], [rows[i][key] for i in front], color="tab:red", marker="o",
-                  linewidth=1.5, label="Pareto front", zorder=2)
+        axes.plot(
+            [costs[i] for i in front],
+            [rows[i][key] for i in front],
+            color="tab:red",
+            marker="o",
+            linewidth=1.5,
+            label="Pareto front",
+            zorder=2,
+        )
         for name, style in ((f"real_{key}", "--"), (f"background_{key}", ":")):
             if isinstance(reference.get(name), (int, float)):
-                axes.axhline(reference[name], linestyle=style, color="grey", linewidth=1,
-                             label="real held-out images" if name.startswith("real_") else "no-contact image")
+                axes.axhline(
+                    reference[name],
+                    linestyle=style,
+                    color="grey",
+                    linewidth=1,
+                    label="real held-out images" if name.startswith("real_") else "no-contact image",
+                )
         axes.set_xscale("log")
         axes.xaxis.set_minor_formatter(NullFormatter())  # labelled minor ticks overlap on a short log axis
         axes.set_xlabel("seconds per image (log scale)")
@@ -343,47 +434,86 @@ def tradeoff_command(args: argparse.Namespace) -> int:
     host = args.host
     if args.threads:
         torch.set_num_threads(args.threads)
-    bench = load_tradeoff_bench(args.run, host, n=args.n, step=args.step, seed=args.seed, batch_size=args.batch_size,
-                                distribution=False, feature_size=args.feature_size)
+    bench = load_tradeoff_bench(
+        args.run,
+        host,
+        n=args.n,
+        step=args.step,
+        seed=args.seed,
+        batch_size=args.batch_size,
+        distribution=False,
+        feature_size=args.feature_size,
+    )
     check_settings(bench, args.steps, args.samplers, args.guidance, args.precisions)
     if args.distribution:
         bench.fit_distribution()
-    settings = sweep_settings(steps=args.steps, samplers=args.samplers, guidance=args.guidance,
-                              precisions=args.precisions, grid=args.grid)
+    settings = sweep_settings(
+        steps=args.steps, samplers=args.samplers, guidance=args.guidance, precisions=args.precisions, grid=args.grid
+    )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     count = len(bench.conditions.indices)
-    print(f"{len(settings)} settings x {args.rounds} rounds on {count} held-out conditions of {bench.run}",
-          file=sys.stderr, flush=True)
+    print(
+        f"{len(settings)} settings x {args.rounds} rounds on {count} held-out conditions of {bench.run}",
+        file=sys.stderr,
+        flush=True,
+    )
     rows = measure(bench, settings, args.rounds)
     reference: dict[str, Any] = {}
     if bench.scorer is not None:
         real = bench.scorer.real_scores()
-        reference |= {"real_classifier_accuracy": real.get("real_classifier_accuracy"),
-                      "classifier_train_images": real.get("classifier_train_images"),
-                      "classifier_skipped": real.get("classifier_skipped")}
+        reference |= {
+            "real_classifier_accuracy": real.get("real_classifier_accuracy"),
+            "classifier_train_images": real.get("classifier_train_images"),
+            "classifier_skipped": real.get("classifier_skipped"),
+        }
     if bench.background is not None:
         background = bench.score(bench.background, "background_")
-        reference |= {key: background.get(key) for key in ("background_ssim", "background_psnr",
-                                                           "background_contact_psnr", "background_fd_effnetlite0",
-                                                           "background_classifier_accuracy")}
+        reference |= {
+            key: background.get(key)
+            for key in (
+                "background_ssim",
+                "background_psnr",
+                "background_contact_psnr",
+                "background_fd_effnetlite0",
+                "background_classifier_accuracy",
+            )
+        }
     reference = {key: value for key, value in reference.items() if value is not None}
     device = str(bench.pipe.device)
-    header = (f"Generator trade-off: run `{bench.run}` ({bench.pipe.checkpoint.name}); n = {count} held-out "
-              f"conditions; threads {torch.get_num_threads()}; rounds {args.rounds} (interleaved, median); device "
-              f"{device}; batch {args.batch_size}; seed {bench.seed}; "
-              f"truncation {bench.pipe.settings['truncation']:g}; "
-              f"features {bench.feature_size} px; cost = time per image / the first row's.")
-    result = {"run": str(bench.run), "checkpoint": str(bench.pipe.checkpoint), "n": count, "rounds": args.rounds,
-              "threads": torch.get_num_threads(), "device": device, "batch_size": args.batch_size, "seed": bench.seed,
-              "truncation": bench.pipe.settings["truncation"], "feature_size": bench.feature_size,
-              "distribution": bool(args.distribution), "grid": bool(args.grid), "background": bench.background_source,
-              "reference": reference, "settings": rows}
+    header = (
+        f"Generator trade-off: run `{bench.run}` ({bench.pipe.checkpoint.name}); n = {count} held-out "
+        f"conditions; threads {torch.get_num_threads()}; rounds {args.rounds} (interleaved, median); device "
+        f"{device}; batch {args.batch_size}; seed {bench.seed}; "
+        f"truncation {bench.pipe.settings['truncation']:g}; "
+        f"features {bench.feature_size} px; cost = time per image / the first row's."
+    )
+    result = {
+        "run": str(bench.run),
+        "checkpoint": str(bench.pipe.checkpoint),
+        "n": count,
+        "rounds": args.rounds,
+        "threads": torch.get_num_threads(),
+        "device": device,
+        "batch_size": args.batch_size,
+        "seed": bench.seed,
+        "truncation": bench.pipe.settings["truncation"],
+        "feature_size": bench.feature_size,
+        "distribution": bool(args.distribution),
+        "grid": bool(args.grid),
+        "background": bench.background_source,
+        "reference": reference,
+        "settings": rows,
+    }
     (out / "tradeoff.json").write_text(json.dumps(result, indent=2) + "\n")
     table = markdown_table(rows, header, reference)
     (out / "tradeoff.md").write_text(table)
-    plot_pareto(rows, out / "pareto.png", f"{bench.run.name}: n = {count}, {device}, {torch.get_num_threads()} threads",
-                reference)
+    plot_pareto(
+        rows,
+        out / "pareto.png",
+        f"{bench.run.name}: n = {count}, {device}, {torch.get_num_threads()} threads",
+        reference,
+    )
     print(table)
     print(f"-> {out} (tradeoff.json, tradeoff.md, pareto.png)")
     return 0

@@ -32,26 +32,39 @@ class GeneratorTrainConfig(TrainConfig):
     steps: int = Field(2000, ge=0, le=99_999_999, strict=True, description="Optimisation steps.")
     learning_rate: float = Field(4.5e-4, gt=0, le=10, strict=True, description="Peak learning rate.")
     weight_decay: float = Field(4.5e-2, ge=0, le=1, strict=True, description="Decoupled weight decay (AdamW).")
-    grad_clip: float | None = Field(0.5, gt=0, strict=True,
-                                    description="Clip the gradient norm to this value; null disables.")
+    grad_clip: float | None = Field(
+        0.5, gt=0, strict=True, description="Clip the gradient norm to this value; null disables."
+    )
     betas: tuple[float, float] = Field((0.9, 0.96), description="Adam betas, each in [0, 1).")
-    condition_dropout: float = Field(0.1, ge=0, lt=1, strict=True,
-                                     description="Share of training rows whose condition is replaced by the learned "
-                                                 "null condition (needed for classifier-free guidance).")
+    condition_dropout: float = Field(
+        0.1,
+        ge=0,
+        lt=1,
+        strict=True,
+        description="Share of training rows whose condition is replaced by the learned "
+        "null condition (needed for classifier-free guidance).",
+    )
     canonical_background: bool = Field(
-        True, description="Train on codes whose cells away from the contact are the no-contact image's own codes "
-                          "(vqtouch.plugins.generator.codes.canonical_background): the tokenizer gives identical "
-                          "no-contact patches different near-synonymous codes, which a generator would otherwise "
-                          "have to guess.  Needs the dataset's no-contact background; false: the raw codes.")
+        True,
+        description="Train on codes whose cells away from the contact are the no-contact image's own codes "
+        "(vqtouch.plugins.generator.codes.canonical_background): the tokenizer gives identical "
+        "no-contact patches different near-synonymous codes, which a generator would otherwise "
+        "have to guess.  Needs the dataset's no-contact background; false: the raw codes.",
+    )
     conditioner_weights: list[float] | None = Field(
-        None, min_length=1, description="Share of the training steps each conditioner gets, in the order of "
-                                        "generator.conditioners (any positive numbers; they are normalised), e.g. "
-                                        "[2, 1, 1, 1] gives the first twice the steps of each other; null: equal "
-                                        "shares.  Conditions that fix less of the image (a label) learn slower.")
-    code_cache: bool = Field(True, description="Reuse the tokenizer's codes of the dataset from the user cache "
-                                               "folder when they were computed before (see "
-                                               "vqtouch.plugins.generator.codes).")
-
+        None,
+        min_length=1,
+        description="Share of the training steps each conditioner gets, in the order of "
+        "generator.conditioners (any positive numbers; they are normalised), e.g. "
+        "[2, 1, 1, 1] gives the first twice the steps of each other; null: equal "
+        "shares.  Conditions that fix less of the image (a label) learn slower.",
+    )
+    code_cache: bool = Field(
+        True,
+        description="Reuse the tokenizer's codes of the dataset from the user cache "
+        "folder when they were computed before (see "
+        "vqtouch.plugins.generator.codes).",
+    )
 
     @field_validator("conditioner_weights")
     @classmethod
@@ -68,8 +81,14 @@ class CodesDataset(TactileDataset):
     tensor, strings as a list); a sample is ``{"codes": codes[i], key: value, ...}``.
     """
 
-    def __init__(self, codes_NHW: torch.Tensor, entries: dict[str, Any], class_names: Sequence[str] = (),
-                 groups: Sequence[str] | None = None, split_unit: str = TactileDataset.split_unit) -> None:
+    def __init__(
+        self,
+        codes_NHW: torch.Tensor,
+        entries: dict[str, Any],
+        class_names: Sequence[str] = (),
+        groups: Sequence[str] | None = None,
+        split_unit: str = TactileDataset.split_unit,
+    ) -> None:
         self.codes_NHW = codes_NHW
         self.entries = entries
         self.class_names = list(class_names)
@@ -84,20 +103,28 @@ class CodesDataset(TactileDataset):
             raise ValueError(f"{len(self.groups)} split groups for {len(codes_NHW)} code grids")
 
     @classmethod
-    def collect(cls, codes_NHW: torch.Tensor, dataset: Any, keys: Sequence[str], desc: str = "reading conditions"
-                ) -> CodesDataset:
+    def collect(
+        cls, codes_NHW: torch.Tensor, dataset: Any, keys: Sequence[str], desc: str = "reading conditions"
+    ) -> CodesDataset:
         """Read ``keys`` of every sample of ``dataset`` (one pass) next to its codes."""
         values: dict[str, list[Any]] = {key: [] for key in keys}
         for index in progress(range(len(dataset)), desc=desc, unit="sample"):
             sample = dataset[index]
             for key in keys:
                 if key not in sample:
-                    raise KeyError(f"the dataset's samples have no {key!r} (keys: {', '.join(sorted(sample))}); a "
-                                   f"conditioner reads it: use a dataset that provides it")
+                    raise KeyError(
+                        f"the dataset's samples have no {key!r} (keys: {', '.join(sorted(sample))}); a "
+                        f"conditioner reads it: use a dataset that provides it"
+                    )
                 values[key].append(sample[key])
         entries = {key: _stack(items) for key, items in values.items()}
-        return cls(codes_NHW, entries, getattr(dataset, "class_names", []), dataset_groups(dataset),
-                   getattr(dataset, "split_unit", TactileDataset.split_unit))
+        return cls(
+            codes_NHW,
+            entries,
+            getattr(dataset, "class_names", []),
+            dataset_groups(dataset),
+            getattr(dataset, "split_unit", TactileDataset.split_unit),
+        )
 
     def split_groups(self) -> list[str] | None:
         """The source dataset's split groups (None: every sample is its own)."""
@@ -121,13 +148,21 @@ def _stack(items: list[Any]) -> Any:
 class GeneratorTask:
     """The generator objective as a :class:`vqtouch.core.training.TrainingTask` (see the module docstring)."""
 
-    def __init__(self, generator: Generator, conditioners: Sequence[Conditioner], condition_dropout: float,
-                 seed: int, conditioner_weights: Sequence[float] | None = None) -> None:
+    def __init__(
+        self,
+        generator: Generator,
+        conditioners: Sequence[Conditioner],
+        condition_dropout: float,
+        seed: int,
+        conditioner_weights: Sequence[float] | None = None,
+    ) -> None:
         if not conditioners:
             raise ValueError("the generator needs at least one conditioner (generator.conditioners)")
         if conditioner_weights is not None and len(conditioner_weights) != len(conditioners):
-            raise ValueError(f"{len(conditioner_weights)} conditioner weights for {len(conditioners)} conditioners; "
-                             "give generator.train.conditioner_weights one weight per conditioner")
+            raise ValueError(
+                f"{len(conditioner_weights)} conditioner weights for {len(conditioners)} conditioners; "
+                "give generator.train.conditioner_weights one weight per conditioner"
+            )
         self.weights = None if conditioner_weights is None else torch.tensor(conditioner_weights, dtype=torch.float64)
         self.generator = generator
         self.conditioners = list(conditioners)

@@ -26,38 +26,55 @@ from vqtouch.core import BuildContext, ConditionTokens, ConfigError, Generator, 
 from vqtouch.core.image_size import ImageSize, image_hw
 
 from .denoiser import DiffusionTransformer
-from .diffusion import (MaskReplaceSchedule, TimestepSampler, guided_log_x0, log_predict_x0, masked_ce_loss, truncate,
-                        vb_loss)
+from .diffusion import (
+    MaskReplaceSchedule,
+    TimestepSampler,
+    guided_log_x0,
+    log_predict_x0,
+    masked_ce_loss,
+    truncate,
+    vb_loss,
+)
 
 
 class VQDiffusionConfig(PluginConfig):
     """Options of the ``vq_diffusion`` generator."""
 
     name: Literal["vq_diffusion"] = "vq_diffusion"
-    num_steps: int = Field(100, ge=2, le=1000, strict=True,
-                           description="Diffusion steps T of the forward process (VQ-Diffusion uses 100).")
+    num_steps: int = Field(
+        100, ge=2, le=1000, strict=True, description="Diffusion steps T of the forward process (VQ-Diffusion uses 100)."
+    )
     att_1: float = Field(0.99999, gt=0, le=1, description="alpha_bar at t = 0: probability a token is still its x0.")
     att_T: float = Field(0.000009, ge=0, le=1, description="alpha_bar at t = T-1.")
     ctt_1: float = Field(0.000009, ge=0, lt=1, description="gamma_bar at t = 0: probability a token is MASK.")
-    ctt_T: float = Field(0.99999, ge=0, le=1,
-                         description="gamma_bar at t = T-1.  With the defaults (VQ-Diffusion's released values) "
-                                     "the replace noise 1 - alpha_bar - gamma_bar is 1e-6: in effect masking only; "
-                                     "e.g. att_T=0, ctt_T=0.9 gives replacement noise of 0.1 at the last step.")
+    ctt_T: float = Field(
+        0.99999,
+        ge=0,
+        le=1,
+        description="gamma_bar at t = T-1.  With the defaults (VQ-Diffusion's released values) "
+        "the replace noise 1 - alpha_bar - gamma_bar is 1e-6: in effect masking only; "
+        "e.g. att_T=0, ctt_T=0.9 gives replacement noise of 0.1 at the last step.",
+    )
     depth: int = Field(4, ge=1, le=48, strict=True, description="Transformer blocks.")
     width: int = Field(128, ge=8, le=4096, strict=True, description="Transformer width (divisible by heads).")
     heads: int = Field(4, ge=1, le=64, strict=True, description="Attention heads.")
     mlp_ratio: float = Field(4.0, gt=0, le=16, description="MLP hidden width as a multiple of the width.")
     dropout: float = Field(0.0, ge=0, lt=1, description="Dropout in the transformer during training.")
     loss: Literal["vb", "masked_ce", "masked_ce_mean"] = Field(
-        "masked_ce", description="'masked_ce': the absorbing-state (MDLM/MD4) weighted cross-entropy on masked "
-                                 "tokens (it scored better than 'vb' on every measure at equal steps "
-                                 "on the embedded data, see docs/results.md); 'masked_ce_mean': the mean "
-                                 "cross-entropy of the masked tokens, every token alike whatever t (MaskGIT's "
-                                 "objective, see docs/generation.md); 'vb': VQ-Diffusion's variational "
-                                 "bound plus the auxiliary x0 term.")
+        "masked_ce",
+        description="'masked_ce': the absorbing-state (MDLM/MD4) weighted cross-entropy on masked "
+        "tokens (it scored better than 'vb' on every measure at equal steps "
+        "on the embedded data, see docs/results.md); 'masked_ce_mean': the mean "
+        "cross-entropy of the masked tokens, every token alike whatever t (MaskGIT's "
+        "objective, see docs/generation.md); 'vb': VQ-Diffusion's variational "
+        "bound plus the auxiliary x0 term.",
+    )
     aux_weight: float = Field(1e-3, ge=0, le=10, description="Weight of the auxiliary x0 term of the 'vb' loss.")
-    importance_sampling: bool = Field(True, description="Draw training steps t by importance (uniform until every "
-                                                        "t was seen 10 times), as VQ-Diffusion does; else uniformly.")
+    importance_sampling: bool = Field(
+        True,
+        description="Draw training steps t by importance (uniform until every "
+        "t was seen 10 times), as VQ-Diffusion does; else uniformly.",
+    )
 
     @model_validator(mode="after")
     def _heads_divide_width(self) -> VQDiffusionConfig:
@@ -76,13 +93,22 @@ class VQDiffusion(Generator):
         self.num_codes = codebook_size
         self.grid_hw = image_hw(code_grid)
         try:
-            self.schedule = MaskReplaceSchedule(codebook_size, config.num_steps, config.att_1, config.att_T,
-                                                config.ctt_1, config.ctt_T)
+            self.schedule = MaskReplaceSchedule(
+                codebook_size, config.num_steps, config.att_1, config.att_T, config.ctt_1, config.ctt_T
+            )
         except ValueError as exc:
             raise ConfigError(f"generator 'vq_diffusion': {exc}") from None
-        self.network = DiffusionTransformer(codebook_size, config.num_steps, self.grid_hw, cond_dim, depth=config.depth,
-                                            width=config.width, heads=config.heads, mlp_ratio=config.mlp_ratio,
-                                            dropout=config.dropout)
+        self.network = DiffusionTransformer(
+            codebook_size,
+            config.num_steps,
+            self.grid_hw,
+            cond_dim,
+            depth=config.depth,
+            width=config.width,
+            heads=config.heads,
+            mlp_ratio=config.mlp_ratio,
+            dropout=config.dropout,
+        )
         self.timesteps = TimestepSampler(config.num_steps)
 
     @property
@@ -97,12 +123,15 @@ class VQDiffusion(Generator):
 
     def _flatten(self, codes_BHW: torch.Tensor) -> torch.Tensor:
         if codes_BHW.shape[1:] != self.grid_hw:
-            raise ValueError(f"vq_diffusion was built for {self.grid_hw[0]}x{self.grid_hw[1]} code grids; got "
-                             f"{tuple(codes_BHW.shape[1:])} (a tokenizer with another image size or downsampling)")
+            raise ValueError(
+                f"vq_diffusion was built for {self.grid_hw[0]}x{self.grid_hw[1]} code grids; got "
+                f"{tuple(codes_BHW.shape[1:])} (a tokenizer with another image size or downsampling)"
+            )
         return codes_BHW.reshape(len(codes_BHW), -1).long()
 
-    def training_loss(self, codes_BHW: torch.Tensor, condition: ConditionTokens,
-                      generator: torch.Generator | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    def training_loss(
+        self, codes_BHW: torch.Tensor, condition: ConditionTokens, generator: torch.Generator | None = None
+    ) -> tuple[torch.Tensor, dict[str, float]]:
         """The configured loss of one batch, averaged over the batch's tokens (VQ-Diffusion's scale).
 
         In training mode t is importance-sampled (when configured) and the sampler learns from
@@ -120,12 +149,25 @@ class VQDiffusion(Generator):
         logits_BKL = self.network(codes_t_BL, t_B, condition=condition.tokens_BND, condition_grid=condition.grid_BDhw)
         masked = float((codes_t_BL == self.schedule.mask_index).float().mean())
         if self.config.loss == "vb":
-            terms = vb_loss(log_predict_x0(logits_BKL), codes_BL, codes_t_BL, t_B, self.schedule,
-                            aux_weight=self.config.aux_weight, p_t_B=p_t_B)
+            terms = vb_loss(
+                log_predict_x0(logits_BKL),
+                codes_BL,
+                codes_t_BL,
+                t_B,
+                self.schedule,
+                aux_weight=self.config.aux_weight,
+                p_t_B=p_t_B,
+            )
             loss_B, lt_B = terms.loss_B, terms.lt_B
         else:
-            lt_B = masked_ce_loss(logits_BKL, codes_BL, codes_t_BL, t_B, self.schedule,
-                                  weighting="mean" if self.config.loss == "masked_ce_mean" else "elbo")
+            lt_B = masked_ce_loss(
+                logits_BKL,
+                codes_BL,
+                codes_t_BL,
+                t_B,
+                self.schedule,
+                weighting="mean" if self.config.loss == "masked_ce_mean" else "elbo",
+            )
             loss_B = lt_B / p_t_B
         if self.training:
             self.timesteps.update(t_B, lt_B)
@@ -136,13 +178,22 @@ class VQDiffusion(Generator):
     @torch.no_grad()
     def log_x0(self, codes_t_BL: torch.Tensor, t_B: torch.Tensor, condition: ConditionTokens) -> torch.Tensor:
         """log p(x0 | x_t, condition) (B, K+1, L) in fp32, without guidance or truncation."""
-        return log_predict_x0(self.network(codes_t_BL, t_B, condition=condition.tokens_BND,
-                                           condition_grid=condition.grid_BDhw))
+        return log_predict_x0(
+            self.network(codes_t_BL, t_B, condition=condition.tokens_BND, condition_grid=condition.grid_BDhw)
+        )
 
     @torch.no_grad()
-    def sample(self, condition: ConditionTokens, sampler: Sampler, *, steps: int, null: ConditionTokens | None = None,
-               guidance: float = 1.0, truncation: float = 1.0,
-               generators: list[torch.Generator] | None = None) -> torch.Tensor:
+    def sample(
+        self,
+        condition: ConditionTokens,
+        sampler: Sampler,
+        *,
+        steps: int,
+        null: ConditionTokens | None = None,
+        guidance: float = 1.0,
+        truncation: float = 1.0,
+        generators: list[torch.Generator] | None = None,
+    ) -> torch.Tensor:
         """Code grids (B, H, W) for a batch of conditions (see :meth:`vqtouch.core.Generator.sample`)."""
         batch = condition.tokens_BND.shape[0]
         guided = guidance != 1.0
@@ -180,15 +231,21 @@ class VQDiffusion(Generator):
 def build_vq_diffusion(config: VQDiffusionConfig, context: BuildContext) -> VQDiffusion:
     """Factory: the codebook size and the code grid come from the experiment's tokenizer (the context)."""
     if context.codebook_size < 2 or min(image_hw(context.code_grid)) < 1:
-        raise ConfigError("generator 'vq_diffusion' needs the tokenizer's codebook size and code grid "
-                          f"(the build context has codebook_size={context.codebook_size}, "
-                          f"code_grid={context.code_grid}); build it after the tokenizer")
+        raise ConfigError(
+            "generator 'vq_diffusion' needs the tokenizer's codebook size and code grid "
+            f"(the build context has codebook_size={context.codebook_size}, "
+            f"code_grid={context.code_grid}); build it after the tokenizer"
+        )
     return VQDiffusion(config, context.codebook_size, context.code_grid, context.cond_dim)
 
 
 @hookimpl
 def vqtouch_register_generators(register):
-    register("vq_diffusion", build_vq_diffusion, VQDiffusionConfig,
-             demo={"depth": 2, "width": 64},
-             description="VQ-Diffusion style discrete diffusion over the code grid (mask-and-replace, transformer "
-                         "with cross-attention to the condition).")
+    register(
+        "vq_diffusion",
+        build_vq_diffusion,
+        VQDiffusionConfig,
+        demo={"depth": 2, "width": 64},
+        description="VQ-Diffusion style discrete diffusion over the code grid (mask-and-replace, transformer "
+        "with cross-attention to the condition).",
+    )

@@ -56,8 +56,10 @@ def bundle_folder(name: str, root: Path | None = None) -> Path:
     root = root or BUNDLES
     names = bundle_names(root)
     if name not in names:
-        raise ConfigError(f"no bundled checkpoints named {name!r} in {root}; bundled: {', '.join(names) or 'none'} "
-                          "(make one with `vqtouch pretrained export --run GENERATOR_RUN --name NAME`)")
+        raise ConfigError(
+            f"no bundled checkpoints named {name!r} in {root}; bundled: {', '.join(names) or 'none'} "
+            "(make one with `vqtouch pretrained export --run GENERATOR_RUN --name NAME`)"
+        )
     return root / name
 
 
@@ -70,8 +72,10 @@ def half_precision_copy(module: nn.Module, where: str) -> nn.Module:
             continue
         largest = parameter.detach().abs().max().item() if parameter.numel() else 0.0
         if not largest < FP16_MAX:
-            raise ConfigError(f"{where}: parameter {name!r} reaches {largest:.3g}, beyond float16's {FP16_MAX:g}; "
-                              "export with --precision fp32")
+            raise ConfigError(
+                f"{where}: parameter {name!r} reaches {largest:.3g}, beyond float16's {FP16_MAX:g}; "
+                "export with --precision fp32"
+            )
         parameter.data = parameter.data.half()
     return copied
 
@@ -86,8 +90,15 @@ def _provenance(run: RunDir) -> dict[str, str]:
     return {COMMAND_KEY: command, RUN_CONFIG_KEY: (run.path / "config.json").read_text()}
 
 
-def export_bundle(generator_run: str | Path, name: str, host: PluginHost, *, root: Path | None = None,
-                  precision: str = "fp16", overwrite: bool = False) -> Path:
+def export_bundle(
+    generator_run: str | Path,
+    name: str,
+    host: PluginHost,
+    *,
+    root: Path | None = None,
+    precision: str = "fp16",
+    overwrite: bool = False,
+) -> Path:
     """Write the newest checkpoint of ``generator_run`` (its generator, conditioners and the tokenizer
     it was trained on) as bundle ``name`` under ``root``; returns the bundle's folder."""
     from vqtouch.plugins.generator import generator_tokenizer, load_pipeline
@@ -103,7 +114,11 @@ def export_bundle(generator_run: str | Path, name: str, host: PluginHost, *, roo
     run = RunDir.open(generator_run)
     section = run.load_config(host).generator
     source = generator_tokenizer(run, section)
-    if isinstance(source, Path) and source.parent.name == "checkpoints" and (source.parent.parent / "config.json").is_file():
+    if (
+        isinstance(source, Path)
+        and source.parent.name == "checkpoints"
+        and (source.parent.parent / "config.json").is_file()
+    ):
         source = RunDir.open(source.parent.parent)  # a step folder of a run: that run's provenance
     generator_headers = _provenance(run)
     if isinstance(source, RunDir):
@@ -112,14 +127,20 @@ def export_bundle(generator_run: str | Path, name: str, host: PluginHost, *, roo
         # A tokenizer checkpoint folder (an adapted tokenizer, or an earlier bundle's tokenizer): keep the
         # provenance its own headers record, else the generator run's.
         recorded = read_metadata(source / "autoencoder.safetensors")
-        tokenizer_headers = {key: recorded[key] for key in (COMMAND_KEY, RUN_CONFIG_KEY) if key in recorded} \
-            or generator_headers
+        tokenizer_headers = {
+            key: recorded[key] for key in (COMMAND_KEY, RUN_CONFIG_KEY) if key in recorded
+        } or generator_headers
 
     def store(module: nn.Module, path: Path, headers: dict[str, str], keep_fp32: bool = False) -> None:
         half = precision == "fp16" and not keep_fp32
         stored = half_precision_copy(module, str(path)) if half else module
-        save(stored, path, step=getattr(module, "vqtouch_step", 0), host=host,
-             metadata={**headers, STORED_KEY: "float16 parameters" if half else "float32"})
+        save(
+            stored,
+            path,
+            step=getattr(module, "vqtouch_step", 0),
+            host=host,
+            metadata={**headers, STORED_KEY: "float16 parameters" if half else "float32"},
+        )
 
     (folder / TOKENIZER).mkdir(parents=True, exist_ok=True)
     (folder / GENERATOR).mkdir(parents=True, exist_ok=True)
@@ -163,19 +184,34 @@ def describe_bundle(folder: Path) -> dict[str, Any]:
     generator = read_metadata(folder / GENERATOR / "generator.safetensors")
     tokenizer = read_metadata(folder / TOKENIZER / "autoencoder.safetensors")
     files = sorted(folder.rglob("*.safetensors"))
-    conditioners = [json.loads(read_metadata(path)["vqtouch.config"])["name"]
-                    for path in sorted((folder / GENERATOR).glob("conditioner_*.safetensors"),
-                                       key=lambda p: int(p.stem.split("_")[1]))]
-    return {"name": folder.name, "tokenizer_step": int(tokenizer["vqtouch.step"]),
-            "generator_step": int(generator["vqtouch.step"]),
-            "tokenizer": json.loads(tokenizer["vqtouch.config"])["name"], "conditioners": conditioners,
-            "tokenizer_command": tokenizer.get(COMMAND_KEY, "?"), "generator_command": generator.get(COMMAND_KEY, "?"),
-            "stored_as": generator.get(STORED_KEY, "?"), "files": len(files),
-            "megabytes": round(sum(path.stat().st_size for path in files) / 1e6, 2)}
+    conditioners = [
+        json.loads(read_metadata(path)["vqtouch.config"])["name"]
+        for path in sorted(
+            (folder / GENERATOR).glob("conditioner_*.safetensors"), key=lambda p: int(p.stem.split("_")[1])
+        )
+    ]
+    return {
+        "name": folder.name,
+        "tokenizer_step": int(tokenizer["vqtouch.step"]),
+        "generator_step": int(generator["vqtouch.step"]),
+        "tokenizer": json.loads(tokenizer["vqtouch.config"])["name"],
+        "conditioners": conditioners,
+        "tokenizer_command": tokenizer.get(COMMAND_KEY, "?"),
+        "generator_command": generator.get(COMMAND_KEY, "?"),
+        "stored_as": generator.get(STORED_KEY, "?"),
+        "files": len(files),
+        "megabytes": round(sum(path.stat().st_size for path in files) / 1e6, 2),
+    }
 
 
-def load_bundle(name: str, host: PluginHost, *, device: str | torch.device = "cpu", root: Path | None = None,
-                tokenizer_only: bool = False) -> Bundle:
+def load_bundle(
+    name: str,
+    host: PluginHost,
+    *,
+    device: str | torch.device = "cpu",
+    root: Path | None = None,
+    tokenizer_only: bool = False,
+) -> Bundle:
     """Load bundle ``name`` strictly (every tensor by name and shape) onto ``device``, in eval mode;
     ``tokenizer_only``: the tokenizer alone (no generator, no conditioners built)."""
 
@@ -189,8 +225,15 @@ def load_bundle(name: str, host: PluginHost, *, device: str | torch.device = "cp
         conditioners = [load(path, host=host, map_location=device).eval() for path in paths]
     headers = read_metadata(folder / GENERATOR / "generator.safetensors")
     tokenizer_headers = read_metadata(folder / TOKENIZER / "autoencoder.safetensors")
-    return Bundle(name=name, folder=folder, tokenizer=Tokenizer(autoencoder, quantizer).eval(), generator=generator,
-                  conditioners=conditioners, tokenizer_step=autoencoder.vqtouch_step,
-                  generator_step=int(headers["vqtouch.step"]), tokenizer_command=tokenizer_headers.get(COMMAND_KEY, "?"),
-                  generator_command=headers.get(COMMAND_KEY, "?"),
-                  run_config=json.loads(headers.get(RUN_CONFIG_KEY, "{}")))
+    return Bundle(
+        name=name,
+        folder=folder,
+        tokenizer=Tokenizer(autoencoder, quantizer).eval(),
+        generator=generator,
+        conditioners=conditioners,
+        tokenizer_step=autoencoder.vqtouch_step,
+        generator_step=int(headers["vqtouch.step"]),
+        tokenizer_command=tokenizer_headers.get(COMMAND_KEY, "?"),
+        generator_command=headers.get(COMMAND_KEY, "?"),
+        run_config=json.loads(headers.get(RUN_CONFIG_KEY, "{}")),
+    )

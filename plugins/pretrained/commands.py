@@ -32,20 +32,30 @@ def _list_command(args: argparse.Namespace) -> int:
         print(f"no bundled checkpoints in {root}")
         return 0
     for row in rows:
-        print(f"{row['name']}: {row['tokenizer']} tokenizer step {row['tokenizer_step']}, generator step "
-              f"{row['generator_step']} with conditioners {', '.join(row['conditioners'])}; {row['files']} files, "
-              f"{row['megabytes']} MB ({row['stored_as']})")
+        print(
+            f"{row['name']}: {row['tokenizer']} tokenizer step {row['tokenizer_step']}, generator step "
+            f"{row['generator_step']} with conditioners {', '.join(row['conditioners'])}; {row['files']} files, "
+            f"{row['megabytes']} MB ({row['stored_as']})"
+        )
         print(f"  tokenizer trained by: {row['tokenizer_command']}")
         print(f"  generator trained by: {row['generator_command']}")
     return 0
 
 
 def _export_command(args: argparse.Namespace) -> int:
-    folder = export_bundle(args.run, args.name, args.host, root=Path(args.root) if args.root else None, precision=args.precision,
-                           overwrite=args.overwrite)
+    folder = export_bundle(
+        args.run,
+        args.name,
+        args.host,
+        root=Path(args.root) if args.root else None,
+        precision=args.precision,
+        overwrite=args.overwrite,
+    )
     row = describe_bundle(folder)
-    print(f"bundle {row['name']!r} -> {folder} ({row['files']} files, {row['megabytes']} MB, {row['stored_as']}; "
-          f"tokenizer step {row['tokenizer_step']}, generator step {row['generator_step']})")
+    print(
+        f"bundle {row['name']!r} -> {folder} ({row['files']} files, {row['megabytes']} MB, {row['stored_as']}; "
+        f"tokenizer step {row['tokenizer_step']}, generator step {row['generator_step']})"
+    )
     return 0
 
 
@@ -59,9 +69,14 @@ def vqtouch_add_commands(subparsers):
     export = group.add_parser("export", help="write a trained generator run (and its tokenizer) as a bundle")
     export.add_argument("--run", required=True, help="a run whose generator stage trained")
     export.add_argument("--name", required=True, help="the bundle's name (the pretrained stage's `bundle` option)")
-    export.add_argument("--precision", choices=("fp16", "fp32"), default="fp16",
-                        help="stored precision of the parameters (the quantizer's stay fp32; default fp16)")
+    export.add_argument(
+        "--precision",
+        choices=("fp16", "fp32"),
+        default="fp16",
+        help="stored precision of the parameters (the quantizer's stay fp32; default fp16)",
+    )
     export.add_argument("--overwrite", action="store_true", help="replace a bundle of that name")
-    export.add_argument("--root", help="folder of the bundles (default: the package's own, where the pretrained stage "
-                                       "looks)")
+    export.add_argument(
+        "--root", help="folder of the bundles (default: the package's own, where the pretrained stage looks)"
+    )
     export.set_defaults(handler=_export_command)

@@ -25,8 +25,13 @@ from vqtouch.plugins.evaluation.contact import dataset_background
 from vqtouch.plugins.evaluation.directions import shown_scores
 
 from .bundle import Bundle, bundle_folder, load_bundle
-from vqtouch.plugins.generator import (GENERATION_SHOWN_SCORES, SAMPLES_CAPTION, baseline_pool, held_out_conditions,
-                                       score_generation)
+from vqtouch.plugins.generator import (
+    GENERATION_SHOWN_SCORES,
+    SAMPLES_CAPTION,
+    baseline_pool,
+    held_out_conditions,
+    score_generation,
+)
 from vqtouch.plugins.tokenizer import TOKENIZER_SHOWN_SCORES, evaluate_reconstruction, printable, save_pairs
 
 #: The folder of the stage's pictures inside the run.
@@ -37,9 +42,14 @@ class PretrainedSection(Section):
     """The ``pretrained`` stage's options."""
 
     bundle: str = Field("tour", description="Name of the bundled checkpoints to show (`vqtouch pretrained list`).")
-    num_samples: int = Field(16, ge=1, le=10_000, strict=True,
-                             description="Held-out images reconstructed and held-out conditions generated per "
-                                         "conditioner (at most the held-out split).")
+    num_samples: int = Field(
+        16,
+        ge=1,
+        le=10_000,
+        strict=True,
+        description="Held-out images reconstructed and held-out conditions generated per "
+        "conditioner (at most the held-out split).",
+    )
     sampler: str = Field("posterior", description="Sampler plugin the bundled generator draws codes with.")
     steps: int = Field(25, ge=1, le=1000, strict=True, description="Sampling steps per generated image.")
 
@@ -47,24 +57,34 @@ class PretrainedSection(Section):
 def _compared(config: dict[str, Any]) -> dict[str, Any]:
     data = config.get("data", {})
     dataset = data.get("dataset") or {}
-    return {"data.image_size": data.get("image_size"), "sensor": config.get("sensor"),
-            "paired_sensor": config.get("paired_sensor"), "data.dataset.name": dataset.get("name"),
-            "data.dataset.classes": dataset.get("classes")}
+    return {
+        "data.image_size": data.get("image_size"),
+        "sensor": config.get("sensor"),
+        "paired_sensor": config.get("paired_sensor"),
+        "data.dataset.name": dataset.get("name"),
+        "data.dataset.classes": dataset.get("classes"),
+    }
 
 
 def check_compatible(bundle: Bundle, config: Any) -> None:
     """Refuse (StageUnavailable) a scene whose data the bundle was not trained for, or was trained on."""
     trained, scene = bundle.run_config, config.to_dict()
     wanted, given = _compared(trained), _compared(scene)
-    differences = [f"{key}: bundle {value!r}, scene {given[key]!r}" for key, value in wanted.items() if given[key] != value]
+    differences = [
+        f"{key}: bundle {value!r}, scene {given[key]!r}" for key, value in wanted.items() if given[key] != value
+    ]
     if differences:
-        raise StageUnavailable(f"bundle {bundle.name!r} was trained for other data ({'; '.join(differences)}); "
-                               "retrain one for this scene with `vqtouch pretrained export`")
+        raise StageUnavailable(
+            f"bundle {bundle.name!r} was trained for other data ({'; '.join(differences)}); "
+            "retrain one for this scene with `vqtouch pretrained export`"
+        )
     trained_data, scene_data = dict(trained["data"]["dataset"]), dict(scene["data"]["dataset"])
     trained_data.pop("num_samples", None), scene_data.pop("num_samples", None)
     if trained_data == scene_data:
-        raise StageUnavailable(f"bundle {bundle.name!r} was trained on this scene's very dataset, so its held-out "
-                               "split may hold the bundle's training images; set another data.dataset.seed")
+        raise StageUnavailable(
+            f"bundle {bundle.name!r} was trained on this scene's very dataset, so its held-out "
+            "split may hold the bundle's training images; set another data.dataset.seed"
+        )
 
 
 def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
@@ -82,41 +102,78 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
     train_set, val_set = experiment_split(dataset, config.data, config.seed)
     if len(val_set) == 0:
         raise StageUnavailable(f"no held-out samples to score (data.val_fraction={config.data.val_fraction:g})")
-    metrics = list(zip((item.name for item in config.metrics), job.assembly.build_slots(["metrics"]).get("metrics", [])))
-    held_out = DatasetSubset(dataset, val_set.indices[:section.num_samples])
+    metrics = list(
+        zip((item.name for item in config.metrics), job.assembly.build_slots(["metrics"]).get("metrics", []))
+    )
+    held_out = DatasetSubset(dataset, val_set.indices[: section.num_samples])
     (job.run.path / PICTURES).mkdir(exist_ok=True)
 
     background, background_source = dataset_background(train_set, image_hw(config.data.image_size))
-    scores = evaluate_reconstruction(bundle.tokenizer, held_out, MetricSet(metrics), device=device,
-                                     batch_size=config.data.batch_size, background_3HW=background)
+    scores = evaluate_reconstruction(
+        bundle.tokenizer,
+        held_out,
+        MetricSet(metrics),
+        device=device,
+        batch_size=config.data.batch_size,
+        background_3HW=background,
+    )
     save_pairs(*scores.pop("examples"), job.run.path / PICTURES / "reconstructions.png")
-    parts: dict[str, Any] = {"bundled tokenizer": {
-        **shown_scores(printable(scores), TOKENIZER_SHOWN_SCORES, [name for name, _ in metrics]),
-        "picture": f"{PICTURES}/reconstructions.png",
-        "caption": "Held-out images of this run (top row) above the bundled tokenizer's reconstructions (bottom row)."}}
+    parts: dict[str, Any] = {
+        "bundled tokenizer": {
+            **shown_scores(printable(scores), TOKENIZER_SHOWN_SCORES, [name for name, _ in metrics]),
+            "picture": f"{PICTURES}/reconstructions.png",
+            "caption": "Held-out images of this run (top row) above the bundled tokenizer's reconstructions "
+            "(bottom row).",
+        }
+    }
 
     conditions = held_out_conditions(val_set, dataset, section.num_samples, device)
-    missing = [name for name, conditioner in zip(bundle.conditioner_names, bundle.conditioners)
-               if not all(key in conditions.samples[0] for key in conditioner.sample_entries())]
+    missing = [
+        name
+        for name, conditioner in zip(bundle.conditioner_names, bundle.conditioners)
+        if not all(key in conditions.samples[0] for key in conditioner.sample_entries())
+    ]
     if missing:
-        raise StageUnavailable(f"this scene's samples lack what bundled conditioner(s) {', '.join(missing)} read; "
-                               "use a scene with a paired sensor and visual images (e.g. tour)")
+        raise StageUnavailable(
+            f"this scene's samples lack what bundled conditioner(s) {', '.join(missing)} read; "
+            "use a scene with a paired sensor and visual images (e.g. tour)"
+        )
     pool = baseline_pool(DatasetSubset(dataset, train_set.indices))
     sampler = job.host.build("sampler", section.sampler)
     for index, (name, conditioner) in enumerate(zip(bundle.conditioner_names, bundle.conditioners)):
         picture = f"{PICTURES}/samples_{index}_{name}.png"
-        generated = score_generation(generator=bundle.generator, conditioner=conditioner, tokenizer=bundle.tokenizer,
-                                     sampler=sampler, conditions=conditions, metrics=metrics,
-                                     background_3HW=background,
-                                     steps=section.steps, guidance=1.0, truncation=1.0, seed=config.seed,
-                                     device=device, picture=job.run.path / picture, pool=pool)
-        parts[f"bundled generator from {name}"] = (shown_scores(generated, GENERATION_SHOWN_SCORES,
-                                                                [name for name, _ in metrics])
-                                                   | {"picture": picture, "caption": SAMPLES_CAPTION})
-    return {"bundle": bundle.name, "bundled": True, "megabytes": round(bundle.size_bytes / 1e6, 2),
-            "tokenizer_step": bundle.tokenizer_step, "generator_step": bundle.generator_step,
-            "tokenizer_trained_by": bundle.tokenizer_command, "generator_trained_by": bundle.generator_command,
-            "sampler": section.sampler, "steps": section.steps, "background": background_source, "parts": parts}
+        generated = score_generation(
+            generator=bundle.generator,
+            conditioner=conditioner,
+            tokenizer=bundle.tokenizer,
+            sampler=sampler,
+            conditions=conditions,
+            metrics=metrics,
+            background_3HW=background,
+            steps=section.steps,
+            guidance=1.0,
+            truncation=1.0,
+            seed=config.seed,
+            device=device,
+            picture=job.run.path / picture,
+            pool=pool,
+        )
+        parts[f"bundled generator from {name}"] = shown_scores(
+            generated, GENERATION_SHOWN_SCORES, [name for name, _ in metrics]
+        ) | {"picture": picture, "caption": SAMPLES_CAPTION}
+    return {
+        "bundle": bundle.name,
+        "bundled": True,
+        "megabytes": round(bundle.size_bytes / 1e6, 2),
+        "tokenizer_step": bundle.tokenizer_step,
+        "generator_step": bundle.generator_step,
+        "tokenizer_trained_by": bundle.tokenizer_command,
+        "generator_trained_by": bundle.generator_command,
+        "sampler": section.sampler,
+        "steps": section.steps,
+        "background": background_source,
+        "parts": parts,
+    }
 
 
 @hookimpl
@@ -128,8 +185,14 @@ def vqtouch_open_pretrained(name, host, device, tokenizer_only):
 
 @hookimpl
 def vqtouch_register_stages(register):
-    register("pretrained", run_pretrained_stage, section=PretrainedSection, needs=("data.dataset",),
-             uses=("metrics", "sensor"), demo={"num_samples": 8, "steps": 10},
-             description="Show the bundled pretrained tokenizer and generator (trained longer than a demo can, "
-                         "shipped in the package) on this run's held-out data: reconstructions and generations "
-                         "from every condition, scored beside the background; nothing is trained.")
+    register(
+        "pretrained",
+        run_pretrained_stage,
+        section=PretrainedSection,
+        needs=("data.dataset",),
+        uses=("metrics", "sensor"),
+        demo={"num_samples": 8, "steps": 10},
+        description="Show the bundled pretrained tokenizer and generator (trained longer than a demo can, "
+        "shipped in the package) on this run's held-out data: reconstructions and generations "
+        "from every condition, scored beside the background; nothing is trained.",
+    )

@@ -22,8 +22,10 @@ def _demo_command(args: argparse.Namespace) -> int:
     ran = sum(stage["status"].startswith("ran") for stage in report["stages"])
     blocked = sum(stage["status"].startswith("cannot run") for stage in report["stages"])
     failed = sum(stage["status"].startswith("failed") for stage in report["stages"])
-    print(f"scene {config.scene}: {ran} of {len(report['stages'])} stages ran, {blocked} cannot run, {failed} failed "
-          "(reasons in the report)")
+    print(
+        f"scene {config.scene}: {ran} of {len(report['stages'])} stages ran, {blocked} cannot run, {failed} failed "
+        "(reasons in the report)"
+    )
     return 0
 
 
@@ -39,13 +41,20 @@ def vqtouch_add_commands(subparsers):
     demo = subparsers.add_parser("demo", help="run a scene end to end on the embedded data and write a report")
     add_config_arguments(demo, default_scene="tour")
     demo.add_argument("--out", help="run directory (default: <output_dir>/<name>-<time>-<hash>)")
-    demo.add_argument("--overwrite", action="store_true",
-                      help="empty the --out run directory first (refused for a folder that holds no run)")
-    demo.add_argument("--full", action="store_true",
-                      help="run the scene at its configured size (default: scaled down to minutes on a CPU)")
+    demo.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="empty the --out run directory first (refused for a folder that holds no run)",
+    )
+    demo.add_argument(
+        "--full",
+        action="store_true",
+        help="run the scene at its configured size (default: scaled down to minutes on a CPU)",
+    )
     demo.set_defaults(handler=_demo_command)
 
-    report = subparsers.add_parser("report", help="rebuild report.html and report.md of a demo run from its "
-                                                  "report.json")
+    report = subparsers.add_parser(
+        "report", help="rebuild report.html and report.md of a demo run from its report.json"
+    )
     report.add_argument("run_dir", metavar="RUN_DIR", help="the folder of a `vqtouch demo` run (its --out)")
     report.set_defaults(handler=_report_command)

@@ -32,8 +32,16 @@ from vqtouch.core.stages import empty_slot_reason, missing_slots, required_slots
 
 from vqtouch.plugins.evaluation.directions import declared_directions, metric_directions
 
-from .html import (BACKGROUND_PREFIX, beats, contact_verdict, direction_arrow, format_value, render_html, score_table,
-                   stage_parts)
+from .html import (
+    BACKGROUND_PREFIX,
+    beats,
+    contact_verdict,
+    direction_arrow,
+    format_value,
+    render_html,
+    score_table,
+    stage_parts,
+)
 
 if TYPE_CHECKING:
     from vqtouch.core.plugin_manager import PluginHost
@@ -81,7 +89,13 @@ def _preview_dataset(dataset: TactileDataset, run: RunDir, slot: str, count: int
     images = [image for sample in samples for image in (sample["tactile"], sample.get("visual", sample["tactile"]))]
     path = save_png(image_grid(torch.stack(images), columns=8), run.path / f"preview_{slot.replace('.', '_')}.png")
     labels = [dataset.class_names[s["label"]] for s in samples if s["label"] >= 0 and dataset.class_names]
-    return {"samples": len(dataset), "classes": dataset.num_classes, "preview": str(path), "first_labels": labels[:8], "example_text": samples[0].get("text", "")}
+    return {
+        "samples": len(dataset),
+        "classes": dataset.num_classes,
+        "preview": str(path),
+        "first_labels": labels[:8],
+        "example_text": samples[0].get("text", ""),
+    }
 
 
 def run_demo(config: ExperimentConfig, host: PluginHost, run: RunDir) -> dict[str, Any]:
@@ -96,9 +110,14 @@ def run_demo(config: ExperimentConfig, host: PluginHost, run: RunDir) -> dict[st
     """
     start = time.perf_counter()
     assembly = Assembly(config, host)
-    report: dict[str, Any] = {"scene": config.scene, "description": config.description, "run_dir": str(run.path),
-                              "started": _dt.datetime.now().astimezone().isoformat(timespec="seconds"),
-                              "stages": [], "components": []}
+    report: dict[str, Any] = {
+        "scene": config.scene,
+        "description": config.description,
+        "run_dir": str(run.path),
+        "started": _dt.datetime.now().astimezone().isoformat(timespec="seconds"),
+        "stages": [],
+        "components": [],
+    }
     for stage in progress(config.stages, desc="stages", unit="stage"):
         outcome = run_stage(stage, assembly, run)
         entry: dict[str, Any] = {"stage": stage, "status": outcome.describe(), "seconds": round(outcome.seconds, 2)}
@@ -111,8 +130,9 @@ def run_demo(config: ExperimentConfig, host: PluginHost, run: RunDir) -> dict[st
         value = config.slot(path)
         if value is None or value == []:
             if path in dict((p, s) for s, p in missing_slots(config, host)):
-                report["components"].append({"slot": path, "plugin": None,
-                                              "status": f"missing: {empty_slot_reason(path, host)}"})
+                report["components"].append(
+                    {"slot": path, "plugin": None, "status": f"missing: {empty_slot_reason(path, host)}"}
+                )
             continue
         try:
             built = assembly.component(path)
@@ -123,11 +143,16 @@ def run_demo(config: ExperimentConfig, host: PluginHost, run: RunDir) -> dict[st
         items = list(zip(value, built)) if info.many else [(value, built)]
         for index, (item, component) in enumerate(items):
             slot = f"{path}[{index}]" if info.many else path
-            record: dict[str, Any] = {"slot": slot, "plugin": item.name, "status": "built",
-                                      "parameters": _parameter_count(component)}
+            record: dict[str, Any] = {
+                "slot": slot,
+                "plugin": item.name,
+                "status": "built",
+                "parameters": _parameter_count(component),
+            }
             if isinstance(component, nn.Module):
-                record["checkpoint"] = _roundtrip(component, run.checkpoints / f"{slot.replace('.', '_')}.safetensors",
-                                                  host)
+                record["checkpoint"] = _roundtrip(
+                    component, run.checkpoints / f"{slot.replace('.', '_')}.safetensors", host
+                )
             if isinstance(component, SensorFamily):
                 with torch.no_grad():
                     presses = _ball_presses(config.data.image_size, component)
@@ -201,13 +226,17 @@ def _markdown_scores(table: Any) -> list[str]:
     for score, values in table.rows.items():
         better = beats(score, values[""], values.get(BACKGROUND_PREFIX))
         mark = "" if better is None else f" {BETTER_MARK if better else WORSE_MARK}"
-        cells = [f"{format_value(values[''])}{mark}",
-                 *(format_value(values[prefix]) if prefix in values else "-" for prefix in table.columns)]
+        cells = [
+            f"{format_value(values[''])}{mark}",
+            *(format_value(values[prefix]) if prefix in values else "-" for prefix in table.columns),
+        ]
         lines.append(f"| {score} {direction_arrow(score)} | " + " | ".join(cells) + " |")
     note = "↑ higher is better, ↓ lower is better"
     if BACKGROUND_PREFIX in table.columns:
-        note += (f"; {BETTER_MARK} the model beats the no-contact background, {WORSE_MARK} it is worse than "
-                 "the background (a tie counts as worse)")
+        note += (
+            f"; {BETTER_MARK} the model beats the no-contact background, {WORSE_MARK} it is worse than "
+            "the background (a tie counts as worse)"
+        )
     return [*lines, "", f"*{note}.*"]
 
 
@@ -245,11 +274,18 @@ def render_report(report: dict[str, Any]) -> str:
             for title, part in stage_parts(s["result"]).items():
                 lines += ["", f"#### {title}"]
                 lines += _markdown_result(part, f"{s['stage']}: {title}")
-    lines += ["", "## Components", "", "| slot | plugin | status | parameters | checkpoint round trip |",
-              "|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## Components",
+        "",
+        "| slot | plugin | status | parameters | checkpoint round trip |",
+        "|---|---|---|---|---|",
+    ]
     for c in report["components"]:
-        lines.append(f"| {c['slot']} | {c['plugin'] or '-'} | {c['status']} | {c.get('parameters', '-')} "
-                     f"| {c.get('checkpoint', '-')} |")
+        lines.append(
+            f"| {c['slot']} | {c['plugin'] or '-'} | {c['status']} | {c.get('parameters', '-')} "
+            f"| {c.get('checkpoint', '-')} |"
+        )
     renders = [c for c in report["components"] if "render" in c]
     if renders:
         lines += ["", "## Sensors (a 2 mm ball pressed 0.2, 0.5 and 1.0 mm deep)", ""]
@@ -257,10 +293,14 @@ def render_report(report: dict[str, Any]) -> str:
     for c in report["components"]:
         if "data" in c:
             data = c["data"]
-            lines += ["", f"## Data (`{c['slot']}`: {c['plugin']})", "",
-                      f"{data['samples']} samples, {data['classes']} classes. "
-                      f"Example text: \"{data['example_text']}\"", "",
-                      f"![tactile | visual pairs]({Path(data['preview']).name})"]
+            lines += [
+                "",
+                f"## Data (`{c['slot']}`: {c['plugin']})",
+                "",
+                f'{data["samples"]} samples, {data["classes"]} classes. Example text: "{data["example_text"]}"',
+                "",
+                f"![tactile | visual pairs]({Path(data['preview']).name})",
+            ]
     sanity = [c for c in report["components"] if "sanity" in c]
     if sanity:
         lines += ["", "## Metric sanity (synthetic 64x64 image vs noisy copies)", ""]

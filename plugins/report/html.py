@@ -42,8 +42,13 @@ PARTS_KEY = "parts"
 MAX_PICTURE_WIDTH = 1100
 MAX_UPSCALE = 3
 
-_MIME_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".gif": "image/gif",
-               ".webp": "image/webp"}
+_MIME_TYPES = {
+    ".png": "image/png",
+    ".jpg": "image/jpeg",
+    ".jpeg": "image/jpeg",
+    ".gif": "image/gif",
+    ".webp": "image/webp",
+}
 
 _STYLE = """
 :root { --ink: #1d2330; --muted: #5d6677; --line: #dde2ea; --panel: #f6f8fb; --accent: #2f6fbd; }
@@ -223,16 +228,19 @@ def _figure(path: Path, caption: str, source: str) -> str:
     return _img_figure(data, mime, width, height, caption, source)
 
 
-def _img_figure(data: bytes, mime: str, width: int, height: int, caption: str, source: str,
-                upscale: bool = True) -> str:
+def _img_figure(
+    data: bytes, mime: str, width: int, height: int, caption: str, source: str, upscale: bool = True
+) -> str:
     # A whole factor keeps the small tactile tiles' pixels square and sharp.
     scale = max(1, min(MAX_UPSCALE, MAX_PICTURE_WIDTH // max(width, 1))) if upscale else 1
     css_class = ' class="pixelated"' if scale > 1 else ""
     uri = f"data:{mime};base64,{base64.b64encode(data).decode('ascii')}"
-    return (f'<figure><img{css_class} src="{uri}" alt="{_e(caption or source)}" data-source="{_e(source)}" '
-            f'width="{width * scale}" height="{height * scale}">'
-            f"<figcaption>{_e(caption)} <code>{_e(source)}</code> ({width}&times;{height} px"
-            f"{f', shown {scale}&times;' if scale > 1 else ''})</figcaption></figure>")
+    return (
+        f'<figure><img{css_class} src="{uri}" alt="{_e(caption or source)}" data-source="{_e(source)}" '
+        f'width="{width * scale}" height="{height * scale}">'
+        f"<figcaption>{_e(caption)} <code>{_e(source)}</code> ({width}&times;{height} px"
+        f"{f', shown {scale}&times;' if scale > 1 else ''})</figcaption></figure>"
+    )
 
 
 def _stage_pictures(result: Mapping[str, Any]) -> Iterator[tuple[str, str]]:
@@ -260,7 +268,7 @@ def _value_cell(value: Any) -> str:
 #: shown in P's column beside the model's own ``X``.  Values: what each comparison is (a header tooltip).
 COMPARISON_PREFIXES = {
     "background_": "the no-contact background image: the rendering sensor's, or the per-pixel median of captured "
-                   "training frames (what a model that draws only the background scores)",
+    "training frames (what a model that draws only the background scores)",
     "ceiling_": "the tokenizer's own reconstruction of the ground truth (no generator over its codes does better)",
     "retrieval_": "the nearest training image by condition",
     "class_mean_": "the mean training image of the condition's class",
@@ -307,8 +315,11 @@ class ScoreTable:
 def score_table(result: Mapping[str, Any]) -> ScoreTable:
     """Split ``result`` into the scores with comparisons (a key ``P + X`` beside a key ``X``, ``P`` one of
     :data:`COMPARISON_PREFIXES`, both numbers) and the other facts, keeping the result's order."""
-    scores = {key: value for key, value in result.items()
-              if key not in PICTURE_KEYS and key != PARTS_KEY and not _is_skip_key(key) and _is_score_value(value)}
+    scores = {
+        key: value
+        for key, value in result.items()
+        if key not in PICTURE_KEYS and key != PARTS_KEY and not _is_skip_key(key) and _is_score_value(value)
+    }
     rows: dict[str, dict[str, Any]] = {}
     for key in scores:
         compared = {prefix: scores[prefix + key] for prefix in COMPARISON_PREFIXES if prefix + key in scores}
@@ -316,8 +327,11 @@ def score_table(result: Mapping[str, Any]) -> ScoreTable:
             rows[key] = {"": scores[key], **compared}
     paired = {prefix + key for key, values in rows.items() for prefix in values}
     columns = tuple(prefix for prefix in COMPARISON_PREFIXES if any(prefix in values for values in rows.values()))
-    facts = {key: value for key, value in result.items()
-             if key not in PICTURE_KEYS and key != PARTS_KEY and key not in paired}
+    facts = {
+        key: value
+        for key, value in result.items()
+        if key not in PICTURE_KEYS and key != PARTS_KEY and key not in paired
+    }
     return ScoreTable(rows, columns, facts)
 
 
@@ -336,8 +350,10 @@ def contact_verdict(result: Mapping[str, Any]) -> tuple[bool, str] | None:
             share = f" ({fraction:.1%} of pixels)" if 0 < fraction < 0.01 else f" ({fraction:.0%} of pixels)"
         comparison = "better than" if better else "worse than" if model != background else "no better than"
         shown = [f"{value:.2f}" if unit == " dB" else format_value(value) for value in (model, background)]
-        return better, (f"On the contact region{share} the model is {comparison} the no-contact background: "
-                        f"{name} {shown[0]} vs {shown[1]}{unit}.")
+        return better, (
+            f"On the contact region{share} the model is {comparison} the no-contact background: "
+            f"{name} {shown[0]} vs {shown[1]}{unit}."
+        )
     return None
 
 
@@ -350,8 +366,9 @@ def _column_name(prefix: str) -> str:
 
 
 def _comparison_table(table: ScoreTable) -> str:
-    head = "".join(f'<th title="{_e(COMPARISON_PREFIXES[prefix])}">{_e(_column_name(prefix))}</th>'
-                   for prefix in table.columns)
+    head = "".join(
+        f'<th title="{_e(COMPARISON_PREFIXES[prefix])}">{_e(_column_name(prefix))}</th>' for prefix in table.columns
+    )
     rows = []
     for score, values in table.rows.items():
         model, background = values[""], values.get(BACKGROUND_PREFIX)
@@ -361,22 +378,32 @@ def _comparison_table(table: ScoreTable) -> str:
         else:
             # Coloured against the background only: that is the comparison a "better" claim must survive.
             verdict = "better" if better else "worse"
-            model_cell = (f'<td class="num {verdict}" title="{verdict} than the no-contact background '
-                          f'({_e(format_value(background))}; {_direction_text(score)})">{_e(format_value(model))}</td>')
-        cells = "".join(_value_cell(values[prefix]) if prefix in values else '<td class="num muted">-</td>'
-                        for prefix in table.columns)
-        rows.append(f'<tr><td>{_e(score)} <span class="direction" title="{_direction_text(score)}">'
-                    f"{direction_arrow(score)}</span></td>{model_cell}{cells}</tr>")
-    return (f'<table class="scores comparison"><tr><th>score</th><th title="the model this stage trained">model</th>'
-            f'{head}</tr>{"".join(rows)}</table>')
+            model_cell = (
+                f'<td class="num {verdict}" title="{verdict} than the no-contact background '
+                f'({_e(format_value(background))}; {_direction_text(score)})">{_e(format_value(model))}</td>'
+            )
+        cells = "".join(
+            _value_cell(values[prefix]) if prefix in values else '<td class="num muted">-</td>'
+            for prefix in table.columns
+        )
+        rows.append(
+            f'<tr><td>{_e(score)} <span class="direction" title="{_direction_text(score)}">'
+            f"{direction_arrow(score)}</span></td>{model_cell}{cells}</tr>"
+        )
+    return (
+        f'<table class="scores comparison"><tr><th>score</th><th title="the model this stage trained">model</th>'
+        f"{head}</tr>{''.join(rows)}</table>"
+    )
 
 
 def _comparison_legend(table: ScoreTable) -> str:
     """One line under the comparison table: what the colours and the comparison columns mean."""
     parts = []
     if BACKGROUND_PREFIX in table.columns:
-        parts.append('<span class="better">green</span>: the model beats the no-contact background, '
-                     '<span class="worse">red</span>: it does not (a tie does not)')
+        parts.append(
+            '<span class="better">green</span>: the model beats the no-contact background, '
+            '<span class="worse">red</span>: it does not (a tie does not)'
+        )
     parts += [f"<b>{_e(_column_name(prefix))}</b>: {_e(COMPARISON_PREFIXES[prefix])}" for prefix in table.columns]
     return f'<p class="legend">{"; ".join(parts)}.</p>'
 
@@ -397,11 +424,16 @@ def _scores_block(result: Mapping[str, Any], skipped: list[tuple[str, str, str]]
 
 
 def _facts_table(facts: Mapping[str, Any], skipped: list[tuple[str, str, str]]) -> str:
-    rows = [f"<tr><td>{_e(key)}</td>{_value_cell(value)}</tr>" for key, value in facts.items()
-            if not _is_skip_key(key) and not is_skip_reason(value)]
+    rows = [
+        f"<tr><td>{_e(key)}</td>{_value_cell(value)}</tr>"
+        for key, value in facts.items()
+        if not _is_skip_key(key) and not is_skip_reason(value)
+    ]
     # The reason is in the Skipped section once; here a pointer keeps the table readable.
-    rows += [f'<tr><td>{_e(what)}</td><td class="muted">skipped (<a href="#skipped">why</a>)</td></tr>'
-             for _, what, _reason in skipped]
+    rows += [
+        f'<tr><td>{_e(what)}</td><td class="muted">skipped (<a href="#skipped">why</a>)</td></tr>'
+        for _, what, _reason in skipped
+    ]
     if not rows:
         return ""
     return f'<table class="scores facts"><tr><th>other facts</th><th>value</th></tr>{"".join(rows)}</table>'
@@ -447,8 +479,15 @@ def loss_plot(curves: Mapping[str, list[tuple[int, float]]], title: str) -> byte
     axes.plot(steps, values, marker="o", markersize=3, linewidth=1.5, label="training loss")
     if curves.get("val_loss"):
         steps, values = zip(*curves["val_loss"])
-        axes.plot(steps, values, marker="s", markersize=5, linestyle="--", color="tab:orange",
-                  label="held-out val_loss (at checkpoints)")
+        axes.plot(
+            steps,
+            values,
+            marker="s",
+            markersize=5,
+            linestyle="--",
+            color="tab:orange",
+            label="held-out val_loss (at checkpoints)",
+        )
     axes.set_xlabel("step")
     axes.set_ylabel("loss")
     axes.set_title(title, fontsize=10)
@@ -489,8 +528,7 @@ def _header(report: Mapping[str, Any], run_dir: Path) -> str:
     items = "".join(f"<div><dt>{_e(name)}</dt><dd>{_e(value)}</dd></div>" for name, value in facts)
     description = report.get("description")
     lead = f'<p class="lead">{_e(description)}</p>' if description else ""
-    return (f"<header><h1>vqtouch demo: {_e(report.get('scene', ''))}</h1>{lead}"
-            f'<dl class="facts">{items}</dl></header>')
+    return f'<header><h1>vqtouch demo: {_e(report.get("scene", ""))}</h1>{lead}<dl class="facts">{items}</dl></header>'
 
 
 def _read_json_or_empty(path: Path) -> dict[str, Any]:
@@ -508,16 +546,24 @@ def _stages_overview(stages: list[Mapping[str, Any]]) -> str:
         seconds = entry.get("seconds")
         timed = isinstance(seconds, (int, float))
         bar = f'<span style="width: {100 * seconds / longest:.1f}%"></span>' if timed else ""
-        rows.append(f'<tr><td><a href="#stage-{_e(entry["stage"])}">{_e(entry["stage"])}</a></td>'
-                    f"<td>{_status_badge(str(entry.get('status', '')))}</td>"
-                    f'<td class="num">{format_duration(seconds) if timed else "-"}</td><td class="bar">{bar}</td></tr>')
-    return ('<section><h2>Stages</h2><table class="stages"><tr><th>stage</th><th>status</th><th>time</th><th></th></tr>'
-            f"{''.join(rows)}</table></section>")
+        rows.append(
+            f'<tr><td><a href="#stage-{_e(entry["stage"])}">{_e(entry["stage"])}</a></td>'
+            f"<td>{_status_badge(str(entry.get('status', '')))}</td>"
+            f'<td class="num">{format_duration(seconds) if timed else "-"}</td><td class="bar">{bar}</td></tr>'
+        )
+    return (
+        '<section><h2>Stages</h2><table class="stages"><tr><th>stage</th><th>status</th><th>time</th><th></th></tr>'
+        f"{''.join(rows)}</table></section>"
+    )
 
 
-def _stage_section(entry: Mapping[str, Any], report: Mapping[str, Any], run_dir: Path,
-                   losses: Mapping[str, Mapping[str, list[tuple[int, float]]]],
-                   skipped: list[tuple[str, str, str]]) -> str:
+def _stage_section(
+    entry: Mapping[str, Any],
+    report: Mapping[str, Any],
+    run_dir: Path,
+    losses: Mapping[str, Mapping[str, list[tuple[int, float]]]],
+    skipped: list[tuple[str, str, str]],
+) -> str:
     stage, result = str(entry["stage"]), entry.get("result") or {}
     status = str(entry.get("status", ""))
     parts = [f'<section id="stage-{_e(stage)}"><h2>{_e(stage)} {_status_badge(status)}</h2>']
@@ -525,18 +571,29 @@ def _stage_section(entry: Mapping[str, Any], report: Mapping[str, Any], run_dir:
     row = [_scores_block(result, own_skips)]
     curve = loss_plot(losses.get(stage, {}), f"{stage}: loss per logged step (metrics.jsonl)")
     if curve is not None:
-        row.append(_img_figure(curve, "image/png", *_png_size(curve),
-                               f"Training loss of the {stage} stage at each logged step"
-                               + (" and, at each checkpoint, its held-out score val_loss (the stage's own validation "
-                                  "measure, which need not be the training loss's quantity)"
-                                  if losses[stage].get("val_loss") else "") + ".",
-                               "metrics.jsonl", upscale=False))
+        row.append(
+            _img_figure(
+                curve,
+                "image/png",
+                *_png_size(curve),
+                f"Training loss of the {stage} stage at each logged step"
+                + (
+                    " and, at each checkpoint, its held-out score val_loss (the stage's own validation "
+                    "measure, which need not be the training loss's quantity)"
+                    if losses[stage].get("val_loss")
+                    else ""
+                )
+                + ".",
+                "metrics.jsonl",
+                upscale=False,
+            )
+        )
     if any(row):
         parts.append(f'<div class="row">{"".join(row)}</div>')
     for name, caption in _stage_pictures(result):
         parts.append(_figure(run_file(run_dir, report, name), caption, name))
     for title, part in stage_parts(result).items():
-        parts.append(f'<h3>{_e(title)}</h3>{_scores_block(part, [])}')
+        parts.append(f"<h3>{_e(title)}</h3>{_scores_block(part, [])}")
         for name, caption in _stage_pictures(part):
             parts.append(_figure(run_file(run_dir, report, name), caption, name))
     parts.append("</section>")
@@ -565,47 +622,74 @@ def _skipped_section(skipped: list[tuple[str, str, str]]) -> str:
         places = grouped.setdefault((what.split(" / ")[-1], reason), [])
         if where not in places:
             places.append(where)
-    rows = "".join(f"<tr><td>{_e(', '.join(places))}</td><td>{_e(what)}</td><td>{_e(reason)}</td></tr>"
-                   for (what, reason), places in grouped.items())
-    return (f'<section id="skipped"><h2>Skipped ({len(grouped)})</h2><table class="skipped">'
-            f"<tr><th>where</th><th>what</th><th>reason</th></tr>{rows}</table></section>")
+    rows = "".join(
+        f"<tr><td>{_e(', '.join(places))}</td><td>{_e(what)}</td><td>{_e(reason)}</td></tr>"
+        for (what, reason), places in grouped.items()
+    )
+    return (
+        f'<section id="skipped"><h2>Skipped ({len(grouped)})</h2><table class="skipped">'
+        f"<tr><th>where</th><th>what</th><th>reason</th></tr>{rows}</table></section>"
+    )
 
 
 def _components_section(report: Mapping[str, Any], run_dir: Path) -> str:
     components = report.get("components", [])
     if not components:
         return ""
-    rows = "".join(f"<tr><td><code>{_e(c.get('slot', '-'))}</code></td><td>{_e(c.get('plugin') or '-')}</td>"
-                   f"<td>{_e(c.get('status', '-'))}</td>{_value_cell(c.get('parameters', '-'))}"
-                   f"<td>{_e(c.get('checkpoint', '-'))}</td></tr>" for c in components)
-    parts = ['<section id="components"><h2>Components</h2><table class="components"><tr><th>slot</th><th>plugin</th>'
-             f"<th>status</th><th>parameters</th><th>checkpoint round trip</th></tr>{rows}</table>"]
+    rows = "".join(
+        f"<tr><td><code>{_e(c.get('slot', '-'))}</code></td><td>{_e(c.get('plugin') or '-')}</td>"
+        f"<td>{_e(c.get('status', '-'))}</td>{_value_cell(c.get('parameters', '-'))}"
+        f"<td>{_e(c.get('checkpoint', '-'))}</td></tr>"
+        for c in components
+    )
+    parts = [
+        '<section id="components"><h2>Components</h2><table class="components"><tr><th>slot</th><th>plugin</th>'
+        f"<th>status</th><th>parameters</th><th>checkpoint round trip</th></tr>{rows}</table>"
+    ]
     renders = [c for c in components if "render" in c]
     if renders:
-        parts.append("<h3>Sensors: a 2 mm ball pressed 0.2, 0.5 and 1.0 mm deep</h3><div class=\"row\">")
-        parts += [_figure(run_file(run_dir, report, c["render"]),
-                          f"{c['plugin']} ({c['slot']}): the three presses, shallowest first, left to right "
-                          "and top to bottom.", Path(c["render"]).name) for c in renders]
+        parts.append('<h3>Sensors: a 2 mm ball pressed 0.2, 0.5 and 1.0 mm deep</h3><div class="row">')
+        parts += [
+            _figure(
+                run_file(run_dir, report, c["render"]),
+                f"{c['plugin']} ({c['slot']}): the three presses, shallowest first, left to right and top to bottom.",
+                Path(c["render"]).name,
+            )
+            for c in renders
+        ]
         parts.append("</div>")
     for c in components:
         if "data" in c:
             data = c["data"]
             shown = min(16, data.get("samples", 16))
-            parts.append(f"<h3>Data: {_e(c['plugin'])} ({_e(c['slot'])})</h3>"
-                         f"<p>{_e(format_value(data.get('samples')))} samples, {_e(data.get('classes'))} classes. "
-                         f"Example text: &ldquo;{_e(data.get('example_text', ''))}&rdquo;</p>")
-            parts.append(_figure(run_file(run_dir, report, data["preview"]),
-                                 f"The dataset's first {shown} samples, each as its tactile image followed by its "
-                                 "visual image (the tactile image again when the dataset has none), four pairs "
-                                 "per row.", Path(data["preview"]).name))
+            parts.append(
+                f"<h3>Data: {_e(c['plugin'])} ({_e(c['slot'])})</h3>"
+                f"<p>{_e(format_value(data.get('samples')))} samples, {_e(data.get('classes'))} classes. "
+                f"Example text: &ldquo;{_e(data.get('example_text', ''))}&rdquo;</p>"
+            )
+            parts.append(
+                _figure(
+                    run_file(run_dir, report, data["preview"]),
+                    f"The dataset's first {shown} samples, each as its tactile image followed by its "
+                    "visual image (the tactile image again when the dataset has none), four pairs "
+                    "per row.",
+                    Path(data["preview"]).name,
+                )
+            )
     sanity = [c for c in components if "sanity" in c]
     if sanity:
         levels = list(dict.fromkeys(level for c in sanity for level in c["sanity"]))
         head = "".join(f"<th>{_e(level.replace('noise_sigma=', 'noise σ='))}</th>" for level in levels)
-        body = "".join(f"<tr><td>{_e(c['plugin'])}</td>" + "".join(_value_cell(c["sanity"].get(level))
-                                                                     for level in levels) + "</tr>" for c in sanity)
-        parts.append("<h3>Metric sanity: a smooth synthetic 64&times;64 image against noisy copies of itself</h3>"
-                     f'<table class="sanity"><tr><th>metric</th>{head}</tr>{body}</table>')
+        body = "".join(
+            f"<tr><td>{_e(c['plugin'])}</td>"
+            + "".join(_value_cell(c["sanity"].get(level)) for level in levels)
+            + "</tr>"
+            for c in sanity
+        )
+        parts.append(
+            "<h3>Metric sanity: a smooth synthetic 64&times;64 image against noisy copies of itself</h3>"
+            f'<table class="sanity"><tr><th>metric</th>{head}</tr>{body}</table>'
+        )
     parts.append("</section>")
     return "".join(parts)
 
@@ -624,12 +708,17 @@ def render_html(report: Mapping[str, Any], run_dir: str | Path) -> str:
     body += [_stage_section(entry, report, run_dir, losses, skipped) for entry in stages]
     body.append(_skipped_section(skipped))
     body.append(_components_section(report, run_dir))
-    body.append("<footer>Written by <code>vqtouch demo</code>; rebuild with <code>vqtouch report RUN_DIR</code>. "
-                "The run folder also holds <code>report.json</code> (these numbers), <code>report.md</code>, "
-                "<code>config.json</code> (the resolved config), <code>env.json</code> (versions) and "
-                "<code>metrics.jsonl</code> (every logged step).</footer>")
+    body.append(
+        "<footer>Written by <code>vqtouch demo</code>; rebuild with <code>vqtouch report RUN_DIR</code>. "
+        "The run folder also holds <code>report.json</code> (these numbers), <code>report.md</code>, "
+        "<code>config.json</code> (the resolved config), <code>env.json</code> (versions) and "
+        "<code>metrics.jsonl</code> (every logged step).</footer>"
+    )
     title = f"vqtouch demo: {report.get('scene', '')}"
-    return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
-            "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
-            f"<title>{_e(title)}</title><style>{_STYLE}</style></head>\n<body><main>\n"
-            + "\n".join(part for part in body if part) + "\n</main></body></html>\n")
+    return (
+        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+        '<meta name="viewport" content="width=device-width, initial-scale=1">'
+        f"<title>{_e(title)}</title><style>{_STYLE}</style></head>\n<body><main>\n"
+        + "\n".join(part for part in body if part)
+        + "\n</main></body></html>\n"
+    )

@@ -11,6 +11,19 @@ from .stages import SHOWN_SCORES as TOKENIZER_SHOWN_SCORES
 from .stages import experiment_metrics, printable, save_pairs
 from .training import Tokenizer, TokenizerLossConfig, TokenizerTrainConfig, evaluate_reconstruction, tokenizer_task
 
-__all__ = ["TOKENIZER_FILES", "TOKENIZER_SHOWN_SCORES", "Tokenizer", "TokenizerLossConfig", "TokenizerTrainConfig",
-           "evaluate_reconstruction", "experiment_metrics", "load_tokenizer", "printable", "reconstruct_all",
-           "save_pairs", "tokenizer_configs", "tokenizer_location", "tokenizer_task"]
+__all__ = [
+    "TOKENIZER_FILES",
+    "TOKENIZER_SHOWN_SCORES",
+    "Tokenizer",
+    "TokenizerLossConfig",
+    "TokenizerTrainConfig",
+    "evaluate_reconstruction",
+    "experiment_metrics",
+    "load_tokenizer",
+    "printable",
+    "reconstruct_all",
+    "save_pairs",
+    "tokenizer_configs",
+    "tokenizer_location",
+    "tokenizer_task",
+]

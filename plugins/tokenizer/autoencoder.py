@@ -23,8 +23,16 @@ from torch import nn
 from vqtouch.core import Autoencoder, BuildContext, ConfigError, PluginConfig, hookimpl
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 
-from .blocks import (AttentionBlock, ConvFactory, Downsample, MultiScaleFusion, ResnetBlock, Upsample, group_norm,
-                     plain_conv3x3)
+from .blocks import (
+    AttentionBlock,
+    ConvFactory,
+    Downsample,
+    MultiScaleFusion,
+    ResnetBlock,
+    Upsample,
+    group_norm,
+    plain_conv3x3,
+)
 
 
 class VqganConfig(PluginConfig):
@@ -33,16 +41,23 @@ class VqganConfig(PluginConfig):
     name: Literal["vqgan"] = "vqgan"
     channels: int = Field(64, ge=8, le=1024, description="Base channel count (a multiple of norm_groups).")
     channel_multipliers: tuple[int, ...] = Field(
-        (1, 2, 2), min_length=1, max_length=7,
-        description="Channel multiplier per resolution level; f = 2 ** (levels - 1) (default f = 4).")
+        (1, 2, 2),
+        min_length=1,
+        max_length=7,
+        description="Channel multiplier per resolution level; f = 2 ** (levels - 1) (default f = 4).",
+    )
     num_res_blocks: int = Field(1, ge=1, le=8, description="ResNet blocks per level (the decoder uses one more).")
     attention_resolutions: tuple[int, ...] = Field(
-        (), description="Feature resolutions (the feature map's shorter side, in pixels) that get an attention "
-                        "block after each ResNet block.")
+        (),
+        description="Feature resolutions (the feature map's shorter side, in pixels) that get an attention "
+        "block after each ResNet block.",
+    )
     mid_attention: bool = Field(
-        True, description="Attention in the middle (bottleneck) block, as in taming: over (H/f) x (W/f) tokens, "
-                          "4096 at 256x256 px and f = 4, so its memory grows with the image area squared; false "
-                          "drops it (bench/resolution_tokenizer.py measures both).")
+        True,
+        description="Attention in the middle (bottleneck) block, as in taming: over (H/f) x (W/f) tokens, "
+        "4096 at 256x256 px and f = 4, so its memory grows with the image area squared; false "
+        "drops it (bench/resolution_tokenizer.py measures both).",
+    )
     z_channels: int = Field(64, ge=1, le=4096, description="Channels at the encoder output, before quant_conv.")
     embed_dim: int = Field(32, ge=1, le=4096, description="Latent channels fed to the quantizer (after quant_conv).")
     dropout: float = Field(0.0, ge=0.0, lt=1.0, description="Dropout inside ResNet blocks.")
@@ -52,8 +67,10 @@ class VqganConfig(PluginConfig):
     def _channels_fit_groups(self) -> VqganConfig:
         for multiplier in self.channel_multipliers:
             if multiplier < 1 or (self.channels * multiplier) % self.norm_groups:
-                raise ValueError(f"channels * multiplier = {self.channels} * {multiplier} must be a positive "
-                                 f"multiple of norm_groups = {self.norm_groups}")
+                raise ValueError(
+                    f"channels * multiplier = {self.channels} * {multiplier} must be a positive "
+                    f"multiple of norm_groups = {self.norm_groups}"
+                )
         return self
 
 
@@ -62,35 +79,45 @@ class DmVqganConfig(VqganConfig):
 
     name: Literal["dm_vqgan"] = "dm_vqgan"
     deformable_levels: int = Field(
-        2, ge=0,
+        2,
+        ge=0,
         description="How many feature levels, counted from the latent (lowest-resolution) end, have ResNet "
-                    "blocks with a deformable second convolution; the middle (bottleneck) blocks belong to the "
-                    "lowest level.  Relative to the image, so the network is the same at every image_size: with "
-                    "the default channel_multipliers (1, 2, 2) and 2, the levels at 1/2 and 1/4 of the image "
-                    "side plus the middle blocks (10 deformable layers).  0 disables them (the ablation); at "
-                    "most len(channel_multipliers) (every level); each level further up costs ~4x more on CPU.")
+        "blocks with a deformable second convolution; the middle (bottleneck) blocks belong to the "
+        "lowest level.  Relative to the image, so the network is the same at every image_size: with "
+        "the default channel_multipliers (1, 2, 2) and 2, the levels at 1/2 and 1/4 of the image "
+        "side plus the middle blocks (10 deformable layers).  0 disables them (the ablation); at "
+        "most len(channel_multipliers) (every level); each level further up costs ~4x more on CPU.",
+    )
     deformable_backend: Literal["grid_sample", "gather", "torchvision"] = Field(
-        "gather", description="Deformable convolution implementation, same maths to 1e-5: gather (channels-last "
-                              "bilinear gather + one matmul, pure PyTorch; the fastest measured on CPU, "
-                              "bench/bench_dm_vqgan.py), grid_sample (pure PyTorch) or torchvision's kernel "
-                              "(bench/bench_deformable.py times the three layer by layer).")
+        "gather",
+        description="Deformable convolution implementation, same maths to 1e-5: gather (channels-last "
+        "bilinear gather + one matmul, pure PyTorch; the fastest measured on CPU, "
+        "bench/bench_dm_vqgan.py), grid_sample (pure PyTorch) or torchvision's kernel "
+        "(bench/bench_deformable.py times the three layer by layer).",
+    )
     deformable_modulation: bool = Field(True, description="DCNv2 modulation mask (False: DCNv1).")
     max_offset: float = Field(4.0, gt=0.0, le=64.0, description="Offsets are bounded to max_offset * tanh(raw) pixels.")
     offset_lr_scale: float = Field(
-        0.1, gt=0.0, le=10.0,
+        0.1,
+        gt=0.0,
+        le=10.0,
         description="Learning rate of the deformable offset/mask branches as a multiple of train.learning_rate. "
-                    "The offsets are amplified by max_offset, so the usual x0.1 (mmcv/mmengine) keeps early "
-                    "offsets from jumping; 1.0 trains them like every other weight.")
+        "The offsets are amplified by max_offset, so the usual x0.1 (mmcv/mmengine) keeps early "
+        "offsets from jumping; 1.0 trains them like every other weight.",
+    )
     fusion: bool = Field(True, description="Multi-scale dilated fusion at the encoder output and decoder input.")
-    fusion_dilations: tuple[int, ...] = Field((1, 2, 4), min_length=1, max_length=6,
-                                              description="Dilations of the fusion branches.")
+    fusion_dilations: tuple[int, ...] = Field(
+        (1, 2, 4), min_length=1, max_length=6, description="Dilations of the fusion branches."
+    )
 
     @model_validator(mode="after")
     def _deformable_levels_exist(self) -> DmVqganConfig:
         levels = len(self.channel_multipliers)
         if self.deformable_levels > levels:
-            raise ValueError(f"deformable_levels = {self.deformable_levels} exceeds the {levels} feature level(s) "
-                             f"of channel_multipliers {tuple(self.channel_multipliers)}: allowed 0 to {levels}")
+            raise ValueError(
+                f"deformable_levels = {self.deformable_levels} exceeds the {levels} feature level(s) "
+                f"of channel_multipliers {tuple(self.channel_multipliers)}: allowed 0 to {levels}"
+            )
         return self
 
 
@@ -103,10 +130,12 @@ class VqganAutoencoder(Autoencoder):
         self.downsample_factor = 2 ** (levels - 1)
         self.latent_channels = config.embed_dim
         if any(side % self.downsample_factor for side in image_hw(image_size)):
-            raise ConfigError(f"image_size {size_text(image_size)} is not divisible by the tokenizer's downsampling "
-                              f"factor f = {self.downsample_factor} (channel_multipliers "
-                              f"{config.channel_multipliers}): use sides that are multiples of "
-                              f"{self.downsample_factor}")
+            raise ConfigError(
+                f"image_size {size_text(image_size)} is not divisible by the tokenizer's downsampling "
+                f"factor f = {self.downsample_factor} (channel_multipliers "
+                f"{config.channel_multipliers}): use sides that are multiples of "
+                f"{self.downsample_factor}"
+            )
         dm = config if isinstance(config, DmVqganConfig) else None
         self.offset_lr_scale = dm.offset_lr_scale if dm else 1.0
         groups = config.norm_groups
@@ -119,8 +148,14 @@ class VqganAutoencoder(Autoencoder):
                 return plain_conv3x3
             from .deformable import DeformableConv2d
 
-            return partial(DeformableConv2d, kernel_size=3, padding=1, modulation=dm.deformable_modulation,
-                           max_offset=dm.max_offset, backend=dm.deformable_backend)
+            return partial(
+                DeformableConv2d,
+                kernel_size=3,
+                padding=1,
+                modulation=dm.deformable_modulation,
+                max_offset=dm.max_offset,
+                backend=dm.deformable_backend,
+            )
 
         def block(in_ch: int, out_ch: int, level: int) -> ResnetBlock:
             return ResnetBlock(in_ch, out_ch, groups, config.dropout, conv_at(level))
@@ -137,8 +172,9 @@ class VqganAutoencoder(Autoencoder):
             for _ in range(config.num_res_blocks):
                 stage.blocks.append(block(width, out_width, level))
                 width = out_width
-                stage.attentions.append(AttentionBlock(width, groups) if resolution in config.attention_resolutions
-                                        else nn.Identity())
+                stage.attentions.append(
+                    AttentionBlock(width, groups) if resolution in config.attention_resolutions else nn.Identity()
+                )
             stage.down = Downsample(width) if level < levels - 1 else nn.Identity()
             resolution = resolution // 2 if level < levels - 1 else resolution
             self.enc_levels.append(stage)
@@ -160,8 +196,9 @@ class VqganAutoencoder(Autoencoder):
             for _ in range(config.num_res_blocks + 1):
                 stage.blocks.append(block(width, out_width, level))
                 width = out_width
-                stage.attentions.append(AttentionBlock(width, groups) if resolution in config.attention_resolutions
-                                        else nn.Identity())
+                stage.attentions.append(
+                    AttentionBlock(width, groups) if resolution in config.attention_resolutions else nn.Identity()
+                )
             stage.up = Upsample(width) if level > 0 else nn.Identity()
             resolution = resolution * 2 if level > 0 else resolution
             self.dec_levels.append(stage)
@@ -170,17 +207,21 @@ class VqganAutoencoder(Autoencoder):
 
     @staticmethod
     def _mid(width: int, level: int, block, groups: int, attention: bool) -> nn.Sequential:
-        return nn.Sequential(block(width, width, level),
-                             AttentionBlock(width, groups) if attention else nn.Identity(),
-                             block(width, width, level))
+        return nn.Sequential(
+            block(width, width, level),
+            AttentionBlock(width, groups) if attention else nn.Identity(),
+            block(width, width, level),
+        )
 
     def encode(self, images_BCHW: torch.Tensor) -> torch.Tensor:
         if images_BCHW.ndim != 4 or images_BCHW.shape[1] != self.enc_in.in_channels:
-            raise ValueError(f"expected images (B, {self.enc_in.in_channels}, H, W) in [-1, 1], "
-                             f"got {tuple(images_BCHW.shape)}")
+            raise ValueError(
+                f"expected images (B, {self.enc_in.in_channels}, H, W) in [-1, 1], got {tuple(images_BCHW.shape)}"
+            )
         if images_BCHW.shape[-1] % self.downsample_factor or images_BCHW.shape[-2] % self.downsample_factor:
-            raise ValueError(f"image size {tuple(images_BCHW.shape[-2:])} is not divisible by f = "
-                             f"{self.downsample_factor}")
+            raise ValueError(
+                f"image size {tuple(images_BCHW.shape[-2:])} is not divisible by f = {self.downsample_factor}"
+            )
         h = self.enc_in(images_BCHW)
         for stage in self.enc_levels:
             for block, attention in zip(stage.blocks, stage.attentions):
@@ -208,8 +249,9 @@ class VqganAutoencoder(Autoencoder):
 
     def offset_magnitude(self) -> float | None:
         """Mean |offset| of the deformable layers in the last forward (None without any)."""
-        values = [m.last_mean_abs_offset for m in self.modules()
-                  if getattr(m, "last_mean_abs_offset", None) is not None]
+        values = [
+            m.last_mean_abs_offset for m in self.modules() if getattr(m, "last_mean_abs_offset", None) is not None
+        ]
         return sum(values) / len(values) if values else None
 
 
@@ -221,7 +263,17 @@ def build_autoencoder(config: VqganConfig, context: BuildContext) -> VqganAutoen
 @hookimpl
 def vqtouch_register_autoencoders(register):
     # The demo trains at half the base width so it finishes in minutes on a CPU.
-    register("vqgan", build_autoencoder, VqganConfig, demo={"channels": 32},
-             description="VQGAN autoencoder (ResNet + GroupNorm + attention), the baseline tokenizer.")
-    register("dm_vqgan", build_autoencoder, DmVqganConfig, demo={"channels": 32},
-             description="DM-VQGAN: VQGAN + deformable convolutions + multi-scale dilated fusion.")
+    register(
+        "vqgan",
+        build_autoencoder,
+        VqganConfig,
+        demo={"channels": 32},
+        description="VQGAN autoencoder (ResNet + GroupNorm + attention), the baseline tokenizer.",
+    )
+    register(
+        "dm_vqgan",
+        build_autoencoder,
+        DmVqganConfig,
+        demo={"channels": 32},
+        description="DM-VQGAN: VQGAN + deformable convolutions + multi-scale dilated fusion.",
+    )

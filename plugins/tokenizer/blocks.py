@@ -31,8 +31,14 @@ def group_norm(channels: int, groups: int) -> nn.GroupNorm:
 class ResnetBlock(nn.Module):
     """h = conv(swish(GN(x))); h = conv2(dropout(swish(GN(h)))); out = shortcut(x) + h."""
 
-    def __init__(self, in_channels: int, out_channels: int, norm_groups: int, dropout: float = 0.0,
-                 second_conv: ConvFactory = plain_conv3x3) -> None:
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        norm_groups: int,
+        dropout: float = 0.0,
+        second_conv: ConvFactory = plain_conv3x3,
+    ) -> None:
         super().__init__()
         self.norm1 = group_norm(in_channels, norm_groups)
         self.conv1 = nn.Conv2d(in_channels, out_channels, 3, padding=1)
@@ -60,8 +66,9 @@ class AttentionBlock(nn.Module):
         batch, channels, height, width = x_BCHW.shape
         q, k, v = self.qkv(self.norm(x_BCHW)).reshape(batch, 3, channels, height * width).unbind(1)
         # scaled_dot_product_attention wants (B, heads, L, C); one head.
-        out_BLC = F.scaled_dot_product_attention(q.transpose(1, 2)[:, None], k.transpose(1, 2)[:, None],
-                                                 v.transpose(1, 2)[:, None])[:, 0]
+        out_BLC = F.scaled_dot_product_attention(
+            q.transpose(1, 2)[:, None], k.transpose(1, 2)[:, None], v.transpose(1, 2)[:, None]
+        )[:, 0]
         return x_BCHW + self.proj(out_BLC.transpose(1, 2).reshape(batch, channels, height, width))
 
 
@@ -98,9 +105,11 @@ class MultiScaleFusion(nn.Module):
     def __init__(self, channels: int, norm_groups: int, dilations: tuple[int, ...] = (1, 2, 4)) -> None:
         super().__init__()
         self.branches = nn.ModuleList(
-            nn.Sequential(nn.Conv2d(channels, channels, 3, padding=d, dilation=d), group_norm(channels, norm_groups),
-                          nn.SiLU())
-            for d in dilations)
+            nn.Sequential(
+                nn.Conv2d(channels, channels, 3, padding=d, dilation=d), group_norm(channels, norm_groups), nn.SiLU()
+            )
+            for d in dilations
+        )
         self.fuse = nn.Conv2d(channels * len(dilations), channels, 3, padding=1)
         nn.init.zeros_(self.fuse.weight)
         nn.init.zeros_(self.fuse.bias)

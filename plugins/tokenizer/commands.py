@@ -15,8 +15,16 @@ from typing import Any
 import torch
 
 from vqtouch.core import Assembly, ConfigError, MetricSet, RunDir, hookimpl, run_stage
-from vqtouch.core.cli import (add_config_arguments, add_run_arguments, add_step_argument, command_group, plugin_block,
-                              positive_int, stage_failure, training_run)
+from vqtouch.core.cli import (
+    add_config_arguments,
+    add_run_arguments,
+    add_step_argument,
+    command_group,
+    plugin_block,
+    positive_int,
+    stage_failure,
+    training_run,
+)
 from vqtouch.core.config import parse_override, resolve_config
 from vqtouch.plugins.evaluation.records import DEFAULT_SEEDS
 from vqtouch.core.data import experiment_split
@@ -51,18 +59,25 @@ def _images_dataset(images: str, options: list[str], image_size: ImageSize) -> d
     """The dataset block of ``reconstruct --images``: a folder read by ``image_folder``, or a JSON
     block of any reader; ``--images-option KEY=VALUE`` sets that reader's options (those its
     errors name, e.g. ``lenient=true``).  The image size is always the tokenizer's."""
-    block = (plugin_block(images, "--images", default_name="image_folder") if images.strip().startswith("{")
-             else {"name": "image_folder", "root": images})
+    block = (
+        plugin_block(images, "--images", default_name="image_folder")
+        if images.strip().startswith("{")
+        else {"name": "image_folder", "root": images}
+    )
     for option in options:
         path, value = parse_override(option) if "=" in option else ([], None)
         if len(path) != 1 or path[0] in ("name", "image_size"):
-            raise ConfigError(f"--images-option {option!r}: give one reader option as KEY=VALUE, e.g. lenient=true "
-                              "(the reader is chosen by --images and the image size by the tokenizer)")
+            raise ConfigError(
+                f"--images-option {option!r}: give one reader option as KEY=VALUE, e.g. lenient=true "
+                "(the reader is chosen by --images and the image size by the tokenizer)"
+            )
         block[path[0]] = value
     if "image_size" in block and block["image_size"] not in (image_size, list(image_hw(image_size))):
-        raise ConfigError(f"--images sets image_size={block['image_size']}, but the tokenizer works at "
-                          f"{size_text(image_size)} px; "
-                          "drop image_size (images are resized to the tokenizer's size)")
+        raise ConfigError(
+            f"--images sets image_size={block['image_size']}, but the tokenizer works at "
+            f"{size_text(image_size)} px; "
+            "drop image_size (images are resized to the tokenizer's size)"
+        )
     return {**block, "image_size": image_size}
 
 
@@ -74,8 +89,10 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
         sensor_config = host.validate("sensor_family", plugin_block(args.real_frames, "--real-frames"))
         images = host.build("sensor_family", sensor_config).reference_frames(*image_hw(image_size))
         if images is None:
-            raise ConfigError(f"sensor family {sensor_config.name!r} declares no real reference frames; "
-                              "reconstruct your own with --images FOLDER")
+            raise ConfigError(
+                f"sensor family {sensor_config.name!r} declares no real reference frames; "
+                "reconstruct your own with --images FOLDER"
+            )
         source = f"real {sensor_config.name} frames"
     else:
         dataset = host.build("dataset", _images_dataset(args.images, args.images_options, image_size))
@@ -87,11 +104,17 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     save_pairs(images, reconstructions, out / "reconstructions.png")
-    (out / "reconstruct.json").write_text(json.dumps({"checkpoint": str(folder), "source": source,
-                                                     "images": len(images), "image_size": image_size,
-                                                     **scores}, indent=2) + "\n")
-    print(f"{len(images)} images from {source} through {folder}: SSIM {scores['ssim']:.4f}, "
-          f"PSNR {scores['psnr']:.2f} dB; pictures (top original, bottom reconstruction): {out}/reconstructions.png")
+    (out / "reconstruct.json").write_text(
+        json.dumps(
+            {"checkpoint": str(folder), "source": source, "images": len(images), "image_size": image_size, **scores},
+            indent=2,
+        )
+        + "\n"
+    )
+    print(
+        f"{len(images)} images from {source} through {folder}: SSIM {scores['ssim']:.4f}, "
+        f"PSNR {scores['psnr']:.2f} dB; pictures (top original, bottom reconstruction): {out}/reconstructions.png"
+    )
     return 0
 
 
@@ -118,11 +141,16 @@ def _evaluate_command(args: argparse.Namespace) -> int:
     names = args.metrics.split(",") if args.metrics else [m.name for m in config.metrics]
     metrics = {name: assembly.build("metric", name) for name in names}
     background, background_source = dataset_background(background_images, image_hw(config.data.image_size))
-    scores = evaluate_reconstruction(tokenizer, evaluated, metrics, batch_size=config.data.batch_size,
-                                     background_3HW=background)
+    scores = evaluate_reconstruction(
+        tokenizer, evaluated, metrics, batch_size=config.data.batch_size, background_3HW=background
+    )
     save_pairs(*scores["examples"], run.path / f"reconstructions_{folder.name}.png")
-    result = {"checkpoint": str(folder), "split": "dataset" if args.dataset else args.split,
-              "background": background_source, **printable(scores)}
+    result = {
+        "checkpoint": str(folder),
+        "split": "dataset" if args.dataset else args.split,
+        "background": background_source,
+        **printable(scores),
+    }
     suffix = "_dataset" if args.dataset else ""
     run.write_json(f"evaluation_{folder.name}{suffix}.json", result)
     print(json.dumps(result, indent=2))
@@ -133,17 +161,28 @@ def _reconstruction_experiment_command(args: argparse.Namespace) -> int:
     from .experiment import evaluate_reconstruction_experiment
 
     if args.step is not None or args.dataset or args.metrics or args.split != "val":
-        raise ConfigError("--step, --split, --metrics and --dataset score one run (--run); the experiment (--out) "
-                          "trains its own runs and scores them with the scene's metrics")
+        raise ConfigError(
+            "--step, --split, --metrics and --dataset score one run (--run); the experiment (--out) "
+            "trains its own runs and scores them with the scene's metrics"
+        )
     config = resolve_config(args.scene, args.config, args.overrides, host=args.host)
     held_out = args.held_out
     if held_out is None and config.data.dataset is not None and "num_samples" in type(config.data.dataset).model_fields:
         held_out = 200
     out = Path(args.out)
-    evaluate_reconstruction_experiment(config, args.host, out, seeds=args.seeds, samples=args.samples,
-                                       models=args.models, mae_ratios=args.mae_ratios, held_out=held_out,
-                                       distribution=args.distribution, overwrite=args.overwrite,
-                                       report=lambda line: print(line, flush=True))
+    evaluate_reconstruction_experiment(
+        config,
+        args.host,
+        out,
+        seeds=args.seeds,
+        samples=args.samples,
+        models=args.models,
+        mae_ratios=args.mae_ratios,
+        held_out=held_out,
+        distribution=args.distribution,
+        overwrite=args.overwrite,
+        report=lambda line: print(line, flush=True),
+    )
     print((out / "reconstruction.md").read_text())
     print(f"-> {out} (reconstruction.json, reconstruction.md, reconstruction.png, reconstruction_samples.png, runs/)")
     return 0
@@ -161,45 +200,93 @@ def vqtouch_add_commands(subparsers):
     reconstruct.add_argument("--run", required=True, help="run directory (or a checkpoint folder)")
     add_step_argument(reconstruct)
     source = reconstruct.add_mutually_exclusive_group(required=True)
-    source.add_argument("--real-frames", metavar="SENSOR",
-                        help="the real reference frames of this sensor family (name or JSON), e.g. gelsight")
-    source.add_argument("--images", help="an image folder (one sub-folder per class) to reconstruct, or a JSON "
-                                         "dataset block of any reader, e.g. '{\"name\": \"touch_and_go\", "
-                                         "\"root\": \"data/tag\"}'")
-    reconstruct.add_argument("--images-option", dest="images_options", action="append", default=[],
-                             metavar="KEY=VALUE", help="an option of the --images reader (repeatable), e.g. "
-                                                       "lenient=true or allow_greyscale=true")
+    source.add_argument(
+        "--real-frames",
+        metavar="SENSOR",
+        help="the real reference frames of this sensor family (name or JSON), e.g. gelsight",
+    )
+    source.add_argument(
+        "--images",
+        help="an image folder (one sub-folder per class) to reconstruct, or a JSON "
+        'dataset block of any reader, e.g. \'{"name": "touch_and_go", '
+        '"root": "data/tag"}\'',
+    )
+    reconstruct.add_argument(
+        "--images-option",
+        dest="images_options",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an option of the --images reader (repeatable), e.g. lenient=true or allow_greyscale=true",
+    )
     reconstruct.add_argument("--out", required=True, help="folder for reconstructions.png and reconstruct.json")
     reconstruct.set_defaults(handler=_reconstruct_command)
 
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
-    recon = evaluate.add_parser("reconstruction", help="score a trained tokenizer on the held-out split; with --out, "
-                                                       "the experiment: reconstruction against training-set size "
-                                                       "for each model over seeds (Table 1: JSON, markdown, PNG)")
+    recon = evaluate.add_parser(
+        "reconstruction",
+        help="score a trained tokenizer on the held-out split; with --out, "
+        "the experiment: reconstruction against training-set size "
+        "for each model over seeds (Table 1: JSON, markdown, PNG)",
+    )
     mode = recon.add_mutually_exclusive_group(required=True)
     mode.add_argument("--run", help="run directory of a trained tokenizer: score it")
-    mode.add_argument("--out", help="run the experiment into this folder: train every model of --models and "
-                                    "--mae-ratios on each --samples count of the scene's data, per seed")
-    recon.add_argument("--seeds", type=int, nargs="+", default=list(DEFAULT_SEEDS),
-                       help="with --out: seeds (split, sample draw, initialisation; default 0 1 2)")
-    recon.add_argument("--samples", type=positive_int, nargs="+", default=[100, 1000, 10000],
-                       help="with --out: training-set sizes (default 100 1000 10000; the same steps for each)")
-    recon.add_argument("--models", nargs="*", default=["vqgan", "dm_vqgan"],
-                       help="with --out: autoencoder plugins swapped into the scene's tokenizer (default vqgan "
-                            "dm_vqgan)")
-    recon.add_argument("--mae-ratios", type=float, nargs="*", default=[0.25, 0.5, 0.75],
-                       help="with --out: mask ratios of the MAE baseline (default 0.25 0.5 0.75; none: leave it out)")
-    recon.add_argument("--held-out", type=positive_int,
-                       help="with --out: held-out procedural samples (default 200; a reader's dataset holds out "
-                            "data.val_fraction of its groups instead)")
-    recon.add_argument("--distribution", action=argparse.BooleanOptionalAction, default=True,
-                       help="with --out: also score fd_effnetlite0 (default: on)")
-    recon.add_argument("--overwrite", action="store_true",
-                       help="with --out: write the result again (finished runs with an unchanged config are reused)")
+    mode.add_argument(
+        "--out",
+        help="run the experiment into this folder: train every model of --models and "
+        "--mae-ratios on each --samples count of the scene's data, per seed",
+    )
+    recon.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        default=list(DEFAULT_SEEDS),
+        help="with --out: seeds (split, sample draw, initialisation; default 0 1 2)",
+    )
+    recon.add_argument(
+        "--samples",
+        type=positive_int,
+        nargs="+",
+        default=[100, 1000, 10000],
+        help="with --out: training-set sizes (default 100 1000 10000; the same steps for each)",
+    )
+    recon.add_argument(
+        "--models",
+        nargs="*",
+        default=["vqgan", "dm_vqgan"],
+        help="with --out: autoencoder plugins swapped into the scene's tokenizer (default vqgan dm_vqgan)",
+    )
+    recon.add_argument(
+        "--mae-ratios",
+        type=float,
+        nargs="*",
+        default=[0.25, 0.5, 0.75],
+        help="with --out: mask ratios of the MAE baseline (default 0.25 0.5 0.75; none: leave it out)",
+    )
+    recon.add_argument(
+        "--held-out",
+        type=positive_int,
+        help="with --out: held-out procedural samples (default 200; a reader's dataset holds out "
+        "data.val_fraction of its groups instead)",
+    )
+    recon.add_argument(
+        "--distribution",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="with --out: also score fd_effnetlite0 (default: on)",
+    )
+    recon.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="with --out: write the result again (finished runs with an unchanged config are reused)",
+    )
     add_config_arguments(recon, default_scene="reconstruction")
     add_step_argument(recon)
     recon.add_argument("--split", choices=["val", "all"], default="val", help="held-out split or all samples")
     recon.add_argument("--metrics", help="comma-separated metric plugins (default: the run's metrics)")
-    recon.add_argument("--dataset", help="evaluate on this dataset (JSON config, used whole) instead of the run's "
-                                         "held-out split, e.g. '{\"name\": \"procedural\", \"seed\": 999}'")
+    recon.add_argument(
+        "--dataset",
+        help="evaluate on this dataset (JSON config, used whole) instead of the run's "
+        'held-out split, e.g. \'{"name": "procedural", "seed": 999}\'',
+    )
     recon.set_defaults(handler=_evaluate_command)

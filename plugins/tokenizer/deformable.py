@@ -40,7 +40,13 @@ from torch import nn
 
 from vqtouch.core import ConfigError
 
-__all__ = ["DeformableConv2d", "bilinear_taps", "deform_conv2d_gather", "deform_conv2d_grid_sample", "deform_conv2d_torchvision"]
+__all__ = [
+    "DeformableConv2d",
+    "bilinear_taps",
+    "deform_conv2d_gather",
+    "deform_conv2d_grid_sample",
+    "deform_conv2d_torchvision",
+]
 
 IntPair = int | tuple[int, int]
 Backend = Literal["grid_sample", "gather", "torchvision"]
@@ -56,9 +62,16 @@ def _pair(value: IntPair, name: str) -> tuple[int, int]:
     raise ValueError(f"{name} must be an int or a pair of ints, got {value!r}")
 
 
-def _check_shapes(input: torch.Tensor, offset: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None,
-                  stride: tuple[int, int], padding: tuple[int, int], dilation: tuple[int, int],
-                  mask: torch.Tensor | None) -> tuple[int, int, int, int]:
+def _check_shapes(
+    input: torch.Tensor,
+    offset: torch.Tensor,
+    weight: torch.Tensor,
+    bias: torch.Tensor | None,
+    stride: tuple[int, int],
+    padding: tuple[int, int],
+    dilation: tuple[int, int],
+    mask: torch.Tensor | None,
+) -> tuple[int, int, int, int]:
     """Validate a deform_conv2d call; return (offset_groups, weight_groups, out_height, out_width)."""
     if input.dim() != 4:
         raise ValueError(f"deform_conv2d: input must be [B, C, H, W], got shape {tuple(input.shape)}")
@@ -67,36 +80,51 @@ def _check_shapes(input: torch.Tensor, offset: torch.Tensor, weight: torch.Tenso
     if offset.dim() != 4:
         raise ValueError(f"deform_conv2d: offset must be [B, 2*G*kh*kw, Ho, Wo], got shape {tuple(offset.shape)}")
     if min(stride) < 1 or min(dilation) < 1 or min(padding) < 0:
-        raise ValueError(f"deform_conv2d: need stride >= 1, dilation >= 1, padding >= 0; got stride {stride}, "
-                         f"dilation {dilation}, padding {padding}")
+        raise ValueError(
+            f"deform_conv2d: need stride >= 1, dilation >= 1, padding >= 0; got stride {stride}, "
+            f"dilation {dilation}, padding {padding}"
+        )
     batch, in_channels, height, width = input.shape
     out_channels, in_per_weight_group, kernel_h, kernel_w = weight.shape
     taps = kernel_h * kernel_w
     if in_per_weight_group == 0 or in_channels % in_per_weight_group:
-        raise ValueError(f"deform_conv2d: input has {in_channels} channels, not a multiple of the weight's "
-                         f"{in_per_weight_group} input channels per group (weight shape {tuple(weight.shape)})")
+        raise ValueError(
+            f"deform_conv2d: input has {in_channels} channels, not a multiple of the weight's "
+            f"{in_per_weight_group} input channels per group (weight shape {tuple(weight.shape)})"
+        )
     weight_groups = in_channels // in_per_weight_group
     if out_channels % weight_groups:
-        raise ValueError(f"deform_conv2d: {out_channels} output channels are not divisible into {weight_groups} "
-                         f"weight groups")
+        raise ValueError(
+            f"deform_conv2d: {out_channels} output channels are not divisible into {weight_groups} weight groups"
+        )
     out_h = (height + 2 * padding[0] - dilation[0] * (kernel_h - 1) - 1) // stride[0] + 1
     out_w = (width + 2 * padding[1] - dilation[1] * (kernel_w - 1) - 1) // stride[1] + 1
     if out_h < 1 or out_w < 1:
-        raise ValueError(f"deform_conv2d: input {height}x{width} is too small for a {kernel_h}x{kernel_w} kernel with "
-                         f"padding {padding}, dilation {dilation} (output would be {out_h}x{out_w})")
+        raise ValueError(
+            f"deform_conv2d: input {height}x{width} is too small for a {kernel_h}x{kernel_w} kernel with "
+            f"padding {padding}, dilation {dilation} (output would be {out_h}x{out_w})"
+        )
     if offset.shape[0] != batch or offset.shape[1] % (2 * taps) or offset.shape[1] == 0:
-        raise ValueError(f"deform_conv2d: offset must be [B={batch}, 2*G*{taps}, {out_h}, {out_w}] for this input and "
-                         f"kernel, got shape {tuple(offset.shape)}")
+        raise ValueError(
+            f"deform_conv2d: offset must be [B={batch}, 2*G*{taps}, {out_h}, {out_w}] for this input and "
+            f"kernel, got shape {tuple(offset.shape)}"
+        )
     offset_groups = offset.shape[1] // (2 * taps)
     if tuple(offset.shape[2:]) != (out_h, out_w):
-        raise ValueError(f"deform_conv2d: offset spatial size {tuple(offset.shape[2:])} differs from the output size "
-                         f"{(out_h, out_w)} given by the input, kernel, stride, padding and dilation")
+        raise ValueError(
+            f"deform_conv2d: offset spatial size {tuple(offset.shape[2:])} differs from the output size "
+            f"{(out_h, out_w)} given by the input, kernel, stride, padding and dilation"
+        )
     if in_channels % offset_groups:
-        raise ValueError(f"deform_conv2d: input channels {in_channels} are not divisible into {offset_groups} offset "
-                         f"groups (offset has {offset.shape[1]} channels)")
+        raise ValueError(
+            f"deform_conv2d: input channels {in_channels} are not divisible into {offset_groups} offset "
+            f"groups (offset has {offset.shape[1]} channels)"
+        )
     if mask is not None and tuple(mask.shape) != (batch, offset_groups * taps, out_h, out_w):
-        raise ValueError(f"deform_conv2d: mask must be [B, G*kh*kw, Ho, Wo] = "
-                         f"{[batch, offset_groups * taps, out_h, out_w]}, got shape {tuple(mask.shape)}")
+        raise ValueError(
+            f"deform_conv2d: mask must be [B, G*kh*kw, Ho, Wo] = "
+            f"{[batch, offset_groups * taps, out_h, out_w]}, got shape {tuple(mask.shape)}"
+        )
     if bias is not None and tuple(bias.shape) != (out_channels,):
         raise ValueError(f"deform_conv2d: bias must be [{out_channels}], got shape {tuple(bias.shape)}")
     return offset_groups, weight_groups, out_h, out_w
@@ -110,14 +138,26 @@ def _result_dtype(input: torch.Tensor) -> torch.dtype:
     return input.dtype
 
 
-def _checked_geometry(input: torch.Tensor, offset: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None,
-                      stride: IntPair, padding: IntPair, dilation: IntPair, mask: torch.Tensor | None) -> tuple:
+def _checked_geometry(
+    input: torch.Tensor,
+    offset: torch.Tensor,
+    weight: torch.Tensor,
+    bias: torch.Tensor | None,
+    stride: IntPair,
+    padding: IntPair,
+    dilation: IntPair,
+    mask: torch.Tensor | None,
+) -> tuple:
     """The (h, w) pairs of stride, padding and dilation, then the offset groups, weight groups and
     output size of a checked deformable-convolution call (see :func:`_check_shapes`)."""
     stride_hw, padding_hw = _pair(stride, "stride"), _pair(padding, "padding")
     dilation_hw = _pair(dilation, "dilation")
-    return (stride_hw, padding_hw, dilation_hw,
-            *_check_shapes(input, offset, weight, bias, stride_hw, padding_hw, dilation_hw, mask))
+    return (
+        stride_hw,
+        padding_hw,
+        dilation_hw,
+        *_check_shapes(input, offset, weight, bias, stride_hw, padding_hw, dilation_hw, mask),
+    )
 
 
 def _sample_dtype(input: torch.Tensor) -> torch.dtype:
@@ -126,9 +166,17 @@ def _sample_dtype(input: torch.Tensor) -> torch.dtype:
     return torch.float64 if input.dtype == torch.float64 else torch.float32
 
 
-def _tap_positions(out_h: int, out_w: int, kernel_h: int, kernel_w: int, stride_hw: tuple[int, int],
-                   padding_hw: tuple[int, int], dilation_hw: tuple[int, int], dtype: torch.dtype,
-                   device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+def _tap_positions(
+    out_h: int,
+    out_w: int,
+    kernel_h: int,
+    kernel_w: int,
+    stride_hw: tuple[int, int],
+    padding_hw: tuple[int, int],
+    dilation_hw: tuple[int, int],
+    dtype: torch.dtype,
+    device: torch.device,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Undeformed tap positions in input pixels, as output origin + kernel point: the output
     rows' and columns' origins (Ho,), (Wo,) and each kernel point's row and column displacement
     (K,) (kernel point k = i*kw + j sits at row i*dilation, column j*dilation)."""
@@ -139,9 +187,16 @@ def _tap_positions(out_h: int, out_w: int, kernel_h: int, kernel_w: int, stride_
     return rows_o, cols_o, tap_rows_K, tap_cols_K
 
 
-def deform_conv2d_grid_sample(input: torch.Tensor, offset: torch.Tensor, weight: torch.Tensor,
-                              bias: torch.Tensor | None = None, stride: IntPair = 1, padding: IntPair = 0,
-                              dilation: IntPair = 1, mask: torch.Tensor | None = None) -> torch.Tensor:
+def deform_conv2d_grid_sample(
+    input: torch.Tensor,
+    offset: torch.Tensor,
+    weight: torch.Tensor,
+    bias: torch.Tensor | None = None,
+    stride: IntPair = 1,
+    padding: IntPair = 0,
+    dilation: IntPair = 1,
+    mask: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Deformable convolution with ``torchvision.ops.deform_conv2d``'s semantics, in pure PyTorch.
 
     Args:
@@ -169,15 +224,17 @@ def deform_conv2d_grid_sample(input: torch.Tensor, offset: torch.Tensor, weight:
     bfloat16/float16 when autocast is on, the input dtype otherwise), like ``F.conv2d``.
     """
     stride_hw, padding_hw, dilation_hw, offset_groups, weight_groups, out_h, out_w = _checked_geometry(
-        input, offset, weight, bias, stride, padding, dilation, mask)
+        input, offset, weight, bias, stride, padding, dilation, mask
+    )
     batch, in_channels, height, width = input.shape
     out_channels, _, kernel_h, kernel_w = weight.shape
     taps = kernel_h * kernel_w
     result_dtype, sample_dtype, device = _result_dtype(input), _sample_dtype(input), input.device
 
     with torch.autocast(device_type=device.type, enabled=False):
-        rows_o, cols_o, tap_rows_K, tap_cols_K = _tap_positions(out_h, out_w, kernel_h, kernel_w, stride_hw,
-                                                                padding_hw, dilation_hw, sample_dtype, device)
+        rows_o, cols_o, tap_rows_K, tap_cols_K = _tap_positions(
+            out_h, out_w, kernel_h, kernel_w, stride_hw, padding_hw, dilation_hw, sample_dtype, device
+        )
         base_y_KHW = (tap_rows_K[:, None, None] + rows_o[None, :, None]).expand(taps, out_h, out_w)
         base_x_KHW = (tap_cols_K[:, None, None] + cols_o[None, None, :]).expand(taps, out_h, out_w)
 
@@ -190,10 +247,12 @@ def deform_conv2d_grid_sample(input: torch.Tensor, offset: torch.Tensor, weight:
         grid_BGKHW2 = torch.stack(((2 * x_BGKHW + 1) / width - 1, (2 * y_BGKHW + 1) / height - 1), dim=-1)
         grid_N_KHo_Wo_2 = grid_BGKHW2.reshape(batch * offset_groups, taps * out_h, out_w, 2)
 
-        input_N_Cg_H_W = input.to(sample_dtype).reshape(batch * offset_groups, in_channels // offset_groups,
-                                                        height, width)
-        sampled = F.grid_sample(input_N_Cg_H_W, grid_N_KHo_Wo_2, mode="bilinear", padding_mode="zeros",
-                                align_corners=False)  # [B*G, C_in/G, K*Ho, Wo]
+        input_N_Cg_H_W = input.to(sample_dtype).reshape(
+            batch * offset_groups, in_channels // offset_groups, height, width
+        )
+        sampled = F.grid_sample(
+            input_N_Cg_H_W, grid_N_KHo_Wo_2, mode="bilinear", padding_mode="zeros", align_corners=False
+        )  # [B*G, C_in/G, K*Ho, Wo]
         if mask is not None:
             sampled_BGCKHW = sampled.view(batch, offset_groups, in_channels // offset_groups, taps, out_h, out_w)
             mask_BG1KHW = mask.to(sample_dtype).reshape(batch, offset_groups, 1, taps, out_h, out_w)
@@ -224,8 +283,9 @@ class _RowGradient(torch.autograd.Function):
     gradient the factor-weighted sum of the taps that read it, with rows nobody read left 0."""
 
     @staticmethod
-    def forward(ctx, sampled_MC: torch.Tensor, rows_RC: torch.Tensor, index_M4: torch.Tensor,
-                factor_M4: torch.Tensor) -> torch.Tensor:
+    def forward(
+        ctx, sampled_MC: torch.Tensor, rows_RC: torch.Tensor, index_M4: torch.Tensor, factor_M4: torch.Tensor
+    ) -> torch.Tensor:
         ctx.save_for_backward(index_M4, factor_M4)
         ctx.num_rows = rows_RC.shape[0]
         return sampled_MC.view_as(sampled_MC)
@@ -240,8 +300,13 @@ class _RowGradient(torch.autograd.Function):
             counts = torch.bincount(flat, minlength=ctx.num_rows)
             starts = counts.cumsum(0) - counts  # bag r: the corner entries that read row r
             corners = index_M4.shape[1]
-            grad_rows_RC = F.embedding_bag(order // corners, grad_MC.contiguous(), starts, mode="sum",
-                                           per_sample_weights=factor_M4.reshape(-1)[order])
+            grad_rows_RC = F.embedding_bag(
+                order // corners,
+                grad_MC.contiguous(),
+                starts,
+                mode="sum",
+                per_sample_weights=factor_M4.reshape(-1)[order],
+            )
         return grad_MC, grad_rows_RC, None, None
 
 
@@ -257,9 +322,16 @@ def bilinear_taps(rows_RC: torch.Tensor, index_M4: torch.Tensor, factor_M4: torc
     return _RowGradient.apply(sampled_MC, rows_RC, index_M4, factor_M4.detach())
 
 
-def deform_conv2d_gather(input: torch.Tensor, offset: torch.Tensor, weight: torch.Tensor,
-                         bias: torch.Tensor | None = None, stride: IntPair = 1, padding: IntPair = 0,
-                         dilation: IntPair = 1, mask: torch.Tensor | None = None) -> torch.Tensor:
+def deform_conv2d_gather(
+    input: torch.Tensor,
+    offset: torch.Tensor,
+    weight: torch.Tensor,
+    bias: torch.Tensor | None = None,
+    stride: IntPair = 1,
+    padding: IntPair = 0,
+    dilation: IntPair = 1,
+    mask: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Deformable convolution with :func:`deform_conv2d_grid_sample`'s signature, semantics and
     dtype rules, computed as a channels-last bilinear gather and one matmul.
 
@@ -272,7 +344,8 @@ def deform_conv2d_gather(input: torch.Tensor, offset: torch.Tensor, weight: torc
     weight seen as ``[K*C_in, C_out]`` finishes.  Dtypes as :func:`deform_conv2d_grid_sample`.
     """
     stride_hw, padding_hw, dilation_hw, offset_groups, weight_groups, out_h, out_w = _checked_geometry(
-        input, offset, weight, bias, stride, padding, dilation, mask)
+        input, offset, weight, bias, stride, padding, dilation, mask
+    )
     batch, in_channels, height, width = input.shape
     out_channels, _, kernel_h, kernel_w = weight.shape
     taps, pixels = kernel_h * kernel_w, out_h * out_w
@@ -281,8 +354,9 @@ def deform_conv2d_gather(input: torch.Tensor, offset: torch.Tensor, weight: torc
     result_dtype, sample_dtype, device = _result_dtype(input), _sample_dtype(input), input.device
 
     with torch.autocast(device_type=device.type, enabled=False):
-        rows_o, cols_o, tap_rows_K, tap_cols_K = _tap_positions(out_h, out_w, kernel_h, kernel_w, stride_hw,
-                                                                padding_hw, dilation_hw, sample_dtype, device)
+        rows_o, cols_o, tap_rows_K, tap_cols_K = _tap_positions(
+            out_h, out_w, kernel_h, kernel_w, stride_hw, padding_hw, dilation_hw, sample_dtype, device
+        )
         # Positions ordered (image, output row, output column, tap): pixel-major, tap-minor.
         base_y_HWK = (rows_o[:, None, None] + tap_rows_K).expand(out_h, out_w, taps)
         base_x_HWK = (cols_o[None, :, None] + tap_cols_K).expand(out_h, out_w, taps)
@@ -307,8 +381,9 @@ def deform_conv2d_gather(input: torch.Tensor, offset: torch.Tensor, weight: torc
         image_start = (torch.arange(images, device=device) * (height * width)).view(images, 1, 1, 1, 1)
         # A NaN position (NaN weights) must give NaN, as grid_sample does, not an out-of-range index:
         # its factor is already NaN, so any in-range row will do.
-        index = (corner_y.nan_to_num(0).clamp(0, height - 1) * width
-                 + corner_x.nan_to_num(0).clamp(0, width - 1)).long() + image_start
+        index = (
+            corner_y.nan_to_num(0).clamp(0, height - 1) * width + corner_x.nan_to_num(0).clamp(0, width - 1)
+        ).long() + image_start
         rows = input.to(sample_dtype).reshape(images, group_channels, height * width).transpose(1, 2)
         rows = rows.reshape(images * height * width, group_channels)
         sampled = bilinear_taps(rows, index.reshape(-1, 4), factor.reshape(-1, 4))  # [N*Ho*Wo*K, C/G]
@@ -323,8 +398,9 @@ def deform_conv2d_gather(input: torch.Tensor, offset: torch.Tensor, weight: torc
     else:
         columns, weight_GwKCO = columns.to(result_dtype), weight_GwKCO.to(result_dtype)
     if weight_groups == 1:
-        out_LO = columns.reshape(batch * pixels, taps * in_channels) @ weight_GwKCO.reshape(taps * in_channels,
-                                                                                           out_channels)
+        out_LO = columns.reshape(batch * pixels, taps * in_channels) @ weight_GwKCO.reshape(
+            taps * in_channels, out_channels
+        )
     else:
         grouped = columns.view(batch * pixels, taps, weight_groups, in_per_group)
         out_LO = torch.einsum("lkgc,gkco->lgo", grouped, weight_GwKCO).reshape(batch * pixels, out_channels)
@@ -334,9 +410,16 @@ def deform_conv2d_gather(input: torch.Tensor, offset: torch.Tensor, weight: torc
     return out_BOHW.contiguous().to(result_dtype)
 
 
-def deform_conv2d_torchvision(input: torch.Tensor, offset: torch.Tensor, weight: torch.Tensor,
-                              bias: torch.Tensor | None = None, stride: IntPair = 1, padding: IntPair = 0,
-                              dilation: IntPair = 1, mask: torch.Tensor | None = None) -> torch.Tensor:
+def deform_conv2d_torchvision(
+    input: torch.Tensor,
+    offset: torch.Tensor,
+    weight: torch.Tensor,
+    bias: torch.Tensor | None = None,
+    stride: IntPair = 1,
+    padding: IntPair = 0,
+    dilation: IntPair = 1,
+    mask: torch.Tensor | None = None,
+) -> torch.Tensor:
     """``torchvision.ops.deform_conv2d`` with the same signature, dtype rules and checks as
     :func:`deform_conv2d_grid_sample`.
 
@@ -347,19 +430,29 @@ def deform_conv2d_torchvision(input: torch.Tensor, offset: torch.Tensor, weight:
     """
     from torchvision.ops import deform_conv2d as torchvision_deform_conv2d
 
-    stride_hw, padding_hw, dilation_hw, *_ = _checked_geometry(input, offset, weight, bias, stride, padding,
-                                                               dilation, mask)
+    stride_hw, padding_hw, dilation_hw, *_ = _checked_geometry(
+        input, offset, weight, bias, stride, padding, dilation, mask
+    )
     result_dtype, compute_dtype = _result_dtype(input), _sample_dtype(input)
     with torch.autocast(device_type=input.device.type, enabled=False):
         out_BOHW = torchvision_deform_conv2d(
-            input.to(compute_dtype), offset.to(compute_dtype), weight.to(compute_dtype),
-            None if bias is None else bias.to(compute_dtype), stride=stride_hw, padding=padding_hw,
-            dilation=dilation_hw, mask=None if mask is None else mask.to(compute_dtype))
+            input.to(compute_dtype),
+            offset.to(compute_dtype),
+            weight.to(compute_dtype),
+            None if bias is None else bias.to(compute_dtype),
+            stride=stride_hw,
+            padding=padding_hw,
+            dilation=dilation_hw,
+            mask=None if mask is None else mask.to(compute_dtype),
+        )
     return out_BOHW.to(result_dtype)
 
 
-_BACKEND_FUNCTIONS = {"grid_sample": deform_conv2d_grid_sample, "gather": deform_conv2d_gather,
-                      "torchvision": deform_conv2d_torchvision}
+_BACKEND_FUNCTIONS = {
+    "grid_sample": deform_conv2d_grid_sample,
+    "gather": deform_conv2d_gather,
+    "torchvision": deform_conv2d_torchvision,
+}
 
 
 class DeformableConv2d(nn.Module):
@@ -393,34 +486,52 @@ class DeformableConv2d(nn.Module):
             ``bench/bench_dm_vqgan.py``), ``"grid_sample"`` (pure PyTorch) or ``"torchvision"``.
     """
 
-    def __init__(self, in_channels: int, out_channels: int, kernel_size: IntPair = 3, stride: IntPair = 1,
-                 padding: IntPair = 1, dilation: IntPair = 1, groups: int = 1, bias: bool = True,
-                 modulation: bool = True, max_offset: float = 4.0, backend: Backend = "gather") -> None:
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        kernel_size: IntPair = 3,
+        stride: IntPair = 1,
+        padding: IntPair = 1,
+        dilation: IntPair = 1,
+        groups: int = 1,
+        bias: bool = True,
+        modulation: bool = True,
+        max_offset: float = 4.0,
+        backend: Backend = "gather",
+    ) -> None:
         super().__init__()
         if in_channels < 1 or out_channels < 1:
-            raise ValueError(f"DeformableConv2d: channel counts must be positive, got in {in_channels}, "
-                             f"out {out_channels}")
+            raise ValueError(
+                f"DeformableConv2d: channel counts must be positive, got in {in_channels}, out {out_channels}"
+            )
         if groups < 1 or in_channels % groups:
-            raise ValueError(f"DeformableConv2d: groups (offset groups) must divide in_channels={in_channels}, "
-                             f"got {groups}")
+            raise ValueError(
+                f"DeformableConv2d: groups (offset groups) must divide in_channels={in_channels}, got {groups}"
+            )
         if not (isinstance(max_offset, (int, float)) and math.isfinite(max_offset) and max_offset > 0):
-            raise ValueError(f"DeformableConv2d: max_offset must be a positive finite number of pixels, "
-                             f"got {max_offset!r}")
+            raise ValueError(
+                f"DeformableConv2d: max_offset must be a positive finite number of pixels, got {max_offset!r}"
+            )
         if backend not in BACKENDS:
             raise ValueError(f"DeformableConv2d: backend must be one of {BACKENDS}, got {backend!r}")
         if backend == "torchvision" and importlib.util.find_spec("torchvision") is None:
             # Fail when the model is built, not at its first forward pass deep inside training.
-            raise ConfigError("deformable_backend 'torchvision' needs torchvision, which is not installed: "
-                              "pip install torchvision (it comes with vqtouch[clip]), or use the default "
-                              "'gather' backend (same maths, no extra package)")
+            raise ConfigError(
+                "deformable_backend 'torchvision' needs torchvision, which is not installed: "
+                "pip install torchvision (it comes with vqtouch[clip]), or use the default "
+                "'gather' backend (same maths, no extra package)"
+            )
         self.in_channels, self.out_channels = in_channels, out_channels
         self.kernel_size = _pair(kernel_size, "kernel_size")
         self.stride, self.padding = _pair(stride, "stride"), _pair(padding, "padding")
         self.dilation = _pair(dilation, "dilation")
         if min(self.kernel_size) < 1 or min(self.stride) < 1 or min(self.dilation) < 1 or min(self.padding) < 0:
-            raise ValueError(f"DeformableConv2d: need kernel_size, stride, dilation >= 1 and padding >= 0; got "
-                             f"kernel_size {self.kernel_size}, stride {self.stride}, dilation {self.dilation}, "
-                             f"padding {self.padding}")
+            raise ValueError(
+                f"DeformableConv2d: need kernel_size, stride, dilation >= 1 and padding >= 0; got "
+                f"kernel_size {self.kernel_size}, stride {self.stride}, dilation {self.dilation}, "
+                f"padding {self.padding}"
+            )
         self.groups, self.modulation = groups, modulation
         self.max_offset, self.backend = float(max_offset), backend
         taps = self.kernel_size[0] * self.kernel_size[1]
@@ -429,8 +540,15 @@ class DeformableConv2d(nn.Module):
 
         self.weight = nn.Parameter(torch.empty(out_channels, in_channels, *self.kernel_size))
         self.bias = nn.Parameter(torch.empty(out_channels)) if bias else None
-        self.offset_conv = nn.Conv2d(in_channels, self.offset_channels + self.mask_channels, self.kernel_size,
-                                     stride=self.stride, padding=self.padding, dilation=self.dilation, bias=True)
+        self.offset_conv = nn.Conv2d(
+            in_channels,
+            self.offset_channels + self.mask_channels,
+            self.kernel_size,
+            stride=self.stride,
+            padding=self.padding,
+            dilation=self.dilation,
+            bias=True,
+        )
         # Detached scalar tensor; turned into a float only when asked, to avoid a device sync per step.
         self._last_mean_abs_offset: torch.Tensor | None = None
         self.reset_parameters()
@@ -461,8 +579,8 @@ class DeformableConv2d(nn.Module):
         with torch.autocast(device_type=x_BCHW.device.type, enabled=False):
             raw = self.offset_conv(x_BCHW.to(self.offset_conv.weight.dtype))
             raw = raw.to(torch.promote_types(raw.dtype, torch.float32))
-            offset_B2KHW = self.max_offset * torch.tanh(raw[:, :self.offset_channels])
-            mask_BKHW = 2.0 * torch.sigmoid(raw[:, self.offset_channels:]) if self.modulation else None
+            offset_B2KHW = self.max_offset * torch.tanh(raw[:, : self.offset_channels])
+            mask_BKHW = 2.0 * torch.sigmoid(raw[:, self.offset_channels :]) if self.modulation else None
         return offset_B2KHW, mask_BKHW
 
     def forward(self, x_BCHW: torch.Tensor) -> torch.Tensor:
@@ -470,20 +588,34 @@ class DeformableConv2d(nn.Module):
         if x_BCHW.dim() != 4:
             raise ValueError(f"DeformableConv2d: expected a 4-D input [B, C, H, W], got shape {tuple(x_BCHW.shape)}")
         if x_BCHW.shape[1] != self.in_channels:
-            raise ValueError(f"DeformableConv2d: expected {self.in_channels} input channels, got {x_BCHW.shape[1]} "
-                             f"(input shape {tuple(x_BCHW.shape)})")
-        out_h = (x_BCHW.shape[2] + 2 * self.padding[0] - self.dilation[0] * (self.kernel_size[0] - 1) - 1) \
-            // self.stride[0] + 1
-        out_w = (x_BCHW.shape[3] + 2 * self.padding[1] - self.dilation[1] * (self.kernel_size[1] - 1) - 1) \
-            // self.stride[1] + 1
+            raise ValueError(
+                f"DeformableConv2d: expected {self.in_channels} input channels, got {x_BCHW.shape[1]} "
+                f"(input shape {tuple(x_BCHW.shape)})"
+            )
+        out_h = (
+            x_BCHW.shape[2] + 2 * self.padding[0] - self.dilation[0] * (self.kernel_size[0] - 1) - 1
+        ) // self.stride[0] + 1
+        out_w = (
+            x_BCHW.shape[3] + 2 * self.padding[1] - self.dilation[1] * (self.kernel_size[1] - 1) - 1
+        ) // self.stride[1] + 1
         if out_h < 1 or out_w < 1:
-            raise ValueError(f"DeformableConv2d: input {tuple(x_BCHW.shape[2:])} is too small for kernel "
-                             f"{self.kernel_size} with padding {self.padding} and dilation {self.dilation}")
+            raise ValueError(
+                f"DeformableConv2d: input {tuple(x_BCHW.shape[2:])} is too small for kernel "
+                f"{self.kernel_size} with padding {self.padding} and dilation {self.dilation}"
+            )
         offset_B2KHW, mask_BKHW = self.offsets_and_mask(x_BCHW)
         with torch.no_grad():
             self._last_mean_abs_offset = offset_B2KHW.detach().abs().mean()
-        return _BACKEND_FUNCTIONS[self.backend](x_BCHW, offset_B2KHW, self.weight, self.bias, stride=self.stride,
-                                                padding=self.padding, dilation=self.dilation, mask=mask_BKHW)
+        return _BACKEND_FUNCTIONS[self.backend](
+            x_BCHW,
+            offset_B2KHW,
+            self.weight,
+            self.bias,
+            stride=self.stride,
+            padding=self.padding,
+            dilation=self.dilation,
+            mask=mask_BKHW,
+        )
 
     @property
     def last_mean_abs_offset(self) -> float | None:
@@ -494,7 +626,9 @@ class DeformableConv2d(nn.Module):
 
     def extra_repr(self) -> str:
         """Constructor arguments, like ``nn.Conv2d``'s repr."""
-        return (f"{self.in_channels}, {self.out_channels}, kernel_size={self.kernel_size}, stride={self.stride}, "
-                f"padding={self.padding}, dilation={self.dilation}, groups={self.groups}, "
-                f"bias={self.bias is not None}, modulation={self.modulation}, max_offset={self.max_offset}, "
-                f"backend={self.backend!r}")
+        return (
+            f"{self.in_channels}, {self.out_channels}, kernel_size={self.kernel_size}, stride={self.stride}, "
+            f"padding={self.padding}, dilation={self.dilation}, groups={self.groups}, "
+            f"bias={self.bias is not None}, modulation={self.modulation}, max_offset={self.max_offset}, "
+            f"backend={self.backend!r}"
+        )

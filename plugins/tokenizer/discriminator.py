@@ -33,8 +33,11 @@ class PatchDiscriminator(Discriminator):
         for index in range(1, layers + 1):
             out = channels * min(2**index, 8)
             stride = 2 if index < layers else 1
-            blocks += [nn.Conv2d(width, out, 4, stride=stride, padding=1, bias=False),
-                       nn.GroupNorm(min(32, out // 4), out), nn.LeakyReLU(0.2)]
+            blocks += [
+                nn.Conv2d(width, out, 4, stride=stride, padding=1, bias=False),
+                nn.GroupNorm(min(32, out // 4), out),
+                nn.LeakyReLU(0.2),
+            ]
             width = out
         blocks.append(nn.Conv2d(width, 1, 4, stride=1, padding=1))
         self.net = nn.Sequential(*blocks)
@@ -51,8 +54,9 @@ def hinge_discriminator_loss(logits_real: torch.Tensor, logits_fake: torch.Tenso
     return 0.5 * (torch.relu(1 - logits_real.float()).mean() + torch.relu(1 + logits_fake.float()).mean())
 
 
-def adaptive_weight(reconstruction_loss: torch.Tensor, generator_loss: torch.Tensor, last_layer: torch.Tensor,
-                    maximum: float = 1e4) -> torch.Tensor:
+def adaptive_weight(
+    reconstruction_loss: torch.Tensor, generator_loss: torch.Tensor, last_layer: torch.Tensor, maximum: float = 1e4
+) -> torch.Tensor:
     """VQGAN's lambda = ||grad nll|| / (||grad g|| + 1e-4) at the decoder's last layer.
 
     Computed in fp32, clamped to [0, maximum], detached, and 0 when anything is non-finite (a
@@ -72,5 +76,9 @@ def build_patchgan(config: PatchGanConfig, context: BuildContext) -> PatchDiscri
 
 @hookimpl
 def vqtouch_register_discriminators(register):
-    register("patchgan", build_patchgan, PatchGanConfig,
-             description="PatchGAN discriminator (4x4 convs, GroupNorm, LeakyReLU) with the hinge loss.")
+    register(
+        "patchgan",
+        build_patchgan,
+        PatchGanConfig,
+        description="PatchGAN discriminator (4x4 convs, GroupNorm, LeakyReLU) with the hinge loss.",
+    )

@@ -46,13 +46,29 @@ from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, VqtouchError
 from vqtouch.core.cli import stage_failure
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.data import experiment_split
-from vqtouch.plugins.evaluation.records import (ExperimentRecord, check_seeds, gap_verdict, markdown_table, mean_spread,
-                                      plot_against_count)
+from vqtouch.plugins.evaluation.records import (
+    ExperimentRecord,
+    check_seeds,
+    gap_verdict,
+    markdown_table,
+    mean_spread,
+    plot_against_count,
+)
 from vqtouch.plugins.evaluation.directions import direction_arrow, lower_is_better
 
 #: The columns of the table, in order, when some row has them.
-COLUMNS = ("ssim", "psnr", "ms_ssim", "lpips", "contact_psnr", "contact_ssim", "contact_mae", "fd_effnetlite0",
-           "codebook_usage", "seconds")
+COLUMNS = (
+    "ssim",
+    "psnr",
+    "ms_ssim",
+    "lpips",
+    "contact_psnr",
+    "contact_ssim",
+    "contact_mae",
+    "fd_effnetlite0",
+    "codebook_usage",
+    "seconds",
+)
 #: The no-contact image's copies of those scores (``background_<score>`` in eval.json).
 BACKGROUND = "no-contact background"
 #: What a finished run keeps beside its eval.json: the experiment's row (wall time included), so a
@@ -60,7 +76,9 @@ BACKGROUND = "no-contact background"
 ROW_FILE = "experiment_row.json"
 
 
-def autoencoder_block(scene_block: dict[str, Any] | None, name: str, host: PluginHost, **options: Any) -> dict[str, Any]:
+def autoencoder_block(
+    scene_block: dict[str, Any] | None, name: str, host: PluginHost, **options: Any
+) -> dict[str, Any]:
     """The autoencoder ``name`` with the scene's options that it also has (so ``--set
     tokenizer.autoencoder.channels=32`` holds for every model compared) and ``options``."""
     fields = host.registry("autoencoder").get(name).config_model.model_fields
@@ -68,14 +86,19 @@ def autoencoder_block(scene_block: dict[str, Any] | None, name: str, host: Plugi
     return {"name": name, **kept, **options}
 
 
-def tokenizer_section(scene_section: dict[str, Any], model: str, mask_ratio: float | None, host: PluginHost) -> dict[str, Any]:
+def tokenizer_section(
+    scene_section: dict[str, Any], model: str, mask_ratio: float | None, host: PluginHost
+) -> dict[str, Any]:
     """The scene's tokenizer section with ``model``'s autoencoder swapped in (quantizer, discriminator
     and objective unchanged), or the MAE baseline at ``mask_ratio`` with the identity quantizer and no
     discriminator (it reconstructs continuously: the non-tokenizing reference)."""
     if mask_ratio is None:
         return scene_section | {"autoencoder": autoencoder_block(scene_section.get("autoencoder"), model, host)}
-    return scene_section | {"autoencoder": autoencoder_block(None, "mae", host, mask_ratio=mask_ratio),
-                            "quantizer": {"name": "identity"}, "discriminator": None}
+    return scene_section | {
+        "autoencoder": autoencoder_block(None, "mae", host, mask_ratio=mask_ratio),
+        "quantizer": {"name": "identity"},
+        "discriminator": None,
+    }
 
 
 def model_label(model: str, mask_ratio: float | None) -> str:
@@ -83,8 +106,16 @@ def model_label(model: str, mask_ratio: float | None) -> str:
     return model if mask_ratio is None else f"mae (mask {mask_ratio:g})"
 
 
-def plan_configs(config: Any, host: PluginHost, *, samples: Sequence[int], models: Sequence[str],
-                 mae_ratios: Sequence[float], held_out: int | None, seed: int) -> list[tuple[str, int, Any]]:
+def plan_configs(
+    config: Any,
+    host: PluginHost,
+    *,
+    samples: Sequence[int],
+    models: Sequence[str],
+    mae_ratios: Sequence[float],
+    held_out: int | None,
+    seed: int,
+) -> list[tuple[str, int, Any]]:
     """(model label, N, validated config) of every run of one seed, after checking that the data
     can give each N training samples and the held-out images."""
     base = config.to_dict()
@@ -93,9 +124,11 @@ def plan_configs(config: Any, host: PluginHost, *, samples: Sequence[int], model
     dataset = dict(base["data"]["dataset"] or {})
     if held_out is not None:
         if "num_samples" not in dataset:
-            raise ConfigError(f"--held-out sets how many procedural samples are held out; the dataset "
-                              f"{dataset.get('name')!r} holds out data.val_fraction={config.data.val_fraction:g} of "
-                              "its groups: set that instead")
+            raise ConfigError(
+                f"--held-out sets how many procedural samples are held out; the dataset "
+                f"{dataset.get('name')!r} holds out data.val_fraction={config.data.val_fraction:g} of "
+                "its groups: set that instead"
+            )
         total = max(samples) + held_out
         base["data"]["dataset"] = dataset | {"num_samples": total}
         base["data"]["val_fraction"] = held_out / total
@@ -116,8 +149,10 @@ def _check_sizes(runs: list[tuple[str, int, Any]], host: PluginHost) -> None:
     dataset = Assembly(config, host).component("data.dataset")
     largest = len(experiment_split(dataset, config.data.model_copy(update={"train_samples": None}), config.seed)[0])
     if count > largest:
-        raise ConfigError(f"--samples {count}: the training split of {config.data.dataset.name!r} holds {largest} "
-                          f"samples ({len(dataset)} in the dataset); use --samples up to {largest}, or more data")
+        raise ConfigError(
+            f"--samples {count}: the training split of {config.data.dataset.name!r} holds {largest} "
+            f"samples ({len(dataset)} in the dataset); use --samples up to {largest}, or more data"
+        )
 
 
 def train_and_score(config: Any, host: PluginHost, folder: Path) -> dict[str, Any]:
@@ -146,8 +181,9 @@ def rows_of(scores: dict[str, Any], model: str, count: int, seed: int) -> list[d
     """The model's row and the no-contact image's row (scores without their ``background_`` prefix)."""
     keys = [key for key in COLUMNS if isinstance(scores.get(key), (int, float))]
     rows = [{"model": model, "samples": count, "seed": seed, **{key: scores[key] for key in keys}}]
-    background = {key: scores[f"background_{key}"] for key in COLUMNS
-                  if isinstance(scores.get(f"background_{key}"), (int, float))}
+    background = {
+        key: scores[f"background_{key}"] for key in COLUMNS if isinstance(scores.get(f"background_{key}"), (int, float))
+    }
     if background:
         rows.append({"model": BACKGROUND, "samples": count, "seed": seed, **background})
     return rows
@@ -188,10 +224,20 @@ def sample_grid(folders: list[tuple[str, Path]], config: Any, host: PluginHost, 
     save_png(image_grid(torch.cat(rows), columns=len(originals)), path)
 
 
-def evaluate_reconstruction_experiment(config: Any, host: PluginHost, out: Path, *, seeds: list[int],
-                                       samples: Sequence[int], models: Sequence[str], mae_ratios: Sequence[float],
-                                       held_out: int | None, distribution: bool = True, overwrite: bool = False,
-                                       report: Any = print) -> dict[str, Any]:
+def evaluate_reconstruction_experiment(
+    config: Any,
+    host: PluginHost,
+    out: Path,
+    *,
+    seeds: list[int],
+    samples: Sequence[int],
+    models: Sequence[str],
+    mae_ratios: Sequence[float],
+    held_out: int | None,
+    distribution: bool = True,
+    overwrite: bool = False,
+    report: Any = print,
+) -> dict[str, Any]:
     """Train and score every (seed, N, model); write reconstruction.json/.md/.png and the sample grid
     into ``out`` (see the module docstring).  Returns what reconstruction.json holds."""
     if not samples:
@@ -199,15 +245,22 @@ def evaluate_reconstruction_experiment(config: Any, host: PluginHost, out: Path,
     if not models and not mae_ratios:
         raise ConfigError("nothing to compare: give --models and/or --mae-ratios")
     if (out / "reconstruction.json").is_file() and not overwrite:
-        raise ConfigError(f"{out} already holds a reconstruction experiment; pass --overwrite to write it again "
-                          "(finished runs with an unchanged config are reused), or choose another --out")
+        raise ConfigError(
+            f"{out} already holds a reconstruction experiment; pass --overwrite to write it again "
+            "(finished runs with an unchanged config are reused), or choose another --out"
+        )
     if distribution and not any(item.name == "fd_effnetlite0" for item in config.metrics):
-        config = validate_experiment(config.to_dict() | {
-            "metrics": [*config.to_dict()["metrics"], {"name": "fd_effnetlite0"}]}, host)
+        config = validate_experiment(
+            config.to_dict() | {"metrics": [*config.to_dict()["metrics"], {"name": "fd_effnetlite0"}]}, host
+        )
     samples = sorted(set(samples))
     # Every run's config is planned (and every bad option refused) before the folder is made.
-    plans = {seed: plan_configs(config, host, samples=samples, models=models, mae_ratios=mae_ratios,
-                                held_out=held_out, seed=seed) for seed in check_seeds(seeds)}
+    plans = {
+        seed: plan_configs(
+            config, host, samples=samples, models=models, mae_ratios=mae_ratios, held_out=held_out, seed=seed
+        )
+        for seed in check_seeds(seeds)
+    }
     record = ExperimentRecord("reconstruction", out, seeds)
     rows: list[dict[str, Any]] = []
     skipped: dict[str, str] = {}
@@ -216,16 +269,23 @@ def evaluate_reconstruction_experiment(config: Any, host: PluginHost, out: Path,
     first_config = None
     for seed in record.seeds:
         for label, count, run_config in plans[seed]:
-            folder = out / "runs" / f"{label.replace(' ', '').replace('(', '-').replace(')', '')}-{count}" / f"seed{seed}"
+            folder = (
+                out / "runs" / f"{label.replace(' ', '').replace('(', '-').replace(')', '')}-{count}" / f"seed{seed}"
+            )
             scores = train_and_score(run_config, host, folder)
             skipped |= scores.get("skipped") or {}
             # The no-contact image's scores depend on the held-out images only: one row per seed and N.
-            rows += [row for row in rows_of(scores, label, count, seed)
-                     if row["model"] != BACKGROUND or (seed, count) not in background_rows]
+            rows += [
+                row
+                for row in rows_of(scores, label, count, seed)
+                if row["model"] != BACKGROUND or (seed, count) not in background_rows
+            ]
             background_rows.add((seed, count))
-            report(f"seed {seed}: {label}, {count} samples: SSIM {scores.get('ssim')}, contact PSNR "
-                   f"{scores.get('contact_psnr')} (background {scores.get('background_contact_psnr')})"
-                   + (" [reused]" if scores.get("reused") else f" in {scores['seconds']:.0f} s"))
+            report(
+                f"seed {seed}: {label}, {count} samples: SSIM {scores.get('ssim')}, contact PSNR "
+                f"{scores.get('contact_psnr')} (background {scores.get('background_contact_psnr')})"
+                + (" [reused]" if scores.get("reused") else f" in {scores['seconds']:.0f} s")
+            )
             if seed == record.seeds[0] and count == samples[-1]:
                 first_runs.append((label, folder))
                 first_config = run_config
@@ -233,27 +293,54 @@ def evaluate_reconstruction_experiment(config: Any, host: PluginHost, out: Path,
     summary = mean_spread(rows, keys, ("model", "samples"))
     summary.sort(key=lambda row: (row["samples"], row["model"] == BACKGROUND))
     steps = config.tokenizer.train.steps
-    result = {"scene": config.scene, "samples": samples, "models": [*models], "mae_ratios": [*mae_ratios],
-              "steps": steps, "held_out": held_out, "image_size": config.data.image_size,
-              "dataset": config.data.dataset.name, "rows": rows, "summary": summary, "skipped": skipped}
-    lines = [f"# Reconstruction against training-set size ({len(record.seeds)} seeds: mean ± std)", "",
-             f"Scene `{config.scene}`, dataset `{result['dataset']}`, {config.data.image_size} px; every tokenizer "
-             f"trained {steps} steps on N samples and scored on the same held-out images "
-             f"({held_out if held_out is not None else f'data.val_fraction={config.data.val_fraction:g}'}).  "
-             "`seconds`: training and scoring wall time.  Arrows: "
-             + ", ".join(f"{key} {direction_arrow(key)}" for key in keys if key != "seconds") + ".", "",
-             *markdown_table(summary, ("model", "samples"), keys), "",
-             "Verdicts (contact region only; a gap counts when it exceeds both spreads):", "",
-             *(verdict_lines(summary) or ["- no contact-region score to compare"])]
+    result = {
+        "scene": config.scene,
+        "samples": samples,
+        "models": [*models],
+        "mae_ratios": [*mae_ratios],
+        "steps": steps,
+        "held_out": held_out,
+        "image_size": config.data.image_size,
+        "dataset": config.data.dataset.name,
+        "rows": rows,
+        "summary": summary,
+        "skipped": skipped,
+    }
+    lines = [
+        f"# Reconstruction against training-set size ({len(record.seeds)} seeds: mean ± std)",
+        "",
+        f"Scene `{config.scene}`, dataset `{result['dataset']}`, {config.data.image_size} px; every tokenizer "
+        f"trained {steps} steps on N samples and scored on the same held-out images "
+        f"({held_out if held_out is not None else f'data.val_fraction={config.data.val_fraction:g}'}).  "
+        "`seconds`: training and scoring wall time.  Arrows: "
+        + ", ".join(f"{key} {direction_arrow(key)}" for key in keys if key != "seconds")
+        + ".",
+        "",
+        *markdown_table(summary, ("model", "samples"), keys),
+        "",
+        "Verdicts (contact region only; a gap counts when it exceeds both spreads):",
+        "",
+        *(verdict_lines(summary) or ["- no contact-region score to compare"]),
+    ]
     if skipped:
         lines += ["", "Skipped: " + "; ".join(f"`{name}`: {reason}" for name, reason in sorted(skipped.items()))]
-    plot_against_count(summary, count="samples", line="model", keys=("contact_psnr", "ssim"),
-                       path=record.path("reconstruction.png"), xlabel="training samples", dashed=(BACKGROUND,),
-                       title=f"reconstruction vs training-set size ({len(record.seeds)} seeds, {steps} steps)")
+    plot_against_count(
+        summary,
+        count="samples",
+        line="model",
+        keys=("contact_psnr", "ssim"),
+        path=record.path("reconstruction.png"),
+        xlabel="training samples",
+        dashed=(BACKGROUND,),
+        title=f"reconstruction vs training-set size ({len(record.seeds)} seeds, {steps} steps)",
+    )
     if first_runs:
         sample_grid(first_runs, first_config, host, record.path("reconstruction_samples.png"))
-        lines += ["", f"`reconstruction_samples.png`: held-out images (top row), then the reconstructions of "
-                      f"{', '.join(label for label, _ in first_runs)} (one row each, in that order) at N = "
-                      f"{samples[-1]}, seed {record.seeds[0]}."]
+        lines += [
+            "",
+            f"`reconstruction_samples.png`: held-out images (top row), then the reconstructions of "
+            f"{', '.join(label for label, _ in first_runs)} (one row each, in that order) at N = "
+            f"{samples[-1]}, seed {record.seeds[0]}.",
+        ]
     record.write(result, lines)
     return result

@@ -20,8 +20,9 @@ from .training import Tokenizer
 TOKENIZER_FILES = ("autoencoder.safetensors", "quantizer.safetensors")
 
 
-def load_tokenizer(run_or_folder: str | Path | RunDir, host: PluginHost, step: int | str | None = None,
-                   device: str = "cpu") -> tuple[Tokenizer, Path]:
+def load_tokenizer(
+    run_or_folder: str | Path | RunDir, host: PluginHost, step: int | str | None = None, device: str = "cpu"
+) -> tuple[Tokenizer, Path]:
     """Load the autoencoder and quantizer of a run (its newest good checkpoint, ``step``, or with
     ``step="best"`` the one that scored best on the held-out split) or of a checkpoint folder.
 
@@ -36,8 +37,12 @@ def load_tokenizer(run_or_folder: str | Path | RunDir, host: PluginHost, step: i
         run = None
         if all((path / name).is_file() for name in TOKENIZER_FILES):
             inside = path.parent.parent
-            if (path.parent.name == "checkpoints" and path.name.startswith("step-") and path.name[5:].isdigit()
-                    and (inside / "config.json").is_file()):
+            if (
+                path.parent.name == "checkpoints"
+                and path.name.startswith("step-")
+                and path.name[5:].isdigit()
+                and (inside / "config.json").is_file()
+            ):
                 run, step = RunDir.open(inside), int(path.name[5:])
             else:
                 folder = path
@@ -70,5 +75,6 @@ def tokenizer_configs(folder: str | Path) -> tuple[dict[str, Any], dict[str, Any
 @torch.no_grad()
 def reconstruct_all(tokenizer: Tokenizer, images_B3HW: torch.Tensor, batch_size: int = 16) -> torch.Tensor:
     """Reconstructions in [0, 1] of a stack of images in [0, 1], ``batch_size`` at a time."""
-    return torch.cat([tokenizer.reconstruct(images_B3HW[i:i + batch_size])[0]
-                      for i in range(0, len(images_B3HW), batch_size)])
+    return torch.cat(
+        [tokenizer.reconstruct(images_B3HW[i : i + batch_size])[0] for i in range(0, len(images_B3HW), batch_size)]
+    )

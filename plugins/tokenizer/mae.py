@@ -40,17 +40,25 @@ class MaeConfig(PluginConfig):
     width: int = Field(128, ge=16, le=2048, description="Width of the ViT encoder tokens.")
     depth: int = Field(4, ge=1, le=24, description="Transformer blocks in the encoder.")
     heads: int = Field(4, ge=1, le=32, description="Attention heads (must divide width).")
-    decoder_width: int = Field(96, ge=16, le=2048,
-                               description="Width of the decoder tokens (the first latent channels; the latents add "
-                                           "a visible flag and, with paste_visible, the visible patches' pixels).")
+    decoder_width: int = Field(
+        96,
+        ge=16,
+        le=2048,
+        description="Width of the decoder tokens (the first latent channels; the latents add "
+        "a visible flag and, with paste_visible, the visible patches' pixels).",
+    )
     decoder_depth: int = Field(2, ge=1, le=12, description="Transformer blocks in the decoder.")
-    paste_visible: bool = Field(True, description="In eval mode, copy visible patches into the reconstruction "
-                                                  "(the latents then carry the visible patches' pixels).")
+    paste_visible: bool = Field(
+        True,
+        description="In eval mode, copy visible patches into the reconstruction "
+        "(the latents then carry the visible patches' pixels).",
+    )
 
 
 def _blocks(width: int, heads: int, depth: int) -> nn.TransformerEncoder:
-    layer = nn.TransformerEncoderLayer(width, heads, 4 * width, dropout=0.0, activation="gelu", batch_first=True,
-                                       norm_first=True)
+    layer = nn.TransformerEncoderLayer(
+        width, heads, 4 * width, dropout=0.0, activation="gelu", batch_first=True, norm_first=True
+    )
     return nn.TransformerEncoder(layer, depth, enable_nested_tensor=False)
 
 
@@ -60,11 +68,13 @@ class MaskedAutoencoder(Autoencoder):
     def __init__(self, config: MaeConfig, image_size: ImageSize, channels: int = 3) -> None:
         super().__init__()
         if any(side % config.patch_size for side in image_hw(image_size)):
-            raise ConfigError(f"mae: image_size {size_text(image_size)} is not divisible by patch_size "
-                              f"{config.patch_size}")
+            raise ConfigError(
+                f"mae: image_size {size_text(image_size)} is not divisible by patch_size {config.patch_size}"
+            )
         if config.width % config.heads or config.decoder_width % config.heads:
-            raise ConfigError(f"mae: heads {config.heads} must divide width {config.width} and decoder_width "
-                              f"{config.decoder_width}")
+            raise ConfigError(
+                f"mae: heads {config.heads} must divide width {config.width} and decoder_width {config.decoder_width}"
+            )
         self.config = config
         self.channels = channels
         #: Patch rows and columns.
@@ -113,8 +123,9 @@ class MaskedAutoencoder(Autoencoder):
     def encode(self, images_BCHW: torch.Tensor) -> torch.Tensor:
         height, width = (side * self.config.patch_size for side in self.grid_hw)
         if images_BCHW.ndim != 4 or tuple(images_BCHW.shape[1:]) != (self.channels, height, width):
-            raise ValueError(f"mae expects images (B, {self.channels}, {height}, {width}), "
-                             f"got {tuple(images_BCHW.shape)}")
+            raise ValueError(
+                f"mae expects images (B, {self.channels}, {height}, {width}), got {tuple(images_BCHW.shape)}"
+            )
         batch = images_BCHW.shape[0]
         visible_BL = self._visible_mask(batch, images_BCHW.device)
         tokens_BLD = self.embed(self.patchify(images_BCHW)) + self.position_LD
@@ -129,15 +140,18 @@ class MaskedAutoencoder(Autoencoder):
         parts = [grid_BLD.to(dtype), visible_BL[..., None].to(dtype)]
         if self.config.paste_visible:
             pixels_BLP = self.patchify(images_BCHW.detach()).to(dtype)
-            parts.append(torch.where(visible_BL[..., None], pixels_BLP, torch.zeros((), dtype=dtype,
-                                                                                 device=pixels_BLP.device)))
+            parts.append(
+                torch.where(visible_BL[..., None], pixels_BLP, torch.zeros((), dtype=dtype, device=pixels_BLP.device))
+            )
         return torch.cat(parts, dim=-1).transpose(1, 2).reshape(batch, -1, *self.grid_hw)
 
     def _check_latents(self, latents_BDhw: torch.Tensor) -> None:
         expected = (self.latent_channels, *self.grid_hw)
         if latents_BDhw.ndim != 4 or tuple(latents_BDhw.shape[1:]) != expected:
-            raise ValueError(f"mae expects latents (B, {', '.join(map(str, expected))}) as encode returns them "
-                             f"(tokens | visible flag | visible pixels), got {tuple(latents_BDhw.shape)}")
+            raise ValueError(
+                f"mae expects latents (B, {', '.join(map(str, expected))}) as encode returns them "
+                f"(tokens | visible flag | visible pixels), got {tuple(latents_BDhw.shape)}"
+            )
 
     def visible_mask(self, latents_BDhw: torch.Tensor) -> torch.Tensor:
         """(B, L) bool: which patches the encoder saw, read from the latents' visible-flag channel."""
@@ -156,7 +170,7 @@ class MaskedAutoencoder(Autoencoder):
         patches_BLP = self.to_pixels(decoded)
         if not self.training and self.config.paste_visible:
             visible_BL = self.visible_mask(latents_BDhw)
-            original = cells_BLC[..., width + 1:].to(patches_BLP.dtype)
+            original = cells_BLC[..., width + 1 :].to(patches_BLP.dtype)
             patches_BLP = torch.where(visible_BL[..., None], original, patches_BLP)
         return self.unpatchify(patches_BLP)
 
@@ -204,11 +218,20 @@ def build_identity(config: IdentityConfig, context: BuildContext) -> IdentityQua
 
 @hookimpl
 def vqtouch_register_autoencoders(register):
-    register("mae", build_mae, MaeConfig, description="Masked-autoencoder ViT baseline (use with the identity "
-                                                      "quantizer; Table 1 at mask ratios 0.25/0.5/0.75).")
+    register(
+        "mae",
+        build_mae,
+        MaeConfig,
+        description="Masked-autoencoder ViT baseline (use with the identity "
+        "quantizer; Table 1 at mask ratios 0.25/0.5/0.75).",
+    )
 
 
 @hookimpl
 def vqtouch_register_quantizers(register):
-    register("identity", build_identity, IdentityConfig,
-             description="No quantization (continuous latents), for baselines such as MAE.")
+    register(
+        "identity",
+        build_identity,
+        IdentityConfig,
+        description="No quantization (continuous latents), for baselines such as MAE.",
+    )

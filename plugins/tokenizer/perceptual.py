@@ -23,8 +23,12 @@ from torch import nn
 
 from vqtouch.core import MissingWeightsError, WeightsSpec
 
-from vqtouch.plugins.evaluation.feature_networks import (ALEXNET_RELU_CHANNELS, AlexNetFeatures, EfficientNetLite0Features,
-                               resolve_weights_or_explain)
+from vqtouch.plugins.evaluation.feature_networks import (
+    ALEXNET_RELU_CHANNELS,
+    AlexNetFeatures,
+    EfficientNetLite0Features,
+    resolve_weights_or_explain,
+)
 
 LPIPS_HEADS_WEIGHTS = WeightsSpec(
     description="LPIPS v0.1 linear heads for AlexNet (lpips package file weights/v0.1/alex.pth, 6 KB)",
@@ -32,7 +36,7 @@ LPIPS_HEADS_WEIGHTS = WeightsSpec(
     env_var="VQTOUCH_LPIPS_HEADS",
     config_hint="--set tokenizer.loss.lpips_heads=PATH",
     source_url="https://raw.githubusercontent.com/richzhang/PerceptualSimilarity/master/lpips/weights/v0.1/alex.pth "
-               "(identical copy in torchmetrics: torchmetrics/functional/image/lpips_models/alex.pth)",
+    "(identical copy in torchmetrics: torchmetrics/functional/image/lpips_models/alex.pth)",
 )
 #: Keys of the heads file: one 1x1 conv (no bias) per AlexNet relu layer, weight shape (1, C, 1, 1).
 LPIPS_HEAD_KEYS = tuple(f"lin{index}.model.1.weight" for index in range(len(ALEXNET_RELU_CHANNELS)))
@@ -54,8 +58,10 @@ def unit_normalize_channels(features_BCHW: torch.Tensor, eps: float) -> torch.Te
 
 def _check_pair(predicted: torch.Tensor, target: torch.Tensor, loss_name: str) -> None:
     if predicted.shape != target.shape or predicted.ndim != 4 or predicted.shape[1] != 3:
-        raise ValueError(f"{loss_name} needs two RGB batches of equal shape (B, 3, H, W) in [-1, 1]; got "
-                         f"{tuple(predicted.shape)} and {tuple(target.shape)}")
+        raise ValueError(
+            f"{loss_name} needs two RGB batches of equal shape (B, 3, H, W) in [-1, 1]; got "
+            f"{tuple(predicted.shape)} and {tuple(target.shape)}"
+        )
 
 
 class EffNetFeatureLoss(nn.Module):
@@ -151,21 +157,30 @@ def load_lpips_heads(heads_path: str | None = None) -> list[torch.Tensor]:
     state = torch.load(path, map_location="cpu", weights_only=True)
     if not isinstance(state, dict) or any(key not in state for key in LPIPS_HEAD_KEYS):
         found = sorted(state)[:8] if isinstance(state, dict) else type(state).__name__
-        raise MissingWeightsError(f"{path} is not the LPIPS v0.1 AlexNet heads file "
-                                  f"{LPIPS_HEADS_WEIGHTS.filenames[0]}: expected keys {', '.join(LPIPS_HEAD_KEYS)}; "
-                                  f"found {found}")
+        raise MissingWeightsError(
+            f"{path} is not the LPIPS v0.1 AlexNet heads file "
+            f"{LPIPS_HEADS_WEIGHTS.filenames[0]}: expected keys {', '.join(LPIPS_HEAD_KEYS)}; "
+            f"found {found}"
+        )
     heads = []
     for key, channels in zip(LPIPS_HEAD_KEYS, ALEXNET_RELU_CHANNELS):
         weight = state[key]
         if tuple(weight.shape) != (1, channels, 1, 1):
-            raise MissingWeightsError(f"{path}: {key} has shape {tuple(weight.shape)}, expected (1, {channels}, 1, 1); "
-                                      "this is not the AlexNet heads file (vgg/squeeze heads have other widths)")
+            raise MissingWeightsError(
+                f"{path}: {key} has shape {tuple(weight.shape)}, expected (1, {channels}, 1, 1); "
+                "this is not the AlexNet heads file (vgg/squeeze heads have other widths)"
+            )
         heads.append(weight.float())
     return heads
 
 
-def build_perceptual_loss(kind: Literal["none", "effnet_lite0", "lpips"], lpips_backbone: str | None = None,
-                          lpips_heads: str | None = None, *, effnet_image_size: int | None = 224) -> nn.Module | None:
+def build_perceptual_loss(
+    kind: Literal["none", "effnet_lite0", "lpips"],
+    lpips_backbone: str | None = None,
+    lpips_heads: str | None = None,
+    *,
+    effnet_image_size: int | None = 224,
+) -> nn.Module | None:
     """Build the tokenizer's perceptual loss, or None for ``"none"``.
 
     ``lpips_backbone`` / ``lpips_heads``: explicit file paths for ``"lpips"`` (else

@@ -37,13 +37,17 @@ CodebookInit = Literal["uniform", "normal"]
 
 # -- configs ------------------------------------------------------------------------------------
 
+
 class _CodebookConfig(PluginConfig):
     """Options every codebook quantizer has."""
 
     codebook_size: int = Field(1024, ge=2, le=65536, description="Number of codebook entries K.")
     embedding_dim: int = Field(
-        0, ge=0, le=65536,
-        description="Channels D of the latents; 0 takes the encoder's latent width from the build context.")
+        0,
+        ge=0,
+        le=65536,
+        description="Channels D of the latents; 0 takes the encoder's latent width from the build context.",
+    )
 
 
 class VectorQuantizerConfig(_CodebookConfig):
@@ -51,19 +55,27 @@ class VectorQuantizerConfig(_CodebookConfig):
 
     name: Literal["vq"] = "vq"
     beta: float = Field(
-        0.25, ge=0.0, le=100.0,
-        description="Commitment weight: L = ||sg[z] - e||^2 + beta * ||z - sg[e]||^2 (codebook term weight 1).")
+        0.25,
+        ge=0.0,
+        le=100.0,
+        description="Commitment weight: L = ||sg[z] - e||^2 + beta * ||z - sg[e]||^2 (codebook term weight 1).",
+    )
     lookup_dim: int = Field(
-        0, ge=0, le=4096,
+        0,
+        ge=0,
+        le=4096,
         description="0: look codes up in the full embedding_dim.  >0: factorised lookup (ViT-VQGAN): a linear "
-                    "map projects latents to this many dimensions, codes are found there, and a second linear "
-                    "map projects the chosen code back to embedding_dim (8-32 is typical).")
+        "map projects latents to this many dimensions, codes are found there, and a second linear "
+        "map projects the chosen code back to embedding_dim (8-32 is typical).",
+    )
     l2_normalize: bool = Field(
         False,
         description="Cosine-similarity lookup: latents and codes are l2-normalised before the lookup and the "
-                    "loss, and the quantized latents are unit-norm (ViT-VQGAN / improved VQGAN).")
+        "loss, and the quantized latents are unit-norm (ViT-VQGAN / improved VQGAN).",
+    )
     init: CodebookInit = Field(
-        "uniform", description="Codebook init: 'uniform' = U(-1/K, 1/K) as in taming, 'normal' = N(0, 1).")
+        "uniform", description="Codebook init: 'uniform' = U(-1/K, 1/K) as in taming, 'normal' = N(0, 1)."
+    )
 
 
 class EmaVectorQuantizerConfig(_CodebookConfig):
@@ -71,25 +83,37 @@ class EmaVectorQuantizerConfig(_CodebookConfig):
 
     name: Literal["ema_vq"] = "ema_vq"
     beta: float = Field(
-        0.25, ge=0.0, le=100.0,
-        description="Commitment weight; the loss is beta * ||z - sg[e]||^2 only (the EMA moves the codebook).")
+        0.25,
+        ge=0.0,
+        le=100.0,
+        description="Commitment weight; the loss is beta * ||z - sg[e]||^2 only (the EMA moves the codebook).",
+    )
     decay: float = Field(
-        0.99, gt=0.0, lt=1.0,
-        description="EMA decay of the per-code assignment counts and latent sums (memory ~ 1/(1-decay) batches).")
+        0.99,
+        gt=0.0,
+        lt=1.0,
+        description="EMA decay of the per-code assignment counts and latent sums (memory ~ 1/(1-decay) batches).",
+    )
     eps: float = Field(
-        1e-5, gt=0.0, le=1.0, description="Laplace smoothing added to every EMA cluster size before dividing.")
+        1e-5, gt=0.0, le=1.0, description="Laplace smoothing added to every EMA cluster size before dividing."
+    )
     dead_threshold: float = Field(
-        2.0, ge=0.0, le=1e9,
+        2.0,
+        ge=0.0,
+        le=1e9,
         description="A code is dead, and in training is restarted at a random latent of the current batch, when "
-                    "it was assigned fewer than this many latent vectors over the EMA window of ~1/(1-decay) "
-                    "(global) batches, i.e. when ema_cluster_size < dead_threshold * (1 - decay).  0 disables.")
+        "it was assigned fewer than this many latent vectors over the EMA window of ~1/(1-decay) "
+        "(global) batches, i.e. when ema_cluster_size < dead_threshold * (1 - decay).  0 disables.",
+    )
     init: CodebookInit = Field(
         "uniform",
         description="Codebook init before the first update: 'uniform' = U(-1/K, 1/K), 'normal' = N(0, 1).  With "
-                    "restarts on, codes unused in the first training batch are replaced by data anyway.")
+        "restarts on, codes unused in the first training batch are replaced by data anyway.",
+    )
 
 
 # -- shared maths -------------------------------------------------------------------------------
+
 
 def _autocast_disabled(device: torch.device) -> contextlib.AbstractContextManager:
     """Switch autocast off for ``device``'s type (a no-op context for types autocast does not know)."""
@@ -112,7 +136,7 @@ def nearest_codes(vectors_NC: torch.Tensor, codebook_KC: torch.Tensor) -> torch.
     rows_per_block = max(1, MAX_DISTANCE_ELEMENTS // codebook_KC.shape[0])
     codes = []
     for start in range(0, vectors_NC.shape[0], rows_per_block):
-        block_nC = vectors_NC[start:start + rows_per_block]
+        block_nC = vectors_NC[start : start + rows_per_block]
         # ||e||^2 - 2 z.e in one fused GEMM.
         scores_nK = torch.addmm(codebook_sq_K.unsqueeze(0), block_nC, codebook_KC.T, alpha=-2.0)
         codes.append(scores_nK.argmin(dim=1))
@@ -143,6 +167,7 @@ def _distributed() -> bool:
 
 # -- quantizers ---------------------------------------------------------------------------------
 
+
 class _NearestNeighbourQuantizer(Quantizer):
     """Shared lookup, straight-through, perplexity and usage bookkeeping of ``vq`` and ``ema_vq``.
 
@@ -154,8 +179,7 @@ class _NearestNeighbourQuantizer(Quantizer):
 
     codebook_KC: torch.Tensor
 
-    def __init__(self, codebook_size: int, embedding_dim: int, lookup_dim: int = 0,
-                 l2_normalize: bool = False) -> None:
+    def __init__(self, codebook_size: int, embedding_dim: int, lookup_dim: int = 0, l2_normalize: bool = False) -> None:
         super().__init__()
         self.codebook_size = codebook_size
         self.embedding_dim = embedding_dim
@@ -201,16 +225,20 @@ class _NearestNeighbourQuantizer(Quantizer):
         if codes_Bhw.dtype.is_floating_point or codes_Bhw.dtype.is_complex or codes_Bhw.dtype == torch.bool:
             raise ValueError(f"{type(self).__name__}.lookup expects integer codes, got dtype {codes_Bhw.dtype}")
         if codes_Bhw.ndim != 3:
-            raise ValueError(f"{type(self).__name__}.lookup expects codes of shape (B, h, w), "
-                             f"got shape {tuple(codes_Bhw.shape)}")
+            raise ValueError(
+                f"{type(self).__name__}.lookup expects codes of shape (B, h, w), got shape {tuple(codes_Bhw.shape)}"
+            )
         if codes_Bhw.numel() and (int(codes_Bhw.min()) < 0 or int(codes_Bhw.max()) >= self.codebook_size):
-            raise ValueError(f"codes must be in [0, {self.codebook_size}) for this codebook; got min "
-                             f"{int(codes_Bhw.min())}, max {int(codes_Bhw.max())}")
+            raise ValueError(
+                f"codes must be in [0, {self.codebook_size}) for this codebook; got min "
+                f"{int(codes_Bhw.min())}, max {int(codes_Bhw.max())}"
+            )
         batch, height, width = codes_Bhw.shape
         device = self.codebook_KC.device
         with _autocast_disabled(device):
-            selected_NC = F.embedding(codes_Bhw.to(device=device, dtype=torch.long).reshape(-1),
-                                      self._lookup_codebook())
+            selected_NC = F.embedding(
+                codes_Bhw.to(device=device, dtype=torch.long).reshape(-1), self._lookup_codebook()
+            )
             return self._from_lookup_space(selected_NC, batch, height, width)
 
     def usage_counts(self) -> torch.Tensor:
@@ -229,8 +257,10 @@ class _NearestNeighbourQuantizer(Quantizer):
         self.usage_counts_K.zero_()
 
     def extra_repr(self) -> str:
-        return (f"codebook_size={self.codebook_size}, embedding_dim={self.embedding_dim}, "
-                f"code_dim={self.code_dim}, l2_normalize={self.l2_normalize}")
+        return (
+            f"codebook_size={self.codebook_size}, embedding_dim={self.embedding_dim}, "
+            f"code_dim={self.code_dim}, l2_normalize={self.l2_normalize}"
+        )
 
     # -- subclass hooks -------------------------------------------------------------------------------
     def _vq_loss(self, vectors_NC: torch.Tensor, selected_NC: torch.Tensor) -> torch.Tensor:
@@ -246,8 +276,9 @@ class _NearestNeighbourQuantizer(Quantizer):
             kind = latents_BDhw.dtype if isinstance(latents_BDhw, torch.Tensor) else type(latents_BDhw).__name__
             raise ValueError(f"{name} expects a floating-point latent tensor, got {kind}")
         if latents_BDhw.ndim != 4 or latents_BDhw.shape[1] != self.embedding_dim:
-            raise ValueError(f"{name} expects latents of shape (B, {self.embedding_dim}, h, w), "
-                             f"got {tuple(latents_BDhw.shape)}")
+            raise ValueError(
+                f"{name} expects latents of shape (B, {self.embedding_dim}, h, w), got {tuple(latents_BDhw.shape)}"
+            )
         if latents_BDhw.numel() == 0:
             raise ValueError(f"{name} got an empty latent batch of shape {tuple(latents_BDhw.shape)}")
 
@@ -280,8 +311,15 @@ class VectorQuantizer(_NearestNeighbourQuantizer):
     without ``lookup_dim``; with it, gradients pass through both projections.
     """
 
-    def __init__(self, codebook_size: int, embedding_dim: int, beta: float = 0.25, lookup_dim: int = 0,
-                 l2_normalize: bool = False, init: str = "uniform") -> None:
+    def __init__(
+        self,
+        codebook_size: int,
+        embedding_dim: int,
+        beta: float = 0.25,
+        lookup_dim: int = 0,
+        l2_normalize: bool = False,
+        init: str = "uniform",
+    ) -> None:
         super().__init__(codebook_size, embedding_dim, lookup_dim, l2_normalize)
         self.beta = beta
         self.codebook_KC = nn.Parameter(torch.empty(codebook_size, self.code_dim, dtype=torch.float32))
@@ -322,8 +360,16 @@ class EmaVectorQuantizer(_NearestNeighbourQuantizer):
     host synchronisation per training step (to know how many codes are dead).
     """
 
-    def __init__(self, codebook_size: int, embedding_dim: int, beta: float = 0.25, decay: float = 0.99,
-                 eps: float = 1e-5, dead_threshold: float = 2.0, init: str = "uniform") -> None:
+    def __init__(
+        self,
+        codebook_size: int,
+        embedding_dim: int,
+        beta: float = 0.25,
+        decay: float = 0.99,
+        eps: float = 1e-5,
+        dead_threshold: float = 2.0,
+        init: str = "uniform",
+    ) -> None:
         super().__init__(codebook_size, embedding_dim)
         self.beta = beta
         self.decay = decay
@@ -384,41 +430,68 @@ class EmaVectorQuantizer(_NearestNeighbourQuantizer):
 
 # -- factories and registration -----------------------------------------------------------------
 
-def _resolve_sizes(plugin: str, config: VectorQuantizerConfig | EmaVectorQuantizerConfig,
-                   context: BuildContext) -> int:
+
+def _resolve_sizes(plugin: str, config: VectorQuantizerConfig | EmaVectorQuantizerConfig, context: BuildContext) -> int:
     """The embedding width from the config or the context; ConfigError when unknown or contradictory."""
     embedding_dim = config.embedding_dim or context.latent_dim
     if embedding_dim < 1:
-        raise ConfigError(f"quantizer {plugin!r} needs the latent width: set quantizer.embedding_dim=N or build "
-                          "it with the encoder's latent width in the context (BuildContext.latent_dim)")
+        raise ConfigError(
+            f"quantizer {plugin!r} needs the latent width: set quantizer.embedding_dim=N or build "
+            "it with the encoder's latent width in the context (BuildContext.latent_dim)"
+        )
     if config.embedding_dim and context.latent_dim and config.embedding_dim != context.latent_dim:
-        raise ConfigError(f"quantizer {plugin!r}: embedding_dim={config.embedding_dim} but the encoder's latents "
-                          f"have {context.latent_dim} channels; set embedding_dim=0 to follow the encoder")
+        raise ConfigError(
+            f"quantizer {plugin!r}: embedding_dim={config.embedding_dim} but the encoder's latents "
+            f"have {context.latent_dim} channels; set embedding_dim=0 to follow the encoder"
+        )
     if context.codebook_size and context.codebook_size != config.codebook_size:
-        raise ConfigError(f"quantizer {plugin!r}: codebook_size={config.codebook_size} but the experiment expects "
-                          f"{context.codebook_size} codes (BuildContext.codebook_size); make them agree")
+        raise ConfigError(
+            f"quantizer {plugin!r}: codebook_size={config.codebook_size} but the experiment expects "
+            f"{context.codebook_size} codes (BuildContext.codebook_size); make them agree"
+        )
     return embedding_dim
 
 
 def build_vector_quantizer(config: VectorQuantizerConfig, context: BuildContext) -> VectorQuantizer:
     """Factory of ``vq``: the latent width comes from the config, else from the encoder via the context."""
     embedding_dim = _resolve_sizes("vq", config, context)
-    return VectorQuantizer(config.codebook_size, embedding_dim, beta=config.beta, lookup_dim=config.lookup_dim,
-                           l2_normalize=config.l2_normalize, init=config.init)
+    return VectorQuantizer(
+        config.codebook_size,
+        embedding_dim,
+        beta=config.beta,
+        lookup_dim=config.lookup_dim,
+        l2_normalize=config.l2_normalize,
+        init=config.init,
+    )
 
 
 def build_ema_vector_quantizer(config: EmaVectorQuantizerConfig, context: BuildContext) -> EmaVectorQuantizer:
     """Factory of ``ema_vq``: the latent width comes from the config, else from the encoder via the context."""
     embedding_dim = _resolve_sizes("ema_vq", config, context)
-    return EmaVectorQuantizer(config.codebook_size, embedding_dim, beta=config.beta, decay=config.decay,
-                              eps=config.eps, dead_threshold=config.dead_threshold, init=config.init)
+    return EmaVectorQuantizer(
+        config.codebook_size,
+        embedding_dim,
+        beta=config.beta,
+        decay=config.decay,
+        eps=config.eps,
+        dead_threshold=config.dead_threshold,
+        init=config.init,
+    )
 
 
 @hookimpl
 def vqtouch_register_quantizers(register):
     """Register ``vq`` and ``ema_vq``."""
-    register("vq", build_vector_quantizer, VectorQuantizerConfig,
-             description="Nearest-neighbour VQ, straight-through, loss ||sg[z]-e||^2 + beta||z-sg[e]||^2 "
-                         "(optional cosine and factorised low-dim lookup).")
-    register("ema_vq", build_ema_vector_quantizer, EmaVectorQuantizerConfig,
-             description="VQ with an EMA codebook, commitment loss only, and dead-code restart from the batch.")
+    register(
+        "vq",
+        build_vector_quantizer,
+        VectorQuantizerConfig,
+        description="Nearest-neighbour VQ, straight-through, loss ||sg[z]-e||^2 + beta||z-sg[e]||^2 "
+        "(optional cosine and factorised low-dim lookup).",
+    )
+    register(
+        "ema_vq",
+        build_ema_vector_quantizer,
+        EmaVectorQuantizerConfig,
+        description="VQ with an EMA codebook, commitment loss only, and dead-code restart from the batch.",
+    )

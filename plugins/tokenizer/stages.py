@@ -30,8 +30,11 @@ from .training import Tokenizer, TokenizerSection, evaluate_reconstruction, toke
 
 def printable(scores: dict[str, Any]) -> dict[str, Any]:
     """Scores rounded for people and JSON (the example images left out)."""
-    return {key: (round(value, 4) if isinstance(value, float) else value) for key, value in scores.items()
-            if key != "examples"}
+    return {
+        key: (round(value, 4) if isinstance(value, float) else value)
+        for key, value in scores.items()
+        if key != "examples"
+    }
 
 
 def save_pairs(originals: torch.Tensor, reconstructions: torch.Tensor, path: Path, count: int = 8) -> Path:
@@ -51,17 +54,29 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
     if section.discriminator is not None and section.loss.adversarial_weight > 0:
         discriminator = assembly.component("tokenizer.discriminator")
     task = tokenizer_task(tokenizer, section.loss, device, discriminator)
-    trainer = Trainer(task, train_set, section.train, batch_size=config.data.batch_size, seed=config.seed,
-                      device=device, checkpoint_dir=job.run.checkpoints, run=job.run,
-                      num_workers=config.data.num_workers, host=job.host, stage=job.stage, val_dataset=val_set)
+    trainer = Trainer(
+        task,
+        train_set,
+        section.train,
+        batch_size=config.data.batch_size,
+        seed=config.seed,
+        device=device,
+        checkpoint_dir=job.run.checkpoints,
+        run=job.run,
+        num_workers=config.data.num_workers,
+        host=job.host,
+        stage=job.stage,
+        val_dataset=val_set,
+    )
     if job.resume:
         job.run.resume(trainer, job.host, required_files=TOKENIZER_FILES)
     state = trainer.fit()
     metrics = dict(zip((item.name for item in config.metrics), assembly.build_slots(["metrics"]).get("metrics", [])))
     background, background_source = dataset_background(train_set, image_hw(config.data.image_size))
     try:
-        scores = evaluate_reconstruction(tokenizer, val_set, metrics, device=device,
-                                         batch_size=config.data.batch_size, background_3HW=background)
+        scores = evaluate_reconstruction(
+            tokenizer, val_set, metrics, device=device, batch_size=config.data.batch_size, background_3HW=background
+        )
     except NothingToEvaluateError:  # data.val_fraction=0 holds nothing out: keep the training, say why
         scores = {"evaluation": f"skipped: no held-out samples (data.val_fraction={config.data.val_fraction:g})"}
     if trainer.dist.is_main:
@@ -69,27 +84,58 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
         if "examples" in scores:
             save_pairs(*scores["examples"], job.run.path / "reconstructions.png")
         best = {"best_step": state.best_step, "best_val_loss": state.best_score} if trainer.validates() else {}
-        job.run.write_json("eval.json", {"step": state.step, "skipped_steps": state.skipped_steps, **best,
-                                         "train_samples": len(train_set), "val_samples": len(val_set),
-                                         "split_unit": val_set.split_unit, "background": background_source,
-                                         **printable(scores)})
+        job.run.write_json(
+            "eval.json",
+            {
+                "step": state.step,
+                "skipped_steps": state.skipped_steps,
+                **best,
+                "train_samples": len(train_set),
+                "val_samples": len(val_set),
+                "split_unit": val_set.split_unit,
+                "background": background_source,
+                **printable(scores),
+            },
+        )
     return scores
 
 
 #: The tokenizer stage's scores shown in the run report (eval.json holds them all).
-SHOWN_SCORES = ("ssim", "background_ssim", "psnr", "background_psnr", "ms_ssim", "background_ms_ssim", "lpips",
-                "background_lpips", "contact_psnr", "background_contact_psnr",
-                "contact_fraction", "codebook_usage", "samples", "evaluation", "skipped")
+SHOWN_SCORES = (
+    "ssim",
+    "background_ssim",
+    "psnr",
+    "background_psnr",
+    "ms_ssim",
+    "background_ms_ssim",
+    "lpips",
+    "background_lpips",
+    "contact_psnr",
+    "background_contact_psnr",
+    "contact_fraction",
+    "codebook_usage",
+    "samples",
+    "evaluation",
+    "skipped",
+)
 
 
 def run_tokenizer_stage(job: StageJob) -> dict[str, Any]:
     """The ``tokenizer`` stage: train, then the held-out scores for the report."""
     scores = printable(train_tokenizer(job))
-    return {"steps": job.section.train.steps,
-            **shown_scores(scores, SHOWN_SCORES, [metric.name for metric in job.config.metrics]),
-            **({} if "evaluation" in scores else {
+    return {
+        "steps": job.section.train.steps,
+        **shown_scores(scores, SHOWN_SCORES, [metric.name for metric in job.config.metrics]),
+        **(
+            {}
+            if "evaluation" in scores
+            else {
                 "picture": "reconstructions.png",
-                "caption": "Held-out images (top row) above the trained tokenizer's reconstructions of them (bottom row)."})}
+                "caption": "Held-out images (top row) above the trained tokenizer's reconstructions of them "
+                "(bottom row).",
+            }
+        ),
+    }
 
 
 def run_reconstruct_stage(job: StageJob) -> dict[str, Any]:
@@ -104,39 +150,55 @@ def run_reconstruct_stage(job: StageJob) -> dict[str, Any]:
     image_size = tokenizer.autoencoder.vqtouch_spec.context.image_size
     frames = sensor.reference_frames(*image_hw(image_size))
     if frames is None:
-        raise StageUnavailable(f"sensor family {sensor_config.name!r} declares no real reference frames "
-                               "(SensorFamily.reference_frames) to reconstruct")
+        raise StageUnavailable(
+            f"sensor family {sensor_config.name!r} declares no real reference frames "
+            "(SensorFamily.reference_frames) to reconstruct"
+        )
     reconstructions = reconstruct_all(tokenizer, frames)
     background = no_contact_image(sensor, frames)
-    scores: dict[str, Any] = {"source": f"{len(frames)} real {sensor.sensor_id or sensor_config.name} frames",
-                              "checkpoint": folder.name, **experiment_metrics(job, reconstructions, frames),
-                              **experiment_metrics(job, background, frames, prefix="background_"),
-                              **contact_region_scores({"": reconstructions, "background_": background}, frames,
-                                                      background)}
+    scores: dict[str, Any] = {
+        "source": f"{len(frames)} real {sensor.sensor_id or sensor_config.name} frames",
+        "checkpoint": folder.name,
+        **experiment_metrics(job, reconstructions, frames),
+        **experiment_metrics(job, background, frames, prefix="background_"),
+        **contact_region_scores({"": reconstructions, "background_": background}, frames, background),
+    }
     save_pairs(frames, reconstructions, job.run.path / "real_frames.png")
-    return {**scores, "picture": "real_frames.png",
-            "caption": f"The first {min(8, len(frames))} of the sensor's real reference frames (top row) above the "
-                       "tokenizer's reconstructions of them (bottom row)."}
+    return {
+        **scores,
+        "picture": "real_frames.png",
+        "caption": f"The first {min(8, len(frames))} of the sensor's real reference frames (top row) above the "
+        "tokenizer's reconstructions of them (bottom row).",
+    }
 
 
-def experiment_metrics(job: StageJob, predicted_B3HW: torch.Tensor, truth_B3HW: torch.Tensor,
-                       prefix: str = "") -> dict[str, float]:
+def experiment_metrics(
+    job: StageJob, predicted_B3HW: torch.Tensor, truth_B3HW: torch.Tensor, prefix: str = ""
+) -> dict[str, float]:
     """The experiment's ``metrics`` of ``predicted_B3HW`` against ``truth_B3HW``, by name (``prefix`` + name),
     and ``"skipped"`` with the reason of each that cannot run here."""
-    metrics = MetricSet(zip((item.name for item in job.config.metrics),
-                            job.assembly.build_slots(["metrics"]).get("metrics", [])))
+    metrics = MetricSet(
+        zip((item.name for item in job.config.metrics), job.assembly.build_slots(["metrics"]).get("metrics", []))
+    )
     return metrics.score(predicted_B3HW, truth_B3HW, prefix)
 
 
 @hookimpl
 def vqtouch_register_stages(register):
-    register("tokenizer", run_tokenizer_stage, section=TokenizerSection,
-             needs=("data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer"),
-             uses=("tokenizer.discriminator", "metrics", "sensor"), makes=("tokenizer",),
-             demo={"train.steps": 40, "train.checkpoint_every": 40, "train.log_every": 10},
-             description="Train the tactile tokenizer (autoencoder + quantizer [+ GAN]) and score the held-out "
-                         "split.")
-    register("reconstruct", run_reconstruct_stage,
-             needs=("sensor", "tokenizer.autoencoder", "tokenizer.quantizer"), uses=("metrics",),
-             description="Reconstruct the real reference frames of the experiment's sensor with the run's latest "
-                         "tokenizer.")
+    register(
+        "tokenizer",
+        run_tokenizer_stage,
+        section=TokenizerSection,
+        needs=("data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer"),
+        uses=("tokenizer.discriminator", "metrics", "sensor"),
+        makes=("tokenizer",),
+        demo={"train.steps": 40, "train.checkpoint_every": 40, "train.log_every": 10},
+        description="Train the tactile tokenizer (autoencoder + quantizer [+ GAN]) and score the held-out split.",
+    )
+    register(
+        "reconstruct",
+        run_reconstruct_stage,
+        needs=("sensor", "tokenizer.autoencoder", "tokenizer.quantizer"),
+        uses=("metrics",),
+        description="Reconstruct the real reference frames of the experiment's sensor with the run's latest tokenizer.",
+    )

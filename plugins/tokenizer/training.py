@@ -37,16 +37,24 @@ class TokenizerLossConfig(Section):
     l1_weight: float = Field(1.0, ge=0.0, le=100.0, description="Weight of the L1 reconstruction loss.")
     codebook_weight: float = Field(1.0, ge=0.0, le=100.0, description="Weight of the quantizer's loss.")
     perceptual: Literal["none", "effnet_lite0", "lpips"] = Field(
-        "effnet_lite0", description="Perceptual loss: 'lpips' needs user-supplied AlexNet and head weights; "
-                                    "'effnet_lite0' is an offline feature loss on a real ImageNet network (not LPIPS).")
+        "effnet_lite0",
+        description="Perceptual loss: 'lpips' needs user-supplied AlexNet and head weights; "
+        "'effnet_lite0' is an offline feature loss on a real ImageNet network (not LPIPS).",
+    )
     perceptual_weight: float = Field(0.1, ge=0.0, le=100.0, description="Weight of the perceptual loss.")
-    perceptual_image_size: int = Field(96, ge=32, le=512,
-                                       description="Side the images are resized to for the perceptual network.")
-    lpips_backbone: str | None = Field(None, description="Path of alexnet-owt-7be5be79.pth (or VQTOUCH_LPIPS_BACKBONE).")
+    perceptual_image_size: int = Field(
+        96, ge=32, le=512, description="Side the images are resized to for the perceptual network."
+    )
+    lpips_backbone: str | None = Field(
+        None, description="Path of alexnet-owt-7be5be79.pth (or VQTOUCH_LPIPS_BACKBONE)."
+    )
     lpips_heads: str | None = Field(None, description="Path of LPIPS v0.1 alex.pth heads (or VQTOUCH_LPIPS_HEADS).")
-    adversarial_weight: float = Field(0.8, ge=0.0, le=100.0, description="Weight of the hinge GAN loss (times the "
-                                                                         "adaptive weight); 0 disables it.")
-    disc_start: int = Field(2000, ge=0, description="Step at which the discriminator starts (it is not trained before).")
+    adversarial_weight: float = Field(
+        0.8, ge=0.0, le=100.0, description="Weight of the hinge GAN loss (times the adaptive weight); 0 disables it."
+    )
+    disc_start: int = Field(
+        2000, ge=0, description="Step at which the discriminator starts (it is not trained before)."
+    )
     adaptive_weight_max: float = Field(1e4, gt=0.0, description="Upper clamp of the adaptive GAN weight.")
 
 
@@ -63,7 +71,8 @@ class TokenizerSection(Section):
     autoencoder: Slot("autoencoder") | None = Field(None, description="Autoencoder plugin (e.g. dm_vqgan, vqgan).")
     quantizer: Slot("quantizer") | None = Field(None, description="Quantizer plugin (e.g. vq, ema_vq).")
     discriminator: Slot("discriminator") | None = Field(
-        None, description="Discriminator plugin for the adversarial loss (e.g. patchgan); null trains without one.")
+        None, description="Discriminator plugin for the adversarial loss (e.g. patchgan); null trains without one."
+    )
     loss: TokenizerLossConfig = Field(default_factory=TokenizerLossConfig, description="Training objective.")
     train: TokenizerTrainConfig = Field(default_factory=TokenizerTrainConfig, description="Optimisation settings.")
 
@@ -109,8 +118,13 @@ class Tokenizer:
 class TokenizerTask:
     """The tokenizer objective as a :class:`vqtouch.core.training.TrainingTask`."""
 
-    def __init__(self, tokenizer: Tokenizer, loss: TokenizerLossConfig, discriminator: nn.Module | None = None,
-                 perceptual: nn.Module | None = None) -> None:
+    def __init__(
+        self,
+        tokenizer: Tokenizer,
+        loss: TokenizerLossConfig,
+        discriminator: nn.Module | None = None,
+        perceptual: nn.Module | None = None,
+    ) -> None:
         self.tokenizer = tokenizer
         self.loss = loss
         self.discriminator = discriminator if loss.adversarial_weight > 0 else None
@@ -122,13 +136,21 @@ class TokenizerTask:
     def parameter_groups(self) -> dict[str, list[nn.Parameter] | list[dict[str, Any]]]:
         """The generator (autoencoder + quantizer, with the autoencoder's learning-rate scales, e.g.
         the deformable offset branches) and, when used, the discriminator."""
-        scaled = [(scale, [p for p in params if p.requires_grad])
-                  for scale, params in self.tokenizer.autoencoder.learning_rate_scales()]
+        scaled = [
+            (scale, [p for p in params if p.requires_grad])
+            for scale, params in self.tokenizer.autoencoder.learning_rate_scales()
+        ]
         scaled_ids = {id(p) for _, params in scaled for p in params}
-        base = [p for name in ("autoencoder", "quantizer") for p in self.modules[name].parameters()
-                if p.requires_grad and id(p) not in scaled_ids]
-        groups: dict[str, list] = {"generator": [{"params": base}] + [
-            {"params": params, "lr_scale": scale} for scale, params in scaled if params]}
+        base = [
+            p
+            for name in ("autoencoder", "quantizer")
+            for p in self.modules[name].parameters()
+            if p.requires_grad and id(p) not in scaled_ids
+        ]
+        groups: dict[str, list] = {
+            "generator": [{"params": base}]
+            + [{"params": params, "lr_scale": scale} for scale, params in scaled if params]
+        }
         if self.discriminator is not None:
             groups["discriminator"] = list(self.discriminator.parameters())
         return groups
@@ -158,8 +180,11 @@ class TokenizerTask:
         reconstruction = reconstruction.float()
         l1 = (images - reconstruction).abs().mean()
         nll = self.loss.l1_weight * l1
-        scalars = {"l1": float(l1.detach()), "vq_loss": float(output.loss.detach()),
-                   "perplexity": float(output.perplexity)}
+        scalars = {
+            "l1": float(l1.detach()),
+            "vq_loss": float(output.loss.detach()),
+            "perplexity": float(output.perplexity),
+        }
         if self.perceptual is not None:
             perceptual = self.perceptual(reconstruction, images).mean()
             nll = nll + self.loss.perceptual_weight * perceptual
@@ -188,9 +213,16 @@ class TokenizerTask:
 
 
 @torch.no_grad()
-def evaluate_reconstruction(tokenizer: Tokenizer, dataset: Any, metrics: Mapping[str, Metric] | MetricSet, *,
-                            batch_size: int = 32, device: torch.device | str = "cpu", keep: int = 8,
-                            background_3HW: torch.Tensor | None = None) -> dict[str, Any]:
+def evaluate_reconstruction(
+    tokenizer: Tokenizer,
+    dataset: Any,
+    metrics: Mapping[str, Metric] | MetricSet,
+    *,
+    batch_size: int = 32,
+    device: torch.device | str = "cpu",
+    keep: int = 8,
+    background_3HW: torch.Tensor | None = None,
+) -> dict[str, Any]:
     """Reconstruct every sample of ``dataset``; metrics, codebook usage, perplexity and speed.
 
     Metrics are scored through a :class:`~vqtouch.core.MetricSet`: unrounded values by name, and
@@ -210,7 +242,8 @@ def evaluate_reconstruction(tokenizer: Tokenizer, dataset: Any, metrics: Mapping
         raise NothingToEvaluateError(
             "nothing to evaluate: the dataset has no samples (a run's held-out split is empty when "
             "data.val_fraction=0); evaluate other samples with `vqtouch evaluate reconstruction --split all` or "
-            "--dataset")
+            "--dataset"
+        )
     tokenizer.eval()
     tokenizer.autoencoder.reset_randomness()
     tokenizer.quantizer.reset_usage()
@@ -252,10 +285,16 @@ def evaluate_reconstruction(tokenizer: Tokenizer, dataset: Any, metrics: Mapping
     counts_K = tokenizer.quantizer.usage_counts()
     if counts_K is not None:  # a codebook: how much of it the held-out images use
         counts_K = counts_K.cpu()
-        scores |= {"codebook_usage": float((counts_K > 0).double().mean()), "codes_used": int((counts_K > 0).sum()),
-                   "perplexity": float(perplexity_of_counts(counts_K, dtype=torch.float64))}
-    scores |= {"samples": count, "reconstructions_per_second": count / max(seconds, 1e-9),
-               "examples": (torch.stack(originals), torch.stack(reconstructions))}
+        scores |= {
+            "codebook_usage": float((counts_K > 0).double().mean()),
+            "codes_used": int((counts_K > 0).sum()),
+            "perplexity": float(perplexity_of_counts(counts_K, dtype=torch.float64)),
+        }
+    scores |= {
+        "samples": count,
+        "reconstructions_per_second": count / max(seconds, 1e-9),
+        "examples": (torch.stack(originals), torch.stack(reconstructions)),
+    }
     return scores
 
 
@@ -265,24 +304,34 @@ def _non_finite_message(tokenizer: Tokenizer) -> str:
     which = f" (checkpoint step {step})" if step is not None else ""
     broken = []
     for name, module in (("autoencoder", tokenizer.autoencoder), ("quantizer", tokenizer.quantizer)):
-        bad = [key for key, value in module.state_dict().items()
-               if value.is_floating_point() and not torch.isfinite(value).all()]
+        bad = [
+            key
+            for key, value in module.state_dict().items()
+            if value.is_floating_point() and not torch.isfinite(value).all()
+        ]
         if bad:
             broken.append(f"{name}: {len(bad)} tensor(s), first {bad[0]!r}")
-    cause = (f"its weights are not finite ({'; '.join(broken)})" if broken
-             else "its weights are finite, so a value overflows inside the network")
-    return (f"the tokenizer{which} produced NaN/Inf reconstructions; {cause}; evaluate an earlier checkpoint with "
-            "--step, or retrain with a lower tokenizer.train.learning_rate")
+    cause = (
+        f"its weights are not finite ({'; '.join(broken)})"
+        if broken
+        else "its weights are finite, so a value overflows inside the network"
+    )
+    return (
+        f"the tokenizer{which} produced NaN/Inf reconstructions; {cause}; evaluate an earlier checkpoint with "
+        "--step, or retrain with a lower tokenizer.train.learning_rate"
+    )
 
 
-def tokenizer_task(tokenizer: Tokenizer, loss: TokenizerLossConfig, device: torch.device,
-                   discriminator: torch.nn.Module | None = None) -> TokenizerTask:
+def tokenizer_task(
+    tokenizer: Tokenizer, loss: TokenizerLossConfig, device: torch.device, discriminator: torch.nn.Module | None = None
+) -> TokenizerTask:
     """The tokenizer objective ``loss`` for ``tokenizer``, with its perceptual network built on
     ``device`` when the loss uses one (training and adaptation both start here)."""
     from .perceptual import build_perceptual_loss
 
     perceptual = None
     if loss.perceptual != "none" and loss.perceptual_weight > 0:
-        perceptual = build_perceptual_loss(loss.perceptual, loss.lpips_backbone, loss.lpips_heads,
-                                           effnet_image_size=loss.perceptual_image_size).to(device)
+        perceptual = build_perceptual_loss(
+            loss.perceptual, loss.lpips_backbone, loss.lpips_heads, effnet_image_size=loss.perceptual_image_size
+        ).to(device)
     return TokenizerTask(tokenizer, loss, discriminator, perceptual)

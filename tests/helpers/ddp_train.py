@@ -17,7 +17,9 @@ def main() -> None:
     import importlib.util
     import types
 
-    spec = importlib.util.spec_from_file_location("toy_training", Path(__file__).resolve().parents[1] / "test_training.py")
+    spec = importlib.util.spec_from_file_location(
+        "toy_training", Path(__file__).resolve().parents[1] / "test_training.py"
+    )
     toy = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(toy)
     plugin = types.ModuleType("toy")
@@ -40,9 +42,16 @@ def main() -> None:
         task.training_step = training_step
     if rank == 0:
         torch.save(torch.cat([p.detach().flatten() for p in task.modules["model"].parameters()]), out / "initial.pt")
-    trainer = Trainer(task, toy.ToyDataset(), TrainConfig(steps=10, learning_rate=0.05, log_every=5,
-                      checkpoint_every=100), batch_size=2, seed=1, device=torch.device("cpu"),
-                      checkpoint_dir=out / "checkpoints", host=host)
+    trainer = Trainer(
+        task,
+        toy.ToyDataset(),
+        TrainConfig(steps=10, learning_rate=0.05, log_every=5, checkpoint_every=100),
+        batch_size=2,
+        seed=1,
+        device=torch.device("cpu"),
+        checkpoint_dir=out / "checkpoints",
+        host=host,
+    )
     try:
         trainer.fit()
     except TrainingInterrupted as exc:

@@ -66,21 +66,33 @@ class MeanColourConditioner(Conditioner):
 
 @hookimpl
 def vqtouch_register_sensor_families(register):
-    register("toy_sensor", lambda config, context: ToySensor(config), ToySensorConfig,
-             description="Example: one-light Lambertian gel.")
+    register(
+        "toy_sensor",
+        lambda config, context: ToySensor(config),
+        ToySensorConfig,
+        description="Example: one-light Lambertian gel.",
+    )
 
 
 @hookimpl
 def vqtouch_register_conditioners(register):
-    register("mean_colour", lambda config, context: MeanColourConditioner(context.cond_dim, config.hidden),
-             MeanColourConfig, description="Example: mean image colour as the condition.")
+    register(
+        "mean_colour",
+        lambda config, context: MeanColourConditioner(context.cond_dim, config.hidden),
+        MeanColourConfig,
+        description="Example: mean image colour as the condition.",
+    )
 
 
 class GallerySection(Section):
     """Options of the ``gallery`` stage (its own section of the experiment config: ``gallery.*``)."""
 
-    depths_mm: list[float] = Field([0.2, 0.5, 1.0], min_length=1, max_length=16,
-                                   description="Press depths of the ball, in mm, one picture column each.")
+    depths_mm: list[float] = Field(
+        [0.2, 0.5, 1.0],
+        min_length=1,
+        max_length=16,
+        description="Press depths of the ball, in mm, one picture column each.",
+    )
     radius_mm: float = Field(2.0, gt=0, le=10, description="Radius of the pressed ball in mm.")
 
 
@@ -101,8 +113,13 @@ def run_gallery(job: StageJob) -> dict:
 @hookimpl
 def vqtouch_register_stages(register):
     # A stage from a third-party package: its section, the slots it needs and how it runs.
-    register("gallery", run_gallery, section=GallerySection, needs=("sensor",),
-             description="Example: a ball pressed at several depths into the experiment's sensor.")
+    register(
+        "gallery",
+        run_gallery,
+        section=GallerySection,
+        needs=("sensor",),
+        description="Example: a ball pressed at several depths into the experiment's sensor.",
+    )
 
 
 @hookimpl

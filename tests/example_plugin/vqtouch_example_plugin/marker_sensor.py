@@ -32,28 +32,43 @@ class MarkerGelConfig(PluginConfig):
     name: Literal["marker_gel"] = "marker_gel"
     field_of_view_mm: float = Field(18.0, ge=4.0, le=60.0, description="Side of the imaged gel square in mm.")
     gel_colour: tuple[UnitFloat, UnitFloat, UnitFloat] = Field(
-        (0.78, 0.74, 0.70), description="RGB of the unpressed gel at the image centre, in [0, 1].")
-    light_falloff: float = Field(0.2, ge=0.0, le=1.0,
-                                 description="Relative brightness drop from the top edge (near the light) to the "
-                                             "bottom edge of the background.")
+        (0.78, 0.74, 0.70), description="RGB of the unpressed gel at the image centre, in [0, 1]."
+    )
+    light_falloff: float = Field(
+        0.2,
+        ge=0.0,
+        le=1.0,
+        description="Relative brightness drop from the top edge (near the light) to the bottom edge of the background.",
+    )
     light_elevation_deg: float = Field(35.0, ge=5.0, le=85.0, description="Elevation of the light above the gel.")
-    light_azimuth_deg: float = Field(-90.0, ge=-180.0, le=180.0,
-                                     description="Azimuth of the light (0: from the right, -90: from the top).")
+    light_azimuth_deg: float = Field(
+        -90.0, ge=-180.0, le=180.0, description="Azimuth of the light (0: from the right, -90: from the top)."
+    )
     response_gain: float = Field(0.8, ge=0.0, le=5.0, description="Strength of the contact shading.")
     gel_blur_mm: float = Field(0.2, ge=0.0, le=2.0, description="Gaussian smoothing of the indentation in mm.")
-    marker_pitch_mm: float = Field(1.5, ge=0.5, le=10.0,
-                                   description="Spacing of the marker grid in mm; markers sit at (k + 1/2) pitches "
-                                               "from the top-left corner of the field of view.")
+    marker_pitch_mm: float = Field(
+        1.5,
+        ge=0.5,
+        le=10.0,
+        description="Spacing of the marker grid in mm; markers sit at (k + 1/2) pitches "
+        "from the top-left corner of the field of view.",
+    )
     marker_radius_mm: float = Field(0.25, ge=0.05, le=2.0, description="Radius of one printed marker in mm.")
     marker_colour: tuple[UnitFloat, UnitFloat, UnitFloat] = Field(
-        (0.08, 0.08, 0.10), description="RGB of the marker ink, in [0, 1].")
+        (0.08, 0.08, 0.10), description="RGB of the marker ink, in [0, 1]."
+    )
     marker_opacity: float = Field(1.0, ge=0.0, le=1.0, description="Opacity of the ink (0: no markers).")
-    marker_shift_mm: float = Field(0.4, ge=0.0, le=5.0,
-                                   description="Sideways shift of a marker in mm where the gel is tilted by 90 "
-                                               "degrees (the shift is this times the sine of the local tilt, away "
-                                               "from the contact's peak).")
-    variant: SensorVariant = Field(default_factory=SensorVariant,
-                                   description="Environmental perturbations making this a derived sensor.")
+    marker_shift_mm: float = Field(
+        0.4,
+        ge=0.0,
+        le=5.0,
+        description="Sideways shift of a marker in mm where the gel is tilted by 90 "
+        "degrees (the shift is this times the sine of the local tilt, away "
+        "from the contact's peak).",
+    )
+    variant: SensorVariant = Field(
+        default_factory=SensorVariant, description="Environmental perturbations making this a derived sensor."
+    )
 
 
 class MarkerGelSensor(RenderedSensor):
@@ -122,5 +137,9 @@ def build_marker_gel(config: MarkerGelConfig, context: BuildContext) -> MarkerGe
 
 @hookimpl
 def vqtouch_register_sensor_families(register):
-    register("marker_gel", build_marker_gel, MarkerGelConfig,
-             description="Example: one-light gel with printed markers that move with the surface.")
+    register(
+        "marker_gel",
+        build_marker_gel,
+        MarkerGelConfig,
+        description="Example: one-light gel with printed markers that move with the surface.",
+    )
