@@ -23,11 +23,12 @@ tensor must match the rebuilt module by name and shape.  No pickle is involved.
 from __future__ import annotations
 
 import errno
+import hashlib
 import json
 import os
 import re
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -269,6 +270,17 @@ def _first_line(exc: BaseException) -> str:
     return text[0] if text else type(exc).__name__
 
 
+def files_digest(paths: Iterable[str | Path]) -> str:
+    """SHA-256 over the bytes of ``paths``, in order: pins weights a reader depends on (a generator
+    records its tokenizer's, and refuses a tokenizer that changed since)."""
+    digest = hashlib.sha256()
+    for path in paths:
+        with open(path, "rb") as handle:
+            for block in iter(lambda: handle.read(1 << 20), b""):
+                digest.update(block)
+    return digest.hexdigest()
+
+
 def load(path: str | Path, *, host: PluginHost | None = None, map_location: str | torch.device = "cpu") -> nn.Module:
     """Rebuild a component from a checkpoint's header with ``host``'s plugins and load its weights
     strictly.
@@ -325,6 +337,15 @@ def load(path: str | Path, *, host: PluginHost | None = None, map_location: str 
         tensors = load_file(str(path), device=str(map_location))
     except Exception as exc:  # noqa: BLE001
         raise CheckpointError(f"{path}: tensor data is unreadable ({_first_line(exc)})") from None
+    # Refused here, where every reader passes, rather than as constant images or NaN scores later.
+    non_finite = [
+        name for name, tensor in tensors.items() if tensor.is_floating_point() and not tensor.isfinite().all()
+    ]
+    if non_finite:
+        raise CheckpointError(
+            f"{path}: {len(non_finite)} weight tensor(s) hold NaN or Inf (first {non_finite[0]!r}): the training "
+            "that wrote it diverged; use an earlier checkpoint (--step) or retrain with a lower learning_rate"
+        )
     load_state_strict(component, tensors, path)
     component.vqtouch_step = int(step_text)
     return component.to(map_location)

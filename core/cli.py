@@ -108,11 +108,15 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def training_run(
-    args: argparse.Namespace, host: PluginHost, prepare: Callable[[Any], Any] | None = None
+    args: argparse.Namespace,
+    host: PluginHost,
+    prepare: Callable[[Any], Any] | None = None,
+    reads: Sequence[tuple[str, str, Any]] = (),
 ) -> tuple[Any, Any]:
     """The run directory and config of a training command (:func:`add_run_arguments`): the run named
     by ``--resume`` (locked for writing, its saved config), else a new run of the config the
-    command's arguments resolve to, after ``prepare(config)`` (e.g. a command's own flags)."""
+    command's arguments resolve to, after ``prepare(config)`` (e.g. a command's own flags).
+    ``reads``: the command's inputs as ``(flag, what, path)``, which ``--out`` may not be or hold."""
     from .runs import RunDir
 
     if args.resume:
@@ -122,10 +126,15 @@ def training_run(
             raise ConfigError("--resume continues a run with its saved config; drop --set/--config")
         run = RunDir.open(args.resume, for_writing=True)
         return run, run.load_config(host)
+    if args.out is not None:  # before the config is resolved: nothing is read or written yet
+        from .runs import refuse_writing_over_inputs
+
+        refuse_writing_over_inputs(args.out, reads)
     config = config_from_args(args, host)
     if prepare is not None:
         config = prepare(config)
-    return RunDir.create(config, argv=args.argv, host=host, path=args.out, overwrite=args.overwrite), config
+    run = RunDir.create(config, argv=args.argv, host=host, path=args.out, overwrite=args.overwrite, reads=reads)
+    return run, config
 
 
 def plugin_block(text: str, flag: str, default_name: str | None = None) -> dict[str, Any]:

@@ -250,9 +250,14 @@ class RunDir:
         host: PluginHost | None = None,
         path: str | Path | None = None,
         overwrite: bool = False,
+        reads: Sequence[tuple[str, str, str | Path | None]] = (),
     ) -> RunDir:
         """Make the folder (under ``config.output_dir`` unless ``path`` is given), lock it and write
         config/env.
+
+        ``reads``: what the command reads, as ``(flag, what, path)``; a run folder that is one of
+        them, or holds one, is refused before anything is written or emptied
+        (:func:`refuse_writing_over_inputs`).
 
         A folder that already holds files is refused (ConfigError naming ``--resume`` and
         ``--overwrite``); with ``overwrite`` a run directory (one with a config.json or a
@@ -262,6 +267,7 @@ class RunDir:
             stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
             path = Path(config.output_dir) / f"{config.name}-{stamp}-{config_hash(config)}"
         run = cls(Path(path))
+        refuse_writing_over_inputs(run.path, reads)
         if not is_main_process():
             return run
         # Checked before locking too, so that a refused foreign folder does not get a lock file.
@@ -600,6 +606,22 @@ class RunDir:
         record = {"stage": stage, "step": step, **{key: float(value) for key, value in metrics.items()}}
         with open(self.path / "metrics.jsonl", "a", encoding="utf-8") as handle:
             handle.write(json.dumps(record, sort_keys=True) + "\n")
+
+
+def refuse_writing_over_inputs(out: str | Path, reads: Sequence[tuple[str, str, str | Path | None]]) -> None:
+    """ConfigError when the folder a command writes (``out``) is one of the inputs it reads, or
+    holds one: emptying or filling it would destroy the input.  ``reads`` lists ``(flag, what,
+    path)``, e.g. ``("--tokenizer", "tokenizer run", "runs/tok")``; None paths and bundles
+    (``pretrained:NAME``, read-only) are skipped."""
+    target = Path(out).expanduser().resolve()
+    for flag, what, path in reads:
+        if path is None or str(path).startswith("pretrained:"):
+            continue
+        source = Path(path).expanduser().resolve()
+        if source == target:
+            raise ConfigError(f"--out {out} is the {what} this command reads ({flag}); choose another --out")
+        if source.is_relative_to(target):
+            raise ConfigError(f"--out {out} holds the {what} this command reads ({flag}: {path}); choose another --out")
 
 
 def product_makers(host: PluginHost) -> dict[str, str]:

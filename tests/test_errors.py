@@ -198,10 +198,15 @@ def test_nan_weights_are_refused_before_the_metrics(run_copy, capsys):
     )
     assert main(["evaluate", "reconstruction", "--run", str(run_copy)]) == 2
     line = one_error_line(capsys)
-    assert line.startswith(
-        "the tokenizer (checkpoint step 2) produced NaN/Inf reconstructions; its weights are not finite (autoencoder: "
-    )
+    # load() refuses them, naming the file, before anything is reconstructed or scored.
+    assert line.startswith(f"{path}: ") and "weight tensor(s) hold NaN or Inf (first " in line
     assert "--step" in line and "learning_rate" in line
+    # So does `reconstruct`, which once ended in a traceback (issue 25, case 11).
+    assert (
+        main(["reconstruct", "--run", str(run_copy), "--real-frames", "gelsight", "--out", str(run_copy.parent / "r")])
+        == 2
+    )
+    assert one_error_line(capsys).startswith(f"{path}: ")
 
 
 # -- data ------------------------------------------------------------------------------------

@@ -73,7 +73,9 @@ def _train_generator_command(args: argparse.Namespace) -> int:
         stages = config.stages[: config.stages.index("generator") + 1]
         return validate_experiment({**config.to_dict(), "stages": stages}, host)
 
-    run, config = training_run(args, host, up_to_the_generator)
+    run, config = training_run(
+        args, host, up_to_the_generator, reads=[("--tokenizer", "tokenizer run", args.tokenizer)]
+    )
     assembly = Assembly(config, host)
     with run:
         try:

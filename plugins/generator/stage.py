@@ -22,6 +22,7 @@ import torch
 from pydantic import Field, model_validator
 
 from vqtouch.core import MetricSet, RunDir, Section, Slot, StageJob, StageUnavailable, hookimpl, resolve_device
+from vqtouch.core.checkpoint import files_digest
 from vqtouch.core.data import DatasetSubset, experiment_split
 from vqtouch.core.errors import VqtouchWarning
 from vqtouch.core.image_size import image_hw
@@ -217,7 +218,14 @@ def train_generator(job: StageJob) -> dict[str, Any]:
         recorded = (
             tokenizer_folder.resolve().relative_to(job.run.path.resolve()) if inside else tokenizer_folder.resolve()
         )
-        job.publish("generator", trainer.last_checkpoint, step=state.step, tokenizer=recorded.as_posix())
+        digest = files_digest(tokenizer_folder / name for name in TOKENIZER_FILES)
+        job.publish(
+            "generator",
+            trainer.last_checkpoint,
+            step=state.step,
+            tokenizer=recorded.as_posix(),
+            tokenizer_sha256=digest,
+        )
         if section.num_samples and len(val_set) and section.sampler is not None:
             result |= score_samples(job, tokenizer, task, val_set, train_set, dataset, device)
         job.run.write_json("generation.json", result)

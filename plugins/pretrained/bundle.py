@@ -22,6 +22,9 @@ from __future__ import annotations
 
 import copy
 import json
+import os
+import shutil
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -48,7 +51,12 @@ def bundle_names(root: Path | None = None) -> list[str]:
     root = root or BUNDLES
     if not root.is_dir():
         return []
-    return sorted(path.name for path in root.iterdir() if (path / GENERATOR / "generator.safetensors").is_file())
+    # Hidden folders are exports in progress (or killed half-way), never bundles.
+    return sorted(
+        path.name
+        for path in root.iterdir()
+        if not path.name.startswith(".") and (path / GENERATOR / "generator.safetensors").is_file()
+    )
 
 
 def bundle_folder(name: str, root: Path | None = None) -> Path:
@@ -142,13 +150,29 @@ def export_bundle(
             metadata={**headers, STORED_KEY: "float16 parameters" if half else "float32"},
         )
 
-    (folder / TOKENIZER).mkdir(parents=True, exist_ok=True)
-    (folder / GENERATOR).mkdir(parents=True, exist_ok=True)
-    store(pipe.tokenizer.autoencoder, folder / TOKENIZER / "autoencoder.safetensors", tokenizer_headers)
-    store(pipe.tokenizer.quantizer, folder / TOKENIZER / "quantizer.safetensors", tokenizer_headers, keep_fp32=True)
-    store(pipe.generator, folder / GENERATOR / "generator.safetensors", generator_headers)
-    for index, conditioner in enumerate(pipe.conditioners):
-        store(conditioner, folder / GENERATOR / f"conditioner_{index}.safetensors", generator_headers)
+    # Written beside the bundle and moved into place whole: a failed or interrupted export leaves no
+    # partial bundle to block the retry, and an --overwrite keeps the old bundle until the new one is done.
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    partial = Path(tempfile.mkdtemp(prefix=f".{name}.", suffix=".partial", dir=folder.parent))
+    try:
+        (partial / TOKENIZER).mkdir()
+        (partial / GENERATOR).mkdir()
+        store(pipe.tokenizer.autoencoder, partial / TOKENIZER / "autoencoder.safetensors", tokenizer_headers)
+        store(pipe.tokenizer.quantizer, partial / TOKENIZER / "quantizer.safetensors", tokenizer_headers, True)
+        store(pipe.generator, partial / GENERATOR / "generator.safetensors", generator_headers)
+        for index, conditioner in enumerate(pipe.conditioners):
+            store(conditioner, partial / GENERATOR / f"conditioner_{index}.safetensors", generator_headers)
+        if folder.exists():
+            retired = folder.with_name(f".{name}.replaced")
+            shutil.rmtree(retired, ignore_errors=True)
+            os.replace(folder, retired)
+            os.replace(partial, folder)
+            shutil.rmtree(retired)
+        else:
+            os.replace(partial, folder)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
     return folder
 
 
