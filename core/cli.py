@@ -11,18 +11,20 @@ from __future__ import annotations
 import argparse
 import errno
 import json
+import math
 import os
 import stat
 import sys
 import traceback
 import warnings
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, NoReturn
 
 from .config import resolve_config
 from .errors import ConfigError, VqtouchError, VqtouchWarning, one_line
 from .plugin_manager import PluginHost, load_plugins
 from .progress import disable_progress
+from .seeding import SEED_MAX
 from .stages import StageOutcome, empty_slot_reason, missing_slots
 
 
@@ -69,20 +71,76 @@ def checkpoint_step(text: str) -> int | str:
     return step
 
 
-def positive_int(text: str) -> int:
-    """An argparse ``type``: an integer of at least 1."""
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text}: must be at least 1")
-    return value
+class NumberType:
+    """An argparse ``type`` for a number in a range: refuses text that is not a number, NaN and the
+    infinities (a float), a fraction (an integer) and anything out of ``[low, high]`` (``low_open``
+    / ``high_open``: the bound itself excluded), each with one line saying what is allowed.
+    ``bounds`` lets tests and docs read the range."""
+
+    def __init__(
+        self,
+        kind: type,
+        low: float | None = None,
+        high: float | None = None,
+        *,
+        low_open: bool = False,
+        high_open: bool = False,
+        what: str = "",
+    ) -> None:
+        self.kind, self.low, self.high, self.low_open, self.high_open = kind, low, high, low_open, high_open
+        self.__name__ = what or ("integer" if kind is int else "number")  # argparse names the type by it
+
+    @property
+    def bounds(self) -> tuple[float | None, float | None, bool, bool]:
+        return self.low, self.high, self.low_open, self.high_open
+
+    def describe(self) -> str:
+        noun = "an integer" if self.kind is int else "a finite number"
+        low, high = (f"{bound:d}" if self.kind is int else f"{bound:g}" for bound in (self.low or 0, self.high or 0))
+        if self.low is not None and self.high is not None:
+            left, right = "(" if self.low_open else "[", ")" if self.high_open else "]"
+            return f"{noun} in {left}{low}, {high}{right}"
+        if self.low is not None:
+            return f"{noun} {'>' if self.low_open else '>='} {low}"
+        return noun
+
+    def __call__(self, text: str) -> int | float:
+        try:
+            value = int(text) if self.kind is int else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {self.describe()}") from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"{text}: must be {self.describe()}")
+        too_low = self.low is not None and (value <= self.low if self.low_open else value < self.low)
+        too_high = self.high is not None and (value >= self.high if self.high_open else value > self.high)
+        if too_low or too_high:
+            raise argparse.ArgumentTypeError(f"{text}: must be {self.describe()}")
+        return value
 
 
-def non_negative_int(text: str) -> int:
-    """An argparse ``type``: an integer of at least 0."""
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{text}: must be 0 or more")
-    return value
+#: Integers of at least 1 / at least 0.
+positive_int = NumberType(int, 1, what="positive_int")
+non_negative_int = NumberType(int, 0, what="non_negative_int")
+#: A seed (``--seed``, ``--seeds``): an integer in [0, SEED_MAX].
+seed_int = NumberType(int, 0, SEED_MAX, what="seed")
+#: Classifier-free guidance scales (1: unguided), as ``generator.guidance`` allows them.
+guidance_scale = NumberType(float, 0, 1000, what="guidance")
+#: Truncation: the probability mass of the most likely codes kept, in (0, 1].
+truncation_mass = NumberType(float, 0, 1, low_open=True, what="truncation")
+#: A share of something, in [0, 1].
+fraction = NumberType(float, 0, 1, what="fraction")
+#: A distance threshold: a finite number of at least 0.
+non_negative_float = NumberType(float, 0, what="non_negative_float")
+#: A learning rate, as the training sections allow it: (0, 10].
+learning_rate = NumberType(float, 0, 10, low_open=True, what="learning_rate")
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line, like every other vqtouch error: what was wrong
+    and where to read the command's options (rather than its whole usage first)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"vqtouch: error: {self.prog}: {message} (see {self.prog} --help)\n")
 
 
 def add_step_argument(parser: argparse.ArgumentParser) -> None:
@@ -251,7 +309,7 @@ def build_parser(host: PluginHost) -> argparse.ArgumentParser:
     """The full parser, including subcommands contributed by ``host``'s plugins."""
     from . import __version__
 
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="vqtouch", description="Data-efficient tactile image generation across sensors (VQ-Touch)."
     )
     parser.add_argument("--version", action="version", version=f"vqtouch {__version__}")

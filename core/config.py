@@ -37,6 +37,7 @@ from .errors import (
 )
 from .image_size import ImageSizeOption
 from .plugin_config import PluginConfig, StrictModel
+from .seeding import SEED_MAX
 
 if TYPE_CHECKING:
     from .plugin_manager import PluginHost
@@ -213,7 +214,7 @@ class ExperimentConfig(Section):
         default_factory=list,
         description="Pipeline stages this experiment runs, in order (see `vqtouch config stages`).",
     )
-    seed: int = Field(0, ge=0, lt=2**63, description="Seed for every random number generator.")
+    seed: int = Field(0, ge=0, le=SEED_MAX, description="Seed for every random number generator.")
     deterministic: bool = Field(False, description="Ask PyTorch for deterministic algorithms (slower).")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Compute device; auto picks CUDA when present.")
     output_dir: str = Field("runs", min_length=1, description="Folder under which run directories are created.")

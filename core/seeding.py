@@ -8,6 +8,10 @@ import random
 import numpy as np
 import torch
 
+#: The largest seed: NumPy takes seeds below 2**32, and the seeds vqtouch derives from one
+#: (``seed * 1_000_003 + index`` for each generated image, ...) then stay within 64 bits.
+SEED_MAX = 2**32 - 1
+
 
 def seed_everything(seed: int, deterministic: bool = False) -> int:
     """Seed Python, NumPy and PyTorch (all devices); optionally force deterministic kernels.
@@ -15,10 +19,10 @@ def seed_everything(seed: int, deterministic: bool = False) -> int:
     Returns the seed so callers can record it.  ``deterministic=True`` makes PyTorch raise
     on operations without a deterministic implementation rather than silently vary.
     """
-    if not 0 <= seed < 2**63:
-        raise ValueError(f"seed must be in [0, 2**63), got {seed}")
+    if not 0 <= seed <= SEED_MAX:
+        raise ValueError(f"seed must be in [0, {SEED_MAX}], got {seed}")
     random.seed(seed)
-    np.random.seed(seed % 2**32)
+    np.random.seed(seed)
     torch.manual_seed(seed)
     if deterministic:
         os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")

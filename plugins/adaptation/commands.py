@@ -24,25 +24,24 @@ import json
 from pathlib import Path
 
 from vqtouch.core import ConfigError, hookimpl
-from vqtouch.core.cli import add_step_argument, command_group, non_negative_int, positive_int
+from vqtouch.core.cli import (
+    NumberType,
+    add_step_argument,
+    command_group,
+    learning_rate,
+    non_negative_float,
+    non_negative_int,
+    positive_int,
+    seed_int,
+)
 from vqtouch.plugins.evaluation.records import add_experiment_arguments
 from vqtouch.core.image_size import image_size_argument
 from vqtouch.plugins.tokenizer import load_tokenizer
 from vqtouch.plugins.scenes import GELSIGHT_DERIVATIVE_II
 
 
-def _fraction(text: str) -> float:
-    value = float(text)
-    if not 0 < value <= 1:
-        raise argparse.ArgumentTypeError(f"{text}: must lie in (0, 1]")
-    return value
-
-
-def _non_negative_float(text: str) -> float:
-    value = float(text)
-    if not value >= 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"{text}: must be a finite number >= 0")
-    return value
+#: The share of images kept per refinement step, in (0, 1].
+_kept_fraction = NumberType(float, 0, 1, low_open=True, what="fraction")
 
 
 def _cluster_command(args: argparse.Namespace) -> int:
@@ -241,8 +240,8 @@ def vqtouch_add_commands(subparsers):
     cluster.add_argument(
         "--refine-steps", type=non_negative_int, default=3, help="prototype refinement steps (default 3)"
     )
-    cluster.add_argument("--keep", type=_fraction, default=0.8, help="fraction of images kept per refinement step")
-    cluster.add_argument("--seed", type=int, default=0, help="seed of the rendered scenes")
+    cluster.add_argument("--keep", type=_kept_fraction, default=0.8, help="fraction of images kept per refinement step")
+    cluster.add_argument("--seed", type=seed_int, default=0, help="seed of the rendered scenes")
     cluster.add_argument(
         "--unseen",
         nargs="+",
@@ -252,7 +251,7 @@ def vqtouch_add_commands(subparsers):
     )
     cluster.add_argument(
         "--threshold",
-        type=float,
+        type=non_negative_float,
         help="refuse an unseen sensor farther than this from every family (default: 3x the "
         "largest within-family spread, at least half the nearest two families' distance)",
     )
@@ -273,12 +272,12 @@ def vqtouch_add_commands(subparsers):
     adapt.add_argument("--shots", type=positive_int, default=50, help="unseen-sensor images to train on (default 50)")
     adapt.add_argument(
         "--ratio",
-        type=_non_negative_float,
+        type=non_negative_float,
         default=5.0,
         help="family images per shot in the mixed set (default 5: the paper's 1:5)",
     )
     adapt.add_argument("--steps", type=positive_int, default=200, help="fine-tuning steps (default 200)")
-    adapt.add_argument("--learning-rate", type=float, help="default: the run's tokenizer.train.learning_rate")
+    adapt.add_argument("--learning-rate", type=learning_rate, help="default: the run's tokenizer.train.learning_rate")
     adapt.add_argument("--batch-size", type=positive_int, help="default: the run's data.batch_size")
     adapt.add_argument(
         "--eval-images",
@@ -294,11 +293,11 @@ def vqtouch_add_commands(subparsers):
     )
     adapt.add_argument(
         "--threshold",
-        type=float,
+        type=non_negative_float,
         help="refuse a sensor farther than this from every family (default: the clustering's refusal threshold)",
     )
     adapt.add_argument("--family", type=non_negative_int, help="adapt from this family, whatever the assignment says")
-    adapt.add_argument("--seed", type=int, default=0, help="seed of the shots' draw and the rendered scenes")
+    adapt.add_argument("--seed", type=seed_int, default=0, help="seed of the shots' draw and the rendered scenes")
     adapt.add_argument("--overwrite", action="store_true", help="replace an adapted tokenizer already in --out")
     adapt.set_defaults(handler=_adapt_command)
 
@@ -315,7 +314,7 @@ def vqtouch_add_commands(subparsers):
         default=json.dumps(GELSIGHT_DERIVATIVE_II),
         help="the unseen sensor (default: the zero-shot scene's damaged, drifted GelSight)",
     )
-    cross.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (default 0 1 2)")
+    cross.add_argument("--seeds", type=seed_int, nargs="+", default=[0, 1, 2], help="seeds (default 0 1 2)")
     cross.add_argument("--steps", type=positive_int, default=200, help="fine-tuning steps of every arm (default 200)")
     cross.add_argument(
         "--shots",
@@ -327,12 +326,12 @@ def vqtouch_add_commands(subparsers):
     cross.add_argument("--main-shots", type=positive_int, default=50, help="shots of the ratio sweep (default 50)")
     cross.add_argument(
         "--ratios",
-        type=_non_negative_float,
+        type=non_negative_float,
         nargs="+",
         default=[1.0, 5.0, 20.0],
         help="family images per shot in arm c (default 1 5 20)",
     )
-    cross.add_argument("--main-ratio", type=_non_negative_float, default=5.0, help="ratio of the shots sweep (5)")
+    cross.add_argument("--main-ratio", type=non_negative_float, default=5.0, help="ratio of the shots sweep (5)")
     cross.add_argument(
         "--everything",
         type=non_negative_int,
@@ -384,7 +383,7 @@ def vqtouch_add_commands(subparsers):
     )
     fewshot.add_argument(
         "--ratio",
-        type=_non_negative_float,
+        type=non_negative_float,
         default=5.0,
         help="family images per target image in the mixed arm (default 5: the paper's 1:5)",
     )

@@ -21,7 +21,14 @@ import torch
 
 from vqtouch.core import ConfigError, PluginHost, VqtouchError, hookimpl
 from vqtouch.core.checkpoint import atomic_write
-from vqtouch.core.cli import plugin_block
+from vqtouch.core.cli import (
+    fraction,
+    non_negative_float,
+    non_negative_int,
+    plugin_block,
+    positive_int,
+    seed_int,
+)
 from vqtouch.core.config import DataConfig, ExperimentConfig
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.image_size import image_size_argument
@@ -182,13 +189,13 @@ def vqtouch_add_commands(subparsers):
     render = data_sub.add_parser("render", help="render procedural (tactile, visual, label, text) samples to a folder")
     render.add_argument("--sensor", type=_sensor_argument, default={"name": "gelsight"},
                         help='sensor family name, or JSON such as \'{"name": "gelsight", "variant": {"noise_std": 0.02}}\'')
-    render.add_argument("--n", type=int, default=500, help="number of samples (default 500)")
+    render.add_argument("--n", type=positive_int, default=500, help="number of samples (default 500)")
     render.add_argument("--out", required=True, help="output folder")
     render.add_argument("--image-size", type=image_size_argument, default=64,
                         help="image size: a side S, or HEIGHTxWIDTH such as 240x320 (default 64)")
-    render.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
+    render.add_argument("--seed", type=seed_int, default=0, help="dataset seed (default 0)")
     render.add_argument("--classes", help="comma-separated object classes (default: all 12)")
-    render.add_argument("--batch-size", type=int, default=32, help="samples rendered per step (default 32)")
+    render.add_argument("--batch-size", type=positive_int, default=32, help="samples rendered per step (default 32)")
     render.add_argument("--overwrite", action="store_true", help="allow writing into a non-empty folder")
     render.set_defaults(handler=_render_command)
 
@@ -196,8 +203,8 @@ def vqtouch_add_commands(subparsers):
     fidelity.add_argument("--out", required=True, help="folder for the pictures and fidelity.json")
     fidelity.add_argument("--sensors", nargs="+", default=["gelsight", "gelsight_mini"],
                           choices=["gelsight", "gelsight_mini"], help="sensors to check")
-    fidelity.add_argument("--height", type=int, default=240, help="render height (width is 4/3 of it)")
-    fidelity.add_argument("--crop", type=int, default=64, help="side of the square crop around each contact")
+    fidelity.add_argument("--height", type=positive_int, default=240, help="render height (width is 4/3 of it)")
+    fidelity.add_argument("--crop", type=positive_int, default=64, help="side of the square crop around each contact")
     fidelity.set_defaults(handler=_fidelity_command)
 
     leakage = data_sub.add_parser(
@@ -211,21 +218,21 @@ def vqtouch_add_commands(subparsers):
                               'plugin name, or JSON such as \'{"name": "touch_and_go", "root": "/data/tag"}\'')
     leakage.add_argument("--train", metavar="SPEC", help="training dataset (name or JSON), with --test")
     leakage.add_argument("--test", metavar="SPEC", help="test dataset (name or JSON), with --train")
-    leakage.add_argument("--val-fraction", type=float, default=DataConfig.model_fields["val_fraction"].default,
+    leakage.add_argument("--val-fraction", type=fraction, default=DataConfig.model_fields["val_fraction"].default,
                          help="held-out share of --dataset's split (default: data.val_fraction's default, %(default)s)")
-    leakage.add_argument("--seed", type=int, default=ExperimentConfig.model_fields["seed"].default,
+    leakage.add_argument("--seed", type=seed_int, default=ExperimentConfig.model_fields["seed"].default,
                          help="experiment seed of --dataset's split (default %(default)s)")
     leakage.add_argument("--sensor", type=_sensor_argument, default={"name": "gelsight"},
                          help="sensor family (name or JSON, as for render) of datasets that render, such as "
                               "procedural (default gelsight)")
-    leakage.add_argument("--threshold", type=float, default=DEFAULT_THRESHOLD,
+    leakage.add_argument("--threshold", type=non_negative_float, default=DEFAULT_THRESHOLD,
                          help="near-duplicate when the mean absolute difference is at most this, in 8-bit levels "
                               "(default %(default)s; raise it above a noisy sensor's noise floor)")
-    leakage.add_argument("--size", type=int, default=COMPARE_SIZE,
+    leakage.add_argument("--size", type=positive_int, default=COMPARE_SIZE,
                          help="side of the square images are compared at (default %(default)s)")
-    leakage.add_argument("--show", type=int, default=8, help="closest pairs listed and pictured (default 8)")
+    leakage.add_argument("--show", type=non_negative_int, default=8, help="closest pairs listed and pictured (default 8)")
     leakage.add_argument("--out", help="folder for leakage.json and closest_pairs.png")
-    leakage.add_argument("--fail-above", type=float, metavar="FRACTION",
+    leakage.add_argument("--fail-above", type=fraction, metavar="FRACTION",
                          help="exit with status 1 when more than this share of test images have a near-duplicate "
                               "(for CI)")
     leakage.set_defaults(handler=_leakage_command)

@@ -27,6 +27,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+from vqtouch.core.cli import seed_int
 from vqtouch.core.errors import ConfigError
 from vqtouch.core import __version__
 
@@ -39,7 +40,7 @@ def add_experiment_arguments(parser: argparse.ArgumentParser, default_seeds: Seq
     parser.add_argument("--out", required=True, help="folder for the experiment's JSON, markdown and PNG files")
     parser.add_argument(
         "--seeds",
-        type=int,
+        type=seed_int,
         nargs="+",
         default=list(default_seeds),
         help=f"seeds to repeat over (default {' '.join(map(str, default_seeds))}); tables give "

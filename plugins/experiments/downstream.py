@@ -59,7 +59,7 @@ from typing import Any, Callable, Sequence
 import torch
 
 from vqtouch.core import Assembly, ConfigError, PluginHost, hookimpl
-from vqtouch.core.cli import add_step_argument, command_group, non_negative_int, positive_int
+from vqtouch.core.cli import add_step_argument, command_group, guidance_scale, non_negative_int, positive_int
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.plugins.evaluation.records import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
 from vqtouch.core.training import collate_samples
@@ -625,12 +625,14 @@ def vqtouch_add_commands(subparsers: Any) -> None:
     )
     downstream.add_argument(
         "--conditioner",
-        type=int,
+        type=non_negative_int,
         help="which of the generator's conditioners (index; default the first label conditioner)",
     )
     downstream.add_argument("--steps", type=positive_int, help="sampling steps (default: the run's generator.steps)")
     downstream.add_argument("--sampler", help="sampler plugin (default: the run's generator.sampler)")
-    downstream.add_argument("--guidance", type=float, help="classifier-free guidance scale (default: the run's)")
+    downstream.add_argument(
+        "--guidance", type=guidance_scale, help="classifier-free guidance scale (default: the run's)"
+    )
     downstream.add_argument(
         "--feature-size",
         type=feature_size_argument,

@@ -23,10 +23,14 @@ from vqtouch.core.cli import (
     add_step_argument,
     command_group,
     config_from_args,
+    guidance_scale,
+    non_negative_int,
     plugin_block,
     positive_int,
+    seed_int,
     stage_failure,
     training_run,
+    truncation_mass,
 )
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.core.config import validate_experiment
@@ -342,7 +346,7 @@ def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="folder for tradeoff.json, tradeoff.md and pareto.png")
     parser.add_argument("--n", type=positive_int, default=64, help="held-out conditions per setting (at most all)")
     parser.add_argument("--rounds", type=positive_int, default=2, help="interleaved timing rounds (median reported)")
-    parser.add_argument("--steps", type=int, nargs="+", default=[100, 50, 25, 10, 5], help="sampling steps")
+    parser.add_argument("--steps", type=positive_int, nargs="+", default=[100, 50, 25, 10, 5], help="sampling steps")
     parser.add_argument(
         "--samplers",
         nargs="+",
@@ -351,7 +355,7 @@ def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--guidance",
-        type=float,
+        type=guidance_scale,
         nargs="+",
         default=[1.0, 3.0],
         help="classifier-free guidance scales (1: unguided; the first is the base)",
@@ -370,7 +374,7 @@ def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
         help="every combination (default: one knob at a time around the first sampler, guidance and "
         "precision and the middle --steps value)",
     )
-    parser.add_argument("--seed", type=int, help="seed of the sampling draws (default: the run's)")
+    parser.add_argument("--seed", type=seed_int, help="seed of the sampling draws (default: the run's)")
     parser.add_argument("--threads", type=positive_int, help="torch CPU threads (default: torch's)")
     _add_distribution_arguments(parser)
 
@@ -434,7 +438,7 @@ def vqtouch_add_commands(subparsers):
         "the baselines; with --run: where the run's scores go",
     )
     scored.add_argument(
-        "--seeds", type=int, nargs="+", default=[0, 1, 2], help="with --out: generator seeds (default 0 1 2)"
+        "--seeds", type=seed_int, nargs="+", default=[0, 1, 2], help="with --out: generator seeds (default 0 1 2)"
     )
     scored.add_argument(
         "--tokenizer",
@@ -447,13 +451,17 @@ def vqtouch_add_commands(subparsers):
     )
     add_config_arguments(scored, default_scene="tour")
     add_step_argument(scored)
-    scored.add_argument("--conditioner", type=int, help="which of the generator's conditioners (index; default 0)")
+    scored.add_argument(
+        "--conditioner", type=non_negative_int, help="which of the generator's conditioners (index; default 0)"
+    )
     scored.add_argument("--n", type=positive_int, default=64, help="held-out conditions to generate (at most all)")
     scored.add_argument("--steps", type=positive_int, help="sampling steps (default: the run's generator.steps)")
     scored.add_argument("--sampler", help="sampler plugin (default: the run's generator.sampler)")
-    scored.add_argument("--guidance", type=float, help="classifier-free guidance scale (1: none)")
-    scored.add_argument("--truncation", type=float, help="keep the most likely codes holding this mass (1: all)")
-    scored.add_argument("--seed", type=int, help="seed of the sampling draws (default: the run's)")
+    scored.add_argument("--guidance", type=guidance_scale, help="classifier-free guidance scale (1: none)")
+    scored.add_argument(
+        "--truncation", type=truncation_mass, help="keep the most likely codes holding this mass (1: all)"
+    )
+    scored.add_argument("--seed", type=seed_int, help="seed of the sampling draws (default: the run's)")
     scored.add_argument(
         "--metrics",
         help="comma-separated metric plugins, or a JSON list of names and "
@@ -524,9 +532,11 @@ def vqtouch_add_commands(subparsers):
     )
     generate.add_argument("--steps", type=positive_int, help="sampling steps (default: the run's generator.steps)")
     generate.add_argument("--sampler", help="sampler plugin (default: the run's generator.sampler)")
-    generate.add_argument("--guidance", type=float, help="classifier-free guidance scale (1: none)")
-    generate.add_argument("--truncation", type=float, help="keep the most likely codes holding this mass (1: all)")
-    generate.add_argument("--seed", type=int, default=0, help="seed: same seed and settings, same images")
+    generate.add_argument("--guidance", type=guidance_scale, help="classifier-free guidance scale (1: none)")
+    generate.add_argument(
+        "--truncation", type=truncation_mass, help="keep the most likely codes holding this mass (1: all)"
+    )
+    generate.add_argument("--seed", type=seed_int, default=0, help="seed: same seed and settings, same images")
     generate.add_argument("--batch-size", type=positive_int, default=16, help="images per forward pass")
     generate.add_argument("--out", required=True, help="folder for sample_*.png, grid.png and generate.json")
     generate.set_defaults(handler=_generate_command, n_given=False)

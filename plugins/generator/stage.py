@@ -99,6 +99,18 @@ class GeneratorSection(Section):
             )
         return self
 
+    @model_validator(mode="after")
+    def _sampling_steps_within_the_model(self) -> GeneratorSection:
+        # Checked with the config, not after training: sampling cannot take more steps than the model
+        # has diffusion steps (a generator plugin without such a limit has no num_steps option).
+        limit = getattr(self.model, "num_steps", None)
+        if isinstance(limit, int) and self.steps > limit:
+            raise ValueError(
+                f"steps={self.steps} exceeds the generator's diffusion steps (generator.model.num_steps={limit}); "
+                f"sample with at most {limit} steps or train a model with more"
+            )
+        return self
+
 
 def tokenizer_source(job: StageJob) -> RunDir | Path:
     """Where the tokenizer is: ``generator.tokenizer_run`` (a run or a tokenizer checkpoint

@@ -19,21 +19,27 @@ from vqtouch.core.cli import (
     add_config_arguments,
     add_run_arguments,
     add_step_argument,
+    NumberType,
     command_group,
     plugin_block,
     positive_int,
+    seed_int,
     stage_failure,
     training_run,
 )
 from vqtouch.core.config import parse_override, resolve_config
 from vqtouch.plugins.evaluation.records import DEFAULT_SEEDS
 from vqtouch.core.data import experiment_split
+
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
 from vqtouch.plugins.evaluation.contact import dataset_background
 
 from .stages import load_tokenizer, printable, reconstruct_all, save_pairs
 from .training import evaluate_reconstruction
+
+#: The MAE baseline's mask ratio, as its config allows it: [0, 1).
+mask_ratio = NumberType(float, 0, 1, high_open=True, what="mask_ratio")
 
 
 def _train_tokenizer_command(args: argparse.Namespace) -> int:
@@ -238,7 +244,7 @@ def vqtouch_add_commands(subparsers):
     )
     recon.add_argument(
         "--seeds",
-        type=int,
+        type=seed_int,
         nargs="+",
         default=list(DEFAULT_SEEDS),
         help="with --out: seeds (split, sample draw, initialisation; default 0 1 2)",
@@ -258,7 +264,7 @@ def vqtouch_add_commands(subparsers):
     )
     recon.add_argument(
         "--mae-ratios",
-        type=float,
+        type=mask_ratio,
         nargs="*",
         default=[0.25, 0.5, 0.75],
         help="with --out: mask ratios of the MAE baseline (default 0.25 0.5 0.75; none: leave it out)",
