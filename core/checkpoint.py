@@ -107,8 +107,10 @@ def atomic_write(path: str | Path, write: Any) -> Path:
             os.fsync(handle.fileno())
         os.replace(tmp_path, path)
         _fsync_directory(path.parent)
-    except BaseException:
+    except BaseException as exc:
         tmp_path.unlink(missing_ok=True)
+        if isinstance(exc, OSError) and exc.filename is None:
+            exc.filename = str(path)  # writers (Pillow, safetensors) often raise without naming the file
         raise
     return path
 

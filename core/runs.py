@@ -26,6 +26,7 @@ registration declares (``makes=("families",)``), and a reader asks the run for i
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import hashlib
 import importlib.metadata as importlib_metadata
@@ -33,12 +34,15 @@ import json
 import os
 import platform
 import shutil
+import signal
 import subprocess
 import sys
+import tempfile
+import threading
 import time
 import warnings
 import weakref
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -622,6 +626,59 @@ def refuse_writing_over_inputs(out: str | Path, reads: Sequence[tuple[str, str, 
             raise ConfigError(f"--out {out} is the {what} this command reads ({flag}); choose another --out")
         if source.is_relative_to(target):
             raise ConfigError(f"--out {out} holds the {what} this command reads ({flag}: {path}); choose another --out")
+
+
+@contextlib.contextmanager
+def staged_output(
+    out: str | Path, *, overwrite: bool = False, reads: Sequence[tuple[str, str, str | Path | None]] = ()
+) -> Iterator[Path]:
+    """The output folder of a command that is not a run (``generate --out``, ...), with the guarantees
+    run folders have: yields a fresh hidden folder beside ``out`` to write into, and moves it onto
+    ``out`` whole when the block ends, so ``out`` is never half-written, never mixes two calls'
+    files and keeps its old content until the new one is complete.
+
+    Refused in one line before anything is written: ``out`` is an input (``reads``, see
+    :func:`refuse_writing_over_inputs`), a file, a run directory, or holds files and ``overwrite``
+    is not set.  An error or Ctrl-C (or SIGTERM, turned into one meanwhile) in the block removes
+    the staged folder.  When another process filled ``out`` meanwhile, the staged files are kept
+    where they are and the ConfigError says where.
+    """
+    out = Path(out)
+    refuse_writing_over_inputs(out, reads)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} is a file; give a folder")
+    if (out / "config.json").is_file() or (out / LOCK_NAME).exists():
+        raise ConfigError(f"--out {out} is a vqtouch run; write this command's output to another folder")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise ConfigError(f"--out {out} already holds files; choose another --out, or pass --overwrite to replace them")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staged = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        yield staged
+    except BaseException:
+        shutil.rmtree(staged, ignore_errors=True)
+        raise
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    if out.is_dir() and any(out.iterdir()):
+        if not overwrite:
+            raise ConfigError(
+                f"--out {out} was filled by another process meanwhile; this command's output is in {staged}"
+            )
+        retired = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".replaced", dir=out.parent))
+        os.replace(out, retired / out.name)
+        os.replace(staged, out)
+        shutil.rmtree(retired, ignore_errors=True)
+    else:
+        os.replace(staged, out)  # onto a missing or empty folder
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
 
 
 def product_makers(host: PluginHost) -> dict[str, str]:

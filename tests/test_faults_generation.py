@@ -4,6 +4,7 @@ protected output.  Each case here once lost data or wrote a silently wrong resul
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -171,3 +172,106 @@ def test_export_refuses_nan_weights_and_leaves_no_partial_bundle(nan_generator, 
         )
         assert one_error_line(capsys).startswith(f"{poisoned}: ")
         assert not (root / "poisoned").exists()
+
+
+# -- 4. generate --out is a protected output ---------------------------------------------------------
+
+
+def test_generate_refuses_a_folder_that_holds_files_and_replaces_it_whole_with_overwrite(trained, tmp_path, capsys):
+    _, gen = trained
+    out = tmp_path / "samples"
+    assert generate(gen, out, "--n", "4") == 0
+    assert sorted(path.name for path in out.glob("sample_*.png")) == [f"sample_{i:04d}.png" for i in range(4)]
+    before = snapshot(out)
+    capsys.readouterr()
+    assert generate(gen, out) == 2  # two samples into a folder holding four: once they mixed
+    assert one_error_line(capsys) == (
+        f"--out {out} already holds files; choose another --out, or pass --overwrite to replace them"
+    )
+    assert snapshot(out) == before
+    assert generate(gen, out, "--overwrite") == 0
+    assert sorted(path.name for path in out.iterdir()) == [
+        "generate.json",
+        "grid.png",
+        "sample_0000.png",
+        "sample_0001.png",
+    ]
+    assert json.loads((out / "generate.json").read_text())["n"] == 2
+    assert not [path for path in tmp_path.iterdir() if path.name.startswith(".")]  # no staged folder left
+
+
+def test_generate_never_writes_into_its_run(trained, capsys):
+    _, gen = trained
+    before = snapshot(gen)
+    assert generate(gen, gen, "--overwrite") == 2
+    assert (
+        one_error_line(capsys) == f"--out {gen} is the generator run this command reads (--run); choose another --out"
+    )
+    assert snapshot(gen) == before
+
+
+def test_an_interrupted_generate_leaves_nothing_half_written(trained, tmp_path, monkeypatch):
+    """Stopped after the first sample (as by Ctrl-C or SIGTERM): no --out folder, no staged leftovers."""
+    import vqtouch.plugins.generator.commands as commands
+
+    _, gen = trained
+    written = []
+
+    def stop_after_one(image, path):
+        if written:
+            raise KeyboardInterrupt
+        written.append(path)
+        return original(image, path)
+
+    original = commands.save_png
+    monkeypatch.setattr(commands, "save_png", stop_after_one)
+    assert generate(gen, tmp_path / "out", "--n", "3") == 130
+    assert written and not (tmp_path / "out").exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+# -- 5. a huge --n ------------------------------------------------------------------------------------
+
+
+def test_generate_refuses_more_samples_than_the_disk_holds(trained, tmp_path, capsys):
+    _, gen = trained
+    assert generate(gen, tmp_path / "out", "--n", "1000000000000") == 2
+    line = one_error_line(capsys)
+    assert line.startswith("--n 1000000000000: the samples need up to ") and "GB are free where --out" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_generate_streams_batches_and_keeps_the_images_of_one_call(trained, tmp_path):
+    """Batch by batch, the samples are those of one call to the pipeline (an image depends on its
+    index and the seed only), and grid.png draws at most the first 64."""
+    import numpy as np
+    from PIL import Image
+
+    from vqtouch.plugins.generator import load_pipeline
+
+    _, gen = trained
+    assert generate(gen, tmp_path / "out", "--n", "5", "--batch-size", "2") == 0
+    expected = load_pipeline(gen, device="cpu")(5, label="0", steps=2, seed=0, batch_size=5)
+    for index in range(5):
+        saved = torch.from_numpy(np.array(Image.open(tmp_path / "out" / f"sample_{index:04d}.png"))).permute(2, 0, 1)
+        assert torch.equal(saved, (expected[index].clamp(0, 1) * 255).round().to(torch.uint8))
+
+
+# -- 15. a full disk names the file ---------------------------------------------------------------------
+
+
+def test_a_full_disk_during_generate_names_the_file(trained, tmp_path, monkeypatch, capsys):
+    import errno
+
+    from PIL import Image
+
+    _, gen = trained
+
+    def full_disk(self, fp, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Image.Image, "save", full_disk)
+    assert generate(gen, tmp_path / "out") == 2
+    line = one_error_line(capsys)
+    assert line.startswith(str(tmp_path)) and "sample_0000.png: No space left on device; the disk is full" in line
+    assert not (tmp_path / "out").exists()

@@ -11,9 +11,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 from pathlib import Path
 from typing import Any
+
+import torch
 
 from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, atomic_write, hookimpl, run_stage
 from vqtouch.core.checkpoint import is_pretrained
@@ -35,7 +38,14 @@ from vqtouch.core.cli import (
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.images import image_grid, save_png
-from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
+from vqtouch.core.progress import progress
+from vqtouch.core.runs import (
+    interrupted_message,
+    interrupted_status,
+    is_main_process,
+    refuse_writing_over_inputs,
+    staged_output,
+)
 from vqtouch.plugins.tokenizer import tokenizer_configs, tokenizer_location
 from vqtouch.core.data import experiment_split
 from vqtouch.core.image_size import image_hw
@@ -115,18 +125,28 @@ def _condition_arguments(args: argparse.Namespace) -> dict[str, list[str]]:
     return given
 
 
+#: At most this many samples are drawn into generate's grid.png (all of them are written as files).
+GRID_SAMPLES = 64
+
+
 def _generate_command(args: argparse.Namespace) -> int:
     from .pipeline import load_pipeline
 
     ((key, values),) = _condition_arguments(args).items()
-    pipe = load_pipeline(args.run, host=args.host, step=args.step)
-    # One value per image, or one value for all --n images.
-    values = values * args.n if len(values) == 1 else values
-    if len(values) != args.n and args.n_given:
+    if len(values) > 1 and args.n_given and len(values) != args.n:
         raise ConfigError(f"{len(values)} --{key} values for --n {args.n}; give one value or --n values")
+    # One value per image, or one value for all --n images (never copied --n times: --n may be huge).
+    n = args.n if len(values) == 1 else len(values)
+    out = Path(args.out)
+    images_read = [(f"--{key}", "condition image", value) for value in values if key in ("visual", "tactile")]
+    reads = [("--run", "generator run", args.run), *images_read]
+    refuse_writing_over_inputs(out, reads)  # before loading anything: a refused --out costs nothing
+    pipe = load_pipeline(args.run, host=args.host, step=args.step)
     chosen = pipe.conditioner_index(key, args.conditioner)
-    images = pipe(
-        **{key: values},
+    _check_room(out, n, pipe.image_size)
+    batches = pipe.batches(
+        n,
+        **{key: values if len(values) > 1 else values[0]},
         steps=args.steps,
         sampler=args.sampler,
         guidance=args.guidance,
@@ -135,28 +155,46 @@ def _generate_command(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         conditioner=chosen,
     )
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    for index, image in enumerate(images):
-        save_png(image, out / f"sample_{index:04d}.png")
-    save_png(image_grid(images), out / "grid.png")
-    settings = {
-        "run": str(pipe.run.path.resolve()) if pipe.run is not None else args.run,
-        "checkpoint": str(pipe.checkpoint),
-        "condition": key,
-        "values": values,
-        "n": len(images),
-        "steps": args.steps or pipe.settings["steps"],
-        "sampler": args.sampler or pipe.sampler_name,
-        "guidance": pipe.settings["guidance"] if args.guidance is None else args.guidance,
-        "truncation": pipe.settings["truncation"] if args.truncation is None else args.truncation,
-        "seed": args.seed,
-        "batch_size": args.batch_size,
-        "conditioner": pipe.conditioner_names()[chosen],
-    }
-    (out / "generate.json").write_text(json.dumps(settings, indent=2) + "\n")
-    print(f"{len(images)} images -> {out} (sample_*.png, grid.png, generate.json)")
+    digits = max(4, len(str(n - 1)))
+    with staged_output(out, overwrite=args.overwrite, reads=reads) as folder:
+        shown: list[Any] = []
+        for start, images in progress(batches, total=-(-n // args.batch_size), desc="generate", unit="batch"):
+            for offset, image in enumerate(images):
+                save_png(image, folder / f"sample_{start + offset:0{digits}d}.png")
+            shown.extend(images[: GRID_SAMPLES - len(shown)])
+        save_png(image_grid(torch.stack(shown)), folder / "grid.png")
+        settings = {
+            "run": str(pipe.run.path.resolve()) if pipe.run is not None else args.run,
+            "checkpoint": str(pipe.checkpoint),
+            "condition": key,
+            "values": values,
+            "n": n,
+            "grid": f"the first {len(shown)} samples",
+            "steps": args.steps or pipe.settings["steps"],
+            "sampler": args.sampler or pipe.sampler_name,
+            "guidance": pipe.settings["guidance"] if args.guidance is None else args.guidance,
+            "truncation": pipe.settings["truncation"] if args.truncation is None else args.truncation,
+            "seed": args.seed,
+            "batch_size": args.batch_size,
+            "conditioner": pipe.conditioner_names()[chosen],
+        }
+        text = json.dumps(settings, indent=2) + "\n"
+        atomic_write(folder / "generate.json", lambda tmp: tmp.write_text(text, encoding="utf-8"))
+    print(f"{n} images -> {out} (sample_*.png, grid.png, generate.json)")
     return 0
+
+
+def _check_room(out: Path, n: int, image_size: Any) -> None:
+    """Refuse ``--n`` samples that cannot fit on the disk ``out`` goes to, before generating any."""
+    height, width = image_hw(image_size)
+    need = n * (3 * height * width + 4096)  # an uncompressed PNG and its file-system overhead: an upper bound
+    existing = next(folder for folder in (out, *out.resolve().parents) if folder.exists())
+    free = shutil.disk_usage(existing).free
+    if need > free:
+        raise ConfigError(
+            f"--n {n}: the samples need up to {need / 1e9:.3g} GB, but {free / 1e9:.3g} GB are free where --out "
+            f"{out} goes; generate fewer, or free space"
+        )
 
 
 #: ``evaluate generation`` flags that only mean something when scoring one run (``--run``).
@@ -538,5 +576,8 @@ def vqtouch_add_commands(subparsers):
     )
     generate.add_argument("--seed", type=seed_int, default=0, help="seed: same seed and settings, same images")
     generate.add_argument("--batch-size", type=positive_int, default=16, help="images per forward pass")
-    generate.add_argument("--out", required=True, help="folder for sample_*.png, grid.png and generate.json")
+    generate.add_argument(
+        "--out", required=True, help="folder for sample_*.png, grid.png and generate.json (written whole, at the end)"
+    )
+    generate.add_argument("--overwrite", action="store_true", help="replace what --out holds")
     generate.set_defaults(handler=_generate_command, n_given=False)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from collections.abc import Iterator
 from typing import Any
 
 import torch
@@ -127,7 +128,6 @@ class GenerationPipeline:
             f"--conditioner {which} {reason} this generator's conditioners ({', '.join(names)}); give its index"
         )
 
-    @torch.no_grad()
     def __call__(
         self,
         n: int | None = None,
@@ -147,18 +147,47 @@ class GenerationPipeline:
         Unset settings take the run's own (``generator.steps``, ``sampler``, ``guidance``,
         ``truncation``).  ``conditioner``: which conditioner (index or name) when several read ``key``.
         Values are what :meth:`vqtouch.core.Conditioner.parse_condition` takes
-        (a class index or name, an image path or tensor, a text).
+        (a class index or name, an image path or tensor, a text).  :meth:`batches` gives the same
+        images a batch at a time, for more than fit in memory.
         """
+        settings = dict(steps=steps, sampler=sampler, guidance=guidance, truncation=truncation, seed=seed)
+        return torch.cat(
+            [
+                images
+                for _, images in self.batches(
+                    n, batch_size=batch_size, conditioner=conditioner, **settings, **conditions
+                )
+            ]
+        )
+
+    @torch.no_grad()
+    def batches(
+        self,
+        n: int | None = None,
+        *,
+        steps: int | None = None,
+        sampler: str | None = None,
+        guidance: float | None = None,
+        truncation: float | None = None,
+        seed: int = 0,
+        batch_size: int = 16,
+        conditioner: int | str | None = None,
+        **conditions: Any,
+    ) -> Iterator[tuple[int, torch.Tensor]]:
+        """``(index of the first image, images (B, 3, S, S))`` a batch at a time: what :meth:`__call__`
+        returns, in order, without holding more than one batch.  An image depends on its index and the
+        seed only, never on the batch it falls in."""
         if len(conditions) != 1:
             raise ConfigError(
                 "give exactly one condition, e.g. label=3, visual='photo.png' or text='...' "
                 f"(got {', '.join(conditions) or 'none'})"
             )
         ((key, value),) = conditions.items()
-        values = list(value) if isinstance(value, (list, tuple)) else [value] * (n or 1)
-        if n is not None and len(values) != n:
-            raise ConfigError(f"{len(values)} values of {key} for n={n} images; give one value or n values")
-        if not values:
+        values = list(value) if isinstance(value, (list, tuple)) else None
+        count = len(values) if values is not None else (n or 1)
+        if n is not None and count != n:
+            raise ConfigError(f"{count} values of {key} for n={n} images; give one value or n values")
+        if count < 1:
             raise ConfigError("nothing to generate: n must be at least 1")
         steps = steps if steps is not None else self.settings["steps"]
         guidance = guidance if guidance is not None else self.settings["guidance"]
@@ -166,12 +195,18 @@ class GenerationPipeline:
         self.check_steps(steps)
         chosen = self.sampler if sampler in (None, self.sampler_name) else self.host.build("sampler", sampler)
         conditioner = self.conditioner_for(key, conditioner)
-        parsed = [
-            conditioner.parse_condition(v, image_size=self.image_size, class_names=self.class_names) for v in values
-        ]
-        images = []
-        for start in range(0, len(parsed), batch_size):
-            rows = parsed[start : start + batch_size]
+
+        def parse(item: Any) -> Any:
+            return conditioner.parse_condition(item, image_size=self.image_size, class_names=self.class_names)
+
+        # A repeated value is parsed once (n may be far larger than what fits in memory); a list is parsed
+        # whole first, so that a bad value is refused before anything is generated.
+        parsed = [parse(item) for item in values] if values is not None else None
+        single = parse(value) if values is None else None
+        for start in range(0, count, batch_size):
+            rows = (
+                parsed[start : start + batch_size] if parsed is not None else [single] * min(batch_size, count - start)
+            )
             batch = collate_samples([{conditioner.sample_key: row} for row in rows])
             batch = {k: v.to(self.device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
             condition = conditioner(conditioner.condition_of(batch))
@@ -190,8 +225,7 @@ class GenerationPipeline:
             )
             # Decoded one by one: the decoder's float rounding depends on the batch size (1e-6), which
             # could flip a pixel's 8-bit value, and a sample must not depend on its batch.
-            images.extend(self.tokenizer.decode_codes(grid.unsqueeze(0)).cpu() for grid in codes)
-        return torch.cat(images)
+            yield start, torch.cat([self.tokenizer.decode_codes(grid.unsqueeze(0)).cpu() for grid in codes])
 
 
 def load_pipeline(
