@@ -453,7 +453,10 @@ def _main(argv: list[str], debug: bool) -> int:
         parser.add_argument(
             "--debug", action="store_true", help=f"on an error, show the full traceback (also {ENV_DEBUG}=1)"
         )
-        args = parser.parse_args(argv)
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit as exc:  # --help, --version, or a bad argument (its one line already printed)
+            return exc.code if isinstance(exc.code, int) else 2
         if args.no_progress:
             disable_progress()
         if not getattr(args, "handler", None):

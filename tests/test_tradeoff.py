@@ -199,9 +199,9 @@ def test_tradeoff_generator_writes_the_table_the_json_and_the_pareto_plot(traine
             ["--steps", "4", "--samplers", "posterior", "nope"],
             "unknown sampler 'nope'; available: confidence, posterior, purity",
         ),
-        (["--steps", "4", "0"], "--steps 0: steps must be an integer in [1, 20]"),
+        (["--steps", "4", "0"], "argument --steps: 0: must be an integer >= 1"),
         (["--steps", "21"], "--steps 21: steps must be an integer in [1, 20]"),
-        (["--steps", "4", "--guidance", "-1"], "--guidance -1: the guidance scale must be a finite number >= 0"),
+        (["--steps", "4", "--guidance=-1"], "argument --guidance: -1: must be a finite number in [0, 1000]"),
         (["--steps", "4", "--precisions", "fp16"], "--precisions fp16: expected fp32 or bf16"),
     ],
 )
