@@ -9,15 +9,18 @@ line, ``vqtouch: error: ...``, and exit with status 2.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import json
 import math
 import os
+import signal
 import stat
 import sys
+import threading
 import traceback
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, NoReturn
 
 from .config import resolve_config
@@ -170,11 +173,14 @@ def training_run(
     host: PluginHost,
     prepare: Callable[[Any], Any] | None = None,
     reads: Sequence[tuple[str, str, Any]] = (),
+    stage: str | None = None,
 ) -> tuple[Any, Any]:
     """The run directory and config of a training command (:func:`add_run_arguments`): the run named
     by ``--resume`` (locked for writing, its saved config), else a new run of the config the
     command's arguments resolve to, after ``prepare(config)`` (e.g. a command's own flags).
-    ``reads``: the command's inputs as ``(flag, what, path)``, which ``--out`` may not be or hold."""
+    ``reads``: the command's inputs as ``(flag, what, path)``, which ``--out`` may not be or hold.
+    ``stage``: the stage the command trains; ``--resume`` refuses a run whose stages lack it (a run
+    knows its kind), before anything is written."""
     from .runs import RunDir
 
     if args.resume:
@@ -182,8 +188,19 @@ def training_run(
             raise ConfigError("--overwrite starts a new run and --resume continues one; give one of them")
         if args.overrides or args.config:
             raise ConfigError("--resume continues a run with its saved config; drop --set/--config")
+        # The run's kind is checked before it is locked: a refused --resume writes nothing.
+        config = RunDir.open(args.resume).load_config(host)
+        if stage is not None and stage not in config.stages:
+            raise ConfigError(
+                f"--resume {args.resume}: this run has no {stage} stage (its stages: {', '.join(config.stages)}); "
+                f"resume a {stage} run, or start one with --out"
+            )
         run = RunDir.open(args.resume, for_writing=True)
-        return run, run.load_config(host)
+        if not (run.path / "env.json").is_file():  # stopped while it was being created: record it now
+            from .runs import environment_record
+
+            run.write_json("env.json", environment_record(config, args.argv, host))
+        return run, config
     if args.out is not None:  # before the config is resolved: nothing is read or written yet
         from .runs import refuse_writing_over_inputs
 
@@ -447,6 +464,34 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _main(argv, debug)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (what schedulers and ``kill`` send) outside training: stops the command like Ctrl-C,
+    so that what it was writing is cleaned up or left resumable, and exits 143."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(f"signal {signum}")
+        self.signum = signum
+
+
+@contextlib.contextmanager
+def _sigterm_interrupts() -> Iterator[None]:
+    """While a command runs, SIGTERM raises :class:`Terminated` (the trainer installs its own handler
+    while it fits, which stops after the current step instead).  Left alone where SIGTERM is ignored
+    on purpose or outside the main thread."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) is signal.SIG_IGN:
+        yield
+        return
+
+    def terminate(signum: int, frame: Any) -> None:
+        raise Terminated(signum)
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def _main(argv: list[str], debug: bool) -> int:
     try:
         parser = build_parser(load_plugins())
@@ -463,17 +508,19 @@ def _main(argv: list[str], debug: bool) -> int:
             parser.print_help()
             return 2
         args.argv = ["vqtouch", *argv]
-        status = int(args.handler(args) or 0)
+        with _sigterm_interrupts():
+            status = int(args.handler(args) or 0)
         sys.stdout.flush()  # a reader that went away shows here, not in the flush at exit
         return status
     except BrokenPipeError:
         _silence_stdout()
         return 141  # 128 + SIGPIPE: what a shell reports for a command stopped by a closed pipe
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         if debug:
             traceback.print_exc()
-        print("vqtouch: interrupted", file=sys.stderr)
-        return 130
+        signum = getattr(exc, "signum", None)
+        print(f"vqtouch: {'terminated (SIGTERM)' if signum else 'interrupted'}", file=sys.stderr)
+        return 128 + signum if signum else 130
     except Exception as exc:  # noqa: BLE001 - only user errors are caught; the rest is re-raised
         message = user_error_message(exc)
         if message is None:

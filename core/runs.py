@@ -759,4 +759,6 @@ def interrupted_status(exc: BaseException) -> int:
 
     if isinstance(exc, TrainingInterrupted) and exc.cause in signals.Signals.__members__:
         return 128 + signals.Signals[exc.cause].value
+    if isinstance(getattr(exc, "signum", None), int):  # SIGTERM outside training (vqtouch.core.cli.Terminated)
+        return 128 + exc.signum
     return 130

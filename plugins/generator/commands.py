@@ -88,7 +88,7 @@ def _train_generator_command(args: argparse.Namespace) -> int:
         return validate_experiment({**config.to_dict(), "stages": stages}, host)
 
     run, config = training_run(
-        args, host, up_to_the_generator, reads=[("--tokenizer", "tokenizer run", args.tokenizer)]
+        args, host, up_to_the_generator, reads=[("--tokenizer", "tokenizer run", args.tokenizer)], stage="generator"
     )
     assembly = Assembly(config, host)
     with run:

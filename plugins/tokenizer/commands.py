@@ -44,7 +44,7 @@ mask_ratio = NumberType(float, 0, 1, high_open=True, what="mask_ratio")
 
 def _train_tokenizer_command(args: argparse.Namespace) -> int:
     host = args.host
-    run, config = training_run(args, host)
+    run, config = training_run(args, host, stage="tokenizer")
     with run:  # releases the run's lock however the command ends
         try:
             outcome = run_stage("tokenizer", Assembly(config, host), run, resume=bool(args.resume))
