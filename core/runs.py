@@ -64,6 +64,11 @@ except ImportError:  # pragma: no cover - Windows has no flock; runs there are s
 #: lock two different files of the same name).  Only RunDir makes it, so it also marks a run
 #: directory whose config.json is not written yet.
 LOCK_NAME = ".vqtouch.lock"
+#: A folder with a run's lock file but no config.json, as the messages describe it.
+_CONFIGLESS_RUN = (
+    "a run without its config.json (stopped while it was being created, or the file was deleted), which cannot "
+    "be resumed"
+)
 #: The index of what the run's stages made (:meth:`RunDir.publish`, :meth:`RunDir.product`).
 PRODUCTS_FILE = "products.json"
 
@@ -294,6 +299,10 @@ class RunDir:
                 )
                 overwrite = True
             if run._contents():
+                if not overwrite and not (run.path / "config.json").is_file():
+                    raise ConfigError(
+                        f"{run.path} holds {_CONFIGLESS_RUN}; start it afresh with --overwrite, or choose another --out"
+                    )
                 if not overwrite:
                     raise ConfigError(
                         f"{run.path} already holds a run; continue it with --resume {run.path}, start it "
@@ -321,6 +330,8 @@ class RunDir:
         """
         run = cls(Path(path))
         if not (run.path / "config.json").is_file():
+            if (run.path / LOCK_NAME).exists():
+                raise ConfigError(f"{run.path}: {_CONFIGLESS_RUN}; start it afresh with --overwrite --out {run.path}")
             raise ConfigError(f"{run.path}: not a run directory (no config.json)")
         if for_writing and is_main_process():
             run._lock()

@@ -190,7 +190,7 @@ def test_a_run_being_created_is_not_taken_for_a_foreign_folder(host, tmp_path):
     path.mkdir()
     (path / LOCK_NAME).write_text("12345\n")
     (path / ".config.json.k2j4.tmp").write_text("{")
-    with pytest.raises(ConfigError, match="already holds a run; continue it with --resume"):
+    with pytest.raises(ConfigError, match="holds a run without its config.json"):
         RunDir.create(_tiny_config(host, tmp_path), host=host, path=path)
     RunDir.create(_tiny_config(host, tmp_path), host=host, path=path, overwrite=True).close()
     assert sorted(p.name for p in path.iterdir()) == [LOCK_NAME, "checkpoints", "config.json", "env.json"]

@@ -26,7 +26,9 @@ from typing import Any
 import torch
 
 from vqtouch.core import ConfigError, DatasetError, PluginHost, VqtouchError
+from vqtouch.core.checkpoint import files_digest
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
+from vqtouch.plugins.tokenizer import TOKENIZER_FILES
 
 from .families import SensorFamilies, folder_of, save_families, sensor_images
 
@@ -472,7 +474,12 @@ def default_families(
 def check_same_tokenizer(families: SensorFamilies, tokenizer_folder: Path, where: str) -> None:
     """Refuse families fitted on another tokenizer's features: distances to them mean nothing."""
     fitted = families.summary.get("tokenizer", "")
-    if fitted and Path(fitted).resolve() != tokenizer_folder.resolve():
+    digest = families.summary.get("tokenizer_sha256")
+    if digest and all((tokenizer_folder / name).is_file() for name in TOKENIZER_FILES):
+        same = files_digest(tokenizer_folder / name for name in TOKENIZER_FILES) == digest
+    else:  # families written before digests were recorded
+        same = not fitted or Path(fitted).resolve() == tokenizer_folder.resolve()
+    if not same:
         raise ConfigError(
             f"{where} were fitted on the features of {fitted}, not of {tokenizer_folder} (the tokenizer "
             "being adapted); run `vqtouch cluster` with this tokenizer, or adapt that one"

@@ -25,7 +25,9 @@ from typing import Any, Literal
 import torch
 
 from vqtouch.core import ConfigError, DatasetError, PluginHost
+from vqtouch.core.checkpoint import files_digest, is_pretrained
 from vqtouch.core.image_size import ImageSize
+from vqtouch.plugins.tokenizer import TOKENIZER_FILES
 
 FeatureKind = Literal["pooled", "codes"]
 
@@ -394,6 +396,19 @@ def fit_families(
     with one line per sensor."""
     if len(specs) < 2:
         raise ConfigError("give at least two sensors to group into families")
+    repeated = sorted({spec for spec in specs if specs.count(spec) > 1})
+    if repeated:
+        raise ConfigError(
+            f"sensor {repeated[0]} is listed {specs.count(repeated[0])} times: identical sensors give identical "
+            "images, so the family spread (and the refusal threshold) would be 0; list each sensor once"
+        )
+    # Recorded absolute, with the weights' digest: the families are then recognised from any working
+    # directory, and after the tokenizer folder is copied or moved.
+    source = Path(tokenizer_source) if tokenizer_source and not is_pretrained(tokenizer_source) else None
+    if source is not None and all((source / name).is_file() for name in TOKENIZER_FILES):
+        tokenizer_source, digest = str(source.resolve()), files_digest(source / name for name in TOKENIZER_FILES)
+    else:
+        digest = None
     names: list[str] = []
     sensors, features_by_sensor, prototypes = [], [], []
     for spec in specs:
@@ -408,6 +423,7 @@ def fit_families(
     prototypes_SF = torch.stack(prototypes)
     summary = {
         "tokenizer": tokenizer_source,
+        **({"tokenizer_sha256": digest} if digest else {}),
         "features": features,
         "images_per_sensor": images,
         "image_size": image_size,
