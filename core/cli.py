@@ -26,6 +26,7 @@ from typing import Any, NoReturn
 from .config import resolve_config
 from .errors import ConfigError, VqtouchError, VqtouchWarning, one_line
 from .plugin_manager import PluginHost, load_plugins
+from .images import greyscale_allowed
 from .progress import disable_progress
 from .seeding import SEED_MAX
 from .stages import StageOutcome, empty_slot_reason, missing_slots
@@ -144,6 +145,14 @@ class OneLineParser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"vqtouch: error: {self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def add_greyscale_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``--allow-greyscale`` to a command that reads image files the user gives: greyscale images
+    are then copied into 3 channels instead of refused (:func:`vqtouch.core.images.greyscale_allowed`)."""
+    parser.add_argument(
+        "--allow-greyscale", action="store_true", help="accept greyscale images (copied into 3 channels)"
+    )
 
 
 def add_step_argument(parser: argparse.ArgumentParser) -> None:
@@ -508,7 +517,7 @@ def _main(argv: list[str], debug: bool) -> int:
             parser.print_help()
             return 2
         args.argv = ["vqtouch", *argv]
-        with _sigterm_interrupts():
+        with _sigterm_interrupts(), greyscale_allowed(bool(getattr(args, "allow_greyscale", False))):
             status = int(args.handler(args) or 0)
         sys.stdout.flush()  # a reader that went away shows here, not in the flush at exit
         return status

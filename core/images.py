@@ -3,7 +3,10 @@ when an image is read or written)."""
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
+from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -54,7 +57,10 @@ def mode_problem(path: Path, mode: str, allow_greyscale: bool) -> str | None:
     if mode in _GREYSCALE_MODES:
         if allow_greyscale:
             return None
-        return f"image {path} is greyscale (mode {mode}); set allow_greyscale=true to copy it into 3 channels"
+        return (
+            f"image {path} is greyscale (mode {mode}); to copy it into 3 channels pass --allow-greyscale (commands) "
+            "or set allow_greyscale=true (dataset readers)"
+        )
     if mode not in _COLOUR_MODES:
         return f"image {path} has unsupported mode {mode}; expected 8-bit RGB"
     return None
@@ -80,6 +86,21 @@ def crop_box(
     return (left, top, left + box_w, top + box_h)
 
 
+_GREYSCALE_ALLOWED: ContextVar[bool] = ContextVar("greyscale_allowed", default=False)
+
+
+@contextlib.contextmanager
+def greyscale_allowed(allowed: bool = True) -> Iterator[None]:
+    """Within the block, image loaders without their own ``allow_greyscale`` (the commands' folders of
+    images, ``--visual`` files, ...) copy greyscale images into 3 channels instead of refusing them:
+    what a command's ``--allow-greyscale`` does."""
+    token = _GREYSCALE_ALLOWED.set(allowed)
+    try:
+        yield
+    finally:
+        _GREYSCALE_ALLOWED.reset(token)
+
+
 @dataclass(frozen=True)
 class ImageLoader:
     """Decodes one image file into a float tensor (3, H, W) in [0, 1], (H, W) = ``image_hw(size)``.
@@ -91,7 +112,8 @@ class ImageLoader:
 
     size: ImageSize
     crop: CropMode = "center"
-    allow_greyscale: bool = False
+    #: None: as the command asks (:func:`greyscale_allowed`, ``--allow-greyscale``); a reader's option sets it.
+    allow_greyscale: bool | None = None
 
     def load(self, path: Path) -> torch.Tensor:
         """The image at ``path`` as a float32 tensor (3, H, W) in [0, 1]."""
@@ -130,7 +152,8 @@ class ImageLoader:
         mode = image.mode
         if mode == "RGB":
             return image
-        problem = mode_problem(path, mode, self.allow_greyscale)
+        allowed = self.allow_greyscale if self.allow_greyscale is not None else _GREYSCALE_ALLOWED.get()
+        problem = mode_problem(path, mode, allowed)
         if problem:
             raise DatasetError(problem)
         if mode in _GREYSCALE_MODES:

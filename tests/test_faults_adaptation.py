@@ -8,6 +8,7 @@ import shutil
 
 import generator_runs
 import pytest
+import torch
 
 from vqtouch.core.cli import main
 
@@ -121,3 +122,47 @@ def test_a_run_folder_without_its_config_is_described_the_same_way_twice(tmp_pat
     assert main(["--no-progress", "train", "tokenizer", "--resume", str(out)]) == 2
     assert "which cannot be resumed; start it afresh with --overwrite --out" in one_error_line(capsys)
     assert main([*generator_runs.tiny_tokenizer_args(out), "--overwrite"]) == 0
+
+
+def _greyscale_folder(folder, count=4, size=32):
+    from PIL import Image
+
+    folder.mkdir(parents=True)
+    generator = torch.Generator().manual_seed(0)
+    for index in range(count):
+        pixels = (torch.rand(size, size, generator=generator) * 255).to(torch.uint8).numpy()
+        Image.fromarray(pixels, mode="L").save(folder / f"frame_{index}.png")
+    return folder
+
+
+def test_greyscale_images_can_be_allowed_where_the_message_says(tokenizer_folder, tmp_path, capsys):
+    """Case 14: the error said "set allow_greyscale=true", which cluster, adapt, generate --visual and
+    evaluate pairs had no way to set."""
+    grey = _greyscale_folder(tmp_path / "grey")
+    assert cluster(str(tokenizer_folder), str(tmp_path / "fam"), str(grey), "gelsight", "digit") == 2
+    line = one_error_line(capsys)
+    assert "is greyscale (mode L); to copy it into 3 channels pass --allow-greyscale" in line
+    argv = [
+        "cluster",
+        "--run",
+        str(tokenizer_folder),
+        "--image-size",
+        "32",
+        "--images",
+        "4",
+        "--out",
+        str(tmp_path / "fam"),
+        "--allow-greyscale",
+        "--sensors",
+        str(grey),
+        "gelsight",
+        "digit",
+    ]
+    assert main(argv) == 0
+    pairs = ["evaluate", "pairs", "--generated", str(grey), "--real", str(grey), "--protocol", "default"]
+    assert main(pairs) == 2
+    assert "pass --allow-greyscale" in one_error_line(capsys)
+    assert main([*pairs, "--allow-greyscale"]) == 0
+    for command in ("adapt", "generate"):
+        assert main([command, "--help"]) == 0
+        assert "--allow-greyscale" in capsys.readouterr().out

@@ -275,3 +275,62 @@ def test_a_full_disk_during_generate_names_the_file(trained, tmp_path, monkeypat
     line = one_error_line(capsys)
     assert line.startswith(str(tmp_path)) and "sample_0000.png: No space left on device; the disk is full" in line
     assert not (tmp_path / "out").exists()
+
+
+# -- 16. a read-only run ------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def read_only(monkeypatch):
+    """``read_only(path)``: ``path`` reports itself not writable (root, which runs the tests here and in
+    CI, may write into a mode-555 folder, so the check is what is exercised)."""
+    import os
+
+    original = os.access
+    frozen: list[str] = []
+
+    def access(path, mode, *args, **kwargs):
+        if mode & os.W_OK and str(Path(path).resolve()) in frozen:
+            return False
+        return original(path, mode, *args, **kwargs)
+
+    monkeypatch.setattr(os, "access", access)
+    return lambda path: frozen.append(str(Path(path).resolve()))
+
+
+def test_evaluate_generation_of_a_read_only_run_asks_for_out_before_sampling(trained, tmp_path, read_only, capsys):
+    _, gen = trained
+    read_only(gen)
+    before = snapshot(gen)
+    argv = ["--no-progress", "evaluate", "generation", "--run", str(gen), "--n", "2", "--steps", "2"]
+    assert main(argv) == 2
+    assert one_error_line(capsys) == f"--run {gen} is read-only; give --out DIR for the scores and sample pictures"
+    assert main([*argv, "--out", str(tmp_path / "scores")]) == 0
+    assert (tmp_path / "scores" / "generation.json").is_file() and snapshot(gen) == before
+
+
+def test_evaluate_reconstruction_of_a_read_only_run_prints_its_scores(trained, read_only, capsys):
+    tok, _ = trained
+    read_only(tok)
+    before = snapshot(tok)
+    assert main(["--no-progress", "evaluate", "reconstruction", "--run", str(tok)]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["psnr"] > 0
+    assert f"{tok} is read-only: the scores above were printed, not saved" in captured.err
+    assert snapshot(tok) == before
+
+
+def test_report_of_a_read_only_run_writes_where_asked(tmp_path, read_only, capsys):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("report_runs", Path(__file__).with_name("report_runs.py"))
+    report_runs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(report_runs)
+    run = report_runs.synthetic_run(tmp_path / "demo")
+    read_only(run)
+    before = snapshot(run)
+    assert main(["report", str(run)]) == 2
+    assert one_error_line(capsys) == f"{run} is read-only; give --out DIR for report.html and report.md"
+    assert main(["report", str(run), "--out", str(tmp_path / "elsewhere")]) == 0
+    assert "<html" in (tmp_path / "elsewhere" / "report.html").read_text()
+    assert (tmp_path / "elsewhere" / "report.md").is_file() and snapshot(run) == before

@@ -25,6 +25,7 @@ from pathlib import Path
 
 from vqtouch.core import ConfigError, hookimpl
 from vqtouch.core.cli import (
+    add_greyscale_argument,
     NumberType,
     add_step_argument,
     command_group,
@@ -255,6 +256,7 @@ def vqtouch_add_commands(subparsers):
         help="refuse an unseen sensor farther than this from every family (default: 3x the "
         "largest within-family spread, at least half the nearest two families' distance)",
     )
+    add_greyscale_argument(cluster)
     cluster.set_defaults(handler=_cluster_command)
 
     adapt = subparsers.add_parser("adapt", help="adapt a family tokenizer to an unseen sensor from a few of its images")
@@ -299,6 +301,7 @@ def vqtouch_add_commands(subparsers):
     adapt.add_argument("--family", type=non_negative_int, help="adapt from this family, whatever the assignment says")
     adapt.add_argument("--seed", type=seed_int, default=0, help="seed of the shots' draw and the rendered scenes")
     adapt.add_argument("--overwrite", action="store_true", help="replace an adapted tokenizer already in --out")
+    add_greyscale_argument(adapt)
     adapt.set_defaults(handler=_adapt_command)
 
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import sys
 from pathlib import Path
@@ -21,6 +22,7 @@ import torch
 from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, atomic_write, hookimpl, run_stage
 from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.core.cli import (
+    add_greyscale_argument,
     add_config_arguments,
     add_run_arguments,
     add_step_argument,
@@ -263,6 +265,8 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
             f"--clip-checkpoint {args.clip_checkpoint}: no such file; give the open_clip weights file "
             "(.safetensors, .pt or .bin)"
         )
+    if not args.out and not os.access(args.run, os.W_OK):  # refused before any sample is drawn
+        raise ConfigError(f"--run {args.run} is read-only; give --out DIR for the scores and sample pictures")
     pipe = load_pipeline(args.run, host=host, step=args.step)
     config = pipe.config
     assembly = Assembly(config, host)
@@ -580,4 +584,5 @@ def vqtouch_add_commands(subparsers):
         "--out", required=True, help="folder for sample_*.png, grid.png and generate.json (written whole, at the end)"
     )
     generate.add_argument("--overwrite", action="store_true", help="replace what --out holds")
+    add_greyscale_argument(generate)
     generate.set_defaults(handler=_generate_command, n_given=False)

@@ -32,7 +32,7 @@ def _demo_command(args: argparse.Namespace) -> int:
 def _report_command(args: argparse.Namespace) -> int:
     from .demo import rebuild_report
 
-    print(f"report: {rebuild_report(args.run_dir)}")
+    print(f"report: {rebuild_report(args.run_dir, out=args.out)}")
     return 0
 
 
@@ -57,4 +57,5 @@ def vqtouch_add_commands(subparsers):
         "report", help="rebuild report.html and report.md of a demo run from its report.json"
     )
     report.add_argument("run_dir", metavar="RUN_DIR", help="the folder of a `vqtouch demo` run (its --out)")
+    report.add_argument("--out", help="write report.html and report.md here instead (e.g. for a read-only run)")
     report.set_defaults(handler=_report_command)

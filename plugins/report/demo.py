@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -196,10 +197,13 @@ def write_reports(run_dir: str | Path, report: dict[str, Any]) -> Path:
     return run_dir / "report.html"
 
 
-def rebuild_report(run_dir: str | Path) -> Path:
+def rebuild_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     """``vqtouch report``: rebuild report.md and report.html of a demo run from its report.json (e.g.
-    after the renderer changed, or in a copy of the run); returns report.html's path."""
+    after the renderer changed, or in a copy of the run), in the run or in ``out``; returns report.html's
+    path.  A read-only run without ``out`` is refused before anything is rendered."""
     run_dir = Path(run_dir)
+    if out is None and run_dir.is_dir() and not os.access(run_dir, os.W_OK):
+        raise ConfigError(f"{run_dir} is read-only; give --out DIR for report.html and report.md")
     if not (run_dir / "report.json").is_file():
         what = "no such folder" if not run_dir.exists() else "no report.json in it"
         raise ConfigError(f"{run_dir}: {what}; give the folder of a `vqtouch demo` run (its --out)")
@@ -208,6 +212,13 @@ def rebuild_report(run_dir: str | Path) -> Path:
         raise ConfigError(f"{run_dir / 'report.json'}: not a demo report (no list of stages)")
     if "description" not in report and (run_dir / "config.json").is_file():  # reports written before it was kept
         report["description"] = read_run_json(run_dir / "config.json").get("description", "")
+    if out is not None:
+        Path(out).mkdir(parents=True, exist_ok=True)
+        with declared_directions(report.get("directions", {})):
+            html, markdown = render_html(report, run_dir), render_report(report)
+        for name, text in (("report.html", html), ("report.md", markdown)):
+            atomic_write(Path(out) / name, lambda tmp, text=text: tmp.write_text(text, encoding="utf-8"))
+        return Path(out) / "report.html"
     return write_reports(run_dir, report)
 
 

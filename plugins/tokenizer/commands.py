@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -150,16 +151,19 @@ def _evaluate_command(args: argparse.Namespace) -> int:
     scores = evaluate_reconstruction(
         tokenizer, evaluated, metrics, batch_size=config.data.batch_size, background_3HW=background
     )
-    save_pairs(*scores["examples"], run.path / f"reconstructions_{folder.name}.png")
     result = {
         "checkpoint": str(folder),
         "split": "dataset" if args.dataset else args.split,
         "background": background_source,
         **printable(scores),
     }
+    print(json.dumps(result, indent=2))  # first: a run that cannot be written to still gives its scores
+    if not os.access(run.path, os.W_OK):
+        print(f"vqtouch: {run.path} is read-only: the scores above were printed, not saved", file=sys.stderr)
+        return 0
+    save_pairs(*scores["examples"], run.path / f"reconstructions_{folder.name}.png")
     suffix = "_dataset" if args.dataset else ""
     run.write_json(f"evaluation_{folder.name}{suffix}.json", result)
-    print(json.dumps(result, indent=2))
     return 0
 
 
