@@ -334,3 +334,32 @@ def test_report_of_a_read_only_run_writes_where_asked(tmp_path, read_only, capsy
     assert main(["report", str(run), "--out", str(tmp_path / "elsewhere")]) == 0
     assert "<html" in (tmp_path / "elsewhere" / "report.html").read_text()
     assert (tmp_path / "elsewhere" / "report.md").is_file() and snapshot(run) == before
+
+
+def test_a_concurrent_generate_keeps_both_outputs(trained, tmp_path, monkeypatch, capsys):
+    """Another process fills --out while this one samples: once they interleaved their samples; now the
+    first to finish owns the folder and the other keeps its samples where it staged them, and says where."""
+    import vqtouch.plugins.generator.commands as commands
+
+    _, gen = trained
+    out = tmp_path / "out"
+    original = commands.save_png
+
+    def other_process_finishes_first(image, path):
+        if not out.exists():
+            out.mkdir()
+            (out / "sample_0000.png").write_bytes(b"the other call's sample")
+        return original(image, path)
+
+    monkeypatch.setattr(commands, "save_png", other_process_finishes_first)
+    assert generate(gen, out) == 2
+    line = one_error_line(capsys)
+    assert line.startswith(f"--out {out} was filled by another process meanwhile; this command's output is in ")
+    staged = Path(line.rsplit(" is in ", 1)[1])
+    assert sorted(path.name for path in staged.iterdir()) == [
+        "generate.json",
+        "grid.png",
+        "sample_0000.png",
+        "sample_0001.png",
+    ]
+    assert (out / "sample_0000.png").read_bytes() == b"the other call's sample" and len(list(out.iterdir())) == 1

@@ -220,7 +220,7 @@ def test_a_second_call_refuses_to_overwrite_and_run_only_flags_are_refused(exper
     assert not (tmp_path / "x").exists()
     # A bad option of one model is refused before the experiment makes its folder.
     assert main(experiment_args(tmp_path / "y", "--mae-ratios", "0.5", "1.5")) == 2
-    assert "tokenizer.autoencoder.mask_ratio: Input should be less than 1 (got 1.5)" in capsys.readouterr().err
+    assert "argument --mae-ratios: 1.5: must be a finite number in [0, 1)" in capsys.readouterr().err
     assert not (tmp_path / "y").exists()
 
 
