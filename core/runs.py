@@ -541,12 +541,15 @@ class RunDir:
         return validate_experiment(data, host)
 
     def publish(self, name: str, path: str | Path, *, stage: str, **facts: Any) -> Product:
-        """Record that ``stage`` made product ``name`` at ``path`` (inside the run; relative to it
-        or absolute), with JSON-ready ``facts``.  Publishing a name again replaces its entry;
+        """Record that ``stage`` made product ``name`` at ``path`` (inside the run: relative to it,
+        absolute, or built from the run's path), with JSON-ready ``facts``.  Publishing a name again replaces its entry;
         the index is rewritten atomically, so a reader never sees half of it.  Stages publish
         through :meth:`StageJob.publish <vqtouch.core.StageJob.publish>`, which checks the name
         against the stage's ``makes``."""
-        target = Path(path) if Path(path).is_absolute() else self.path / path
+        given = Path(path)
+        # A path built from the run's own (``job.run.path / "x"``, a trainer's step folder) is taken as
+        # it is, even when the run's path is relative; any other relative path is relative to the run.
+        target = given if given.is_absolute() or given.is_relative_to(self.path) else self.path / given
         try:
             relative = target.resolve().relative_to(self.path.resolve())
         except ValueError:

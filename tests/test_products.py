@@ -162,3 +162,23 @@ def test_a_generator_keeps_the_tokenizer_it_was_trained_on(tmp_path, host):
     shutil.rmtree(trained_on)
     with pytest.raises(Exception, match="its generator was trained on the tokenizer in .*, which is gone"):
         load_pipeline(out, host=host, device="cpu")
+
+
+def test_products_of_a_run_given_by_a_relative_path(make_plugin, tmp_path, monkeypatch):
+    """``make demo`` writes runs/demo: a path built from the run's own (``job.run.path / ...``, a
+    trainer's step folder) is relative to the working directory, not to the run, and must not be
+    joined to the run's path a second time."""
+
+    def built_from_the_run(job):
+        (job.run.path / "atlas").mkdir()
+        job.publish("atlas", job.run.path / "atlas")
+        return {}
+
+    host = _host(make_plugin, atlas=(built_from_the_run, ("atlas",)))
+    monkeypatch.chdir(tmp_path)
+    config = resolve_config("reconstruction", overrides=['stages=["atlas"]'], host=host)
+    run = RunDir.create(config, host=host, path="runs/demo")
+    outcome = run_stage("atlas", Assembly(config, host), run)
+    assert outcome.status == "ran", outcome.reason
+    assert run.product("atlas").path.resolve() == (tmp_path / "runs" / "demo" / "atlas").resolve()
+    assert json.loads((tmp_path / "runs" / "demo" / "products.json").read_text())["atlas"]["path"] == "atlas"
