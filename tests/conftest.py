@@ -45,6 +45,7 @@ def _register_helper_module(name: str) -> None:
 
 
 _register_helper_module("dataset_fixtures")
+_register_helper_module("cli_checks")
 _register_helper_module("generator_runs")
 _register_helper_module("metric_weights")
 _register_helper_module("derived_condition_plugin")

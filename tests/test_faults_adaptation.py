@@ -10,13 +10,9 @@ import generator_runs
 import pytest
 import torch
 
+from cli_checks import one_error_line
+
 from vqtouch.core.cli import main
-
-
-def one_error_line(capsys) -> str:
-    err = capsys.readouterr().err
-    assert err.startswith("vqtouch: error: ") and err.count("\n") == 1, err
-    return err[len("vqtouch: error: ") :].rstrip("\n")
 
 
 def _variant(name: str, seed: int, **variant) -> str:

@@ -14,19 +14,9 @@ from generator_runs import tiny_tokenizer_args, train_args
 from safetensors import safe_open
 from safetensors.torch import save_file
 
+from cli_checks import one_error_line, snapshot
+
 from vqtouch.core.cli import main
-
-
-def one_error_line(capsys) -> str:
-    """The single stderr line of a failed command, without its prefix (asserts it is one line)."""
-    err = capsys.readouterr().err
-    assert err.startswith("vqtouch: error: ") and err.count("\n") == 1, err
-    return err[len("vqtouch: error: ") :].rstrip("\n")
-
-
-def snapshot(folder: Path) -> dict[str, bytes]:
-    """Every file under ``folder`` and its bytes."""
-    return {str(path.relative_to(folder)): path.read_bytes() for path in sorted(folder.rglob("*")) if path.is_file()}
 
 
 def poison(path: Path) -> None:

@@ -5,22 +5,13 @@ from __future__ import annotations
 
 import os
 import signal
-from pathlib import Path
 
 import pytest
 from generator_runs import tiny_tokenizer_args, train_args
 
+from cli_checks import one_error_line, snapshot
+
 from vqtouch.core.cli import main
-
-
-def one_error_line(capsys) -> str:
-    err = capsys.readouterr().err
-    assert err.startswith("vqtouch: error: ") and err.count("\n") == 1, err
-    return err[len("vqtouch: error: ") :].rstrip("\n")
-
-
-def snapshot(folder: Path) -> dict[str, bytes]:
-    return {str(path.relative_to(folder)): path.read_bytes() for path in sorted(folder.rglob("*")) if path.is_file()}
 
 
 @pytest.fixture(scope="module")

@@ -128,37 +128,12 @@ class GenerationPipeline:
             f"--conditioner {which} {reason} this generator's conditioners ({', '.join(names)}); give its index"
         )
 
-    def __call__(
-        self,
-        n: int | None = None,
-        *,
-        steps: int | None = None,
-        sampler: str | None = None,
-        guidance: float | None = None,
-        truncation: float | None = None,
-        seed: int = 0,
-        batch_size: int = 16,
-        conditioner: int | str | None = None,
-        **conditions: Any,
-    ) -> torch.Tensor:
+    def __call__(self, n: int | None = None, **options: Any) -> torch.Tensor:
         """Images (n, 3, S, S) in [0, 1] for one condition, given as ``key=value`` (``label=3``) or
-        ``key=[v1, v2, ...]`` (one per image); a single value is repeated ``n`` times.
-
-        Unset settings take the run's own (``generator.steps``, ``sampler``, ``guidance``,
-        ``truncation``).  ``conditioner``: which conditioner (index or name) when several read ``key``.
-        Values are what :meth:`vqtouch.core.Conditioner.parse_condition` takes
-        (a class index or name, an image path or tensor, a text).  :meth:`batches` gives the same
-        images a batch at a time, for more than fit in memory.
-        """
-        settings = dict(steps=steps, sampler=sampler, guidance=guidance, truncation=truncation, seed=seed)
-        return torch.cat(
-            [
-                images
-                for _, images in self.batches(
-                    n, batch_size=batch_size, conditioner=conditioner, **settings, **conditions
-                )
-            ]
-        )
+        ``key=[v1, v2, ...]`` (one per image); a single value is repeated ``n`` times.  ``options`` are
+        those of :meth:`batches` (sampling settings, seed, batch size, conditioner, the condition),
+        which gives the same images a batch at a time, for more than fit in memory."""
+        return torch.cat([images for _, images in self.batches(n, **options)])
 
     @torch.no_grad()
     def batches(
@@ -174,9 +149,14 @@ class GenerationPipeline:
         conditioner: int | str | None = None,
         **conditions: Any,
     ) -> Iterator[tuple[int, torch.Tensor]]:
-        """``(index of the first image, images (B, 3, S, S))`` a batch at a time: what :meth:`__call__`
-        returns, in order, without holding more than one batch.  An image depends on its index and the
-        seed only, never on the batch it falls in."""
+        """``(index of the first image, images (B, 3, S, S))`` a batch at a time, in order, holding one batch
+        at most; :meth:`__call__` concatenates them.  An image depends on its index and the seed only,
+        never on the batch it falls in.
+
+        Unset settings take the run's own (``generator.steps``, ``sampler``, ``guidance``,
+        ``truncation``).  ``conditioner``: which conditioner (index or name) when several read the
+        condition's key.  Values are what :meth:`vqtouch.core.Conditioner.parse_condition` takes (a
+        class index or name, an image path or tensor, a text)."""
         if len(conditions) != 1:
             raise ConfigError(
                 "give exactly one condition, e.g. label=3, visual='photo.png' or text='...' "
