@@ -2,6 +2,7 @@
 
 import ast
 import os
+import shutil
 import subprocess
 import sys
 import venv
@@ -40,9 +41,14 @@ def test_every_package_folder_has_an_init():
 
 
 def test_wheel_installs_one_namespace_and_imports_outside_checkout(tmp_path):
+    # Built from a copy without the checkout's build leftovers: an egg-info left by an earlier build lists
+    # files (SOURCES.txt) that a clean checkout's wheel would not get, and hid the missing weights.
+    source = tmp_path / "source"
+    leftovers = ("build", "dist", "*.egg-info", ".venv", ".git", "runs", "__pycache__", ".pytest_cache")
+    shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(*leftovers))
     dist = tmp_path / "dist"
     build = subprocess.run(
-        [sys.executable, "-m", "build", "--wheel", "--no-isolation", "--outdir", str(dist), str(REPO)],
+        [sys.executable, "-m", "build", "--wheel", "--no-isolation", "--outdir", str(dist), str(source)],
         capture_output=True,
         text=True,
         cwd=tmp_path,
@@ -105,6 +111,28 @@ def test_wheel_installs_one_namespace_and_imports_outside_checkout(tmp_path):
     assert lines[0].startswith(str(site)), lines
     assert lines[1] == "['clip', 'label', 'tactile', 'tactile_codes', 'text', 'text_scratch', 'visual', 'visual_cnn']"
     assert lines[2] == "None None"
+
+    # The bundled checkpoints ship in the wheel (issue 27: a non-editable install once had none), byte for
+    # byte, and open from the installed package outside the checkout.
+    shipped = REPO / "plugins" / "pretrained" / "weights"
+    expected = sorted(path.relative_to(shipped) for path in shipped.rglob("*.safetensors"))
+    installed_weights = site / "vqtouch" / "plugins" / "pretrained" / "weights"
+    assert (
+        expected
+        and sorted(path.relative_to(installed_weights) for path in installed_weights.rglob("*.safetensors")) == expected
+    )
+    assert all((installed_weights / name).read_bytes() == (shipped / name).read_bytes() for name in expected)
+    bundle_code = (
+        "from vqtouch.core import load_plugins; from vqtouch.core.checkpoint import open_pretrained; "
+        "host = load_plugins(autoload=False); bundle = open_pretrained('pretrained:tour', host); "
+        "print(bundle.folder); print(len(bundle.conditioners), bundle.generator is not None)"
+    )
+    opened = subprocess.run(
+        [str(python), "-c", bundle_code], capture_output=True, text=True, cwd=outside, env=env, timeout=300
+    )
+    assert opened.returncode == 0, opened.stderr[-2000:]
+    folder, counts = opened.stdout.strip().splitlines()[-2:]
+    assert folder.startswith(str(site)) and counts == "4 True", opened.stdout
 
 
 # -- dependencies: lower bounds in the library, the verified pair in constraints.txt ---------------
