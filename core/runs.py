@@ -34,11 +34,9 @@ import json
 import os
 import platform
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 import warnings
 import weakref
@@ -653,8 +651,8 @@ def staged_output(
 
     Refused in one line before anything is written: ``out`` is an input (``reads``, see
     :func:`refuse_writing_over_inputs`), a file, a run directory, or holds files and ``overwrite``
-    is not set.  An error or Ctrl-C (or SIGTERM, turned into one meanwhile) in the block removes
-    the staged folder.  When another process filled ``out`` meanwhile, the staged files are kept
+    is not set.  An error or Ctrl-C in the block (or SIGTERM, which ``vqtouch.core.cli`` turns into
+    one) removes the staged folder.  When another process filled ``out`` meanwhile, the staged files are kept
     where they are and the ConfigError says where.
     """
     out = Path(out)
@@ -667,17 +665,11 @@ def staged_output(
         raise ConfigError(f"--out {out} already holds files; choose another --out, or pass --overwrite to replace them")
     out.parent.mkdir(parents=True, exist_ok=True)
     staged = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
-    previous = None
-    if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
         yield staged
-    except BaseException:
+    except BaseException:  # an error, Ctrl-C, or SIGTERM (which the command line turns into an interruption)
         shutil.rmtree(staged, ignore_errors=True)
         raise
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
     if out.is_dir() and any(out.iterdir()):
         if not overwrite:
             raise ConfigError(
@@ -689,10 +681,6 @@ def staged_output(
         shutil.rmtree(retired, ignore_errors=True)
     else:
         os.replace(staged, out)  # onto a missing or empty folder
-
-
-def _interrupt(signum: int, frame: Any) -> None:
-    raise KeyboardInterrupt(f"signal {signum}")
 
 
 def product_makers(host: PluginHost) -> dict[str, str]:

@@ -353,3 +353,23 @@ def test_a_concurrent_generate_keeps_both_outputs(trained, tmp_path, monkeypatch
         "sample_0001.png",
     ]
     assert (out / "sample_0000.png").read_bytes() == b"the other call's sample" and len(list(out.iterdir())) == 1
+
+
+def test_sigterm_during_generate_exits_143_and_leaves_nothing(trained, tmp_path, monkeypatch, capsys):
+    import os
+    import signal
+
+    import vqtouch.plugins.generator.commands as commands
+
+    _, gen = trained
+    original = commands.save_png
+
+    def terminated_after_one(image, path):
+        result = original(image, path)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return result
+
+    monkeypatch.setattr(commands, "save_png", terminated_after_one)
+    assert generate(gen, tmp_path / "out", "--n", "3") == 143
+    assert "vqtouch: terminated (SIGTERM)" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
