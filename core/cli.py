@@ -210,10 +210,6 @@ def training_run(
 
             run.write_json("env.json", environment_record(config, args.argv, host))
         return run, config
-    if args.out is not None:  # before the config is resolved: nothing is read or written yet
-        from .runs import refuse_writing_over_inputs
-
-        refuse_writing_over_inputs(args.out, reads)
     config = config_from_args(args, host)
     if prepare is not None:
         config = prepare(config)

@@ -26,9 +26,8 @@ from typing import Any
 import torch
 
 from vqtouch.core import ConfigError, DatasetError, PluginHost, VqtouchError
-from vqtouch.core.checkpoint import files_digest
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
-from vqtouch.plugins.tokenizer import TOKENIZER_FILES
+from vqtouch.plugins.tokenizer import TOKENIZER_FILES, tokenizer_digest
 
 from .families import SensorFamilies, folder_of, save_families, sensor_images
 
@@ -471,12 +470,35 @@ def default_families(
     )
 
 
+def families_to_adapt_from(
+    tokenizer: Any, folder: Path, host: PluginHost, *, families: Path | None, where: str, exclude: str, seed: int
+) -> SensorFamilies:
+    """The families an adaptation assigns its target to: those saved in ``families`` (``where`` names
+    them in the refusal when they were fitted on another tokenizer than the one in ``folder``), else the
+    registered defaults, clustered now with ``tokenizer`` (:func:`default_families`)."""
+    from .families import load_families
+
+    if families is not None:
+        loaded = load_families(families, host)
+        check_same_tokenizer(loaded, folder, where)
+        return loaded
+    return default_families(
+        tokenizer,
+        host,
+        image_size=tokenizer.autoencoder.vqtouch_spec.context.image_size,
+        tokenizer_source=str(folder),
+        exclude=exclude,
+        seed=seed,
+        report=lambda line: None,
+    )
+
+
 def check_same_tokenizer(families: SensorFamilies, tokenizer_folder: Path, where: str) -> None:
     """Refuse families fitted on another tokenizer's features: distances to them mean nothing."""
     fitted = families.summary.get("tokenizer", "")
     digest = families.summary.get("tokenizer_sha256")
     if digest and all((tokenizer_folder / name).is_file() for name in TOKENIZER_FILES):
-        same = files_digest(tokenizer_folder / name for name in TOKENIZER_FILES) == digest
+        same = tokenizer_digest(tokenizer_folder) == digest
     else:  # families written before digests were recorded
         same = not fitted or Path(fitted).resolve() == tokenizer_folder.resolve()
     if not same:

@@ -97,28 +97,24 @@ def describe_assignment(assigned: dict) -> str:
 
 def _adapt_command(args: argparse.Namespace) -> int:
 
-    from .adapt import AdaptSettings, adapt_tokenizer, check_same_tokenizer, default_families, refuse_existing
-    from .families import load_families, registered_source
+    from .adapt import AdaptSettings, adapt_tokenizer, families_to_adapt_from, refuse_existing
+    from .families import registered_source
 
     host = args.host
     out = Path(args.out)
     refuse_existing(out, args.overwrite)  # before the clustering, which takes a while
     tokenizer, folder = load_tokenizer(args.run, host, step=args.step)
-    if args.families:
-        families = load_families(args.families, host)
-        check_same_tokenizer(families, folder, f"the families in {args.families}")
-    else:
+    if not args.families:
         print("no --families: clustering the registered sensor families and 3 variants of each", flush=True)
-        exclude = registered_source(args.images)
-        families = default_families(
-            tokenizer,
-            host,
-            image_size=tokenizer.autoencoder.vqtouch_spec.context.image_size,
-            tokenizer_source=str(folder),
-            exclude=exclude,
-            seed=args.seed,
-            report=lambda line: None,
-        )
+    families = families_to_adapt_from(
+        tokenizer,
+        folder,
+        host,
+        families=Path(args.families) if args.families else None,
+        where=f"the families in {args.families}",
+        exclude=registered_source(args.images),
+        seed=args.seed,
+    )
     settings = AdaptSettings(
         shots=args.shots,
         ratio=args.ratio,

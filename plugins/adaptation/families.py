@@ -25,9 +25,9 @@ from typing import Any, Literal
 import torch
 
 from vqtouch.core import ConfigError, DatasetError, PluginHost
-from vqtouch.core.checkpoint import files_digest, is_pretrained
+from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.core.image_size import ImageSize
-from vqtouch.plugins.tokenizer import TOKENIZER_FILES
+from vqtouch.plugins.tokenizer import TOKENIZER_FILES, tokenizer_digest
 
 FeatureKind = Literal["pooled", "codes"]
 
@@ -406,7 +406,7 @@ def fit_families(
     # directory, and after the tokenizer folder is copied or moved.
     source = Path(tokenizer_source) if tokenizer_source and not is_pretrained(tokenizer_source) else None
     if source is not None and all((source / name).is_file() for name in TOKENIZER_FILES):
-        tokenizer_source, digest = str(source.resolve()), files_digest(source / name for name in TOKENIZER_FILES)
+        tokenizer_source, digest = str(source.resolve()), tokenizer_digest(source)
     else:
         digest = None
     names: list[str] = []

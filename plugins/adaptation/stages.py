@@ -192,25 +192,21 @@ def run_cluster_stage(job: StageJob) -> dict[str, Any]:
 
 def run_adapt_stage(job: StageJob) -> dict[str, Any]:
     """Adapt the run's tokenizer to the target sensor (see the module docstring)."""
-    from .adapt import AdaptSettings, adapt_tokenizer, check_same_tokenizer, default_families
-    from .families import load_families
+    from .adapt import AdaptSettings, adapt_tokenizer, families_to_adapt_from
 
     section, config = job.section, job.config
     tokenizer, folder = _family_tokenizer(job)
     target = target_spec(job)
-    if "families" in job.run.products():
-        families = load_families(job.product("families").path, job.host)
-        check_same_tokenizer(families, folder, "the cluster stage's families")
-    else:
-        families = default_families(
-            tokenizer,
-            job.host,
-            image_size=tokenizer.autoencoder.vqtouch_spec.context.image_size,
-            tokenizer_source=str(folder),
-            exclude=target,
-            seed=config.seed,
-            report=lambda line: None,
-        )
+    clustered = job.run.products().get("families")  # the cluster stage's, when it ran in this run
+    families = families_to_adapt_from(
+        tokenizer,
+        folder,
+        job.host,
+        families=clustered.path if clustered is not None else None,
+        where="the cluster stage's families",
+        exclude=target,
+        seed=config.seed,
+    )
     settings = AdaptSettings(
         shots=section.shots,
         ratio=section.ratio,

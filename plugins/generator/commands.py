@@ -45,7 +45,6 @@ from vqtouch.core.runs import (
     interrupted_message,
     interrupted_status,
     is_main_process,
-    refuse_writing_over_inputs,
     staged_output,
 )
 from vqtouch.plugins.tokenizer import tokenizer_configs, tokenizer_location
@@ -142,23 +141,23 @@ def _generate_command(args: argparse.Namespace) -> int:
     out = Path(args.out)
     images_read = [(f"--{key}", "condition image", value) for value in values if key in ("visual", "tactile")]
     reads = [("--run", "generator run", args.run), *images_read]
-    refuse_writing_over_inputs(out, reads)  # before loading anything: a refused --out costs nothing
-    pipe = load_pipeline(args.run, host=args.host, step=args.step)
-    chosen = pipe.conditioner_index(key, args.conditioner)
-    _check_room(out, n, pipe.image_size)
-    batches = pipe.batches(
-        n,
-        **{key: values if len(values) > 1 else values[0]},
-        steps=args.steps,
-        sampler=args.sampler,
-        guidance=args.guidance,
-        truncation=args.truncation,
-        seed=args.seed,
-        batch_size=args.batch_size,
-        conditioner=chosen,
-    )
-    digits = max(4, len(str(n - 1)))
+    # Staged first: a refused --out (an input, a run, a folder holding files) costs no model loading.
     with staged_output(out, overwrite=args.overwrite, reads=reads) as folder:
+        pipe = load_pipeline(args.run, host=args.host, step=args.step)
+        chosen = pipe.conditioner_index(key, args.conditioner)
+        _check_room(out, folder, n, pipe.image_size)
+        batches = pipe.batches(
+            n,
+            **{key: values if len(values) > 1 else values[0]},
+            steps=args.steps,
+            sampler=args.sampler,
+            guidance=args.guidance,
+            truncation=args.truncation,
+            seed=args.seed,
+            batch_size=args.batch_size,
+            conditioner=chosen,
+        )
+        digits = max(4, len(str(n - 1)))
         shown: list[Any] = []
         for start, images in progress(batches, total=-(-n // args.batch_size), desc="generate", unit="batch"):
             for offset, image in enumerate(images):
@@ -186,12 +185,12 @@ def _generate_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_room(out: Path, n: int, image_size: Any) -> None:
-    """Refuse ``--n`` samples that cannot fit on the disk ``out`` goes to, before generating any."""
+def _check_room(out: Path, staged: Path, n: int, image_size: Any) -> None:
+    """Refuse ``--n`` samples that cannot fit on the disk ``out`` is staged on (``staged``), before
+    generating any."""
     height, width = image_hw(image_size)
     need = n * (3 * height * width + 4096)  # an uncompressed PNG and its file-system overhead: an upper bound
-    existing = next(folder for folder in (out, *out.resolve().parents) if folder.exists())
-    free = shutil.disk_usage(existing).free
+    free = shutil.disk_usage(staged).free
     if need > free:
         raise ConfigError(
             f"--n {n}: the samples need up to {need / 1e9:.3g} GB, but {free / 1e9:.3g} GB are free where --out "

@@ -30,11 +30,11 @@ from vqtouch.core import (
     load_plugins,
     resolve_device,
 )
-from vqtouch.core.checkpoint import files_digest, is_pretrained, open_pretrained
+from vqtouch.core.checkpoint import is_pretrained, open_pretrained
 from vqtouch.core.image_size import ImageSize
 from vqtouch.core.training import collate_samples
 
-from vqtouch.plugins.tokenizer import TOKENIZER_FILES, load_tokenizer, tokenizer_location
+from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_digest, tokenizer_location
 
 from .stage import CHECKPOINT_FOLDER
 
@@ -272,7 +272,7 @@ def generator_tokenizer(run_dir: RunDir, section: Any) -> RunDir | Path:
             "gone; restore that folder or train the generator again"
         )
     pinned = generator.facts.get("tokenizer_sha256")
-    if pinned is not None and files_digest(folder / name for name in TOKENIZER_FILES) != pinned:
+    if pinned is not None and tokenizer_digest(folder) != pinned:
         raise CheckpointError(
             f"{run_dir.path}: its generator was trained on the tokenizer in {folder}, which has changed since "
             "(retrained or replaced); train the generator again on it, or restore that tokenizer"

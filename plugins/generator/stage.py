@@ -22,7 +22,6 @@ import torch
 from pydantic import Field, model_validator
 
 from vqtouch.core import MetricSet, RunDir, Section, Slot, StageJob, StageUnavailable, hookimpl, resolve_device
-from vqtouch.core.checkpoint import files_digest
 from vqtouch.core.data import DatasetSubset, experiment_split
 from vqtouch.core.errors import VqtouchWarning
 from vqtouch.core.image_size import image_hw
@@ -33,7 +32,7 @@ from vqtouch.plugins.evaluation.contact import contact_centroid_errors, contact_
 from vqtouch.plugins.evaluation.directions import shown_scores
 
 from .training import CodesDataset, GeneratorTask, GeneratorTrainConfig
-from vqtouch.plugins.tokenizer import TOKENIZER_FILES, load_tokenizer, tokenizer_location
+from vqtouch.plugins.tokenizer import TOKENIZER_FILES, load_tokenizer, tokenizer_digest, tokenizer_location
 
 if TYPE_CHECKING:
     from vqtouch.plugins.evaluation.distribution import DistributionScorer
@@ -230,7 +229,7 @@ def train_generator(job: StageJob) -> dict[str, Any]:
         recorded = (
             tokenizer_folder.resolve().relative_to(job.run.path.resolve()) if inside else tokenizer_folder.resolve()
         )
-        digest = files_digest(tokenizer_folder / name for name in TOKENIZER_FILES)
+        digest = tokenizer_digest(tokenizer_folder)
         job.publish(
             "generator",
             trainer.last_checkpoint,

@@ -22,9 +22,6 @@ from __future__ import annotations
 
 import copy
 import json
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,6 +30,7 @@ import torch
 from torch import nn
 
 from vqtouch.core import ConfigError, PluginHost, RunDir, load, read_metadata, save
+from vqtouch.core.runs import staged_output
 from vqtouch.plugins.tokenizer import Tokenizer
 
 #: Where the bundles live inside the installed package.
@@ -150,11 +148,10 @@ def export_bundle(
             metadata={**headers, STORED_KEY: "float16 parameters" if half else "float32"},
         )
 
-    # Written beside the bundle and moved into place whole: a failed or interrupted export leaves no
-    # partial bundle to block the retry, and an --overwrite keeps the old bundle until the new one is done.
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    partial = Path(tempfile.mkdtemp(prefix=f".{name}.", suffix=".partial", dir=folder.parent))
-    try:
+    # Staged beside the bundle and moved into place whole (as every command's --out): a failed or
+    # interrupted export leaves no partial bundle to block the retry, and --overwrite keeps the old bundle
+    # until the new one is complete.
+    with staged_output(folder, overwrite=overwrite) as partial:
         (partial / TOKENIZER).mkdir()
         (partial / GENERATOR).mkdir()
         store(pipe.tokenizer.autoencoder, partial / TOKENIZER / "autoencoder.safetensors", tokenizer_headers)
@@ -162,17 +159,6 @@ def export_bundle(
         store(pipe.generator, partial / GENERATOR / "generator.safetensors", generator_headers)
         for index, conditioner in enumerate(pipe.conditioners):
             store(conditioner, partial / GENERATOR / f"conditioner_{index}.safetensors", generator_headers)
-        if folder.exists():
-            retired = folder.with_name(f".{name}.replaced")
-            shutil.rmtree(retired, ignore_errors=True)
-            os.replace(folder, retired)
-            os.replace(partial, folder)
-            shutil.rmtree(retired)
-        else:
-            os.replace(partial, folder)
-    except BaseException:
-        shutil.rmtree(partial, ignore_errors=True)
-        raise
     return folder
 
 

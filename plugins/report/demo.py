@@ -186,15 +186,16 @@ def peak_rss_mb() -> float | None:
     return round(peak / (2**20 if sys.platform == "darwin" else 2**10), 1)  # bytes on macOS, KiB on Linux
 
 
-def write_reports(run_dir: str | Path, report: dict[str, Any]) -> Path:
-    """Write report.md and the self-contained report.html of ``report`` into ``run_dir``, atomically;
-    returns report.html's path."""
+def write_reports(run_dir: str | Path, report: dict[str, Any], out: str | Path | None = None) -> Path:
+    """Write report.md and the self-contained report.html of ``report`` (the run in ``run_dir``, whose
+    pictures they embed) into ``out`` (default: the run), atomically; returns report.html's path."""
     run_dir = Path(run_dir)
+    target = Path(out) if out is not None else run_dir
     with declared_directions(report.get("directions", {})):
         pages = (("report.md", render_report(report)), ("report.html", render_html(report, run_dir)))
     for name, text in pages:
-        atomic_write(run_dir / name, lambda tmp, text=text: tmp.write_text(text, encoding="utf-8"))
-    return run_dir / "report.html"
+        atomic_write(target / name, lambda tmp, text=text: tmp.write_text(text, encoding="utf-8"))
+    return target / "report.html"
 
 
 def rebuild_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
@@ -212,14 +213,7 @@ def rebuild_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
         raise ConfigError(f"{run_dir / 'report.json'}: not a demo report (no list of stages)")
     if "description" not in report and (run_dir / "config.json").is_file():  # reports written before it was kept
         report["description"] = read_run_json(run_dir / "config.json").get("description", "")
-    if out is not None:
-        Path(out).mkdir(parents=True, exist_ok=True)
-        with declared_directions(report.get("directions", {})):
-            html, markdown = render_html(report, run_dir), render_report(report)
-        for name, text in (("report.html", html), ("report.md", markdown)):
-            atomic_write(Path(out) / name, lambda tmp, text=text: tmp.write_text(text, encoding="utf-8"))
-        return Path(out) / "report.html"
-    return write_reports(run_dir, report)
+    return write_reports(run_dir, report, out)
 
 
 #: Marks after a model score in report.md's score tables (explained under each table).

@@ -6,7 +6,14 @@ experiment's metrics, and the helpers that show them in reports.  Other packages
 names from here, never the modules behind them (``make lint`` checks it).
 """
 
-from .loading import TOKENIZER_FILES, load_tokenizer, reconstruct_all, tokenizer_configs, tokenizer_location
+from .loading import (
+    TOKENIZER_FILES,
+    load_tokenizer,
+    reconstruct_all,
+    tokenizer_configs,
+    tokenizer_digest,
+    tokenizer_location,
+)
 from .stages import SHOWN_SCORES as TOKENIZER_SHOWN_SCORES
 from .stages import experiment_metrics, printable, save_pairs
 from .training import Tokenizer, TokenizerLossConfig, TokenizerTrainConfig, evaluate_reconstruction, tokenizer_task
@@ -24,6 +31,7 @@ __all__ = [
     "reconstruct_all",
     "save_pairs",
     "tokenizer_configs",
+    "tokenizer_digest",
     "tokenizer_location",
     "tokenizer_task",
 ]

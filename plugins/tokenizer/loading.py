@@ -13,6 +13,7 @@ from typing import Any
 import torch
 
 from vqtouch.core import PluginHost, RunDir, load, read_metadata
+from vqtouch.core.checkpoint import files_digest
 
 from .training import Tokenizer
 
@@ -62,6 +63,12 @@ def tokenizer_location(path: str | Path) -> RunDir | Path:
     if not (path / "config.json").is_file() and all((path / name).is_file() for name in TOKENIZER_FILES):
         return path
     return RunDir.open(path)
+
+
+def tokenizer_digest(folder: str | Path) -> str:
+    """The SHA-256 of a tokenizer checkpoint folder's weight files: what a generator or a clustering
+    records of the tokenizer it was made with, to refuse a tokenizer retrained or replaced since."""
+    return files_digest(Path(folder) / name for name in TOKENIZER_FILES)
 
 
 def tokenizer_configs(folder: str | Path) -> tuple[dict[str, Any], dict[str, Any], int]:
