@@ -46,7 +46,7 @@ import signal
 import threading
 import time
 import warnings
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, Protocol
@@ -1015,6 +1015,43 @@ def read_trainer_meta(folder: Path) -> dict[str, Any]:
             return json.loads((handle.metadata() or {})["vqtouch.trainer"])
     except Exception as exc:  # noqa: BLE001 - safetensors, JSON and key errors alike
         raise CheckpointError(f"{path}: unreadable trainer state ({_first_line(exc)})") from None
+
+
+def saved_ema_weights(folder: Path, module_name: str) -> dict[str, torch.Tensor]:
+    """The exponential moving average of ``module_name``'s floating-point weights that the trainer
+    kept in step ``folder`` (``train.ema_decay``); empty when the run kept none.  CheckpointError
+    naming the file when the trainer state cannot be read."""
+    path = Path(folder) / TRAINER_STATE
+    prefix = f"ema.{module_name}."
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            return {key[len(prefix) :]: handle.get_tensor(key) for key in handle.keys() if key.startswith(prefix)}
+    except Exception as exc:  # noqa: BLE001 - safetensors raises several error types
+        raise CheckpointError(f"{path}: unreadable trainer state ({_first_line(exc)})") from None
+
+
+def apply_ema_weights(module: nn.Module, ema_KT: Mapping[str, torch.Tensor], where: str | Path) -> None:
+    """Replace ``module``'s floating-point weights by their moving average ``ema_KT`` (from
+    :func:`saved_ema_weights` or :attr:`Trainer.ema`); integer buffers keep their values.  A key the
+    module lacks, a floating tensor the average lacks, a wrong shape or a non-finite value is a
+    one-line CheckpointError naming ``where``: sampling with half-replaced weights would be garbage."""
+    state = module.state_dict()
+    floating = {key for key, value in state.items() if value.dtype.is_floating_point}
+    unexpected = sorted(set(ema_KT) - set(state))
+    missing = sorted(floating - set(ema_KT))
+    if unexpected or missing:
+        problem = f"unexpected {unexpected[0]!r}" if unexpected else f"missing {missing[0]!r}"
+        raise CheckpointError(f"{where}: its EMA weights do not fit the model ({problem}); sample with the raw weights")
+    for key, value in ema_KT.items():  # all checked before any is copied
+        if tuple(value.shape) != tuple(state[key].shape):
+            raise CheckpointError(
+                f"{where}: EMA tensor {key!r} has shape {tuple(value.shape)}, the model {tuple(state[key].shape)}"
+            )
+        if not torch.isfinite(value).all():
+            raise CheckpointError(f"{where}: EMA tensor {key!r} holds NaN or Inf; sample with the raw weights")
+    with torch.no_grad():
+        for key, value in ema_KT.items():
+            state[key].copy_(value.to(state[key].dtype))
 
 
 def checkpoint_problem(folder: Path, required_files: Iterable[str] = ()) -> str | None:

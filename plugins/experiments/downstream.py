@@ -308,7 +308,7 @@ def evaluate_downstream(
     chosen = label_conditioner_index([c.sample_key for c in pipe.conditioners], names, conditioner)
     label_conditioner = pipe.conditioners[chosen]
     steps = pipe.check_steps(steps or pipe.settings["steps"])
-    guidance = pipe.settings["guidance"] if guidance is None else guidance
+    guidance = pipe.guidance_for(chosen) if guidance is None else guidance
     sampler_name = sampler or pipe.sampler_name
     sampler_plugin = pipe.sampler if sampler_name == pipe.sampler_name else host.build("sampler", sampler_name)
     assembly = Assembly(config, host)

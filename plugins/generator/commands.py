@@ -143,7 +143,7 @@ def _generate_command(args: argparse.Namespace) -> int:
     reads = [("--run", "generator run", args.run), *images_read]
     # Staged first: a refused --out (an input, a run, a folder holding files) costs no model loading.
     with staged_output(out, overwrite=args.overwrite, reads=reads) as folder:
-        pipe = load_pipeline(args.run, host=args.host, step=args.step)
+        pipe = load_pipeline(args.run, host=args.host, step=args.step, weights=args.weights)
         chosen = pipe.conditioner_index(key, args.conditioner)
         _check_room(out, folder, n, pipe.image_size)
         batches = pipe.batches(
@@ -173,8 +173,9 @@ def _generate_command(args: argparse.Namespace) -> int:
             "grid": f"the first {len(shown)} samples",
             "steps": args.steps or pipe.settings["steps"],
             "sampler": args.sampler or pipe.sampler_name,
-            "guidance": pipe.settings["guidance"] if args.guidance is None else args.guidance,
+            "guidance": pipe.guidance_for(chosen) if args.guidance is None else args.guidance,
             "truncation": pipe.settings["truncation"] if args.truncation is None else args.truncation,
+            "weights": pipe.settings["weights"],
             "seed": args.seed,
             "batch_size": args.batch_size,
             "conditioner": pipe.conditioner_names()[chosen],
@@ -198,8 +199,17 @@ def _check_room(out: Path, staged: Path, n: int, image_size: Any) -> None:
         )
 
 
+def _add_weights_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--weights",
+        choices=["ema", "raw"],
+        help="sample with the moving average of the weights that training kept (ema) or the raw ones "
+        "(default: the run's generator.sample_weights, EMA when the checkpoint holds one)",
+    )
+
+
 #: ``evaluate generation`` flags that only mean something when scoring one run (``--run``).
-_RUN_ONLY = ("step", "conditioner", "steps", "sampler", "guidance", "truncation", "seed", "feature_size")
+_RUN_ONLY = ("step", "weights", "conditioner", "steps", "sampler", "guidance", "truncation", "seed", "feature_size")
 #: Run-only flags with a default, refused by the experiment only when set to something else.
 _RUN_ONLY_DEFAULTS = {"classifier_on": "real"}
 
@@ -266,7 +276,7 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
         )
     if not args.out and not os.access(args.run, os.W_OK):  # refused before any sample is drawn
         raise ConfigError(f"--run {args.run} is read-only; give --out DIR for the scores and sample pictures")
-    pipe = load_pipeline(args.run, host=host, step=args.step)
+    pipe = load_pipeline(args.run, host=host, step=args.step, weights=args.weights)
     config = pipe.config
     assembly = Assembly(config, host)
     dataset = assembly.component("data.dataset")
@@ -319,7 +329,7 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
             metrics=metrics,
             background_3HW=background,
             steps=steps,
-            guidance=pipe.settings["guidance"] if args.guidance is None else args.guidance,
+            guidance=pipe.guidance_for(index) if args.guidance is None else args.guidance,
             truncation=pipe.settings["truncation"] if args.truncation is None else args.truncation,
             seed=config.seed if args.seed is None else args.seed,
             device=pipe.device,
@@ -329,6 +339,7 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
     head = {
         "checkpoint": str(args.run if is_pretrained(args.run) else pipe.checkpoint),
         "sampler": sampler_name,
+        "weights": pipe.settings["weights"],
         "background": background_source,
     }
     if args.distribution:
@@ -492,13 +503,18 @@ def vqtouch_add_commands(subparsers):
     )
     add_config_arguments(scored, default_scene="tour")
     add_step_argument(scored)
+    _add_weights_argument(scored)
     scored.add_argument(
         "--conditioner", type=non_negative_int, help="which of the generator's conditioners (index; default 0)"
     )
     scored.add_argument("--n", type=positive_int, default=64, help="held-out conditions to generate (at most all)")
     scored.add_argument("--steps", type=positive_int, help="sampling steps (default: the run's generator.steps)")
     scored.add_argument("--sampler", help="sampler plugin (default: the run's generator.sampler)")
-    scored.add_argument("--guidance", type=guidance_scale, help="classifier-free guidance scale (1: none)")
+    scored.add_argument(
+        "--guidance",
+        type=guidance_scale,
+        help="classifier-free guidance scale (1: none; default: the run's for the conditioner)",
+    )
     scored.add_argument(
         "--truncation", type=truncation_mass, help="keep the most likely codes holding this mass (1: all)"
     )
@@ -547,6 +563,7 @@ def vqtouch_add_commands(subparsers):
         "--run", required=True, help="a run whose generator stage trained, or a bundle (pretrained:NAME)"
     )
     add_step_argument(generate)
+    _add_weights_argument(generate)
     generate.add_argument("--label", action="append", help="class index or name (repeatable: one per image)")
     generate.add_argument("--visual", action="append", metavar="IMG", help="visual image file (repeatable)")
     generate.add_argument("--tactile", action="append", metavar="IMG", help="conditioning tactile image (repeatable)")
@@ -573,7 +590,11 @@ def vqtouch_add_commands(subparsers):
     )
     generate.add_argument("--steps", type=positive_int, help="sampling steps (default: the run's generator.steps)")
     generate.add_argument("--sampler", help="sampler plugin (default: the run's generator.sampler)")
-    generate.add_argument("--guidance", type=guidance_scale, help="classifier-free guidance scale (1: none)")
+    generate.add_argument(
+        "--guidance",
+        type=guidance_scale,
+        help="classifier-free guidance scale (1: none; default: the run's for the conditioner)",
+    )
     generate.add_argument(
         "--truncation", type=truncation_mass, help="keep the most likely codes holding this mass (1: all)"
     )

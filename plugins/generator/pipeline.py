@@ -32,7 +32,7 @@ from vqtouch.core import (
 )
 from vqtouch.core.checkpoint import is_pretrained, open_pretrained
 from vqtouch.core.image_size import ImageSize
-from vqtouch.core.training import collate_samples
+from vqtouch.core.training import TRAINER_STATE, apply_ema_weights, collate_samples, saved_ema_weights
 
 from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_digest, tokenizer_location
 
@@ -80,6 +80,12 @@ class GenerationPipeline:
             else [type(c).__name__ for c in self.conditioners]
         )
         return [f"{index}:{name}" for index, name in enumerate(names)]
+
+    def guidance_for(self, index: int) -> float:
+        """The default guidance scale of conditioner ``index``: the run's ``conditioner_guidance`` for
+        its name, else its ``guidance``."""
+        name = self.conditioner_names()[index].split(":", 1)[1]
+        return float(self.settings.get("conditioner_guidance", {}).get(name, self.settings["guidance"]))
 
     def conditioner_for(self, key: str, which: int | str | None = None) -> Any:
         """The conditioner that reads samples' ``key`` (see :meth:`conditioner_index`)."""
@@ -153,10 +159,11 @@ class GenerationPipeline:
         at most; :meth:`__call__` concatenates them.  An image depends on its index and the seed only,
         never on the batch it falls in.
 
-        Unset settings take the run's own (``generator.steps``, ``sampler``, ``guidance``,
-        ``truncation``).  ``conditioner``: which conditioner (index or name) when several read the
-        condition's key.  Values are what :meth:`vqtouch.core.Conditioner.parse_condition` takes (a
-        class index or name, an image path or tensor, a text)."""
+        Unset settings take the run's own (``generator.steps``, ``sampler``, the conditioner's
+        guidance (:meth:`guidance_for`), ``truncation``).  ``conditioner``: which conditioner (index
+        or name) when several read the condition's key.  Values are what
+        :meth:`vqtouch.core.Conditioner.parse_condition` takes (a class index or name, an image path or
+        tensor, a text)."""
         if len(conditions) != 1:
             raise ConfigError(
                 "give exactly one condition, e.g. label=3, visual='photo.png' or text='...' "
@@ -170,11 +177,12 @@ class GenerationPipeline:
         if count < 1:
             raise ConfigError("nothing to generate: n must be at least 1")
         steps = steps if steps is not None else self.settings["steps"]
-        guidance = guidance if guidance is not None else self.settings["guidance"]
+        index = self.conditioner_index(key, conditioner)
+        guidance = guidance if guidance is not None else self.guidance_for(index)
         truncation = truncation if truncation is not None else self.settings["truncation"]
         self.check_steps(steps)
         chosen = self.sampler if sampler in (None, self.sampler_name) else self.host.build("sampler", sampler)
-        conditioner = self.conditioner_for(key, conditioner)
+        conditioner = self.conditioners[index]
 
         def parse(item: Any) -> Any:
             return conditioner.parse_condition(item, image_size=self.image_size, class_names=self.class_names)
@@ -209,16 +217,33 @@ class GenerationPipeline:
 
 
 def load_pipeline(
-    run: str | Path, *, host: PluginHost | None = None, step: int | str | None = None, device: str | None = None
+    run: str | Path,
+    *,
+    host: PluginHost | None = None,
+    step: int | str | None = None,
+    device: str | None = None,
+    weights: str | None = None,
 ) -> GenerationPipeline:
     """The generation pipeline of a run whose ``generator`` stage trained (its newest good checkpoint,
     ``step``, or ``"best"``), with the tokenizer it was trained on; or of a bundle, ``pretrained:NAME``
-    (its tokenizer, generator and conditioners, with the config of the run that trained them)."""
+    (its tokenizer, generator and conditioners, with the config of the run that trained them).
+
+    ``weights``: ``"ema"`` samples with the moving average of the weights that training kept
+    (``generator.train.ema_decay``; a ConfigError when the checkpoint holds none), ``"raw"`` with the
+    raw weights; None follows ``generator.sample_weights`` (EMA when the checkpoint holds one).  A
+    bundle holds one set, recorded when it was exported."""
     host = host or load_plugins()
+    if weights not in (None, "ema", "raw"):
+        raise ConfigError(f"--weights {weights!r}: choose ema or raw")
     if is_pretrained(run):
         if step is not None:
             raise ConfigError(f"--step belongs to runs; {run} is a bundle with one checkpoint")
-        return _bundle_pipeline(str(run), host, device)
+        pipe = _bundle_pipeline(str(run), host, device)
+        if weights is not None and weights != pipe.settings["weights"]:
+            raise ConfigError(
+                f"--weights {weights}: {run} holds its {pipe.settings['weights']} weights only (chosen at export)"
+            )
+        return pipe
     run_dir = RunDir.open(run)
     config = run_dir.load_config(host)
     section = getattr(config, "generator", None)
@@ -233,12 +258,13 @@ def load_pipeline(
         load(folder / f"conditioner_{index}.safetensors", host=host, map_location=device_).eval()
         for index in range(len(section.conditioners))
     ]
+    used = _use_ema_weights(folder, generator, conditioners, weights or section.sample_weights, strict=bool(weights))
     tokenizer, _ = load_tokenizer(generator_tokenizer(run_dir, section), host, device=str(device_))
     if section.sampler is None:
         raise ConfigError(f"{run_dir.path}: generator.sampler is empty; pass sampler=NAME")
     sampler = host.build("sampler", section.sampler)
     class_names = _class_names(config, host)
-    settings = {"steps": section.steps, "guidance": section.guidance, "truncation": section.truncation}
+    settings = _sampling_settings(section) | {"weights": used}
     return GenerationPipeline(
         tokenizer,
         generator,
@@ -254,6 +280,36 @@ def load_pipeline(
         config,
         run_dir,
     )
+
+
+def _use_ema_weights(folder: Path, generator: Any, conditioners: list[Any], wanted: str, *, strict: bool) -> str:
+    """Which weights the loaded modules hold after honouring ``wanted`` (``ema``/``raw``): the moving
+    average the trainer kept in step ``folder`` replaces the raw weights of every module, or of none.
+    ``strict`` (the user asked for ``ema``): a checkpoint without one is an error, not raw weights."""
+    if wanted == "raw":
+        return "raw"
+    modules = {"generator": generator} | {f"conditioner_{i}": module for i, module in enumerate(conditioners)}
+    averages = {name: saved_ema_weights(folder, name) for name in modules}
+    if not any(averages.values()):
+        if strict:
+            raise ConfigError(
+                f"--weights ema: {folder} holds no EMA weights (trained without generator.train.ema_decay); "
+                "use the raw weights or train with an EMA"
+            )
+        return "raw"
+    for name, module in modules.items():
+        apply_ema_weights(module, averages[name], folder / TRAINER_STATE)
+    return "ema"
+
+
+def _sampling_settings(section: Any) -> dict[str, Any]:
+    """A generator section's sampling defaults, as :attr:`GenerationPipeline.settings` holds them."""
+    return {
+        "steps": section.steps,
+        "guidance": section.guidance,
+        "conditioner_guidance": dict(section.conditioner_guidance),
+        "truncation": section.truncation,
+    }
 
 
 def generator_tokenizer(run_dir: RunDir, section: Any) -> RunDir | Path:
@@ -294,7 +350,7 @@ def _bundle_pipeline(spec: str, host: PluginHost, device: str | None) -> Generat
     config = validate_experiment(bundle.run_config, host)
     section = config.generator
     sampler = host.build("sampler", section.sampler)
-    settings = {"steps": section.steps, "guidance": section.guidance, "truncation": section.truncation}
+    settings = _sampling_settings(section) | {"weights": bundle.weights}
     return GenerationPipeline(
         bundle.tokenizer,
         bundle.generator,

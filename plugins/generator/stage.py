@@ -13,10 +13,11 @@ are, generated, ground truth).
 from __future__ import annotations
 
 import contextlib
+import math
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 from pydantic import Field, model_validator
@@ -27,7 +28,7 @@ from vqtouch.core.errors import VqtouchWarning
 from vqtouch.core.image_size import image_hw
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
-from vqtouch.core.training import Trainer, collate_samples
+from vqtouch.core.training import Trainer, apply_ema_weights, collate_samples
 from vqtouch.plugins.evaluation.contact import contact_centroid_errors, contact_region_scores, dataset_background
 from vqtouch.plugins.evaluation.directions import shown_scores
 
@@ -73,6 +74,17 @@ class GeneratorSection(Section):
         le=1,
         description="Keep only the most likely codes holding this much probability at each step; 1 keeps all.",
     )
+    conditioner_guidance: dict[str, float] = Field(
+        default_factory=dict,
+        description="Default guidance per conditioner, by its name (e.g. {label: 2, visual: 2}): a condition "
+        "that leaves the pose or texture open gains from guidance, one that pins both (touch) loses; "
+        "conditioners not named use `guidance`.",
+    )
+    sample_weights: Literal["ema", "raw"] = Field(
+        "ema",
+        description="Which weights sample: 'ema', the moving average training kept (train.ema_decay), when "
+        "the checkpoint holds one, else the raw weights; 'raw', always the raw weights.",
+    )
     num_samples: int = Field(
         16,
         ge=0,
@@ -96,6 +108,19 @@ class GeneratorSection(Section):
                 f"train.conditioner_weights has {len(weights)} weights for {len(self.conditioners)} "
                 "conditioners; give one per entry of generator.conditioners, in their order"
             )
+        return self
+
+    @model_validator(mode="after")
+    def _guidance_of_known_conditioners(self) -> GeneratorSection:
+        names = [block.name for block in self.conditioners]
+        for name, scale in self.conditioner_guidance.items():
+            if name not in names:
+                raise ValueError(
+                    f"conditioner_guidance names {name!r}, which is none of generator.conditioners "
+                    f"({', '.join(names) or 'none'}); key it by a conditioner's name"
+                )
+            if not (math.isfinite(scale) and 0 <= scale <= 1000):
+                raise ValueError(f"conditioner_guidance[{name!r}] = {scale}: a guidance scale is in [0, 1000]")
         return self
 
     @model_validator(mode="after")
@@ -238,6 +263,12 @@ def train_generator(job: StageJob) -> dict[str, Any]:
             tokenizer_sha256=digest,
         )
         if section.num_samples and len(val_set) and section.sampler is not None:
+            if trainer.ema and section.sample_weights == "ema":
+                # Training is over and its checkpoint written: the stage's samples come from the
+                # weights readers will load (load_pipeline prefers the average too).
+                for name, module in task.modules.items():
+                    apply_ema_weights(module, trainer.ema[name], f"the {name} EMA")
+                result["sample_weights"] = "ema"
             result |= score_samples(job, tokenizer, task, val_set, train_set, dataset, device)
         job.run.write_json("generation.json", result)
     return result
@@ -617,7 +648,6 @@ def score_samples(
         metrics=metrics,
         background_3HW=background,
         steps=section.steps,
-        guidance=section.guidance,
         truncation=section.truncation,
         seed=config.seed,
         device=device,
@@ -625,17 +655,31 @@ def score_samples(
         distribution=scorer or False,
     )
     names = [item.name for item in config.generator.conditioners]
-    first = score_generation(conditioner=task.conditioners[0], picture=job.run.path / "samples.png", **common)
+    first = score_generation(
+        conditioner=task.conditioners[0],
+        picture=job.run.path / "samples.png",
+        guidance=guidance_of(section, names[0]),
+        **common,
+    )
     scores = {"sampler": section.sampler.name, "conditioner": names[0], "background": background_source, **first}
     if len(names) > 1:
         scores["by_conditioner"] = {f"0:{names[0]}": first} | {
             f"{index}:{name}": score_generation(
-                conditioner=conditioner, picture=job.run.path / samples_picture(index, name), **common
+                conditioner=conditioner,
+                picture=job.run.path / samples_picture(index, name),
+                guidance=guidance_of(section, name),
+                **common,
             )
             for index, (name, conditioner) in enumerate(zip(names, task.conditioners))
             if index > 0
         }
     return scores
+
+
+def guidance_of(section: GeneratorSection, conditioner_name: str) -> float:
+    """The default guidance scale of the conditioner named ``conditioner_name``: its entry in
+    ``conditioner_guidance``, else the section's ``guidance``."""
+    return float(section.conditioner_guidance.get(conditioner_name, section.guidance))
 
 
 def samples_picture(index: int, name: str) -> str:

@@ -9,7 +9,8 @@ Every file is an ordinary vqtouch checkpoint (:func:`vqtouch.core.save`: the com
 build context and training step in its header, loaded strictly) plus three header entries that
 say where it came from: ``pretrained.command`` (the ``vqtouch`` command line that trained it, from
 the run's env.json), ``pretrained.run_config`` (the training run's whole config) and
-``pretrained.stored_as`` (the precision of the stored parameters).  The header is the one source
+``pretrained.stored_as`` (the precision of the stored parameters); the generator's files also
+record ``pretrained.weights`` (``ema``: the moving average training kept, or ``raw``).  The header is the one source
 of truth: nothing else describes a bundle.
 
 To keep the package small, parameters are stored in float16 except the quantizer's, whose
@@ -40,6 +41,8 @@ GENERATOR = "generator"
 COMMAND_KEY = "pretrained.command"
 RUN_CONFIG_KEY = "pretrained.run_config"
 STORED_KEY = "pretrained.stored_as"
+#: Which of the run's weights the generator files hold: ``ema`` (the moving average) or ``raw``.
+WEIGHTS_KEY = "pretrained.weights"
 #: fp16's largest finite value: a parameter beyond it cannot be stored in half precision.
 FP16_MAX = 65504.0
 
@@ -156,6 +159,8 @@ def export_bundle(
         (partial / GENERATOR).mkdir()
         store(pipe.tokenizer.autoencoder, partial / TOKENIZER / "autoencoder.safetensors", tokenizer_headers)
         store(pipe.tokenizer.quantizer, partial / TOKENIZER / "quantizer.safetensors", tokenizer_headers, True)
+        # The weights the run samples with by default (its EMA when it kept one), and which they are.
+        generator_headers = generator_headers | {WEIGHTS_KEY: pipe.settings["weights"]}
         store(pipe.generator, partial / GENERATOR / "generator.safetensors", generator_headers)
         for index, conditioner in enumerate(pipe.conditioners):
             store(conditioner, partial / GENERATOR / f"conditioner_{index}.safetensors", generator_headers)
@@ -177,6 +182,15 @@ class Bundle:
     tokenizer_command: str
     generator_command: str
     run_config: dict[str, Any]
+    #: ``ema`` or ``raw``: which of the run's weights the generator files hold (``raw`` for bundles
+    #: exported before vqtouch recorded it).
+    weights: str = "raw"
+
+    def guidance_for(self, conditioner_name: str) -> float:
+        """The default guidance of the conditioner named ``conditioner_name``, from the recorded run
+        config: its ``generator.conditioner_guidance`` entry, else ``generator.guidance`` (1 if unset)."""
+        section = self.run_config.get("generator") or {}
+        return float((section.get("conditioner_guidance") or {}).get(conditioner_name, section.get("guidance", 1.0)))
 
     @property
     def conditioner_names(self) -> list[str]:
@@ -209,6 +223,7 @@ def describe_bundle(folder: Path) -> dict[str, Any]:
         "tokenizer_command": tokenizer.get(COMMAND_KEY, "?"),
         "generator_command": generator.get(COMMAND_KEY, "?"),
         "stored_as": generator.get(STORED_KEY, "?"),
+        "weights": generator.get(WEIGHTS_KEY, "raw"),
         "files": len(files),
         "megabytes": round(sum(path.stat().st_size for path in files) / 1e6, 2),
     }
@@ -246,4 +261,5 @@ def load_bundle(
         tokenizer_command=tokenizer_headers.get(COMMAND_KEY, "?"),
         generator_command=headers.get(COMMAND_KEY, "?"),
         run_config=json.loads(headers.get(RUN_CONFIG_KEY, "{}")),
+        weights=headers.get(WEIGHTS_KEY, "raw"),
     )

@@ -35,7 +35,7 @@ def _list_command(args: argparse.Namespace) -> int:
         print(
             f"{row['name']}: {row['tokenizer']} tokenizer step {row['tokenizer_step']}, generator step "
             f"{row['generator_step']} with conditioners {', '.join(row['conditioners'])}; {row['files']} files, "
-            f"{row['megabytes']} MB ({row['stored_as']})"
+            f"{row['megabytes']} MB ({row['stored_as']}, {row['weights']} weights)"
         )
         print(f"  tokenizer trained by: {row['tokenizer_command']}")
         print(f"  generator trained by: {row['generator_command']}")
@@ -53,7 +53,8 @@ def _export_command(args: argparse.Namespace) -> int:
     )
     row = describe_bundle(folder)
     print(
-        f"bundle {row['name']!r} -> {folder} ({row['files']} files, {row['megabytes']} MB, {row['stored_as']}; "
+        f"bundle {row['name']!r} -> {folder} ({row['files']} files, {row['megabytes']} MB, {row['stored_as']}, "
+        f"{row['weights']} weights; "
         f"tokenizer step {row['tokenizer_step']}, generator step {row['generator_step']})"
     )
     return 0

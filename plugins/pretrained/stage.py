@@ -151,7 +151,7 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
             metrics=metrics,
             background_3HW=background,
             steps=section.steps,
-            guidance=1.0,
+            guidance=bundle.guidance_for(name),
             truncation=1.0,
             seed=config.seed,
             device=device,
