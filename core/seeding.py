@@ -1,9 +1,14 @@
-"""Reproducibility: one call seeds every random number generator a run uses."""
+"""Reproducibility: one call seeds every random number generator a run uses; one context makes
+CPU float sums independent of the thread count."""
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import os
 import random
+from collections.abc import Callable, Iterator
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -47,3 +52,37 @@ def resolve_device(device: str) -> torch.device:
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError(f"device {device!r} requested but CUDA is not available; use device=cpu or auto")
     return torch.device(device)
+
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+@contextlib.contextmanager
+def one_thread() -> Iterator[None]:
+    """Run torch's CPU kernels and the BLAS/OpenMP pools (scikit-learn, NumPy) on one thread inside.
+
+    A parallel reduction adds its partial sums in an order that depends on the thread count, so the
+    same features differ by about 1e-8 between 1 and 2 threads; a decision taken on them (a family
+    count chosen by silhouette, a k-means partition, a nearest family) can then flip with the
+    machine's load or ``OMP_NUM_THREADS``.  One thread fixes the order on every machine.  The
+    previous thread counts are restored on exit."""
+    from threadpoolctl import threadpool_limits
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with threadpool_limits(limits=1):
+            yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def on_one_thread(function: _F) -> _F:
+    """Decorate ``function`` to run inside :func:`one_thread`."""
+
+    @functools.wraps(function)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        with one_thread():
+            return function(*args, **kwargs)
+
+    return wrapper  # type: ignore[return-value]

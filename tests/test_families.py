@@ -218,3 +218,33 @@ def test_cluster_refuses_an_empty_folder_and_names_a_corrupt_file(tokenizer_fold
         )
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1, err
+
+
+def test_features_and_families_do_not_depend_on_the_thread_count():
+    """Parallel sums add in a thread-count-dependent order (the bundled tokenizer's features differ by
+    ~3e-8 between 1 and 2 threads, enough to flip a family count chosen by silhouette); features,
+    prototypes, families and assignments are computed on one thread, and the caller's thread count
+    is left as it was.  The bundled tokenizer at 64 px: a tiny one's tensors are too small to be
+    split between threads at all."""
+    from vqtouch.plugins.adaptation.families import cluster_prototypes
+    from vqtouch.plugins.pretrained.bundle import load_bundle
+
+    tokenizer = load_bundle("tour", HOST, tokenizer_only=True).tokenizer
+    # 40 images: encoded as batches of 32 and 8, and the batch of 8 is where the threads split sums.
+    images = torch.rand(40, 3, 64, 64, generator=torch.Generator().manual_seed(3))
+    before = torch.get_num_threads()
+    results = []
+    try:
+        for threads in (1, 2, 1, 2):
+            torch.set_num_threads(threads)
+            features = image_features(tokenizer, images)
+            assert torch.get_num_threads() == threads
+            prototypes = torch.stack([sensor_prototype(part) for part in features.split(8)])
+            clusterer = HOST.build("clusterer", {"name": "kmeans", "num_families": 0, "max_families": 4})
+            families = cluster_prototypes([f"s{i}" for i in range(5)], prototypes, clusterer)
+            results.append((features, prototypes, json.dumps(families, sort_keys=True)))
+    finally:
+        torch.set_num_threads(before)
+    for features, prototypes, families in results[1:]:
+        assert torch.equal(features, results[0][0]) and torch.equal(prototypes, results[0][1])
+        assert families == results[0][2]

@@ -22,6 +22,7 @@ import torch
 from pydantic import Field
 
 from vqtouch.core import BuildContext, Clusterer, ConfigError, PluginConfig, hookimpl
+from vqtouch.core.seeding import on_one_thread
 
 
 class FamilyClustererOptions(PluginConfig):
@@ -62,6 +63,7 @@ class FamilyClusterer(Clusterer):
             raise ValueError("features contain NaN or Inf")
         return features
 
+    @on_one_thread  # k-means, silhouette and the means: the same families whatever the thread count
     def fit(self, features_NF: torch.Tensor) -> torch.Tensor:
         """Group the (N, F) rows into families; returns each row's family (N,), numbered by first
         appearance (row 0 is in family 0), and keeps the family means for :meth:`predict`."""
@@ -101,6 +103,7 @@ class FamilyClusterer(Clusterer):
                 best, best_score = labels, score
         return best if best is not None else np.zeros(len(features), dtype=np.int64)
 
+    @on_one_thread
     def distances(self, features_NF: torch.Tensor) -> torch.Tensor:
         """Euclidean distances (N, K) from each row to each family mean (float64)."""
         if self.num_families == 0:

@@ -27,11 +27,13 @@ import torch
 from vqtouch.core import ConfigError, DatasetError, PluginHost
 from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.core.image_size import ImageSize
+from vqtouch.core.seeding import on_one_thread
 from vqtouch.plugins.tokenizer import TOKENIZER_FILES, tokenizer_digest
 
 FeatureKind = Literal["pooled", "codes"]
 
 
+@on_one_thread  # the families and assignments built on them must not depend on the thread count
 @torch.no_grad()
 def image_features(
     tokenizer: Any, images_B3HW: torch.Tensor, kind: FeatureKind = "pooled", batch_size: int = 32
@@ -54,6 +56,7 @@ def image_features(
     return torch.cat(rows).cpu()
 
 
+@on_one_thread
 def sensor_prototype(features_NF: torch.Tensor, refine_steps: int = 3, keep: float = 0.8) -> torch.Tensor:
     """The prototype (F,) of one sensor's image features: the mean, refined ``refine_steps`` times
     by keeping the ``keep`` fraction of images nearest to it (at least one)."""
