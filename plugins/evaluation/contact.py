@@ -118,6 +118,11 @@ class ContactRegionScores:
         self._psnr: dict[str, Any] = {}
         self._absolute: dict[str, tuple[float, int]] = {}
         self._ssim: dict[str, tuple[float, int]] = {}
+        # Per image: the region's squared error per candidate and its value count, for the bootstrap
+        # of the gaps (:func:`psnr_gap_interval`); and per-pixel sums across images for the spread.
+        self._squared_errors: dict[str, list[float]] = {}
+        self._region_values: list[int] = []
+        self._moments: dict[str, tuple[torch.Tensor, torch.Tensor, int]] = {}
 
     def update(self, candidates: Mapping[str, torch.Tensor], truth_B3HW: torch.Tensor) -> None:
         """Add one batch: each candidate image set against its ground truth (image i against truth i)."""
@@ -129,7 +134,12 @@ class ContactRegionScores:
         self.region_pixels += int(region_BHW.sum())
         self.pixels += region_BHW.numel()
         mask = region_BHW.unsqueeze(1).expand_as(truth)
+        self._region_values += [int(count) for count in mask.flatten(1).sum(dim=1)]
+        self._add_moments(TRUTH_KEY, truth)
         for prefix, predicted in candidates.items():
+            squared = ((predicted.detach().float().cpu().double() - truth.double()) ** 2) * mask
+            self._squared_errors.setdefault(prefix, []).extend(squared.flatten(1).sum(dim=1).tolist())
+            self._add_moments(prefix, predicted.detach().float().cpu())
             predicted_region = predicted.detach().float().cpu()[mask].double()
             psnr = self._psnr.setdefault(prefix, PeakSignalNoiseRatio(data_range=1.0).double())
             total, count = self._absolute.get(prefix, (0.0, 0))
@@ -143,11 +153,37 @@ class ContactRegionScores:
                     self._ssim[prefix] = (ssim_total + float(ssim_map[mask].sum()), ssim_count + int(mask.sum()))
             self._absolute[prefix] = (total, count)
 
+    def _add_moments(self, key: str, images_B3HW: torch.Tensor) -> None:
+        images = images_B3HW.double()
+        total, squares, count = self._moments.get(key, (0.0, 0.0, 0))
+        self._moments[key] = (total + images.sum(dim=0), squares + (images**2).sum(dim=0), count + len(images))
+
+    def _spread(self, key: str) -> float:
+        """The mean over pixels of the standard deviation across images of ``key``'s images."""
+        total, squares, count = self._moments[key]
+        mean = total / count
+        return float((squares / count - mean**2).clamp_min(0).sqrt().mean())
+
     def scores(self) -> dict[str, float]:
-        """The region's share of the pixels and each candidate's contact PSNR and MAE."""
+        """The region's share of the pixels, each candidate's contact PSNR and MAE, the 95% bootstrap
+        interval of the model's contact PSNR gap to each other candidate and the model's output spread
+        (see :data:`OUTPUT_SPREAD_KEY`)."""
+        scores: dict[str, float] = {}
+        if "" in self._moments and self._moments[TRUTH_KEY][2] > 1:
+            truth_spread = self._spread(TRUTH_KEY)
+            if truth_spread > 0:
+                scores[OUTPUT_SPREAD_KEY] = round(self._spread("") / truth_spread, 4)
         if self.region_pixels == 0:
-            return {"contact_fraction": 0.0}
-        scores = {"contact_fraction": round(self.region_pixels / self.pixels, 4)}
+            return {"contact_fraction": 0.0, **scores}
+        scores = {"contact_fraction": round(self.region_pixels / self.pixels, 4), **scores}
+        if "" in self._squared_errors:
+            for prefix in self._squared_errors:
+                if prefix:
+                    low, high = psnr_gap_interval(
+                        self._squared_errors[""], self._squared_errors[prefix], self._region_values, self.max_db
+                    )
+                    scores[gap_interval_key(prefix, "low")] = round(low, 4)
+                    scores[gap_interval_key(prefix, "high")] = round(high, 4)
         for prefix, psnr in self._psnr.items():
             total, count = self._absolute[prefix]
             scores[f"{prefix}contact_psnr"] = round(min(float(psnr.compute()), self.max_db), 4)
@@ -178,6 +214,53 @@ def _ssim_map(predicted_B3HW: torch.Tensor, truth_B3HW: torch.Tensor) -> torch.T
         return_full_image=True,
     )
     return ssim_map
+
+
+#: ``scores()``' key of the model's (the ``""`` candidate's) output spread: the standard deviation
+#: of its images across inputs, averaged over pixels, as a share of the ground truths' own.  Near 0,
+#: the model draws nearly the same image whatever its input (a constant image scores 0).
+OUTPUT_SPREAD_KEY = "output_spread_ratio"
+TRUTH_KEY = "\0truth"
+#: Bootstrap resamples of the held-out images behind the gap intervals (seeded: the same scores
+#: give the same interval).
+BOOTSTRAP_RESAMPLES = 1000
+
+
+def gap_interval_key(prefix: str, end: str) -> str:
+    """The key of the ``end`` (``low`` or ``high``) of the 95% interval of the model's contact PSNR
+    minus candidate ``prefix``'s (``background_`` -> ``contact_psnr_gap_low95_vs_background``)."""
+    return f"contact_psnr_gap_{end}95_vs_{prefix.rstrip('_')}"
+
+
+#: The comparisons a verdict weighs the model against (what drawing without the model gets).
+VERDICT_BASELINE_PREFIXES = ("background_", "retrieval_", "class_mean_")
+#: The scores a report's verdict weighs besides the contact scores themselves: a stage that lists
+#: what its report shows lists these too.
+VERDICT_EVIDENCE = (
+    OUTPUT_SPREAD_KEY,
+    *(gap_interval_key(prefix, end) for prefix in VERDICT_BASELINE_PREFIXES for end in ("low", "high")),
+)
+
+
+def psnr_gap_interval(
+    model_errors: list[float], rival_errors: list[float], values: list[int], max_db: float = 100.0
+) -> tuple[float, float]:
+    """The 95% percentile-bootstrap interval over images of pooled PSNR(model) - PSNR(rival) in dB,
+    from each image's summed squared error on the region and its count of values there: how far the
+    gap could move with another draw of held-out images of the same kind."""
+    model = torch.tensor(model_errors, dtype=torch.float64)
+    rival = torch.tensor(rival_errors, dtype=torch.float64)
+    counts = torch.tensor(values, dtype=torch.float64)
+    generator = torch.Generator().manual_seed(0)
+    draws_RN = torch.randint(len(counts), (BOOTSTRAP_RESAMPLES, len(counts)), generator=generator)
+    total = counts[draws_RN].sum(dim=1).clamp_min(1)
+
+    def psnr(errors: torch.Tensor) -> torch.Tensor:
+        mse = errors[draws_RN].sum(dim=1) / total
+        return (-10 * torch.log10(mse.clamp_min(1e-300))).clamp(max=max_db)
+
+    gaps = psnr(model) - psnr(rival)
+    return float(gaps.quantile(0.025)), float(gaps.quantile(0.975))
 
 
 def contact_region_scores(

@@ -29,7 +29,12 @@ from vqtouch.core.image_size import image_hw
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.core.training import Trainer, apply_ema_weights, collate_samples
-from vqtouch.plugins.evaluation.contact import contact_centroid_errors, contact_region_scores, dataset_background
+from vqtouch.plugins.evaluation.contact import (
+    VERDICT_EVIDENCE,
+    contact_centroid_errors,
+    contact_region_scores,
+    dataset_background,
+)
 from vqtouch.plugins.evaluation.directions import shown_scores
 
 from .training import CodesDataset, GeneratorTask, GeneratorTrainConfig
@@ -710,6 +715,7 @@ SHOWN_SCORES = (
     "background_clip_score",
     "real_clip_score",
     "skipped",
+    *VERDICT_EVIDENCE,
 )
 SAMPLES_CAPTION = (
     "One column per held-out sample: its condition when that is an image (top row), the generated "

@@ -216,11 +216,12 @@ def rebuild_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     return write_reports(run_dir, report, out)
 
 
-#: Marks after a model score in report.md's score tables (explained under each table).
-WORSE_MARK, BETTER_MARK = "✗", "✓"
+#: Marks after a model score in report.md's score tables (explained under each table); unclear: it
+#: beats the background but the stage's verdict finds no clear gain.
+WORSE_MARK, BETTER_MARK, UNCLEAR_MARK = "✗", "✓", "≈"
 
 
-def _markdown_scores(table: Any) -> list[str]:
+def _markdown_scores(table: Any, clear: bool = True) -> list[str]:
     """A stage's scores with comparisons (a :class:`~vqtouch.plugins.report.html.ScoreTable`) as markdown
     table lines: one row per score, the model's column then one per comparison, each model score
     marked by whether it beats the no-contact background (as report.html colours it)."""
@@ -230,7 +231,7 @@ def _markdown_scores(table: Any) -> list[str]:
     lines = ["", "| score | model | " + " | ".join(columns) + " |", "|---" * (2 + len(columns)) + "|"]
     for score, values in table.rows.items():
         better = beats(score, values[""], values.get(BACKGROUND_PREFIX))
-        mark = "" if better is None else f" {BETTER_MARK if better else WORSE_MARK}"
+        mark = "" if better is None else f" {(BETTER_MARK if clear else UNCLEAR_MARK) if better else WORSE_MARK}"
         cells = [
             f"{format_value(values[''])}{mark}",
             *(format_value(values[prefix]) if prefix in values else "-" for prefix in table.columns),
@@ -240,7 +241,8 @@ def _markdown_scores(table: Any) -> list[str]:
     if BACKGROUND_PREFIX in table.columns:
         note += (
             f"; {BETTER_MARK} the model beats the no-contact background, {WORSE_MARK} it is worse than "
-            "the background (a tie counts as worse)"
+            f"the background (a tie counts as worse), {UNCLEAR_MARK} it beats it but the verdict finds no "
+            "clear gain"
         )
     return [*lines, "", f"*{note}.*"]
 
@@ -249,8 +251,8 @@ def _markdown_result(result: Any, title: str) -> list[str]:
     """A stage result (or one of its parts) in markdown: the scores table, the verdict, facts, picture."""
     table = score_table(result)
     facts = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in table.facts.items())
-    lines = _markdown_scores(table)
     verdict = contact_verdict(result)
+    lines = _markdown_scores(table, verdict is None or verdict[0])
     if verdict is not None:
         lines += ["", verdict[1]]
     if facts:

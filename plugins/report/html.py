@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from vqtouch.plugins.evaluation.contact import OUTPUT_SPREAD_KEY, VERDICT_BASELINE_PREFIXES, gap_interval_key
 from vqtouch.plugins.evaluation.directions import LOWER_IS_BETTER, direction_arrow, lower_is_better  # noqa: F401
 
 #: Result keys that describe pictures rather than score anything.
@@ -335,25 +336,84 @@ def score_table(result: Mapping[str, Any]) -> ScoreTable:
     return ScoreTable(rows, columns, facts)
 
 
+#: The baselines a verdict weighs, strongest first found: what drawing without the model gets.
+VERDICT_BASELINES = dict(
+    zip(
+        VERDICT_BASELINE_PREFIXES,
+        ("the no-contact background", "retrieval of the nearest training image", "the class-mean training image"),
+        strict=True,
+    )
+)
+#: The least gap that counts as better, per verdict score: under it a model is "no better than" its
+#: strongest baseline however steady the gap (0.5 dB of contact PSNR is about a 12% lower squared
+#: error on the contact; for a mean absolute error, 5% of the baseline's).
+MIN_VERDICT_GAP = {"contact_psnr": 0.5, "contact_mae": 0.05}
+MIN_VERDICT_GAP_TEXT = {"contact_psnr": "0.5 dB", "contact_mae": "5%"}
+#: A model whose outputs vary across inputs less than this share of the real images' variation
+#: (``output_spread_ratio``) draws about the same image whatever its input: it gets no verdict of
+#: better, whatever its scores.
+IGNORES_INPUT_BELOW = 0.2
+
+
 def contact_verdict(result: Mapping[str, Any]) -> tuple[bool, str] | None:
-    """Whether the model beats the no-contact background on the contact region, and a sentence saying
+    """Whether the model clearly beats every baseline on the contact region, and a sentence saying
     so with the numbers, from the first of :data:`CONTACT_VERDICT_SCORES` the result has with its
-    background; None when it has none.  A tie is not better."""
+    no-contact background; None when it has none.
+
+    Better (True) needs all of: outputs that follow the input (``output_spread_ratio`` at least
+    :data:`IGNORES_INPUT_BELOW`, when measured), a gap to the strongest baseline present
+    (:data:`VERDICT_BASELINES`) of at least :data:`MIN_VERDICT_GAP`, and, when measured, a 95%
+    bootstrap interval of the contact PSNR gap over images that stays above 0.  Otherwise the
+    sentence says which failed: "ignores its input", "no better than ... within noise" or "worse"."""
+    spread = result.get(OUTPUT_SPREAD_KEY)
     for score, name, unit in CONTACT_VERDICT_SCORES:
-        model, background = result.get(score), result.get(BACKGROUND_PREFIX + score)
-        better = beats(score, model, background)
-        if better is None:
+        model = result.get(score)
+        present = {
+            prefix: result[prefix + score]
+            for prefix in VERDICT_BASELINES
+            if beats(score, model, result.get(prefix + score)) is not None
+        }
+        if BACKGROUND_PREFIX not in present:
             continue
+        lower = lower_is_better(score)
+        strongest = (min if lower else max)(present, key=lambda prefix: present[prefix])
+        baseline = present[strongest]
+        gap = baseline - model if lower else model - baseline
         fraction = result.get("contact_fraction")
         share = ""
         if _is_number(fraction):
             share = f" ({fraction:.1%} of pixels)" if 0 < fraction < 0.01 else f" ({fraction:.0%} of pixels)"
-        comparison = "better than" if better else "worse than" if model != background else "no better than"
-        shown = [f"{value:.2f}" if unit == " dB" else format_value(value) for value in (model, background)]
-        return better, (
-            f"On the contact region{share} the model is {comparison} the no-contact background: "
-            f"{name} {shown[0]} vs {shown[1]}{unit}."
-        )
+        shown = [f"{value:.2f}" if unit == " dB" else format_value(value) for value in (model, baseline)]
+        numbers = f"{name} {shown[0]} vs {shown[1]}{unit}"
+        against = VERDICT_BASELINES[strongest]
+        if strongest != BACKGROUND_PREFIX:
+            against += " (the strongest baseline here)"
+        if _is_number(spread) and spread < IGNORES_INPUT_BELOW:
+            return False, (
+                f"The model ignores its input: its outputs vary across inputs {spread:.0%} as much as the "
+                f"real images do (under {IGNORES_INPUT_BELOW:.0%}), so no score of it means much; on the "
+                f"contact region{share} {numbers} for {against}."
+            )
+        low = result.get(gap_interval_key(strongest, "low")) if score == "contact_psnr" else None
+        high = result.get(gap_interval_key(strongest, "high")) if score == "contact_psnr" else None
+        interval = ""
+        if _is_number(low) and _is_number(high):
+            interval = f"; 95% interval of the gap over images {low:+.2f} to {high:+.2f} dB"
+        minimum = MIN_VERDICT_GAP[score] * (abs(baseline) if lower else 1.0)
+        if gap <= 0:
+            comparison = "worse than" if gap < 0 else "no better than"
+            return False, f"On the contact region{share} the model is {comparison} {against}: {numbers}{interval}."
+        if gap < minimum or (_is_number(low) and low <= 0):
+            reason = (
+                f"a gap under the {MIN_VERDICT_GAP_TEXT[score]} minimum"
+                if gap < minimum
+                else "a gap within the noise of the held-out images"
+            )
+            return False, (
+                f"On the contact region{share} the model is no better than {against} within noise: {numbers}, "
+                f"{reason}{interval}."
+            )
+        return True, f"On the contact region{share} the model is better than {against}: {numbers}{interval}."
     return None
 
 
@@ -365,7 +425,10 @@ def _column_name(prefix: str) -> str:
     return prefix.rstrip("_")
 
 
-def _comparison_table(table: ScoreTable) -> str:
+def _comparison_table(table: ScoreTable, clear: bool = True) -> str:
+    """``clear``: the stage's verdict found a clear gain (or gives none); when it did not, a score that
+    beats the background is shown uncoloured, as the verdict's "no better within noise" or "ignores
+    its input" outweighs it."""
     head = "".join(
         f'<th title="{_e(COMPARISON_PREFIXES[prefix])}">{_e(_column_name(prefix))}</th>' for prefix in table.columns
     )
@@ -378,10 +441,10 @@ def _comparison_table(table: ScoreTable) -> str:
         else:
             # Coloured against the background only: that is the comparison a "better" claim must survive.
             verdict = "better" if better else "worse"
-            model_cell = (
-                f'<td class="num {verdict}" title="{verdict} than the no-contact background '
-                f'({_e(format_value(background))}; {_direction_text(score)})">{_e(format_value(model))}</td>'
-            )
+            title = f"{verdict} than the no-contact background ({format_value(background)}; {_direction_text(score)})"
+            if better and not clear:
+                verdict, title = "unclear", title + "; the verdict below finds no clear gain"
+            model_cell = f'<td class="num {verdict}" title="{_e(title)}">{_e(format_value(model))}</td>'
         cells = "".join(
             _value_cell(values[prefix]) if prefix in values else '<td class="num muted">-</td>'
             for prefix in table.columns
@@ -402,7 +465,8 @@ def _comparison_legend(table: ScoreTable) -> str:
     if BACKGROUND_PREFIX in table.columns:
         parts.append(
             '<span class="better">green</span>: the model beats the no-contact background, '
-            '<span class="worse">red</span>: it does not (a tie does not)'
+            '<span class="worse">red</span>: it does not (a tie does not); uncoloured: it does, but the verdict '
+            "finds no clear gain"
         )
     parts += [f"<b>{_e(_column_name(prefix))}</b>: {_e(COMPARISON_PREFIXES[prefix])}" for prefix in table.columns]
     return f'<p class="legend">{"; ".join(parts)}.</p>'
@@ -412,8 +476,8 @@ def _scores_block(result: Mapping[str, Any], skipped: list[tuple[str, str, str]]
     """A stage's scores: the comparison table (one row per score, one column per comparison), the
     contact-region verdict and the other facts as a key/value table."""
     table = score_table(result)
-    parts = [_comparison_table(table)] if table.rows else []
     verdict = contact_verdict(result)
+    parts = [_comparison_table(table, verdict is None or verdict[0])] if table.rows else []
     if verdict is not None:
         better, sentence = verdict
         parts.append(f'<p class="verdict {"better" if better else "worse"}">{_e(sentence)}</p>')

@@ -21,7 +21,12 @@ from vqtouch.core.image_size import image_hw
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.core.training import Trainer
-from vqtouch.plugins.evaluation.contact import contact_region_scores, dataset_background, no_contact_image
+from vqtouch.plugins.evaluation.contact import (
+    VERDICT_EVIDENCE,
+    contact_region_scores,
+    dataset_background,
+    no_contact_image,
+)
 from vqtouch.plugins.evaluation.directions import shown_scores
 
 from .loading import TOKENIZER_FILES, load_tokenizer, reconstruct_all
@@ -117,6 +122,7 @@ SHOWN_SCORES = (
     "samples",
     "evaluation",
     "skipped",
+    *VERDICT_EVIDENCE,
 )
 
 

@@ -1,0 +1,118 @@
+"""Report verdicts that mean something (issue 28, item 1): a green "better" needs a gap to the
+strongest baseline that clears a stated minimum and the held-out images' noise, from a model whose
+outputs follow its input.  The scores come from :class:`ContactRegionScores`; the verdict from the
+report."""
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from vqtouch.plugins.evaluation.contact import (
+    OUTPUT_SPREAD_KEY,
+    ContactRegionScores,
+    gap_interval_key,
+    psnr_gap_interval,
+)
+from vqtouch.plugins.report.demo import UNCLEAR_MARK, _markdown_result
+from vqtouch.plugins.report.html import contact_verdict, render_html
+
+
+def stage_page(result: dict) -> str:
+    report = {"scene": "label-to-touch", "stages": [{"stage": "generator", "status": "ran (1 s)", "result": result}]}
+    return render_html(report, Path("/nonexistent-run"))
+
+
+def presses(count=24, size=32, seed=0):
+    """A flat grey background and ``count`` images of a bright square press at random places."""
+    generator = torch.Generator().manual_seed(seed)
+    background = torch.full((1, 3, size, size), 0.5)
+    truth = background.repeat(count, 1, 1, 1)
+    for image in truth:
+        row, col = torch.randint(0, size - 10, (2,), generator=generator).tolist()
+        image[:, row : row + 10, col : col + 10] += 0.3
+    return truth, background
+
+
+def scores_of(model, truth, background, **others):
+    accumulated = ContactRegionScores(background)
+    accumulated.update({"": model, "background_": background.expand_as(truth), **others}, truth)
+    return accumulated.scores()
+
+
+def test_the_gap_interval_has_closed_forms():
+    errors = [3.0, 1.0, 0.5, 2.0, 8.0]
+    values = [10, 20, 5, 40, 1]
+    assert psnr_gap_interval(errors, errors, values) == (0.0, 0.0)
+    # Ten times less squared error on every image: exactly 10 dB in every resample.
+    low, high = psnr_gap_interval([e / 10 for e in errors], errors, values)
+    assert low == pytest.approx(10.0) and high == pytest.approx(10.0)
+    # Better on some images, worse on others: the interval straddles the pooled gap.
+    low, high = psnr_gap_interval([1.0, 4.0, 0.2, 6.0, 1.0], errors, values)
+    assert low < 0 < high
+
+
+def test_the_output_spread_is_zero_for_a_constant_model_and_one_for_the_truth():
+    truth, background = presses()
+    assert scores_of(truth.mean(0, keepdim=True).expand_as(truth), truth, background)[OUTPUT_SPREAD_KEY] == 0
+    assert scores_of(truth, truth, background)[OUTPUT_SPREAD_KEY] == 1
+    half = 0.5 * truth + 0.25
+    assert scores_of(half, truth, background)[OUTPUT_SPREAD_KEY] == pytest.approx(0.5, abs=1e-4)
+
+
+def test_a_constant_output_model_gets_no_green_box_even_when_it_beats_the_background():
+    truth, background = presses()
+    constant = truth.mean(0, keepdim=True).expand_as(truth)  # a faint smear of every press
+    scores = scores_of(constant, truth, background)
+    assert scores["contact_psnr"] > scores["background_contact_psnr"]
+    better, sentence = contact_verdict(scores)
+    assert not better and sentence.startswith("The model ignores its input: its outputs vary across inputs 0%")
+    page = stage_page(scores)
+    assert 'class="verdict worse"' in page and 'class="verdict better"' not in page
+    assert 'class="num unclear"' in page and 'class="num better"' not in page
+
+
+def test_a_genuinely_better_model_gets_its_green_box():
+    truth, background = presses()
+    noisy = (truth + 0.02 * torch.randn(truth.shape, generator=torch.Generator().manual_seed(1))).clamp(0, 1)
+    scores = scores_of(noisy, truth, background)
+    assert scores[gap_interval_key("background_", "low")] > 10
+    better, sentence = contact_verdict(scores)
+    assert better and "better than the no-contact background" in sentence and "95% interval" in sentence
+    page = stage_page(scores)
+    assert 'class="verdict better"' in page and 'class="num better"' in page
+
+
+def test_a_gap_under_the_minimum_or_within_the_noise_is_no_better():
+    # The demo's 40-step tokenizer: 0.07 dB over the background.
+    tiny = {"contact_fraction": 0.3, "contact_psnr": 25.34, "background_contact_psnr": 25.27}
+    better, sentence = contact_verdict(tiny)
+    assert not better
+    assert "no better than the no-contact background within noise" in sentence and "0.5 dB minimum" in sentence
+    markdown = "\n".join(_markdown_result({**tiny, "psnr": 25.0, "background_psnr": 24.0}, "t"))
+    assert f"25 {UNCLEAR_MARK}" in markdown and "✓" not in markdown.split("\n\n*")[0]
+    # A large mean gap that other held-out images could erase.
+    noisy = {
+        "contact_psnr": 27.0,
+        "background_contact_psnr": 25.0,
+        gap_interval_key("background_", "low"): -0.4,
+        gap_interval_key("background_", "high"): 4.1,
+    }
+    better, sentence = contact_verdict(noisy)
+    assert not better and "within the noise of the held-out images" in sentence and "-0.40 to +4.10" in sentence
+
+
+def test_the_strongest_baseline_decides():
+    # The bundled generator beat the background but lost to the class-mean image.
+    result = {
+        "contact_psnr": 26.33,
+        "background_contact_psnr": 25.0,
+        "class_mean_contact_psnr": 27.49,
+        "ceiling_contact_psnr": 33.0,  # a ceiling is no baseline
+    }
+    better, sentence = contact_verdict(result)
+    assert not better
+    assert (
+        "worse than the class-mean training image (the strongest baseline here): contact PSNR 26.33 vs 27.49"
+        in sentence
+    )
