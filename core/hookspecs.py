@@ -127,12 +127,14 @@ def vqtouch_add_commands(subparsers: argparse._SubParsersAction) -> None:
 @hookspec
 def vqtouch_register_stages(register: Callable[..., None]) -> None:
     """Register pipeline stages: ``register(name, run, *, section=None, needs=(), uses=(),
-    description="", demo=None, makes=())``.
+    description="", demo=None, makes=(), trains=None)``.
 
     ``run(job: vqtouch.core.StageJob) -> dict | None`` does the stage's work; ``section`` is the
     stage's own config model (validated at ``config.<name>``); ``needs``/``uses`` are the slot
-    paths it requires / uses when set; ``makes`` the products it publishes in its run for later
-    stages (``job.publish``, ``job.product``).  See :mod:`vqtouch.core.stages`.
+    paths it requires / uses when set; ``demo`` caps section options for the demo; ``makes`` the
+    products it publishes in its run for later stages (``job.publish``, ``job.product``);
+    ``trains`` the section option holding how long it trains (one of ``demo``'s keys), so the
+    demo's report can say a model trained that briefly.  See :mod:`vqtouch.core.stages`.
     """
 
 

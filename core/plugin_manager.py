@@ -425,6 +425,7 @@ def _stage_register(host: PluginHost, source: PluginSource) -> Any:
         description: str = "",
         demo: Mapping[str, Any] | None = None,
         makes: Iterable[str] = (),
+        trains: str | None = None,
     ) -> None:
         if name in host.stages:
             raise PluginError(
@@ -446,8 +447,13 @@ def _stage_register(host: PluginHost, source: PluginSource) -> Any:
                     f"{other.name!r} ({other.source.describe()}) already makes; a product has one "
                     "maker, so rename one"
                 )
+        if trains is not None and trains not in (demo or {}):
+            raise PluginError(
+                f"{source.describe()}: stage {name!r} trains {trains!r} but its demo caps do not name it; "
+                f"add {trains!r} to demo= so the demo can say when it trained briefly"
+            )
         host.stages[name] = StageEntry(
-            name, run, section, tuple(needs), tuple(uses), description, source, dict(demo or {}), makes
+            name, run, section, tuple(needs), tuple(uses), description, source, dict(demo or {}), makes, trains
         )
 
     return register

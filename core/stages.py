@@ -61,6 +61,10 @@ class StageEntry:
     source: PluginSource
     demo: Mapping[str, Any] = field(default_factory=dict)
     makes: tuple[str, ...] = ()
+    #: The section option that holds how long the stage trains (``"train.steps"``), for a stage
+    #: that trains a model: a run whose value is within the stage's demo cap is marked as briefly
+    #: trained in the demo's report.
+    trains: str | None = None
 
     @property
     def slots(self) -> tuple[str, ...]:

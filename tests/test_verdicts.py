@@ -3,6 +3,7 @@ strongest baseline that clears a stated minimum and the held-out images' noise, 
 outputs follow its input.  The scores come from :class:`ContactRegionScores`; the verdict from the
 report."""
 
+import html
 from pathlib import Path
 
 import pytest
@@ -116,3 +117,30 @@ def test_the_strongest_baseline_decides():
         "worse than the class-mean training image (the strongest baseline here): contact PSNR 26.33 vs 27.49"
         in sentence
     )
+
+
+def test_stages_trained_for_the_demos_length_carry_the_caveat_at_their_top(make_plugin):
+    from vqtouch.core import PluginError, hookimpl, load_plugins
+    from vqtouch.core.config import resolve_config, scale_for_demo
+    from vqtouch.plugins.report.demo import brief_training_caveat, render_report
+
+    host = load_plugins(autoload=False)
+    scene = resolve_config("tour", (), (), host=host)
+    scaled = scale_for_demo(scene, host)
+    caveats = {stage: brief_training_caveat(stage, scaled, host) for stage in scaled.stages}
+    assert {stage for stage, caveat in caveats.items() if caveat} == {"tokenizer", "adapt", "generator"}
+    assert caveats["tokenizer"].startswith("Trained for 40 steps (tokenizer.train.steps), the demo's length")
+    assert not any(brief_training_caveat(stage, scene, host) for stage in scene.stages)  # --full
+
+    entry = {"stage": "tokenizer", "status": "ran (1 s)", "caveat": caveats["tokenizer"], "result": {"psnr": 1.0}}
+    report = {"scene": "tour", "run_dir": "/x", "stages": [entry], "components": []}
+    page = render_html(report, Path("/x"))
+    assert f'<p class="caveat"><b>Trained briefly.</b> {html.escape(caveats["tokenizer"])}</p>' in page
+    assert f"> **Trained briefly.** {caveats['tokenizer']}" in render_report(report)
+
+    @hookimpl
+    def vqtouch_register_stages(register):
+        register("odd", lambda job: None, demo={"steps": 3}, trains="train.steps")
+
+    with pytest.raises(PluginError, match="trains 'train.steps' but its demo caps do not name it"):
+        load_plugins(autoload=False, extra=[make_plugin("odd_stage", vqtouch_register_stages)])

@@ -279,6 +279,7 @@ def vqtouch_register_stages(register):
         needs=("tokenizer.autoencoder", "tokenizer.quantizer", "sensor", "target_sensor"),
         makes=("adapted_tokenizer",),
         demo={"steps": 30, "shots": 20, "eval_images": 16},
+        trains="steps",
         description="Adapt the family tokenizer to the target sensor from a few of its images mixed 1:5 with "
         "family data.",
     )

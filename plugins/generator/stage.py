@@ -757,6 +757,7 @@ def vqtouch_register_stages(register):
         uses=("generator.sampler", "metrics"),
         makes=("generator",),
         demo={"train.steps": 60, "train.checkpoint_every": 60, "train.log_every": 10, "num_samples": 8, "steps": 10},
+        trains="train.steps",
         description="Train a generator over the tokenizer's codes, conditioned on a visual image, a tactile "
         "image, a label or text; then generate the held-out conditions and score them.",
     )

@@ -99,6 +99,24 @@ def _preview_dataset(dataset: TactileDataset, run: RunDir, slot: str, count: int
     }
 
 
+def brief_training_caveat(stage: str, config: ExperimentConfig, host: PluginHost) -> str | None:
+    """What the report says at the top of a stage whose model trained no longer than the stage's demo
+    cap on its training length (the option its registration names in ``trains``); None otherwise."""
+    entry = host.stage(stage)
+    if entry.trains is None:
+        return None
+    value: Any = config.to_dict().get(stage)
+    for part in entry.trains.split("."):
+        value = value.get(part) if isinstance(value, dict) else None
+    if not isinstance(value, int) or value > entry.demo[entry.trains]:
+        return None
+    return (
+        f"Trained for {value} steps ({stage}.{entry.trains}), the demo's length: a model trained this briefly "
+        "draws blobs, so these scores show that the stage runs, not what training buys.  Trained results: "
+        "docs/results.md; `vqtouch demo --full` trains at the scene's length."
+    )
+
+
 def run_demo(config: ExperimentConfig, host: PluginHost, run: RunDir) -> dict[str, Any]:
     """Run every stage of ``config`` in ``run``, then describe each component the stages need.
 
@@ -122,6 +140,9 @@ def run_demo(config: ExperimentConfig, host: PluginHost, run: RunDir) -> dict[st
     for stage in progress(config.stages, desc="stages", unit="stage"):
         outcome = run_stage(stage, assembly, run)
         entry: dict[str, Any] = {"stage": stage, "status": outcome.describe(), "seconds": round(outcome.seconds, 2)}
+        caveat = brief_training_caveat(stage, config, host)
+        if caveat is not None and outcome.status == "ran":
+            entry["caveat"] = caveat
         if outcome.result is not None:
             entry["result"] = outcome.result
         report["stages"].append(entry)
@@ -277,6 +298,8 @@ def render_report(report: dict[str, Any]) -> str:
     for s in report["stages"]:
         if "result" in s:
             lines += ["", f"### {s['stage']}"]
+            if s.get("caveat"):
+                lines += ["", f"> **Trained briefly.** {s['caveat']}"]
             lines += _markdown_result(s["result"], s["stage"])
             for title, part in stage_parts(s["result"]).items():
                 lines += ["", f"#### {title}"]

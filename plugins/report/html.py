@@ -80,6 +80,7 @@ span.better, span.worse { padding: 0 4px; border-radius: 3px; }
 span.direction { color: var(--muted); font-size: 0.85em; }
 p.legend { font-size: 0.8em; color: var(--muted); margin: 0 0 10px; }
 p.verdict { margin: 0 0 8px; padding: 6px 10px; border-left: 4px solid; border-radius: 3px; font-weight: 600; }
+p.caveat { background: #fff8e1; border-left: 4px solid #e0a800; padding: 6px 10px; }
 p.verdict.better { background: #eef8f0; border-color: #2e8b47; color: #17642c; }
 p.verdict.worse { background: #fdf0ef; border-color: #c0392b; color: #9b1c1c; }
 .status { display: inline-block; padding: 0 7px; border-radius: 9px; font-size: 0.85em; font-weight: 600; }
@@ -631,6 +632,8 @@ def _stage_section(
     stage, result = str(entry["stage"]), entry.get("result") or {}
     status = str(entry.get("status", ""))
     parts = [f'<section id="stage-{_e(stage)}"><h2>{_e(stage)} {_status_badge(status)}</h2>']
+    if entry.get("caveat"):
+        parts.append(f'<p class="caveat"><b>Trained briefly.</b> {_e(str(entry["caveat"]))}</p>')
     own_skips = [item for item in skipped if item[0] == f"stage {stage}"]
     row = [_scores_block(result, own_skips)]
     curve = loss_plot(losses.get(stage, {}), f"{stage}: loss per logged step (metrics.jsonl)")

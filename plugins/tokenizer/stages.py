@@ -199,6 +199,7 @@ def vqtouch_register_stages(register):
         uses=("tokenizer.discriminator", "metrics", "sensor"),
         makes=("tokenizer",),
         demo={"train.steps": 40, "train.checkpoint_every": 40, "train.log_every": 10},
+        trains="train.steps",
         description="Train the tactile tokenizer (autoencoder + quantizer [+ GAN]) and score the held-out split.",
     )
     register(
