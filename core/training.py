@@ -142,7 +142,11 @@ class TrainConfig(Section):
         500, ge=1, le=MAX_STEPS, strict=True, description="Write a checkpoint every this many steps."
     )
     log_every: int = Field(
-        50, ge=1, le=MAX_STEPS, strict=True, description="Write metrics.jsonl every this many steps."
+        50,
+        ge=1,
+        le=MAX_STEPS,
+        strict=True,
+        description="Write metrics.jsonl every this many steps, and at the first and the last.",
     )
     max_skipped_steps: int = Field(
         20,
@@ -641,7 +645,8 @@ class Trainer:
                 self.state.step = step + 1
                 images_seen += self.batch_size * self.dist.world
                 scalars = {**scalars, "skipped_steps": float(self.state.skipped_steps)}
-                if self.state.step % self.config.log_every == 0 or self.state.step == self.config.steps:
+                # The first and the last step always: a run shorter than log_every still draws its curve.
+                if self.state.step in (1, self.config.steps) or self.state.step % self.config.log_every == 0:
                     self.state.history.append({"step": self.state.step, **scalars})
                     if self.run is not None and self.dist.is_main:
                         self.run.log_metrics(self.stage, self.state.step, scalars)

@@ -453,3 +453,12 @@ def test_a_resumed_run_continues_the_learning_rate_schedule_exactly(host, tmp_pa
     second.fit()
     for a, b in zip(full.task.modules["model"].parameters(), second.task.modules["model"].parameters()):
         assert torch.equal(a, b)
+
+
+def test_a_run_shorter_than_log_every_still_logs_its_first_and_last_step(host, tmp_path):
+    trainer, _ = make_trainer(host, tmp_path, steps=20, log_every=50, checkpoint_every=50)
+    trainer.fit()
+    assert [entry["step"] for entry in trainer.state.history] == [1, 20]
+    trainer, _ = make_trainer(host, tmp_path / "b", steps=12, log_every=5, checkpoint_every=50)
+    trainer.fit()
+    assert [entry["step"] for entry in trainer.state.history] == [1, 5, 10, 12]

@@ -144,3 +144,20 @@ def test_stages_trained_for_the_demos_length_carry_the_caveat_at_their_top(make_
 
     with pytest.raises(PluginError, match="trains 'train.steps' but its demo caps do not name it"):
         load_plugins(autoload=False, extra=[make_plugin("odd_stage", vqtouch_register_stages)])
+
+
+def test_report_md_gives_a_skip_reason_once_however_many_stages_and_components_skip_it():
+    from vqtouch.plugins.report.demo import render_report
+
+    reason = ("metric 'lpips' needs vgg16-397923af.pth;" + " put it in VQTOUCH_WEIGHTS_DIR." * 10).strip()
+    stages = [
+        {"stage": name, "status": "ran (1 s)", "result": {"psnr": 1.0, "skipped": {"lpips": reason}}}
+        for name in ("tokenizer", "generator", "pretrained")
+    ]
+    components = [{"slot": "metrics[3]", "plugin": "lpips", "status": f"skipped: {reason}"}]
+    report = {"scene": "tour", "run_dir": "/x", "stages": stages, "components": components}
+    markdown = render_report(report)
+    assert markdown.count(reason) == 1
+    assert "- **lpips** (stage tokenizer, stage generator, stage pretrained, component metrics[3])" in markdown
+    assert markdown.count("skipped lpips (reasons under Skipped)") == 3
+    assert render_html(report, Path("/x")).count(html.escape(reason)) == 1

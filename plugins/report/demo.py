@@ -14,6 +14,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -35,12 +36,16 @@ from vqtouch.plugins.evaluation.directions import declared_directions, metric_di
 
 from .html import (
     BACKGROUND_PREFIX,
+    is_skip_key,
     beats,
+    component_status,
     contact_verdict,
     direction_arrow,
     format_value,
     render_html,
     score_table,
+    skipped_groups,
+    skipped_items,
     stage_parts,
 )
 
@@ -271,7 +276,15 @@ def _markdown_scores(table: Any, clear: bool = True) -> list[str]:
 def _markdown_result(result: Any, title: str) -> list[str]:
     """A stage result (or one of its parts) in markdown: the scores table, the verdict, facts, picture."""
     table = score_table(result)
-    facts = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in table.facts.items())
+    # What was skipped is listed once, in the report's Skipped section: here only its names.
+    facts = ", ".join(
+        f"skipped {', '.join(v) if isinstance(v, Mapping) else 'see Skipped'} (reasons under Skipped)"
+        if is_skip_key(k)
+        else f"{k} {v:.4g}"
+        if isinstance(v, float)
+        else f"{k} {v}"
+        for k, v in table.facts.items()
+    )
     verdict = contact_verdict(result)
     lines = _markdown_scores(table, verdict is None or verdict[0])
     if verdict is not None:
@@ -313,7 +326,7 @@ def render_report(report: dict[str, Any]) -> str:
     ]
     for c in report["components"]:
         lines.append(
-            f"| {c['slot']} | {c['plugin'] or '-'} | {c['status']} | {c.get('parameters', '-')} "
+            f"| {c['slot']} | {c['plugin'] or '-'} | {component_status(c)} | {c.get('parameters', '-')} "
             f"| {c.get('checkpoint', '-')} |"
         )
     renders = [c for c in report["components"] if "render" in c]
@@ -336,5 +349,11 @@ def render_report(report: dict[str, Any]) -> str:
         lines += ["", "## Metric sanity (synthetic 64x64 image vs noisy copies)", ""]
         for c in sanity:
             lines.append(f"- `{c['plugin']}`: {json.dumps(c['sanity'])}")
+    grouped = skipped_groups(skipped_items(report))
+    lines += ["", f"## Skipped ({len(grouped)})", ""]
+    if not grouped:
+        lines.append("Nothing was reported as skipped.")
+    for (what, reason), places in grouped.items():
+        lines.append(f"- **{what}** ({', '.join(places)}): {reason}")
     lines += ["", f"Resolved config: `config.json`; environment: `env.json`; run: `{report['run_dir']}`", ""]
     return "\n".join(lines)

@@ -135,7 +135,8 @@ def is_skip_reason(value: Any) -> bool:
     return isinstance(value, str) and value.lower().startswith("skipped:")
 
 
-def _is_skip_key(key: str) -> bool:
+def is_skip_key(key: str) -> bool:
+    """Whether a result key holds what was skipped (``skipped`` or ``<what>_skipped``)."""
     return key == "skipped" or key.endswith("_skipped")
 
 
@@ -320,7 +321,7 @@ def score_table(result: Mapping[str, Any]) -> ScoreTable:
     scores = {
         key: value
         for key, value in result.items()
-        if key not in PICTURE_KEYS and key != PARTS_KEY and not _is_skip_key(key) and _is_score_value(value)
+        if key not in PICTURE_KEYS and key != PARTS_KEY and not is_skip_key(key) and _is_score_value(value)
     }
     rows: dict[str, dict[str, Any]] = {}
     for key in scores:
@@ -492,7 +493,7 @@ def _facts_table(facts: Mapping[str, Any], skipped: list[tuple[str, str, str]]) 
     rows = [
         f"<tr><td>{_e(key)}</td>{_value_cell(value)}</tr>"
         for key, value in facts.items()
-        if not _is_skip_key(key) and not is_skip_reason(value)
+        if not is_skip_key(key) and not is_skip_reason(value)
     ]
     # The reason is in the Skipped section once; here a pointer keeps the table readable.
     rows += [
@@ -680,15 +681,25 @@ def _png_size(data: bytes) -> tuple[int, int]:
     return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
 
 
+def skipped_groups(skipped: list[tuple[str, str, str]]) -> dict[tuple[str, str], list[str]]:
+    """``(what, reason) -> [where, ...]``: one entry per thing skipped for one reason (a metric missing
+    its weights is skipped by every stage that scores), in the order first met."""
+    grouped: dict[tuple[str, str], list[str]] = {}
+    for where, what, reason in skipped:
+        reason = reason.strip()
+        name = what.split(" / ")[-1]
+        if name == "-":  # a component's own skip: the same reason as the stages' skips of it
+            name = next((known for known, said in grouped if said == reason), "-")
+        places = grouped.setdefault((name, reason), [])
+        if where not in places:
+            places.append(where)
+    return grouped
+
+
 def _skipped_section(skipped: list[tuple[str, str, str]]) -> str:
     if not skipped:
         return '<section id="skipped"><h2>Skipped</h2><p>Nothing was reported as skipped.</p></section>'
-    # One row per (what, reason): a metric missing its weights is skipped by every stage that scores.
-    grouped: dict[tuple[str, str], list[str]] = {}
-    for where, what, reason in skipped:
-        places = grouped.setdefault((what.split(" / ")[-1], reason), [])
-        if where not in places:
-            places.append(where)
+    grouped = skipped_groups(skipped)
     rows = "".join(
         f"<tr><td>{_e(', '.join(places))}</td><td>{_e(what)}</td><td>{_e(reason)}</td></tr>"
         for (what, reason), places in grouped.items()
@@ -699,13 +710,19 @@ def _skipped_section(skipped: list[tuple[str, str, str]]) -> str:
     )
 
 
+def component_status(component: Mapping[str, Any]) -> str:
+    """A component's status for the reports' tables: a skip's reason stays in the Skipped section."""
+    status = str(component.get("status", "-"))
+    return "skipped (reason under Skipped)" if is_skip_reason(status) else status
+
+
 def _components_section(report: Mapping[str, Any], run_dir: Path) -> str:
     components = report.get("components", [])
     if not components:
         return ""
     rows = "".join(
         f"<tr><td><code>{_e(c.get('slot', '-'))}</code></td><td>{_e(c.get('plugin') or '-')}</td>"
-        f"<td>{_e(c.get('status', '-'))}</td>{_value_cell(c.get('parameters', '-'))}"
+        f"<td>{_e(component_status(c))}</td>{_value_cell(c.get('parameters', '-'))}"
         f"<td>{_e(c.get('checkpoint', '-'))}</td></tr>"
         for c in components
     )
