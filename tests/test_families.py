@@ -248,3 +248,25 @@ def test_features_and_families_do_not_depend_on_the_thread_count():
     for features, prototypes, families in results[1:]:
         assert torch.equal(features, results[0][0]) and torch.equal(prototypes, results[0][1])
         assert families == results[0][2]
+
+
+def test_the_families_picture_keys_sensors_by_number_and_no_two_labels_overlap():
+    """Variants of one sensor sit on top of each other in the PCA picture: their labels must not."""
+    from types import SimpleNamespace
+
+    from vqtouch.plugins.adaptation.families import families_figure
+
+    generator = torch.Generator().manual_seed(0)
+    centres = torch.tensor([[0.0, 0.0], [0.0, 0.0], [0.01, 0.0], [5.0, 5.0], [5.0, 5.01]])
+    features = [centre + 0.01 * torch.randn(6, 2, generator=generator) for centre in centres]
+    prototypes = torch.stack([part.mean(dim=0) for part in features])
+    names = ["gelsight", "gelsight/v1", "gelsight/v2", "digit", "digit/v1"]
+    unseen = SimpleNamespace(name="mine", verdict="family 0", features=features[0], prototype=prototypes[0])
+    figure = families_figure(names, features, prototypes, [0, 0, 0, 1, 1], "t", [unseen])
+    axes = figure.axes[0]
+    renderer = figure.canvas.get_renderer()
+    boxes = [text.get_window_extent(renderer) for text in axes.texts]
+    assert [text.get_text() for text in axes.texts] == ["1", "2", "3", "4", "5", "mine (unseen: family 0)"]
+    assert not any(a.overlaps(b) for i, a in enumerate(boxes) for b in boxes[i + 1 :])
+    legend = [text.get_text() for text in axes.get_legend().get_texts()]
+    assert legend == ["family 0: 1 gelsight, 2 gelsight/v1, 3 gelsight/v2", "family 1: 4 digit, 5 digit/v1"]

@@ -161,3 +161,16 @@ def test_report_md_gives_a_skip_reason_once_however_many_stages_and_components_s
     assert "- **lpips** (stage tokenizer, stage generator, stage pretrained, component metrics[3])" in markdown
     assert markdown.count("skipped lpips (reasons under Skipped)") == 3
     assert render_html(report, Path("/x")).count(html.escape(reason)) == 1
+
+
+def test_the_held_out_loss_has_an_axis_of_its_own():
+    from vqtouch.plugins.report.html import loss_figure, loss_plot
+
+    curves = {"loss": [(1, 5.0), (10, 3.0), (20, 2.0)], "val_loss": [(10, 0.4), (20, 0.3)]}
+    figure = loss_figure(curves, "t")
+    train_axis, held_out_axis = figure.axes
+    assert train_axis.get_ylabel() == "training loss" and held_out_axis.get_ylabel() == "held-out val_loss"
+    assert [line.get_ydata().tolist() for line in held_out_axis.get_lines()] == [[0.4, 0.3]]
+    assert [line.get_ydata().tolist() for line in train_axis.get_lines()] == [[5.0, 3.0, 2.0]]
+    assert len(loss_figure({"loss": curves["loss"]}, "t").axes) == 1
+    assert loss_plot(curves, "t").startswith(b"\x89PNG") and loss_plot({"loss": [(1, 1.0)]}, "t") is None

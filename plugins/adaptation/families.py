@@ -277,6 +277,110 @@ class UnseenSensor:
     verdict: str
 
 
+#: Labels sit on a pale box so that markers under them do not hide them.
+LABEL_BOX = {"boxstyle": "round,pad=0.15", "facecolor": "white", "edgecolor": "none", "alpha": 0.85}
+
+
+def families_figure(
+    names: list[str],
+    features_by_sensor: list[torch.Tensor],
+    prototypes_SF: torch.Tensor,
+    labels: list[int],
+    title: str,
+    unseen: list[UnseenSensor] = (),
+) -> Any:
+    """A 2-D PCA embedding (fitted on every clustered image feature) of the images (small points)
+    and the prototypes (large markers, coloured by family, numbered); the numbers are keyed to the
+    sensors' names by family in a legend beside the plot, as variants of one sensor sit on top of
+    each other.  Unseen sensors are black stars labelled with where they were assigned.  No two
+    labels overlap (:func:`separate_labels`)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from sklearn.decomposition import PCA
+
+    everything = torch.cat(features_by_sensor).numpy()
+    pca = PCA(n_components=min(2, everything.shape[1], len(everything)), random_state=0).fit(everything)
+    figure = Figure(figsize=(9.5, 6), dpi=110, layout="constrained")
+    FigureCanvasAgg(figure)
+    axes = figure.add_subplot(1, 1, 1)
+    colours = [f"C{label % 10}" for label in labels]
+    for features, colour in zip(features_by_sensor, colours):
+        points = pca.transform(features.numpy())
+        axes.scatter(
+            points[:, 0], points[:, 1] if points.shape[1] > 1 else 0 * points[:, 0], s=6, alpha=0.3, color=colour
+        )
+    texts = []
+    centres = pca.transform(prototypes_SF.numpy())
+    for number, ((x, *rest), colour) in enumerate(zip(centres, colours), start=1):
+        y = rest[0] if rest else 0.0
+        axes.scatter([x], [y], s=120, color=colour, edgecolors="black", zorder=3)
+        texts.append(
+            axes.annotate(
+                str(number), (x, y), textcoords="offset points", xytext=(8, 5), fontsize=8, zorder=6, bbox=LABEL_BOX
+            )
+        )
+    for sensor in unseen:
+        points = pca.transform(sensor.features.numpy())
+        axes.scatter(
+            points[:, 0], points[:, 1] if points.shape[1] > 1 else 0 * points[:, 0], s=6, alpha=0.3, color="black"
+        )
+        x, *rest = pca.transform(sensor.prototype.unsqueeze(0).numpy())[0]
+        y = rest[0] if rest else 0.0
+        axes.scatter([x], [y], s=260, marker="*", color="black", zorder=4)
+        texts.append(
+            axes.annotate(
+                f"{sensor.name} (unseen: {sensor.verdict})",
+                (x, y),
+                textcoords="offset points",
+                xytext=(7, -12),
+                fontsize=8,
+                fontweight="bold",
+                zorder=6,
+                bbox=LABEL_BOX,
+            )
+        )
+    members: dict[int, list[str]] = {}
+    for number, (name, label) in enumerate(zip(names, labels), start=1):
+        members.setdefault(label, []).append(f"{number} {name}")
+    keys = [
+        Line2D(
+            [],
+            [],
+            marker="o",
+            linestyle="",
+            markersize=9,
+            color=f"C{family % 10}",
+            markeredgecolor="black",
+            label=f"family {family}: {', '.join(members[family])}",
+        )
+        for family in sorted(members)
+    ]
+    axes.legend(handles=keys, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, title="sensors", frameon=False)
+    axes.set_xlabel("PCA 1 of the tokenizer features")
+    axes.set_ylabel("PCA 2")
+    axes.set_title(title, fontsize=9)
+    axes.grid(alpha=0.3)
+    separate_labels(figure, texts)
+    return figure
+
+
+def separate_labels(figure: Any, texts: list[Any], gap_px: float = 1.0) -> None:
+    """Move annotation texts down, one line at a time, until none overlaps an earlier one (in drawing
+    order) on the rendered figure."""
+    figure.canvas.draw()  # positions depend on the final layout
+    renderer = figure.canvas.get_renderer()
+    placed: list[Any] = []
+    for text in texts:
+        for _ in range(100):
+            box = text.get_window_extent(renderer)
+            if not any(box.overlaps(other) for other in placed):
+                break
+            x, y = text.get_position()  # offset points
+            text.set_position((x, y - (box.height + gap_px) * 72 / figure.dpi))
+        placed.append(text.get_window_extent(renderer).expanded(1.0, 1.0))
+
+
 def plot_families(
     names: list[str],
     features_by_sensor: list[torch.Tensor],
@@ -286,51 +390,8 @@ def plot_families(
     title: str,
     unseen: list[UnseenSensor] = (),
 ) -> None:
-    """A 2-D PCA embedding (fitted on every clustered image feature) of the images (small points)
-    and the prototypes (large markers, coloured by family, labelled by sensor); unseen sensors are
-    black stars labelled with where they were assigned."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-    from sklearn.decomposition import PCA
-
-    everything = torch.cat(features_by_sensor).numpy()
-    pca = PCA(n_components=min(2, everything.shape[1], len(everything)), random_state=0).fit(everything)
-    figure = Figure(figsize=(7, 6), dpi=110)
-    FigureCanvasAgg(figure)
-    axes = figure.add_subplot(1, 1, 1)
-    colours = [f"C{label % 10}" for label in labels]
-    for features, colour in zip(features_by_sensor, colours):
-        points = pca.transform(features.numpy())
-        axes.scatter(
-            points[:, 0], points[:, 1] if points.shape[1] > 1 else 0 * points[:, 0], s=6, alpha=0.3, color=colour
-        )
-    centres = pca.transform(prototypes_SF.numpy())
-    for (x, *rest), name, colour, label in zip(centres, names, colours, labels):
-        y = rest[0] if rest else 0.0
-        axes.scatter([x], [y], s=120, color=colour, edgecolors="black", zorder=3)
-        axes.annotate(f"{name} (family {label})", (x, y), textcoords="offset points", xytext=(6, 6), fontsize=8)
-    for sensor in unseen:
-        points = pca.transform(sensor.features.numpy())
-        axes.scatter(
-            points[:, 0], points[:, 1] if points.shape[1] > 1 else 0 * points[:, 0], s=6, alpha=0.3, color="black"
-        )
-        x, *rest = pca.transform(sensor.prototype.unsqueeze(0).numpy())[0]
-        y = rest[0] if rest else 0.0
-        axes.scatter([x], [y], s=260, marker="*", color="black", zorder=4)
-        axes.annotate(
-            f"{sensor.name} (unseen: {sensor.verdict})",
-            (x, y),
-            textcoords="offset points",
-            xytext=(6, -12),
-            fontsize=8,
-            fontweight="bold",
-        )
-    axes.set_xlabel("PCA 1 of the tokenizer features")
-    axes.set_ylabel("PCA 2")
-    axes.set_title(title, fontsize=9)
-    axes.grid(alpha=0.3)
-    figure.tight_layout()
-    figure.savefig(path)
+    """Write :func:`families_figure` to ``path``."""
+    families_figure(names, features_by_sensor, prototypes_SF, labels, title, unseen).savefig(path)
 
 
 #: What ``vqtouch cluster`` writes into its output folder (and ``vqtouch adapt`` reads back).

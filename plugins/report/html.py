@@ -530,11 +530,10 @@ def read_losses(run_dir: Path) -> dict[str, dict[str, list[tuple[int, float]]]]:
     return losses
 
 
-def loss_plot(curves: Mapping[str, list[tuple[int, float]]], title: str) -> bytes | None:
-    """A PNG of the training loss (and held-out ``val_loss``) against the step, or None when
-    fewer than two training points were logged (no curve to draw)."""
-    if len(curves.get("loss", [])) < 2:
-        return None
+def loss_figure(curves: Mapping[str, list[tuple[int, float]]], title: str) -> Any:
+    """The matplotlib Figure of :func:`loss_plot`: the training loss on the left axis and, when
+    logged, the held-out ``val_loss`` on a right axis of its own (it is the stage's validation
+    measure, which need not be the training loss's quantity or scale)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -542,25 +541,35 @@ def loss_plot(curves: Mapping[str, list[tuple[int, float]]], title: str) -> byte
     FigureCanvasAgg(figure)
     axes = figure.add_subplot(1, 1, 1)
     steps, values = zip(*curves["loss"])
-    axes.plot(steps, values, marker="o", markersize=3, linewidth=1.5, label="training loss")
+    lines = axes.plot(steps, values, marker="o", markersize=3, linewidth=1.5, label="training loss")
+    axes.set_xlabel("step")
+    axes.set_ylabel("training loss", color="tab:blue")
     if curves.get("val_loss"):
+        held_out = axes.twinx()
         steps, values = zip(*curves["val_loss"])
-        axes.plot(
+        lines += held_out.plot(
             steps,
             values,
             marker="s",
             markersize=5,
             linestyle="--",
             color="tab:orange",
-            label="held-out val_loss (at checkpoints)",
+            label="held-out val_loss (at checkpoints; right axis)",
         )
-    axes.set_xlabel("step")
-    axes.set_ylabel("loss")
+        held_out.set_ylabel("held-out val_loss", color="tab:orange")
     axes.set_title(title, fontsize=10)
     axes.grid(alpha=0.3)
-    axes.legend(fontsize=8)
+    axes.legend(lines, [line.get_label() for line in lines], fontsize=8)
+    return figure
+
+
+def loss_plot(curves: Mapping[str, list[tuple[int, float]]], title: str) -> bytes | None:
+    """A PNG of the training loss (and held-out ``val_loss``, on its own axis) against the step, or
+    None when fewer than two training points were logged (no curve to draw)."""
+    if len(curves.get("loss", [])) < 2:
+        return None
     buffer = io.BytesIO()
-    figure.savefig(buffer, format="png")
+    loss_figure(curves, title).savefig(buffer, format="png")
     return buffer.getvalue()
 
 
