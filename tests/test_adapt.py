@@ -112,6 +112,16 @@ def test_adapt_writes_its_own_tokenizer_whose_header_names_the_family_and_the_sh
     ssim = HOST.build("metric", {"name": "ssim"})
     ssim.update(reconstruct_all(original, held_out), held_out)
     assert summary["before"]["ssim"] == pytest.approx(ssim.compute(), abs=1e-4)
+    # Beside it, the sensor's no-contact render, scored on the same images and on their contact region.
+    flat = HOST.build("sensor_family", json.loads(target)).render(
+        torch.zeros(1, 32, 32), generator=torch.Generator().manual_seed(0)
+    )
+    psnr = HOST.build("metric", {"name": "psnr"})
+    psnr.update(flat.expand_as(held_out), held_out)
+    assert summary["background"] == "the sensor's rendering of no contact"
+    for moment in ("before", "after"):
+        assert summary[moment]["background_psnr"] == pytest.approx(psnr.compute(), abs=1e-3)
+        assert {"contact_psnr", "background_contact_psnr", "contact_fraction"} <= set(summary[moment])
     printed = capsys.readouterr().out
     assert "held-out gelsight/v7 (4 images): SSIM" in printed and "real frames" not in printed  # not a variant's
     assert _adapt(tokenizer_folder, families_folder, out, target) == 2
@@ -205,6 +215,9 @@ def test_adapt_bad_inputs_get_one_line_errors(tokenizer_folder, families_folder,
     )
     summary = json.loads((tmp_path / "out" / "adapt.json").read_text())
     assert summary["forced_family"] and summary["assignment"]["refused"] and summary["family"] == 1
+    # A folder holds no no-contact frame: its background is the per-pixel median of its images.
+    assert summary["background"].startswith("the per-pixel median of")
+    assert {"background_psnr", "contact_psnr", "background_contact_psnr"} <= set(summary["after"])
 
 
 def test_families_from_another_tokenizer_are_refused(families_folder, tmp_path, capsys):

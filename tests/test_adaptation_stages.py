@@ -49,6 +49,8 @@ def test_the_few_shot_scene_clusters_assigns_adapts_and_generates(tmp_path, caps
     assigned = clusters["assignments"]["gelsight/v1"]
     assert stages["cluster"]["result"]["target_family"] == assigned["family"] == stages["adapt"]["result"]["family"]
     assert 0 < stages["cluster"]["result"]["zero_shot_psnr"] < 100
+    adapted = stages["adapt"]["result"]  # each score beside the family tokenizer's and the background's
+    assert {"psnr", "before_psnr", "background_psnr", "contact_psnr", "background_contact_psnr"} <= set(adapted)
     assert not (out / "adapted" / "families").exists()  # the adapt stage reused the cluster stage's families
     header = read_metadata(out / "adapted" / "autoencoder.safetensors")
     assert header["adaptation.shots"] == "4" and header["adaptation.family"] == str(assigned["family"])

@@ -27,6 +27,13 @@ import torch
 
 from vqtouch.core import ConfigError, DatasetError, PluginHost, VqtouchError
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
+from vqtouch.plugins.evaluation.contact import (
+    MAX_BACKGROUND_IMAGES,
+    RENDERED_BACKGROUND,
+    evenly_spaced,
+    median_background,
+    no_contact_image,
+)
 from vqtouch.plugins.tokenizer import TOKENIZER_FILES, tokenizer_digest
 
 from .families import SensorFamilies, folder_of, save_families, sensor_images
@@ -179,6 +186,29 @@ def family_images(
     return torch.cat(chunks), [member["name"] for member in members]
 
 
+def sensor_background(target: str, host: PluginHost, image_size: ImageSize) -> tuple[torch.Tensor, str]:
+    """The unseen sensor's no-contact image (3, H, W) and how it was made: a registered sensor (name
+    or JSON variant) rendering no contact; for a folder, which holds no such frame, the per-pixel
+    median of its images (at most :data:`MAX_BACKGROUND_IMAGES`, evenly spaced: contacts move
+    around, the background stays; :func:`~vqtouch.plugins.evaluation.contact.median_background`, the
+    estimate every stage makes of captured frames)."""
+    from vqtouch.plugins.data.readers import list_images
+
+    path = folder_of(target)
+    if path is None:
+        source = sensor_images(target, host, count=1, image_size=image_size).source  # checks the spec too
+        sensor = host.build("sensor_family", json.loads(source))
+        background = no_contact_image(sensor, torch.zeros(1, 3, *image_hw(image_size)))[0]
+        return background, RENDERED_BACKGROUND
+    files = list_images(path)
+    chosen = [files[index] for index in evenly_spaced(len(files), MAX_BACKGROUND_IMAGES)]
+    images = sensor_images(str(path), host, count=len(chosen), image_size=image_size, files=chosen).images
+    return median_background(images), (
+        f"the per-pixel median of {len(chosen)} of the folder's {len(files)} "
+        "images (the folder holds no no-contact frame)"
+    )
+
+
 def reconstruction_scores(
     tokenizer: Any,
     images_N3HW: torch.Tensor,
@@ -233,8 +263,8 @@ def adapt_tokenizer(
     docstring); writes the adapted tokenizer, ``adapt.json`` and ``before_after.png`` into ``out``
     and returns the summary.  Raises :class:`AdaptationRefused` when the sensor matches no family
     (unless ``settings.family`` names one) or its images hold no contact.  Given the sensor's
-    no-contact image ``background_3HW``, the held-out scores before and after carry the
-    background's and the contact region's (:func:`reconstruction_scores`)."""
+    no-contact image ``background_3HW`` (by default :func:`sensor_background`), the held-out scores
+    before and after carry the background's and the contact region's (:func:`reconstruction_scores`)."""
     from vqtouch.core import atomic_write, resolve_device, save
     from vqtouch.core.images import image_grid, save_png
     from vqtouch.core.training import Trainer
@@ -307,6 +337,9 @@ def adapt_tokenizer(
     if len(mixed_set) < batch_size:
         batch_size = len(mixed_set)  # a handful of shots still trains (one batch = every image)
 
+    background_source = "given by the caller"
+    if background_3HW is None:
+        background_3HW, background_source = sensor_background(target, host, image_size)
     before = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics, background_3HW)
     # Held-out family images (new scenes): what the adaptation keeps of the family, or forgets.
     family_held_out, _ = family_images(
@@ -366,6 +399,7 @@ def adapt_tokenizer(
         "batch_size": batch_size,
         "adversarial": adversarial,
         "seconds": round(seconds, 2),
+        "background": background_source,
         "before": before,
         "after": after,
         "family_held_out": {"images": len(family_held_out), "before": family_before, "after": family_after},

@@ -41,7 +41,6 @@ background as a line) and every trained arm's tokenizer in ``DIR/seed<S>/<arm>-<
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -57,17 +56,11 @@ from vqtouch.plugins.evaluation.records import (
     mean_spread,
     plot_against_count,
 )
-from vqtouch.core.image_size import ImageSize, image_hw, size_text
+from vqtouch.core.image_size import ImageSize, size_text
 from vqtouch.plugins.evaluation.directions import direction_arrow
-from vqtouch.plugins.evaluation.contact import (
-    MAX_BACKGROUND_IMAGES,
-    RENDERED_BACKGROUND,
-    evenly_spaced,
-    median_background,
-    no_contact_image,
-)
 
 from .adapt import (
+    sensor_background,
     AdaptSettings,
     adapt_tokenizer,
     check_same_tokenizer,
@@ -76,7 +69,7 @@ from .adapt import (
     target_images,
 )
 from .evaluation import METRICS, train_fresh_tokenizer
-from .families import SensorFamilies, folder_of, load_families, registered_source, save_families, sensor_images
+from .families import SensorFamilies, folder_of, load_families, registered_source, save_families
 
 SCRATCH, ZERO_SHOT, SHOTS_ALONE, BACKGROUND = "scratch", "zero-shot", "shots alone", "no-contact background"
 #: The held-out scores every arm carries, and its background's under the ``background_`` prefix.
@@ -146,29 +139,6 @@ def held_out_count(target: str, counts: Sequence[int], eval_images: int) -> int:
             f"out to score every arm){hint}"
         )
     return min(eval_images, images - max(counts))
-
-
-def sensor_background(target: str, host: PluginHost, image_size: ImageSize) -> tuple[torch.Tensor, str]:
-    """The unseen sensor's no-contact image (3, H, W) and how it was made: a registered sensor (name
-    or JSON variant) rendering no contact; for a folder, which holds no such frame, the per-pixel
-    median of its images (at most :data:`MAX_BACKGROUND_IMAGES`, evenly spaced: contacts move
-    around, the background stays; :func:`~vqtouch.plugins.evaluation.contact.median_background`, the
-    estimate every stage makes of captured frames)."""
-    from vqtouch.plugins.data.readers import list_images
-
-    path = folder_of(target)
-    if path is None:
-        source = sensor_images(target, host, count=1, image_size=image_size).source  # checks the spec too
-        sensor = host.build("sensor_family", json.loads(source))
-        background = no_contact_image(sensor, torch.zeros(1, 3, *image_hw(image_size)))[0]
-        return background, RENDERED_BACKGROUND
-    files = list_images(path)
-    chosen = [files[index] for index in evenly_spaced(len(files), MAX_BACKGROUND_IMAGES)]
-    images = sensor_images(str(path), host, count=len(chosen), image_size=image_size, files=chosen).images
-    return median_background(images), (
-        f"the per-pixel median of {len(chosen)} of the folder's {len(files)} "
-        "images (the folder holds no no-contact frame)"
-    )
 
 
 def _families(

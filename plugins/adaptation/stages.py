@@ -21,6 +21,7 @@ from pydantic import Field
 from vqtouch.core import Section, Slot, StageJob, StageUnavailable, hookimpl
 from vqtouch.core.checkpoint import is_pretrained, open_pretrained
 from vqtouch.core.runs import MissingCheckpointError
+from vqtouch.plugins.evaluation.contact import VERDICT_EVIDENCE
 from vqtouch.plugins.tokenizer import experiment_metrics, load_tokenizer, reconstruct_all, tokenizer_location
 
 #: Where the stages write inside a run.
@@ -239,9 +240,15 @@ def run_adapt_stage(job: StageJob) -> dict[str, Any]:
         "seconds": summary["seconds"],
         **_tokenizer_note(job),
     }
-    # The adapted tokenizer's scores, each beside the family tokenizer's before adaptation (before_*).
-    result |= {key: summary["after"][key] for key in ("ssim", "psnr")}
-    result |= {f"before_{key}": summary["before"][key] for key in ("ssim", "psnr")}
+    # The adapted tokenizer's scores, each beside the family tokenizer's before adaptation (before_*) and
+    # the sensor's no-contact background (background_*), on the whole image and the contact region.
+    after, before = summary["after"], summary["before"]
+    scores = ("ssim", "psnr", "contact_psnr", "contact_ssim")
+    result |= {key: after[key] for key in scores if key in after}
+    result |= {f"before_{key}": before[key] for key in scores if key in before}
+    result |= {f"background_{key}": after[f"background_{key}"] for key in scores if f"background_{key}" in after}
+    result |= {key: after[key] for key in ("contact_fraction", *VERDICT_EVIDENCE) if key in after}
+    result["background"] = summary["background"]
     if "real_frames" in summary:
         real = summary["real_frames"]
         result |= {
