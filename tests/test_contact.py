@@ -195,6 +195,6 @@ def test_the_tokenizer_stage_scores_captured_frames_without_a_sensor_beside_thei
     spec = json.dumps({"name": "image_folder", "root": str(darker)})
     assert main(["--no-progress", "evaluate", "reconstruction", "--run", str(run.path), "--dataset", spec]) == 0
     evaluated = json.loads(next(run.path.glob("evaluation_*_dataset.json")).read_text())
-    assert evaluated["background"].startswith("the per-pixel median of 16 of 16 ")
+    assert evaluated["background"].startswith("the per-pixel median of 16 of 16 evaluated images")
     assert evaluated["contact_fraction"] == round(share, 4)
     assert evaluated["background_contact_psnr"] == pytest.approx(-10 * math.log10(press**2), abs=1e-3)

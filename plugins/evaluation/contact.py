@@ -69,14 +69,15 @@ def median_background(images_N3HW: torch.Tensor) -> torch.Tensor:
 
 
 def dataset_background(
-    dataset: Any, image_hw: tuple[int, int], max_images: int = MAX_BACKGROUND_IMAGES
+    dataset: Any, image_hw: tuple[int, int], max_images: int = MAX_BACKGROUND_IMAGES, images_are: str = "training"
 ) -> tuple[torch.Tensor | None, str]:
     """The (3, H, W) no-contact image of ``dataset``'s tactile images and how it was made: the
     no-contact render of the dataset's rendering sensor (``dataset.rendering_sensor()``, exact) when
     it renders its images, else the per-pixel median (:func:`median_background`) of at most
     ``max_images`` evenly spaced samples' ``"tactile"`` images.  None, with the reason, for
     captured frames fewer than 2.  Every stage's background comes from here; callers pass the
-    training split, never the held-out images being scored."""
+    training split, never the held-out images being scored; ``images_are`` says what the images
+    are in the description (``training``; ``evaluated`` for a dataset scored whole)."""
     sensor = dataset.rendering_sensor()
     if sensor is not None:
         return no_contact_image(sensor, torch.zeros(1, 3, *image_hw))[0], RENDERED_BACKGROUND
@@ -92,7 +93,7 @@ def dataset_background(
             f"the dataset's images are {tuple(images.shape[-2:])} pixels, not the {tuple(image_hw)} asked for"
         )
     return median_background(images), (
-        f"the per-pixel median of {len(indices)} of {len(dataset)} training images "
+        f"the per-pixel median of {len(indices)} of {len(dataset)} {images_are} images "
         "(captured frames hold no no-contact frame)"
     )
 

@@ -147,7 +147,9 @@ def _evaluate_command(args: argparse.Namespace) -> int:
         evaluated = dataset if args.split == "all" else val_set
     names = args.metrics.split(",") if args.metrics else [m.name for m in config.metrics]
     metrics = {name: assembly.build("metric", name) for name in names}
-    background, background_source = dataset_background(background_images, image_hw(config.data.image_size))
+    background, background_source = dataset_background(
+        background_images, image_hw(config.data.image_size), images_are="evaluated" if args.dataset else "training"
+    )
     scores = evaluate_reconstruction(
         tokenizer, evaluated, metrics, batch_size=config.data.batch_size, background_3HW=background
     )
