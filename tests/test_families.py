@@ -270,3 +270,40 @@ def test_the_families_picture_keys_sensors_by_number_and_no_two_labels_overlap()
     assert not any(a.overlaps(b) for i, a in enumerate(boxes) for b in boxes[i + 1 :])
     legend = [text.get_text() for text in axes.get_legend().get_texts()]
     assert legend == ["family 0: 1 gelsight, 2 gelsight/v1, 3 gelsight/v2", "family 1: 4 digit, 5 digit/v1"]
+
+
+def test_a_sensor_folder_may_be_a_data_render_export_or_class_sub_folders(tmp_path):
+    """`cluster` and `adapt` read any folder the image_folder reader takes: the images directly in it,
+    an export of `vqtouch data render` (index.csv; not its visual images or preview), or one
+    sub-folder per class; a folder with none of them is one line naming the layouts."""
+    from vqtouch.core import DatasetError
+    from vqtouch.core.images import ImageLoader, save_png
+    from vqtouch.plugins.adaptation.families import sensor_folder_files, sensor_images
+
+    export = tmp_path / "export"
+    args = ["--no-progress", "data", "render", "--sensor", "digit", "--n", "6", "--image-size", "32"]
+    assert main([*args, "--out", str(export)]) == 0
+    index = (export / "index.csv").read_text().splitlines()
+    column = index[0].split(",").index("path")
+    expected = [export / row.split(",")[column] for row in index[1:]]
+    assert sensor_folder_files(export, HOST) == expected and all("tactile" in path.parts for path in expected)
+    loaded = sensor_images(str(export), HOST, count=100, image_size=32).images
+    loader = ImageLoader(size=32)
+    assert torch.equal(loaded, torch.stack([loader.load(path) for path in expected]))
+
+    classes = tmp_path / "classes"
+    for name, images in (("sphere", 2), ("edge", 3)):
+        (classes / name / "rec1").mkdir(parents=True)
+        for index in range(images):
+            save_png(torch.rand(3, 32, 32), classes / name / "rec1" / f"{index}.png")
+    files = sensor_folder_files(classes, HOST)
+    assert [path.relative_to(classes).as_posix() for path in files] == [
+        "edge/rec1/0.png",
+        "edge/rec1/1.png",
+        "edge/rec1/2.png",
+        "sphere/rec1/0.png",
+        "sphere/rec1/1.png",
+    ]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DatasetError, match="no image files .* no index.csv and no class sub-folders"):
+        sensor_folder_files(tmp_path / "empty", HOST)

@@ -212,37 +212,16 @@ def test_a_folder_target_too_small_for_n_is_refused_before_anything_trains(
     error = capsys.readouterr().err
     assert error.count("\n") == 1
     assert f"vqtouch: error: --n 8: the folder {folder} holds 8 images; the largest usable --n is 7" in error
-    assert "sub-folders" not in error  # the folder holds its frames itself: no hint
     assert trainer_calls == [] and not out.exists()
-    # An exported dataset (`vqtouch data render`) keeps its frames one level down: the error says where.
-    exported = tmp_path / "exported"
-    (exported / "tactile").mkdir(parents=True)
-    folder.rename(exported / "tactile" / "frames")
-    assert (
-        main(
-            [
-                "evaluate",
-                "fewshot",
-                "--run",
-                str(tokenizer_run),
-                "--out",
-                str(out),
-                "--target",
-                str(exported),
-                "--n",
-                "4",
-                "--families",
-                str(families_folder),
-            ]
-        )
-        == 2
-    )
+    # The same frames one level down (a class sub-folder, as `vqtouch data render` or a labelled
+    # dataset keeps them) are read through the image_folder reader: the same 8 images are counted.
+    nested = tmp_path / "nested"
+    (nested / "tactile").mkdir(parents=True)
+    folder.rename(nested / "tactile" / "frames")
+    args = ["evaluate", "fewshot", "--run", str(tokenizer_run), "--out", str(out), "--target", str(nested)]
+    assert main([*args, "--n", "4", "8", "--families", str(families_folder)]) == 2
     error = capsys.readouterr().err
-    assert error.count("\n") == 1 and "holds 0 images" in error
-    assert (
-        f"not its sub-folders (tactile): point --target at the one holding its frames, e.g. {exported / 'tactile'}"
-        in error
-    )
+    assert error.count("\n") == 1 and f"the folder {nested} holds 8 images; the largest usable --n is 7" in error
     assert trainer_calls == [] and not out.exists()
 
 

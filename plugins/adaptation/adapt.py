@@ -36,7 +36,7 @@ from vqtouch.plugins.evaluation.contact import (
 )
 from vqtouch.plugins.tokenizer import TOKENIZER_FILES, tokenizer_digest
 
-from .families import SensorFamilies, folder_of, save_families, sensor_images
+from .families import SensorFamilies, folder_of, save_families, sensor_folder_files, sensor_images
 
 #: What an adaptation writes into its output folder besides the tokenizer files (the families
 #: only when it fitted them itself).
@@ -133,9 +133,7 @@ def target_images(
     """
     path = folder_of(spec)
     if path is not None:
-        from vqtouch.plugins.data.readers import list_images
-
-        files = list_images(path)
+        files = sensor_folder_files(path, host)
         if len(files) < 2:
             raise DatasetError(
                 f"{path}: {len(files)} image(s); adaptation needs the shots plus at least one "
@@ -192,15 +190,13 @@ def sensor_background(target: str, host: PluginHost, image_size: ImageSize) -> t
     median of its images (at most :data:`MAX_BACKGROUND_IMAGES`, evenly spaced: contacts move
     around, the background stays; :func:`~vqtouch.plugins.evaluation.contact.median_background`, the
     estimate every stage makes of captured frames)."""
-    from vqtouch.plugins.data.readers import list_images
-
     path = folder_of(target)
     if path is None:
         source = sensor_images(target, host, count=1, image_size=image_size).source  # checks the spec too
         sensor = host.build("sensor_family", json.loads(source))
         background = no_contact_image(sensor, torch.zeros(1, 3, *image_hw(image_size)))[0]
         return background, RENDERED_BACKGROUND
-    files = list_images(path)
+    files = sensor_folder_files(path, host)
     chosen = [files[index] for index in evenly_spaced(len(files), MAX_BACKGROUND_IMAGES)]
     images = sensor_images(str(path), host, count=len(chosen), image_size=image_size, files=chosen).images
     return median_background(images), (

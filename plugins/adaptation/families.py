@@ -91,11 +91,10 @@ def sensor_images(
     (scene seed ``seed``)."""
     from vqtouch.core import BuildContext
     from vqtouch.core.images import ImageLoader
-    from vqtouch.plugins.data.readers import list_images
 
     path = folder_of(spec)
     if path is not None:
-        files = files if files is not None else list_images(path)[:count]
+        files = files if files is not None else sensor_folder_files(path, host)[:count]
         if not files:
             raise DatasetError(f"{path}: no image files (png, jpg, ...) in this folder")
         check_one_resolution(path, files)
@@ -123,6 +122,32 @@ def sensor_images(
     )
     images = dataset.render_batch(list(range(count)))["tactile"]
     return SensorImages(sensor_label(config), json.dumps(config, sort_keys=True), images)
+
+
+#: The index ``vqtouch data render`` writes beside its tactile/ and visual/ folders.
+EXPORT_INDEX = "index.csv"
+
+
+def sensor_folder_files(path: Path, host: PluginHost) -> list[Path]:
+    """The image files of a sensor's folder, in a stable order, read as the ``image_folder`` reader
+    reads it: the tactile images an ``index.csv`` lists (what ``vqtouch data render`` writes: its
+    visual images and preview beside them are not the sensor's); else the images directly in the
+    folder (natural order); else one sub-folder per class, read recursively.  A folder with none of
+    them is a one-line DatasetError naming the layouts read."""
+    from vqtouch.plugins.data.readers import list_images
+
+    options = {"name": "image_folder", "root": str(path)}
+    if (path / EXPORT_INDEX).is_file():
+        options["csv"] = EXPORT_INDEX
+    elif direct := list_images(path):
+        return direct
+    elif not any(sub.is_dir() and not sub.name.startswith(".") for sub in path.iterdir()):
+        raise DatasetError(
+            f"{path}: no image files (png, jpg, ...) in this folder, no {EXPORT_INDEX} and no class sub-folders; "
+            "give the folder that holds the sensor's images"
+        )
+    dataset = host.build("dataset", options)
+    return [dataset.base / record.tactile for record in dataset.records]
 
 
 def folder_of(spec: str) -> Path | None:

@@ -69,7 +69,14 @@ from .adapt import (
     target_images,
 )
 from .evaluation import METRICS, train_fresh_tokenizer
-from .families import SensorFamilies, folder_of, load_families, registered_source, save_families
+from .families import (
+    SensorFamilies,
+    folder_of,
+    load_families,
+    registered_source,
+    save_families,
+    sensor_folder_files,
+)
 
 SCRATCH, ZERO_SHOT, SHOTS_ALONE, BACKGROUND = "scratch", "zero-shot", "shots alone", "no-contact background"
 #: The held-out scores every arm carries, and its background's under the ``background_`` prefix.
@@ -115,28 +122,19 @@ def check_counts(counts: Sequence[int]) -> list[int]:
     return sorted(counts)
 
 
-def held_out_count(target: str, counts: Sequence[int], eval_images: int) -> int:
+def held_out_count(target: str, counts: Sequence[int], eval_images: int, host: PluginHost) -> int:
     """How many held-out images score every arm: ``eval_images``, or for a folder as many as the
     largest N leaves (its shuffle's last ones are held out; every N must leave the same ones).
     A one-line ConfigError when the folder cannot spare the largest N plus one held-out image."""
-    from vqtouch.plugins.data.readers import list_images
-
     path = folder_of(target)
     if path is None:
         return eval_images
-    images = len(list_images(path))
+    images = len(sensor_folder_files(path, host))
     if max(counts) + 1 > images:
         usable = f"the largest usable --n is {images - 1}" if images > 1 else "few-shot needs at least 2 images"
-        deeper = [sub.name for sub in sorted(path.iterdir()) if sub.is_dir() and list_images(sub, recursive=True)]
-        hint = (
-            f"; the sensor's images are read from the folder itself, not its sub-folders ({', '.join(deeper)}): "
-            f"point --target at the one holding its frames, e.g. {path / deeper[0]}"
-            if deeper
-            else ""
-        )
         raise ConfigError(
             f"--n {max(counts)}: the folder {path} holds {images} images; {usable} (the rest are held "
-            f"out to score every arm){hint}"
+            "out to score every arm)"
         )
     return min(eval_images, images - max(counts))
 
@@ -356,7 +354,7 @@ def evaluate_fewshot(
     scratch_steps = scratch_steps or config.tokenizer.train.steps
     tokenizer, folder = load_tokenizer(run, host)
     image_size = tokenizer.autoencoder.vqtouch_spec.context.image_size
-    held_out = held_out_count(target, counts, eval_images)  # before anything trains or renders
+    held_out = held_out_count(target, counts, eval_images, host)  # before anything trains or renders
     # One scoring batch for every arm: the contact region's noise estimate is made per batch, so the
     # arms' regions (and the background's scores) are the same pixels only when the batches are.  It
     # is the run's batch, or the smallest N when that is smaller (the fine-tuning batch then too).
