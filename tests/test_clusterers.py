@@ -82,3 +82,39 @@ def test_degenerate_sets_and_bad_input(name):
         HOST.build("clusterer", name).predict(torch.zeros(2, 4))
     with pytest.raises(ValueError, match="features have 2 dimensions; the families were fitted on 4"):
         clusterer.predict(torch.zeros(1, 2))
+
+
+def test_a_family_count_silhouette_cannot_settle_is_said_with_the_fix():
+    """Three distinct sensors alone: silhouette can score 2 families, never 3, so it merges two
+    designs; close silhouettes are uncertain too; a clear count and a given one carry no note."""
+    from vqtouch.plugins.adaptation.families import cluster_prototypes
+
+    three = torch.tensor([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]], dtype=torch.float64)
+    clusterer = HOST.build("clusterer", {"name": "kmeans", "num_families": 0, "max_families": 6})
+    result = cluster_prototypes(["gelsight", "gelsight_mini", "digit"], three, clusterer)
+    assert len(result["families"]) == 2 and result["family_count"]["silhouette"] == {2: pytest.approx(0.0976, abs=1e-3)}
+    note = result["family_count"]["uncertain"]
+    assert note.startswith("family count uncertain: with 3 distinct sensors the silhouette can compare 2 to 2")
+    assert "pass --families K" in note
+
+    generator = torch.Generator().manual_seed(0)
+    centres = torch.tensor([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]], dtype=torch.float64)
+    variants = torch.cat(
+        [centre + 0.1 * torch.randn(4, 2, generator=generator, dtype=torch.float64) for centre in centres]
+    )
+    names = [f"s{i}" for i in range(len(variants))]
+    clear = cluster_prototypes(names, variants, HOST.build("clusterer", {"name": "kmeans", "num_families": 0}))
+    assert len(clear["families"]) == 3 and "uncertain" not in clear["family_count"]
+
+    # Three pairs, two of them 2.0 apart: 2 families score 0.857, 3 families 0.810.
+    close = torch.tensor([[0, 0], [0, 0.5], [0, 2.0], [0, 2.5], [8, 0], [8, 0.5]], dtype=torch.float64)
+    kmeans = HOST.build("clusterer", {"name": "kmeans", "num_families": 0})
+    result = cluster_prototypes([f"c{i}" for i in range(6)], close, kmeans)
+    assert len(result["families"]) == 2
+    assert result["family_count"]["uncertain"] == (
+        "family count uncertain: silhouette 0.857 for 2 families, 0.810 for 3 (within 0.05); "
+        "pass --families K (cluster.clusterer.num_families in a scene) to set the count"
+    )
+
+    given = cluster_prototypes(["a", "b", "c"], three, HOST.build("clusterer", {"name": "kmeans", "num_families": 3}))
+    assert given["family_count"] == {"chosen_by": "given"}

@@ -45,6 +45,9 @@ class FamilyClusterer(Clusterer):
         super().__init__()
         self.options = options
         self.register_buffer("centroids_KF", torch.zeros(0, 0, dtype=torch.float64))
+        #: How the last fit chose its family count: ``given``, or the silhouette of each count it
+        #: scored and how many distinct rows there were (:func:`family_count_note` reads it).
+        self.count_choice: dict[str, Any] = {}
 
     @property
     def num_families(self) -> int:
@@ -77,8 +80,16 @@ class FamilyClusterer(Clusterer):
                     f"feature(s); set num_families <= {distinct}, or 0 to choose by silhouette"
                 )
             labels = self._labels(features.numpy(), self.options.num_families)
+            self.count_choice = {"chosen_by": "given"}
         else:
-            labels = self._best_by_silhouette(features.numpy(), min(self.options.max_families, distinct - 1))
+            largest = min(self.options.max_families, distinct - 1)
+            labels = self._best_by_silhouette(features.numpy(), largest)
+            self.count_choice = {
+                "chosen_by": "silhouette",
+                "silhouette": dict(self._silhouettes),
+                "distinct_rows": distinct,
+                "max_families": self.options.max_families,
+            }
         labels_N = _first_appearance_order(torch.as_tensor(labels, dtype=torch.long))
         count = int(labels_N.max()) + 1 if rows else 0
         centroids = torch.stack([features[labels_N == family].mean(dim=0) for family in range(count)])
@@ -91,6 +102,7 @@ class FamilyClusterer(Clusterer):
         import numpy as np
         from sklearn.metrics import silhouette_score
 
+        self._silhouettes: dict[int, float] = {}
         if largest < 2:
             return np.zeros(len(features), dtype=np.int64)
         best, best_score = None, -np.inf
@@ -99,6 +111,7 @@ class FamilyClusterer(Clusterer):
             if len(set(labels.tolist())) < 2:
                 continue
             score = silhouette_score(features, labels)
+            self._silhouettes[count] = round(float(score), 4)
             if score > best_score + 1e-12:  # ties keep the fewer families
                 best, best_score = labels, score
         return best if best is not None else np.zeros(len(features), dtype=np.int64)

@@ -79,6 +79,9 @@ def _cluster_command(args: argparse.Namespace) -> int:
     save_families(families, out, host, {"assignments": assignments}, plotted)
     for index, members in enumerate(families.summary["families"]):
         print(f"family {index}: {', '.join(members)}")
+    uncertain = families.summary.get("family_count", {}).get("uncertain")
+    if uncertain:
+        print(f"note: {uncertain}")
     for name, assigned in assignments.items():
         print(f"unseen {name}: {describe_assignment(assigned)}")
     print(f"-> {out} (cluster.json, clusterer.safetensors, families.png)")

@@ -223,6 +223,37 @@ def family_sensor_specs(
     return specs
 
 
+#: A family count chosen by silhouette is uncertain when another count scores within this of it.
+SILHOUETTE_MARGIN = 0.05
+
+
+def family_count_note(choice: dict[str, Any], chosen: int) -> str | None:
+    """Why a family count chosen by silhouette (``clusterer.count_choice``) may be wrong, and how to
+    fix it; None when it was given or clearly best.  Silhouette cannot score every sensor as its own
+    family, so with as many sensors as the largest count tried (a few sensors and no variants of
+    them) three distinct designs can only come out as two families."""
+    if choice.get("chosen_by") != "silhouette":
+        return None
+    fix = "pass --families K (cluster.clusterer.num_families in a scene) to set the count"
+    scores = {int(count): score for count, score in choice.get("silhouette", {}).items()}
+    distinct = choice.get("distinct_rows", 0)
+    if distinct >= 2 and distinct - 1 < choice.get("max_families", 0) and chosen == distinct - 1:
+        return (
+            f"family count uncertain: with {distinct} distinct sensors the silhouette can compare 2 to "
+            f"{distinct - 1} families, never {distinct} (each sensor its own), and chose {chosen}; add variants "
+            f"of each sensor (a scene's cluster.variants_per_family) or {fix}"
+        )
+    rivals = {count: score for count, score in scores.items() if count != chosen}
+    if chosen in scores and rivals:
+        runner_up = max(rivals, key=lambda count: rivals[count])
+        if scores[chosen] - rivals[runner_up] < SILHOUETTE_MARGIN:
+            return (
+                f"family count uncertain: silhouette {scores[chosen]:.3f} for {chosen} families, "
+                f"{rivals[runner_up]:.3f} for {runner_up} (within {SILHOUETTE_MARGIN}); {fix}"
+            )
+    return None
+
+
 def cluster_prototypes(names: list[str], prototypes_SF: torch.Tensor, clusterer: Any) -> dict[str, Any]:
     """Families of the sensors' prototypes (``clusterer`` is fitted here): each sensor's family, the
     members of each family, the family distance matrix D(C_i, C_j) = ||mean(C_i) - mean(C_j)||,
@@ -233,7 +264,10 @@ def cluster_prototypes(names: list[str], prototypes_SF: torch.Tensor, clusterer:
     distances = torch.cdist(centroids, centroids)
     to_families = clusterer.distances(prototypes_SF)
     spreads = within_family_spread(prototypes_SF, labels, centroids)
+    choice = dict(getattr(clusterer, "count_choice", {}) or {})
+    note = family_count_note(choice, clusterer.num_families)
     return {
+        "family_count": {**choice, **({"uncertain": note} if note else {})},
         "within_family_spread": [round(value, 6) for value in spreads],
         "refusal_threshold": round(refusal_threshold(spreads, centroids), 6),
         "families": [

@@ -162,6 +162,9 @@ def run_cluster_stage(job: StageJob) -> dict[str, Any]:
         "members": "; ".join(", ".join(members) for members in families.summary["families"]),
         **_tokenizer_note(job),
     }
+    uncertain = families.summary.get("family_count", {}).get("uncertain")
+    if uncertain:
+        result["family_count_note"] = uncertain
     extra: dict[str, Any] = {}
     plotted = []
     if target is not None:
