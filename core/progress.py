@@ -1,4 +1,6 @@
-"""Progress bars: tqdm, off when output is not a terminal or when the user asks.
+"""Progress bars: tqdm on a terminal; one plain line at least every 30 s when output is redirected
+(a log file or a pipe: a long stage still shows it is alive, without a redrawn bar's noise); off
+when the user asks.
 
 Set ``VQTOUCH_NO_PROGRESS=1`` (or pass ``--no-progress`` to the CLI) to disable bars.
 """
@@ -6,8 +8,9 @@ Set ``VQTOUCH_NO_PROGRESS=1`` (or pass ``--no-progress`` to the CLI) to disable 
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Iterable
-from typing import Any, TypeVar
+from typing import IO, Any, TypeVar
 
 from tqdm.auto import tqdm
 
@@ -30,17 +33,48 @@ def progress_enabled() -> bool | None:
     return None
 
 
+#: With output redirected, a bar prints its first line after this many seconds and then at most
+#: one line per this many seconds (at its updates); shorter bars print nothing.
+REDIRECTED_INTERVAL_S = 30.0
+
+
+class _LineWriter:
+    """What tqdm writes, as whole lines: tqdm redraws a bar with a carriage return, which in a log
+    file piles every state onto one line; each refresh becomes a line of its own instead."""
+
+    def __init__(self, stream: IO[str]) -> None:
+        self.stream = stream
+        self._pending = ""
+
+    def write(self, text: str) -> None:
+        state = text.replace("\r", "").strip()
+        if state:
+            self._pending = state
+
+    def flush(self) -> None:
+        if self._pending:
+            self.stream.write(self._pending + "\n")
+            self.stream.flush()
+            self._pending = ""
+
+
 def progress(
-    iterable: Iterable[T] | None = None, *, total: int | None = None, desc: str = "", unit: str = "it", **kwargs: Any
+    iterable: Iterable[T] | None = None,
+    *,
+    total: int | None = None,
+    desc: str = "",
+    unit: str = "it",
+    stream: IO[str] | None = None,
+    **kwargs: Any,
 ) -> Any:
-    """A tqdm bar over ``iterable`` that respects the global and environment switches."""
-    enabled = progress_enabled()
-    return tqdm(
-        iterable,
-        total=total,
-        desc=desc,
-        unit=unit,
-        dynamic_ncols=True,
-        disable=True if enabled is False else None,
-        **kwargs,
-    )
+    """A tqdm bar over ``iterable`` on ``stream`` (standard error) that respects the global and
+    environment switches: a redrawn bar on a terminal, a line every :data:`REDIRECTED_INTERVAL_S`
+    when the stream is not one."""
+    stream = stream if stream is not None else sys.stderr
+    if progress_enabled() is False:
+        return tqdm(iterable, total=total, desc=desc, unit=unit, disable=True, **kwargs)
+    if not getattr(stream, "isatty", lambda: False)():
+        options = {"mininterval": REDIRECTED_INTERVAL_S, "delay": REDIRECTED_INTERVAL_S, "ascii": True, "ncols": 100}
+        # The redirected pacing wins over a caller's terminal-minded delay or interval.
+        return tqdm(iterable, total=total, desc=desc, unit=unit, file=_LineWriter(stream), **(kwargs | options))
+    return tqdm(iterable, total=total, desc=desc, unit=unit, dynamic_ncols=True, file=stream, **kwargs)
