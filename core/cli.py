@@ -28,7 +28,7 @@ from .errors import ConfigError, VqtouchError, VqtouchWarning, one_line
 from .plugin_manager import PluginHost, load_plugins
 from .images import greyscale_allowed
 from .progress import disable_progress
-from .seeding import SEED_MAX
+from .seeding import SEED_MAX, command_threads
 from .stages import StageOutcome, empty_slot_reason, missing_slots
 
 
@@ -336,6 +336,12 @@ def build_parser(host: PluginHost) -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"vqtouch {__version__}")
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars (also VQTOUCH_NO_PROGRESS=1)")
+    parser.add_argument(
+        "--threads",
+        type=non_negative_int,
+        help="torch CPU threads (default: the free cores; 1 when the load exceeds the cores, said in one "
+        "line; 0: torch's default; also VQTOUCH_THREADS)",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     plugins = sub.add_parser("plugins", help="list every registered plugin, its kind, package and version")
@@ -513,7 +519,13 @@ def _main(argv: list[str], debug: bool) -> int:
             parser.print_help()
             return 2
         args.argv = ["vqtouch", *argv]
-        with _sigterm_interrupts(), greyscale_allowed(bool(getattr(args, "allow_greyscale", False))):
+        with (
+            _sigterm_interrupts(),
+            greyscale_allowed(bool(getattr(args, "allow_greyscale", False))),
+            command_threads(args.threads) as busy,
+        ):
+            if busy:
+                print(f"vqtouch: note: {busy}", file=sys.stderr, flush=True)
             status = int(args.handler(args) or 0)
         sys.stdout.flush()  # a reader that went away shows here, not in the flush at exit
         return status

@@ -13,6 +13,8 @@ from typing import Any, TypeVar
 import numpy as np
 import torch
 
+from .errors import ConfigError
+
 #: The largest seed: NumPy takes seeds below 2**32, and the seeds vqtouch derives from one
 #: (``seed * 1_000_003 + index`` for each generated image, ...) then stay within 64 bits.
 SEED_MAX = 2**32 - 1
@@ -86,3 +88,79 @@ def on_one_thread(function: _F) -> _F:
             return function(*args, **kwargs)
 
     return wrapper  # type: ignore[return-value]
+
+
+#: ``VQTOUCH_THREADS``: torch's CPU threads for a command (as ``--threads``): a number, ``auto`` (the
+#: default: fewer when the CPU is busy) or ``0`` (torch's own default, whatever the load).
+ENV_THREADS = "VQTOUCH_THREADS"
+
+
+def available_cores() -> int:
+    """The CPU cores this process may run on (its affinity, else the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        return os.cpu_count() or 1
+
+
+def busy_cpu_threads(cores: int, load: float, wanted: int) -> tuple[int, str | None]:
+    """The threads to run on given the load (:func:`current_load`), and a note when it is not ``wanted``
+    (torch's default): with the load above the cores, every extra OpenMP thread spins on a shared
+    core and slows every process on it (a 2-minute demo took 39 minutes beside five other jobs),
+    so the cores left free (rounded), at least one."""
+    threads = max(1, min(wanted, int(cores - load + 0.5)))
+    if threads >= wanted:
+        return wanted, None
+    return threads, (
+        f"the CPU is busy (load {load:.1f} on {cores} cores): running on {threads} thread{'s' if threads > 1 else ''} "
+        f"instead of {wanted}; --threads N (or {ENV_THREADS}=N) to choose"
+    )
+
+
+def current_load(samples: int = 5, interval_s: float = 0.02) -> float:
+    """How many other tasks want a CPU now: the median over a few samples of the runnable tasks
+    Linux counts in /proc/loadavg, less this one.  The 1-minute load average lags a minute behind
+    (right after ``make test`` it still says busy); it is the fallback elsewhere."""
+    import statistics
+    import time
+
+    counts = []
+    try:
+        for index in range(samples):
+            if index:
+                time.sleep(interval_s)
+            with open("/proc/loadavg", encoding="ascii") as handle:
+                counts.append(int(handle.read().split()[3].split("/")[0]) - 1)
+    except (OSError, ValueError, IndexError):
+        try:
+            return os.getloadavg()[0]
+        except (AttributeError, OSError):  # no load average here (Windows)
+            return 0.0
+    return float(statistics.median(counts))
+
+
+@contextlib.contextmanager
+def command_threads(requested: str | int | None) -> Iterator[str | None]:
+    """Torch's CPU threads while a command runs, restored afterwards; yields the note to print when
+    the load chose fewer.  ``requested``: ``--threads`` (a number), else ``VQTOUCH_THREADS``, else
+    ``auto`` (:func:`busy_cpu_threads`); ``0``: leave torch's default."""
+    value = requested if requested is not None else os.environ.get(ENV_THREADS, "auto").strip() or "auto"
+    before = torch.get_num_threads()
+    note = None
+    if str(value) == "auto":
+        threads, note = busy_cpu_threads(available_cores(), current_load(), before)
+    else:
+        try:
+            threads = int(value)
+        except ValueError:
+            raise ConfigError(
+                f"{ENV_THREADS}={value!r}: give a number of threads, 0 (torch's default) or auto"
+            ) from None
+        if threads < 0:
+            raise ConfigError(f"{ENV_THREADS}={value!r}: give a number of threads >= 0")
+        threads = threads or before
+    torch.set_num_threads(threads)
+    try:
+        yield note
+    finally:
+        torch.set_num_threads(before)

@@ -14,6 +14,9 @@ import pytest
 
 os.environ["VQTOUCH_DISABLE_PLUGIN_AUTOLOAD"] = "1"
 os.environ["VQTOUCH_NO_PROGRESS"] = "1"
+# The load-aware thread default would print a note (and change timings) whenever the machine running
+# the suite is busy; tests/test_threads.py turns it back on.
+os.environ["VQTOUCH_THREADS"] = "0"
 # Reader header caches go to a throwaway folder, never the user's ~/.cache.
 os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="vqtouch-test-cache-")
 for variable in (

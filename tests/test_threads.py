@@ -1,0 +1,63 @@
+"""Threads on a busy CPU (issue 28, item 3): the default follows the free cores and drops to one
+thread, saying so in one line, when the load exceeds the cores; --threads and VQTOUCH_THREADS
+choose; the caller's thread count is restored after a command."""
+
+import io
+
+import pytest
+import torch
+
+from vqtouch.core import ConfigError
+from vqtouch.core.cli import main
+from vqtouch.core.seeding import busy_cpu_threads, command_threads
+
+
+def test_the_default_follows_the_free_cores_and_says_when_it_drops():
+    assert busy_cpu_threads(cores=2, load=0.1, wanted=2) == (2, None)  # idle: torch's default
+    threads, note = busy_cpu_threads(cores=2, load=3.5, wanted=2)  # overloaded: one thread
+    assert threads == 1 and note.startswith("the CPU is busy (load 3.5 on 2 cores): running on 1 thread instead of 2")
+    assert "--threads N" in note
+    assert busy_cpu_threads(cores=16, load=5.2, wanted=16)[0] == 11  # the cores left free
+    assert busy_cpu_threads(cores=8, load=7.9, wanted=8)[0] == 1
+
+
+def test_a_command_runs_on_the_chosen_threads_and_restores_the_callers(monkeypatch, capsys):
+    original = torch.get_num_threads()
+    torch.set_num_threads(2)  # the caller's count, whatever OMP_NUM_THREADS the suite runs under
+    before = torch.get_num_threads()
+    seen = []
+    monkeypatch.setattr("vqtouch.core.cli._cmd_plugins", lambda args: seen.append(torch.get_num_threads()) or 0)
+    assert main(["--threads", "1", "plugins"]) == 0
+    monkeypatch.setenv("VQTOUCH_THREADS", "auto")
+    monkeypatch.setattr("vqtouch.core.seeding.current_load", lambda: 99.0)
+    assert main(["plugins"]) == 0
+    assert seen == [1, 1] and torch.get_num_threads() == before
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("vqtouch: note: the CPU is busy (load 99.0 on ")
+    monkeypatch.setenv("VQTOUCH_THREADS", "lots")
+    assert main(["plugins"]) == 2
+    assert "VQTOUCH_THREADS='lots': give a number of threads" in capsys.readouterr().err
+    torch.set_num_threads(original)
+
+
+def test_an_explicit_count_is_taken_as_given():
+    before = torch.get_num_threads()
+    with command_threads(3) as note:
+        assert torch.get_num_threads() == 3 and note is None
+    assert torch.get_num_threads() == before
+    with pytest.raises(ConfigError):
+        with command_threads("-2"):
+            pass
+
+
+def test_the_load_is_the_runnable_tasks_now_less_this_one(monkeypatch, tmp_path):
+    from vqtouch.core import seeding
+
+    samples = iter(["0.10 0.20 0.30 4/300 99\n", "0.10 0.20 0.30 2/300 99\n", "0.10 0.20 0.30 3/300 99\n"])
+    real_open = open
+
+    def fake_open(path, *args, **kwargs):
+        return io.StringIO(next(samples)) if path == "/proc/loadavg" else real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr("builtins.open", fake_open)
+    assert seeding.current_load(samples=3, interval_s=0) == 2.0  # median of 3, 1, 2
