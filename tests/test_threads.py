@@ -61,3 +61,14 @@ def test_the_load_is_the_runnable_tasks_now_less_this_one(monkeypatch, tmp_path)
 
     monkeypatch.setattr("builtins.open", fake_open)
     assert seeding.current_load(samples=3, interval_s=0) == 2.0  # median of 3, 1, 2
+
+
+def test_threads_may_be_given_before_or_after_a_command_that_has_its_own_option():
+    from vqtouch.core import load_plugins
+    from vqtouch.core.cli import build_parser
+
+    parser = build_parser(load_plugins(autoload=False))
+    command = ["tradeoff", "generator", "--run", "r", "--out", "o"]
+    assert parser.parse_args(["--threads", "1", *command]).threads == 1
+    assert parser.parse_args([*command, "--threads", "3"]).threads == 3
+    assert parser.parse_args(command).threads is None

@@ -1124,5 +1124,8 @@ def vqtouch_add_commands(subparsers):
         action="store_true",
         help="keep the scene's model and data sizes (default: scaled down like `vqtouch demo`)",
     )
-    parser.add_argument("--threads", type=positive_int, help="torch CPU threads (default: torch's)")
+    # The same option as `vqtouch --threads` (either place; SUPPRESS keeps the global one's value).
+    parser.add_argument(
+        "--threads", type=positive_int, default=argparse.SUPPRESS, help="torch CPU threads (as vqtouch --threads)"
+    )
     parser.set_defaults(handler=_command)

@@ -427,7 +427,10 @@ def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
         "precision and the middle --steps value)",
     )
     parser.add_argument("--seed", type=seed_int, help="seed of the sampling draws (default: the run's)")
-    parser.add_argument("--threads", type=positive_int, help="torch CPU threads (default: torch's)")
+    # The same option as `vqtouch --threads` (either place; SUPPRESS keeps the global one's value).
+    parser.add_argument(
+        "--threads", type=positive_int, default=argparse.SUPPRESS, help="torch CPU threads (as vqtouch --threads)"
+    )
     _add_distribution_arguments(parser)
 
 
