@@ -163,3 +163,39 @@ def test_the_stage_scores_match_a_rescoring_with_the_average_not_the_raw_weights
         scored[weights] = json.loads((out / "generation.json").read_text())["by_conditioner"]["0:label"]
     capsys.readouterr()
     assert scored["ema"]["psnr"] == stage["psnr"] and scored["raw"]["psnr"] != stage["psnr"]
+
+
+def test_a_bundle_may_set_its_own_sampling_defaults_and_its_headers_say_so(runs, tmp_path, capsys):
+    from vqtouch.plugins.pretrained.bundle import RUN_CONFIG_KEY, SAMPLING_KEY
+    from vqtouch.core import read_metadata
+
+    plain, _ = runs
+    sampling = {"conditioner_guidance": {"label": 2.5}, "steps": 3}
+    export_bundle(plain, "tuned", HOST, root=tmp_path, sampling=sampling)
+    header = read_metadata(tmp_path / "tuned" / "generator" / "generator.safetensors")
+    recorded = json.loads(header[RUN_CONFIG_KEY])["generator"]
+    assert json.loads(header[SAMPLING_KEY]) == sampling
+    assert recorded["conditioner_guidance"] == {"label": 2.5} and recorded["steps"] == 3
+    assert recorded["train"] == json.loads((plain / "config.json").read_text())["generator"]["train"]
+    bundle = load_bundle("tuned", HOST, root=tmp_path)
+    assert bundle.guidance_for("label") == 2.5
+    assert describe_bundle(tmp_path / "tuned")["sampling_defaults"] == sampling
+    with pytest.raises(ConfigError, match="a bundle sets only its sampling defaults"):
+        export_bundle(plain, "bad", HOST, root=tmp_path, sampling={"train": {"steps": 1}})
+    with pytest.raises(ConfigError, match="conditioner_guidance names 'visual'"):
+        export_bundle(plain, "bad", HOST, root=tmp_path, sampling={"conditioner_guidance": {"visual": 2}})
+    assert not (tmp_path / "bad").exists()
+    args = [
+        "pretrained",
+        "export",
+        "--run",
+        str(plain),
+        "--name",
+        "x",
+        "--root",
+        str(tmp_path),
+        "--sampling",
+        "guidance",
+    ]
+    assert main(args) == 2
+    assert "--sampling 'guidance': give KEY=JSON" in one_error_line(capsys)

@@ -25,6 +25,7 @@ import copy
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from collections.abc import Mapping
 from typing import Any
 
 import torch
@@ -99,6 +100,27 @@ def _provenance(run: RunDir) -> dict[str, str]:
     return {COMMAND_KEY: command, RUN_CONFIG_KEY: (run.path / "config.json").read_text()}
 
 
+#: The generator options a bundle may set for itself at export (``vqtouch pretrained export --sampling``).
+SAMPLING_DEFAULTS = ("steps", "guidance", "conditioner_guidance", "truncation")
+SAMPLING_KEY = "pretrained.sampling_defaults"
+
+
+def _sampling_defaults(run_config_text: str, sampling: dict[str, Any], host: PluginHost) -> dict[str, str]:
+    """The header entries of a bundle whose sampling defaults replace its run's: the run config with
+    them set (validated like any config: a bad value is a one-line ConfigError) and the overrides."""
+    from vqtouch.core import validate_experiment
+
+    unknown = sorted(set(sampling) - set(SAMPLING_DEFAULTS))
+    if unknown:
+        raise ConfigError(
+            f"--sampling {unknown[0]}: a bundle sets only its sampling defaults ({', '.join(SAMPLING_DEFAULTS)})"
+        )
+    config = json.loads(run_config_text)
+    config["generator"] = {**config["generator"], **sampling}
+    validate_experiment(config, host)
+    return {RUN_CONFIG_KEY: json.dumps(config, indent=2) + "\n", SAMPLING_KEY: json.dumps(sampling, sort_keys=True)}
+
+
 def export_bundle(
     generator_run: str | Path,
     name: str,
@@ -107,9 +129,15 @@ def export_bundle(
     root: Path | None = None,
     precision: str = "fp16",
     overwrite: bool = False,
+    sampling: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write the newest checkpoint of ``generator_run`` (its generator, conditioners and the tokenizer
-    it was trained on) as bundle ``name`` under ``root``; returns the bundle's folder."""
+    it was trained on) as bundle ``name`` under ``root``; returns the bundle's folder.
+
+    ``sampling``: the bundle's own sampling defaults, replacing the run's (keys of
+    :data:`SAMPLING_DEFAULTS`, e.g. ``{"conditioner_guidance": {"label": 2}}``): how to sample is
+    chosen after training, when it can be measured.  They go into the recorded run config and, as
+    given, into ``pretrained.sampling_defaults``, so the headers say what was changed."""
     from vqtouch.plugins.generator import generator_tokenizer, load_pipeline
 
     if precision not in ("fp16", "fp32"):
@@ -130,6 +158,8 @@ def export_bundle(
     ):
         source = RunDir.open(source.parent.parent)  # a step folder of a run: that run's provenance
     generator_headers = _provenance(run)
+    if sampling:
+        generator_headers |= _sampling_defaults(generator_headers[RUN_CONFIG_KEY], dict(sampling), host)
     if isinstance(source, RunDir):
         tokenizer_headers = _provenance(source)
     else:
@@ -224,6 +254,7 @@ def describe_bundle(folder: Path) -> dict[str, Any]:
         "generator_command": generator.get(COMMAND_KEY, "?"),
         "stored_as": generator.get(STORED_KEY, "?"),
         "weights": generator.get(WEIGHTS_KEY, "raw"),
+        "sampling_defaults": json.loads(generator.get(SAMPLING_KEY, "{}")),
         "files": len(files),
         "megabytes": round(sum(path.stat().st_size for path in files) / 1e6, 2),
     }

@@ -16,7 +16,7 @@ import argparse
 import json
 from pathlib import Path
 
-from vqtouch.core import hookimpl
+from vqtouch.core import ConfigError, hookimpl
 from vqtouch.core.cli import command_group
 
 from .bundle import BUNDLES, bundle_names, describe_bundle, export_bundle
@@ -39,10 +39,21 @@ def _list_command(args: argparse.Namespace) -> int:
         )
         print(f"  tokenizer trained by: {row['tokenizer_command']}")
         print(f"  generator trained by: {row['generator_command']}")
+        if row["sampling_defaults"]:
+            print(f"  sampling defaults set at export: {json.dumps(row['sampling_defaults'], sort_keys=True)}")
     return 0
 
 
 def _export_command(args: argparse.Namespace) -> int:
+    sampling = {}
+    for item in args.sampling:
+        key, equals, text = item.partition("=")
+        try:
+            if not equals:
+                raise ValueError("no '='")
+            sampling[key.strip()] = json.loads(text)
+        except ValueError as exc:
+            raise ConfigError(f"--sampling {item!r}: give KEY=JSON, e.g. guidance=2 ({exc})") from None
     folder = export_bundle(
         args.run,
         args.name,
@@ -50,6 +61,7 @@ def _export_command(args: argparse.Namespace) -> int:
         root=Path(args.root) if args.root else None,
         precision=args.precision,
         overwrite=args.overwrite,
+        sampling=sampling,
     )
     row = describe_bundle(folder)
     print(
@@ -77,6 +89,14 @@ def vqtouch_add_commands(subparsers):
         help="stored precision of the parameters (the quantizer's stay fp32; default fp16)",
     )
     export.add_argument("--overwrite", action="store_true", help="replace a bundle of that name")
+    export.add_argument(
+        "--sampling",
+        action="append",
+        default=[],
+        metavar="KEY=JSON",
+        help="a sampling default of the bundle instead of the run's (steps, guidance, truncation, "
+        "conditioner_guidance), e.g. 'conditioner_guidance={\"label\": 2}' (repeatable)",
+    )
     export.add_argument(
         "--root", help="folder of the bundles (default: the package's own, where the pretrained stage looks)"
     )
