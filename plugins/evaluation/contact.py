@@ -124,6 +124,7 @@ class ContactRegionScores:
         self._squared_errors: dict[str, list[float]] = {}
         self._region_values: list[int] = []
         self._moments: dict[str, tuple[torch.Tensor, torch.Tensor, int]] = {}
+        self._cross: Any = 0.0  # per pixel: the sum over images of the model's value times the truth's
 
     def update(self, candidates: Mapping[str, torch.Tensor], truth_B3HW: torch.Tensor) -> None:
         """Add one batch: each candidate image set against its ground truth (image i against truth i)."""
@@ -137,6 +138,9 @@ class ContactRegionScores:
         mask = region_BHW.unsqueeze(1).expand_as(truth)
         self._region_values += [int(count) for count in mask.flatten(1).sum(dim=1)]
         self._add_moments(TRUTH_KEY, truth)
+        if "" in candidates:
+            products = (candidates[""].detach().float().cpu().double() * truth.double()).sum(dim=0)
+            self._cross = self._cross + products
         for prefix, predicted in candidates.items():
             squared = ((predicted.detach().float().cpu().double() - truth.double()) ** 2) * mask
             self._squared_errors.setdefault(prefix, []).extend(squared.flatten(1).sum(dim=1).tolist())
@@ -165,6 +169,19 @@ class ContactRegionScores:
         mean = total / count
         return float((squares / count - mean**2).clamp_min(0).sqrt().mean())
 
+    def _input_correlation(self) -> float:
+        """The correlation between the model's and the truths' deviations from their per-pixel means
+        across images, pooled over pixels: 0 for a constant output (or one unrelated to the input)."""
+        total_o, squares_o, count = self._moments[""]
+        total_t, squares_t, _ = self._moments[TRUTH_KEY]
+        mean_o, mean_t = total_o / count, total_t / count
+        covariance = float((self._cross / count - mean_o * mean_t).sum())
+        variance_o = float((squares_o / count - mean_o**2).clamp_min(0).sum())
+        variance_t = float((squares_t / count - mean_t**2).clamp_min(0).sum())
+        if variance_o <= 1e-12 or variance_t <= 1e-12:
+            return 0.0
+        return covariance / (variance_o * variance_t) ** 0.5
+
     def scores(self) -> dict[str, float]:
         """The region's share of the pixels, each candidate's contact PSNR and MAE, the 95% bootstrap
         interval of the model's contact PSNR gap to each other candidate and the model's output spread
@@ -174,6 +191,7 @@ class ContactRegionScores:
             truth_spread = self._spread(TRUTH_KEY)
             if truth_spread > 0:
                 scores[OUTPUT_SPREAD_KEY] = round(self._spread("") / truth_spread, 4)
+                scores[INPUT_CORRELATION_KEY] = round(self._input_correlation(), 4)
         if self.region_pixels == 0:
             return {"contact_fraction": 0.0, **scores}
         scores = {"contact_fraction": round(self.region_pixels / self.pixels, 4), **scores}
@@ -221,6 +239,10 @@ def _ssim_map(predicted_B3HW: torch.Tensor, truth_B3HW: torch.Tensor) -> torch.T
 #: of its images across inputs, averaged over pixels, as a share of the ground truths' own.  Near 0,
 #: the model draws nearly the same image whatever its input (a constant image scores 0).
 OUTPUT_SPREAD_KEY = "output_spread_ratio"
+#: ... and the correlation of its images' deviations from their per-pixel mean across inputs with
+#: the ground truths' (1: they vary as the truths do; about 0: constant, or unrelated to the input,
+#: such as the same blob in a different colour each time).
+INPUT_CORRELATION_KEY = "input_correlation"
 TRUTH_KEY = "\0truth"
 #: Bootstrap resamples of the held-out images behind the gap intervals (seeded: the same scores
 #: give the same interval).
@@ -239,6 +261,7 @@ VERDICT_BASELINE_PREFIXES = ("background_", "retrieval_", "class_mean_")
 #: what its report shows lists these too.
 VERDICT_EVIDENCE = (
     OUTPUT_SPREAD_KEY,
+    INPUT_CORRELATION_KEY,
     *(gap_interval_key(prefix, end) for prefix in VERDICT_BASELINE_PREFIXES for end in ("low", "high")),
 )
 

@@ -30,7 +30,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from vqtouch.plugins.evaluation.contact import OUTPUT_SPREAD_KEY, VERDICT_BASELINE_PREFIXES, gap_interval_key
+from vqtouch.plugins.evaluation.contact import (
+    INPUT_CORRELATION_KEY,
+    OUTPUT_SPREAD_KEY,
+    VERDICT_BASELINE_PREFIXES,
+    gap_interval_key,
+)
 from vqtouch.plugins.evaluation.directions import LOWER_IS_BETTER, direction_arrow, lower_is_better  # noqa: F401
 
 #: Result keys that describe pictures rather than score anything.
@@ -355,6 +360,10 @@ MIN_VERDICT_GAP_TEXT = {"contact_psnr": "0.5 dB", "contact_mae": "5%"}
 #: (``output_spread_ratio``) draws about the same image whatever its input: it gets no verdict of
 #: better, whatever its scores.
 IGNORES_INPUT_BELOW = 0.2
+#: ... nor does one whose outputs' variation is unrelated to the truths' (``input_correlation``
+#: under this: a constant image scores 0, another image of the same set about 0; a label-conditioned
+#: generator, which must invent the pose, about 0.1, a visual one 0.4, a trained tokenizer 0.9).
+UNRELATED_BELOW = 0.05
 
 
 def contact_verdict(result: Mapping[str, Any]) -> tuple[bool, str] | None:
@@ -363,11 +372,12 @@ def contact_verdict(result: Mapping[str, Any]) -> tuple[bool, str] | None:
     no-contact background; None when it has none.
 
     Better (True) needs all of: outputs that follow the input (``output_spread_ratio`` at least
-    :data:`IGNORES_INPUT_BELOW`, when measured), a gap to the strongest baseline present
-    (:data:`VERDICT_BASELINES`) of at least :data:`MIN_VERDICT_GAP`, and, when measured, a 95%
-    bootstrap interval of the contact PSNR gap over images that stays above 0.  Otherwise the
+    :data:`IGNORES_INPUT_BELOW` and ``input_correlation`` at least :data:`UNRELATED_BELOW`, when
+    measured), a gap to the strongest baseline present (:data:`VERDICT_BASELINES`) of at least
+    :data:`MIN_VERDICT_GAP`, and, when measured, a 95% bootstrap interval of the contact PSNR gap over
+    images whose low end clears that minimum too.  Otherwise the
     sentence says which failed: "ignores its input", "no better than ... within noise" or "worse"."""
-    spread = result.get(OUTPUT_SPREAD_KEY)
+    spread, correlation = result.get(OUTPUT_SPREAD_KEY), result.get(INPUT_CORRELATION_KEY)
     for score, name, unit in CONTACT_VERDICT_SCORES:
         model = result.get(score)
         present = {
@@ -396,6 +406,12 @@ def contact_verdict(result: Mapping[str, Any]) -> tuple[bool, str] | None:
                 f"real images do (under {IGNORES_INPUT_BELOW:.0%}), so no score of it means much; on the "
                 f"contact region{share} {numbers} for {against}."
             )
+        if _is_number(correlation) and correlation < UNRELATED_BELOW:
+            return False, (
+                f"The model ignores its input: how its outputs vary across inputs is unrelated to how the "
+                f"real images do (correlation {correlation:.2f}, under {UNRELATED_BELOW}), so no score of it "
+                f"means much; on the contact region{share} {numbers} for {against}."
+            )
         low = result.get(gap_interval_key(strongest, "low")) if score == "contact_psnr" else None
         high = result.get(gap_interval_key(strongest, "high")) if score == "contact_psnr" else None
         interval = ""
@@ -405,11 +421,12 @@ def contact_verdict(result: Mapping[str, Any]) -> tuple[bool, str] | None:
         if gap <= 0:
             comparison = "worse than" if gap < 0 else "no better than"
             return False, f"On the contact region{share} the model is {comparison} {against}: {numbers}{interval}."
-        if gap < minimum or (_is_number(low) and low <= 0):
+        if gap < minimum or (_is_number(low) and low < minimum):
             reason = (
                 f"a gap under the {MIN_VERDICT_GAP_TEXT[score]} minimum"
                 if gap < minimum
-                else "a gap within the noise of the held-out images"
+                else f"another draw of held-out images could bring the gap under the {MIN_VERDICT_GAP_TEXT[score]} "
+                "minimum"
             )
             return False, (
                 f"On the contact region{share} the model is no better than {against} within noise: {numbers}, "
