@@ -27,7 +27,7 @@ from .config import resolve_config
 from .errors import ConfigError, VqtouchError, VqtouchWarning, one_line
 from .plugin_manager import PluginHost, load_plugins
 from .images import greyscale_allowed
-from .progress import disable_progress
+from .progress import disable_progress, progress_forced_off
 from .seeding import SEED_MAX, command_threads
 from .stages import StageOutcome, empty_slot_reason, missing_slots
 
@@ -504,6 +504,14 @@ def _sigterm_interrupts() -> Iterator[None]:
 
 
 def _main(argv: list[str], debug: bool) -> int:
+    bars_were_off = progress_forced_off()
+    try:
+        return _run_command(argv, debug)
+    finally:
+        disable_progress(bars_were_off)  # `--no-progress` of one command does not outlive it
+
+
+def _run_command(argv: list[str], debug: bool) -> int:
     try:
         parser = build_parser(load_plugins())
         parser.add_argument(
@@ -514,7 +522,7 @@ def _main(argv: list[str], debug: bool) -> int:
         except SystemExit as exc:  # --help, --version, or a bad argument (its one line already printed)
             return exc.code if isinstance(exc.code, int) else 2
         if args.no_progress:
-            disable_progress()
+            disable_progress()  # for this command only (see the finally below)
         if not getattr(args, "handler", None):
             parser.print_help()
             return 2

@@ -26,6 +26,11 @@ def disable_progress(disabled: bool = True) -> None:
     _forced_off = disabled
 
 
+def progress_forced_off() -> bool:
+    """Whether :func:`disable_progress` turned bars off in this process."""
+    return _forced_off
+
+
 def progress_enabled() -> bool | None:
     """``False`` when bars are turned off; ``None`` lets tqdm decide (off on non-TTY output)."""
     if _forced_off or os.environ.get(ENV_NO_PROGRESS, "").strip() not in {"", "0"}:

@@ -21,6 +21,7 @@ class FakeClock:
 @pytest.fixture(autouse=True)
 def progress_on(monkeypatch):
     monkeypatch.delenv("VQTOUCH_NO_PROGRESS", raising=False)  # the suite turns bars off everywhere else
+    monkeypatch.setattr(progress_module, "_forced_off", False)  # an earlier `--no-progress` command's switch
 
 
 @pytest.fixture
@@ -66,3 +67,12 @@ def test_a_terminal_gets_the_redrawn_bar():
         pass
     assert "\r" in screen.getvalue() and "3/3" in screen.getvalue()
     assert progress_module.REDIRECTED_INTERVAL_S == 30.0
+
+
+def test_no_progress_on_one_command_does_not_outlive_it(monkeypatch):
+    from vqtouch.core.cli import main
+    from vqtouch.core.progress import progress_forced_off
+
+    monkeypatch.setattr("vqtouch.core.cli._cmd_plugins", lambda args: 0 if progress_forced_off() else 1)
+    assert main(["--no-progress", "plugins"]) == 0  # off while it ran
+    assert progress_forced_off() is False
