@@ -31,7 +31,6 @@ from pathlib import Path
 from typing import Any
 
 from vqtouch.plugins.evaluation.contact import (
-    INPUT_CORRELATION_KEY,
     OUTPUT_SPREAD_KEY,
     VERDICT_BASELINE_PREFIXES,
     gap_interval_key,
@@ -360,10 +359,6 @@ MIN_VERDICT_GAP_TEXT = {"contact_psnr": "0.5 dB", "contact_mae": "5%"}
 #: (``output_spread_ratio``) draws about the same image whatever its input: it gets no verdict of
 #: better, whatever its scores.
 IGNORES_INPUT_BELOW = 0.2
-#: ... nor does one whose outputs' variation is unrelated to the truths' (``input_correlation``
-#: under this: a constant image scores 0, another image of the same set about 0; a label-conditioned
-#: generator, which must invent the pose, about 0.1, a visual one 0.4, a trained tokenizer 0.9).
-UNRELATED_BELOW = 0.05
 
 
 def contact_verdict(result: Mapping[str, Any]) -> tuple[bool, str] | None:
@@ -371,13 +366,14 @@ def contact_verdict(result: Mapping[str, Any]) -> tuple[bool, str] | None:
     so with the numbers, from the first of :data:`CONTACT_VERDICT_SCORES` the result has with its
     no-contact background; None when it has none.
 
-    Better (True) needs all of: outputs that follow the input (``output_spread_ratio`` at least
-    :data:`IGNORES_INPUT_BELOW` and ``input_correlation`` at least :data:`UNRELATED_BELOW`, when
-    measured), a gap to the strongest baseline present (:data:`VERDICT_BASELINES`) of at least
-    :data:`MIN_VERDICT_GAP`, and, when measured, a 95% bootstrap interval of the contact PSNR gap over
-    images whose low end clears that minimum too.  Otherwise the
-    sentence says which failed: "ignores its input", "no better than ... within noise" or "worse"."""
-    spread, correlation = result.get(OUTPUT_SPREAD_KEY), result.get(INPUT_CORRELATION_KEY)
+    Better (True) needs all of: outputs that are not near-constant (``output_spread_ratio`` at least
+    :data:`IGNORES_INPUT_BELOW`, when measured), a gap to the strongest baseline present
+    (:data:`VERDICT_BASELINES`) of at least :data:`MIN_VERDICT_GAP`, and, when measured, a 95%
+    bootstrap interval of the contact PSNR gap over images whose low end clears that minimum too.
+    Otherwise the sentence says which failed: "ignores its input", "no better than ... within noise"
+    or "worse".  (``input_correlation`` is reported, not ruled on: a label-conditioned generator,
+    which must invent the pose, correlates with its truths as little as an unrelated output does.)"""
+    spread = result.get(OUTPUT_SPREAD_KEY)
     for score, name, unit in CONTACT_VERDICT_SCORES:
         model = result.get(score)
         present = {
@@ -405,12 +401,6 @@ def contact_verdict(result: Mapping[str, Any]) -> tuple[bool, str] | None:
                 f"The model ignores its input: its outputs vary across inputs {spread:.0%} as much as the "
                 f"real images do (under {IGNORES_INPUT_BELOW:.0%}), so no score of it means much; on the "
                 f"contact region{share} {numbers} for {against}."
-            )
-        if _is_number(correlation) and correlation < UNRELATED_BELOW:
-            return False, (
-                f"The model ignores its input: how its outputs vary across inputs is unrelated to how the "
-                f"real images do (correlation {correlation:.2f}, under {UNRELATED_BELOW}), so no score of it "
-                f"means much; on the contact region{share} {numbers} for {against}."
             )
         low = result.get(gap_interval_key(strongest, "low")) if score == "contact_psnr" else None
         high = result.get(gap_interval_key(strongest, "high")) if score == "contact_psnr" else None
