@@ -32,7 +32,8 @@ def progress_forced_off() -> bool:
 
 
 def progress_enabled() -> bool | None:
-    """``False`` when bars are turned off; ``None`` lets tqdm decide (off on non-TTY output)."""
+    """``False`` when bars are turned off; ``None`` otherwise (:func:`progress` then picks a bar or
+    plain lines by its stream)."""
     if _forced_off or os.environ.get(ENV_NO_PROGRESS, "").strip() not in {"", "0"}:
         return False
     return None

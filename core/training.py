@@ -1022,17 +1022,21 @@ def read_trainer_meta(folder: Path) -> dict[str, Any]:
         raise CheckpointError(f"{path}: unreadable trainer state ({_first_line(exc)})") from None
 
 
-def saved_ema_weights(folder: Path, module_name: str) -> dict[str, torch.Tensor]:
-    """The exponential moving average of ``module_name``'s floating-point weights that the trainer
-    kept in step ``folder`` (``train.ema_decay``); empty when the run kept none.  CheckpointError
-    naming the file when the trainer state cannot be read."""
+def saved_ema_weights(folder: Path) -> dict[str, dict[str, torch.Tensor]]:
+    """The exponential moving average of each module's floating-point weights that the trainer kept
+    in step ``folder`` (``train.ema_decay``), by module name; empty when the run kept none.  One read
+    of the trainer state; CheckpointError naming the file when it cannot be read."""
     path = Path(folder) / TRAINER_STATE
-    prefix = f"ema.{module_name}."
+    averages: dict[str, dict[str, torch.Tensor]] = {}
     try:
         with safe_open(str(path), framework="pt") as handle:
-            return {key[len(prefix) :]: handle.get_tensor(key) for key in handle.keys() if key.startswith(prefix)}
+            for key in handle.keys():
+                if key.startswith("ema."):
+                    module_name, tensor_name = key[len("ema.") :].split(".", 1)
+                    averages.setdefault(module_name, {})[tensor_name] = handle.get_tensor(key)
     except Exception as exc:  # noqa: BLE001 - safetensors raises several error types
         raise CheckpointError(f"{path}: unreadable trainer state ({_first_line(exc)})") from None
+    return averages
 
 
 def apply_ema_weights(module: nn.Module, ema_KT: Mapping[str, torch.Tensor], where: str | Path) -> None:

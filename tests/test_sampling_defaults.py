@@ -10,7 +10,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from vqtouch.core import CheckpointError, ConfigError, load_plugins
+from vqtouch.core import CheckpointError, ConfigError, load_plugins, validate_experiment
 from vqtouch.core.cli import main
 from vqtouch.core.training import TRAINER_STATE, apply_ema_weights, saved_ema_weights
 from vqtouch.plugins.generator import load_pipeline
@@ -120,8 +120,9 @@ def test_bundles_hold_the_average_and_say_so(runs, tmp_path):
     assert describe_bundle(tmp_path / "avg")["weights"] == "ema"
     assert describe_bundle(tmp_path / "plain")["weights"] == "raw"
     bundle = load_bundle("avg", HOST, root=tmp_path)
-    average = saved_ema_weights(newest_step(run), "generator")
-    assert bundle.weights == "ema" and bundle.guidance_for("label") == 3.0
+    average = saved_ema_weights(newest_step(run))["generator"]
+    recorded = validate_experiment(bundle.run_config, HOST).generator
+    assert bundle.weights == "ema" and recorded.guidance_for("label") == 3.0
     assert all(torch.equal(bundle.generator.state_dict()[key], value) for key, value in average.items())
 
 
@@ -178,7 +179,7 @@ def test_a_bundle_may_set_its_own_sampling_defaults_and_its_headers_say_so(runs,
     assert recorded["conditioner_guidance"] == {"label": 2.5} and recorded["steps"] == 3
     assert recorded["train"] == json.loads((plain / "config.json").read_text())["generator"]["train"]
     bundle = load_bundle("tuned", HOST, root=tmp_path)
-    assert bundle.guidance_for("label") == 2.5
+    assert validate_experiment(bundle.run_config, HOST).generator.guidance_for("label") == 2.5
     assert describe_bundle(tmp_path / "tuned")["sampling_defaults"] == sampling
     with pytest.raises(ConfigError, match="a bundle sets only its sampling defaults"):
         export_bundle(plain, "bad", HOST, root=tmp_path, sampling={"train": {"steps": 1}})
@@ -199,3 +200,21 @@ def test_a_bundle_may_set_its_own_sampling_defaults_and_its_headers_say_so(runs,
     ]
     assert main(args) == 2
     assert "--sampling 'guidance': give KEY=JSON" in one_error_line(capsys)
+
+
+def test_the_pretrained_stage_samples_each_conditioner_at_the_bundles_default(runs, tmp_path, monkeypatch):
+    from vqtouch.core import Assembly, RunDir, resolve_config, run_stage
+    from vqtouch.plugins.pretrained import bundle as bundle_module
+    from vqtouch.plugins.pretrained import stage as stage_module
+
+    plain, _ = runs
+    export_bundle(plain, "tuned", HOST, root=tmp_path / "bundles", sampling={"conditioner_guidance": {"label": 2.5}})
+    monkeypatch.setattr(bundle_module, "BUNDLES", tmp_path / "bundles")
+    asked = []
+    score = stage_module.score_generation
+    monkeypatch.setattr(stage_module, "score_generation", lambda **k: asked.append(k["guidance"]) or score(**k))
+    overrides = [*TINY, 'stages=["pretrained"]', "pretrained.bundle=tuned", "pretrained.num_samples=2"]
+    config = resolve_config("label-to-touch", (), [*overrides, "pretrained.steps=2", "data.dataset.seed=5"], host=HOST)
+    outcome = run_stage("pretrained", Assembly(config, HOST), RunDir.create(config, host=HOST, path=tmp_path / "r"))
+    assert outcome.status == "ran", outcome.describe()
+    assert asked == [2.5]

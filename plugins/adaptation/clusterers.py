@@ -83,10 +83,10 @@ class FamilyClusterer(Clusterer):
             self.count_choice = {"chosen_by": "given"}
         else:
             largest = min(self.options.max_families, distinct - 1)
-            labels = self._best_by_silhouette(features.numpy(), largest)
+            labels, silhouettes = self._best_by_silhouette(features.numpy(), largest)
             self.count_choice = {
                 "chosen_by": "silhouette",
-                "silhouette": dict(self._silhouettes),
+                "silhouette": silhouettes,
                 "distinct_rows": distinct,
                 "max_families": self.options.max_families,
             }
@@ -96,25 +96,25 @@ class FamilyClusterer(Clusterer):
         self.centroids_KF = centroids.to(self.centroids_KF.device)
         return labels_N
 
-    def _best_by_silhouette(self, features: Any, largest: int) -> Any:
-        """Labels with the best silhouette over 2..``largest`` families; one family when fewer than three
-        distinct rows leave nothing to compare."""
+    def _best_by_silhouette(self, features: Any, largest: int) -> tuple[Any, dict[int, float]]:
+        """Labels with the best silhouette over 2..``largest`` families (one family when fewer than
+        three distinct rows leave nothing to compare), and the silhouette of each count scored."""
         import numpy as np
         from sklearn.metrics import silhouette_score
 
-        self._silhouettes: dict[int, float] = {}
+        silhouettes: dict[int, float] = {}
         if largest < 2:
-            return np.zeros(len(features), dtype=np.int64)
+            return np.zeros(len(features), dtype=np.int64), silhouettes
         best, best_score = None, -np.inf
         for count in range(2, largest + 1):
             labels = self._labels(features, count)
             if len(set(labels.tolist())) < 2:
                 continue
             score = silhouette_score(features, labels)
-            self._silhouettes[count] = round(float(score), 4)
+            silhouettes[count] = round(float(score), 4)
             if score > best_score + 1e-12:  # ties keep the fewer families
                 best, best_score = labels, score
-        return best if best is not None else np.zeros(len(features), dtype=np.int64)
+        return (best if best is not None else np.zeros(len(features), dtype=np.int64)), silhouettes
 
     @on_one_thread
     def distances(self, features_NF: torch.Tensor) -> torch.Tensor:

@@ -137,22 +137,23 @@ class ContactRegionScores:
         self.pixels += region_BHW.numel()
         mask = region_BHW.unsqueeze(1).expand_as(truth)
         self._region_values += [int(count) for count in mask.flatten(1).sum(dim=1)]
-        self._add_moments(TRUTH_KEY, truth)
-        if "" in candidates:
-            products = (candidates[""].detach().float().cpu().double() * truth.double()).sum(dim=0)
-            self._cross = self._cross + products
+        if "" in candidates:  # the spread and correlation are the model's only
+            model = candidates[""].detach().float().cpu()
+            self._add_moments(TRUTH_KEY, truth)
+            self._add_moments("", model)
+            self._cross = self._cross + (model.double() * truth.double()).sum(dim=0)
         for prefix, predicted in candidates.items():
-            squared = ((predicted.detach().float().cpu().double() - truth.double()) ** 2) * mask
+            predicted = predicted.detach().float().cpu()
+            squared = ((predicted.double() - truth.double()) ** 2) * mask
             self._squared_errors.setdefault(prefix, []).extend(squared.flatten(1).sum(dim=1).tolist())
-            self._add_moments(prefix, predicted.detach().float().cpu())
-            predicted_region = predicted.detach().float().cpu()[mask].double()
+            predicted_region = predicted[mask].double()
             psnr = self._psnr.setdefault(prefix, PeakSignalNoiseRatio(data_range=1.0).double())
             total, count = self._absolute.get(prefix, (0.0, 0))
             if predicted_region.numel():
                 psnr.update(predicted_region, truth[mask].double())
                 total += float((predicted_region - truth[mask].double()).abs().sum())
                 count += predicted_region.numel()
-                ssim_map = _ssim_map(predicted.detach().float().cpu(), truth)
+                ssim_map = _ssim_map(predicted, truth)
                 if ssim_map is not None:
                     ssim_total, ssim_count = self._ssim.get(prefix, (0.0, 0))
                     self._ssim[prefix] = (ssim_total + float(ssim_map[mask].sum()), ssim_count + int(mask.sum()))

@@ -83,9 +83,10 @@ class GenerationPipeline:
 
     def guidance_for(self, index: int) -> float:
         """The default guidance scale of conditioner ``index``: the run's ``conditioner_guidance`` for
-        its name, else its ``guidance``."""
-        name = self.conditioner_names()[index].split(":", 1)[1]
-        return float(self.settings.get("conditioner_guidance", {}).get(name, self.settings["guidance"]))
+        its name, else its ``guidance`` (:meth:`GeneratorSection.guidance_for`)."""
+        if self.config is None:
+            return float(self.settings["guidance"])
+        return self.config.generator.guidance_for(self.conditioner_names()[index].split(":", 1)[1])
 
     def conditioner_for(self, key: str, which: int | str | None = None) -> Any:
         """The conditioner that reads samples' ``key`` (see :meth:`conditioner_index`)."""
@@ -289,8 +290,8 @@ def _use_ema_weights(folder: Path, generator: Any, conditioners: list[Any], want
     if wanted == "raw":
         return "raw"
     modules = {"generator": generator} | {f"conditioner_{i}": module for i, module in enumerate(conditioners)}
-    averages = {name: saved_ema_weights(folder, name) for name in modules}
-    if not any(averages.values()):
+    averages = saved_ema_weights(folder)
+    if not averages:
         if strict:
             raise ConfigError(
                 f"--weights ema: {folder} holds no EMA weights (trained without generator.train.ema_decay); "
@@ -298,18 +299,13 @@ def _use_ema_weights(folder: Path, generator: Any, conditioners: list[Any], want
             )
         return "raw"
     for name, module in modules.items():
-        apply_ema_weights(module, averages[name], folder / TRAINER_STATE)
+        apply_ema_weights(module, averages.get(name, {}), folder / TRAINER_STATE)
     return "ema"
 
 
 def _sampling_settings(section: Any) -> dict[str, Any]:
     """A generator section's sampling defaults, as :attr:`GenerationPipeline.settings` holds them."""
-    return {
-        "steps": section.steps,
-        "guidance": section.guidance,
-        "conditioner_guidance": dict(section.conditioner_guidance),
-        "truncation": section.truncation,
-    }
+    return {"steps": section.steps, "guidance": section.guidance, "truncation": section.truncation}
 
 
 def generator_tokenizer(run_dir: RunDir, section: Any) -> RunDir | Path:

@@ -115,6 +115,11 @@ class GeneratorSection(Section):
             )
         return self
 
+    def guidance_for(self, conditioner_name: str) -> float:
+        """The default guidance scale of the conditioner named ``conditioner_name``: its entry in
+        ``conditioner_guidance``, else ``guidance``."""
+        return float(self.conditioner_guidance.get(conditioner_name, self.guidance))
+
     @model_validator(mode="after")
     def _guidance_of_known_conditioners(self) -> GeneratorSection:
         names = [block.name for block in self.conditioners]
@@ -663,7 +668,7 @@ def score_samples(
     first = score_generation(
         conditioner=task.conditioners[0],
         picture=job.run.path / "samples.png",
-        guidance=guidance_of(section, names[0]),
+        guidance=section.guidance_for(names[0]),
         **common,
     )
     scores = {"sampler": section.sampler.name, "conditioner": names[0], "background": background_source, **first}
@@ -672,19 +677,13 @@ def score_samples(
             f"{index}:{name}": score_generation(
                 conditioner=conditioner,
                 picture=job.run.path / samples_picture(index, name),
-                guidance=guidance_of(section, name),
+                guidance=section.guidance_for(name),
                 **common,
             )
             for index, (name, conditioner) in enumerate(zip(names, task.conditioners))
             if index > 0
         }
     return scores
-
-
-def guidance_of(section: GeneratorSection, conditioner_name: str) -> float:
-    """The default guidance scale of the conditioner named ``conditioner_name``: its entry in
-    ``conditioner_guidance``, else the section's ``guidance``."""
-    return float(section.conditioner_guidance.get(conditioner_name, section.guidance))
 
 
 def samples_picture(index: int, name: str) -> str:

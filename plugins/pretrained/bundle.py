@@ -216,12 +216,6 @@ class Bundle:
     #: exported before vqtouch recorded it).
     weights: str = "raw"
 
-    def guidance_for(self, conditioner_name: str) -> float:
-        """The default guidance of the conditioner named ``conditioner_name``, from the recorded run
-        config: its ``generator.conditioner_guidance`` entry, else ``generator.guidance`` (1 if unset)."""
-        section = self.run_config.get("generator") or {}
-        return float((section.get("conditioner_guidance") or {}).get(conditioner_name, section.get("guidance", 1.0)))
-
     @property
     def conditioner_names(self) -> list[str]:
         """The registered name of each conditioner, in the generator's order."""

@@ -18,7 +18,16 @@ from typing import Any
 
 from pydantic import Field
 
-from vqtouch.core import ConfigError, MetricSet, Section, StageJob, StageUnavailable, hookimpl, resolve_device
+from vqtouch.core import (
+    ConfigError,
+    MetricSet,
+    Section,
+    StageJob,
+    StageUnavailable,
+    hookimpl,
+    resolve_device,
+    validate_experiment,
+)
 from vqtouch.core.data import DatasetSubset, experiment_split
 from vqtouch.core.image_size import image_hw
 from vqtouch.plugins.evaluation.contact import dataset_background
@@ -140,6 +149,8 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
         )
     pool = baseline_pool(DatasetSubset(dataset, train_set.indices))
     sampler = job.host.build("sampler", section.sampler)
+    # Each conditioner at the bundle's own default guidance (its recorded run config, validated).
+    sampling = validate_experiment(bundle.run_config, job.host).generator
     for index, (name, conditioner) in enumerate(zip(bundle.conditioner_names, bundle.conditioners)):
         picture = f"{PICTURES}/samples_{index}_{name}.png"
         generated = score_generation(
@@ -151,7 +162,7 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
             metrics=metrics,
             background_3HW=background,
             steps=section.steps,
-            guidance=bundle.guidance_for(name),
+            guidance=sampling.guidance_for(name),
             truncation=1.0,
             seed=config.seed,
             device=device,
