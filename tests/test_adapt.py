@@ -243,3 +243,42 @@ def test_a_generator_trains_on_an_adapted_tokenizers_codes(tokenizer_folder, fam
     pipeline = load_pipeline(run)
     images = pipeline(label=0, n=2, steps=2, seed=0)
     assert images.shape == (2, 3, 32, 32) and torch.isfinite(images).all()
+
+
+def test_decoder_only_adaptation_keeps_every_images_codes_and_changes_only_the_decoder(
+    tokenizer_folder, families_folder, tmp_path
+):
+    from vqtouch.plugins.tokenizer import load_tokenizer
+
+    out = tmp_path / "decoder"
+    assert _adapt(tokenizer_folder, families_folder, out, "gelsight", "--threshold", "1", "--part", "decoder") == 0
+    before, _ = load_tokenizer(tokenizer_folder, HOST)
+    after, _ = load_tokenizer(out, HOST)
+    images = sensor_images("digit", HOST, count=4, image_size=32, seed=9).images
+    with torch.no_grad():
+        assert torch.equal(before.encode_codes(images), after.encode_codes(images))
+        codes = before.encode_codes(images)
+        assert not torch.equal(before.decode_codes(codes), after.decode_codes(codes))
+    decoder = {id(p) for p in after.decoder_parameters()}
+    moved = {
+        name
+        for (name, old), (_, new) in zip(before.autoencoder.named_parameters(), after.autoencoder.named_parameters())
+        if not torch.equal(old, new)
+    }
+    named = dict(after.autoencoder.named_parameters())
+    assert moved and all(id(named[name]) in decoder for name in moved)
+    assert read_metadata(out / "autoencoder.safetensors")["adaptation.part"] == "decoder"
+    assert json.loads((out / "adapt.json").read_text())["part"] == "decoder"
+
+
+def test_decoder_parameters_are_those_a_decode_uses(tokenizer_folder):
+    from vqtouch.plugins.tokenizer import load_tokenizer
+
+    tokenizer, _ = load_tokenizer(tokenizer_folder, HOST)
+    decoder = {id(p) for p in tokenizer.decoder_parameters()}
+    names = {name for name, p in tokenizer.autoencoder.named_parameters() if id(p) in decoder}
+    everything = {name for name, _ in tokenizer.autoencoder.named_parameters()}
+    # An independent reference: the VQGAN's own module split.
+    assert names and names < everything
+    assert all(name.startswith(("dec_", "post_quant")) for name in names), sorted(names)[:5]
+    assert all(name in names for name in everything if name.startswith(("dec_", "post_quant")))

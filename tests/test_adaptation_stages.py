@@ -21,6 +21,9 @@ TINY_ADAPTATION = [
     "adapt.shots=4",
     "adapt.eval_images=4",
     "adapt.threshold=100",
+    "fewshot.generator_steps=2",
+    "fewshot.samples=2",
+    "fewshot.feature_size=32",
 ]
 
 
@@ -37,11 +40,12 @@ def _stages(out):
 
 
 def test_the_few_shot_scene_clusters_assigns_adapts_and_generates(tmp_path, capsys):
-    from vqtouch.plugins.tokenizer import load_tokenizer
+    from vqtouch.plugins.generator import load_pipeline
+    from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_digest
 
     out = tmp_path / "few"
     assert _demo(out, "few-shot") == 0
-    assert "scene few-shot: 4 of 4 stages ran, 0 cannot run, 0 failed" in capsys.readouterr().out
+    assert "scene few-shot: 5 of 5 stages ran, 0 cannot run, 0 failed" in capsys.readouterr().out
     stages = _stages(out)
     clusters = json.loads((out / "cluster" / "cluster.json").read_text())
     # Every registered family and one variant of each; the unseen sensor is assigned, not clustered.
@@ -58,6 +62,14 @@ def test_the_few_shot_scene_clusters_assigns_adapts_and_generates(tmp_path, caps
     report = (out / "report.md").read_text()
     assert "![cluster](cluster/families.png)" in report and "![adapt](adapted/before_after.png)" in report
     assert (out / "cluster" / "families.png").is_file() and (out / "adapted" / "before_after.png").is_file()
+    # The fewshot stage fine-tunes this run's generator for the target on the adapt stage's tokenizer.
+    fewshot = stages["fewshot"]["result"]
+    assert fewshot["adapted_tokenizer"] == "the adapt stage's" and fewshot["target"] == "gelsight/v1"
+    assert tokenizer_digest(out / "fewshot" / "tokenizer") == tokenizer_digest(out / "adapted")
+    assert {"label_few_shot_fd_effnetlite0", "label_zero_shot_fd_effnetlite0"} <= set(fewshot)
+    assert "![fewshot](fewshot/samples.png)" in report and (out / "fewshot" / "samples.png").is_file()
+    pipe = load_pipeline(out / "fewshot" / "generator", host=HOST)
+    assert pipe.sensor_tag is not None and pipe(label=0, n=1, steps=2).shape == (1, 3, 32, 32)
 
 
 def test_the_cross_sensor_scene_adapts_to_gelsight_mini_and_scores_its_real_frames(tmp_path, capsys):

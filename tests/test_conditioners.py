@@ -31,6 +31,8 @@ def example_condition(conditioner, batch):
 
     if conditioner.sample_key == "label":
         return torch.arange(batch) % conditioner.num_classes
+    if conditioner.sample_key == "sensor_index":
+        return torch.arange(batch) % conditioner.num_sensors
     return contract_example(conditioner, batch, BuildContext(image_size=32))
 
 
@@ -209,7 +211,11 @@ def test_clip_unknown_architecture(host, tiny_clip_file):
         host.build("conditioner", {"name": "clip", "architecture": "ViT-B-33", "checkpoint": str(path)}, CONTEXT)
 
 
-@pytest.mark.parametrize("name", OFFLINE_CONDITIONERS)
+#: The sensor tag reads the sensor index that few-shot fine-tuning gives its mixed rows, not a dataset's entry.
+DATASET_CONDITIONERS = [name for name in OFFLINE_CONDITIONERS if name != "sensor"]
+
+
+@pytest.mark.parametrize("name", DATASET_CONDITIONERS)
 def test_each_conditioner_reads_its_own_entry_of_a_dataset_batch(host, build, name):
     """`sample_key` routes a collated batch of procedural samples (paired: a DIGIT image per GelSight
     one) to the right conditioner input."""

@@ -68,6 +68,10 @@ class AdaptSettings:
     threshold: float | None = None
     family: int | None = None
     seed: int = 0
+    #: What fine-tunes: ``"all"`` (encoder, codebook and decoder) or ``"decoder"`` (the encoder and the
+    #: codebook stay, so every image keeps its codes and a generator over them stays valid; the
+    #: decoder learns to draw the new sensor from them).
+    part: str = "all"
     #: Metric plugins scoring the held-out images before and after (``fd_effnetlite0`` adds a
     #: distribution score; it needs at least 2 held-out images).
     metrics: tuple[str, ...] = ("ssim", "psnr")
@@ -268,6 +272,8 @@ def adapt_tokenizer(
     from vqtouch.plugins.tokenizer import TokenizerLossConfig, TokenizerTrainConfig
 
     refuse_existing(out, overwrite)
+    if settings.part not in ADAPTED_PARTS:
+        raise ConfigError(f"--part {settings.part!r}: choose {' or '.join(ADAPTED_PARTS)}")
     if settings.shots < 1 or settings.ratio < 0:
         raise ConfigError(f"shots must be >= 1 and ratio >= 0 (got {settings.shots}, {settings.ratio})")
     tokenizer, folder = load_tokenizer(run_or_folder, host, step=step)
@@ -357,6 +363,8 @@ def adapt_tokenizer(
     if discriminator is not None:
         start = getattr(tokenizer.autoencoder, "vqtouch_step", 0)
         loss = loss.model_copy(update={"disc_start": max(0, loss.disc_start - start)})
+    if settings.part == "decoder":
+        freeze_all_but_the_decoder(tokenizer)
     task = tokenizer_task(tokenizer, loss, device, discriminator)
     trainer = Trainer(
         task,
@@ -391,6 +399,7 @@ def adapt_tokenizer(
         "family_images": family_count,
         "held_out": len(held_out_M),
         "steps": settings.steps,
+        "part": settings.part,
         "learning_rate": train.learning_rate,
         "batch_size": batch_size,
         "adversarial": adversarial,
@@ -414,6 +423,7 @@ def adapt_tokenizer(
         "adaptation.shots": str(len(shots_N)),
         "adaptation.ratio": f"{settings.ratio:g}",
         "adaptation.adapted_from": str(folder),
+        "adaptation.part": settings.part,
     }
     step_reached = getattr(tokenizer.autoencoder, "vqtouch_step", 0) + settings.steps
     for file, module in zip(TOKENIZER_FILES, (tokenizer.autoencoder, tokenizer.quantizer)):
@@ -424,6 +434,24 @@ def adapt_tokenizer(
     )
     atomic_write(out / ADAPT_JSON, lambda tmp: tmp.write_text(json.dumps(summary, indent=2) + "\n"))
     return summary
+
+
+#: What adaptation can fine-tune (:attr:`AdaptSettings.part`).
+ADAPTED_PARTS = ("all", "decoder")
+
+
+def freeze_all_but_the_decoder(tokenizer: Any) -> None:
+    """Let only the decoder's parameters train: the codebook and the encoder keep every image's codes."""
+    if tokenizer.quantizer.vqtouch_spec.config.name == "ema_vq":
+        raise ConfigError(
+            "decoder-only adaptation keeps the codebook, but an ema_vq quantizer moves it while training; "
+            "adapt the whole tokenizer (--part all)"
+        )
+    decoder = {id(param) for param in tokenizer.decoder_parameters()}
+    for param in tokenizer.autoencoder.parameters():
+        param.requires_grad_(id(param) in decoder)
+    for param in tokenizer.quantizer.parameters():
+        param.requires_grad_(False)
 
 
 def refuse_existing(out: Path, overwrite: bool) -> None:

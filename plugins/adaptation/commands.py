@@ -128,6 +128,7 @@ def _adapt_command(args: argparse.Namespace) -> int:
         threshold=args.threshold,
         family=args.family,
         seed=args.seed,
+        part=args.part,
     )
     summary = adapt_tokenizer(
         args.run,
@@ -278,6 +279,13 @@ def vqtouch_add_commands(subparsers):
         help="family images per shot in the mixed set (default 5: the paper's 1:5)",
     )
     adapt.add_argument("--steps", type=positive_int, default=200, help="fine-tuning steps (default 200)")
+    adapt.add_argument(
+        "--part",
+        choices=("all", "decoder"),
+        default="all",
+        help="what fine-tunes: all (default), or the decoder alone: the encoder and codebook stay, so every "
+        "image keeps its codes and a generator trained over them still fits",
+    )
     adapt.add_argument("--learning-rate", type=learning_rate, help="default: the run's tokenizer.train.learning_rate")
     adapt.add_argument("--batch-size", type=positive_int, help="default: the run's data.batch_size")
     adapt.add_argument(

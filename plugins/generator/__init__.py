@@ -27,6 +27,7 @@ _PUBLIC = {
     "baseline_pool": ("stage", "baseline_pool"),
     "GENERATION_SHOWN_SCORES": ("stage", "SHOWN_SCORES"),
     "SAMPLES_CAPTION": ("stage", "SAMPLES_CAPTION"),
+    "fine_tune_for_sensor": ("sensor_finetune", "fine_tune_for_sensor"),
     "sweep_settings": ("tradeoff", "sweep_settings"),
     "measure": ("tradeoff", "measure"),
     "check_settings": ("tradeoff", "check_settings"),

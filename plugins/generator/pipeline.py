@@ -37,6 +37,7 @@ from vqtouch.core.training import TRAINER_STATE, apply_ema_weights, collate_samp
 from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_digest, tokenizer_location
 
 from .stage import CHECKPOINT_FOLDER
+from .training import SENSOR_TAG_MODULE, SensorTaggedConditioner
 
 
 @dataclass
@@ -58,6 +59,9 @@ class GenerationPipeline:
     config: Any = None
     #: The run it was loaded from; None for a bundle (``pretrained:NAME``), which is read-only.
     run: RunDir | None = None
+    #: A sensor-tagged generator's tag (``generator.sensor_tag``, made by ``vqtouch fewshot``); the
+    #: conditioners then draw the sensor ``generator.sample_sensor`` names.  None for most generators.
+    sensor_tag: Any = None
 
     def check_steps(self, steps: Any) -> int:
         """``steps`` as given, or a one-line ConfigError: sampling steps are an integer in [1, T] (the
@@ -259,7 +263,14 @@ def load_pipeline(
         load(folder / f"conditioner_{index}.safetensors", host=host, map_location=device_).eval()
         for index in range(len(section.conditioners))
     ]
-    used = _use_ema_weights(folder, generator, conditioners, weights or section.sample_weights, strict=bool(weights))
+    sensor_tag = None
+    if section.sensor_tag is not None:
+        sensor_tag = load(folder / f"{SENSOR_TAG_MODULE}.safetensors", host=host, map_location=device_).eval()
+    used = _use_ema_weights(
+        folder, generator, conditioners, weights or section.sample_weights, strict=bool(weights), sensor_tag=sensor_tag
+    )
+    if sensor_tag is not None:
+        conditioners = [SensorTaggedConditioner(c, sensor_tag, section.sample_sensor) for c in conditioners]
     tokenizer, _ = load_tokenizer(generator_tokenizer(run_dir, section), host, device=str(device_))
     if section.sampler is None:
         raise ConfigError(f"{run_dir.path}: generator.sampler is empty; pass sampler=NAME")
@@ -280,16 +291,21 @@ def load_pipeline(
         folder,
         config,
         run_dir,
+        sensor_tag,
     )
 
 
-def _use_ema_weights(folder: Path, generator: Any, conditioners: list[Any], wanted: str, *, strict: bool) -> str:
+def _use_ema_weights(
+    folder: Path, generator: Any, conditioners: list[Any], wanted: str, *, strict: bool, sensor_tag: Any = None
+) -> str:
     """Which weights the loaded modules hold after honouring ``wanted`` (``ema``/``raw``): the moving
     average the trainer kept in step ``folder`` replaces the raw weights of every module, or of none.
     ``strict`` (the user asked for ``ema``): a checkpoint without one is an error, not raw weights."""
     if wanted == "raw":
         return "raw"
     modules = {"generator": generator} | {f"conditioner_{i}": module for i, module in enumerate(conditioners)}
+    if sensor_tag is not None:
+        modules[SENSOR_TAG_MODULE] = sensor_tag
     averages = saved_ema_weights(folder)
     if not averages:
         if strict:

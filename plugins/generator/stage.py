@@ -65,6 +65,15 @@ class GeneratorSection(Section):
     sampler: Slot("sampler") | None = Field(
         None, description="How codes are drawn from the generator (e.g. posterior, purity, confidence)."
     )
+    sensor_tag: Slot("conditioner") | None = Field(
+        None,
+        description="A learned offset per sensor added to every condition (the `sensor` conditioner), so "
+        "one generator draws several sensors' appearance; set by `vqtouch fewshot`, which trains it.  "
+        "null: one sensor.",
+    )
+    sample_sensor: int = Field(
+        0, ge=0, strict=True, description="Which sensor of sensor_tag sampling draws (vqtouch fewshot: 1, the new one)."
+    )
     tokenizer_run: str | None = Field(
         None,
         description="Run directory of the trained tokenizer whose codes the "
@@ -134,6 +143,24 @@ class GeneratorSection(Section):
         return self
 
     @model_validator(mode="after")
+    def _sample_sensor_within_the_tag(self) -> GeneratorSection:
+        if self.sensor_tag is not None:
+            if self.sensor_tag.name != "sensor":
+                raise ValueError(
+                    f"generator.sensor_tag is the {self.sensor_tag.name!r} conditioner; it must be 'sensor' "
+                    "(one learned offset per sensor)"
+                )
+            count = getattr(self.sensor_tag, "num_sensors", 2)
+            if self.sample_sensor >= count:
+                raise ValueError(
+                    f"generator.sample_sensor={self.sample_sensor}, but sensor_tag has {count} sensors "
+                    f"(0..{count - 1}); name one of them"
+                )
+        elif self.sample_sensor:
+            raise ValueError("generator.sample_sensor is set but generator.sensor_tag is not; set both or neither")
+        return self
+
+    @model_validator(mode="after")
     def _sampling_steps_within_the_model(self) -> GeneratorSection:
         # Checked with the config, not after training: sampling cannot take more steps than the model
         # has diffusion steps (a generator plugin without such a limit has no num_steps option).
@@ -185,6 +212,11 @@ def train_generator(job: StageJob) -> dict[str, Any]:
     from .codes import dataset_codes
 
     config, section, assembly = job.config, job.section, job.assembly
+    if section.sensor_tag is not None:
+        raise StageUnavailable(
+            "generator.sensor_tag is set: a sensor-tagged generator is fine-tuned by `vqtouch fewshot` "
+            "(family data and an unseen sensor's images), not by the generator stage; remove sensor_tag"
+        )
     device = resolve_device(config.device)
     tokenizer, tokenizer_folder = load_run_tokenizer(job, device)
     generator = assembly.component("generator.model")

@@ -21,7 +21,7 @@ import torch
 from pydantic import Field, field_validator
 from torch import nn
 
-from vqtouch.core import Conditioner, Generator, TactileDataset, TrainConfig
+from vqtouch.core import ConditionTokens, Conditioner, Generator, TactileDataset, TrainConfig
 from vqtouch.core.data import dataset_groups
 from vqtouch.core.progress import progress
 
@@ -145,6 +145,56 @@ def _stack(items: list[Any]) -> Any:
     return items
 
 
+#: The checkpoint module name of a generator's sensor tag (``sensor_tag.safetensors``).
+SENSOR_TAG_MODULE = "sensor_tag"
+
+
+def absent_key(sample_key: str) -> str:
+    """The sample entry that marks a sample lacking the condition ``sample_key`` (a few-shot image of
+    an unseen sensor has no visual image): True rows train with the null condition, whatever value
+    stands in for the condition."""
+    return f"absent:{sample_key}"
+
+
+def add_sensor_offset(condition: ConditionTokens, sensor_tag: Conditioner, sensors_B: Any) -> ConditionTokens:
+    """``condition`` with each row's tokens offset by its sensor's (``sensor_tag``, the ``sensor``
+    conditioner), null rows too: the tag says which sensor to draw, the condition what to draw."""
+    offset_B1D = sensor_tag.encode(torch.as_tensor(sensors_B, device=condition.tokens_BND.device))
+    return ConditionTokens(
+        condition.tokens_BND + offset_B1D.to(condition.tokens_BND), condition.is_null_B, condition.grid_BDhw
+    )
+
+
+class SensorTaggedConditioner(nn.Module):
+    """A conditioner that draws one sensor of a sensor-tagged generator: its condition and its null
+    condition carry that sensor's offset.  Everything else (its sample key, how it parses a condition)
+    is the wrapped conditioner's, so samplers and pipelines use it unchanged."""
+
+    def __init__(self, conditioner: Conditioner, sensor_tag: Conditioner, sensor: int) -> None:
+        super().__init__()
+        if not 0 <= sensor < sensor_tag.num_sensors:
+            raise ValueError(f"sensor {sensor} is outside the tag's {sensor_tag.num_sensors} sensors")
+        self.conditioner = conditioner
+        self.sensor_tag = sensor_tag
+        self.sensor = sensor
+
+    def __getattr__(self, name: str) -> Any:
+        try:
+            return super().__getattr__(name)
+        except AttributeError:
+            return getattr(self.conditioner, name)
+
+    def _sensors(self, batch_size: int) -> torch.Tensor:
+        return torch.full((batch_size,), self.sensor, dtype=torch.long)
+
+    def forward(self, condition: Any, drop_mask_B: torch.Tensor | None = None) -> ConditionTokens:
+        tokens = self.conditioner(condition, drop_mask_B)
+        return add_sensor_offset(tokens, self.sensor_tag, self._sensors(len(tokens.is_null_B)))
+
+    def null(self, batch_size: int) -> ConditionTokens:
+        return add_sensor_offset(self.conditioner.null(batch_size), self.sensor_tag, self._sensors(batch_size))
+
+
 class GeneratorTask:
     """The generator objective as a :class:`vqtouch.core.training.TrainingTask` (see the module docstring)."""
 
@@ -155,6 +205,7 @@ class GeneratorTask:
         condition_dropout: float,
         seed: int,
         conditioner_weights: Sequence[float] | None = None,
+        sensor_tag: Conditioner | None = None,
     ) -> None:
         if not conditioners:
             raise ValueError("the generator needs at least one conditioner (generator.conditioners)")
@@ -171,6 +222,10 @@ class GeneratorTask:
         self.modules: dict[str, nn.Module] = {"generator": generator}
         for index, conditioner in enumerate(self.conditioners):
             self.modules[f"conditioner_{index}"] = conditioner
+        # A sensor tag (generator.sensor_tag) offsets every condition by its row's sensor_index.
+        self.sensor_tag = sensor_tag
+        if sensor_tag is not None:
+            self.modules[SENSOR_TAG_MODULE] = sensor_tag
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """One optimizer over the generator and every trainable conditioner parameter."""
@@ -187,9 +242,18 @@ class GeneratorTask:
         return int(torch.multinomial(self.weights, 1, generator=chooser))
 
     def condition_tokens(self, index: int, batch: dict[str, Any], drop_B: torch.Tensor | None) -> Any:
-        """The tokens of conditioner ``index`` for ``batch`` (rows in ``drop_B`` get its null tokens)."""
+        """The tokens of conditioner ``index`` for ``batch`` (rows in ``drop_B`` get its null tokens, as do
+        rows that lack the condition: ``batch[absent_key(KEY)]`` True), offset by each row's sensor when
+        the generator has a sensor tag."""
         conditioner = self.conditioners[index]
-        return conditioner(conditioner.condition_of(batch), drop_B)
+        absent_B = batch.get(absent_key(conditioner.sample_key))
+        if absent_B is not None:
+            absent_B = absent_B.to(device=batch["codes"].device, dtype=torch.bool)
+            drop_B = absent_B if drop_B is None else drop_B | absent_B
+        condition = conditioner(conditioner.condition_of(batch), drop_B)
+        if self.sensor_tag is None:
+            return condition
+        return add_sensor_offset(condition, self.sensor_tag, batch[self.sensor_tag.sample_key])
 
     def training_step(self, batch: dict[str, Any], step: int, trainer: Any) -> dict[str, float]:
         """One step with one conditioner, its conditions dropped to null at the configured rate."""

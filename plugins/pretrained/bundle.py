@@ -148,6 +148,11 @@ def export_bundle(
     if folder.exists() and not overwrite:
         raise ConfigError(f"{folder} exists; pass --overwrite to replace bundle {name!r}")
     pipe = load_pipeline(generator_run, host=host, device="cpu")
+    if pipe.sensor_tag is not None:
+        raise ConfigError(
+            f"{generator_run}: a sensor-tagged generator (vqtouch fewshot) cannot be bundled yet; "
+            "share its run folder instead"
+        )
     run = RunDir.open(generator_run)
     section = run.load_config(host).generator
     source = generator_tokenizer(run, section)

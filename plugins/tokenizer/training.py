@@ -104,6 +104,22 @@ class Tokenizer:
         """Images in [0, 1] -> integer codes (B, h, w) (the quantizer's code grid)."""
         return self.quantizer(self.autoencoder.encode(images_B3HW * 2 - 1)).codes_Bhw
 
+    def decoder_parameters(self) -> list[nn.Parameter]:
+        """The autoencoder's parameters that decoding a latent grid uses (what decoder-only adaptation
+        trains, leaving the encoder and the codebook, and so every image's codes, as they were).  Found
+        by differentiating one decode, so it holds for any autoencoder plugin."""
+        from vqtouch.core.image_size import image_hw
+
+        autoencoder = self.autoencoder
+        with torch.no_grad():
+            latents = autoencoder.encode(
+                torch.zeros(1, 3, *image_hw(autoencoder.vqtouch_spec.context.image_size), device=self.device)
+            )
+        params = list(autoencoder.parameters())
+        with torch.enable_grad():
+            grads = torch.autograd.grad(autoencoder.decode(latents).float().sum(), params, allow_unused=True)
+        return [param for param, grad in zip(params, grads) if grad is not None]
+
     def decode_codes(self, codes_Bhw: torch.Tensor) -> torch.Tensor:
         """Integer codes (B, h, w) -> images in [0, 1] (clamped), e.g. for generated codes."""
         return ((self.autoencoder.decode(self.quantizer.lookup(codes_Bhw)).float() + 1) / 2).clamp(0, 1)

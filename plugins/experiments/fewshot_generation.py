@@ -1,0 +1,546 @@
+"""``vqtouch fewshot``: from an unseen sensor's images to generated images of that sensor.
+
+::
+
+    vqtouch fewshot --run FAMILY_RUN --images DIR --out OUT [--shots 50] [--ratio 5] \\
+        [--tokenizer-steps 200] [--generator-steps 300] [--families DIR] [--samples 32] [--seed 0]
+
+``FAMILY_RUN`` is a generator run of the sensor family (its tokenizer, generator, conditioners and
+data), or a bundle (``pretrained:tour``: its recorded config names its data, rendered here).
+``--images`` is a folder of the unseen sensor's images (any layout ``vqtouch adapt`` reads) or a
+registered sensor (name or JSON variant), which renders them.  Five steps, one line each:
+
+1. **assign and adapt the tokenizer** (``vqtouch adapt``): the shots are assigned to a sensor
+   family (refused, in one line, when they match none; ``--family K`` forces one) and the family
+   run's tokenizer is fine-tuned on them mixed 1:``ratio`` with the family's members -> ``OUT/tokenizer``;
+2. **fine-tune the generator**: the family generator learns the adapted tokenizer's codes of
+   ``ratio`` family training samples per shot (their conditions) and of the shots (no condition),
+   with a sensor tag that tells the two apart (:func:`vqtouch.plugins.generator.fine_tune_for_sensor`)
+   -> ``OUT/generator``, a generator run that ``vqtouch generate`` reads;
+3. **sample every condition** the family generator has (the family's held-out conditions), in the
+   new sensor's appearance -> ``OUT/samples_<i>_<name>.png``: condition (when it is an image) |
+   generated new-sensor image | the zero-shot family generator's | a real image of the new sensor;
+4. **score** on the new sensor's held-out images (never the shots): ``fd_effnetlite0`` of each
+   conditioner's samples beside the zero-shot family generator (its own tokenizer, no adaptation),
+   the shots themselves (copying real images of the sensor) and the sensor's no-contact background
+   (drawing nothing); ``--ratio 0`` is the shots-alone arm;
+5. **write** ``OUT/fewshot.json`` and ``OUT/fewshot.md``.
+
+``OUT`` is written whole at the end (staged beside it): a failed run leaves nothing half-written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from pathlib import Path
+from typing import Any, Sequence
+
+import torch
+
+from pydantic import Field
+
+from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, Section, StageJob, StageUnavailable, hookimpl
+from vqtouch.core.checkpoint import is_pretrained, open_pretrained
+from vqtouch.core.cli import non_negative_int, positive_int
+from vqtouch.core.data import experiment_split
+from vqtouch.core.images import image_grid, save_png
+from vqtouch.core.runs import staged_output
+from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
+from vqtouch.plugins.evaluation.records import markdown_table, provenance
+
+#: The arms every conditioner's samples are scored beside.
+ARMS = ("few-shot", "zero-shot", "shots (copied)", "no-contact background")
+
+
+def _family_folder(family_run: str, host: PluginHost) -> Path:
+    """The checkpoint folder of the tokenizer the family generator was trained on (what is adapted):
+    a bundle's own, or the one a run's generator product records."""
+    from vqtouch.plugins.generator import generator_tokenizer
+    from vqtouch.plugins.tokenizer import load_tokenizer
+
+    if is_pretrained(family_run):
+        return open_pretrained(family_run, host, tokenizer_only=True).folder / "tokenizer"
+    run = RunDir.open(family_run)
+    config = run.load_config(host)
+    if getattr(config, "generator", None) is None or config.generator.model is None:
+        raise ConfigError(
+            f"--run {family_run}: its config has no generator; give a family's generator run "
+            "(`vqtouch train generator`) or a bundle (pretrained:NAME)"
+        )
+    _, folder = load_tokenizer(generator_tokenizer(run, config.generator), host)
+    return folder
+
+
+def _cycled(images_N3HW: torch.Tensor, count: int) -> torch.Tensor:
+    return images_N3HW.repeat(-(-count // len(images_N3HW)), 1, 1, 1)[:count]
+
+
+def _samples(pipe: Any, index: int, conditions: Any, seed: int, device: torch.device, batch_size: int) -> torch.Tensor:
+    """Pipeline ``pipe``'s images of ``conditions`` from conditioner ``index`` at its default settings."""
+    from vqtouch.plugins.generator import sample_images
+
+    conditioner = pipe.conditioners[index]
+    images = []
+    for start in range(0, len(conditions.indices), batch_size):
+        batch = conditions.batch(start, start + batch_size, device=device)
+        with torch.no_grad():
+            tokens = conditioner(conditioner.condition_of(batch))
+            images.append(
+                sample_images(
+                    pipe.generator,
+                    conditioner,
+                    pipe.tokenizer,
+                    pipe.sampler,
+                    tokens,
+                    conditions.indices[start : start + batch_size],
+                    steps=pipe.settings["steps"],
+                    guidance=pipe.guidance_for(index),
+                    truncation=pipe.settings["truncation"],
+                    seed=seed,
+                    device=device,
+                )
+                .float()
+                .clamp(0, 1)
+                .cpu()
+            )
+    return torch.cat(images)
+
+
+def fewshot_generation(
+    family_run: str,
+    images: str,
+    out: Path,
+    host: PluginHost,
+    *,
+    shots: int = 50,
+    ratio: float = 5.0,
+    tokenizer_steps: int = 200,
+    tokenizer_part: str = "all",
+    generator_steps: int = 300,
+    families: str | None = None,
+    family: int | None = None,
+    threshold: float | None = None,
+    samples: int = 32,
+    eval_images: int = 64,
+    seed: int = 0,
+    feature_size: int = 224,
+    score: bool = True,
+    adapted: Path | None = None,
+    overwrite: bool = False,
+    argv: Sequence[str] | None = None,
+    report: Any = print,
+) -> dict[str, Any]:
+    """Run the five steps of the module docstring; returns what ``fewshot.json`` holds.  ``adapted``: a
+    tokenizer ``vqtouch adapt`` already adapted from the family's to ``images`` with these ``shots``,
+    ``ratio`` and ``seed`` (the ``adapt`` stage's), copied instead of adapting again."""
+    from vqtouch.plugins.adaptation import (
+        AdaptSettings,
+        adapt_tokenizer,
+        families_to_adapt_from,
+        registered_source,
+        sensor_background,
+        target_images,
+    )
+    from vqtouch.plugins.generator import fine_tune_for_sensor, held_out_conditions, load_pipeline
+    from vqtouch.plugins.tokenizer import load_tokenizer
+
+    if ratio < 0:
+        raise ConfigError(f"--ratio {ratio}: family images per shot must be >= 0 (0: the shots alone)")
+    out = Path(out)
+    adapted = Path(adapted) if adapted is not None else None
+    if adapted is not None:
+        made_from = json.loads((Path(adapted) / "adapt.json").read_text()).get("adapted_from", "")
+        if Path(made_from).resolve() != _family_folder(family_run, host).resolve():
+            raise ConfigError(
+                f"{adapted} was adapted from {made_from}, not from the tokenizer of {family_run}'s generator; "
+                "adapt that one (leave the adapted tokenizer out)"
+            )
+    family_pipe = load_pipeline(family_run, host=host)
+    folder = _family_folder(family_run, host)
+    tokenizer, _ = load_tokenizer(folder, host)
+    device = family_pipe.device
+    config = family_pipe.config
+    image_size = config.data.image_size
+    result: dict[str, Any] = {
+        "family_run": str(family_run),
+        "images": images,
+        "shots": shots,
+        "ratio": ratio,
+        "seed": seed,
+    }
+    reads = [("--images", "images", images)] if Path(images).is_dir() else []
+    if not is_pretrained(family_run):
+        reads.append(("--run", "family run", family_run))
+    with staged_output(out, overwrite=overwrite, reads=reads) as partial:
+        if adapted is not None:
+            report(f"1/5 reuse the tokenizer adapted in {adapted}")
+            shutil.copytree(adapted, partial / "tokenizer")
+            adapted_summary = json.loads((adapted / "adapt.json").read_text())
+        else:
+            report(f"1/5 assign and adapt the tokenizer of {folder} ({tokenizer_steps} steps)")
+            if families is None:
+                report("    no --families: clustering the registered sensor families and 3 variants of each")
+            fitted = families_to_adapt_from(
+                tokenizer,
+                folder,
+                host,
+                families=Path(families) if families else None,
+                where=f"the families in {families}",
+                exclude=registered_source(images),
+                seed=seed,
+            )
+            settings = AdaptSettings(
+                shots=shots,
+                ratio=ratio,
+                steps=tokenizer_steps,
+                eval_images=eval_images,
+                threshold=threshold,
+                family=family,
+                seed=seed,
+                part=tokenizer_part,
+            )
+            adapted_summary = adapt_tokenizer(
+                str(folder),
+                images,
+                fitted,
+                host,
+                partial / "tokenizer",
+                settings,
+                report=lambda line: report(f"    {line}"),
+            )
+        result["adapt"] = {
+            key: adapted_summary[key]
+            for key in ("target", "family", "assignment", "steps", "held_out", "before", "after")
+            if key in adapted_summary
+        }
+        name, _, shots_N3HW, held_out_M3HW = target_images(
+            images, host, shots=shots, eval_images=eval_images, image_size=image_size, seed=seed
+        )
+        background_3HW, background_source = sensor_background(images, host, image_size)
+
+        report(f"2/5 fine-tune the family generator on {shots} shots and {ratio:g} family samples per shot")
+        family_sensor = config.sensor.name if getattr(config, "sensor", None) is not None else "family"
+        result["fine_tune"] = fine_tune_for_sensor(
+            family_run,
+            partial / "tokenizer",
+            shots_N3HW,
+            background_3HW,
+            partial / "generator",
+            host,
+            ratio=ratio,
+            steps=generator_steps,
+            seed=seed,
+            sensor_names=(family_sensor, name),
+            argv=argv,
+            report=lambda line: report(f"    {line}"),
+        )
+
+        pipe = load_pipeline(partial / "generator", host=host)
+        count = min(samples, len(held_out_M3HW))
+        dataset = Assembly(config, host).component("data.dataset")
+        _, held_out = experiment_split(dataset, config.data, config.seed)
+        conditions = held_out_conditions(held_out, dataset, count, device)
+        count = len(conditions.indices)
+        if count == 0:
+            raise ConfigError(f"--run {family_run}: its data hold no held-out conditions to generate from")
+        real_M3HW = held_out_M3HW[:count]
+        names = pipe.conditioner_names()
+        report(f"3/5 sample {count} images of the new sensor from each condition ({', '.join(names)})")
+        generated: dict[str, dict[str, torch.Tensor]] = {}
+        shown = min(count, 8)
+        overview: list[torch.Tensor] = []  # samples.png: each condition's row(s), then the real images
+        for index, label in enumerate(names):
+            fewshot_images = _samples(pipe, index, conditions, seed, device, 16)
+            zero_shot_images = _samples(family_pipe, index, conditions, seed, device, 16)
+            generated[label] = {"few-shot": fewshot_images, "zero-shot": zero_shot_images}
+            rows = []
+            batch = conditions.batch(0, shown, device=torch.device("cpu"))
+            condition = batch.get(pipe.conditioners[index].sample_key)
+            if isinstance(condition, torch.Tensor) and condition.ndim == 4 and condition.shape[1] == 3:
+                rows.append(condition.float())
+            overview += [*rows, fewshot_images[:shown]]
+            rows += [fewshot_images[:shown], zero_shot_images[:shown], real_M3HW[:shown].float()]
+            picture = partial / f"samples_{label.replace(':', '_')}.png"
+            save_png(image_grid(torch.cat(rows), columns=shown), picture)
+        save_png(image_grid(torch.cat([*overview, real_M3HW[:shown].float()]), columns=shown), partial / "samples.png")
+
+        result["conditioners"] = names
+        result["samples"] = {
+            "count": count,
+            "pictures": [f"samples_{label.replace(':', '_')}.png" for label in names],
+            "overview": "samples.png",
+            "rows": "condition (image conditions only) | few-shot | zero-shot | real new-sensor image",
+        }
+        result["background"] = background_source
+        if score:
+            report(f"4/5 score against {count} held-out images of {name} (fd_effnetlite0 at {feature_size} px)")
+            result["scores"] = _scores(generated, real_M3HW, shots_N3HW, background_3HW, feature_size, host)
+        else:
+            report("4/5 scoring skipped (--no-score)")
+            result["scores"] = []
+        report("5/5 write fewshot.json and fewshot.md")
+        record = {**result, "provenance": provenance()}
+        (partial / "fewshot.json").write_text(json.dumps(record, indent=2, default=str) + "\n")
+        (partial / "fewshot.md").write_text("\n".join(render_markdown(result)) + "\n")
+    return result
+
+
+def _scores(
+    generated: dict[str, dict[str, torch.Tensor]],
+    real_M3HW: torch.Tensor,
+    shots_N3HW: torch.Tensor,
+    background_3HW: torch.Tensor,
+    feature_size: int,
+    host: PluginHost,
+) -> list[dict[str, Any]]:
+    """One row per conditioner and arm: ``fd_effnetlite0`` against the held-out real images."""
+    from vqtouch.plugins.evaluation.distribution import DistributionScorer
+
+    count = len(real_M3HW)
+    metric = host.build("metric", {"name": "fd_effnetlite0", "image_size": feature_size})
+    scorer = DistributionScorer(real_M3HW.float(), metric=metric)
+    common = {
+        "shots (copied)": scorer.score(_cycled(shots_N3HW.float(), count))["fd_effnetlite0"],
+        "no-contact background": scorer.score(background_3HW.float().expand(count, -1, -1, -1))["fd_effnetlite0"],
+    }
+    rows = []
+    for label, arms in generated.items():
+        for arm, images in arms.items():
+            rows.append({"conditioner": label, "arm": arm, "fd_effnetlite0": scorer.score(images)["fd_effnetlite0"]})
+        rows += [{"conditioner": label, "arm": arm, "fd_effnetlite0": value} for arm, value in common.items()]
+    return rows
+
+
+def render_markdown(result: dict[str, Any]) -> list[str]:
+    """``fewshot.md``: what was adapted and fine-tuned, and the scores table."""
+    tune = result["fine_tune"]
+    adapt = result.get("adapt", {})
+    lines = [
+        f"# Few-shot generation: {adapt.get('target', result['images'])}",
+        "",
+        f"Family run `{result['family_run']}`; {result['shots']} shots, {tune['family_samples']} family "
+        f"samples (ratio {result['ratio']:g}); generator fine-tuned {tune['steps']} steps in {tune['seconds']:.0f} s.",
+    ]
+    if "before" in adapt and "after" in adapt:
+        lines.append(
+            f"Adapted tokenizer on {adapt.get('held_out', '?')} held-out images: PSNR {adapt['before']['psnr']:.2f} -> "
+            f"{adapt['after']['psnr']:.2f} dB."
+        )
+    lines += ["", f"Samples: {', '.join(result['samples']['pictures'])} ({result['samples']['rows']}).", ""]
+    if result["scores"]:
+        lines += [
+            f"fd_effnetlite0 (lower is better) of {result['samples']['count']} images per arm against as many "
+            "held-out images of the new sensor (never the shots):",
+            "",
+            *markdown_table(
+                result["scores"], ["conditioner", "arm"], ["fd_effnetlite0"], {"fd_effnetlite0": "fd_effnetlite0 ↓"}
+            ),
+        ]
+    lines += ["", f"No-contact background: {result['background']}."]
+    return lines
+
+
+def _fewshot_command(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    result = fewshot_generation(
+        args.run,
+        args.images,
+        out,
+        args.host,
+        shots=args.shots,
+        ratio=args.ratio,
+        tokenizer_steps=args.tokenizer_steps,
+        tokenizer_part=args.tokenizer_part,
+        generator_steps=args.generator_steps,
+        families=args.families,
+        family=args.family,
+        threshold=args.threshold,
+        samples=args.samples,
+        eval_images=args.eval_images,
+        seed=args.seed,
+        feature_size=args.feature_size,
+        score=not args.no_score,
+        overwrite=args.overwrite,
+        argv=args.argv,
+        report=lambda line: print(line, flush=True),
+    )
+    print((out / "fewshot.md").read_text())
+    pictures = ", ".join(result["samples"]["pictures"])
+    print(f"-> {out} (tokenizer/, generator/ (vqtouch generate --run {out / 'generator'}), {pictures}, fewshot.json)")
+    return 0
+
+
+def _ratio(text: str) -> float:
+    value = float(text)
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"{text}: family images per shot must be a finite number >= 0")
+    return value
+
+
+@hookimpl
+def vqtouch_add_commands(subparsers: Any) -> None:
+
+    parser = subparsers.add_parser(
+        "fewshot",
+        help="from an unseen sensor's images to generated images of it: assign, adapt the tokenizer, "
+        "fine-tune the family generator, sample every condition, score",
+    )
+    parser.add_argument(
+        "--run",
+        required=True,
+        help="the sensor family's generator: a run (vqtouch train generator) or a bundle (pretrained:tour)",
+    )
+    parser.add_argument(
+        "--images",
+        required=True,
+        help="a folder of the unseen sensor's images (flat, class sub-folders or an index.csv), or a registered "
+        "sensor (name or JSON variant) to render them",
+    )
+    parser.add_argument(
+        "--out", required=True, help="folder for the adapted tokenizer, the generator run and the scores"
+    )
+    parser.add_argument(
+        "--shots", type=positive_int, default=50, help="images of the new sensor to learn from (default 50)"
+    )
+    parser.add_argument(
+        "--ratio",
+        type=_ratio,
+        default=5.0,
+        help="family images per shot, tokenizer and generator alike (default 5; 0: shots alone)",
+    )
+    parser.add_argument("--tokenizer-steps", type=positive_int, default=200, help="adaptation steps (default 200)")
+    parser.add_argument(
+        "--tokenizer-part",
+        choices=("all", "decoder"),
+        default="all",
+        help="what adaptation fine-tunes: all, or the decoder alone (every image keeps its codes)",
+    )
+    parser.add_argument(
+        "--generator-steps", type=positive_int, default=300, help="generator fine-tuning steps (default 300)"
+    )
+    parser.add_argument("--families", help="a `vqtouch cluster` output of the family tokenizer (default: cluster now)")
+    parser.add_argument(
+        "--family", type=non_negative_int, help="adapt from this family even when the assignment refuses"
+    )
+    parser.add_argument("--threshold", type=float, help="assignment distance threshold (default: the families' own)")
+    parser.add_argument(
+        "--samples", type=positive_int, default=32, help="images generated per condition and arm (default 32)"
+    )
+    parser.add_argument(
+        "--eval-images",
+        type=positive_int,
+        default=64,
+        help="held-out images of the new sensor (default 64; never the shots)",
+    )
+    parser.add_argument(
+        "--seed", type=non_negative_int, default=0, help="draws the shots, the family samples and the samples"
+    )
+    parser.add_argument(
+        "--feature-size",
+        type=feature_size_argument,
+        default=224,
+        help="side EfficientNet-Lite0 sees images at (default 224)",
+    )
+    parser.add_argument("--no-score", action="store_true", help="write the samples without the fd scores")
+    parser.add_argument("--overwrite", action="store_true", help="replace what --out holds")
+    parser.set_defaults(handler=_fewshot_command)
+
+
+class FewshotSection(Section):
+    """The ``fewshot`` stage's section: few-shot generation for the experiment's target sensor.  The
+    shots, the ratio, the adaptation steps and the held-out images are the ``adapt`` section's, so the
+    stage reuses the ``adapt`` stage's tokenizer when it adapted the same family tokenizer."""
+
+    family_generator: str | None = Field(
+        None,
+        description="The family's generator: null, this run's own (its generator stage); pretrained:NAME, a "
+        "bundle (the tour demo's: a generator trained for demo minutes draws too little to adapt).",
+    )
+    generator_steps: int = Field(300, ge=1, le=1_000_000, strict=True, description="Generator fine-tuning steps.")
+    samples: int = Field(16, ge=1, le=100_000, strict=True, description="Images generated per condition and arm.")
+    feature_size: int = Field(224, ge=32, le=1024, strict=True, description="Side EfficientNet-Lite0 sees images at.")
+    score: bool = Field(True, description="Score the samples' fd_effnetlite0 against the target's held-out images.")
+
+
+def run_fewshot_stage(job: StageJob) -> dict[str, Any]:
+    """Generate images of the target sensor from its shots (:func:`fewshot_generation`) into ``<run>/fewshot``."""
+    section, config = job.section, job.config
+    adapt = config.adapt
+    family_run = section.family_generator or str(job.run.path)
+    if not is_pretrained(family_run) and "generator" not in job.run.products():
+        raise StageUnavailable(
+            "no generator in this run; run the generator stage first or set fewshot.family_generator"
+        )
+    target = job.assembly.sensor_config("target")
+    images = json.dumps({"name": target.name, **target.model_dump(mode="json", exclude_defaults=True)}, sort_keys=True)
+    adapted = job.run.products().get("adapted_tokenizer")
+    reuse = None
+    if adapted is not None:
+        made_from = json.loads((adapted.path / "adapt.json").read_text()).get("adapted_from", "")
+        if Path(made_from).resolve() == _family_folder(family_run, job.host).resolve():
+            reuse = adapted.path
+    result = fewshot_generation(
+        family_run,
+        images,
+        job.run.path / FEWSHOT_FOLDER,
+        job.host,
+        shots=adapt.shots,
+        ratio=adapt.ratio,
+        tokenizer_steps=adapt.steps,
+        threshold=adapt.threshold,
+        family=adapt.family,
+        samples=section.samples,
+        eval_images=adapt.eval_images,
+        seed=config.seed,
+        feature_size=section.feature_size,
+        score=section.score,
+        adapted=reuse,
+        overwrite=True,
+        report=lambda line: None,
+    )
+    job.publish("fewshot_generator", f"{FEWSHOT_FOLDER}/generator", target=result["adapt"].get("target", ""))
+    summary: dict[str, Any] = {
+        "target": result["adapt"].get("target"),
+        "family": result["adapt"].get("family"),
+        "family_generator": family_run if is_pretrained(family_run) else "this run",
+        "adapted_tokenizer": "the adapt stage's" if reuse is not None else "adapted here",
+        "shots": result["fine_tune"]["shots"],
+        "family_samples": result["fine_tune"]["family_samples"],
+        "generator_steps": result["fine_tune"]["steps"],
+    }
+    for row in result["scores"]:
+        arm = row["arm"].split(" ")[0].replace("-", "_").replace("(", "")
+        key = f"{row['conditioner'].split(':', 1)[1]}_{arm}_fd_effnetlite0"
+        summary[key] = row["fd_effnetlite0"]
+    names = ", ".join(label.split(":", 1)[1] for label in result["conditioners"])
+    return {
+        **summary,
+        "picture": f"{FEWSHOT_FOLDER}/samples.png",
+        "caption": (
+            f"Images of the unseen sensor {summary['target']} generated from the family generator fine-tuned on "
+            f"{summary['shots']} of its images: for each condition ({names}), "
+            "the condition when it is an image, then the generated images; the last row is real images of the "
+            "sensor (held out). Per-condition pictures beside the zero-shot generator's are in fewshot/."
+        ),
+    }
+
+
+#: Where the ``fewshot`` stage writes, inside its run.
+FEWSHOT_FOLDER = "fewshot"
+
+
+@hookimpl
+def vqtouch_register_stages(register):
+    register(
+        "fewshot",
+        run_fewshot_stage,
+        section=FewshotSection,
+        needs=("target_sensor",),
+        makes=("fewshot_generator",),
+        demo={"generator_steps": 60, "samples": 8, "feature_size": 64},
+        trains="generator_steps",
+        description="Generate images of the unseen target sensor: adapt the tokenizer, fine-tune the family "
+        "generator on its shots mixed with family data, sample every condition.",
+    )

@@ -1,0 +1,226 @@
+"""Fine-tuning a family's generator to draw an unseen sensor: :func:`fine_tune_for_sensor`.
+
+The family generator learned its conditions (label, visual, text, touch) on the family's data.  An
+unseen sensor brings a few images (the shots) and no conditions.  The generator is fine-tuned on
+the codes, under the sensor's adapted tokenizer, of ``ratio`` family training samples per shot
+(their conditions as they are, sensor 0) and of the shots (sensor 1, every condition null), with a
+**sensor tag** (the ``sensor`` conditioner, ``generator.sensor_tag``) added to every condition:
+the family rows keep teaching what each condition draws, the shots teach the new sensor's
+appearance, and sampling asks for the condition with sensor 1's tag.  The tag starts at zero, so
+fine-tuning begins from exactly the family generator.
+
+The result is an ordinary generator run (``config.json``, ``checkpoints/generator/step-*``, its
+``generator`` product pinned to the adapted tokenizer): ``vqtouch generate``, ``load_pipeline`` and
+``evaluate generation`` read it as any other, drawing sensor ``generator.sample_sensor`` (1).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Sequence
+
+import torch
+
+from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, resolve_device, validate_experiment
+from vqtouch.core.data import DatasetSubset, experiment_split
+from vqtouch.core.image_size import image_hw
+from vqtouch.core.training import Trainer
+from vqtouch.plugins.evaluation.contact import dataset_background
+from vqtouch.plugins.tokenizer import TOKENIZER_FILES, load_tokenizer, tokenizer_digest
+
+from .codes import canonical_background, encode_dataset
+from .pipeline import load_pipeline
+from .stage import CHECKPOINT_FOLDER
+from .training import SENSOR_TAG_MODULE, CodesDataset, GeneratorTask, absent_key
+
+#: Sensor indices of a fine-tuned generator's tag: the family's data, the unseen sensor's shots.
+FAMILY_SENSOR, NEW_SENSOR = 0, 1
+
+
+def recorded_tokenizer(tokenizer_folder: Path, out: Path) -> str:
+    """How the fine-tuned run records its tokenizer: relative to the run when the two sit side by side
+    (``vqtouch fewshot``'s ``tokenizer/`` and ``generator/``, which then move together), else absolute."""
+    tokenizer_folder, out = tokenizer_folder.resolve(), out.resolve()
+    if tokenizer_folder.is_relative_to(out.parent):
+        return os.path.relpath(tokenizer_folder, out)
+    return str(tokenizer_folder)
+
+
+def family_sample_indices(train_indices: Sequence[int], count: int, seed: int) -> list[int]:
+    """``count`` of the family's training samples (at most all), a seeded draw kept in dataset order."""
+    order = torch.randperm(len(train_indices), generator=torch.Generator().manual_seed(seed + 4242)).tolist()
+    return sorted(train_indices[i] for i in order[: min(count, len(train_indices))])
+
+
+def _placeholder(values: Any, count: int) -> Any:
+    """``count`` stand-ins for a condition the shots lack, shaped like the family's ``values`` (they are
+    encoded, then replaced: the rows train with the null condition)."""
+    if isinstance(values, torch.Tensor):
+        return torch.zeros((count, *values.shape[1:]), dtype=values.dtype)
+    return [values[0] if values else ""] * count
+
+
+def mixed_codes(
+    family: CodesDataset, shots_codes_NHW: torch.Tensor, keys: Sequence[str], sensor_key: str
+) -> CodesDataset:
+    """The family rows (sensor 0, their conditions) followed by the shots (sensor 1, every condition
+    marked absent), as one :class:`CodesDataset`."""
+    count, shots = len(family), len(shots_codes_NHW)
+    entries: dict[str, Any] = {}
+    for key in keys:
+        values = family.entries[key]
+        stand_in = _placeholder(values, shots)
+        entries[key] = torch.cat([values, stand_in]) if isinstance(values, torch.Tensor) else list(values) + stand_in
+        entries[absent_key(key)] = torch.cat(
+            [torch.zeros(count, dtype=torch.bool), torch.ones(shots, dtype=torch.bool)]
+        )
+    entries[sensor_key] = torch.cat(
+        [torch.full((count,), FAMILY_SENSOR, dtype=torch.long), torch.full((shots,), NEW_SENSOR, dtype=torch.long)]
+    )
+    return CodesDataset(torch.cat([family.codes_NHW, shots_codes_NHW]), entries, family.class_names)
+
+
+def fine_tune_for_sensor(
+    family_run: str | Path,
+    tokenizer_folder: Path,
+    shots_N3HW: torch.Tensor,
+    new_background_3HW: torch.Tensor,
+    out: Path,
+    host: PluginHost,
+    *,
+    ratio: float,
+    steps: int,
+    seed: int,
+    sensor_names: tuple[str, str],
+    learning_rate: float | None = None,
+    overwrite: bool = False,
+    argv: Sequence[str] | None = None,
+    report: Any = print,
+) -> dict[str, Any]:
+    """Fine-tune ``family_run``'s generator (a run, or a bundle ``pretrained:NAME``, whose recorded config
+    says what its data were) for the unseen sensor whose ``shots_N3HW`` were adapted into
+    ``tokenizer_folder`` (see the module docstring); writes a generator run into ``out`` and returns
+    what was done (sample counts, canonical backgrounds, steps, seconds)."""
+    import time
+
+    if ratio < 0 or not len(shots_N3HW):
+        raise ConfigError(f"ratio must be >= 0 and there must be shots (got ratio {ratio}, {len(shots_N3HW)} shots)")
+    family = load_pipeline(family_run, host=host, device="cpu")
+    if family.sensor_tag is not None:
+        raise ConfigError(f"{family_run}: already a sensor-tagged (few-shot) generator; start from the family's run")
+    config = family.config
+    section = config.generator
+    device = resolve_device(config.device)
+    tokenizer, _ = load_tokenizer(tokenizer_folder, host, device=str(device))
+    if tokenizer.quantizer.codebook_size != getattr(family.generator, "num_codes", tokenizer.quantizer.codebook_size):
+        raise ConfigError(
+            f"{tokenizer_folder}: its codebook is not the family generator's; adapt the family's tokenizer"
+        )
+    report(f"fine-tune: reading the family's data ({config.data.dataset.name})")
+    dataset = Assembly(config, host).component("data.dataset")
+    train, _ = experiment_split(dataset, config.data, config.seed)
+    chosen = family_sample_indices(train.indices, round(ratio * len(shots_N3HW)), seed)
+    family_subset = DatasetSubset(dataset, chosen)
+    keys = list(dict.fromkeys(key for c in family.conditioners for key in c.sample_entries()))
+    # With no family sample (ratio 0) one is still read: the shots' stand-in conditions take its types.
+    read = family_subset if chosen else DatasetSubset(dataset, train.indices[:1])
+    family_codes = encode_dataset(tokenizer, read, batch_size=config.data.batch_size, device=device)
+    family_data = CodesDataset.collect(family_codes, read, keys)
+    if not chosen:
+        family_data = CodesDataset(
+            family_codes[:0], {key: values[:0] for key, values in family_data.entries.items()}, family_data.class_names
+        )
+    shots_codes = torch.cat(
+        [
+            tokenizer.encode_codes(shots_N3HW[start : start + 32].to(device)).cpu().long()
+            for start in range(0, len(shots_N3HW), 32)
+        ]
+    )
+    backgrounds: dict[str, Any] = {"applied": False}
+    if section.train.canonical_background:
+        family_background, _ = dataset_background(train, image_hw(config.data.image_size))
+        if len(chosen) and family_background is not None:
+            family_data.codes_NHW, _ = canonical_background(family_data.codes_NHW, tokenizer, family_background)
+        shots_codes, changed = canonical_background(shots_codes, tokenizer, new_background_3HW)
+        backgrounds = {"applied": True, "shots_cells_changed": round(changed, 4)}
+
+    sensor_tag = host.build(
+        "conditioner",
+        {"name": "sensor", "num_sensors": 2, "sensor_names": list(sensor_names)},
+        family.conditioners[0].vqtouch_spec.context,
+    )
+    data = mixed_codes(family_data, shots_codes, keys, sensor_tag.sample_key)
+    train_config = section.train.model_copy(
+        update={
+            "steps": steps,
+            "warmup_steps": min(section.train.warmup_steps, max(1, steps // 10)),
+            "checkpoint_every": max(1, steps),
+            "keep_best": False,
+            **({"learning_rate": learning_rate} if learning_rate is not None else {}),
+        }
+    )
+    tokenizer_at = recorded_tokenizer(Path(tokenizer_folder), Path(out))
+    recorded = config.to_dict()
+    recorded["generator"] |= {
+        "sensor_tag": sensor_tag.vqtouch_spec.config.model_dump(mode="json"),
+        "sample_sensor": NEW_SENSOR,
+        "tokenizer_run": tokenizer_at,
+        "train": train_config.model_dump(mode="json"),
+    }
+    tuned = validate_experiment(recorded, host)
+    reads = [] if family.run is None else [("--run", "family run", family_run)]
+    run = RunDir.create(tuned, argv=argv, host=host, path=out, overwrite=overwrite, reads=reads)
+    try:
+        task = GeneratorTask(
+            family.generator,
+            family.conditioners,
+            section.train.condition_dropout,
+            seed,
+            section.train.conditioner_weights,
+            sensor_tag=sensor_tag,
+        )
+        report(
+            f"fine-tune: {len(family_data)} family samples + {len(shots_codes)} shots (ratio {ratio:g}), "
+            f"{steps} steps from the family generator ({family.settings['weights']} weights)"
+        )
+        trainer = Trainer(
+            task,
+            data,
+            train_config,
+            batch_size=config.data.batch_size,
+            seed=seed,
+            device=device,
+            checkpoint_dir=run.checkpoints / CHECKPOINT_FOLDER,
+            run=run,
+            host=host,
+            stage="generator",
+        )
+        tic = time.perf_counter()
+        state = trainer.fit()
+        seconds = time.perf_counter() - tic
+        run.publish(
+            "generator",
+            trainer.last_checkpoint,
+            stage="generator",
+            step=state.step,
+            tokenizer=tokenizer_at,
+            tokenizer_sha256=tokenizer_digest(Path(tokenizer_folder)),
+        )
+        summary = {
+            "family_run": str(family_run),
+            "family_samples": len(family_data),
+            "shots": len(shots_codes),
+            "ratio": ratio,
+            "steps": state.step,
+            "seconds": round(seconds, 1),
+            "started_from": f"{family.checkpoint} ({family.settings['weights']} weights)",
+            "canonical_background": backgrounds,
+            "sensor_tag": {"module": SENSOR_TAG_MODULE, "sensors": list(sensor_names), "samples": NEW_SENSOR},
+            "tokenizer": str(Path(tokenizer_folder).resolve()),
+            "tokenizer_files": list(TOKENIZER_FILES),
+        }
+        run.write_json("fewshot_finetune.json", summary)
+    finally:
+        run.close()
+    return summary

@@ -1,0 +1,315 @@
+"""Few-shot generation for an unseen sensor (`vqtouch fewshot`, issue 26 item 1): the sensor tag, the
+mixed fine-tuning set, the command from a sensor's images to a generator run of that sensor, and its
+bad inputs."""
+
+import json
+import shutil
+
+import pytest
+import torch
+
+import generator_runs
+from cli_checks import one_error_line
+from vqtouch.core import load_plugins
+from vqtouch.core.cli import main
+from vqtouch.core.images import save_png
+from vqtouch.plugins.generator.sensor_finetune import FAMILY_SENSOR, NEW_SENSOR, mixed_codes
+from vqtouch.plugins.generator.training import (
+    CodesDataset,
+    GeneratorTask,
+    SensorTaggedConditioner,
+    absent_key,
+)
+
+HOST = load_plugins()
+HOST_CONTEXT = {"host": HOST}
+
+
+def _variant(name, seed, **variant):
+    return json.dumps({"name": name, "variant": {"seed": seed, **variant}})
+
+
+TARGET = _variant("gelsight", 5, colour_gain=[0.8, 1.0, 1.1])
+
+
+def _label_conditioner(cond_dim=8, classes=3):
+    from vqtouch.core import BuildContext
+
+    return HOST.build("conditioner", {"name": "label", "num_classes": classes}, BuildContext(cond_dim=cond_dim))
+
+
+def _tag(cond_dim=8):
+    from vqtouch.core import BuildContext
+
+    return HOST.build("conditioner", {"name": "sensor", "num_sensors": 2}, BuildContext(cond_dim=cond_dim))
+
+
+def test_a_new_tag_leaves_every_condition_as_it_was_and_a_trained_one_offsets_condition_and_null_alike():
+    torch.manual_seed(0)
+    label, tag = _label_conditioner(), _tag()
+    labels = torch.tensor([0, 2, 1])
+    tagged = SensorTaggedConditioner(label, tag, NEW_SENSOR)
+    plain = label(labels)
+    # Zero offsets: the fine-tuning starts from exactly the family generator's conditions.
+    assert torch.equal(tagged(labels).tokens_BND, plain.tokens_BND)
+    assert torch.equal(tagged.null(3).tokens_BND, label.null(3).tokens_BND)
+    with torch.no_grad():
+        tag.offsets_SD[NEW_SENSOR] = torch.arange(8.0)
+    shifted = tagged(labels)
+    assert torch.allclose(shifted.tokens_BND - plain.tokens_BND, torch.arange(8.0).expand(3, 1, 8))
+    assert torch.allclose(tagged.null(3).tokens_BND - label.null(3).tokens_BND, torch.arange(8.0).expand(3, 1, 8))
+    # The family's sensor keeps its own (zero) offset; the wrapper reads and parses as the label does.
+    assert torch.equal(SensorTaggedConditioner(label, tag, FAMILY_SENSOR)(labels).tokens_BND, plain.tokens_BND)
+    assert tagged.sample_key == "label" and tagged.parse_condition("1", image_size=32) == 1
+    with pytest.raises(ValueError, match="outside the tag's 2 sensors"):
+        SensorTaggedConditioner(label, tag, 2)
+
+
+def test_rows_that_lack_a_condition_train_with_the_null_condition_and_carry_their_sensors_offset():
+    torch.manual_seed(0)
+    label, tag = _label_conditioner(), _tag()
+    with torch.no_grad():
+        tag.offsets_SD[1] = 1.0
+    task = GeneratorTask(torch.nn.Linear(1, 1), [label], 0.0, seed=0, sensor_tag=tag)
+    batch = {
+        "codes": torch.zeros(3, 2, 2, dtype=torch.long),
+        "label": torch.tensor([2, 0, 1]),
+        absent_key("label"): torch.tensor([False, True, False]),
+        "sensor_index": torch.tensor([0, 1, 1]),
+    }
+    tokens = task.condition_tokens(0, batch, None)
+    assert tokens.is_null_B.tolist() == [False, True, False]
+    expected = torch.stack(
+        [
+            label(torch.tensor([2])).tokens_BND[0],
+            label.null(1).tokens_BND[0] + 1,
+            label(torch.tensor([1])).tokens_BND[0] + 1,
+        ]
+    )
+    assert torch.allclose(tokens.tokens_BND, expected)
+    assert "sensor_tag" in task.modules
+
+
+def test_the_mix_holds_the_family_rows_then_the_shots_with_their_conditions_absent():
+    family = CodesDataset(
+        torch.arange(5 * 4).view(5, 2, 2),
+        {"label": torch.tensor([0, 1, 2, 0, 1]), "text": ["a", "b", "c", "d", "e"]},
+        class_names=["x", "y", "z"],
+    )
+    shots = torch.full((2, 2, 2), 7)
+    mix = mixed_codes(family, shots, ["label", "text"], "sensor_index")
+    assert len(mix) == 7 and mix.class_names == ["x", "y", "z"]
+    assert torch.equal(mix.codes_NHW[5:], shots) and torch.equal(mix.codes_NHW[:5], family.codes_NHW)
+    assert mix.entries["sensor_index"].tolist() == [0] * 5 + [1] * 2
+    for key in ("label", "text"):
+        assert mix.entries[absent_key(key)].tolist() == [False] * 5 + [True] * 2
+    assert mix.entries["label"][:5].tolist() == [0, 1, 2, 0, 1] and mix.entries["text"][:5] == ["a", "b", "c", "d", "e"]
+
+
+@pytest.fixture(scope="module")
+def family(tmp_path_factory):
+    """A tiny label-to-touch family run and families clustered with its tokenizer."""
+    root = tmp_path_factory.mktemp("family")
+    assert main(generator_runs.train_args(root / "run")) == 0
+    assert (
+        main(
+            [
+                "--no-progress",
+                "cluster",
+                "--run",
+                str(root / "run"),
+                "--image-size",
+                "32",
+                "--images",
+                "8",
+                "--out",
+                str(root / "families"),
+                "--families",
+                "2",
+                "--sensors",
+                "gelsight",
+                _variant("gelsight", 1, colour_gain=[1.05, 0.95, 0.95]),
+                "digit",
+                _variant("digit", 2, noise_std=0.02),
+            ]
+        )
+        == 0
+    )
+    return root
+
+
+def _fewshot(family, out, images=TARGET, *extra):
+    return main(
+        [
+            "--no-progress",
+            "fewshot",
+            "--run",
+            str(family / "run"),
+            "--images",
+            images,
+            "--out",
+            str(out),
+            "--families",
+            str(family / "families"),
+            "--shots",
+            "4",
+            "--tokenizer-steps",
+            "2",
+            "--generator-steps",
+            "3",
+            "--samples",
+            "4",
+            "--eval-images",
+            "4",
+            "--feature-size",
+            "32",
+            "--threshold",
+            "1",
+            *extra,
+        ]
+    )
+
+
+def test_fewshot_goes_from_a_sensors_images_to_a_generator_run_that_draws_that_sensor(family, tmp_path, capsys):
+    from vqtouch.plugins.generator import load_pipeline
+
+    out = tmp_path / "fewshot"
+    assert _fewshot(family, out) == 0
+    printed = capsys.readouterr().out
+    steps = [line for line in printed.splitlines() if line[:2] in {"1/", "2/", "3/", "4/", "5/"}]
+    assert [line[:3] for line in steps] == ["1/5", "2/5", "3/5", "4/5", "5/5"]
+    result = json.loads((out / "fewshot.json").read_text())
+    assert result["adapt"]["assignment"]["family"] == 0  # a GelSight variant joins the GelSight family
+    tune = result["fine_tune"]
+    assert tune["shots"] == 4 and tune["family_samples"] == 18  # 5 per shot, capped by the 18 training samples
+    arms = {(row["conditioner"], row["arm"]) for row in result["scores"]}
+    assert arms == {("0:label", arm) for arm in ("few-shot", "zero-shot", "shots (copied)", "no-contact background")}
+    assert all(row["fd_effnetlite0"] >= 0 for row in result["scores"])
+    assert (out / "samples_0_label.png").is_file() and "| few-shot |" in (out / "fewshot.md").read_text()
+    # The output is a generator run drawing the new sensor; moved whole, it still finds its tokenizer.
+    moved = tmp_path / "elsewhere"
+    shutil.move(str(out), str(moved))
+    pipe = load_pipeline(moved / "generator", host=HOST)
+    assert pipe.sensor_tag is not None and pipe.config.generator.sample_sensor == NEW_SENSOR
+    assert pipe.sensor_tag.sensor_names == ["gelsight", "gelsight/v5"]
+    images = pipe(label=1, n=2, steps=2, seed=0)
+    assert images.shape == (2, 3, 32, 32) and torch.isfinite(images).all()
+    # Its tag was trained: the new sensor's offset moved from zero, the family's stays at its start.
+    assert pipe.sensor_tag.offsets_SD[NEW_SENSOR].abs().sum() > 0
+    assert (
+        main(
+            [
+                "--no-progress",
+                "generate",
+                "--run",
+                str(moved / "generator"),
+                "--label",
+                "0",
+                "--out",
+                str(tmp_path / "g"),
+            ]
+        )
+        == 0
+    )
+
+
+def test_a_folder_of_images_in_class_subfolders_is_a_target(family, tmp_path):
+    from vqtouch.plugins.adaptation.families import sensor_images
+
+    images = sensor_images(TARGET, HOST, count=8, image_size=32, seed=3).images
+    for index, image in enumerate(images):
+        save_png(image, tmp_path / "frames" / f"class{index % 2}" / f"{index}.png")
+    out = tmp_path / "out"
+    assert _fewshot(family, out, str(tmp_path / "frames"), "--ratio", "0", "--no-score", "--family", "0") == 0
+    result = json.loads((out / "fewshot.json").read_text())
+    assert result["fine_tune"]["family_samples"] == 0 and result["fine_tune"]["shots"] == 4
+    assert result["scores"] == [] and "median" in result["background"]
+
+
+def test_fewshot_bad_inputs_get_one_line_errors_and_write_nothing(family, tmp_path, capsys):
+    out = tmp_path / "out"
+    (tmp_path / "kept").mkdir()
+    (tmp_path / "kept" / "mine.txt").write_text("mine")
+    cases = [
+        (["--out", str(tmp_path / "kept")], "already holds files"),
+        (["--run", str(tmp_path)], "not a run directory"),
+        (["--images", str(tmp_path / "missing")], "missing"),
+        (["--shots", "0"], "--shots"),
+        (["--ratio", "-1"], "--ratio"),
+        ([], "matches no sensor family"),  # the tiny families' own threshold refuses this variant
+    ]
+    for extra, expected in cases:
+        args = [
+            "--no-progress",
+            "fewshot",
+            "--run",
+            str(family / "run"),
+            "--images",
+            TARGET,
+            "--out",
+            str(out),
+            "--families",
+            str(family / "families"),
+            "--tokenizer-steps",
+            "1",
+            "--generator-steps",
+            "1",
+        ]
+        # a flag given twice: argparse keeps the last
+        code = main([*args, *extra])
+        assert code != 0, extra
+        assert expected in one_error_line(capsys), extra
+        assert not out.exists()
+    assert (tmp_path / "kept" / "mine.txt").read_text() == "mine"
+
+
+def test_a_sensor_tag_needs_the_sensor_conditioner_and_a_sensor_it_has():
+    from vqtouch.plugins.generator.stage import GeneratorSection
+
+    with pytest.raises(ValueError, match="sample_sensor is set but generator.sensor_tag is not"):
+        GeneratorSection.model_validate({"sample_sensor": 1})
+    with pytest.raises(ValueError, match="sensor_tag has 2 sensors"):
+        GeneratorSection.model_validate({"sensor_tag": {"name": "sensor"}, "sample_sensor": 2}, context=HOST_CONTEXT)
+    with pytest.raises(ValueError, match="must be 'sensor'"):
+        GeneratorSection.model_validate({"sensor_tag": {"name": "label"}}, context=HOST_CONTEXT)
+    tagged = {"sensor_tag": {"name": "sensor"}, "sample_sensor": 1}
+    assert GeneratorSection.model_validate(tagged, context=HOST_CONTEXT).sample_sensor == 1
+
+
+def test_tagged_runs_are_refused_by_the_generator_stage_and_by_bundle_export(family, tmp_path, capsys):
+    out = tmp_path / "fewshot"
+    assert _fewshot(family, out, TARGET, "--no-score") == 0
+    capsys.readouterr()
+    assert (
+        main(
+            [
+                "--no-progress",
+                "pretrained",
+                "export",
+                "--run",
+                str(out / "generator"),
+                "--name",
+                "x",
+                "--root",
+                str(tmp_path / "bundles"),
+            ]
+        )
+        != 0
+    )
+    assert "cannot be bundled" in one_error_line(capsys)
+    assert not (tmp_path / "bundles" / "x").exists()
+    assert (
+        main(
+            [
+                "--no-progress",
+                "train",
+                "generator",
+                "--config",
+                str(out / "generator" / "config.json"),
+                "--out",
+                str(tmp_path / "again"),
+            ]
+        )
+        != 0
+    )
+    assert "vqtouch fewshot" in capsys.readouterr().err
