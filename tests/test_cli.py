@@ -446,12 +446,21 @@ def test_the_default_demo_is_the_tour_of_every_stage_with_a_sample_grid_per_cond
         "generator.model.width=16",
         "--set",
         "generator.model.heads=2",
+        "--set",
+        "fewshot.generator_steps=2",
+        "--set",
+        "fewshot.samples=2",
+        "--set",
+        "fewshot.feature_size=32",
     ]
     assert main(["--no-progress", "demo", "--out", str(out), *tiny]) == 0
     # The bundled checkpoints work at 64 px: at this test's 32 px the pretrained stage says it cannot run.
-    assert "scene tour: 5 of 6 stages ran, 1 cannot run" in capsys.readouterr().out
+    assert "scene tour: 6 of 7 stages ran, 1 cannot run" in capsys.readouterr().out
     stages = {s["stage"]: s for s in json.loads((out / "report.json").read_text())["stages"]}
-    assert list(stages) == ["tokenizer", "reconstruct", "cluster", "adapt", "generator", "pretrained"]
+    assert list(stages) == ["tokenizer", "reconstruct", "cluster", "adapt", "generator", "fewshot", "pretrained"]
+    # The bundled generator, fine-tuned for the unseen GelSight on the adapt stage's tokenizer (the bundle's, adapted).
+    fewshot = stages["fewshot"]["result"]
+    assert fewshot["family_generator"] == "pretrained:tour" and fewshot["adapted_tokenizer"] == "the adapt stage's"
     assert "data.image_size: bundle 64, scene 32" in stages["pretrained"]["status"]
     parts = stages["generator"]["result"]["parts"]
     assert sorted(parts) == ["from label", "from tactile", "from text_scratch", "from visual"]

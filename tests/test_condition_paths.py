@@ -177,6 +177,31 @@ def test_canonical_background_replaces_exactly_the_cells_away_from_the_contact()
     assert torch.equal(kept_all[0], synonyms[0])
 
 
+class _ShiftedDecoderTokenizer(_PatchTokenizer):
+    """The patch tokenizer with a decoder adapted to a brighter sensor: it draws every code 0.3 brighter
+    (a global shift, which the contact mask's noise estimate absorbs, hiding the contact)."""
+
+    def decode_codes(self, codes):
+        return super().decode_codes(codes) + 0.3 * (codes != 99).float()[:, None].repeat_interleave(
+            4, 2
+        ).repeat_interleave(4, 3)
+
+
+def test_canonical_background_finds_the_contact_on_the_images_when_given_them():
+    tokenizer = _ShiftedDecoderTokenizer()
+    background = torch.zeros(3, 32, 32)
+    images = torch.zeros(1, 3, 32, 32)
+    images[0, :, 8:12, 8:12] = 0.6  # decoded at 0.9 over a 0.3 shift: below the noise-scaled threshold
+    codes = tokenizer.encode_codes(images)
+    near = torch.zeros(8, 8, dtype=torch.bool)
+    near[1:4, 1:4] = True
+    from_images, changed = canonical_background(codes, tokenizer, background, margin=1, images_N3HW=images)
+    assert torch.equal(from_images[0][near], codes[0][near]) and (from_images[0][~near] == 0).all()
+    # From the decoding, the shifted appearance hides the contact: its cell is lost to the background.
+    from_decoding, _ = canonical_background(codes, tokenizer, background, margin=1)
+    assert from_decoding[0, 2, 2] == 0 != codes[0, 2, 2]
+
+
 class _SynonymTokenizer:
     """The patch tokenizer whose code 15 is a synonym of the background's code 0."""
 

@@ -140,10 +140,19 @@ def fine_tune_for_sensor(
     backgrounds: dict[str, Any] = {"applied": False}
     if section.train.canonical_background:
         family_background, _ = dataset_background(train, image_hw(config.data.image_size))
+        # The contact is found on the images, not on the adapted tokenizer's decoding of their codes.
+        family_changed = 0.0
         if len(chosen) and family_background is not None:
-            family_data.codes_NHW, _ = canonical_background(family_data.codes_NHW, tokenizer, family_background)
-        shots_codes, changed = canonical_background(shots_codes, tokenizer, new_background_3HW)
-        backgrounds = {"applied": True, "shots_cells_changed": round(changed, 4)}
+            family_images = torch.stack([family_subset[i]["tactile"] for i in range(len(family_subset))])
+            family_data.codes_NHW, family_changed = canonical_background(
+                family_data.codes_NHW, tokenizer, family_background, images_N3HW=family_images
+            )
+        shots_codes, changed = canonical_background(shots_codes, tokenizer, new_background_3HW, images_N3HW=shots_N3HW)
+        backgrounds = {
+            "applied": True,
+            "family_cells_changed": round(family_changed, 4),
+            "shots_cells_changed": round(changed, 4),
+        }
 
     sensor_tag = host.build(
         "conditioner",
