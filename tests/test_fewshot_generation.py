@@ -313,3 +313,29 @@ def test_tagged_runs_are_refused_by_the_generator_stage_and_by_bundle_export(fam
         != 0
     )
     assert "vqtouch fewshot" in capsys.readouterr().err
+
+
+def test_the_seeds_table_names_each_arm_once_per_conditioner_and_resumes_without_training_again(
+    family, tmp_path, capsys
+):
+    out = tmp_path / "table"
+    args = [
+        "--no-progress", "evaluate", "fewshot-generation", "--run", str(family / "run"), "--images", TARGET,
+        "--out", str(out), "--families", str(family / "families"), "--threshold", "1", "--shots", "4",
+        "--tokenizer-steps", "1", "--generator-steps", "1", "--samples", "3", "--eval-images", "3",
+        "--feature-size", "32", "--seeds", "0", "--ratios", "2", "0",
+    ]  # fmt: skip
+    assert main(args) == 0
+    first = json.loads((out / "fewshot_generation.json").read_text())
+    arms = [(row["conditioner"], row["arm"]) for row in first["summary"]]
+    expected = ["few-shot 1:2", "zero-shot", "shots (copied)", "no-contact background", "shots alone"]
+    assert arms == [("0:label", arm) for arm in expected]
+    alone = json.loads((out / "seed0" / "ratio0" / "fewshot.json").read_text())
+    assert alone["fine_tune"]["family_samples"] == 0
+    assert first["summary"][-1]["fd_effnetlite0"] == alone["scores"][0]["fd_effnetlite0"]
+    capsys.readouterr()
+    stamp = (out / "seed0" / "ratio2" / "fewshot.json").stat().st_mtime_ns
+    assert main(args) == 0
+    assert "seed 0, ratio 2: read" in capsys.readouterr().out
+    assert (out / "seed0" / "ratio2" / "fewshot.json").stat().st_mtime_ns == stamp
+    assert json.loads((out / "fewshot_generation.json").read_text())["summary"] == first["summary"]

@@ -372,6 +372,92 @@ def _fewshot_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def arm_name(arm: str, ratio: float) -> str:
+    """An arm's name in the seeds table: the fine-tuned arm by its ratio (``few-shot 1:5``; ``shots
+    alone`` at ratio 0), the comparisons as they are."""
+    if arm != "few-shot":
+        return arm
+    return "shots alone" if ratio == 0 else f"few-shot 1:{ratio:g}"
+
+
+def evaluate_fewshot_generation(
+    family_run: str,
+    images: str,
+    out: Path,
+    host: PluginHost,
+    *,
+    seeds: Sequence[int],
+    ratios: Sequence[float],
+    report: Any = print,
+    **options: Any,
+) -> dict[str, Any]:
+    """:func:`fewshot_generation` once per seed and ratio into ``out/seed<S>/ratio<R>/`` (a folder that
+    already holds a finished run with the same images, shots, ratio and seed is read, not run again: an
+    interrupted table resumes), then ``fd_effnetlite0`` per conditioner and arm as mean ± std over the
+    seeds: ``fewshot_generation.json`` and ``fewshot_generation.md``.  The zero-shot, copied-shots and
+    background rows of a seed are the same at every ratio (same held-out images and conditions); the
+    first ratio's are kept."""
+    from vqtouch.plugins.evaluation.records import ExperimentRecord, mean_spread
+
+    record = ExperimentRecord("fewshot_generation", out, seeds)
+    rows: list[dict[str, Any]] = []
+    for seed in record.seeds:
+        for position, ratio in enumerate(ratios):
+            folder = Path(out) / f"seed{seed}" / f"ratio{ratio:g}"
+            done = folder / "fewshot.json"
+            settings = {"images": images, "shots": options.get("shots", 50), "ratio": ratio, "seed": seed}
+            previous = json.loads(done.read_text()) if done.is_file() else None
+            if previous is not None and all(previous.get(key) == value for key, value in settings.items()):
+                report(f"seed {seed}, ratio {ratio:g}: read {done}")
+                result = previous
+            else:
+                report(f"seed {seed}, ratio {ratio:g} -> {folder}")
+                result = fewshot_generation(
+                    family_run, images, folder, host, ratio=ratio, seed=seed, overwrite=True, report=report, **options
+                )
+            for row in result["scores"]:
+                if row["arm"] == "few-shot" or position == 0:
+                    rows.append({**row, "arm": arm_name(row["arm"], ratio), "seed": seed})
+    table = mean_spread(rows, ["fd_effnetlite0"], ["conditioner", "arm"])
+    result = {"family_run": family_run, "images": images, "ratios": list(ratios), "rows": rows, "summary": table}
+    lines = [
+        f"# Few-shot generation: {images}",
+        "",
+        f"fd_effnetlite0 (lower is better), mean ± std over seeds {', '.join(map(str, record.seeds))}, of each "
+        "conditioner's samples against as many held-out images of the new sensor (never the shots).",
+        "",
+        *markdown_table(table, ["conditioner", "arm"], ["fd_effnetlite0"], {"fd_effnetlite0": "fd_effnetlite0 ↓"}),
+    ]
+    record.write(result, lines)
+    return result
+
+
+def _evaluate_fewshot_generation_command(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    evaluate_fewshot_generation(
+        args.run,
+        args.images,
+        out,
+        args.host,
+        seeds=args.seeds,
+        ratios=args.ratios,
+        shots=args.shots,
+        tokenizer_steps=args.tokenizer_steps,
+        tokenizer_part=args.tokenizer_part,
+        generator_steps=args.generator_steps,
+        families=args.families,
+        family=args.family,
+        threshold=args.threshold,
+        samples=args.samples,
+        eval_images=args.eval_images,
+        feature_size=args.feature_size,
+        report=lambda line: print(line, flush=True),
+    )
+    print((out / "fewshot_generation.md").read_text())
+    print(f"-> {out} (fewshot_generation.json, fewshot_generation.md, seed*/ratio*/)")
+    return 0
+
+
 def _ratio(text: str) -> float:
     value = float(text)
     if not value >= 0 or value == float("inf"):
@@ -379,14 +465,8 @@ def _ratio(text: str) -> float:
     return value
 
 
-@hookimpl
-def vqtouch_add_commands(subparsers: Any) -> None:
-
-    parser = subparsers.add_parser(
-        "fewshot",
-        help="from an unseen sensor's images to generated images of it: assign, adapt the tokenizer, "
-        "fine-tune the family generator, sample every condition, score",
-    )
+def _add_fewshot_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options `vqtouch fewshot` and `vqtouch evaluate fewshot-generation` share."""
     parser.add_argument(
         "--run",
         required=True,
@@ -399,16 +479,7 @@ def vqtouch_add_commands(subparsers: Any) -> None:
         "sensor (name or JSON variant) to render them",
     )
     parser.add_argument(
-        "--out", required=True, help="folder for the adapted tokenizer, the generator run and the scores"
-    )
-    parser.add_argument(
         "--shots", type=positive_int, default=50, help="images of the new sensor to learn from (default 50)"
-    )
-    parser.add_argument(
-        "--ratio",
-        type=_ratio,
-        default=5.0,
-        help="family images per shot, tokenizer and generator alike (default 5; 0: shots alone)",
     )
     parser.add_argument("--tokenizer-steps", type=positive_int, default=200, help="adaptation steps (default 200)")
     parser.add_argument(
@@ -435,17 +506,52 @@ def vqtouch_add_commands(subparsers: Any) -> None:
         help="held-out images of the new sensor (default 64; never the shots)",
     )
     parser.add_argument(
-        "--seed", type=non_negative_int, default=0, help="draws the shots, the family samples and the samples"
-    )
-    parser.add_argument(
         "--feature-size",
         type=feature_size_argument,
         default=224,
         help="side EfficientNet-Lite0 sees images at (default 224)",
     )
+
+
+@hookimpl
+def vqtouch_add_commands(subparsers: Any) -> None:
+    from vqtouch.core.cli import command_group
+    from vqtouch.plugins.evaluation.records import add_experiment_arguments
+
+    parser = subparsers.add_parser(
+        "fewshot",
+        help="from an unseen sensor's images to generated images of it: assign, adapt the tokenizer, "
+        "fine-tune the family generator, sample every condition, score",
+    )
+    _add_fewshot_arguments(parser)
+    parser.add_argument(
+        "--out", required=True, help="folder for the adapted tokenizer, the generator run and the scores"
+    )
+    parser.add_argument(
+        "--ratio",
+        type=_ratio,
+        default=5.0,
+        help="family images per shot, tokenizer and generator alike (default 5; 0: shots alone)",
+    )
+    parser.add_argument(
+        "--seed", type=non_negative_int, default=0, help="draws the shots, the family samples and the samples"
+    )
     parser.add_argument("--no-score", action="store_true", help="write the samples without the fd scores")
     parser.add_argument("--overwrite", action="store_true", help="replace what --out holds")
     parser.set_defaults(handler=_fewshot_command)
+
+    evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
+    table = evaluate.add_parser(
+        "fewshot-generation",
+        help="vqtouch fewshot over seeds and ratios (0: the shots alone), fd_effnetlite0 per conditioner and arm "
+        "as mean ± std (JSON, markdown); resumes a table that was interrupted",
+    )
+    _add_fewshot_arguments(table)
+    add_experiment_arguments(table)
+    table.add_argument(
+        "--ratios", type=_ratio, nargs="+", default=[5.0, 0.0], help="family images per shot (default 5 0)"
+    )
+    table.set_defaults(handler=_evaluate_fewshot_generation_command)
 
 
 class FewshotSection(Section):
