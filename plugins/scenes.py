@@ -71,7 +71,8 @@ SCENES: dict[str, tuple[str, dict]] = {
             "cluster": _CLUSTER | {"family_tokenizer": "pretrained:tour"},
             "adapt": {"family_tokenizer": "pretrained:tour"},
             # The bundled generator is the family's (one trained for demo minutes draws too little to adapt).
-            "fewshot": {"family_generator": "pretrained:tour"},
+            # ... on the adapt stage's tokenizer (adapted whole): adapting its decoder again costs the demo a minute.
+            "fewshot": {"family_generator": "pretrained:tour", "tokenizer_part": "all"},
             "generator": _GENERATOR
             | {"conditioners": [{"name": "label"}, {"name": "visual"}, {"name": "text_scratch"}, {"name": "tactile"}]},
             "sensor": {"name": "gelsight"},

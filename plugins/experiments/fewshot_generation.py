@@ -35,7 +35,7 @@ import argparse
 import json
 import shutil
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Literal, Sequence
 
 import torch
 
@@ -117,7 +117,7 @@ def fewshot_generation(
     shots: int = 50,
     ratio: float = 5.0,
     tokenizer_steps: int = 200,
-    tokenizer_part: str = "all",
+    tokenizer_part: str = "decoder",
     generator_steps: int = 300,
     families: str | None = None,
     family: int | None = None,
@@ -485,8 +485,9 @@ def _add_fewshot_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--tokenizer-part",
         choices=("all", "decoder"),
-        default="all",
-        help="what adaptation fine-tunes: all, or the decoder alone (every image keeps its codes)",
+        default="decoder",
+        help="what adaptation fine-tunes: the decoder alone (default: every image keeps its codes, so the "
+        "family generator's still fit; measured better) or all of it",
     )
     parser.add_argument(
         "--generator-steps", type=positive_int, default=300, help="generator fine-tuning steps (default 300)"
@@ -564,6 +565,12 @@ class FewshotSection(Section):
         description="The family's generator: null, this run's own (its generator stage); pretrained:NAME, a "
         "bundle (the tour demo's: a generator trained for demo minutes draws too little to adapt).",
     )
+    tokenizer_part: Literal["all", "decoder"] = Field(
+        "decoder",
+        description="What adapting the tokenizer fine-tunes: the decoder alone (every image keeps its codes, "
+        "so the family generator's still fit; measured better) or all of it.  The adapt stage's tokenizer is "
+        "reused when it was adapted the same way from the same tokenizer.",
+    )
     generator_steps: int = Field(300, ge=1, le=1_000_000, strict=True, description="Generator fine-tuning steps.")
     samples: int = Field(16, ge=1, le=100_000, strict=True, description="Images generated per condition and arm.")
     feature_size: int = Field(224, ge=32, le=1024, strict=True, description="Side EfficientNet-Lite0 sees images at.")
@@ -584,8 +591,9 @@ def run_fewshot_stage(job: StageJob) -> dict[str, Any]:
     adapted = job.run.products().get("adapted_tokenizer")
     reuse = None
     if adapted is not None:
-        made_from = json.loads((adapted.path / "adapt.json").read_text()).get("adapted_from", "")
-        if Path(made_from).resolve() == _family_folder(family_run, job.host).resolve():
+        made = json.loads((adapted.path / "adapt.json").read_text())
+        same_source = Path(made.get("adapted_from", "")).resolve() == _family_folder(family_run, job.host).resolve()
+        if same_source and made.get("part", "all") == section.tokenizer_part:
             reuse = adapted.path
     result = fewshot_generation(
         family_run,
@@ -595,6 +603,7 @@ def run_fewshot_stage(job: StageJob) -> dict[str, Any]:
         shots=adapt.shots,
         ratio=adapt.ratio,
         tokenizer_steps=adapt.steps,
+        tokenizer_part=section.tokenizer_part,
         threshold=adapt.threshold,
         family=adapt.family,
         samples=section.samples,
