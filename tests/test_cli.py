@@ -46,6 +46,7 @@ def test_plugins_json_and_kind_filter(capsys):
         "cluster",
         "adapt",
         "generator",
+        "fewshot",
         "pretrained",
     }
 

@@ -109,7 +109,18 @@ def test_wheel_installs_one_namespace_and_imports_outside_checkout(tmp_path):
     assert result.returncode == 0, result.stderr[-2000:]
     lines = result.stdout.strip().splitlines()
     assert lines[0].startswith(str(site)), lines
-    assert lines[1] == "['clip', 'label', 'tactile', 'tactile_codes', 'text', 'text_scratch', 'visual', 'visual_cnn']"
+    conditioners = [
+        "clip",
+        "label",
+        "sensor",
+        "tactile",
+        "tactile_codes",
+        "text",
+        "text_scratch",
+        "visual",
+        "visual_cnn",
+    ]
+    assert lines[1] == str(conditioners)
     assert lines[2] == "None None"
 
     # The bundled checkpoints ship in the wheel (issue 27: a non-editable install once had none), byte for
