@@ -185,6 +185,10 @@ def test_fewshot_goes_from_a_sensors_images_to_a_generator_run_that_draws_that_s
     arms = {(row["conditioner"], row["arm"]) for row in result["scores"]}
     assert arms == {("0:label", arm) for arm in ("few-shot", "zero-shot", "shots (copied)", "no-contact background")}
     assert all(row["fd_effnetlite0"] >= 0 for row in result["scores"])
+    # A registered variant renders the family's held-out contacts: paired contact scores, but for the copies.
+    assert result["paired_truth"] is True
+    paired = {row["arm"]: row.get("contact_psnr") for row in result["scores"]}
+    assert paired["shots (copied)"] is None and all(0 < paired[arm] < 100 for arm in paired if arm != "shots (copied)")
     assert (out / "samples_0_label.png").is_file() and "| few-shot |" in (out / "fewshot.md").read_text()
     # The output is a generator run drawing the new sensor; moved whole, it still finds its tokenizer.
     moved = tmp_path / "elsewhere"
@@ -223,7 +227,7 @@ def test_a_folder_of_images_in_class_subfolders_is_a_target(family, tmp_path):
     assert _fewshot(family, out, str(tmp_path / "frames"), "--ratio", "0", "--no-score", "--family", "0") == 0
     result = json.loads((out / "fewshot.json").read_text())
     assert result["fine_tune"]["family_samples"] == 0 and result["fine_tune"]["shots"] == 4
-    assert result["scores"] == [] and "median" in result["background"]
+    assert result["scores"] == [] and "median" in result["background"] and "paired_truth" not in result
 
 
 def test_fewshot_bad_inputs_get_one_line_errors_and_write_nothing(family, tmp_path, capsys):
@@ -339,3 +343,38 @@ def test_the_seeds_table_names_each_arm_once_per_conditioner_and_resumes_without
     assert "seed 0, ratio 2: read" in capsys.readouterr().out
     assert (out / "seed0" / "ratio2" / "fewshot.json").stat().st_mtime_ns == stamp
     assert json.loads((out / "fewshot_generation.json").read_text())["summary"] == first["summary"]
+    # A run written before the paired scores existed is scored again: the same draws, the same fd.
+    done = out / "seed0" / "ratio2" / "fewshot.json"
+    older = json.loads(done.read_text())
+    del older["paired_truth"]
+    older["scores"] = [{key: row[key] for key in ("conditioner", "arm", "fd_effnetlite0")} for row in older["scores"]]
+    done.write_text(json.dumps(older))
+    capsys.readouterr()
+    assert main(args) == 0
+    assert "drawing its samples again" in capsys.readouterr().out
+    again = json.loads(done.read_text())
+    assert again["paired_truth"] is True and [row["fd_effnetlite0"] for row in again["scores"]] == [
+        row["fd_effnetlite0"] for row in older["scores"]
+    ]
+    assert json.loads((out / "fewshot_generation.json").read_text())["summary"] == first["summary"]
+
+
+def test_paired_truth_is_the_new_sensor_drawing_the_family_datas_own_contacts(family, tmp_path):
+    from vqtouch.core import Assembly
+    from vqtouch.plugins.adaptation import sensor_background
+    from vqtouch.plugins.evaluation.contact import contact_centroids, dataset_background
+    from vqtouch.plugins.experiments.fewshot_generation import paired_truth
+    from vqtouch.plugins.generator import load_pipeline
+
+    config = load_pipeline(family / "run", host=HOST).config
+    dataset = Assembly(config, HOST).component("data.dataset")
+    indices = [0, 3, 5, 7]
+    truth = paired_truth(config, TARGET, indices, HOST)
+    own = torch.stack([dataset[i]["tactile"] for i in indices])
+    assert truth.shape == own.shape and not torch.allclose(truth, own)  # another sensor's drawing ...
+    own_background, _ = dataset_background(dataset, (32, 32))
+    new_background, _ = sensor_background(TARGET, HOST, 32)
+    # ... of the same contacts: each image's contact sits where the family image's does.
+    shift = contact_centroids(truth, new_background) - contact_centroids(own, own_background)
+    assert shift.norm(dim=1).max() < 3.0, shift
+    assert paired_truth(config, str(tmp_path), [0], HOST) is None  # a folder pairs with nothing

@@ -41,7 +41,17 @@ import torch
 
 from pydantic import Field
 
-from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, Section, StageJob, StageUnavailable, hookimpl
+from vqtouch.core import (
+    Assembly,
+    ConfigError,
+    atomic_write,
+    PluginHost,
+    RunDir,
+    Section,
+    StageJob,
+    StageUnavailable,
+    hookimpl,
+)
 from vqtouch.core.checkpoint import is_pretrained, open_pretrained
 from vqtouch.core.cli import non_negative_int, positive_int
 from vqtouch.core.data import experiment_split
@@ -50,6 +60,9 @@ from vqtouch.core.runs import staged_output
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.plugins.evaluation.records import markdown_table, provenance
 
+#: The scores of a row, and their headers.
+SCORE_KEYS = ("fd_effnetlite0", "contact_psnr")
+SCORE_HEADERS = {"fd_effnetlite0": "fd_effnetlite0 ↓", "contact_psnr": "contact PSNR ↑ (paired)"}
 #: The arms every conditioner's samples are scored beside.
 ARMS = ("few-shot", "zero-shot", "shots (copied)", "no-contact background")
 
@@ -143,7 +156,7 @@ def fewshot_generation(
         sensor_background,
         target_images,
     )
-    from vqtouch.plugins.generator import fine_tune_for_sensor, held_out_conditions, load_pipeline
+    from vqtouch.plugins.generator import fine_tune_for_sensor, load_pipeline
     from vqtouch.plugins.tokenizer import load_tokenizer
 
     if ratio < 0:
@@ -160,7 +173,6 @@ def fewshot_generation(
     family_pipe = load_pipeline(family_run, host=host)
     folder = _family_folder(family_run, host)
     tokenizer, _ = load_tokenizer(folder, host)
-    device = family_pipe.device
     config = family_pipe.config
     image_size = config.data.image_size
     result: dict[str, Any] = {
@@ -238,53 +250,117 @@ def fewshot_generation(
         )
 
         pipe = load_pipeline(partial / "generator", host=host)
-        count = min(samples, len(held_out_M3HW))
-        dataset = Assembly(config, host).component("data.dataset")
-        _, held_out = experiment_split(dataset, config.data, config.seed)
-        conditions = held_out_conditions(held_out, dataset, count, device)
-        count = len(conditions.indices)
-        if count == 0:
-            raise ConfigError(f"--run {family_run}: its data hold no held-out conditions to generate from")
-        real_M3HW = held_out_M3HW[:count]
-        names = pipe.conditioner_names()
-        report(f"3/5 sample {count} images of the new sensor from each condition ({', '.join(names)})")
-        generated: dict[str, dict[str, torch.Tensor]] = {}
-        shown = min(count, 8)
-        overview: list[torch.Tensor] = []  # samples.png: each condition's row(s), then the real images
-        for index, label in enumerate(names):
-            fewshot_images = _samples(pipe, index, conditions, seed, device, 16)
-            zero_shot_images = _samples(family_pipe, index, conditions, seed, device, 16)
-            generated[label] = {"few-shot": fewshot_images, "zero-shot": zero_shot_images}
-            rows = []
-            batch = conditions.batch(0, shown, device=torch.device("cpu"))
-            condition = batch.get(pipe.conditioners[index].sample_key)
-            if isinstance(condition, torch.Tensor) and condition.ndim == 4 and condition.shape[1] == 3:
-                rows.append(condition.float())
-            overview += [*rows, fewshot_images[:shown]]
-            rows += [fewshot_images[:shown], zero_shot_images[:shown], real_M3HW[:shown].float()]
-            picture = partial / f"samples_{label.replace(':', '_')}.png"
-            save_png(image_grid(torch.cat(rows), columns=shown), picture)
-        save_png(image_grid(torch.cat([*overview, real_M3HW[:shown].float()]), columns=shown), partial / "samples.png")
-
-        result["conditioners"] = names
-        result["samples"] = {
-            "count": count,
-            "pictures": [f"samples_{label.replace(':', '_')}.png" for label in names],
-            "overview": "samples.png",
-            "rows": "condition (image conditions only) | few-shot | zero-shot | real new-sensor image",
-        }
+        result |= sample_and_score(
+            pipe,
+            family_pipe,
+            images,
+            name,
+            partial,
+            host,
+            held_out_M3HW=held_out_M3HW,
+            shots_N3HW=shots_N3HW,
+            background_3HW=background_3HW,
+            samples=samples,
+            seed=seed,
+            feature_size=feature_size,
+            score=score,
+            report=report,
+        )
         result["background"] = background_source
-        if score:
-            report(f"4/5 score against {count} held-out images of {name} (fd_effnetlite0 at {feature_size} px)")
-            result["scores"] = _scores(generated, real_M3HW, shots_N3HW, background_3HW, feature_size, host)
-        else:
-            report("4/5 scoring skipped (--no-score)")
-            result["scores"] = []
         report("5/5 write fewshot.json and fewshot.md")
         record = {**result, "provenance": provenance()}
         (partial / "fewshot.json").write_text(json.dumps(record, indent=2, default=str) + "\n")
         (partial / "fewshot.md").write_text("\n".join(render_markdown(result)) + "\n")
     return result
+
+
+def paired_truth(config: Any, images: str, indices: Sequence[int], host: PluginHost) -> torch.Tensor | None:
+    """The new sensor's images of the held-out conditions' own contacts, when they exist: the family's
+    data rendered by that sensor (``images`` a registered sensor or variant whose family renders; None
+    for a folder of captured images, which pairs with nothing)."""
+    from vqtouch.core import VqtouchError, validate_experiment
+
+    if Path(images).is_dir():
+        return None
+    spec = json.loads(images) if images.strip().startswith("{") else {"name": images}
+    data = config.to_dict() | {"sensor": spec}
+    try:
+        rendered = Assembly(validate_experiment(data, host), host).component("data.dataset")
+    except VqtouchError:
+        return None
+    if rendered.rendering_sensor() is None:
+        return None
+    return torch.stack([rendered[index]["tactile"] for index in indices]).float()
+
+
+def sample_and_score(
+    pipe: Any,
+    family_pipe: Any,
+    images: str,
+    name: str,
+    out: Path,
+    host: PluginHost,
+    *,
+    held_out_M3HW: torch.Tensor,
+    shots_N3HW: torch.Tensor,
+    background_3HW: torch.Tensor,
+    samples: int,
+    seed: int,
+    feature_size: int,
+    score: bool = True,
+    report: Any = print,
+) -> dict[str, Any]:
+    """Steps 3 and 4: sample every condition with the fine-tuned ``pipe`` and the zero-shot ``family_pipe``
+    (pictures into ``out``) and score them; the ``conditioners``, ``samples`` and ``scores`` entries of
+    ``fewshot.json``.  Draws depend on ``seed`` and each condition's index only, so scoring a finished
+    run again draws the same images."""
+    from vqtouch.plugins.generator import held_out_conditions
+
+    config, device = family_pipe.config, family_pipe.device
+    dataset = Assembly(config, host).component("data.dataset")
+    _, held_out = experiment_split(dataset, config.data, config.seed)
+    conditions = held_out_conditions(held_out, dataset, min(samples, len(held_out_M3HW)), device)
+    count = len(conditions.indices)
+    if count == 0:
+        raise ConfigError("the family's data hold no held-out conditions to generate from")
+    real_M3HW = held_out_M3HW[:count]
+    names = pipe.conditioner_names()
+    report(f"3/5 sample {count} images of the new sensor from each condition ({', '.join(names)})")
+    generated: dict[str, dict[str, torch.Tensor]] = {}
+    shown = min(count, 8)
+    overview: list[torch.Tensor] = []  # samples.png: each condition's row(s), then the real images
+    for index, label in enumerate(names):
+        fewshot_images = _samples(pipe, index, conditions, seed, device, 16)
+        zero_shot_images = _samples(family_pipe, index, conditions, seed, device, 16)
+        generated[label] = {"few-shot": fewshot_images, "zero-shot": zero_shot_images}
+        rows = []
+        batch = conditions.batch(0, shown, device=torch.device("cpu"))
+        condition = batch.get(pipe.conditioners[index].sample_key)
+        if isinstance(condition, torch.Tensor) and condition.ndim == 4 and condition.shape[1] == 3:
+            rows.append(condition.float())
+        overview += [*rows, fewshot_images[:shown]]
+        rows += [fewshot_images[:shown], zero_shot_images[:shown], real_M3HW[:shown].float()]
+        save_png(image_grid(torch.cat(rows), columns=shown), out / f"samples_{label.replace(':', '_')}.png")
+    save_png(image_grid(torch.cat([*overview, real_M3HW[:shown].float()]), columns=shown), out / "samples.png")
+    result: dict[str, Any] = {
+        "conditioners": names,
+        "samples": {
+            "count": count,
+            "pictures": [f"samples_{label.replace(':', '_')}.png" for label in names],
+            "overview": "samples.png",
+            "rows": "condition (image conditions only) | few-shot | zero-shot | real new-sensor image",
+        },
+    }
+    if not score:
+        report("4/5 scoring skipped (--no-score)")
+        return result | {"scores": []}
+    paired = paired_truth(config, images, conditions.indices, host)
+    report(
+        f"4/5 score against {count} held-out images of {name} (fd_effnetlite0 at {feature_size} px"
+        + ("; contact PSNR against its rendering of each condition's own contact)" if paired is not None else ")")
+    )
+    result["paired_truth"] = paired is not None
+    return result | {"scores": _scores(generated, real_M3HW, shots_N3HW, background_3HW, feature_size, host, paired)}
 
 
 def _scores(
@@ -294,8 +370,12 @@ def _scores(
     background_3HW: torch.Tensor,
     feature_size: int,
     host: PluginHost,
+    paired_M3HW: torch.Tensor | None = None,
 ) -> list[dict[str, Any]]:
-    """One row per conditioner and arm: ``fd_effnetlite0`` against the held-out real images."""
+    """One row per conditioner and arm: ``fd_effnetlite0`` against the held-out real images and, given
+    the new sensor's images of the same contacts (``paired_M3HW``), the contact-region PSNR against them
+    (the background's beside it; copied shots have no pairing)."""
+    from vqtouch.plugins.evaluation.contact import contact_region_scores
     from vqtouch.plugins.evaluation.distribution import DistributionScorer
 
     count = len(real_M3HW)
@@ -307,9 +387,17 @@ def _scores(
     }
     rows = []
     for label, arms in generated.items():
+        contact: dict[str, float] = {}
+        if paired_M3HW is not None:
+            background = background_3HW.float().expand(count, -1, -1, -1)
+            found = contact_region_scores({**arms, "no-contact background": background}, paired_M3HW, background)
+            contact = {arm: round(found[f"{arm}contact_psnr"], 4) for arm in (*arms, "no-contact background")}
         for arm, images in arms.items():
-            rows.append({"conditioner": label, "arm": arm, "fd_effnetlite0": scorer.score(images)["fd_effnetlite0"]})
-        rows += [{"conditioner": label, "arm": arm, "fd_effnetlite0": value} for arm, value in common.items()]
+            row = {"conditioner": label, "arm": arm, "fd_effnetlite0": scorer.score(images)["fd_effnetlite0"]}
+            rows.append(row | ({"contact_psnr": contact[arm]} if contact else {}))
+        for arm, value in common.items():
+            row = {"conditioner": label, "arm": arm, "fd_effnetlite0": value}
+            rows.append(row | ({"contact_psnr": contact[arm]} if arm in contact else {}))
     return rows
 
 
@@ -334,9 +422,7 @@ def render_markdown(result: dict[str, Any]) -> list[str]:
             f"fd_effnetlite0 (lower is better) of {result['samples']['count']} images per arm against as many "
             "held-out images of the new sensor (never the shots):",
             "",
-            *markdown_table(
-                result["scores"], ["conditioner", "arm"], ["fd_effnetlite0"], {"fd_effnetlite0": "fd_effnetlite0 ↓"}
-            ),
+            *markdown_table(result["scores"], ["conditioner", "arm"], list(SCORE_KEYS), SCORE_HEADERS),
         ]
     lines += ["", f"No-contact background: {result['background']}."]
     return lines
@@ -410,6 +496,9 @@ def evaluate_fewshot_generation(
             if previous is not None and all(previous.get(key) == value for key, value in settings.items()):
                 report(f"seed {seed}, ratio {ratio:g}: read {done}")
                 result = previous
+                if "paired_truth" not in result and result["scores"]:
+                    report("    scored before paired contact scores existed: drawing its samples again to score them")
+                    result = score_again(folder, family_run, host, report=report, **options)
             else:
                 report(f"seed {seed}, ratio {ratio:g} -> {folder}")
                 result = fewshot_generation(
@@ -418,7 +507,7 @@ def evaluate_fewshot_generation(
             for row in result["scores"]:
                 if row["arm"] == "few-shot" or position == 0:
                     rows.append({**row, "arm": arm_name(row["arm"], ratio), "seed": seed})
-    table = mean_spread(rows, ["fd_effnetlite0"], ["conditioner", "arm"])
+    table = mean_spread(rows, list(SCORE_KEYS), ["conditioner", "arm"])
     result = {"family_run": family_run, "images": images, "ratios": list(ratios), "rows": rows, "summary": table}
     lines = [
         f"# Few-shot generation: {images}",
@@ -426,9 +515,53 @@ def evaluate_fewshot_generation(
         f"fd_effnetlite0 (lower is better), mean ± std over seeds {', '.join(map(str, record.seeds))}, of each "
         "conditioner's samples against as many held-out images of the new sensor (never the shots).",
         "",
-        *markdown_table(table, ["conditioner", "arm"], ["fd_effnetlite0"], {"fd_effnetlite0": "fd_effnetlite0 ↓"}),
+        *markdown_table(table, ["conditioner", "arm"], list(SCORE_KEYS), SCORE_HEADERS),
     ]
     record.write(result, lines)
+    return result
+
+
+def score_again(
+    folder: Path,
+    family_run: str,
+    host: PluginHost,
+    *,
+    eval_images: int = 64,
+    samples: int = 32,
+    feature_size: int = 224,
+    report: Any = print,
+    **_: Any,
+) -> dict[str, Any]:
+    """Steps 3 to 5 again on a finished ``vqtouch fewshot`` output (its generator run is kept): the same
+    draws, scored with what this version scores; rewrites its ``fewshot.json`` and ``fewshot.md``."""
+    from vqtouch.plugins.adaptation import sensor_background, target_images
+    from vqtouch.plugins.generator import load_pipeline
+
+    result = json.loads((folder / "fewshot.json").read_text())
+    images, shots, seed = result["images"], result["shots"], result["seed"]
+    family_pipe = load_pipeline(family_run, host=host)
+    size = family_pipe.config.data.image_size
+    name, _, shots_N3HW, held_out_M3HW = target_images(
+        images, host, shots=shots, eval_images=eval_images, image_size=size, seed=seed
+    )
+    background_3HW, _ = sensor_background(images, host, size)
+    result |= sample_and_score(
+        load_pipeline(folder / "generator", host=host),
+        family_pipe,
+        images,
+        name,
+        folder,
+        host,
+        held_out_M3HW=held_out_M3HW,
+        shots_N3HW=shots_N3HW,
+        background_3HW=background_3HW,
+        samples=samples,
+        seed=seed,
+        feature_size=feature_size,
+        report=report,
+    )
+    atomic_write(folder / "fewshot.json", lambda tmp: tmp.write_text(json.dumps(result, indent=2, default=str) + "\n"))
+    atomic_write(folder / "fewshot.md", lambda tmp: tmp.write_text("\n".join(render_markdown(result)) + "\n"))
     return result
 
 
