@@ -435,19 +435,10 @@ def _fewshot_command(args: argparse.Namespace) -> int:
         args.images,
         out,
         args.host,
-        shots=args.shots,
         ratio=args.ratio,
-        tokenizer_steps=args.tokenizer_steps,
-        tokenizer_part=args.tokenizer_part,
-        generator_steps=args.generator_steps,
-        families=args.families,
-        family=args.family,
-        threshold=args.threshold,
-        samples=args.samples,
-        eval_images=args.eval_images,
         seed=args.seed,
-        feature_size=args.feature_size,
         score=not args.no_score,
+        **_fewshot_options(args),
         overwrite=args.overwrite,
         argv=args.argv,
         report=lambda line: print(line, flush=True),
@@ -574,17 +565,8 @@ def _evaluate_fewshot_generation_command(args: argparse.Namespace) -> int:
         args.host,
         seeds=args.seeds,
         ratios=args.ratios,
-        shots=args.shots,
-        tokenizer_steps=args.tokenizer_steps,
-        tokenizer_part=args.tokenizer_part,
-        generator_steps=args.generator_steps,
-        families=args.families,
-        family=args.family,
-        threshold=args.threshold,
-        samples=args.samples,
-        eval_images=args.eval_images,
-        feature_size=args.feature_size,
         report=lambda line: print(line, flush=True),
+        **_fewshot_options(args),
     )
     print((out / "fewshot_generation.md").read_text())
     print(f"-> {out} (fewshot_generation.json, fewshot_generation.md, seed*/ratio*/)")
@@ -596,6 +578,25 @@ def _ratio(text: str) -> float:
     if not value >= 0 or value == float("inf"):
         raise argparse.ArgumentTypeError(f"{text}: family images per shot must be a finite number >= 0")
     return value
+
+
+#: The options :func:`_add_fewshot_arguments` adds beside --run and --images, as keyword arguments.
+FEWSHOT_OPTIONS = (
+    "shots",
+    "tokenizer_steps",
+    "tokenizer_part",
+    "generator_steps",
+    "families",
+    "family",
+    "threshold",
+    "samples",
+    "eval_images",
+    "feature_size",
+)
+
+
+def _fewshot_options(args: argparse.Namespace) -> dict[str, Any]:
+    return {name: getattr(args, name) for name in FEWSHOT_OPTIONS}
 
 
 def _add_fewshot_arguments(parser: argparse.ArgumentParser) -> None:
