@@ -66,9 +66,12 @@ def test_the_few_shot_scene_clusters_assigns_adapts_and_generates(tmp_path, caps
     fewshot = stages["fewshot"]["result"]
     # It adapts the decoder alone (the adapt stage adapted the whole tokenizer): its own adapted tokenizer.
     assert fewshot["adapted_tokenizer"] == "adapted here" and fewshot["target"] == "gelsight/v1"
+    assert fewshot["generator_steps"] == 2 and fewshot["shots"] == 4  # fewshot.generator_steps, adapt.shots
     assert json.loads((out / "fewshot" / "tokenizer" / "adapt.json").read_text())["part"] == "decoder"
     assert tokenizer_digest(out / "fewshot" / "tokenizer") != tokenizer_digest(out / "adapted")
-    assert {"label_few_shot_fd_effnetlite0", "label_zero_shot_fd_effnetlite0"} <= set(fewshot)
+    assert {"label_few_shot_fd_effnetlite0", "label_zero_shot_fd_effnetlite0", "label_few_shot_contact_psnr"} <= set(
+        fewshot
+    )
     assert "![fewshot](fewshot/samples.png)" in report and (out / "fewshot" / "samples.png").is_file()
     pipe = load_pipeline(out / "fewshot" / "generator", host=HOST)
     assert pipe.sensor_tag is not None and pipe(label=0, n=1, steps=2).shape == (1, 3, 32, 32)

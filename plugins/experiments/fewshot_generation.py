@@ -738,6 +738,7 @@ def run_fewshot_stage(job: StageJob) -> dict[str, Any]:
         ratio=adapt.ratio,
         tokenizer_steps=adapt.steps,
         tokenizer_part=section.tokenizer_part,
+        generator_steps=section.generator_steps,
         threshold=adapt.threshold,
         family=adapt.family,
         samples=section.samples,
@@ -761,8 +762,9 @@ def run_fewshot_stage(job: StageJob) -> dict[str, Any]:
     }
     for row in result["scores"]:
         arm = row["arm"].split(" ")[0].replace("-", "_").replace("(", "")
-        key = f"{row['conditioner'].split(':', 1)[1]}_{arm}_fd_effnetlite0"
-        summary[key] = row["fd_effnetlite0"]
+        for score in SCORE_KEYS:
+            if score in row:
+                summary[f"{row['conditioner'].split(':', 1)[1]}_{arm}_{score}"] = row[score]
     names = ", ".join(label.split(":", 1)[1] for label in result["conditioners"])
     return {
         **summary,
