@@ -470,6 +470,8 @@ def example_condition(conditioner: Conditioner, batch: int, context: BuildContex
     if key == "text":
         texts = ["a smooth sphere pressed into the gel", "a coarse woven fabric", "a sharp metal edge"]
         return [texts[i % len(texts)] for i in range(batch)]
+    if key == "sensor_index":  # a sensor tag's rows: which sensor each is
+        return torch.arange(batch) % max(int(getattr(conditioner, "num_sensors", 1)), 1)
     return None
 
 

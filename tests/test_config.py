@@ -28,7 +28,7 @@ SCENES = [
     "mixed-to-touch",
     "touch-to-touch",
 ]
-BUILTIN_STAGES = ["adapt", "cluster", "generator", "pretrained", "reconstruct", "render", "tokenizer"]
+BUILTIN_STAGES = ["adapt", "cluster", "fewshot", "generator", "pretrained", "reconstruct", "render", "tokenizer"]
 
 
 @pytest.mark.parametrize("scene", SCENES)
@@ -64,6 +64,7 @@ def test_builtin_stages_and_their_sections(host):
         "cluster": "ClusterSection",
         "adapt": "AdaptSection",
         "generator": "GeneratorSection",
+        "fewshot": "FewshotSection",
         "pretrained": "PretrainedSection",
     }
     fields = set(host.experiment_model.model_fields)
@@ -84,6 +85,7 @@ def test_builtin_stages_and_their_sections(host):
         "generator.model",
         "generator.conditioners",
         "generator.sampler",
+        "generator.sensor_tag",
     }
     assert (host.slots["generator.conditioners"].kind, host.slots["generator.conditioners"].many) == (
         "conditioner",
@@ -116,13 +118,13 @@ def test_a_scene_validates_against_the_stages_its_host_registered(make_plugin):
     for scene in ("few-shot", "zero-shot"):
         with pytest.raises(
             ConfigError,
-            match=r"stages: unknown stage 'cluster'; available: generator, "
+            match=r"stages: unknown stage 'cluster'; available: fewshot, generator, "
             r"pretrained, reconstruct, render, tokenizer",
         ):
             resolve_config(scene, host=without)
     with pytest.raises(
         ConfigError,
-        match=r"stages: unknown stage 'adapt'; available: generator, pretrained, "
+        match=r"stages: unknown stage 'adapt'; available: fewshot, generator, pretrained, "
         r"reconstruct, render, tokenizer",
     ):
         resolve_config("cross-sensor", host=without)
@@ -145,7 +147,7 @@ def test_a_scene_validates_against_the_stages_its_host_registered(make_plugin):
         r"equal to 1 \(got 0\)",
     ):
         resolve_config(None, overrides=['stages=["probe"]', "probe.width=0"], host=extended)
-    with pytest.raises(ConfigError, match=r"unknown stage 'probe'; available: adapt, cluster, generator"):
+    with pytest.raises(ConfigError, match=r"unknown stage 'probe'; available: adapt, cluster, fewshot, generator"):
         resolve_config(None, overrides=['stages=["probe"]'], host=load_plugins(autoload=False))
 
 
@@ -211,7 +213,7 @@ def test_unknown_plugin_lists_choices_and_closest(host):
     with pytest.raises(
         ConfigError,
         match=r"generator.conditioners.0: unknown conditioner 'lable'; available: clip, "
-        r"label, tactile, tactile_codes, text, text_scratch, visual, visual_cnn; "
+        r"label, sensor, tactile, tactile_codes, text, text_scratch, visual, visual_cnn; "
         r"did you mean 'label'\?",
     ):
         resolve_config("label-to-touch", overrides=["generator.conditioners.0.name=lable"], host=host)

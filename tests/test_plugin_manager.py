@@ -44,7 +44,7 @@ BUILTIN_PLUGINS = {
     "generator",
     "adaptation",
 }
-BUILTIN_STAGES = {"render", "tokenizer", "reconstruct", "cluster", "adapt", "generator", "pretrained"}
+BUILTIN_STAGES = {"render", "tokenizer", "reconstruct", "cluster", "adapt", "generator", "fewshot", "pretrained"}
 
 
 def test_builtins_load_through_entry_points_with_autoload_off(host):

@@ -158,7 +158,7 @@ def test_stages_trained_for_the_demos_length_carry_the_caveat_at_their_top(make_
     scene = resolve_config("tour", (), (), host=host)
     scaled = scale_for_demo(scene, host)
     caveats = {stage: brief_training_caveat(stage, scaled, host) for stage in scaled.stages}
-    assert {stage for stage, caveat in caveats.items() if caveat} == {"tokenizer", "adapt", "generator"}
+    assert {stage for stage, caveat in caveats.items() if caveat} == {"tokenizer", "adapt", "generator", "fewshot"}
     assert caveats["tokenizer"].startswith("Trained for 40 steps (tokenizer.train.steps), the demo's length")
     assert not any(brief_training_caveat(stage, scene, host) for stage in scene.stages)  # --full
 

@@ -53,7 +53,7 @@ from vqtouch.core import (
     hookimpl,
 )
 from vqtouch.core.checkpoint import is_pretrained, open_pretrained
-from vqtouch.core.cli import non_negative_int, positive_int
+from vqtouch.core.cli import non_negative_float, non_negative_int, positive_int
 from vqtouch.core.data import experiment_split
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import staged_output
@@ -630,7 +630,9 @@ def _add_fewshot_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--family", type=non_negative_int, help="adapt from this family even when the assignment refuses"
     )
-    parser.add_argument("--threshold", type=float, help="assignment distance threshold (default: the families' own)")
+    parser.add_argument(
+        "--threshold", type=non_negative_float, help="assignment distance threshold (default: the families' own)"
+    )
     parser.add_argument(
         "--samples", type=positive_int, default=32, help="images generated per condition and arm (default 32)"
     )
