@@ -31,8 +31,6 @@ def example_condition(conditioner, batch):
 
     if conditioner.sample_key == "label":
         return torch.arange(batch) % conditioner.num_classes
-    if conditioner.sample_key == "sensor_index":
-        return torch.arange(batch) % conditioner.num_sensors
     return contract_example(conditioner, batch, BuildContext(image_size=32))
 
 

@@ -10,7 +10,7 @@ import torch
 
 import generator_runs
 from cli_checks import one_error_line
-from vqtouch.core import load_plugins
+from vqtouch.core import ConfigError, load_plugins
 from vqtouch.core.cli import main
 from vqtouch.core.images import save_png
 from vqtouch.plugins.generator.sensor_finetune import FAMILY_SENSOR, NEW_SENSOR, mixed_codes
@@ -215,6 +215,24 @@ def test_fewshot_goes_from_a_sensors_images_to_a_generator_run_that_draws_that_s
         )
         == 0
     )
+
+
+def test_only_a_tokenizer_adapted_from_the_familys_own_stands_in_for_adapting(family, tmp_path):
+    from vqtouch.plugins.experiments.fewshot_generation import _family_tokenizer, adapted_summary, fewshot_generation
+
+    out = tmp_path / "first"
+    assert _fewshot(family, out, TARGET, "--no-score") == 0
+    _, folder = _family_tokenizer(str(family / "run"), HOST)
+    assert adapted_summary(out / "tokenizer", folder, "decoder")["part"] == "decoder"
+    assert adapted_summary(out / "tokenizer", folder, "all") is None  # adapted another way
+    elsewhere = tmp_path / "elsewhere"
+    shutil.copytree(out / "tokenizer", elsewhere)
+    made = json.loads((elsewhere / "adapt.json").read_text())
+    (elsewhere / "adapt.json").write_text(json.dumps(made | {"adapted_from": str(tmp_path)}))
+    assert adapted_summary(elsewhere, folder) is None
+    with pytest.raises(ConfigError, match="was not adapted from"):
+        fewshot_generation(str(family / "run"), TARGET, tmp_path / "second", HOST, adapted=elsewhere)
+    assert not (tmp_path / "second").exists()
 
 
 def test_a_folder_of_images_in_class_subfolders_is_a_target(family, tmp_path):

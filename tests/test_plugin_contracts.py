@@ -127,8 +127,6 @@ def builtin_case(
     if (kind, name) == ("metric", "clip_score"):
         weights = tiny_clip_weights(tmp_path_factory.getbasetemp())
         options.update({"architecture": "ViT-S-32", "checkpoint": str(weights), "model_overrides": TINY_CLIP})
-    if (kind, name) == ("conditioner", "sensor"):
-        case["condition"] = torch.tensor([0, 1, 0])  # sensor indices
     if (kind, name) == ("conditioner", "tactile_codes"):
         options["tokenizer"] = str(generator_runs.tiny_tokenizer_folder(tmp_path_factory.getbasetemp()))
     if kind == "dataset" and name in READER_CASES:

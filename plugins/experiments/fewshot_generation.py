@@ -67,14 +67,15 @@ SCORE_HEADERS = {"fd_effnetlite0": "fd_effnetlite0 ↓", "contact_psnr": "contac
 ARMS = ("few-shot", "zero-shot", "shots (copied)", "no-contact background")
 
 
-def _family_folder(family_run: str, host: PluginHost) -> Path:
-    """The checkpoint folder of the tokenizer the family generator was trained on (what is adapted):
+def _family_tokenizer(family_run: str, host: PluginHost) -> tuple[Any, Path]:
+    """The tokenizer the family generator was trained on (what is adapted) and its checkpoint folder:
     a bundle's own, or the one a run's generator product records."""
     from vqtouch.plugins.generator import generator_tokenizer
     from vqtouch.plugins.tokenizer import load_tokenizer
 
     if is_pretrained(family_run):
-        return open_pretrained(family_run, host, tokenizer_only=True).folder / "tokenizer"
+        bundle = open_pretrained(family_run, host, tokenizer_only=True)
+        return bundle.tokenizer, bundle.folder / "tokenizer"
     run = RunDir.open(family_run)
     config = run.load_config(host)
     if getattr(config, "generator", None) is None or config.generator.model is None:
@@ -82,8 +83,30 @@ def _family_folder(family_run: str, host: PluginHost) -> Path:
             f"--run {family_run}: its config has no generator; give a family's generator run "
             "(`vqtouch train generator`) or a bundle (pretrained:NAME)"
         )
-    _, folder = load_tokenizer(generator_tokenizer(run, config.generator), host)
-    return folder
+    return load_tokenizer(generator_tokenizer(run, config.generator), host)
+
+
+def adapted_summary(adapted: Path, folder: Path, part: str | None = None) -> dict[str, Any] | None:
+    """``adapted``'s ``adapt.json`` when it was adapted from the tokenizer in ``folder`` (and, given
+    ``part``, adapting that part), else None: only such a tokenizer can stand in for adapting again."""
+    made = json.loads((adapted / "adapt.json").read_text())
+    if Path(made.get("adapted_from", "")).resolve() != folder.resolve():
+        return None
+    return made if part is None or made.get("part", "all") == part else None
+
+
+def new_sensor_images(
+    images: str, host: PluginHost, *, shots: int, eval_images: int, image_size: Any, seed: int
+) -> tuple[str, torch.Tensor, torch.Tensor, torch.Tensor, str]:
+    """The unseen sensor's name, shots, held-out images, no-contact background and how it was made,
+    exactly as ``vqtouch adapt`` draws them for ``seed``."""
+    from vqtouch.plugins.adaptation import sensor_background, target_images
+
+    name, _, shots_N3HW, held_out_M3HW = target_images(
+        images, host, shots=shots, eval_images=eval_images, image_size=image_size, seed=seed
+    )
+    background_3HW, source = sensor_background(images, host, image_size)
+    return name, shots_N3HW, held_out_M3HW, background_3HW, source
 
 
 def _cycled(images_N3HW: torch.Tensor, count: int) -> torch.Tensor:
@@ -148,31 +171,23 @@ def fewshot_generation(
     """Run the five steps of the module docstring; returns what ``fewshot.json`` holds.  ``adapted``: a
     tokenizer ``vqtouch adapt`` already adapted from the family's to ``images`` with these ``shots``,
     ``ratio`` and ``seed`` (the ``adapt`` stage's), copied instead of adapting again."""
-    from vqtouch.plugins.adaptation import (
-        AdaptSettings,
-        adapt_tokenizer,
-        families_to_adapt_from,
-        registered_source,
-        sensor_background,
-        target_images,
-    )
+    from vqtouch.plugins.adaptation import AdaptSettings, adapt_tokenizer, families_to_adapt_from, registered_source
     from vqtouch.plugins.generator import fine_tune_for_sensor, load_pipeline
-    from vqtouch.plugins.tokenizer import load_tokenizer
 
     if ratio < 0:
         raise ConfigError(f"--ratio {ratio}: family images per shot must be >= 0 (0: the shots alone)")
     out = Path(out)
-    adapted = Path(adapted) if adapted is not None else None
+    tokenizer, folder = _family_tokenizer(family_run, host)
+    reused = None
     if adapted is not None:
-        made_from = json.loads((Path(adapted) / "adapt.json").read_text()).get("adapted_from", "")
-        if Path(made_from).resolve() != _family_folder(family_run, host).resolve():
+        adapted = Path(adapted)
+        reused = adapted_summary(adapted, folder)
+        if reused is None:
             raise ConfigError(
-                f"{adapted} was adapted from {made_from}, not from the tokenizer of {family_run}'s generator; "
+                f"{adapted} was not adapted from {folder}, the tokenizer of {family_run}'s generator; "
                 "adapt that one (leave the adapted tokenizer out)"
             )
     family_pipe = load_pipeline(family_run, host=host)
-    folder = _family_folder(family_run, host)
-    tokenizer, _ = load_tokenizer(folder, host)
     config = family_pipe.config
     image_size = config.data.image_size
     result: dict[str, Any] = {
@@ -189,7 +204,7 @@ def fewshot_generation(
         if adapted is not None:
             report(f"1/5 reuse the tokenizer adapted in {adapted}")
             shutil.copytree(adapted, partial / "tokenizer")
-            adapted_summary = json.loads((adapted / "adapt.json").read_text())
+            summary = reused
         else:
             report(f"1/5 assign and adapt the tokenizer of {folder} ({tokenizer_steps} steps)")
             if families is None:
@@ -213,7 +228,7 @@ def fewshot_generation(
                 seed=seed,
                 part=tokenizer_part,
             )
-            adapted_summary = adapt_tokenizer(
+            summary = adapt_tokenizer(
                 str(folder),
                 images,
                 fitted,
@@ -223,14 +238,13 @@ def fewshot_generation(
                 report=lambda line: report(f"    {line}"),
             )
         result["adapt"] = {
-            key: adapted_summary[key]
+            key: summary[key]
             for key in ("target", "family", "assignment", "steps", "held_out", "before", "after")
-            if key in adapted_summary
+            if key in summary
         }
-        name, _, shots_N3HW, held_out_M3HW = target_images(
+        name, shots_N3HW, held_out_M3HW, background_3HW, background_source = new_sensor_images(
             images, host, shots=shots, eval_images=eval_images, image_size=image_size, seed=seed
         )
-        background_3HW, background_source = sensor_background(images, host, image_size)
 
         report(f"2/5 fine-tune the family generator on {shots} shots and {ratio:g} family samples per shot")
         family_sensor = config.sensor.name if getattr(config, "sensor", None) is not None else "family"
@@ -525,17 +539,14 @@ def score_again(
 ) -> dict[str, Any]:
     """Steps 3 to 5 again on a finished ``vqtouch fewshot`` output (its generator run is kept): the same
     draws, scored with what this version scores; rewrites its ``fewshot.json`` and ``fewshot.md``."""
-    from vqtouch.plugins.adaptation import sensor_background, target_images
     from vqtouch.plugins.generator import load_pipeline
 
     result = json.loads((folder / "fewshot.json").read_text())
     images, shots, seed = result["images"], result["shots"], result["seed"]
     family_pipe = load_pipeline(family_run, host=host)
-    size = family_pipe.config.data.image_size
-    name, _, shots_N3HW, held_out_M3HW = target_images(
-        images, host, shots=shots, eval_images=eval_images, image_size=size, seed=seed
+    name, shots_N3HW, held_out_M3HW, background_3HW, _ = new_sensor_images(
+        images, host, shots=shots, eval_images=eval_images, image_size=family_pipe.config.data.image_size, seed=seed
     )
-    background_3HW, _ = sensor_background(images, host, size)
     result |= sample_and_score(
         load_pipeline(folder / "generator", host=host),
         family_pipe,
@@ -727,9 +738,8 @@ def run_fewshot_stage(job: StageJob) -> dict[str, Any]:
     adapted = job.run.products().get("adapted_tokenizer")
     reuse = None
     if adapted is not None:
-        made = json.loads((adapted.path / "adapt.json").read_text())
-        same_source = Path(made.get("adapted_from", "")).resolve() == _family_folder(family_run, job.host).resolve()
-        if same_source and made.get("part", "all") == section.tokenizer_part:
+        _, folder = _family_tokenizer(family_run, job.host)
+        if adapted_summary(adapted.path, folder, section.tokenizer_part) is not None:
             reuse = adapted.path
     result = fewshot_generation(
         family_run,
