@@ -13,6 +13,7 @@ from cli_checks import one_error_line
 from vqtouch.core import ConfigError, load_plugins
 from vqtouch.core.cli import main
 from vqtouch.core.images import save_png
+from vqtouch.plugins.experiments.fewshot_generation import RECONSTRUCTED
 from vqtouch.plugins.generator.sensor_finetune import FAMILY_SENSOR, NEW_SENSOR, mixed_codes
 from vqtouch.plugins.generator.training import (
     CodesDataset,
@@ -183,11 +184,17 @@ def test_fewshot_goes_from_a_sensors_images_to_a_generator_run_that_draws_that_s
     tune = result["fine_tune"]
     assert tune["shots"] == 4 and tune["family_samples"] == 18  # 5 per shot, capped by the 18 training samples
     arms = {(row["conditioner"], row["arm"]) for row in result["scores"]}
-    assert arms == {("0:label", arm) for arm in ("few-shot", "zero-shot", "shots (copied)", "no-contact background")}
-    assert all(row["fd_effnetlite0"] >= 0 for row in result["scores"])
+    scored = ("few-shot", "zero-shot", "shots (copied)", "no-contact background")
+    assert arms == {("0:label", arm) for arm in (*scored, RECONSTRUCTED)}
+    assert all(row["fd_effnetlite0"] >= 0 for row in result["scores"] if row["arm"] in scored)
+    # The label samples are classified by one trained on the new sensor's images of the 18 training scenes.
+    assert result["classifier"]["train_images"] == 18
+    accuracy = {row["arm"]: row.get("classifier_accuracy") for row in result["scores"]}
+    assert accuracy["shots (copied)"] is None and accuracy["no-contact background"] is None
+    assert all(0 <= accuracy[arm] <= 1 for arm in ("few-shot", "zero-shot", RECONSTRUCTED))
     # A registered variant renders the family's held-out contacts: paired contact scores, but for the copies.
     assert result["paired_truth"] is True
-    paired = {row["arm"]: row.get("contact_psnr") for row in result["scores"]}
+    paired = {row["arm"]: row.get("contact_psnr") for row in result["scores"] if row["arm"] != RECONSTRUCTED}
     assert paired["shots (copied)"] is None and all(0 < paired[arm] < 100 for arm in paired if arm != "shots (copied)")
     assert (out / "samples_0_label.png").is_file() and "| few-shot |" in (out / "fewshot.md").read_text()
     # The output is a generator run drawing the new sensor; moved whole, it still finds its tokenizer.
@@ -350,11 +357,19 @@ def test_the_seeds_table_names_each_arm_once_per_conditioner_and_resumes_without
     assert main(args) == 0
     first = json.loads((out / "fewshot_generation.json").read_text())
     arms = [(row["conditioner"], row["arm"]) for row in first["summary"]]
-    expected = ["few-shot 1:2", "zero-shot", "shots (copied)", "no-contact background", "shots alone"]
+    expected = [
+        "few-shot 1:2",
+        "zero-shot",
+        "shots (copied)",
+        "no-contact background",
+        "new sensor, reconstructed by the 1:2 tokenizer (ceiling)",
+        "shots alone",
+        "new sensor, reconstructed by the shots-alone tokenizer (ceiling)",
+    ]
     assert arms == [("0:label", arm) for arm in expected]
     alone = json.loads((out / "seed0" / "ratio0" / "fewshot.json").read_text())
     assert alone["fine_tune"]["family_samples"] == 0
-    assert first["summary"][-1]["fd_effnetlite0"] == alone["scores"][0]["fd_effnetlite0"]
+    assert first["summary"][-2]["fd_effnetlite0"] == alone["scores"][0]["fd_effnetlite0"]
     capsys.readouterr()
     stamp = (out / "seed0" / "ratio2" / "fewshot.json").stat().st_mtime_ns
     assert main(args) == 0
@@ -364,14 +379,19 @@ def test_the_seeds_table_names_each_arm_once_per_conditioner_and_resumes_without
     # A run written before the paired scores existed is scored again: the same draws, the same fd.
     done = out / "seed0" / "ratio2" / "fewshot.json"
     older = json.loads(done.read_text())
-    del older["paired_truth"]
-    older["scores"] = [{key: row[key] for key in ("conditioner", "arm", "fd_effnetlite0")} for row in older["scores"]]
+    del older["paired_truth"], older["classifier"]
+    older["scores"] = [
+        {key: row[key] for key in ("conditioner", "arm", "fd_effnetlite0")}
+        for row in older["scores"]
+        if row["arm"] != RECONSTRUCTED
+    ]
     done.write_text(json.dumps(older))
     capsys.readouterr()
     assert main(args) == 0
     assert "drawing its samples again" in capsys.readouterr().out
     again = json.loads(done.read_text())
-    assert again["paired_truth"] is True and [row["fd_effnetlite0"] for row in again["scores"]] == [
+    assert again["paired_truth"] is True and again["classifier"]["train_images"] == 18
+    assert [row["fd_effnetlite0"] for row in again["scores"] if row["arm"] != RECONSTRUCTED] == [
         row["fd_effnetlite0"] for row in older["scores"]
     ]
     assert json.loads((out / "fewshot_generation.json").read_text())["summary"] == first["summary"]
@@ -396,3 +416,36 @@ def test_paired_truth_is_the_new_sensor_drawing_the_family_datas_own_contacts(fa
     shift = contact_centroids(truth, new_background) - contact_centroids(own, own_background)
     assert shift.norm(dim=1).max() < 3.0, shift
     assert paired_truth(config, str(tmp_path), [0], HOST) is None  # a folder pairs with nothing
+
+
+def test_the_samples_classifier_names_a_class_by_what_the_sensor_draws_for_it():
+    """Closed form: two classes the sensor draws as a dark and a bright image, an identity tokenizer.
+    Samples drawn right score 1 (as the ceiling does), swapped 0, half swapped 0.5."""
+    from vqtouch.plugins.experiments.fewshot_generation import _classifier_scores
+
+    class Identity:
+        device = torch.device("cpu")
+
+        def reconstruct(self, images):
+            return images, None
+
+    torch.manual_seed(0)
+    dark, bright = torch.full((3, 32, 32), 0.2), torch.full((3, 32, 32), 0.8)
+
+    def draw(labels):
+        return torch.stack([(bright if label else dark) + 0.02 * torch.rand(3, 32, 32) for label in labels])
+
+    train_labels = [0, 1] * 8
+    labels = [0, 1, 1, 0]
+    generated = {
+        "0:label": {"right": draw(labels), "swapped": draw([1 - label for label in labels]), "half": draw([0, 0, 1, 1])}
+    }
+    accuracy = _classifier_scores(
+        generated, draw(labels), labels, (draw(train_labels), train_labels), Identity(), 32, HOST, 0
+    )
+    assert accuracy == {
+        ("0:label", "right"): 1.0,
+        ("0:label", "swapped"): 0.0,
+        ("0:label", "half"): 0.5,
+        ("0:label", RECONSTRUCTED): 1.0,
+    }

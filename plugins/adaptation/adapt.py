@@ -394,6 +394,7 @@ def adapt_tokenizer(
         "members_used": members,
         "assignment": assignment,
         "forced_family": settings.family is not None,
+        "seed": settings.seed,
         "shots": len(shots_N),
         "ratio": settings.ratio,
         "family_images": family_count,

@@ -8,13 +8,15 @@
     vqtouch adapt --run TOKRUN --images DIR_OR_SPEC --shots 50 --ratio 5 --out OUT [--families DIR]
     vqtouch evaluate cross-sensor --run TOKRUN --out DIR
     vqtouch evaluate fewshot --run TOKRUN --out DIR [--target SPEC] [--n 500 2000] [--ratio 5]
+    vqtouch evaluate mix-ratio --run TOKRUN --out DIR [--shots 50] [--ratios 0 1 2 5 10] [--steps 200]
 
 ``cluster`` writes ``DIR/cluster.json`` (families, members, prototypes, the family distance
 matrix, each sensor's distance to every family, and with ``--unseen SPEC ...`` where each unseen
 sensor is assigned, or why it is refused), ``DIR/clusterer.safetensors`` and ``DIR/families.png``
 (a 2-D PCA embedding of every image's features with the sensors' prototypes); see
 :mod:`.families`.  ``adapt`` writes an adapted tokenizer (:mod:`.adapt`); ``evaluate
-cross-sensor`` the experiment of :mod:`.evaluation`, ``evaluate fewshot`` that of :mod:`.fewshot`.
+cross-sensor`` the experiment of :mod:`.evaluation`, ``evaluate fewshot`` that of :mod:`.fewshot`,
+``evaluate mix-ratio`` that of :mod:`.ratio`.
 """
 
 from __future__ import annotations
@@ -208,6 +210,30 @@ def _evaluate_fewshot_command(args: argparse.Namespace) -> int:
     )
     print((out / "fewshot.md").read_text())
     print(f"-> {out} (fewshot.json, fewshot.md, fewshot.png; the trained arms' tokenizers in seed<S>/<arm>-<N>/)")
+    return 0
+
+
+def _evaluate_mix_ratio_command(args: argparse.Namespace) -> int:
+    from .ratio import evaluate_mix_ratio
+
+    out = Path(args.out)
+    evaluate_mix_ratio(
+        args.run,
+        args.host,
+        out,
+        target=args.target,
+        seeds=args.seeds,
+        shots=args.shots,
+        ratios=args.ratios,
+        steps=args.steps,
+        all_images=args.all_images,
+        eval_images=args.eval_images,
+        families=args.families,
+        overwrite=args.overwrite,
+        report=lambda line: print(line, flush=True),
+    )
+    print((out / "mix_ratio.md").read_text())
+    print(f"-> {out} (mix_ratio.json, mix_ratio.md, mix_ratio.png; each arm's tokenizer in seed<S>/<arm>/)")
     return 0
 
 
@@ -421,3 +447,55 @@ def vqtouch_add_commands(subparsers):
     )
     fewshot.add_argument("--overwrite", action="store_true", help="run again into an --out that holds fewshot.json")
     fewshot.set_defaults(handler=_evaluate_fewshot_command)
+
+    ratio = evaluate.add_parser(
+        "mix-ratio",
+        help="how many family images to mix with each shot of an unseen sensor: ratios at equal "
+        "steps and at equal sensor exposures, against the shots alone and all the sensor's images "
+        "(JSON, markdown, PNG)",
+    )
+    ratio.add_argument("--run", required=True, help="the family tokenizer's run")
+    add_experiment_arguments(ratio)
+    ratio.add_argument(
+        "--target",
+        default=json.dumps(GELSIGHT_DERIVATIVE_II),
+        help="the unseen sensor: a registered sensor (name or JSON variant) or a folder of its "
+        "images (default: the zero-shot scene's damaged, drifted GelSight)",
+    )
+    ratio.add_argument("--shots", type=positive_int, default=50, help="unseen-sensor images to adapt on (default 50)")
+    ratio.add_argument(
+        "--ratios",
+        type=non_negative_float,
+        nargs="+",
+        default=[0.0, 1.0, 2.0, 5.0, 10.0],
+        help="family images per shot (default 0 1 2 5 10; 0 is the shots alone)",
+    )
+    ratio.add_argument(
+        "--steps",
+        type=positive_int,
+        default=200,
+        help="fine-tuning steps at equal steps; the equal-exposure arms train steps x (1 + ratio) (default 200)",
+    )
+    ratio.add_argument(
+        "--all-images",
+        type=positive_int,
+        default=1000,
+        help="the sensor's images the all-images reference trains on (default 1000; a folder: all not held out)",
+    )
+    ratio.add_argument(
+        "--eval-images",
+        type=positive_int,
+        default=64,
+        help="held-out unseen-sensor images every arm is scored on (default 64)",
+    )
+    ratio.add_argument(
+        "--families",
+        help="a `vqtouch cluster` output of this tokenizer (default: cluster the "
+        "registered sensor families and 3 variants of each into OUT/families)",
+    )
+    ratio.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="train every arm again (without it, an interrupted run reuses the arms it finished)",
+    )
+    ratio.set_defaults(handler=_evaluate_mix_ratio_command)

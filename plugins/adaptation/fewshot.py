@@ -139,7 +139,7 @@ def held_out_count(target: str, counts: Sequence[int], eval_images: int, host: P
     return min(eval_images, images - max(counts))
 
 
-def _families(
+def families_for(
     families: str | Path | None,
     tokenizer: Any,
     folder: Path,
@@ -161,6 +161,38 @@ def _families(
     )
     save_families(fitted, out / "families", host)
     return load_families(out / "families", host), f"{out / 'families'} (registered sensor families, 3 variants each)"
+
+
+def assign_seed_family(
+    fitted: SensorFamilies,
+    tokenizer: Any,
+    target: str,
+    host: PluginHost,
+    *,
+    shots: int,
+    eval_images: int,
+    image_size: ImageSize,
+    seed: int,
+) -> tuple[str, str, dict[str, Any]]:
+    """The family one seed's arms adapt from, assigned from that seed's ``shots`` images of the
+    sensor: its nearest family when the assignment is refused (the entry says so).  Returns the
+    sensor's name, its source and the entry ``{"seed", "family", "members", "refused",
+    "nearest_family", "margin", "threshold"}``."""
+    name, source, shots_N, _ = target_images(
+        target, host, shots=shots, eval_images=eval_images, image_size=image_size, seed=seed
+    )
+    assigned, _ = fitted.unseen(tokenizer, name, shots_N)
+    family = assigned["nearest_family"] if assigned["refused"] else assigned["family"]
+    return (
+        name,
+        source,
+        {
+            "seed": seed,
+            "family": family,
+            "members": fitted.summary["families"][family],
+            **{key: assigned[key] for key in ("refused", "nearest_family", "margin", "threshold")},
+        },
+    )
 
 
 def _scores(scores: dict[str, Any]) -> dict[str, Any]:
@@ -361,7 +393,7 @@ def evaluate_fewshot(
     batch_size = min(config.data.batch_size, counts[0])
     background, background_source = sensor_background(target, host, image_size)
     record = ExperimentRecord("fewshot", out, seeds)
-    fitted, families_source = _families(families, tokenizer, folder, target, host, out, image_size)
+    fitted, families_source = families_for(families, tokenizer, folder, target, host, out, image_size)
     rows: list[dict[str, Any]] = []
     skipped: dict[str, str] = {}
     assignments = []
@@ -369,22 +401,14 @@ def evaluate_fewshot(
     for seed in record.seeds:
         # One family per seed, from the smallest N's shots (what every arm has): only N changes between the
         # fine-tuned arms of a seed.
-        name, source, shots_N, _ = target_images(
-            target, host, shots=counts[0], eval_images=held_out, image_size=image_size, seed=seed
+        name, source, assignment = assign_seed_family(
+            fitted, tokenizer, target, host, shots=counts[0], eval_images=held_out, image_size=image_size, seed=seed
         )
-        assigned, _ = fitted.unseen(tokenizer, name, shots_N)
-        family = assigned["nearest_family"] if assigned["refused"] else assigned["family"]
-        assignments.append(
-            {
-                "seed": seed,
-                "family": family,
-                "members": fitted.summary["families"][family],
-                **{key: assigned[key] for key in ("refused", "nearest_family", "margin", "threshold")},
-            }
-        )
+        family = assignment["family"]
+        assignments.append(assignment)
         report(
-            f"seed {seed}: {name} -> family {family} ({', '.join(fitted.summary['families'][family])})"
-            + (", nearest: the assignment was refused" if assigned["refused"] else "")
+            f"seed {seed}: {name} -> family {family} ({', '.join(assignment['members'])})"
+            + (", nearest: the assignment was refused" if assignment["refused"] else "")
         )
         seed_rows, seed_skipped = seed_arms(
             run,

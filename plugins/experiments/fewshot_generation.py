@@ -61,8 +61,22 @@ from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.plugins.evaluation.records import markdown_table, provenance
 
 #: The scores of a row, and their headers.
-SCORE_KEYS = ("fd_effnetlite0", "contact_psnr")
-SCORE_HEADERS = {"fd_effnetlite0": "fd_effnetlite0 ↓", "contact_psnr": "contact PSNR ↑ (paired)"}
+SCORE_KEYS = ("fd_effnetlite0", "contact_psnr", "classifier_accuracy")
+SCORE_HEADERS = {
+    "fd_effnetlite0": "fd_effnetlite0 ↓",
+    "contact_psnr": "contact PSNR ↑ (paired)",
+    "classifier_accuracy": "classifier acc. ↑ (paired)",
+}
+#: The new sensor's images of the family's training scenes the classifier learns (at most).
+CLASSIFIER_IMAGES = 512
+#: What the classifier accuracy is, for the tables.
+CLASSIFIER_TEXT = (
+    "classifier accuracy: how often a classifier trained on the adapted tokenizer's reconstructions of the new "
+    "sensor's images of the family's training scenes names each sample's condition class (its ceiling: the same "
+    "on the reconstructions of the sensor's images of the held-out conditions; chance: one over the classes):"
+)
+#: The row of the classifier's ceiling: the adapted tokenizer's reconstructions of the paired truth.
+RECONSTRUCTED = "new sensor, reconstructed (ceiling)"
 #: The arms every conditioner's samples are scored beside.
 ARMS = ("few-shot", "zero-shot", "shots (copied)", "no-contact background")
 
@@ -332,7 +346,7 @@ def sample_and_score(
 
     config, device = family_pipe.config, family_pipe.device
     dataset = Assembly(config, host).component("data.dataset")
-    _, held_out = experiment_split(dataset, config.data, config.seed)
+    train, held_out = experiment_split(dataset, config.data, config.seed)
     conditions = held_out_conditions(held_out, dataset, min(samples, len(held_out_M3HW)), device)
     count = len(conditions.indices)
     if count == 0:
@@ -369,12 +383,86 @@ def sample_and_score(
         report("4/5 scoring skipped (--no-score)")
         return result | {"scores": []}
     paired = paired_truth(config, images, conditions.indices, host)
+    classifier = None
+    if paired is not None and conditions.labels is not None:
+        classifier = classifier_images(config, images, train, pipe.tokenizer, host)
     report(
         f"4/5 score against {count} held-out images of {name} (fd_effnetlite0 at {feature_size} px"
-        + ("; contact PSNR against its rendering of each condition's own contact)" if paired is not None else ")")
+        + ("; contact PSNR against its rendering of each condition's own contact" if paired is not None else "")
+        + (
+            f"; a classifier trained on the adapted tokenizer's reconstructions of {len(classifier[1])} of its "
+            "images of the family's training scenes)"
+            if classifier is not None
+            else ")"
+        )
     )
     result["paired_truth"] = paired is not None
-    return result | {"scores": _scores(generated, real_M3HW, shots_N3HW, background_3HW, feature_size, host, paired)}
+    result["classifier"] = (
+        {"train_images": len(classifier[1]), "trained_on": "the adapted tokenizer's reconstructions"}
+        if classifier is not None
+        else {"skipped": "no paired truth with labels (a folder of captured images, or a dataset without labels)"}
+    )
+    scores = _scores(generated, real_M3HW, shots_N3HW, background_3HW, feature_size, host, paired)
+    if classifier is not None:
+        accuracy = _classifier_scores(
+            generated, paired, conditions.labels, classifier, pipe.tokenizer, feature_size, host, seed
+        )
+        for row in scores:
+            if (row["conditioner"], row["arm"]) in accuracy:
+                row["classifier_accuracy"] = accuracy.pop((row["conditioner"], row["arm"]))
+        scores += [
+            {"conditioner": label, "arm": arm, "classifier_accuracy": value} for (label, arm), value in accuracy.items()
+        ]
+    return result | {"scores": scores}
+
+
+@torch.no_grad()
+def classifier_images(
+    config: Any, images: str, train: Any, tokenizer: Any, host: PluginHost
+) -> tuple[torch.Tensor, list[int]] | None:
+    """What the samples' classifier learns: the new sensor's images of the family's first
+    :data:`CLASSIFIER_IMAGES` training scenes (``images`` a registered sensor that renders them),
+    decoded through the adapted ``tokenizer`` (a classifier fitted on sharp images fails on every
+    decoded one, the tokenizer's own reconstructions included), with the scenes' labels; None when
+    the sensor renders nothing or the scenes carry no labels."""
+    from vqtouch.plugins.evaluation.distribution import labels_of
+    from vqtouch.plugins.tokenizer import reconstruct_all
+
+    indices = list(train.indices[:CLASSIFIER_IMAGES])
+    labels = labels_of([train.dataset[index] for index in indices])
+    rendered = paired_truth(config, images, indices, host) if labels is not None else None
+    if rendered is None or len(set(labels)) < 2:
+        return None
+    return reconstruct_all(tokenizer, rendered.to(tokenizer.device)).float().cpu(), labels
+
+
+@torch.no_grad()
+def _classifier_scores(
+    generated: dict[str, dict[str, torch.Tensor]],
+    paired_M3HW: torch.Tensor,
+    labels: Sequence[int],
+    classifier: tuple[torch.Tensor, list[int]],
+    tokenizer: Any,
+    feature_size: int,
+    host: PluginHost,
+    seed: int,
+) -> dict[tuple[str, str], float]:
+    """``classifier_accuracy`` per (conditioner, arm): how often the classifier of
+    :func:`classifier_images` names the class of the arm's samples (sample i's class is held-out
+    condition i's), and per conditioner under :data:`RECONSTRUCTED` its ceiling, the same on the
+    adapted tokenizer's reconstructions of the new sensor's images of those very conditions."""
+    from vqtouch.plugins.evaluation.distribution import DistributionScorer
+    from vqtouch.plugins.tokenizer import reconstruct_all
+
+    metric = host.build("metric", {"name": "fd_effnetlite0", "image_size": feature_size})
+    scorer = DistributionScorer(paired_M3HW, list(labels), classifier[0], classifier[1], metric=metric, seed=seed)
+    ceiling = scorer.score(reconstruct_all(tokenizer, paired_M3HW.to(tokenizer.device)).float().cpu())
+    accuracy = {}
+    for label, arms in generated.items():
+        for arm, images in arms.items():
+            accuracy[(label, arm)] = scorer.score(images)["classifier_accuracy"]
+        accuracy[(label, RECONSTRUCTED)] = ceiling["classifier_accuracy"]
+    return accuracy
 
 
 def _scores(
@@ -434,7 +522,12 @@ def render_markdown(result: dict[str, Any]) -> list[str]:
     if result["scores"]:
         lines += [
             f"fd_effnetlite0 (lower is better) of {result['samples']['count']} images per arm against as many "
-            "held-out images of the new sensor (never the shots):",
+            "held-out images of the new sensor (never the shots)"
+            + (
+                f"; contact PSNR against its image of each condition's own contact; {CLASSIFIER_TEXT}"
+                if result.get("classifier", {}).get("train_images")
+                else ":"
+            ),
             "",
             *markdown_table(result["scores"], ["conditioner", "arm"], list(SCORE_KEYS), SCORE_HEADERS),
         ]
@@ -466,6 +559,8 @@ def _fewshot_command(args: argparse.Namespace) -> int:
 def arm_name(arm: str, ratio: float) -> str:
     """An arm's name in the seeds table: the fine-tuned arm by its ratio (``few-shot 1:5``; ``shots
     alone`` at ratio 0), the comparisons as they are."""
+    if arm == RECONSTRUCTED:  # the ceiling depends on the adapted tokenizer, so on the ratio
+        return f"new sensor, reconstructed by the {'shots-alone' if ratio == 0 else f'1:{ratio:g}'} tokenizer (ceiling)"
     if arm != "few-shot":
         return arm
     return "shots alone" if ratio == 0 else f"few-shot 1:{ratio:g}"
@@ -501,8 +596,8 @@ def evaluate_fewshot_generation(
             if previous is not None and all(previous.get(key) == value for key, value in settings.items()):
                 report(f"seed {seed}, ratio {ratio:g}: read {done}")
                 result = previous
-                if "paired_truth" not in result and result["scores"]:
-                    report("    scored before paired contact scores existed: drawing its samples again to score them")
+                if ("paired_truth" not in result or "classifier" not in result) and result["scores"]:
+                    report("    scored before the paired scores existed: drawing its samples again to score them")
                     result = score_again(folder, family_run, host, report=report, **options)
             else:
                 report(f"seed {seed}, ratio {ratio:g} -> {folder}")
@@ -510,15 +605,17 @@ def evaluate_fewshot_generation(
                     family_run, images, folder, host, ratio=ratio, seed=seed, overwrite=True, report=report, **options
                 )
             for row in result["scores"]:
-                if row["arm"] == "few-shot" or position == 0:
+                if row["arm"] in ("few-shot", RECONSTRUCTED) or position == 0:
                     rows.append({**row, "arm": arm_name(row["arm"], ratio), "seed": seed})
     table = mean_spread(rows, list(SCORE_KEYS), ["conditioner", "arm"])
     result = {"family_run": family_run, "images": images, "ratios": list(ratios), "rows": rows, "summary": table}
     lines = [
         f"# Few-shot generation: {images}",
         "",
-        f"fd_effnetlite0 (lower is better), mean ± std over seeds {', '.join(map(str, record.seeds))}, of each "
-        "conditioner's samples against as many held-out images of the new sensor (never the shots).",
+        f"Mean ± std over seeds {', '.join(map(str, record.seeds))}.  fd_effnetlite0 (lower is better): each "
+        "conditioner's samples against as many held-out images of the new sensor (never the shots).  Where the "
+        "sensor renders the family's scenes (paired): contact PSNR against its image of each condition's own "
+        f"contact, and {CLASSIFIER_TEXT}",
         "",
         *markdown_table(table, ["conditioner", "arm"], list(SCORE_KEYS), SCORE_HEADERS),
     ]

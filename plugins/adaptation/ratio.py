@@ -1,0 +1,474 @@
+"""``vqtouch evaluate mix-ratio --run FAMILY_RUN --out DIR``: how many family images to mix with each
+shot of an unseen sensor, measured two ways in one run.
+
+::
+
+    vqtouch evaluate mix-ratio --run runs/tok --out runs/exp/ratio [--target SPEC] [--shots 50] \\
+        [--ratios 0 1 2 5 10] [--steps 200] [--all-images 1000] [--eval-images 64] [--families DIR] \\
+        [--seeds 0 1 2] [--overwrite]
+
+VQ-Touch adapts a family tokenizer on the sensor's shots mixed 1:ratio with images of its family.
+A fine-tuning batch draws from the mixed set uniformly, so at ratio r only 1 / (1 + r) of what it
+sees are the sensor's images: at equal steps a mix sees the sensor less than the shots alone do.
+So every ratio is trained twice from the family tokenizer:
+
+- **equal steps**: ``--steps`` fine-tuning steps, whatever the ratio;
+- **equal exposures**: ``--steps x (1 + r)`` steps, so that every arm sees the sensor's images as
+  often as the shots alone do in ``--steps`` (and the family's r times as often on top).
+
+Beside them, from the same family tokenizer and on the same held-out images of the sensor:
+``zero-shot`` (no fine-tuning), ``shots alone`` (ratio 0: both budgets at once), ``all images``
+(``--all-images`` of the sensor's images alone, ``--steps`` steps: what the shots stand in for) and
+the sensor's ``no-contact background``.  Every arm is scored on the sensor (SSIM, PSNR, the contact
+region's PSNR and SSIM, ``fd_effnetlite0``) and on held-out images of the family (what it keeps of
+the family: the reason to mix at all).
+
+Writes ``mix_ratio.json`` (every arm x seed row, mean ± std over the seeds, the assignments),
+``mix_ratio.md`` (the table, the targets' verdicts and the best ratio per budget), ``mix_ratio.png``
+(held-out SSIM and contact PSNR against the ratio for both budgets, and the sensor-against-family
+trade) and each arm's adapted tokenizer in ``DIR/seed<S>/<arm>/`` with its ``adapt.json``.  An
+interrupted run picks up where it stopped: an arm whose ``adapt.json`` records the same shots,
+ratio, steps, seed, family and held-out count is read back, not trained again (``--overwrite``
+trains every arm again).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import torch
+
+from vqtouch.core import ConfigError, PluginHost
+from vqtouch.core.image_size import ImageSize, size_text
+from vqtouch.plugins.evaluation.records import ExperimentRecord, gap_verdict, markdown_table, mean_spread
+
+from .adapt import ADAPT_JSON, AdaptSettings, adapt_tokenizer, sensor_background
+from .evaluation import METRICS
+from .families import SensorFamilies, folder_of, sensor_folder_files
+from .fewshot import BACKGROUND, SHOTS_ALONE, ZERO_SHOT, assign_seed_family, families_for, held_out_count
+
+ALL_IMAGES = "all images"
+STEPS, EXPOSURES = "equal steps", "equal exposures"
+#: The held-out scores of an arm on the sensor, and on the family's held-out images.
+SCORES = ("ssim", "psnr", "contact_psnr", "contact_ssim", "fd_effnetlite0")
+#: What the table shows per arm, in order.
+TABLE_COLUMNS = ("steps", "target_views", *SCORES, "family_psnr", "family_ssim", "seconds")
+GROUP = ("arm", "budget", "ratio")
+#: The issue's tolerance: the best mix within this much SSIM of training on all the sensor's images.
+SSIM_TOLERANCE = 0.02
+
+
+def check_ratios(ratios: Sequence[float]) -> list[float]:
+    """``ratios`` ascending, refusing an empty list, a repeat, a negative or non-finite ratio, or a
+    list without a mix (every ratio 0)."""
+    ratios = [float(r) for r in ratios]
+    text = " ".join(f"{r:g}" for r in ratios)
+    if not ratios or any(not math.isfinite(r) or r < 0 for r in ratios):
+        raise ConfigError(
+            f"--ratios {text}: give finite ratios >= 0 (family images per shot), e.g. --ratios 0 1 2 5 10"
+        )
+    if len(set(ratios)) != len(ratios):
+        raise ConfigError(f"--ratios {text} repeats a ratio; give distinct ratios")
+    if max(ratios) == 0:
+        raise ConfigError(f"--ratios {text}: add at least one ratio > 0 (a mix) to compare with the shots alone")
+    return sorted(ratios)
+
+
+def exposure_steps(steps: int, ratio: float) -> int:
+    """Steps at which a 1:``ratio`` mix sees the sensor's images as often as the shots alone do in
+    ``steps`` (a batch draws uniformly from the mixed set: 1 / (1 + ratio) of it is the sensor's)."""
+    return max(1, round(steps * (1 + ratio)))
+
+
+def arm_name(ratio: float, budget: str) -> str:
+    """The arm's name: ``mixed 1:5, equal steps``; ratio 0 is the shots alone (both budgets)."""
+    return SHOTS_ALONE if ratio == 0 else f"mixed 1:{ratio:g}, {budget}"
+
+
+def arm_folder(ratio: float, budget: str) -> str:
+    """The arm's folder in ``seed<S>/``: ``shots``, ``mixed-5-steps``, ``mixed-5-exposures``."""
+    return "shots" if ratio == 0 else f"mixed-{ratio:g}-{'steps' if budget == STEPS else 'exposures'}"
+
+
+def _matches(summary: dict[str, Any], settings: AdaptSettings, shots: int) -> bool:
+    """Whether an ``adapt.json`` already in an arm's folder is this arm's (same shots, ratio, steps,
+    seed, family, held-out images and fine-tuned part)."""
+    wanted = {
+        "shots": shots,
+        "ratio": settings.ratio,
+        "steps": settings.steps,
+        "seed": settings.seed,
+        "family": settings.family,
+        "held_out": settings.eval_images,
+        "part": settings.part,
+    }
+    return all(summary.get(key) == value for key, value in wanted.items())
+
+
+def adapt_arm(
+    run: Any,
+    target: str,
+    families: SensorFamilies,
+    host: PluginHost,
+    out: Path,
+    settings: AdaptSettings,
+    background_3HW: torch.Tensor,
+    *,
+    resume: bool,
+) -> tuple[dict[str, Any], bool]:
+    """One arm's ``adapt.json`` summary: read back from ``out`` when ``resume`` and it is this arm's
+    (:func:`_matches`), otherwise adapted now.  Returns it and whether it was read back."""
+    path = out / ADAPT_JSON
+    if resume and path.is_file():
+        summary = json.loads(path.read_text())
+        if _matches(summary, settings, settings.shots):
+            return summary, True
+    summary = adapt_tokenizer(
+        run,
+        target,
+        families,
+        host,
+        out,
+        settings,
+        overwrite=True,
+        report=lambda line: None,
+        background_3HW=background_3HW,
+    )
+    return summary, False
+
+
+def _row(
+    arm: str, budget: str, ratio: float, seed: int, summary: dict[str, Any], *, after: bool = True
+) -> dict[str, Any]:
+    when = "after" if after else "before"
+    scores, family = summary[when], summary["family_held_out"][when]
+    steps = summary["steps"] if after else 0
+    shots, family_images = summary["shots"], summary["family_images"] if after else 0
+    return {
+        "arm": arm,
+        "budget": budget,
+        "ratio": ratio,
+        "seed": seed,
+        "steps": steps,
+        # Expected sensor images seen: a batch draws uniformly from the shots and the family images.
+        "target_views": round(steps * summary["batch_size"] * shots / (shots + family_images)) if after else 0,
+        "train_images": shots + family_images if after else 0,
+        **{key: scores[key] for key in SCORES if key in scores},
+        "family_ssim": family["ssim"],
+        "family_psnr": family["psnr"],
+        "seconds": summary["seconds"] if after else 0.0,
+    }
+
+
+def all_images_count(target: str, shots: int, all_images: int, eval_images: int, host: PluginHost) -> tuple[int, int]:
+    """(all-images arm's image count, held-out count): for a folder, every image not held out (at
+    least the shots), with the held-out images the shots leave (``eval_images`` at most)."""
+    if folder_of(target) is None:
+        return all_images, eval_images
+    held_out = held_out_count(target, [shots], eval_images, host)
+    available = len(sensor_folder_files(folder_of(target), host)) - held_out
+    return min(all_images, available), held_out
+
+
+def evaluate_mix_ratio(
+    run: str | Path,
+    host: PluginHost,
+    out: str | Path,
+    *,
+    target: str,
+    seeds: Sequence[int],
+    shots: int = 50,
+    ratios: Sequence[float] = (0, 1, 2, 5, 10),
+    steps: int = 200,
+    all_images: int = 1000,
+    eval_images: int = 64,
+    families: str | Path | None = None,
+    overwrite: bool = False,
+    report: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Run the experiment of the module docstring and write its files into ``out``; returns what
+    ``mix_ratio.json`` holds.  Every bad input is refused with a one-line ConfigError before
+    anything trains."""
+    from vqtouch.core import RunDir
+    from vqtouch.plugins.evaluation.records import check_seeds
+    from vqtouch.plugins.tokenizer import load_tokenizer
+
+    out = Path(out)
+    if (out / "mix_ratio.json").is_file() and not overwrite:
+        raise ConfigError(
+            f"{out} already holds a mix-ratio experiment; pass --overwrite to run it again, or choose another --out"
+        )
+    seeds = check_seeds(seeds)
+    ratios = check_ratios(ratios)
+    if shots < 1 or steps < 1 or all_images < 1 or eval_images < 2:
+        raise ConfigError(
+            f"--shots {shots}, --steps {steps}, --all-images {all_images}, --eval-images {eval_images}: "
+            "shots, steps and all-images must be >= 1, eval-images >= 2"
+        )
+    if not (run and (Path(run) / "config.json").is_file()):
+        raise ConfigError(f"--run {run}: not a run directory (no config.json); give the family tokenizer's run")
+    config = RunDir.open(run).load_config(host)
+    tokenizer, folder = load_tokenizer(run, host)
+    image_size: ImageSize = tokenizer.autoencoder.vqtouch_spec.context.image_size
+    held_out = held_out_count(target, [shots], eval_images, host)
+    all_images, held_out = all_images_count(target, shots, all_images, held_out, host)
+    # One batch for every arm, fine-tuning and scoring: the contact region's noise estimate is made per
+    # batch, so the arms' regions are the same pixels only when their batches are.
+    batch_size = min(config.data.batch_size, shots)
+    background, background_source = sensor_background(target, host, image_size)
+    record = ExperimentRecord("mix_ratio", out, seeds)
+    fitted, families_source = families_for(families, tokenizer, folder, target, host, out, image_size)
+    rows: list[dict[str, Any]] = []
+    assignments, skipped = [], {}
+    name = source = ""
+    for seed in record.seeds:
+        name, source, assignment = assign_seed_family(
+            fitted, tokenizer, target, host, shots=shots, eval_images=held_out, image_size=image_size, seed=seed
+        )
+        assignments.append(assignment)
+        report(
+            f"seed {seed}: {name} -> family {assignment['family']} ({', '.join(assignment['members'])})"
+            + (", nearest: the assignment was refused" if assignment["refused"] else "")
+        )
+        mixes = [ratio for ratio in ratios if ratio > 0]
+        plan = [(0.0, STEPS, shots, steps)]  # the shots alone: ratio 0 under both budgets
+        plan += [(ratio, STEPS, shots, steps) for ratio in mixes]
+        plan += [(ratio, EXPOSURES, shots, exposure_steps(steps, ratio)) for ratio in mixes]
+        plan.append((0.0, ALL_IMAGES, all_images, steps))
+        for ratio, budget, count, arm_steps in plan:
+            arm = ALL_IMAGES if budget == ALL_IMAGES else arm_name(ratio, budget)
+            settings = AdaptSettings(
+                shots=count,
+                ratio=ratio,
+                steps=arm_steps,
+                eval_images=held_out,
+                seed=seed,
+                family=assignment["family"],
+                batch_size=batch_size,
+                metrics=METRICS,
+            )
+            folder_name = "all" if budget == ALL_IMAGES else arm_folder(ratio, budget)
+            summary, reused = adapt_arm(
+                run, target, fitted, host, out / f"seed{seed}" / folder_name, settings, background, resume=not overwrite
+            )
+            if arm == SHOTS_ALONE:  # the family tokenizer before fine-tuning, and the background, once per seed
+                rows.append(_row(ZERO_SHOT, "-", 0.0, seed, summary, after=False))
+                rows.append(_background_row(seed, summary))
+            shown_budget = {SHOTS_ALONE: "both", ALL_IMAGES: "-"}.get(arm, budget)
+            rows.append(_row(arm, shown_budget, ratio, seed, summary))
+            skipped |= summary["after"].get("skipped") or {}
+            last = rows[-1]
+            report(
+                f"seed {seed}, {arm}: {arm_steps} steps{' (read back)' if reused else ''}, SSIM {last.get('ssim')}, "
+                f"contact PSNR {last.get('contact_psnr')}, family PSNR {last.get('family_psnr')}"
+            )
+    summary_rows = mean_spread(rows, (*TABLE_COLUMNS, "train_images"), GROUP)
+    result = {
+        "run": str(run),
+        "tokenizer": str(folder),
+        "target": name,
+        "target_source": source,
+        "background": background_source,
+        "image_size": image_size,
+        "shots": shots,
+        "ratios": ratios,
+        "steps": steps,
+        "all_images": all_images,
+        "batch_size": batch_size,
+        "held_out": held_out,
+        "families": families_source,
+        "assignments": assignments,
+        "rows": rows,
+        "summary": summary_rows,
+        "best": best_settings(summary_rows),
+        "skipped": skipped,
+    }
+    plot_mix_ratio(summary_rows, record.path("mix_ratio.png"), f"{name}: {shots} shots, {len(record.seeds)} seed(s)")
+    record.write(result, render_markdown(result))
+    return result
+
+
+def _background_row(seed: int, summary: dict[str, Any]) -> dict[str, Any]:
+    """The sensor's no-contact background scored against the same held-out images (the
+    ``background_*`` scores every arm's summary carries)."""
+    before = summary["before"]
+    return {
+        "arm": BACKGROUND,
+        "budget": "-",
+        "ratio": 0.0,
+        "seed": seed,
+        "steps": 0,
+        "target_views": 0,
+        "train_images": 0,
+        **{key: before[f"background_{key}"] for key in SCORES if f"background_{key}" in before},
+    }
+
+
+def best_settings(summary: Sequence[dict[str, Any]], key: str = "ssim") -> dict[str, Any]:
+    """Per budget, the ratio (0 included: the shots alone) with the best mean ``key`` on the sensor,
+    and among the mixes the one with the best ``key`` that keeps the family at least as well as the
+    zero-shot tokenizer (family PSNR)."""
+    zero = next((row for row in summary if row["arm"] == ZERO_SHOT), None)
+    best: dict[str, Any] = {}
+    for budget in (STEPS, EXPOSURES):
+        candidates = [row for row in summary if row["budget"] in (budget, "both") and row.get(key) is not None]
+        if not candidates:
+            continue
+        top = max(candidates, key=lambda row: row[key])
+        keeping = [
+            row
+            for row in candidates
+            if row["ratio"] > 0 and zero is not None and (row.get("family_psnr") or -math.inf) >= zero["family_psnr"]
+        ]
+        best[budget] = {
+            "ratio": top["ratio"],
+            key: top[key],
+            "keeps_family": (
+                {"ratio": max(keeping, key=lambda row: row[key])["ratio"], key: max(row[key] for row in keeping)}
+                if keeping
+                else None
+            ),
+        }
+    return best
+
+
+def verdict_lines(summary: Sequence[dict[str, Any]], key: str = "ssim") -> list[str]:
+    """The issue's two targets at the best mix (ratio > 0, either budget): within
+    :data:`SSIM_TOLERANCE` of training on all the sensor's images, and better than the shots alone
+    (a gap counts beyond both spreads)."""
+    mixes = [row for row in summary if row["ratio"] > 0 and row.get(key) is not None]
+    rows = {row["arm"]: row for row in summary}
+    if not mixes:
+        return ["- no mixed arm scored"]
+    top = max(mixes, key=lambda row: row[key])
+    lines = []
+    if ALL_IMAGES in rows and rows[ALL_IMAGES].get(key) is not None:
+        gap = rows[ALL_IMAGES][key] - top[key]
+        met = "met" if gap <= SSIM_TOLERANCE else "missed"
+        lines.append(
+            f"- The best mix, {top['arm']}, is {gap:+.3f} {key} below {ALL_IMAGES} "
+            f"({top[key]:.4g} against {rows[ALL_IMAGES][key]:.4g}; target: within {SSIM_TOLERANCE}): {met}."
+        )
+    if SHOTS_ALONE in rows:
+        lines.append(f"- The best mix, {top['arm']}, {gap_verdict(top, rows[SHOTS_ALONE], key, SHOTS_ALONE)} on {key}.")
+        if "contact_psnr" in top and "contact_psnr" in rows[SHOTS_ALONE]:
+            lines.append(
+                f"- On the contact region it {gap_verdict(top, rows[SHOTS_ALONE], 'contact_psnr', SHOTS_ALONE)} "
+                "(contact PSNR)."
+            )
+    return lines
+
+
+def plot_mix_ratio(summary: Sequence[dict[str, Any]], path: Path, title: str) -> None:
+    """Three panels: held-out SSIM and contact PSNR on the sensor against the ratio, one line per
+    budget (ratio 0 is the shots alone in both), the zero-shot tokenizer, the all-images arm and
+    the background as horizontal lines; and the trade, the sensor's SSIM against the family's
+    PSNR, each point labelled with its ratio."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(14, 4.2), dpi=110)
+    FigureCanvasAgg(figure)
+    panels = [figure.add_subplot(1, 3, index) for index in (1, 2, 3)]
+    lines_of = {row["arm"]: row for row in summary if row["budget"] == "-"}
+    ratios = sorted({row["ratio"] for row in summary if row["budget"] in (STEPS, EXPOSURES, "both")})
+    # Ratios on an even axis (0, 1, 2, 5, 10 are not evenly useful on a linear one), labelled with the ratio.
+    position = {ratio: index for index, ratio in enumerate(ratios)}
+    for panel, key, label in zip(panels, ("ssim", "contact_psnr"), ("held-out SSIM", "contact PSNR (dB)")):
+        for budget, marker in ((STEPS, "o"), (EXPOSURES, "s")):
+            points = sorted(
+                (row["ratio"], row[key], row.get(f"{key}_std") or 0.0)
+                for row in summary
+                if row["budget"] in (budget, "both") and row.get(key) is not None
+            )
+            if points:
+                ratios_, ys, errors = zip(*points)
+                panel.errorbar([position[r] for r in ratios_], ys, yerr=errors, marker=marker, capsize=3, label=budget)
+        for arm, style in ((ZERO_SHOT, "--"), (ALL_IMAGES, ":"), (BACKGROUND, "-.")):
+            if arm in lines_of and lines_of[arm].get(key) is not None:
+                panel.axhline(lines_of[arm][key], linestyle=style, color="grey", linewidth=1)
+                panel.annotate(arm, (0, lines_of[arm][key]), fontsize=7, color="grey", va="bottom")
+        panel.set_xticks(range(len(ratios)), [f"1:{r:g}" if r else "shots\nalone" for r in ratios])
+        panel.set_xlabel("family images per shot")
+        panel.set_ylabel(label)
+        panel.grid(alpha=0.3)
+        panel.legend(fontsize=8)
+    trade = panels[2]
+    for budget, marker in ((STEPS, "o"), (EXPOSURES, "s")):
+        points = sorted(
+            (row["ratio"], row["family_psnr"], row["ssim"])
+            for row in summary
+            if row["budget"] in (budget, "both") and row.get("ssim") is not None and row.get("family_psnr") is not None
+        )
+        if points:
+            _, xs, ys = zip(*points)
+            trade.plot(xs, ys, marker=marker, label=budget)
+            for ratio, x, y in points:
+                trade.annotate(f"{ratio:g}", (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7)
+    for arm, marker in ((ZERO_SHOT, "x"), (ALL_IMAGES, "*")):
+        row = lines_of.get(arm)
+        if row and row.get("family_psnr") is not None and row.get("ssim") is not None:
+            trade.scatter([row["family_psnr"]], [row["ssim"]], marker=marker, color="black", label=arm, zorder=3)
+    trade.set_xlabel("family held-out PSNR (dB): what the tokenizer keeps of its family")
+    trade.set_ylabel("unseen sensor held-out SSIM")
+    trade.grid(alpha=0.3)
+    trade.legend(fontsize=8)
+    figure.suptitle(title, fontsize=9)
+    figure.tight_layout()
+    figure.savefig(path)
+
+
+def render_markdown(result: dict[str, Any]) -> list[str]:
+    """The table, the targets' verdicts and the best ratio per budget of ``mix_ratio.json``."""
+    shots, steps = result["shots"], result["steps"]
+    lines = [
+        f"# How many family images per shot ({len(result['assignments'])} seed(s): mean ± std)",
+        "",
+        f"Family tokenizer `{result['tokenizer']}`, {size_text(result['image_size'])} px; unseen sensor "
+        f"`{result['target']}`, {shots} shots, batch {result['batch_size']}.  `{STEPS}`: {steps} fine-tuning "
+        f"steps at every ratio; `{EXPOSURES}`: {steps} x (1 + ratio) steps, so every arm sees the sensor's "
+        f"images as often as `{SHOTS_ALONE}` does (`target_views`: sensor images seen, expected); "
+        f"`{ALL_IMAGES}`: {result['all_images']} of the sensor's images alone, {steps} steps.  Every arm scores "
+        f"the same {result['held_out']} held-out images of the sensor; `contact_*` on the contact region only; "
+        "`family_*` on held-out images of the family (what an arm keeps of it).  "
+        f"`{BACKGROUND}`: {result['background']}.",
+        "",
+        *markdown_table(result["summary"], GROUP, TABLE_COLUMNS, {"target_views": "sensor images seen"}),
+        "",
+        "Targets (SSIM on the sensor's held-out images; a gap over the shots alone counts beyond both spreads):",
+        "",
+        *verdict_lines(result["summary"]),
+        "",
+        "Best ratio per budget (SSIM on the sensor; and the best mix that keeps the family at least as well as "
+        "the zero-shot tokenizer):",
+        "",
+    ]
+    for budget, best in result["best"].items():
+        keeping = best["keeps_family"]
+        lines.append(
+            f"- {budget}: best {_ratio_text(best['ratio'])} (SSIM {best['ssim']:.4g}); keeping the family: "
+            + (f"{_ratio_text(keeping['ratio'])} (SSIM {keeping['ssim']:.4g})" if keeping else "no mix")
+            + "."
+        )
+    lines += [
+        "",
+        "Families: "
+        + result["families"]
+        + "; "
+        + "; ".join(
+            f"seed {entry['seed']}: family {entry['family']} ({', '.join(entry['members'])})"
+            + (" (nearest; assignment refused)" if entry["refused"] else "")
+            for entry in result["assignments"]
+        )
+        + ".",
+    ]
+    if result["skipped"]:
+        lines += ["", "Skipped: " + "; ".join(f"`{k}`: {v}" for k, v in sorted(result["skipped"].items()))]
+    return lines
+
+
+def _ratio_text(ratio: float) -> str:
+    return "the shots alone" if ratio == 0 else f"1:{ratio:g}"
