@@ -78,6 +78,7 @@ def _run(tokenizer_run, families_folder, out, **overrides):
         all_images=8,
         eval_images=4,
         families=families_folder,
+        cost_controls=(2,),
         report=lambda line: None,
     )
     return evaluate_mix_ratio(tokenizer_run, HOST, out, **(settings | overrides))
@@ -97,19 +98,21 @@ def test_every_arm_trains_its_mix_for_its_budget_and_an_interrupted_run_resumes(
         "mixed 1:2, equal steps",
         "mixed 1:1, equal exposures",
         "mixed 1:2, equal exposures",
+        "shots alone, 6 steps",
         ALL_IMAGES,
     }
     # Each trainer got its arm's images and steps: the shots (then ratio x shots family images) for 2
-    # steps at equal steps and 2 x (1 + ratio) at equal exposures; all images alone for 2 steps.
+    # steps at equal steps and 2 x (1 + ratio) at equal exposures; the shots alone for as long as the 1:2
+    # mix at equal exposures (the cost control); all images alone for 2 steps.
     families = load_families(families_folder, HOST)
     family = result["assignments"][0]["family"]
     _, source, shots, _ = target_images(TARGET, HOST, shots=4, eval_images=4, image_size=32, seed=0)
     _, _, everything, _ = target_images(TARGET, HOST, shots=8, eval_images=4, image_size=32, seed=0)
-    expected = [(shots, 2), (everything, 2)]
+    expected = [(shots, 2), (everything, 2), (shots, 6)]
     for ratio in (1, 2):
         family_N, _ = family_images(families, family, HOST, count=4 * ratio, image_size=32, seed=0, exclude=source)
         expected += [(torch.cat([shots, family_N]), 2), (torch.cat([shots, family_N]), 2 * (1 + ratio))]
-    assert len(trainer_calls) == len(expected) == 6
+    assert len(trainer_calls) == len(expected) == 7
     for images, steps in expected:
         matches = [
             call
@@ -145,15 +148,15 @@ def test_every_arm_trains_its_mix_for_its_budget_and_an_interrupted_run_resumes(
     # An arm trained with other settings is not this run's: it trains again.
     (out / "mix_ratio.json").unlink()
     again = _run(tokenizer_run, families_folder, out, steps=3)
-    assert sorted(call["steps"] for call in trainer_calls) == [3, 3, 3, 3, 6, 9]
+    assert sorted(call["steps"] for call in trainer_calls) == [3, 3, 3, 3, 6, 9, 9]
 
 
 def _summary(**ssim):
     """A hand-made mean_spread summary: zero-shot, the shots alone, two mixes per budget, all images."""
     rows = [
-        {"arm": ZERO_SHOT, "budget": "-", "ratio": 0.0, "ssim": 0.80, "family_psnr": 28.0},
-        {"arm": SHOTS_ALONE, "budget": "both", "ratio": 0.0, "ssim": ssim["shots"], "family_psnr": 24.0},
-        {"arm": ALL_IMAGES, "budget": "-", "ratio": 0.0, "ssim": ssim["all"], "family_psnr": 24.0},
+        {"arm": ZERO_SHOT, "budget": "-", "ratio": 0.0, "ssim": 0.80, "family_psnr": 28.0, "steps": 0},
+        {"arm": SHOTS_ALONE, "budget": "both", "ratio": 0.0, "ssim": ssim["shots"], "family_psnr": 24.0, "steps": 200},
+        {"arm": ALL_IMAGES, "budget": "-", "ratio": 0.0, "ssim": ssim["all"], "family_psnr": 24.0, "steps": 200},
     ]
     for budget in (STEPS, EXPOSURES):
         for ratio, family_psnr in ((1.0, 27.0), (5.0, 31.0)):
@@ -165,6 +168,7 @@ def _summary(**ssim):
                     "ssim": ssim[f"{budget}{ratio:g}"],
                     "ssim_std": 0.001,
                     "family_psnr": family_psnr,
+                    "steps": 200 if budget == STEPS else 200 * (1 + int(ratio)),
                 }
             )
     return rows
@@ -190,6 +194,11 @@ def test_the_best_settings_and_the_targets_verdicts_follow_the_numbers():
     lines = verdict_lines(worse)
     assert "is +0.035 ssim below all images" in lines[0] and lines[0].endswith(": missed.")
     assert "is behind shots alone" in lines[1]
+    # Trained longer than the shots alone with no control as long: the verdicts say so.
+    assert "part of its gain over the shots alone may be the longer training; `--cost-controls 5`" in lines[-1]
+    control = {"arm": "shots alone, 1200 steps", "budget": "equal cost", "ratio": 0.0, "ssim": 0.90, "steps": 1200}
+    lines = verdict_lines([*worse, control])
+    assert "is behind shots alone, 1200 steps" in lines[2] and "--cost-controls" not in "".join(lines)
 
 
 def test_exposure_steps_and_ratio_checks():
@@ -203,6 +212,8 @@ def test_exposure_steps_and_ratio_checks():
     ):
         with pytest.raises(ConfigError, match=message):
             check_ratios(ratios)
+    with pytest.raises(ConfigError, match=r"--cost-controls 3: name mix ratios of --ratios \(1 2\)"):
+        evaluate_mix_ratio("nowhere", HOST, "nowhere", target=TARGET, seeds=[0], ratios=(0, 1, 2), cost_controls=(3, 1))
 
 
 @pytest.mark.parametrize(

@@ -229,6 +229,7 @@ def _evaluate_mix_ratio_command(args: argparse.Namespace) -> int:
         all_images=args.all_images,
         eval_images=args.eval_images,
         families=args.families,
+        cost_controls=args.cost_controls,
         overwrite=args.overwrite,
         report=lambda line: print(line, flush=True),
     )
@@ -492,6 +493,15 @@ def vqtouch_add_commands(subparsers):
         "--families",
         help="a `vqtouch cluster` output of this tokenizer (default: cluster the "
         "registered sensor families and 3 variants of each into OUT/families)",
+    )
+    ratio.add_argument(
+        "--cost-controls",
+        type=non_negative_float,
+        nargs="+",
+        default=[],
+        metavar="RATIO",
+        help="mix ratios whose equal-exposure step count the shots alone also train for, telling the longer "
+        "training from the mix (default none)",
     )
     ratio.add_argument(
         "--overwrite",

@@ -51,7 +51,7 @@ from .families import SensorFamilies, folder_of, sensor_folder_files
 from .fewshot import BACKGROUND, SHOTS_ALONE, ZERO_SHOT, assign_seed_family, families_for, held_out_count
 
 ALL_IMAGES = "all images"
-STEPS, EXPOSURES = "equal steps", "equal exposures"
+STEPS, EXPOSURES, COST = "equal steps", "equal exposures", "equal cost"
 #: The held-out scores of an arm on the sensor, and on the family's held-out images.
 SCORES = ("ssim", "psnr", "contact_psnr", "contact_ssim", "fd_effnetlite0")
 #: What the table shows per arm, in order.
@@ -186,12 +186,15 @@ def evaluate_mix_ratio(
     all_images: int = 1000,
     eval_images: int = 64,
     families: str | Path | None = None,
+    cost_controls: Sequence[float] = (),
     overwrite: bool = False,
     report: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Run the experiment of the module docstring and write its files into ``out``; returns what
-    ``mix_ratio.json`` holds.  Every bad input is refused with a one-line ConfigError before
-    anything trains."""
+    ``mix_ratio.json`` holds.  ``cost_controls``: mix ratios whose equal-exposure step count the
+    shots alone also train for (``shots alone, N steps``): an equal-exposure mix trains longer, and
+    this arm tells the longer training from the mix.  Every bad input is refused with a one-line
+    ConfigError before anything trains."""
     from vqtouch.core import RunDir
     from vqtouch.plugins.evaluation.records import check_seeds
     from vqtouch.plugins.tokenizer import load_tokenizer
@@ -203,6 +206,13 @@ def evaluate_mix_ratio(
         )
     seeds = check_seeds(seeds)
     ratios = check_ratios(ratios)
+    cost_controls = sorted({float(ratio) for ratio in cost_controls})
+    stray = [ratio for ratio in cost_controls if ratio == 0 or ratio not in ratios]
+    if stray:
+        raise ConfigError(
+            f"--cost-controls {' '.join(f'{r:g}' for r in stray)}: name mix ratios of --ratios "
+            f"({' '.join(f'{r:g}' for r in ratios if r > 0)})"
+        )
     if shots < 1 or steps < 1 or all_images < 1 or eval_images < 2:
         raise ConfigError(
             f"--shots {shots}, --steps {steps}, --all-images {all_images}, --eval-images {eval_images}: "
@@ -237,9 +247,12 @@ def evaluate_mix_ratio(
         plan = [(0.0, STEPS, shots, steps)]  # the shots alone: ratio 0 under both budgets
         plan += [(ratio, STEPS, shots, steps) for ratio in mixes]
         plan += [(ratio, EXPOSURES, shots, exposure_steps(steps, ratio)) for ratio in mixes]
+        plan += [(0.0, COST, shots, exposure_steps(steps, ratio)) for ratio in cost_controls]
         plan.append((0.0, ALL_IMAGES, all_images, steps))
         for ratio, budget, count, arm_steps in plan:
-            arm = ALL_IMAGES if budget == ALL_IMAGES else arm_name(ratio, budget)
+            arm = {ALL_IMAGES: ALL_IMAGES, COST: f"{SHOTS_ALONE}, {arm_steps} steps"}.get(budget) or arm_name(
+                ratio, budget
+            )
             settings = AdaptSettings(
                 shots=count,
                 ratio=ratio,
@@ -250,7 +263,7 @@ def evaluate_mix_ratio(
                 batch_size=batch_size,
                 metrics=METRICS,
             )
-            folder_name = "all" if budget == ALL_IMAGES else arm_folder(ratio, budget)
+            folder_name = {ALL_IMAGES: "all", COST: f"shots-{arm_steps}"}.get(budget) or arm_folder(ratio, budget)
             summary, reused = adapt_arm(
                 run, target, fitted, host, out / f"seed{seed}" / folder_name, settings, background, resume=not overwrite
             )
@@ -275,6 +288,7 @@ def evaluate_mix_ratio(
         "image_size": image_size,
         "shots": shots,
         "ratios": ratios,
+        "cost_controls": cost_controls,
         "steps": steps,
         "all_images": all_images,
         "batch_size": batch_size,
@@ -352,13 +366,20 @@ def verdict_lines(summary: Sequence[dict[str, Any]], key: str = "ssim") -> list[
             f"- The best mix, {top['arm']}, is {gap:+.3f} {key} below {ALL_IMAGES} "
             f"({top[key]:.4g} against {rows[ALL_IMAGES][key]:.4g}; target: within {SSIM_TOLERANCE}): {met}."
         )
-    if SHOTS_ALONE in rows:
-        lines.append(f"- The best mix, {top['arm']}, {gap_verdict(top, rows[SHOTS_ALONE], key, SHOTS_ALONE)} on {key}.")
-        if "contact_psnr" in top and "contact_psnr" in rows[SHOTS_ALONE]:
+    rivals = [rows[SHOTS_ALONE]] if SHOTS_ALONE in rows else []
+    # The shots alone trained as long as the best mix, when the run has that control: the mix, not the length.
+    rivals += [row for row in summary if row["budget"] == COST and row["steps"] == top["steps"]]
+    for rival in rivals:
+        lines.append(f"- The best mix, {top['arm']}, {gap_verdict(top, rival, key, rival['arm'])} on {key}.")
+        if "contact_psnr" in top and "contact_psnr" in rival:
             lines.append(
-                f"- On the contact region it {gap_verdict(top, rows[SHOTS_ALONE], 'contact_psnr', SHOTS_ALONE)} "
-                "(contact PSNR)."
+                f"- On the contact region it {gap_verdict(top, rival, 'contact_psnr', rival['arm'])} (contact PSNR)."
             )
+    if top["budget"] == EXPOSURES and not any(rival["budget"] == COST for rival in rivals):
+        lines.append(
+            f"- {top['arm']} trains {top['steps']} steps: part of its gain over the shots alone may be the longer "
+            f"training; `--cost-controls {top['ratio']:g}` trains the shots alone as long."
+        )
     return lines
 
 
@@ -387,6 +408,12 @@ def plot_mix_ratio(summary: Sequence[dict[str, Any]], path: Path, title: str) ->
             if points:
                 ratios_, ys, errors = zip(*points)
                 panel.errorbar([position[r] for r in ratios_], ys, yerr=errors, marker=marker, capsize=3, label=budget)
+        base = next((row["steps"] for row in summary if row["arm"] == SHOTS_ALONE), None)
+        for row in summary:
+            matched = row["steps"] / base - 1 if base and row["budget"] == COST else None
+            if matched in position and row.get(key) is not None:
+                panel.scatter([position[matched]], [row[key]], marker="^", color="black", zorder=3)
+                panel.annotate(f"shots alone, {row['steps']} steps", (position[matched], row[key]), fontsize=7)
         for arm, style in ((ZERO_SHOT, "--"), (ALL_IMAGES, ":"), (BACKGROUND, "-.")):
             if arm in lines_of and lines_of[arm].get(key) is not None:
                 panel.axhline(lines_of[arm][key], linestyle=style, color="grey", linewidth=1)
@@ -408,10 +435,11 @@ def plot_mix_ratio(summary: Sequence[dict[str, Any]], path: Path, title: str) ->
             trade.plot(xs, ys, marker=marker, label=budget)
             for ratio, x, y in points:
                 trade.annotate(f"{ratio:g}", (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7)
-    for arm, marker in ((ZERO_SHOT, "x"), (ALL_IMAGES, "*")):
-        row = lines_of.get(arm)
+    controls = [row for row in summary if row["budget"] == COST]
+    for row in [lines_of.get(ZERO_SHOT), lines_of.get(ALL_IMAGES), *controls]:
         if row and row.get("family_psnr") is not None and row.get("ssim") is not None:
-            trade.scatter([row["family_psnr"]], [row["ssim"]], marker=marker, color="black", label=arm, zorder=3)
+            marker = {ZERO_SHOT: "x", ALL_IMAGES: "*"}.get(row["arm"], "^")
+            trade.scatter([row["family_psnr"]], [row["ssim"]], marker=marker, color="black", label=row["arm"], zorder=3)
     trade.set_xlabel("family held-out PSNR (dB): what the tokenizer keeps of its family")
     trade.set_ylabel("unseen sensor held-out SSIM")
     trade.grid(alpha=0.3)
