@@ -182,7 +182,7 @@ def test_fewshot_goes_from_a_sensors_images_to_a_generator_run_that_draws_that_s
     result = json.loads((out / "fewshot.json").read_text())
     assert result["adapt"]["assignment"]["family"] == 0  # a GelSight variant joins the GelSight family
     tune = result["fine_tune"]
-    assert tune["shots"] == 4 and tune["family_samples"] == 18  # 5 per shot, capped by the 18 training samples
+    assert tune["shots"] == 4 and tune["family_samples"] == 4  # 1 per shot: vqtouch adapt's default ratio
     arms = {(row["conditioner"], row["arm"]) for row in result["scores"]}
     scored = ("few-shot", "zero-shot", "shots (copied)", "no-contact background")
     assert arms == {("0:label", arm) for arm in (*scored, RECONSTRUCTED)}

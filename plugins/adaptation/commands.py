@@ -42,6 +42,8 @@ from vqtouch.core.image_size import image_size_argument
 from vqtouch.plugins.tokenizer import load_tokenizer
 from vqtouch.plugins.scenes import GELSIGHT_DERIVATIVE_II
 
+from .adapt import AdaptSettings
+
 
 #: The share of images kept per refinement step, in (0, 1].
 _kept_fraction = NumberType(float, 0, 1, low_open=True, what="fraction")
@@ -102,7 +104,7 @@ def describe_assignment(assigned: dict) -> str:
 
 def _adapt_command(args: argparse.Namespace) -> int:
 
-    from .adapt import AdaptSettings, adapt_tokenizer, families_to_adapt_from, refuse_existing
+    from .adapt import adapt_tokenizer, families_to_adapt_from, refuse_existing
     from .families import registered_source
 
     host = args.host
@@ -302,10 +304,13 @@ def vqtouch_add_commands(subparsers):
     adapt.add_argument(
         "--ratio",
         type=non_negative_float,
-        default=5.0,
-        help="family images per shot in the mixed set (default 5: the paper's 1:5)",
+        default=AdaptSettings.ratio,
+        help=f"family images per shot in the mixed set (default {AdaptSettings.ratio:g}, measured with `vqtouch "
+        "evaluate mix-ratio`; the paper's 1:5 needs about 6x the shots-alone steps to see the sensor as often)",
     )
-    adapt.add_argument("--steps", type=positive_int, default=200, help="fine-tuning steps (default 200)")
+    adapt.add_argument(
+        "--steps", type=positive_int, default=AdaptSettings.steps, help=f"fine-tuning steps (default {AdaptSettings.steps})"
+    )
     adapt.add_argument(
         "--part",
         choices=("all", "decoder"),

@@ -24,6 +24,8 @@ from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.plugins.evaluation.contact import VERDICT_EVIDENCE
 from vqtouch.plugins.tokenizer import experiment_metrics, load_tokenizer, reconstruct_all, tokenizer_location
 
+from .adapt import AdaptSettings
+
 #: Where the stages write inside a run.
 CLUSTER_FOLDER, ADAPTED_FOLDER = "cluster", "adapted"
 
@@ -69,9 +71,13 @@ class AdaptSection(Section):
 
     shots: int = Field(50, ge=1, le=100_000, description="Target-sensor images to train on.")
     ratio: float = Field(
-        5.0, ge=0.0, le=1000.0, description="Family images per shot in the mixed set (the paper's 1:5)."
+        AdaptSettings.ratio,
+        ge=0.0,
+        le=1000.0,
+        description="Family images per shot in the mixed set (measured by `vqtouch evaluate mix-ratio`; "
+        "the paper's 1:5 is 5).",
     )
-    steps: int = Field(200, ge=1, le=1_000_000, description="Fine-tuning steps.")
+    steps: int = Field(AdaptSettings.steps, ge=1, le=1_000_000, description="Fine-tuning steps.")
     learning_rate: float | None = Field(
         None, gt=0.0, le=10.0, description="Fine-tuning learning rate; null: the tokenizer's own."
     )
@@ -196,7 +202,7 @@ def run_cluster_stage(job: StageJob) -> dict[str, Any]:
 
 def run_adapt_stage(job: StageJob) -> dict[str, Any]:
     """Adapt the run's tokenizer to the target sensor (see the module docstring)."""
-    from .adapt import AdaptSettings, adapt_tokenizer, families_to_adapt_from
+    from .adapt import adapt_tokenizer, families_to_adapt_from
 
     section, config = job.section, job.config
     tokenizer, folder = _family_tokenizer(job)

@@ -165,7 +165,7 @@ def fewshot_generation(
     host: PluginHost,
     *,
     shots: int = 50,
-    ratio: float = 5.0,
+    ratio: float | None = None,
     tokenizer_steps: int = 200,
     tokenizer_part: str = "decoder",
     generator_steps: int = 300,
@@ -184,10 +184,12 @@ def fewshot_generation(
 ) -> dict[str, Any]:
     """Run the five steps of the module docstring; returns what ``fewshot.json`` holds.  ``adapted``: a
     tokenizer ``vqtouch adapt`` already adapted from the family's to ``images`` with these ``shots``,
-    ``ratio`` and ``seed`` (the ``adapt`` stage's), copied instead of adapting again."""
+    ``ratio`` and ``seed`` (the ``adapt`` stage's), copied instead of adapting again.  ``ratio``: family
+    images per shot (default ``vqtouch adapt``'s)."""
     from vqtouch.plugins.adaptation import AdaptSettings, adapt_tokenizer, families_to_adapt_from, registered_source
     from vqtouch.plugins.generator import fine_tune_for_sensor, load_pipeline
 
+    ratio = AdaptSettings.ratio if ratio is None else ratio
     if ratio < 0:
         raise ConfigError(f"--ratio {ratio}: family images per shot must be >= 0 (0: the shots alone)")
     out = Path(out)
@@ -772,11 +774,14 @@ def vqtouch_add_commands(subparsers: Any) -> None:
     parser.add_argument(
         "--out", required=True, help="folder for the adapted tokenizer, the generator run and the scores"
     )
+    from vqtouch.plugins.adaptation import AdaptSettings
+
     parser.add_argument(
         "--ratio",
         type=_ratio,
-        default=5.0,
-        help="family images per shot, tokenizer and generator alike (default 5; 0: shots alone)",
+        default=AdaptSettings.ratio,
+        help=f"family images per shot, tokenizer and generator alike (default {AdaptSettings.ratio:g}, "
+        "vqtouch adapt's; 0: shots alone; 5: the paper's 1:5)",
     )
     parser.add_argument(
         "--seed", type=non_negative_int, default=0, help="draws the shots, the family samples and the samples"
