@@ -197,7 +197,8 @@ def fine_tune_for_sensor(
             task,
             data,
             train_config,
-            batch_size=config.data.batch_size,
+            # A handful of shots mixed 1:1 can hold fewer samples than the family's batch: one batch is then all.
+            batch_size=min(config.data.batch_size, len(data)),
             seed=seed,
             device=device,
             checkpoint_dir=run.checkpoints / CHECKPOINT_FOLDER,
