@@ -184,7 +184,7 @@ def test_the_best_settings_and_the_targets_verdicts_follow_the_numbers():
     assert best[STEPS] == {"ratio": 0.0, "ssim": 0.870, "keeps_family": {"ratio": 5.0, "ssim": 0.820}}
     assert best[EXPOSURES] == {"ratio": 1.0, "ssim": 0.875, "keeps_family": {"ratio": 5.0, "ssim": 0.865}}
     lines = verdict_lines(summary)
-    assert "mixed 1:1, equal exposures, is +0.005 ssim below all images" in lines[0] and lines[0].endswith(": met.")
+    assert "mixed 1:1, equal exposures, is 0.005 ssim below all images" in lines[0] and lines[0].endswith(": met.")
     assert "beats shots alone by 0.005" in lines[1]
     worse = _summary(
         shots=0.870,
@@ -192,7 +192,13 @@ def test_the_best_settings_and_the_targets_verdicts_follow_the_numbers():
         **{f"{STEPS}1": 0.850, f"{STEPS}5": 0.820, f"{EXPOSURES}1": 0.860, f"{EXPOSURES}5": 0.865},
     )
     lines = verdict_lines(worse)
-    assert "is +0.035 ssim below all images" in lines[0] and lines[0].endswith(": missed.")
+    assert "is 0.035 ssim below all images" in lines[0] and lines[0].endswith(": missed.")
+    above = _summary(
+        shots=0.870,
+        all=0.860,
+        **{f"{STEPS}1": 0.850, f"{STEPS}5": 0.820, f"{EXPOSURES}1": 0.875, f"{EXPOSURES}5": 0.865},
+    )
+    assert "is 0.015 ssim above all images" in verdict_lines(above)[0]
     assert "is behind shots alone" in lines[1]
     # Trained longer than the shots alone with no control as long: the verdicts say so.
     assert "part of its gain over the shots alone may be the longer training; `--cost-controls 5`" in lines[-1]

@@ -362,9 +362,10 @@ def verdict_lines(summary: Sequence[dict[str, Any]], key: str = "ssim") -> list[
     if ALL_IMAGES in rows and rows[ALL_IMAGES].get(key) is not None:
         gap = rows[ALL_IMAGES][key] - top[key]
         met = "met" if gap <= SSIM_TOLERANCE else "missed"
+        side = "below" if gap >= 0 else "above"
         lines.append(
-            f"- The best mix, {top['arm']}, is {gap:+.3f} {key} below {ALL_IMAGES} "
-            f"({top[key]:.4g} against {rows[ALL_IMAGES][key]:.4g}; target: within {SSIM_TOLERANCE}): {met}."
+            f"- The best mix, {top['arm']}, is {abs(gap):.3f} {key} {side} {ALL_IMAGES} "
+            f"({top[key]:.4g} against {rows[ALL_IMAGES][key]:.4g}; target: within {SSIM_TOLERANCE} below): {met}."
         )
     rivals = [rows[SHOTS_ALONE]] if SHOTS_ALONE in rows else []
     # The shots alone trained as long as the best mix, when the run has that control: the mix, not the length.
