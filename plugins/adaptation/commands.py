@@ -309,7 +309,10 @@ def vqtouch_add_commands(subparsers):
         "evaluate mix-ratio`; the paper's 1:5 needs about 6x the shots-alone steps to see the sensor as often)",
     )
     adapt.add_argument(
-        "--steps", type=positive_int, default=AdaptSettings.steps, help=f"fine-tuning steps (default {AdaptSettings.steps})"
+        "--steps",
+        type=positive_int,
+        default=AdaptSettings.steps,
+        help=f"fine-tuning steps (default {AdaptSettings.steps})",
     )
     adapt.add_argument(
         "--part",
