@@ -4,6 +4,7 @@ test turns it on explicitly, and progress bars are off."""
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import subprocess
 import sys
@@ -33,6 +34,7 @@ for variable in (
 import torch  # noqa: E402
 
 from vqtouch.core import load_plugins  # noqa: E402
+from vqtouch.core.cli import main  # noqa: E402
 
 TESTS = Path(__file__).resolve().parent
 REPO = TESTS.parent
@@ -187,3 +189,57 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "gpu" in item.keywords and not torch.cuda.is_available():
             item.add_marker(pytest.mark.skip(reason="gpu: no CUDA device on this machine"))
+
+
+@pytest.fixture(scope="module")
+def family_tokenizer_run(tmp_path_factory):
+    """A tiny tokenizer run (32 px): the family tokenizer of the adaptation experiments' tests."""
+    from generator_runs import tiny_tokenizer_args
+
+    out = tmp_path_factory.mktemp("family") / "tok"
+    assert main(tiny_tokenizer_args(out)) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def family_clusters(family_tokenizer_run, tmp_path_factory):
+    """Two families (GelSight with a variant, DIGIT) clustered with :func:`family_tokenizer_run`."""
+    out = tmp_path_factory.mktemp("families")
+    variant = json.dumps({"name": "gelsight", "variant": {"seed": 1, "colour_gain": [1.05, 0.95, 0.95]}})
+    assert (
+        main(
+            [
+                "cluster",
+                "--run",
+                str(family_tokenizer_run),
+                "--images",
+                "8",
+                "--out",
+                str(out),
+                "--families",
+                "2",
+                "--sensors",
+                "gelsight",
+                variant,
+                "digit",
+            ]
+        )
+        == 0
+    )
+    return out
+
+
+@pytest.fixture
+def tokenizer_trainer_calls(monkeypatch):
+    """What every tokenizer trainer of the experiment received: its stage and its images."""
+    from vqtouch.core import training
+
+    calls = []
+
+    class Recording(training.Trainer):
+        def __init__(self, task, dataset, config, **kwargs):
+            calls.append({"stage": kwargs.get("stage"), "images": dataset.images.clone(), "steps": config.steps})
+            super().__init__(task, dataset, config, **kwargs)
+
+    monkeypatch.setattr(training, "Trainer", Recording)
+    return calls

@@ -8,7 +8,6 @@ import statistics
 import pytest
 import torch
 
-from generator_runs import tiny_tokenizer_args
 from vqtouch.core import ConfigError, load_plugins, read_metadata
 from vqtouch.core.cli import main
 from vqtouch.core.images import save_png
@@ -19,56 +18,6 @@ from vqtouch.plugins.scenes import GELSIGHT_DERIVATIVE_II
 
 HOST = load_plugins(autoload=False)
 TARGET = json.dumps(GELSIGHT_DERIVATIVE_II)
-
-
-@pytest.fixture(scope="module")
-def tokenizer_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("fewshot") / "tok"
-    assert main(tiny_tokenizer_args(out)) == 0
-    return out
-
-
-@pytest.fixture(scope="module")
-def families_folder(tokenizer_run, tmp_path_factory):
-    out = tmp_path_factory.mktemp("families")
-    variant = json.dumps({"name": "gelsight", "variant": {"seed": 1, "colour_gain": [1.05, 0.95, 0.95]}})
-    assert (
-        main(
-            [
-                "cluster",
-                "--run",
-                str(tokenizer_run),
-                "--images",
-                "8",
-                "--out",
-                str(out),
-                "--families",
-                "2",
-                "--sensors",
-                "gelsight",
-                variant,
-                "digit",
-            ]
-        )
-        == 0
-    )
-    return out
-
-
-@pytest.fixture
-def trainer_calls(monkeypatch):
-    """What every tokenizer trainer of the experiment received: its stage and its images."""
-    from vqtouch.core import training
-
-    calls = []
-
-    class Recording(training.Trainer):
-        def __init__(self, task, dataset, config, **kwargs):
-            calls.append({"stage": kwargs.get("stage"), "images": dataset.images.clone(), "steps": config.steps})
-            super().__init__(task, dataset, config, **kwargs)
-
-    monkeypatch.setattr(training, "Trainer", Recording)
-    return calls
 
 
 def _metric(name, predicted, truth):
@@ -85,14 +34,14 @@ def _frames(folder, images):
 
 
 def test_every_arm_trains_on_its_own_images_and_scores_the_same_held_out_images(
-    tokenizer_run, families_folder, trainer_calls, tmp_path
+    family_tokenizer_run, family_clusters, tokenizer_trainer_calls, tmp_path
 ):
     from vqtouch.plugins.evaluation.contact import contact_region_scores, no_contact_image
     from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all
 
     out = tmp_path / "fewshot"
     result = evaluate_fewshot(
-        tokenizer_run,
+        family_tokenizer_run,
         HOST,
         out,
         target=TARGET,
@@ -102,7 +51,7 @@ def test_every_arm_trains_on_its_own_images_and_scores_the_same_held_out_images(
         steps=2,
         scratch_steps=3,
         eval_images=4,
-        families=families_folder,
+        families=family_clusters,
         report=lambda line: None,
     )
     rows = result["rows"]
@@ -113,7 +62,7 @@ def test_every_arm_trains_on_its_own_images_and_scores_the_same_held_out_images(
 
     # Each trainer got exactly its arm's images: the scratch arm and the shots-alone arm the N target
     # images alone, the mixed arm those N followed by ratio x N images of the seed's family.
-    families = load_families(families_folder, HOST)
+    families = load_families(family_clusters, HOST)
     expected = []
     for assigned in result["assignments"]:
         seed = assigned["seed"]
@@ -123,23 +72,23 @@ def test_every_arm_trains_on_its_own_images_and_scores_the_same_held_out_images(
                 families, assigned["family"], HOST, count=2 * n, image_size=32, seed=seed, exclude=source
             )
             expected += [("scratch", shots, 3), ("adapt", shots, 2), ("adapt", torch.cat([shots, family_N]), 2)]
-    assert len(trainer_calls) == len(expected) == 12
+    assert len(tokenizer_trainer_calls) == len(expected) == 12
     for stage, images, steps in expected:
         matches = [
             call
-            for call in trainer_calls
+            for call in tokenizer_trainer_calls
             if call["stage"] == stage
             and call["steps"] == steps
             and call["images"].shape == images.shape
             and torch.equal(call["images"], images)
         ]
         assert len(matches) == 1, (stage, len(images))
-    mixed_sizes = sorted(len(call["images"]) for call in trainer_calls if len(call["images"]) not in (4, 8))
+    mixed_sizes = sorted(len(call["images"]) for call in tokenizer_trainer_calls if len(call["images"]) not in (4, 8))
     assert mixed_sizes == [12, 12, 24, 24]  # N (1 + ratio), counted from what the trainers received
     by_key = {(row["n"], row["arm"], row["seed"]): row for row in rows}
     assert by_key[(8, "mixed 1:2", 1)]["train_images"] == 24 and by_key[(8, SCRATCH, 1)]["train_images"] == 8
 
-    tokenizer, _ = load_tokenizer(tokenizer_run, HOST)
+    tokenizer, _ = load_tokenizer(family_tokenizer_run, HOST)
     sensor = HOST.build("sensor_family", GELSIGHT_DERIVATIVE_II)
     for seed in (0, 1):
         _, _, _, held_out = target_images(TARGET, HOST, shots=4, eval_images=4, image_size=32, seed=seed)
@@ -185,7 +134,7 @@ def test_every_arm_trains_on_its_own_images_and_scores_the_same_held_out_images(
 
 
 def test_a_folder_target_too_small_for_n_is_refused_before_anything_trains(
-    tokenizer_run, families_folder, trainer_calls, tmp_path, capsys
+    family_tokenizer_run, family_clusters, tokenizer_trainer_calls, tmp_path, capsys
 ):
     folder = _frames(tmp_path / "frames", sensor_images("gelsight", HOST, count=8, image_size=32).images)
     out = tmp_path / "fewshot"
@@ -195,7 +144,7 @@ def test_a_folder_target_too_small_for_n_is_refused_before_anything_trains(
                 "evaluate",
                 "fewshot",
                 "--run",
-                str(tokenizer_run),
+                str(family_tokenizer_run),
                 "--out",
                 str(out),
                 "--target",
@@ -204,7 +153,7 @@ def test_a_folder_target_too_small_for_n_is_refused_before_anything_trains(
                 "4",
                 "8",
                 "--families",
-                str(families_folder),
+                str(family_clusters),
             ]
         )
         == 2
@@ -212,24 +161,24 @@ def test_a_folder_target_too_small_for_n_is_refused_before_anything_trains(
     error = capsys.readouterr().err
     assert error.count("\n") == 1
     assert f"vqtouch: error: --n 8: the folder {folder} holds 8 images; the largest usable --n is 7" in error
-    assert trainer_calls == [] and not out.exists()
+    assert tokenizer_trainer_calls == [] and not out.exists()
     # The same frames one level down (a class sub-folder, as `vqtouch data render` or a labelled
     # dataset keeps them) are read through the image_folder reader: the same 8 images are counted.
     nested = tmp_path / "nested"
     (nested / "tactile").mkdir(parents=True)
     folder.rename(nested / "tactile" / "frames")
-    args = ["evaluate", "fewshot", "--run", str(tokenizer_run), "--out", str(out), "--target", str(nested)]
-    assert main([*args, "--n", "4", "8", "--families", str(families_folder)]) == 2
+    args = ["evaluate", "fewshot", "--run", str(family_tokenizer_run), "--out", str(out), "--target", str(nested)]
+    assert main([*args, "--n", "4", "8", "--families", str(family_clusters)]) == 2
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and f"the folder {nested} holds 8 images; the largest usable --n is 7" in error
-    assert trainer_calls == [] and not out.exists()
+    assert tokenizer_trainer_calls == [] and not out.exists()
 
 
-def test_a_folder_targets_background_is_the_median_of_its_images(tokenizer_run, families_folder, tmp_path):
+def test_a_folder_targets_background_is_the_median_of_its_images(family_tokenizer_run, family_clusters, tmp_path):
     images = sensor_images("gelsight", HOST, count=10, image_size=32, seed=5).images
     folder = _frames(tmp_path / "frames", images)
     result = evaluate_fewshot(
-        tokenizer_run,
+        family_tokenizer_run,
         HOST,
         tmp_path / "fewshot",
         target=str(folder),
@@ -239,7 +188,7 @@ def test_a_folder_targets_background_is_the_median_of_its_images(tokenizer_run, 
         steps=1,
         scratch_steps=1,
         eval_images=64,
-        families=families_folder,
+        families=family_clusters,
         report=lambda line: None,
     )
     assert result["held_out"] == 6  # the 10 images minus the largest N
@@ -259,28 +208,30 @@ def test_a_folder_targets_background_is_the_median_of_its_images(tokenizer_run, 
         (["--seeds", "1", "1"], "--seeds 1 1 repeats a seed"),
     ],
 )
-def test_bad_settings_get_one_line_errors(tokenizer_run, tmp_path, capsys, flags, message):
-    assert main(["evaluate", "fewshot", "--run", str(tokenizer_run), "--out", str(tmp_path / "x"), *flags]) == 2
+def test_bad_settings_get_one_line_errors(family_tokenizer_run, tmp_path, capsys, flags, message):
+    assert main(["evaluate", "fewshot", "--run", str(family_tokenizer_run), "--out", str(tmp_path / "x"), *flags]) == 2
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and message in error
 
 
-def test_a_checkpoint_folder_is_not_a_run(tokenizer_run, tmp_path):
-    step_folder = next((tokenizer_run / "checkpoints").iterdir())
+def test_a_checkpoint_folder_is_not_a_run(family_tokenizer_run, tmp_path):
+    step_folder = next((family_tokenizer_run / "checkpoints").iterdir())
     with pytest.raises(ConfigError, match="the scratch arm trains a fresh tokenizer with the run's config"):
         evaluate_fewshot(
             step_folder, HOST, tmp_path / "x", target=TARGET, seeds=[0], counts=[4], steps=1, eval_images=2
         )
 
 
-def test_the_command_writes_its_files_and_refuses_to_overwrite_them(tokenizer_run, families_folder, tmp_path, capsys):
+def test_the_command_writes_its_files_and_refuses_to_overwrite_them(
+    family_tokenizer_run, family_clusters, tmp_path, capsys
+):
     out = tmp_path / "fewshot"
     args = [
         "--no-progress",
         "evaluate",
         "fewshot",
         "--run",
-        str(tokenizer_run),
+        str(family_tokenizer_run),
         "--out",
         str(out),
         "--n",
@@ -294,7 +245,7 @@ def test_the_command_writes_its_files_and_refuses_to_overwrite_them(tokenizer_ru
         "--seeds",
         "3",
         "--families",
-        str(families_folder),
+        str(family_clusters),
     ]
     assert main(args) == 0
     printed = capsys.readouterr().out

@@ -8,7 +8,6 @@ import json
 import pytest
 import torch
 
-from generator_runs import tiny_tokenizer_args
 from vqtouch.core import ConfigError, load_plugins
 from vqtouch.core.cli import main
 from vqtouch.plugins.adaptation.adapt import family_images, target_images
@@ -30,45 +29,13 @@ HOST = load_plugins(autoload=False)
 TARGET = json.dumps(GELSIGHT_DERIVATIVE_II)
 
 
-@pytest.fixture(scope="module")
-def tokenizer_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("ratio") / "tok"
-    assert main(tiny_tokenizer_args(out)) == 0
-    return out
-
-
-@pytest.fixture(scope="module")
-def families_folder(tokenizer_run, tmp_path_factory):
-    out = tmp_path_factory.mktemp("families")
-    variant = json.dumps({"name": "gelsight", "variant": {"seed": 1, "colour_gain": [1.05, 0.95, 0.95]}})
-    args = ["cluster", "--run", str(tokenizer_run), "--images", "8", "--out", str(out), "--families", "2"]
-    assert main([*args, "--sensors", "gelsight", variant, "digit"]) == 0
-    return out
-
-
-@pytest.fixture
-def trainer_calls(monkeypatch):
-    """What every tokenizer trainer of the experiment received: its images and its steps."""
-    from vqtouch.core import training
-
-    calls = []
-
-    class Recording(training.Trainer):
-        def __init__(self, task, dataset, config, **kwargs):
-            calls.append({"images": dataset.images.clone(), "steps": config.steps})
-            super().__init__(task, dataset, config, **kwargs)
-
-    monkeypatch.setattr(training, "Trainer", Recording)
-    return calls
-
-
 def _metric(name, predicted, truth):
     metric = HOST.build("metric", {"name": name})
     metric.update(predicted, truth)
     return float(metric.compute())
 
 
-def _run(tokenizer_run, families_folder, out, **overrides):
+def _run(family_tokenizer_run, family_clusters, out, **overrides):
     settings = dict(
         target=TARGET,
         seeds=[0],
@@ -77,18 +44,18 @@ def _run(tokenizer_run, families_folder, out, **overrides):
         steps=2,
         all_images=8,
         eval_images=4,
-        families=families_folder,
+        families=family_clusters,
         cost_controls=(2,),
         report=lambda line: None,
     )
-    return evaluate_mix_ratio(tokenizer_run, HOST, out, **(settings | overrides))
+    return evaluate_mix_ratio(family_tokenizer_run, HOST, out, **(settings | overrides))
 
 
 def test_every_arm_trains_its_mix_for_its_budget_and_an_interrupted_run_resumes(
-    tokenizer_run, families_folder, trainer_calls, tmp_path
+    family_tokenizer_run, family_clusters, tokenizer_trainer_calls, tmp_path
 ):
     out = tmp_path / "ratio"
-    result = _run(tokenizer_run, families_folder, out)
+    result = _run(family_tokenizer_run, family_clusters, out)
     rows = {row["arm"]: row for row in result["rows"]}
     assert set(rows) == {
         ZERO_SHOT,
@@ -104,7 +71,7 @@ def test_every_arm_trains_its_mix_for_its_budget_and_an_interrupted_run_resumes(
     # Each trainer got its arm's images and steps: the shots (then ratio x shots family images) for 2
     # steps at equal steps and 2 x (1 + ratio) at equal exposures; the shots alone for as long as the 1:2
     # mix at equal exposures (the cost control); all images alone for 2 steps.
-    families = load_families(families_folder, HOST)
+    families = load_families(family_clusters, HOST)
     family = result["assignments"][0]["family"]
     _, source, shots, _ = target_images(TARGET, HOST, shots=4, eval_images=4, image_size=32, seed=0)
     _, _, everything, _ = target_images(TARGET, HOST, shots=8, eval_images=4, image_size=32, seed=0)
@@ -112,11 +79,11 @@ def test_every_arm_trains_its_mix_for_its_budget_and_an_interrupted_run_resumes(
     for ratio in (1, 2):
         family_N, _ = family_images(families, family, HOST, count=4 * ratio, image_size=32, seed=0, exclude=source)
         expected += [(torch.cat([shots, family_N]), 2), (torch.cat([shots, family_N]), 2 * (1 + ratio))]
-    assert len(trainer_calls) == len(expected) == 7
+    assert len(tokenizer_trainer_calls) == len(expected) == 7
     for images, steps in expected:
         matches = [
             call
-            for call in trainer_calls
+            for call in tokenizer_trainer_calls
             if call["steps"] == steps and call["images"].shape == images.shape and torch.equal(call["images"], images)
         ]
         assert len(matches) == 1, (len(images), steps)
@@ -131,7 +98,7 @@ def test_every_arm_trains_its_mix_for_its_budget_and_an_interrupted_run_resumes(
     from vqtouch.plugins.evaluation.contact import no_contact_image
     from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all
 
-    tokenizer, _ = load_tokenizer(tokenizer_run, HOST)
+    tokenizer, _ = load_tokenizer(family_tokenizer_run, HOST)
     _, _, _, held_out = target_images(TARGET, HOST, shots=4, eval_images=4, image_size=32, seed=0)
     assert rows[ZERO_SHOT]["ssim"] == pytest.approx(
         _metric("ssim", reconstruct_all(tokenizer, held_out), held_out), abs=1e-4
@@ -141,14 +108,14 @@ def test_every_arm_trains_its_mix_for_its_budget_and_an_interrupted_run_resumes(
 
     # Interrupted before its record: the run again reads every finished arm back and trains none.
     (out / "mix_ratio.json").unlink()
-    trainer_calls.clear()
-    again = _run(tokenizer_run, families_folder, out)
-    assert trainer_calls == []
+    tokenizer_trainer_calls.clear()
+    again = _run(family_tokenizer_run, family_clusters, out)
+    assert tokenizer_trainer_calls == []
     assert again["rows"] == result["rows"]
     # An arm trained with other settings is not this run's: it trains again.
     (out / "mix_ratio.json").unlink()
-    again = _run(tokenizer_run, families_folder, out, steps=3)
-    assert sorted(call["steps"] for call in trainer_calls) == [3, 3, 3, 3, 6, 9, 9]
+    again = _run(family_tokenizer_run, family_clusters, out, steps=3)
+    assert sorted(call["steps"] for call in tokenizer_trainer_calls) == [3, 3, 3, 3, 6, 9, 9]
 
 
 def _summary(**ssim):
@@ -231,24 +198,28 @@ def test_exposure_steps_and_ratio_checks():
         (["--ratios", "-1"], "--ratios"),
     ],
 )
-def test_bad_settings_get_one_line_errors(tokenizer_run, tmp_path, capsys, flags, message):
-    assert main(["evaluate", "mix-ratio", "--run", str(tokenizer_run), "--out", str(tmp_path / "x"), *flags]) == 2
+def test_bad_settings_get_one_line_errors(family_tokenizer_run, tmp_path, capsys, flags, message):
+    assert (
+        main(["evaluate", "mix-ratio", "--run", str(family_tokenizer_run), "--out", str(tmp_path / "x"), *flags]) == 2
+    )
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and message in error
     assert not (tmp_path / "x").exists()
 
 
-def test_a_folder_that_is_not_a_run_is_refused(tokenizer_run, tmp_path):
-    step_folder = next((tokenizer_run / "checkpoints").iterdir())
+def test_a_folder_that_is_not_a_run_is_refused(family_tokenizer_run, tmp_path):
+    step_folder = next((family_tokenizer_run / "checkpoints").iterdir())
     with pytest.raises(ConfigError, match="not a run directory"):
         evaluate_mix_ratio(step_folder, HOST, tmp_path / "x", target=TARGET, seeds=[0])
 
 
-def test_the_command_writes_its_files_and_refuses_to_overwrite_them(tokenizer_run, families_folder, tmp_path, capsys):
+def test_the_command_writes_its_files_and_refuses_to_overwrite_them(
+    family_tokenizer_run, family_clusters, tmp_path, capsys
+):
     out = tmp_path / "ratio"
-    args = ["--no-progress", "evaluate", "mix-ratio", "--run", str(tokenizer_run), "--out", str(out)]
+    args = ["--no-progress", "evaluate", "mix-ratio", "--run", str(family_tokenizer_run), "--out", str(out)]
     args += ["--shots", "4", "--ratios", "0", "2", "--steps", "1", "--all-images", "6", "--eval-images", "2"]
-    args += ["--seeds", "3", "--families", str(families_folder)]
+    args += ["--seeds", "3", "--families", str(family_clusters)]
     assert main(args) == 0
     printed = capsys.readouterr().out
     result = json.loads((out / "mix_ratio.json").read_text())

@@ -55,6 +55,7 @@ from vqtouch.plugins.evaluation.records import (
     markdown_table,
     mean_spread,
     plot_against_count,
+    refuse_finished,
 )
 from vqtouch.core.image_size import ImageSize, size_text
 from vqtouch.plugins.evaluation.directions import direction_arrow
@@ -367,10 +368,7 @@ def evaluate_fewshot(
     from vqtouch.plugins.tokenizer import load_tokenizer
 
     out = Path(out)
-    if (out / "fewshot.json").is_file() and not overwrite:
-        raise ConfigError(
-            f"{out} already holds a fewshot experiment; pass --overwrite to run it again, or choose another --out"
-        )
+    refuse_finished(out, "fewshot", "a fewshot experiment", overwrite)
     seeds = check_seeds(seeds)
     counts = check_counts(counts)
     if not (ratio > 0 and math.isfinite(ratio)):

@@ -43,7 +43,14 @@ import torch
 
 from vqtouch.core import ConfigError, PluginHost
 from vqtouch.core.image_size import ImageSize, size_text
-from vqtouch.plugins.evaluation.records import ExperimentRecord, gap_verdict, markdown_table, mean_spread
+from vqtouch.plugins.evaluation.records import (
+    ExperimentRecord,
+    check_seeds,
+    gap_verdict,
+    markdown_table,
+    mean_spread,
+    refuse_finished,
+)
 
 from .adapt import ADAPT_JSON, AdaptSettings, adapt_tokenizer, sensor_background
 from .evaluation import METRICS
@@ -196,14 +203,10 @@ def evaluate_mix_ratio(
     this arm tells the longer training from the mix.  Every bad input is refused with a one-line
     ConfigError before anything trains."""
     from vqtouch.core import RunDir
-    from vqtouch.plugins.evaluation.records import check_seeds
     from vqtouch.plugins.tokenizer import load_tokenizer
 
     out = Path(out)
-    if (out / "mix_ratio.json").is_file() and not overwrite:
-        raise ConfigError(
-            f"{out} already holds a mix-ratio experiment; pass --overwrite to run it again, or choose another --out"
-        )
+    refuse_finished(out, "mix_ratio", "a mix-ratio experiment", overwrite)
     seeds = check_seeds(seeds)
     ratios = check_ratios(ratios)
     cost_controls = sorted({float(ratio) for ratio in cost_controls})

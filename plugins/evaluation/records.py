@@ -171,6 +171,13 @@ def plot_against_count(
     figure.savefig(path)
 
 
+def refuse_finished(out: str | Path, name: str, what: str, overwrite: bool) -> None:
+    """Refuse, in one line, an ``out`` that already holds the experiment's ``<name>.json`` (``what``:
+    "a fewshot experiment"), unless ``overwrite``: a finished record is never silently replaced."""
+    if not overwrite and (Path(out) / f"{name}.json").is_file():
+        raise ConfigError(f"{out} already holds {what}; pass --overwrite to run it again, or choose another --out")
+
+
 def check_seeds(seeds: Sequence[int]) -> list[int]:
     """``seeds`` as a list, refusing an empty or repeated one (a repeated seed would fake a small spread)."""
     seeds = list(seeds)

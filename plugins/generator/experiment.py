@@ -34,7 +34,13 @@ from typing import Any
 from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, run_stage
 from vqtouch.core.cli import stage_failure
 from vqtouch.core.config import validate_experiment
-from vqtouch.plugins.evaluation.records import ExperimentRecord, gap_verdict, markdown_table, mean_spread
+from vqtouch.plugins.evaluation.records import (
+    ExperimentRecord,
+    gap_verdict,
+    markdown_table,
+    mean_spread,
+    refuse_finished,
+)
 from vqtouch.plugins.evaluation.directions import direction_arrow, lower_is_better
 
 #: Numbers of a score dict that describe the sampling, not the quality.
@@ -189,10 +195,7 @@ def evaluate_generation_experiment(
         raise ConfigError(f"scene {config.scene!r} has no generator; use e.g. --scene tour or label-to-touch")
     if not config.generator.conditioners:
         raise ConfigError("the scene's generator has no conditioners (generator.conditioners) to compare")
-    if (out / "generation.json").is_file() and not overwrite:
-        raise ConfigError(
-            f"{out} already holds a generation experiment; pass --overwrite to run it again, or choose another --out"
-        )
+    refuse_finished(out, "generation", "a generation experiment", overwrite)
     record = ExperimentRecord("generation", out, seeds)
     base = _with_tokenizer_run(config, _tokenizer_run(config, tokenizer, out, host), host)
     rows: list[dict[str, Any]] = []
