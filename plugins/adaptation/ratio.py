@@ -395,7 +395,7 @@ def plot_mix_ratio(summary: Sequence[dict[str, Any]], path: Path, title: str) ->
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    figure = Figure(figsize=(14, 4.2), dpi=110)
+    figure = Figure(figsize=(15, 4.6), dpi=110)
     FigureCanvasAgg(figure)
     panels = [figure.add_subplot(1, 3, index) for index in (1, 2, 3)]
     lines_of = {row["arm"]: row for row in summary if row["budget"] == "-"}
@@ -417,7 +417,13 @@ def plot_mix_ratio(summary: Sequence[dict[str, Any]], path: Path, title: str) ->
             matched = row["steps"] / base - 1 if base and row["budget"] == COST else None
             if matched in position and row.get(key) is not None:
                 panel.scatter([position[matched]], [row[key]], marker="^", color="black", zorder=3)
-                panel.annotate(f"shots alone, {row['steps']} steps", (position[matched], row[key]), fontsize=7)
+                panel.annotate(
+                    f"shots alone\n{row['steps']:.0f} steps",
+                    (position[matched], row[key]),
+                    textcoords="offset points",
+                    xytext=(-48, -4),
+                    fontsize=7,
+                )
         for arm, style in ((ZERO_SHOT, "--"), (ALL_IMAGES, ":"), (BACKGROUND, "-.")):
             if arm in lines_of and lines_of[arm].get(key) is not None:
                 panel.axhline(lines_of[arm][key], linestyle=style, color="grey", linewidth=1)
@@ -443,8 +449,9 @@ def plot_mix_ratio(summary: Sequence[dict[str, Any]], path: Path, title: str) ->
     for row in [lines_of.get(ZERO_SHOT), lines_of.get(ALL_IMAGES), *controls]:
         if row and row.get("family_psnr") is not None and row.get("ssim") is not None:
             marker = {ZERO_SHOT: "x", ALL_IMAGES: "*"}.get(row["arm"], "^")
-            trade.scatter([row["family_psnr"]], [row["ssim"]], marker=marker, color="black", label=row["arm"], zorder=3)
-    trade.set_xlabel("family held-out PSNR (dB): what the tokenizer keeps of its family")
+            label = row["arm"] if row["budget"] != COST else f"{SHOTS_ALONE}, {row['steps']:.0f} steps"
+            trade.scatter([row["family_psnr"]], [row["ssim"]], marker=marker, color="black", label=label, zorder=3)
+    trade.set_xlabel("family held-out PSNR (dB): what it keeps of the family")
     trade.set_ylabel("unseen sensor held-out SSIM")
     trade.grid(alpha=0.3)
     trade.legend(fontsize=8)
