@@ -245,6 +245,35 @@ def test_a_generator_trains_on_an_adapted_tokenizers_codes(tokenizer_folder, fam
     assert images.shape == (2, 3, 32, 32) and torch.isfinite(images).all()
 
 
+def test_an_adapted_tokenizer_is_evaluated_on_a_dataset_it_is_given(
+    tokenizer_folder, families_folder, tmp_path, capsys
+):
+    """`evaluate reconstruction --run ADAPT_OUT --dataset D`: the adapted tokenizer scored on D whole, as an
+    independent reconstruction of D's images scores it; without --dataset, one line says what to add."""
+    from vqtouch.core import Assembly, resolve_config
+    from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all
+
+    adapted = tmp_path / "adapted"
+    assert _adapt(tokenizer_folder, families_folder, adapted, "gelsight", "--threshold", "1") == 0
+    capsys.readouterr()
+    evaluate = ["--no-progress", "evaluate", "reconstruction", "--run", str(adapted)]
+    assert main(evaluate) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "outside any run" in error and "--dataset" in error
+    block = {"name": "procedural", "num_samples": 6, "seed": 5}
+    assert main([*evaluate, "--dataset", json.dumps(block), "--metrics", "ssim,psnr"]) == 0
+    result = json.loads((adapted / "evaluation_dataset.json").read_text())
+    assert result["checkpoint"] == str(adapted) and result["split"] == "dataset"
+    config = resolve_config("reconstruction", [], ["data.image_size=32"], host=HOST)
+    dataset = Assembly(config, HOST).dataset(block)
+    images = torch.stack([dataset[i]["tactile"] for i in range(len(dataset))])
+    tokenizer, _ = load_tokenizer(adapted, HOST)
+    metric = HOST.build("metric", "psnr")
+    metric.update(reconstruct_all(tokenizer, images).detach(), images)
+    assert result["psnr"] == pytest.approx(float(metric.compute()), abs=1e-3)
+    assert "background_psnr" in result and (adapted / "reconstructions_dataset.png").is_file()
+
+
 def test_decoder_only_adaptation_keeps_every_images_codes_and_changes_only_the_decoder(
     tokenizer_folder, families_folder, tmp_path
 ):

@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import Assembly, ConfigError, MetricSet, RunDir, hookimpl, run_stage
+from vqtouch.core import Assembly, ConfigError, MetricSet, RunDir, atomic_write, hookimpl, run_stage
 from vqtouch.core.cli import (
     add_config_arguments,
     add_run_arguments,
@@ -36,6 +36,7 @@ from vqtouch.core.image_size import ImageSize, image_hw, size_text
 from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
 from vqtouch.plugins.evaluation.contact import dataset_background
 
+from .loading import tokenizer_location
 from .stages import load_tokenizer, printable, reconstruct_all, save_pairs
 from .training import evaluate_reconstruction
 
@@ -131,7 +132,10 @@ def _evaluate_command(args: argparse.Namespace) -> int:
         return _reconstruction_experiment_command(args)
     if args.overrides or args.config:
         raise ConfigError("--set and --config shape the experiment (--out); with --run the run's own config is used")
-    run = RunDir.open(args.run)
+    location = tokenizer_location(args.run)
+    if not isinstance(location, RunDir):
+        return _evaluate_folder(args, location)
+    run = location
     config = run.load_config(host)
     tokenizer, folder = load_tokenizer(run, host, args.step)
     assembly = Assembly(config, host)
@@ -166,6 +170,41 @@ def _evaluate_command(args: argparse.Namespace) -> int:
     save_pairs(*scores["examples"], run.path / f"reconstructions_{folder.name}.png")
     suffix = "_dataset" if args.dataset else ""
     run.write_json(f"evaluation_{folder.name}{suffix}.json", result)
+    return 0
+
+
+def _evaluate_folder(args: argparse.Namespace, folder: Path) -> int:
+    """``evaluate reconstruction --run FOLDER`` for a tokenizer folder outside any run (what ``vqtouch
+    adapt`` writes, or a copied checkpoint folder): it has no data split of its own, so ``--dataset``
+    names the images (scored whole, their per-pixel median as the no-contact background), with the
+    reconstruction scene's metrics unless ``--metrics``; ``evaluation_dataset.json`` goes beside it."""
+    host = args.host
+    if not args.dataset:
+        raise ConfigError(
+            f"{folder} is a tokenizer folder outside any run (e.g. a `vqtouch adapt` output): it has no data of "
+            'its own; name the images with --dataset, e.g. --dataset \'{"name": "image_folder", "root": '
+            '"data/my_sensor"}\''
+        )
+    if args.step is not None or args.split != "val":
+        raise ConfigError(f"--step and --split choose within a run; {folder} is one tokenizer folder")
+    tokenizer, folder = load_tokenizer(folder, host)
+    image_size = tokenizer.autoencoder.vqtouch_spec.context.image_size
+    config = resolve_config("reconstruction", [], [f"data.image_size={json.dumps(image_size)}"], host=host)
+    assembly = Assembly(config, host)
+    evaluated = assembly.dataset(plugin_block(args.dataset, "--dataset"))
+    names = args.metrics.split(",") if args.metrics else [m.name for m in config.metrics]
+    metrics = {name: assembly.build("metric", name) for name in names}
+    background, background_source = dataset_background(evaluated, image_hw(image_size), images_are="evaluated")
+    scores = evaluate_reconstruction(
+        tokenizer, evaluated, metrics, batch_size=config.data.batch_size, background_3HW=background
+    )
+    result = {"checkpoint": str(folder), "split": "dataset", "background": background_source, **printable(scores)}
+    print(json.dumps(result, indent=2))  # first: a folder that cannot be written to still gives its scores
+    if not os.access(folder, os.W_OK):
+        print(f"vqtouch: {folder} is read-only: the scores above were printed, not saved", file=sys.stderr)
+        return 0
+    save_pairs(*scores["examples"], folder / "reconstructions_dataset.png")
+    atomic_write(folder / "evaluation_dataset.json", lambda tmp: tmp.write_text(json.dumps(result, indent=2) + "\n"))
     return 0
 
 
@@ -242,7 +281,11 @@ def vqtouch_add_commands(subparsers):
         "for each model over seeds (Table 1: JSON, markdown, PNG)",
     )
     mode = recon.add_mutually_exclusive_group(required=True)
-    mode.add_argument("--run", help="run directory of a trained tokenizer: score it")
+    mode.add_argument(
+        "--run",
+        help="run directory of a trained tokenizer: score it (a tokenizer folder outside a run, e.g. a "
+        "`vqtouch adapt` output, with --dataset)",
+    )
     mode.add_argument(
         "--out",
         help="run the experiment into this folder: train every model of --models and "
