@@ -176,7 +176,7 @@ def _evaluate_command(args: argparse.Namespace) -> int:
 def _evaluate_folder(args: argparse.Namespace, folder: Path) -> int:
     """``evaluate reconstruction --run FOLDER`` for a tokenizer folder outside any run (what ``vqtouch
     adapt`` writes, or a copied checkpoint folder): it has no data split of its own, so ``--dataset``
-    names the images (scored whole, their per-pixel median as the no-contact background), with the
+    names the images (scored whole, beside their no-contact background), with the
     reconstruction scene's metrics unless ``--metrics``; ``evaluation_dataset.json`` goes beside it."""
     host = args.host
     if not args.dataset:
