@@ -440,8 +440,9 @@ def test_the_samples_classifier_names_a_class_by_what_the_sensor_draws_for_it():
     generated = {
         "0:label": {"right": draw(labels), "swapped": draw([1 - label for label in labels]), "half": draw([0, 0, 1, 1])}
     }
+    metric = HOST.build("metric", {"name": "fd_effnetlite0", "image_size": 32})
     accuracy = _classifier_scores(
-        generated, draw(labels), labels, (draw(train_labels), train_labels), Identity(), 32, HOST, 0
+        generated, draw(labels), labels, (draw(train_labels), train_labels), Identity(), metric, 0
     )
     assert accuracy == {
         ("0:label", "right"): 1.0,

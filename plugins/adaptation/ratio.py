@@ -37,7 +37,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import torch
 
@@ -90,21 +90,42 @@ def exposure_steps(steps: int, ratio: float) -> int:
     return max(1, round(steps * (1 + ratio)))
 
 
-def arm_name(ratio: float, budget: str) -> str:
-    """The arm's name: ``mixed 1:5, equal steps``; ratio 0 is the shots alone (both budgets)."""
-    return SHOTS_ALONE if ratio == 0 else f"mixed 1:{ratio:g}, {budget}"
+class Arm(NamedTuple):
+    """One fine-tuned arm: its name, the budget it is shown under, its folder in ``seed<S>/``, the
+    family images per shot, the sensor images it learns from and its steps."""
+
+    name: str
+    budget: str
+    folder: str
+    ratio: float
+    images: int
+    steps: int
 
 
-def arm_folder(ratio: float, budget: str) -> str:
-    """The arm's folder in ``seed<S>/``: ``shots``, ``mixed-5-steps``, ``mixed-5-exposures``."""
-    return "shots" if ratio == 0 else f"mixed-{ratio:g}-{'steps' if budget == STEPS else 'exposures'}"
+def arm_plan(
+    shots: int, ratios: Sequence[float], steps: int, cost_controls: Sequence[float], all_images: int
+) -> list[Arm]:
+    """Every seed's arms, in the table's order: the shots alone (ratio 0, both budgets at once), each
+    mix at equal steps and at equal exposures, the shots alone as long as each ``cost_controls``
+    mix, and all images."""
+    mixes = [ratio for ratio in ratios if ratio > 0]
+    plan = [Arm(SHOTS_ALONE, "both", "shots", 0.0, shots, steps)]
+    plan += [Arm(f"mixed 1:{r:g}, {STEPS}", STEPS, f"mixed-{r:g}-steps", r, shots, steps) for r in mixes]
+    plan += [
+        Arm(f"mixed 1:{r:g}, {EXPOSURES}", EXPOSURES, f"mixed-{r:g}-exposures", r, shots, exposure_steps(steps, r))
+        for r in mixes
+    ]
+    for ratio in cost_controls:
+        long = exposure_steps(steps, ratio)
+        plan.append(Arm(f"{SHOTS_ALONE}, {long} steps", COST, f"shots-{long}", 0.0, shots, long))
+    return plan + [Arm(ALL_IMAGES, "-", "all", 0.0, all_images, steps)]
 
 
-def _matches(summary: dict[str, Any], settings: AdaptSettings, shots: int) -> bool:
+def _matches(summary: dict[str, Any], settings: AdaptSettings) -> bool:
     """Whether an ``adapt.json`` already in an arm's folder is this arm's (same shots, ratio, steps,
     seed, family, held-out images and fine-tuned part)."""
     wanted = {
-        "shots": shots,
+        "shots": settings.shots,
         "ratio": settings.ratio,
         "steps": settings.steps,
         "seed": settings.seed,
@@ -131,7 +152,7 @@ def adapt_arm(
     path = out / ADAPT_JSON
     if resume and path.is_file():
         summary = json.loads(path.read_text())
-        if _matches(summary, settings, settings.shots):
+        if _matches(summary, settings):
             return summary, True
     summary = adapt_tokenizer(
         run,
@@ -226,14 +247,14 @@ def evaluate_mix_ratio(
     config = RunDir.open(run).load_config(host)
     tokenizer, folder = load_tokenizer(run, host)
     image_size: ImageSize = tokenizer.autoencoder.vqtouch_spec.context.image_size
-    held_out = held_out_count(target, [shots], eval_images, host)
-    all_images, held_out = all_images_count(target, shots, all_images, held_out, host)
+    all_images, held_out = all_images_count(target, shots, all_images, eval_images, host)
     # One batch for every arm, fine-tuning and scoring: the contact region's noise estimate is made per
     # batch, so the arms' regions are the same pixels only when their batches are.
     batch_size = min(config.data.batch_size, shots)
     background, background_source = sensor_background(target, host, image_size)
     record = ExperimentRecord("mix_ratio", out, seeds)
     fitted, families_source = families_for(families, tokenizer, folder, target, host, out, image_size)
+    plan = arm_plan(shots, ratios, steps, cost_controls, all_images)
     rows: list[dict[str, Any]] = []
     assignments, skipped = [], {}
     name = source = ""
@@ -246,40 +267,29 @@ def evaluate_mix_ratio(
             f"seed {seed}: {name} -> family {assignment['family']} ({', '.join(assignment['members'])})"
             + (", nearest: the assignment was refused" if assignment["refused"] else "")
         )
-        mixes = [ratio for ratio in ratios if ratio > 0]
-        plan = [(0.0, STEPS, shots, steps)]  # the shots alone: ratio 0 under both budgets
-        plan += [(ratio, STEPS, shots, steps) for ratio in mixes]
-        plan += [(ratio, EXPOSURES, shots, exposure_steps(steps, ratio)) for ratio in mixes]
-        plan += [(0.0, COST, shots, exposure_steps(steps, ratio)) for ratio in cost_controls]
-        plan.append((0.0, ALL_IMAGES, all_images, steps))
-        for ratio, budget, count, arm_steps in plan:
-            arm = {ALL_IMAGES: ALL_IMAGES, COST: f"{SHOTS_ALONE}, {arm_steps} steps"}.get(budget) or arm_name(
-                ratio, budget
-            )
+        for arm in plan:
             settings = AdaptSettings(
-                shots=count,
-                ratio=ratio,
-                steps=arm_steps,
+                shots=arm.images,
+                ratio=arm.ratio,
+                steps=arm.steps,
                 eval_images=held_out,
                 seed=seed,
                 family=assignment["family"],
                 batch_size=batch_size,
                 metrics=METRICS,
             )
-            folder_name = {ALL_IMAGES: "all", COST: f"shots-{arm_steps}"}.get(budget) or arm_folder(ratio, budget)
             summary, reused = adapt_arm(
-                run, target, fitted, host, out / f"seed{seed}" / folder_name, settings, background, resume=not overwrite
+                run, target, fitted, host, out / f"seed{seed}" / arm.folder, settings, background, resume=not overwrite
             )
-            if arm == SHOTS_ALONE:  # the family tokenizer before fine-tuning, and the background, once per seed
+            if arm.name == SHOTS_ALONE:  # the family tokenizer before fine-tuning, and the background, once per seed
                 rows.append(_row(ZERO_SHOT, "-", 0.0, seed, summary, after=False))
                 rows.append(_background_row(seed, summary))
-            shown_budget = {SHOTS_ALONE: "both", ALL_IMAGES: "-"}.get(arm, budget)
-            rows.append(_row(arm, shown_budget, ratio, seed, summary))
+            rows.append(_row(arm.name, arm.budget, arm.ratio, seed, summary))
             skipped |= summary["after"].get("skipped") or {}
             last = rows[-1]
             report(
-                f"seed {seed}, {arm}: {arm_steps} steps{' (read back)' if reused else ''}, SSIM {last.get('ssim')}, "
-                f"contact PSNR {last.get('contact_psnr')}, family PSNR {last.get('family_psnr')}"
+                f"seed {seed}, {arm.name}: {arm.steps} steps{' (read back)' if reused else ''}, SSIM "
+                f"{last.get('ssim')}, contact PSNR {last.get('contact_psnr')}, family PSNR {last.get('family_psnr')}"
             )
     summary_rows = mean_spread(rows, (*TABLE_COLUMNS, "train_images"), GROUP)
     result = {

@@ -404,11 +404,11 @@ def sample_and_score(
         if classifier is not None
         else {"skipped": "no paired truth with labels (a folder of captured images, or a dataset without labels)"}
     )
-    scores = _scores(generated, real_M3HW, shots_N3HW, background_3HW, feature_size, host, paired)
+    # One feature network (its weights loaded once) for the fd and the classifier.
+    metric = host.build("metric", {"name": "fd_effnetlite0", "image_size": feature_size})
+    scores = _scores(generated, real_M3HW, shots_N3HW, background_3HW, metric, paired)
     if classifier is not None:
-        accuracy = _classifier_scores(
-            generated, paired, conditions.labels, classifier, pipe.tokenizer, feature_size, host, seed
-        )
+        accuracy = _classifier_scores(generated, paired, conditions.labels, classifier, pipe.tokenizer, metric, seed)
         for row in scores:
             if (row["conditioner"], row["arm"]) in accuracy:
                 row["classifier_accuracy"] = accuracy.pop((row["conditioner"], row["arm"]))
@@ -445,8 +445,7 @@ def _classifier_scores(
     labels: Sequence[int],
     classifier: tuple[torch.Tensor, list[int]],
     tokenizer: Any,
-    feature_size: int,
-    host: PluginHost,
+    metric: Any,
     seed: int,
 ) -> dict[tuple[str, str], float]:
     """``classifier_accuracy`` per (conditioner, arm): how often the classifier of
@@ -456,7 +455,6 @@ def _classifier_scores(
     from vqtouch.plugins.evaluation.distribution import DistributionScorer
     from vqtouch.plugins.tokenizer import reconstruct_all
 
-    metric = host.build("metric", {"name": "fd_effnetlite0", "image_size": feature_size})
     scorer = DistributionScorer(paired_M3HW, list(labels), classifier[0], classifier[1], metric=metric, seed=seed)
     ceiling = scorer.score(reconstruct_all(tokenizer, paired_M3HW.to(tokenizer.device)).float().cpu())
     accuracy = {}
@@ -472,8 +470,7 @@ def _scores(
     real_M3HW: torch.Tensor,
     shots_N3HW: torch.Tensor,
     background_3HW: torch.Tensor,
-    feature_size: int,
-    host: PluginHost,
+    metric: Any,
     paired_M3HW: torch.Tensor | None = None,
 ) -> list[dict[str, Any]]:
     """One row per conditioner and arm: ``fd_effnetlite0`` against the held-out real images and, given
@@ -483,7 +480,6 @@ def _scores(
     from vqtouch.plugins.evaluation.distribution import DistributionScorer
 
     count = len(real_M3HW)
-    metric = host.build("metric", {"name": "fd_effnetlite0", "image_size": feature_size})
     scorer = DistributionScorer(real_M3HW.float(), metric=metric)
     common = {
         "shots (copied)": scorer.score(_cycled(shots_N3HW.float(), count))["fd_effnetlite0"],

@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import Assembly, ConfigError, MetricSet, RunDir, atomic_write, hookimpl, run_stage
+from vqtouch.core import Assembly, ConfigError, MetricSet, RunDir, hookimpl, run_stage
 from vqtouch.core.cli import (
     add_config_arguments,
     add_run_arguments,
@@ -133,11 +133,25 @@ def _evaluate_command(args: argparse.Namespace) -> int:
     if args.overrides or args.config:
         raise ConfigError("--set and --config shape the experiment (--out); with --run the run's own config is used")
     location = tokenizer_location(args.run)
-    if not isinstance(location, RunDir):
-        return _evaluate_folder(args, location)
-    run = location
-    config = run.load_config(host)
-    tokenizer, folder = load_tokenizer(run, host, args.step)
+    if isinstance(location, RunDir):
+        run = location
+        config = run.load_config(host)
+        tokenizer, folder = load_tokenizer(run, host, args.step)
+    else:
+        # A tokenizer folder outside any run (what `vqtouch adapt` writes, or a copied checkpoint folder)
+        # has no data split of its own: --dataset names the images, the reconstruction scene the metrics.
+        if not args.dataset:
+            raise ConfigError(
+                f"{location} is a tokenizer folder outside any run (e.g. a `vqtouch adapt` output): it has no "
+                'data of its own; name the images with --dataset, e.g. --dataset \'{"name": "image_folder", '
+                '"root": "data/my_sensor"}\''
+            )
+        if args.step is not None or args.split != "val":
+            raise ConfigError(f"--step and --split choose within a run; {location} is one tokenizer folder")
+        tokenizer, folder = load_tokenizer(location, host)
+        image_size = tokenizer.autoencoder.vqtouch_spec.context.image_size
+        config = resolve_config("reconstruction", [], [f"data.image_size={json.dumps(image_size)}"], host=host)
+        run = RunDir(folder)  # written into as a run is, its scores beside the weights
     assembly = Assembly(config, host)
     if args.dataset:
         # A separate held-out dataset (e.g. another seed), evaluated whole: runs trained on
@@ -167,44 +181,13 @@ def _evaluate_command(args: argparse.Namespace) -> int:
     if not os.access(run.path, os.W_OK):
         print(f"vqtouch: {run.path} is read-only: the scores above were printed, not saved", file=sys.stderr)
         return 0
-    save_pairs(*scores["examples"], run.path / f"reconstructions_{folder.name}.png")
-    suffix = "_dataset" if args.dataset else ""
-    run.write_json(f"evaluation_{folder.name}{suffix}.json", result)
-    return 0
-
-
-def _evaluate_folder(args: argparse.Namespace, folder: Path) -> int:
-    """``evaluate reconstruction --run FOLDER`` for a tokenizer folder outside any run (what ``vqtouch
-    adapt`` writes, or a copied checkpoint folder): it has no data split of its own, so ``--dataset``
-    names the images (scored whole, beside their no-contact background), with the
-    reconstruction scene's metrics unless ``--metrics``; ``evaluation_dataset.json`` goes beside it."""
-    host = args.host
-    if not args.dataset:
-        raise ConfigError(
-            f"{folder} is a tokenizer folder outside any run (e.g. a `vqtouch adapt` output): it has no data of "
-            'its own; name the images with --dataset, e.g. --dataset \'{"name": "image_folder", "root": '
-            '"data/my_sensor"}\''
-        )
-    if args.step is not None or args.split != "val":
-        raise ConfigError(f"--step and --split choose within a run; {folder} is one tokenizer folder")
-    tokenizer, folder = load_tokenizer(folder, host)
-    image_size = tokenizer.autoencoder.vqtouch_spec.context.image_size
-    config = resolve_config("reconstruction", [], [f"data.image_size={json.dumps(image_size)}"], host=host)
-    assembly = Assembly(config, host)
-    evaluated = assembly.dataset(plugin_block(args.dataset, "--dataset"))
-    names = args.metrics.split(",") if args.metrics else [m.name for m in config.metrics]
-    metrics = {name: assembly.build("metric", name) for name in names}
-    background, background_source = dataset_background(evaluated, image_hw(image_size), images_are="evaluated")
-    scores = evaluate_reconstruction(
-        tokenizer, evaluated, metrics, batch_size=config.data.batch_size, background_3HW=background
-    )
-    result = {"checkpoint": str(folder), "split": "dataset", "background": background_source, **printable(scores)}
-    print(json.dumps(result, indent=2))  # first: a folder that cannot be written to still gives its scores
-    if not os.access(folder, os.W_OK):
-        print(f"vqtouch: {folder} is read-only: the scores above were printed, not saved", file=sys.stderr)
-        return 0
-    save_pairs(*scores["examples"], folder / "reconstructions_dataset.png")
-    atomic_write(folder / "evaluation_dataset.json", lambda tmp: tmp.write_text(json.dumps(result, indent=2) + "\n"))
+    if run.path == folder:  # a folder outside a run: one checkpoint, scored on --dataset
+        picture, record = "reconstructions_dataset.png", "evaluation_dataset.json"
+    else:  # a run names its files by checkpoint
+        suffix = "_dataset" if args.dataset else ""
+        picture, record = f"reconstructions_{folder.name}.png", f"evaluation_{folder.name}{suffix}.json"
+    save_pairs(*scores["examples"], run.path / picture)
+    run.write_json(record, result)
     return 0
 
 
