@@ -162,7 +162,8 @@ def vqtouch_open_pretrained(name: str, host: PluginHost, device: Any, tokenizer_
 
     The answer has the attributes ``tokenizer``, ``generator``, ``conditioners`` (built, in eval mode,
     on ``device``; with ``tokenizer_only`` the generator is None and the conditioners empty, so nothing
-    else is built), ``run_config`` (the config dict of the run that trained them) and ``folder``.  The
+    else is built), ``run_config`` (the config dict of the run that trained them), ``folder`` and
+    ``tokenizer_folder`` (the tokenizer's checkpoint folder, what ``--tokenizer pretrained:NAME`` trains on).  The
     first plugin that answers wins; a plugin that knows the name but cannot open it raises a one-line
     ``vqtouch.core.ConfigError``.  Through this hook the generation pipeline opens bundles without
     importing the package that ships them.

@@ -311,3 +311,35 @@ def test_decoder_parameters_are_those_a_decode_uses(tokenizer_folder):
     assert names and names < everything
     assert all(name.startswith(("dec_", "post_quant")) for name in names), sorted(names)[:5]
     assert all(name in names for name in everything if name.startswith(("dec_", "post_quant")))
+
+
+def _psnr(tokenizer, images):
+    from vqtouch.plugins.tokenizer import reconstruct_all
+
+    metric = HOST.build("metric", "psnr")
+    metric.update(reconstruct_all(tokenizer, images).detach(), images)
+    return float(metric.compute())
+
+
+def test_reconstruct_and_cluster_read_an_adapted_tokenizer(tokenizer_folder, families_folder, tmp_path, capsys):
+    """An adapt output is a tokenizer wherever one is read (train generator and evaluate: the tests
+    above): `reconstruct` uses its weights, not the family's, and `cluster` records it with its digest."""
+    from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_digest
+
+    adapted = tmp_path / "adapted"
+    assert _adapt(tokenizer_folder, families_folder, adapted, "gelsight", "--threshold", "1") == 0
+    out = tmp_path / "rec"
+    assert main(["reconstruct", "--run", str(adapted), "--real-frames", "gelsight", "--out", str(out)]) == 0
+    record = json.loads((out / "reconstruct.json").read_text())
+    frames = HOST.build("sensor_family", HOST.validate("sensor_family", {"name": "gelsight"})).reference_frames(32, 32)
+    adapted_psnr = _psnr(load_tokenizer(adapted, HOST)[0], frames)
+    family_psnr = _psnr(load_tokenizer(tokenizer_folder, HOST)[0], frames)
+    assert record["checkpoint"] == str(adapted) and record["images"] == len(frames)
+    assert record["psnr"] == pytest.approx(adapted_psnr, abs=1e-3) and abs(adapted_psnr - family_psnr) > 1e-3
+
+    clusters = tmp_path / "clusters"
+    cluster = ["cluster", "--run", str(adapted), "--image-size", "32", "--images", "6", "--families", "2"]
+    assert main([*cluster, "--out", str(clusters), "--sensors", "gelsight", "digit"]) == 0
+    summary = json.loads((clusters / "cluster.json").read_text())
+    assert summary["tokenizer"] == str(adapted.resolve())
+    assert summary["tokenizer_sha256"] == tokenizer_digest(adapted) != tokenizer_digest(tokenizer_folder)

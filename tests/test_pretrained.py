@@ -12,6 +12,7 @@ from generator_runs import TINY, train_args
 from vqtouch.core import Assembly, ConfigError, RunDir, load_plugins, read_metadata, resolve_config, run_stage
 from vqtouch.core.cli import main
 from vqtouch.plugins.generator.pipeline import load_pipeline
+from vqtouch.plugins.tokenizer import tokenizer_digest
 from vqtouch.plugins.pretrained import bundle as bundle_module
 from vqtouch.plugins.pretrained.bundle import (
     COMMAND_KEY,
@@ -163,3 +164,38 @@ def test_a_plugin_can_serve_pretrained_names_through_its_hook(trained, make_plug
     with pytest.raises(ConfigError, match="no installed plugin ships bundled weights") as error:
         load_pipeline("pretrained:tour", host=load_plugins(autoload=False, block=["pretrained"]), device="cpu")
     assert "\n" not in str(error.value)
+
+
+def test_a_bundle_name_is_a_tokenizer_wherever_one_is_read(trained, tmp_path, monkeypatch, capsys):
+    """`pretrained:NAME` as `train generator --tokenizer`, `reconstruct --run`, `cluster --run` and
+    `evaluate reconstruction --run`: the bundle's tokenizer folder, as if that folder were given; the
+    evaluation prints its scores and writes nothing into the read-only bundle."""
+    _, bundles = trained
+    monkeypatch.setattr(bundle_module, "BUNDLES", bundles)
+    folder = bundles / "tiny" / "tokenizer"
+
+    generator = tmp_path / "gen"
+    assert main(train_args(generator, flags=("--tokenizer", "pretrained:tiny"))) == 0
+    config = json.loads((generator / "config.json").read_text())
+    assert config["generator"]["tokenizer_run"] == str(folder.resolve()) and config["stages"] == ["generator"]
+
+    records = []
+    for source, out in (("pretrained:tiny", tmp_path / "by_name"), (str(folder), tmp_path / "by_folder")):
+        assert main(["reconstruct", "--run", source, "--real-frames", "gelsight", "--out", str(out)]) == 0
+        records.append(json.loads((out / "reconstruct.json").read_text()))
+    assert records[0] == records[1] and records[0]["checkpoint"] == str(folder)
+
+    cluster = ["cluster", "--run", "pretrained:tiny", "--image-size", "32", "--images", "6", "--families", "2"]
+    assert main([*cluster, "--out", str(tmp_path / "clusters"), "--sensors", "gelsight", "digit"]) == 0
+    summary = json.loads((tmp_path / "clusters" / "cluster.json").read_text())
+    assert summary["tokenizer"] == str(folder.resolve()) and summary["tokenizer_sha256"] == tokenizer_digest(folder)
+
+    before = sorted(path.name for path in folder.iterdir())
+    capsys.readouterr()
+    dataset = json.dumps({"name": "procedural", "num_samples": 6, "seed": 5})
+    evaluate = ["--no-progress", "evaluate", "reconstruction", "--run", "pretrained:tiny", "--dataset", dataset]
+    assert main([*evaluate, "--metrics", "ssim,psnr"]) == 0
+    captured = capsys.readouterr()
+    assert "pretrained:tiny is a bundle, read-only" in captured.err and f'"checkpoint": "{folder}"' in captured.out
+    assert sorted(path.name for path in folder.iterdir()) == before
+    assert main([*evaluate, "--step", "2"]) == 2 and "--step and --split choose within a run" in capsys.readouterr().err

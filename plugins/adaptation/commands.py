@@ -243,7 +243,9 @@ def _evaluate_mix_ratio_command(args: argparse.Namespace) -> int:
 @hookimpl
 def vqtouch_add_commands(subparsers):
     cluster = subparsers.add_parser("cluster", help="group sensors into families from a trained tokenizer's features")
-    cluster.add_argument("--run", required=True, help="a run whose tokenizer trained (or a checkpoint folder)")
+    cluster.add_argument(
+        "--run", required=True, help="a run whose tokenizer trained, a checkpoint folder or a bundle (pretrained:NAME)"
+    )
     add_step_argument(cluster)
     cluster.add_argument(
         "--sensors",
@@ -290,7 +292,9 @@ def vqtouch_add_commands(subparsers):
 
     adapt = subparsers.add_parser("adapt", help="adapt a family tokenizer to an unseen sensor from a few of its images")
     adapt.add_argument(
-        "--run", required=True, help="the family tokenizer: a run whose tokenizer trained (or a checkpoint folder)"
+        "--run",
+        required=True,
+        help="the family tokenizer: a run whose tokenizer trained, a checkpoint folder or a bundle (pretrained:NAME)",
     )
     add_step_argument(adapt)
     adapt.add_argument(

@@ -19,10 +19,10 @@ from typing import Any, Literal
 from pydantic import Field
 
 from vqtouch.core import Section, Slot, StageJob, StageUnavailable, hookimpl
-from vqtouch.core.checkpoint import is_pretrained, open_pretrained
+from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.plugins.evaluation.contact import VERDICT_EVIDENCE
-from vqtouch.plugins.tokenizer import experiment_metrics, load_tokenizer, reconstruct_all, tokenizer_location
+from vqtouch.plugins.tokenizer import experiment_metrics, load_tokenizer, reconstruct_all
 
 from .adapt import AdaptSettings
 
@@ -101,11 +101,8 @@ def _family_tokenizer(job: StageJob) -> tuple[Any, Any]:
     """The tokenizer the section's ``family_tokenizer`` names (see its description) and its checkpoint folder."""
 
     spec = job.section.family_tokenizer
-    if is_pretrained(spec):
-        bundle = open_pretrained(spec, job.host, tokenizer_only=True)
-        return bundle.tokenizer, bundle.folder / "tokenizer"
     try:
-        return load_tokenizer(tokenizer_location(spec) if spec else job.run, job.host)
+        return load_tokenizer(spec or job.run, job.host)
     except MissingCheckpointError as exc:
         where = spec or "this run"
         raise StageUnavailable(

@@ -52,7 +52,7 @@ from vqtouch.core import (
     StageUnavailable,
     hookimpl,
 )
-from vqtouch.core.checkpoint import is_pretrained, open_pretrained
+from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.core.cli import non_negative_float, non_negative_int, positive_int
 from vqtouch.core.data import experiment_split
 from vqtouch.core.images import image_grid, save_png
@@ -88,8 +88,7 @@ def _family_tokenizer(family_run: str, host: PluginHost) -> tuple[Any, Path]:
     from vqtouch.plugins.tokenizer import load_tokenizer
 
     if is_pretrained(family_run):
-        bundle = open_pretrained(family_run, host, tokenizer_only=True)
-        return bundle.tokenizer, bundle.folder / "tokenizer"
+        return load_tokenizer(family_run, host)
     run = RunDir.open(family_run)
     config = run.load_config(host)
     if getattr(config, "generator", None) is None or config.generator.model is None:

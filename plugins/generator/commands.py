@@ -58,7 +58,7 @@ def _with_tokenizer_run(config: Any, tokenizer_run: str, host: PluginHost) -> An
     tokenizer checkpoint folder such as an adapted tokenizer): its tokenizer section and image
     size, the generator stage alone."""
 
-    source = tokenizer_location(tokenizer_run)
+    source = tokenizer_location(tokenizer_run, host)
     data = config.to_dict()
     if isinstance(source, RunDir):
         trained = source.load_config(host).to_dict()
@@ -469,7 +469,12 @@ def vqtouch_add_commands(subparsers):
     )
     add_config_arguments(generator, default_scene="label-to-touch")
     add_run_arguments(generator)
-    generator.add_argument("--tokenizer", metavar="RUN", help="use the tokenizer trained in this run")
+    generator.add_argument(
+        "--tokenizer",
+        metavar="RUN",
+        help="learn the codes of this tokenizer: a run, a checkpoint folder (e.g. an adapt output) or a bundle "
+        "(pretrained:NAME)",
+    )
     generator.set_defaults(handler=_train_generator_command)
 
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")

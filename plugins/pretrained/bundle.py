@@ -222,6 +222,11 @@ class Bundle:
     weights: str = "raw"
 
     @property
+    def tokenizer_folder(self) -> Path:
+        """The folder of the tokenizer's files (a tokenizer checkpoint folder, read-only)."""
+        return self.folder / TOKENIZER
+
+    @property
     def conditioner_names(self) -> list[str]:
         """The registered name of each conditioner, in the generator's order."""
         return [conditioner.vqtouch_spec.config.name for conditioner in self.conditioners]

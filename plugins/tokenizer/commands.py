@@ -16,6 +16,7 @@ from typing import Any
 import torch
 
 from vqtouch.core import Assembly, ConfigError, MetricSet, RunDir, hookimpl, run_stage
+from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.core.cli import (
     add_config_arguments,
     add_run_arguments,
@@ -132,7 +133,7 @@ def _evaluate_command(args: argparse.Namespace) -> int:
         return _reconstruction_experiment_command(args)
     if args.overrides or args.config:
         raise ConfigError("--set and --config shape the experiment (--out); with --run the run's own config is used")
-    location = tokenizer_location(args.run)
+    location = tokenizer_location(args.run, host)
     if isinstance(location, RunDir):
         run = location
         config = run.load_config(host)
@@ -178,8 +179,9 @@ def _evaluate_command(args: argparse.Namespace) -> int:
         **printable(scores),
     }
     print(json.dumps(result, indent=2))  # first: a run that cannot be written to still gives its scores
-    if not os.access(run.path, os.W_OK):
-        print(f"vqtouch: {run.path} is read-only: the scores above were printed, not saved", file=sys.stderr)
+    if is_pretrained(args.run) or not os.access(run.path, os.W_OK):
+        what = f"{args.run} is a bundle, read-only" if is_pretrained(args.run) else f"{run.path} is read-only"
+        print(f"vqtouch: {what}: the scores above were printed, not saved", file=sys.stderr)
         return 0
     if run.path == folder:  # a folder outside a run: one checkpoint, scored on --dataset
         picture, record = "reconstructions_dataset.png", "evaluation_dataset.json"
@@ -231,7 +233,11 @@ def vqtouch_add_commands(subparsers):
     tokenizer.set_defaults(handler=_train_tokenizer_command)
 
     reconstruct = subparsers.add_parser("reconstruct", help="encode and decode images with a trained tokenizer")
-    reconstruct.add_argument("--run", required=True, help="run directory (or a checkpoint folder)")
+    reconstruct.add_argument(
+        "--run",
+        required=True,
+        help="run directory, a tokenizer checkpoint folder (e.g. an adapt output) or a bundle (pretrained:NAME)",
+    )
     add_step_argument(reconstruct)
     source = reconstruct.add_mutually_exclusive_group(required=True)
     source.add_argument(
@@ -267,7 +273,7 @@ def vqtouch_add_commands(subparsers):
     mode.add_argument(
         "--run",
         help="run directory of a trained tokenizer: score it (a tokenizer folder outside a run, e.g. a "
-        "`vqtouch adapt` output, with --dataset)",
+        "`vqtouch adapt` output, or a bundle, pretrained:NAME, with --dataset)",
     )
     mode.add_argument(
         "--out",

@@ -1,7 +1,8 @@
-"""Loading a trained tokenizer: from a run (its newest good checkpoint, a step, or the best one) or
-from a checkpoint folder outside any run (what ``vqtouch adapt`` writes), and the helpers that read
-its files.  Part of the tokenizer package's public API (``vqtouch.plugins.tokenizer``): other
-packages load tokenizers through it, never through the stage module.
+"""Loading a trained tokenizer: from a run (its newest good checkpoint, a step, or the best one),
+from a checkpoint folder outside any run (what ``vqtouch adapt`` writes) or from a bundle
+(``pretrained:NAME``), and the helpers that read its files.  Part of the tokenizer package's
+public API (``vqtouch.plugins.tokenizer``): other packages load tokenizers through it, never
+through the stage module.
 """
 
 from __future__ import annotations
@@ -12,8 +13,8 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import PluginHost, RunDir, load, read_metadata
-from vqtouch.core.checkpoint import files_digest
+from vqtouch.core import ConfigError, PluginHost, RunDir, load, read_metadata
+from vqtouch.core.checkpoint import files_digest, is_pretrained, open_pretrained
 
 from .training import Tokenizer
 
@@ -29,8 +30,14 @@ def load_tokenizer(
 
     A run's folder comes from :meth:`RunDir.checkpoint`, which refuses files made with another
     config than the run's; so does a ``step-*`` folder given inside a run.  A checkpoint folder
-    outside any run (copied elsewhere) is loaded as it is.
+    outside any run (copied elsewhere) is loaded as it is, and ``pretrained:NAME`` loads a bundle's
+    tokenizer (its folder is returned: read-only, inside the installed package).
     """
+    if is_pretrained(run_or_folder):
+        if step is not None:
+            raise ConfigError(f"--step chooses within a run; {run_or_folder} is one bundled tokenizer")
+        bundle = open_pretrained(str(run_or_folder), host, device, tokenizer_only=True)
+        return bundle.tokenizer, bundle.tokenizer_folder
     if isinstance(run_or_folder, RunDir):
         run, path = run_or_folder, run_or_folder.path
     else:
@@ -56,9 +63,14 @@ def load_tokenizer(
     return Tokenizer(autoencoder, quantizer).eval(), folder
 
 
-def tokenizer_location(path: str | Path) -> RunDir | Path:
+def tokenizer_location(path: str | Path, host: PluginHost | None = None) -> RunDir | Path:
     """Where a tokenizer lives: the run at ``path``, or ``path`` itself when it is a checkpoint
-    folder holding the tokenizer files outside any run (e.g. what ``vqtouch adapt`` writes)."""
+    folder holding the tokenizer files outside any run (e.g. what ``vqtouch adapt`` writes), or for
+    ``pretrained:NAME`` the bundle's tokenizer folder (``host`` opens the bundle)."""
+    if is_pretrained(path):
+        if host is None:
+            raise ConfigError(f"{path}: a bundle is opened through the plugins; pass the plugin host")
+        return open_pretrained(str(path), host, tokenizer_only=True).tokenizer_folder
     path = Path(path)
     if not (path / "config.json").is_file() and all((path / name).is_file() for name in TOKENIZER_FILES):
         return path
