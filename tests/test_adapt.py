@@ -343,3 +343,19 @@ def test_reconstruct_and_cluster_read_an_adapted_tokenizer(tokenizer_folder, fam
     summary = json.loads((clusters / "cluster.json").read_text())
     assert summary["tokenizer"] == str(adapted.resolve())
     assert summary["tokenizer_sha256"] == tokenizer_digest(adapted) != tokenizer_digest(tokenizer_folder)
+
+
+def test_a_forced_family_that_is_not_the_nearest_is_noted_when_it_dominates_the_mix(
+    tokenizer_folder, families_folder, tmp_path, capsys
+):
+    """Another family's images wash out a faint sensor's contact at 1:5 (docs/results.md), so adapt says
+    so when --family forces one the sensor is not nearest to and the mix gives it more than the shots."""
+    assert _adapt(tokenizer_folder, families_folder, tmp_path / "free", "gelsight", "--threshold", "1") == 0
+    nearest = json.loads((tmp_path / "free" / "adapt.json").read_text())["assignment"]["family"]
+    assert "note: family" not in capsys.readouterr().out
+    for family, ratio, noted in ((1 - nearest, "2", True), (1 - nearest, "1", False), (nearest, "2", False)):
+        out = tmp_path / f"f{family}_r{ratio}"
+        forced = ["--threshold", "1", "--family", str(family), "--ratio", ratio]
+        assert _adapt(tokenizer_folder, families_folder, out, "gelsight", *forced) == 0
+        printed = capsys.readouterr().out
+        assert (f"note: family {family} is not the one gelsight is nearest to (family {nearest})" in printed) is noted

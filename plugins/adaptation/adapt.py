@@ -332,6 +332,13 @@ def adapt_tokenizer(
         f"{assignment['distances']}, margin {assignment['margin']:.4g}"
     )
     family_count = round(settings.shots * settings.ratio)
+    if settings.family is not None and family != assignment["family"] and settings.ratio > 1:
+        # Measured on a low-contrast sensor (docs/results.md): another family's images at 1:5 washed
+        # its contact out (+0.4 dB over the no-contact image), at 1:1 it was kept (+2.7 dB).
+        report(
+            f"note: family {family} is not the one {name} is nearest to (family {assignment['family']}); "
+            f"mixed 1:{settings.ratio:g}, its images can wash out a faint sensor's contact; --ratio 1 or 0 keeps it"
+        )
     mixed = [shots_N]
     members: list[str] = []
     if family_count > 0:

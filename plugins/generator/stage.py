@@ -78,7 +78,7 @@ class GeneratorSection(Section):
         None,
         description="Run directory of the trained tokenizer whose codes the "
         "generator learns, or a tokenizer checkpoint folder (e.g. "
-        "from `vqtouch adapt`); null: this run's own tokenizer stage.",
+        "from `vqtouch adapt`), or a bundle (pretrained:NAME); null: this run's own tokenizer stage.",
     )
     steps: int = Field(25, ge=1, le=1000, strict=True, description="Sampling steps (denoiser calls) per sample.")
     guidance: float = Field(1.0, ge=0, le=1000, description="Classifier-free guidance scale; 1 is unguided.")
@@ -174,11 +174,11 @@ class GeneratorSection(Section):
 
 
 def tokenizer_source(job: StageJob) -> RunDir | Path:
-    """Where the tokenizer is: ``generator.tokenizer_run`` (a run or a tokenizer checkpoint
-    folder), else this run."""
+    """Where the tokenizer is: ``generator.tokenizer_run`` (a run, a tokenizer checkpoint folder or a
+    bundle, ``pretrained:NAME``), else this run."""
 
     path = job.section.tokenizer_run
-    return tokenizer_location(path) if path else job.run
+    return tokenizer_location(path, job.host) if path else job.run
 
 
 def load_run_tokenizer(job: StageJob, device: torch.device) -> tuple[Any, Path]:
