@@ -101,13 +101,13 @@ def write_outputs(rows: list[dict], out: Path) -> None:
     (out / "lowcontrast.md").write_text("\n".join(lines) + "\n")
     (out / "lowcontrast.json").write_text(json.dumps(rows, indent=2) + "\n")
     targets = list(dict.fromkeys(r["target"] for r in rows))
-    figure, axes = plt.subplots(1, len(targets), figsize=(5 * len(targets), 3.6), sharey=True, squeeze=False)
+    figure, axes = plt.subplots(1, len(targets), figsize=(6.5 * len(targets), 3.6), sharey=True, squeeze=False)
     for axis, target in zip(axes[0], targets):
         mine = [r for r in rows if r["target"] == target]
         axis.barh([r["arm"] for r in mine], [r["contact_gain_db"] for r in mine], color="tab:blue")
         axis.axvline(TARGET_GAIN_DB, color="tab:red", linestyle="--", label=f"target +{TARGET_GAIN_DB:g} dB")
         axis.axvline(0, color="black", linewidth=0.8)
-        axis.set_title(f"{target}: contact PSNR over the no-contact image")
+        axis.set_title(f"{target}: contact PSNR gain over the no-contact image", fontsize=10)
         axis.set_xlabel("dB")
         axis.invert_yaxis()
     axes[0][0].legend(loc="lower right")
