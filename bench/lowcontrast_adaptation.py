@@ -18,7 +18,7 @@ Every arm is scored by ``adapt`` itself on the held-out images: on the whole ima
 region, beside the sensor's no-contact image (``background_*``).  The target is an adapted
 tokenizer at least 2 dB above that background on the contact region.  An arm whose ``adapt.json``
 exists is read, not trained again; ``lowcontrast.md`` and ``lowcontrast.png`` (the contact region's
-gain over the background per arm) are written into OUT.
+gain over the background per arm; ``_seedN`` for ``--seed N``) are written into OUT.
 """
 
 from __future__ import annotations
@@ -46,8 +46,9 @@ def arms(other_family: int) -> list[tuple[str, list[str]]]:
     ]
 
 
-def folder_name(target: str, arm: str) -> str:
-    return f"{target}_" + arm.replace(":", "to").replace(", ", "_").replace(" ", "_")
+def folder_name(target: str, arm: str, seed: int = 0) -> str:
+    name = f"{target}_" + arm.replace(":", "to").replace(", ", "_").replace(" ", "_")
+    return name if seed == 0 else f"{name}_seed{seed}"
 
 
 def run_arm(args: argparse.Namespace, target: str, extra: list[str], folder: Path) -> dict:
@@ -56,7 +57,8 @@ def run_arm(args: argparse.Namespace, target: str, extra: list[str], folder: Pat
     if not (folder / "adapt.json").is_file():
         spec = json.dumps({"name": "gelsight_mini", "variant": TARGETS[target]})
         command = ["--no-progress", "adapt", "--run", args.run, "--families", args.families, "--images", spec]
-        command += ["--shots", "50", "--steps", "400", "--eval-images", "150", "--out", str(folder), "--overwrite"]
+        command += ["--shots", "50", "--steps", "400", "--eval-images", "150", "--seed", str(args.seed)]
+        command += ["--out", str(folder), "--overwrite"]
         if main([*command, *extra]) != 0:
             raise SystemExit(f"adapt failed for {folder.name}")
     return json.loads((folder / "adapt.json").read_text())
@@ -67,6 +69,7 @@ def row(target: str, arm: str, summary: dict) -> dict:
     return {
         "target": target,
         "arm": arm,
+        "seed": summary["seed"],
         "family": summary["family"],
         "zero_shot_psnr": before["psnr"],
         "psnr": after["psnr"],
@@ -98,8 +101,9 @@ def write_outputs(rows: list[dict], out: Path) -> None:
             f"{r['contact_psnr']:.2f} ({r['background_contact_psnr']:.2f}) | {mark}{r['contact_gain_db']:+.2f}{mark} | "
             f"{r['family_psnr']:.2f} |"
         )
-    (out / "lowcontrast.md").write_text("\n".join(lines) + "\n")
-    (out / "lowcontrast.json").write_text(json.dumps(rows, indent=2) + "\n")
+    suffix = "" if rows[0]["seed"] == 0 else f"_seed{rows[0]['seed']}"
+    (out / f"lowcontrast{suffix}.md").write_text("\n".join(lines) + "\n")
+    (out / f"lowcontrast{suffix}.json").write_text(json.dumps(rows, indent=2) + "\n")
     targets = list(dict.fromkeys(r["target"] for r in rows))
     figure, axes = plt.subplots(1, len(targets), figsize=(6.5 * len(targets), 3.6), sharey=True, squeeze=False)
     for axis, target in zip(axes[0], targets):
@@ -112,7 +116,7 @@ def write_outputs(rows: list[dict], out: Path) -> None:
         axis.invert_yaxis()
     axes[0][0].legend(loc="lower right")
     figure.tight_layout()
-    figure.savefig(out / "lowcontrast.png", dpi=110)
+    figure.savefig(out / f"lowcontrast{suffix}.png", dpi=110)
 
 
 def main() -> None:
@@ -122,16 +126,17 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--targets", nargs="+", default=list(TARGETS), choices=list(TARGETS))
     parser.add_argument("--other-family", type=int, default=1, help="the family forced in the wrong-family arms")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the shots' draw and the rendered scenes")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for target in args.targets:
         for arm, extra in arms(args.other_family):
-            summary = run_arm(args, target, extra, args.out / folder_name(target, arm))
+            summary = run_arm(args, target, extra, args.out / folder_name(target, arm, args.seed))
             rows.append(row(target, arm, summary))
             print(f"{target} / {arm}: contact {rows[-1]['contact_gain_db']:+.2f} dB over the background", flush=True)
     write_outputs(rows, args.out)
-    print((args.out / "lowcontrast.md").read_text())
+    print((args.out / ("lowcontrast.md" if args.seed == 0 else f"lowcontrast_seed{args.seed}.md")).read_text())
 
 
 if __name__ == "__main__":
