@@ -278,7 +278,8 @@ def test_a_sensor_folder_may_be_a_data_render_export_or_class_sub_folders(tmp_pa
     sub-folder per class; a folder with none of them is one line naming the layouts."""
     from vqtouch.core import DatasetError
     from vqtouch.core.images import ImageLoader, save_png
-    from vqtouch.plugins.adaptation.families import sensor_folder_files, sensor_images
+    from vqtouch.plugins.adaptation.families import sensor_images
+    from vqtouch.plugins.data.sensor_folders import sensor_folder_files
 
     export = tmp_path / "export"
     args = ["--no-progress", "data", "render", "--sensor", "digit", "--n", "6", "--image-size", "32"]

@@ -200,6 +200,37 @@ def test_reconstruct_images_takes_the_reader_options_its_errors_name(trained_run
     assert main(["reconstruct", "--run", str(trained_run), "--images", block, "--out", str(tmp_path / "b")]) == 0
 
 
+def test_reconstruct_reads_a_folder_that_holds_one_sensors_frames(trained_run, tmp_path, capsys):
+    """Frames directly in a folder (no class sub-folders), as `cluster` and `adapt` read them: each
+    constant frame is scored against itself at the tokenizer's size (a constant image resizes to the
+    same constant whatever the filter), so the record's PSNR is that of an independent reconstruction."""
+    import torch
+
+    from vqtouch.core import load_plugins
+    from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all
+
+    host = load_plugins(autoload=False)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    colours = [(30, 90, 160), (120, 60, 200), (200, 180, 40)]
+    for index, colour in enumerate(colours):
+        Image.new("RGB", (40, 40), colour).save(frames / f"frame_{index}.png")
+    out = tmp_path / "recon"
+    assert main(["reconstruct", "--run", str(trained_run), "--images", str(frames), "--out", str(out)]) == 0
+    record = json.loads((out / "reconstruct.json").read_text())
+    tokenizer, _ = load_tokenizer(trained_run, host)
+    size = record["image_size"]
+    images = torch.tensor(colours, dtype=torch.float32).div(255).view(3, 3, 1, 1).expand(3, 3, size, size)
+    metric = host.build("metric", "psnr")
+    metric.update(reconstruct_all(tokenizer, images).detach(), images)
+    assert record["images"] == 3 and record["psnr"] == pytest.approx(float(metric.compute()), abs=1e-3)
+    capsys.readouterr()
+    with_option = ["--images", str(frames), "--images-option", "lenient=true", "--out", str(tmp_path / "o")]
+    assert main(["reconstruct", "--run", str(trained_run), *with_option]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "holds its images directly" in err and "drop --images-option" in err
+
+
 @pytest.mark.parametrize(
     "option, message",
     [

@@ -36,7 +36,9 @@ from vqtouch.plugins.evaluation.contact import (
 )
 from vqtouch.plugins.tokenizer import TOKENIZER_FILES, tokenizer_digest
 
-from .families import SensorFamilies, folder_of, save_families, sensor_folder_files, sensor_images
+from vqtouch.plugins.data.sensor_folders import folder_of, sensor_folder_files
+
+from .families import SensorFamilies, save_families, sensor_images
 
 #: What an adaptation writes into its output folder besides the tokenizer files (the families
 #: only when it fitted them itself).

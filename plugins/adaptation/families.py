@@ -24,10 +24,11 @@ from typing import Any, Literal
 
 import torch
 
-from vqtouch.core import ConfigError, DatasetError, PluginHost
+from vqtouch.core import ConfigError, PluginHost
 from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.core.image_size import ImageSize
 from vqtouch.core.seeding import on_one_thread
+from vqtouch.plugins.data.sensor_folders import folder_of, load_sensor_folder
 from vqtouch.plugins.tokenizer import TOKENIZER_FILES, tokenizer_digest
 
 FeatureKind = Literal["pooled", "codes"]
@@ -90,17 +91,11 @@ def sensor_images(
     (``{"name": "gelsight", "variant": {...}}``), which renders ``count`` procedural scenes
     (scene seed ``seed``)."""
     from vqtouch.core import BuildContext
-    from vqtouch.core.images import ImageLoader
 
     path = folder_of(spec)
     if path is not None:
-        files = files if files is not None else sensor_folder_files(path, host)[:count]
-        if not files:
-            raise DatasetError(f"{path}: no image files (png, jpg, ...) in this folder")
-        check_one_resolution(path, files)
-        loader = ImageLoader(size=image_size)
-        images = [loader.load(file) for file in files]  # DatasetError names the file that does not decode
-        return SensorImages(path.name, str(path), torch.stack(images))
+        images = load_sensor_folder(path, host, image_size, count=count, files=files)
+        return SensorImages(path.name, str(path), images)
     text = spec.strip()
     try:
         config = json.loads(text) if text.startswith("{") else {"name": text}
@@ -122,43 +117,6 @@ def sensor_images(
     )
     images = dataset.render_batch(list(range(count)))["tactile"]
     return SensorImages(sensor_label(config), json.dumps(config, sort_keys=True), images)
-
-
-#: The index ``vqtouch data render`` writes beside its tactile/ and visual/ folders.
-EXPORT_INDEX = "index.csv"
-
-
-def sensor_folder_files(path: Path, host: PluginHost) -> list[Path]:
-    """The image files of a sensor's folder, in a stable order, read as the ``image_folder`` reader
-    reads it: the tactile images an ``index.csv`` lists (what ``vqtouch data render`` writes: its
-    visual images and preview beside them are not the sensor's); else the images directly in the
-    folder (natural order); else one sub-folder per class, read recursively.  A folder with none of
-    them is a one-line DatasetError naming the layouts read."""
-    from vqtouch.plugins.data.readers import list_images
-
-    options = {"name": "image_folder", "root": str(path)}
-    if (path / EXPORT_INDEX).is_file():
-        options["csv"] = EXPORT_INDEX
-    elif direct := list_images(path):
-        return direct
-    elif not any(sub.is_dir() and not sub.name.startswith(".") for sub in path.iterdir()):
-        raise DatasetError(
-            f"{path}: no image files (png, jpg, ...) in this folder, no {EXPORT_INDEX} and no class sub-folders; "
-            "give the folder that holds the sensor's images"
-        )
-    dataset = host.build("dataset", options)
-    return [dataset.base / record.tactile for record in dataset.records]
-
-
-def folder_of(spec: str) -> Path | None:
-    """The folder ``spec`` names, or None when it is a sensor name or JSON (or no folder)."""
-    if spec.lstrip().startswith("{"):
-        return None
-    try:
-        path = Path(spec).expanduser()
-        return path if path.is_dir() else None
-    except OSError:  # e.g. a name too long to be a path
-        return None
 
 
 def registered_source(spec: str) -> str:
@@ -183,27 +141,6 @@ def sensor_label(config: dict[str, Any]) -> str:
     if set(config) == {"name", "variant"} and isinstance(config["variant"], dict):
         return f"{config['name']}/v{config['variant'].get('seed', 0)}"
     return config["name"] + "*"
-
-
-def check_one_resolution(folder: Path, files: list[Path]) -> None:
-    """Refuse a folder whose images have different sizes: one sensor's frames share one camera
-    resolution, and resizing a mix would silently stretch some of them."""
-    from PIL import Image
-
-    sizes: dict[tuple[int, int], Path] = {}
-    for file in files:
-        try:
-            with Image.open(file) as image:
-                sizes.setdefault(image.size, file)
-        except (OSError, ValueError) as exc:
-            raise DatasetError(f"cannot decode image {file}: {type(exc).__name__}: {exc}") from None
-        if len(sizes) > 1:
-            (a, first), (b, second) = list(sizes.items())[:2]
-            raise DatasetError(
-                f"{folder}: images of different sizes ({first.name} is {a[0]}x{a[1]}, {second.name} is "
-                f"{b[0]}x{b[1]}); a sensor's frames share one resolution: give each sensor its own "
-                "folder, or resize them to one size first"
-            )
 
 
 def family_sensor_specs(

@@ -48,6 +48,7 @@ from typing import Any, Callable, Sequence
 import torch
 
 from vqtouch.core import ConfigError, PluginHost
+from vqtouch.plugins.data.sensor_folders import folder_of, sensor_folder_files
 from vqtouch.plugins.evaluation.records import (
     ExperimentRecord,
     check_seeds,
@@ -70,14 +71,7 @@ from .adapt import (
     target_images,
 )
 from .evaluation import METRICS, train_fresh_tokenizer
-from .families import (
-    SensorFamilies,
-    folder_of,
-    load_families,
-    registered_source,
-    save_families,
-    sensor_folder_files,
-)
+from .families import SensorFamilies, load_families, registered_source, save_families
 
 SCRATCH, ZERO_SHOT, SHOTS_ALONE, BACKGROUND = "scratch", "zero-shot", "shots alone", "no-contact background"
 #: The held-out scores every arm carries, and its background's under the ``background_`` prefix.

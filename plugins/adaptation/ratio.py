@@ -51,10 +51,11 @@ from vqtouch.plugins.evaluation.records import (
     mean_spread,
     refuse_finished,
 )
+from vqtouch.plugins.data.sensor_folders import folder_of, sensor_folder_files
 
 from .adapt import ADAPT_JSON, AdaptSettings, adapt_tokenizer, sensor_background
 from .evaluation import METRICS
-from .families import SensorFamilies, folder_of, sensor_folder_files
+from .families import SensorFamilies
 from .fewshot import BACKGROUND, SHOTS_ALONE, ZERO_SHOT, assign_seed_family, families_for, held_out_count
 
 ALL_IMAGES = "all images"

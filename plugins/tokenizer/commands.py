@@ -34,6 +34,7 @@ from vqtouch.plugins.evaluation.records import DEFAULT_SEEDS
 from vqtouch.core.data import experiment_split
 
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
+from vqtouch.plugins.data.sensor_folders import folder_of, holds_images_directly, load_sensor_folder
 from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
 from vqtouch.plugins.evaluation.contact import dataset_background
 
@@ -103,6 +104,14 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
                 "reconstruct your own with --images FOLDER"
             )
         source = f"real {sensor_config.name} frames"
+    elif (frames_folder := folder_of(args.images)) is not None and holds_images_directly(frames_folder):
+        # A sensor's frames in one folder (or a render export), read as cluster and adapt read them.
+        if args.images_options:
+            raise ConfigError(
+                f"--images-option sets an option of the image_folder reader; {frames_folder} holds its images directly "
+                "(no class sub-folders), so no reader is used: drop --images-option"
+            )
+        images, source = load_sensor_folder(frames_folder, host, image_size), args.images
     else:
         dataset = host.build("dataset", _images_dataset(args.images, args.images_options, image_size))
         images = torch.stack([dataset[i]["tactile"] for i in range(len(dataset))])
@@ -247,8 +256,8 @@ def vqtouch_add_commands(subparsers):
     )
     source.add_argument(
         "--images",
-        help="an image folder (one sub-folder per class) to reconstruct, or a JSON "
-        'dataset block of any reader, e.g. \'{"name": "touch_and_go", '
+        help="a sensor's image folder to reconstruct (images in it, class sub-folders, or a `vqtouch data "
+        'render` export), or a JSON dataset block of any reader, e.g. \'{"name": "touch_and_go", '
         '"root": "data/tag"}\'',
     )
     reconstruct.add_argument(
