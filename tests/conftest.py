@@ -204,28 +204,11 @@ def family_tokenizer_run(tmp_path_factory):
 @pytest.fixture(scope="module")
 def family_clusters(family_tokenizer_run, tmp_path_factory):
     """Two families (GelSight with a variant, DIGIT) clustered with :func:`family_tokenizer_run`."""
+    from generator_runs import cluster_args
+
     out = tmp_path_factory.mktemp("families")
     variant = json.dumps({"name": "gelsight", "variant": {"seed": 1, "colour_gain": [1.05, 0.95, 0.95]}})
-    assert (
-        main(
-            [
-                "cluster",
-                "--run",
-                str(family_tokenizer_run),
-                "--images",
-                "8",
-                "--out",
-                str(out),
-                "--families",
-                "2",
-                "--sensors",
-                "gelsight",
-                variant,
-                "digit",
-            ]
-        )
-        == 0
-    )
+    assert main(cluster_args(family_tokenizer_run, out, ["gelsight", variant, "digit"])) == 0
     return out
 
 

@@ -76,6 +76,16 @@ def train_args(out: Path, *extra: str, scene: str = "label-to-touch", flags: tup
     return args
 
 
+def cluster_args(
+    run: str | Path, out: str | Path, sensors: list[str], *, images: int = 8, image_size: int | None = None
+) -> list[str]:
+    """``vqtouch cluster`` arguments: ``sensors`` grouped into two families from ``images`` images each,
+    with the tokenizer of ``run`` (at ``image_size`` where given)."""
+    size = ["--image-size", str(image_size)] if image_size is not None else []
+    return ["cluster", "--run", str(run), *size, "--images", str(images), "--out", str(out), "--families", "2",
+            "--sensors", *sensors]  # fmt: skip
+
+
 def tiny_tokenizer_folder(folder: Path) -> Path:
     """A checkpoint folder under ``folder`` holding a tiny untrained VQGAN tokenizer (autoencoder +
     16-code quantizer, built in the contract tests' default context: 32 px, 8 latent channels),

@@ -28,29 +28,9 @@ def tokenizer_folder(tmp_path_factory):
 @pytest.fixture(scope="module")
 def families_folder(tokenizer_folder, tmp_path_factory):
     out = tmp_path_factory.mktemp("families")
-    assert (
-        main(
-            [
-                "cluster",
-                "--run",
-                str(tokenizer_folder),
-                "--image-size",
-                "32",
-                "--images",
-                "8",
-                "--out",
-                str(out),
-                "--families",
-                "2",
-                "--sensors",
-                "gelsight",
-                _variant("gelsight", 1, colour_gain=[1.05, 0.95, 0.95]),
-                "digit",
-                _variant("digit", 2, noise_std=0.02),
-            ]
-        )
-        == 0
-    )
+    gelsight_v1 = _variant("gelsight", 1, colour_gain=[1.05, 0.95, 0.95])
+    sensors = ["gelsight", gelsight_v1, "digit", _variant("digit", 2, noise_std=0.02)]
+    assert main(generator_runs.cluster_args(tokenizer_folder, out, sensors, image_size=32)) == 0
     return out
 
 
@@ -338,8 +318,8 @@ def test_reconstruct_and_cluster_read_an_adapted_tokenizer(tokenizer_folder, fam
     assert record["psnr"] == pytest.approx(adapted_psnr, abs=1e-3) and abs(adapted_psnr - family_psnr) > 1e-3
 
     clusters = tmp_path / "clusters"
-    cluster = ["cluster", "--run", str(adapted), "--image-size", "32", "--images", "6", "--families", "2"]
-    assert main([*cluster, "--out", str(clusters), "--sensors", "gelsight", "digit"]) == 0
+    cluster = generator_runs.cluster_args(adapted, clusters, ["gelsight", "digit"], images=6, image_size=32)
+    assert main(cluster) == 0
     summary = json.loads((clusters / "cluster.json").read_text())
     assert summary["tokenizer"] == str(adapted.resolve())
     assert summary["tokenizer_sha256"] == tokenizer_digest(adapted) != tokenizer_digest(tokenizer_folder)

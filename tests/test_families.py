@@ -101,27 +101,10 @@ def test_cluster_groups_variants_with_their_family_and_a_folder_joins_its_sensor
     for index in range(8):
         save_png(digit[index]["tactile"], folder / f"frame_{index}.png")
     out = tmp_path / "families"
-    args = [
-        "cluster",
-        "--run",
-        str(tokenizer_folder),
-        "--image-size",
-        "32",
-        "--images",
-        "8",
-        "--out",
-        str(out),
-        "--families",
-        "2",
-        "--sensors",
-        "gelsight",
-        _variant("gelsight", 1, colour_gain=[1.05, 0.95, 0.95]),
-        "digit",
-        _variant("digit", 2, noise_std=0.02),
-        str(folder),
-        "--unseen",
-        _variant("digit", 4),
-    ]
+    gelsight_v1 = _variant("gelsight", 1, colour_gain=[1.05, 0.95, 0.95])
+    sensors = ["gelsight", gelsight_v1, "digit", _variant("digit", 2, noise_std=0.02)]
+    args = generator_runs.cluster_args(tokenizer_folder, out, [*sensors, str(folder)], image_size=32)
+    args += ["--unseen", _variant("digit", 4)]
     assert main(args) == 0
     result = json.loads((out / "cluster.json").read_text())
     assigned = result["assignments"]["digit/v4"]

@@ -8,7 +8,7 @@ import pytest
 import torch
 from safetensors import safe_open
 
-from generator_runs import TINY, train_args
+from generator_runs import TINY, cluster_args, train_args
 from vqtouch.core import Assembly, ConfigError, RunDir, load_plugins, read_metadata, resolve_config, run_stage
 from vqtouch.core.cli import main
 from vqtouch.plugins.generator.pipeline import load_pipeline
@@ -185,8 +185,8 @@ def test_a_bundle_name_is_a_tokenizer_wherever_one_is_read(trained, tmp_path, mo
         records.append(json.loads((out / "reconstruct.json").read_text()))
     assert records[0] == records[1] and records[0]["checkpoint"] == str(folder)
 
-    cluster = ["cluster", "--run", "pretrained:tiny", "--image-size", "32", "--images", "6", "--families", "2"]
-    assert main([*cluster, "--out", str(tmp_path / "clusters"), "--sensors", "gelsight", "digit"]) == 0
+    cluster = cluster_args("pretrained:tiny", tmp_path / "clusters", ["gelsight", "digit"], images=6, image_size=32)
+    assert main(cluster) == 0
     summary = json.loads((tmp_path / "clusters" / "cluster.json").read_text())
     assert summary["tokenizer"] == str(folder.resolve()) and summary["tokenizer_sha256"] == tokenizer_digest(folder)
 
