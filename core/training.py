@@ -138,6 +138,14 @@ class TrainConfig(Section):
         description="Keep an exponential moving average of the weights with this decay "
         "(saved next to the raw weights); null disables.",
     )
+    ema_unbiased: bool = Field(
+        True,
+        strict=True,
+        description="Average only the weights training produced: the average's weights "
+        "decay**(n-k) are normalised by their sum, as Adam corrects its moments, so the initial "
+        "(random) weights get no share.  false: the average starts at the initial weights, which keep "
+        "decay**steps of it (13% after 2,000 steps at 0.999, enough to spoil a short run's samples).",
+    )
     checkpoint_every: int = Field(
         500, ge=1, le=MAX_STEPS, strict=True, description="Write a checkpoint every this many steps."
     )
@@ -551,8 +559,13 @@ class Trainer:
             for tensor in module.state_dict().values():
                 dist.broadcast(tensor, src=0)
 
-    def _update_ema(self) -> None:
+    def _update_ema(self, updates: int) -> None:
+        """Fold the current weights into the average; ``updates``: how many steps it holds after this one."""
         decay = self.config.ema_decay
+        if self.config.ema_unbiased:
+            # The decay that keeps the shadow equal to sum_k decay**(n-k) w_k / sum_k decay**(n-k):
+            # 0 at the first update (the shadow becomes the first trained weights), -> decay later.
+            decay = decay * (1 - decay ** (updates - 1)) / (1 - decay**updates)
         for name, shadow in self.ema.items():
             current = self.task.modules[name].state_dict()
             with torch.no_grad():
@@ -641,7 +654,7 @@ class Trainer:
                 else:
                     self.state.consecutive_skips = 0
                 if self.ema:
-                    self._update_ema()
+                    self._update_ema(step + 1)
                 self.state.step = step + 1
                 images_seen += self.batch_size * self.dist.world
                 scalars = {**scalars, "skipped_steps": float(self.state.skipped_steps)}

@@ -323,6 +323,32 @@ def test_ema_weights_are_kept_and_saved(host, tmp_path):
     assert torch.equal(resumed.ema["model"]["linear.weight"], shadow)
 
 
+@pytest.mark.parametrize("unbiased", [True, False])
+def test_ema_is_the_decay_weighted_mean_of_the_trained_weights(host, tmp_path, unbiased):
+    """The closed form, from the weights recorded after every step: sum_k d**(n-k) w_k over sum_k d**(n-k)
+    (unbiased), or the same sum plus d**n times the initial weights (ema_unbiased=false)."""
+    decay, steps = 0.9, 12
+    trainer, task = make_trainer(host, tmp_path, steps=steps, ema_decay=decay, ema_unbiased=unbiased)
+    initial = task.modules["model"].linear.weight.detach().clone()
+    trained, step_once = [], task.training_step
+
+    def recording_step(batch, step, trainer):
+        scalars = step_once(batch, step, trainer)
+        trained.append(task.modules["model"].linear.weight.detach().clone())
+        return scalars
+
+    task.training_step = recording_step
+    trainer.fit()
+    shares = torch.tensor([decay ** (steps - k) for k in range(1, steps + 1)], dtype=torch.float64)
+    stacked = torch.stack(trained).double()
+    if unbiased:
+        expected = (shares[:, None, None] * stacked).sum(0) / shares.sum()
+    else:
+        expected = (1 - decay) * (shares[:, None, None] * stacked).sum(0) + decay**steps * initial.double()
+    assert not torch.allclose(trained[-1].double(), expected, atol=1e-4)  # an average, not the last weights
+    torch.testing.assert_close(trainer.ema["model"]["linear.weight"].double(), expected, rtol=0, atol=1e-6)
+
+
 def test_bf16_autocast_trains(host, tmp_path):
     trainer, task = make_trainer(host, tmp_path, steps=20, precision="bf16")
     trainer.fit()
