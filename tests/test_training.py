@@ -138,6 +138,20 @@ def test_resume_reproduces_the_uninterrupted_run_exactly(host, tmp_path):
         assert torch.equal(a, b)
 
 
+def test_a_resumed_run_continues_the_unbiased_ema_exactly(host, tmp_path):
+    """The EMA's bias correction counts updates from the run's step, so an interrupted run resumed from
+    its checkpoint ends with the same average as the uninterrupted one."""
+    full, _ = make_trainer(host, tmp_path / "full", ema_decay=0.9)
+    full.fit()
+    first, _ = make_trainer(host, tmp_path / "split", task_options={"interrupt_at": 6}, ema_decay=0.9)
+    with pytest.raises(KeyboardInterrupt):
+        first.fit()
+    second, _ = make_trainer(host, tmp_path / "split", ema_decay=0.9)
+    assert second.resume(tmp_path / "split" / "checkpoints") and second.state.step == 6
+    second.fit()
+    assert torch.equal(second.ema["model"]["linear.weight"], full.ema["model"]["linear.weight"])
+
+
 def test_lr_scale_gives_a_parameter_group_its_own_learning_rate(host, tmp_path):
     trainer, _ = make_trainer(host, tmp_path, steps=1, task_options={"bias_lr_scale": 0.1}, grad_clip=None)
     weight_groups = trainer.optimizers["main"].param_groups
