@@ -6,6 +6,8 @@ Run (one job at a time on a 2-core CPU; OMP_NUM_THREADS=2):
     .venv/bin/python bench/generator_diagnosis.py overfit --conditioner tactile --minutes 5 [--set KEY=VALUE ...]
     .venv/bin/python bench/generator_diagnosis.py split --bundle tour         # loss / x0 accuracy by region and t
     .venv/bin/python bench/generator_diagnosis.py sensitivity --bundle tour  # does the sample move with its condition?
+    .venv/bin/python bench/generator_diagnosis.py gap --bundle tour          # training scenes against held-out ones
+    .venv/bin/python bench/generator_diagnosis.py locate --minutes 8 --lr 1e-3 --batch 32  # contact from vision
 
 Everything runs over the bundled ``tour`` tokenizer (``plugins/pretrained/weights/tour``) and the
 tour scene's procedural data: GelSight targets, GelSight Mini images of the same contacts as the
@@ -417,9 +419,171 @@ def sensitivity(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+def gap(args: argparse.Namespace) -> dict[str, Any]:
+    """The bundle's masked-token cross-entropy and x0 accuracy (all t, conditioned) on ``--n`` of its
+    own training scenes against ``--n`` of its held-out ones (the split ``vqtouch evaluate generation``
+    scores), per conditioner: a generalisation gap says the generator learnt its scenes rather than
+    the mapping, and more scenes would help."""
+    from vqtouch.core.data import experiment_split
+    from vqtouch.plugins.evaluation.contact import dataset_background
+    from vqtouch.core.image_size import image_hw
+    from vqtouch.plugins.generator.pipeline import load_pipeline
+
+    host = load_plugins()
+    pipe = load_pipeline(f"pretrained:{args.bundle}", host=host)
+    config = pipe.config
+    dataset = Assembly(config, host).component("data.dataset")
+    train, held_out = experiment_split(dataset, config.data, config.seed)
+    background_3HW, _ = dataset_background(train, image_hw(config.data.image_size))
+    count = min(args.n, len(train), len(held_out))
+    out: dict[str, Any] = {"bundle": args.bundle, "n": count}
+    for split_name, subset in (("train", train), ("held_out", held_out)):
+        batch = dataset.render_batch([subset.indices[i] for i in range(count)])
+        # The targets the generator trained on: canonical-background codes.
+        codes = canonical_background(encode(pipe.tokenizer, batch["tactile"]), pipe.tokenizer, background_3HW)[0]
+        codes = codes.flatten(1)
+        for name, conditioner in zip(pipe.conditioner_names(), pipe.conditioners):
+            table = split_scores(
+                pipe.generator.float(), conditioner.float(), batch, codes, background_3HW, torch.arange(count)
+            )["split_conditioned"]
+            for region in ("contact", "background"):
+                rows = [v for k, v in table.items() if k.endswith(region)]
+                out[f"{name}:{region}:{split_name}"] = {
+                    "ce": round(sum(r["ce"] for r in rows) / len(rows), 3),
+                    "x0_acc": round(sum(r["x0_acc"] for r in rows) / len(rows), 3),
+                }
+    return out
+
+
+# -- locate: how well can the visual image place the contact at all? ----------------------------
+
+
+class ContactLocator(torch.nn.Module):
+    """A small CNN that reads a visual image and returns where the tactile contact's centre lies: a
+    heat map over the image, soft-argmaxed to (row, column) pixels at the tactile image's size.  It
+    is trained on the centre alone, the one thing the centroid score asks of a sample."""
+
+    def __init__(self, width: int = 48) -> None:
+        super().__init__()
+
+        def block(c_in: int, c_out: int, dilation: int = 1, stride: int = 1) -> torch.nn.Module:
+            return torch.nn.Sequential(
+                torch.nn.Conv2d(c_in, c_out, 3, stride=stride, padding=dilation, dilation=dilation),
+                torch.nn.GroupNorm(8, c_out),
+                torch.nn.SiLU(),
+            )
+
+        self.net = torch.nn.Sequential(
+            block(5, width, stride=2),
+            block(width, width, 2),
+            block(width, width, 4),
+            block(width, width, 8),
+            block(width, width, 16),
+            block(width, width, 1),
+            torch.nn.Conv2d(width, 1, 1),
+        )
+
+    def forward(self, visual_B3HW: torch.Tensor, out_hw: tuple[int, int]) -> torch.Tensor:
+        height, width = visual_B3HW.shape[-2:]
+        rows = torch.linspace(-1, 1, height).view(1, 1, -1, 1).expand(len(visual_B3HW), 1, height, width)
+        cols = torch.linspace(-1, 1, width).view(1, 1, 1, -1).expand(len(visual_B3HW), 1, height, width)
+        logits_BHW = self.net(torch.cat([visual_B3HW, rows, cols], 1))[:, 0]
+        weights_BHW = logits_BHW.flatten(1).softmax(1).view_as(logits_BHW)
+        height, width = logits_BHW.shape[-2:]
+        # Pixel centres of the input mapped onto the tactile image's pixel grid.
+        grid_rows = torch.linspace(0, out_hw[0] - 1, height).view(1, -1, 1)
+        grid_cols = torch.linspace(0, out_hw[1] - 1, width).view(1, 1, -1)
+        return torch.stack([(weights_BHW * grid_rows).sum((1, 2)), (weights_BHW * grid_cols).sum((1, 2))], 1)
+
+
+def locate(args: argparse.Namespace) -> dict[str, Any]:
+    """Train :class:`ContactLocator` on the bundle's training scenes (plus ``--extra-scenes`` newly
+    rendered ones) for ``--minutes``, and score it on the held-out conditions that ``vqtouch evaluate
+    generation --run pretrained:NAME`` scores, with the same contact-centroid definition: a bound
+    on what any vision-to-touch generator trained on that data can reach on that score."""
+    from vqtouch.core.data import experiment_split
+    from vqtouch.core.image_size import image_hw
+    from vqtouch.plugins.evaluation.contact import contact_centroids, dataset_background
+    from vqtouch.plugins.generator.pipeline import load_pipeline
+
+    torch.manual_seed(args.seed)
+    host = load_plugins()
+    pipe = load_pipeline(f"pretrained:{args.bundle}", host=host)
+    config = pipe.config
+    dataset = Assembly(config, host).component("data.dataset")
+    train, held_out = experiment_split(dataset, config.data, config.seed)
+    background_3HW, _ = dataset_background(train, image_hw(config.data.image_size))
+    started = time.perf_counter()
+    train_batch = dataset.render_batch(list(train.indices))
+    test_batch = dataset.render_batch([held_out.indices[i] for i in range(min(args.n, len(held_out)))])
+    visual, truth = train_batch["visual"], train_batch["tactile"]
+    if args.extra_scenes:
+        extra_config = resolve_config(
+            "tour",
+            overrides=[
+                f"data.dataset.seed={config.data.dataset.seed + 1000}",
+                f"data.dataset.num_samples={args.extra_scenes}",
+            ],
+            host=host,
+        )
+        extra = Assembly(extra_config, host).component("data.dataset").render_batch(list(range(args.extra_scenes)))
+        visual, truth = torch.cat([visual, extra["visual"]]), torch.cat([truth, extra["tactile"]])
+    render_seconds = time.perf_counter() - started
+    out_hw = tuple(truth.shape[-2:])
+    target_B2 = contact_centroids(truth, background_3HW.expand_as(truth))
+    test_target_B2 = contact_centroids(test_batch["tactile"], background_3HW.expand_as(test_batch["tactile"]))
+    reconstructions = decode(pipe.tokenizer, encode(pipe.tokenizer, test_batch["tactile"]))
+
+    def error(centres_B2: torch.Tensor) -> float:
+        return round(float((centres_B2 - test_target_B2).norm(dim=1).mean()), 2)
+
+    model = ContactLocator(args.width)
+    optimiser = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
+    steps, history, deadline = 0, [], time.perf_counter() + 60 * args.minutes
+    generator = torch.Generator().manual_seed(args.seed)
+    while time.perf_counter() < deadline and (args.steps == 0 or steps < args.steps):
+        pick = torch.randint(len(visual), (args.batch,), generator=generator)
+        loss = (model(visual[pick], out_hw) - target_B2[pick]).norm(dim=1).mean()
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        steps += 1
+        if steps % 200 == 0:
+            model.eval()
+            with torch.no_grad():
+                history.append(
+                    {
+                        "step": steps,
+                        "train_px": round(float(loss), 2),
+                        "held_out_px": error(model(test_batch["visual"], out_hw)),
+                    }
+                )
+            model.train()
+    model.eval()
+    with torch.no_grad():
+        predicted_B2 = model(test_batch["visual"], out_hw)
+    return {
+        "bundle": args.bundle,
+        "n_held_out": len(test_target_B2),
+        "training_scenes": len(visual),
+        "render_seconds": round(render_seconds, 1),
+        "train_seconds": round(time.perf_counter() - started - render_seconds, 1),
+        "steps": steps,
+        "centroid_error_px": {
+            "locator_from_visual": error(predicted_B2),
+            "image_centre": error(torch.tensor([(out_hw[0] - 1) / 2, (out_hw[1] - 1) / 2]).expand_as(test_target_B2)),
+            "mean_training_centre": error(target_B2.mean(0).expand_as(test_target_B2)),
+            "tokenizer_reconstruction": error(
+                contact_centroids(reconstructions, background_3HW.expand_as(reconstructions))
+            ),
+        },
+        "history": history,
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("what", choices=["codes", "overfit", "split", "sensitivity"])
+    parser.add_argument("what", choices=["codes", "overfit", "split", "sensitivity", "gap", "locate"])
     parser.add_argument("--bundle", default="tour")
     parser.add_argument("--conditioner", default="tactile", choices=sorted(CONDITIONERS))
     parser.add_argument("--n", type=int, default=64, help="images or conditions scored")
@@ -434,10 +598,13 @@ def main() -> None:
     parser.add_argument("--canonical", action="store_true", help="overfit: train on canonical-background codes")
     parser.add_argument("--sample-steps", type=int, default=25)
     parser.add_argument("--guidance", type=float, default=1.0)
+    parser.add_argument("--extra-scenes", type=int, default=0, help="locate: newly rendered training scenes")
+    parser.add_argument("--width", type=int, default=32, help="locate: the locator's channels")
     parser.add_argument("--set", action="append", default=[], metavar="model.KEY=V|conditioner.KEY=V")
     parser.add_argument("--out", default="")
     args = parser.parse_args()
-    result = {"codes": codes_report, "overfit": overfit, "split": split, "sensitivity": sensitivity}[args.what](args)
+    commands = {"codes": codes_report, "overfit": overfit, "split": split, "sensitivity": sensitivity}
+    result = (commands | {"gap": gap, "locate": locate})[args.what](args)
     print(json.dumps(result, indent=1))
 
 

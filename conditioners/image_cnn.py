@@ -9,15 +9,18 @@ class (same options: width, depth, token_grid).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import torch
 import torch.nn.functional as F
-from pydantic import Field
+from pydantic import Field, model_validator
 from torch import nn
 
 from vqtouch.core import Conditioner, PluginConfig, load_missing_as_zeros
 from vqtouch.core.image_size import image_hw
+
+from .grid_context import GRID_CONTEXT_FIELD, GridContext, GridDilations
 
 #: The sample entries that hold an image this network can read (see ``TactileDataset``).
 IMAGE_SAMPLE_KEYS = ("tactile_source", "tactile", "visual")
@@ -35,6 +38,13 @@ class ImageCnnOptions(PluginConfig):
         "(from the trunk stage nearest the code grid), added at each code's "
         "position; false: cross-attention tokens only (the ablation).",
     )
+    grid_context: GridDilations = GRID_CONTEXT_FIELD
+
+    @model_validator(mode="after")
+    def _context_needs_the_grid(self) -> ImageCnnOptions:
+        if self.grid_context and not self.spatial:
+            raise ValueError("grid_context works on the condition grid: set spatial=true or grid_context=[]")
+        return self
 
 
 class ImageCnnConditioner(Conditioner):
@@ -59,9 +69,11 @@ class ImageCnnConditioner(Conditioner):
         token_grid: int,
         channels: int = 3,
         grid_stage: int | None = None,
+        grid_context: Sequence[int] = (),
     ) -> None:
         """``sample_key``: the sample entry read; ``channels``: its image channels (3 for RGB);
-        ``grid_stage``: the trunk stage (0-based) whose map is the condition grid, None for none."""
+        ``grid_stage``: the trunk stage (0-based) whose map is the condition grid, None for none;
+        ``grid_context``: dilations of a :class:`GridContext` over that map."""
         if sample_key not in IMAGE_SAMPLE_KEYS:
             raise ValueError(f"the CNN image conditioner reads one of {IMAGE_SAMPLE_KEYS}, got {sample_key!r}")
         super().__init__(cond_dim, token_grid * token_grid)
@@ -85,6 +97,9 @@ class ImageCnnConditioner(Conditioner):
         if self.grid_project is not None:
             # Checkpoints from before the grid existed load it as zeros (the generator then sees no grid).
             load_missing_as_zeros(self, "grid_project")
+        if grid_context and grid_stage is None:
+            raise ValueError("grid_context needs a condition grid: keep spatial=true, or leave grid_context empty")
+        self.grid_context = GridContext(cond_dim, grid_context) if grid_context else None
 
     def encode(self, condition: torch.Tensor) -> torch.Tensor:
         """Images (B, C, H, W), values in [0, 1], to tokens (B, token_grid**2, cond_dim)."""
@@ -106,6 +121,8 @@ class ImageCnnConditioner(Conditioner):
             features_BWhw = layer(features_BWhw)
             if self.grid_stage is not None and index == layers_per_stage * (self.grid_stage + 1) - 1:
                 grid_BDhw = self.grid_project(features_BWhw)
+                if self.grid_context is not None:
+                    grid_BDhw = self.grid_context(grid_BDhw)
         pooled_BWgg = F.adaptive_avg_pool2d(features_BWhw, self.token_grid)
         cells_BNW = pooled_BWgg.flatten(2).transpose(1, 2)
         return self.project(cells_BNW) + self.position_ND, grid_BDhw

@@ -44,6 +44,7 @@ def build_tactile_conditioner(config: TactileConditionerConfig, context: BuildCo
         config.token_grid,
         context.channels,
         grid_stage=grid_stage,
+        grid_context=config.grid_context if grid_stage is not None else (),
     )
 
 

@@ -15,11 +15,12 @@ imports or loads EfficientNet.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, Literal
 
 import torch
 import torch.nn.functional as F
-from pydantic import Field
+from pydantic import Field, model_validator
 from torch import nn
 
 from vqtouch.core import BuildContext, Conditioner, PluginConfig, hookimpl, load_missing_as_zeros
@@ -28,6 +29,8 @@ from vqtouch.plugins.evaluation.feature_networks import (
     EFFNET_LITE0_STAGE_CHANNELS,
     EfficientNetLite0Features,
 )
+
+from .grid_context import GRID_CONTEXT_FIELD, GridContext, GridDilations
 
 if TYPE_CHECKING:
     from vqtouch.plugins.evaluation.feature_networks import EfficientNetLite0Features
@@ -62,6 +65,13 @@ class VisualConditionerConfig(PluginConfig):
         "one, so it says where the contact is.  3: stride 16 (8x8 at input_size 128).  "
         "null: cross-attention tokens only (the ablation).",
     )
+    grid_context: GridDilations = GRID_CONTEXT_FIELD
+
+    @model_validator(mode="after")
+    def _context_needs_the_grid(self) -> VisualConditionerConfig:
+        if self.grid_context and self.grid_stage is None:
+            raise ValueError("grid_context works on the condition grid: set grid_stage or grid_context=[]")
+        return self
 
 
 class VisualConditioner(Conditioner):
@@ -77,10 +87,16 @@ class VisualConditioner(Conditioner):
     sample_key = "visual"
 
     def __init__(
-        self, features: EfficientNetLite0Features, cond_dim: int, token_grid: int, grid_stage: int | None = None
+        self,
+        features: EfficientNetLite0Features,
+        cond_dim: int,
+        token_grid: int,
+        grid_stage: int | None = None,
+        grid_context: Sequence[int] = (),
     ) -> None:
         """``features``: the frozen network (built by the factory, which is where it is imported);
-        ``grid_stage``: the resolution stage whose map is also returned as the condition grid."""
+        ``grid_stage``: the resolution stage whose map is also returned as the condition grid;
+        ``grid_context``: dilations of a trainable :class:`GridContext` over that map."""
         super().__init__(cond_dim, token_grid * token_grid)
         self.token_grid = token_grid
         # A FrozenModule: frozen, always in eval mode, out of state_dict and checkpoints, moved by .to().
@@ -94,6 +110,9 @@ class VisualConditioner(Conditioner):
             self.grid_project = nn.Linear(EFFNET_LITE0_STAGE_CHANNELS[grid_stage], cond_dim)
             # Checkpoints from before the grid existed load it as zeros (the generator then sees no grid).
             load_missing_as_zeros(self, "grid_project")
+        if grid_context and grid_stage is None:
+            raise ValueError("grid_context needs a condition grid: set grid_stage, or leave grid_context empty")
+        self.grid_context = GridContext(cond_dim, grid_context) if grid_context else None
 
     def encode(self, condition: torch.Tensor) -> torch.Tensor:
         """Visual images (B, 3, H, W) in [0, 1] to tokens (B, token_grid**2, cond_dim)."""
@@ -120,7 +139,8 @@ class VisualConditioner(Conditioner):
         if stage_BChw is None:
             return tokens_BND, None
         cells_BhwC = F.normalize(stage_BChw.float().permute(0, 2, 3, 1), dim=-1, eps=1e-6)
-        return tokens_BND, self.grid_project(cells_BhwC.to(self.project.weight.dtype)).permute(0, 3, 1, 2)
+        grid_BDhw = self.grid_project(cells_BhwC.to(self.project.weight.dtype)).permute(0, 3, 1, 2)
+        return tokens_BND, grid_BDhw if self.grid_context is None else self.grid_context(grid_BDhw)
 
     def extra_repr(self) -> str:
         return f"token_grid={self.token_grid}, input_size={self.features.image_size}"
@@ -134,7 +154,11 @@ def build_visual_conditioner(config: VisualConditionerConfig, context: BuildCont
     """
 
     return VisualConditioner(
-        EfficientNetLite0Features(config.input_size), context.cond_dim, config.token_grid, config.grid_stage
+        EfficientNetLite0Features(config.input_size),
+        context.cond_dim,
+        config.token_grid,
+        config.grid_stage,
+        config.grid_context,
     )
 
 

@@ -25,7 +25,14 @@ def build_visual_cnn_conditioner(config: VisualCnnConditionerConfig, context: Bu
     """Factory for the ``visual_cnn`` conditioner: visual images are always RGB (3 channels)."""
     grid_stage = grid_stage_for(context.image_size, context.code_grid, config.depth) if config.spatial else None
     return ImageCnnConditioner(
-        "visual", context.cond_dim, config.width, config.depth, config.token_grid, channels=3, grid_stage=grid_stage
+        "visual",
+        context.cond_dim,
+        config.width,
+        config.depth,
+        config.token_grid,
+        channels=3,
+        grid_stage=grid_stage,
+        grid_context=config.grid_context if grid_stage is not None else (),
     )
 
 

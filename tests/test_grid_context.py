@@ -1,0 +1,90 @@
+"""The condition grid's context stack (``grid_context``): residual dilated convolutions that let
+each code's cell see the image around it before the generator reads it."""
+
+import pytest
+import torch
+
+from vqtouch.conditioners.grid_context import GridContext
+from vqtouch.core import BuildContext, ConfigError, load_plugins
+
+HOST = load_plugins(autoload=False)
+CONTEXT = BuildContext(image_size=64, num_classes=3, codebook_size=16, code_grid=16, cond_dim=24)
+
+
+def build(**options):
+    torch.manual_seed(0)
+    return HOST.build("conditioner", {"name": "visual_cnn"} | options, CONTEXT)
+
+
+def randomise(stack: GridContext) -> None:
+    with torch.no_grad():
+        for block in stack.blocks:
+            block[-1].weight.normal_(0, 0.2)
+
+
+def test_a_fresh_context_stack_leaves_the_grid_as_it_was():
+    plain, with_context = build(), build(grid_context=[1, 2, 4, 8])
+    with_context.load_state_dict(plain.state_dict(), strict=False)
+    images = torch.rand(2, 3, 64, 64)
+    tokens, grid = with_context.encode_with_grid(images)
+    torch.testing.assert_close(grid, plain.encode_with_grid(images)[1])
+    torch.testing.assert_close(tokens, plain.encode_with_grid(images)[0])
+
+
+@pytest.mark.parametrize("dilations", [[1], [1, 2], [1, 2, 4], [1, 2, 4, 8], [3, 3], [2, 5]])
+def test_a_cell_sees_exactly_the_offsets_its_dilated_kernels_reach(dilations):
+    torch.manual_seed(0)
+    stack = GridContext(6, dilations)
+    randomise(stack)
+    grid = torch.randn(1, 6, 41, 41)
+    touched = grid.clone()
+    touched[..., 20, 20] += 1.0  # the centre: no path of the kernel leaves the grid
+    changed_hw = (stack(touched) - stack(grid)).abs().amax(1)[0] > 1e-7
+    # Each block's kernel reaches -d, 0 or +d along each axis; a cell sees the sums of those.
+    offsets = {0}
+    for dilation in dilations:
+        offsets = {o + step for o in offsets for step in (-dilation, 0, dilation)}
+    reached = torch.zeros(41, dtype=torch.bool)
+    reached[[20 + o for o in offsets]] = True
+    assert torch.equal(changed_hw, reached[:, None] & reached[None, :])
+
+
+@pytest.mark.parametrize(
+    "block", [{"name": "visual_cnn"}, {"name": "tactile", "reads": "tactile"}, {"name": "visual", "input_size": 64}]
+)
+def test_gradients_reach_the_zero_initialised_stack(block):
+    torch.manual_seed(0)
+    conditioner = HOST.build("conditioner", block | {"grid_context": [1, 2]}, CONTEXT)
+    conditioner.encode_with_grid(torch.rand(2, 3, 64, 64))[1].square().sum().backward()
+    for layer in conditioner.grid_context.blocks:
+        assert layer[-1].weight.grad.abs().sum() > 0
+
+
+def test_null_rows_still_hand_a_zero_grid():
+    conditioner = build(grid_context=[1, 2])
+    randomise(conditioner.grid_context)
+    grid = conditioner(torch.rand(2, 3, 64, 64), torch.tensor([True, False])).grid_BDhw
+    assert grid[0].abs().sum() == 0 and grid[1].abs().sum() > 0
+
+
+def test_a_state_dict_round_trip_keeps_the_stack():
+    conditioner = build(grid_context=[1, 2])
+    randomise(conditioner.grid_context)
+    copy = build(grid_context=[1, 2])
+    copy.load_state_dict(conditioner.state_dict())
+    images = torch.rand(1, 3, 64, 64)
+    torch.testing.assert_close(copy.encode_with_grid(images)[1], conditioner.encode_with_grid(images)[1])
+
+
+@pytest.mark.parametrize(
+    "block, message",
+    [
+        ({"name": "visual_cnn", "grid_context": [0]}, "greater than or equal to 1"),
+        ({"name": "tactile", "grid_context": [17]}, "less than or equal to 16"),
+        ({"name": "visual_cnn", "grid_context": [1], "spatial": False}, "set spatial=true or grid_context=[]"),
+        ({"name": "visual", "grid_context": [1], "grid_stage": None}, "set grid_stage or grid_context=[]"),
+    ],
+)
+def test_bad_context_settings_are_one_line_errors(block, message):
+    with pytest.raises(ConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        HOST.build("conditioner", block, CONTEXT)
