@@ -419,22 +419,27 @@ def sensitivity(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+def bundle_split(name: str, host: Any) -> tuple[Any, Any, Any, Any, torch.Tensor]:
+    """The bundle's pipeline, its dataset, the (train, held-out) split ``vqtouch evaluate generation
+    --run pretrained:NAME`` uses, and the no-contact background (3, H, W) it scores against."""
+    from vqtouch.core.data import experiment_split
+    from vqtouch.core.image_size import image_hw
+    from vqtouch.plugins.evaluation.contact import dataset_background
+    from vqtouch.plugins.generator.pipeline import load_pipeline
+
+    pipe = load_pipeline(f"pretrained:{name}", host=host)
+    dataset = Assembly(pipe.config, host).component("data.dataset")
+    train, held_out = experiment_split(dataset, pipe.config.data, pipe.config.seed)
+    background_3HW, _ = dataset_background(train, image_hw(pipe.config.data.image_size))
+    return pipe, dataset, train, held_out, background_3HW
+
+
 def gap(args: argparse.Namespace) -> dict[str, Any]:
     """The bundle's masked-token cross-entropy and x0 accuracy (all t, conditioned) on ``--n`` of its
     own training scenes against ``--n`` of its held-out ones (the split ``vqtouch evaluate generation``
     scores), per conditioner: a generalisation gap says the generator learnt its scenes rather than
     the mapping, and more scenes would help."""
-    from vqtouch.core.data import experiment_split
-    from vqtouch.plugins.evaluation.contact import dataset_background
-    from vqtouch.core.image_size import image_hw
-    from vqtouch.plugins.generator.pipeline import load_pipeline
-
-    host = load_plugins()
-    pipe = load_pipeline(f"pretrained:{args.bundle}", host=host)
-    config = pipe.config
-    dataset = Assembly(config, host).component("data.dataset")
-    train, held_out = experiment_split(dataset, config.data, config.seed)
-    background_3HW, _ = dataset_background(train, image_hw(config.data.image_size))
+    pipe, dataset, train, held_out, background_3HW = bundle_split(args.bundle, load_plugins())
     count = min(args.n, len(train), len(held_out))
     out: dict[str, Any] = {"bundle": args.bundle, "n": count}
     for split_name, subset in (("train", train), ("held_out", held_out)):
@@ -501,18 +506,12 @@ def locate(args: argparse.Namespace) -> dict[str, Any]:
     rendered ones) for ``--minutes``, and score it on the held-out conditions that ``vqtouch evaluate
     generation --run pretrained:NAME`` scores, with the same contact-centroid definition: a bound
     on what any vision-to-touch generator trained on that data can reach on that score."""
-    from vqtouch.core.data import experiment_split
-    from vqtouch.core.image_size import image_hw
-    from vqtouch.plugins.evaluation.contact import contact_centroids, dataset_background
-    from vqtouch.plugins.generator.pipeline import load_pipeline
+    from vqtouch.plugins.evaluation.contact import contact_centroids
 
     torch.manual_seed(args.seed)
     host = load_plugins()
-    pipe = load_pipeline(f"pretrained:{args.bundle}", host=host)
+    pipe, dataset, train, held_out, background_3HW = bundle_split(args.bundle, host)
     config = pipe.config
-    dataset = Assembly(config, host).component("data.dataset")
-    train, held_out = experiment_split(dataset, config.data, config.seed)
-    background_3HW, _ = dataset_background(train, image_hw(config.data.image_size))
     started = time.perf_counter()
     train_batch = dataset.render_batch(list(train.indices))
     test_batch = dataset.render_batch([held_out.indices[i] for i in range(min(args.n, len(held_out)))])
