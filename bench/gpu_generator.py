@@ -3,7 +3,11 @@ deeper generator at the same wall time, and the whole chain (tokenizer and gener
 
 Run on a machine with a GPU (about 8 minutes on one H200):
 
-    python bench/gpu_generator.py --out OUT [--budget 470] [--batch 64]
+    python bench/gpu_generator.py --out OUT [--budget 470] [--batch 64] [--set KEY=VALUE ...]
+
+``--set`` adds a config override to both 64 px generator jobs (and their probes), e.g. the levers
+of docs/generation.md section 11 with a GPU's steps: ``--set data.dataset.num_samples=4000 --set
+'generator.conditioners.1.grid_context=[1,2,4]'``.
 
 Three jobs share the GPU, started together after a short probe that measures each 64 px
 generator's training speed under that sharing:
@@ -122,6 +126,11 @@ def watch_steps(run_dir: Path, stop: threading.Event) -> None:
         (run_dir / "stamps.json").write_text(json.dumps(stamps))
 
 
+def overrides(args) -> list[str]:
+    """The caller's ``--set`` overrides as command-line arguments of ``vqtouch train generator``."""
+    return [part for value in args.set for part in ("--set", value)]
+
+
 def probe(name: str, extra: list[str], args, work: Path, logs: Path, env) -> float:
     run_dir = work / f"probe_{name}"
     stop = threading.Event()
@@ -129,7 +138,7 @@ def probe(name: str, extra: list[str], args, work: Path, logs: Path, env) -> flo
     watcher.start()
     command = vqtouch(args.threads) + [
         "train", "generator", "--scene", "tour", "--tokenizer", str(args.tokenizer), "--out", str(run_dir),
-        "--overwrite", *GENERATOR_RECIPE, *extra, "--set", f"data.batch_size={args.batch}",
+        "--overwrite", *GENERATOR_RECIPE, *overrides(args), *extra, "--set", f"data.batch_size={args.batch}",
         "--set", f"generator.train.steps={args.probe_steps}", "--set", "generator.train.log_every=10",
         "--set", "generator.num_samples=2", "--set", "generator.steps=2",
         "--set", f"generator.train.checkpoint_every={args.probe_steps}",
@@ -148,7 +157,7 @@ def generator_job(name, extra, steps, tokenizer, args, work, logs, env, train_de
     run_dir = work / name
     command = vqtouch(args.threads) + [
         "train", "generator", "--scene", "tour", "--tokenizer", str(tokenizer), "--out", str(run_dir),
-        "--overwrite", *GENERATOR_RECIPE, *extra, "--set", f"data.batch_size={args.batch}",
+        "--overwrite", *GENERATOR_RECIPE, *overrides(args), *extra, "--set", f"data.batch_size={args.batch}",
         "--set", f"generator.train.steps={steps}", "--set", f"generator.train.checkpoint_every={max(steps // 4, 1)}",
     ]  # fmt: skip
     started = elapsed()
@@ -262,6 +271,13 @@ def main() -> None:
     parser.add_argument("--eval-n", type=int, default=64)
     parser.add_argument("--threads", type=int, default=5)
     parser.add_argument("--tokenizer", type=Path, default=Path("plugins/pretrained/weights/tour/tokenizer"))
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a config override for both 64 px generator jobs (repeatable)",
+    )
     parser.add_argument("--dry", action="store_true", help="a few steps on the CPU: checks this script")
     args = parser.parse_args()
     env = dict(os.environ, VQTOUCH_NO_PROGRESS="1", PYTHONUNBUFFERED="1")
