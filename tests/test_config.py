@@ -245,6 +245,7 @@ def test_changing_slot_name_resets_its_options(host):
         "depth": 3,
         "token_grid": 4,
         "spatial": True,
+        "grid_context": [],
         "reads": "tactile_source",
     }
     config = resolve_config("reconstruction", overrides=["tokenizer.quantizer.name=ema_vq"], host=host)

@@ -145,6 +145,7 @@ def test_tactile_checkpoint_keys_are_unchanged_by_the_refactor(host):
         "depth",
         "token_grid",
         "spatial",
+        "grid_context",
         "reads",
     ]
 
