@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from typing import Annotated
 
 import torch
-from pydantic import Field
+from pydantic import Field, TypeAdapter
 from torch import nn
 
 #: The dilations a stack may use: beyond 16 a 3 x 3 kernel on a code grid of at most 32 cells
@@ -37,24 +37,29 @@ GRID_CONTEXT_FIELD = Field(
 )
 
 
-def check_dilations(dilations: Sequence[int]) -> list[int]:
-    """The dilations as a list; ValueError naming the bad one."""
-    for dilation in dilations:
-        if not 1 <= int(dilation) <= MAX_DILATION:
-            raise ValueError(f"grid_context dilations must be 1..{MAX_DILATION}; got {dilation}")
-    return [int(d) for d in dilations]
+def grid_context_for(channels: int, dilations: Sequence[int], has_grid: bool) -> GridContext | None:
+    """The stack a conditioner with a condition grid of ``channels`` builds: None for no dilations;
+    ValueError when there are dilations but no grid to apply them to."""
+    if not dilations:
+        return None
+    if not has_grid:
+        raise ValueError(
+            "grid_context needs a condition grid: enable the conditioner's grid, or leave grid_context empty"
+        )
+    return GridContext(channels, dilations)
 
 
 class GridContext(nn.Module):
     """``len(dilations)`` residual blocks SiLU -> Conv3x3(dilation) over (B, D, h, w).
 
     No normalisation inside: a norm's statistics would couple every cell to every other, and the
-    generator L2-normalises each cell of the grid it reads anyway.  A cell sees exactly
-    ``sum(dilations)`` cells to each side."""
+    generator L2-normalises each cell of the grid it reads anyway.  A cell sees exactly the offsets
+    that are sums of one of -d, 0, +d per block (every offset up to ``sum(dilations)`` for 1, 2, 4, ...)."""
 
     def __init__(self, channels: int, dilations: Sequence[int]) -> None:
         super().__init__()
-        self.dilations = check_dilations(dilations)
+        # The config's own check, for stacks built directly in Python.
+        self.dilations = TypeAdapter(GridDilations).validate_python(list(dilations))
         self.blocks = nn.ModuleList()
         for dilation in self.dilations:
             conv = nn.Conv2d(channels, channels, 3, padding=dilation, dilation=dilation)

@@ -20,7 +20,7 @@ from torch import nn
 from vqtouch.core import Conditioner, PluginConfig, load_missing_as_zeros
 from vqtouch.core.image_size import image_hw
 
-from .grid_context import GRID_CONTEXT_FIELD, GridContext, GridDilations
+from .grid_context import GRID_CONTEXT_FIELD, GridDilations, grid_context_for
 
 #: The sample entries that hold an image this network can read (see ``TactileDataset``).
 IMAGE_SAMPLE_KEYS = ("tactile_source", "tactile", "visual")
@@ -97,9 +97,7 @@ class ImageCnnConditioner(Conditioner):
         if self.grid_project is not None:
             # Checkpoints from before the grid existed load it as zeros (the generator then sees no grid).
             load_missing_as_zeros(self, "grid_project")
-        if grid_context and grid_stage is None:
-            raise ValueError("grid_context needs a condition grid: keep spatial=true, or leave grid_context empty")
-        self.grid_context = GridContext(cond_dim, grid_context) if grid_context else None
+        self.grid_context = grid_context_for(cond_dim, grid_context, grid_stage is not None)
 
     def encode(self, condition: torch.Tensor) -> torch.Tensor:
         """Images (B, C, H, W), values in [0, 1], to tokens (B, token_grid**2, cond_dim)."""

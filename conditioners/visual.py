@@ -30,7 +30,7 @@ from vqtouch.plugins.evaluation.feature_networks import (
     EfficientNetLite0Features,
 )
 
-from .grid_context import GRID_CONTEXT_FIELD, GridContext, GridDilations
+from .grid_context import GRID_CONTEXT_FIELD, GridDilations, grid_context_for
 
 if TYPE_CHECKING:
     from vqtouch.plugins.evaluation.feature_networks import EfficientNetLite0Features
@@ -110,9 +110,7 @@ class VisualConditioner(Conditioner):
             self.grid_project = nn.Linear(EFFNET_LITE0_STAGE_CHANNELS[grid_stage], cond_dim)
             # Checkpoints from before the grid existed load it as zeros (the generator then sees no grid).
             load_missing_as_zeros(self, "grid_project")
-        if grid_context and grid_stage is None:
-            raise ValueError("grid_context needs a condition grid: set grid_stage, or leave grid_context empty")
-        self.grid_context = GridContext(cond_dim, grid_context) if grid_context else None
+        self.grid_context = grid_context_for(cond_dim, grid_context, grid_stage is not None)
 
     def encode(self, condition: torch.Tensor) -> torch.Tensor:
         """Visual images (B, 3, H, W) in [0, 1] to tokens (B, token_grid**2, cond_dim)."""
