@@ -42,6 +42,7 @@ CONDITIONERS = {
     "tactile": {"name": "tactile"},
     "label": {"name": "label"},
     "visual": {"name": "visual", "input_size": 128},
+    "visual_cnn": {"name": "visual_cnn"},
     "text_scratch": {"name": "text_scratch", "vocab_buckets": 1024},
 }
 

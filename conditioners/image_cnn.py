@@ -20,7 +20,7 @@ from torch import nn
 from vqtouch.core import Conditioner, PluginConfig, load_missing_as_zeros
 from vqtouch.core.image_size import image_hw
 
-from .grid_context import GRID_CONTEXT_FIELD, GridDilations, grid_context_for
+from .grid_context import GRID_CONTEXT_FIELD, GRID_CONTEXT_WIDTH_FIELD, GridDilations, grid_context_for
 
 #: The sample entries that hold an image this network can read (see ``TactileDataset``).
 IMAGE_SAMPLE_KEYS = ("tactile_source", "tactile", "visual")
@@ -39,11 +39,14 @@ class ImageCnnOptions(PluginConfig):
         "position; false: cross-attention tokens only (the ablation).",
     )
     grid_context: GridDilations = GRID_CONTEXT_FIELD
+    grid_context_width: int | None = GRID_CONTEXT_WIDTH_FIELD
 
     @model_validator(mode="after")
     def _context_needs_the_grid(self) -> ImageCnnOptions:
         if self.grid_context and not self.spatial:
             raise ValueError("grid_context works on the condition grid: set spatial=true or grid_context=[]")
+        if self.grid_context_width is not None and not self.grid_context:
+            raise ValueError("grid_context_width sets the width of grid_context's convolutions: give grid_context too")
         return self
 
 
@@ -70,10 +73,12 @@ class ImageCnnConditioner(Conditioner):
         channels: int = 3,
         grid_stage: int | None = None,
         grid_context: Sequence[int] = (),
+        grid_context_width: int | None = None,
     ) -> None:
         """``sample_key``: the sample entry read; ``channels``: its image channels (3 for RGB);
         ``grid_stage``: the trunk stage (0-based) whose map is the condition grid, None for none;
-        ``grid_context``: dilations of a :class:`GridContext` over that map."""
+        ``grid_context``: dilations of a :class:`GridContext` over that map, its convolutions at
+        ``grid_context_width`` channels (None: ``cond_dim``)."""
         if sample_key not in IMAGE_SAMPLE_KEYS:
             raise ValueError(f"the CNN image conditioner reads one of {IMAGE_SAMPLE_KEYS}, got {sample_key!r}")
         super().__init__(cond_dim, token_grid * token_grid)
@@ -97,7 +102,7 @@ class ImageCnnConditioner(Conditioner):
         if self.grid_project is not None:
             # Checkpoints from before the grid existed load it as zeros (the generator then sees no grid).
             load_missing_as_zeros(self, "grid_project")
-        self.grid_context = grid_context_for(cond_dim, grid_context, grid_stage is not None)
+        self.grid_context = grid_context_for(cond_dim, grid_context, grid_stage is not None, grid_context_width)
 
     def encode(self, condition: torch.Tensor) -> torch.Tensor:
         """Images (B, C, H, W), values in [0, 1], to tokens (B, token_grid**2, cond_dim)."""

@@ -45,6 +45,7 @@ def build_tactile_conditioner(config: TactileConditionerConfig, context: BuildCo
         context.channels,
         grid_stage=grid_stage,
         grid_context=config.grid_context if grid_stage is not None else (),
+        grid_context_width=config.grid_context_width if grid_stage is not None else None,
     )
 
 

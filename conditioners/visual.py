@@ -30,7 +30,7 @@ from vqtouch.plugins.evaluation.feature_networks import (
     EfficientNetLite0Features,
 )
 
-from .grid_context import GRID_CONTEXT_FIELD, GridDilations, grid_context_for
+from .grid_context import GRID_CONTEXT_FIELD, GRID_CONTEXT_WIDTH_FIELD, GridDilations, grid_context_for
 
 if TYPE_CHECKING:
     from vqtouch.plugins.evaluation.feature_networks import EfficientNetLite0Features
@@ -66,11 +66,14 @@ class VisualConditionerConfig(PluginConfig):
         "null: cross-attention tokens only (the ablation).",
     )
     grid_context: GridDilations = GRID_CONTEXT_FIELD
+    grid_context_width: int | None = GRID_CONTEXT_WIDTH_FIELD
 
     @model_validator(mode="after")
     def _context_needs_the_grid(self) -> VisualConditionerConfig:
         if self.grid_context and self.grid_stage is None:
             raise ValueError("grid_context works on the condition grid: set grid_stage or grid_context=[]")
+        if self.grid_context_width is not None and not self.grid_context:
+            raise ValueError("grid_context_width sets the width of grid_context's convolutions: give grid_context too")
         return self
 
 
@@ -93,10 +96,12 @@ class VisualConditioner(Conditioner):
         token_grid: int,
         grid_stage: int | None = None,
         grid_context: Sequence[int] = (),
+        grid_context_width: int | None = None,
     ) -> None:
         """``features``: the frozen network (built by the factory, which is where it is imported);
         ``grid_stage``: the resolution stage whose map is also returned as the condition grid;
-        ``grid_context``: dilations of a trainable :class:`GridContext` over that map."""
+        ``grid_context``: dilations of a trainable :class:`GridContext` over that map, its
+        convolutions at ``grid_context_width`` channels (None: ``cond_dim``)."""
         super().__init__(cond_dim, token_grid * token_grid)
         self.token_grid = token_grid
         # A FrozenModule: frozen, always in eval mode, out of state_dict and checkpoints, moved by .to().
@@ -110,7 +115,7 @@ class VisualConditioner(Conditioner):
             self.grid_project = nn.Linear(EFFNET_LITE0_STAGE_CHANNELS[grid_stage], cond_dim)
             # Checkpoints from before the grid existed load it as zeros (the generator then sees no grid).
             load_missing_as_zeros(self, "grid_project")
-        self.grid_context = grid_context_for(cond_dim, grid_context, grid_stage is not None)
+        self.grid_context = grid_context_for(cond_dim, grid_context, grid_stage is not None, grid_context_width)
 
     def encode(self, condition: torch.Tensor) -> torch.Tensor:
         """Visual images (B, 3, H, W) in [0, 1] to tokens (B, token_grid**2, cond_dim)."""
@@ -157,6 +162,7 @@ def build_visual_conditioner(config: VisualConditionerConfig, context: BuildCont
         config.token_grid,
         config.grid_stage,
         config.grid_context,
+        config.grid_context_width,
     )
 
 

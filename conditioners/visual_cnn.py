@@ -33,6 +33,7 @@ def build_visual_cnn_conditioner(config: VisualCnnConditionerConfig, context: Bu
         channels=3,
         grid_stage=grid_stage,
         grid_context=config.grid_context if grid_stage is not None else (),
+        grid_context_width=config.grid_context_width if grid_stage is not None else None,
     )
 
 

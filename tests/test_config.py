@@ -246,6 +246,7 @@ def test_changing_slot_name_resets_its_options(host):
         "token_grid": 4,
         "spatial": True,
         "grid_context": [],
+        "grid_context_width": None,
         "reads": "tactile_source",
     }
     config = resolve_config("reconstruction", overrides=["tokenizer.quantizer.name=ema_vq"], host=host)

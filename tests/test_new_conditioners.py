@@ -146,6 +146,7 @@ def test_tactile_checkpoint_keys_are_unchanged_by_the_refactor(host):
         "token_grid",
         "spatial",
         "grid_context",
+        "grid_context_width",
         "reads",
     ]
 
