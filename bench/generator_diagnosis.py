@@ -8,14 +8,16 @@ Run (one job at a time on a 2-core CPU; OMP_NUM_THREADS=2):
     .venv/bin/python bench/generator_diagnosis.py sensitivity --bundle tour  # does the sample move with its condition?
     .venv/bin/python bench/generator_diagnosis.py gap --bundle tour          # training scenes against held-out ones
     .venv/bin/python bench/generator_diagnosis.py locate --minutes 8 --lr 1e-3 --batch 32  # contact from vision
+    .venv/bin/python bench/generator_diagnosis.py cost --conditioner visual_cnn \
+        --variant "" --variant "conditioner.grid_context=[1,2,4,8]"   # training step time per setting
 
 Everything runs over the bundled ``tour`` tokenizer (``plugins/pretrained/weights/tour``) and the
 tour scene's procedural data: GelSight targets, GelSight Mini images of the same contacts as the
 tactile condition, aligned visual images, 12 labelled classes.  ``overfit`` trains a fresh
 generator and conditioner on a fixed set of training pairs (the whole diagnosis: can the model
 learn the mapping at all, and how fast) and scores its samples of those same pairs against the
-tokenizer's ceiling and the no-contact background; ``--held-out N`` also trains on N more pairs
-and scores unseen conditions, ``--out FILE`` writes the JSON (with the weights in FILE.pt for
+tokenizer's ceiling and the no-contact background; ``--held-out N`` also renders N more pairs,
+never trained on, and scores those unseen conditions, ``--out FILE`` writes the JSON (with the weights in FILE.pt for
 ``split``/``sensitivity --weights``).  Prints one JSON object.
 """
 
@@ -581,9 +583,59 @@ def locate(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+# -- cost: what a setting costs per training step ------------------------------------------------
+
+
+def step_cost(args: argparse.Namespace) -> dict[str, Any]:
+    """Seconds per generator training step (batch ``--batch``, the overfit loop's step) for each
+    ``--variant`` (``;``-separated ``--set`` overrides, ``""`` for none), interleaved over
+    ``--rounds`` rounds of ``--steps`` steps so machine drift hits every variant alike; the median
+    round is reported, with its ratio to the first variant."""
+    torch.manual_seed(args.seed)
+    host = load_plugins()
+    tokenizer = load_bundle(args.bundle, host).tokenizer
+    dataset, batch = tour_data(host, 7, args.batch)
+    codes_BHW = encode(tokenizer, batch["tactile"])
+    variants = args.variant or [""]
+    models = []
+    for variant in variants:
+        overrides = [text for text in variant.split(";") if text]
+        generator, conditioner, _, _ = build_generator(
+            host, tokenizer, args.conditioner, overrides, len(dataset.class_names)
+        )
+        params = [p for m in (generator, conditioner) for p in m.parameters() if p.requires_grad]
+        models.append((generator, conditioner, torch.optim.AdamW(params, lr=1e-5)))
+    index = torch.arange(args.batch)
+
+    def one_step(generator: Any, conditioner: Any, optimizer: Any) -> None:
+        condition = conditioner(_condition(conditioner, batch, index))
+        loss, _ = generator.training_loss(codes_BHW, condition)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+
+    for model in models:  # warm-up: first calls allocate
+        one_step(*model)
+    rounds: list[list[float]] = [[] for _ in variants]
+    for _ in range(args.rounds):
+        for seconds, model in zip(rounds, models):
+            start = time.perf_counter()
+            for _ in range(args.steps or 5):
+                one_step(*model)
+            seconds.append((time.perf_counter() - start) / (args.steps or 5))
+    medians = [sorted(seconds)[len(seconds) // 2] for seconds in rounds]
+    return {
+        "conditioner": args.conditioner,
+        "batch": args.batch,
+        "threads": torch.get_num_threads(),
+        "seconds_per_step": {variant or "(none)": round(m, 4) for variant, m in zip(variants, medians)},
+        "cost_ratio": {variant or "(none)": round(m / medians[0], 2) for variant, m in zip(variants, medians)},
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("what", choices=["codes", "overfit", "split", "sensitivity", "gap", "locate"])
+    parser.add_argument("what", choices=["codes", "overfit", "split", "sensitivity", "gap", "locate", "cost"])
     parser.add_argument("--bundle", default="tour")
     parser.add_argument("--conditioner", default="tactile", choices=sorted(CONDITIONERS))
     parser.add_argument("--n", type=int, default=64, help="images or conditions scored")
@@ -591,7 +643,12 @@ def main() -> None:
     parser.add_argument("--pairs", type=int, default=64, help="overfit: training pairs")
     parser.add_argument("--held-out", type=int, default=0, help="overfit: unseen pairs scored after training")
     parser.add_argument("--minutes", type=float, default=5.0)
-    parser.add_argument("--steps", type=int, default=0, help="overfit: stop after this many steps (0: time only)")
+    parser.add_argument(
+        "--steps",
+        type=int,
+        default=0,
+        help="overfit: stop after this many steps (0: time only); cost: per round (0: 5)",
+    )
     parser.add_argument("--batch", type=int, default=16)
     parser.add_argument("--lr", type=float, default=4.5e-4)
     parser.add_argument("--warmup", type=int, default=0)
@@ -601,10 +658,14 @@ def main() -> None:
     parser.add_argument("--extra-scenes", type=int, default=0, help="locate: newly rendered training scenes")
     parser.add_argument("--width", type=int, default=32, help="locate: the locator's channels")
     parser.add_argument("--set", action="append", default=[], metavar="model.KEY=V|conditioner.KEY=V")
+    parser.add_argument(
+        "--variant", action="append", default=[], help="cost: ';'-separated --set overrides of one setting"
+    )
+    parser.add_argument("--rounds", type=int, default=3, help="cost: interleaved rounds")
     parser.add_argument("--out", default="")
     args = parser.parse_args()
     commands = {"codes": codes_report, "overfit": overfit, "split": split, "sensitivity": sensitivity}
-    result = (commands | {"gap": gap, "locate": locate})[args.what](args)
+    result = (commands | {"gap": gap, "locate": locate, "cost": step_cost})[args.what](args)
     print(json.dumps(result, indent=1))
 
 
