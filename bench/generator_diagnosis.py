@@ -10,6 +10,7 @@ Run (one job at a time on a 2-core CPU; OMP_NUM_THREADS=2):
     .venv/bin/python bench/generator_diagnosis.py locate --minutes 8 --lr 1e-3 --batch 32  # contact from vision
     .venv/bin/python bench/generator_diagnosis.py cost --conditioner visual_cnn \
         --variant "" --variant "conditioner.grid_context=[1,2,4,8]"   # training step time per setting
+    .venv/bin/python bench/generator_diagnosis.py rescore --weights RUN.json.pt --pairs 900 --n 64 --guidance 2
 
 Everything runs over the bundled ``tour`` tokenizer (``plugins/pretrained/weights/tour``) and the
 tour scene's procedural data: GelSight targets, GelSight Mini images of the same contacts as the
@@ -583,6 +584,57 @@ def locate(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+def rescore(args: argparse.Namespace) -> dict[str, Any]:
+    """Sample the held-out conditions of an ``overfit --held-out N --out FILE`` run again from its
+    weights (``--weights FILE.pt``) with each of ``--sample-seeds``: the contact-centroid error and
+    contact PSNR per sampling seed, so a difference between two runs can be read against the spread
+    the sampler alone makes.  ``--pairs`` and ``--n`` must be the run's own (its held-out
+    conditions are the ``--n`` scenes after its ``--pairs`` training pairs)."""
+    host = load_plugins()
+    tokenizer = load_bundle(args.bundle, host).tokenizer
+    dataset, batch = tour_data(host, 7, args.pairs + args.n)  # overfit's scenes, in its order
+    background = background_of(dataset)
+    truth = batch["tactile"][args.pairs :]
+    state = torch.load(args.weights, weights_only=False)
+    context = BuildContext(
+        image_size=64,
+        channels=3,
+        num_classes=len(dataset.class_names),
+        codebook_size=tokenizer.quantizer.codebook_size,
+        code_grid=16,
+    )
+    generator = host.build("generator", state["generator_cfg"], context)
+    conditioner = host.build("conditioner", state["conditioner_cfg"], context)
+    generator.load_state_dict(state["generator"])
+    conditioner.load_state_dict(state["conditioner"])
+    by_seed = {}
+    for seed in args.sample_seeds:
+        codes = sample_codes(
+            host,
+            generator,
+            conditioner,
+            batch,
+            args.n,
+            steps=args.sample_steps,
+            guidance=args.guidance,
+            seed=seed,
+            offset=args.pairs,
+        )
+        images = decode(tokenizer, codes)
+        by_seed[seed] = {
+            "centroid_error_px": round(centroid_error_px(images, truth, background), 2),
+            **contact_psnr({"": images}, truth, background),
+        }
+    errors = [row["centroid_error_px"] for row in by_seed.values()]
+    return {
+        "weights": args.weights,
+        "n": args.n,
+        "guidance": args.guidance,
+        "by_sampling_seed": by_seed,
+        "centroid_error_px_mean": round(sum(errors) / len(errors), 2),
+    }
+
+
 # -- cost: what a setting costs per training step ------------------------------------------------
 
 
@@ -635,7 +687,9 @@ def step_cost(args: argparse.Namespace) -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("what", choices=["codes", "overfit", "split", "sensitivity", "gap", "locate", "cost"])
+    parser.add_argument(
+        "what", choices=["codes", "overfit", "split", "sensitivity", "gap", "locate", "cost", "rescore"]
+    )
     parser.add_argument("--bundle", default="tour")
     parser.add_argument("--conditioner", default="tactile", choices=sorted(CONDITIONERS))
     parser.add_argument("--n", type=int, default=64, help="images or conditions scored")
@@ -662,10 +716,12 @@ def main() -> None:
         "--variant", action="append", default=[], help="cost: ';'-separated --set overrides of one setting"
     )
     parser.add_argument("--rounds", type=int, default=3, help="cost: interleaved rounds")
+    parser.add_argument("--weights", default="", help="rescore: an overfit run's FILE.pt")
+    parser.add_argument("--sample-seeds", type=int, nargs="+", default=[1, 2, 3], help="rescore: sampling seeds")
     parser.add_argument("--out", default="")
     args = parser.parse_args()
     commands = {"codes": codes_report, "overfit": overfit, "split": split, "sensitivity": sensitivity}
-    result = (commands | {"gap": gap, "locate": locate, "cost": step_cost})[args.what](args)
+    result = (commands | {"gap": gap, "locate": locate, "cost": step_cost, "rescore": rescore})[args.what](args)
     print(json.dumps(result, indent=1))
 
 
