@@ -18,8 +18,8 @@ tactile condition, aligned visual images, 12 labelled classes.  ``overfit`` trai
 generator and conditioner on a fixed set of training pairs (the whole diagnosis: can the model
 learn the mapping at all, and how fast) and scores its samples of those same pairs against the
 tokenizer's ceiling and the no-contact background; ``--held-out N`` also renders N more pairs,
-never trained on, and scores those unseen conditions, ``--out FILE`` writes the JSON (with the weights in FILE.pt for
-``split``/``sensitivity --weights``).  Prints one JSON object.
+never trained on, and scores those unseen conditions; ``--out FILE`` writes the JSON (with the
+weights in FILE.pt for ``rescore --weights``).  Prints one JSON object.
 """
 
 from __future__ import annotations
@@ -128,6 +128,12 @@ def codes_report(args: argparse.Namespace) -> dict[str, Any]:
 # -- overfit: can a fresh generator learn a fixed set of pairs? -----------------------------------
 
 
+def tour_context(tokenizer: Any, num_classes: int) -> BuildContext:
+    """What the diagnosis's generators and conditioners are built for: 64 px RGB, a 16 x 16 code grid."""
+    codebook = tokenizer.quantizer.codebook_size
+    return BuildContext(image_size=64, channels=3, num_classes=num_classes, codebook_size=codebook, code_grid=16)
+
+
 def build_generator(host: Any, tokenizer: Any, conditioner_name: str, overrides: list[str], num_classes: int) -> tuple:
     """A fresh vq_diffusion generator (the bundle's width and depth unless overridden) and conditioner."""
     generator_cfg: dict[str, Any] = {"name": "vq_diffusion"}
@@ -136,8 +142,7 @@ def build_generator(host: Any, tokenizer: Any, conditioner_name: str, overrides:
         path, value = parse_override(text)
         target = generator_cfg if path[0] == "model" else conditioner_cfg
         target[path[-1]] = value
-    codebook = tokenizer.quantizer.codebook_size
-    context = BuildContext(image_size=64, channels=3, num_classes=num_classes, codebook_size=codebook, code_grid=16)
+    context = tour_context(tokenizer, num_classes)
     generator = host.build("generator", generator_cfg, context)
     conditioner = host.build("conditioner", conditioner_cfg, context)
     return generator, conditioner, generator_cfg, conditioner_cfg
@@ -588,21 +593,16 @@ def rescore(args: argparse.Namespace) -> dict[str, Any]:
     """Sample the held-out conditions of an ``overfit --held-out N --out FILE`` run again from its
     weights (``--weights FILE.pt``) with each of ``--sample-seeds``: the contact-centroid error and
     contact PSNR per sampling seed, so a difference between two runs can be read against the spread
-    the sampler alone makes.  ``--pairs`` and ``--n`` must be the run's own (its held-out
-    conditions are the ``--n`` scenes after its ``--pairs`` training pairs)."""
+    the sampler alone makes.  The conditions are the ``--n`` scenes after the first ``--pairs``:
+    the run's own held-out ones with its ``--pairs``, other unseen scenes with a larger one (two
+    runs with different ``--pairs`` are compared on the same scenes that way)."""
     host = load_plugins()
     tokenizer = load_bundle(args.bundle, host).tokenizer
     dataset, batch = tour_data(host, 7, args.pairs + args.n)  # overfit's scenes, in its order
     background = background_of(dataset)
     truth = batch["tactile"][args.pairs :]
     state = torch.load(args.weights, weights_only=False)
-    context = BuildContext(
-        image_size=64,
-        channels=3,
-        num_classes=len(dataset.class_names),
-        codebook_size=tokenizer.quantizer.codebook_size,
-        code_grid=16,
-    )
+    context = tour_context(tokenizer, len(dataset.class_names))
     generator = host.build("generator", state["generator_cfg"], context)
     conditioner = host.build("conditioner", state["conditioner_cfg"], context)
     generator.load_state_dict(state["generator"])
@@ -668,13 +668,14 @@ def step_cost(args: argparse.Namespace) -> dict[str, Any]:
 
     for model in models:  # warm-up: first calls allocate
         one_step(*model)
+    steps = args.steps or 5
     rounds: list[list[float]] = [[] for _ in variants]
     for _ in range(args.rounds):
         for seconds, model in zip(rounds, models):
             start = time.perf_counter()
-            for _ in range(args.steps or 5):
+            for _ in range(steps):
                 one_step(*model)
-            seconds.append((time.perf_counter() - start) / (args.steps or 5))
+            seconds.append((time.perf_counter() - start) / steps)
     medians = [sorted(seconds)[len(seconds) // 2] for seconds in rounds]
     return {
         "conditioner": args.conditioner,

@@ -52,14 +52,20 @@ GRID_CONTEXT_WIDTH_FIELD = Field(
 )
 
 
+def check_context_width(dilations: Sequence[int], width: int | None) -> None:
+    """ValueError when a ``grid_context_width`` is given without ``grid_context`` dilations (the
+    configs' check and :func:`grid_context_for`'s)."""
+    if width is not None and not dilations:
+        raise ValueError("grid_context_width sets the width of grid_context's convolutions: give grid_context too")
+
+
 def grid_context_for(
     channels: int, dilations: Sequence[int], has_grid: bool, width: int | None = None
 ) -> GridContext | None:
     """The stack a conditioner with a condition grid of ``channels`` builds (its blocks at ``width``
     channels, None: ``channels``): None for no dilations; ValueError when there are dilations but no
     grid to apply them to, or a width without dilations."""
-    if width is not None and not dilations:
-        raise ValueError("grid_context_width sets the width of grid_context's convolutions: give grid_context too")
+    check_context_width(dilations, width)
     if not dilations:
         return None
     if not has_grid:

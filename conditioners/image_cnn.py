@@ -20,7 +20,13 @@ from torch import nn
 from vqtouch.core import Conditioner, PluginConfig, load_missing_as_zeros
 from vqtouch.core.image_size import image_hw
 
-from .grid_context import GRID_CONTEXT_FIELD, GRID_CONTEXT_WIDTH_FIELD, GridDilations, grid_context_for
+from .grid_context import (
+    GRID_CONTEXT_FIELD,
+    GRID_CONTEXT_WIDTH_FIELD,
+    GridDilations,
+    check_context_width,
+    grid_context_for,
+)
 
 #: The sample entries that hold an image this network can read (see ``TactileDataset``).
 IMAGE_SAMPLE_KEYS = ("tactile_source", "tactile", "visual")
@@ -45,8 +51,7 @@ class ImageCnnOptions(PluginConfig):
     def _context_needs_the_grid(self) -> ImageCnnOptions:
         if self.grid_context and not self.spatial:
             raise ValueError("grid_context works on the condition grid: set spatial=true or grid_context=[]")
-        if self.grid_context_width is not None and not self.grid_context:
-            raise ValueError("grid_context_width sets the width of grid_context's convolutions: give grid_context too")
+        check_context_width(self.grid_context, self.grid_context_width)
         return self
 
 

@@ -30,7 +30,13 @@ from vqtouch.plugins.evaluation.feature_networks import (
     EfficientNetLite0Features,
 )
 
-from .grid_context import GRID_CONTEXT_FIELD, GRID_CONTEXT_WIDTH_FIELD, GridDilations, grid_context_for
+from .grid_context import (
+    GRID_CONTEXT_FIELD,
+    GRID_CONTEXT_WIDTH_FIELD,
+    GridDilations,
+    check_context_width,
+    grid_context_for,
+)
 
 if TYPE_CHECKING:
     from vqtouch.plugins.evaluation.feature_networks import EfficientNetLite0Features
@@ -72,8 +78,7 @@ class VisualConditionerConfig(PluginConfig):
     def _context_needs_the_grid(self) -> VisualConditionerConfig:
         if self.grid_context and self.grid_stage is None:
             raise ValueError("grid_context works on the condition grid: set grid_stage or grid_context=[]")
-        if self.grid_context_width is not None and not self.grid_context:
-            raise ValueError("grid_context_width sets the width of grid_context's convolutions: give grid_context too")
+        check_context_width(self.grid_context, self.grid_context_width)
         return self
 
 
