@@ -234,7 +234,10 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
         host, tokenizer, args.conditioner, args.set, len(dataset.class_names)
     )
     train_index = torch.arange(args.pairs)
-    params = [p for m in (generator, conditioner) for p in m.parameters() if p.requires_grad]
+    # The contact's place on the code grid: cells whose (canonical) code is not the no-contact image's.
+    background_codes_L = encode(tokenizer, background[None]).flatten()
+    contact_head = torch.nn.Linear(generator.network.grid_proj.out_features, 1)
+    params = [p for m in (generator, conditioner, contact_head) for p in m.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=args.lr, betas=(0.9, 0.96), weight_decay=4.5e-2)
     warmup = args.warmup
     schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: min(1.0, (s + 1) / warmup) if warmup else 1.0)
@@ -246,6 +249,12 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
         drop = torch.rand(args.batch, generator=draws) < 0.1
         condition = conditioner(_condition(conditioner, batch, index), drop)
         loss, _ = generator.training_loss(codes[index].view(-1, 16, 16), condition)
+        contact_bce = None
+        if args.contact_weight and condition.grid_BDhw is not None and bool((~drop).any()):
+            logits_BL = contact_head(generator.network._grid_embedding(condition.grid_BDhw[~drop])).squeeze(-1)
+            contact_BL = (codes[index][~drop] != background_codes_L).float()
+            contact_bce = F.binary_cross_entropy_with_logits(logits_BL, contact_BL)
+            loss = loss + args.contact_weight * contact_bce
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 0.5)
@@ -258,6 +267,7 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
                     "step": step,
                     "minutes": round((time.perf_counter() - start) / 60, 2),
                     "loss": round(float(loss.detach()), 4),
+                    **({} if contact_bce is None else {"contact_bce": round(float(contact_bce.detach()), 4)}),
                 }
             )
             print(json.dumps(log[-1]), flush=True)
@@ -271,6 +281,7 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
         "train_minutes": round(minutes, 2),
         "lr": args.lr,
         "warmup": warmup,
+        "contact_weight": args.contact_weight,
         "log": log,
     }
     truth = batch["tactile"]
@@ -707,6 +718,13 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=16)
     parser.add_argument("--lr", type=float, default=4.5e-4)
     parser.add_argument("--warmup", type=int, default=0)
+    parser.add_argument(
+        "--contact-weight",
+        type=float,
+        default=0.0,
+        help="overfit: weight of an auxiliary loss that asks a linear head on the condition grid's "
+        "embedding for the contact's cells (codes that are not the no-contact image's)",
+    )
     parser.add_argument("--canonical", action="store_true", help="overfit: train on canonical-background codes")
     parser.add_argument("--sample-steps", type=int, default=25)
     parser.add_argument("--guidance", type=float, default=1.0)

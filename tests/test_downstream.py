@@ -22,10 +22,14 @@ from vqtouch.plugins.experiments.downstream import (
     FEW,
     FEW_AND_GENERATED,
     GENERATED,
+    LabelledFeatures,
     draw_shots,
     label_conditioner_index,
+    mixed_arm,
     recognition_scores,
+    train_and_test,
 )
+from vqtouch.plugins.evaluation.distribution import RealImageClassifier
 
 CLASSES = ["sphere", "edge", "ridges"]
 #: Small enough to run in seconds: 32-px features, 2 seeds, 2 shots, 2 generated images per class.
@@ -170,6 +174,9 @@ def test_the_label_conditioner_is_found_or_refused():
     [
         (["--shots", "50"], "--shots 50: class "),
         (["--conditioner", "1"], "--conditioner 1: this generator has conditioners 0..0 (0:label (reads 'label'))"),
+        (["--generated-weight", "0"], "argument --generated-weight: 0: must be a finite number > 0"),
+        (["--generated-weight", "nan"], "must be a finite number > 0"),
+        (["--generated-weight", "1", "1.0"], "--generated-weight 1 1: each weight once"),
     ],
 )
 def test_bad_requests_are_one_line_errors(label_run, tmp_path, capsys, flags, message):
@@ -246,3 +253,82 @@ def test_a_run_on_a_class_folder_works_and_an_unlabelled_one_is_refused(label_ru
     capsys.readouterr()
     assert main(["evaluate", "downstream", "--run", str(unlabelled), "--out", str(tmp_path / "y")]) == 2
     assert "the run's dataset (image_folder) has no class labels" in capsys.readouterr().err
+
+
+def _blobs(seed, rows_per_class=6, classes=3, width=5):
+    """Separable-ish labelled features: a class mean plus unit noise."""
+    draw = torch.Generator().manual_seed(seed)
+    means = torch.randn(classes, width, generator=draw) * 2
+    labels = [label for label in range(classes) for _ in range(rows_per_class)]
+    return means[labels] + torch.randn(len(labels), width, generator=draw), labels
+
+
+def test_a_whole_sample_weight_is_the_row_repeated():
+    """Independent reference: weight 2 on a row must fit what the row given twice fits (weighted
+    standardization and loss both), and weight 1 must be the unweighted fit."""
+    features, labels = _blobs(0)
+    probe, _ = _blobs(1)
+    weight = torch.ones(len(labels), dtype=torch.float64)
+    weight[::4] = 2.0
+    weighted = RealImageClassifier(features, labels, seed=0, sample_weight_N=weight)
+    repeat = [index for index in range(len(labels)) for _ in range(int(weight[index]))]
+    repeated = RealImageClassifier(features[repeat], [labels[i] for i in repeat], seed=0)
+    fitted, reference = weighted.model[-1], repeated.model[-1]
+    assert torch.tensor(fitted.coef_) == pytest.approx(torch.tensor(reference.coef_), abs=1e-4)
+    assert weighted.model[0].mean_ == pytest.approx(repeated.model[0].mean_, abs=1e-10)
+    assert weighted.model[0].scale_ == pytest.approx(repeated.model[0].scale_, abs=1e-10)
+    plain = RealImageClassifier(features, labels, seed=0)
+    ones = RealImageClassifier(features, labels, seed=0, sample_weight_N=torch.ones(len(labels)))
+    assert torch.tensor(ones.model[-1].coef_) == pytest.approx(torch.tensor(plain.model[-1].coef_), abs=1e-8)
+    assert ones.predict(probe) == plain.predict(probe)
+    with pytest.raises(ValueError, match="3 sample weights for 18 rows"):
+        RealImageClassifier(features, labels, sample_weight_N=[1.0, 1.0, 1.0])
+
+
+def test_the_generated_weight_falls_on_the_generated_rows_only():
+    """``train_and_test`` at generated weight 2 must score as the real rows once and the generated
+    rows (those without a dataset index, after the real ones) twice."""
+    real_features, labels = _blobs(2, rows_per_class=2)
+    generated_features, generated_labels = _blobs(3, rows_per_class=4)
+    test_features, test_labels = _blobs(4, rows_per_class=10)
+    real = LabelledFeatures(real_features, labels, list(range(len(labels))))
+    generated = LabelledFeatures(generated_features, generated_labels, [])
+    test = LabelledFeatures(test_features, test_labels, [])
+    doubled = LabelledFeatures.join(real, generated, generated)
+    weighted = train_and_test(LabelledFeatures.join(real, generated), test, 0, generated_weight=2.0)
+    assert weighted == train_and_test(doubled, test, 0)
+    # Weighting the real rows twice instead is another fit: the weight must land where it is meant to.
+    real_doubled = LabelledFeatures.join(real, real, generated)
+    assert weighted[1] != train_and_test(real_doubled, test, 0)[1]
+    assert train_and_test(LabelledFeatures.join(real, generated), test, 0, generated_weight=1.0) == train_and_test(
+        LabelledFeatures.join(real, generated), test, 0
+    )
+
+
+def test_each_generated_weight_is_its_own_arm_on_the_same_images(label_run, tmp_path, monkeypatch):
+    from vqtouch.plugins.experiments import downstream
+
+    fits = []
+
+    def recording(train, test, seed, generated_weight=1.0):
+        fits.append((len(train.labels), len(train.indices), generated_weight))
+        return train_and_test(train, test, seed, generated_weight)
+
+    monkeypatch.setattr(downstream, "train_and_test", recording)
+    out = tmp_path / "weights"
+    flags = ["--seeds", "0", "--shots", "2", "--generated-per-class", "2", "--feature-size", "32"]
+    args = ["--no-progress", "evaluate", "downstream", "--run", str(label_run), "--out", str(out), *flags]
+    assert main([*args, "--generated-weight", "1", "0.25"]) == 0
+    # (rows, real rows, weight) of each fit: generated, few, the two mixed, ceiling, background.
+    assert fits == [(6, 0, 1.0), (6, 6, 1.0), (12, 6, 1.0), (12, 6, 0.25), (27, 27, 1.0), (6, 0, 1.0)]
+    result = json.loads((out / "downstream.json").read_text())
+    light = mixed_arm(0.25)
+    assert light == "real few + generated (weight 0.25)" and result["generated_weights"] == [1.0, 0.25]
+    assert [row["arm"] for row in result["rows"]] == [GENERATED, FEW, FEW_AND_GENERATED, light, CEILING, ARMS[-1]]
+    by_arm = {row["arm"]: row for row in result["rows"]}
+    assert by_arm[light]["generated_weight"] == 0.25 and by_arm[FEW_AND_GENERATED]["generated_weight"] == 1.0
+    assert by_arm[light]["real_indices"] == by_arm[FEW_AND_GENERATED]["real_indices"] == by_arm[FEW]["real_indices"]
+    assert by_arm[light]["train_images"] == by_arm[FEW_AND_GENERATED]["train_images"] == 12
+    assert "generated_weight" not in by_arm[FEW] and light in result["confusion"]["matrices"]
+    markdown = (out / "downstream.md").read_text()
+    assert f"| {light} | 2 | 2 |" in markdown and "each generated one weighing W against 1" in markdown

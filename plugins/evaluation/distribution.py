@@ -57,7 +57,14 @@ class RealImageClassifier:
     ``random_state=seed``) on standardized frozen EfficientNet-Lite0 pooled features of real training
     images, with their dataset labels.  Deterministic for given features, labels and seed."""
 
-    def __init__(self, features_NF: torch.Tensor, labels: Sequence[int], seed: int = 0) -> None:
+    def __init__(
+        self,
+        features_NF: torch.Tensor,
+        labels: Sequence[int],
+        seed: int = 0,
+        sample_weight_N: torch.Tensor | Sequence[float] | None = None,
+    ) -> None:
+        """``sample_weight_N``: each row's weight in the standardization and the loss (None: all 1)."""
         from sklearn.linear_model import LogisticRegression
         from sklearn.pipeline import make_pipeline
         from sklearn.preprocessing import StandardScaler
@@ -65,7 +72,13 @@ class RealImageClassifier:
         if len(set(labels)) < 2:
             raise ValueError(f"a classifier needs at least 2 classes, got {sorted(set(labels))}")
         self.model = make_pipeline(StandardScaler(), LogisticRegression(max_iter=2000, random_state=seed))
-        self.model.fit(features_NF.double().cpu().numpy(), list(labels))
+        weights = {}
+        if sample_weight_N is not None:
+            weight_N = torch.as_tensor(sample_weight_N, dtype=torch.float64).cpu().numpy()
+            if weight_N.shape != (len(labels),):
+                raise ValueError(f"{weight_N.shape[0] if weight_N.ndim else 1} sample weights for {len(labels)} rows")
+            weights = {"standardscaler__sample_weight": weight_N, "logisticregression__sample_weight": weight_N}
+        self.model.fit(features_NF.double().cpu().numpy(), list(labels), **weights)
         self.classes = [int(c) for c in self.model.classes_]
 
     def predict(self, features_NF: torch.Tensor) -> list[int]:

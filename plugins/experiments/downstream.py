@@ -10,7 +10,9 @@ that the generator never trained on; group-aware for readers with recordings):
 
 1. ``generated only``: ``--generated-per-class M`` images per class, generated from the label;
 2. ``real few``: ``--shots K`` real training images per class;
-3. ``real few + generated``: both;
+3. ``real few + generated``: both; with ``--generated-weight W [W ...]`` once per weight, each
+   generated image weighing ``W`` against 1 for a real one in the classifier's fit (``real few +
+   generated (weight W)``; 1 is the plain arm): how much the generated images should count;
 4. ``all real (ceiling)``: every real training image of the run's split, the ceiling;
 
 and, as the honest floor of arm 1, ``no-contact background``: M copies per class of the no-contact
@@ -51,6 +53,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import time
 from collections import Counter
 from pathlib import Path
@@ -59,7 +62,14 @@ from typing import Any, Callable, Sequence
 import torch
 
 from vqtouch.core import Assembly, ConfigError, PluginHost, hookimpl
-from vqtouch.core.cli import add_step_argument, command_group, guidance_scale, non_negative_int, positive_int
+from vqtouch.core.cli import (
+    NumberType,
+    add_step_argument,
+    command_group,
+    guidance_scale,
+    non_negative_int,
+    positive_int,
+)
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.plugins.evaluation.records import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
 from vqtouch.core.training import collate_samples
@@ -83,6 +93,8 @@ SCORES = ("top1", "precision", "recall", "f1")
 GROUP = ("arm", "real_per_class", "generated_per_class")
 #: Real images read and featurized at a time.
 FEATURE_CHUNK = 64
+#: ``--generated-weight``: a finite number > 0.
+generated_weight = NumberType(float, 0, low_open=True, what="generated_weight")
 
 
 @dataclasses.dataclass
@@ -255,12 +267,19 @@ def generate_per_class(
     return torch.cat(images), labels
 
 
-def train_and_test(train: LabelledFeatures, test: LabelledFeatures, seed: int) -> tuple[dict[str, float], list[int]]:
-    """Fit the linear probe on ``train`` (random state ``seed``), predict ``test``: its scores and
-    predictions."""
+def train_and_test(
+    train: LabelledFeatures, test: LabelledFeatures, seed: int, generated_weight: float = 1.0
+) -> tuple[dict[str, float], list[int]]:
+    """Fit the linear probe on ``train`` (random state ``seed``; its generated rows, those without a
+    dataset index after the real ones, weighted ``generated_weight`` against 1 for a real image),
+    predict ``test``: its scores and predictions."""
     from vqtouch.plugins.evaluation.distribution import RealImageClassifier
 
-    classifier = RealImageClassifier(train.features_NF, train.labels, seed=seed)
+    weight_N = None
+    if generated_weight != 1.0:
+        weight_N = torch.full((len(train.labels),), float(generated_weight), dtype=torch.float64)
+        weight_N[: len(train.indices)] = 1.0
+    classifier = RealImageClassifier(train.features_NF, train.labels, seed=seed, sample_weight_N=weight_N)
     predicted = classifier.predict(test.features_NF)
     return recognition_scores(test.labels, predicted), predicted
 
@@ -289,6 +308,7 @@ def evaluate_downstream(
     feature_size: int | None = None,
     train_images: int = 0,
     batch_size: int = 16,
+    generated_weights: Sequence[float] = (1.0,),
     report: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Run the experiment of the module docstring on ``run`` and write its files into ``out``.
@@ -299,9 +319,12 @@ def evaluate_downstream(
     sampling settings (default the run's); ``feature_size``: the side EfficientNet-Lite0 sees (default
     the run's ``fd_effnetlite0`` metric's, else 224); ``train_images``: featurize at most this many
     real training images, drawn once at random (0: all; the ceiling arm then trains on them);
-    ``batch_size``: labels generated per forward pass.  Returns what ``downstream.json`` holds."""
+    ``batch_size``: labels generated per forward pass; ``generated_weights``: the ``real few +
+    generated`` arm once per weight, a generated image weighing that much against 1 for a real one in
+    the classifier's fit (:func:`mixed_arm`).  Returns what ``downstream.json`` holds."""
     from vqtouch.plugins.generator import load_pipeline
 
+    generated_weights = check_generated_weights(generated_weights)
     pipe = load_pipeline(run, host=host, step=step)
     config = pipe.config
     names = [item.name for item in config.generator.conditioners]
@@ -376,25 +399,30 @@ def evaluate_downstream(
         generated = LabelledFeatures(metric.pooled_features(images).float(), labels, [])
         few = real_train.take(draw_shots(real_train.labels, shots, seed, class_names))
         arms = {
-            GENERATED: (generated, 0, generated_per_class),
-            FEW: (few, shots, 0),
-            FEW_AND_GENERATED: (LabelledFeatures.join(few, generated), shots, generated_per_class),
-            CEILING: (real_train, "all", 0),
+            GENERATED: (generated, 0, generated_per_class, None),
+            FEW: (few, shots, 0, None),
+            **{
+                mixed_arm(weight): (LabelledFeatures.join(few, generated), shots, generated_per_class, weight)
+                for weight in generated_weights
+            },
+            CEILING: (real_train, "all", 0, None),
         }
         if background_features is not None:
             arms[BACKGROUND] = (
                 LabelledFeatures(background_features.expand(len(labels), -1), labels, []),
                 0,
                 generated_per_class,
+                None,
             )
-        for arm, (train, real_per_class, generated_count) in arms.items():
-            scores, predicted = train_and_test(train, test, seed)
+        for arm, (train, real_per_class, generated_count, weight) in arms.items():
+            scores, predicted = train_and_test(train, test, seed, 1.0 if weight is None else weight)
             rows.append(
                 {
                     "arm": arm,
                     "seed": seed,
                     "real_per_class": real_per_class,
                     "generated_per_class": generated_count,
+                    **({} if weight is None else {"generated_weight": weight}),
                     "train_images": len(train.labels),
                     **scores,
                     "real_indices": train.indices,
@@ -424,6 +452,7 @@ def evaluate_downstream(
         "feature_size": metric.image_size,
         "shots": shots,
         "generated_per_class": generated_per_class,
+        "generated_weights": list(generated_weights),
         "split_unit": test_split.split_unit,
         "generator_train_images": len(train_split),
         "real_train_images": len(real_train.labels),
@@ -456,6 +485,28 @@ def evaluate_downstream(
     save_generated(shown, generated_per_class, record.path("downstream_generated.png"))
     record.write(result, render_markdown(result))
     return result
+
+
+def mixed_arm(generated_weight: float) -> str:
+    """The name of the ``real few + generated`` arm whose generated images weigh ``generated_weight``
+    against 1 for a real image (the plain name at weight 1)."""
+    return FEW_AND_GENERATED if generated_weight == 1.0 else f"{FEW_AND_GENERATED} (weight {generated_weight:g})"
+
+
+def check_generated_weights(weights: Sequence[float]) -> list[float]:
+    """``weights`` as floats; a one-line ConfigError for none, a repeat, or one that is not a finite
+    number > 0 (a weight of 0 is the ``real few`` arm)."""
+    weights = [float(weight) for weight in weights]
+    if not weights:
+        raise ConfigError("--generated-weight: give at least one weight (1: a generated image counts as a real one)")
+    for weight in weights:
+        if not (math.isfinite(weight) and weight > 0):
+            raise ConfigError(
+                f"--generated-weight {weight:g}: must be a finite number > 0 (weight 0 is the `{FEW}` arm)"
+            )
+    if len({mixed_arm(weight) for weight in weights}) != len(weights):
+        raise ConfigError(f"--generated-weight {' '.join(f'{w:g}' for w in weights)}: each weight once")
+    return weights
 
 
 def render_markdown(result: dict[str, Any]) -> list[str]:
@@ -500,6 +551,12 @@ def render_markdown(result: dict[str, Any]) -> list[str]:
             f"images, what a generator that draws only the background would give `{GENERATED}` (a classifier "
             "that names one class: at most the majority-class rate).  Claim `better` on the real held-out "
             "scores above it.",
+        ]
+    if result.get("generated_weights", [1.0]) != [1.0]:
+        lines += [
+            "",
+            f"`{FEW_AND_GENERATED} (weight W)`: the same images as `{FEW_AND_GENERATED}`, each generated one "
+            "weighing W against 1 for a real image in the classifier's standardization and loss.",
         ]
     if result["classes_without_training_images"]:
         lines += [
@@ -590,6 +647,7 @@ def _evaluate_downstream_command(args: argparse.Namespace) -> int:
         feature_size=args.feature_size,
         train_images=args.train_images,
         batch_size=args.batch_size,
+        generated_weights=args.generated_weight,
         report=lambda line: print(line, flush=True),
     )
     print((out / "downstream.md").read_text())
@@ -646,4 +704,13 @@ def vqtouch_add_commands(subparsers: Any) -> None:
         "all; the ceiling arm trains on them)",
     )
     downstream.add_argument("--batch-size", type=positive_int, default=16, help="labels generated per forward pass")
+    downstream.add_argument(
+        "--generated-weight",
+        type=generated_weight,
+        nargs="+",
+        default=[1.0],
+        metavar="W",
+        help="the `real few + generated` arm once per weight W: a generated image weighs W against 1 for a "
+        "real one in the classifier's fit (default 1; e.g. 1 0.3 0.1 compares three in one run)",
+    )
     downstream.set_defaults(handler=_evaluate_downstream_command)
