@@ -37,7 +37,7 @@ import torch.nn.functional as F
 from vqtouch.core import Assembly, BuildContext, load_plugins, resolve_config
 from vqtouch.core.config import parse_override
 from vqtouch.plugins.evaluation.contact import contact_mask, contact_region_scores
-from vqtouch.plugins.generator.codes import canonical_background
+from vqtouch.plugins.generator.codes import canonical_background, contact_cells
 from vqtouch.plugins.pretrained.bundle import load_bundle
 
 #: Conditioners a diagnosis can train, with the sample key each reads.
@@ -227,17 +227,19 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
     background = background_of(dataset)
     codes = encode(tokenizer, batch["tactile"])
     changed = 0.0
+    if args.contact_weight and not args.canonical:
+        raise SystemExit("overfit --contact-weight needs --canonical (the contact cells are the non-background codes)")
     if args.canonical:
         codes, changed = canonical_background(codes, tokenizer, background)
     codes = codes.flatten(1)
+    overrides = [*args.set, *([f"model.contact_weight={args.contact_weight}"] if args.contact_weight else [])]
     generator, conditioner, gcfg, ccfg = build_generator(
-        host, tokenizer, args.conditioner, args.set, len(dataset.class_names)
+        host, tokenizer, args.conditioner, overrides, len(dataset.class_names)
     )
     train_index = torch.arange(args.pairs)
-    # The contact's place on the code grid: cells whose (canonical) code is not the no-contact image's.
-    background_codes_L = encode(tokenizer, background[None]).flatten()
-    contact_head = torch.nn.Linear(generator.network.grid_proj.out_features, 1)
-    params = [p for m in (generator, conditioner, contact_head) for p in m.parameters() if p.requires_grad]
+    # The contact's place on the code grid (generator.model.contact_weight asks the condition grid for it).
+    contact_NHW = contact_cells(codes.view(-1, 16, 16), tokenizer, background) if args.contact_weight else None
+    params = [p for m in (generator, conditioner) for p in m.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=args.lr, betas=(0.9, 0.96), weight_decay=4.5e-2)
     warmup = args.warmup
     schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: min(1.0, (s + 1) / warmup) if warmup else 1.0)
@@ -248,13 +250,8 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
         index = train_index[torch.randint(args.pairs, (args.batch,), generator=draws)]
         drop = torch.rand(args.batch, generator=draws) < 0.1
         condition = conditioner(_condition(conditioner, batch, index), drop)
-        loss, _ = generator.training_loss(codes[index].view(-1, 16, 16), condition)
-        contact_bce = None
-        if args.contact_weight and condition.grid_BDhw is not None and bool((~drop).any()):
-            logits_BL = contact_head(generator.network._grid_embedding(condition.grid_BDhw[~drop])).squeeze(-1)
-            contact_BL = (codes[index][~drop] != background_codes_L).float()
-            contact_bce = F.binary_cross_entropy_with_logits(logits_BL, contact_BL)
-            loss = loss + args.contact_weight * contact_bce
+        contact = {} if contact_NHW is None else {"contact_BHW": contact_NHW[index]}
+        loss, scalars = generator.training_loss(codes[index].view(-1, 16, 16), condition, **contact)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 0.5)
@@ -267,7 +264,7 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
                     "step": step,
                     "minutes": round((time.perf_counter() - start) / 60, 2),
                     "loss": round(float(loss.detach()), 4),
-                    **({} if contact_bce is None else {"contact_bce": round(float(contact_bce.detach()), 4)}),
+                    **({"contact_bce": round(scalars["contact_bce"], 4)} if "contact_bce" in scalars else {}),
                 }
             )
             print(json.dumps(log[-1]), flush=True)
@@ -722,8 +719,9 @@ def main() -> None:
         "--contact-weight",
         type=float,
         default=0.0,
-        help="overfit: weight of an auxiliary loss that asks a linear head on the condition grid's "
-        "embedding for the contact's cells (codes that are not the no-contact image's)",
+        help="overfit: generator.model.contact_weight (an auxiliary loss that asks a linear head on the "
+        "condition grid's embedding for the contact's cells: codes that are not the no-contact image's); "
+        "needs --canonical",
     )
     parser.add_argument("--canonical", action="store_true", help="overfit: train on canonical-background codes")
     parser.add_argument("--sample-steps", type=int, default=25)

@@ -430,3 +430,24 @@ def test_a_mixed_generator_is_scored_with_each_of_its_conditioners(trained, tmp_
     # steps' predictions nearly condition-free); retrieval by each conditioner's own tokens cannot.
     assert second["samples"] == first["samples"] == 2
     assert second["retrieval_psnr"] != first["retrieval_psnr"]
+
+
+def test_contact_weight_trains_on_the_contact_cells_of_a_grid_conditioner(trained, tmp_path, capsys):
+    """The stage hands a generator with ``contact_weight`` each sample's contact cells: its log carries
+    the contact loss and generation.json the share of contact cells; without the canonical
+    background the config is refused in one line."""
+    run = tmp_path / "contact"
+    args = touch_to_touch_args(run, trained, "generator.model.contact_weight=1", "generator.train.steps=2")
+    assert main(args) == 0
+    note = json.loads((run / "generation.json").read_text())["canonical_background"]
+    assert note["applied"] and 0 < note["contact_cells"] < 1
+    logged = [r for r in lines(run) if "loss" in r]
+    assert len(logged) == 2 and all(r["contact_bce"] > 0 for r in logged)
+    capsys.readouterr()
+    refused = touch_to_touch_args(
+        tmp_path / "no", trained, "generator.model.contact_weight=1", "generator.train.canonical_background=false"
+    )
+    assert main(refused) == 2
+    error = capsys.readouterr().err
+    assert "generator.model.contact_weight needs generator.train.canonical_background=true" in error
+    assert len(error.strip().splitlines()) == 1

@@ -210,3 +210,17 @@ def canonical_background(
         rows.append(torch.where(cells_B1hw[:, 0] > 0, codes_BHW, background_codes_HW.to(codes_BHW)))
     canonical_NHW = torch.cat(rows)
     return canonical_NHW, float((canonical_NHW != codes_NHW).float().mean())
+
+
+@torch.no_grad()
+def contact_cells(codes_NHW: torch.Tensor, tokenizer: Any, background_3HW: torch.Tensor) -> torch.Tensor:
+    """(N, H, W) bool: the cells of canonical-background codes (:func:`canonical_background`) that are
+    not the no-contact image's own code there, i.e. the contact and its margin.  What
+    ``generator.model.contact_weight`` asks the condition grid for."""
+    background_codes_HW = tokenizer.encode_codes(background_3HW[None].to(tokenizer.device)).cpu()[0]
+    if background_codes_HW.shape != codes_NHW.shape[1:]:
+        raise ValueError(
+            f"the background's code grid {tuple(background_codes_HW.shape)} is not the codes' "
+            f"{tuple(codes_NHW.shape[1:])}"
+        )
+    return codes_NHW != background_codes_HW.to(codes_NHW)

@@ -266,9 +266,9 @@ class DiffusionTransformer(nn.Module):
             weight_BM1 = mask.unsqueeze(-1).float()
             pooled_Bd = (cond_BMd.float() * weight_BM1).sum(1) / weight_BM1.sum(1).clamp_min(1.0)
         global_Bd = self.cond_global(pooled_Bd.to(cond_BMd.dtype))
-        return ConditionCache(keys_values, attn_mask_B11M, has_tokens_B, global_Bd, self._grid_embedding(grid_BDhw))
+        return ConditionCache(keys_values, attn_mask_B11M, has_tokens_B, global_Bd, self.grid_embedding(grid_BDhw))
 
-    def _grid_embedding(self, grid_BDhw: torch.Tensor | None) -> torch.Tensor | None:
+    def grid_embedding(self, grid_BDhw: torch.Tensor | None) -> torch.Tensor | None:
         """The aligned condition grid on the code grid, (B, L, width), or None."""
         if grid_BDhw is None:
             return None

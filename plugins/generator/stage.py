@@ -161,6 +161,15 @@ class GeneratorSection(Section):
         return self
 
     @model_validator(mode="after")
+    def _contact_cells_need_the_canonical_background(self) -> GeneratorSection:
+        if getattr(self.model, "contact_weight", 0) > 0 and not self.train.canonical_background:
+            raise ValueError(
+                "generator.model.contact_weight needs generator.train.canonical_background=true (the contact's "
+                "cells are those whose canonical code is not the no-contact image's); set it or contact_weight=0"
+            )
+        return self
+
+    @model_validator(mode="after")
     def _sampling_steps_within_the_model(self) -> GeneratorSection:
         # Checked with the config, not after training: sampling cannot take more steps than the model
         # has diffusion steps (a generator plugin without such a limit has no num_steps option).
@@ -256,8 +265,11 @@ def train_generator(job: StageJob) -> dict[str, Any]:
     data = CodesDataset.collect(codes_NHW, dataset, keys)
     train_set, val_set = experiment_split(data, config.data, config.seed)
     background_note = None
+    wants_contact = getattr(section.model, "contact_weight", 0) > 0
     if section.train.canonical_background:
-        background_note = canonicalise_codes(data, train_set, dataset, tokenizer, image_hw(config.data.image_size))
+        background_note = canonicalise_codes(
+            data, train_set, dataset, tokenizer, image_hw(config.data.image_size), contact=wants_contact
+        )
     task = GeneratorTask(
         generator, conditioners, section.train.condition_dropout, config.seed, section.train.conditioner_weights
     )
@@ -317,14 +329,26 @@ def train_generator(job: StageJob) -> dict[str, Any]:
 
 
 def canonicalise_codes(
-    data: CodesDataset, train_set: Any, dataset: Any, tokenizer: Any, size_hw: tuple[int, int]
+    data: CodesDataset,
+    train_set: Any,
+    dataset: Any,
+    tokenizer: Any,
+    size_hw: tuple[int, int],
+    *,
+    contact: bool = False,
 ) -> dict[str, Any]:
     """Replace ``data``'s codes by their canonical-background form (:func:`.codes.canonical_background`)
-    in place, with the no-contact image of the training split; what was done, for generation.json."""
-    from .codes import canonical_background
+    in place, with the no-contact image of the training split, and with ``contact`` add each sample's
+    contact cells (:data:`.training.CONTACT_KEY`); what was done, for generation.json."""
+    from .codes import canonical_background, contact_cells
+    from .training import CONTACT_KEY
 
     background, source = dataset_background(DatasetSubset(dataset, train_set.indices), size_hw)
     if background is None:
+        if contact:
+            raise StageUnavailable(
+                f"generator.model.contact_weight needs the no-contact background ({source}); set contact_weight=0"
+            )
         warnings.warn(
             f"generator.train.canonical_background: no no-contact background ({source}); training on the raw codes",
             VqtouchWarning,
@@ -332,7 +356,11 @@ def canonicalise_codes(
         )
         return {"applied": False, "reason": source}
     data.codes_NHW, changed = canonical_background(data.codes_NHW, tokenizer, background)
-    return {"applied": True, "cells_changed": round(changed, 4), "background": source}
+    note = {"applied": True, "cells_changed": round(changed, 4), "background": source}
+    if contact:
+        data.entries[CONTACT_KEY] = contact_cells(data.codes_NHW, tokenizer, background)
+        note["contact_cells"] = round(float(data.entries[CONTACT_KEY].float().mean()), 4)
+    return note
 
 
 @torch.no_grad()

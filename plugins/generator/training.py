@@ -145,6 +145,10 @@ def _stack(items: list[Any]) -> Any:
     return items
 
 
+#: The sample entry holding each sample's contact cells on the code grid (bool (H, W),
+#: :func:`.codes.contact_cells`), there when the generator's ``contact_weight`` asks for them.
+CONTACT_KEY = "contact_cells"
+
 #: The checkpoint module name of a generator's sensor tag (``sensor_tag.safetensors``).
 SENSOR_TAG_MODULE = "sensor_tag"
 
@@ -262,9 +266,11 @@ class GeneratorTask:
         index = self.pick(step)
         codes_BHW = batch["codes"]
         drop_B = torch.rand(len(codes_BHW), device=codes_BHW.device) < self.condition_dropout
+        # Only a generator that asked for the contact cells (vq_diffusion's contact_weight) gets them.
+        contact = {} if CONTACT_KEY not in batch else {"contact_BHW": batch[CONTACT_KEY]}
         with trainer.autocast():
             condition = self.condition_tokens(index, batch, drop_B)
-            loss, scalars = self.generator.training_loss(codes_BHW, condition)
+            loss, scalars = self.generator.training_loss(codes_BHW, condition, **contact)
         trainer.optimize("generator", loss)
         return {"loss": float(loss.detach()), **scalars, "conditioner": float(index)}
 
