@@ -80,7 +80,8 @@ class VQDiffusionConfig(PluginConfig):
         "embedding (what is added to each code's token) is asked, by binary cross-entropy, which code cells "
         "hold the contact (cells whose canonical-background code is not the no-contact image's; needs "
         "generator.train.canonical_background).  Only steps whose conditioner has a grid (tactile, visual, "
-        "visual_cnn), and only their non-null rows, add it.  0: off, no head is built.  Measured in "
+        "visual_cnn), and only their non-null rows, add it; the generator stage supplies the cells "
+        "(`vqtouch fewshot`'s fine-tuning does not).  0: off, no head is built.  Measured in "
         "docs/generation.md (section 13): 1 with visual_cnn and a grid context brought the visual contact "
         "2 px closer at equal CPU time.",
     )
