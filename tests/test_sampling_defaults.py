@@ -126,6 +126,40 @@ def test_bundles_hold_the_average_and_say_so(runs, tmp_path):
     assert all(torch.equal(bundle.generator.state_dict()[key], value) for key, value in average.items())
 
 
+def test_export_bundles_the_raw_weights_of_an_averaged_run_when_asked(runs, tmp_path, capsys):
+    plain, run = runs
+    assert (
+        main(
+            [
+                "pretrained",
+                "export",
+                "--run",
+                str(run),
+                "--name",
+                "raw",
+                "--weights",
+                "raw",
+                "--precision",
+                "fp32",
+                "--root",
+                str(tmp_path),
+            ]
+        )
+        == 0
+    )
+    assert describe_bundle(tmp_path / "raw")["weights"] == "raw"
+    bundle = load_bundle("raw", HOST, root=tmp_path)
+    # The raw weights are the module's own state in the checkpoint, not the trainer's average.
+    raw = load_pipeline(run, host=HOST, weights="raw").generator.state_dict()
+    average = saved_ema_weights(newest_step(run))["generator"]
+    assert all(torch.equal(bundle.generator.state_dict()[key], value) for key, value in raw.items())
+    assert any(not torch.equal(raw[key], value) for key, value in average.items())
+    capsys.readouterr()
+    args = ["pretrained", "export", "--run", str(plain), "--name", "none", "--weights", "ema", "--root", str(tmp_path)]
+    assert main(args) == 2
+    assert "ema" in one_error_line(capsys) and not (tmp_path / "none").exists()
+
+
 @pytest.mark.parametrize(
     ("change", "message"),
     [

@@ -130,6 +130,7 @@ def export_bundle(
     precision: str = "fp16",
     overwrite: bool = False,
     sampling: Mapping[str, Any] | None = None,
+    weights: str | None = None,
 ) -> Path:
     """Write the newest checkpoint of ``generator_run`` (its generator, conditioners and the tokenizer
     it was trained on) as bundle ``name`` under ``root``; returns the bundle's folder.
@@ -137,7 +138,10 @@ def export_bundle(
     ``sampling``: the bundle's own sampling defaults, replacing the run's (keys of
     :data:`SAMPLING_DEFAULTS`, e.g. ``{"conditioner_guidance": {"label": 2}}``): how to sample is
     chosen after training, when it can be measured.  They go into the recorded run config and, as
-    given, into ``pretrained.sampling_defaults``, so the headers say what was changed."""
+    given, into ``pretrained.sampling_defaults``, so the headers say what was changed.
+
+    ``weights``: ``"ema"`` or ``"raw"``, which of the run's weights the bundle holds (None: the ones the
+    run samples with by default, its EMA when it kept one); recorded in ``pretrained.weights``."""
     from vqtouch.plugins.generator import generator_tokenizer, load_pipeline
 
     if precision not in ("fp16", "fp32"):
@@ -147,7 +151,7 @@ def export_bundle(
     folder = (root or BUNDLES) / name
     if folder.exists() and not overwrite:
         raise ConfigError(f"{folder} exists; pass --overwrite to replace bundle {name!r}")
-    pipe = load_pipeline(generator_run, host=host, device="cpu")
+    pipe = load_pipeline(generator_run, host=host, device="cpu", weights=weights)
     if pipe.sensor_tag is not None:
         raise ConfigError(
             f"{generator_run}: a sensor-tagged generator (vqtouch fewshot) cannot be bundled yet; "

@@ -3,7 +3,8 @@
 ::
 
     vqtouch pretrained list [--json]
-    vqtouch pretrained export --run GENERATOR_RUN --name tour [--precision fp16|fp32] [--overwrite] [--root DIR]
+    vqtouch pretrained export --run GENERATOR_RUN --name tour [--precision fp16|fp32] [--weights ema|raw]
+                              [--overwrite] [--root DIR]
 
 ``export`` writes a trained generator run's newest checkpoint, with the tokenizer it learned the
 codes of, as a bundle inside the package (:mod:`.bundle`); the tour scene's ``pretrained`` stage
@@ -62,6 +63,7 @@ def _export_command(args: argparse.Namespace) -> int:
         precision=args.precision,
         overwrite=args.overwrite,
         sampling=sampling,
+        weights=args.weights,
     )
     row = describe_bundle(folder)
     print(
@@ -96,6 +98,12 @@ def vqtouch_add_commands(subparsers):
         metavar="KEY=JSON",
         help="a sampling default of the bundle instead of the run's (steps, guidance, truncation, "
         "conditioner_guidance), e.g. 'conditioner_guidance={\"label\": 2}' (repeatable)",
+    )
+    export.add_argument(
+        "--weights",
+        choices=("ema", "raw"),
+        help="which of the run's weights to bundle: the moving average training kept (ema) or the raw "
+        "ones (default: the run's generator.sample_weights, EMA when the checkpoint holds one)",
     )
     export.add_argument(
         "--root", help="folder of the bundles (default: the package's own, where the pretrained stage looks)"
