@@ -128,25 +128,8 @@ def test_bundles_hold_the_average_and_say_so(runs, tmp_path):
 
 def test_export_bundles_the_raw_weights_of_an_averaged_run_when_asked(runs, tmp_path, capsys):
     plain, run = runs
-    assert (
-        main(
-            [
-                "pretrained",
-                "export",
-                "--run",
-                str(run),
-                "--name",
-                "raw",
-                "--weights",
-                "raw",
-                "--precision",
-                "fp32",
-                "--root",
-                str(tmp_path),
-            ]
-        )
-        == 0
-    )
+    export = ["pretrained", "export", "--run", str(run), "--name", "raw", "--root", str(tmp_path)]
+    assert main([*export, "--weights", "raw", "--precision", "fp32"]) == 0
     assert describe_bundle(tmp_path / "raw")["weights"] == "raw"
     bundle = load_bundle("raw", HOST, root=tmp_path)
     # The raw weights are the module's own state in the checkpoint, not the trainer's average.
