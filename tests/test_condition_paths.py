@@ -158,6 +158,9 @@ class _PatchTokenizer:
         values = torch.where(codes == 0, torch.zeros_like(codes).float(), (codes.float() - 1) / 10)
         return F.interpolate(values[:, None].expand(-1, 3, -1, -1), scale_factor=4, mode="nearest")
 
+    def reconstruct(self, images):
+        return self.decode_codes(self.encode_codes(images)), None
+
 
 def test_canonical_background_replaces_exactly_the_cells_away_from_the_contact():
     tokenizer = _PatchTokenizer()

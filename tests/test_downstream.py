@@ -332,3 +332,50 @@ def test_each_generated_weight_is_its_own_arm_on_the_same_images(label_run, tmp_
     assert "generated_weight" not in by_arm[FEW] and light in result["confusion"]["matrices"]
     markdown = (out / "downstream.md").read_text()
     assert f"| {light} | 2 | 2 |" in markdown and "each generated one weighing W against 1" in markdown
+
+
+def test_through_the_tokenizer_the_classifiers_see_reconstructions(label_run, tmp_path, monkeypatch, host):
+    """Independent reference: each classifier's real training rows, the held-out rows and the no-contact
+    rows must be the features of ``decode_codes(encode_codes(image))``, not of the image as read."""
+    from vqtouch.core.data import experiment_split
+    from vqtouch.plugins.evaluation.contact import dataset_background
+    from vqtouch.plugins.experiments import downstream
+    from vqtouch.plugins.generator import load_pipeline
+
+    fits = []
+
+    def recording(train, test, seed, generated_weight=1.0):
+        fits.append((train, test))
+        return train_and_test(train, test, seed, generated_weight)
+
+    monkeypatch.setattr(downstream, "train_and_test", recording)
+    out = tmp_path / "decoded"
+    flags = ["--seeds", "0", "--shots", "2", "--generated-per-class", "2", "--feature-size", "32"]
+    args = ["--no-progress", "evaluate", "downstream", "--run", str(label_run), "--out", str(out), *flags]
+    assert main([*args, "--through-tokenizer"]) == 0
+
+    dataset, config = _run_dataset(label_run, host)
+    tokenizer = load_pipeline(label_run, host=host).tokenizer
+    metric = Assembly(config, host).build("metric", {"name": "fd_effnetlite0", "image_size": 32})
+
+    def features(images_N3HW, decoded):
+        with torch.no_grad():
+            if decoded:
+                images_N3HW = tokenizer.decode_codes(tokenizer.encode_codes(images_N3HW))
+            return metric.pooled_features(images_N3HW.float()).float()
+
+    def of_dataset(indices, decoded):
+        return features(torch.stack([dataset[i]["tactile"] for i in indices]), decoded)
+
+    (generated, test), (few, _), (mixed, _), (ceiling, _), (background, _) = fits
+    result = json.loads((out / "downstream.json").read_text())
+    assert test.indices == result["test_indices"] and len(ceiling.indices) == 27 and len(few.indices) == 6
+    for rows in (test, few, ceiling):
+        assert torch.allclose(rows.features_NF, of_dataset(rows.indices, True), atol=1e-4)
+        assert not torch.allclose(rows.features_NF, of_dataset(rows.indices, False), atol=1e-3)
+    assert torch.equal(mixed.features_NF[:6], few.features_NF) and torch.equal(mixed.features_NF[6:], generated.features_NF)
+    train_split, _ = experiment_split(dataset, config.data, config.seed)
+    no_contact, _ = dataset_background(train_split, tuple(dataset[0]["tactile"].shape[-2:]))
+    assert torch.allclose(background.features_NF, features(no_contact[None], True).expand(6, -1), atol=1e-4)
+    assert result["real_images"] == "the tokenizer's reconstructions"
+    assert "passed through the run's tokenizer first (--through-tokenizer)" in (out / "downstream.md").read_text()

@@ -34,6 +34,14 @@ linear probe on standardized frozen ImageNet EfficientNet-Lite0 pooled features 
 background is the same in every image of a sensor, so what separates the classes is the
 contact, and the no-contact row shows what the background alone scores.
 
+With ``--through-tokenizer`` every real image the classifiers see (the few shots, the ceiling's
+training images and the held-out test images) and the no-contact image are first passed through
+the run's tokenizer (encoded and decoded), so that real and generated images share the decoder's
+look: a classifier fitted on sharp real images can reject every decoded image for its blur alone
+(``vqtouch evaluate generation --classifier-on reconstructions`` makes the same correction).  The
+question it answers is then whether generated images add class information that five decoded
+real images lack, not whether they look captured.
+
 The run's config decides the data: a run trained on the embedded procedural scenes or on a
 folder in a supported reader's layout (``image_folder`` class sub-folders or a CSV with labels,
 ``touch_and_go``, ...) works unchanged.  Its generator must have a label conditioner (``vqtouch
@@ -169,9 +177,15 @@ def label_conditioner_index(sample_keys: Sequence[str], names: Sequence[str], ch
 
 
 @torch.no_grad()
-def real_features(dataset: Any, indices: Sequence[int], metric: Any) -> tuple[LabelledFeatures, int]:
+def real_features(
+    dataset: Any,
+    indices: Sequence[int],
+    metric: Any,
+    prepare: Callable[[torch.Tensor], torch.Tensor] | None = None,
+) -> tuple[LabelledFeatures, int]:
     """Features of the labelled samples among ``dataset[indices]`` (read ``FEATURE_CHUNK`` at a time)
-    and how many were left out for having no label (-1 or None)."""
+    and how many were left out for having no label (-1 or None); ``prepare`` maps each chunk of
+    images (N, 3, H, W) before the features are taken (e.g. the tokenizer's reconstruction)."""
     features, labels, kept, unlabelled = [], [], [], 0
     for start in range(0, len(indices), FEATURE_CHUNK):
         chunk = list(indices[start : start + FEATURE_CHUNK])
@@ -183,9 +197,10 @@ def real_features(dataset: Any, indices: Sequence[int], metric: Any) -> tuple[La
         ]
         unlabelled += len(chunk) - len(labelled)
         if labelled:
-            features.append(
-                metric.pooled_features(torch.stack([sample["tactile"] for _, sample in labelled]).float()).float()
-            )
+            images_N3HW = torch.stack([sample["tactile"] for _, sample in labelled]).float()
+            if prepare is not None:
+                images_N3HW = prepare(images_N3HW)
+            features.append(metric.pooled_features(images_N3HW).float())
             labels += [int(sample["label"]) for _, sample in labelled]
             kept += [index for index, _ in labelled]
     width = features[0].shape[1] if features else 0
@@ -309,6 +324,7 @@ def evaluate_downstream(
     train_images: int = 0,
     batch_size: int = 16,
     generated_weights: Sequence[float] = (1.0,),
+    through_tokenizer: bool = False,
     report: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Run the experiment of the module docstring on ``run`` and write its files into ``out``.
@@ -321,8 +337,11 @@ def evaluate_downstream(
     real training images, drawn once at random (0: all; the ceiling arm then trains on them);
     ``batch_size``: labels generated per forward pass; ``generated_weights``: the ``real few +
     generated`` arm once per weight, a generated image weighing that much against 1 for a real one in
-    the classifier's fit (:func:`mixed_arm`).  Returns what ``downstream.json`` holds."""
+    the classifier's fit (:func:`mixed_arm`); ``through_tokenizer``: every real image and the
+    no-contact image pass through the run's tokenizer before the classifiers see them (module
+    docstring).  Returns what ``downstream.json`` holds."""
     from vqtouch.plugins.generator import load_pipeline
+    from vqtouch.plugins.tokenizer import reconstruct_all
 
     generated_weights = check_generated_weights(generated_weights)
     pipe = load_pipeline(run, host=host, step=step)
@@ -350,17 +369,25 @@ def evaluate_downstream(
             "recognition tests on the run's held-out split: use a run trained with data.val_fraction > 0"
         )
     metric = _feature_metric(config, assembly, feature_size)
+    prepare = None
+    if through_tokenizer:
+        tokenizer = pipe.tokenizer
+
+        def prepare(images_N3HW: torch.Tensor) -> torch.Tensor:
+            return reconstruct_all(tokenizer, images_N3HW.to(tokenizer.device), FEATURE_CHUNK).float().cpu()
+
     record = ExperimentRecord("downstream", out, seeds=seeds)  # from here on the wall time counts
     pool = list(train_split.indices)
     if train_images and train_images < len(pool):
         order = torch.randperm(len(pool), generator=torch.Generator().manual_seed(0)).tolist()
         pool = sorted(pool[i] for i in order[:train_images])
     tic = time.perf_counter()
-    real_train, train_unlabelled = real_features(dataset, pool, metric)
-    test, test_unlabelled = real_features(dataset, test_split.indices, metric)
+    real_train, train_unlabelled = real_features(dataset, pool, metric, prepare)
+    test, test_unlabelled = real_features(dataset, test_split.indices, metric, prepare)
     report(
-        f"features of {len(real_train.labels)} real training and {len(test.labels)} held-out images at "
-        f"{metric.image_size} px in {time.perf_counter() - tic:.0f} s"
+        f"features of {len(real_train.labels)} real training and {len(test.labels)} held-out images"
+        f"{' (through the tokenizer)' if through_tokenizer else ''} at {metric.image_size} px in "
+        f"{time.perf_counter() - tic:.0f} s"
     )
     classes = sorted(set(real_train.labels))
     if len(classes) < 2:
@@ -375,6 +402,8 @@ def evaluate_downstream(
         )
     draw_shots(real_train.labels, shots, 0, class_names)  # refuses too many shots before anything is generated
     background, background_source = dataset_background(train_split, tuple(test_split[0]["tactile"].shape[-2:]))
+    if background is not None and prepare is not None:
+        background = prepare(background[None])[0]
     background_features = None if background is None else metric.pooled_features(background[None]).float()
     every_class = sorted(set(classes) | set(test.labels))
     test_counts = Counter(test.labels)
@@ -450,6 +479,7 @@ def evaluate_downstream(
         "classifier": f"logistic regression on standardized frozen EfficientNet-Lite0 pooled features at "
         f"{metric.image_size} px (vqtouch.plugins.evaluation.distribution.RealImageClassifier)",
         "feature_size": metric.image_size,
+        "real_images": "the tokenizer's reconstructions" if through_tokenizer else "as read",
         "shots": shots,
         "generated_per_class": generated_per_class,
         "generated_weights": list(generated_weights),
@@ -527,6 +557,12 @@ def render_markdown(result: dict[str, Any]) -> list[str]:
         f"{result['steps']} steps, guidance {result['guidance']:g}.",
         "",
     ]
+    if result.get("real_images", "as read") != "as read":
+        lines += [
+            "Every real image (training and held-out) and the no-contact image passed through the run's "
+            "tokenizer first (--through-tokenizer): real and generated images share the decoder's look.",
+            "",
+        ]
     headers = {
         "real_per_class": "real / class",
         "generated_per_class": "generated / class",
@@ -648,6 +684,7 @@ def _evaluate_downstream_command(args: argparse.Namespace) -> int:
         train_images=args.train_images,
         batch_size=args.batch_size,
         generated_weights=args.generated_weight,
+        through_tokenizer=args.through_tokenizer,
         report=lambda line: print(line, flush=True),
     )
     print((out / "downstream.md").read_text())
@@ -712,5 +749,11 @@ def vqtouch_add_commands(subparsers: Any) -> None:
         metavar="W",
         help="the `real few + generated` arm once per weight W: a generated image weighs W against 1 for a "
         "real one in the classifier's fit (default 1; e.g. 1 0.3 0.1 compares three in one run)",
+    )
+    downstream.add_argument(
+        "--through-tokenizer",
+        action="store_true",
+        help="pass every real image (training and held-out) and the no-contact image through the run's "
+        "tokenizer first, so that real and generated images share the decoder's look",
     )
     downstream.set_defaults(handler=_evaluate_downstream_command)

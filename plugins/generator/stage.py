@@ -38,7 +38,13 @@ from vqtouch.plugins.evaluation.contact import (
 from vqtouch.plugins.evaluation.directions import shown_scores
 
 from .training import CodesDataset, GeneratorTask, GeneratorTrainConfig
-from vqtouch.plugins.tokenizer import TOKENIZER_FILES, load_tokenizer, tokenizer_digest, tokenizer_location
+from vqtouch.plugins.tokenizer import (
+    TOKENIZER_FILES,
+    load_tokenizer,
+    reconstruct_all,
+    tokenizer_digest,
+    tokenizer_location,
+)
 
 if TYPE_CHECKING:
     from vqtouch.plugins.evaluation.distribution import DistributionScorer
@@ -603,19 +609,7 @@ def distribution_scorer(
     pool = pool or []
     images = [sample["tactile"] for sample in pool]
     if tokenizer is not None and images:
-        stacked = torch.stack(images)
-        with torch.no_grad():
-            images = list(
-                torch.cat(
-                    [
-                        tokenizer.decode_codes(tokenizer.encode_codes(stacked[i : i + 64].to(tokenizer.device)))
-                        .float()
-                        .clamp(0, 1)
-                        .cpu()
-                        for i in range(0, len(stacked), 64)
-                    ]
-                )
-            )
+        images = list(reconstruct_all(tokenizer, torch.stack(images).to(tokenizer.device), 64).float().cpu())
     return DistributionScorer(
         conditions.truth, conditions.labels, images, labels_of(pool) if pool else None, metric=metric, seed=seed
     )
