@@ -373,7 +373,8 @@ def test_through_the_tokenizer_the_classifiers_see_reconstructions(label_run, tm
     for rows in (test, few, ceiling):
         assert torch.allclose(rows.features_NF, of_dataset(rows.indices, True), atol=1e-4)
         assert not torch.allclose(rows.features_NF, of_dataset(rows.indices, False), atol=1e-3)
-    assert torch.equal(mixed.features_NF[:6], few.features_NF) and torch.equal(mixed.features_NF[6:], generated.features_NF)
+    assert torch.equal(mixed.features_NF[:6], few.features_NF)
+    assert torch.equal(mixed.features_NF[6:], generated.features_NF)
     train_split, _ = experiment_split(dataset, config.data, config.seed)
     no_contact, _ = dataset_background(train_split, tuple(dataset[0]["tactile"].shape[-2:]))
     assert torch.allclose(background.features_NF, features(no_contact[None], True).expand(6, -1), atol=1e-4)
