@@ -557,7 +557,7 @@ def render_markdown(result: dict[str, Any]) -> list[str]:
         f"{result['steps']} steps, guidance {result['guidance']:g}.",
         "",
     ]
-    if result.get("real_images", "as read") != "as read":
+    if result["real_images"] != "as read":
         lines += [
             "Every real image (training and held-out) and the no-contact image passed through the run's "
             "tokenizer first (--through-tokenizer): real and generated images share the decoder's look.",
