@@ -217,6 +217,30 @@ def nearest_label_accuracy(
     return float((pool_labels[nearest] == labels).float().mean())
 
 
+def fair_classifier(tokenizer: Any, truth: torch.Tensor, labels: torch.Tensor, pairs: int) -> Any:
+    """``vqtouch evaluate generation --classifier-on reconstructions``'s scorer for these scenes: the
+    classifier is fitted on the tokenizer's reconstructions of the ``pairs`` training images (the
+    decoder's look, which a classifier fitted on sharp images cannot read) and scores the held-out
+    images after them."""
+    from vqtouch.plugins.evaluation.distribution import DistributionScorer
+
+    train = decode(tokenizer, encode(tokenizer, truth[:pairs]))
+    return DistributionScorer(truth[pairs:], labels[pairs:].tolist(), train, labels[:pairs].tolist())
+
+
+def classifier_scores(scorer: Any, tokenizer: Any, images: torch.Tensor, truth: torch.Tensor) -> dict[str, float]:
+    """The fair classifier's accuracy on ``images`` (one per held-out condition, in order) and on
+    the tokenizer's reconstructions of their truth (the ceiling), with the ceiling of the first
+    ``len(images)`` conditions only."""
+    count = len(images)
+    labels = scorer.real_labels[:count]
+    reconstructions = decode(tokenizer, encode(tokenizer, truth[:count]))
+    return {
+        "classifier_accuracy": round(scorer.classifier.accuracy(scorer.features(images), labels), 4),
+        "ceiling_classifier_accuracy": round(scorer.classifier.accuracy(scorer.features(reconstructions), labels), 4),
+    }
+
+
 def overfit(args: argparse.Namespace) -> dict[str, Any]:
     torch.manual_seed(args.seed)
     host = load_plugins()
@@ -282,7 +306,11 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
         "log": log,
     }
     truth = batch["tactile"]
-    for name, offset, count in (("train", 0, min(args.pairs, 64)), ("held_out", args.pairs, min(args.held_out, 64))):
+    scorer = None
+    if args.conditioner in ("label", "text_scratch") and args.held_out:
+        scorer = fair_classifier(tokenizer, truth, batch["label"], args.pairs)
+    held_out_scored = args.held_out if scorer is not None else min(args.held_out, 64)
+    for name, offset, count in (("train", 0, min(args.pairs, 64)), ("held_out", args.pairs, held_out_scored)):
         if not count:
             continue
         sampled = sample_codes(
@@ -315,6 +343,8 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
                 3,
             ),
         }
+        if scorer is not None and name == "held_out":
+            result[name] |= classifier_scores(scorer, tokenizer, images, truth[rows])
     result |= split_scores(generator, conditioner, batch, codes, background, train_index[:64])
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=1))
@@ -449,6 +479,129 @@ def bundle_split(name: str, host: Any) -> tuple[Any, Any, Any, Any, torch.Tensor
     train, held_out = experiment_split(dataset, pipe.config.data, pipe.config.seed)
     background_3HW, _ = dataset_background(train, image_hw(pipe.config.data.image_size))
     return pipe, dataset, train, held_out, background_3HW
+
+
+@torch.no_grad()
+def head(args: argparse.Namespace) -> dict[str, Any]:
+    """Where the bundle's contact head (``generator.model.contact_weight``) puts the contact, read
+    straight from the condition grid before any sampling: the centre of its contact probabilities on
+    the code grid (each raised to a power, which favours its surest cells), in pixels, against the
+    truth's contact centre, on the held-out conditions ``vqtouch evaluate generation`` scores.  The
+    same centre of the truth's own contact cells (the head's training target) is the floor of a map
+    at the code grid's resolution."""
+    from vqtouch.plugins.evaluation.contact import contact_centroids
+
+    pipe, dataset, _, held_out, background_3HW = bundle_split(args.bundle, load_plugins())
+    generator = pipe.generator.float()
+    if generator.contact_head is None:
+        raise SystemExit(f"bundle {args.bundle!r}'s generator has no contact head (generator.model.contact_weight=0)")
+    count = min(args.n, len(held_out))
+    batch = dataset.render_batch([held_out.indices[i] for i in range(count)])
+    truth = batch["tactile"]
+    truth_B2 = contact_centroids(truth, background_3HW.expand_as(truth))
+    height, width = generator.network.grid_hw
+    scale = truth.shape[-1] / width
+
+    def map_error(weight_BHW: torch.Tensor) -> float:
+        rows = (torch.arange(height).float() + 0.5) * scale - 0.5
+        cols = (torch.arange(width).float() + 0.5) * scale - 0.5
+        total = weight_BHW.sum((1, 2)).clamp_min(1e-12)
+        row_B = (weight_BHW * rows[None, :, None]).sum((1, 2)) / total
+        col_B = (weight_BHW * cols[None, None, :]).sum((1, 2)) / total
+        centre_B2 = torch.stack([row_B, col_B], 1)
+        return round(float((centre_B2 - truth_B2).norm(dim=1).mean()), 2)
+
+    codes = canonical_background(encode(pipe.tokenizer, truth), pipe.tokenizer, background_3HW)[0]
+    cells_BHW = contact_cells(codes, pipe.tokenizer, background_3HW).float()
+    out: dict[str, Any] = {"bundle": args.bundle, "n": count, "true_contact_cells_px": map_error(cells_BHW)}
+    for name, conditioner in zip(pipe.conditioner_names(), pipe.conditioners):
+        conditioner = conditioner.float().eval()
+        condition = conditioner(_condition(conditioner, batch, torch.arange(count)))
+        if condition.grid_BDhw is None:
+            continue
+        embedding_BLd = generator.network.grid_embedding(condition.grid_BDhw)
+        p_BHW = torch.sigmoid(generator.contact_head(embedding_BLd).squeeze(-1).float()).view(count, height, width)
+        out[name] = {
+            **{f"head_power{power}_px": map_error(p_BHW**power) for power in (1, 2, 4, 8)},
+            "head_thresholded_px": map_error((p_BHW > 0.5).float() + 1e-6),
+            "bce_against_true_cells": round(float(F.binary_cross_entropy(p_BHW, cells_BHW)), 4),
+        }
+    return out
+
+
+@torch.no_grad()
+def prior(args: argparse.Namespace) -> dict[str, Any]:
+    """Sampling with the contact head as a layout prior (``--conditioner``, one with a grid): at every
+    step, a code cell the head calls background with probability above 1 - tau gets its x0
+    distribution replaced by a one-hot at the guided distribution's most likely code (the canonical
+    background makes that the no-contact image's code wherever the generator agrees), so the
+    sampler draws the contact only where the head leaves room for it.  Per tau: the contact-centroid
+    error and contact PSNR of ``vqtouch evaluate generation`` on its held-out conditions, one sampling
+    seed per ``--sample-seeds``; tau 0 is plain sampling."""
+    from vqtouch.plugins.evaluation.contact import contact_centroid_errors
+
+    host = load_plugins()
+    pipe, dataset, _, held_out, background_3HW = bundle_split(args.bundle, host)
+    generator = pipe.generator.float()
+    names = pipe.conditioner_names()
+    # The pipeline names its conditioners "INDEX:NAME".
+    conditioner = pipe.conditioners[[name.split(":")[-1] for name in names].index(args.conditioner)].float().eval()
+    count = min(args.n, len(held_out))
+    batch = dataset.render_batch([held_out.indices[i] for i in range(count)])
+    truth = batch["tactile"]
+    background = background_3HW.expand_as(truth)
+    sampler = host.build("sampler", {"name": "posterior"})
+    network = generator.network
+    plain_forward = network.forward
+    out: dict[str, Any] = {"bundle": args.bundle, "conditioner": args.conditioner, "n": count, "by_tau": {}}
+    for tau in args.taus:
+        by_seed = {}
+        for seed in args.sample_seeds:
+            rows = []
+            for start in range(0, count, 32):
+                index = torch.arange(start, min(count, start + 32))
+                condition = conditioner(_condition(conditioner, batch, index))
+                embedding_BLd = network.grid_embedding(condition.grid_BDhw)
+                p_BL = torch.sigmoid(generator.contact_head(embedding_BLd).squeeze(-1).float())
+                fixed_BL = p_BL < tau
+
+                def forward(
+                    codes_BL: torch.Tensor, t_B: torch.Tensor, fixed_BL=fixed_BL, **kwargs: Any
+                ) -> torch.Tensor:
+                    logits_BKL = plain_forward(codes_BL, t_B, **kwargs)
+                    if not bool(fixed_BL.any()):
+                        return logits_BKL
+                    rows_fixed = fixed_BL.repeat(len(codes_BL) // len(fixed_BL), 1)
+                    # The conditional half's choice (the first rows under guidance) for every copy.
+                    best_BL = logits_BKL[: len(fixed_BL)].argmax(1).repeat(len(codes_BL) // len(fixed_BL), 1)
+                    one_hot_BKL = torch.full_like(logits_BKL, -1e4).scatter_(1, best_BL[:, None], 0.0)
+                    return torch.where(rows_fixed[:, None], one_hot_BKL, logits_BKL)
+
+                network.forward = forward
+                try:
+                    draws = [torch.Generator().manual_seed(seed * 100_003 + int(i)) for i in index]
+                    rows.append(
+                        generator.sample(
+                            condition,
+                            sampler,
+                            steps=args.sample_steps,
+                            null=conditioner.null(len(index)),
+                            guidance=args.guidance,
+                            generators=draws,
+                        )
+                    )
+                finally:
+                    del network.forward
+            images = decode(pipe.tokenizer, torch.cat(rows))
+            scores = contact_centroid_errors({"": images}, truth, background)
+            by_seed[seed] = {
+                "centroid_error_px": round(scores["contact_centroid_error_px"], 2),
+                **contact_psnr({"": images}, truth, background_3HW),
+            }
+        errors = [row["centroid_error_px"] for row in by_seed.values()]
+        out["by_tau"][str(tau)] = {"by_seed": by_seed, "centroid_error_px_mean": round(sum(errors) / len(errors), 2)}
+        print(json.dumps({str(tau): out["by_tau"][str(tau)]}), flush=True)
+    return out
 
 
 def gap(args: argparse.Namespace) -> dict[str, Any]:
@@ -615,6 +768,9 @@ def rescore(args: argparse.Namespace) -> dict[str, Any]:
     conditioner = host.build("conditioner", state["conditioner_cfg"], context)
     generator.load_state_dict(state["generator"])
     conditioner.load_state_dict(state["conditioner"])
+    scorer = None
+    if state["conditioner_cfg"]["name"] in ("label", "text_scratch"):
+        scorer = fair_classifier(tokenizer, batch["tactile"], batch["label"], args.pairs)
     by_seed = {}
     for seed in args.sample_seeds:
         codes = sample_codes(
@@ -632,6 +788,7 @@ def rescore(args: argparse.Namespace) -> dict[str, Any]:
         by_seed[seed] = {
             "centroid_error_px": round(centroid_error_px(images, truth, background), 2),
             **contact_psnr({"": images}, truth, background),
+            **(classifier_scores(scorer, tokenizer, images, truth) if scorer is not None else {}),
         }
     errors = [row["centroid_error_px"] for row in by_seed.values()]
     return {
@@ -697,7 +854,8 @@ def step_cost(args: argparse.Namespace) -> dict[str, Any]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument(
-        "what", choices=["codes", "overfit", "split", "sensitivity", "gap", "locate", "cost", "rescore"]
+        "what",
+        choices=["codes", "overfit", "split", "sensitivity", "gap", "locate", "cost", "rescore", "head", "prior"],
     )
     parser.add_argument("--bundle", default="tour")
     parser.add_argument("--conditioner", default="tactile", choices=sorted(CONDITIONERS))
@@ -735,10 +893,13 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3, help="cost: interleaved rounds")
     parser.add_argument("--weights", default="", help="rescore: an overfit run's FILE.pt")
     parser.add_argument("--sample-seeds", type=int, nargs="+", default=[1, 2, 3], help="rescore: sampling seeds")
+    parser.add_argument("--taus", type=float, nargs="+", default=[0.0, 0.1, 0.3], help="prior: thresholds")
     parser.add_argument("--out", default="")
     args = parser.parse_args()
-    commands = {"codes": codes_report, "overfit": overfit, "split": split, "sensitivity": sensitivity}
-    result = (commands | {"gap": gap, "locate": locate, "cost": step_cost, "rescore": rescore})[args.what](args)
+    commands = {"codes": codes_report, "overfit": overfit, "split": split, "sensitivity": sensitivity, "head": head}
+    result = (commands | {"gap": gap, "locate": locate, "cost": step_cost, "rescore": rescore, "prior": prior})[
+        args.what
+    ](args)
     print(json.dumps(result, indent=1))
 
 
