@@ -217,28 +217,29 @@ def nearest_label_accuracy(
     return float((pool_labels[nearest] == labels).float().mean())
 
 
+@torch.no_grad()
 def fair_classifier(tokenizer: Any, truth: torch.Tensor, labels: torch.Tensor, pairs: int) -> Any:
-    """``vqtouch evaluate generation --classifier-on reconstructions``'s scorer for these scenes: the
-    classifier is fitted on the tokenizer's reconstructions of the ``pairs`` training images (the
-    decoder's look, which a classifier fitted on sharp images cannot read) and scores the held-out
-    images after them."""
-    from vqtouch.plugins.evaluation.distribution import DistributionScorer
+    """``vqtouch evaluate generation --classifier-on reconstructions``'s classifier for these scenes,
+    fitted on the tokenizer's reconstructions of the ``pairs`` training images (the decoder's look,
+    which a classifier fitted on sharp images cannot read), as a function of images generated for
+    the held-out scenes after them (one each, in order) to their accuracy and the ceiling: the same
+    classifier on the reconstructions of those scenes, computed once."""
+    from vqtouch.plugins.evaluation.distribution import RealImageClassifier
+    from vqtouch.plugins.evaluation.fd_metric import FdEffNetLite0
+    from vqtouch.plugins.tokenizer.loading import reconstruct_all
 
-    train = decode(tokenizer, encode(tokenizer, truth[:pairs]))
-    return DistributionScorer(truth[pairs:], labels[pairs:].tolist(), train, labels[:pairs].tolist())
+    features = FdEffNetLite0().pooled_features
+    classifier = RealImageClassifier(features(reconstruct_all(tokenizer, truth[:pairs], 64)), labels[:pairs].tolist())
+    held_out_labels = labels[pairs:].tolist()
+    ceiling = classifier.accuracy(features(reconstruct_all(tokenizer, truth[pairs:], 64)), held_out_labels)
 
+    def score(images: torch.Tensor) -> dict[str, float]:
+        return {
+            "classifier_accuracy": round(classifier.accuracy(features(images), held_out_labels), 4),
+            "ceiling_classifier_accuracy": round(ceiling, 4),
+        }
 
-def classifier_scores(scorer: Any, tokenizer: Any, images: torch.Tensor, truth: torch.Tensor) -> dict[str, float]:
-    """The fair classifier's accuracy on ``images`` (one per held-out condition, in order) and on
-    the tokenizer's reconstructions of their truth (the ceiling), with the ceiling of the first
-    ``len(images)`` conditions only."""
-    count = len(images)
-    labels = scorer.real_labels[:count]
-    reconstructions = decode(tokenizer, encode(tokenizer, truth[:count]))
-    return {
-        "classifier_accuracy": round(scorer.classifier.accuracy(scorer.features(images), labels), 4),
-        "ceiling_classifier_accuracy": round(scorer.classifier.accuracy(scorer.features(reconstructions), labels), 4),
-    }
+    return score
 
 
 def overfit(args: argparse.Namespace) -> dict[str, Any]:
@@ -309,8 +310,7 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
     scorer = None
     if args.conditioner in ("label", "text_scratch") and args.held_out:
         scorer = fair_classifier(tokenizer, truth, batch["label"], args.pairs)
-    held_out_scored = args.held_out if scorer is not None else min(args.held_out, 64)
-    for name, offset, count in (("train", 0, min(args.pairs, 64)), ("held_out", args.pairs, held_out_scored)):
+    for name, offset, count in (("train", 0, min(args.pairs, 64)), ("held_out", args.pairs, args.held_out)):
         if not count:
             continue
         sampled = sample_codes(
@@ -344,7 +344,7 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
             ),
         }
         if scorer is not None and name == "held_out":
-            result[name] |= classifier_scores(scorer, tokenizer, images, truth[rows])
+            result[name] |= scorer(images)
     result |= split_scores(generator, conditioner, batch, codes, background, train_index[:64])
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=1))
@@ -523,6 +523,7 @@ def head(args: argparse.Namespace) -> dict[str, Any]:
         p_BHW = torch.sigmoid(generator.contact_head(embedding_BLd).squeeze(-1).float()).view(count, height, width)
         out[name] = {
             **{f"head_power{power}_px": map_error(p_BHW**power) for power in (1, 2, 4, 8)},
+            # The epsilon puts a map with no cell over 0.5 at the grid's centre, the guess without a condition.
             "head_thresholded_px": map_error((p_BHW > 0.5).float() + 1e-6),
             "bce_against_true_cells": round(float(F.binary_cross_entropy(p_BHW, cells_BHW)), 4),
         }
@@ -788,7 +789,7 @@ def rescore(args: argparse.Namespace) -> dict[str, Any]:
         by_seed[seed] = {
             "centroid_error_px": round(centroid_error_px(images, truth, background), 2),
             **contact_psnr({"": images}, truth, background),
-            **(classifier_scores(scorer, tokenizer, images, truth) if scorer is not None else {}),
+            **(scorer(images) if scorer is not None else {}),
         }
     errors = [row["centroid_error_px"] for row in by_seed.values()]
     return {
