@@ -11,6 +11,7 @@ Run (one job at a time on a 2-core CPU; OMP_NUM_THREADS=2):
     .venv/bin/python bench/generator_diagnosis.py cost --conditioner visual_cnn \
         --variant "" --variant "conditioner.grid_context=[1,2,4,8]"   # training step time per setting
     .venv/bin/python bench/generator_diagnosis.py rescore --weights RUN.json.pt --pairs 900 --n 64 --guidance 2
+    .venv/bin/python bench/generator_diagnosis.py rerank --conditioner label --candidates 8 --guidance 2  # best of K
 
 Everything runs over the bundled ``tour`` tokenizer (``plugins/pretrained/weights/tour``) and the
 tour scene's procedural data: GelSight targets, GelSight Mini images of the same contacts as the
@@ -801,6 +802,129 @@ def rescore(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+# -- rerank: best of K samples, by the generator's own scores ------------------------------------
+
+
+@torch.no_grad()
+def rerank(args: argparse.Namespace) -> dict[str, Any]:
+    """Best of ``--candidates`` samples per held-out condition, chosen by the bundle generator's own
+    scores (no other model): for the label, its implicit class posterior (log p(x | class) of every
+    class, normalised over the classes, at the asked class); for every conditioner, the pointwise
+    mutual information log p(x | condition) - log p(x | null); for a conditioner with a grid, the
+    contact head's log-likelihood of the candidate's contact cells.  Both likelihoods are the
+    generator's ``masked_log_likelihood`` (``--best-of``'s, at t = 20, 40, 60, 80).  Reported: each candidate's score as
+    ``vqtouch evaluate generation`` computes it (label: the classifier fitted on the tokenizer's
+    reconstructions of the bundle's training images; visual: the contact-centroid error), and the
+    best-of-k score over disjoint groups of k candidates, with the seconds per condition of sampling
+    and of scoring one candidate."""
+    from vqtouch.plugins.evaluation.contact import contact_centroids
+    from vqtouch.plugins.evaluation.distribution import RealImageClassifier
+    from vqtouch.plugins.evaluation.fd_metric import FdEffNetLite0
+    from vqtouch.plugins.generator.best_of import class_log_posteriors
+    from vqtouch.plugins.tokenizer.loading import reconstruct_all
+
+    host = load_plugins()
+    pipe, dataset, train, held_out, background_3HW = bundle_split(args.bundle, host)
+    tokenizer, generator = pipe.tokenizer, pipe.generator.float().eval()
+    names = [name.split(":")[-1] for name in pipe.conditioner_names()]  # the pipeline says "INDEX:NAME"
+    conditioner = pipe.conditioners[names.index(args.conditioner)].float().eval()
+    count = min(args.n, len(held_out))
+    batch = dataset.render_batch([held_out.indices[i] for i in range(count)])
+    truth, labels = batch["tactile"], batch["label"]
+    background = background_3HW.expand_as(truth)
+    sampler = host.build("sampler", {"name": "posterior"})
+    is_label = args.conditioner == "label"
+    candidates, scores = [], {"pmi": [], **({"class_posterior": []} if is_label else {})}
+    seconds = {"sampling": 0.0, "scoring": 0.0}
+    if not is_label and generator.contact_head is not None:
+        scores["contact_head"] = []
+    for k in range(args.candidates):
+        rows = []
+        for store in scores.values():
+            store.append(torch.zeros(count))
+        for start in range(0, count, 32):
+            index = torch.arange(start, min(count, start + 32))
+            condition = conditioner(_condition(conditioner, batch, index))
+            null = conditioner.null(len(index))
+            draws = [torch.Generator().manual_seed(k * 100_003 + int(i)) for i in index]
+            clock = time.perf_counter()
+            codes_BL = generator.sample(
+                condition, sampler, steps=args.sample_steps, null=null, guidance=args.guidance, generators=draws
+            ).flatten(1)
+            seconds["sampling"] += time.perf_counter() - clock
+            clock = time.perf_counter()
+            codes_BHW = codes_BL.view(-1, *generator.grid_hw)
+            scores["pmi"][k][index] = generator.masked_log_likelihood(
+                codes_BHW, condition
+            ) - generator.masked_log_likelihood(codes_BHW, null)
+            if is_label:
+                scores["class_posterior"][k][index] = class_log_posteriors(generator, conditioner, codes_BHW)[
+                    labels[index], torch.arange(len(index))
+                ]
+            if "contact_head" in scores:
+                p_BL = torch.sigmoid(
+                    generator.contact_head(generator.network.grid_embedding(condition.grid_BDhw)).squeeze(-1).float()
+                ).clamp(1e-6, 1 - 1e-6)
+                cells_BL = contact_cells(codes_BL.view(-1, 16, 16), tokenizer, background_3HW).flatten(1).float()
+                scores["contact_head"][k][index] = (cells_BL * p_BL.log() + (1 - cells_BL) * (1 - p_BL).log()).sum(1)
+            seconds["scoring"] += time.perf_counter() - clock
+            rows.append(codes_BL)
+        candidates.append(torch.cat(rows))
+        print(json.dumps({"candidate": k, "seconds": {key: round(v, 1) for key, v in seconds.items()}}), flush=True)
+    codes_NKL = torch.stack(candidates, 1)
+    if is_label:
+        features = FdEffNetLite0().pooled_features
+        train_batch = dataset.render_batch([train.indices[i] for i in range(len(train))])
+        classifier = RealImageClassifier(
+            features(reconstruct_all(tokenizer, train_batch["tactile"], 64)), train_batch["label"].tolist()
+        )
+        # Per image: 1 when the classifier names its condition's class (the mean is the accuracy).
+        score_NK = torch.stack(
+            [
+                torch.tensor(classifier.predict(features(decode(tokenizer, codes_NKL[:, k].view(-1, 16, 16)))))
+                == labels
+                for k in range(args.candidates)
+            ],
+            1,
+        ).float()
+    else:
+        truth_N2 = contact_centroids(truth, background)
+        # Per image: pixels between its contact centre and the truth's (the mean is the centroid error).
+        score_NK = torch.stack(
+            [
+                (contact_centroids(decode(tokenizer, codes_NKL[:, k].view(-1, 16, 16)), background) - truth_N2).norm(
+                    dim=1
+                )
+                for k in range(args.candidates)
+            ],
+            1,
+        )
+    metric = "classifier_accuracy" if is_label else "centroid_error_px"
+    rows_N = torch.arange(count)
+    out: dict[str, Any] = {
+        "bundle": args.bundle,
+        "conditioner": args.conditioner,
+        "n": count,
+        "guidance": args.guidance,
+        "metric": metric,
+        "each_candidate": [round(float(v), 4) for v in score_NK.mean(0)],
+        "seconds_per_condition": {key: round(v / (count * args.candidates), 3) for key, v in seconds.items()},
+        "best_of": {},
+    }
+    group = 1
+    while group <= args.candidates:
+        out["best_of"][group] = {}
+        for name, per_candidate in scores.items():
+            score_matrix_NK = torch.stack(per_candidate, 1)
+            values = []
+            for first in range(0, args.candidates - group + 1, group):
+                chosen_N = score_matrix_NK[:, first : first + group].argmax(1) + first
+                values.append(round(float(score_NK[rows_N, chosen_N].mean()), 4))
+            out["best_of"][group][name] = {"groups": values, "mean": round(sum(values) / len(values), 4)}
+        group *= 2
+    return out
+
+
 # -- cost: what a setting costs per training step ------------------------------------------------
 
 
@@ -856,7 +980,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument(
         "what",
-        choices=["codes", "overfit", "split", "sensitivity", "gap", "locate", "cost", "rescore", "head", "prior"],
+        choices=[
+            "codes",
+            "overfit",
+            "split",
+            "sensitivity",
+            "gap",
+            "locate",
+            "cost",
+            "rescore",
+            "head",
+            "prior",
+            "rerank",
+        ],
     )
     parser.add_argument("--bundle", default="tour")
     parser.add_argument("--conditioner", default="tactile", choices=sorted(CONDITIONERS))
@@ -894,13 +1030,15 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3, help="cost: interleaved rounds")
     parser.add_argument("--weights", default="", help="rescore: an overfit run's FILE.pt")
     parser.add_argument("--sample-seeds", type=int, nargs="+", default=[1, 2, 3], help="rescore: sampling seeds")
+    parser.add_argument("--candidates", type=int, default=8, help="rerank: samples per condition")
     parser.add_argument("--taus", type=float, nargs="+", default=[0.0, 0.1, 0.3], help="prior: thresholds")
     parser.add_argument("--out", default="")
     args = parser.parse_args()
     commands = {"codes": codes_report, "overfit": overfit, "split": split, "sensitivity": sensitivity, "head": head}
-    result = (commands | {"gap": gap, "locate": locate, "cost": step_cost, "rescore": rescore, "prior": prior})[
-        args.what
-    ](args)
+    result = (
+        commands
+        | {"gap": gap, "locate": locate, "cost": step_cost, "rescore": rescore, "prior": prior, "rerank": rerank}
+    )[args.what](args)
     print(json.dumps(result, indent=1))
 
 

@@ -9,7 +9,7 @@ import pytest
 from generator_runs import train_args
 
 from vqtouch.core.cli import main
-from vqtouch.plugins.generator.tradeoff import pareto_front, sweep_settings
+from vqtouch.plugins.generator.tradeoff import pareto_front, setting_label, sweep_settings
 
 #: The run's own fd_effnetlite0 metric at 32 px: the distribution scores take their features from it.
 FD_32 = 'metrics=[{"name": "psnr"}, {"name": "fd_effnetlite0", "image_size": 32}]'
@@ -192,6 +192,39 @@ def test_tradeoff_generator_writes_the_table_the_json_and_the_pareto_plot(traine
             assert row[key] == pytest.approx(evaluated[key], abs=2e-4), (row["label"], key)
 
 
+def test_best_of_is_a_knob_of_the_sweep_only_when_asked():
+    knobs = dict(steps=[25], samplers=["posterior"], guidance=[2.0], precisions=["fp32"])
+    assert all("best_of" not in setting for setting in sweep_settings(**knobs))
+    settings = sweep_settings(**knobs, best_of=[1, 4, 8])
+    assert [s["best_of"] for s in settings] == [1, 4, 8] and {s["guidance"] for s in settings} == {2.0}
+    assert [setting_label(s) for s in settings] == ["posterior 25 g2", "posterior 25 g2 best4", "posterior 25 g2 best8"]
+
+
+def test_tradeoff_times_best_of_k_beside_one_draw_with_a_fair_classifier(trained, tmp_path, capsys):
+    out = tmp_path / "best"
+    args = ["tradeoff", "generator", "--run", str(trained), "--out", str(out), "--n", "3", "--rounds", "1"]
+    args += ["--steps", "3", "--samplers", "posterior", "--guidance", "1", "--precisions", "fp32"]
+    assert main([*args, "--best-of", "1", "3", "--classifier-on", "reconstructions", "--threads", "1"]) == 0
+    capsys.readouterr()
+    result = json.loads((out / "tradeoff.json").read_text())
+    rows = result["settings"]
+    assert [row["best_of"] for row in rows] == [1, 3] and result["classifier_trained_on"].endswith(
+        "reconstructions of the training images"
+    )
+    # Three candidates, each scored under every class, cost more than one draw.
+    assert rows[1]["seconds_per_image"] > rows[0]["seconds_per_image"]
+    # The best-of row is what `vqtouch evaluate generation --best-of 3` draws on the same conditions.
+    scored = tmp_path / "scored"
+    evaluate = ["evaluate", "generation", "--run", str(trained), "--n", "3", "--steps", "3", "--guidance", "1"]
+    assert main([*evaluate, "--metrics", "ssim,psnr", "--no-distribution", "--best-of", "3", "--out", str(scored)]) == 0
+    evaluated = json.loads((scored / "generation.json").read_text())["by_conditioner"]["0:label"]
+    assert evaluated["best_of"] == 3 and rows[1]["psnr"] == pytest.approx(evaluated["psnr"], abs=2e-4)
+    assert rows[1]["psnr"] != pytest.approx(rows[0]["psnr"], abs=2e-4)
+    table = (out / "tradeoff.md").read_text()
+    assert "| best of |" in table and "| posterior | 3 | 1 | fp32 | 3 |" in table
+    assert "classifier on the reconstructions of the training images" in table.splitlines()[0]
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
@@ -203,6 +236,7 @@ def test_tradeoff_generator_writes_the_table_the_json_and_the_pareto_plot(traine
         (["--steps", "21"], "--steps 21: steps must be an integer in [1, 20]"),
         (["--steps", "4", "--guidance=-1"], "argument --guidance: -1: must be a finite number in [0, 1000]"),
         (["--steps", "4", "--precisions", "fp16"], "--precisions fp16: expected fp32 or bf16"),
+        (["--steps", "4", "--best-of", "1", "65"], "--best-of 65: give an integer in [1, 64]"),
     ],
 )
 def test_tradeoff_errors_are_one_line(trained, tmp_path, capsys, args, message):

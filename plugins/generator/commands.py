@@ -52,6 +52,8 @@ from vqtouch.core.data import experiment_split
 from vqtouch.core.image_size import image_hw
 from vqtouch.plugins.evaluation.contact import dataset_background
 
+from .best_of import check_best_of, ranks_by_class
+
 
 def _with_tokenizer_run(config: Any, tokenizer_run: str, host: PluginHost) -> Any:
     """``config`` set to learn the codes of the tokenizer trained in ``tokenizer_run`` (a run, or a
@@ -156,6 +158,7 @@ def _generate_command(args: argparse.Namespace) -> int:
             seed=args.seed,
             batch_size=args.batch_size,
             conditioner=chosen,
+            best_of=args.best_of,
         )
         digits = max(4, len(str(n - 1)))
         shown: list[Any] = []
@@ -179,6 +182,7 @@ def _generate_command(args: argparse.Namespace) -> int:
             "seed": args.seed,
             "batch_size": args.batch_size,
             "conditioner": pipe.conditioner_names()[chosen],
+            "best_of": args.best_of,
         }
         text = json.dumps(settings, indent=2) + "\n"
         atomic_write(folder / "generate.json", lambda tmp: tmp.write_text(text, encoding="utf-8"))
@@ -294,6 +298,13 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     # Into --out: every conditioner unless one is named (Table 2's by_conditioner); into the run: one, 0 by default.
     indices = [args.conditioner] if args.conditioner is not None else (list(range(len(names))) if out else [0])
+    # --best-of ranks candidates by class: a named conditioner must have classes; of all, those that do use it.
+    best_of = {
+        index: check_best_of(args.best_of, pipe.conditioners[index], f"{index}:{names[index]}")
+        if len(indices) == 1 or ranks_by_class(pipe.conditioners[index])
+        else 1
+        for index in indices
+    }
     sampler_name = args.sampler or pipe.sampler_name
     steps = pipe.check_steps(args.steps or pipe.settings["steps"])
     metrics = [(block["name"], assembly.build("metric", block)) for block in _metric_blocks(args, config)]
@@ -335,6 +346,7 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
             device=pipe.device,
             picture=folder / picture,
             distribution=scorer,
+            best_of=best_of[index],
         )
     head = {
         "checkpoint": str(args.run if is_pretrained(args.run) else pipe.checkpoint),
@@ -418,6 +430,21 @@ def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
         default=["fp32", "bf16"],
         metavar="{fp32,bf16}",
         help="fp32, or bf16 autocast (the first is the base)",
+    )
+    parser.add_argument(
+        "--best-of",
+        type=positive_int,
+        nargs="+",
+        metavar="K",
+        help="label conditions: candidates per condition, the generator's own choice kept (the first is the "
+        "base; default: not a knob, one draw)",
+    )
+    parser.add_argument(
+        "--classifier-on",
+        choices=["real", "reconstructions"],
+        default="real",
+        help="train the classifier-accuracy column's classifier on the real training images (default) or "
+        "on the tokenizer's reconstructions of them, which judges decoded images fairly",
     )
     parser.add_argument("--batch-size", type=positive_int, default=16, help="conditions per forward pass")
     parser.add_argument(
@@ -546,6 +573,15 @@ def vqtouch_add_commands(subparsers):
     )
     _add_distribution_arguments(scored)
     scored.add_argument(
+        "--best-of",
+        type=positive_int,
+        default=1,
+        metavar="K",
+        help="label conditions: draw K candidates per condition and keep the one the generator itself "
+        "finds most typical of its label (about 2K times the time of one draw; 1: plain sampling); "
+        "with every conditioner scored, the others draw once",
+    )
+    scored.add_argument(
         "--classifier-on",
         choices=["real", "reconstructions"],
         default="real",
@@ -608,6 +644,14 @@ def vqtouch_add_commands(subparsers):
     )
     generate.add_argument("--seed", type=seed_int, default=0, help="seed: same seed and settings, same images")
     generate.add_argument("--batch-size", type=positive_int, default=16, help="images per forward pass")
+    generate.add_argument(
+        "--best-of",
+        type=positive_int,
+        default=1,
+        metavar="K",
+        help="label conditions: draw K candidates per image and keep the one the generator itself finds "
+        "most typical of the label (about 2K times the time of one draw; default 1: plain sampling)",
+    )
     generate.add_argument(
         "--out", required=True, help="folder for sample_*.png, grid.png and generate.json (written whole, at the end)"
     )

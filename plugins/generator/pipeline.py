@@ -36,6 +36,7 @@ from vqtouch.core.training import TRAINER_STATE, apply_ema_weights, collate_samp
 
 from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_digest, tokenizer_location
 
+from .best_of import check_best_of, sample_best_of
 from .stage import CHECKPOINT_FOLDER
 from .training import SENSOR_TAG_MODULE, SensorTaggedConditioner
 
@@ -158,6 +159,7 @@ class GenerationPipeline:
         seed: int = 0,
         batch_size: int = 16,
         conditioner: int | str | None = None,
+        best_of: int = 1,
         **conditions: Any,
     ) -> Iterator[tuple[int, torch.Tensor]]:
         """``(index of the first image, images (B, 3, S, S))`` a batch at a time, in order, holding one batch
@@ -166,7 +168,9 @@ class GenerationPipeline:
 
         Unset settings take the run's own (``generator.steps``, ``sampler``, the conditioner's
         guidance (:meth:`guidance_for`), ``truncation``).  ``conditioner``: which conditioner (index
-        or name) when several read the condition's key.  Values are what
+        or name) when several read the condition's key.  ``best_of`` > 1 (a label condition): each image
+        is the best of that many candidates by the generator's own posterior of its label
+        (:mod:`.best_of`; image i with ``best_of=1`` is the same as without).  Values are what
         :meth:`vqtouch.core.Conditioner.parse_condition` takes (a class index or name, an image path or
         tensor, a text)."""
         if len(conditions) != 1:
@@ -188,6 +192,7 @@ class GenerationPipeline:
         self.check_steps(steps)
         chosen = self.sampler if sampler in (None, self.sampler_name) else self.host.build("sampler", sampler)
         conditioner = self.conditioners[index]
+        check_best_of(best_of, conditioner, self.conditioner_names()[index])
 
         def parse(item: Any) -> Any:
             return conditioner.parse_condition(item, image_size=self.image_size, class_names=self.class_names)
@@ -203,19 +208,22 @@ class GenerationPipeline:
             batch = collate_samples([{conditioner.sample_key: row} for row in rows])
             batch = {k: v.to(self.device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
             condition = conditioner(conditioner.condition_of(batch))
-            generators = [
-                torch.Generator(device=self.device).manual_seed(seed * 1_000_003 + start + row)
-                for row in range(len(rows))
-            ]
-            codes = self.generator.sample(
-                condition,
-                chosen,
-                steps=steps,
-                null=conditioner.null(len(rows)),
-                guidance=guidance,
-                truncation=truncation,
-                generators=generators,
-            )
+            null = conditioner.null(len(rows))
+
+            def draw(generators: list[torch.Generator], condition: Any = condition, null: Any = null) -> torch.Tensor:
+                return self.generator.sample(
+                    condition,
+                    chosen,
+                    steps=steps,
+                    null=null,
+                    guidance=guidance,
+                    truncation=truncation,
+                    generators=generators,
+                )
+
+            row_seeds = [seed * 1_000_003 + start + row for row in range(len(rows))]
+            labels_B = conditioner.condition_of(batch) if best_of > 1 else None
+            codes = sample_best_of(self.generator, conditioner, labels_B, row_seeds, best_of, draw, self.device)
             # Decoded one by one: the decoder's float rounding depends on the batch size (1e-6), which
             # could flip a pixel's 8-bit value, and a sample must not depend on its batch.
             yield start, torch.cat([self.tokenizer.decode_codes(grid.unsqueeze(0)).cpu() for grid in codes])

@@ -37,6 +37,7 @@ from vqtouch.plugins.evaluation.contact import (
 )
 from vqtouch.plugins.evaluation.directions import shown_scores
 
+from .best_of import sample_best_of
 from .training import CodesDataset, GeneratorTask, GeneratorTrainConfig
 from vqtouch.plugins.tokenizer import (
     TOKENIZER_FILES,
@@ -387,6 +388,7 @@ def score_generation(
     picture: Path | None = None,
     pool: list[dict[str, Any]] | None = None,
     distribution: bool | DistributionScorer = False,
+    best_of: int = 1,
 ) -> dict[str, Any]:
     """Generate the held-out ``conditions`` (:func:`held_out_conditions`, read once and shared by every
     conditioner scored) with ``conditioner`` and score them against their ground-truth tactile images.
@@ -412,7 +414,10 @@ def score_generation(
     A metric that scores images against their conditions rather than their ground truth (one with
     ``condition_scores``, e.g. ``clip_score``) gets the raw conditions instead, for the model's images,
     each comparison and the ground truth itself (``real_*``); conditions it cannot read are listed
-    under ``"skipped"`` with the reason."""
+    under ``"skipped"`` with the reason.
+
+    ``best_of`` > 1 (a label conditioner only): each sample is the best of that many candidates by the
+    generator's own posterior of its label (:mod:`.best_of`); the scores then say ``best_of``."""
     count, indices, truth = len(conditions.indices), conditions.indices, conditions.truth
     batch = conditions.batch(device=device)
     generator.eval()
@@ -430,8 +435,12 @@ def score_generation(
         truncation=truncation,
         seed=seed,
         device=device,
+        best_of=best_of,
+        labels_B=conditioner.condition_of(batch) if best_of > 1 else None,
     )
     scores: dict[str, Any] = {"samples": count, "steps": steps, "guidance": guidance, "truncation": truncation}
+    if best_of > 1:
+        scores["best_of"] = best_of
     background = None if background_3HW is None else background_3HW.to(truth).expand_as(truth)
     compared = {"": images, "ceiling_": tokenizer.decode_codes(tokenizer.encode_codes(truth))}
     if background is not None:
@@ -517,20 +526,28 @@ def sample_images(
     truncation: float,
     seed: int,
     device: torch.device,
+    best_of: int = 1,
+    labels_B: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Decoded images (B, 3, H, W) of encoded ``condition`` (one row per entry of ``indices``): row i
-    drawn with a generator seeded from (seed, ``indices[i]``), its dataset index."""
-    draws = [torch.Generator(device=device).manual_seed(seed * 100_003 + index) for index in indices]
-    codes = generator.sample(
-        condition,
-        sampler,
-        steps=steps,
-        null=conditioner.null(len(indices)),
-        guidance=guidance,
-        truncation=truncation,
-        generators=draws,
-    )
-    return tokenizer.decode_codes(codes)
+    drawn with a generator seeded from (seed, ``indices[i]``), its dataset index.  ``best_of`` > 1
+    keeps, per row, the best of that many candidates by the generator's posterior of the row's label
+    ``labels_B`` (:func:`.best_of.sample_best_of`; a label conditioner only)."""
+    null = conditioner.null(len(indices))
+
+    def draw(generators: list[torch.Generator]) -> torch.Tensor:
+        return generator.sample(
+            condition,
+            sampler,
+            steps=steps,
+            null=null,
+            guidance=guidance,
+            truncation=truncation,
+            generators=generators,
+        )
+
+    row_seeds = [seed * 100_003 + index for index in indices]
+    return tokenizer.decode_codes(sample_best_of(generator, conditioner, labels_B, row_seeds, best_of, draw, device))
 
 
 #: Sampling precisions: float32, or bfloat16 autocast (the generator and the decoder).
@@ -552,11 +569,13 @@ def generate_held_out(
     device: torch.device,
     batch_size: int | None = None,
     precision: str = "fp32",
+    best_of: int = 1,
 ) -> torch.Tensor:
     """Float32 images (N, 3, H, W) of ``conditions``, encoded and sampled ``batch_size`` at a time
     (None: all at once, as :func:`score_generation` does) in ``precision`` (``fp32``, or ``bf16``
-    autocast); the seeds of :func:`sample_images`, so image i does not depend on the batching
-    beyond float rounding.  What ``vqtouch tradeoff generator`` times."""
+    autocast), each the best of ``best_of`` candidates (label conditions; :mod:`.best_of`); the
+    seeds of :func:`sample_images`, so image i does not depend on the batching beyond float
+    rounding.  What ``vqtouch tradeoff generator`` times."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision {precision!r}: expected one of {', '.join(PRECISIONS)}")
     generator.eval()
@@ -582,6 +601,8 @@ def generate_held_out(
                     truncation=truncation,
                     seed=seed,
                     device=device,
+                    best_of=best_of,
+                    labels_B=conditioner.condition_of(batch) if best_of > 1 else None,
                 ).float()
             )
     return torch.cat(images)

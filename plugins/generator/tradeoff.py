@@ -41,6 +41,7 @@ from vqtouch.core import Assembly, ConfigError, PluginHost
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.plugins.evaluation.contact import dataset_background
 
+from .best_of import check_best_of
 from .stage import (
     PRECISIONS,
     HeldOutConditions,
@@ -72,23 +73,26 @@ def sweep_settings(
     grid: bool = False,
     batches: list[int] | None = None,
     base: dict[str, Any] | None = None,
+    best_of: list[int] | None = None,
 ) -> list[dict[str, Any]]:
     """The settings to measure.  ``grid``: every combination.  Otherwise one knob at a time around
     the base (the first sampler, guidance, precision and batch, and the middle of ``steps``; or
     ``base``, e.g. a run's configured setting, each list then starting with its value): first every
     ``steps`` value, then the other samplers, guidance values, precisions and batches.
-    Duplicates are dropped, the order kept; the first row is the cost reference.  ``batches``
-    (None: not a knob) adds a ``batch`` entry to every setting."""
+    Duplicates are dropped, the order kept; the first row is the cost reference.  ``batches`` and
+    ``best_of`` (None: not a knob) add a ``batch`` and a ``best_of`` entry to every setting."""
     lists = {"sampler": samplers, "steps": steps, "guidance": guidance, "precision": precisions}
     if batches is not None:
         lists["batch"] = batches
+    if best_of is not None:
+        lists["best_of"] = best_of
     if grid:
         settings = [dict(zip(lists, combo)) for combo in itertools.product(*lists.values())]
     else:
         if base is None:
             base = {key: values[0] for key, values in lists.items()} | {"steps": steps[len(steps) // 2]}
         settings = [{**base, "steps": value} for value in steps]
-        for key in ("sampler", "guidance", "precision", "batch"):
+        for key in ("sampler", "guidance", "precision", "batch", "best_of"):
             settings += [{**base, key: value} for value in lists.get(key, [])[1:]]
     unique = dict.fromkeys(tuple(setting.items()) for setting in settings)
     return [dict(items) for items in unique]
@@ -103,6 +107,8 @@ def setting_label(setting: dict[str, Any]) -> str:
         label += f" {setting['precision']}"
     if "batch" in setting:
         label += f" b{setting['batch']}"
+    if setting.get("best_of", 1) != 1:
+        label += f" best{setting['best_of']}"
     return label
 
 
@@ -145,18 +151,26 @@ class TradeoffBench:
     #: How :attr:`background` was made (:func:`~vqtouch.plugins.evaluation.contact.dataset_background`).
     background_source: str = ""
 
-    def fit_distribution(self, feature_size: int | None = None) -> None:
+    def fit_distribution(self, feature_size: int | None = None, classifier_on: str = "real") -> None:
         """Fit the distribution scorer (:func:`.stage.distribution_scorer`): the real held-out
-        images' features and the classifier on the training split's real images, EfficientNet-Lite0
-        features at ``feature_size`` px (None: :attr:`feature_size`, the run's ``fd_effnetlite0``
-        metric's, else 224).  Once; every setting's images are then scored with it."""
+        images' features and the classifier on the training split's real images (``classifier_on``
+        ``"reconstructions"``: on the tokenizer's reconstructions of them, which judges decoded images
+        fairly), EfficientNet-Lite0 features at ``feature_size`` px (None: :attr:`feature_size`, the
+        run's ``fd_effnetlite0`` metric's, else 224).  Once; every setting's images are then scored
+        with it."""
         from vqtouch.plugins.evaluation.fd_metric import FdEffNetLite0
 
+        if classifier_on not in ("real", "reconstructions"):
+            raise ValueError(f"classifier_on {classifier_on!r}: expected 'real' or 'reconstructions'")
         if feature_size is not None:
             self.feature_size = feature_size
         metric = FdEffNetLite0(image_size=self.feature_size)
         self.scorer = distribution_scorer(
-            self.conditions, baseline_pool(self.train), [("fd_effnetlite0", metric)], self.seed
+            self.conditions,
+            baseline_pool(self.train),
+            [("fd_effnetlite0", metric)],
+            self.seed,
+            tokenizer=self.pipe.tokenizer if classifier_on == "reconstructions" else None,
         )
 
     def sampler(self, name: str) -> Any:
@@ -179,6 +193,7 @@ class TradeoffBench:
             device=pipe.device,
             batch_size=setting.get("batch", self.batch_size),
             precision=setting["precision"],
+            best_of=setting.get("best_of", 1),
         )
 
     def timed(self, setting: dict[str, Any]) -> tuple[float, torch.Tensor]:
@@ -268,7 +283,12 @@ def load_tradeoff_bench(
 
 
 def check_settings(
-    bench: TradeoffBench, steps: list[int], samplers: list[str], guidance: list[float], precisions: list[str]
+    bench: TradeoffBench,
+    steps: list[int],
+    samplers: list[str],
+    guidance: list[float],
+    precisions: list[str],
+    best_of: list[int] | None = None,
 ) -> None:
     """One-line errors for values no setting can take, before anything is timed."""
     if not (steps and samplers and guidance and precisions):
@@ -283,6 +303,8 @@ def check_settings(
             raise ConfigError(f"--precisions {name}: expected {' or '.join(PRECISIONS)}")
     for name in samplers:
         bench.sampler(name)  # an unknown name raises the registry's error, which lists the samplers
+    for value in best_of or []:
+        check_best_of(value, bench.pipe.conditioners[0], bench.pipe.conditioner_names()[0])
 
 
 def measure(bench: TradeoffBench, settings: list[dict[str, Any]], rounds: int, log: Any = None) -> list[dict[str, Any]]:
@@ -349,17 +371,21 @@ def _cell(value: Any, digits: int) -> str:
 
 def markdown_table(rows: list[dict[str, Any]], header: str, reference: dict[str, Any]) -> str:
     """``tradeoff.md``: the header line, the table (one row per setting) and the reference scores."""
+    # The best-of column only when it is a knob of the sweep.
+    best_of = any("best_of" in row for row in rows)
     lines = [
         header,
         "",
-        "| sampler | steps | guidance | precision | img/s | ms/img | cost | SSIM | PSNR dB | contact PSNR dB "
-        "| fd_effnetlite0 | classifier acc | Pareto front |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| sampler | steps | guidance | precision | "
+        + ("best of | " if best_of else "")
+        + "img/s | ms/img | cost | SSIM | PSNR dB | contact PSNR dB | fd_effnetlite0 | classifier acc | Pareto front |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if best_of else ""),
     ]
     for row in rows:
         lines.append(
             f"| {row['sampler']} | {row['steps']} | {row['guidance']:g} | {row['precision']} | "
-            f"{row['img_per_s']:.2f} | {row['seconds_per_image'] * 1000:.1f} | {row['cost']:.2f}x | "
+            + (f"{row.get('best_of', 1)} | " if best_of else "")
+            + f"{row['img_per_s']:.2f} | {row['seconds_per_image'] * 1000:.1f} | {row['cost']:.2f}x | "
             f"{_cell(row.get('ssim'), 4)} | {_cell(row.get('psnr'), 2)} | "
             f"{_cell(row.get('contact_psnr'), 2)} | "
             f"{_cell(row.get('fd_effnetlite0'), 2)} | {_cell(row.get('classifier_accuracy'), 3)} | "
@@ -444,11 +470,16 @@ def tradeoff_command(args: argparse.Namespace) -> int:
         distribution=False,
         feature_size=args.feature_size,
     )
-    check_settings(bench, args.steps, args.samplers, args.guidance, args.precisions)
+    check_settings(bench, args.steps, args.samplers, args.guidance, args.precisions, args.best_of)
     if args.distribution:
-        bench.fit_distribution()
+        bench.fit_distribution(classifier_on=args.classifier_on)
     settings = sweep_settings(
-        steps=args.steps, samplers=args.samplers, guidance=args.guidance, precisions=args.precisions, grid=args.grid
+        steps=args.steps,
+        samplers=args.samplers,
+        guidance=args.guidance,
+        precisions=args.precisions,
+        grid=args.grid,
+        best_of=args.best_of,
     )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -486,7 +517,9 @@ def tradeoff_command(args: argparse.Namespace) -> int:
         f"conditions; threads {torch.get_num_threads()}; rounds {args.rounds} (interleaved, median); device "
         f"{device}; batch {args.batch_size}; seed {bench.seed}; "
         f"truncation {bench.pipe.settings['truncation']:g}; "
-        f"features {bench.feature_size} px; cost = time per image / the first row's."
+        f"features {bench.feature_size} px"
+        + (f"; classifier on the {args.classifier_on} of the training images" if args.distribution else "")
+        + "; cost = time per image / the first row's."
     )
     result = {
         "run": str(bench.run),
@@ -500,6 +533,7 @@ def tradeoff_command(args: argparse.Namespace) -> int:
         "truncation": bench.pipe.settings["truncation"],
         "feature_size": bench.feature_size,
         "distribution": bool(args.distribution),
+        **({"classifier_trained_on": f"the {args.classifier_on} of the training images"} if args.distribution else {}),
         "grid": bool(args.grid),
         "background": bench.background_source,
         "reference": reference,

@@ -39,6 +39,15 @@ from .diffusion import (
 )
 
 
+#: Where :meth:`VQDiffusion.masked_log_likelihood` reads the model, as fractions of the T steps.
+LIKELIHOOD_FRACTIONS = (0.2, 0.4, 0.6, 0.8)
+
+
+def likelihood_steps(num_steps: int) -> list[int]:
+    """The distinct steps t in [1, T-1] at :data:`LIKELIHOOD_FRACTIONS` of ``num_steps`` = T."""
+    return sorted({min(num_steps - 1, max(1, round(fraction * num_steps))) for fraction in LIKELIHOOD_FRACTIONS})
+
+
 class VQDiffusionConfig(PluginConfig):
     """Options of the ``vq_diffusion`` generator."""
 
@@ -231,6 +240,29 @@ class VQDiffusion(Generator):
         return log_predict_x0(
             self.network(codes_t_BL, t_B, condition=condition.tokens_BND, condition_grid=condition.grid_BDhw)
         )
+
+    @torch.no_grad()
+    def masked_log_likelihood(self, codes_BHW: torch.Tensor, condition: ConditionTokens) -> torch.Tensor:
+        """(B,) an estimate of log p(codes | condition) up to a constant shared by every condition: the sum,
+        over the steps t at :data:`LIKELIHOOD_FRACTIONS` of T, of log p(x0 = code | x_t, condition) over
+        the cells masked in x_t (each masked with probability gamma_bar_t).  Why these four reads rather
+        than the variational bound's T: they are enough to rank candidates or conditions against each
+        other (docs/generation.md, section 17), at four forward passes.  The masked cells of each t
+        are drawn from a generator seeded by t alone and shared by every row, so two conditions or two
+        candidates are compared on the same cells and a row's value does not depend on its batch."""
+        codes_BL = self._flatten(codes_BHW)
+        device = codes_BL.device
+        self.eval()
+        cache = self.network.precompute_condition(condition.tokens_BND, grid_BDhw=condition.grid_BDhw)
+        total_B = torch.zeros(len(codes_BL), device=device)
+        for t in likelihood_steps(self.config.num_steps):
+            draws = torch.Generator(device=device).manual_seed(t)
+            masked_L = torch.rand(self.length, generator=draws, device=device) < float(self.schedule.gamma_bar[t])
+            codes_t_BL = torch.where(masked_L, self.schedule.mask_index, codes_BL)
+            t_B = torch.full((len(codes_BL),), t, device=device)
+            log_x0_BCL = log_predict_x0(self.network(codes_t_BL, t_B, cache=cache))
+            total_B += (log_x0_BCL.gather(1, codes_BL[:, None]).squeeze(1) * masked_L).sum(1)
+        return total_B
 
     @torch.no_grad()
     def sample(
