@@ -220,6 +220,10 @@ def test_tradeoff_times_best_of_k_beside_one_draw_with_a_fair_classifier(trained
     evaluated = json.loads((scored / "generation.json").read_text())["by_conditioner"]["0:label"]
     assert evaluated["best_of"] == 3 and rows[1]["psnr"] == pytest.approx(evaluated["psnr"], abs=2e-4)
     assert rows[1]["psnr"] != pytest.approx(rows[0]["psnr"], abs=2e-4)
+    # Fitted on reconstructions, the classifier is referred to the tokenizer's ceiling, not to sharp images.
+    reference = result["reference"]
+    assert "real_classifier_accuracy" not in reference and 0 <= reference["ceiling_classifier_accuracy"] <= 1
+    assert reference["ceiling_contact_psnr"] == pytest.approx(evaluated["ceiling_contact_psnr"], abs=2e-4)
     table = (out / "tradeoff.md").read_text()
     assert "| best of |" in table and "| posterior | 3 | 1 | fp32 | 3 |" in table
     assert "classifier on the reconstructions of the training images" in table.splitlines()[0]

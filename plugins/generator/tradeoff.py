@@ -404,7 +404,8 @@ def markdown_table(rows: list[dict[str, Any]], header: str, reference: dict[str,
 def plot_pareto(rows: list[dict[str, Any]], path: Path, title: str, reference: dict[str, Any]) -> None:
     """``pareto.png``: one panel per quality column the rows have (contact PSNR, fd_effnetlite0,
     classifier accuracy), time per image on a log x axis, every setting a labelled point, the
-    Pareto front a line, and the reference scores (real images, no-contact image) as dashed lines."""
+    Pareto front a line, and the reference scores (real images, the tokenizer's reconstructions, the
+    no-contact image) as grey lines."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.ticker import NullFormatter
@@ -436,15 +437,13 @@ def plot_pareto(rows: list[dict[str, Any]], path: Path, title: str, reference: d
             label="Pareto front",
             zorder=2,
         )
-        for name, style in ((f"real_{key}", "--"), (f"background_{key}", ":")):
-            if isinstance(reference.get(name), (int, float)):
-                axes.axhline(
-                    reference[name],
-                    linestyle=style,
-                    color="grey",
-                    linewidth=1,
-                    label="real held-out images" if name.startswith("real_") else "no-contact image",
-                )
+        for prefix, style, text in (
+            ("real_", "--", "real held-out images"),
+            ("ceiling_", "-.", "tokenizer's reconstructions"),
+            ("background_", ":", "no-contact image"),
+        ):
+            if isinstance(reference.get(prefix + key), (int, float)):
+                axes.axhline(reference[prefix + key], linestyle=style, color="grey", linewidth=1, label=text)
         axes.set_xscale("log")
         axes.xaxis.set_minor_formatter(NullFormatter())  # labelled minor ticks overlap on a short log axis
         axes.set_xlabel("seconds per image (log scale)")
@@ -494,10 +493,20 @@ def tradeoff_command(args: argparse.Namespace) -> int:
     if bench.scorer is not None:
         real = bench.scorer.real_scores()
         reference |= {
-            "real_classifier_accuracy": real.get("real_classifier_accuracy"),
+            # Fitted on reconstructions, the classifier's accuracy on sharp real images is no reference.
+            "real_classifier_accuracy": real.get("real_classifier_accuracy") if args.classifier_on == "real" else None,
             "classifier_train_images": real.get("classifier_train_images"),
             "classifier_skipped": real.get("classifier_skipped"),
         }
+    # The tokenizer's own reconstructions of the truth: what no generator over its codes can beat.
+    tokenizer = bench.pipe.tokenizer
+    with torch.no_grad():
+        reconstructions = tokenizer.decode_codes(tokenizer.encode_codes(bench.conditions.truth)).float()
+    ceiling = bench.score(reconstructions, "ceiling_")
+    reference |= {
+        key: ceiling.get(key)
+        for key in ("ceiling_contact_psnr", "ceiling_fd_effnetlite0", "ceiling_classifier_accuracy")
+    }
     if bench.background is not None:
         background = bench.score(bench.background, "background_")
         reference |= {
