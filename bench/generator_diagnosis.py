@@ -12,6 +12,7 @@ Run (one job at a time on a 2-core CPU; OMP_NUM_THREADS=2):
         --variant "" --variant "conditioner.grid_context=[1,2,4,8]"   # training step time per setting
     .venv/bin/python bench/generator_diagnosis.py rescore --weights RUN.json.pt --pairs 900 --n 64 --guidance 2
     .venv/bin/python bench/generator_diagnosis.py rerank --conditioner label --candidates 8 --guidance 2  # best of K
+    .venv/bin/python bench/generator_diagnosis.py implicit --n 64   # the generator as a classifier of real codes
 
 Everything runs over the bundled ``tour`` tokenizer (``plugins/pretrained/weights/tour``) and the
 tour scene's procedural data: GelSight targets, GelSight Mini images of the same contacts as the
@@ -806,6 +807,27 @@ def rescore(args: argparse.Namespace) -> dict[str, Any]:
 
 
 @torch.no_grad()
+def implicit(args: argparse.Namespace) -> dict[str, Any]:
+    """The bundle's generator as a classifier of real images: the share of the ``--n`` held-out
+    scenes of ``vqtouch evaluate generation`` whose canonical codes get their own class from the
+    arg max of ``--best-of``'s class posterior (what best of K ranks candidates by)."""
+    from vqtouch.plugins.generator.best_of import class_log_posteriors
+
+    pipe, dataset, _, held_out, background_3HW = bundle_split(args.bundle, load_plugins())
+    names = [name.split(":")[-1] for name in pipe.conditioner_names()]  # the pipeline says "INDEX:NAME"
+    conditioner = pipe.conditioners[names.index("label")].float().eval()
+    count = min(args.n, len(held_out))
+    batch = dataset.render_batch([held_out.indices[i] for i in range(count)])
+    codes = canonical_background(encode(pipe.tokenizer, batch["tactile"]), pipe.tokenizer, background_3HW)[0]
+    predicted = class_log_posteriors(pipe.generator.float().eval(), conditioner, codes).argmax(0)
+    return {
+        "bundle": args.bundle,
+        "n": count,
+        "accuracy": round(float((predicted == batch["label"]).float().mean()), 4),
+    }
+
+
+@torch.no_grad()
 def rerank(args: argparse.Namespace) -> dict[str, Any]:
     """Best of ``--candidates`` samples per held-out condition, chosen by the bundle generator's own
     scores (no other model): for the label, its implicit class posterior (log p(x | class) of every
@@ -992,6 +1014,7 @@ def main() -> None:
             "head",
             "prior",
             "rerank",
+            "implicit",
         ],
     )
     parser.add_argument("--bundle", default="tour")
@@ -1037,7 +1060,15 @@ def main() -> None:
     commands = {"codes": codes_report, "overfit": overfit, "split": split, "sensitivity": sensitivity, "head": head}
     result = (
         commands
-        | {"gap": gap, "locate": locate, "cost": step_cost, "rescore": rescore, "prior": prior, "rerank": rerank}
+        | {
+            "gap": gap,
+            "locate": locate,
+            "cost": step_cost,
+            "rescore": rescore,
+            "prior": prior,
+            "rerank": rerank,
+            "implicit": implicit,
+        }
     )[args.what](args)
     print(json.dumps(result, indent=1))
 
