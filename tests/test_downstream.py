@@ -21,8 +21,11 @@ from vqtouch.plugins.experiments.downstream import (
     CEILING,
     FEW,
     FEW_AND_GENERATED,
+    FEW_AND_RECONSTRUCTED,
     GENERATED,
+    RECONSTRUCTED,
     LabelledFeatures,
+    draw_others,
     draw_shots,
     label_conditioner_index,
     mixed_arm,
@@ -177,6 +180,7 @@ def test_the_label_conditioner_is_found_or_refused():
         (["--generated-weight", "0"], "argument --generated-weight: 0: must be a finite number > 0"),
         (["--generated-weight", "nan"], "must be a finite number > 0"),
         (["--generated-weight", "1", "1.0"], "--generated-weight 1 1: each weight once"),
+        (["--best-of", "65"], "--best-of 65: give an integer in [1, 64] (1: plain sampling)"),
     ],
 )
 def test_bad_requests_are_one_line_errors(label_run, tmp_path, capsys, flags, message):
@@ -319,12 +323,31 @@ def test_each_generated_weight_is_its_own_arm_on_the_same_images(label_run, tmp_
     flags = ["--seeds", "0", "--shots", "2", "--generated-per-class", "2", "--feature-size", "32"]
     args = ["--no-progress", "evaluate", "downstream", "--run", str(label_run), "--out", str(out), *flags]
     assert main([*args, "--generated-weight", "1", "0.25"]) == 0
-    # (rows, real rows, weight) of each fit: generated, few, the two mixed, ceiling, background.
-    assert fits == [(6, 0, 1.0), (6, 6, 1.0), (12, 6, 1.0), (12, 6, 0.25), (27, 27, 1.0), (6, 0, 1.0)]
+    # (rows, rows with a dataset index, weight) of each fit: generated, few, the two mixed, ceiling,
+    # the two reconstruction arms, background.
+    assert fits == [
+        (6, 0, 1.0),
+        (6, 6, 1.0),
+        (12, 6, 1.0),
+        (12, 6, 0.25),
+        (27, 27, 1.0),
+        (6, 6, 1.0),
+        (12, 12, 1.0),
+        (6, 0, 1.0),
+    ]
     result = json.loads((out / "downstream.json").read_text())
     light = mixed_arm(0.25)
     assert light == "real few + generated (weight 0.25)" and result["generated_weights"] == [1.0, 0.25]
-    assert [row["arm"] for row in result["rows"]] == [GENERATED, FEW, FEW_AND_GENERATED, light, CEILING, ARMS[-1]]
+    assert [row["arm"] for row in result["rows"]] == [
+        GENERATED,
+        FEW,
+        FEW_AND_GENERATED,
+        light,
+        CEILING,
+        RECONSTRUCTED,
+        FEW_AND_RECONSTRUCTED,
+        ARMS[-1],
+    ]
     by_arm = {row["arm"]: row for row in result["rows"]}
     assert by_arm[light]["generated_weight"] == 0.25 and by_arm[FEW_AND_GENERATED]["generated_weight"] == 1.0
     assert by_arm[light]["real_indices"] == by_arm[FEW_AND_GENERATED]["real_indices"] == by_arm[FEW]["real_indices"]
@@ -367,16 +390,106 @@ def test_through_the_tokenizer_the_classifiers_see_reconstructions(label_run, tm
     def of_dataset(indices, decoded):
         return features(torch.stack([dataset[i]["tactile"] for i in indices]), decoded)
 
-    (generated, test), (few, _), (mixed, _), (ceiling, _), (background, _) = fits
+    (generated, test), (few, _), (mixed, _), (ceiling, _), (reconstructed, _), (few_and_reconstructed, _), (
+        background,
+        _,
+    ) = fits
     result = json.loads((out / "downstream.json").read_text())
     assert test.indices == result["test_indices"] and len(ceiling.indices) == 27 and len(few.indices) == 6
-    for rows in (test, few, ceiling):
+    for rows in (test, few, ceiling, reconstructed):
         assert torch.allclose(rows.features_NF, of_dataset(rows.indices, True), atol=1e-4)
         assert not torch.allclose(rows.features_NF, of_dataset(rows.indices, False), atol=1e-3)
     assert torch.equal(mixed.features_NF[:6], few.features_NF)
     assert torch.equal(mixed.features_NF[6:], generated.features_NF)
+    assert torch.equal(few_and_reconstructed.features_NF, torch.cat([few.features_NF, reconstructed.features_NF]))
     train_split, _ = experiment_split(dataset, config.data, config.seed)
     no_contact, _ = dataset_background(train_split, tuple(dataset[0]["tactile"].shape[-2:]))
     assert torch.allclose(background.features_NF, features(no_contact[None], True).expand(6, -1), atol=1e-4)
     assert result["real_images"] == "the tokenizer's reconstructions"
     assert "passed through the run's tokenizer first (--through-tokenizer)" in (out / "downstream.md").read_text()
+
+
+def test_others_are_drawn_per_class_outside_the_excluded_and_by_seed():
+    labels = [0] * 6 + [1] * 3 + [2] * 5
+    excluded = [0, 1, 6, 9]
+    drawn = draw_others(labels, 3, seed=4, exclude=excluded)
+    assert len(drawn) == len(set(drawn)) and not set(drawn) & set(excluded)
+    # Class 1 has two others: both are taken, the other classes give three each.
+    assert Counter(labels[p] for p in drawn) == {0: 3, 1: 2, 2: 3}
+    assert draw_others(labels, 3, seed=4, exclude=excluded) == drawn
+    assert any(draw_others(labels, 3, seed=s, exclude=excluded) != drawn for s in range(5, 10))
+    # The reconstructions' draw has its own stream: the shots of the same seed are not its first picks.
+    assert draw_others(labels, 2, seed=0, exclude=[]) != draw_shots(labels, 2, 0)
+
+
+def test_the_reconstruction_arms_are_round_trips_of_other_training_images(label_run, tmp_path, monkeypatch, host):
+    """Independent reference: the reconstruction arms' rows must be the features of
+    ``decode_codes(encode_codes(image))`` of real training images of the run's split, two per class,
+    none of them a shot of the same seed or a held-out image, with the real few before them."""
+    from vqtouch.plugins.experiments import downstream
+    from vqtouch.plugins.generator import load_pipeline
+
+    fits = []
+
+    def recording(train, test, seed, generated_weight=1.0):
+        fits.append(train)
+        return train_and_test(train, test, seed, generated_weight)
+
+    monkeypatch.setattr(downstream, "train_and_test", recording)
+    out = tmp_path / "reconstructed"
+    assert main(["--no-progress", "evaluate", "downstream", "--run", str(label_run), "--out", str(out), *FAST]) == 0
+    result = json.loads((out / "downstream.json").read_text())
+    dataset, config = _run_dataset(label_run, host)
+    train, held_out = split_dataset(dataset, config.data.val_fraction, config.seed)
+    tokenizer = load_pipeline(label_run, host=host).tokenizer
+    metric = Assembly(config, host).build("metric", {"name": "fd_effnetlite0", "image_size": 32})
+
+    def of_dataset(indices, decoded):
+        images_N3HW = torch.stack([dataset[i]["tactile"] for i in indices]).float()
+        with torch.no_grad():
+            if decoded:
+                images_N3HW = tokenizer.decode_codes(tokenizer.encode_codes(images_N3HW))
+            return metric.pooled_features(images_N3HW.float()).float()
+
+    per_seed = len(ARMS)
+    drawn = []
+    for seed_index, seed in enumerate((0, 1)):
+        fitted = dict(zip(ARMS, fits[seed_index * per_seed : (seed_index + 1) * per_seed]))
+        rows = {row["arm"]: row for row in result["rows"] if row["seed"] == seed}
+        reconstructed, few = fitted[RECONSTRUCTED], fitted[FEW]
+        assert reconstructed.indices == rows[RECONSTRUCTED]["real_indices"]
+        assert Counter(dataset[i]["label"] for i in reconstructed.indices) == {0: 2, 1: 2, 2: 2}
+        assert set(reconstructed.indices) <= set(train.indices)
+        assert not set(reconstructed.indices) & (set(held_out.indices) | set(few.indices))
+        assert torch.allclose(reconstructed.features_NF, of_dataset(reconstructed.indices, True), atol=1e-4)
+        assert not torch.allclose(reconstructed.features_NF, of_dataset(reconstructed.indices, False), atol=1e-3)
+        mixed = fitted[FEW_AND_RECONSTRUCTED]
+        assert torch.equal(mixed.features_NF, torch.cat([few.features_NF, reconstructed.features_NF]))
+        assert mixed.labels == few.labels + reconstructed.labels
+        assert rows[FEW_AND_RECONSTRUCTED]["real_per_class"] == 2 and rows[RECONSTRUCTED]["real_per_class"] == 0
+        drawn.append(set(reconstructed.indices))
+    assert drawn[0] != drawn[1]  # the seed draws them
+    assert result["reconstruction_shortfall"] == {}
+    assert "what a generator that reproduced its training images would give" in (out / "downstream.md").read_text()
+
+
+def test_best_of_reaches_the_sampler_with_each_row_s_own_label(label_run, tmp_path, monkeypatch):
+    from vqtouch.plugins.experiments import downstream
+
+    calls = []
+    real_sample_images = downstream.sample_images
+
+    def recording(*args, **kwargs):
+        calls.append((kwargs["best_of"], kwargs["labels_B"].tolist(), args[5]))
+        return real_sample_images(*args, **kwargs)
+
+    monkeypatch.setattr(downstream, "sample_images", recording)
+    out = tmp_path / "best_of"
+    flags = ["--seeds", "0", "--shots", "2", "--generated-per-class", "2", "--feature-size", "32", "--batch-size", "4"]
+    args = ["--no-progress", "evaluate", "downstream", "--run", str(label_run), "--out", str(out), *flags]
+    assert main([*args, "--best-of", "3"]) == 0
+    # Class-major rows in batches of 4: each row's label is the class it is generated for.
+    assert calls == [(3, [0, 0, 1, 1], [0, 1, 2, 3]), (3, [2, 2], [4, 5])]
+    result = json.loads((out / "downstream.json").read_text())
+    assert result["best_of"] == 3
+    assert "best of 3 candidates by the generator's own class posterior" in (out / "downstream.md").read_text()

@@ -14,13 +14,19 @@ that the generator never trained on; group-aware for readers with recordings):
    generated image weighing ``W`` against 1 for a real one in the classifier's fit (``real few +
    generated (weight W)``; 1 is the plain arm): how much the generated images should count;
 4. ``all real (ceiling)``: every real training image of the run's split, the ceiling;
+5. ``reconstructions only`` and ``real few + reconstructions``: arms 1 and 3 with the generated
+   images replaced by the tokenizer's reconstructions (encoded and decoded) of M other real training
+   images per class, what a generator that reproduced its training images would give: the
+   generated arms' ceiling, bounded by the tokenizer (Table 2's ``ceiling_*`` likewise);
 
 and, as the honest floor of arm 1, ``no-contact background``: M copies per class of the no-contact
 image of the run's training images (the rendering sensor's for the procedural scenes, the
 per-pixel median of captured frames: :func:`~vqtouch.plugins.evaluation.contact.dataset_background`),
 what a generator that draws only the background would give (a classifier trained on it predicts
 one class).  Each arm is trained and tested once per seed; the seed draws the K real images, the
-generated images and the classifier's random state.
+generated images, the reconstructed images and the classifier's random state.  ``--best-of K`` draws
+K candidates for every generated image and keeps the one the generator itself finds most typical of
+its label (about 2K times the sampling time).
 The scores are top-1 accuracy and macro precision, recall and F1 over the test set's classes
 (scikit-learn's ``accuracy_score`` and ``precision_recall_fscore_support``, a class never
 predicted has precision 0), beside the chance level (1 / classes) and the majority-class rate
@@ -81,20 +87,24 @@ from vqtouch.core.cli import (
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.plugins.evaluation.records import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
 from vqtouch.core.training import collate_samples
-from vqtouch.plugins.generator import sample_images
+from vqtouch.plugins.generator import check_best_of, sample_images
 from vqtouch.core.data import experiment_split
 from vqtouch.plugins.evaluation.contact import dataset_background
 from vqtouch.core.images import image_grid, save_png
 
-GENERATED, FEW, FEW_AND_GENERATED, CEILING, BACKGROUND = (
+GENERATED, FEW, FEW_AND_GENERATED, CEILING, RECONSTRUCTED, FEW_AND_RECONSTRUCTED, BACKGROUND = (
     "generated only",
     "real few",
     "real few + generated",
     "all real (ceiling)",
+    "reconstructions only",
+    "real few + reconstructions",
     "no-contact background",
 )
-#: The arms in table order (the background row last: it is the floor of ``generated only``).
-ARMS = (GENERATED, FEW, FEW_AND_GENERATED, CEILING, BACKGROUND)
+#: The arms in table order: the tokenizer's reconstructions stand in for a generator that reproduced
+#: its training images (the ceiling of the two generated arms); the background row last, the floor of
+#: ``generated only``.
+ARMS = (GENERATED, FEW, FEW_AND_GENERATED, CEILING, RECONSTRUCTED, FEW_AND_RECONSTRUCTED, BACKGROUND)
 #: The recognition scores of each arm, all in [0, 1].
 SCORES = ("top1", "precision", "recall", "f1")
 #: How the table groups the rows (the seeds of one group are averaged).
@@ -228,6 +238,24 @@ def draw_shots(labels: Sequence[int], shots: int, seed: int, class_names: Sequen
     return chosen
 
 
+def draw_others(labels: Sequence[int], per_class: int, seed: int, exclude: Sequence[int]) -> list[int]:
+    """Positions of up to ``per_class`` images of every class in ``labels`` outside ``exclude``, drawn
+    without replacement by ``seed`` (all the others of a class that has fewer): the training images
+    whose reconstructions stand in for a perfect generator's ``per_class`` images of the class."""
+    excluded = set(exclude)
+    by_class: dict[int, list[int]] = {}
+    for position, label in enumerate(labels):
+        if position not in excluded:
+            by_class.setdefault(label, []).append(position)
+    # Its own stream, so that the reconstructions never shift the shots or the generated images.
+    draw = torch.Generator().manual_seed(seed * 1_000_003 + 7)
+    chosen = []
+    for label in sorted(by_class):
+        members = by_class[label]
+        chosen += [members[i] for i in torch.randperm(len(members), generator=draw)[:per_class].tolist()]
+    return chosen
+
+
 @torch.no_grad()
 def generate_per_class(
     pipe: Any,
@@ -241,9 +269,12 @@ def generate_per_class(
     truncation: float,
     seed: int,
     batch_size: int,
+    best_of: int = 1,
 ) -> tuple[torch.Tensor, list[int]]:
     """``per_class`` images (N, 3, H, W) of every class (class-major) from the label ``conditioner``,
-    and their labels; image i is drawn with a generator seeded from (``seed``, i)."""
+    and their labels; image i is drawn with a generator seeded from (``seed``, i); ``best_of`` > 1
+    keeps the best of that many candidates by the generator's own class posterior
+    (:func:`vqtouch.plugins.generator.best_of.sample_best_of`)."""
 
     labels = [label for label in classes for _ in range(per_class)]
     images = []
@@ -275,6 +306,8 @@ def generate_per_class(
                 truncation=truncation,
                 seed=seed,
                 device=pipe.device,
+                best_of=best_of,
+                labels_B=conditioner.condition_of(batch) if best_of > 1 else None,
             )
             .float()
             .cpu()
@@ -325,6 +358,7 @@ def evaluate_downstream(
     batch_size: int = 16,
     generated_weights: Sequence[float] = (1.0,),
     through_tokenizer: bool = False,
+    best_of: int = 1,
     report: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Run the experiment of the module docstring on ``run`` and write its files into ``out``.
@@ -339,7 +373,8 @@ def evaluate_downstream(
     generated`` arm once per weight, a generated image weighing that much against 1 for a real one in
     the classifier's fit (:func:`mixed_arm`); ``through_tokenizer``: every real image and the
     no-contact image pass through the run's tokenizer before the classifiers see them (module
-    docstring).  Returns what ``downstream.json`` holds."""
+    docstring); ``best_of``: label candidates per generated image, the generator's own choice kept
+    (1: plain sampling).  Returns what ``downstream.json`` holds."""
     from vqtouch.plugins.generator import load_pipeline
     from vqtouch.plugins.tokenizer import reconstruct_all
 
@@ -349,6 +384,7 @@ def evaluate_downstream(
     names = [item.name for item in config.generator.conditioners]
     chosen = label_conditioner_index([c.sample_key for c in pipe.conditioners], names, conditioner)
     label_conditioner = pipe.conditioners[chosen]
+    best_of = check_best_of(best_of, label_conditioner, f"{chosen}:{names[chosen]}")
     steps = pipe.check_steps(steps or pipe.settings["steps"])
     guidance = pipe.guidance_for(chosen) if guidance is None else guidance
     sampler_name = sampler or pipe.sampler_name
@@ -369,12 +405,12 @@ def evaluate_downstream(
             "recognition tests on the run's held-out split: use a run trained with data.val_fraction > 0"
         )
     metric = _feature_metric(config, assembly, feature_size)
-    prepare = None
-    if through_tokenizer:
-        tokenizer = pipe.tokenizer
+    tokenizer = pipe.tokenizer
 
-        def prepare(images_N3HW: torch.Tensor) -> torch.Tensor:
-            return reconstruct_all(tokenizer, images_N3HW.to(tokenizer.device), FEATURE_CHUNK).float().cpu()
+    def reconstruct(images_N3HW: torch.Tensor) -> torch.Tensor:
+        return reconstruct_all(tokenizer, images_N3HW.to(tokenizer.device), FEATURE_CHUNK).float().cpu()
+
+    prepare = reconstruct if through_tokenizer else None
 
     record = ExperimentRecord("downstream", out, seeds=seeds)  # from here on the wall time counts
     pool = list(train_split.indices)
@@ -410,6 +446,7 @@ def evaluate_downstream(
     rows: list[dict[str, Any]] = []
     confusion: dict[str, list[list[int]]] = {}
     shown = None
+    shortfall: dict[int, int] = {}  # class -> reconstructions short of generated_per_class
     for seed in record.seeds:
         tic = time.perf_counter()
         images, labels = generate_per_class(
@@ -423,10 +460,23 @@ def evaluate_downstream(
             truncation=pipe.settings["truncation"],
             seed=seed,
             batch_size=batch_size,
+            best_of=best_of,
         )
         shown = images if shown is None else shown
         generated = LabelledFeatures(metric.pooled_features(images).float(), labels, [])
-        few = real_train.take(draw_shots(real_train.labels, shots, seed, class_names))
+        shot_positions = draw_shots(real_train.labels, shots, seed, class_names)
+        few = real_train.take(shot_positions)
+        others = real_train.take(draw_others(real_train.labels, generated_per_class, seed, shot_positions))
+        if not through_tokenizer:  # else real_train's features already are the reconstructions'
+            others = real_features(dataset, others.indices, metric, reconstruct)[0]
+        reconstructed_counts = Counter(others.labels)
+        shortfall.update(
+            {
+                label: generated_per_class - reconstructed_counts[label]
+                for label in classes
+                if reconstructed_counts[label] < generated_per_class
+            }
+        )
         arms = {
             GENERATED: (generated, 0, generated_per_class, None),
             FEW: (few, shots, 0, None),
@@ -435,6 +485,8 @@ def evaluate_downstream(
                 for weight in generated_weights
             },
             CEILING: (real_train, "all", 0, None),
+            RECONSTRUCTED: (others, 0, generated_per_class, None),
+            FEW_AND_RECONSTRUCTED: (LabelledFeatures.join(few, others), shots, generated_per_class, None),
         }
         if background_features is not None:
             arms[BACKGROUND] = (
@@ -483,6 +535,8 @@ def evaluate_downstream(
         "shots": shots,
         "generated_per_class": generated_per_class,
         "generated_weights": list(generated_weights),
+        "best_of": best_of,
+        "reconstruction_shortfall": {str(label): count for label, count in sorted(shortfall.items())},
         "split_unit": test_split.split_unit,
         "generator_train_images": len(train_split),
         "real_train_images": len(real_train.labels),
@@ -579,7 +633,24 @@ def render_markdown(result: dict[str, Any]) -> list[str]:
         f"`{CEILING}` is the ceiling: {ceiling}.  The generator itself was trained on the run's "
         f"{result['generator_train_images']} training images, so `{GENERATED}` measures whether its images carry "
         "the class, not what K real images would teach it.",
+        "",
+        f"`{RECONSTRUCTED}` and `{FEW_AND_RECONSTRUCTED}`: the generated images replaced by the tokenizer's "
+        f"reconstructions of {result['generated_per_class']} other real training images per class, what a "
+        "generator that reproduced its training images would give (the generated arms' ceiling).",
     ]
+    if result["reconstruction_shortfall"]:
+        lines += [
+            "",
+            "Classes with fewer other training images than that (class: reconstructions short): "
+            + ", ".join(f"{label}: {count}" for label, count in result["reconstruction_shortfall"].items())
+            + ".",
+        ]
+    if result.get("best_of", 1) > 1:
+        lines += [
+            "",
+            f"Each generated image is the best of {result['best_of']} candidates by the generator's own "
+            "class posterior (--best-of).",
+        ]
     if result["background"]:
         lines += [
             "",
@@ -609,7 +680,7 @@ def plot_scores(summary: list[dict[str, Any]], chance: float, majority: float, p
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    figure = Figure(figsize=(9, 4), dpi=110)
+    figure = Figure(figsize=(11, 4), dpi=110)
     FigureCanvasAgg(figure)
     axes = figure.add_subplot(1, 1, 1)
     width = 0.8 / len(SCORES)
@@ -685,6 +756,7 @@ def _evaluate_downstream_command(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         generated_weights=args.generated_weight,
         through_tokenizer=args.through_tokenizer,
+        best_of=args.best_of,
         report=lambda line: print(line, flush=True),
     )
     print((out / "downstream.md").read_text())
@@ -755,5 +827,13 @@ def vqtouch_add_commands(subparsers: Any) -> None:
         action="store_true",
         help="pass every real image (training and held-out) and the no-contact image through the run's "
         "tokenizer first, so that real and generated images share the decoder's look",
+    )
+    downstream.add_argument(
+        "--best-of",
+        type=positive_int,
+        default=1,
+        metavar="K",
+        help="draw K candidates for every generated image and keep the one the generator itself finds "
+        "most typical of its label (about 2K times the sampling time; default 1: plain sampling)",
     )
     downstream.set_defaults(handler=_evaluate_downstream_command)

@@ -3,8 +3,8 @@ generation.
 
 The public API other packages use (imported on first use, so importing this package stays light):
 generation from a trained run or a bundle (:func:`load_pipeline`, :func:`generator_tokenizer`,
-:func:`sample_images`), scoring generated samples against held-out conditions
-(:func:`score_generation`, :func:`held_out_conditions`, :func:`baseline_pool`, with
+:func:`sample_images`, :func:`check_best_of` for its ``best_of``), scoring generated samples against
+held-out conditions (:func:`score_generation`, :func:`held_out_conditions`, :func:`baseline_pool`, with
 :data:`GENERATION_SHOWN_SCORES` and :data:`SAMPLES_CAPTION` for reports), and the sampling
 speed/quality sweep (:func:`sweep_settings`, :func:`measure`, :func:`check_settings`,
 :func:`load_tradeoff_bench`, :func:`pareto_front`, :func:`synchronize`).  Other packages import
@@ -22,6 +22,7 @@ _PUBLIC = {
     "load_pipeline": ("pipeline", "load_pipeline"),
     "generator_tokenizer": ("pipeline", "generator_tokenizer"),
     "sample_images": ("stage", "sample_images"),
+    "check_best_of": ("best_of", "check_best_of"),
     "score_generation": ("stage", "score_generation"),
     "held_out_conditions": ("stage", "held_out_conditions"),
     "baseline_pool": ("stage", "baseline_pool"),
