@@ -390,9 +390,17 @@ def test_through_the_tokenizer_the_classifiers_see_reconstructions(label_run, tm
     def of_dataset(indices, decoded):
         return features(torch.stack([dataset[i]["tactile"] for i in indices]), decoded)
 
-    (generated, test), (few, _), (mixed, _), (ceiling, _), (reconstructed, _), (few_and_reconstructed, _), (
-        background,
-        _,
+    (
+        (generated, test),
+        (few, _),
+        (mixed, _),
+        (ceiling, _),
+        (reconstructed, _),
+        (few_and_reconstructed, _),
+        (
+            background,
+            _,
+        ),
     ) = fits
     result = json.loads((out / "downstream.json").read_text())
     assert test.indices == result["test_indices"] and len(ceiling.indices) == 27 and len(few.indices) == 6
