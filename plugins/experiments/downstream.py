@@ -68,6 +68,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import textwrap
 import time
 from collections import Counter
 from pathlib import Path
@@ -696,7 +697,8 @@ def plot_scores(summary: list[dict[str, Any]], chance: float, majority: float, p
         )
     axes.axhline(chance, linestyle="--", color="grey", label="chance")
     axes.axhline(majority, linestyle=":", color="black", label="majority class")
-    axes.set_xticks(range(len(summary)), [row["arm"] for row in summary], fontsize=8)
+    # Wrapped: with seven or more arms, whole names run into each other.
+    axes.set_xticks(range(len(summary)), [textwrap.fill(row["arm"], 16) for row in summary], fontsize=8)
     axes.set_ylim(0, 1.05)
     axes.set_ylabel("score on real held-out images")
     axes.legend(fontsize=7, ncols=3)
