@@ -501,3 +501,18 @@ def test_best_of_reaches_the_sampler_with_each_row_s_own_label(label_run, tmp_pa
     result = json.loads((out / "downstream.json").read_text())
     assert result["best_of"] == 3
     assert "best of 3 candidates by the generator's own class posterior" in (out / "downstream.md").read_text()
+
+
+def test_a_class_with_too_few_other_images_is_reported_short(label_run, tmp_path, host):
+    dataset, config = _run_dataset(label_run, host)
+    train, _ = split_dataset(dataset, config.data.val_fraction, config.seed)
+    per_class = Counter(int(dataset[i]["label"]) for i in train.indices)
+    asked = max(per_class.values()) - 2 + 1  # one more than the best-stocked class has beside 2 shots
+    out = tmp_path / "short"
+    flags = ["--seeds", "0", "--shots", "2", "--generated-per-class", str(asked), "--feature-size", "32"]
+    assert main(["--no-progress", "evaluate", "downstream", "--run", str(label_run), "--out", str(out), *flags]) == 0
+    result = json.loads((out / "downstream.json").read_text())
+    assert result["reconstruction_shortfall"] == {str(label): asked - (count - 2) for label, count in per_class.items()}
+    row = next(row for row in result["rows"] if row["arm"] == RECONSTRUCTED)
+    assert row["train_images"] == sum(count - 2 for count in per_class.values())
+    assert "Classes with fewer other training images than that" in (out / "downstream.md").read_text()

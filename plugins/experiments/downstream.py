@@ -218,12 +218,30 @@ def real_features(
     return LabelledFeatures(torch.cat(features) if features else torch.zeros(0, width), labels, kept), unlabelled
 
 
+def _positions_by_class(labels: Sequence[int], exclude: Sequence[int] = ()) -> dict[int, list[int]]:
+    """Class -> its positions in ``labels``, in order, leaving out those in ``exclude``."""
+    excluded = set(exclude)
+    by_class: dict[int, list[int]] = {}
+    for position, label in enumerate(labels):
+        if position not in excluded:
+            by_class.setdefault(label, []).append(position)
+    return by_class
+
+
+def _draw_per_class(by_class: dict[int, list[int]], count: int, seed: int) -> list[int]:
+    """Up to ``count`` positions of every class (in class order), drawn without replacement by ``seed``."""
+    draw = torch.Generator().manual_seed(seed)
+    chosen = []
+    for label in sorted(by_class):
+        members = by_class[label]
+        chosen += [members[i] for i in torch.randperm(len(members), generator=draw)[:count].tolist()]
+    return chosen
+
+
 def draw_shots(labels: Sequence[int], shots: int, seed: int, class_names: Sequence[str] = ()) -> list[int]:
     """Positions of ``shots`` images of every class in ``labels``, drawn without replacement by
     ``seed``; a one-line ConfigError naming the class when one has fewer."""
-    by_class: dict[int, list[int]] = {}
-    for position, label in enumerate(labels):
-        by_class.setdefault(label, []).append(position)
+    by_class = _positions_by_class(labels)
     scarcest = min(by_class, key=lambda label: (len(by_class[label]), label))
     if len(by_class[scarcest]) < shots:
         name = f"{class_names[scarcest]!r} ({scarcest})" if scarcest < len(class_names) else str(scarcest)
@@ -231,30 +249,15 @@ def draw_shots(labels: Sequence[int], shots: int, seed: int, class_names: Sequen
             f"--shots {shots}: class {name} has only {len(by_class[scarcest])} real training images in "
             f"the run's split; give --shots {len(by_class[scarcest])} or fewer"
         )
-    draw = torch.Generator().manual_seed(seed)
-    chosen = []
-    for label in sorted(by_class):
-        members = by_class[label]
-        chosen += [members[i] for i in torch.randperm(len(members), generator=draw)[:shots].tolist()]
-    return chosen
+    return _draw_per_class(by_class, shots, seed)
 
 
 def draw_others(labels: Sequence[int], per_class: int, seed: int, exclude: Sequence[int]) -> list[int]:
     """Positions of up to ``per_class`` images of every class in ``labels`` outside ``exclude``, drawn
     without replacement by ``seed`` (all the others of a class that has fewer): the training images
     whose reconstructions stand in for a perfect generator's ``per_class`` images of the class."""
-    excluded = set(exclude)
-    by_class: dict[int, list[int]] = {}
-    for position, label in enumerate(labels):
-        if position not in excluded:
-            by_class.setdefault(label, []).append(position)
     # Its own stream, so that the reconstructions never shift the shots or the generated images.
-    draw = torch.Generator().manual_seed(seed * 1_000_003 + 7)
-    chosen = []
-    for label in sorted(by_class):
-        members = by_class[label]
-        chosen += [members[i] for i in torch.randperm(len(members), generator=draw)[:per_class].tolist()]
-    return chosen
+    return _draw_per_class(_positions_by_class(labels, exclude), per_class, seed * 1_000_003 + 7)
 
 
 @torch.no_grad()
