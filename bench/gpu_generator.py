@@ -233,7 +233,9 @@ def generator_128(tokenizer_dir, rates, args, work, logs, env, train_end, result
     # The 128 px generator sees the same 16 x 16 code grid; its conditions are rendered at 128 px.
     # It shares the GPU with the 64 px jobs as the probes did, less well: 0.8 of the probe's speed.
     startup = 30
-    steps = max(int(rates.get("gen64", 1.0) * 0.8 * (train_end - elapsed() - startup)), 20)
+    steps = max(
+        int(rates.get("gen64", FALLBACK_STEPS_PER_SECOND["gen64"]) * 0.8 * (train_end - elapsed() - startup)), 20
+    )
     extra = ["--set", "data.image_size=128"]
     generator_job("gen128", extra, steps, tokenizer_dir, args, work, logs, env, train_end + 20, results)
 
