@@ -45,10 +45,12 @@ import argparse
 import json
 import os
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
 import tarfile
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -307,33 +309,38 @@ def pack(work: Path, logs: Path, out: Path, results: dict) -> None:
                 wanted = path.suffix in {".json", ".jsonl", ".png", ".md"}
                 if wanted and path.is_file() and "checkpoints" not in path.parts:
                     archive.add(path, arcname=str(path.relative_to(work)))
-    staging = work.parent / f"{work.name}_packing"
-    for run_dir in sorted(work.iterdir()):
-        newest = newest_checkpoints(run_dir)
-        if run_dir.name.startswith("probe") or not newest:
-            continue
-        archive_path = out / f"weights_{run_dir.name}.tgz"
-        with tarfile.open(archive_path, "w:gz") as archive:
-            for name in ("config.json", "products.json", "metrics.jsonl"):
-                if (run_dir / name).is_file():
-                    archive.add(run_dir / name, arcname=f"{run_dir.name}/{name}")
-            for folder in newest:
-                for path in sorted(folder.iterdir()):
-                    copy = staging / run_dir.name / path.relative_to(run_dir)
-                    copy.parent.mkdir(parents=True, exist_ok=True)
-                    if path.name == "trainer_state.safetensors":
-                        scoring_trainer_state(path, copy)
-                    elif path.name.startswith(("autoencoder", "quantizer")):
-                        # A tokenizer's files travel exact: its generators pin them by digest, and the
-                        # codes depend on the codebook's exact values.
-                        copy.write_bytes(path.read_bytes())
-                    elif path.name.startswith("discriminator"):
-                        continue  # training-only
-                    else:
-                        half_precision(path, copy)
-                    archive.add(copy, arcname=f"{run_dir.name}/{path.relative_to(run_dir)}")
-        split(archive_path, PART_BYTES)
+    with tempfile.TemporaryDirectory() as staging:
+        for run_dir in sorted(work.iterdir()):
+            pack_weights(run_dir, Path(staging), out)
     log("packed: " + ", ".join(f"{p.name} {p.stat().st_size / 1e6:.1f} MB" for p in sorted(out.iterdir())))
+
+
+def pack_weights(run_dir: Path, staging: Path, out: Path) -> None:
+    """``out/weights_RUN.tgz`` from copies of ``run_dir``'s newest step folders made in ``staging``."""
+    newest = newest_checkpoints(run_dir)
+    if run_dir.name.startswith("probe") or not newest:
+        return
+    archive_path = out / f"weights_{run_dir.name}.tgz"
+    with tarfile.open(archive_path, "w:gz") as archive:
+        for name in ("config.json", "products.json", "metrics.jsonl"):
+            if (run_dir / name).is_file():
+                archive.add(run_dir / name, arcname=f"{run_dir.name}/{name}")
+        for folder in newest:
+            for path in sorted(folder.iterdir()):
+                copy = staging / run_dir.name / path.relative_to(run_dir)
+                copy.parent.mkdir(parents=True, exist_ok=True)
+                if path.name == "trainer_state.safetensors":
+                    scoring_trainer_state(path, copy)
+                elif path.name.startswith(("autoencoder", "quantizer")):
+                    # A tokenizer's files travel exact: its generators pin them by digest, and the
+                    # codes depend on the codebook's exact values.
+                    shutil.copyfile(path, copy)
+                elif path.name.startswith("discriminator"):
+                    continue  # training-only
+                else:
+                    half_precision(path, copy)
+                archive.add(copy, arcname=f"{run_dir.name}/{path.relative_to(run_dir)}")
+    split(archive_path, PART_BYTES)
 
 
 def main() -> None:
