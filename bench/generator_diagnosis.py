@@ -13,6 +13,7 @@ Run (one job at a time on a 2-core CPU; OMP_NUM_THREADS=2):
     .venv/bin/python bench/generator_diagnosis.py rescore --weights RUN.json.pt --pairs 900 --n 64 --guidance 2
     .venv/bin/python bench/generator_diagnosis.py rerank --conditioner label --candidates 8 --guidance 2  # best of K
     .venv/bin/python bench/generator_diagnosis.py implicit --n 64   # the generator as a classifier of real codes
+    .venv/bin/python bench/generator_diagnosis.py judge --conditioner label --candidates 8 --guidance 2 --out F
 
 Everything runs over the bundled ``tour`` tokenizer (``plugins/pretrained/weights/tour``) and the
 tour scene's procedural data: GelSight targets, GelSight Mini images of the same contacts as the
@@ -947,6 +948,191 @@ def rerank(args: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
+# -- judge: best of K samples, by a classifier of codes trained on the generator's training codes --
+
+
+class CodeJudge(torch.nn.Module):
+    """A small CNN that names the class of a code grid (B, H, W): code embeddings, three 3x3
+    convolutions (the second halves the grid), global average pooling, a linear layer."""
+
+    def __init__(
+        self, num_codes: int, num_classes: int, width: int = 64, codebook_KD: torch.Tensor | None = None
+    ) -> None:
+        super().__init__()
+        # Either learned code embeddings or the tokenizer's own codebook, frozen (codes that decode
+        # alike then look alike to the judge from the start).
+        self.embed = (
+            torch.nn.Embedding(num_codes, 32)
+            if codebook_KD is None
+            else torch.nn.Embedding.from_pretrained(
+                F.normalize(codebook_KD.float(), dim=1) * codebook_KD.shape[1] ** 0.5
+            )
+        )
+        self.net = torch.nn.Sequential(
+            torch.nn.Conv2d(self.embed.embedding_dim, width, 3, padding=1),
+            torch.nn.GELU(),
+            torch.nn.Conv2d(width, 2 * width, 3, stride=2, padding=1),
+            torch.nn.GELU(),
+            torch.nn.Conv2d(2 * width, 2 * width, 3, padding=1),
+            torch.nn.GELU(),
+            torch.nn.AdaptiveAvgPool2d(1),
+            torch.nn.Flatten(),
+            torch.nn.Dropout(0.2),
+            torch.nn.Linear(2 * width, num_classes),
+        )
+
+    def forward(self, codes_BHW: torch.Tensor) -> torch.Tensor:
+        return self.net(self.embed(codes_BHW.long()).permute(0, 3, 1, 2))
+
+
+def train_code_judge(
+    codes_NHW: torch.Tensor,
+    labels_N: torch.Tensor,
+    num_codes: int,
+    num_classes: int,
+    *,
+    epochs: int,
+    seed: int,
+    noise: float,
+    codebook_KD: torch.Tensor | None = None,
+) -> CodeJudge:
+    """Fit :class:`CodeJudge` by AdamW on the given codes; each epoch replaces a random ``noise``
+    share of every grid's cells by random codes (the generator's samples are not clean grids)."""
+    torch.manual_seed(seed)
+    judge = CodeJudge(num_codes, num_classes, codebook_KD=codebook_KD)
+    optimizer = torch.optim.AdamW(judge.parameters(), lr=2e-3, weight_decay=0.05)
+    draws = torch.Generator().manual_seed(seed)
+    count = len(codes_NHW)
+    for _ in range(epochs):
+        judge.train()
+        order = torch.randperm(count, generator=draws)
+        for start in range(0, count, 64):
+            index = order[start : start + 64]
+            codes = codes_NHW[index].clone()
+            if noise:
+                flip = torch.rand(codes.shape, generator=draws) < noise * torch.rand(len(index), 1, 1, generator=draws)
+                codes[flip] = torch.randint(num_codes, (int(flip.sum()),), generator=draws)
+            loss = F.cross_entropy(judge(codes), labels_N[index])
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+    return judge.eval()
+
+
+def judge(args: argparse.Namespace) -> dict[str, Any]:
+    """Best of ``--candidates`` label samples per held-out condition, chosen by a classifier of code
+    grids (:class:`CodeJudge`) fitted on the canonical codes of the bundle's training scenes (never on
+    images, never on the held-out scenes).  Candidates are cached in ``--out``.pt.  Reported: the
+    judge's accuracy on the held-out scenes' real codes, each candidate's score by the evaluation's
+    classifier (fitted on the tokenizer's reconstructions of the training images), and best of k."""
+    from vqtouch.plugins.evaluation.distribution import RealImageClassifier
+    from vqtouch.plugins.evaluation.fd_metric import FdEffNetLite0
+    from vqtouch.plugins.tokenizer.loading import reconstruct_all
+
+    host = load_plugins()
+    pipe, dataset, train, held_out, background_3HW = bundle_split(args.bundle, host)
+    tokenizer, generator = pipe.tokenizer, pipe.generator.float().eval()
+    names = [name.split(":")[-1] for name in pipe.conditioner_names()]
+    conditioner = pipe.conditioners[names.index(args.conditioner)].float().eval()
+    count = min(args.n, len(held_out))
+    batch = dataset.render_batch([held_out.indices[i] for i in range(count)])
+    truth, labels = batch["tactile"], batch["label"]
+    train_batch = dataset.render_batch([train.indices[i] for i in range(len(train))])
+    num_codes, num_classes = tokenizer.quantizer.codebook_size, len(dataset.class_names)
+    with torch.no_grad():
+        train_codes, _ = canonical_background(encode(tokenizer, train_batch["tactile"]), tokenizer, background_3HW)
+        held_codes, _ = canonical_background(encode(tokenizer, truth), tokenizer, background_3HW)
+    cache = Path(args.out + ".pt") if args.out else None
+    if cache is not None and cache.exists():
+        codes_NKL = torch.load(cache)
+    else:
+        sampler = host.build("sampler", {"name": "posterior"})
+        candidates = []
+        with torch.no_grad():
+            for k in range(args.candidates):
+                rows = []
+                for start in range(0, count, 32):
+                    index = torch.arange(start, min(count, start + 32))
+                    condition = conditioner(_condition(conditioner, batch, index))
+                    null = conditioner.null(len(index))
+                    draws = [torch.Generator().manual_seed(k * 100_003 + int(i)) for i in index]
+                    rows.append(
+                        generator.sample(
+                            condition,
+                            sampler,
+                            steps=args.sample_steps,
+                            null=null,
+                            guidance=args.guidance,
+                            generators=draws,
+                        ).flatten(1)
+                    )
+                candidates.append(torch.cat(rows))
+                print(json.dumps({"candidate": k}), flush=True)
+        codes_NKL = torch.stack(candidates, 1)
+        if cache is not None:
+            torch.save(codes_NKL, cache)
+    features = FdEffNetLite0().pooled_features
+    classifier = RealImageClassifier(
+        features(reconstruct_all(tokenizer, train_batch["tactile"], 64)), train_batch["label"].tolist()
+    )
+    with torch.no_grad():
+        score_NK = torch.stack(
+            [
+                torch.tensor(classifier.predict(features(decode(tokenizer, codes_NKL[:, k].view(-1, 16, 16)))))
+                == labels
+                for k in range(codes_NKL.shape[1])
+            ],
+            1,
+        ).float()
+    out: dict[str, Any] = {"n": count, "candidates": codes_NKL.shape[1], "guidance": args.guidance}
+    out["each_candidate"] = [round(float(v), 4) for v in score_NK.mean(0)]
+    rows_N = torch.arange(count)
+    codebook_KD = None
+    if args.judge_codebook:
+        eye = torch.arange(num_codes).view(1, 1, num_codes)
+        codebook_KD = tokenizer.quantizer.lookup(eye)[0, :, 0, :].T.detach()
+    for noise in args.judge_noise:
+        clock = time.perf_counter()
+        judge_model = train_code_judge(
+            train_codes,
+            train_batch["label"],
+            num_codes,
+            num_classes,
+            epochs=args.judge_epochs,
+            seed=args.seed,
+            noise=noise,
+            codebook_KD=codebook_KD,
+        )
+        with torch.no_grad():
+            real_accuracy = float((judge_model(held_codes).argmax(1) == labels).float().mean())
+            log_p_NK = torch.stack(
+                [
+                    judge_model(codes_NKL[:, k].view(-1, 16, 16)).log_softmax(1)[rows_N, labels]
+                    for k in range(codes_NKL.shape[1])
+                ],
+                1,
+            )
+        entry: dict[str, Any] = {
+            "train_seconds": round(time.perf_counter() - clock, 1),
+            "held_out_real_code_accuracy": round(real_accuracy, 4),
+            "judge_agrees_with_classifier": round(
+                float(((log_p_NK > math.log(0.5)).float() == score_NK).float().mean()), 4
+            ),
+            "best_of": {},
+        }
+        group = 1
+        while group <= codes_NKL.shape[1]:
+            values = []
+            for first in range(0, codes_NKL.shape[1] - group + 1, group):
+                chosen_N = log_p_NK[:, first : first + group].argmax(1) + first
+                values.append(round(float(score_NK[rows_N, chosen_N].mean()), 4))
+            entry["best_of"][group] = {"groups": values, "mean": round(sum(values) / len(values), 4)}
+            group *= 2
+        out[f"noise_{noise}"] = entry
+        print(json.dumps({f"noise_{noise}": entry}), flush=True)
+    return out
+
+
 # -- cost: what a setting costs per training step ------------------------------------------------
 
 
@@ -1015,6 +1201,7 @@ def main() -> None:
             "prior",
             "rerank",
             "implicit",
+            "judge",
         ],
     )
     parser.add_argument("--bundle", default="tour")
@@ -1055,6 +1242,9 @@ def main() -> None:
     parser.add_argument("--sample-seeds", type=int, nargs="+", default=[1, 2, 3], help="rescore: sampling seeds")
     parser.add_argument("--candidates", type=int, default=8, help="rerank: samples per condition")
     parser.add_argument("--taus", type=float, nargs="+", default=[0.0, 0.1, 0.3], help="prior: thresholds")
+    parser.add_argument("--judge-epochs", type=int, default=40, help="judge: epochs of the code classifier")
+    parser.add_argument("--judge-noise", type=float, nargs="+", default=[0.0, 0.3], help="judge: random-code shares")
+    parser.add_argument("--judge-codebook", action="store_true", help="judge: the tokenizer's codebook, frozen")
     parser.add_argument("--out", default="")
     args = parser.parse_args()
     commands = {"codes": codes_report, "overfit": overfit, "split": split, "sensitivity": sensitivity, "head": head}
@@ -1068,6 +1258,7 @@ def main() -> None:
             "prior": prior,
             "rerank": rerank,
             "implicit": implicit,
+            "judge": judge,
         }
     )[args.what](args)
     print(json.dumps(result, indent=1))

@@ -1,5 +1,5 @@
 """Best of K for label conditions (issue 23): candidates drawn per condition, the one the generator's
-own class posterior ranks highest kept.
+own class posterior (or the run's code judge) ranks highest kept.
 
 A tiny label-to-touch run supplies a real generator and label conditioner; the likelihood estimate is
 checked against a reading through the generator's public ``log_x0``, the selection against an
@@ -20,6 +20,7 @@ from vqtouch.plugins.generator.best_of import (
     class_log_posteriors,
     sample_best_of,
 )
+from vqtouch.plugins.generator.judge import codebook_of
 from vqtouch.plugins.generator.vq_diffusion import likelihood_steps
 
 from cli_checks import one_error_line
@@ -107,6 +108,34 @@ def test_each_row_keeps_the_candidate_its_label_ranks_highest(pipe):
     assert not torch.equal(candidates_KBHW[1], candidates_KBHW[0])
 
 
+def test_a_given_rank_replaces_the_posterior_and_its_best_candidate_is_kept(pipe):
+    generator, conditioner = pipe.generator, pipe.conditioners[0]
+    labels_B = torch.tensor([2, 0, 1])
+    condition = conditioner(labels_B)
+    sampler = HOST.build("sampler", "posterior")
+    row_seeds = [21, 22, 23]
+
+    def draw(generators):
+        return generator.sample(condition, sampler, steps=3, generators=generators)
+
+    judge = pipe.code_judge()
+    assert pipe.code_judge() is judge  # fitted once per loaded run
+    chosen = sample_best_of(generator, conditioner, labels_B, row_seeds, 3, draw, torch.device("cpu"), rank=judge.rank)
+    candidates_KBHW = torch.stack(
+        [draw([torch.Generator().manual_seed(candidate_seed(s, k)) for s in row_seeds]) for k in range(3)]
+    )
+    scores_KB = torch.stack([judge.rank(codes, labels_B) for codes in candidates_KBHW])
+    assert torch.equal(chosen, candidates_KBHW[scores_KB.argmax(0), torch.arange(3)])
+    # The judge reads the run's own codebook, frozen.
+    assert torch.allclose(
+        judge.embed.weight,
+        torch.nn.functional.normalize(codebook_of(pipe.tokenizer), dim=1) * judge.embed.weight.shape[1] ** 0.5,
+    )
+    assert not judge.embed.weight.requires_grad
+    with pytest.raises(ConfigError, match="--best-of-rank 'best': choose judge or posterior"):
+        pipe(label=[0], steps=3, best_of=2, best_of_rank="best")
+
+
 def test_one_candidate_is_plain_sampling_bit_for_bit(pipe):
     plain = pipe(label=[0, 1, 2], steps=3, seed=5)
     assert torch.equal(pipe(label=[0, 1, 2], steps=3, seed=5, best_of=1), plain)
@@ -150,10 +179,16 @@ def test_the_commands_draw_the_best_of_k_and_say_so(run, tmp_path, capsys):
     assert main(["generate", "--run", str(run), "--label", "1", "--n", "2", "--steps", "3", "--best-of", "2",
                  "--out", str(out)]) == 0  # fmt: skip
     assert json.loads((out / "generate.json").read_text())["best_of"] == 2
+    assert json.loads((out / "generate.json").read_text())["best_of_rank"] == "judge"
     scored = tmp_path / "scored"
     args = ["evaluate", "generation", "--run", str(run), "--n", "3", "--steps", "3", "--best-of", "2"]
     assert main([*args, "--out", str(scored)]) == 0
-    assert json.loads((scored / "generation.json").read_text())["by_conditioner"]["0:label"]["best_of"] == 2
+    scores = json.loads((scored / "generation.json").read_text())["by_conditioner"]["0:label"]
+    assert scores["best_of"] == 2 and scores["best_of_rank"] == "judge"
+    posterior = tmp_path / "posterior"
+    assert main([*args, "--best-of-rank", "posterior", "--out", str(posterior)]) == 0
+    scores = json.loads((posterior / "generation.json").read_text())["by_conditioner"]["0:label"]
+    assert scores["best_of_rank"] == "posterior"
     capsys.readouterr()
     never = tmp_path / "never"
     assert main(["generate", "--run", str(run), "--label", "1", "--best-of", "65", "--out", str(never)]) == 2

@@ -499,8 +499,14 @@ def test_best_of_reaches_the_sampler_with_each_row_s_own_label(label_run, tmp_pa
     # Class-major rows in batches of 4: each row's label is the class it is generated for.
     assert calls == [(3, [0, 0, 1, 1], [0, 1, 2, 3]), (3, [2, 2], [4, 5])]
     result = json.loads((out / "downstream.json").read_text())
-    assert result["best_of"] == 3
-    assert "best of 3 candidates by the generator's own class posterior" in (out / "downstream.md").read_text()
+    assert result["best_of"] == 3 and result["best_of_rank"] == "judge"
+    assert "best of 3 candidates by a classifier of code grids" in (out / "downstream.md").read_text()
+    posterior = tmp_path / "posterior"
+    again = ["--no-progress", "evaluate", "downstream", "--run", str(label_run), "--out", str(posterior), *flags]
+    assert main([*again, "--best-of", "3", "--best-of-rank", "posterior"]) == 0
+    result = json.loads((posterior / "downstream.json").read_text())
+    assert result["best_of_rank"] == "posterior"
+    assert "best of 3 candidates by the generator's own class posterior" in (posterior / "downstream.md").read_text()
 
 
 def test_a_class_with_too_few_other_images_is_reported_short(label_run, tmp_path, host):

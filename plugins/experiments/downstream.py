@@ -88,7 +88,7 @@ from vqtouch.core.cli import (
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.plugins.evaluation.records import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
 from vqtouch.core.training import collate_samples
-from vqtouch.plugins.generator import check_best_of, sample_images
+from vqtouch.plugins.generator import BEST_OF_RANKS, check_best_of, check_best_of_rank, sample_images
 from vqtouch.core.data import experiment_split
 from vqtouch.plugins.evaluation.contact import dataset_background
 from vqtouch.core.images import image_grid, save_png
@@ -274,11 +274,13 @@ def generate_per_class(
     seed: int,
     batch_size: int,
     best_of: int = 1,
+    best_of_rank: str = "judge",
 ) -> tuple[torch.Tensor, list[int]]:
     """``per_class`` images (N, 3, H, W) of every class (class-major) from the label ``conditioner``,
     and their labels; image i is drawn with a generator seeded from (``seed``, i); ``best_of`` > 1
-    keeps the best of that many candidates by the generator's own class posterior
-    (:func:`vqtouch.plugins.generator.best_of.sample_best_of`)."""
+    keeps the best of that many candidates by ``best_of_rank``: the run's code judge or the
+    generator's own class posterior (:func:`vqtouch.plugins.generator.best_of.sample_best_of`)."""
+    rank = pipe.best_of_ranking(best_of_rank) if best_of > 1 else None
 
     labels = [label for label in classes for _ in range(per_class)]
     images = []
@@ -312,6 +314,7 @@ def generate_per_class(
                 device=pipe.device,
                 best_of=best_of,
                 labels_B=conditioner.condition_of(batch) if best_of > 1 else None,
+                rank=rank,
             )
             .float()
             .cpu()
@@ -363,6 +366,7 @@ def evaluate_downstream(
     generated_weights: Sequence[float] = (1.0,),
     through_tokenizer: bool = False,
     best_of: int = 1,
+    best_of_rank: str = "judge",
     report: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Run the experiment of the module docstring on ``run`` and write its files into ``out``.
@@ -377,8 +381,9 @@ def evaluate_downstream(
     generated`` arm once per weight, a generated image weighing that much against 1 for a real one in
     the classifier's fit (:func:`mixed_arm`); ``through_tokenizer``: every real image and the
     no-contact image pass through the run's tokenizer before the classifiers see them (module
-    docstring); ``best_of``: label candidates per generated image, the generator's own choice kept
-    (1: plain sampling).  Returns what ``downstream.json`` holds."""
+    docstring); ``best_of``: label candidates per generated image, the choice of ``best_of_rank`` kept
+    (1: plain sampling; ``"judge"``, the run's code judge, or ``"posterior"``).  Returns what
+    ``downstream.json`` holds."""
     from vqtouch.plugins.generator import load_pipeline
     from vqtouch.plugins.tokenizer import reconstruct_all
 
@@ -389,6 +394,7 @@ def evaluate_downstream(
     chosen = label_conditioner_index([c.sample_key for c in pipe.conditioners], names, conditioner)
     label_conditioner = pipe.conditioners[chosen]
     best_of = check_best_of(best_of, label_conditioner, f"{chosen}:{names[chosen]}")
+    best_of_rank = check_best_of_rank(best_of_rank)
     steps = pipe.check_steps(steps or pipe.settings["steps"])
     guidance = pipe.guidance_for(chosen) if guidance is None else guidance
     sampler_name = sampler or pipe.sampler_name
@@ -465,6 +471,7 @@ def evaluate_downstream(
             seed=seed,
             batch_size=batch_size,
             best_of=best_of,
+            best_of_rank=best_of_rank,
         )
         shown = images if shown is None else shown
         generated = LabelledFeatures(metric.pooled_features(images).float(), labels, [])
@@ -540,6 +547,7 @@ def evaluate_downstream(
         "generated_per_class": generated_per_class,
         "generated_weights": list(generated_weights),
         "best_of": best_of,
+        **({"best_of_rank": best_of_rank} if best_of > 1 else {}),
         "reconstruction_shortfall": {str(label): count for label, count in sorted(shortfall.items())},
         "split_unit": test_split.split_unit,
         "generator_train_images": len(train_split),
@@ -652,8 +660,13 @@ def render_markdown(result: dict[str, Any]) -> list[str]:
     if result.get("best_of", 1) > 1:
         lines += [
             "",
-            f"Each generated image is the best of {result['best_of']} candidates by the generator's own "
-            "class posterior (--best-of).",
+            f"Each generated image is the best of {result['best_of']} candidates by "
+            + (
+                "the generator's own class posterior"
+                if result.get("best_of_rank") == "posterior"
+                else "a classifier of code grids fitted on the generator's training codes"
+            )
+            + " (--best-of, --best-of-rank).",
         ]
     if result["background"]:
         lines += [
@@ -762,6 +775,7 @@ def _evaluate_downstream_command(args: argparse.Namespace) -> int:
         generated_weights=args.generated_weight,
         through_tokenizer=args.through_tokenizer,
         best_of=args.best_of,
+        best_of_rank=args.best_of_rank,
         report=lambda line: print(line, flush=True),
     )
     print((out / "downstream.md").read_text())
@@ -838,7 +852,14 @@ def vqtouch_add_commands(subparsers: Any) -> None:
         type=positive_int,
         default=1,
         metavar="K",
-        help="draw K candidates for every generated image and keep the one the generator itself finds "
-        "most typical of its label (about 2K times the sampling time; default 1: plain sampling)",
+        help="draw K candidates for every generated image and keep the one --best-of-rank finds "
+        "most typical of its label (about K times the sampling time; default 1: plain sampling)",
+    )
+    downstream.add_argument(
+        "--best-of-rank",
+        choices=list(BEST_OF_RANKS),
+        default="judge",
+        help="what ranks --best-of's candidates: judge (default), a classifier of code grids fitted on the run's "
+        "training codes, or posterior, the generator's own class posterior",
     )
     downstream.set_defaults(handler=_evaluate_downstream_command)

@@ -1,5 +1,9 @@
-"""Best of K: draw several candidates per class label and keep the one the generator itself finds
-most typical of the asked class.
+"""Best of K: draw several candidates per class label and keep the one a judge finds most typical of
+the asked class.
+
+Two judges (``rank``): a classifier of code grids fitted on the run's training codes
+(:mod:`.judge`, the default of the commands: it names held-out real codes about 3 times in 4), or the
+generator's own class posterior (``posterior``, below; no other model).
 
 A label leaves the generator to invent the pose and every fine texture that tells classes apart, and
 at the compute of a CPU hour a single draw is named right by a classifier about 40-50% of the time
@@ -18,7 +22,7 @@ for bit; candidate j > 0 with a generator seeded by a hash of the row's seed and
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, Literal
 
 import torch
 
@@ -26,6 +30,11 @@ from vqtouch.core import ConfigError
 
 #: The most candidates a condition may draw.
 MAX_BEST_OF = 64
+#: What can rank best of K's candidates: the code judge (:mod:`.judge`) or the generator's posterior.
+BEST_OF_RANKS = ("judge", "posterior")
+BestOfRank = Literal["judge", "posterior"]
+#: A ranking: (codes (B, H, W), labels (B,)) -> (B,) scores, higher is better.
+Rank = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 _MASK64 = 2**64 - 1
 
 
@@ -52,6 +61,13 @@ def ranks_by_class(conditioner: Any) -> bool:
     """Whether best of K can rank ``conditioner``'s candidates: it conditions on one of a finite set of
     classes (it has an integer ``num_classes``, as the label conditioner does)."""
     return isinstance(getattr(conditioner, "num_classes", None), int)
+
+
+def check_best_of_rank(rank: Any) -> BestOfRank:
+    """``rank`` as given, or a one-line ConfigError naming the choices."""
+    if rank not in BEST_OF_RANKS:
+        raise ConfigError(f"--best-of-rank {rank!r}: choose {' or '.join(BEST_OF_RANKS)}")
+    return rank
 
 
 def check_best_of(best_of: Any, conditioner: Any, name: str) -> int:
@@ -98,9 +114,11 @@ def sample_best_of(
     best_of: int,
     draw: Callable[[list[torch.Generator]], torch.Tensor],
     device: torch.device,
+    rank: Rank | None = None,
 ) -> torch.Tensor:
-    """Codes (B, H, W): per row, the best of ``best_of`` candidates by the generator's posterior of the
-    row's label (:func:`class_log_posteriors`).  ``draw(generators)`` samples one candidate per row
+    """Codes (B, H, W): per row, the best of ``best_of`` candidates by ``rank(codes, labels)`` (e.g. a
+    :meth:`.judge.CodeJudge.rank`), or, when None, by the generator's posterior of the row's label
+    (:func:`class_log_posteriors`).  ``draw(generators)`` samples one candidate per row
     with the given generators (the caller's sampler, steps, guidance and condition);
     ``row_seeds[b]`` is row b's own seed (candidate 0).  Ties keep the earliest candidate.  With
     ``best_of=1`` this is ``draw`` with the rows' own generators, and ``labels_B`` may be None."""
@@ -116,7 +134,10 @@ def sample_best_of(
     for candidate in range(best_of):
         generators = [torch.Generator(device=device).manual_seed(candidate_seed(seed, candidate)) for seed in row_seeds]
         codes_BHW = draw(generators)
-        score_B = class_log_posteriors(generator, conditioner, codes_BHW)[labels_B, rows_B]
+        if rank is None:
+            score_B = class_log_posteriors(generator, conditioner, codes_BHW)[labels_B, rows_B]
+        else:
+            score_B = rank(codes_BHW, labels_B).to(device)
         if best_codes is None:
             best_codes, best_score_B = codes_BHW.clone(), score_B
             continue

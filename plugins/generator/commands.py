@@ -52,7 +52,7 @@ from vqtouch.core.data import experiment_split
 from vqtouch.core.image_size import image_hw
 from vqtouch.plugins.evaluation.contact import dataset_background
 
-from .best_of import check_best_of, ranks_by_class
+from .best_of import BEST_OF_RANKS, check_best_of, ranks_by_class
 
 
 def _with_tokenizer_run(config: Any, tokenizer_run: str, host: PluginHost) -> Any:
@@ -159,6 +159,7 @@ def _generate_command(args: argparse.Namespace) -> int:
             batch_size=args.batch_size,
             conditioner=chosen,
             best_of=args.best_of,
+            best_of_rank=args.best_of_rank,
         )
         digits = max(4, len(str(n - 1)))
         shown: list[Any] = []
@@ -183,6 +184,7 @@ def _generate_command(args: argparse.Namespace) -> int:
             "batch_size": args.batch_size,
             "conditioner": pipe.conditioner_names()[chosen],
             "best_of": args.best_of,
+            **({"best_of_rank": args.best_of_rank} if args.best_of > 1 else {}),
         }
         text = json.dumps(settings, indent=2) + "\n"
         atomic_write(folder / "generate.json", lambda tmp: tmp.write_text(text, encoding="utf-8"))
@@ -347,6 +349,7 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
             picture=folder / picture,
             distribution=scorer,
             best_of=best_of[index],
+            rank=pipe.best_of_ranking(args.best_of_rank) if best_of[index] > 1 else None,
         )
     head = {
         "checkpoint": str(args.run if is_pretrained(args.run) else pipe.checkpoint),
@@ -436,8 +439,15 @@ def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
         type=positive_int,
         nargs="+",
         metavar="K",
-        help="label conditions: candidates per condition, the generator's own choice kept (the first is the "
+        help="label conditions: candidates per condition, the --best-of-rank's choice kept (the first is the "
         "base; default: not a knob, one draw)",
+    )
+    parser.add_argument(
+        "--best-of-rank",
+        choices=list(BEST_OF_RANKS),
+        default="judge",
+        help="what ranks --best-of's candidates: judge (default), a classifier of code grids fitted on the run's "
+        "training codes (about a minute, once), or posterior, the generator's own class posterior",
     )
     parser.add_argument(
         "--classifier-on",
@@ -577,9 +587,16 @@ def vqtouch_add_commands(subparsers):
         type=positive_int,
         default=1,
         metavar="K",
-        help="label conditions: draw K candidates per condition and keep the one the generator itself "
-        "finds most typical of its label (about 2K times the time of one draw; 1: plain sampling); "
+        help="label conditions: draw K candidates per condition and keep the one --best-of-rank finds most "
+        "typical of its label (about K times the time of one draw; 1: plain sampling); "
         "with every conditioner scored, the others draw once",
+    )
+    scored.add_argument(
+        "--best-of-rank",
+        choices=list(BEST_OF_RANKS),
+        default="judge",
+        help="what ranks --best-of's candidates: judge (default), a classifier of code grids fitted on the run's "
+        "training codes (about a minute, once), or posterior, the generator's own class posterior",
     )
     scored.add_argument(
         "--classifier-on",
@@ -649,8 +666,15 @@ def vqtouch_add_commands(subparsers):
         type=positive_int,
         default=1,
         metavar="K",
-        help="label conditions: draw K candidates per image and keep the one the generator itself finds "
-        "most typical of the label (about 2K times the time of one draw; default 1: plain sampling)",
+        help="label conditions: draw K candidates per image and keep the one --best-of-rank finds "
+        "most typical of the label (about K times the time of one draw; default 1: plain sampling)",
+    )
+    generate.add_argument(
+        "--best-of-rank",
+        choices=list(BEST_OF_RANKS),
+        default="judge",
+        help="what ranks --best-of's candidates: judge (default), a classifier of code grids fitted on the run's "
+        "training codes (about a minute, once), or posterior, the generator's own class posterior",
     )
     generate.add_argument(
         "--out", required=True, help="folder for sample_*.png, grid.png and generate.json (written whole, at the end)"

@@ -121,15 +121,34 @@ class _CrossAttention(nn.Module):
 class _Block(nn.Module):
     """Self-attention, cross-attention and MLP, each behind a timestep-adaptive LayerNorm."""
 
-    def __init__(self, width: int, heads: int, mlp_ratio: float, dropout: float) -> None:
+    def __init__(
+        self, width: int, heads: int, mlp_ratio: float, dropout: float, grid_hw: tuple[int, int], mlp_conv: int = 0
+    ) -> None:
         super().__init__()
+        self.grid_hw = grid_hw
         # shift and scale of the three adaptive LayerNorms, from the block's view of the timestep.
         self.modulation = nn.Linear(width, 6 * width)
         self.self_attn = _SelfAttention(width, heads, dropout)
         self.cross_attn = _CrossAttention(width, heads, dropout)
         hidden = max(1, round(width * mlp_ratio))
         self.mlp = nn.Sequential(nn.Linear(width, hidden), nn.GELU(), nn.Linear(hidden, width), nn.Dropout(dropout))
+        # A depthwise convolution over the code grid between the MLP's layers: every code mixes its
+        # neighbours' features with weights shared across positions, a locality prior attention must
+        # otherwise learn.  Zero-initialised and residual, so it starts as the plain MLP.
+        self.mlp_conv = nn.Conv2d(hidden, hidden, mlp_conv, padding=mlp_conv // 2, groups=hidden) if mlp_conv else None
+        if self.mlp_conv is not None:
+            nn.init.zeros_(self.mlp_conv.weight)
+            nn.init.zeros_(self.mlp_conv.bias)
         self.drop = nn.Dropout(dropout)
+
+    def _mlp(self, h_BLd: torch.Tensor) -> torch.Tensor:
+        if self.mlp_conv is None:
+            return self.mlp(h_BLd)
+        hidden_BLc = self.mlp[1](self.mlp[0](h_BLd))
+        batch, length, channels = hidden_BLc.shape
+        hidden_BcHW = hidden_BLc.transpose(1, 2).reshape(batch, channels, *self.grid_hw)
+        hidden_BLc = hidden_BLc + self.mlp_conv(hidden_BcHW).flatten(2).transpose(1, 2)
+        return self.mlp[3](self.mlp[2](hidden_BLc))
 
     def forward(
         self,
@@ -150,7 +169,7 @@ class _Block(nn.Module):
             x_BLd
             + self.drop(self.cross_attn(adaptive_norm(x_BLd, 1), keys_values, attn_mask_B11M, has_tokens_B)).float()
         )
-        return x_BLd + self.mlp(adaptive_norm(x_BLd, 2)).float()
+        return x_BLd + self._mlp(adaptive_norm(x_BLd, 2)).float()
 
 
 class DiffusionTransformer(nn.Module):
@@ -183,6 +202,7 @@ class DiffusionTransformer(nn.Module):
         heads: int = 8,
         mlp_ratio: float = 4.0,
         dropout: float = 0.0,
+        mlp_conv: int = 0,
     ) -> None:
         super().__init__()
         height, grid_width = grid_hw
@@ -202,6 +222,8 @@ class DiffusionTransformer(nn.Module):
             raise ValueError(f"DiffusionTransformer: width {width} is not divisible by heads {heads}")
         if not 0.0 <= dropout < 1.0:
             raise ValueError(f"DiffusionTransformer: dropout must lie in [0, 1); got {dropout}")
+        if mlp_conv < 0 or (mlp_conv and mlp_conv % 2 == 0):
+            raise ValueError(f"DiffusionTransformer: mlp_conv must be 0 (off) or an odd kernel size; got {mlp_conv}")
         #: Codebook size K (MASK = K).
         self.num_codes = num_codes
         #: Number of timesteps T.
@@ -217,7 +239,9 @@ class DiffusionTransformer(nn.Module):
         self.cond_proj = nn.Linear(cond_dim, width)
         self.cond_global = nn.Linear(width, width)
         self.grid_proj = nn.Linear(cond_dim, width)
-        self.blocks = nn.ModuleList(_Block(width, heads, mlp_ratio, dropout) for _ in range(depth))
+        self.blocks = nn.ModuleList(
+            _Block(width, heads, mlp_ratio, dropout, (height, grid_width), mlp_conv) for _ in range(depth)
+        )
         self.head_norm = nn.LayerNorm(width, eps=1e-6)
         self.head = nn.Linear(width, num_codes)
         self.apply(self._init_weights)

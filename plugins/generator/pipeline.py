@@ -13,7 +13,7 @@ seed and settings give the same images whatever the batch size.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from collections.abc import Iterator
 from typing import Any
@@ -36,7 +36,7 @@ from vqtouch.core.training import TRAINER_STATE, apply_ema_weights, collate_samp
 
 from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_digest, tokenizer_location
 
-from .best_of import check_best_of, sample_best_of
+from .best_of import BestOfRank, check_best_of, check_best_of_rank, sample_best_of
 from .stage import CHECKPOINT_FOLDER
 from .training import SENSOR_TAG_MODULE, SensorTaggedConditioner
 
@@ -63,6 +63,63 @@ class GenerationPipeline:
     #: A sensor-tagged generator's tag (``generator.sensor_tag``, made by ``vqtouch fewshot``); the
     #: conditioners then draw the sensor ``generator.sample_sensor`` names.  None for most generators.
     sensor_tag: Any = None
+    #: The code judge of best of K, fitted on first use (:meth:`code_judge`).
+    _judge: Any = field(default=None, repr=False)
+
+    def code_judge(self) -> Any:
+        """The :class:`~.judge.CodeJudge` that ranks best of K's candidates: fitted, on first use, on the
+        canonical codes of the training split the generator learned from (the split ``vqtouch evaluate
+        generation`` holds its conditions out of), seeded by the run's seed; about a minute on a CPU.
+        A ConfigError when the run's training samples carry no labels."""
+        if self._judge is None:
+            import sys
+
+            from vqtouch.core import Assembly
+            from vqtouch.core.data import experiment_split
+            from vqtouch.core.image_size import image_hw
+            from vqtouch.plugins.evaluation.contact import dataset_background
+            from vqtouch.plugins.evaluation.distribution import labels_of
+
+            from .codes import canonical_background
+            from .judge import codebook_of, fit_code_judge
+
+            if self.config is None:
+                raise ConfigError("best of K by the code judge needs the run's config; use --best-of-rank posterior")
+            dataset = Assembly(self.config, self.host).component("data.dataset")
+            train, _ = experiment_split(dataset, self.config.data, self.config.seed)
+            print(f"fitting the code judge on {len(train)} training images (about a minute on a CPU)", file=sys.stderr)
+            samples = [train[i] for i in range(len(train))]
+            labels = labels_of(samples)
+            if labels is None:
+                raise ConfigError(
+                    "best of K by the code judge needs labelled training samples; this run's have none "
+                    "(use --best-of-rank posterior)"
+                )
+            background_3HW, _ = dataset_background(train, image_hw(self.config.data.image_size))
+            with torch.no_grad():
+                codes = torch.cat(
+                    [
+                        self.tokenizer.encode_codes(
+                            torch.stack([s["tactile"] for s in samples[start : start + 64]]).to(self.device)
+                        )
+                        for start in range(0, len(samples), 64)
+                    ]
+                )
+                if background_3HW is not None:
+                    codes, _ = canonical_background(codes, self.tokenizer, background_3HW.to(self.device))
+            self._judge = fit_code_judge(
+                codes,
+                torch.tensor(labels, device=codes.device),
+                codebook_of(self.tokenizer),
+                len(self.class_names) if self.class_names else max(labels) + 1,
+                seed=self.config.seed,
+            )
+        return self._judge
+
+    def best_of_ranking(self, rank: BestOfRank) -> Any:
+        """What ranks best of K's candidates: the code judge's :meth:`~.judge.CodeJudge.rank` for
+        ``"judge"``, None (the generator's own posterior) for ``"posterior"``."""
+        return self.code_judge().rank if check_best_of_rank(rank) == "judge" else None
 
     def check_steps(self, steps: Any) -> int:
         """``steps`` as given, or a one-line ConfigError: sampling steps are an integer in [1, T] (the
@@ -160,6 +217,7 @@ class GenerationPipeline:
         batch_size: int = 16,
         conditioner: int | str | None = None,
         best_of: int = 1,
+        best_of_rank: BestOfRank = "judge",
         **conditions: Any,
     ) -> Iterator[tuple[int, torch.Tensor]]:
         """``(index of the first image, images (B, 3, S, S))`` a batch at a time, in order, holding one batch
@@ -169,8 +227,9 @@ class GenerationPipeline:
         Unset settings take the run's own (``generator.steps``, ``sampler``, the conditioner's
         guidance (:meth:`guidance_for`), ``truncation``).  ``conditioner``: which conditioner (index
         or name) when several read the condition's key.  ``best_of`` > 1 (a label condition): each image
-        is the best of that many candidates by the generator's own posterior of its label
-        (:mod:`.best_of`; image i with ``best_of=1`` is the same as without).  Values are what
+        is the best of that many candidates by ``best_of_rank``: the code judge (:meth:`code_judge`) or
+        the generator's own posterior of its label (:mod:`.best_of`; image i with ``best_of=1`` is the
+        same as without).  Values are what
         :meth:`vqtouch.core.Conditioner.parse_condition` takes (a class index or name, an image path or
         tensor, a text)."""
         if len(conditions) != 1:
@@ -193,6 +252,8 @@ class GenerationPipeline:
         chosen = self.sampler if sampler in (None, self.sampler_name) else self.host.build("sampler", sampler)
         conditioner = self.conditioners[index]
         check_best_of(best_of, conditioner, self.conditioner_names()[index])
+        check_best_of_rank(best_of_rank)
+        rank = self.best_of_ranking(best_of_rank) if best_of > 1 else None
 
         def parse(item: Any) -> Any:
             return conditioner.parse_condition(item, image_size=self.image_size, class_names=self.class_names)
@@ -223,7 +284,9 @@ class GenerationPipeline:
 
             row_seeds = [seed * 1_000_003 + start + row for row in range(len(rows))]
             labels_B = conditioner.condition_of(batch) if best_of > 1 else None
-            codes = sample_best_of(self.generator, conditioner, labels_B, row_seeds, best_of, draw, self.device)
+            codes = sample_best_of(
+                self.generator, conditioner, labels_B, row_seeds, best_of, draw, self.device, rank=rank
+            )
             # Decoded one by one: the decoder's float rounding depends on the batch size (1e-6), which
             # could flip a pixel's 8-bit value, and a sample must not depend on its batch.
             yield start, torch.cat([self.tokenizer.decode_codes(grid.unsqueeze(0)).cpu() for grid in codes])

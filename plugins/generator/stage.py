@@ -389,6 +389,7 @@ def score_generation(
     pool: list[dict[str, Any]] | None = None,
     distribution: bool | DistributionScorer = False,
     best_of: int = 1,
+    rank: Any = None,
 ) -> dict[str, Any]:
     """Generate the held-out ``conditions`` (:func:`held_out_conditions`, read once and shared by every
     conditioner scored) with ``conditioner`` and score them against their ground-truth tactile images.
@@ -416,8 +417,9 @@ def score_generation(
     each comparison and the ground truth itself (``real_*``); conditions it cannot read are listed
     under ``"skipped"`` with the reason.
 
-    ``best_of`` > 1 (a label conditioner only): each sample is the best of that many candidates by the
-    generator's own posterior of its label (:mod:`.best_of`); the scores then say ``best_of``."""
+    ``best_of`` > 1 (a label conditioner only): each sample is the best of that many candidates by
+    ``rank`` (e.g. the code judge's, :mod:`.judge`), or the generator's own posterior of its label
+    when None (:mod:`.best_of`); the scores then say ``best_of`` and ``best_of_rank``."""
     count, indices, truth = len(conditions.indices), conditions.indices, conditions.truth
     batch = conditions.batch(device=device)
     generator.eval()
@@ -437,10 +439,12 @@ def score_generation(
         device=device,
         best_of=best_of,
         labels_B=conditioner.condition_of(batch) if best_of > 1 else None,
+        rank=rank,
     )
     scores: dict[str, Any] = {"samples": count, "steps": steps, "guidance": guidance, "truncation": truncation}
     if best_of > 1:
         scores["best_of"] = best_of
+        scores["best_of_rank"] = "posterior" if rank is None else "judge"
     background = None if background_3HW is None else background_3HW.to(truth).expand_as(truth)
     compared = {"": images, "ceiling_": tokenizer.decode_codes(tokenizer.encode_codes(truth))}
     if background is not None:
@@ -528,11 +532,12 @@ def sample_images(
     device: torch.device,
     best_of: int = 1,
     labels_B: torch.Tensor | None = None,
+    rank: Any = None,
 ) -> torch.Tensor:
     """Decoded images (B, 3, H, W) of encoded ``condition`` (one row per entry of ``indices``): row i
     drawn with a generator seeded from (seed, ``indices[i]``), its dataset index.  ``best_of`` > 1
-    keeps, per row, the best of that many candidates by the generator's posterior of the row's label
-    ``labels_B`` (:func:`.best_of.sample_best_of`; a label conditioner only)."""
+    keeps, per row, the best of that many candidates by ``rank`` (None: the generator's posterior) of
+    the row's label ``labels_B`` (:func:`.best_of.sample_best_of`; a label conditioner only)."""
     null = conditioner.null(len(indices))
 
     def draw(generators: list[torch.Generator]) -> torch.Tensor:
@@ -547,7 +552,9 @@ def sample_images(
         )
 
     row_seeds = [seed * 100_003 + index for index in indices]
-    return tokenizer.decode_codes(sample_best_of(generator, conditioner, labels_B, row_seeds, best_of, draw, device))
+    return tokenizer.decode_codes(
+        sample_best_of(generator, conditioner, labels_B, row_seeds, best_of, draw, device, rank=rank)
+    )
 
 
 #: Sampling precisions: float32, or bfloat16 autocast (the generator and the decoder).
@@ -570,10 +577,11 @@ def generate_held_out(
     batch_size: int | None = None,
     precision: str = "fp32",
     best_of: int = 1,
+    rank: Any = None,
 ) -> torch.Tensor:
     """Float32 images (N, 3, H, W) of ``conditions``, encoded and sampled ``batch_size`` at a time
     (None: all at once, as :func:`score_generation` does) in ``precision`` (``fp32``, or ``bf16``
-    autocast), each the best of ``best_of`` candidates (label conditions; :mod:`.best_of`); the
+    autocast), each the best of ``best_of`` candidates by ``rank`` (label conditions; :mod:`.best_of`); the
     seeds of :func:`sample_images`, so image i does not depend on the batching beyond float
     rounding.  What ``vqtouch tradeoff generator`` times."""
     if precision not in PRECISIONS:
@@ -603,6 +611,7 @@ def generate_held_out(
                     device=device,
                     best_of=best_of,
                     labels_B=conditioner.condition_of(batch) if best_of > 1 else None,
+                    rank=rank,
                 ).float()
             )
     return torch.cat(images)

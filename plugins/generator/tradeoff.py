@@ -41,7 +41,7 @@ from vqtouch.core import Assembly, ConfigError, PluginHost
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.plugins.evaluation.contact import dataset_background
 
-from .best_of import check_best_of
+from .best_of import check_best_of, check_best_of_rank
 from .stage import (
     PRECISIONS,
     HeldOutConditions,
@@ -150,6 +150,8 @@ class TradeoffBench:
     scorer: Any = None
     #: How :attr:`background` was made (:func:`~vqtouch.plugins.evaluation.contact.dataset_background`).
     background_source: str = ""
+    #: What ranks best of K's candidates (:data:`.best_of.BEST_OF_RANKS`).
+    best_of_rank: str = "judge"
 
     def fit_distribution(self, feature_size: int | None = None, classifier_on: str = "real") -> None:
         """Fit the distribution scorer (:func:`.stage.distribution_scorer`): the real held-out
@@ -194,6 +196,7 @@ class TradeoffBench:
             batch_size=setting.get("batch", self.batch_size),
             precision=setting["precision"],
             best_of=setting.get("best_of", 1),
+            rank=pipe.best_of_ranking(self.best_of_rank) if setting.get("best_of", 1) > 1 else None,
         )
 
     def timed(self, setting: dict[str, Any]) -> tuple[float, torch.Tensor]:
@@ -211,6 +214,8 @@ class TradeoffBench:
         first = HeldOutConditions(
             self.conditions.samples[:rows], self.conditions.indices[:rows], self.conditions.truth[:rows], None
         )
+        if any(setting.get("best_of", 1) > 1 for setting in settings):
+            self.pipe.best_of_ranking(self.best_of_rank)  # the code judge is fitted once, untimed
         seen = set()
         for setting in settings:
             key = (setting["sampler"], setting["precision"], setting["guidance"] != 1, setting.get("batch"))
@@ -470,6 +475,7 @@ def tradeoff_command(args: argparse.Namespace) -> int:
         feature_size=args.feature_size,
     )
     check_settings(bench, args.steps, args.samplers, args.guidance, args.precisions, args.best_of)
+    bench.best_of_rank = check_best_of_rank(args.best_of_rank)
     if args.distribution:
         bench.fit_distribution(classifier_on=args.classifier_on)
     settings = sweep_settings(
@@ -528,6 +534,7 @@ def tradeoff_command(args: argparse.Namespace) -> int:
         f"truncation {bench.pipe.settings['truncation']:g}; "
         f"features {bench.feature_size} px"
         + (f"; classifier on the {args.classifier_on} of the training images" if args.distribution else "")
+        + (f"; best of K ranked by the {bench.best_of_rank}" if any(r.get("best_of", 1) > 1 for r in rows) else "")
         + "; cost = time per image / the first row's."
     )
     result = {
@@ -535,6 +542,7 @@ def tradeoff_command(args: argparse.Namespace) -> int:
         "checkpoint": str(bench.pipe.checkpoint),
         "n": count,
         "rounds": args.rounds,
+        "best_of_rank": bench.best_of_rank,
         "threads": torch.get_num_threads(),
         "device": device,
         "batch_size": args.batch_size,

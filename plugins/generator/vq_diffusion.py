@@ -71,6 +71,15 @@ class VQDiffusionConfig(PluginConfig):
     heads: int = Field(4, ge=1, le=64, strict=True, description="Attention heads.")
     mlp_ratio: float = Field(4.0, gt=0, le=16, description="MLP hidden width as a multiple of the width.")
     dropout: float = Field(0.0, ge=0, lt=1, description="Dropout in the transformer during training.")
+    mlp_conv: int = Field(
+        0,
+        ge=0,
+        le=7,
+        strict=True,
+        description="Kernel size of a depthwise convolution over the code grid inside every block's MLP "
+        "(odd; 0: none).  Gives each code its neighbours' features through weights shared across "
+        "positions: a locality prior for small data.  Measured in docs/generation.md (section 20).",
+    )
     loss: Literal["vb", "masked_ce", "masked_ce_mean"] = Field(
         "masked_ce",
         description="'masked_ce': the absorbing-state (MDLM/MD4) weighted cross-entropy on masked "
@@ -102,6 +111,8 @@ class VQDiffusionConfig(PluginConfig):
 
     @model_validator(mode="after")
     def _heads_divide_width(self) -> VQDiffusionConfig:
+        if self.mlp_conv % 2 == 0 and self.mlp_conv:
+            raise ValueError(f"mlp_conv must be odd (3, 5 or 7) or 0 for none; got {self.mlp_conv}")
         if self.width % self.heads:
             raise ValueError(f"width {self.width} must be divisible by heads {self.heads}")
         return self
@@ -132,6 +143,7 @@ class VQDiffusion(Generator):
             heads=config.heads,
             mlp_ratio=config.mlp_ratio,
             dropout=config.dropout,
+            mlp_conv=config.mlp_conv,
         )
         self.timesteps = TimestepSampler(config.num_steps)
         #: Says from the grid's embedding which cells hold the contact (``contact_weight``); None when off.
