@@ -951,82 +951,28 @@ def rerank(args: argparse.Namespace) -> dict[str, Any]:
 # -- judge: best of K samples, by a classifier of codes trained on the generator's training codes --
 
 
-class CodeJudge(torch.nn.Module):
-    """A small CNN that names the class of a code grid (B, H, W): code embeddings, three 3x3
-    convolutions (the second halves the grid), global average pooling, a linear layer."""
+def learned_embedding_judge(codebook_KD: torch.Tensor, num_classes: int) -> torch.nn.Module:
+    """The ablation of ``judge --judge-learned``: the plugin's judge with its frozen codebook replaced by
+    trained 32-wide code embeddings."""
+    from vqtouch.plugins.generator.judge import CodeJudge
 
-    def __init__(
-        self, num_codes: int, num_classes: int, width: int = 64, codebook_KD: torch.Tensor | None = None
-    ) -> None:
-        super().__init__()
-        # Either learned code embeddings or the tokenizer's own codebook, frozen (codes that decode
-        # alike then look alike to the judge from the start).
-        self.embed = (
-            torch.nn.Embedding(num_codes, 32)
-            if codebook_KD is None
-            else torch.nn.Embedding.from_pretrained(
-                F.normalize(codebook_KD.float(), dim=1) * codebook_KD.shape[1] ** 0.5
-            )
-        )
-        self.net = torch.nn.Sequential(
-            torch.nn.Conv2d(self.embed.embedding_dim, width, 3, padding=1),
-            torch.nn.GELU(),
-            torch.nn.Conv2d(width, 2 * width, 3, stride=2, padding=1),
-            torch.nn.GELU(),
-            torch.nn.Conv2d(2 * width, 2 * width, 3, padding=1),
-            torch.nn.GELU(),
-            torch.nn.AdaptiveAvgPool2d(1),
-            torch.nn.Flatten(),
-            torch.nn.Dropout(0.2),
-            torch.nn.Linear(2 * width, num_classes),
-        )
-
-    def forward(self, codes_BHW: torch.Tensor) -> torch.Tensor:
-        return self.net(self.embed(codes_BHW.long()).permute(0, 3, 1, 2))
-
-
-def train_code_judge(
-    codes_NHW: torch.Tensor,
-    labels_N: torch.Tensor,
-    num_codes: int,
-    num_classes: int,
-    *,
-    epochs: int,
-    seed: int,
-    noise: float,
-    codebook_KD: torch.Tensor | None = None,
-) -> CodeJudge:
-    """Fit :class:`CodeJudge` by AdamW on the given codes; each epoch replaces a random ``noise``
-    share of every grid's cells by random codes (the generator's samples are not clean grids)."""
-    torch.manual_seed(seed)
-    judge = CodeJudge(num_codes, num_classes, codebook_KD=codebook_KD)
-    optimizer = torch.optim.AdamW(judge.parameters(), lr=2e-3, weight_decay=0.05)
-    draws = torch.Generator().manual_seed(seed)
-    count = len(codes_NHW)
-    for _ in range(epochs):
-        judge.train()
-        order = torch.randperm(count, generator=draws)
-        for start in range(0, count, 64):
-            index = order[start : start + 64]
-            codes = codes_NHW[index].clone()
-            if noise:
-                flip = torch.rand(codes.shape, generator=draws) < noise * torch.rand(len(index), 1, 1, generator=draws)
-                codes[flip] = torch.randint(num_codes, (int(flip.sum()),), generator=draws)
-            loss = F.cross_entropy(judge(codes), labels_N[index])
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-    return judge.eval()
+    model = CodeJudge(codebook_KD, num_classes)
+    model.embed = torch.nn.Embedding(len(codebook_KD), 32)
+    first = model.net[0]
+    model.net[0] = torch.nn.Conv2d(32, first.out_channels, 3, padding=1)
+    return model
 
 
 def judge(args: argparse.Namespace) -> dict[str, Any]:
-    """Best of ``--candidates`` label samples per held-out condition, chosen by a classifier of code
-    grids (:class:`CodeJudge`) fitted on the canonical codes of the bundle's training scenes (never on
-    images, never on the held-out scenes).  Candidates are cached in ``--out``.pt.  Reported: the
-    judge's accuracy on the held-out scenes' real codes, each candidate's score by the evaluation's
-    classifier (fitted on the tokenizer's reconstructions of the training images), and best of k."""
+    """Best of ``--candidates`` label samples per held-out condition, chosen by the code judge
+    (:mod:`vqtouch.plugins.generator.judge`) fitted on the canonical codes of the bundle's training
+    scenes (never on images, never on the held-out scenes), once per ``--judge-noise``.  Candidates
+    are cached in ``--out``.pt.  Reported: the judge's accuracy on the held-out scenes' real codes,
+    each candidate's score by the evaluation's classifier (fitted on the tokenizer's reconstructions
+    of the training images), and best of k."""
     from vqtouch.plugins.evaluation.distribution import RealImageClassifier
     from vqtouch.plugins.evaluation.fd_metric import FdEffNetLite0
+    from vqtouch.plugins.generator.judge import codebook_of, fit_code_judge
     from vqtouch.plugins.tokenizer.loading import reconstruct_all
 
     host = load_plugins()
@@ -1038,7 +984,7 @@ def judge(args: argparse.Namespace) -> dict[str, Any]:
     batch = dataset.render_batch([held_out.indices[i] for i in range(count)])
     truth, labels = batch["tactile"], batch["label"]
     train_batch = dataset.render_batch([train.indices[i] for i in range(len(train))])
-    num_codes, num_classes = tokenizer.quantizer.codebook_size, len(dataset.class_names)
+    num_classes = len(dataset.class_names)
     with torch.no_grad():
         train_codes, _ = canonical_background(encode(tokenizer, train_batch["tactile"]), tokenizer, background_3HW)
         held_codes, _ = canonical_background(encode(tokenizer, truth), tokenizer, background_3HW)
@@ -1087,21 +1033,18 @@ def judge(args: argparse.Namespace) -> dict[str, Any]:
     out: dict[str, Any] = {"n": count, "candidates": codes_NKL.shape[1], "guidance": args.guidance}
     out["each_candidate"] = [round(float(v), 4) for v in score_NK.mean(0)]
     rows_N = torch.arange(count)
-    codebook_KD = None
-    if args.judge_codebook:
-        eye = torch.arange(num_codes).view(1, 1, num_codes)
-        codebook_KD = tokenizer.quantizer.lookup(eye)[0, :, 0, :].T.detach()
+    codebook_KD = codebook_of(tokenizer)
     for noise in args.judge_noise:
         clock = time.perf_counter()
-        judge_model = train_code_judge(
+        judge_model = fit_code_judge(
             train_codes,
             train_batch["label"],
-            num_codes,
+            codebook_KD,
             num_classes,
             epochs=args.judge_epochs,
             seed=args.seed,
             noise=noise,
-            codebook_KD=codebook_KD,
+            judge=learned_embedding_judge(codebook_KD, num_classes) if args.judge_learned else None,
         )
         with torch.no_grad():
             real_accuracy = float((judge_model(held_codes).argmax(1) == labels).float().mean())
@@ -1242,9 +1185,11 @@ def main() -> None:
     parser.add_argument("--sample-seeds", type=int, nargs="+", default=[1, 2, 3], help="rescore: sampling seeds")
     parser.add_argument("--candidates", type=int, default=8, help="rerank: samples per condition")
     parser.add_argument("--taus", type=float, nargs="+", default=[0.0, 0.1, 0.3], help="prior: thresholds")
-    parser.add_argument("--judge-epochs", type=int, default=40, help="judge: epochs of the code classifier")
-    parser.add_argument("--judge-noise", type=float, nargs="+", default=[0.0, 0.3], help="judge: random-code shares")
-    parser.add_argument("--judge-codebook", action="store_true", help="judge: the tokenizer's codebook, frozen")
+    parser.add_argument("--judge-epochs", type=int, default=60, help="judge: epochs of the code judge")
+    parser.add_argument("--judge-noise", type=float, nargs="+", default=[0.1], help="judge: random-code shares")
+    parser.add_argument(
+        "--judge-learned", action="store_true", help="judge: trained code embeddings instead of the frozen codebook"
+    )
     parser.add_argument("--out", default="")
     args = parser.parse_args()
     commands = {"codes": codes_report, "overfit": overfit, "split": split, "sensitivity": sensitivity, "head": head}

@@ -84,10 +84,12 @@ def fit_code_judge(
     noise: float = JUDGE_NOISE,
     seed: int = 0,
     batch_size: int = 64,
-) -> CodeJudge:
+    judge: nn.Module | None = None,
+) -> nn.Module:
     """A :class:`CodeJudge` fitted by AdamW (lr 2e-3, weight decay 0.05) on ``codes_NHW`` and their
     ``labels_N`` for ``epochs`` passes; every pass replaces a random share, up to ``noise``, of each
-    grid's cells by random codes.  Returned in eval mode, on the codes' device."""
+    grid's cells by random codes.  Returned in eval mode, on the codes' device.  ``judge``: fit this
+    model (codes (B, H, W) to logits) instead of a new ``CodeJudge`` (an ablation's variant)."""
     codes_NHW = torch.as_tensor(codes_NHW)
     labels_N = torch.as_tensor(labels_N).long().view(-1)
     if codes_NHW.ndim != 3 or len(codes_NHW) != len(labels_N) or not len(labels_N):
@@ -107,7 +109,7 @@ def fit_code_judge(
     # Callers may sample under no_grad (best of K fits its judge on first use); the fit needs gradients.
     with torch.random.fork_rng(devices=[]), torch.enable_grad():
         torch.manual_seed(seed)
-        judge = CodeJudge(codebook_KD.to(device), num_classes).to(device)
+        judge = (judge if judge is not None else CodeJudge(codebook_KD.to(device), num_classes)).to(device)
         optimizer = torch.optim.AdamW(judge.parameters(), lr=2e-3, weight_decay=0.05)
         count = len(labels_N)
         for _ in range(epochs):
