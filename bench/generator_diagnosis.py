@@ -829,6 +829,17 @@ def implicit(args: argparse.Namespace) -> dict[str, Any]:
 
 
 @torch.no_grad()
+def draw_candidate(
+    generator: Any, sampler: Any, condition: Any, null: Any, index: torch.Tensor, k: int, args: argparse.Namespace
+) -> torch.Tensor:
+    """Candidate ``k`` (B, L) of the held-out conditions ``index``: row i drawn with seed k * 100003 + i
+    (``rerank`` and ``judge`` draw the same candidates)."""
+    draws = [torch.Generator().manual_seed(k * 100_003 + int(i)) for i in index]
+    return generator.sample(
+        condition, sampler, steps=args.sample_steps, null=null, guidance=args.guidance, generators=draws
+    ).flatten(1)
+
+
 def rerank(args: argparse.Namespace) -> dict[str, Any]:
     """Best of ``--candidates`` samples per held-out condition, chosen by the bundle generator's own
     scores (no other model): for the label, its implicit class posterior (log p(x | class) of every
@@ -869,11 +880,8 @@ def rerank(args: argparse.Namespace) -> dict[str, Any]:
             index = torch.arange(start, min(count, start + 32))
             condition = conditioner(_condition(conditioner, batch, index))
             null = conditioner.null(len(index))
-            draws = [torch.Generator().manual_seed(k * 100_003 + int(i)) for i in index]
             clock = time.perf_counter()
-            codes_BL = generator.sample(
-                condition, sampler, steps=args.sample_steps, null=null, guidance=args.guidance, generators=draws
-            ).flatten(1)
+            codes_BL = draw_candidate(generator, sampler, condition, null, index, k, args)
             seconds["sampling"] += time.perf_counter() - clock
             clock = time.perf_counter()
             codes_BHW = codes_BL.view(-1, *generator.grid_hw)
@@ -1000,17 +1008,8 @@ def judge(args: argparse.Namespace) -> dict[str, Any]:
                 for start in range(0, count, 32):
                     index = torch.arange(start, min(count, start + 32))
                     condition = conditioner(_condition(conditioner, batch, index))
-                    null = conditioner.null(len(index))
-                    draws = [torch.Generator().manual_seed(k * 100_003 + int(i)) for i in index]
                     rows.append(
-                        generator.sample(
-                            condition,
-                            sampler,
-                            steps=args.sample_steps,
-                            null=null,
-                            guidance=args.guidance,
-                            generators=draws,
-                        ).flatten(1)
+                        draw_candidate(generator, sampler, condition, conditioner.null(len(index)), index, k, args)
                     )
                 candidates.append(torch.cat(rows))
                 print(json.dumps({"candidate": k}), flush=True)
