@@ -111,7 +111,14 @@ class GenerationPipeline:
                 codes,
                 torch.tensor(labels, device=codes.device),
                 codebook_of(self.tokenizer),
-                len(self.class_names) if self.class_names else max(labels) + 1,
+                # Every class a label conditioner can ask for, even one absent from the training split.
+                max(
+                    [
+                        len(self.class_names or []),
+                        max(labels) + 1,
+                        *(c.num_classes for c in self.conditioners if isinstance(getattr(c, "num_classes", None), int)),
+                    ]
+                ),
                 seed=self.config.seed,
             )
         return self._judge
