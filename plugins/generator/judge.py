@@ -7,7 +7,7 @@ better one at little cost: fitted in about a minute on the training split the ge
 from, it names the class of held-out real codes about 3 times in 4 (section 20).
 
 Why codes, and why the tokenizer's codebook: the candidates are code grids, so the judge reads them
-before decoding, and never sees an image, whose classifier is what the evaluation scores with.  Its
+before decoding and never sees an image (the evaluation's classifier reads decoded images).  Its
 code embeddings are the tokenizer's own codebook vectors, frozen (L2-normalised, scaled by the square
 root of their dimension), so codes that decode alike look alike from the start; with learned
 embeddings on 900 grids the same network names held-out codes about 4 times in 10.
