@@ -18,6 +18,8 @@ The fit is seeded and deterministic on a given machine; :meth:`GenerationPipelin
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -53,11 +55,6 @@ class CodeJudge(nn.Module):
             nn.Dropout(0.2),
             nn.Linear(2 * width, num_classes),
         )
-
-    @property
-    def num_codes(self) -> int:
-        """Codebook size K the judge reads."""
-        return self.embed.num_embeddings
 
     def forward(self, codes_BHW: torch.Tensor) -> torch.Tensor:
         """Class logits (B, num_classes) of integer codes (B, H, W) in [0, K)."""
@@ -130,13 +127,9 @@ def fit_code_judge(
     return judge.eval()
 
 
-def codebook_of(tokenizer: object) -> torch.Tensor:
+def codebook_of(tokenizer: Any) -> torch.Tensor:
     """The tokenizer's codebook (K, D): the latent of each code, by the quantizer's own lookup."""
     quantizer = tokenizer.quantizer
-    tensor = next(iter(quantizer.parameters()), None)
-    if tensor is None:
-        tensor = next(iter(quantizer.buffers()), None)
-    device = tensor.device if tensor is not None else torch.device("cpu")
-    codes_11K = torch.arange(quantizer.codebook_size, device=device).view(1, 1, -1)
+    codes_11K = torch.arange(quantizer.codebook_size, device=tokenizer.device).view(1, 1, -1)
     with torch.no_grad():
         return quantizer.lookup(codes_11K)[0, :, 0, :].T.detach().float()
