@@ -59,8 +59,11 @@ def main() -> None:
     params = torch.cat([p.detach().flatten() for p in task.modules["model"].parameters()])
     torch.save(params, out / f"rank{rank}.pt")
     # Tear the gloo group down before the interpreter does: left to exit, its threads can abort the
-    # process ("terminate called without an active exception", seen once in a full test run).
+    # process ("terminate called without an active exception", seen once in a full test run).  The
+    # barrier first: a rank that tore its group down while the other still talked to it aborted that
+    # other rank the same way (seen again in a later full run).
     if torch.distributed.is_initialized():
+        torch.distributed.barrier()
         torch.distributed.destroy_process_group()
 
 
