@@ -14,6 +14,7 @@ Run (one job at a time on a 2-core CPU; OMP_NUM_THREADS=2):
     .venv/bin/python bench/generator_diagnosis.py rerank --conditioner label --candidates 8 --guidance 2  # best of K
     .venv/bin/python bench/generator_diagnosis.py implicit --n 64   # the generator as a classifier of real codes
     .venv/bin/python bench/generator_diagnosis.py judge --conditioner label --candidates 8 --guidance 2 --out F
+    .venv/bin/python bench/generator_diagnosis.py rankers --n 100 --candidates 8 --guidance 2 --out F  # label rankings
 
 Everything runs over the bundled ``tour`` tokenizer (``plugins/pretrained/weights/tour``) and the
 tour scene's procedural data: GelSight targets, GelSight Mini images of the same contacts as the
@@ -1075,6 +1076,141 @@ def judge(args: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
+# -- rankers: best of K's label rankings, compared on a validation split of the training scenes ---
+
+
+def best_of_groups(choice_score_NK: torch.Tensor, score_NK: torch.Tensor) -> dict[int, float]:
+    """Best of k for k = 1, 2, 4, ... K: the mean of ``score_NK`` at each row's highest
+    ``choice_score_NK`` within disjoint groups of k candidates, averaged over the groups."""
+    rows_N, count = torch.arange(len(score_NK)), score_NK.shape[1]
+    out, group = {}, 1
+    while group <= count:
+        values = [
+            float(score_NK[rows_N, choice_score_NK[:, first : first + group].argmax(1) + first].mean())
+            for first in range(0, count - group + 1, group)
+        ]
+        out[group] = round(sum(values) / len(values), 4)
+        group *= 2
+    return out
+
+
+def rankers(args: argparse.Namespace) -> dict[str, Any]:
+    """Label rankings for best of K, compared where nothing is tuned on Table 2's scenes: the bundle's
+    900 training scenes split into the last ``--n`` (validation conditions) and the rest (what the
+    code judges and the evaluation's classifier are fitted on).  ``--candidates`` label samples per
+    validation condition (cached in ``--out``.pt), each scored by the evaluation's classifier
+    (fitted on the reconstructions of the fitting scenes); then best of k by: the code judge (seeds
+    0, 1, 2), the same judges on the candidates re-encoded through the tokenizer (decoded, encoded,
+    canonical background), the mean log-probability of five judges (seeds 10-14), and the medoid of
+    the candidates by the cosine of their codebook vectors (no class)."""
+    from vqtouch.plugins.evaluation.distribution import RealImageClassifier
+    from vqtouch.plugins.evaluation.fd_metric import FdEffNetLite0
+    from vqtouch.plugins.generator.consensus import medoid_indices
+    from vqtouch.plugins.generator.judge import codebook_of, fit_code_judge
+    from vqtouch.plugins.tokenizer.loading import reconstruct_all
+
+    host = load_plugins()
+    pipe, dataset, train, _, background_3HW = bundle_split(args.bundle, host)
+    tokenizer, generator = pipe.tokenizer, pipe.generator.float().eval()
+    names = [name.split(":")[-1] for name in pipe.conditioner_names()]
+    conditioner = pipe.conditioners[names.index("label")].float().eval()
+    batch = dataset.render_batch([train.indices[i] for i in range(len(train))])
+    images, labels = batch["tactile"], batch["label"]
+    fit = len(train) - args.n
+    with torch.no_grad():
+        codes, _ = canonical_background(encode(tokenizer, images), tokenizer, background_3HW)
+    validation_labels = labels[fit:]
+    cache = Path(args.out + ".pt") if args.out else None
+    if cache is not None and cache.exists():
+        codes_NKL = torch.load(cache)
+    else:
+        sampler = host.build("sampler", {"name": "posterior"})
+        candidates = []
+        with torch.no_grad():
+            for k in range(args.candidates):
+                rows = []
+                for start in range(fit, len(train), 50):
+                    index = torch.arange(start, min(len(train), start + 50))
+                    condition = conditioner(labels[index])
+                    rows.append(
+                        draw_candidate(generator, sampler, condition, conditioner.null(len(index)), index, k, args)
+                    )
+                candidates.append(torch.cat(rows))
+                print(json.dumps({"candidate": k}), flush=True)
+        codes_NKL = torch.stack(candidates, 1)
+        if cache is not None:
+            torch.save(codes_NKL, cache)
+    count, rows_N = codes_NKL.shape[1], torch.arange(args.n)
+    features = FdEffNetLite0().pooled_features
+    classifier = RealImageClassifier(features(reconstruct_all(tokenizer, images[:fit], 64)), labels[:fit].tolist())
+    with torch.no_grad():
+        decoded = [decode(tokenizer, codes_NKL[:, k].view(-1, 16, 16)) for k in range(count)]
+        reencoded_NKL = torch.stack(
+            [
+                canonical_background(encode(tokenizer, image), tokenizer, background_3HW)[0].flatten(1)
+                for image in decoded
+            ],
+            1,
+        )
+    score_NK = torch.stack(
+        [torch.tensor(classifier.predict(features(image))) == validation_labels for image in decoded], 1
+    ).float()
+    out: dict[str, Any] = {
+        "validation_conditions": args.n,
+        "fitted_on": fit,
+        "each_candidate": [round(float(v), 4) for v in score_NK.mean(0)],
+        "oracle_best_of_all": round(float(score_NK.max(1).values.mean()), 4),
+        "ceiling_reconstructions": round(
+            classifier.accuracy(features(reconstruct_all(tokenizer, images[fit:], 64)), validation_labels.tolist()), 4
+        ),
+    }
+    codebook_KD = codebook_of(tokenizer)
+
+    def judge_log_p(seed: int) -> tuple[float, torch.Tensor, torch.Tensor]:
+        judge_model = fit_code_judge(codes[:fit], labels[:fit], codebook_KD, len(dataset.class_names), seed=seed)
+        with torch.no_grad():
+            accuracy = float((judge_model(codes[fit:]).argmax(1) == validation_labels).float().mean())
+
+            def read(grids_NKL: torch.Tensor) -> torch.Tensor:
+                return torch.stack(
+                    [
+                        judge_model(grids_NKL[:, k].view(-1, 16, 16)).log_softmax(1)[rows_N, validation_labels]
+                        for k in range(count)
+                    ],
+                    1,
+                )
+
+            return accuracy, read(codes_NKL), read(reencoded_NKL)
+
+    for seed in (0, 1, 2):
+        accuracy, on_codes, on_reencoded = judge_log_p(seed)
+        out[f"judge_seed{seed}"] = {
+            "validation_real_code_accuracy": round(accuracy, 4),
+            "codes": best_of_groups(on_codes, score_NK),
+            "reencoded": best_of_groups(on_reencoded, score_NK),
+        }
+        print(json.dumps({f"judge_seed{seed}": out[f"judge_seed{seed}"]}), flush=True)
+    ensemble = [judge_log_p(seed) for seed in range(10, 15)]
+    out["ensemble_of_5"] = {
+        "each_best_of_all": [best_of_groups(log_p, score_NK)[count] for _, log_p, _ in ensemble],
+        "mean_log_p": best_of_groups(torch.stack([log_p for _, log_p, _ in ensemble]).mean(0), score_NK),
+    }
+    latents_NKLD = F.normalize(codebook_KD.cpu()[codes_NKL], dim=-1)
+    similarity_NKK = torch.einsum("nkld,njld->nkj", latents_NKLD, latents_NKLD) / codes_NKL.shape[-1]
+    medoid = {}
+    group = 2
+    while group <= count:
+        values = []
+        for first in range(0, count - group + 1, group):
+            block_NKK = similarity_NKK[:, first : first + group, first : first + group]
+            chosen_N = medoid_indices(1 - block_NKK) + first
+            values.append(float(score_NK[rows_N, chosen_N].mean()))
+        medoid[group] = round(sum(values) / len(values), 4)
+        group *= 2
+    out["medoid_by_codebook_cosine"] = medoid
+    return out
+
+
 # -- cost: what a setting costs per training step ------------------------------------------------
 
 
@@ -1144,6 +1280,7 @@ def main() -> None:
             "rerank",
             "implicit",
             "judge",
+            "rankers",
         ],
     )
     parser.add_argument("--bundle", default="tour")
@@ -1203,6 +1340,7 @@ def main() -> None:
             "rerank": rerank,
             "implicit": implicit,
             "judge": judge,
+            "rankers": rankers,
         }
     )[args.what](args)
     print(json.dumps(result, indent=1))

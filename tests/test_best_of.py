@@ -132,7 +132,7 @@ def test_a_given_rank_replaces_the_posterior_and_its_best_candidate_is_kept(pipe
         torch.nn.functional.normalize(codebook_of(pipe.tokenizer), dim=1) * judge.embed.weight.shape[1] ** 0.5,
     )
     assert not judge.embed.weight.requires_grad
-    with pytest.raises(ConfigError, match="--best-of-rank 'best': choose judge or posterior"):
+    with pytest.raises(ConfigError, match="--best-of-rank 'best': choose one of judge, posterior, consensus"):
         pipe(label=[0], steps=3, best_of=2, best_of_rank="best")
 
 

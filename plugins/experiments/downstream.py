@@ -88,7 +88,14 @@ from vqtouch.core.cli import (
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.plugins.evaluation.records import ExperimentRecord, add_experiment_arguments, markdown_table, mean_spread
 from vqtouch.core.training import collate_samples
-from vqtouch.plugins.generator import BEST_OF_RANKS, check_best_of, check_best_of_rank, sample_images
+from vqtouch.plugins.generator import (
+    BEST_OF_RANK_HELP,
+    BEST_OF_RANKS,
+    RANK_DESCRIPTIONS,
+    check_best_of,
+    check_best_of_rank,
+    sample_images,
+)
 from vqtouch.core.data import experiment_split
 from vqtouch.plugins.evaluation.contact import dataset_background
 from vqtouch.core.images import image_grid, save_png
@@ -661,11 +668,7 @@ def render_markdown(result: dict[str, Any]) -> list[str]:
         lines += [
             "",
             f"Each generated image is the best of {result['best_of']} candidates by "
-            + (
-                "the generator's own class posterior"
-                if result.get("best_of_rank") == "posterior"
-                else "a classifier of code grids fitted on the generator's training codes"
-            )
+            + RANK_DESCRIPTIONS[result.get("best_of_rank", "judge")]
             + " (--best-of, --best-of-rank).",
         ]
     if result["background"]:
@@ -859,7 +862,6 @@ def vqtouch_add_commands(subparsers: Any) -> None:
         "--best-of-rank",
         choices=list(BEST_OF_RANKS),
         default="judge",
-        help="what ranks --best-of's candidates: judge (default), a classifier of code grids fitted on the run's "
-        "training codes, or posterior, the generator's own class posterior",
+        help=BEST_OF_RANK_HELP,
     )
     downstream.set_defaults(handler=_evaluate_downstream_command)

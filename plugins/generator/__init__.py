@@ -4,9 +4,10 @@ generation.
 The public API other packages use (imported on first use, so importing this package stays light):
 generation from a trained run or a bundle (:func:`load_pipeline`, :func:`generator_tokenizer`,
 :func:`sample_images`, :func:`check_best_of` and :func:`check_best_of_rank` for its ``best_of`` and
-what ranks it, :data:`BEST_OF_RANKS`), scoring generated samples against
-held-out conditions (:func:`score_generation`, :func:`held_out_conditions`, :func:`baseline_pool`, with
-:data:`GENERATION_SHOWN_SCORES` and :data:`SAMPLES_CAPTION` for reports), and the sampling
+what ranks it, :data:`BEST_OF_RANKS`, :data:`RANK_DESCRIPTIONS` and :data:`BEST_OF_RANK_HELP`),
+scoring generated samples against held-out conditions (:func:`score_generation`,
+:func:`held_out_conditions`, :func:`baseline_pool`, with :data:`GENERATION_SHOWN_SCORES` and
+:data:`SAMPLES_CAPTION` for reports), and the sampling
 speed/quality sweep (:func:`sweep_settings`, :func:`measure`, :func:`check_settings`,
 :func:`load_tradeoff_bench`, :func:`pareto_front`, :func:`synchronize`).  Other packages import
 these names from here, never the modules behind them (``make lint`` checks it).
@@ -26,6 +27,8 @@ _PUBLIC = {
     "check_best_of": ("best_of", "check_best_of"),
     "check_best_of_rank": ("best_of", "check_best_of_rank"),
     "BEST_OF_RANKS": ("best_of", "BEST_OF_RANKS"),
+    "BEST_OF_RANK_HELP": ("best_of", "BEST_OF_RANK_HELP"),
+    "RANK_DESCRIPTIONS": ("best_of", "RANK_DESCRIPTIONS"),
     "score_generation": ("stage", "score_generation"),
     "held_out_conditions": ("stage", "held_out_conditions"),
     "baseline_pool": ("stage", "baseline_pool"),

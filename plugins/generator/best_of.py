@@ -1,9 +1,11 @@
 """Best of K: draw several candidates per class label and keep the one a judge finds most typical of
 the asked class.
 
-Two judges (``rank``): a classifier of code grids fitted on the run's training codes
-(:mod:`.judge`, the default of the commands: it names held-out real codes about 3 times in 4), or the
-generator's own class posterior (``posterior``, below; no other model).
+Three rankings (``rank``): a classifier of code grids fitted on the run's training codes
+(:mod:`.judge`, the default of the commands: it names held-out real codes about 3 times in 4), the
+generator's own class posterior (``posterior``, below; no other model), or, for any condition and
+without a class, the candidates' consensus on where the contact lies (``consensus``,
+:mod:`.consensus`).
 
 A label leaves the generator to invent the pose and every fine texture that tells classes apart, and
 at the compute of a CPU hour a single draw is named right by a classifier about 40-50% of the time
@@ -30,10 +32,27 @@ from vqtouch.core import ConfigError
 
 #: The most candidates a condition may draw.
 MAX_BEST_OF = 64
-#: What can rank best of K's candidates: the code judge (:mod:`.judge`) or the generator's posterior.
-BEST_OF_RANKS = ("judge", "posterior")
-BestOfRank = Literal["judge", "posterior"]
-#: A ranking: (codes (B, H, W), labels (B,)) -> (B,) scores, higher is better.
+#: What can rank best of K's candidates: the code judge (:mod:`.judge`), the generator's posterior, or
+#: the candidates' consensus on the contact (:mod:`.consensus`; the only one for a condition without classes).
+BEST_OF_RANKS = ("judge", "posterior", "consensus")
+BestOfRank = Literal["judge", "posterior", "consensus"]
+#: What each ranking is, in words (the commands' help and the reports).
+RANK_DESCRIPTIONS = {
+    "judge": "a classifier of code grids fitted on the run's training codes",
+    "posterior": "the generator's own class posterior",
+    "consensus": "the candidate whose contact centre the others agree on most (any condition, no class)",
+}
+#: ``--best-of-rank``'s help, shared by every command that takes it.
+_JUDGE_COST = " (fitted once, about a minute)"
+BEST_OF_RANK_HELP = "what ranks --best-of's candidates: " + "; ".join(
+    f"{name} (default), {text}{_JUDGE_COST}" if name == "judge" else f"{name}, {text}"
+    for name, text in RANK_DESCRIPTIONS.items()
+)
+#: Rankings that need the rows' classes.
+CLASS_RANKS = ("judge", "posterior")
+#: A ranking: (codes (B, H, W), labels (B,)) -> (B,) scores, higher is better.  A ranking object with a
+#: ``choose(candidates (K, B, H, W)) -> (B,)`` method (:class:`.consensus.ContactConsensus`) instead
+#: sees all K candidates of a row at once.
 Rank = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 _MASK64 = 2**64 - 1
 
@@ -66,20 +85,30 @@ def ranks_by_class(conditioner: Any) -> bool:
 def check_best_of_rank(rank: Any) -> BestOfRank:
     """``rank`` as given, or a one-line ConfigError naming the choices."""
     if rank not in BEST_OF_RANKS:
-        raise ConfigError(f"--best-of-rank {rank!r}: choose {' or '.join(BEST_OF_RANKS)}")
+        raise ConfigError(f"--best-of-rank {rank!r}: choose one of {', '.join(BEST_OF_RANKS)}")
     return rank
 
 
-def check_best_of(best_of: Any, conditioner: Any, name: str) -> int:
-    """``best_of`` as given, or a one-line ConfigError: an integer in [1, MAX_BEST_OF], and above 1 only
-    for a conditioner over a finite set of classes (one with ``num_classes``, the label's), whose
-    every class the generator can be asked about.  ``name`` names the conditioner in the message."""
+def rank_name(rank: Any) -> BestOfRank:
+    """The :data:`BEST_OF_RANKS` name of a ranking as :func:`sample_best_of` takes it (None: the
+    generator's posterior), for the records."""
+    if rank is None:
+        return "posterior"
+    return "consensus" if hasattr(rank, "choose") else "judge"
+
+
+def check_best_of(best_of: Any, conditioner: Any, name: str, rank: Any = "judge") -> int:
+    """``best_of`` as given, or a one-line ConfigError: an integer in [1, MAX_BEST_OF], and above 1
+    with a class ranking (``rank`` ``judge`` or ``posterior``) only for a conditioner over a finite set
+    of classes (one with ``num_classes``, the label's); ``consensus`` ranks any conditioner's
+    candidates.  ``name`` names the conditioner in the message."""
     if isinstance(best_of, bool) or not isinstance(best_of, int) or not 1 <= best_of <= MAX_BEST_OF:
         raise ConfigError(f"--best-of {best_of}: give an integer in [1, {MAX_BEST_OF}] (1: plain sampling)")
-    if best_of > 1 and not ranks_by_class(conditioner):
+    if best_of > 1 and rank in CLASS_RANKS and not ranks_by_class(conditioner):
         raise ConfigError(
-            f"--best-of {best_of}: conditioner {name} has no finite set of classes to rank candidates by; "
-            "best of K works with a label conditioner (use --best-of 1 for this one)"
+            f"--best-of {best_of} --best-of-rank {rank}: conditioner {name} has no finite set of classes to "
+            "rank candidates by; use --best-of-rank consensus (the candidates' agreement on the contact) "
+            "or --best-of 1"
         )
     return best_of
 
@@ -117,13 +146,24 @@ def sample_best_of(
     rank: Rank | None = None,
 ) -> torch.Tensor:
     """Codes (B, H, W): per row, the best of ``best_of`` candidates by ``rank(codes, labels)`` (e.g. a
-    :meth:`.judge.CodeJudge.rank`), or, when None, by the generator's posterior of the row's label
-    (:func:`class_log_posteriors`).  ``draw(generators)`` samples one candidate per row
+    :meth:`.judge.CodeJudge.rank`), by ``rank.choose(candidates)`` when the ranking has that method
+    (:class:`.consensus.ContactConsensus`, which reads no labels), or, when None, by the generator's
+    posterior of the row's label (:func:`class_log_posteriors`).  ``draw(generators)`` samples one candidate per row
     with the given generators (the caller's sampler, steps, guidance and condition);
     ``row_seeds[b]`` is row b's own seed (candidate 0).  Ties keep the earliest candidate.  With
     ``best_of=1`` this is ``draw`` with the rows' own generators, and ``labels_B`` may be None."""
     if best_of == 1:
         return draw([torch.Generator(device=device).manual_seed(seed) for seed in row_seeds])
+    choose = getattr(rank, "choose", None)
+    if choose is not None:
+        candidates_KBHW = torch.stack(
+            [
+                draw([torch.Generator(device=device).manual_seed(candidate_seed(seed, k)) for seed in row_seeds])
+                for k in range(best_of)
+            ]
+        )
+        chosen_B = choose(candidates_KBHW).to(candidates_KBHW.device)
+        return candidates_KBHW[chosen_B, torch.arange(candidates_KBHW.shape[1], device=chosen_B.device)]
     if labels_B is None:
         raise ValueError("best of K > 1 needs the rows' labels")
     labels_B = torch.as_tensor(labels_B, device=device).long().view(-1)

@@ -52,7 +52,7 @@ from vqtouch.core.data import experiment_split
 from vqtouch.core.image_size import image_hw
 from vqtouch.plugins.evaluation.contact import dataset_background
 
-from .best_of import BEST_OF_RANKS, check_best_of, ranks_by_class
+from .best_of import BEST_OF_RANK_HELP, BEST_OF_RANKS, check_best_of, ranks_by_class
 
 
 def _with_tokenizer_run(config: Any, tokenizer_run: str, host: PluginHost) -> Any:
@@ -300,10 +300,11 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     # Into --out: every conditioner unless one is named (Table 2's by_conditioner); into the run: one, 0 by default.
     indices = [args.conditioner] if args.conditioner is not None else (list(range(len(names))) if out else [0])
-    # --best-of ranks candidates by class: a named conditioner must have classes; of all, those that do use it.
+    # A class ranking needs classes: a named conditioner must have them; of all, those that do use it.
+    # The consensus ranks every conditioner.
     best_of = {
-        index: check_best_of(args.best_of, pipe.conditioners[index], f"{index}:{names[index]}")
-        if len(indices) == 1 or ranks_by_class(pipe.conditioners[index])
+        index: check_best_of(args.best_of, pipe.conditioners[index], f"{index}:{names[index]}", args.best_of_rank)
+        if len(indices) == 1 or args.best_of_rank == "consensus" or ranks_by_class(pipe.conditioners[index])
         else 1
         for index in indices
     }
@@ -439,15 +440,14 @@ def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
         type=positive_int,
         nargs="+",
         metavar="K",
-        help="label conditions: candidates per condition, the --best-of-rank's choice kept (the first is the "
-        "base; default: not a knob, one draw)",
+        help="candidates per condition, the --best-of-rank's choice kept (label conditions, or any with "
+        "--best-of-rank consensus; the first is the base; default: not a knob, one draw)",
     )
     parser.add_argument(
         "--best-of-rank",
         choices=list(BEST_OF_RANKS),
         default="judge",
-        help="what ranks --best-of's candidates: judge (default), a classifier of code grids fitted on the run's "
-        "training codes (about a minute, once), or posterior, the generator's own class posterior",
+        help=BEST_OF_RANK_HELP,
     )
     parser.add_argument(
         "--classifier-on",
@@ -587,16 +587,15 @@ def vqtouch_add_commands(subparsers):
         type=positive_int,
         default=1,
         metavar="K",
-        help="label conditions: draw K candidates per condition and keep the one --best-of-rank finds most "
-        "typical of its label (about K times the time of one draw; 1: plain sampling); "
-        "with every conditioner scored, the others draw once",
+        help="draw K candidates per condition and keep --best-of-rank's choice (about K times the time of one "
+        "draw; 1: plain sampling); with every conditioner scored and a class ranking, conditioners without "
+        "classes draw once",
     )
     scored.add_argument(
         "--best-of-rank",
         choices=list(BEST_OF_RANKS),
         default="judge",
-        help="what ranks --best-of's candidates: judge (default), a classifier of code grids fitted on the run's "
-        "training codes (about a minute, once), or posterior, the generator's own class posterior",
+        help=BEST_OF_RANK_HELP,
     )
     scored.add_argument(
         "--classifier-on",
@@ -666,15 +665,14 @@ def vqtouch_add_commands(subparsers):
         type=positive_int,
         default=1,
         metavar="K",
-        help="label conditions: draw K candidates per image and keep the one --best-of-rank finds "
-        "most typical of the label (about K times the time of one draw; default 1: plain sampling)",
+        help="draw K candidates per image and keep --best-of-rank's choice (a label condition, or any with "
+        "--best-of-rank consensus; about K times the time of one draw; default 1: plain sampling)",
     )
     generate.add_argument(
         "--best-of-rank",
         choices=list(BEST_OF_RANKS),
         default="judge",
-        help="what ranks --best-of's candidates: judge (default), a classifier of code grids fitted on the run's "
-        "training codes (about a minute, once), or posterior, the generator's own class posterior",
+        help=BEST_OF_RANK_HELP,
     )
     generate.add_argument(
         "--out", required=True, help="folder for sample_*.png, grid.png and generate.json (written whole, at the end)"

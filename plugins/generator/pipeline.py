@@ -65,6 +65,8 @@ class GenerationPipeline:
     sensor_tag: Any = None
     #: The code judge of best of K, fitted on first use (:meth:`code_judge`).
     _judge: Any = field(default=None, repr=False)
+    #: Best of K's consensus ranking, built on first use (:meth:`contact_consensus`).
+    _consensus: Any = field(default=None, repr=False)
 
     def code_judge(self) -> Any:
         """The :class:`~.judge.CodeJudge` that ranks best of K's candidates: fitted, on first use, on the
@@ -123,10 +125,37 @@ class GenerationPipeline:
             )
         return self._judge
 
+    def contact_consensus(self) -> Any:
+        """The :class:`~.consensus.ContactConsensus` that ranks best of K's candidates by ``consensus``:
+        this run's tokenizer and the no-contact image of its training split (the one ``vqtouch
+        evaluate generation`` scores contacts against).  A ConfigError when the run has no config or
+        its data give no no-contact image."""
+        if self._consensus is None:
+            from vqtouch.core import Assembly
+            from vqtouch.core.data import experiment_split
+            from vqtouch.core.image_size import image_hw
+            from vqtouch.plugins.evaluation.contact import dataset_background
+
+            from .consensus import ContactConsensus
+
+            if self.config is None:
+                raise ConfigError("best of K by consensus needs the run's config (its no-contact image)")
+            dataset = Assembly(self.config, self.host).component("data.dataset")
+            train, _ = experiment_split(dataset, self.config.data, self.config.seed)
+            background_3HW, source = dataset_background(train, image_hw(self.config.data.image_size))
+            if background_3HW is None:
+                raise ConfigError(f"best of K by consensus needs a no-contact image; this run's data give {source}")
+            self._consensus = ContactConsensus(self.tokenizer, background_3HW)
+        return self._consensus
+
     def best_of_ranking(self, rank: BestOfRank) -> Any:
         """What ranks best of K's candidates: the code judge's :meth:`~.judge.CodeJudge.rank` for
-        ``"judge"``, None (the generator's own posterior) for ``"posterior"``."""
-        return self.code_judge().rank if check_best_of_rank(rank) == "judge" else None
+        ``"judge"``, None (the generator's own posterior) for ``"posterior"``, the
+        :meth:`contact_consensus` for ``"consensus"``."""
+        rank = check_best_of_rank(rank)
+        if rank == "consensus":
+            return self.contact_consensus()
+        return self.code_judge().rank if rank == "judge" else None
 
     def check_steps(self, steps: Any) -> int:
         """``steps`` as given, or a one-line ConfigError: sampling steps are an integer in [1, T] (the
@@ -233,10 +262,11 @@ class GenerationPipeline:
 
         Unset settings take the run's own (``generator.steps``, ``sampler``, the conditioner's
         guidance (:meth:`guidance_for`), ``truncation``).  ``conditioner``: which conditioner (index
-        or name) when several read the condition's key.  ``best_of`` > 1 (a label condition): each image
-        is the best of that many candidates by ``best_of_rank``: the code judge (:meth:`code_judge`) or
-        the generator's own posterior of its label (:mod:`.best_of`; image i with ``best_of=1`` is the
-        same as without).  Values are what
+        or name) when several read the condition's key.  ``best_of`` > 1: each image is the best of that
+        many candidates by ``best_of_rank``: for a label, the code judge (:meth:`code_judge`) or the
+        generator's own posterior of its label; for any condition, the candidates' consensus on the
+        contact (:meth:`contact_consensus`) (:mod:`.best_of`; image i with ``best_of=1`` is the same as
+        without).  Values are what
         :meth:`vqtouch.core.Conditioner.parse_condition` takes (a class index or name, an image path or
         tensor, a text)."""
         if len(conditions) != 1:
@@ -258,8 +288,8 @@ class GenerationPipeline:
         self.check_steps(steps)
         chosen = self.sampler if sampler in (None, self.sampler_name) else self.host.build("sampler", sampler)
         conditioner = self.conditioners[index]
-        check_best_of(best_of, conditioner, self.conditioner_names()[index])
         check_best_of_rank(best_of_rank)
+        check_best_of(best_of, conditioner, self.conditioner_names()[index], best_of_rank)
         rank = self.best_of_ranking(best_of_rank) if best_of > 1 else None
 
         def parse(item: Any) -> Any:

@@ -37,7 +37,7 @@ from vqtouch.plugins.evaluation.contact import (
 )
 from vqtouch.plugins.evaluation.directions import shown_scores
 
-from .best_of import sample_best_of
+from .best_of import rank_name, sample_best_of
 from .training import CodesDataset, GeneratorTask, GeneratorTrainConfig
 from vqtouch.plugins.tokenizer import (
     TOKENIZER_FILES,
@@ -417,9 +417,10 @@ def score_generation(
     each comparison and the ground truth itself (``real_*``); conditions it cannot read are listed
     under ``"skipped"`` with the reason.
 
-    ``best_of`` > 1 (a label conditioner only): each sample is the best of that many candidates by
-    ``rank`` (e.g. the code judge's, :mod:`.judge`), or the generator's own posterior of its label
-    when None (:mod:`.best_of`); the scores then say ``best_of`` and ``best_of_rank``."""
+    ``best_of`` > 1: each sample is the best of that many candidates by ``rank`` (e.g. the code
+    judge's, :mod:`.judge`, for a label; :class:`.consensus.ContactConsensus` for any condition), or
+    the generator's own posterior of its label when None (:mod:`.best_of`); the scores then say
+    ``best_of`` and ``best_of_rank``."""
     count, indices, truth = len(conditions.indices), conditions.indices, conditions.truth
     batch = conditions.batch(device=device)
     generator.eval()
@@ -444,7 +445,7 @@ def score_generation(
     scores: dict[str, Any] = {"samples": count, "steps": steps, "guidance": guidance, "truncation": truncation}
     if best_of > 1:
         scores["best_of"] = best_of
-        scores["best_of_rank"] = "posterior" if rank is None else "judge"
+        scores["best_of_rank"] = rank_name(rank)
     background = None if background_3HW is None else background_3HW.to(truth).expand_as(truth)
     compared = {"": images, "ceiling_": tokenizer.decode_codes(tokenizer.encode_codes(truth))}
     if background is not None:
