@@ -841,6 +841,39 @@ def draw_candidate(
     ).flatten(1)
 
 
+@torch.no_grad()
+def cached_candidates(
+    args: argparse.Namespace,
+    host: Any,
+    generator: Any,
+    conditioner: Any,
+    condition_of: Any,
+    first: int,
+    stop: int,
+    chunk: int,
+) -> torch.Tensor:
+    """(N, K, L) codes: ``--candidates`` samples (:func:`draw_candidate`'s seeds) for each condition
+    index in [first, stop), ``condition_of(index)`` giving the conditioner's input, ``chunk``
+    conditions at a time; read from ``--out``.pt when it exists, else drawn and written there."""
+    cache = Path(args.out + ".pt") if args.out else None
+    if cache is not None and cache.exists():
+        return torch.load(cache)
+    sampler = host.build("sampler", {"name": "posterior"})
+    candidates = []
+    for k in range(args.candidates):
+        rows = []
+        for start in range(first, stop, chunk):
+            index = torch.arange(start, min(stop, start + chunk))
+            condition = conditioner(condition_of(index))
+            rows.append(draw_candidate(generator, sampler, condition, conditioner.null(len(index)), index, k, args))
+        candidates.append(torch.cat(rows))
+        print(json.dumps({"candidate": k}), flush=True)
+    codes_NKL = torch.stack(candidates, 1)
+    if cache is not None:
+        torch.save(codes_NKL, cache)
+    return codes_NKL
+
+
 def rerank(args: argparse.Namespace) -> dict[str, Any]:
     """Best of ``--candidates`` samples per held-out condition, chosen by the bundle generator's own
     scores (no other model): for the label, its implicit class posterior (log p(x | class) of every
@@ -997,26 +1030,9 @@ def judge(args: argparse.Namespace) -> dict[str, Any]:
     with torch.no_grad():
         train_codes, _ = canonical_background(encode(tokenizer, train_batch["tactile"]), tokenizer, background_3HW)
         held_codes, _ = canonical_background(encode(tokenizer, truth), tokenizer, background_3HW)
-    cache = Path(args.out + ".pt") if args.out else None
-    if cache is not None and cache.exists():
-        codes_NKL = torch.load(cache)
-    else:
-        sampler = host.build("sampler", {"name": "posterior"})
-        candidates = []
-        with torch.no_grad():
-            for k in range(args.candidates):
-                rows = []
-                for start in range(0, count, 32):
-                    index = torch.arange(start, min(count, start + 32))
-                    condition = conditioner(_condition(conditioner, batch, index))
-                    rows.append(
-                        draw_candidate(generator, sampler, condition, conditioner.null(len(index)), index, k, args)
-                    )
-                candidates.append(torch.cat(rows))
-                print(json.dumps({"candidate": k}), flush=True)
-        codes_NKL = torch.stack(candidates, 1)
-        if cache is not None:
-            torch.save(codes_NKL, cache)
+    codes_NKL = cached_candidates(
+        args, host, generator, conditioner, lambda index: _condition(conditioner, batch, index), 0, count, 32
+    )
     features = FdEffNetLite0().pooled_features
     classifier = RealImageClassifier(
         features(reconstruct_all(tokenizer, train_batch["tactile"], 64)), train_batch["label"].tolist()
@@ -1120,26 +1136,7 @@ def rankers(args: argparse.Namespace) -> dict[str, Any]:
     with torch.no_grad():
         codes, _ = canonical_background(encode(tokenizer, images), tokenizer, background_3HW)
     validation_labels = labels[fit:]
-    cache = Path(args.out + ".pt") if args.out else None
-    if cache is not None and cache.exists():
-        codes_NKL = torch.load(cache)
-    else:
-        sampler = host.build("sampler", {"name": "posterior"})
-        candidates = []
-        with torch.no_grad():
-            for k in range(args.candidates):
-                rows = []
-                for start in range(fit, len(train), 50):
-                    index = torch.arange(start, min(len(train), start + 50))
-                    condition = conditioner(labels[index])
-                    rows.append(
-                        draw_candidate(generator, sampler, condition, conditioner.null(len(index)), index, k, args)
-                    )
-                candidates.append(torch.cat(rows))
-                print(json.dumps({"candidate": k}), flush=True)
-        codes_NKL = torch.stack(candidates, 1)
-        if cache is not None:
-            torch.save(codes_NKL, cache)
+    codes_NKL = cached_candidates(args, host, generator, conditioner, lambda index: labels[index], fit, len(train), 50)
     count, rows_N = codes_NKL.shape[1], torch.arange(args.n)
     features = FdEffNetLite0().pooled_features
     classifier = RealImageClassifier(features(reconstruct_all(tokenizer, images[:fit], 64)), labels[:fit].tolist())

@@ -192,6 +192,17 @@ def pytest_collection_modifyitems(config, items):
 
 
 @pytest.fixture(scope="module")
+def tiny_label_run(tmp_path_factory):
+    """A tiny trained label-to-touch run (``generator_runs.train_args``: 32 px, a few steps): a real
+    tokenizer, generator and label conditioner for the sampling tests."""
+    from generator_runs import train_args
+
+    out = tmp_path_factory.mktemp("label_run") / "run"
+    assert main(train_args(out)) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
 def family_tokenizer_run(tmp_path_factory):
     """A tiny tokenizer run (32 px): the family tokenizer of the adaptation experiments' tests."""
     from generator_runs import tiny_tokenizer_args

@@ -24,21 +24,13 @@ from vqtouch.plugins.generator.judge import codebook_of
 from vqtouch.plugins.generator.vq_diffusion import likelihood_steps
 
 from cli_checks import one_error_line
-from generator_runs import train_args
 
 HOST = load_plugins(autoload=False)
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("best_of") / "run"
-    assert main(train_args(out)) == 0
-    return out
-
-
-@pytest.fixture(scope="module")
-def pipe(run):
-    return load_pipeline(run, host=HOST)
+def pipe(tiny_label_run):
+    return load_pipeline(tiny_label_run, host=HOST)
 
 
 def test_likelihood_steps_are_distinct_interior_steps():
@@ -174,7 +166,8 @@ def test_a_conditioner_without_classes_is_refused_above_one_candidate():
         check_best_of(2, _ImageConditioner(), "1:visual")
 
 
-def test_the_commands_draw_the_best_of_k_and_say_so(run, tmp_path, capsys):
+def test_the_commands_draw_the_best_of_k_and_say_so(tiny_label_run, tmp_path, capsys):
+    run = tiny_label_run
     out = tmp_path / "gen"
     assert main(["generate", "--run", str(run), "--label", "1", "--n", "2", "--steps", "3", "--best-of", "2",
                  "--out", str(out)]) == 0  # fmt: skip

@@ -19,7 +19,6 @@ from vqtouch.plugins.generator.best_of import candidate_seed, check_best_of, ran
 from vqtouch.plugins.generator.consensus import ContactConsensus, medoid_indices
 
 from cli_checks import one_error_line
-from generator_runs import train_args
 
 HOST = load_plugins(autoload=False)
 
@@ -110,15 +109,8 @@ def test_consensus_ranks_a_conditioner_without_classes_and_a_class_ranking_does_
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("consensus") / "run"
-    assert main(train_args(out)) == 0
-    return out
-
-
-@pytest.fixture(scope="module")
-def pipe(run):
-    return load_pipeline(run, host=HOST)
+def pipe(tiny_label_run):
+    return load_pipeline(tiny_label_run, host=HOST)
 
 
 def test_the_pipeline_keeps_the_medoid_of_its_candidates_as_measured_one_by_one(pipe):
@@ -151,7 +143,8 @@ def test_the_pipeline_keeps_the_medoid_of_its_candidates_as_measured_one_by_one(
         assert torch.equal(kept[row], candidates[_brute_force_medoid(centres)])
 
 
-def test_the_commands_take_the_consensus_and_say_so(run, tmp_path, capsys):
+def test_the_commands_take_the_consensus_and_say_so(tiny_label_run, tmp_path, capsys):
+    run = tiny_label_run
     out = tmp_path / "gen"
     assert main(["generate", "--run", str(run), "--label", "1", "--n", "2", "--steps", "3", "--best-of", "3",
                  "--best-of-rank", "consensus", "--out", str(out)]) == 0  # fmt: skip
