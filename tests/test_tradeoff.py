@@ -152,13 +152,18 @@ def test_tradeoff_generator_writes_the_table_the_json_and_the_pareto_plot(traine
     assert result["n"] == 3 and result["rounds"] == 2 and result["threads"] == 1 and result["feature_size"] == 32
     assert rows[0]["cost"] == 1.0 and all(len(row["seconds"]) == 2 and row["reproducible"] for row in rows)
     for row in rows:
-        assert {"ssim", "psnr", "contact_psnr", "fd_effnetlite0", "classifier_accuracy", "img_per_s"} <= set(row)
+        assert {"ssim", "psnr", "contact_psnr", "contact_centroid_error_px", "img_per_s"} <= set(row)
+        assert {"fd_effnetlite0", "classifier_accuracy"} <= set(row)
     assert 0 <= result["reference"]["real_classifier_accuracy"] <= 1
-    for key, higher in (("contact_psnr", True), ("fd_effnetlite0", False), ("classifier_accuracy", True)):
+    qualities = {"contact_psnr": True, "contact_centroid_error_px": False, "fd_effnetlite0": False}
+    for key, higher in (qualities | {"classifier_accuracy": True}).items():
         costs, values = [row["seconds_per_image"] for row in rows], [row[key] for row in rows]
         assert {i for i, row in enumerate(rows) if key in row["pareto"]} == set(pareto_front(costs, values, higher))
     table = (out / "tradeoff.md").read_text().splitlines()
     assert table[0].startswith("Generator trade-off: run ") and "n = 3 held-out" in table[0]
+    assert "conditioner 0:label" in table[0] and result["conditioner"] == "0:label"
+    header = next(line for line in table if line.startswith("| sampler"))
+    assert header.split(" | ").index("centroid px") == header.split(" | ").index("contact PSNR dB") + 1
     assert "threads 1" in table[0] and "rounds 2" in table[0] and "device cpu" in table[0]
     body = [line for line in table if line.startswith("| ") and not line.startswith("| sampler")]
     assert len(body) == len(rows) and body[0].startswith("| posterior | 4 | 1 | fp32 |")
@@ -188,7 +193,7 @@ def test_tradeoff_generator_writes_the_table_the_json_and_the_pareto_plot(traine
         )
         name = f"evaluation_generation_step-00000006_posterior_{row['steps']}.json"
         evaluated = json.loads((trained / name).read_text())
-        for key in ("ssim", "psnr", "contact_psnr"):
+        for key in ("ssim", "psnr", "contact_psnr", "contact_centroid_error_px"):
             assert row[key] == pytest.approx(evaluated[key], abs=2e-4), (row["label"], key)
 
 
@@ -241,6 +246,7 @@ def test_tradeoff_times_best_of_k_beside_one_draw_with_a_fair_classifier(trained
         (["--steps", "4", "--guidance=-1"], "argument --guidance: -1: must be a finite number in [0, 1000]"),
         (["--steps", "4", "--precisions", "fp16"], "--precisions fp16: expected fp32 or bf16"),
         (["--steps", "4", "--best-of", "1", "65"], "--best-of 65: give an integer in [1, 64]"),
+        (["--steps", "4", "--conditioner", "1"], "--conditioner 1: this generator has conditioners 0..0 (0:label)"),
     ],
 )
 def test_tradeoff_errors_are_one_line(trained, tmp_path, capsys, args, message):

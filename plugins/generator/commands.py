@@ -412,6 +412,12 @@ def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
         "--run", required=True, help="a run whose generator stage trained, or a bundle (pretrained:NAME)"
     )
     parser.add_argument("--out", required=True, help="folder for tradeoff.json, tradeoff.md and pareto.png")
+    parser.add_argument(
+        "--conditioner",
+        type=int,
+        default=0,
+        help="which of the generator's conditioners generates (its index; default 0)",
+    )
     parser.add_argument("--n", type=positive_int, default=64, help="held-out conditions per setting (at most all)")
     parser.add_argument("--rounds", type=positive_int, default=2, help="interleaved timing rounds (median reported)")
     parser.add_argument("--steps", type=positive_int, nargs="+", default=[100, 50, 25, 10, 5], help="sampling steps")

@@ -59,6 +59,7 @@ KNOBS = ("sampler", "steps", "guidance", "precision")
 #: without a background (no no-contact image, no contact region).
 QUALITIES = (
     ("contact_psnr", "contact PSNR (dB)", True),
+    ("contact_centroid_error_px", "contact centroid error (px)", False),
     ("fd_effnetlite0", "fd_effnetlite0", False),
     ("classifier_accuracy", "classifier accuracy", True),
 )
@@ -152,6 +153,17 @@ class TradeoffBench:
     background_source: str = ""
     #: What ranks best of K's candidates (:data:`.best_of.BEST_OF_RANKS`).
     best_of_rank: str = "judge"
+    #: Which of the generator's conditioners generates (its index; :meth:`choose_conditioner`).
+    conditioner: int = 0
+
+    def choose_conditioner(self, index: int) -> None:
+        """Generate with conditioner ``index`` of the run, or a one-line ConfigError naming them."""
+        names = self.pipe.conditioner_names()
+        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(names):
+            raise ConfigError(
+                f"--conditioner {index}: this generator has conditioners 0..{len(names) - 1} ({', '.join(names)})"
+            )
+        self.conditioner = index
 
     def fit_distribution(self, feature_size: int | None = None, classifier_on: str = "real") -> None:
         """Fit the distribution scorer (:func:`.stage.distribution_scorer`): the real held-out
@@ -184,7 +196,7 @@ class TradeoffBench:
         pipe = self.pipe
         return generate_held_out(
             pipe.generator,
-            pipe.conditioners[0],
+            pipe.conditioners[self.conditioner],
             pipe.tokenizer,
             self.sampler(setting["sampler"]),
             conditions or self.conditions,
@@ -309,7 +321,12 @@ def check_settings(
     for name in samplers:
         bench.sampler(name)  # an unknown name raises the registry's error, which lists the samplers
     for value in best_of or []:
-        check_best_of(value, bench.pipe.conditioners[0], bench.pipe.conditioner_names()[0])
+        check_best_of(
+            value,
+            bench.pipe.conditioners[bench.conditioner],
+            bench.pipe.conditioner_names()[bench.conditioner],
+            bench.best_of_rank,
+        )
 
 
 def measure(bench: TradeoffBench, settings: list[dict[str, Any]], rounds: int, log: Any = None) -> list[dict[str, Any]]:
@@ -383,8 +400,9 @@ def markdown_table(rows: list[dict[str, Any]], header: str, reference: dict[str,
         "",
         "| sampler | steps | guidance | precision | "
         + ("best of | " if best_of else "")
-        + "img/s | ms/img | cost | SSIM | PSNR dB | contact PSNR dB | fd_effnetlite0 | classifier acc | Pareto front |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if best_of else ""),
+        + "img/s | ms/img | cost | SSIM | PSNR dB | contact PSNR dB | centroid px | fd_effnetlite0 | classifier acc | "
+        "Pareto front |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if best_of else ""),
     ]
     for row in rows:
         lines.append(
@@ -392,7 +410,7 @@ def markdown_table(rows: list[dict[str, Any]], header: str, reference: dict[str,
             + (f"{row.get('best_of', 1)} | " if best_of else "")
             + f"{row['img_per_s']:.2f} | {row['seconds_per_image'] * 1000:.1f} | {row['cost']:.2f}x | "
             f"{_cell(row.get('ssim'), 4)} | {_cell(row.get('psnr'), 2)} | "
-            f"{_cell(row.get('contact_psnr'), 2)} | "
+            f"{_cell(row.get('contact_psnr'), 2)} | {_cell(row.get('contact_centroid_error_px'), 2)} | "
             f"{_cell(row.get('fd_effnetlite0'), 2)} | {_cell(row.get('classifier_accuracy'), 3)} | "
             f"{', '.join(row.get('pareto', [])) or '–'} |"
         )
@@ -474,8 +492,9 @@ def tradeoff_command(args: argparse.Namespace) -> int:
         distribution=False,
         feature_size=args.feature_size,
     )
-    check_settings(bench, args.steps, args.samplers, args.guidance, args.precisions, args.best_of)
+    bench.choose_conditioner(args.conditioner)
     bench.best_of_rank = check_best_of_rank(args.best_of_rank)
+    check_settings(bench, args.steps, args.samplers, args.guidance, args.precisions, args.best_of)
     if args.distribution:
         bench.fit_distribution(classifier_on=args.classifier_on)
     settings = sweep_settings(
@@ -511,7 +530,12 @@ def tradeoff_command(args: argparse.Namespace) -> int:
     ceiling = bench.score(reconstructions, "ceiling_")
     reference |= {
         key: ceiling.get(key)
-        for key in ("ceiling_contact_psnr", "ceiling_fd_effnetlite0", "ceiling_classifier_accuracy")
+        for key in (
+            "ceiling_contact_psnr",
+            "ceiling_contact_centroid_error_px",
+            "ceiling_fd_effnetlite0",
+            "ceiling_classifier_accuracy",
+        )
     }
     if bench.background is not None:
         background = bench.score(bench.background, "background_")
@@ -521,6 +545,7 @@ def tradeoff_command(args: argparse.Namespace) -> int:
                 "background_ssim",
                 "background_psnr",
                 "background_contact_psnr",
+                "background_contact_centroid_error_px",
                 "background_fd_effnetlite0",
                 "background_classifier_accuracy",
             )
@@ -528,8 +553,9 @@ def tradeoff_command(args: argparse.Namespace) -> int:
     reference = {key: value for key, value in reference.items() if value is not None}
     device = str(bench.pipe.device)
     header = (
-        f"Generator trade-off: run `{bench.run}` ({bench.pipe.checkpoint.name}); n = {count} held-out "
-        f"conditions; threads {torch.get_num_threads()}; rounds {args.rounds} (interleaved, median); device "
+        f"Generator trade-off: run `{bench.run}` ({bench.pipe.checkpoint.name}); conditioner "
+        f"{bench.pipe.conditioner_names()[bench.conditioner]}; n = {count} held-out conditions; "
+        f"threads {torch.get_num_threads()}; rounds {args.rounds} (interleaved, median); device "
         f"{device}; batch {args.batch_size}; seed {bench.seed}; "
         f"truncation {bench.pipe.settings['truncation']:g}; "
         f"features {bench.feature_size} px"
@@ -540,6 +566,7 @@ def tradeoff_command(args: argparse.Namespace) -> int:
     result = {
         "run": str(bench.run),
         "checkpoint": str(bench.pipe.checkpoint),
+        "conditioner": bench.pipe.conditioner_names()[bench.conditioner],
         "n": count,
         "rounds": args.rounds,
         "best_of_rank": bench.best_of_rank,
