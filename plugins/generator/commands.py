@@ -414,7 +414,7 @@ def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="folder for tradeoff.json, tradeoff.md and pareto.png")
     parser.add_argument(
         "--conditioner",
-        type=int,
+        type=non_negative_int,
         default=0,
         help="which of the generator's conditioners generates (its index; default 0)",
     )
