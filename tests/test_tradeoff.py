@@ -246,7 +246,7 @@ def test_tradeoff_times_best_of_k_beside_one_draw_with_a_fair_classifier(trained
         (["--steps", "4", "--guidance=-1"], "argument --guidance: -1: must be a finite number in [0, 1000]"),
         (["--steps", "4", "--precisions", "fp16"], "--precisions fp16: expected fp32 or bf16"),
         (["--steps", "4", "--best-of", "1", "65"], "--best-of 65: give an integer in [1, 64]"),
-        (["--steps", "4", "--conditioner", "1"], "--conditioner 1: this generator has conditioners 0..0 (0:label)"),
+        (["--steps", "4", "--conditioner", "1"], "--conditioner 1 is none of this generator's conditioners (0:label)"),
     ],
 )
 def test_tradeoff_errors_are_one_line(trained, tmp_path, capsys, args, message):

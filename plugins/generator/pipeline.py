@@ -67,6 +67,27 @@ class GenerationPipeline:
     _judge: Any = field(default=None, repr=False)
     #: Best of K's consensus ranking, built on first use (:meth:`contact_consensus`).
     _consensus: Any = field(default=None, repr=False)
+    #: The run's training split and its no-contact image, read on first use (:meth:`training_split`).
+    _training: Any = field(default=None, repr=False)
+
+    def training_split(self, needs: str) -> tuple[Any, torch.Tensor | None, str]:
+        """``(train, background_3HW, how it was made)``: the run's training split (the one ``vqtouch
+        evaluate generation`` holds its conditions out of) and its no-contact image
+        (:func:`~vqtouch.plugins.evaluation.contact.dataset_background`), read once per loaded run
+        for the best-of-K rankings.  A ConfigError naming ``needs`` (what asked) when the pipeline
+        was built without a config."""
+        if self.config is None:
+            raise ConfigError(f"{needs} needs the run's config (its training split)")
+        if self._training is None:
+            from vqtouch.core import Assembly
+            from vqtouch.core.data import experiment_split
+            from vqtouch.core.image_size import image_hw
+            from vqtouch.plugins.evaluation.contact import dataset_background
+
+            dataset = Assembly(self.config, self.host).component("data.dataset")
+            train, _ = experiment_split(dataset, self.config.data, self.config.seed)
+            self._training = (train, *dataset_background(train, image_hw(self.config.data.image_size)))
+        return self._training
 
     def code_judge(self) -> Any:
         """The :class:`~.judge.CodeJudge` that ranks best of K's candidates: fitted, on first use, on the
@@ -76,19 +97,12 @@ class GenerationPipeline:
         if self._judge is None:
             import sys
 
-            from vqtouch.core import Assembly
-            from vqtouch.core.data import experiment_split
-            from vqtouch.core.image_size import image_hw
-            from vqtouch.plugins.evaluation.contact import dataset_background
             from vqtouch.plugins.evaluation.distribution import labels_of
 
             from .codes import canonical_background
             from .judge import codebook_of, fit_code_judge
 
-            if self.config is None:
-                raise ConfigError("best of K by the code judge needs the run's config; use --best-of-rank posterior")
-            dataset = Assembly(self.config, self.host).component("data.dataset")
-            train, _ = experiment_split(dataset, self.config.data, self.config.seed)
+            train, background_3HW, _ = self.training_split("best of K by the code judge")
             print(f"fitting the code judge on {len(train)} training images (about a minute on a CPU)", file=sys.stderr)
             samples = [train[i] for i in range(len(train))]
             labels = labels_of(samples)
@@ -97,7 +111,6 @@ class GenerationPipeline:
                     "best of K by the code judge needs labelled training samples; this run's have none "
                     "(use --best-of-rank posterior)"
                 )
-            background_3HW, _ = dataset_background(train, image_hw(self.config.data.image_size))
             with torch.no_grad():
                 codes = torch.cat(
                     [
@@ -131,18 +144,9 @@ class GenerationPipeline:
         evaluate generation`` scores contacts against).  A ConfigError when the run has no config or
         its data give no no-contact image."""
         if self._consensus is None:
-            from vqtouch.core import Assembly
-            from vqtouch.core.data import experiment_split
-            from vqtouch.core.image_size import image_hw
-            from vqtouch.plugins.evaluation.contact import dataset_background
-
             from .consensus import ContactConsensus
 
-            if self.config is None:
-                raise ConfigError("best of K by consensus needs the run's config (its no-contact image)")
-            dataset = Assembly(self.config, self.host).component("data.dataset")
-            train, _ = experiment_split(dataset, self.config.data, self.config.seed)
-            background_3HW, source = dataset_background(train, image_hw(self.config.data.image_size))
+            _, background_3HW, source = self.training_split("best of K by consensus")
             if background_3HW is None:
                 raise ConfigError(f"best of K by consensus needs a no-contact image; this run's data give {source}")
             self._consensus = ContactConsensus(self.tokenizer, background_3HW)

@@ -156,14 +156,10 @@ class TradeoffBench:
     #: Which of the generator's conditioners generates (its index; :meth:`choose_conditioner`).
     conditioner: int = 0
 
-    def choose_conditioner(self, index: int) -> None:
-        """Generate with conditioner ``index`` of the run, or a one-line ConfigError naming them."""
-        names = self.pipe.conditioner_names()
-        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(names):
-            raise ConfigError(
-                f"--conditioner {index}: this generator has conditioners 0..{len(names) - 1} ({', '.join(names)})"
-            )
-        self.conditioner = index
+    def choose_conditioner(self, which: int | str) -> None:
+        """Generate with the run's conditioner ``which`` (index or name), or a one-line ConfigError
+        naming them (the pipeline's lookup, as ``vqtouch generate --conditioner``)."""
+        self.conditioner = self.pipe._conditioner_index(which, self.pipe.conditioner_names())
 
     def fit_distribution(self, feature_size: int | None = None, classifier_on: str = "real") -> None:
         """Fit the distribution scorer (:func:`.stage.distribution_scorer`): the real held-out
