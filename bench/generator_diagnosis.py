@@ -676,6 +676,17 @@ class ContactLocator(torch.nn.Module):
         return torch.stack([(weights_BHW * grid_rows).sum((1, 2)), (weights_BHW * grid_cols).sum((1, 2))], 1)
 
 
+def extra_scenes(host: Any, config: Any, count: int) -> dict[str, torch.Tensor]:
+    """``count`` newly rendered scenes of the bundle's scene (its dataset seed + 1000, so none is a
+    training or held-out scene of the bundle): a batch of ``visual``, ``tactile`` and ``label``."""
+    extra_config = resolve_config(
+        "tour",
+        overrides=[f"data.dataset.seed={config.data.dataset.seed + 1000}", f"data.dataset.num_samples={count}"],
+        host=host,
+    )
+    return Assembly(extra_config, host).component("data.dataset").render_batch(list(range(count)))
+
+
 def locate(args: argparse.Namespace) -> dict[str, Any]:
     """Train :class:`ContactLocator` on the bundle's training scenes (plus ``--extra-scenes`` newly
     rendered ones) for ``--minutes``, and score it on the held-out conditions that ``vqtouch evaluate
@@ -692,15 +703,7 @@ def locate(args: argparse.Namespace) -> dict[str, Any]:
     test_batch = dataset.render_batch([held_out.indices[i] for i in range(min(args.n, len(held_out)))])
     visual, truth = train_batch["visual"], train_batch["tactile"]
     if args.extra_scenes:
-        extra_config = resolve_config(
-            "tour",
-            overrides=[
-                f"data.dataset.seed={config.data.dataset.seed + 1000}",
-                f"data.dataset.num_samples={args.extra_scenes}",
-            ],
-            host=host,
-        )
-        extra = Assembly(extra_config, host).component("data.dataset").render_batch(list(range(args.extra_scenes)))
+        extra = extra_scenes(host, config, args.extra_scenes)
         visual, truth = torch.cat([visual, extra["visual"]]), torch.cat([truth, extra["tactile"]])
     render_seconds = time.perf_counter() - started
     out_hw = tuple(truth.shape[-2:])
@@ -1008,10 +1011,14 @@ def learned_embedding_judge(codebook_KD: torch.Tensor, num_classes: int) -> torc
 def judge(args: argparse.Namespace) -> dict[str, Any]:
     """Best of ``--candidates`` label samples per held-out condition, chosen by the code judge
     (:mod:`vqtouch.plugins.generator.judge`) fitted on the canonical codes of the bundle's training
-    scenes (never on images, never on the held-out scenes), once per ``--judge-noise``.  Candidates
-    are cached in ``--out``.pt.  Reported: the judge's accuracy on the held-out scenes' real codes,
-    each candidate's score by the evaluation's classifier (fitted on the tokenizer's reconstructions
-    of the training images), and best of k."""
+    scenes (never on images, never on the held-out scenes), once per ``--judge-noise``, ``--judge-data``
+    and ``--judge-seeds``.  ``--judge-data``: ``training`` (the plugin's: the training scenes'
+    codes), ``hflip`` (and the codes of the same images mirrored left to right), ``extra`` (and
+    ``--extra-scenes`` newly rendered scenes' codes); a larger set gets proportionally fewer epochs,
+    so every fit passes over as many grids.  Candidates are cached in ``--out``.pt.  Reported: the
+    judge's accuracy on the held-out scenes' real codes, each candidate's score by the evaluation's
+    classifier (fitted on the tokenizer's reconstructions of the training images), and best of k
+    (per fit and, over the seeds, the mean best of all)."""
     from vqtouch.plugins.evaluation.distribution import RealImageClassifier
     from vqtouch.plugins.evaluation.fd_metric import FdEffNetLite0
     from vqtouch.plugins.generator.judge import codebook_of, fit_code_judge
@@ -1026,16 +1033,37 @@ def judge(args: argparse.Namespace) -> dict[str, Any]:
     batch = dataset.render_batch([held_out.indices[i] for i in range(count)])
     truth, labels = batch["tactile"], batch["label"]
     train_batch = dataset.render_batch([train.indices[i] for i in range(len(train))])
+    train_labels = train_batch["label"]
     num_classes = len(dataset.class_names)
-    with torch.no_grad():
-        train_codes, _ = canonical_background(encode(tokenizer, train_batch["tactile"]), tokenizer, background_3HW)
-        held_codes, _ = canonical_background(encode(tokenizer, truth), tokenizer, background_3HW)
+
+    def canonical_codes(images: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            return canonical_background(encode(tokenizer, images), tokenizer, background_3HW)[0]
+
+    train_codes, held_codes = canonical_codes(train_batch["tactile"]), canonical_codes(truth)
+    fit_sets: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
+    for name in args.judge_data:
+        if name == "training":
+            fit_sets[name] = (train_codes, train_labels)
+        elif name == "hflip":
+            mirrored = canonical_codes(train_batch["tactile"].flip(-1))
+            fit_sets[name] = (torch.cat([train_codes, mirrored]), torch.cat([train_labels, train_labels]))
+        elif name == "extra":
+            if not args.extra_scenes:
+                raise SystemExit("judge --judge-data extra needs --extra-scenes N (N > 0)")
+            extra = extra_scenes(host, pipe.config, args.extra_scenes)
+            fit_sets[name] = (
+                torch.cat([train_codes, canonical_codes(extra["tactile"])]),
+                torch.cat([train_labels, extra["label"]]),
+            )
+        else:
+            raise SystemExit(f"judge --judge-data {name!r}: choose from training, hflip, extra")
     codes_NKL = cached_candidates(
         args, host, generator, conditioner, lambda index: _condition(conditioner, batch, index), 0, count, 32
     )
     features = FdEffNetLite0().pooled_features
     classifier = RealImageClassifier(
-        features(reconstruct_all(tokenizer, train_batch["tactile"], 64)), train_batch["label"].tolist()
+        features(reconstruct_all(tokenizer, train_batch["tactile"], 64)), train_labels.tolist()
     )
     with torch.no_grad():
         score_NK = torch.stack(
@@ -1048,47 +1076,54 @@ def judge(args: argparse.Namespace) -> dict[str, Any]:
         ).float()
     out: dict[str, Any] = {"n": count, "candidates": codes_NKL.shape[1], "guidance": args.guidance}
     out["each_candidate"] = [round(float(v), 4) for v in score_NK.mean(0)]
+    out["oracle_best_of_all"] = round(float(score_NK.max(1).values.mean()), 4)
     rows_N = torch.arange(count)
     codebook_KD = codebook_of(tokenizer)
-    for noise in args.judge_noise:
-        clock = time.perf_counter()
-        judge_model = fit_code_judge(
-            train_codes,
-            train_batch["label"],
-            codebook_KD,
-            num_classes,
-            epochs=args.judge_epochs,
-            seed=args.seed,
-            noise=noise,
-            judge=learned_embedding_judge(codebook_KD, num_classes) if args.judge_learned else None,
-        )
-        with torch.no_grad():
-            real_accuracy = float((judge_model(held_codes).argmax(1) == labels).float().mean())
-            log_p_NK = torch.stack(
-                [
-                    judge_model(codes_NKL[:, k].view(-1, 16, 16)).log_softmax(1)[rows_N, labels]
-                    for k in range(codes_NKL.shape[1])
-                ],
-                1,
-            )
-        entry: dict[str, Any] = {
-            "train_seconds": round(time.perf_counter() - clock, 1),
-            "held_out_real_code_accuracy": round(real_accuracy, 4),
-            "judge_agrees_with_classifier": round(
-                float(((log_p_NK > math.log(0.5)).float() == score_NK).float().mean()), 4
-            ),
-            "best_of": {},
-        }
-        group = 1
-        while group <= codes_NKL.shape[1]:
-            values = []
-            for first in range(0, codes_NKL.shape[1] - group + 1, group):
-                chosen_N = log_p_NK[:, first : first + group].argmax(1) + first
-                values.append(round(float(score_NK[rows_N, chosen_N].mean()), 4))
-            entry["best_of"][group] = {"groups": values, "mean": round(sum(values) / len(values), 4)}
-            group *= 2
-        out[f"noise_{noise}"] = entry
-        print(json.dumps({f"noise_{noise}": entry}), flush=True)
+    for data_name, (fit_codes, fit_labels) in fit_sets.items():
+        epochs = max(1, round(args.judge_epochs * len(train_codes) / len(fit_codes)))
+        for noise in args.judge_noise:
+            fits = []
+            for seed in args.judge_seeds if args.judge_seeds else [args.seed]:
+                clock = time.perf_counter()
+                judge_model = fit_code_judge(
+                    fit_codes,
+                    fit_labels,
+                    codebook_KD,
+                    num_classes,
+                    epochs=epochs,
+                    seed=seed,
+                    noise=noise,
+                    judge=learned_embedding_judge(codebook_KD, num_classes) if args.judge_learned else None,
+                )
+                with torch.no_grad():
+                    real_accuracy = float((judge_model(held_codes).argmax(1) == labels).float().mean())
+                    log_p_NK = torch.stack(
+                        [
+                            judge_model(codes_NKL[:, k].view(-1, 16, 16)).log_softmax(1)[rows_N, labels]
+                            for k in range(codes_NKL.shape[1])
+                        ],
+                        1,
+                    )
+                entry: dict[str, Any] = {
+                    "seed": seed,
+                    "fit_grids": len(fit_codes),
+                    "epochs": epochs,
+                    "train_seconds": round(time.perf_counter() - clock, 1),
+                    "held_out_real_code_accuracy": round(real_accuracy, 4),
+                    "judge_agrees_with_classifier": round(
+                        float(((log_p_NK > math.log(0.5)).float() == score_NK).float().mean()), 4
+                    ),
+                    "best_of": best_of_groups(log_p_NK, score_NK),
+                }
+                fits.append(entry)
+                print(json.dumps({f"{data_name}_noise_{noise}": entry}), flush=True)
+            out[f"{data_name}_noise_{noise}"] = {
+                "fits": fits,
+                "mean_held_out_real_code_accuracy": round(
+                    sum(f["held_out_real_code_accuracy"] for f in fits) / len(fits), 4
+                ),
+                "mean_best_of_all": round(sum(f["best_of"][codes_NKL.shape[1]] for f in fits) / len(fits), 4),
+            }
     return out
 
 
@@ -1307,7 +1342,7 @@ def main() -> None:
     parser.add_argument("--canonical", action="store_true", help="overfit: train on canonical-background codes")
     parser.add_argument("--sample-steps", type=int, default=25)
     parser.add_argument("--guidance", type=float, default=1.0)
-    parser.add_argument("--extra-scenes", type=int, default=0, help="locate: newly rendered training scenes")
+    parser.add_argument("--extra-scenes", type=int, default=0, help="locate, judge: newly rendered training scenes")
     parser.add_argument("--width", type=int, default=32, help="locate: the locator's channels")
     parser.add_argument("--set", action="append", default=[], metavar="model.KEY=V|conditioner.KEY=V")
     parser.add_argument(
@@ -1320,6 +1355,14 @@ def main() -> None:
     parser.add_argument("--taus", type=float, nargs="+", default=[0.0, 0.1, 0.3], help="prior: thresholds")
     parser.add_argument("--judge-epochs", type=int, default=60, help="judge: epochs of the code judge")
     parser.add_argument("--judge-noise", type=float, nargs="+", default=[0.1], help="judge: random-code shares")
+    parser.add_argument(
+        "--judge-data",
+        nargs="+",
+        default=["training"],
+        choices=["training", "hflip", "extra"],
+        help="judge: what the judge is fitted on (training codes; and mirrored ones; and --extra-scenes new scenes')",
+    )
+    parser.add_argument("--judge-seeds", type=int, nargs="+", default=[], help="judge: fitting seeds (default --seed)")
     parser.add_argument(
         "--judge-learned", action="store_true", help="judge: trained code embeddings instead of the frozen codebook"
     )
