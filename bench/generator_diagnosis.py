@@ -246,6 +246,55 @@ def fair_classifier(tokenizer: Any, truth: torch.Tensor, labels: torch.Tensor, p
     return score
 
 
+def pretrain_grid(
+    args: argparse.Namespace,
+    host: Any,
+    tokenizer: Any,
+    background: torch.Tensor,
+    generator: Any,
+    conditioner: Any,
+    batch: dict[str, Any],
+    contact_NHW: torch.Tensor | None,
+) -> dict[str, Any] | None:
+    """``overfit --pretrain-minutes M``: before the generator trains, train the conditioner's grid,
+    the generator's grid embedding and its contact head on the contact loss alone
+    (``VQDiffusion.contact_loss``: which code cells hold the contact) for M minutes, on the
+    ``--pairs`` training scenes and ``--extra-scenes`` newly rendered ones (AdamW, lr 1e-3, batch
+    ``--batch``).  Section 11's locator learns the contact's place from many scenes in minutes; this
+    asks whether a grid that starts knowing it makes the generator place the contact better."""
+    if not args.pretrain_minutes:
+        return None
+    if contact_NHW is None:
+        raise SystemExit("overfit --pretrain-minutes needs --contact-weight W (W > 0) and --canonical")
+    key = conditioner.sample_key
+    images, contact = batch[key][: args.pairs], contact_NHW[: args.pairs]
+    if args.extra_scenes:
+        extra = extra_scenes(host, 7, args.extra_scenes)
+        extra_codes, _ = canonical_background(encode(tokenizer, extra["tactile"]), tokenizer, background)
+        images = torch.cat([images, extra[key]])
+        contact = torch.cat([contact, contact_cells(extra_codes, tokenizer, background)])
+    params = [
+        *(p for p in conditioner.parameters() if p.requires_grad),
+        *generator.network.grid_proj.parameters(),
+        *generator.contact_head.parameters(),
+    ]
+    optimizer = torch.optim.AdamW(params, lr=1e-3, weight_decay=1e-4)
+    draws = torch.Generator().manual_seed(args.seed + 100)
+    step, start, log = 0, time.perf_counter(), []
+    while time.perf_counter() - start < args.pretrain_minutes * 60:
+        conditioner.train()
+        index = torch.randint(len(images), (args.batch,), generator=draws)
+        loss = generator.contact_loss(conditioner(images[index]), contact[index])
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        step += 1
+        if step % 100 == 0:
+            log.append({"step": step, "contact_bce": round(float(loss.detach()), 4)})
+            print(json.dumps({"pretrain": log[-1]}), flush=True)
+    return {"scenes": len(images), "steps": step, "minutes": args.pretrain_minutes, "log": log}
+
+
 def overfit(args: argparse.Namespace) -> dict[str, Any]:
     torch.manual_seed(args.seed)
     host = load_plugins()
@@ -268,6 +317,7 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
     train_index = torch.arange(args.pairs)
     # The contact's place on the code grid (generator.model.contact_weight asks the condition grid for it).
     contact_NHW = contact_cells(codes.view(-1, 16, 16), tokenizer, background) if args.contact_weight else None
+    pretrain = pretrain_grid(args, host, tokenizer, background, generator, conditioner, batch, contact_NHW)
     params = [p for m in (generator, conditioner) for p in m.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=args.lr, betas=(0.9, 0.96), weight_decay=4.5e-2)
     warmup = args.warmup
@@ -308,6 +358,7 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
         "lr": args.lr,
         "warmup": warmup,
         "contact_weight": args.contact_weight,
+        "pretrain": pretrain,
         "log": log,
     }
     truth = batch["tactile"]
@@ -676,13 +727,12 @@ class ContactLocator(torch.nn.Module):
         return torch.stack([(weights_BHW * grid_rows).sum((1, 2)), (weights_BHW * grid_cols).sum((1, 2))], 1)
 
 
-def extra_scenes(host: Any, config: Any, count: int) -> dict[str, torch.Tensor]:
-    """``count`` newly rendered scenes of the bundle's scene (its dataset seed + 1000, so none is a
-    training or held-out scene of the bundle): a batch of ``visual``, ``tactile`` and ``label``."""
+def extra_scenes(host: Any, seed: int, count: int) -> dict[str, torch.Tensor]:
+    """``count`` newly rendered tour scenes for a run whose scenes come from procedural ``seed``
+    (rendered from ``seed + 1000``, so none is one of its training or held-out scenes): a batch of
+    ``visual``, ``tactile`` and ``label``."""
     extra_config = resolve_config(
-        "tour",
-        overrides=[f"data.dataset.seed={config.data.dataset.seed + 1000}", f"data.dataset.num_samples={count}"],
-        host=host,
+        "tour", overrides=[f"data.dataset.seed={seed + 1000}", f"data.dataset.num_samples={count}"], host=host
     )
     return Assembly(extra_config, host).component("data.dataset").render_batch(list(range(count)))
 
@@ -703,7 +753,7 @@ def locate(args: argparse.Namespace) -> dict[str, Any]:
     test_batch = dataset.render_batch([held_out.indices[i] for i in range(min(args.n, len(held_out)))])
     visual, truth = train_batch["visual"], train_batch["tactile"]
     if args.extra_scenes:
-        extra = extra_scenes(host, config, args.extra_scenes)
+        extra = extra_scenes(host, config.data.dataset.seed, args.extra_scenes)
         visual, truth = torch.cat([visual, extra["visual"]]), torch.cat([truth, extra["tactile"]])
     render_seconds = time.perf_counter() - started
     out_hw = tuple(truth.shape[-2:])
@@ -1051,7 +1101,7 @@ def judge(args: argparse.Namespace) -> dict[str, Any]:
         elif name == "extra":
             if not args.extra_scenes:
                 raise SystemExit("judge --judge-data extra needs --extra-scenes N (N > 0)")
-            extra = extra_scenes(host, pipe.config, args.extra_scenes)
+            extra = extra_scenes(host, pipe.config.data.dataset.seed, args.extra_scenes)
             fit_sets[name] = (
                 torch.cat([train_codes, canonical_codes(extra["tactile"])]),
                 torch.cat([train_labels, extra["label"]]),
@@ -1340,9 +1390,21 @@ def main() -> None:
         "needs --canonical",
     )
     parser.add_argument("--canonical", action="store_true", help="overfit: train on canonical-background codes")
+    parser.add_argument(
+        "--pretrain-minutes",
+        type=float,
+        default=0.0,
+        help="overfit: first train the condition grid on the contact loss alone for this long (needs "
+        "--contact-weight; with --extra-scenes, on that many more scenes too)",
+    )
     parser.add_argument("--sample-steps", type=int, default=25)
     parser.add_argument("--guidance", type=float, default=1.0)
-    parser.add_argument("--extra-scenes", type=int, default=0, help="locate, judge: newly rendered training scenes")
+    parser.add_argument(
+        "--extra-scenes",
+        type=int,
+        default=0,
+        help="locate, judge, overfit --pretrain-minutes: newly rendered training scenes",
+    )
     parser.add_argument("--width", type=int, default=32, help="locate: the locator's channels")
     parser.add_argument("--set", action="append", default=[], metavar="model.KEY=V|conditioner.KEY=V")
     parser.add_argument(
