@@ -54,6 +54,10 @@ CONDITIONERS = {
 }
 
 
+#: The procedural seed of the bundle tokenizer's training scenes: overfit, rescore and cost render from it.
+TOUR_SEED = 7
+
+
 def tour_data(host: Any, seed: int, count: int) -> tuple[Any, dict[str, Any]]:
     """The tour scene's dataset (procedural ``seed``) and its first ``count`` samples, batched."""
     config = resolve_config(
@@ -269,7 +273,7 @@ def pretrain_grid(
     key = conditioner.sample_key
     images, contact = batch[key][: args.pairs], contact_NHW[: args.pairs]
     if args.extra_scenes:
-        extra = extra_scenes(host, 7, args.extra_scenes)
+        extra = extra_scenes(host, TOUR_SEED, args.extra_scenes)
         extra_codes, _ = canonical_background(encode(tokenizer, extra["tactile"]), tokenizer, background)
         images = torch.cat([images, extra[key]])
         contact = torch.cat([contact, contact_cells(extra_codes, tokenizer, background)])
@@ -301,7 +305,7 @@ def overfit(args: argparse.Namespace) -> dict[str, Any]:
     bundle = load_bundle(args.bundle, host)
     tokenizer = bundle.tokenizer
     total = args.pairs + args.held_out
-    dataset, batch = tour_data(host, 7, total)  # the bundle tokenizer's own training seed
+    dataset, batch = tour_data(host, TOUR_SEED, total)
     background = background_of(dataset)
     codes = encode(tokenizer, batch["tactile"])
     changed = 0.0
@@ -817,7 +821,7 @@ def rescore(args: argparse.Namespace) -> dict[str, Any]:
     runs with different ``--pairs`` are compared on the same scenes that way)."""
     host = load_plugins()
     tokenizer = load_bundle(args.bundle, host).tokenizer
-    dataset, batch = tour_data(host, 7, args.pairs + args.n)  # overfit's scenes, in its order
+    dataset, batch = tour_data(host, TOUR_SEED, args.pairs + args.n)  # overfit's scenes, in its order
     background = background_of(dataset)
     truth = batch["tactile"][args.pairs :]
     state = torch.load(args.weights, weights_only=False)
@@ -1304,7 +1308,7 @@ def step_cost(args: argparse.Namespace) -> dict[str, Any]:
     torch.manual_seed(args.seed)
     host = load_plugins()
     tokenizer = load_bundle(args.bundle, host).tokenizer
-    dataset, batch = tour_data(host, 7, args.batch)
+    dataset, batch = tour_data(host, TOUR_SEED, args.batch)
     codes_BHW = encode(tokenizer, batch["tactile"])
     variants = args.variant or [""]
     models = []
