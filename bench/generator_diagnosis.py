@@ -732,13 +732,11 @@ class ContactLocator(torch.nn.Module):
 
 
 def extra_scenes(host: Any, seed: int, count: int) -> dict[str, torch.Tensor]:
-    """``count`` newly rendered tour scenes for a run whose scenes come from procedural ``seed``
-    (rendered from ``seed + 1000``, so none is one of its training or held-out scenes): a batch of
+    """``count`` newly rendered tour scenes for a run whose scenes come from procedural ``seed`` (the
+    dataset's :meth:`new_scenes`, so none is one of its training or held-out scenes): a batch of
     ``visual``, ``tactile`` and ``label``."""
-    extra_config = resolve_config(
-        "tour", overrides=[f"data.dataset.seed={seed + 1000}", f"data.dataset.num_samples={count}"], host=host
-    )
-    return Assembly(extra_config, host).component("data.dataset").render_batch(list(range(count)))
+    config = resolve_config("tour", overrides=[f"data.dataset.seed={seed}"], host=host)
+    return Assembly(config, host).component("data.dataset").new_scenes(count).render_batch(list(range(count)))
 
 
 def locate(args: argparse.Namespace) -> dict[str, Any]:

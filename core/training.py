@@ -613,7 +613,8 @@ class Trainer:
             except KeyboardInterrupt as exc:  # raised by the task, or by a handler other than ours
                 interrupted = exc
             stopped = interrupted is not None or signals.received is not None or self._stopped_by_peer
-            if stopped or self.state.step % self.config.checkpoint_every != 0:
+            # A fit of no steps (steps=0, e.g. only a stage's pretraining) still leaves its weights.
+            if stopped or self.state.step % self.config.checkpoint_every != 0 or self._saved is None:
                 self._save_unless_saved()
         finally:
             self._signals = None

@@ -115,6 +115,18 @@ class ProceduralTactileDataset(TactileDataset):
     def __len__(self) -> int:
         return self.config.num_samples
 
+    def new_scenes(self, count: int, seed_offset: int = 1000) -> ProceduralTactileDataset:
+        """``count`` newly drawn scenes of the same sensors, classes and settings, from seed ``seed +
+        seed_offset``: sample i is a pure function of (seed, i), so none shares a draw with this dataset's
+        samples (e.g. more scenes for ``generator.train.grid_pretrain``, never its held-out ones)."""
+        if count < 1:
+            raise ValueError(f"new_scenes({count}): draw at least one scene")
+        seed = (self.config.seed + seed_offset) % 2**31
+        if seed == self.config.seed:
+            raise ValueError(f"seed_offset={seed_offset} draws this dataset's own scenes again; use another")
+        config = self.config.model_copy(update={"seed": seed, "num_samples": count})
+        return ProceduralTactileDataset(self.sensor, config, self.paired_sensor)
+
     def split_groups(self) -> None:
         """None: every sample is an independent draw, its own group (see the module docstring)."""
         return None

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,7 +29,7 @@ from vqtouch.core.errors import VqtouchWarning
 from vqtouch.core.image_size import image_hw
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
-from vqtouch.core.training import Trainer, apply_ema_weights, collate_samples
+from vqtouch.core.training import Trainer, apply_ema_weights, collate_samples, step_folders
 from vqtouch.plugins.evaluation.contact import (
     VERDICT_EVIDENCE,
     contact_centroid_errors,
@@ -177,6 +178,27 @@ class GeneratorSection(Section):
         return self
 
     @model_validator(mode="after")
+    def _grid_pretraining_needs_the_contact_head(self) -> GeneratorSection:
+        pretrain = self.train.grid_pretrain
+        if pretrain.steps and getattr(self.model, "contact_weight", 0) <= 0:
+            raise ValueError(
+                "generator.train.grid_pretrain.steps > 0 trains the contact head, which "
+                "generator.model.contact_weight > 0 builds; set contact_weight (e.g. 1) or grid_pretrain.steps=0"
+            )
+        outside = [i for i in pretrain.conditioners or () if not 0 <= i < len(self.conditioners)]
+        if outside:
+            raise ValueError(
+                f"generator.train.grid_pretrain.conditioners names {outside}, outside generator.conditioners "
+                f"(0..{len(self.conditioners) - 1})"
+            )
+        if pretrain.new_scenes and not pretrain.steps:
+            raise ValueError(
+                "generator.train.grid_pretrain.new_scenes is set but grid_pretrain.steps is 0; the new scenes "
+                "serve only those steps: set steps or new_scenes=0"
+            )
+        return self
+
+    @model_validator(mode="after")
     def _sampling_steps_within_the_model(self) -> GeneratorSection:
         # Checked with the config, not after training: sampling cannot take more steps than the model
         # has diffusion steps (a generator plugin without such a limit has no num_steps option).
@@ -271,11 +293,18 @@ def train_generator(job: StageJob) -> dict[str, Any]:
         )
     data = CodesDataset.collect(codes_NHW, dataset, keys)
     train_set, val_set = experiment_split(data, config.data, config.seed)
-    background_note = None
+    background_note, background_3HW = None, None
     wants_contact = getattr(section.model, "contact_weight", 0) > 0
     if section.train.canonical_background:
-        background_note = canonicalise_codes(
+        background_note, background_3HW = canonicalise_codes(
             data, train_set, dataset, tokenizer, image_hw(config.data.image_size), contact=wants_contact
+        )
+    grid_note = None
+    # A resumed run's checkpoint already holds the pretrained grid (and the generator trained on from it).
+    resuming = job.resume and bool(step_folders(job.run.checkpoints / CHECKPOINT_FOLDER))
+    if section.train.grid_pretrain.steps and not resuming:
+        grid_note = grid_pretraining(
+            job, generator, conditioners, tokenizer, tokenizer_folder, data, train_set, dataset, background_3HW, device
         )
     task = GeneratorTask(
         generator, conditioners, section.train.condition_dropout, config.seed, section.train.conditioner_weights
@@ -306,6 +335,8 @@ def train_generator(job: StageJob) -> dict[str, Any]:
         "tokenizer": str(tokenizer_folder),
         "canonical_background": background_note,
     }
+    if grid_note is not None:
+        result["grid_pretrain"] = grid_note
     if trainer.validates():
         result |= {"best_step": state.best_step, "best_val_loss": state.best_score}
     if trainer.dist.is_main:
@@ -343,10 +374,11 @@ def canonicalise_codes(
     size_hw: tuple[int, int],
     *,
     contact: bool = False,
-) -> dict[str, Any]:
+) -> tuple[dict[str, Any], torch.Tensor | None]:
     """Replace ``data``'s codes by their canonical-background form (:func:`.codes.canonical_background`)
     in place, with the no-contact image of the training split, and with ``contact`` add each sample's
-    contact cells (:data:`.training.CONTACT_KEY`); what was done, for generation.json."""
+    contact cells (:data:`.training.CONTACT_KEY`); what was done (for generation.json) and that
+    no-contact image (None without one)."""
     from .codes import canonical_background, contact_cells
     from .training import CONTACT_KEY
 
@@ -361,13 +393,91 @@ def canonicalise_codes(
             VqtouchWarning,
             stacklevel=2,
         )
-        return {"applied": False, "reason": source}
+        return {"applied": False, "reason": source}, None
     data.codes_NHW, changed = canonical_background(data.codes_NHW, tokenizer, background)
     note = {"applied": True, "cells_changed": round(changed, 4), "background": source}
     if contact:
         data.entries[CONTACT_KEY] = contact_cells(data.codes_NHW, tokenizer, background)
         note["contact_cells"] = round(float(data.entries[CONTACT_KEY].float().mean()), 4)
-    return note
+    return note, background
+
+
+def grid_pretraining(
+    job: StageJob,
+    generator: Any,
+    conditioners: Any,
+    tokenizer: Any,
+    tokenizer_folder: Path,
+    data: CodesDataset,
+    train_set: Any,
+    dataset: Any,
+    background_3HW: torch.Tensor | None,
+    device: torch.device,
+) -> dict[str, Any]:
+    """``generator.train.grid_pretrain``: the training split's grid conditions and contact cells, plus
+    ``new_scenes`` newly rendered by the dataset (:meth:`new_scenes`), through
+    :func:`.grid_pretrain.pretrain_condition_grid`; what was done, for generation.json."""
+    from .codes import canonical_background, contact_cells, dataset_codes
+    from .grid_pretrain import grid_conditioners, pretrain_condition_grid, take
+    from .training import CONTACT_KEY
+
+    config, pretrain = job.config, job.section.train.grid_pretrain
+    if background_3HW is None or CONTACT_KEY not in data.entries:
+        raise StageUnavailable(
+            "generator.train.grid_pretrain needs the contact cells (generator.model.contact_weight > 0 and "
+            "the dataset's no-contact background); set grid_pretrain.steps=0"
+        )
+    for module in (generator, *conditioners):
+        module.to(device)
+    train_index = torch.as_tensor(list(train_set.indices), dtype=torch.long)
+    chosen = grid_conditioners(conditioners, take(data.entries, train_index[:1]), pretrain.conditioners)
+    keys = list(dict.fromkeys(key for i in chosen for key in conditioners[i].sample_entries()))
+    entries = take({key: data.entries[key] for key in keys}, train_index)
+    contact_NHW = data.entries[CONTACT_KEY][train_index]
+    rendered: dict[str, Any] = {}
+    if pretrain.new_scenes:
+        draw = getattr(dataset, "new_scenes", None)
+        if draw is None:
+            raise StageUnavailable(
+                f"generator.train.grid_pretrain.new_scenes={pretrain.new_scenes}, but the dataset "
+                f"({type(dataset).__name__}) cannot render new scenes (the procedural one can); set new_scenes=0"
+            )
+        started = time.perf_counter()
+        fresh = draw(pretrain.new_scenes)
+        codes_NHW, cache = dataset_codes(
+            tokenizer,
+            [tokenizer_folder / name for name in TOKENIZER_FILES],
+            fresh,
+            {**images_config(config), "new_scenes": pretrain.new_scenes},
+            batch_size=config.data.batch_size,
+            device=device,
+            use_cache=job.section.train.code_cache,
+        )
+        codes_NHW, _ = canonical_background(codes_NHW, tokenizer, background_3HW)
+        fresh_data = CodesDataset.collect(codes_NHW, fresh, keys, desc="reading new scenes")
+        entries = {
+            key: torch.cat([entries[key], values]) if isinstance(values, torch.Tensor) else [*entries[key], *values]
+            for key, values in fresh_data.entries.items()
+        }
+        contact_NHW = torch.cat([contact_NHW, contact_cells(codes_NHW, tokenizer, background_3HW)])
+        rendered = {"new_scenes": pretrain.new_scenes, "new_scenes_codes": cache["cache"],
+                    "new_scenes_seconds": round(time.perf_counter() - started, 1)}
+    note = pretrain_condition_grid(
+        generator,
+        conditioners,
+        entries,
+        contact_NHW,
+        pretrain,
+        chosen,
+        batch_size=config.data.batch_size,
+        seed=config.seed,
+        device=device,
+    )
+    print(
+        f"grid pretraining: {note['steps']} steps on {note['scenes']} scenes in {note['seconds']} s, contact "
+        f"loss {note['contact_bce_first']} -> {note['contact_bce_last']}"
+    )
+    return note | rendered
 
 
 @torch.no_grad()

@@ -25,6 +25,8 @@ from vqtouch.core import ConditionTokens, Conditioner, Generator, TactileDataset
 from vqtouch.core.data import dataset_groups
 from vqtouch.core.progress import progress
 
+from .grid_pretrain import GridPretrainConfig
+
 
 class GeneratorTrainConfig(TrainConfig):
     """How the generator trains (``generator.train``); VQ-Diffusion's optimiser settings by default."""
@@ -58,6 +60,11 @@ class GeneratorTrainConfig(TrainConfig):
         "generator.conditioners (any positive numbers; they are normalised), e.g. "
         "[2, 1, 1, 1] gives the first twice the steps of each other; null: equal "
         "shares.  Conditions that fix less of the image (a label) learn slower.",
+    )
+    grid_pretrain: GridPretrainConfig = Field(
+        default_factory=GridPretrainConfig,
+        description="Train the condition grid on the contact's place alone before the generator trains "
+        "(steps: 0, off); see vqtouch.plugins.generator.grid_pretrain.",
     )
     code_cache: bool = Field(
         True,

@@ -225,6 +225,13 @@ class VQDiffusion(Generator):
                 scalars["contact_bce"] = float(contact_loss.detach())
         return loss, scalars
 
+    def contact_parameters(self) -> list[nn.Parameter]:
+        """What :meth:`contact_loss` trains of the generator: the grid embedding and the contact head
+        (empty without a head); ``generator.train.grid_pretrain`` trains these alone."""
+        if self.contact_head is None:
+            return []
+        return [*self.network.grid_proj.parameters(), *self.contact_head.parameters()]
+
     def contact_loss(self, condition: ConditionTokens, contact_BHW: torch.Tensor) -> torch.Tensor | None:
         """Binary cross-entropy (mean over cells) of the contact head on the condition grid's embedding
         against ``contact_BHW`` (bool, on the code grid), over the rows whose condition is not null;
