@@ -130,7 +130,8 @@ def test_the_grid_conditioners_are_those_whose_condition_has_a_grid():
     example = {key: value[:1] for key, value in entries.items()}
     assert grid_conditioners(conditioners, example, None) == [1]
     assert grid_conditioners(conditioners, example, [1]) == [1]
-    with pytest.raises(ValueError, match=r"conditioners names 0, which gives no condition grid \(those that do: \[1\]\)"):
+    refusal = r"conditioners names 0, which gives no condition grid \(those that do: \[1\]\)"
+    with pytest.raises(ValueError, match=refusal):
         grid_conditioners(conditioners, example, [0])
     with pytest.raises(ValueError, match="no conditioner gives a condition grid"):
         grid_conditioners(conditioners[:1], example, None)
