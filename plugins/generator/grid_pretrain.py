@@ -125,8 +125,10 @@ def pretrain_condition_grid(
     for step in progress(range(config.steps), desc="grid pretraining", unit="step"):
         conditioner = conditioners[chosen[step % len(chosen)]]
         index_B = torch.randint(count, (batch_size,), generator=draws)
-        batch = {key: value.to(device) if isinstance(value, torch.Tensor) else value
-                 for key, value in take(entries, index_B).items()}
+        batch = {
+            key: value.to(device) if isinstance(value, torch.Tensor) else value
+            for key, value in take(entries, index_B).items()
+        }
         loss = generator.contact_loss(conditioner(conditioner.condition_of(batch)), contact_NHW[index_B].to(device))
         if not torch.isfinite(loss):
             raise FloatingPointError(

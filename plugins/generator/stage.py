@@ -460,8 +460,11 @@ def grid_pretraining(
             for key, values in fresh_data.entries.items()
         }
         contact_NHW = torch.cat([contact_NHW, contact_cells(codes_NHW, tokenizer, background_3HW)])
-        rendered = {"new_scenes": pretrain.new_scenes, "new_scenes_codes": cache["cache"],
-                    "new_scenes_seconds": round(time.perf_counter() - started, 1)}
+        rendered = {
+            "new_scenes": pretrain.new_scenes,
+            "new_scenes_codes": cache["cache"],
+            "new_scenes_seconds": round(time.perf_counter() - started, 1),
+        }
     note = pretrain_condition_grid(
         generator,
         conditioners,
