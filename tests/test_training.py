@@ -8,6 +8,7 @@ from typing import Literal
 
 import pytest
 import torch
+from safetensors.torch import load_file
 from torch import nn
 
 from vqtouch.core import BuildContext, Conditioner, PluginConfig, TrainConfig, hookimpl, load_plugins
@@ -120,6 +121,16 @@ def test_training_reduces_the_loss_and_writes_checkpoints(host, tmp_path):
         "model.safetensors",
         "trainer_state.safetensors",
     }
+
+
+def test_a_fit_of_no_steps_leaves_the_untrained_weights_as_its_checkpoint(host, tmp_path):
+    """steps=0 (a stage that only pretrains, or only scores) still has a product to publish."""
+    trainer, task = make_trainer(host, tmp_path, steps=0)
+    trainer.fit()
+    assert trainer.last_checkpoint == tmp_path / "checkpoints" / "step-00000000"
+    saved = load_file(trainer.last_checkpoint / "model.safetensors")
+    assert saved and all(torch.equal(saved[k], v) for k, v in task.modules["model"].state_dict().items())
+    assert task.losses == []
 
 
 def test_resume_reproduces_the_uninterrupted_run_exactly(host, tmp_path):
