@@ -35,7 +35,9 @@ each batch and gradients are all-reduced (gloo on CPU, nccl on GPU); rank 0 writ
 
 from __future__ import annotations
 
+import atexit
 import contextlib
+import datetime
 import functools
 import json
 import math
@@ -405,7 +407,26 @@ class DistributedContext:
 
         if not dist.is_initialized():
             dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
+            atexit.register(_close_process_group)
         return cls(dist.get_rank(), dist.get_world_size())
+
+
+def _close_process_group() -> None:
+    """Tear the process group down before the interpreter does: left to exit, gloo's threads can abort
+    a rank ("terminate called without an active exception"), and a rank that tears down while another
+    still talks to it aborts that one, hence the barrier first (bounded, so a rank whose partner died
+    still exits)."""
+    import torch.distributed as dist
+
+    if not dist.is_initialized():
+        return
+    with contextlib.suppress(Exception):
+        if dist.get_backend() == "gloo":
+            dist.monitored_barrier(timeout=datetime.timedelta(seconds=60))
+        else:
+            dist.barrier()
+    with contextlib.suppress(Exception):
+        dist.destroy_process_group()
 
 
 @dataclass
