@@ -260,16 +260,16 @@ def pretrain_grid(
     batch: dict[str, Any],
     contact_NHW: torch.Tensor | None,
 ) -> dict[str, Any] | None:
-    """``overfit --pretrain-minutes M``: before the generator trains, train the conditioner's grid,
-    the generator's grid embedding and its contact head on the contact loss alone
-    (``VQDiffusion.contact_loss``: which code cells hold the contact) for M minutes, on the
-    ``--pairs`` training scenes and ``--extra-scenes`` newly rendered ones (AdamW, lr 1e-3, batch
-    ``--batch``).  Section 11's locator learns the contact's place from many scenes in minutes; this
-    asks whether a grid that starts knowing it makes the generator place the contact better."""
-    if not args.pretrain_minutes:
+    """``overfit --pretrain-steps N``: before the generator trains, the plugin's grid pretraining
+    (:func:`~vqtouch.plugins.generator.grid_pretrain.pretrain_condition_grid`, what
+    ``generator.train.grid_pretrain`` runs) for N batches of ``--batch``, on the ``--pairs`` training
+    scenes and ``--extra-scenes`` newly rendered ones."""
+    from vqtouch.plugins.generator.grid_pretrain import GridPretrainConfig, pretrain_condition_grid
+
+    if not args.pretrain_steps:
         return None
     if contact_NHW is None:
-        raise SystemExit("overfit --pretrain-minutes needs --contact-weight W (W > 0) and --canonical")
+        raise SystemExit("overfit --pretrain-steps needs --contact-weight W (W > 0) and --canonical")
     key = conditioner.sample_key
     images, contact = batch[key][: args.pairs], contact_NHW[: args.pairs]
     if args.extra_scenes:
@@ -277,26 +277,18 @@ def pretrain_grid(
         extra_codes, _ = canonical_background(encode(tokenizer, extra["tactile"]), tokenizer, background)
         images = torch.cat([images, extra[key]])
         contact = torch.cat([contact, contact_cells(extra_codes, tokenizer, background)])
-    params = [
-        *(p for p in conditioner.parameters() if p.requires_grad),
-        *generator.network.grid_proj.parameters(),
-        *generator.contact_head.parameters(),
-    ]
-    optimizer = torch.optim.AdamW(params, lr=1e-3, weight_decay=1e-4)
-    draws = torch.Generator().manual_seed(args.seed + 100)
-    step, start, log = 0, time.perf_counter(), []
-    while time.perf_counter() - start < args.pretrain_minutes * 60:
-        conditioner.train()
-        index = torch.randint(len(images), (args.batch,), generator=draws)
-        loss = generator.contact_loss(conditioner(images[index]), contact[index])
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        step += 1
-        if step % 100 == 0:
-            log.append({"step": step, "contact_bce": round(float(loss.detach()), 4)})
-            print(json.dumps({"pretrain": log[-1]}), flush=True)
-    return {"scenes": len(images), "steps": step, "minutes": args.pretrain_minutes, "log": log}
+    note = pretrain_condition_grid(
+        generator,
+        [conditioner],
+        {key: images},
+        contact,
+        GridPretrainConfig(steps=args.pretrain_steps),
+        [0],
+        batch_size=args.batch,
+        seed=args.seed,
+    )
+    print(json.dumps({"pretrain": note}), flush=True)
+    return note
 
 
 def overfit(args: argparse.Namespace) -> dict[str, Any]:
@@ -1393,11 +1385,12 @@ def main() -> None:
     )
     parser.add_argument("--canonical", action="store_true", help="overfit: train on canonical-background codes")
     parser.add_argument(
-        "--pretrain-minutes",
-        type=float,
-        default=0.0,
-        help="overfit: first train the condition grid on the contact loss alone for this long (needs "
-        "--contact-weight; with --extra-scenes, on that many more scenes too)",
+        "--pretrain-steps",
+        type=int,
+        default=0,
+        help="overfit: first train the condition grid on the contact loss alone for this many batches, as "
+        "generator.train.grid_pretrain does (needs --contact-weight; with --extra-scenes, on that many more "
+        "scenes too)",
     )
     parser.add_argument("--sample-steps", type=int, default=25)
     parser.add_argument("--guidance", type=float, default=1.0)
@@ -1405,7 +1398,7 @@ def main() -> None:
         "--extra-scenes",
         type=int,
         default=0,
-        help="locate, judge, overfit --pretrain-minutes: newly rendered training scenes",
+        help="locate, judge, overfit --pretrain-steps: newly rendered training scenes",
     )
     parser.add_argument("--width", type=int, default=32, help="locate: the locator's channels")
     parser.add_argument("--set", action="append", default=[], metavar="model.KEY=V|conditioner.KEY=V")

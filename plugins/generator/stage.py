@@ -379,7 +379,6 @@ def canonicalise_codes(
     in place, with the no-contact image of the training split, and with ``contact`` add each sample's
     contact cells (:data:`.training.CONTACT_KEY`); what was done (for generation.json) and that
     no-contact image (None without one)."""
-    from .codes import canonical_background, contact_cells
     from .training import CONTACT_KEY
 
     background, source = dataset_background(DatasetSubset(dataset, train_set.indices), size_hw)
@@ -394,12 +393,25 @@ def canonicalise_codes(
             stacklevel=2,
         )
         return {"applied": False, "reason": source}, None
-    data.codes_NHW, changed = canonical_background(data.codes_NHW, tokenizer, background)
+    changed = canonicalise_with_background(data, tokenizer, background, contact=contact)
     note = {"applied": True, "cells_changed": round(changed, 4), "background": source}
     if contact:
-        data.entries[CONTACT_KEY] = contact_cells(data.codes_NHW, tokenizer, background)
         note["contact_cells"] = round(float(data.entries[CONTACT_KEY].float().mean()), 4)
     return note, background
+
+
+def canonicalise_with_background(
+    data: CodesDataset, tokenizer: Any, background_3HW: torch.Tensor, *, contact: bool = False
+) -> float:
+    """``data``'s codes in canonical-background form against ``background_3HW``, in place, with each
+    sample's contact cells (:data:`.training.CONTACT_KEY`) when ``contact``; the share of cells changed."""
+    from .codes import canonical_background, contact_cells
+    from .training import CONTACT_KEY
+
+    data.codes_NHW, changed = canonical_background(data.codes_NHW, tokenizer, background_3HW)
+    if contact:
+        data.entries[CONTACT_KEY] = contact_cells(data.codes_NHW, tokenizer, background_3HW)
+    return changed
 
 
 def grid_pretraining(
@@ -417,7 +429,7 @@ def grid_pretraining(
     """``generator.train.grid_pretrain``: the training split's grid conditions and contact cells, plus
     ``new_scenes`` newly rendered by the dataset (:meth:`new_scenes`), through
     :func:`.grid_pretrain.pretrain_condition_grid`; what was done, for generation.json."""
-    from .codes import canonical_background, contact_cells, dataset_codes
+    from .codes import dataset_codes
     from .grid_pretrain import grid_conditioners, pretrain_condition_grid, take
     from .training import CONTACT_KEY
 
@@ -453,13 +465,13 @@ def grid_pretraining(
             device=device,
             use_cache=job.section.train.code_cache,
         )
-        codes_NHW, _ = canonical_background(codes_NHW, tokenizer, background_3HW)
         fresh_data = CodesDataset.collect(codes_NHW, fresh, keys, desc="reading new scenes")
+        canonicalise_with_background(fresh_data, tokenizer, background_3HW, contact=True)
+        contact_NHW = torch.cat([contact_NHW, fresh_data.entries.pop(CONTACT_KEY)])
         entries = {
             key: torch.cat([entries[key], values]) if isinstance(values, torch.Tensor) else [*entries[key], *values]
             for key, values in fresh_data.entries.items()
         }
-        contact_NHW = torch.cat([contact_NHW, contact_cells(codes_NHW, tokenizer, background_3HW)])
         rendered = {
             "new_scenes": pretrain.new_scenes,
             "new_scenes_codes": cache["cache"],
