@@ -501,7 +501,10 @@ class RunDir:
             except (KeyError, json.JSONDecodeError):
                 raise CheckpointError(f"{file}: damaged vqtouch header (no readable vqtouch.config)") from None
             candidates = slots.get(kind, [])
-            if any(_canonical(made_with) == _canonical(slot_config) for _, slot_config in candidates):
+            # As written, and as the installed plugin reads it today: an option added since the file was
+            # saved takes its default (which, by the deprecation rule, computes what the file did).
+            readings = {_canonical(made_with), _canonical(_as_installed(host, kind, made_with))}
+            if any(_canonical(slot_config) in readings for _, slot_config in candidates):
                 continue
             raise CheckpointError(
                 f"{file} was made with {kind} {plugin!r}{_mismatch(made_with, candidates)}; "
@@ -690,6 +693,15 @@ def product_makers(host: PluginHost) -> dict[str, str]:
 
 def _canonical(value: Any) -> str:
     return json.dumps(value, sort_keys=True, separators=(",", ":"))
+
+
+def _as_installed(host: PluginHost, kind: str, made_with: dict[str, Any]) -> dict[str, Any]:
+    """A checkpoint header's component config validated by the installed plugin (its defaults filled
+    in), or as written when the plugin is gone or no longer accepts it."""
+    try:
+        return host.validate(kind, made_with).model_dump(mode="json")
+    except VqtouchError:
+        return made_with
 
 
 def _lock_holder(fd: int) -> str:

@@ -18,6 +18,7 @@ from vqtouch.plugins.pretrained.bundle import (
     COMMAND_KEY,
     RUN_CONFIG_KEY,
     bundle_folder,
+    bundle_names,
     describe_bundle,
     export_bundle,
     half_precision_copy,
@@ -60,6 +61,26 @@ def test_headers_say_how_and_when_each_file_was_trained(trained):
     facts = describe_bundle(folder)
     assert facts["conditioners"] == ["label"] and facts["files"] == 4 and facts["generator_step"] == 6
     assert facts["megabytes"] == round(sum(p.stat().st_size for p in folder.rglob("*.safetensors")) / 1e6, 2)
+
+
+def test_a_bundle_trained_on_a_gpu_says_which(trained, tmp_path):
+    """Minutes on a GPU are not minutes on a CPU: the command recorded names the device that ran it
+    when that was not the CPU (the run's env.json), and says nothing more for a CPU run."""
+    import shutil
+
+    run, bundles = trained
+    cpu_header = read_metadata(bundles / "tiny" / "generator" / "generator.safetensors")[COMMAND_KEY]
+    assert json.loads((run / "env.json").read_text())["device_name"] == "cpu"
+    assert " on " not in cpu_header.partition("#")[2]
+    gpu_run = tmp_path / "gpu_run"
+    shutil.copytree(run, gpu_run)
+    env = json.loads((gpu_run / "env.json").read_text())
+    (gpu_run / "env.json").write_text(json.dumps({**env, "device_name": "NVIDIA H200"}))
+    folder = export_bundle(gpu_run, "tiny_gpu", HOST, root=tmp_path / "bundles")
+    for path in sorted(folder.rglob("*.safetensors")):
+        if path.parent.name == "generator":
+            assert read_metadata(path)[COMMAND_KEY].endswith(" on NVIDIA H200")
+    assert describe_bundle(folder)["generator_command"].endswith(" on NVIDIA H200")
 
 
 def test_parameters_are_stored_in_fp16_except_the_quantizers_and_load_back_as_fp16_rounding(trained):
@@ -199,3 +220,21 @@ def test_a_bundle_name_is_a_tokenizer_wherever_one_is_read(trained, tmp_path, mo
     assert "pretrained:tiny is a bundle, read-only" in captured.err and f'"checkpoint": "{folder}"' in captured.out
     assert sorted(path.name for path in folder.iterdir()) == before
     assert main([*evaluate, "--step", "2"]) == 2 and "--step and --split choose within a run" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", bundle_names())
+def test_every_shipped_bundle_draws_from_a_label_and_stays_within_50_mb(name, tmp_path):
+    """What the package ships: each bundle opens with today's plugins (a header its run's plugin no longer
+    reads would fail here, not in a user's first command), draws an image end to end, and keeps to the
+    size a package can carry."""
+    import numpy as np
+    from PIL import Image
+
+    facts = describe_bundle(bundle_folder(name))
+    assert facts["megabytes"] <= 50, f"bundle {name} is {facts['megabytes']} MB"
+    assert "label" in facts["conditioners"]
+    out = tmp_path / name
+    command = ["--no-progress", "--threads", "1", "generate", "--run", f"pretrained:{name}", "--label", "0"]
+    assert main([*command, "--steps", "2", "--seed", "0", "--out", str(out)]) == 0
+    pixels = np.asarray(Image.open(out / "sample_0000.png"), dtype=np.float32)
+    assert pixels.shape[:2] == (64, 64) and np.isfinite(pixels).all() and pixels.std() > 1.0

@@ -270,6 +270,39 @@ def test_checkpoint_is_the_newest_complete_step_of_this_run(host, tmp_path):
     assert run.checkpoint(host, step=2) == two  # a step of this run is still readable
 
 
+def _rewrite_header_config(path, edit):
+    """Rewrite a module file's recorded component config (``vqtouch.config``) with ``edit(config)``,
+    as a file saved by an older vqtouch, before an option existed, would read."""
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    with safe_open(str(path), "pt") as handle:
+        metadata = dict(handle.metadata())
+        tensors = {key: handle.get_tensor(key) for key in handle.keys()}
+    recorded = json.loads(metadata["vqtouch.config"])
+    edit(recorded)
+    save_file(tensors, str(path), metadata={**metadata, "vqtouch.config": json.dumps(recorded)})
+
+
+def test_a_checkpoint_saved_before_an_option_existed_belongs_to_its_run(host, tmp_path):
+    """An option added to a plugin after a checkpoint was saved is absent from its header; the run's
+    config holds the option's default, which computes what the file did, so the file is the run's own."""
+    from vqtouch.core import CheckpointError, read_metadata
+
+    config = _tiny_config(host, tmp_path)
+    run = RunDir.create(config, host=host, path=tmp_path / "run")
+    folder = _save_step(run, host, config, 2)
+    quantizer_file = folder / "quantizer.safetensors"
+    recorded = json.loads(read_metadata(quantizer_file)["vqtouch.config"])
+    option = next(key for key in sorted(recorded) if key not in ("name", "codebook_size"))
+    _rewrite_header_config(quantizer_file, lambda header: header.pop(option))
+    assert run.checkpoint(host) == folder
+    # Still a mismatch when the file's value of another option is not the run's.
+    _rewrite_header_config(quantizer_file, lambda header: header.update(codebook_size=64))
+    with pytest.raises(CheckpointError, match=r'"codebook_size": 64\} but the run'):
+        run.checkpoint(host)
+
+
 def test_checkpoint_names_another_plugin_in_a_mixed_folder(host, tmp_path):
     from vqtouch.core import CheckpointError
 

@@ -95,8 +95,11 @@ def _provenance(run: RunDir) -> dict[str, str]:
     env = json.loads((run.path / "env.json").read_text()) if (run.path / "env.json").is_file() else {}
     argv = env.get("argv") or ["(unknown command)"]
     command = " ".join(argv)
-    if env.get("git_revision"):
-        command += f"  # vqtouch git {env['git_revision'][:12]}"
+    facts = [f"vqtouch git {env['git_revision'][:12]}"] if env.get("git_revision") else []
+    if env.get("device_name") not in (None, "cpu"):
+        facts.append(f"on {env['device_name']}")  # a GPU's minutes are not a CPU's: say which trained it
+    if facts:
+        command += "  # " + " ".join(facts)
     return {COMMAND_KEY: command, RUN_CONFIG_KEY: (run.path / "config.json").read_text()}
 
 
