@@ -502,7 +502,7 @@ class RunDir:
                 raise CheckpointError(f"{file}: damaged vqtouch header (no readable vqtouch.config)") from None
             candidates = slots.get(kind, [])
             # As written, and as the installed plugin reads it today: an option added since the file was
-            # saved takes its default (which, by the deprecation rule, computes what the file did).
+            # saved takes its default, which must compute what the file did (docs/architecture.md).
             readings = {_canonical(made_with), _canonical(_as_installed(host, kind, made_with))}
             if any(_canonical(slot_config) in readings for _, slot_config in candidates):
                 continue
