@@ -503,11 +503,13 @@ class RunDir:
             candidates = slots.get(kind, [])
             # As written, and as the installed plugin reads it today: an option added since the file was
             # saved takes its default, which must compute what the file did (docs/architecture.md).
-            readings = {_canonical(made_with), _canonical(_as_installed(host, kind, made_with))}
+            installed = _as_installed(host, kind, made_with)
+            readings = {_canonical(made_with), _canonical(installed)}
             if any(_canonical(slot_config) in readings for _, slot_config in candidates):
                 continue
+            # Name only real differences: an option the file predates is not one.
             raise CheckpointError(
-                f"{file} was made with {kind} {plugin!r}{_mismatch(made_with, candidates)}; "
+                f"{file} was made with {kind} {plugin!r}{_mismatch(installed, candidates)}; "
                 "this folder mixes two runs: pick one of this run's own steps with --step, or "
                 "retrain into an empty --out"
             )

@@ -236,5 +236,6 @@ def test_every_shipped_bundle_draws_from_a_label_and_stays_within_50_mb(name, tm
     out = tmp_path / name
     command = ["--no-progress", "--threads", "1", "generate", "--run", f"pretrained:{name}", "--label", "0"]
     assert main([*command, "--steps", "2", "--seed", "0", "--out", str(out)]) == 0
+    assert json.loads((out / "generate.json").read_text())["checkpoint"] == str(bundle_folder(name) / "generator")
     pixels = np.asarray(Image.open(out / "sample_0000.png"), dtype=np.float32)
-    assert pixels.shape[:2] == (64, 64) and np.isfinite(pixels).all() and pixels.std() > 1.0
+    assert pixels.shape[:2] == (64, 64) and pixels.std() > 1.0
