@@ -21,12 +21,14 @@ import threading
 import traceback
 import warnings
 from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 from typing import Any, NoReturn
 
 from .config import resolve_config
 from .errors import ConfigError, VqtouchError, VqtouchWarning, one_line
 from .plugin_manager import PluginHost, load_plugins
-from .images import greyscale_allowed
+from .images import bad_images_skipped, greyscale_allowed
+from .outputs import check_output, command_inputs, reading
 from .progress import disable_progress, progress_forced_off
 from .seeding import SEED_MAX, command_threads
 from .stages import StageOutcome, empty_slot_reason, missing_slots
@@ -135,6 +137,8 @@ truncation_mass = NumberType(float, 0, 1, low_open=True, what="truncation")
 fraction = NumberType(float, 0, 1, what="fraction")
 #: A distance threshold: a finite number of at least 0.
 non_negative_float = NumberType(float, 0, what="non_negative_float")
+#: Family images per shot of an unseen sensor (``--ratio``), in [0, 1000]: more renders millions of images.
+family_ratio = NumberType(float, 0, 1000, what="ratio")
 #: A learning rate, as the training sections allow it: (0, 10].
 learning_rate = NumberType(float, 0, 10, low_open=True, what="learning_rate")
 
@@ -153,6 +157,23 @@ def add_greyscale_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--allow-greyscale", action="store_true", help="accept greyscale images (copied into 3 channels)"
     )
+
+
+def add_image_folder_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add ``--allow-greyscale`` and ``--lenient`` to a command that reads folders of images the user
+    gives (:func:`add_greyscale_argument`; :func:`vqtouch.core.images.bad_images_skipped`)."""
+    add_greyscale_argument(parser)
+    parser.add_argument(
+        "--lenient",
+        action="store_true",
+        help="skip images that do not decode, with one warning naming them (default: refuse the folder)",
+    )
+
+
+def option_given(args: argparse.Namespace, option: str) -> bool:
+    """Whether the user typed ``option`` (e.g. ``--best-of-rank``) on the command line, rather than
+    leaving its default: for an option that has no effect without another."""
+    return any(token == option or token.startswith(option + "=") for token in getattr(args, "argv", ()))
 
 
 def add_step_argument(parser: argparse.ArgumentParser) -> None:
@@ -454,11 +475,14 @@ def _show_warning(
     *,
     default: Any = warnings.showwarning,
 ) -> None:
-    """vqtouch's own warnings as one line on stderr; every other warning as Python shows it."""
+    """Every warning as one line on stderr: vqtouch's own as they are, a library's (matplotlib, torch, ...)
+    with its category and module, never its source line.  ``--debug`` shows them as Python does."""
     if issubclass(category, VqtouchWarning):
-        print(f"vqtouch: warning: {one_line(str(message))}", file=sys.stderr if file is None else file)
+        text = one_line(str(message))
     else:
-        default(message, category, filename, lineno, file, line)
+        module = Path(filename).stem if filename else "?"
+        text = f"{one_line(str(message))} ({category.__name__} from {module})"
+    print(f"vqtouch: warning: {text}", file=sys.stderr if file is None else file)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -471,7 +495,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = _debug_requested(argv)
     with warnings.catch_warnings():
-        warnings.showwarning = _show_warning
+        if not debug:
+            warnings.showwarning = _show_warning
         return _main(argv, debug)
 
 
@@ -527,15 +552,21 @@ def _run_command(argv: list[str], debug: bool) -> int:
             parser.print_help()
             return 2
         args.argv = ["vqtouch", *argv]
+        command, reads = command_inputs(parser, args)
         with (
+            reading(reads, command),
             _sigterm_interrupts(),
             greyscale_allowed(bool(getattr(args, "allow_greyscale", False))),
+            bad_images_skipped(bool(getattr(args, "lenient", False))),
             command_threads(args.threads) as busy,
         ):
             if busy:
                 print(f"vqtouch: note: {busy}", file=sys.stderr, flush=True)
+            if getattr(args, "out", None):  # before the handler loads or trains anything
+                check_output(args.out, into_package=command == "pretrained export")
             status = int(args.handler(args) or 0)
-        sys.stdout.flush()  # a reader that went away shows here, not in the flush at exit
+        if sys.stdout is not None:  # None when the shell closed it (`>&-`): print() then writes nothing
+            sys.stdout.flush()  # a reader that went away shows here, not in the flush at exit
         return status
     except BrokenPipeError:
         _silence_stdout()

@@ -58,8 +58,8 @@ def mode_problem(path: Path, mode: str, allow_greyscale: bool) -> str | None:
         if allow_greyscale:
             return None
         return (
-            f"image {path} is greyscale (mode {mode}); to copy it into 3 channels pass --allow-greyscale (commands) "
-            "or set allow_greyscale=true (dataset readers)"
+            f"image {path} is greyscale (mode {mode}); to copy it into 3 channels pass --allow-greyscale (commands "
+            "that read images) or set allow_greyscale=true (dataset readers)"
         )
     if mode not in _COLOUR_MODES:
         return f"image {path} has unsupported mode {mode}; expected 8-bit RGB"
@@ -99,6 +99,25 @@ def greyscale_allowed(allowed: bool = True) -> Iterator[None]:
         yield
     finally:
         _GREYSCALE_ALLOWED.reset(token)
+
+
+_BAD_IMAGES_SKIPPED: ContextVar[bool] = ContextVar("bad_images_skipped", default=False)
+
+
+@contextlib.contextmanager
+def bad_images_skipped(skip: bool = True) -> Iterator[None]:
+    """Within the block, a folder of a sensor's images drops the files that do not decode (with one
+    warning naming them) instead of refusing the folder: what a command's ``--lenient`` does."""
+    token = _BAD_IMAGES_SKIPPED.set(skip)
+    try:
+        yield
+    finally:
+        _BAD_IMAGES_SKIPPED.reset(token)
+
+
+def skipping_bad_images() -> bool:
+    """Whether the running command asked to skip images that do not decode (:func:`bad_images_skipped`)."""
+    return _BAD_IMAGES_SKIPPED.get()
 
 
 @dataclass(frozen=True)

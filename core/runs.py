@@ -26,7 +26,6 @@ registration declares (``makes=("families",)``), and a reader asks the run for i
 
 from __future__ import annotations
 
-import contextlib
 import datetime as _dt
 import hashlib
 import importlib.metadata as importlib_metadata
@@ -36,17 +35,18 @@ import platform
 import shutil
 import subprocess
 import sys
-import tempfile
 import time
 import warnings
 import weakref
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from .checkpoint import atomic_write, read_metadata
 from .config import ExperimentConfig, validate_experiment
+from .files import FileModel, check_model, inside_root
+from .outputs import LOCK_NAME, check_output
 from .errors import CheckpointError, ConfigError, VqtouchError, VqtouchWarning, unknown_name_message
 
 if TYPE_CHECKING:
@@ -58,10 +58,6 @@ try:
 except ImportError:  # pragma: no cover - Windows has no flock; runs there are simply not locked
     fcntl = None
 
-#: The lock file inside a run; it stays after the run (removing it would let two processes
-#: lock two different files of the same name).  Only RunDir makes it, so it also marks a run
-#: directory whose config.json is not written yet.
-LOCK_NAME = ".vqtouch.lock"
 #: A folder with a run's lock file but no config.json, as the messages describe it.
 _CONFIGLESS_RUN = (
     "a run without its config.json (stopped while it was being created, or the file was deleted), which cannot "
@@ -69,6 +65,14 @@ _CONFIGLESS_RUN = (
 )
 #: The index of what the run's stages made (:meth:`RunDir.publish`, :meth:`RunDir.product`).
 PRODUCTS_FILE = "products.json"
+
+
+class ProductEntry(FileModel):
+    """One product of a run's products.json: the stage that made it and its path inside the run."""
+
+    stage: str
+    path: str
+    facts: dict[str, Any] = {}
 
 
 @dataclass(frozen=True)
@@ -264,7 +268,7 @@ class RunDir:
 
         ``reads``: what the command reads, as ``(flag, what, path)``; a run folder that is one of
         them, or holds one, is refused before anything is written or emptied
-        (:func:`refuse_writing_over_inputs`).
+        (:func:`vqtouch.core.outputs.check_output`).
 
         A folder that already holds files is refused (ConfigError naming ``--resume`` and
         ``--overwrite``); with ``overwrite`` a run directory (one with a config.json or a
@@ -274,7 +278,7 @@ class RunDir:
             stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
             path = Path(config.output_dir) / f"{config.name}-{stamp}-{config_hash(config)}"
         run = cls(Path(path))
-        refuse_writing_over_inputs(run.path, reads)
+        check_output(run.path, reads)
         if not is_main_process():
             return run
         # Checked before locking too, so that a refused foreign folder does not get a lock file.
@@ -601,16 +605,17 @@ class RunDir:
         if not path.is_file():
             return {}
         index = read_run_json(path)
-        if not isinstance(index, dict) or not all(
-            isinstance(entry, dict) and {"stage", "path"} <= entry.keys() for entry in index.values()
-        ):
+        if not isinstance(index, dict):
             raise ConfigError(
                 f"{path}: not a products index (expected {{name: {{stage, path, facts}}}}); "
                 "run the stages that made them again, or delete the file"
             )
+        for name, entry in index.items():
+            check_model(entry, ProductEntry, f"{path} (product {name!r})")
         return index
 
     def _product(self, name: str, entry: Mapping[str, Any]) -> Product:
+        inside_root(entry["path"], self.path, self.path / PRODUCTS_FILE)
         return Product(name, entry["stage"], self.path / entry["path"], dict(entry.get("facts") or {}))
 
     def write_json(self, name: str, data: Any) -> Path:
@@ -627,65 +632,6 @@ class RunDir:
         record = {"stage": stage, "step": step, **{key: float(value) for key, value in metrics.items()}}
         with open(self.path / "metrics.jsonl", "a", encoding="utf-8") as handle:
             handle.write(json.dumps(record, sort_keys=True) + "\n")
-
-
-def refuse_writing_over_inputs(out: str | Path, reads: Sequence[tuple[str, str, str | Path | None]]) -> None:
-    """ConfigError when the folder a command writes (``out``) is one of the inputs it reads, or
-    holds one: emptying or filling it would destroy the input.  ``reads`` lists ``(flag, what,
-    path)``, e.g. ``("--tokenizer", "tokenizer run", "runs/tok")``; None paths and bundles
-    (``pretrained:NAME``, read-only) are skipped."""
-    target = Path(out).expanduser().resolve()
-    for flag, what, path in reads:
-        if path is None or str(path).startswith("pretrained:"):
-            continue
-        source = Path(path).expanduser().resolve()
-        if source == target:
-            raise ConfigError(f"--out {out} is the {what} this command reads ({flag}); choose another --out")
-        if source.is_relative_to(target):
-            raise ConfigError(f"--out {out} holds the {what} this command reads ({flag}: {path}); choose another --out")
-
-
-@contextlib.contextmanager
-def staged_output(
-    out: str | Path, *, overwrite: bool = False, reads: Sequence[tuple[str, str, str | Path | None]] = ()
-) -> Iterator[Path]:
-    """The output folder of a command that is not a run (``generate --out``, ...), with the guarantees
-    run folders have: yields a fresh hidden folder beside ``out`` to write into, and moves it onto
-    ``out`` whole when the block ends, so ``out`` is never half-written, never mixes two calls'
-    files and keeps its old content until the new one is complete.
-
-    Refused in one line before anything is written: ``out`` is an input (``reads``, see
-    :func:`refuse_writing_over_inputs`), a file, a run directory, or holds files and ``overwrite``
-    is not set.  An error or Ctrl-C in the block (or SIGTERM, which ``vqtouch.core.cli`` turns into
-    one) removes the staged folder.  When another process filled ``out`` meanwhile, the staged files are kept
-    where they are and the ConfigError says where.
-    """
-    out = Path(out)
-    refuse_writing_over_inputs(out, reads)
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out {out} is a file; give a folder")
-    if (out / "config.json").is_file() or (out / LOCK_NAME).exists():
-        raise ConfigError(f"--out {out} is a vqtouch run; write this command's output to another folder")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise ConfigError(f"--out {out} already holds files; choose another --out, or pass --overwrite to replace them")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staged = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
-    try:
-        yield staged
-    except BaseException:  # an error, Ctrl-C, or SIGTERM (which the command line turns into an interruption)
-        shutil.rmtree(staged, ignore_errors=True)
-        raise
-    if out.is_dir() and any(out.iterdir()):
-        if not overwrite:
-            raise ConfigError(
-                f"--out {out} was filled by another process meanwhile; this command's output is in {staged}"
-            )
-        retired = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".replaced", dir=out.parent))
-        os.replace(out, retired / out.name)
-        os.replace(staged, out)
-        shutil.rmtree(retired, ignore_errors=True)
-    else:
-        os.replace(staged, out)  # onto a missing or empty folder
 
 
 def product_makers(host: PluginHost) -> dict[str, str]:

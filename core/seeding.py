@@ -95,6 +95,15 @@ def on_one_thread(function: _F) -> _F:
 ENV_THREADS = "VQTOUCH_THREADS"
 
 
+#: More threads than this per core only make torch's threads wait for each other.
+THREADS_PER_CORE = 8
+
+
+def max_threads() -> int:
+    """The most CPU threads a command accepts on this machine (``--threads``, ``VQTOUCH_THREADS``)."""
+    return THREADS_PER_CORE * available_cores()
+
+
 def available_cores() -> int:
     """The CPU cores this process may run on (its affinity, else the machine's count)."""
     try:
@@ -145,6 +154,7 @@ def command_threads(requested: str | int | None) -> Iterator[str | None]:
     the load chose fewer.  ``requested``: ``--threads`` (a number), else ``VQTOUCH_THREADS``, else
     ``auto`` (:func:`busy_cpu_threads`); ``0``: leave torch's default."""
     value = requested if requested is not None else os.environ.get(ENV_THREADS, "auto").strip() or "auto"
+    given = f"--threads {value}" if requested is not None else f"{ENV_THREADS}={value!r}"
     before = torch.get_num_threads()
     note = None
     if str(value) == "auto":
@@ -153,11 +163,15 @@ def command_threads(requested: str | int | None) -> Iterator[str | None]:
         try:
             threads = int(value)
         except ValueError:
-            raise ConfigError(
-                f"{ENV_THREADS}={value!r}: give a number of threads, 0 (torch's default) or auto"
-            ) from None
+            raise ConfigError(f"{given}: give a number of threads, 0 (torch's default) or auto") from None
         if threads < 0:
-            raise ConfigError(f"{ENV_THREADS}={value!r}: give a number of threads >= 0")
+            raise ConfigError(f"{given}: give a number of threads >= 0")
+        most = max_threads()
+        if threads > most:  # torch's thread pool crashes (SIGSEGV) long before a huge count is reached
+            raise ConfigError(
+                f"{given}: at most {most} threads here ({THREADS_PER_CORE} per core of {available_cores()}); "
+                "give fewer, or 0 for torch's default"
+            )
         threads = threads or before
     torch.set_num_threads(threads)
     try:

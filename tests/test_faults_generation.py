@@ -17,6 +17,7 @@ from safetensors.torch import save_file
 from cli_checks import one_error_line, snapshot
 
 from vqtouch.core.cli import main
+from vqtouch.core.outputs import MARKER_NAME
 
 
 def poison(path: Path) -> None:
@@ -72,7 +73,7 @@ def test_train_generator_refuses_to_overwrite_the_tokenizer_it_reads(trained, ca
     before = snapshot(tok)
     assert main([*train_args(tok, flags=("--tokenizer", str(tok), "--overwrite"))]) == 2
     assert one_error_line(capsys) == (
-        f"--out {tok} is the tokenizer run this command reads (--tokenizer); choose another --out"
+        f"--out {tok} is --tokenizer {tok}; a command never writes into what it reads: choose another --out"
     )
     assert snapshot(tok) == before
 
@@ -83,7 +84,7 @@ def test_train_generator_refuses_an_out_that_holds_its_tokenizer(trained, tmp_pa
     inside = Path(shutil.copytree(tok, parent / "tok"))
     before = snapshot(parent)
     assert main([*train_args(parent, flags=("--tokenizer", str(inside), "--overwrite"))]) == 2
-    assert f"holds the tokenizer run this command reads (--tokenizer: {inside}); choose" in one_error_line(capsys)
+    assert f"holds --tokenizer {inside}; a command never writes into what it reads: choose" in one_error_line(capsys)
     assert snapshot(parent) == before
 
 
@@ -181,6 +182,7 @@ def test_generate_refuses_a_folder_that_holds_files_and_replaces_it_whole_with_o
     assert snapshot(out) == before
     assert generate(gen, out, "--overwrite") == 0
     assert sorted(path.name for path in out.iterdir()) == [
+        MARKER_NAME,
         "generate.json",
         "grid.png",
         "sample_0000.png",
@@ -194,8 +196,8 @@ def test_generate_never_writes_into_its_run(trained, capsys):
     _, gen = trained
     before = snapshot(gen)
     assert generate(gen, gen, "--overwrite") == 2
-    assert (
-        one_error_line(capsys) == f"--out {gen} is the generator run this command reads (--run); choose another --out"
+    assert one_error_line(capsys) == (
+        f"--out {gen} is --run {gen}; a command never writes into what it reads: choose another --out"
     )
     assert snapshot(gen) == before
 
@@ -347,6 +349,7 @@ def test_a_concurrent_generate_keeps_both_outputs(trained, tmp_path, monkeypatch
     assert line.startswith(f"--out {out} was filled by another process meanwhile; this command's output is in ")
     staged = Path(line.rsplit(" is in ", 1)[1])
     assert sorted(path.name for path in staged.iterdir()) == [
+        MARKER_NAME,
         "generate.json",
         "grid.png",
         "sample_0000.png",

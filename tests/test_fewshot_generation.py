@@ -9,10 +9,11 @@ import pytest
 import torch
 
 import generator_runs
-from cli_checks import one_error_line
+from cli_checks import one_error_line, snapshot
 from vqtouch.core import ConfigError, load_plugins
 from vqtouch.core.cli import main
 from vqtouch.core.images import save_png
+from vqtouch.core.outputs import MARKER_NAME
 from vqtouch.plugins.experiments.fewshot_generation import RECONSTRUCTED
 from vqtouch.plugins.generator.sensor_finetune import FAMILY_SENSOR, NEW_SENSOR, mixed_codes
 from vqtouch.plugins.generator.training import (
@@ -197,6 +198,11 @@ def test_fewshot_goes_from_a_sensors_images_to_a_generator_run_that_draws_that_s
     paired = {row["arm"]: row.get("contact_psnr") for row in result["scores"] if row["arm"] != RECONSTRUCTED}
     assert paired["shots (copied)"] is None and all(0 < paired[arm] < 100 for arm in paired if arm != "shots (copied)")
     assert (out / "samples_0_label.png").is_file() and "| few-shot |" in (out / "fewshot.md").read_text()
+    # The records name final paths, never the staging folder the run was written in.
+    assert tune["tokenizer"] == str((out / "tokenizer").resolve())
+    recorded = json.loads((out / "generator" / "fewshot_finetune.json").read_text())["tokenizer"]
+    assert recorded == "../tokenizer" and (out / "generator" / recorded / "autoencoder.safetensors").is_file()
+    assert ".partial" not in (out / "fewshot.json").read_text() + (out / "generator" / "config.json").read_text()
     # The output is a generator run drawing the new sensor; moved whole, it still finds its tokenizer.
     moved = tmp_path / "elsewhere"
     shutil.move(str(out), str(moved))
@@ -222,6 +228,37 @@ def test_fewshot_goes_from_a_sensors_images_to_a_generator_run_that_draws_that_s
         )
         == 0
     )
+
+
+@pytest.mark.parametrize("stop", ["fine-tuning", "scoring"])
+def test_an_interrupted_fewshot_says_that_nothing_is_kept_and_keeps_what_out_held(
+    family, tmp_path, capsys, monkeypatch, stop
+):
+    import vqtouch.plugins.experiments.fewshot_generation as fewshot
+    from vqtouch.core.training import TrainingInterrupted
+
+    def interrupted(*args, **kwargs):
+        if stop == "fine-tuning":  # what the trainer raises after Ctrl-C, once its checkpoint is written
+            raise TrainingInterrupted("SIGINT", 1, tmp_path / "checkpoint")
+        raise KeyboardInterrupt
+
+    target = "fine_tune_for_sensor" if stop == "fine-tuning" else "sample_and_score"
+    if stop == "fine-tuning":
+        import vqtouch.plugins.generator as generator
+
+        monkeypatch.setattr(generator, target, interrupted)
+    else:
+        monkeypatch.setattr(fewshot, target, interrupted)
+    out = tmp_path / "fewshot"
+    out.mkdir()
+    (out / MARKER_NAME).write_text('{"command": "fewshot"}\n')
+    (out / "fewshot.json").write_text("an earlier result\n")
+    assert _fewshot(family, out, TARGET, "--overwrite") == 130
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("vqtouch: fewshot stopped by ") and "nothing of this run is kept" in last
+    assert "run the command again" in last
+    assert (out / "fewshot.json").read_text() == "an earlier result\n"
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["fewshot"]  # no staging folder left
 
 
 def test_only_a_tokenizer_adapted_from_the_familys_own_stands_in_for_adapting(family, tmp_path):
@@ -261,7 +298,7 @@ def test_fewshot_bad_inputs_get_one_line_errors_and_write_nothing(family, tmp_pa
     (tmp_path / "kept" / "mine.txt").write_text("mine")
     cases = [
         (["--out", str(tmp_path / "kept")], "already holds files"),
-        (["--run", str(tmp_path)], "not a run directory"),
+        (["--run", str(tmp_path / "kept")], "not a run directory"),
         (["--images", str(tmp_path / "missing")], "missing"),
         (["--shots", "0"], "--shots"),
         (["--ratio", "-1"], "--ratio"),
@@ -371,7 +408,18 @@ def test_the_seeds_table_names_each_arm_once_per_conditioner_and_resumes_without
     assert alone["fine_tune"]["family_samples"] == 0
     assert first["summary"][-2]["fd_effnetlite0"] == alone["scores"][0]["fd_effnetlite0"]
     capsys.readouterr()
+    assert main(args) == 2  # a finished table is replaced only with --overwrite
+    assert "already holds a fewshot-generation experiment; pass --overwrite" in capsys.readouterr().err
     stamp = (out / "seed0" / "ratio2" / "fewshot.json").stat().st_mtime_ns
+    (out / "fewshot_generation.json").unlink()  # as if stopped after its arms, before the table
+    finished = snapshot(out)
+    other_shots = [*args[:-7], "--shots", "5", *args[-7:]]  # argparse keeps the last --shots
+    assert main(other_shots) == 2  # once: trained again and replaced seed0/ratio2 without a word
+    assert one_error_line(capsys) == (
+        f"{out / 'seed0' / 'ratio2'} holds a finished arm with other settings: shots 4 (now 5); pass --overwrite "
+        "to run every arm again, or choose another --out"
+    )
+    assert snapshot(out) == finished
     assert main(args) == 0
     assert "seed 0, ratio 2: read" in capsys.readouterr().out
     assert (out / "seed0" / "ratio2" / "fewshot.json").stat().st_mtime_ns == stamp
@@ -386,6 +434,7 @@ def test_the_seeds_table_names_each_arm_once_per_conditioner_and_resumes_without
         if row["arm"] != RECONSTRUCTED
     ]
     done.write_text(json.dumps(older))
+    (out / "fewshot_generation.json").unlink()
     capsys.readouterr()
     assert main(args) == 0
     assert "drawing its samples again" in capsys.readouterr().out

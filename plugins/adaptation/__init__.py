@@ -4,6 +4,7 @@ The public API other packages use (imported on first use, so importing this pack
 adapting a tokenizer to an unseen sensor (:func:`adapt_tokenizer` with :class:`AdaptSettings`, the
 families it assigns from: :func:`families_to_adapt_from`, :func:`registered_source`), the unseen
 sensor's images (:func:`target_images`) and its no-contact background (:func:`sensor_background`),
+what an ``adapt.json`` holds (:class:`AdaptRecord`),
 :class:`AdaptationRefused` and :func:`refuse_existing`.  Other packages import these names from
 here, never the modules behind them (``make lint`` checks it).
 """
@@ -14,6 +15,7 @@ import importlib
 from typing import Any
 
 _PUBLIC = {
+    "AdaptRecord": ("adapt", "AdaptRecord"),
     "AdaptSettings": ("adapt", "AdaptSettings"),
     "AdaptationRefused": ("adapt", "AdaptationRefused"),
     "adapt_tokenizer": ("adapt", "adapt_tokenizer"),

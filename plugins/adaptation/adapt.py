@@ -25,7 +25,9 @@ from typing import Any
 
 import torch
 
+from vqtouch.core.outputs import output_folder
 from vqtouch.core import ConfigError, DatasetError, PluginHost, VqtouchError
+from vqtouch.core.files import FileModel
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 from vqtouch.plugins.evaluation.contact import (
     MAX_BACKGROUND_IMAGES,
@@ -429,7 +431,7 @@ def adapt_tokenizer(
             "before": real_before,
             "after": reconstruction_scores(tokenizer, real, host, batch_size, settings.metrics),
         }
-    out.mkdir(parents=True, exist_ok=True)
+    output_folder(out)
     header = {
         "adaptation.target": source,
         "adaptation.family": str(family),
@@ -448,6 +450,20 @@ def adapt_tokenizer(
     )
     atomic_write(out / ADAPT_JSON, lambda tmp: tmp.write_text(json.dumps(summary, indent=2) + "\n"))
     return summary
+
+
+class AdaptRecord(FileModel):
+    """What is read back of an ``adapt.json``: the tokenizer adapted from and the settings."""
+
+    target: str
+    adapted_from: str
+    family: int
+    seed: int
+    shots: int
+    ratio: float
+    held_out: int
+    steps: int
+    part: str = "all"
 
 
 #: What adaptation can fine-tune (:attr:`AdaptSettings.part`).

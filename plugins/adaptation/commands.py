@@ -27,7 +27,8 @@ from pathlib import Path
 
 from vqtouch.core import ConfigError, hookimpl
 from vqtouch.core.cli import (
-    add_greyscale_argument,
+    family_ratio,
+    add_image_folder_arguments,
     NumberType,
     add_step_argument,
     command_group,
@@ -287,7 +288,7 @@ def vqtouch_add_commands(subparsers):
         help="refuse an unseen sensor farther than this from every family (default: 3x the "
         "largest within-family spread, at least half the nearest two families' distance)",
     )
-    add_greyscale_argument(cluster)
+    add_image_folder_arguments(cluster)
     cluster.set_defaults(handler=_cluster_command)
 
     adapt = subparsers.add_parser("adapt", help="adapt a family tokenizer to an unseen sensor from a few of its images")
@@ -307,7 +308,7 @@ def vqtouch_add_commands(subparsers):
     adapt.add_argument("--shots", type=positive_int, default=50, help="unseen-sensor images to train on (default 50)")
     adapt.add_argument(
         "--ratio",
-        type=non_negative_float,
+        type=family_ratio,
         default=AdaptSettings.ratio,
         help=f"family images per shot in the mixed set (default {AdaptSettings.ratio:g}, measured with `vqtouch "
         "evaluate mix-ratio`; the paper's 1:5 needs about 6x the shots-alone steps to see the sensor as often)",
@@ -347,7 +348,7 @@ def vqtouch_add_commands(subparsers):
     adapt.add_argument("--family", type=non_negative_int, help="adapt from this family, whatever the assignment says")
     adapt.add_argument("--seed", type=seed_int, default=0, help="seed of the shots' draw and the rendered scenes")
     adapt.add_argument("--overwrite", action="store_true", help="replace an adapted tokenizer already in --out")
-    add_greyscale_argument(adapt)
+    add_image_folder_arguments(adapt)
     adapt.set_defaults(handler=_adapt_command)
 
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
@@ -375,7 +376,7 @@ def vqtouch_add_commands(subparsers):
     cross.add_argument("--main-shots", type=positive_int, default=50, help="shots of the ratio sweep (default 50)")
     cross.add_argument(
         "--ratios",
-        type=non_negative_float,
+        type=family_ratio,
         nargs="+",
         default=[1.0, 5.0, 20.0],
         help="family images per shot in arm c (default 1 5 20)",
@@ -406,6 +407,7 @@ def vqtouch_add_commands(subparsers):
         default=[4, 8, 16],
         help="shots from the real frames (default 4 8 16; the rest are held out)",
     )
+    add_image_folder_arguments(cross)
     cross.set_defaults(handler=_evaluate_cross_sensor_command)
 
     fewshot = evaluate.add_parser(
@@ -432,7 +434,7 @@ def vqtouch_add_commands(subparsers):
     )
     fewshot.add_argument(
         "--ratio",
-        type=non_negative_float,
+        type=family_ratio,
         default=5.0,
         help="family images per target image in the mixed arm (default 5: the paper's 1:5)",
     )
@@ -458,7 +460,7 @@ def vqtouch_add_commands(subparsers):
         help="a `vqtouch cluster` output of this tokenizer (default: cluster the "
         "registered sensor families and 3 variants of each into OUT/families)",
     )
-    fewshot.add_argument("--overwrite", action="store_true", help="run again into an --out that holds fewshot.json")
+    add_image_folder_arguments(fewshot)
     fewshot.set_defaults(handler=_evaluate_fewshot_command)
 
     ratio = evaluate.add_parser(
@@ -478,7 +480,7 @@ def vqtouch_add_commands(subparsers):
     ratio.add_argument("--shots", type=positive_int, default=50, help="unseen-sensor images to adapt on (default 50)")
     ratio.add_argument(
         "--ratios",
-        type=non_negative_float,
+        type=family_ratio,
         nargs="+",
         default=[0.0, 1.0, 2.0, 5.0, 10.0],
         help="family images per shot (default 0 1 2 5 10; 0 is the shots alone)",
@@ -515,9 +517,5 @@ def vqtouch_add_commands(subparsers):
         help="mix ratios whose equal-exposure step count the shots alone also train for, telling the longer "
         "training from the mix (default none)",
     )
-    ratio.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="train every arm again (without it, an interrupted run reuses the arms it finished)",
-    )
+    add_image_folder_arguments(ratio)
     ratio.set_defaults(handler=_evaluate_mix_ratio_command)

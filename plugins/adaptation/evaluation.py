@@ -29,6 +29,7 @@ from typing import Any
 
 import torch
 
+from vqtouch.core.outputs import output_folder
 from vqtouch.core import ConfigError, PluginHost
 from vqtouch.plugins.evaluation.records import markdown_table, mean_spread
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
@@ -372,7 +373,7 @@ def evaluate_cross_sensor(
     image_size = tokenizer.autoencoder.vqtouch_spec.context.image_size
     if main_shots not in shots:
         raise ConfigError(f"--main-shots {main_shots} must be one of --shots {shots}")
-    out.mkdir(parents=True, exist_ok=True)
+    output_folder(out)
     real, usable = None, []
     if real_family is not None:  # written and read once: every seed adapts to the same frames
         frames = real_frames_folder(host, real_family, image_size, out / f"real_{real_family}")

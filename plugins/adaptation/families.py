@@ -24,7 +24,11 @@ from typing import Any, Literal
 
 import torch
 
+from vqtouch.core.outputs import output_folder
+from pydantic import Field, model_validator
+
 from vqtouch.core import ConfigError, PluginHost
+from vqtouch.core.files import FileModel, read_model
 from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.core.image_size import ImageSize
 from vqtouch.core.seeding import on_one_thread
@@ -511,7 +515,7 @@ def save_families(
     from vqtouch.core import save
     from vqtouch.core.checkpoint import atomic_write
 
-    folder.mkdir(parents=True, exist_ok=True)
+    output_folder(folder)
     save(families.clusterer, folder / CLUSTERER_FILE, host=host)
     summary = {**families.summary, **(extra or {})}
     path = atomic_write(folder / CLUSTER_JSON, lambda tmp: tmp.write_text(json.dumps(summary, indent=2) + "\n"))
@@ -530,6 +534,42 @@ def save_families(
     return path
 
 
+class FamilySensor(FileModel):
+    """One sensor of a ``cluster.json``."""
+
+    name: str
+    source: str = ""
+
+
+class ClusterRecord(FileModel):
+    """What is read back of a ``cluster.json`` (the rest of it is kept as written)."""
+
+    tokenizer: str = ""
+    features: str
+    image_size: int | list[int]
+    refine_steps: int
+    keep: float
+    refusal_threshold: float = Field(ge=0)
+    clusterer: dict[str, Any]
+    sensors: list[FamilySensor] = Field(min_length=2)
+    families: list[list[str]]
+    sensor_family: dict[str, int]
+    prototypes: dict[str, list[float]]
+
+    @model_validator(mode="after")
+    def _every_sensor_has_a_prototype_and_family(self) -> ClusterRecord:
+        for sensor in self.sensors:
+            if sensor.name not in self.prototypes or sensor.name not in self.sensor_family:
+                raise ValueError(f"sensor {sensor.name!r} has no prototype or family")
+            if not 0 <= self.sensor_family[sensor.name] < len(self.families):
+                raise ValueError(
+                    f"sensor {sensor.name!r} is in family {self.sensor_family[sensor.name]}, which is not listed"
+                )
+        if len({len(row) for row in self.prototypes.values()}) > 1:
+            raise ValueError("the prototypes have different lengths")
+        return self
+
+
 def load_families(folder: str | Path, host: PluginHost) -> SensorFamilies:
     """Families written by ``vqtouch cluster`` (or the ``cluster`` stage) into ``folder``."""
     from vqtouch.core import load
@@ -540,10 +580,7 @@ def load_families(folder: str | Path, host: PluginHost) -> SensorFamilies:
             f"{folder}: no sensor families here ({CLUSTER_JSON} and {CLUSTERER_FILE}); make them with "
             f"`vqtouch cluster --run TOKRUN --sensors ... --out {folder}`"
         )
-    try:
-        summary = json.loads((folder / CLUSTER_JSON).read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ConfigError(f"{folder / CLUSTER_JSON}: not readable ({exc}); run `vqtouch cluster` again") from None
+    summary = read_model(folder / CLUSTER_JSON, ClusterRecord).model_dump()
     clusterer = load(folder / CLUSTERER_FILE, host=host)
     names = [sensor["name"] for sensor in summary["sensors"]]
     prototypes_SF = torch.tensor([summary["prototypes"][name] for name in names], dtype=torch.float64)

@@ -117,18 +117,19 @@ def check_counts(counts: Sequence[int]) -> list[int]:
     return sorted(counts)
 
 
-def held_out_count(target: str, counts: Sequence[int], eval_images: int, host: PluginHost) -> int:
+def held_out_count(target: str, counts: Sequence[int], eval_images: int, host: PluginHost, flag: str = "--n") -> int:
     """How many held-out images score every arm: ``eval_images``, or for a folder as many as the
     largest N leaves (its shuffle's last ones are held out; every N must leave the same ones).
-    A one-line ConfigError when the folder cannot spare the largest N plus one held-out image."""
+    A one-line ConfigError naming ``flag`` (the option that gave the counts) when the folder cannot
+    spare the largest N plus one held-out image."""
     path = folder_of(target)
     if path is None:
         return eval_images
     images = len(sensor_folder_files(path, host))
     if max(counts) + 1 > images:
-        usable = f"the largest usable --n is {images - 1}" if images > 1 else "few-shot needs at least 2 images"
+        usable = f"the largest usable {flag} is {images - 1}" if images > 1 else "few-shot needs at least 2 images"
         raise ConfigError(
-            f"--n {max(counts)}: the folder {path} holds {images} images; {usable} (the rest are held "
+            f"{flag} {max(counts)}: the folder {path} holds {images} images; {usable} (the rest are held "
             "out to score every arm)"
         )
     return min(eval_images, images - max(counts))
@@ -384,7 +385,7 @@ def evaluate_fewshot(
     # is the run's batch, or the smallest N when that is smaller (the fine-tuning batch then too).
     batch_size = min(config.data.batch_size, counts[0])
     background, background_source = sensor_background(target, host, image_size)
-    record = ExperimentRecord("fewshot", out, seeds)
+    record = ExperimentRecord("fewshot", out, seeds, overwrite=overwrite)
     fitted, families_source = families_for(families, tokenizer, folder, target, host, out, image_size)
     rows: list[dict[str, Any]] = []
     skipped: dict[str, str] = {}

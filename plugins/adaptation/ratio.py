@@ -34,7 +34,6 @@ trains every arm again).
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any, Callable, NamedTuple, Sequence
@@ -42,6 +41,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 import torch
 
 from vqtouch.core import ConfigError, PluginHost
+from vqtouch.core.files import read_model
 from vqtouch.core.image_size import ImageSize, size_text
 from vqtouch.plugins.evaluation.records import (
     ExperimentRecord,
@@ -53,7 +53,7 @@ from vqtouch.plugins.evaluation.records import (
 )
 from vqtouch.plugins.data.sensor_folders import folder_of, sensor_folder_files
 
-from .adapt import ADAPT_JSON, AdaptSettings, adapt_tokenizer, sensor_background
+from .adapt import ADAPT_JSON, AdaptRecord, AdaptSettings, adapt_tokenizer, sensor_background
 from .evaluation import METRICS
 from .families import SensorFamilies
 from .fewshot import BACKGROUND, SHOTS_ALONE, ZERO_SHOT, assign_seed_family, families_for, held_out_count
@@ -122,9 +122,9 @@ def arm_plan(
     return plan + [Arm(ALL_IMAGES, "-", "all", 0.0, all_images, steps)]
 
 
-def _matches(summary: dict[str, Any], settings: AdaptSettings) -> bool:
-    """Whether an ``adapt.json`` already in an arm's folder is this arm's (same shots, ratio, steps,
-    seed, family, held-out images and fine-tuned part)."""
+def _differences(summary: dict[str, Any], settings: AdaptSettings) -> dict[str, Any]:
+    """How an ``adapt.json`` already in an arm's folder differs from this arm (shots, ratio, steps,
+    seed, family, held-out images and fine-tuned part): ``{key: (recorded, wanted)}``."""
     wanted = {
         "shots": settings.shots,
         "ratio": settings.ratio,
@@ -134,7 +134,7 @@ def _matches(summary: dict[str, Any], settings: AdaptSettings) -> bool:
         "held_out": settings.eval_images,
         "part": settings.part,
     }
-    return all(summary.get(key) == value for key, value in wanted.items())
+    return {key: (summary.get(key), value) for key, value in wanted.items() if summary.get(key) != value}
 
 
 def adapt_arm(
@@ -148,13 +148,20 @@ def adapt_arm(
     *,
     resume: bool,
 ) -> tuple[dict[str, Any], bool]:
-    """One arm's ``adapt.json`` summary: read back from ``out`` when ``resume`` and it is this arm's
-    (:func:`_matches`), otherwise adapted now.  Returns it and whether it was read back."""
+    """One arm's ``adapt.json`` summary: read back from ``out`` when ``resume`` and it is this arm's,
+    otherwise adapted now.  Returns it and whether it was read back.  A finished arm with other
+    settings is refused unless ``resume`` is off (``--overwrite``)."""
     path = out / ADAPT_JSON
     if resume and path.is_file():
-        summary = json.loads(path.read_text())
-        if _matches(summary, settings):
+        summary = read_model(path, AdaptRecord).model_dump()
+        differing = _differences(summary, settings)
+        if not differing:
             return summary, True
+        said = ", ".join(f"{key} {old!r} (now {new!r})" for key, (old, new) in differing.items())
+        raise ConfigError(
+            f"{out} holds a finished arm with other settings: {said}; pass --overwrite to train every arm "
+            "again, or choose another --out"
+        )
     summary = adapt_tokenizer(
         run,
         target,
@@ -197,7 +204,7 @@ def all_images_count(target: str, shots: int, all_images: int, eval_images: int,
     least the shots), with the held-out images the shots leave (``eval_images`` at most)."""
     if folder_of(target) is None:
         return all_images, eval_images
-    held_out = held_out_count(target, [shots], eval_images, host)
+    held_out = held_out_count(target, [shots], eval_images, host, flag="--shots")
     available = len(sensor_folder_files(folder_of(target), host)) - held_out
     return min(all_images, available), held_out
 
@@ -253,7 +260,7 @@ def evaluate_mix_ratio(
     # batch, so the arms' regions are the same pixels only when their batches are.
     batch_size = min(config.data.batch_size, shots)
     background, background_source = sensor_background(target, host, image_size)
-    record = ExperimentRecord("mix_ratio", out, seeds)
+    record = ExperimentRecord("mix_ratio", out, seeds, overwrite=overwrite)
     fitted, families_source = families_for(families, tokenizer, folder, target, host, out, image_size)
     plan = arm_plan(shots, ratios, steps, cost_controls, all_images)
     rows: list[dict[str, Any]] = []

@@ -19,6 +19,7 @@ from typing import Any
 
 import torch
 
+from vqtouch.core.outputs import output_folder
 from vqtouch.core import ConfigError, PluginHost, VqtouchError, hookimpl
 from vqtouch.core.checkpoint import atomic_write
 from vqtouch.core.cli import (
@@ -69,8 +70,7 @@ def _fidelity_command(args: argparse.Namespace) -> int:
     from vqtouch.sensors.fidelity import evaluate_fidelity
 
     host = args.host
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(args.out)
     results = []
     for sensor in args.sensors:
         result = evaluate_fidelity(sensor, host, resolution=(args.height, args.height * 4 // 3), crop_px=args.crop)
@@ -163,8 +163,7 @@ def _leakage_command(args: argparse.Namespace) -> int:
             marker = "*" if distance <= args.threshold else " "
             print(f"  {distance:8.3f}{marker} {report.test_ids[test_index]}  {report.train_ids[train_index]}")
     if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
+        out = output_folder(args.out)
         record |= report.to_json()
         atomic_write(out / "leakage.json", lambda tmp: tmp.write_text(json.dumps(record, indent=2) + "\n"))
         if closest:

@@ -5,13 +5,17 @@ resolution."""
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import torch
 
-from vqtouch.core import DatasetError, PluginHost
+from vqtouch.core import DatasetError, PluginHost, VqtouchWarning
+from vqtouch.core.images import skipping_bad_images
 from vqtouch.core.image_size import ImageSize
 
+#: What a command that reads a sensor's folder offers for a file it cannot use.
+LENIENT_ADVICE = "pass --lenient to skip the images that cannot be used"
 #: The index ``vqtouch data render`` writes beside its tactile/ and visual/ folders.
 EXPORT_INDEX = "index.csv"
 
@@ -28,14 +32,40 @@ def sensor_folder_files(path: Path, host: PluginHost) -> list[Path]:
     if (path / EXPORT_INDEX).is_file():
         options["csv"] = EXPORT_INDEX
     elif direct := list_images(path):
-        return direct
+        return usable_images(path, direct) if skipping_bad_images() else direct
     elif not any(sub.is_dir() and not sub.name.startswith(".") for sub in path.iterdir()):
         raise DatasetError(
             f"{path}: no image files (png, jpg, ...) in this folder, no {EXPORT_INDEX} and no class sub-folders; "
             "give the folder that holds the sensor's images"
         )
+    if skipping_bad_images():
+        options["lenient"] = True
     dataset = host.build("dataset", options)
     return [dataset.base / record.tactile for record in dataset.records]
+
+
+def usable_images(folder: Path, files: list[Path]) -> list[Path]:
+    """``files`` less those that do not decode or cannot be used (``--lenient``), with one warning
+    naming how many and the first; a DatasetError when none is left."""
+    from vqtouch.core.images import ImageLoader
+
+    loader, kept, problems = ImageLoader(size=8), [], []
+    for file in files:
+        try:
+            loader.load(file)
+        except DatasetError as exc:
+            problems.append(str(exc))
+            continue
+        kept.append(file)
+    if not kept:
+        raise DatasetError(f"{folder}: none of its {len(files)} images can be used (first: {problems[0]})")
+    if problems:
+        warnings.warn(
+            f"{folder}: skipped {len(problems)} of {len(files)} images (--lenient); first: {problems[0]}",
+            VqtouchWarning,
+            stacklevel=2,
+        )
+    return kept
 
 
 def folder_of(spec: str) -> Path | None:
@@ -60,7 +90,7 @@ def check_one_resolution(folder: Path, files: list[Path]) -> None:
             with Image.open(file) as image:
                 sizes.setdefault(image.size, file)
         except (OSError, ValueError) as exc:
-            raise DatasetError(f"cannot decode image {file}: {type(exc).__name__}: {exc}") from None
+            raise DatasetError(f"cannot decode image {file}: {type(exc).__name__}: {exc}; {LENIENT_ADVICE}") from None
         if len(sizes) > 1:
             (a, first), (b, second) = list(sizes.items())[:2]
             raise DatasetError(
@@ -91,4 +121,7 @@ def load_sensor_folder(
         raise DatasetError(f"{path}: no image files (png, jpg, ...) in this folder")
     check_one_resolution(path, files)
     loader = ImageLoader(size=image_size)
-    return torch.stack([loader.load(file) for file in files])  # DatasetError names the file that does not decode
+    try:
+        return torch.stack([loader.load(file) for file in files])  # DatasetError names the file that does not decode
+    except DatasetError as exc:
+        raise DatasetError(f"{exc}; {LENIENT_ADVICE}") from None

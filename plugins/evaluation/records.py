@@ -7,7 +7,7 @@ This module knows no model or stage; it only shapes rows of numbers.
 
 Typical use inside an experiment command::
 
-    record = ExperimentRecord("reconstruction", out, seeds=args.seeds)
+    record = ExperimentRecord("reconstruction", out, seeds=args.seeds, overwrite=args.overwrite)
     rows = [...]                         # one dict per (configuration, seed)
     summary = mean_spread(rows, ("ssim", "psnr"), group=("encoder", "samples"))
     record.write({"rows": rows, "summary": summary}, markdown_lines)
@@ -27,6 +27,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+from vqtouch.core.outputs import output_folder
 from vqtouch.core.cli import seed_int
 from vqtouch.core.errors import ConfigError
 from vqtouch.core import __version__
@@ -36,8 +37,14 @@ DEFAULT_SEEDS = (0, 1, 2)
 
 
 def add_experiment_arguments(parser: argparse.ArgumentParser, default_seeds: Sequence[int] = DEFAULT_SEEDS) -> None:
-    """``--out`` and ``--seeds``, the two flags every experiment takes."""
+    """``--out``, ``--overwrite`` and ``--seeds``, the flags every experiment takes."""
     parser.add_argument("--out", required=True, help="folder for the experiment's JSON, markdown and PNG files")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="run again into an --out that holds a finished result, training every arm again (without it, an "
+        "interrupted run reuses the arms it finished, and one with other settings is refused)",
+    )
     parser.add_argument(
         "--seeds",
         type=seed_int,
@@ -209,16 +216,18 @@ class ExperimentRecord:
     """The ``--out`` folder of one experiment and its ``<name>.json`` / ``<name>.md``.
 
     Created at the start (it records the provenance and the start time) and written at the end
-    with :meth:`write`; figures go to :meth:`path`.
+    with :meth:`write`; figures go to :meth:`path`.  An ``out`` that holds a finished ``<name>.json``
+    is refused unless ``overwrite`` (:func:`refuse_finished`).
     """
 
-    def __init__(self, name: str, out: str | Path, seeds: Sequence[int]) -> None:
+    def __init__(self, name: str, out: str | Path, seeds: Sequence[int], *, overwrite: bool = False) -> None:
         self.name = name
         self.out = Path(out)
         self.seeds = check_seeds(seeds)
+        refuse_finished(self.out, name, f"a {name.replace('_', '-')} experiment", overwrite)
         self.provenance = provenance()
         self._tic = time.perf_counter()
-        self.out.mkdir(parents=True, exist_ok=True)
+        output_folder(self.out)
 
     def path(self, filename: str) -> Path:
         """A file inside the experiment's folder."""

@@ -94,6 +94,7 @@ from vqtouch.plugins.generator import (
     RANK_DESCRIPTIONS,
     check_best_of,
     check_best_of_rank,
+    refuse_idle_rank,
     sample_images,
 )
 from vqtouch.core.data import experiment_split
@@ -375,8 +376,10 @@ def evaluate_downstream(
     best_of: int = 1,
     best_of_rank: str = "judge",
     report: Callable[[str], None] = print,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
-    """Run the experiment of the module docstring on ``run`` and write its files into ``out``.
+    """Run the experiment of the module docstring on ``run`` and write its files into ``out``
+    (one that holds a finished record only with ``overwrite``).
 
     ``shots``: real training images per class of the few-shot arms; ``generated_per_class``: images
     generated per class; ``conditioner``: the generator's label conditioner (index; default the first
@@ -429,7 +432,7 @@ def evaluate_downstream(
 
     prepare = reconstruct if through_tokenizer else None
 
-    record = ExperimentRecord("downstream", out, seeds=seeds)  # from here on the wall time counts
+    record = ExperimentRecord("downstream", out, seeds=seeds, overwrite=overwrite)  # from here on the wall time counts
     pool = list(train_split.indices)
     if train_images and train_images < len(pool):
         order = torch.randperm(len(pool), generator=torch.Generator().manual_seed(0)).tolist()
@@ -759,6 +762,7 @@ def save_generated(images_N3HW: torch.Tensor, per_class: int, path: Path) -> Non
 
 
 def _evaluate_downstream_command(args: argparse.Namespace) -> int:
+    refuse_idle_rank(args)
     out = Path(args.out)
     evaluate_downstream(
         args.run,
@@ -780,6 +784,7 @@ def _evaluate_downstream_command(args: argparse.Namespace) -> int:
         best_of=args.best_of,
         best_of_rank=args.best_of_rank,
         report=lambda line: print(line, flush=True),
+        overwrite=args.overwrite,
     )
     print((out / "downstream.md").read_text())
     print(

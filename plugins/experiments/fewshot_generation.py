@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import sys
 from pathlib import Path
 from typing import Any, Literal, Sequence
 
@@ -53,12 +54,31 @@ from vqtouch.core import (
     hookimpl,
 )
 from vqtouch.core.checkpoint import is_pretrained
-from vqtouch.core.cli import non_negative_float, non_negative_int, positive_int
+from vqtouch.core.cli import (
+    add_image_folder_arguments,
+    family_ratio,
+    non_negative_float,
+    non_negative_int,
+    positive_int,
+)
 from vqtouch.core.data import experiment_split
+from vqtouch.core.files import FileModel, read_model
 from vqtouch.core.images import image_grid, save_png
-from vqtouch.core.runs import staged_output
+from vqtouch.core.outputs import staged_output
+from vqtouch.core.runs import interrupted_status
 from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.plugins.evaluation.records import markdown_table, provenance
+
+
+class FewshotRecord(FileModel):
+    """What is read back of a ``fewshot.json``: the settings it ran with and its score rows."""
+
+    images: str
+    shots: int
+    ratio: float
+    seed: int
+    scores: list[dict[str, Any]]
+
 
 #: The scores of a row, and their headers.
 SCORE_KEYS = ("fd_effnetlite0", "contact_psnr", "classifier_accuracy")
@@ -102,8 +122,10 @@ def _family_tokenizer(family_run: str, host: PluginHost) -> tuple[Any, Path]:
 def adapted_summary(adapted: Path, folder: Path, part: str | None = None) -> dict[str, Any] | None:
     """``adapted``'s ``adapt.json`` when it was adapted from the tokenizer in ``folder`` (and, given
     ``part``, adapting that part), else None: only such a tokenizer can stand in for adapting again."""
-    made = json.loads((adapted / "adapt.json").read_text())
-    if Path(made.get("adapted_from", "")).resolve() != folder.resolve():
+    from vqtouch.plugins.adaptation import AdaptRecord
+
+    made = read_model(adapted / "adapt.json", AdaptRecord).model_dump()
+    if Path(made["adapted_from"]).resolve() != folder.resolve():
         return None
     return made if part is None or made.get("part", "all") == part else None
 
@@ -186,7 +208,7 @@ def fewshot_generation(
     ``ratio`` and ``seed`` (the ``adapt`` stage's), copied instead of adapting again.  ``ratio``: family
     images per shot (default ``vqtouch adapt``'s)."""
     from vqtouch.plugins.adaptation import AdaptSettings, adapt_tokenizer, families_to_adapt_from, registered_source
-    from vqtouch.plugins.generator import fine_tune_for_sensor, load_pipeline
+    from vqtouch.plugins.generator import check_condition_keys, fine_tune_for_sensor, load_pipeline
 
     ratio = AdaptSettings.ratio if ratio is None else ratio
     if ratio < 0:
@@ -204,6 +226,7 @@ def fewshot_generation(
             )
     family_pipe = load_pipeline(family_run, host=host)
     config = family_pipe.config
+    check_condition_keys(config, host)  # the family data the fine-tuning reads, before anything is written
     image_size = config.data.image_size
     result: dict[str, Any] = {
         "family_run": str(family_run),
@@ -213,8 +236,10 @@ def fewshot_generation(
         "seed": seed,
     }
     reads = [("--images", "images", images)] if Path(images).is_dir() else []
-    if not is_pretrained(family_run):
-        reads.append(("--run", "family run", family_run))
+    if not is_pretrained(family_run):  # what it reads of the run: the fewshot stage writes beside them
+        reads += [("--run", "family run", Path(family_run) / name) for name in ("checkpoints", "config.json")]
+    if families is not None:
+        reads.append(("--families", "sensor families", families))
     with staged_output(out, overwrite=overwrite, reads=reads) as partial:
         if adapted is not None:
             report(f"1/5 reuse the tokenizer adapted in {adapted}")
@@ -277,6 +302,7 @@ def fewshot_generation(
             argv=argv,
             report=lambda line: report(f"    {line}"),
         )
+        result["fine_tune"]["tokenizer"] = str((out / "tokenizer").resolve())  # where it is once moved into place
 
         pipe = load_pipeline(partial / "generator", host=host)
         result |= sample_and_score(
@@ -532,9 +558,8 @@ def render_markdown(result: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _fewshot_command(args: argparse.Namespace) -> int:
-    out = Path(args.out)
-    result = fewshot_generation(
+def _run_fewshot(args: argparse.Namespace, out: Path) -> dict[str, Any]:
+    return fewshot_generation(
         args.run,
         args.images,
         out,
@@ -547,6 +572,20 @@ def _fewshot_command(args: argparse.Namespace) -> int:
         argv=args.argv,
         report=lambda line: print(line, flush=True),
     )
+
+
+def _fewshot_command(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    try:
+        result = _run_fewshot(args, out)
+    except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, or either during the fine-tuning
+        cause = getattr(exc, "cause", None) or ("SIGTERM" if getattr(exc, "signum", None) else "Ctrl-C")
+        print(
+            f"vqtouch: fewshot stopped by {cause}; nothing of this run is kept (--out {out} is written whole once "
+            "all five steps finish, and holds what it held before): run the command again",
+            file=sys.stderr,
+        )
+        return interrupted_status(exc)
     print((out / "fewshot.md").read_text())
     pictures = ", ".join(result["samples"]["pictures"])
     print(f"-> {out} (tokenizer/, generator/ (vqtouch generate --run {out / 'generator'}), {pictures}, fewshot.json)")
@@ -572,26 +611,27 @@ def evaluate_fewshot_generation(
     seeds: Sequence[int],
     ratios: Sequence[float],
     report: Any = print,
+    overwrite: bool = False,
     **options: Any,
 ) -> dict[str, Any]:
     """:func:`fewshot_generation` once per seed and ratio into ``out/seed<S>/ratio<R>/`` (a folder that
     already holds a finished run with the same images, shots, ratio and seed is read, not run again: an
-    interrupted table resumes), then ``fd_effnetlite0`` per conditioner and arm as mean ± std over the
+    interrupted table resumes; one with other settings is refused unless ``overwrite``, which runs every
+    arm again), then ``fd_effnetlite0`` per conditioner and arm as mean ± std over the
     seeds: ``fewshot_generation.json`` and ``fewshot_generation.md``.  The zero-shot, copied-shots and
     background rows of a seed are the same at every ratio (same held-out images and conditions); the
     first ratio's are kept."""
     from vqtouch.plugins.evaluation.records import ExperimentRecord, mean_spread
 
-    record = ExperimentRecord("fewshot_generation", out, seeds)
+    record = ExperimentRecord("fewshot_generation", out, seeds, overwrite=overwrite)
     rows: list[dict[str, Any]] = []
     for seed in record.seeds:
         for position, ratio in enumerate(ratios):
             folder = Path(out) / f"seed{seed}" / f"ratio{ratio:g}"
-            done = folder / "fewshot.json"
             settings = {"images": images, "shots": options.get("shots", 50), "ratio": ratio, "seed": seed}
-            previous = json.loads(done.read_text()) if done.is_file() else None
-            if previous is not None and all(previous.get(key) == value for key, value in settings.items()):
-                report(f"seed {seed}, ratio {ratio:g}: read {done}")
+            previous = None if overwrite else finished_arm(folder, settings)
+            if previous is not None:
+                report(f"seed {seed}, ratio {ratio:g}: read {folder / 'fewshot.json'}")
                 result = previous
                 if ("paired_truth" not in result or "classifier" not in result) and result["scores"]:
                     report("    scored before the paired scores existed: drawing its samples again to score them")
@@ -620,6 +660,23 @@ def evaluate_fewshot_generation(
     return result
 
 
+def finished_arm(folder: Path, settings: dict[str, Any]) -> dict[str, Any] | None:
+    """The ``fewshot.json`` of an arm finished with ``settings`` (None when there is none); a finished arm
+    with other settings is refused in one line: it is replaced only with ``--overwrite``."""
+    done = folder / "fewshot.json"
+    if not done.is_file():
+        return None
+    previous = read_model(done, FewshotRecord).model_dump()
+    differing = {key: previous.get(key) for key, value in settings.items() if previous.get(key) != value}
+    if differing:
+        said = ", ".join(f"{key} {previous.get(key)!r} (now {settings[key]!r})" for key in differing)
+        raise ConfigError(
+            f"{folder} holds a finished arm with other settings: {said}; pass --overwrite to run every arm "
+            "again, or choose another --out"
+        )
+    return previous
+
+
 def score_again(
     folder: Path,
     family_run: str,
@@ -635,7 +692,7 @@ def score_again(
     draws, scored with what this version scores; rewrites its ``fewshot.json`` and ``fewshot.md``."""
     from vqtouch.plugins.generator import load_pipeline
 
-    result = json.loads((folder / "fewshot.json").read_text())
+    result = read_model(folder / "fewshot.json", FewshotRecord).model_dump()
     images, shots, seed = result["images"], result["shots"], result["seed"]
     family_pipe = load_pipeline(family_run, host=host)
     name, shots_N3HW, held_out_M3HW, background_3HW, _ = new_sensor_images(
@@ -671,18 +728,12 @@ def _evaluate_fewshot_generation_command(args: argparse.Namespace) -> int:
         seeds=args.seeds,
         ratios=args.ratios,
         report=lambda line: print(line, flush=True),
+        overwrite=args.overwrite,
         **_fewshot_options(args),
     )
     print((out / "fewshot_generation.md").read_text())
     print(f"-> {out} (fewshot_generation.json, fewshot_generation.md, seed*/ratio*/)")
     return 0
-
-
-def _ratio(text: str) -> float:
-    value = float(text)
-    if not value >= 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"{text}: family images per shot must be a finite number >= 0")
-    return value
 
 
 #: The options :func:`_add_fewshot_arguments` adds beside --run and --images, as keyword arguments.
@@ -753,6 +804,7 @@ def _add_fewshot_arguments(parser: argparse.ArgumentParser) -> None:
         default=224,
         help="side EfficientNet-Lite0 sees images at (default 224)",
     )
+    add_image_folder_arguments(parser)
 
 
 @hookimpl
@@ -773,7 +825,7 @@ def vqtouch_add_commands(subparsers: Any) -> None:
 
     parser.add_argument(
         "--ratio",
-        type=_ratio,
+        type=family_ratio,
         default=AdaptSettings.ratio,
         help=f"family images per shot, tokenizer and generator alike (default {AdaptSettings.ratio:g}, "
         "vqtouch adapt's; 0: shots alone; 5: the paper's 1:5)",
@@ -794,7 +846,7 @@ def vqtouch_add_commands(subparsers: Any) -> None:
     _add_fewshot_arguments(table)
     add_experiment_arguments(table)
     table.add_argument(
-        "--ratios", type=_ratio, nargs="+", default=[5.0, 0.0], help="family images per shot (default 5 0)"
+        "--ratios", type=family_ratio, nargs="+", default=[5.0, 0.0], help="family images per shot (default 5 0)"
     )
     table.set_defaults(handler=_evaluate_fewshot_generation_command)
 

@@ -935,11 +935,13 @@ def evaluate_tradeoff(
     distribution: bool,
     argv: list[str],
     report: Callable[[str], None] = print,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Both parts for every seed (see the module docstring) around ``config`` (already
     :func:`scaled_config`; ``full`` says whether it was scaled down); writes ``tradeoff.json``,
-    ``tradeoff.md`` and ``tradeoff.png`` into ``out`` and returns the result."""
-    record = ExperimentRecord("tradeoff", out, seeds)
+    ``tradeoff.md`` and ``tradeoff.png`` into ``out`` (one that holds them only with ``overwrite``)
+    and returns the result."""
+    record = ExperimentRecord("tradeoff", out, seeds, overwrite=overwrite)
     generator = any(KNOBS[name].part == "generator" for name in knobs)
     baseline = baseline_config(
         config, host, tokenizer_steps=tokenizer_steps, generator_steps=generator_steps, generator=generator
@@ -1045,6 +1047,7 @@ def _command(args: argparse.Namespace) -> int:
         distribution=args.distribution,
         argv=args.argv,
         report=lambda line: print(line, file=sys.stderr, flush=True),
+        overwrite=args.overwrite,
         **chosen,
     )
     print((out / "tradeoff.md").read_text())

@@ -97,6 +97,19 @@ def rank_name(rank: Any) -> BestOfRank:
     return "consensus" if hasattr(rank, "choose") else "judge"
 
 
+def refuse_idle_rank(args: Any) -> None:
+    """A one-line ConfigError for ``--best-of-rank`` given without ``--best-of K`` (K > 1): it ranks
+    candidates, and one draw has none."""
+    from vqtouch.core.cli import option_given
+
+    best_of = args.best_of if isinstance(args.best_of, (list, tuple)) else [args.best_of]
+    if option_given(args, "--best-of-rank") and max(best_of or [1]) <= 1:
+        raise ConfigError(
+            f"--best-of-rank {args.best_of_rank} ranks --best-of's candidates, and one draw has none: add "
+            "--best-of K (K > 1, e.g. 8), or drop --best-of-rank"
+        )
+
+
 def check_best_of(best_of: Any, conditioner: Any, name: str, rank: Any = "judge") -> int:
     """``best_of`` as given, or a one-line ConfigError: an integer in [1, MAX_BEST_OF], and above 1
     with a class ranking (``rank`` ``judge`` or ``posterior``) only for a conditioner over a finite set

@@ -41,18 +41,15 @@ from vqtouch.plugins.evaluation.feature_networks import feature_size_argument
 from vqtouch.core.config import validate_experiment
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.progress import progress
-from vqtouch.core.runs import (
-    interrupted_message,
-    interrupted_status,
-    is_main_process,
-    staged_output,
-)
+from vqtouch.core.outputs import output_folder, staged_output
+from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
 from vqtouch.plugins.tokenizer import tokenizer_configs, tokenizer_location
 from vqtouch.core.data import experiment_split
 from vqtouch.core.image_size import image_hw
 from vqtouch.plugins.evaluation.contact import dataset_background
 
-from .best_of import BEST_OF_RANK_HELP, BEST_OF_RANKS, check_best_of, ranks_by_class
+from .stage import check_condition_keys
+from .best_of import BEST_OF_RANK_HELP, BEST_OF_RANKS, check_best_of, ranks_by_class, refuse_idle_rank
 
 
 def _with_tokenizer_run(config: Any, tokenizer_run: str, host: PluginHost) -> Any:
@@ -86,9 +83,12 @@ def _train_generator_command(args: argparse.Namespace) -> int:
         if "generator" not in config.stages:
             raise ConfigError(f"scene {config.scene!r} has no generator stage; use e.g. --scene label-to-touch")
         if args.tokenizer:
-            return _with_tokenizer_run(config, args.tokenizer, host)
-        stages = config.stages[: config.stages.index("generator") + 1]
-        return validate_experiment({**config.to_dict(), "stages": stages}, host)
+            config = _with_tokenizer_run(config, args.tokenizer, host)
+        else:
+            stages = config.stages[: config.stages.index("generator") + 1]
+            config = validate_experiment({**config.to_dict(), "stages": stages}, host)
+        check_condition_keys(config, host)  # before the run folder exists and anything trains
+        return config
 
     run, config = training_run(
         args, host, up_to_the_generator, reads=[("--tokenizer", "tokenizer run", args.tokenizer)], stage="generator"
@@ -120,6 +120,10 @@ def _condition_arguments(args: argparse.Namespace) -> dict[str, list[str]]:
         if not sep or not key:
             raise ConfigError(f"--condition {item!r}: expected KEY=VALUE, e.g. --condition material=steel")
         given.setdefault(key, []).append(value)
+    for key, values in given.items():
+        if any(not value.strip() for value in values):
+            example = {"text": "a ball pressed into the gel", "label": "knurl"}.get(key, "FILE")
+            raise ConfigError(f"--{key} '': an empty condition; give one, e.g. --{key} {example!r}")
     if len(given) != 1:
         raise ConfigError(
             "give exactly one kind of condition: --label, --visual, --tactile, --text or --condition "
@@ -133,6 +137,7 @@ GRID_SAMPLES = 64
 
 
 def _generate_command(args: argparse.Namespace) -> int:
+    refuse_idle_rank(args)
     from .pipeline import load_pipeline
 
     ((key, values),) = _condition_arguments(args).items()
@@ -256,6 +261,7 @@ def _generation_experiment_command(args: argparse.Namespace) -> int:
 
 
 def _evaluate_generation_command(args: argparse.Namespace) -> int:
+    refuse_idle_rank(args)
 
     if not args.run and not args.out:
         raise ConfigError(
@@ -297,7 +303,7 @@ def _evaluate_generation_command(args: argparse.Namespace) -> int:
     if out is not None:
         if out.exists() and not out.is_dir():
             raise ConfigError(f"--out {out}: exists and is not a folder")
-        out.mkdir(parents=True, exist_ok=True)
+        output_folder(out)
     # Into --out: every conditioner unless one is named (Table 2's by_conditioner); into the run: one, 0 by default.
     indices = [args.conditioner] if args.conditioner is not None else (list(range(len(names))) if out else [0])
     # A class ranking needs classes: a named conditioner must have them; of all, those that do use it.
@@ -401,6 +407,7 @@ def _metric_blocks(args: argparse.Namespace, config: Any) -> list[dict[str, Any]
 
 
 def _tradeoff_generator_command(args: argparse.Namespace) -> int:
+    refuse_idle_rank(args)
     from .tradeoff import tradeoff_command
 
     return tradeoff_command(args)

@@ -39,7 +39,6 @@ from vqtouch.plugins.evaluation.records import (
     gap_verdict,
     markdown_table,
     mean_spread,
-    refuse_finished,
 )
 from vqtouch.plugins.evaluation.directions import direction_arrow, lower_is_better
 
@@ -195,8 +194,7 @@ def evaluate_generation_experiment(
         raise ConfigError(f"scene {config.scene!r} has no generator; use e.g. --scene tour or label-to-touch")
     if not config.generator.conditioners:
         raise ConfigError("the scene's generator has no conditioners (generator.conditioners) to compare")
-    refuse_finished(out, "generation", "a generation experiment", overwrite)
-    record = ExperimentRecord("generation", out, seeds)
+    record = ExperimentRecord("generation", out, seeds, overwrite=overwrite)
     base = _with_tokenizer_run(config, _tokenizer_run(config, tokenizer, out, host), host)
     rows: list[dict[str, Any]] = []
     skipped: dict[str, str] = {}

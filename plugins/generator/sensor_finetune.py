@@ -178,7 +178,12 @@ def fine_tune_for_sensor(
         "train": train_config.model_dump(mode="json"),
     }
     tuned = validate_experiment(recorded, host)
-    reads = [] if family.run is None else [("--run", "family run", family_run)]
+    # What it reads of the family run (the fewshot stage writes its outputs beside them, inside the run).
+    reads = (
+        []
+        if family.run is None
+        else [("--run", "family run", Path(family_run) / n) for n in ("checkpoints", "config.json")]
+    )
     run = RunDir.create(tuned, argv=argv, host=host, path=out, overwrite=overwrite, reads=reads)
     try:
         task = GeneratorTask(
@@ -227,7 +232,8 @@ def fine_tune_for_sensor(
             "started_from": f"{family.checkpoint} ({family.settings['weights']} weights)",
             "canonical_background": backgrounds,
             "sensor_tag": {"module": SENSOR_TAG_MODULE, "sensors": list(sensor_names), "samples": NEW_SENSOR},
-            "tokenizer": str(Path(tokenizer_folder).resolve()),
+            # As the run records it: relative when the two move together (a staged fewshot output).
+            "tokenizer": tokenizer_at,
             "tokenizer_files": list(TOKENIZER_FILES),
         }
         run.write_json("fewshot_finetune.json", summary)

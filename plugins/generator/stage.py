@@ -244,6 +244,32 @@ def images_config(config: Any) -> dict[str, Any]:
     }
 
 
+def check_condition_keys(config: Any, host: Any) -> None:
+    """Refuse, in one line before anything is written or trained, a generator whose conditioners read
+    sample entries (:meth:`~vqtouch.core.Conditioner.sample_entries`) the config's dataset does not
+    provide, naming the conditioner, its distribution and the missing key.  Builds the conditioners and
+    the dataset and reads one sample."""
+    from vqtouch.core import Assembly, ConfigError
+
+    section = getattr(config, "generator", None)
+    if section is None or not section.conditioners or config.data.dataset is None:
+        return
+    assembly = Assembly(config, host)
+    dataset = assembly.component("data.dataset")
+    if len(dataset) == 0:
+        return
+    sample = dataset[0]
+    for conditioner in assembly.component("generator.conditioners"):
+        missing = [key for key in conditioner.sample_entries() if key not in sample]
+        if missing:
+            spec = conditioner.vqtouch_spec
+            raise ConfigError(
+                f"conditioner {spec.config.name!r} ({spec.source.describe()}) reads the samples' {missing[0]!r}, "
+                f"which dataset {config.data.dataset.name!r} does not provide (its samples have "
+                f"{', '.join(sorted(sample))}); use a dataset that provides it, or another conditioner"
+            )
+
+
 def train_generator(job: StageJob) -> dict[str, Any]:
     """Train the configured generator in ``job.run`` and score samples of the held-out conditions."""
 

@@ -37,6 +37,7 @@ from typing import Any
 
 import torch
 
+from vqtouch.core.outputs import output_folder
 from vqtouch.core import Assembly, ConfigError, PluginHost
 from vqtouch.core.runs import MissingCheckpointError
 from vqtouch.plugins.evaluation.contact import dataset_background
@@ -501,8 +502,7 @@ def tradeoff_command(args: argparse.Namespace) -> int:
         grid=args.grid,
         best_of=args.best_of,
     )
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(args.out)
     count = len(bench.conditions.indices)
     print(
         f"{len(settings)} settings x {args.rounds} rounds on {count} held-out conditions of {bench.run}",

@@ -32,7 +32,7 @@ import torch
 from torch import nn
 
 from vqtouch.core import ConfigError, PluginHost, RunDir, load, read_metadata, save
-from vqtouch.core.runs import staged_output
+from vqtouch.core.outputs import staged_output
 from vqtouch.plugins.tokenizer import Tokenizer
 
 #: Where the bundles live inside the installed package.
@@ -196,7 +196,9 @@ def export_bundle(
     # Staged beside the bundle and moved into place whole (as every command's --out): a failed or
     # interrupted export leaves no partial bundle to block the retry, and --overwrite keeps the old bundle
     # until the new one is complete.
-    with staged_output(folder, overwrite=overwrite) as partial:
+    # Bundles live inside the package on purpose; --overwrite replaces only a bundle.
+    is_bundle = lambda previous: (previous / TOKENIZER).is_dir() and (previous / GENERATOR).is_dir()  # noqa: E731
+    with staged_output(folder, overwrite=overwrite, into_package=True, recognise=is_bundle) as partial:
         (partial / TOKENIZER).mkdir()
         (partial / GENERATOR).mkdir()
         store(pipe.tokenizer.autoencoder, partial / TOKENIZER / "autoencoder.safetensors", tokenizer_headers)

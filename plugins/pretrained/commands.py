@@ -108,4 +108,4 @@ def vqtouch_add_commands(subparsers):
     export.add_argument(
         "--root", help="folder of the bundles (default: the package's own, where the pretrained stage looks)"
     )
-    export.set_defaults(handler=_export_command)
+    export.set_defaults(handler=_export_command, output_options=("root",))

@@ -15,6 +15,10 @@ def _demo_command(args: argparse.Namespace) -> int:
     config = config_from_args(args, host)
     if not args.full:
         config = scale_for_demo(config, host)
+    if "generator" in config.stages:
+        from vqtouch.plugins.generator import check_condition_keys
+
+        check_condition_keys(config, host)  # before the run folder exists and the tokenizer trains
     run = RunDir.create(config, argv=args.argv, host=host, path=args.out, overwrite=args.overwrite)
     with run:  # releases the run's lock however the demo ends
         report = run_demo(config, host, run)

@@ -18,6 +18,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 import torch
+from pydantic import Field
 from torch import nn
 
 from vqtouch.core.assembly import Assembly
@@ -25,6 +26,7 @@ from vqtouch.core.checkpoint import atomic_write, load, save
 from vqtouch.core.components import Metric, SensorFamily, TactileDataset
 from vqtouch.core.config import ExperimentConfig, scale_for_demo, validate_experiment  # noqa: F401 - re-exported
 from vqtouch.core.errors import ConfigError, VqtouchError
+from vqtouch.core.files import FileModel, check_model
 from vqtouch.core.image_size import ImageSize, image_hw, pixel_centres_mm
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.progress import progress
@@ -224,6 +226,36 @@ def write_reports(run_dir: str | Path, report: dict[str, Any], out: str | Path |
     return target / "report.html"
 
 
+class StageEntry(FileModel):
+    """One stage of a ``report.json``."""
+
+    stage: str
+    status: str = ""
+    seconds: float | None = Field(None, ge=0)
+    caveat: str | None = None
+    result: dict[str, Any] | None = None
+
+
+class ComponentEntry(FileModel):
+    """One component of a ``report.json`` (its pictures, when it has them, are file names)."""
+
+    slot: str
+    status: str = ""
+    render: str | None = None
+    data: dict[str, Any] | None = None
+
+
+class ReportRecord(FileModel):
+    """What ``vqtouch report`` reads back of a ``report.json``."""
+
+    scene: str = ""
+    description: str = ""
+    seconds: float | None = Field(None, ge=0)
+    peak_rss_mb: float | None = Field(None, ge=0)
+    stages: list[StageEntry]
+    components: list[ComponentEntry] = []
+
+
 def rebuild_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     """``vqtouch report``: rebuild report.md and report.html of a demo run from its report.json (e.g.
     after the renderer changed, or in a copy of the run), in the run or in ``out``; returns report.html's
@@ -237,6 +269,7 @@ def rebuild_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     report = read_run_json(run_dir / "report.json")
     if not isinstance(report, dict) or not isinstance(report.get("stages"), list):
         raise ConfigError(f"{run_dir / 'report.json'}: not a demo report (no list of stages)")
+    check_model(report, ReportRecord, run_dir / "report.json")
     if "description" not in report and (run_dir / "config.json").is_file():  # reports written before it was kept
         report["description"] = read_run_json(run_dir / "config.json").get("description", "")
     return write_reports(run_dir, report, out)

@@ -199,10 +199,11 @@ def _path_text(path: tuple[str, ...]) -> str:
     return " / ".join(part for part in path if part != "status") or "-"
 
 
-def run_file(run_dir: Path, report: Mapping[str, Any], name: str) -> Path:
+def run_file(run_dir: Path, report: Mapping[str, Any], name: str) -> Path | None:
     """The file a report names, found in ``run_dir``: stages name their pictures relative to the run,
     while the demo's own files are recorded under the folder the run was written to, which may
-    since have been moved or copied (to ``run_dir``)."""
+    since have been moved or copied (to ``run_dir``).  None when it names a file outside the run: the
+    report embeds only the run's own files."""
     path, recorded, rebased = Path(name), report.get("run_dir"), []
     if recorded:
         try:
@@ -210,17 +211,21 @@ def run_file(run_dir: Path, report: Mapping[str, Any], name: str) -> Path:
         except ValueError:
             pass
     candidates = [*rebased, path] if path.is_absolute() else [run_dir / path, *rebased]
-    return next((candidate for candidate in candidates if candidate.is_file()), candidates[0])
+    inside = [candidate for candidate in candidates if candidate.resolve().is_relative_to(run_dir.resolve())]
+    return next((candidate for candidate in inside if candidate.is_file()), inside[0] if inside else None)
 
 
 def _e(value: Any) -> str:
     return html.escape(str(value), quote=True)
 
 
-def _figure(path: Path, caption: str, source: str) -> str:
-    """One picture embedded as a data URI with its caption, or a note saying why it is missing."""
+def _figure(path: Path | None, caption: str, source: str) -> str:
+    """One picture embedded as a data URI with its caption, or a note saying why it is missing
+    (``path`` None: it is outside the run, see :func:`run_file`)."""
     from PIL import Image, UnidentifiedImageError
 
+    if path is None:
+        return f'<p class="missing">picture not embedded: {_e(source)} is outside the run folder</p>'
     mime = _MIME_TYPES.get(path.suffix.lower())
     if mime is None:
         return f'<p class="missing">{_e(source)}: not an image format a browser shows</p>'

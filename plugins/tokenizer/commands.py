@@ -15,10 +15,13 @@ from typing import Any
 
 import torch
 
+from vqtouch.core.outputs import output_folder
 from vqtouch.core import Assembly, ConfigError, MetricSet, RunDir, hookimpl, run_stage
 from vqtouch.core.checkpoint import is_pretrained
+from vqtouch.core.images import skipping_bad_images
 from vqtouch.core.cli import (
     add_config_arguments,
+    add_image_folder_arguments,
     add_run_arguments,
     add_step_argument,
     NumberType,
@@ -88,6 +91,8 @@ def _images_dataset(images: str, options: list[str], image_size: ImageSize) -> d
             f"{size_text(image_size)} px; "
             "drop image_size (images are resized to the tokenizer's size)"
         )
+    if skipping_bad_images():
+        block.setdefault("lenient", True)
     return {**block, "image_size": image_size}
 
 
@@ -109,7 +114,8 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
         if args.images_options:
             raise ConfigError(
                 f"--images-option sets an option of the image_folder reader; {frames_folder} holds its images directly "
-                "(no class sub-folders), so no reader is used: drop --images-option"
+                "(no class sub-folders), so no reader is used: drop --images-option (--lenient and --allow-greyscale "
+                "work on such a folder)"
             )
         images, source = load_sensor_folder(frames_folder, host, image_size), args.images
     else:
@@ -119,8 +125,7 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     metrics = MetricSet((name, host.build("metric", name)) for name in ("ssim", "psnr"))
     reconstructions = reconstruct_all(tokenizer, images, batch_size=32)
     scores = metrics.score(reconstructions, images)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(args.out)
     save_pairs(images, reconstructions, out / "reconstructions.png")
     (out / "reconstruct.json").write_text(
         json.dumps(
@@ -266,9 +271,11 @@ def vqtouch_add_commands(subparsers):
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="an option of the --images reader (repeatable), e.g. lenient=true or allow_greyscale=true",
+        help="an option of the --images reader (repeatable), e.g. max_samples=100 (--lenient and "
+        "--allow-greyscale also set the reader's lenient and allow_greyscale)",
     )
     reconstruct.add_argument("--out", required=True, help="folder for reconstructions.png and reconstruct.json")
+    add_image_folder_arguments(reconstruct)
     reconstruct.set_defaults(handler=_reconstruct_command)
 
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")

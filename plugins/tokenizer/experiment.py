@@ -261,7 +261,7 @@ def evaluate_reconstruction_experiment(
         )
         for seed in check_seeds(seeds)
     }
-    record = ExperimentRecord("reconstruction", out, seeds)
+    record = ExperimentRecord("reconstruction", out, seeds, overwrite=overwrite)
     rows: list[dict[str, Any]] = []
     skipped: dict[str, str] = {}
     background_rows: set[tuple[int, int]] = set()

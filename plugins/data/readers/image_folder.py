@@ -59,6 +59,9 @@ class ImageFolderConfig(ReaderConfig):
         (), max_length=1_000_000, description="Fixed class order: folder and label names must be in it and integer "
                                               "labels below its length. Empty: derived from the folders or labels.")
     sensor: str = Field("unknown", min_length=1, max_length=64, description="Sensor id reported with every sample.")
+    paths_outside: bool = Field(False, description="Let the CSV's rows name images outside its folder (``../``, "
+                                                   "absolute paths), e.g. a shared image store. Off: such a row is "
+                                                   "refused, naming its line.")
 
 
 class ImageFolderDataset(RecordDataset):
@@ -146,7 +149,7 @@ def label_map_for(cells: list[str], fixed: Sequence[str], csv_path: Path) -> Lab
 
 
 def _csv_candidates(rows: list[tuple[int, list[str]]], columns: dict[str, int], csv_path: Path,
-                    label_of: LabelMap, skips: SkipLog) -> Iterator[SampleRecord]:
+                    label_of: LabelMap, skips: SkipLog, paths_outside: bool) -> Iterator[SampleRecord]:
     base, files = csv_path.parent, FileIndex()
     for number, cells in rows:
         where = f"{csv_path} line {number}"
@@ -155,6 +158,10 @@ def _csv_candidates(rows: list[tuple[int, list[str]]], columns: dict[str, int], 
             continue
         tactile, label_cell = cells[columns["path"]], cells[columns["label"]]
         visual = cells[columns["visual"]] if "visual" in columns else None
+        for path in (tactile, visual):
+            if path and not paths_outside and not (base / path).resolve().is_relative_to(base.resolve()):
+                raise DatasetError(f"{READER}: {where}: {path!r} is outside {base}; list images inside the CSV's "
+                                   "folder, or set the reader's paths_outside=true to allow it")
         text = cells[columns["text"]] if "text" in columns else ""
         group = cells[columns["group"]] if "group" in columns else ""
         label = label_of(label_cell)
@@ -181,7 +188,8 @@ def _build_from_csv(config: ImageFolderConfig, root: Path, skips: SkipLog) -> Im
     label_cells = [cells[columns["label"]] for _, cells in body if len(cells) == len(columns)]
     label_of = label_map_for(label_cells, config.class_names, csv_path)
     loader = loader_for(config)
-    records = collect_records(_csv_candidates(body, columns, csv_path, label_of, skips), config=config, skips=skips,
+    candidates = _csv_candidates(body, columns, csv_path, label_of, skips, config.paths_outside)
+    records = collect_records(candidates, config=config, skips=skips,
                               base=csv_path.parent, loader=loader, use_reference=False, listed_in=str(csv_path),
                               total=len(body))
     return ImageFolderDataset(records, base=csv_path.parent, loader=loader, sensor=config.sensor,
