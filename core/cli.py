@@ -170,6 +170,27 @@ def add_image_folder_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_overwrite_argument(parser: argparse.ArgumentParser, finished: str) -> None:
+    """Add ``--overwrite`` to a command that writes ``finished`` (e.g. ``cluster.json``; ``.``: ``--out``
+    is that file) into its ``--out``: without the flag, an ``--out`` that holds it is refused before the
+    command runs (:func:`refuse_finished_output`)."""
+    parser.add_argument("--overwrite", action="store_true", help=f"replace the {finished} that --out holds")
+    parser.set_defaults(finished_output=finished)
+
+
+def refuse_finished_output(args: argparse.Namespace) -> None:
+    """ConfigError when ``--out`` holds the finished result the command declared
+    (:func:`add_overwrite_argument`) and ``--overwrite`` is not given: nothing written is lost."""
+    finished = getattr(args, "finished_output", None)
+    if not finished or getattr(args, "overwrite", False) or not getattr(args, "out", None):
+        return
+    path = Path(args.out) if finished == "." else Path(args.out) / finished
+    if path.exists():
+        raise ConfigError(
+            f"--out {args.out} already holds {path.name}; pass --overwrite to replace it, or choose another --out"
+        )
+
+
 def option_given(args: argparse.Namespace, option: str) -> bool:
     """Whether the user typed ``option`` (e.g. ``--best-of-rank``) on the command line, rather than
     leaving its default: for an option that has no effect without another."""
@@ -564,6 +585,7 @@ def _run_command(argv: list[str], debug: bool) -> int:
                 print(f"vqtouch: note: {busy}", file=sys.stderr, flush=True)
             if getattr(args, "out", None):  # before the handler loads or trains anything
                 check_output(args.out, into_package=command == "pretrained export")
+                refuse_finished_output(args)
             status = int(args.handler(args) or 0)
         if sys.stdout is not None:  # None when the shell closed it (`>&-`): print() then writes nothing
             sys.stdout.flush()  # a reader that went away shows here, not in the flush at exit

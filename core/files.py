@@ -41,9 +41,10 @@ def read_json(path: str | Path) -> Any:
 def validation_message(exc: ValidationError) -> str:
     """The first problem of a pydantic error as ``field: what is wrong (got value)``."""
     error = exc.errors()[0]
-    where = ".".join(str(part) for part in error["loc"]) or "the file"
+    where = ".".join(str(part) for part in error["loc"])
     got = f" (got {error['input']!r})" if "input" in error and not isinstance(error["input"], (dict, list)) else ""
-    return f"{where}: {error['msg'].lower()}{got}"
+    text = error["msg"][:1].lower() + error["msg"][1:]
+    return f"{where}: {text}{got}" if where else f"{text}{got}"
 
 
 def check_model(data: Any, model: type[Model], source: str | Path) -> Model:

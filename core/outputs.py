@@ -43,8 +43,6 @@ PACKAGES = ("core", "plugins", "conditioners", "sensors")
 OUTPUT_DESTS = frozenset({"out", "resume"})
 #: Config keys (``--set KEY=PATH``) that name where a command writes.
 OUTPUT_KEYS = frozenset({"output_dir"})
-#: Parsed values that are not paths the user gave.
-_NOT_PATHS = frozenset({"host", "handler", "argv", "command"})
 
 Read = tuple[str, str, "str | Path | None"]
 
@@ -129,7 +127,7 @@ def command_inputs(parser: argparse.ArgumentParser, args: argparse.Namespace) ->
     }
     reads: list[Read] = []
     for dest, value in vars(args).items():
-        if dest in outputs or dest in _NOT_PATHS or dest.endswith("_command") or dest == "output_options":
+        if dest not in flags or dest in outputs:  # only what the user can give: not a parser's own defaults
             continue
         for text in value if isinstance(value, (list, tuple)) else [value]:
             if not isinstance(text, str) or not text:

@@ -117,7 +117,7 @@ def test_cluster_groups_variants_with_their_family_and_a_folder_joins_its_sensor
     assert [entry["images"] for entry in result["sensors"]] == [8] * 5
     assert "family 0: gelsight, gelsight/v1" in capsys.readouterr().out
     # Told to accept nothing, it refuses rather than assigning silently.
-    assert main([*args, "--threshold", "0"]) == 0
+    assert main([*args, "--threshold", "0", "--overwrite"]) == 0
     assert json.loads((out / "cluster.json").read_text())["assignments"]["digit/v4"]["family"] is None
     assert "unseen digit/v4: refused: " in capsys.readouterr().out
 

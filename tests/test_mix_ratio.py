@@ -7,6 +7,7 @@ import json
 
 import pytest
 import torch
+from cli_checks import snapshot
 
 from vqtouch.core import ConfigError, load_plugins
 from vqtouch.core.cli import main
@@ -112,9 +113,15 @@ def test_every_arm_trains_its_mix_for_its_budget_and_an_interrupted_run_resumes(
     again = _run(family_tokenizer_run, family_clusters, out)
     assert tokenizer_trainer_calls == []
     assert again["rows"] == result["rows"]
-    # An arm trained with other settings is not this run's: it trains again.
+    # An arm trained with other settings is not this run's: refused, naming them; --overwrite trains again.
     (out / "mix_ratio.json").unlink()
-    again = _run(family_tokenizer_run, family_clusters, out, steps=3)
+    finished = snapshot(out)
+    with pytest.raises(
+        ConfigError, match=r"holds a finished arm with other settings: steps 2 \(now 3\); pass --overwrite"
+    ):
+        _run(family_tokenizer_run, family_clusters, out, steps=3)
+    assert snapshot(out) == finished and tokenizer_trainer_calls == []
+    again = _run(family_tokenizer_run, family_clusters, out, steps=3, overwrite=True)
     assert sorted(call["steps"] for call in tokenizer_trainer_calls) == [3, 3, 3, 3, 6, 9, 9]
 
 

@@ -120,7 +120,10 @@ def test_a_damaged_products_index_is_named(make_plugin, tmp_path):
     host = _host(make_plugin, atlas=(_atlas_stage, ("atlas",)))
     run, _ = _run(host, tmp_path, ["atlas"])
     (run.path / PRODUCTS_FILE).write_text('{"atlas": "atlas"}')
-    with pytest.raises(ConfigError, match="not a products index"):
+    with pytest.raises(
+        ConfigError,
+        match=r"products.json \(product 'atlas'\): input should be a valid dictionary or instance of ProductEntry",
+    ):
         run.product("atlas")
 
 

@@ -27,6 +27,7 @@ from pathlib import Path
 
 from vqtouch.core import ConfigError, hookimpl
 from vqtouch.core.cli import (
+    add_overwrite_argument,
     family_ratio,
     add_image_folder_arguments,
     NumberType,
@@ -256,6 +257,7 @@ def vqtouch_add_commands(subparsers):
         help="sensors: registered family names, JSON with a variant, or folders of images",
     )
     cluster.add_argument("--out", required=True, help="folder for cluster.json and families.png")
+    add_overwrite_argument(cluster, "cluster.json")
     cluster.add_argument("--images", type=positive_int, default=64, help="images per sensor (default 64)")
     cluster.add_argument(
         "--image-size", type=image_size_argument, help="image size, S or HEIGHTxWIDTH (default: the tokenizer's)"
@@ -359,6 +361,7 @@ def vqtouch_add_commands(subparsers):
     )
     cross.add_argument("--run", required=True, help="the family tokenizer's run")
     cross.add_argument("--out", required=True, help="folder for cross_sensor.json/.md/.png and the arms' tokenizers")
+    add_overwrite_argument(cross, "cross_sensor.json")
     cross.add_argument(
         "--target",
         default=json.dumps(GELSIGHT_DERIVATIVE_II),

@@ -23,6 +23,7 @@ from vqtouch.core.outputs import output_folder
 from vqtouch.core import ConfigError, PluginHost, VqtouchError, hookimpl
 from vqtouch.core.checkpoint import atomic_write
 from vqtouch.core.cli import (
+    add_overwrite_argument,
     fraction,
     non_negative_float,
     non_negative_int,
@@ -200,6 +201,7 @@ def vqtouch_add_commands(subparsers):
 
     fidelity = data_sub.add_parser("fidelity", help="SSIM/PSNR of rendered vs real taxim ball presses, with pictures")
     fidelity.add_argument("--out", required=True, help="folder for the pictures and fidelity.json")
+    add_overwrite_argument(fidelity, "fidelity.json")
     fidelity.add_argument("--sensors", nargs="+", default=["gelsight", "gelsight_mini"],
                           choices=["gelsight", "gelsight_mini"], help="sensors to check")
     fidelity.add_argument("--height", type=positive_int, default=240, help="render height (width is 4/3 of it)")
@@ -231,6 +233,7 @@ def vqtouch_add_commands(subparsers):
                          help="side of the square images are compared at (default %(default)s)")
     leakage.add_argument("--show", type=non_negative_int, default=8, help="closest pairs listed and pictured (default 8)")
     leakage.add_argument("--out", help="folder for leakage.json and closest_pairs.png")
+    add_overwrite_argument(leakage, "leakage.json")
     leakage.add_argument("--fail-above", type=fraction, metavar="FRACTION",
                          help="exit with status 1 when more than this share of test images have a near-duplicate "
                               "(for CI)")

@@ -20,7 +20,7 @@ import torch
 
 from vqtouch.core import ConfigError, PluginHost, hookimpl
 from vqtouch.core.checkpoint import atomic_write
-from vqtouch.core.cli import add_image_folder_arguments, command_group
+from vqtouch.core.cli import add_overwrite_argument, add_image_folder_arguments, command_group
 from vqtouch.core.image_size import image_hw
 from vqtouch.core.images import ImageLoader
 
@@ -137,5 +137,6 @@ def vqtouch_add_commands(subparsers: Any) -> None:
         "without it LPIPS is skipped)",
     )
     pairs.add_argument("--out", help="also write the result to this JSON file")
+    add_overwrite_argument(pairs, ".")
     add_image_folder_arguments(pairs)
     pairs.set_defaults(handler=_evaluate_pairs_command)

@@ -22,6 +22,7 @@ import torch
 from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, atomic_write, hookimpl, run_stage
 from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.core.cli import (
+    add_overwrite_argument,
     add_greyscale_argument,
     add_config_arguments,
     add_run_arguments,
@@ -419,6 +420,7 @@ def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
         "--run", required=True, help="a run whose generator stage trained, or a bundle (pretrained:NAME)"
     )
     parser.add_argument("--out", required=True, help="folder for tradeoff.json, tradeoff.md and pareto.png")
+    add_overwrite_argument(parser, "tradeoff.json")
     parser.add_argument(
         "--conditioner",
         type=non_negative_int,

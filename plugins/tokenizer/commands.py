@@ -20,6 +20,7 @@ from vqtouch.core import Assembly, ConfigError, MetricSet, RunDir, hookimpl, run
 from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.core.images import skipping_bad_images
 from vqtouch.core.cli import (
+    add_overwrite_argument,
     add_config_arguments,
     add_image_folder_arguments,
     add_run_arguments,
@@ -275,6 +276,7 @@ def vqtouch_add_commands(subparsers):
         "--allow-greyscale also set the reader's lenient and allow_greyscale)",
     )
     reconstruct.add_argument("--out", required=True, help="folder for reconstructions.png and reconstruct.json")
+    add_overwrite_argument(reconstruct, "reconstruct.json")
     add_image_folder_arguments(reconstruct)
     reconstruct.set_defaults(handler=_reconstruct_command)
 
