@@ -3,14 +3,13 @@ into its ``--out`` declares it (``add_overwrite_argument``), and the command lin
 
 from __future__ import annotations
 
-import argparse
 import json
 
 import pytest
 import torch
 
 import generator_runs
-from cli_checks import one_error_line, snapshot
+from cli_checks import leaf_commands, one_error_line, snapshot
 
 from vqtouch.core import load_plugins
 from vqtouch.core.cli import build_parser, main
@@ -22,20 +21,11 @@ def tokenizer_folder(tmp_path_factory):
     return generator_runs.tiny_tokenizer_folder(tmp_path_factory.mktemp("tok"))
 
 
-def _leaves(parser: argparse.ArgumentParser, words=()):
-    subs = [action for action in parser._actions if isinstance(action, argparse._SubParsersAction)]
-    if not subs:
-        yield words, parser
-        return
-    for name, sub in subs[0].choices.items():
-        yield from _leaves(sub, (*words, name))
-
-
 def test_every_command_that_writes_into_out_can_be_told_to_overwrite():
     """A command with --out and no --overwrite could only ever replace what it wrote before in silence."""
     lacking = [
         " ".join(words)
-        for words, parser in _leaves(build_parser(load_plugins()))
+        for words, parser in leaf_commands(build_parser(load_plugins()))
         if {"out"} <= {action.dest for action in parser._actions}
         and "overwrite" not in {action.dest for action in parser._actions}
     ]

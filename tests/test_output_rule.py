@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from cli_checks import one_error_line, snapshot
+from cli_checks import leaf_commands, one_error_line, snapshot
 
 from vqtouch.core import ConfigError, VqtouchWarning, load_plugins
 from vqtouch.core.cli import NumberType, build_parser, main
@@ -32,16 +32,6 @@ from vqtouch.core.outputs import (
 )
 
 OUTPUTS = {"out", "resume"}
-
-
-def _commands(parser: argparse.ArgumentParser, words: tuple[str, ...] = ()):
-    """(words, parser) of every leaf command."""
-    subs = [action for action in parser._actions if isinstance(action, argparse._SubParsersAction)]
-    if not subs:
-        yield words, parser
-        return
-    for name, sub in subs[0].choices.items():
-        yield from _commands(sub, (*words, name))
 
 
 def _filler(action: argparse.Action) -> list[str]:
@@ -101,7 +91,7 @@ def _argv(words, parser, path_action, path: Path, out: Path, overwrite: bool) ->
 
 def _cases():
     parser = build_parser(load_plugins())
-    for words, command in _commands(parser):
+    for words, command in leaf_commands(parser):
         if "out" not in {action.dest for action in command._actions}:
             continue
         overwrites = "overwrite" in {action.dest for action in command._actions}
@@ -125,7 +115,7 @@ def _refused_untouched(words, dest, where, overwrite, tmp_path, capsys) -> None:
     command ``words`` is refused in one line, with and without ``--overwrite`` when the command has it,
     and every file under the test's folder is as it was."""
     parser = build_parser(load_plugins())
-    command = dict(_commands(parser))[words]
+    command = dict(leaf_commands(parser))[words]
     action = next(action for action in command._actions if action.dest == dest)
     folder = tmp_path / "inputs" / "read"
     (folder / "sub").mkdir(parents=True)
@@ -160,7 +150,7 @@ def test_no_command_replaces_or_empties_what_it_reads(words, dest, overwrites, w
 @pytest.mark.parametrize("words", sorted({case.values[0] for case in CASES}), ids=" ".join)
 def test_no_command_writes_inside_the_installed_package(words, capsys):
     parser = build_parser(load_plugins())
-    command = dict(_commands(parser))[words]
+    command = dict(leaf_commands(parser))[words]
     bundle = package_folders()[1] / "pretrained" / "weights" / "tour"
     argv = list(words)
     for group in _required_groups(command):
