@@ -47,6 +47,10 @@ if TYPE_CHECKING:
 
 
 FORMAT_VERSION = "1"
+#: The header entry naming the precision a trained component's weights were trained in (``fp32`` or
+#: ``bf16``: ``precision: auto`` resolved for the device); a loaded component carries it as
+#: ``vqtouch_trained_in`` (None for files written before it was recorded).
+TRAINED_IN_KEY = "training.precision"
 RESERVED_PREFIXES = ("vqtouch.", "format")
 
 
@@ -350,6 +354,7 @@ def load(path: str | Path, *, host: PluginHost | None = None, map_location: str 
         )
     load_state_strict(component, tensors, path)
     component.vqtouch_step = int(step_text)
+    component.vqtouch_trained_in = metadata.get(TRAINED_IN_KEY)
     return component.to(map_location)
 
 

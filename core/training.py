@@ -61,6 +61,7 @@ from safetensors.torch import save_file
 from torch import nn
 
 from .checkpoint import (
+    TRAINED_IN_KEY,
     CheckpointWriteError,
     atomic_write,
     load_state_strict,
@@ -765,7 +766,8 @@ class Trainer:
                     f"{self.checkpoint_dir} writable"
                 ) from None
             for name, module in self.task.modules.items():
-                save(module, folder / f"{name}.safetensors", step=step, host=self.host)
+                trained_in = {TRAINED_IN_KEY: self.precision}  # what `auto` resolved to, for readers of the run
+                save(module, folder / f"{name}.safetensors", step=step, host=self.host, metadata=trained_in)
             tensors, meta = self._trainer_tensors()
             # Written last: its presence is what makes the folder a complete checkpoint.
             write_checkpoint_file(

@@ -32,6 +32,7 @@ import torch
 from torch import nn
 
 from vqtouch.core import ConfigError, PluginHost, RunDir, load, read_metadata, save
+from vqtouch.core.checkpoint import TRAINED_IN_KEY
 from vqtouch.core.outputs import staged_output
 from vqtouch.plugins.tokenizer import Tokenizer
 
@@ -184,6 +185,8 @@ def export_bundle(
 
     def store(module: nn.Module, path: Path, headers: dict[str, str], keep_fp32: bool = False) -> None:
         half = precision == "fp16" and not keep_fp32
+        if getattr(module, "vqtouch_trained_in", None):
+            headers = headers | {TRAINED_IN_KEY: module.vqtouch_trained_in}
         stored = half_precision_copy(module, str(path)) if half else module
         save(
             stored,
@@ -266,6 +269,7 @@ def describe_bundle(folder: Path) -> dict[str, Any]:
         "tokenizer_command": tokenizer.get(COMMAND_KEY, "?"),
         "generator_command": generator.get(COMMAND_KEY, "?"),
         "stored_as": generator.get(STORED_KEY, "?"),
+        "trained_in": {"tokenizer": tokenizer.get(TRAINED_IN_KEY), "generator": generator.get(TRAINED_IN_KEY)},
         "weights": generator.get(WEIGHTS_KEY, "raw"),
         "sampling_defaults": json.loads(generator.get(SAMPLING_KEY, "{}")),
         "files": len(files),

@@ -40,6 +40,8 @@ def _list_command(args: argparse.Namespace) -> int:
         )
         print(f"  tokenizer trained by: {row['tokenizer_command']}")
         print(f"  generator trained by: {row['generator_command']}")
+        trained_in = {part: value or "not recorded" for part, value in row["trained_in"].items()}
+        print(f"  trained in: tokenizer {trained_in['tokenizer']}, generator {trained_in['generator']}")
         if row["sampling_defaults"]:
             print(f"  sampling defaults set at export: {json.dumps(row['sampling_defaults'], sort_keys=True)}")
     return 0
