@@ -493,8 +493,6 @@ def _show_warning(
     lineno: int,
     file: Any = None,
     line: str | None = None,
-    *,
-    default: Any = warnings.showwarning,
 ) -> None:
     """Every warning as one line on stderr: vqtouch's own as they are, a library's (matplotlib, torch, ...)
     with its category and module, never its source line.  ``--debug`` shows them as Python does."""

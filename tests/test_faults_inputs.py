@@ -230,10 +230,6 @@ def test_an_empty_text_and_a_rank_without_candidates_are_refused(tmp_path, capsy
 def test_a_librarys_warning_is_one_vqtouch_line_without_its_source(capsys):
     from vqtouch.core.cli import _show_warning
 
-    try:
-        import matplotlib  # noqa: F401 - the warning's usual source
-    except ImportError:
-        pass
     _show_warning(UserWarning("constrained_layout not applied because axes sizes collapsed"), UserWarning,
                   "/site-packages/matplotlib/figure.py", 3500, line="    warnings.warn(...)")  # fmt: skip
     err = capsys.readouterr().err

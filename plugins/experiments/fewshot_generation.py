@@ -226,7 +226,8 @@ def fewshot_generation(
             )
     family_pipe = load_pipeline(family_run, host=host)
     config = family_pipe.config
-    check_condition_keys(config, host)  # the family data the fine-tuning reads, before anything is written
+    # The family data the fine-tuning reads, before anything is written.
+    check_condition_keys(config, host, family_pipe.conditioners)
     image_size = config.data.image_size
     result: dict[str, Any] = {
         "family_run": str(family_run),

@@ -244,11 +244,11 @@ def images_config(config: Any) -> dict[str, Any]:
     }
 
 
-def check_condition_keys(config: Any, host: Any) -> None:
+def check_condition_keys(config: Any, host: Any, conditioners: Any = None) -> None:
     """Refuse, in one line before anything is written or trained, a generator whose conditioners read
     sample entries (:meth:`~vqtouch.core.Conditioner.sample_entries`) the config's dataset does not
-    provide, naming the conditioner, its distribution and the missing key.  Builds the conditioners and
-    the dataset and reads one sample."""
+    provide, naming the conditioner, its distribution and the missing key.  Builds the dataset (and the
+    conditioners, unless given already built) and reads one sample."""
     from vqtouch.core import Assembly, ConfigError
 
     section = getattr(config, "generator", None)
@@ -259,7 +259,7 @@ def check_condition_keys(config: Any, host: Any) -> None:
     if len(dataset) == 0:
         return
     sample = dataset[0]
-    for conditioner in assembly.component("generator.conditioners"):
+    for conditioner in conditioners if conditioners is not None else assembly.component("generator.conditioners"):
         missing = [key for key in conditioner.sample_entries() if key not in sample]
         if missing:
             spec = conditioner.vqtouch_spec
