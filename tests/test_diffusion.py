@@ -495,6 +495,74 @@ def test_denoiser_shapes_batch_one_and_bf16_autocast():
     torch.testing.assert_close(huge, logits, atol=1e-4, rtol=1e-4)
 
 
+def _reference_attention(q, k, v, mask=None):
+    """Softmax attention in float64, written out: the reference for :func:`attend`'s two paths."""
+    scores = (q.double() @ k.double().transpose(-1, -2)) / math.sqrt(q.shape[-1])
+    if mask is not None:
+        scores = scores.masked_fill(~mask, float("-inf"))
+    return scores.softmax(-1) @ v.double()
+
+
+@pytest.mark.parametrize("grad", [True, False], ids=["training", "sampling"])
+def test_attend_in_bf16_matches_float64_attention_with_and_without_a_mask(grad):
+    """Both paths of ``attend`` under bf16 (the explicit products when gradients flow on the CPU, the
+    fused kernel otherwise) agree with float64 attention to bf16's precision, values and gradients."""
+    from vqtouch.plugins.generator.denoiser import attend
+
+    generator = gen(4)
+    q, k, v = (torch.randn(2, 3, 16, 8, generator=generator) for _ in range(3))
+    mask = torch.rand(2, 1, 1, 16, generator=generator) > 0.4
+    mask[..., 0] = True
+    for key_mask in (None, mask):
+        expected = _reference_attention(q, k, v, key_mask)
+        leaves = [tensor.bfloat16().requires_grad_(grad) for tensor in (q, k, v)]
+        with torch.set_grad_enabled(grad):
+            out = attend(*leaves, key_mask)
+        assert out.dtype == torch.bfloat16
+        torch.testing.assert_close(out.double(), expected, atol=0.03, rtol=0.03)
+        if grad:
+            out.double().pow(2).sum().backward()
+            reference = [tensor.double().requires_grad_() for tensor in (q, k, v)]
+            _reference_attention(*reference, key_mask).pow(2).sum().backward()
+            for leaf, ref in zip(leaves, reference):
+                torch.testing.assert_close(leaf.grad.double(), ref.grad, atol=0.05, rtol=0.05)
+
+
+def test_attend_takes_the_explicit_path_only_for_bf16_training_on_the_cpu(monkeypatch):
+    from vqtouch.plugins.generator import denoiser
+
+    fused_calls = []
+    fused = denoiser.F.scaled_dot_product_attention
+    monkeypatch.setattr(
+        denoiser.F, "scaled_dot_product_attention", lambda *a, **kw: fused_calls.append(a[0].dtype) or fused(*a, **kw)
+    )
+    q = torch.randn(1, 2, 4, 8, requires_grad=True)
+    denoiser.attend(q, q, q)  # fp32 training: the fused kernel
+    denoiser.attend(q.bfloat16(), q.bfloat16(), q.bfloat16())  # bf16 training: explicit
+    with torch.no_grad():
+        denoiser.attend(q.bfloat16(), q.bfloat16(), q.bfloat16())  # bf16 sampling: the fused kernel
+    assert fused_calls == [torch.float32, torch.bfloat16]
+
+
+def test_denoiser_in_bf16_training_keeps_padding_out_and_stays_finite():
+    """Under bf16 autocast with gradients (the explicit attention), a padded token changes nothing and
+    a row without real tokens stays finite, as in fp32."""
+    model = tiny_model().train()
+    codes, t, condition = denoiser_inputs()
+    mask = torch.tensor([[True, True, False], [True, False, False], [False, False, False]])
+    changed = condition.clone()
+    changed[0, 2] += 5.0
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        masked = model(codes, t, condition, condition_mask=mask)
+        moved = model(codes, t, changed, condition_mask=mask)
+    assert torch.isfinite(masked).all() and masked.requires_grad
+    torch.testing.assert_close(moved, masked, atol=0, rtol=0)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        loss = model(codes, t, condition, condition_mask=mask).logsumexp(1).mean()
+    loss.backward()
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+
+
 def test_denoiser_condition_cache_gives_the_same_logits():
     model = tiny_model()
     codes, t, condition = denoiser_inputs()

@@ -157,10 +157,13 @@ def test_the_generator_contract(tmp_path):
     )
 
 
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
 @pytest.mark.parametrize("codebook_size, grid", [(2, 1), (16384, 2), (16, 32)])
 @pytest.mark.parametrize("loss", ["vb", "masked_ce"])
-def test_training_and_sampling_stay_finite_at_the_extremes(codebook_size, grid, loss):
-    """K = 2 and K = 16384, a 1x1 and a 32x32 grid, batch 1, bf16, guidance 0 and 20, truncation near 0."""
+def test_training_and_sampling_stay_finite_at_the_extremes(codebook_size, grid, loss, precision):
+    """K = 2 and K = 16384, a 1x1 and a 32x32 grid, batch 1, guidance 0 and 20, truncation near 0, in
+    fp32 and under bf16 autocast (training's explicit attention and sampling's fused kernel): finite
+    losses and gradients, codes in range."""
     context = BuildContext(image_size=32, cond_dim=8, codebook_size=codebook_size, code_grid=grid)
     generator = HOST.build(
         "generator",
@@ -169,23 +172,29 @@ def test_training_and_sampling_stay_finite_at_the_extremes(codebook_size, grid, 
     )
     condition = ConditionTokens(torch.randn(1, 2, 8), torch.zeros(1, dtype=torch.bool))
     codes = torch.randint(codebook_size, (1, grid, grid))
+    autocast = torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16")
     for t_draws in range(3):  # several t, t = 0 and t = T-1 among them with these seeds
-        with torch.autocast("cpu", dtype=torch.bfloat16):
+        with autocast:
             loss_value, _ = generator.training_loss(codes, condition, generator=torch.Generator().manual_seed(t_draws))
         assert bool(torch.isfinite(loss_value)), loss_value
+        generator.zero_grad()
+        loss_value.backward()
+        gradients = [p.grad for p in generator.parameters() if p.grad is not None]
+        assert gradients and all(bool(torch.isfinite(g).all()) for g in gradients)
     generator.eval()
     sampler = HOST.build("sampler", "posterior")
     null = ConditionTokens(torch.randn(1, 2, 8), torch.ones(1, dtype=torch.bool))
     for guidance, truncation in ((0.0, 1.0), (20.0, 1e-6), (1.0, 0.5)):
-        sampled = generator.sample(
-            condition,
-            sampler,
-            steps=3,
-            null=null,
-            guidance=guidance,
-            truncation=truncation,
-            generators=[torch.Generator().manual_seed(0)],
-        )
+        with autocast:
+            sampled = generator.sample(
+                condition,
+                sampler,
+                steps=3,
+                null=null,
+                guidance=guidance,
+                truncation=truncation,
+                generators=[torch.Generator().manual_seed(0)],
+            )
         assert sampled.shape == (1, grid, grid) and int(sampled.max()) < codebook_size and int(sampled.min()) >= 0
 
 

@@ -276,15 +276,23 @@ EXTREMES = [
 @pytest.mark.parametrize("name, options", LOOKUP_VARIANTS)
 @pytest.mark.parametrize("codebook_size, grid, scale", EXTREMES)
 @pytest.mark.parametrize("training", [True, False], ids=["train", "eval"])
-def test_numerical_extremes_stay_finite(name, options, codebook_size, grid, scale, training):
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_numerical_extremes_stay_finite(name, options, codebook_size, grid, scale, training, precision):
+    """Finite outputs, loss, perplexity and gradients, codes in range; under bf16 autocast too, with
+    bf16 latents (what a bf16 encoder hands the quantizer)."""
     quantizer = build(name, codebook_size=codebook_size, **options).train(training)
     batch, height, width = grid
     shape = (batch, LATENT_DIM, height, width)
-    latents_BDhw = {"constant": lambda: torch.full(shape, 0.5), "zeros": lambda: torch.zeros(shape)}.get(
-        scale, lambda: scale * randn(*shape)
-    )().requires_grad_()
+    dtype = torch.bfloat16 if precision == "bf16" else torch.float32
+    latents_BDhw = (
+        {"constant": lambda: torch.full(shape, 0.5), "zeros": lambda: torch.zeros(shape)}
+        .get(scale, lambda: scale * randn(*shape))()
+        .to(dtype)
+        .requires_grad_()
+    )
     for _ in range(2):  # the second call sees the EMA update / restarts of the first
-        output = quantizer(latents_BDhw)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16"):
+            output = quantizer(latents_BDhw)
     output.loss.backward()
     assert output.quantized_BDhw.dtype == torch.float32
     assert torch.isfinite(output.quantized_BDhw).all()

@@ -8,25 +8,28 @@ import generator_runs
 from vqtouch.core import load, load_plugins, read_metadata
 from vqtouch.core.checkpoint import TRAINED_IN_KEY
 from vqtouch.core.cli import main
-from vqtouch.core.training import latest_checkpoint
+from vqtouch.core.training import cpu_has_bf16_matrix_units, latest_checkpoint
 from vqtouch.plugins.pretrained.bundle import describe_bundle
 
 HOST = load_plugins()
 
 
 def test_checkpoints_and_bundles_name_the_precision_auto_resolved_to(tiny_label_run, tmp_path, capsys):
+    # auto on a CPU: the tokenizer in fp32; the generator in bf16 where the CPU has bf16 matrix units.
+    generator_precision = "bf16" if cpu_has_bf16_matrix_units() else "fp32"
     tokenizer = latest_checkpoint(tiny_label_run / "checkpoints")
     generator = latest_checkpoint(tiny_label_run / "checkpoints" / "generator")
-    for folder in (tokenizer, generator):
+    for folder, precision in ((tokenizer, "fp32"), (generator, generator_precision)):
         files = sorted(path for path in folder.glob("*.safetensors") if path.name != "trainer_state.safetensors")
-        assert files and {read_metadata(path)[TRAINED_IN_KEY] for path in files} == {"fp32"}  # auto on a CPU
+        assert files and {read_metadata(path)[TRAINED_IN_KEY] for path in files} == {precision}
     assert load(tokenizer / "autoencoder.safetensors", host=HOST).vqtouch_trained_in == "fp32"
     export = ["pretrained", "export", "--run", str(tiny_label_run), "--name", "tiny", "--root", str(tmp_path)]
     assert main([*export, "--weights", "raw"]) == 0
-    assert describe_bundle(tmp_path / "tiny")["trained_in"] == {"tokenizer": "fp32", "generator": "fp32"}
+    expected = {"tokenizer": "fp32", "generator": generator_precision}
+    assert describe_bundle(tmp_path / "tiny")["trained_in"] == expected
     capsys.readouterr()
     assert main(["pretrained", "list", "--root", str(tmp_path)]) == 0
-    assert "  trained in: tokenizer fp32, generator fp32" in capsys.readouterr().out
+    assert f"  trained in: tokenizer fp32, generator {generator_precision}" in capsys.readouterr().out
 
 
 def test_a_run_forced_to_bf16_says_so(tmp_path):

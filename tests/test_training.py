@@ -4,7 +4,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import pytest
 import torch
@@ -384,25 +384,90 @@ def test_bf16_autocast_trains(host, tmp_path):
     "precision, expected", [("auto", torch.float32), ("fp32", torch.float32), ("bf16", torch.bfloat16)]
 )
 def test_precision_sets_the_networks_dtype_and_auto_trains_fp32_on_cpu(host, tmp_path, precision, expected):
-    """``auto`` (the default) runs the networks in fp32 on CPU, where bf16 measured slower to infer and worse."""
+    """``auto`` (the default) runs a component with no measured choice (the toy task's plain
+    TrainConfig) in fp32 on CPU."""
     trainer, task = make_trainer(host, tmp_path, steps=2, **({} if precision == "auto" else {"precision": precision}))
     trainer.fit()
     assert task.prediction_dtype == expected
 
 
-def test_auto_precision_is_bf16_only_on_a_cuda_device_that_supports_it(monkeypatch):
+class _GeneratorLikeConfig(TrainConfig):
+    component: ClassVar[str | None] = "generator"
+
+
+def test_auto_trains_the_generator_in_bf16_on_a_cpu_with_bf16_matrix_units(host, tmp_path, monkeypatch):
+    from vqtouch.core import training
+
+    monkeypatch.setattr(training, "cpu_has_bf16_matrix_units", lambda: True)
+    torch.manual_seed(0)
+    task = ToyTask(host)
+    trainer = Trainer(
+        task,
+        ToyDataset(),
+        _GeneratorLikeConfig(steps=2),
+        batch_size=4,
+        seed=3,
+        device=torch.device("cpu"),
+        checkpoint_dir=None,
+        host=host,
+    )
+    trainer.fit()
+    assert trainer.precision == "bf16" and task.prediction_dtype == torch.bfloat16
+
+
+def test_a_cpu_without_bf16_matrix_units_keeps_fp32_and_says_nothing(host, tmp_path, monkeypatch, recwarn, capsys):
+    from vqtouch.core import training
+
+    monkeypatch.setattr(training, "cpu_has_bf16_matrix_units", lambda: False)
+    torch.manual_seed(0)
+    task = ToyTask(host)
+    trainer = Trainer(
+        task,
+        ToyDataset(),
+        _GeneratorLikeConfig(steps=2),
+        batch_size=4,
+        seed=3,
+        device=torch.device("cpu"),
+        checkpoint_dir=None,
+        host=host,
+    )
+    trainer.fit()
+    assert trainer.precision == "fp32" and task.prediction_dtype == torch.float32
+    assert not [w for w in recwarn if "precision" in str(w.message) or "bf16" in str(w.message)]
+    assert "bf16" not in capsys.readouterr().err
+
+
+def test_auto_precision_per_device_and_component(monkeypatch):
+    from vqtouch.core import training
     from vqtouch.core.training import resolve_precision
+    from vqtouch.plugins.generator.training import GeneratorTrainConfig
+    from vqtouch.plugins.tokenizer.training import TokenizerTrainConfig
 
     monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *args, **kwargs: True)
-    assert [resolve_precision("auto", torch.device(kind)) for kind in ("cpu", "cuda", "meta")] == [
+    monkeypatch.setattr(training, "cpu_has_bf16_matrix_units", lambda: True)
+    generator, tokenizer = GeneratorTrainConfig.component, TokenizerTrainConfig.component
+    assert [resolve_precision("auto", torch.device(kind), generator) for kind in ("cpu", "cuda", "meta")] == [
+        "bf16",
+        "bf16",
+        "fp32",
+    ]
+    assert [resolve_precision("auto", torch.device(kind), tokenizer) for kind in ("cpu", "cuda", "meta")] == [
         "fp32",
         "bf16",
         "fp32",
     ]
-    assert resolve_precision("fp32", torch.device("cuda")) == "fp32"
-    assert resolve_precision("bf16", torch.device("cpu")) == "bf16"
+    assert resolve_precision("fp32", torch.device("cpu"), generator) == "fp32"  # --set ...precision=fp32 wins
+    assert resolve_precision("bf16", torch.device("cpu"), tokenizer) == "bf16"
+    monkeypatch.setattr(training, "cpu_has_bf16_matrix_units", lambda: False)
+    assert resolve_precision("auto", torch.device("cpu"), generator) == "fp32"
     monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *args, **kwargs: False)
-    assert resolve_precision("auto", torch.device("cuda")) == "fp32"
+    assert resolve_precision("auto", torch.device("cuda"), generator) == "fp32"
+
+
+def test_the_trainer_uses_adams_fused_kernel_on_the_cpu(host, tmp_path):
+    trainer, _ = make_trainer(host, tmp_path, steps=1)
+    trainer.fit()
+    assert [optimizer.defaults["fused"] for optimizer in trainer.optimizers.values()] == [True]
 
 
 def test_batch_indices_cover_each_epoch_once_and_split_across_ranks():

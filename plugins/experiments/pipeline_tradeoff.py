@@ -207,8 +207,8 @@ def _resolution_alternatives(config: Any, host: PluginHost, baseline: Any) -> li
 
 
 def _precision_baseline(config: Any, host: PluginHost) -> str:
-
-    return resolve_precision(config.tokenizer.train.precision, resolve_device(config.device))
+    """The tokenizer's training precision in a run of ``config`` (``auto`` resolved)."""
+    return resolve_precision(config.tokenizer.train.precision, resolve_device(config.device), "tokenizer")
 
 
 def _downsampling_baseline(config: Any, host: PluginHost) -> int:

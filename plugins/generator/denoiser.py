@@ -15,9 +15,11 @@ they start as no-ops and a checkpoint saved without them loads and computes exac
   drives every adaptive LayerNorm (VQ-Diffusion's class-AdaLN, for any conditioner);
 - spatially: a condition image aligned with the target (``grid_BDhw`` of the condition, see
   :class:`vqtouch.core.ConditionTokens`) is resized to the code grid, L2-normalised per position,
-  projected and added to the token embeddings, so a code sees the condition at its own place.  Attention goes through
-``F.scaled_dot_product_attention``.  LayerNorms run in float32 and the residual stream stays float32
-under autocast, so bf16 autocast only lowers the matmuls (outputs stay finite, logits are float32).
+  projected and added to the token embeddings, so a code sees the condition at its own place.
+
+Attention goes through :func:`attend`.  LayerNorms run in float32 and the residual stream stays
+float32 under autocast, so bf16 autocast only lowers the matmuls (outputs stay finite, logits are
+float32).
 """
 
 from __future__ import annotations
@@ -68,6 +70,30 @@ def _layer_norm(
     )
 
 
+def attend(
+    q_BhLc: torch.Tensor,
+    k_BhMc: torch.Tensor,
+    v_BhMc: torch.Tensor,
+    attn_mask_B11M: torch.Tensor | None = None,
+    dropout: float = 0.0,
+) -> torch.Tensor:
+    """Softmax attention, (B, heads, L, c), with ``mask`` True where a key may be attended.
+
+    ``F.scaled_dot_product_attention`` everywhere but one case: bf16 with gradients on the CPU,
+    where its fused kernel's backward runs slower than fp32's (bench/bench_precision.py: the ``tour``
+    generator's training step 1.16x fp32 with it, 1.6x with the explicit form).  The explicit form
+    is the same arithmetic (bf16 products, the softmax computed in fp32 and rounded to bf16 before
+    the product with the values, as the fused kernels do) as two AMX matrix products.
+    """
+    if q_BhLc.dtype != torch.bfloat16 or q_BhLc.device.type != "cpu" or not torch.is_grad_enabled():
+        return F.scaled_dot_product_attention(q_BhLc, k_BhMc, v_BhMc, attn_mask=attn_mask_B11M, dropout_p=dropout)
+    scores_BhLM = (q_BhLc * q_BhLc.shape[-1] ** -0.5) @ k_BhMc.transpose(-1, -2)
+    if attn_mask_B11M is not None:
+        scores_BhLM = scores_BhLM.masked_fill(~attn_mask_B11M, float("-inf"))
+    weights_BhLM = F.dropout(scores_BhLM.softmax(dim=-1), dropout) if dropout else scores_BhLM.softmax(dim=-1)
+    return weights_BhLM @ v_BhMc
+
+
 class _SelfAttention(nn.Module):
     def __init__(self, width: int, heads: int, dropout: float) -> None:
         super().__init__()
@@ -79,7 +105,7 @@ class _SelfAttention(nn.Module):
     def forward(self, h_BLd: torch.Tensor) -> torch.Tensor:
         batch, length, width = h_BLd.shape
         q, k, v = self.qkv(h_BLd).view(batch, length, 3, self.heads, width // self.heads).permute(2, 0, 3, 1, 4)
-        out_BhLc = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
+        out_BhLc = attend(q, k, v, dropout=self.dropout if self.training else 0.0)
         return self.proj(out_BhLc.transpose(1, 2).reshape(batch, length, width))
 
 
@@ -109,9 +135,7 @@ class _CrossAttention(nn.Module):
         q = self.q(h_BLd).view(batch, length, self.heads, width // self.heads).transpose(1, 2)
         # A cache made outside autocast may meet queries made inside it (or the reverse).
         k, v = (tensor.to(q.dtype) for tensor in keys_values)
-        out_BhLc = F.scaled_dot_product_attention(
-            q, k, v, attn_mask=attn_mask_B11M, dropout_p=self.dropout if self.training else 0.0
-        )
+        out_BhLc = attend(q, k, v, attn_mask_B11M, dropout=self.dropout if self.training else 0.0)
         out_BLd = self.proj(out_BhLc.transpose(1, 2).reshape(batch, length, width))
         if has_tokens_B is not None:
             out_BLd = out_BLd * has_tokens_B.view(-1, 1, 1).to(out_BLd.dtype)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from pydantic import Field, field_validator
@@ -30,6 +30,8 @@ from .grid_pretrain import GridPretrainConfig
 
 class GeneratorTrainConfig(TrainConfig):
     """How the generator trains (``generator.train``); VQ-Diffusion's optimiser settings by default."""
+
+    component: ClassVar[str | None] = "generator"
 
     steps: int = Field(2000, ge=0, le=99_999_999, strict=True, description="Optimisation steps.")
     learning_rate: float = Field(4.5e-4, gt=0, le=10, strict=True, description="Peak learning rate.")

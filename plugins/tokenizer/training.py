@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import torch
 from pydantic import Field
@@ -60,6 +60,8 @@ class TokenizerLossConfig(Section):
 
 class TokenizerTrainConfig(TrainConfig):
     """How the tokenizer is optimised: the trainer's settings with VQGAN's Adam betas."""
+
+    component: ClassVar[str | None] = "tokenizer"
 
     betas: tuple[float, float] = Field((0.5, 0.9), description="Adam betas (VQGAN uses (0.5, 0.9)).")
 
