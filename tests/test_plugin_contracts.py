@@ -61,6 +61,7 @@ TINY_OPTIONS: dict[tuple[str, str], dict[str, Any]] = {
     },
     ("quantizer", "vq"): {"codebook_size": 16},
     ("quantizer", "ema_vq"): {"codebook_size": 16},
+    ("quantizer", "fsq"): {"levels": [4, 4]},
     ("discriminator", "patchgan"): {"channels": 8, "layers": 2},
     ("conditioner", "tactile"): {"width": 8, "depth": 2, "token_grid": 2},
     ("conditioner", "label"): {"num_tokens": 2},

@@ -51,6 +51,9 @@ LOOKUP_VARIANTS = [
     pytest.param("vq", {"lookup_dim": 4}, id="vq-factorised"),
     pytest.param("vq", {"lookup_dim": 4, "l2_normalize": True}, id="vq-factorised-cosine"),
     pytest.param("ema_vq", {}, id="ema_vq"),
+    pytest.param("vq", {"rotation_trick": True}, id="vq-rotation"),
+    pytest.param("vq", {"rotation_trick": True, "lookup_dim": 4, "l2_normalize": True}, id="vq-rotation-cosine"),
+    pytest.param("ema_vq", {"rotation_trick": True}, id="ema_vq-rotation"),
 ]
 
 
@@ -285,8 +288,9 @@ def test_numerical_extremes_stay_finite(name, options, codebook_size, grid, scal
     shape = (batch, LATENT_DIM, height, width)
     dtype = torch.bfloat16 if precision == "bf16" else torch.float32
     latents_BDhw = (
-        {"constant": lambda: torch.full(shape, 0.5), "zeros": lambda: torch.zeros(shape)}
-        .get(scale, lambda: scale * randn(*shape))()
+        {"constant": lambda: torch.full(shape, 0.5), "zeros": lambda: torch.zeros(shape)}.get(
+            scale, lambda: scale * randn(*shape)
+        )()
         .to(dtype)
         .requires_grad_()
     )
@@ -431,3 +435,40 @@ def test_ema_distributed_branch_runs_in_a_single_process_group(tmp_path):
     reference(latents_BDhw)
     for key, value in reference.state_dict().items():
         assert torch.equal(quantizer.state_dict()[key], value), key
+
+
+def _rotation_reference(z_NC: torch.Tensor, e_NC: torch.Tensor, upstream_NC: torch.Tensor) -> torch.Tensor:
+    """The rotation trick's encoder gradient in float64 with explicit D x D matrices: for each row,
+    lambda R^T g, R the rotation of z's direction onto e's (R = I - 2 r r^T + 2 e^ u^T)."""
+    rows = []
+    for z, e, g in zip(z_NC.double(), e_NC.double(), upstream_NC.double()):
+        u, e_hat = z / z.norm(), e / e.norm()
+        r = (u + e_hat) / (u + e_hat).norm()
+        rotation = torch.eye(len(z), dtype=torch.float64) - 2 * torch.outer(r, r) + 2 * torch.outer(e_hat, u)
+        torch.testing.assert_close(rotation @ u, e_hat)  # the reference itself: R takes u onto e^
+        rows.append(e.norm() / z.norm() * rotation.T @ g)
+    return torch.stack(rows)
+
+
+@pytest.mark.parametrize("name", QUANTIZERS)
+def test_the_rotation_trick_keeps_the_codes_and_passes_the_rotated_gradient(name):
+    plain = build(name, codebook_size=16)
+    rotated = build(name, codebook_size=16, rotation_trick=True)
+    latents_BDhw = randn(2, LATENT_DIM, 3, 3).requires_grad_()
+    upstream_BDhw = randn(2, LATENT_DIM, 3, 3, seed=5)
+    plain_out, out = plain.eval()(latents_BDhw), rotated.eval()(latents_BDhw)
+    assert torch.equal(out.codes_Bhw, plain_out.codes_Bhw)
+    assert torch.equal(out.quantized_BDhw, plain_out.quantized_BDhw)  # forward values: exactly the codes
+    (out.quantized_BDhw * upstream_BDhw).sum().backward(inputs=[latents_BDhw])
+    to_rows = lambda t: t.detach().permute(0, 2, 3, 1).reshape(-1, LATENT_DIM)  # noqa: E731
+    expected = _rotation_reference(to_rows(latents_BDhw), to_rows(out.quantized_BDhw), to_rows(upstream_BDhw))
+    torch.testing.assert_close(to_rows(latents_BDhw.grad).double(), expected, rtol=1e-4, atol=1e-5)
+    assert not torch.allclose(to_rows(latents_BDhw.grad), to_rows(upstream_BDhw), atol=1e-3)  # not the identity
+
+
+def test_the_rotation_trick_keeps_the_identity_gradient_for_a_zero_latent():
+    quantizer = build("vq", codebook_size=8, rotation_trick=True).eval()
+    latents_BDhw = torch.zeros(1, LATENT_DIM, 2, 2, requires_grad=True)
+    upstream_BDhw = randn(1, LATENT_DIM, 2, 2)
+    (quantizer(latents_BDhw).quantized_BDhw * upstream_BDhw).sum().backward()
+    torch.testing.assert_close(latents_BDhw.grad, upstream_BDhw)

@@ -1,8 +1,9 @@
 """Vector quantizers: ``vq`` (gradient-trained codebook) and ``ema_vq`` (EMA codebook + dead-code restart).
 
 Both map latents (B, D, h, w) to their nearest codebook entries and integer codes (B, h, w), pass
-gradients to the encoder with the straight-through estimator, and return the batch perplexity
-exp(entropy of the code histogram).
+gradients to the encoder with the straight-through estimator (or, with ``rotation_trick``, through
+the rotation that takes each latent onto its code), and return the batch perplexity exp(entropy of
+the code histogram).
 
 Precision: every piece of quantizer maths (projections, normalisation, distances, losses, EMA
 statistics) runs in float32 with autocast switched off, whatever the caller's autocast or input
@@ -47,6 +48,12 @@ class _CodebookConfig(PluginConfig):
         ge=0,
         le=65536,
         description="Channels D of the latents; 0 takes the encoder's latent width from the build context.",
+    )
+    rotation_trick: bool = Field(
+        False,
+        description="Pass gradients to the encoder through the rotation and rescaling that takes each latent "
+        "onto its code (Fifty et al. 2024) instead of the identity (straight-through); the forward values "
+        "are the codes either way.",
     )
 
 
@@ -143,6 +150,29 @@ def nearest_codes(vectors_NC: torch.Tensor, codebook_KC: torch.Tensor) -> torch.
     return torch.cat(codes) if len(codes) > 1 else codes[0]
 
 
+def rotate_onto(vectors_NC: torch.Tensor, codes_NC: torch.Tensor) -> torch.Tensor:
+    """The rotation trick's gradient path (Fifty et al. 2024): ``lambda R z`` with ``R`` the rotation
+    taking the direction of each vector ``z`` onto that of its code ``e`` and ``lambda = |e| / |z|``,
+    both treated as constants, so the value is ``e`` and the encoder's gradient is ``lambda R^T g``.
+
+    ``R z = z - 2 r (r . z) + 2 e^ (u . z)`` with ``u = z / |z|``, ``e^ = e / |e|`` and
+    ``r = (u + e^) / |u + e^|`` (two Householder reflections, never a D x D matrix).  A vector of
+    (near) zero length has no direction: it keeps the identity gradient.
+    """
+    norm_N1 = vectors_NC.detach().norm(dim=1, keepdim=True)
+    code_norm_N1 = codes_NC.detach().norm(dim=1, keepdim=True)
+    u_NC = vectors_NC.detach() / norm_N1.clamp_min(1e-12)
+    e_hat_NC = codes_NC.detach() / code_norm_N1.clamp_min(1e-12)
+    r_NC = F.normalize(u_NC + e_hat_NC, dim=1, eps=1e-12)
+    rotated_NC = (
+        vectors_NC
+        - 2 * r_NC * (r_NC * vectors_NC).sum(dim=1, keepdim=True)
+        + 2 * e_hat_NC * (u_NC * vectors_NC).sum(dim=1, keepdim=True)
+    )
+    scaled_NC = rotated_NC * (code_norm_N1 / norm_N1.clamp_min(1e-12))
+    return torch.where(norm_N1 > 1e-6, scaled_NC, vectors_NC)
+
+
 def perplexity_of_counts(counts_K: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """exp(entropy) of a code histogram: 1 when one code is used, K when K codes are used equally.
 
@@ -179,11 +209,19 @@ class _NearestNeighbourQuantizer(Quantizer):
 
     codebook_KC: torch.Tensor
 
-    def __init__(self, codebook_size: int, embedding_dim: int, lookup_dim: int = 0, l2_normalize: bool = False) -> None:
+    def __init__(
+        self,
+        codebook_size: int,
+        embedding_dim: int,
+        lookup_dim: int = 0,
+        l2_normalize: bool = False,
+        rotation_trick: bool = False,
+    ) -> None:
         super().__init__()
         self.codebook_size = codebook_size
         self.embedding_dim = embedding_dim
         self.l2_normalize = l2_normalize
+        self.rotation_trick = rotation_trick
         #: Width C of the space codes are looked up in (D unless the lookup is factorised).
         self.code_dim = lookup_dim or embedding_dim
         if lookup_dim:
@@ -209,7 +247,8 @@ class _NearestNeighbourQuantizer(Quantizer):
             loss = self._vq_loss(vectors_NC, selected_NC)
             # Straight-through, written so the forward value is exactly the code vector: the usual
             # z + sg(e - z) rounds e to the float32 spacing of z (1e-3 at |z| = 1e4).
-            straight_through_NC = selected_NC.detach() + (vectors_NC - vectors_NC.detach())
+            gradient_path_NC = rotate_onto(vectors_NC, selected_NC) if self.rotation_trick else vectors_NC
+            straight_through_NC = selected_NC.detach() + (gradient_path_NC - gradient_path_NC.detach())
             quantized_BDhw = self._from_lookup_space(straight_through_NC, batch, height, width)
             with torch.no_grad():
                 counts_K = torch.bincount(codes_N, minlength=self.codebook_size)
@@ -259,7 +298,7 @@ class _NearestNeighbourQuantizer(Quantizer):
     def extra_repr(self) -> str:
         return (
             f"codebook_size={self.codebook_size}, embedding_dim={self.embedding_dim}, "
-            f"code_dim={self.code_dim}, l2_normalize={self.l2_normalize}"
+            f"code_dim={self.code_dim}, l2_normalize={self.l2_normalize}, rotation_trick={self.rotation_trick}"
         )
 
     # -- subclass hooks -------------------------------------------------------------------------------
@@ -319,8 +358,9 @@ class VectorQuantizer(_NearestNeighbourQuantizer):
         lookup_dim: int = 0,
         l2_normalize: bool = False,
         init: str = "uniform",
+        rotation_trick: bool = False,
     ) -> None:
-        super().__init__(codebook_size, embedding_dim, lookup_dim, l2_normalize)
+        super().__init__(codebook_size, embedding_dim, lookup_dim, l2_normalize, rotation_trick)
         self.beta = beta
         self.codebook_KC = nn.Parameter(torch.empty(codebook_size, self.code_dim, dtype=torch.float32))
         with torch.no_grad():
@@ -369,8 +409,9 @@ class EmaVectorQuantizer(_NearestNeighbourQuantizer):
         eps: float = 1e-5,
         dead_threshold: float = 2.0,
         init: str = "uniform",
+        rotation_trick: bool = False,
     ) -> None:
-        super().__init__(codebook_size, embedding_dim)
+        super().__init__(codebook_size, embedding_dim, rotation_trick=rotation_trick)
         self.beta = beta
         self.decay = decay
         self.eps = eps
@@ -462,6 +503,7 @@ def build_vector_quantizer(config: VectorQuantizerConfig, context: BuildContext)
         lookup_dim=config.lookup_dim,
         l2_normalize=config.l2_normalize,
         init=config.init,
+        rotation_trick=config.rotation_trick,
     )
 
 
@@ -476,6 +518,7 @@ def build_ema_vector_quantizer(config: EmaVectorQuantizerConfig, context: BuildC
         eps=config.eps,
         dead_threshold=config.dead_threshold,
         init=config.init,
+        rotation_trick=config.rotation_trick,
     )
 
 

@@ -1,0 +1,197 @@
+"""Finite scalar quantization (``fsq``; Mentzer et al. 2023, "Finite Scalar Quantization: VQ-VAE Made
+Simple"): no codebook, no codebook loss.
+
+A linear map takes each latent vector (D channels) to ``len(levels)`` numbers; each is bounded to
+``levels[i]`` values by a shifted ``tanh`` and rounded to the nearest of them, with a straight-through
+gradient; a second linear map takes the rounded vector back to D channels.  The implicit codebook is
+the grid of every combination, ``prod(levels)`` codes, and a code's index is its digits in mixed radix
+(the first level varies fastest).  Every grid point is a code, so usage is high by construction; the
+paper's levels for about 2^8, 2^10, 2^12, 2^14 and 2^16 codes are (8, 6, 5), (8, 5, 5, 5),
+(7, 5, 5, 5, 5), (8, 8, 8, 6, 5) and (8, 8, 8, 5, 5, 5).
+
+Precision: as the other quantizers, every step runs in float32 with autocast off; the quantized
+latents are float32.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from pydantic import Field, field_validator
+from torch import nn
+
+from vqtouch.core import BuildContext, ConfigError, PluginConfig, Quantizer, QuantizerOutput, hookimpl
+
+from .quantizers import _autocast_disabled, perplexity_of_counts
+
+#: Codes a generator over the grid can address (the ``vq`` quantizers' bound too).
+MAX_CODES = 65536
+
+
+class FsqConfig(PluginConfig):
+    """Options of the ``fsq`` quantizer."""
+
+    name: Literal["fsq"] = "fsq"
+    levels: tuple[int, ...] = Field(
+        (8, 5, 5, 5),
+        min_length=1,
+        max_length=16,
+        description="Values per dimension of the code vector (each 2-256; the codebook has their product, at "
+        "most 65536, codes).  The paper's choices: (8, 6, 5), (8, 5, 5, 5), (7, 5, 5, 5, 5), (8, 8, 8, 6, 5), "
+        "(8, 8, 8, 5, 5, 5).",
+    )
+    embedding_dim: int = Field(
+        0,
+        ge=0,
+        le=65536,
+        description="Channels D of the latents; 0 takes the encoder's latent width from the build context.",
+    )
+
+    @field_validator("levels")
+    @classmethod
+    def _levels_in_range(cls, levels: tuple[int, ...]) -> tuple[int, ...]:
+        if any(not 2 <= level <= 256 for level in levels):
+            raise ValueError(f"every level must be in [2, 256], got {list(levels)}")
+        if math.prod(levels) > MAX_CODES:
+            raise ValueError(f"levels {list(levels)} make {math.prod(levels)} codes; at most {MAX_CODES}")
+        return levels
+
+
+class FiniteScalarQuantizer(Quantizer):
+    """FSQ over (B, D, h, w) latents (see the module docstring); ``codebook_size = prod(levels)``."""
+
+    def __init__(self, embedding_dim: int, levels: tuple[int, ...]) -> None:
+        super().__init__()
+        self.embedding_dim = embedding_dim
+        self.levels = tuple(int(level) for level in levels)
+        self.codebook_size = math.prod(self.levels)
+        self.project_in = nn.Linear(embedding_dim, len(self.levels))
+        self.project_out = nn.Linear(len(self.levels), embedding_dim)
+        levels_d = torch.tensor(self.levels, dtype=torch.float32)
+        radix_d = torch.cumprod(torch.tensor((1,) + self.levels[:-1], dtype=torch.long), dim=0)
+        # Constants of the grid, not state: rebuilt from ``levels`` on load.
+        self.register_buffer("levels_d", levels_d, persistent=False)
+        self.register_buffer("radix_d", radix_d, persistent=False)
+        self.register_buffer("usage_counts_K", torch.zeros(self.codebook_size, dtype=torch.long), persistent=False)
+
+    # -- the grid ---------------------------------------------------------------------------------
+    def _bound(self, values_Nd: torch.Tensor) -> torch.Tensor:
+        """Each dimension squashed into [-(L-1)/2, (L-1)/2] (shifted by a half for even L, so rounding
+        gives exactly L values)."""
+        half_d = (self.levels_d - 1) * (1 + 1e-3) / 2
+        offset_d = (self.levels_d % 2 == 0).float() * 0.5
+        shift_d = torch.atanh(offset_d / half_d)
+        return torch.tanh(values_Nd + shift_d) * half_d - offset_d
+
+    def _digits_to_vectors(self, digits_Nd: torch.Tensor) -> torch.Tensor:
+        """Digits in [0, L) to the grid's values in [-1, 1] per dimension."""
+        half_width_d = torch.div(self.levels_d, 2, rounding_mode="floor")
+        return (digits_Nd.float() - half_width_d) / half_width_d
+
+    # -- public API -------------------------------------------------------------------------------
+    def forward(self, latents_BDhw: torch.Tensor) -> QuantizerOutput:
+        """Quantise latents (B, D, h, w) of any float dtype; fp32 quantized latents, a zero loss."""
+        self._check_latents(latents_BDhw)
+        batch, _, height, width = latents_BDhw.shape
+        with _autocast_disabled(latents_BDhw.device):
+            vectors_ND = latents_BDhw.float().permute(0, 2, 3, 1).reshape(-1, self.embedding_dim)
+            bounded_Nd = self._bound(F.linear(vectors_ND, self.project_in.weight.float(), self.project_in.bias.float()))
+            # Straight-through, written so the forward value is exactly the grid point (lookup's value).
+            rounded_Nd = bounded_Nd.detach().round() + (bounded_Nd - bounded_Nd.detach())
+            half_width_d = torch.div(self.levels_d, 2, rounding_mode="floor")
+            digits_Nd = (rounded_Nd.detach() + half_width_d).long()
+            codes_N = (digits_Nd * self.radix_d).sum(dim=1)
+            quantized_ND = F.linear(
+                rounded_Nd / half_width_d, self.project_out.weight.float(), self.project_out.bias.float()
+            )
+            with torch.no_grad():
+                counts_K = torch.bincount(codes_N, minlength=self.codebook_size)
+                self.usage_counts_K += counts_K
+                perplexity = perplexity_of_counts(counts_K)
+        quantized_BDhw = quantized_ND.view(batch, height, width, self.embedding_dim).permute(0, 3, 1, 2).contiguous()
+        loss = latents_BDhw.new_zeros((), dtype=torch.float32)
+        return QuantizerOutput(quantized_BDhw, codes_N.view(batch, height, width), loss, perplexity)
+
+    def lookup(self, codes_Bhw: torch.Tensor) -> torch.Tensor:
+        """Integer codes (B, h, w) in [0, K) to quantised latents (B, D, h, w) in float32."""
+        codes_Bhw = torch.as_tensor(codes_Bhw)
+        if codes_Bhw.dtype.is_floating_point or codes_Bhw.dtype.is_complex or codes_Bhw.dtype == torch.bool:
+            raise ValueError(f"{type(self).__name__}.lookup expects integer codes, got dtype {codes_Bhw.dtype}")
+        if codes_Bhw.ndim != 3:
+            raise ValueError(
+                f"{type(self).__name__}.lookup expects codes of shape (B, h, w), got shape {tuple(codes_Bhw.shape)}"
+            )
+        if codes_Bhw.numel() and (int(codes_Bhw.min()) < 0 or int(codes_Bhw.max()) >= self.codebook_size):
+            raise ValueError(
+                f"codes must be in [0, {self.codebook_size}) for these levels; got min "
+                f"{int(codes_Bhw.min())}, max {int(codes_Bhw.max())}"
+            )
+        batch, height, width = codes_Bhw.shape
+        device = self.project_out.weight.device
+        codes_N = codes_Bhw.to(device=device, dtype=torch.long).reshape(-1, 1)
+        digits_Nd = torch.div(codes_N, self.radix_d, rounding_mode="floor") % self.levels_d.long()
+        with _autocast_disabled(device):
+            quantized_ND = F.linear(
+                self._digits_to_vectors(digits_Nd), self.project_out.weight.float(), self.project_out.bias.float()
+            )
+        return quantized_ND.view(batch, height, width, self.embedding_dim).permute(0, 3, 1, 2).contiguous()
+
+    def usage_counts(self) -> torch.Tensor:
+        """(K,) how often each code was chosen since :meth:`reset_usage` (every forward call counts)."""
+        return self.usage_counts_K
+
+    def reset_usage(self) -> None:
+        """Forget the usage counted so far."""
+        self.usage_counts_K.zero_()
+
+    def extra_repr(self) -> str:
+        return f"levels={self.levels}, codebook_size={self.codebook_size}, embedding_dim={self.embedding_dim}"
+
+    def _check_latents(self, latents_BDhw: torch.Tensor) -> None:
+        if not isinstance(latents_BDhw, torch.Tensor) or not latents_BDhw.dtype.is_floating_point:
+            kind = latents_BDhw.dtype if isinstance(latents_BDhw, torch.Tensor) else type(latents_BDhw).__name__
+            raise ValueError(f"FiniteScalarQuantizer expects a floating-point latent tensor, got {kind}")
+        if latents_BDhw.ndim != 4 or latents_BDhw.shape[1] != self.embedding_dim:
+            raise ValueError(
+                f"FiniteScalarQuantizer expects latents of shape (B, {self.embedding_dim}, h, w), got "
+                f"{tuple(latents_BDhw.shape)}"
+            )
+        if latents_BDhw.numel() == 0:
+            raise ValueError(f"FiniteScalarQuantizer got an empty latent batch of shape {tuple(latents_BDhw.shape)}")
+
+
+def build_fsq(config: FsqConfig, context: BuildContext) -> FiniteScalarQuantizer:
+    """Factory of ``fsq``: the latent width from the config, else from the encoder via the context."""
+    embedding_dim = config.embedding_dim or context.latent_dim
+    if embedding_dim < 1:
+        raise ConfigError(
+            "quantizer 'fsq' needs the latent width: set quantizer.embedding_dim=N or build it with the "
+            "encoder's latent width in the context (BuildContext.latent_dim)"
+        )
+    if config.embedding_dim and context.latent_dim and config.embedding_dim != context.latent_dim:
+        raise ConfigError(
+            f"quantizer 'fsq': embedding_dim={config.embedding_dim} but the encoder's latents have "
+            f"{context.latent_dim} channels; set embedding_dim=0 to follow the encoder"
+        )
+    codes = math.prod(config.levels)
+    if context.codebook_size and context.codebook_size != codes:
+        raise ConfigError(
+            f"quantizer 'fsq': levels {list(config.levels)} make {codes} codes but the experiment expects "
+            f"{context.codebook_size} (BuildContext.codebook_size); choose levels whose product is that"
+        )
+    return FiniteScalarQuantizer(embedding_dim, config.levels)
+
+
+@hookimpl
+def vqtouch_register_quantizers(register):
+    """Register ``fsq``."""
+    register(
+        "fsq",
+        build_fsq,
+        FsqConfig,
+        description="Finite scalar quantization: a bounded, rounded low-dimensional projection; "
+        "prod(levels) codes, no codebook loss.",
+    )
