@@ -20,7 +20,8 @@ Run (GPU):  .venv/bin/python bench/bench_precision.py --device cuda --batch 64 -
   its explicit form for bf16 training), and the training steps as they ran before: ``fp32 before``
   (per-tensor Adam) and, for the generator, ``bf16 autocast alone`` (per-tensor Adam, the fused
   attention kernel), so the levers' shares show; ``--compile`` adds ``bf16 compiled`` (the
-  denoiser under ``torch.compile``, compile time reported apart).
+  denoiser under ``torch.compile``, compile time reported apart) and ``--channels-last``
+  ``bf16 channels-last`` (the tokenizer's networks and images in channels-last memory format).
 - Every round times one call of every contender in a rotated order, so the machine's drift hits
   all alike; reported: the median ms per step, images per second, the median of the per-round
   ratios (paired), the step's matmul and convolution FLOPs (``torch.utils.flop_counter``, forward
@@ -34,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import json
 import statistics
 import sys
@@ -100,14 +102,18 @@ def matmul_gflops(size: int, dtype: torch.dtype, device: torch.device, repeats: 
     return 2 * size**3 / best / 1e9
 
 
-def tokenizer_steps(name: str, size: int, batch: int, device: torch.device) -> dict[str, Callable]:
-    """One tokenizer's training step in each variant (the same weights and images)."""
+def tokenizer_steps(name: str, size: int, batch: int, device: torch.device, channels_last: bool) -> dict:
+    """One tokenizer's training step in each variant (the same weights and images; ``bf16 channels-last``
+    on a copy of the networks and images in channels-last memory format)."""
     config = {"name": name, **({"deformable_backend": "gather"} if name == "dm_vqgan" else {})}
-    encoder, quantizer, _, images = build(config, size, batch, 32, device)
-    params = list(encoder.parameters()) + list(quantizer.parameters())
+    networks = build(config, size, batch, 32, device)
 
     def in_variant(variant: str) -> Callable:
-        optimizer = adamw(params, variant)
+        encoder, quantizer, _, images = networks
+        if variant.endswith("channels-last"):
+            encoder = copy.deepcopy(encoder).to(memory_format=torch.channels_last)
+            quantizer, images = copy.deepcopy(quantizer), images.contiguous(memory_format=torch.channels_last)
+        optimizer = adamw(list(encoder.parameters()) + list(quantizer.parameters()), variant)
 
         def step() -> None:
             with autocast(variant, device):
@@ -122,7 +128,8 @@ def tokenizer_steps(name: str, size: int, batch: int, device: torch.device) -> d
 
         return step
 
-    return {variant: in_variant(variant) for variant in TOKENIZER_VARIANTS}
+    variants = TOKENIZER_VARIANTS + (("bf16 channels-last",) if channels_last else ())
+    return {variant: in_variant(variant) for variant in variants}
 
 
 def generator_networks(spec: str, device: torch.device) -> tuple:
@@ -198,7 +205,8 @@ def contenders(args: argparse.Namespace, device: torch.device) -> dict[str, tupl
     table: dict[str, tuple[dict[str, Callable], int]] = {}
     for name in args.tokenizers:
         for size in args.tokenizer_sizes:
-            table[f"tokenizer train, {name}, {size} px"] = (tokenizer_steps(name, size, args.batch, device), args.batch)
+            steps = tokenizer_steps(name, size, args.batch, device, args.channels_last)
+            table[f"tokenizer train, {name}, {size} px"] = (steps, args.batch)
     batch = args.generator_batch or args.batch
     for spec in args.generators:
         train, sample = generator_steps(spec, batch, device, args.compile)
@@ -288,9 +296,9 @@ def print_steps(table: dict, seconds: dict, flops: dict, peak: float, stated: fl
 
 
 def print_levers(table: dict, seconds: dict) -> None:
-    """What each lever gave the generator's training step: every variant against ``fp32 before``."""
+    """What each lever gave each training step: every variant against ``fp32 before``."""
     for label, (steps, _) in table.items():
-        if label.startswith("generator train"):
+        if "train" in label:
             header = " | ".join(steps)
             print(f"\n| {label} | {header} |\n|---|" + "---|" * len(steps))
             ratios = {v: paired_ratio(seconds[label], "fp32 before", v) for v in steps}
@@ -311,6 +319,9 @@ def parse_args() -> argparse.Namespace:
         "--generators", nargs="*", default=["tour", "tour_wide"], help="bundle names or WIDTHxDEPTH@SIZE"
     )
     parser.add_argument("--compile", action="store_true", help="add the generator's bf16 step under torch.compile")
+    parser.add_argument(
+        "--channels-last", action="store_true", help="add the tokenizer's bf16 step in channels-last memory format"
+    )
     parser.add_argument("--peak-tflops", type=float, help="a stated bf16 dense peak, for a second share column")
     parser.add_argument("--json", help="also write every measurement to this file")
     return parser.parse_args()
