@@ -8,7 +8,8 @@ Run:  .venv/bin/python bench/precision_quality.py generator --out runs/precision
   (default 1,000); scored by the held-out validation loss (lower is better; 100 held-out scenes) and
   the run's own ``generation.json`` (contact PSNR per condition, 16 samples).
 - ``tokenizer``: the bundled tokenizer's recipe (``vqtouch pretrained list`` shows it) for ``--steps``;
-  scored by the held-out reconstruction PSNR and SSIM of its ``eval.json``.
+  scored by its ``eval.json`` on the 100 held-out images: PSNR, SSIM, contact PSNR, the share of
+  codes used and the best validation loss (the mean absolute error the run kept its checkpoint by).
 
 Each (seed, precision) run is its own folder, ``OUT/<component>_<precision>_s<seed>``; a finished one is
 kept and read again, so the script resumes.  ``--threads`` (default 1) goes to every run: run it beside
@@ -55,7 +56,7 @@ def scores(component: str, run: Path) -> dict[str, float]:
             row[f"contact_psnr {name.split(':')[1]}"] = entry["contact_psnr"]
         return row
     record = json.loads((run / "eval.json").read_text())
-    return {key: record[key] for key in ("psnr", "ssim") if key in record}
+    return {key: record[key] for key in ("psnr", "ssim", "contact_psnr", "codebook_usage", "best_val_loss")}
 
 
 def _metrics(run: Path) -> list[dict]:
