@@ -308,6 +308,10 @@ class TrainingInterrupted(KeyboardInterrupt):
         self.cause, self.step, self.checkpoint = cause, step, checkpoint
 
 
+class NeverTrainsWarning(VqtouchWarning):
+    """A configured term or schedule never takes effect in this run (it starts after the last step)."""
+
+
 class SkippedCheckpointWarning(VqtouchWarning):
     """A checkpoint folder was skipped because it is incomplete or unreadable (the message says why)."""
 
@@ -515,6 +519,14 @@ class Trainer:
         self.dist = DistributedContext.from_environment(device)
         #: The precision the networks run in: ``config.precision`` with ``auto`` resolved for ``device``.
         self.precision = resolve_precision(config.precision, device, config.component)
+        if 0 < config.steps < config.warmup_steps:
+            key = f"{config.component}.train" if config.component else "train"
+            warnings.warn(
+                f"{key}.warmup_steps={config.warmup_steps} is longer than the run ({key}.steps={config.steps}): "
+                "the learning rate never reaches its peak; lower warmup_steps or raise steps",
+                NeverTrainsWarning,
+                stacklevel=2,
+            )
         self.state = TrainerState()
         #: The step whose checkpoint folder is known complete (saved or resumed from), so an
         #: interrupt right after a save does not write it twice.

@@ -277,7 +277,7 @@ def adapt_tokenizer(
     from vqtouch.core.images import image_grid, save_png
     from vqtouch.core.training import Trainer
     from vqtouch.plugins.tokenizer import TOKENIZER_FILES, load_tokenizer, reconstruct_all, tokenizer_task
-    from vqtouch.plugins.tokenizer import TokenizerLossConfig, TokenizerTrainConfig
+    from vqtouch.plugins.tokenizer import TokenizerLossConfig, TokenizerTrainConfig, disc_start_step
 
     refuse_existing(out, overwrite)
     if settings.part not in ADAPTED_PARTS:
@@ -376,8 +376,10 @@ def adapt_tokenizer(
     )
     discriminator, adversarial = _discriminator(folder, loss, host)
     if discriminator is not None:
-        start = getattr(tokenizer.autoencoder, "vqtouch_step", 0)
-        loss = loss.model_copy(update={"disc_start": max(0, loss.disc_start - start)})
+        # disc_start counts in the family run's steps: the adaptation continues that run's schedule.
+        trained = getattr(tokenizer.autoencoder, "vqtouch_step", 0)
+        run_steps = (section.train if section is not None else TokenizerTrainConfig()).steps
+        loss = loss.model_copy(update={"disc_start": max(0, disc_start_step(loss.disc_start, run_steps) - trained)})
     if settings.part == "decoder":
         freeze_all_but_the_decoder(tokenizer)
     task = tokenizer_task(tokenizer, loss, device, discriminator)

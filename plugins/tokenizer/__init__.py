@@ -16,7 +16,14 @@ from .loading import (
 )
 from .stages import SHOWN_SCORES as TOKENIZER_SHOWN_SCORES
 from .stages import experiment_metrics, printable, save_pairs
-from .training import Tokenizer, TokenizerLossConfig, TokenizerTrainConfig, evaluate_reconstruction, tokenizer_task
+from .training import (
+    Tokenizer,
+    TokenizerLossConfig,
+    TokenizerTrainConfig,
+    disc_start_step,
+    evaluate_reconstruction,
+    tokenizer_task,
+)
 
 __all__ = [
     "TOKENIZER_FILES",
@@ -24,6 +31,7 @@ __all__ = [
     "Tokenizer",
     "TokenizerLossConfig",
     "TokenizerTrainConfig",
+    "disc_start_step",
     "evaluate_reconstruction",
     "experiment_metrics",
     "load_tokenizer",

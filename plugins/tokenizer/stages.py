@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,7 @@ from vqtouch.core.errors import NothingToEvaluateError
 from vqtouch.core.image_size import image_hw
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
-from vqtouch.core.training import Trainer
+from vqtouch.core.training import NeverTrainsWarning, Trainer
 from vqtouch.plugins.evaluation.contact import (
     VERDICT_EVIDENCE,
     contact_region_scores,
@@ -30,7 +31,7 @@ from vqtouch.plugins.evaluation.contact import (
 from vqtouch.plugins.evaluation.directions import shown_scores
 
 from .loading import TOKENIZER_FILES, load_tokenizer, reconstruct_all
-from .training import Tokenizer, TokenizerSection, evaluate_reconstruction, tokenizer_task
+from .training import Tokenizer, TokenizerSection, adversarial_never_trains, evaluate_reconstruction, tokenizer_task
 
 
 def printable(scores: dict[str, Any]) -> dict[str, Any]:
@@ -58,6 +59,9 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
     discriminator = None
     if section.discriminator is not None and section.loss.adversarial_weight > 0:
         discriminator = assembly.component("tokenizer.discriminator")
+    never = adversarial_never_trains(section)
+    if never is not None:
+        warnings.warn(never, NeverTrainsWarning, stacklevel=2)
     task = tokenizer_task(tokenizer, section.loss, device, discriminator)
     trainer = Trainer(
         task,

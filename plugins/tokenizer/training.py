@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
 import torch
-from pydantic import Field
+from pydantic import Field, StrictFloat, StrictInt, field_validator
 from torch import nn
 
 from vqtouch.core import Autoencoder, Metric, MetricSet, Quantizer, Section, Slot, TrainConfig, VqtouchError
@@ -52,10 +52,42 @@ class TokenizerLossConfig(Section):
     adversarial_weight: float = Field(
         0.8, ge=0.0, le=100.0, description="Weight of the hinge GAN loss (times the adaptive weight); 0 disables it."
     )
-    disc_start: int = Field(
-        2000, ge=0, description="Step at which the discriminator starts (it is not trained before)."
+    disc_start: StrictInt | StrictFloat = Field(
+        0.5,
+        description="When the adversarial term and the discriminator start (neither trains before): a step "
+        "(an integer, e.g. 2000) or a fraction of tokenizer.train.steps (a number below 1; 0.5: half way, "
+        "once the autoencoder reconstructs).",
     )
     adaptive_weight_max: float = Field(1e4, gt=0.0, description="Upper clamp of the adaptive GAN weight.")
+
+    @field_validator("disc_start")
+    @classmethod
+    def _a_step_or_a_fraction(cls, value: int | float) -> int | float:
+        if not value >= 0:
+            raise ValueError(f"disc_start is a step or a fraction of the run, at least 0; got {value}")
+        if isinstance(value, float) and not value < 1:
+            raise ValueError(f"{value} is a fraction of the run only below 1 (e.g. 0.5); give a step as an integer")
+        return value
+
+
+def disc_start_step(disc_start: int | float, steps: int) -> int:
+    """The step at which the adversarial term starts in a run of ``steps`` steps (a fraction resolved)."""
+    return int(disc_start * steps) if isinstance(disc_start, float) else disc_start
+
+
+def adversarial_never_trains(section: TokenizerSection) -> str | None:
+    """Why the configured adversarial term would never train in this run, or None when it does (or is off)."""
+    loss, steps = section.loss, section.train.steps
+    if section.discriminator is None or loss.adversarial_weight == 0 or steps == 0:
+        return None
+    start = disc_start_step(loss.disc_start, steps)
+    if start < steps:
+        return None
+    return (
+        f"tokenizer.loss.disc_start={loss.disc_start} starts the adversarial term at step {start}, after the run's "
+        f"last (tokenizer.train.steps={steps}): it never trains; lower disc_start (0.5 starts it half way), or "
+        "turn it off with tokenizer.loss.adversarial_weight=0"
+    )
 
 
 class TokenizerTrainConfig(TrainConfig):
@@ -208,7 +240,9 @@ class TokenizerTask:
             nll = nll + self.loss.perceptual_weight * perceptual
             scalars["perceptual"] = float(perceptual.detach())
         total = nll + self.loss.codebook_weight * output.loss
-        adversarial_on = self.discriminator is not None and step >= self.loss.disc_start
+        adversarial_on = self.discriminator is not None and step >= disc_start_step(
+            self.loss.disc_start, trainer.config.steps
+        )
         if adversarial_on:
             with trainer.autocast():
                 generator_loss = -self.discriminator(reconstruction).float().mean()
