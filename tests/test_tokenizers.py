@@ -403,3 +403,45 @@ def test_evaluation_reports_the_codes_the_held_out_images_use(host):
     assert scores["perplexity"] == pytest.approx(
         float(torch.exp(-(probabilities * probabilities.log()).sum())), rel=1e-9
     )
+
+
+# -- precision of the building blocks -----------------------------------------------------------
+
+
+def test_groupnorm_is_torch_s_in_float32_and_float32_under_bf16_autocast():
+    from vqtouch.plugins.tokenizer.blocks import group_norm
+
+    torch.manual_seed(0)
+    norm = group_norm(16, 4)
+    with torch.no_grad():
+        norm.weight.normal_()
+        norm.bias.normal_()
+    x = torch.randn(2, 16, 5, 5)
+    reference = torch.nn.GroupNorm(4, 16, eps=1e-6)
+    reference.load_state_dict(norm.state_dict())
+    assert torch.equal(norm(x), reference(x))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        low = norm(x.bfloat16())
+    assert low.dtype == torch.float32
+    torch.testing.assert_close(low, reference(x.bfloat16().float()), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("name", ["vqgan", "dm_vqgan"])
+def test_under_bf16_autocast_the_residual_stream_stays_float32(name):
+    """Every block's output (the stream) is float32 under bf16 autocast, the convolutions bf16."""
+    from vqtouch.plugins.tokenizer.blocks import AttentionBlock, MultiScaleFusion, ResnetBlock
+
+    encoder = tiny_encoder(name)
+    outputs = []
+    hooks = [
+        module.register_forward_hook(lambda module, args, output: outputs.append((type(module).__name__, output.dtype)))
+        for module in encoder.modules()
+        if isinstance(module, (ResnetBlock, AttentionBlock, MultiScaleFusion))
+    ]
+    images = torch.rand(2, 3, 32, 32) * 2 - 1
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        reconstruction = encoder.decode(encoder.encode(images))
+    for hook in hooks:
+        hook.remove()
+    assert outputs and {dtype for _, dtype in outputs} == {torch.float32}, outputs
+    assert torch.isfinite(reconstruction.float()).all()

@@ -1,8 +1,11 @@
 """VQGAN building blocks (Esser et al. 2021): ResNet blocks, spatial attention, resampling.
 
 GroupNorm everywhere (``norm_groups`` must divide the channel counts), swish activations,
-1x1 shortcuts when channels change.  A block's second 3x3 convolution can be swapped for
-any layer with the same signature (DM-VQGAN puts a deformable convolution there).
+1x1 shortcuts when channels change.  Under bf16 autocast the convolutions run in bf16 while the
+norms and the residual stream stay float32 (as the generator's LayerNorms and residuals do), so
+the stream's small updates are not rounded away; in float32 every block computes what it did.  A
+block's second 3x3 convolution can be swapped for any layer with the same signature (DM-VQGAN puts
+a deformable convolution there).
 """
 
 from __future__ import annotations
@@ -21,11 +24,20 @@ def plain_conv3x3(in_channels: int, out_channels: int) -> nn.Module:
     return nn.Conv2d(in_channels, out_channels, 3, padding=1)
 
 
+class Float32GroupNorm(nn.GroupNorm):
+    """GroupNorm whose statistics and output are float32 whatever the autocast (bf16 statistics over a
+    group's many values lose digits); in float32 it is ``nn.GroupNorm`` exactly."""
+
+    def forward(self, x_BCHW: torch.Tensor) -> torch.Tensor:
+        with torch.autocast(x_BCHW.device.type, enabled=False):
+            return F.group_norm(x_BCHW.float(), self.num_groups, self.weight, self.bias, self.eps)
+
+
 def group_norm(channels: int, groups: int) -> nn.GroupNorm:
-    """GroupNorm with taming's eps; ``groups`` must divide ``channels``."""
+    """GroupNorm with taming's eps, computed in float32; ``groups`` must divide ``channels``."""
     if channels % groups:
         raise ValueError(f"GroupNorm needs channels divisible by norm_groups: {channels} % {groups} != 0")
-    return nn.GroupNorm(groups, channels, eps=1e-6, affine=True)
+    return Float32GroupNorm(groups, channels, eps=1e-6, affine=True)
 
 
 class ResnetBlock(nn.Module):
@@ -50,7 +62,7 @@ class ResnetBlock(nn.Module):
     def forward(self, x_BCHW: torch.Tensor) -> torch.Tensor:
         h = self.conv1(F.silu(self.norm1(x_BCHW)))
         h = self.conv2(self.dropout(F.silu(self.norm2(h))))
-        return self.shortcut(x_BCHW) + h
+        return self.shortcut(x_BCHW).float() + h.float()  # the residual stream stays float32 under autocast
 
 
 class AttentionBlock(nn.Module):
@@ -69,7 +81,7 @@ class AttentionBlock(nn.Module):
         out_BLC = F.scaled_dot_product_attention(
             q.transpose(1, 2)[:, None], k.transpose(1, 2)[:, None], v.transpose(1, 2)[:, None]
         )[:, 0]
-        return x_BCHW + self.proj(out_BLC.transpose(1, 2).reshape(batch, channels, height, width))
+        return x_BCHW.float() + self.proj(out_BLC.transpose(1, 2).reshape(batch, channels, height, width)).float()
 
 
 class Downsample(nn.Module):
@@ -115,4 +127,4 @@ class MultiScaleFusion(nn.Module):
         nn.init.zeros_(self.fuse.bias)
 
     def forward(self, x_BCHW: torch.Tensor) -> torch.Tensor:
-        return x_BCHW + self.fuse(torch.cat([branch(x_BCHW) for branch in self.branches], dim=1))
+        return x_BCHW.float() + self.fuse(torch.cat([branch(x_BCHW) for branch in self.branches], dim=1)).float()
