@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import warnings
 
+import generator_runs
 import pytest
 import torch
 
@@ -17,20 +18,12 @@ from vqtouch.plugins.tokenizer.training import adversarial_never_trains
 
 HOST = load_plugins()
 
+#: The tests' tiny tokenizer run with its discriminator on, for 6 steps, logging every step.
 TINY = [
-    "tokenizer.autoencoder.channels=16",
-    "tokenizer.autoencoder.norm_groups=8",
-    "tokenizer.autoencoder.channel_multipliers=[1,2]",
-    "tokenizer.autoencoder.z_channels=16",
-    "tokenizer.autoencoder.embed_dim=8",
-    "tokenizer.quantizer.codebook_size=32",
-    "data.image_size=32",
-    "data.batch_size=4",
-    "data.dataset.num_samples=16",
+    *(override for override in generator_runs.TINY_TOKENIZER if not override.startswith("tokenizer.discriminator")),
     "tokenizer.train.steps=6",
     "tokenizer.train.log_every=1",
     "tokenizer.train.checkpoint_every=6",
-    "tokenizer.loss.perceptual=none",
     'metrics=[{"name": "psnr"}]',
 ]
 

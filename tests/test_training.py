@@ -395,10 +395,15 @@ class _GeneratorLikeConfig(TrainConfig):
     component: ClassVar[str | None] = "generator"
 
 
-def test_auto_trains_the_generator_in_bf16_on_a_cpu_with_bf16_matrix_units(host, tmp_path, monkeypatch):
+@pytest.mark.parametrize("matrix_units, expected", [(True, "bf16"), (False, "fp32")])
+def test_auto_trains_the_generator_in_bf16_only_on_a_cpu_with_bf16_matrix_units(
+    host, monkeypatch, recwarn, capsys, matrix_units, expected
+):
+    """With bf16 matrix units (AMX) ``auto`` trains the generator in bf16; without them it keeps fp32
+    and says nothing."""
     from vqtouch.core import training
 
-    monkeypatch.setattr(training, "cpu_has_bf16_matrix_units", lambda: True)
+    monkeypatch.setattr(training, "cpu_has_bf16_matrix_units", lambda: matrix_units)
     torch.manual_seed(0)
     task = ToyTask(host)
     trainer = Trainer(
@@ -412,27 +417,8 @@ def test_auto_trains_the_generator_in_bf16_on_a_cpu_with_bf16_matrix_units(host,
         host=host,
     )
     trainer.fit()
-    assert trainer.precision == "bf16" and task.prediction_dtype == torch.bfloat16
-
-
-def test_a_cpu_without_bf16_matrix_units_keeps_fp32_and_says_nothing(host, tmp_path, monkeypatch, recwarn, capsys):
-    from vqtouch.core import training
-
-    monkeypatch.setattr(training, "cpu_has_bf16_matrix_units", lambda: False)
-    torch.manual_seed(0)
-    task = ToyTask(host)
-    trainer = Trainer(
-        task,
-        ToyDataset(),
-        _GeneratorLikeConfig(steps=2),
-        batch_size=4,
-        seed=3,
-        device=torch.device("cpu"),
-        checkpoint_dir=None,
-        host=host,
-    )
-    trainer.fit()
-    assert trainer.precision == "fp32" and task.prediction_dtype == torch.float32
+    dtype = {"bf16": torch.bfloat16, "fp32": torch.float32}[expected]
+    assert trainer.precision == expected and task.prediction_dtype == dtype
     assert not [w for w in recwarn if "precision" in str(w.message) or "bf16" in str(w.message)]
     assert "bf16" not in capsys.readouterr().err
 

@@ -25,7 +25,7 @@ from torch import nn
 
 from vqtouch.core import BuildContext, ConfigError, PluginConfig, Quantizer, QuantizerOutput, hookimpl
 
-from .quantizers import _autocast_disabled, perplexity_of_counts
+from .quantizers import _autocast_disabled, check_latents, checked_codes, perplexity_of_counts
 
 #: Codes a generator over the grid can address (the ``vq`` quantizers' bound too).
 MAX_CODES = 65536
@@ -94,7 +94,7 @@ class FiniteScalarQuantizer(Quantizer):
     # -- public API -------------------------------------------------------------------------------
     def forward(self, latents_BDhw: torch.Tensor) -> QuantizerOutput:
         """Quantise latents (B, D, h, w) of any float dtype; fp32 quantized latents, a zero loss."""
-        self._check_latents(latents_BDhw)
+        check_latents(self, latents_BDhw)
         batch, _, height, width = latents_BDhw.shape
         with _autocast_disabled(latents_BDhw.device):
             vectors_ND = latents_BDhw.float().permute(0, 2, 3, 1).reshape(-1, self.embedding_dim)
@@ -117,18 +117,7 @@ class FiniteScalarQuantizer(Quantizer):
 
     def lookup(self, codes_Bhw: torch.Tensor) -> torch.Tensor:
         """Integer codes (B, h, w) in [0, K) to quantised latents (B, D, h, w) in float32."""
-        codes_Bhw = torch.as_tensor(codes_Bhw)
-        if codes_Bhw.dtype.is_floating_point or codes_Bhw.dtype.is_complex or codes_Bhw.dtype == torch.bool:
-            raise ValueError(f"{type(self).__name__}.lookup expects integer codes, got dtype {codes_Bhw.dtype}")
-        if codes_Bhw.ndim != 3:
-            raise ValueError(
-                f"{type(self).__name__}.lookup expects codes of shape (B, h, w), got shape {tuple(codes_Bhw.shape)}"
-            )
-        if codes_Bhw.numel() and (int(codes_Bhw.min()) < 0 or int(codes_Bhw.max()) >= self.codebook_size):
-            raise ValueError(
-                f"codes must be in [0, {self.codebook_size}) for these levels; got min "
-                f"{int(codes_Bhw.min())}, max {int(codes_Bhw.max())}"
-            )
+        codes_Bhw = checked_codes(self, codes_Bhw)
         batch, height, width = codes_Bhw.shape
         device = self.project_out.weight.device
         codes_N = codes_Bhw.to(device=device, dtype=torch.long).reshape(-1, 1)
@@ -149,18 +138,6 @@ class FiniteScalarQuantizer(Quantizer):
 
     def extra_repr(self) -> str:
         return f"levels={self.levels}, codebook_size={self.codebook_size}, embedding_dim={self.embedding_dim}"
-
-    def _check_latents(self, latents_BDhw: torch.Tensor) -> None:
-        if not isinstance(latents_BDhw, torch.Tensor) or not latents_BDhw.dtype.is_floating_point:
-            kind = latents_BDhw.dtype if isinstance(latents_BDhw, torch.Tensor) else type(latents_BDhw).__name__
-            raise ValueError(f"FiniteScalarQuantizer expects a floating-point latent tensor, got {kind}")
-        if latents_BDhw.ndim != 4 or latents_BDhw.shape[1] != self.embedding_dim:
-            raise ValueError(
-                f"FiniteScalarQuantizer expects latents of shape (B, {self.embedding_dim}, h, w), got "
-                f"{tuple(latents_BDhw.shape)}"
-            )
-        if latents_BDhw.numel() == 0:
-            raise ValueError(f"FiniteScalarQuantizer got an empty latent batch of shape {tuple(latents_BDhw.shape)}")
 
 
 def build_fsq(config: FsqConfig, context: BuildContext) -> FiniteScalarQuantizer:

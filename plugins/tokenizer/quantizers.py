@@ -20,7 +20,7 @@ and PyTorch raises when the legacy and the new TF32 APIs are mixed.
 from __future__ import annotations
 
 import contextlib
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 import torch.nn.functional as F
@@ -183,6 +183,35 @@ def perplexity_of_counts(counts_K: torch.Tensor, dtype: torch.dtype = torch.floa
     return entropy.exp()
 
 
+def check_latents(quantizer: Quantizer, latents_BDhw: torch.Tensor) -> None:
+    """Refuse, in one line, latents a quantizer cannot take: not floating point, not (B, D, h, w), empty."""
+    name = type(quantizer).__name__
+    if not isinstance(latents_BDhw, torch.Tensor) or not latents_BDhw.dtype.is_floating_point:
+        kind = latents_BDhw.dtype if isinstance(latents_BDhw, torch.Tensor) else type(latents_BDhw).__name__
+        raise ValueError(f"{name} expects a floating-point latent tensor, got {kind}")
+    if latents_BDhw.ndim != 4 or latents_BDhw.shape[1] != quantizer.embedding_dim:
+        raise ValueError(
+            f"{name} expects latents of shape (B, {quantizer.embedding_dim}, h, w), got {tuple(latents_BDhw.shape)}"
+        )
+    if latents_BDhw.numel() == 0:
+        raise ValueError(f"{name} got an empty latent batch of shape {tuple(latents_BDhw.shape)}")
+
+
+def checked_codes(quantizer: Quantizer, codes_Bhw: Any) -> torch.Tensor:
+    """``codes_Bhw`` as a tensor when they are integer codes (B, h, w) in [0, codebook_size); else one line."""
+    name = type(quantizer).__name__
+    codes_Bhw = torch.as_tensor(codes_Bhw)
+    if codes_Bhw.dtype.is_floating_point or codes_Bhw.dtype.is_complex or codes_Bhw.dtype == torch.bool:
+        raise ValueError(f"{name}.lookup expects integer codes, got dtype {codes_Bhw.dtype}")
+    if codes_Bhw.ndim != 3:
+        raise ValueError(f"{name}.lookup expects codes of shape (B, h, w), got shape {tuple(codes_Bhw.shape)}")
+    size = quantizer.codebook_size
+    if codes_Bhw.numel() and (int(codes_Bhw.min()) < 0 or int(codes_Bhw.max()) >= size):
+        low, high = int(codes_Bhw.min()), int(codes_Bhw.max())
+        raise ValueError(f"codes must be in [0, {size}) for this codebook; got min {low}, max {high}")
+    return codes_Bhw
+
+
 def _init_codebook_(codebook_KC: torch.Tensor, init: str) -> None:
     size = codebook_KC.shape[0]
     if init == "uniform":
@@ -237,7 +266,7 @@ class _NearestNeighbourQuantizer(Quantizer):
     # -- public API -------------------------------------------------------------------------------
     def forward(self, latents_BDhw: torch.Tensor) -> QuantizerOutput:
         """Quantise latents (B, D, h, w) of any float dtype; returns fp32 quantized latents and fp32 loss."""
-        self._check_latents(latents_BDhw)
+        check_latents(self, latents_BDhw)
         batch, _, height, width = latents_BDhw.shape
         with _autocast_disabled(latents_BDhw.device):
             vectors_NC = self._to_lookup_space(latents_BDhw)
@@ -260,18 +289,7 @@ class _NearestNeighbourQuantizer(Quantizer):
 
     def lookup(self, codes_Bhw: torch.Tensor) -> torch.Tensor:
         """Integer codes (B, h, w) in [0, K) to quantised latents (B, D, h, w) in float32."""
-        codes_Bhw = torch.as_tensor(codes_Bhw)
-        if codes_Bhw.dtype.is_floating_point or codes_Bhw.dtype.is_complex or codes_Bhw.dtype == torch.bool:
-            raise ValueError(f"{type(self).__name__}.lookup expects integer codes, got dtype {codes_Bhw.dtype}")
-        if codes_Bhw.ndim != 3:
-            raise ValueError(
-                f"{type(self).__name__}.lookup expects codes of shape (B, h, w), got shape {tuple(codes_Bhw.shape)}"
-            )
-        if codes_Bhw.numel() and (int(codes_Bhw.min()) < 0 or int(codes_Bhw.max()) >= self.codebook_size):
-            raise ValueError(
-                f"codes must be in [0, {self.codebook_size}) for this codebook; got min "
-                f"{int(codes_Bhw.min())}, max {int(codes_Bhw.max())}"
-            )
+        codes_Bhw = checked_codes(self, codes_Bhw)
         batch, height, width = codes_Bhw.shape
         device = self.codebook_KC.device
         with _autocast_disabled(device):
@@ -309,18 +327,6 @@ class _NearestNeighbourQuantizer(Quantizer):
         """Training-mode codebook update after the assignment (no-op for gradient-trained codebooks)."""
 
     # -- helpers ------------------------------------------------------------------------------------
-    def _check_latents(self, latents_BDhw: torch.Tensor) -> None:
-        name = type(self).__name__
-        if not isinstance(latents_BDhw, torch.Tensor) or not latents_BDhw.dtype.is_floating_point:
-            kind = latents_BDhw.dtype if isinstance(latents_BDhw, torch.Tensor) else type(latents_BDhw).__name__
-            raise ValueError(f"{name} expects a floating-point latent tensor, got {kind}")
-        if latents_BDhw.ndim != 4 or latents_BDhw.shape[1] != self.embedding_dim:
-            raise ValueError(
-                f"{name} expects latents of shape (B, {self.embedding_dim}, h, w), got {tuple(latents_BDhw.shape)}"
-            )
-        if latents_BDhw.numel() == 0:
-            raise ValueError(f"{name} got an empty latent batch of shape {tuple(latents_BDhw.shape)}")
-
     def _to_lookup_space(self, latents_BDhw: torch.Tensor) -> torch.Tensor:
         """(B, D, h, w) latents to (B*h*w, C) float32 vectors in the space codes live in."""
         vectors_NC = latents_BDhw.float().permute(0, 2, 3, 1).reshape(-1, self.embedding_dim)
