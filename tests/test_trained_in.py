@@ -3,6 +3,8 @@ in every checkpoint's header, and a bundle exported from it carries that to ``vq
 
 from __future__ import annotations
 
+import json
+
 import generator_runs
 
 from vqtouch.core import load, load_plugins, read_metadata
@@ -23,6 +25,9 @@ def test_checkpoints_and_bundles_name_the_precision_auto_resolved_to(tiny_label_
         files = sorted(path for path in folder.glob("*.safetensors") if path.name != "trainer_state.safetensors")
         assert files and {read_metadata(path)[TRAINED_IN_KEY] for path in files} == {precision}
     assert load(tokenizer / "autoencoder.safetensors", host=HOST).vqtouch_trained_in == "fp32"
+    # The run's records say it too: eval.json (the tokenizer stage) and generation.json (the generator's).
+    assert json.loads((tiny_label_run / "eval.json").read_text())["trained_in"] == "fp32"
+    assert json.loads((tiny_label_run / "generation.json").read_text())["trained_in"] == generator_precision
     export = ["pretrained", "export", "--run", str(tiny_label_run), "--name", "tiny", "--root", str(tmp_path)]
     assert main([*export, "--weights", "raw"]) == 0
     expected = {"tokenizer": "fp32", "generator": generator_precision}

@@ -354,6 +354,7 @@ def train_generator(job: StageJob) -> dict[str, Any]:
     state = trainer.fit()
     result: dict[str, Any] = {
         "step": state.step,
+        "trained_in": trainer.precision,  # generator.train.precision with auto resolved for this machine
         "train_samples": len(train_set),
         "val_samples": len(val_set),
         "split_unit": val_set.split_unit,

@@ -97,6 +97,7 @@ def train_tokenizer(job: StageJob) -> dict[str, Any]:
             "eval.json",
             {
                 "step": state.step,
+                "trained_in": trainer.precision,  # tokenizer.train.precision with auto resolved for this machine
                 "skipped_steps": state.skipped_steps,
                 **best,
                 "train_samples": len(train_set),
