@@ -542,6 +542,10 @@ def test_attend_takes_the_explicit_path_only_for_bf16_training_on_the_cpu(monkey
     with torch.no_grad():
         denoiser.attend(q.bfloat16(), q.bfloat16(), q.bfloat16())  # bf16 sampling: the fused kernel
     assert fused_calls == [torch.float32, torch.bfloat16]
+    # Too many scores to keep for the backward (a large code grid): the fused kernel, whose memory grows with L.
+    monkeypatch.setattr(denoiser, "EXPLICIT_ATTENTION_MAX_SCORES", 1 * 2 * 4 * 4 - 1)
+    denoiser.attend(q.bfloat16(), q.bfloat16(), q.bfloat16())
+    assert fused_calls == [torch.float32, torch.bfloat16, torch.bfloat16]
 
 
 def test_denoiser_in_bf16_training_keeps_padding_out_and_stays_finite():

@@ -70,6 +70,11 @@ def _layer_norm(
     )
 
 
+#: The most attention scores (batch x heads x queries x keys) :func:`attend` materialises: 64 Mi, 128 MB
+#: in bf16 per layer (kept with its softmax for the backward).
+EXPLICIT_ATTENTION_MAX_SCORES = 2**26
+
+
 def attend(
     q_BhLc: torch.Tensor,
     k_BhMc: torch.Tensor,
@@ -83,9 +88,13 @@ def attend(
     where its fused kernel's backward runs slower than fp32's (bench/bench_precision.py: the ``tour``
     generator's training step 1.16x fp32 with it, 1.6x with the explicit form).  The explicit form
     is the same arithmetic (bf16 products, the softmax computed in fp32 and rounded to bf16 before
-    the product with the values, as the fused kernels do) as two AMX matrix products.
+    the product with the values, as the fused kernels do) as two AMX matrix products.  It keeps the
+    (B, heads, L, M) scores for the backward, so above :data:`EXPLICIT_ATTENTION_MAX_SCORES` of them
+    (a 32 x 32 code grid at batch 16 and 8 heads) the fused kernel, whose memory grows with L, runs.
     """
-    if q_BhLc.dtype != torch.bfloat16 or q_BhLc.device.type != "cpu" or not torch.is_grad_enabled():
+    batch, heads, length, _ = q_BhLc.shape
+    explicit = q_BhLc.dtype == torch.bfloat16 and q_BhLc.device.type == "cpu" and torch.is_grad_enabled()
+    if not explicit or batch * heads * length * k_BhMc.shape[2] > EXPLICIT_ATTENTION_MAX_SCORES:
         return F.scaled_dot_product_attention(q_BhLc, k_BhMc, v_BhMc, attn_mask=attn_mask_B11M, dropout_p=dropout)
     scores_BhLM = (q_BhLc * q_BhLc.shape[-1] ** -0.5) @ k_BhMc.transpose(-1, -2)
     if attn_mask_B11M is not None:
