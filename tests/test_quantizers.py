@@ -54,6 +54,7 @@ LOOKUP_VARIANTS = [
     pytest.param("vq", {"rotation_trick": True}, id="vq-rotation"),
     pytest.param("vq", {"rotation_trick": True, "lookup_dim": 4, "l2_normalize": True}, id="vq-rotation-cosine"),
     pytest.param("ema_vq", {"rotation_trick": True}, id="ema_vq-rotation"),
+    pytest.param("vq", {"simvq": True}, id="vq-simvq"),  # its map starts as the identity: codebook_KC is the codebook
 ]
 
 
@@ -472,3 +473,29 @@ def test_the_rotation_trick_keeps_the_identity_gradient_for_a_zero_latent():
     upstream_BDhw = randn(1, LATENT_DIM, 2, 2)
     (quantizer(latents_BDhw).quantized_BDhw * upstream_BDhw).sum().backward()
     torch.testing.assert_close(latents_BDhw.grad, upstream_BDhw)
+
+
+def test_simvq_trains_one_map_that_moves_every_code_and_keeps_the_basis():
+    """SimVQ: the basis is a frozen buffer, the map is the one trained parameter of the codebook, and one
+    step moves every code (a plain ``vq`` step moves only the codes that were chosen)."""
+    results = {}
+    for simvq in (False, True):
+        quantizer = build("vq", codebook_size=64, init="normal", simvq=simvq).train()
+        before_KC = quantizer._lookup_codebook().detach().clone()
+        basis_KC = quantizer.codebook_KC.detach().clone()
+        optimizer = torch.optim.SGD(quantizer.parameters(), lr=0.5)
+        output = quantizer(randn(1, LATENT_DIM, 2, 2))  # 4 latents: at most 4 of the 64 codes chosen
+        output.loss.backward()
+        optimizer.step()
+        moved_K = (quantizer._lookup_codebook().detach() - before_KC).norm(dim=1) > 1e-6
+        results[simvq] = (int(moved_K.sum()), torch.equal(quantizer.codebook_KC, basis_KC))
+        if simvq:
+            assert "codebook_KC" not in dict(quantizer.named_parameters())
+            assert "codebook_KC" in quantizer.state_dict()  # the basis is saved with the map
+            codes_Bhw = torch.tensor([[[0, 5], [63, 7]]])
+            expected_KC = basis_KC @ quantizer.codebook_map.weight.detach().T
+            torch.testing.assert_close(
+                quantizer.lookup(codes_Bhw)[0].permute(1, 2, 0).reshape(4, -1), expected_KC[codes_Bhw.reshape(-1)]
+            )
+    assert results[False][0] <= 4 and not results[False][1]
+    assert results[True] == (64, True)

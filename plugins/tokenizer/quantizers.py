@@ -83,6 +83,11 @@ class VectorQuantizerConfig(_CodebookConfig):
     init: CodebookInit = Field(
         "uniform", description="Codebook init: 'uniform' = U(-1/K, 1/K) as in taming, 'normal' = N(0, 1)."
     )
+    simvq: bool = Field(
+        False,
+        description="SimVQ (Zhu et al. 2024): the codebook is a frozen random basis times one learned linear "
+        "map (starting as the identity), so every code moves with each update and none is left unused.",
+    )
 
 
 class EmaVectorQuantizerConfig(_CodebookConfig):
@@ -336,9 +341,13 @@ class _NearestNeighbourQuantizer(Quantizer):
             vectors_NC = F.normalize(vectors_NC, dim=1)
         return vectors_NC
 
+    def _codebook(self) -> torch.Tensor:
+        """The (K, C) float32 codebook (a subclass may compute it, e.g. SimVQ's map of a frozen basis)."""
+        return self.codebook_KC.float()
+
     def _lookup_codebook(self) -> torch.Tensor:
         """The (K, C) float32 codebook as used for lookup (unit rows under ``l2_normalize``)."""
-        codebook_KC = self.codebook_KC.float()
+        codebook_KC = self._codebook()
         return F.normalize(codebook_KC, dim=1) if self.l2_normalize else codebook_KC
 
     def _from_lookup_space(self, vectors_NC: torch.Tensor, batch: int, height: int, width: int) -> torch.Tensor:
@@ -365,12 +374,24 @@ class VectorQuantizer(_NearestNeighbourQuantizer):
         l2_normalize: bool = False,
         init: str = "uniform",
         rotation_trick: bool = False,
+        simvq: bool = False,
     ) -> None:
         super().__init__(codebook_size, embedding_dim, lookup_dim, l2_normalize, rotation_trick)
         self.beta = beta
-        self.codebook_KC = nn.Parameter(torch.empty(codebook_size, self.code_dim, dtype=torch.float32))
-        with torch.no_grad():
-            _init_codebook_(self.codebook_KC, init)
+        codebook_KC = torch.empty(codebook_size, self.code_dim, dtype=torch.float32)
+        _init_codebook_(codebook_KC, init)
+        if simvq:
+            self.register_buffer("codebook_KC", codebook_KC)  # the frozen basis
+            self.codebook_map = nn.Linear(self.code_dim, self.code_dim, bias=False)
+            nn.init.eye_(self.codebook_map.weight)
+        else:
+            self.codebook_KC = nn.Parameter(codebook_KC)
+            self.codebook_map = None
+
+    def _codebook(self) -> torch.Tensor:
+        if self.codebook_map is None:
+            return self.codebook_KC.float()
+        return F.linear(self.codebook_KC.float(), self.codebook_map.weight.float())
 
     def _vq_loss(self, vectors_NC: torch.Tensor, selected_NC: torch.Tensor) -> torch.Tensor:
         # taming's VectorQuantizer2 defaults to legacy=True, which weights these two terms the other way
@@ -510,6 +531,7 @@ def build_vector_quantizer(config: VectorQuantizerConfig, context: BuildContext)
         l2_normalize=config.l2_normalize,
         init=config.init,
         rotation_trick=config.rotation_trick,
+        simvq=config.simvq,
     )
 
 
