@@ -16,14 +16,14 @@ from vqtouch.core import hookimpl
 #: meaningful FID.
 _METRICS = [{"name": "psnr"}, {"name": "ssim"}, {"name": "ms_ssim"}, {"name": "lpips"}]
 _DATA = {"dataset": {"name": "procedural"}}
-#: The paper's tokenizer: DM-VQGAN + nearest-neighbour VQ, trained with a PatchGAN.  The lookup is
-#: cosine in 8 dimensions (ViT-VQGAN): with the plain lookup, 512 codes collapsed to ~10 in use on
-#: our 64-px GelSight scenes; with it ~400 are used and PSNR is ~3.5 dB higher at equal steps
-#: (docs/guide.md, Tokenizers).
+#: The paper's tokenizer: DM-VQGAN + nearest-neighbour VQ.  The lookup is cosine in 8 dimensions
+#: (ViT-VQGAN): with the plain lookup, 512 codes collapsed to ~10 in use on our 64-px GelSight scenes;
+#: with it ~400 are used and PSNR is ~3.5 dB higher at equal steps (docs/guide.md, Tokenizers).  No
+#: PatchGAN: started half way through a 600-step run it cost 6 to 7 dB PSNR (docs/results.md,
+#: "Training in bf16 on the CPU"); `--set 'tokenizer.discriminator={"name": "patchgan"}'` adds it.
 _TOKENIZER = {
     "autoencoder": {"name": "dm_vqgan"},
     "quantizer": {"name": "vq", "codebook_size": 512, "l2_normalize": True, "lookup_dim": 8},
-    "discriminator": {"name": "patchgan"},
 }
 #: Sensor families by k-means over the tokenizer's pooled features, the family count by silhouette.
 _CLUSTER = {"clusterer": {"name": "kmeans"}}

@@ -30,6 +30,7 @@ TINY = [
     "tokenizer.train.log_every=1",
     "tokenizer.train.checkpoint_every=2",
     "tokenizer.loss.perceptual=none",
+    'tokenizer.discriminator={"name": "patchgan"}',  # resume must restore its weights and optimizer too
     "tokenizer.loss.disc_start=2",
     'metrics=[{"name": "psnr"}]',
 ]

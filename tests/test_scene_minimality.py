@@ -122,12 +122,12 @@ def test_a_run_builds_exactly_the_slots_its_stages_need(tmp_path, built_kinds):
     # the data and the no-contact background its scores stand next to; never the configured-but-unused
     # conditioner.
     assert "conditioner" not in built_kinds
-    assert {"dataset", "sensor_family", "autoencoder", "quantizer", "discriminator", "metric"} <= set(built_kinds)
+    assert {"dataset", "sensor_family", "autoencoder", "quantizer", "metric"} <= set(built_kinds)
+    assert "discriminator" not in built_kinds  # the scene names none
     assert {c["slot"] for c in report["components"]} == {
         "data.dataset",
         "tokenizer.autoencoder",
         "tokenizer.quantizer",
-        "tokenizer.discriminator",
         "metrics[0]",
         "metrics[1]",
         "metrics[2]",
@@ -170,6 +170,6 @@ def test_an_empty_slot_asked_for_directly_names_the_choices():
     with pytest.raises(
         ConfigError,
         match=r"^this run needs tokenizer.quantizer, which the config leaves empty; "
-        r"choose with --set tokenizer.quantizer.name=<ema_vq\|identity\|vq>$",
+        r"choose with --set tokenizer.quantizer.name=<ema_vq\|fsq\|identity\|vq>$",
     ):
         Assembly(config, HOST).component("tokenizer.quantizer")

@@ -14,13 +14,14 @@ import torch
 from vqtouch.core import TrainConfig, load_plugins, resolve_config
 from vqtouch.core.cli import main
 from vqtouch.core.training import NeverTrainsWarning, Trainer
-from vqtouch.plugins.tokenizer.training import adversarial_never_trains
+from vqtouch.plugins.tokenizer.training import adversarial_never_trains, disc_start_step
 
 HOST = load_plugins()
 
-#: The tests' tiny tokenizer run with its discriminator on, for 6 steps, logging every step.
+#: The tests' tiny tokenizer run with a PatchGAN, for 6 steps, logging every step.
 TINY = [
     *(override for override in generator_runs.TINY_TOKENIZER if not override.startswith("tokenizer.discriminator")),
+    'tokenizer.discriminator={"name": "patchgan"}',
     "tokenizer.train.steps=6",
     "tokenizer.train.log_every=1",
     "tokenizer.train.checkpoint_every=6",
@@ -34,11 +35,11 @@ def train_tokenizer(out, *extra):
 
 
 @pytest.mark.parametrize("scene", sorted(HOST.scenes))
-def test_every_scene_trains_the_adversarial_term_it_names(scene):
-    config = resolve_config(scene, host=HOST)
-    section = config.tokenizer
-    assert section.discriminator is not None and section.loss.adversarial_weight > 0
-    assert adversarial_never_trains(section) is None
+def test_every_scene_trains_what_it_names_and_a_patchgan_added_to_it_starts_half_way(scene):
+    assert adversarial_never_trains(resolve_config(scene, host=HOST).tokenizer) is None
+    section = resolve_config(scene, overrides=['tokenizer.discriminator={"name": "patchgan"}'], host=HOST).tokenizer
+    assert section.loss.adversarial_weight > 0 and adversarial_never_trains(section) is None
+    assert disc_start_step(section.loss.disc_start, section.train.steps) == section.train.steps // 2
 
 
 def test_by_default_the_discriminator_starts_half_way(tmp_path):

@@ -225,6 +225,7 @@ TRAIN_OVERRIDES = [
     "tokenizer.train.log_every=1",
     "tokenizer.train.checkpoint_every=2",
     "tokenizer.loss.perceptual=none",
+    'tokenizer.discriminator={"name": "patchgan"}',
     "tokenizer.loss.disc_start=2",
     'metrics=[{"name": "psnr"}, {"name": "ssim"}]',
 ]
