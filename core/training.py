@@ -222,10 +222,10 @@ def learning_rate_factor(config: TrainConfig, step: int) -> float:
 
 #: What ``precision: auto`` trains in: device type -> component (``TrainConfig.component``) -> precision,
 #: ``None`` for every other component; other devices: fp32.  Measured (docs/results.md, "Training in bf16
-#: on the CPU"): on a CPU with bf16 matrix units the generator trains 1.6x (``tour``) to 2x (``tour_wide``)
-#: faster per step in bf16 at the same validation loss after 1,000 steps; the tokenizer stays fp32 there
-#: (bf16 cost it 1.4 dB PSNR at 150 steps).  CUDA: bf16, the tensor-core precision, where
-#: ``torch.cuda.is_bf16_supported()``.
+#: on the CPU"): on a CPU with bf16 matrix units the generator trains 1.5x (``tour``) to 2.1x
+#: (``tour_wide``) faster per step in bf16 at the same held-out loss after 1,000 steps (3 seeds); the
+#: tokenizer stays fp32 there (bf16: equal PSNR, SSIM and held-out L1 lower on both seeds at 600 steps).
+#: CUDA: bf16, the tensor-core precision, where ``torch.cuda.is_bf16_supported()``.
 AUTO_PRECISION: dict[str, dict[str | None, str]] = {
     "cpu": {"generator": "bf16", None: "fp32"},
     "cuda": {None: "bf16"},
