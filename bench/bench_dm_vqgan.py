@@ -103,15 +103,18 @@ def train_step(encoder, quantizer, optimizer, images):
     return step
 
 
-def matmul_peak_gflops(device: torch.device, size: int = 2048, repeats: int = 10) -> float:
-    """The best fp32 GFLOP/s of a size x size matrix product on ``device``."""
-    a, b = torch.randn(size, size, device=device), torch.randn(size, size, device=device)
+def matmul_peak_gflops(
+    device: torch.device, size: int = 2048, repeats: int = 10, dtype: torch.dtype = torch.float32
+) -> float:
+    """The best GFLOP/s of a size x size matrix product in ``dtype`` on ``device``."""
+    a = torch.randn(size, size, device=device).to(dtype)
+    b = torch.randn(size, size, device=device).to(dtype)
     best = float("inf")
     for _ in range(repeats + 2):
-        _sync(device)
+        sync(device)
         tic = time.perf_counter()
         a @ b
-        _sync(device)
+        sync(device)
         best = min(best, time.perf_counter() - tic)
     return 2 * size**3 / best / 1e9
 
@@ -124,15 +127,16 @@ def conv_peak_gflops(device: torch.device, repeats: int = 10) -> float:
     best = float("inf")
     with torch.no_grad():
         for _ in range(repeats + 2):
-            _sync(device)
+            sync(device)
             tic = time.perf_counter()
             conv(x)
-            _sync(device)
+            sync(device)
             best = min(best, time.perf_counter() - tic)
     return 2 * 8 * 128 * 128 * 9 * 32 * 32 / best / 1e9
 
 
-def _sync(device: torch.device) -> None:
+def sync(device: torch.device) -> None:
+    """Wait for the device's queued work (a no-op on the CPU), so a timer measures it."""
     if device.type == "cuda":
         torch.cuda.synchronize()
 
@@ -178,10 +182,10 @@ def main() -> None:
     for round_index in range(args.rounds):
         order = labels[round_index % len(labels) :] + labels[: round_index % len(labels)]
         for label in order:
-            _sync(device)
+            sync(device)
             tic = time.perf_counter()
             steps[label]()
-            _sync(device)
+            sync(device)
             times[label].append(time.perf_counter() - tic)
     bench_folder = str(__import__("pathlib").Path(__file__).resolve().parent)
     header = (

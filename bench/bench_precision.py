@@ -47,16 +47,11 @@ import torch
 import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_dm_vqgan import build, counted_flops  # noqa: E402
+from bench_dm_vqgan import build, counted_flops, matmul_peak_gflops, sync  # noqa: E402
 
 TOKENIZER_VARIANTS = ("fp32 before", "fp32", "bf16")
 GENERATOR_VARIANTS = ("fp32 before", "fp32", "bf16 autocast alone", "bf16")
 SAMPLING_VARIANTS = ("fp32", "bf16")
-
-
-def sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def autocast(variant: str, device: torch.device) -> contextlib.AbstractContextManager:
@@ -86,20 +81,6 @@ def fused_attention_only(variant: str):
         yield
     finally:
         denoiser.attend = explicit
-
-
-def matmul_gflops(size: int, dtype: torch.dtype, device: torch.device, repeats: int = 8) -> float:
-    """The best GFLOP/s of a size x size product in ``dtype``."""
-    a = torch.randn(size, size, device=device).to(dtype)
-    b = torch.randn(size, size, device=device).to(dtype)
-    best = float("inf")
-    for _ in range(repeats + 2):
-        sync(device)
-        tic = time.perf_counter()
-        a @ b
-        sync(device)
-        best = min(best, time.perf_counter() - tic)
-    return 2 * size**3 / best / 1e9
 
 
 def tokenizer_steps(name: str, size: int, batch: int, device: torch.device, channels_last: bool) -> dict:
@@ -333,7 +314,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     sizes = [512, 1024, 2048] + ([4096, 8192] if device.type == "cuda" else [])
     peaks = {
-        (size, name): matmul_gflops(size, dtype, device)
+        (size, name): matmul_peak_gflops(device, size, repeats=8, dtype=dtype)
         for size in sizes
         for name, dtype in (("fp32", torch.float32), ("bf16", torch.bfloat16))
     }

@@ -1,4 +1,4 @@
-"""Issue 25's fault cases, replayed through the ``vqtouch`` command line: for each case, the command,
+"""Fault cases, replayed through the ``vqtouch`` command line: for each case, the command,
 its exit status and the last line it wrote to stderr (or what it left on disk).  Run it on two
 checkouts to compare before and after a fix::
 

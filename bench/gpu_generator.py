@@ -151,8 +151,8 @@ def overrides(args) -> list[str]:
     return [part for value in args.set for part in ("--set", value)]
 
 
-#: Speeds assumed when a probe fails (steps per second at batch 64 on a shared H200, below the fourth
-#: session's 18.7 and 13.3 for the lighter recipe of then); a job that outruns its window is stopped anyway.
+#: Speeds assumed when a probe fails (steps per second at batch 64 on a shared H200, below the
+#: 18.7 and 13.3 measured for a lighter recipe); a job that outruns its window is stopped anyway.
 FALLBACK_STEPS_PER_SECOND = {"gen64": 12.0, "gen64_wide": 8.0}
 
 

@@ -1,4 +1,4 @@
-"""Few-shot adaptation (`vqtouch adapt`, issue 11): the adapted checkpoint and its header, the
+"""Few-shot adaptation (`vqtouch adapt`): the adapted checkpoint and its header, the
 mixed set's composition, the contact check's closed form and every bad input's one-line error."""
 
 import json

@@ -1,4 +1,4 @@
-"""The ``cluster`` and ``adapt`` stages in the few-shot, zero-shot and cross-sensor scenes (issue 11):
+"""The ``cluster`` and ``adapt`` stages in the few-shot, zero-shot and cross-sensor scenes:
 every stage runs in a tiny demo, the adapt stage reuses the cluster stage's families (or clusters
 without the unseen sensor itself), and the report shows both pictures."""
 

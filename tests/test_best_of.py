@@ -1,4 +1,4 @@
-"""Best of K for label conditions (issue 23): candidates drawn per condition, the one the generator's
+"""Best of K for label conditions: candidates drawn per condition, the one the generator's
 own class posterior (or the run's code judge) ranks highest kept.
 
 A tiny label-to-touch run supplies a real generator and label conditioner; the likelihood estimate is

@@ -1,6 +1,6 @@
 """Every numeric option of every command refuses what it cannot use (NaN, infinities, out-of-range,
 fractions for integers, huge seeds) in one line with exit 2, and passes on only finite, in-range
-values (issue 25, cases 8 and 9, and the property sweep)."""
+values."""
 
 from __future__ import annotations
 

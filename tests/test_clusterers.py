@@ -1,4 +1,4 @@
-"""Sensor-family clusterers (issue 11, first step): families recovered from well-separated
+"""Sensor-family clusterers: families recovered from well-separated
 prototypes, the family count chosen by silhouette, nearest-family-mean assignment, fitted state
 through a checkpoint, and one-line errors."""
 

@@ -1,4 +1,4 @@
-"""How the condition reaches the generator (issue 23): the aligned condition grid and the global
+"""How the condition reaches the generator: the aligned condition grid and the global
 path, old checkpoints without them, canonical-background codes, the mean masked loss and the
 learning-rate schedule."""
 

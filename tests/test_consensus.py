@@ -1,4 +1,4 @@
-"""Best of K by consensus (issue 23): of K candidates, the one whose contact centre is the medoid of the
+"""Best of K by consensus: of K candidates, the one whose contact centre is the medoid of the
 candidates' centres is kept, for any condition.
 
 The medoid is checked against a brute-force reading of its definition; the choice on decoded images

@@ -1,4 +1,4 @@
-"""`vqtouch evaluate cross-sensor` (issue 11) end to end at toy size: every part's rows, the
+"""`vqtouch evaluate cross-sensor` end to end at toy size: every part's rows, the
 summary's means and spreads against an independent recomputation, the arms' settings as written
 by each adapted tokenizer, and the files (JSON, markdown, PNG)."""
 

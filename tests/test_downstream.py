@@ -1,4 +1,4 @@
-"""`vqtouch evaluate downstream` (issue 13, Table 3) at toy size: the arms and files, the scores
+"""`vqtouch evaluate downstream` at toy size: the arms and files, the scores
 against closed forms, the summary against an independent mean, the real images each arm trained
 on against an independent recomputation of the run's split (no held-out image is ever trained
 on), the same run on a folder in the image_folder layout, and the one-line refusals."""

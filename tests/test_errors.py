@@ -1,4 +1,4 @@
-"""Errors that reach the user are one line, ``vqtouch: error: ...``, with exit status 2 (issue 9).
+"""Errors that reach the user are one line, ``vqtouch: error: ...``, with exit status 2.
 
 Each case here once ended in a traceback (or trained and then crashed); ``--debug`` or
 ``VQTOUCH_DEBUG=1`` shows the traceback on purpose.
@@ -201,7 +201,7 @@ def test_nan_weights_are_refused_before_the_metrics(run_copy, capsys):
     # load() refuses them, naming the file, before anything is reconstructed or scored.
     assert line.startswith(f"{path}: ") and "weight tensor(s) hold NaN or Inf (first " in line
     assert "--step" in line and "learning_rate" in line
-    # So does `reconstruct`, which once ended in a traceback (issue 25, case 11).
+    # So does `reconstruct`, which once ended in a traceback.
     assert (
         main(["reconstruct", "--run", str(run_copy), "--real-frames", "gelsight", "--out", str(run_copy.parent / "r")])
         == 2

@@ -1,4 +1,4 @@
-"""Sensor families from tokenizer features and `vqtouch cluster` (issue 11): features against
+"""Sensor families from tokenizer features and `vqtouch cluster`: features against
 independent computations, the refined prototype's closed form, families recovered end to end on
 rendered sensors and a folder of images, and one-line errors."""
 

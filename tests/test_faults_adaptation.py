@@ -1,4 +1,4 @@
-"""Fault injection on ``cluster`` and ``adapt`` and on run folders (issue 25, cases 13, 17 and 18)."""
+"""Fault injection on ``cluster`` and ``adapt`` and on run folders."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Fault injection on the generation commands (issue 25): no command destroys what it reads, a generator
+"""Fault injection on the generation commands: no command destroys what it reads, a generator
 keeps the tokenizer it was trained on, NaN weights are refused in one line, ``generate --out`` is a
 protected output.  Each case here once lost data or wrote a silently wrong result."""
 

@@ -1,4 +1,4 @@
-"""Fault injection on the training commands' runs (issue 25, cases 6 and 7): a run knows its kind, and
+"""Fault injection on the training commands' runs: a run knows its kind, and
 SIGTERM before training starts is an interruption like Ctrl-C, with a resumable run."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Few-shot generation for an unseen sensor (`vqtouch fewshot`, issue 26 item 1): the sensor tag, the
+"""Few-shot generation for an unseen sensor (`vqtouch fewshot`): the sensor tag, the
 mixed fine-tuning set, the command from a sensor's images to a generator run of that sensor, and its
 bad inputs."""
 

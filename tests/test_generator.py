@@ -1,4 +1,4 @@
-"""The generator end to end (issue 10): `vqtouch train generator`, `vqtouch generate`, the pipeline,
+"""The generator end to end: `vqtouch train generator`, `vqtouch generate`, the pipeline,
 the code cache, exact resume, and the generator at numerical extremes."""
 
 import json

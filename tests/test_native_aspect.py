@@ -1,4 +1,4 @@
-"""Native-aspect images (issue 12): ``image_size`` as (height, width) through configs, image files and
+"""Native-aspect images: ``image_size`` as (height, width) through configs, image files and
 every command, from rendering and training to generation, clustering and adaptation."""
 
 from __future__ import annotations

@@ -123,7 +123,7 @@ def test_wheel_installs_one_namespace_and_imports_outside_checkout(tmp_path):
     assert lines[1] == str(conditioners)
     assert lines[2] == "None None"
 
-    # The bundled checkpoints ship in the wheel (issue 27: a non-editable install once had none), byte for
+    # The bundled checkpoints ship in the wheel (a non-editable install once had none), byte for
     # byte, and open from the installed package outside the checkout.
     shipped = REPO / "plugins" / "pretrained" / "weights"
     expected = sorted(path.relative_to(shipped) for path in shipped.rglob("*.safetensors"))

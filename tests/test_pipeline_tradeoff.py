@@ -1,4 +1,4 @@
-"""`vqtouch evaluate tradeoff` (issue 13) at toy size: every knob value once per seed, costs relative
+"""`vqtouch evaluate tradeoff` at toy size: every knob value once per seed, costs relative
 to the same seed's baseline, Pareto flags against a brute-force check of domination, the tokenizer
 scores as the tokenizer stage wrote them, interleaved timing rounds, and one-line errors."""
 

@@ -1,4 +1,4 @@
-"""Progress when output is redirected (issue 28, item 3): a long loop still prints a plain line at
+"""Progress when output is redirected: a long loop still prints a plain line at
 least every REDIRECTED_INTERVAL_S, each state on a line of its own; a short one prints nothing; on
 a terminal the bar is tqdm's; --no-progress silences both."""
 

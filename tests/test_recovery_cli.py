@@ -1,4 +1,4 @@
-"""Recovery as the command line shows it (issue 9, items 2, 3 and 6): every reader of a run skips
+"""Recovery as the command line shows it: every reader of a run skips
 an unusable newest step with a one-line warning, a resume never silently starts over, an
 interrupted command says only what it saved, and ``reconstruct --images`` takes the reader
 options that the reader's errors name."""

@@ -1,4 +1,4 @@
-"""report.html in a real headless Chromium (issue 13): every picture loads, the tables render,
+"""report.html in a real headless Chromium: every picture loads, the tables render,
 and a screenshot is kept (under the test's tmp dir and as runs/test-artifacts/report_screenshot*.png).
 
 Skipped, saying which package to install, where Chromium is absent; CI (.ci/run) installs it.

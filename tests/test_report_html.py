@@ -1,4 +1,4 @@
-"""report.html (issue 13): one self-contained page per demo run, rebuilt by ``vqtouch report``.
+"""report.html: one self-contained page per demo run, rebuilt by ``vqtouch report``.
 Fast checks on the markup; tests/test_report_browser.py opens the page in a real browser."""
 
 import base64

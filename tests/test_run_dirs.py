@@ -1,4 +1,4 @@
-"""A run directory belongs to one run (issue 9): creating into a used folder is refused (or
+"""A run directory belongs to one run: creating into a used folder is refused (or
 emptied with --overwrite), one process writes a run at a time (an advisory file lock), and every
 reader of a run checks that the checkpoint it picks was made with the run's own config."""
 

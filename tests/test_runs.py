@@ -117,7 +117,7 @@ def test_third_party_run_component_is_named_from_env(third_party_conditioner, tm
     )
 
 
-# -- one run per directory (issue 9) -----------------------------------------------------------
+# -- one run per directory -----------------------------------------------------------
 
 
 def _tiny_config(host, tmp_path, *overrides, autoencoder="dm_vqgan"):

@@ -1,4 +1,4 @@
-"""Sampling with the weights' moving average and per-conditioner guidance defaults (issue 23).
+"""Sampling with the weights' moving average and per-conditioner guidance defaults.
 
 A tiny label-to-touch generator trained with ``generator.train.ema_decay`` samples with the EMA
 the trainer saved (unless ``--weights raw``), exports it into bundles that say so, and takes its

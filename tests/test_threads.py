@@ -1,4 +1,4 @@
-"""Threads on a busy CPU (issue 28, item 3): the default follows the free cores and drops to one
+"""Threads on a busy CPU: the default follows the free cores and drops to one
 thread, saying so in one line, when the load exceeds the cores; --threads and VQTOUCH_THREADS
 choose; the caller's thread count is restored after a command."""
 

@@ -1,4 +1,4 @@
-"""Report verdicts that mean something (issue 28, item 1): a green "better" needs a gap to the
+"""Report verdicts that mean something: a green "better" needs a gap to the
 strongest baseline that clears a stated minimum and the held-out images' noise, from a model whose
 outputs follow its input.  The scores come from :class:`ContactRegionScores`; the verdict from the
 report."""

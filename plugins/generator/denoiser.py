@@ -99,7 +99,9 @@ def attend(
     scores_BhLM = (q_BhLc * q_BhLc.shape[-1] ** -0.5) @ k_BhMc.transpose(-1, -2)
     if attn_mask_B11M is not None:
         scores_BhLM = scores_BhLM.masked_fill(~attn_mask_B11M, float("-inf"))
-    weights_BhLM = F.dropout(scores_BhLM.softmax(dim=-1), dropout) if dropout else scores_BhLM.softmax(dim=-1)
+    weights_BhLM = scores_BhLM.softmax(dim=-1)
+    if dropout:
+        weights_BhLM = F.dropout(weights_BhLM, dropout)
     return weights_BhLM @ v_BhMc
 
 

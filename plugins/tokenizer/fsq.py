@@ -74,6 +74,8 @@ class FiniteScalarQuantizer(Quantizer):
         radix_d = torch.cumprod(torch.tensor((1,) + self.levels[:-1], dtype=torch.long), dim=0)
         # Constants of the grid, not state: rebuilt from ``levels`` on load.
         self.register_buffer("levels_d", levels_d, persistent=False)
+        #: L // 2 per dimension: digit - L // 2 is a grid point's integer value, divided by it in [-1, 1].
+        self.register_buffer("half_width_d", torch.div(levels_d, 2, rounding_mode="floor"), persistent=False)
         self.register_buffer("radix_d", radix_d, persistent=False)
         self.register_buffer("usage_counts_K", torch.zeros(self.codebook_size, dtype=torch.long), persistent=False)
 
@@ -88,8 +90,7 @@ class FiniteScalarQuantizer(Quantizer):
 
     def _digits_to_vectors(self, digits_Nd: torch.Tensor) -> torch.Tensor:
         """Digits in [0, L) to the grid's values in [-1, 1] per dimension."""
-        half_width_d = torch.div(self.levels_d, 2, rounding_mode="floor")
-        return (digits_Nd.float() - half_width_d) / half_width_d
+        return (digits_Nd.float() - self.half_width_d) / self.half_width_d
 
     # -- public API -------------------------------------------------------------------------------
     def forward(self, latents_BDhw: torch.Tensor) -> QuantizerOutput:
@@ -101,11 +102,10 @@ class FiniteScalarQuantizer(Quantizer):
             bounded_Nd = self._bound(F.linear(vectors_ND, self.project_in.weight.float(), self.project_in.bias.float()))
             # Straight-through, written so the forward value is exactly the grid point (lookup's value).
             rounded_Nd = bounded_Nd.detach().round() + (bounded_Nd - bounded_Nd.detach())
-            half_width_d = torch.div(self.levels_d, 2, rounding_mode="floor")
-            digits_Nd = (rounded_Nd.detach() + half_width_d).long()
+            digits_Nd = (rounded_Nd.detach() + self.half_width_d).long()
             codes_N = (digits_Nd * self.radix_d).sum(dim=1)
             quantized_ND = F.linear(
-                rounded_Nd / half_width_d, self.project_out.weight.float(), self.project_out.bias.float()
+                rounded_Nd / self.half_width_d, self.project_out.weight.float(), self.project_out.bias.float()
             )
             with torch.no_grad():
                 counts_K = torch.bincount(codes_N, minlength=self.codebook_size)
