@@ -395,13 +395,19 @@ def validate_experiment(data: Mapping[str, Any], host: PluginHost) -> Experiment
 def resolve_config(
     scene: str | None = None, files: Iterable[str | Path] = (), overrides: Iterable[str] = (), *, host: PluginHost
 ) -> ExperimentConfig:
-    """Build the experiment config from a scene preset, config files and ``--set`` overrides."""
+    """Build the experiment config from a scene preset, config files and ``--set`` overrides.
+
+    A config file that names a ``scene`` (a recipe: ``scene = "tour"`` at its top) is merged over that
+    scene when ``scene`` is None; a different ``scene`` given beside it is refused in one line."""
+    files = list(files)
+    loaded = [load_config_file(path) for path in files]
+    scene = recipe_scene(scene, files, loaded)
     data: dict[str, Any] = {}
     if scene is not None:
         entry = host.scene(scene)
         data = merge_configs({"name": scene, "scene": scene, "description": entry.description}, entry.config)
-    for path in files:
-        data = merge_configs(data, load_config_file(path))
+    for file_data in loaded:
+        data = merge_configs(data, file_data)
     applied: list[tuple[str, list[str]]] = []
     for text in overrides:
         key_path, value = parse_override(text)
@@ -409,6 +415,19 @@ def resolve_config(
         data = apply_override(data, key_path, value)
         applied.append((text, key_path))
     return validate_experiment(data, host)
+
+
+def recipe_scene(scene: str | None, files: list[str | Path], loaded: list[dict[str, Any]]) -> str | None:
+    """The scene a config is built over: ``scene``, else the one the config files name (they must agree)."""
+    named = [(str(path), data["scene"]) for path, data in zip(files, loaded) if data.get("scene") is not None]
+    for path, file_scene in named:
+        if scene is not None and file_scene != scene:
+            raise ConfigError(
+                f"{path} is a recipe over scene {file_scene!r}, but scene {scene!r} was given; give "
+                f"--scene {file_scene} or none"
+            )
+        scene = file_scene
+    return scene
 
 
 def _refuse_lost_overrides(

@@ -482,3 +482,36 @@ def test_non_utf8_config_file_names_the_file(tmp_path):
     assert str(info.value) == (
         f"{path}: not UTF-8 text (byte 0xfc at position 30); save it as UTF-8 (TOML and JSON config files are UTF-8)"
     )
+
+
+def _write_recipe(path, scene, steps=7):
+    path.write_text(f'scene = "{scene}"\n\n[tokenizer.train]\nsteps = {steps}\n')
+    return path
+
+
+def test_a_recipe_file_brings_its_scene(host, tmp_path):
+    """A config file that names its scene is merged over that scene, with no --scene; the same file
+    beside another scene is refused in one line naming both."""
+    recipe = _write_recipe(tmp_path / "recipe.toml", "label-to-touch")
+    by_recipe = resolve_config(None, [recipe], host=host)
+    by_scene = resolve_config("label-to-touch", [recipe], host=host)
+    assert by_recipe.model_dump() == by_scene.model_dump()
+    assert by_recipe.scene == "label-to-touch" and by_recipe.tokenizer.train.steps == 7
+    assert by_recipe.model_dump() != resolve_config("reconstruction", host=host).model_dump()
+    with pytest.raises(ConfigError, match="recipe over scene 'label-to-touch', but scene 'reconstruction'") as error:
+        resolve_config("reconstruction", [recipe], host=host)
+    assert "\n" not in str(error.value)
+
+
+def test_a_recipe_replaces_the_commands_default_scene_on_the_command_line(tmp_path, capsys):
+    """`vqtouch config show --config RECIPE` (no scene named) and a training command's default scene:
+    the recipe's scene wins over the default, never over a scene the user named."""
+    from vqtouch.core.cli import main
+
+    recipe = _write_recipe(tmp_path / "recipe.toml", "touch-to-touch", steps=3)
+    assert main(["config", "show", "--config", str(recipe)]) == 0
+    shown = json.loads(capsys.readouterr().out)
+    assert shown["scene"] == "touch-to-touch" and shown["tokenizer"]["train"]["steps"] == 3
+    assert main(["config", "show"]) == 2 and "name a scene" in capsys.readouterr().err
+    assert main(["config", "show", "label-to-touch", "--config", str(recipe)]) == 2
+    assert "recipe over scene 'touch-to-touch'" in capsys.readouterr().err

@@ -8,8 +8,17 @@ import pytest
 import torch
 from safetensors import safe_open
 
-from generator_runs import TINY, cluster_args, train_args
-from vqtouch.core import Assembly, ConfigError, RunDir, load_plugins, read_metadata, resolve_config, run_stage
+from generator_runs import TINY, cluster_args, tiny_tokenizer_args, train_args
+from vqtouch.core import (
+    Assembly,
+    ConfigError,
+    RunDir,
+    load_config_file,
+    load_plugins,
+    read_metadata,
+    resolve_config,
+    run_stage,
+)
 from vqtouch.core.cli import main
 from vqtouch.plugins.generator.pipeline import load_pipeline
 from vqtouch.plugins.tokenizer import tokenizer_digest
@@ -222,7 +231,84 @@ def test_a_bundle_name_is_a_tokenizer_wherever_one_is_read(trained, tmp_path, mo
     assert main([*evaluate, "--step", "2"]) == 2 and "--step and --split choose within a run" in capsys.readouterr().err
 
 
+@pytest.fixture(scope="module")
+def tokenizer_bundle(tmp_path_factory):
+    """A tiny tokenizer run trained from a recipe file in a private recipes folder, and its tokenizer bundle."""
+    root = tmp_path_factory.mktemp("tokenizer_bundle")
+    recipes = root / "recipes"
+    recipes.mkdir()
+    recipe = recipes / "tiny_tokenizer.toml"
+    recipe.write_text('scene = "reconstruction"\n\n[tokenizer.train]\nsteps = 2\n')
+    run = root / "run"
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(bundle_module, "RECIPES", recipes)
+        assert main([*tiny_tokenizer_args(run), "--config", str(recipe)]) == 0
+        export_bundle(run, "tok", HOST, root=root / "bundles")
+    return run, root / "bundles", recipes
+
+
+def test_a_tokenizer_run_makes_a_tokenizer_bundle_that_reads_like_its_run(tokenizer_bundle, monkeypatch, capsys):
+    """Exported from `train tokenizer`: tokenizer files only; listed as a tokenizer bundle naming its
+    recipe; its reconstructions those of the run up to fp16 storage; a generator read refused in one line."""
+    from vqtouch.plugins.tokenizer import load_tokenizer
+
+    run, bundles, recipes = tokenizer_bundle
+    monkeypatch.setattr(bundle_module, "RECIPES", recipes)
+    folder = bundles / "tok"
+    assert sorted(str(path.relative_to(folder)) for path in folder.rglob("*.safetensors")) == [
+        "tokenizer/autoencoder.safetensors",
+        "tokenizer/quantizer.safetensors",
+    ]
+    assert bundle_names(bundles) == ["tok"]
+    facts = describe_bundle(folder)
+    assert facts["kind"] == "tokenizer" and facts["generator_step"] is None and facts["tokenizer_step"] == 2
+    assert facts["recipes"] == {"tokenizer": "tiny_tokenizer.toml", "generator": None}
+    assert "train tokenizer" in facts["tokenizer_command"]
+
+    monkeypatch.setattr(bundle_module, "BUNDLES", bundles)
+    images = torch.rand(2, 3, 32, 32, generator=torch.Generator().manual_seed(0))
+    from_run, _ = load_tokenizer(run, HOST)
+    from_bundle, _ = load_tokenizer("pretrained:tok", HOST)
+    with torch.no_grad():
+        torch.testing.assert_close(
+            from_bundle.reconstruct(images)[0], from_run.reconstruct(images)[0], atol=0.02, rtol=0
+        )
+    with pytest.raises(ConfigError, match="pretrained:tok is a tokenizer bundle") as error:
+        load_pipeline("pretrained:tok", host=HOST, device="cpu")
+    assert "\n" not in str(error.value)
+
+    assert main(["pretrained", "list", "--root", str(bundles)]) == 0
+    printed = capsys.readouterr().out
+    assert "tok: vqgan tokenizer step 2 (a tokenizer bundle)" in printed
+    assert (
+        f"tokenizer recipe: tiny_tokenizer.toml (vqtouch train tokenizer --config {recipes / 'tiny_tokenizer.toml'})"
+        in printed
+    )
+    with pytest.raises(ConfigError, match="trained no generator"):
+        export_bundle(run, "tok2", HOST, root=bundles, sampling={"steps": 3})
+
+
+def test_a_run_not_trained_from_a_shipped_recipe_names_none(trained):
+    _, bundles = trained
+    assert describe_bundle(bundles / "tiny")["recipes"] == {"tokenizer": None, "generator": None}
+
+
+@pytest.mark.parametrize("name", sorted(path.name for path in bundle_module.RECIPES.glob("*.toml")))
+def test_every_shipped_recipe_validates_over_the_scene_it_names(name):
+    recipe = bundle_module.RECIPES / name
+    assert load_config_file(recipe).get("scene"), f"{name} names no scene"
+    resolve_config(None, [recipe], host=HOST)
+
+
 @pytest.mark.parametrize("name", bundle_names())
+def test_every_shipped_bundle_names_a_shipped_recipe_or_none(name):
+    for recipe in describe_bundle(bundle_folder(name))["recipes"].values():
+        assert recipe is None or (bundle_module.RECIPES / recipe).is_file()
+
+
+@pytest.mark.parametrize(
+    "name", [name for name in bundle_names() if describe_bundle(bundle_folder(name))["kind"] == "generator"]
+)
 def test_every_shipped_bundle_draws_from_a_label_and_stays_within_50_mb(name, tmp_path):
     """What the package ships: each bundle opens with today's plugins (a header its run's plugin no longer
     reads would fail here, not in a user's first command), draws an image end to end, and keeps to the

@@ -3,6 +3,7 @@ generation.
 
 The public API other packages use (imported on first use, so importing this package stays light):
 generation from a trained run or a bundle (:func:`load_pipeline`, :func:`generator_tokenizer`,
+:data:`GENERATOR_CHECKPOINTS`, where a run keeps the generator's checkpoints,
 :func:`sample_images`, :func:`check_best_of` and :func:`check_best_of_rank` for its ``best_of`` and
 what ranks it, :data:`BEST_OF_RANKS`, :data:`RANK_DESCRIPTIONS` and :data:`BEST_OF_RANK_HELP`),
 scoring generated samples against held-out conditions (:func:`score_generation`,
@@ -23,6 +24,7 @@ _PUBLIC = {
     "GenerationPipeline": ("pipeline", "GenerationPipeline"),
     "load_pipeline": ("pipeline", "load_pipeline"),
     "generator_tokenizer": ("pipeline", "generator_tokenizer"),
+    "GENERATOR_CHECKPOINTS": ("stage", "CHECKPOINT_FOLDER"),
     "sample_images": ("stage", "sample_images"),
     "check_condition_keys": ("stage", "check_condition_keys"),
     "check_best_of": ("best_of", "check_best_of"),

@@ -1,9 +1,15 @@
-"""Bundled checkpoints: write a trained generator run (and its tokenizer) into the package, read it back.
+"""Bundled checkpoints: write a trained generator run (and its tokenizer), or a tokenizer run alone,
+into the package, read it back.
 
 A bundle is a folder ``weights/<name>/`` inside this package::
 
     tokenizer/autoencoder.safetensors  tokenizer/quantizer.safetensors
-    generator/generator.safetensors    generator/conditioner_<i>.safetensors
+    generator/generator.safetensors    generator/conditioner_<i>.safetensors   (absent: a tokenizer bundle)
+
+A tokenizer bundle serves every command that reads a tokenizer (``--tokenizer pretrained:NAME``,
+``evaluate reconstruction --run pretrained:NAME``, ``adapt``); what needs a generator refuses it in one
+line.  When the run was trained from a recipe shipped in :data:`RECIPES` (``--config`` one of its files),
+``pretrained.recipe`` names that file.
 
 Every file is an ordinary vqtouch checkpoint (:func:`vqtouch.core.save`: the component's config,
 build context and training step in its header, loaded strictly) plus three header entries that
@@ -45,8 +51,22 @@ RUN_CONFIG_KEY = "pretrained.run_config"
 STORED_KEY = "pretrained.stored_as"
 #: Which of the run's weights the generator files hold: ``ema`` (the moving average) or ``raw``.
 WEIGHTS_KEY = "pretrained.weights"
+#: The shipped recipe file (a name in :data:`RECIPES`) the run was trained from, when it was.
+RECIPE_KEY = "pretrained.recipe"
+#: The shipped training recipes: config files ``vqtouch train ... --config RECIPE`` reproduces a bundle with.
+RECIPES = Path(__file__).parent / "recipes"
 #: fp16's largest finite value: a parameter beyond it cannot be stored in half precision.
 FP16_MAX = 65504.0
+
+
+def is_bundle_folder(folder: Path) -> bool:
+    """Whether ``folder`` holds a bundle: a tokenizer, with or without a generator."""
+    return (folder / TOKENIZER / "autoencoder.safetensors").is_file()
+
+
+def has_generator(folder: Path) -> bool:
+    """Whether the bundle in ``folder`` holds a generator (else it is a tokenizer bundle)."""
+    return (folder / GENERATOR / "generator.safetensors").is_file()
 
 
 def bundle_names(root: Path | None = None) -> list[str]:
@@ -55,11 +75,7 @@ def bundle_names(root: Path | None = None) -> list[str]:
     if not root.is_dir():
         return []
     # Hidden folders are exports in progress (or killed half-way), never bundles.
-    return sorted(
-        path.name
-        for path in root.iterdir()
-        if not path.name.startswith(".") and (path / GENERATOR / "generator.safetensors").is_file()
-    )
+    return sorted(path.name for path in root.iterdir() if not path.name.startswith(".") and is_bundle_folder(path))
 
 
 def bundle_folder(name: str, root: Path | None = None) -> Path:
@@ -69,7 +85,7 @@ def bundle_folder(name: str, root: Path | None = None) -> Path:
     if name not in names:
         raise ConfigError(
             f"no bundled checkpoints named {name!r} in {root}; bundled: {', '.join(names) or 'none'} "
-            "(make one with `vqtouch pretrained export --run GENERATOR_RUN --name NAME`)"
+            "(make one with `vqtouch pretrained export --run RUN --name NAME`)"
         )
     return root / name
 
@@ -101,7 +117,27 @@ def _provenance(run: RunDir) -> dict[str, str]:
         facts.append(f"on {env['device_name']}")  # a GPU's minutes are not a CPU's: say which trained it
     if facts:
         command += "  # " + " ".join(facts)
-    return {COMMAND_KEY: command, RUN_CONFIG_KEY: (run.path / "config.json").read_text()}
+    headers = {COMMAND_KEY: command, RUN_CONFIG_KEY: (run.path / "config.json").read_text()}
+    recipe = shipped_recipe(argv)
+    return headers | ({RECIPE_KEY: recipe} if recipe else {})
+
+
+def shipped_recipe(argv: list[str]) -> str | None:
+    """The name of the shipped recipe (a file of :data:`RECIPES`) a command line trained from, if any."""
+    for flag, value in zip(argv, argv[1:]):
+        path = Path(value)
+        if flag == "--config" and path.parent.resolve() == RECIPES.resolve() and path.is_file():
+            return path.name
+    return None
+
+
+def recipe_path(name: str) -> Path:
+    """The path of the shipped recipe ``name``; a one-line error listing them when there is none."""
+    path = RECIPES / name
+    if not path.is_file():
+        shipped = sorted(item.name for item in RECIPES.glob("*.toml"))
+        raise ConfigError(f"no shipped recipe named {name!r}; shipped: {', '.join(shipped) or 'none'} (in {RECIPES})")
+    return path
 
 
 #: The generator options a bundle may set for itself at export (``vqtouch pretrained export --sampling``).
@@ -126,7 +162,7 @@ def _sampling_defaults(run_config_text: str, sampling: dict[str, Any], host: Plu
 
 
 def export_bundle(
-    generator_run: str | Path,
+    run: str | Path,
     name: str,
     host: PluginHost,
     *,
@@ -136,8 +172,9 @@ def export_bundle(
     sampling: Mapping[str, Any] | None = None,
     weights: str | None = None,
 ) -> Path:
-    """Write the newest checkpoint of ``generator_run`` (its generator, conditioners and the tokenizer
-    it was trained on) as bundle ``name`` under ``root``; returns the bundle's folder.
+    """Write the newest checkpoint of ``run`` as bundle ``name`` under ``root``; returns the bundle's
+    folder.  A run whose generator stage trained gives its generator, conditioners and the tokenizer it
+    was trained on; a tokenizer run (``vqtouch train tokenizer``) gives a tokenizer bundle.
 
     ``sampling``: the bundle's own sampling defaults, replacing the run's (keys of
     :data:`SAMPLING_DEFAULTS`, e.g. ``{"conditioner_guidance": {"label": 2}}``): how to sample is
@@ -146,8 +183,6 @@ def export_bundle(
 
     ``weights``: ``"ema"`` or ``"raw"``, which of the run's weights the bundle holds (None: the ones the
     run samples with by default, its EMA when it kept one); recorded in ``pretrained.weights``."""
-    from vqtouch.plugins.generator import generator_tokenizer, load_pipeline
-
     if precision not in ("fp16", "fp32"):
         raise ConfigError(f"--precision {precision!r}: choose fp16 or fp32")
     if not name or any(char in name for char in "/\\ ") or name.startswith("."):
@@ -155,6 +190,68 @@ def export_bundle(
     folder = (root or BUNDLES) / name
     if folder.exists() and not overwrite:
         raise ConfigError(f"{folder} exists; pass --overwrite to replace bundle {name!r}")
+    from vqtouch.plugins.generator import GENERATOR_CHECKPOINTS
+
+    run_dir = RunDir.open(run)
+    if not (run_dir.checkpoints / GENERATOR_CHECKPOINTS).is_dir():
+        if sampling or weights:
+            raise ConfigError(
+                f"{run} trained no generator: a tokenizer bundle has no sampling defaults or generator weights "
+                "(drop --sampling and --weights)"
+            )
+        return _export_tokenizer_bundle(run_dir, folder, host, precision=precision, overwrite=overwrite)
+    return _export_generator_bundle(
+        run, folder, host, precision=precision, overwrite=overwrite, sampling=sampling, weights=weights
+    )
+
+
+def _store(module: nn.Module, path: Path, headers: dict[str, str], host: PluginHost, half: bool) -> None:
+    """Save ``module`` at ``path`` with the bundle ``headers``, its parameters in float16 when ``half``."""
+    if getattr(module, "vqtouch_trained_in", None):
+        headers = headers | {TRAINED_IN_KEY: module.vqtouch_trained_in}
+    stored = half_precision_copy(module, str(path)) if half else module
+    save(
+        stored,
+        path,
+        step=getattr(module, "vqtouch_step", 0),
+        host=host,
+        metadata={**headers, STORED_KEY: "float16 parameters" if half else "float32"},
+    )
+
+
+def _store_tokenizer(
+    tokenizer: Tokenizer, partial: Path, headers: dict[str, str], host: PluginHost, half: bool
+) -> None:
+    (partial / TOKENIZER).mkdir()
+    _store(tokenizer.autoencoder, partial / TOKENIZER / "autoencoder.safetensors", headers, host, half)
+    # The quantizer stays float32: its codebook decides which code each latent gets.
+    _store(tokenizer.quantizer, partial / TOKENIZER / "quantizer.safetensors", headers, host, False)
+
+
+# Staged beside the bundle and moved into place whole (as every command's --out): a failed or
+# interrupted export leaves no partial bundle to block the retry, and --overwrite keeps the old bundle
+# until the new one is complete.  Bundles live inside the package on purpose; --overwrite replaces only a bundle.
+def _export_tokenizer_bundle(run: RunDir, folder: Path, host: PluginHost, *, precision: str, overwrite: bool) -> Path:
+    from vqtouch.plugins.tokenizer import load_tokenizer
+
+    tokenizer, _ = load_tokenizer(run, host)
+    with staged_output(folder, overwrite=overwrite, into_package=True, recognise=is_bundle_folder) as partial:
+        _store_tokenizer(tokenizer, partial, _provenance(run), host, precision == "fp16")
+    return folder
+
+
+def _export_generator_bundle(
+    generator_run: str | Path,
+    folder: Path,
+    host: PluginHost,
+    *,
+    precision: str,
+    overwrite: bool,
+    sampling: Mapping[str, Any] | None,
+    weights: str | None,
+) -> Path:
+    from vqtouch.plugins.generator import generator_tokenizer, load_pipeline
+
     pipe = load_pipeline(generator_run, host=host, device="cpu", weights=weights)
     if pipe.sensor_tag is not None:
         raise ConfigError(
@@ -180,37 +277,18 @@ def export_bundle(
         # provenance its own headers record, else the generator run's.
         recorded = read_metadata(source / "autoencoder.safetensors")
         tokenizer_headers = {
-            key: recorded[key] for key in (COMMAND_KEY, RUN_CONFIG_KEY) if key in recorded
+            key: recorded[key] for key in (COMMAND_KEY, RUN_CONFIG_KEY, RECIPE_KEY) if key in recorded
         } or generator_headers
-
-    def store(module: nn.Module, path: Path, headers: dict[str, str], keep_fp32: bool = False) -> None:
-        half = precision == "fp16" and not keep_fp32
-        if getattr(module, "vqtouch_trained_in", None):
-            headers = headers | {TRAINED_IN_KEY: module.vqtouch_trained_in}
-        stored = half_precision_copy(module, str(path)) if half else module
-        save(
-            stored,
-            path,
-            step=getattr(module, "vqtouch_step", 0),
-            host=host,
-            metadata={**headers, STORED_KEY: "float16 parameters" if half else "float32"},
-        )
-
-    # Staged beside the bundle and moved into place whole (as every command's --out): a failed or
-    # interrupted export leaves no partial bundle to block the retry, and --overwrite keeps the old bundle
-    # until the new one is complete.
-    # Bundles live inside the package on purpose; --overwrite replaces only a bundle.
-    is_bundle = lambda previous: (previous / TOKENIZER).is_dir() and (previous / GENERATOR).is_dir()  # noqa: E731
-    with staged_output(folder, overwrite=overwrite, into_package=True, recognise=is_bundle) as partial:
-        (partial / TOKENIZER).mkdir()
+    half = precision == "fp16"
+    is_generator_bundle = lambda previous: is_bundle_folder(previous) and (previous / GENERATOR).is_dir()  # noqa: E731
+    with staged_output(folder, overwrite=overwrite, into_package=True, recognise=is_generator_bundle) as partial:
+        _store_tokenizer(pipe.tokenizer, partial, tokenizer_headers, host, half)
         (partial / GENERATOR).mkdir()
-        store(pipe.tokenizer.autoencoder, partial / TOKENIZER / "autoencoder.safetensors", tokenizer_headers)
-        store(pipe.tokenizer.quantizer, partial / TOKENIZER / "quantizer.safetensors", tokenizer_headers, True)
         # The weights the run samples with by default (its EMA when it kept one), and which they are.
         generator_headers = generator_headers | {WEIGHTS_KEY: pipe.settings["weights"]}
-        store(pipe.generator, partial / GENERATOR / "generator.safetensors", generator_headers)
+        _store(pipe.generator, partial / GENERATOR / "generator.safetensors", generator_headers, host, half)
         for index, conditioner in enumerate(pipe.conditioners):
-            store(conditioner, partial / GENERATOR / f"conditioner_{index}.safetensors", generator_headers)
+            _store(conditioner, partial / GENERATOR / f"conditioner_{index}.safetensors", generator_headers, host, half)
     return folder
 
 
@@ -250,9 +328,10 @@ class Bundle:
 
 
 def describe_bundle(folder: Path) -> dict[str, Any]:
-    """A bundle's facts from its headers alone (no tensors loaded): steps, commands, files and sizes."""
-    generator = read_metadata(folder / GENERATOR / "generator.safetensors")
+    """A bundle's facts from its headers alone (no tensors loaded): steps, commands, recipes, files and
+    sizes (the generator's entries None for a tokenizer bundle)."""
     tokenizer = read_metadata(folder / TOKENIZER / "autoencoder.safetensors")
+    generator = read_metadata(folder / GENERATOR / "generator.safetensors") if has_generator(folder) else None
     files = sorted(folder.rglob("*.safetensors"))
     conditioners = [
         json.loads(read_metadata(path)["vqtouch.config"])["name"]
@@ -260,18 +339,27 @@ def describe_bundle(folder: Path) -> dict[str, Any]:
             (folder / GENERATOR).glob("conditioner_*.safetensors"), key=lambda p: int(p.stem.split("_")[1])
         )
     ]
+    facts = generator if generator is not None else tokenizer
     return {
         "name": folder.name,
+        "kind": "generator" if generator is not None else "tokenizer",
         "tokenizer_step": int(tokenizer["vqtouch.step"]),
-        "generator_step": int(generator["vqtouch.step"]),
+        "generator_step": int(generator["vqtouch.step"]) if generator is not None else None,
         "tokenizer": json.loads(tokenizer["vqtouch.config"])["name"],
         "conditioners": conditioners,
         "tokenizer_command": tokenizer.get(COMMAND_KEY, "?"),
-        "generator_command": generator.get(COMMAND_KEY, "?"),
-        "stored_as": generator.get(STORED_KEY, "?"),
-        "trained_in": {"tokenizer": tokenizer.get(TRAINED_IN_KEY), "generator": generator.get(TRAINED_IN_KEY)},
-        "weights": generator.get(WEIGHTS_KEY, "raw"),
-        "sampling_defaults": json.loads(generator.get(SAMPLING_KEY, "{}")),
+        "generator_command": generator.get(COMMAND_KEY, "?") if generator is not None else None,
+        "recipes": {
+            "tokenizer": tokenizer.get(RECIPE_KEY),
+            "generator": generator.get(RECIPE_KEY) if generator is not None else None,
+        },
+        "stored_as": facts.get(STORED_KEY, "?"),
+        "trained_in": {
+            "tokenizer": tokenizer.get(TRAINED_IN_KEY),
+            "generator": generator.get(TRAINED_IN_KEY) if generator is not None else None,
+        },
+        "weights": generator.get(WEIGHTS_KEY, "raw") if generator is not None else None,
+        "sampling_defaults": json.loads(generator.get(SAMPLING_KEY, "{}")) if generator is not None else {},
         "files": len(files),
         "megabytes": round(sum(path.stat().st_size for path in files) / 1e6, 2),
     }
@@ -289,6 +377,12 @@ def load_bundle(
     ``tokenizer_only``: the tokenizer alone (no generator, no conditioners built)."""
 
     folder = bundle_folder(name, root)
+    if not tokenizer_only and not has_generator(folder):
+        raise ConfigError(
+            f"pretrained:{name} is a tokenizer bundle (no generator): use it where a tokenizer is read, e.g. "
+            f"`vqtouch train generator --tokenizer pretrained:{name}` or `vqtouch evaluate reconstruction "
+            f"--run pretrained:{name}`"
+        )
     autoencoder = load(folder / TOKENIZER / "autoencoder.safetensors", host=host, map_location=device)
     quantizer = load(folder / TOKENIZER / "quantizer.safetensors", host=host, map_location=device)
     generator, conditioners = None, []
@@ -296,8 +390,8 @@ def load_bundle(
         generator = load(folder / GENERATOR / "generator.safetensors", host=host, map_location=device).eval()
         paths = sorted((folder / GENERATOR).glob("conditioner_*.safetensors"), key=lambda p: int(p.stem.split("_")[1]))
         conditioners = [load(path, host=host, map_location=device).eval() for path in paths]
-    headers = read_metadata(folder / GENERATOR / "generator.safetensors")
     tokenizer_headers = read_metadata(folder / TOKENIZER / "autoencoder.safetensors")
+    headers = read_metadata(folder / GENERATOR / "generator.safetensors") if has_generator(folder) else {}
     return Bundle(
         name=name,
         folder=folder,
@@ -305,9 +399,9 @@ def load_bundle(
         generator=generator,
         conditioners=conditioners,
         tokenizer_step=autoencoder.vqtouch_step,
-        generator_step=int(headers["vqtouch.step"]),
+        generator_step=int(headers["vqtouch.step"]) if headers else 0,
         tokenizer_command=tokenizer_headers.get(COMMAND_KEY, "?"),
         generator_command=headers.get(COMMAND_KEY, "?"),
-        run_config=json.loads(headers.get(RUN_CONFIG_KEY, "{}")),
+        run_config=json.loads((headers or tokenizer_headers).get(RUN_CONFIG_KEY, "{}")),
         weights=headers.get(WEIGHTS_KEY, "raw"),
     )

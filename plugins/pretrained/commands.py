@@ -3,12 +3,14 @@
 ::
 
     vqtouch pretrained list [--json]
-    vqtouch pretrained export --run GENERATOR_RUN --name tour [--precision fp16|fp32] [--weights ema|raw]
+    vqtouch pretrained export --run RUN --name tour [--precision fp16|fp32] [--weights ema|raw]
                               [--overwrite] [--root DIR]
 
 ``export`` writes a trained generator run's newest checkpoint, with the tokenizer it learned the
 codes of, as a bundle inside the package (:mod:`.bundle`); the tour scene's ``pretrained`` stage
-then shows it in every demo report.
+then shows it in every demo report.  A tokenizer run gives a tokenizer bundle, which every command
+that reads a tokenizer takes as ``pretrained:NAME``.  ``list`` names each part's shipped recipe (the
+config file ``vqtouch train ... --config`` reproduces it with) when it was trained from one.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from pathlib import Path
 from vqtouch.core import ConfigError, hookimpl
 from vqtouch.core.cli import command_group
 
-from .bundle import BUNDLES, bundle_names, describe_bundle, export_bundle
+from .bundle import BUNDLES, bundle_names, describe_bundle, export_bundle, recipe_path
 
 
 def _list_command(args: argparse.Namespace) -> int:
@@ -33,18 +35,35 @@ def _list_command(args: argparse.Namespace) -> int:
         print(f"no bundled checkpoints in {root}")
         return 0
     for row in rows:
+        _print_bundle(row)
+    return 0
+
+
+def _print_bundle(row: dict) -> None:
+    size = f"{row['files']} files, {row['megabytes']} MB"
+    if row["kind"] == "tokenizer":
+        print(
+            f"{row['name']}: {row['tokenizer']} tokenizer step {row['tokenizer_step']} (a tokenizer bundle); "
+            f"{size} ({row['stored_as']})"
+        )
+    else:
         print(
             f"{row['name']}: {row['tokenizer']} tokenizer step {row['tokenizer_step']}, generator step "
-            f"{row['generator_step']} with conditioners {', '.join(row['conditioners'])}; {row['files']} files, "
-            f"{row['megabytes']} MB ({row['stored_as']}, {row['weights']} weights)"
+            f"{row['generator_step']} with conditioners {', '.join(row['conditioners'])}; {size} "
+            f"({row['stored_as']}, {row['weights']} weights)"
         )
-        print(f"  tokenizer trained by: {row['tokenizer_command']}")
-        print(f"  generator trained by: {row['generator_command']}")
-        trained_in = {part: value or "not recorded" for part, value in row["trained_in"].items()}
-        print(f"  trained in: tokenizer {trained_in['tokenizer']}, generator {trained_in['generator']}")
-        if row["sampling_defaults"]:
-            print(f"  sampling defaults set at export: {json.dumps(row['sampling_defaults'], sort_keys=True)}")
-    return 0
+    parts = ("tokenizer", "generator") if row["kind"] == "generator" else ("tokenizer",)
+    for part in parts:
+        recipe = row["recipes"][part]
+        print(
+            f"  {part} recipe: "
+            + (f"{recipe} (vqtouch train {part} --config {recipe_path(recipe)})" if recipe else "none shipped")
+        )
+        print(f"  {part} trained by: {row[part + '_command']}")
+    trained_in = {part: row["trained_in"][part] or "not recorded" for part in parts}
+    print("  trained in: " + ", ".join(f"{part} {trained_in[part]}" for part in parts))
+    if row["sampling_defaults"]:
+        print(f"  sampling defaults set at export: {json.dumps(row['sampling_defaults'], sort_keys=True)}")
 
 
 def _export_command(args: argparse.Namespace) -> int:
@@ -83,8 +102,12 @@ def vqtouch_add_commands(subparsers):
     listing.add_argument("--json", action="store_true", help="machine-readable output")
     listing.add_argument("--root", help=argparse.SUPPRESS)
     listing.set_defaults(handler=_list_command)
-    export = group.add_parser("export", help="write a trained generator run (and its tokenizer) as a bundle")
-    export.add_argument("--run", required=True, help="a run whose generator stage trained")
+    export = group.add_parser(
+        "export", help="write a trained generator run (and its tokenizer), or a tokenizer run alone, as a bundle"
+    )
+    export.add_argument(
+        "--run", required=True, help="a run whose generator stage trained, or a tokenizer run (a tokenizer bundle)"
+    )
     export.add_argument("--name", required=True, help="the bundle's name (the pretrained stage's `bundle` option)")
     export.add_argument(
         "--precision",

@@ -29,6 +29,7 @@ from vqtouch.core.cli import (
     command_group,
     plugin_block,
     positive_int,
+    scene_or_default,
     seed_int,
     stage_failure,
     training_run,
@@ -216,7 +217,7 @@ def _reconstruction_experiment_command(args: argparse.Namespace) -> int:
             "--step, --split, --metrics and --dataset score one run (--run); the experiment (--out) "
             "trains its own runs and scores them with the scene's metrics"
         )
-    config = resolve_config(args.scene, args.config, args.overrides, host=args.host)
+    config = resolve_config(scene_or_default(args.scene, args), args.config, args.overrides, host=args.host)
     held_out = args.held_out
     if held_out is None and config.data.dataset is not None and "num_samples" in type(config.data.dataset).model_fields:
         held_out = 200
