@@ -44,9 +44,15 @@ import torch
 
 #: The bundled ``tour`` tokenizer's recipe less its loss terms and steps.
 BASE = [
-    "--scene", "tour", "--set", "data.dataset.seed=7", "--set", "tokenizer.autoencoder.channels=32",
-    "--set", "data.batch_size=8", "--set", "tokenizer.train.log_every=25",
-]  # fmt: skip
+    "--scene",
+    "tour",
+    "--set",
+    "data.dataset.seed=7",
+    "--set",
+    "data.batch_size=8",
+    "--set",
+    "tokenizer.train.log_every=25",
+]
 PATCHGAN = '{"name": "patchgan"}'
 TERMS = {
     "l1_vq": ["--set", "tokenizer.loss.perceptual=none"],
@@ -60,14 +66,16 @@ QUANTIZERS = {
     "simvq": ["--set", "tokenizer.quantizer.simvq=true"],
 }
 #: ``AUTOENCODER:TERMS[+QUANTIZER]`` -> extra command-line settings.
-RECIPES = {
-    f"{autoencoder}:{terms}": ["--set", f"tokenizer.autoencoder.name={autoencoder}", *TERMS[terms]]
-    for autoencoder in ("dm_vqgan", "vqgan")
-    for terms in TERMS
-}
+
+
+def autoencoder(name: str) -> list[str]:
+    """The autoencoder at the bundle's 32 channels (its name first: choosing a plugin resets its options)."""
+    return ["--set", f"tokenizer.autoencoder.name={name}", "--set", "tokenizer.autoencoder.channels=32"]
+
+
+RECIPES = {f"{name}:{terms}": [*autoencoder(name), *TERMS[terms]] for name in ("dm_vqgan", "vqgan") for terms in TERMS}
 RECIPES |= {
-    f"dm_vqgan:perceptual+{name}": ["--set", "tokenizer.autoencoder.name=dm_vqgan", *settings]
-    for name, settings in QUANTIZERS.items()
+    f"dm_vqgan:perceptual+{name}": [*autoencoder("dm_vqgan"), *settings] for name, settings in QUANTIZERS.items()
 }
 PER_CLASS = 10
 DRAWS = (0, 1, 2)

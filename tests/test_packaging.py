@@ -133,6 +133,9 @@ def test_wheel_installs_one_namespace_and_imports_outside_checkout(tmp_path):
         and sorted(path.relative_to(installed_weights) for path in installed_weights.rglob("*.safetensors")) == expected
     )
     assert all((installed_weights / name).read_bytes() == (shipped / name).read_bytes() for name in expected)
+    recipes = sorted(path.name for path in (REPO / "plugins" / "pretrained" / "recipes").glob("*.toml"))
+    installed_recipes = site / "vqtouch" / "plugins" / "pretrained" / "recipes"
+    assert recipes and sorted(path.name for path in installed_recipes.glob("*.toml")) == recipes
     bundle_code = (
         "from vqtouch.core import load_plugins; from vqtouch.core.checkpoint import open_pretrained; "
         "host = load_plugins(autoload=False); bundle = open_pretrained('pretrained:tour', host); "

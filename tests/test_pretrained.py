@@ -325,3 +325,31 @@ def test_every_shipped_bundle_draws_from_a_label_and_stays_within_50_mb(name, tm
     assert json.loads((out / "generate.json").read_text())["checkpoint"] == str(bundle_folder(name) / "generator")
     pixels = np.asarray(Image.open(out / "sample_0000.png"), dtype=np.float32)
     assert pixels.shape[:2] == (64, 64) and pixels.std() > 1.0
+
+
+def _bundles_of_kind(kind: str) -> list[str]:
+    return [name for name in bundle_names() if describe_bundle(bundle_folder(name))["kind"] == kind]
+
+
+@pytest.mark.parametrize("name", _bundles_of_kind("tokenizer"))
+def test_every_shipped_tokenizer_bundle_reconstructs_the_scene_it_was_trained_on(name):
+    """A shipped tokenizer bundle opens by name with today's plugins, names a shipped recipe, stays small,
+    and reconstructs images of its recipe's scene (another dataset seed) far better than their mean image."""
+    from vqtouch.plugins.tokenizer import load_tokenizer
+
+    facts = describe_bundle(bundle_folder(name))
+    assert facts["megabytes"] <= 20 and facts["recipes"]["tokenizer"] is not None
+    config = resolve_config(None, [bundle_module.recipe_path(facts["recipes"]["tokenizer"])], host=HOST)
+    dataset = Assembly(config, HOST).build(
+        "dataset", {**config.data.dataset.model_dump(), "seed": 12345, "num_samples": 8}
+    )
+    images = torch.stack([dataset[i]["tactile"] for i in range(8)]).float()
+    tokenizer, _ = load_tokenizer(f"pretrained:{name}", HOST)
+    with torch.no_grad():
+        reconstruction = tokenizer.reconstruct(images)[0].float()
+    assert torch.isfinite(reconstruction).all()
+    error = (reconstruction - images).pow(2).mean()
+    mean_image_error = (images.mean(0, keepdim=True) - images).pow(2).mean()
+    psnr = -10 * torch.log10(error)
+    # The mean image already scores about 32 dB on these mostly flat frames: ask for 6 dB (a quarter of its error) more.
+    assert psnr > 36 and error < mean_image_error / 4, f"{name}: {psnr:.1f} dB"

@@ -87,10 +87,13 @@ def _export_command(args: argparse.Namespace) -> int:
         weights=args.weights,
     )
     row = describe_bundle(folder)
+    parts = f"tokenizer step {row['tokenizer_step']}"
+    if row["kind"] == "generator":
+        parts += f", {row['weights']} weights, generator step {row['generator_step']}"
+    else:
+        parts += ", a tokenizer bundle"
     print(
-        f"bundle {row['name']!r} -> {folder} ({row['files']} files, {row['megabytes']} MB, {row['stored_as']}, "
-        f"{row['weights']} weights; "
-        f"tokenizer step {row['tokenizer_step']}, generator step {row['generator_step']})"
+        f"bundle {row['name']!r} -> {folder} ({row['files']} files, {row['megabytes']} MB, {row['stored_as']}; {parts})"
     )
     return 0
 
