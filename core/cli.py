@@ -24,7 +24,7 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from .config import load_config_file, resolve_config
+from .config import resolve_config
 from .errors import ConfigError, VqtouchError, VqtouchWarning, one_line
 from .plugin_manager import PluginHost, load_plugins
 from .images import bad_images_skipped, greyscale_allowed
@@ -303,22 +303,14 @@ def config_from_args(args: argparse.Namespace, host: PluginHost) -> Any:
     scene, positional = args.scene, getattr(args, "scene_positional", None)
     if positional and scene and positional != scene:
         raise ConfigError(f"two different scenes given: {positional!r} and --scene {scene!r}; give one")
-    scene = scene_or_default(positional or scene, args)
-    if getattr(args, "scene_required", False) and not scene and not recipe_names_scene(args.config):
-        raise ConfigError("name a scene, e.g. `vqtouch config show reconstruction` (list: `vqtouch config scenes`)")
-    return resolve_config(scene, args.config, args.overrides, host=host)
-
-
-def recipe_names_scene(files: list[str]) -> bool:
-    """Whether one of the ``--config`` files is a recipe naming its scene (``scene = "..."``)."""
-    return any(load_config_file(path).get("scene") is not None for path in files)
-
-
-def scene_or_default(scene: str | None, args: argparse.Namespace) -> str | None:
-    """``scene``; when none was given, the command's default scene unless a ``--config`` file names its own."""
-    if scene is not None or getattr(args, "default_scene", None) is None or recipe_names_scene(args.config):
-        return scene  # None: resolve_config takes the recipe's scene
-    return args.default_scene
+    return resolve_config(
+        positional or scene,
+        args.config,
+        args.overrides,
+        host=host,
+        default_scene=getattr(args, "default_scene", None),
+        scene_required=getattr(args, "scene_required", False),
+    )
 
 
 def _cmd_plugins(args: argparse.Namespace) -> int:

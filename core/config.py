@@ -393,15 +393,24 @@ def validate_experiment(data: Mapping[str, Any], host: PluginHost) -> Experiment
 
 
 def resolve_config(
-    scene: str | None = None, files: Iterable[str | Path] = (), overrides: Iterable[str] = (), *, host: PluginHost
+    scene: str | None = None,
+    files: Iterable[str | Path] = (),
+    overrides: Iterable[str] = (),
+    *,
+    host: PluginHost,
+    default_scene: str | None = None,
+    scene_required: bool = False,
 ) -> ExperimentConfig:
     """Build the experiment config from a scene preset, config files and ``--set`` overrides.
 
     A config file that names a ``scene`` (a recipe: ``scene = "tour"`` at its top) is merged over that
-    scene when ``scene`` is None; a different ``scene`` given beside it is refused in one line."""
+    scene when ``scene`` is None; a different ``scene`` given beside it is refused in one line.  With
+    neither, ``default_scene`` (a command's default); ``scene_required``: none at all is a ConfigError."""
     files = list(files)
     loaded = [load_config_file(path) for path in files]
-    scene = recipe_scene(scene, files, loaded)
+    scene = recipe_scene(scene, files, loaded) or default_scene
+    if scene_required and scene is None:
+        raise ConfigError("name a scene, e.g. `vqtouch config show reconstruction` (list: `vqtouch config scenes`)")
     data: dict[str, Any] = {}
     if scene is not None:
         entry = host.scene(scene)

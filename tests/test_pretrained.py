@@ -339,7 +339,7 @@ def test_every_shipped_tokenizer_bundle_reconstructs_the_scene_it_was_trained_on
 
     facts = describe_bundle(bundle_folder(name))
     assert facts["megabytes"] <= 20 and facts["recipes"]["tokenizer"] is not None
-    config = resolve_config(None, [bundle_module.recipe_path(facts["recipes"]["tokenizer"])], host=HOST)
+    config = resolve_config(None, [bundle_module.RECIPES / facts["recipes"]["tokenizer"]], host=HOST)
     dataset = Assembly(config, HOST).build(
         "dataset", {**config.data.dataset.model_dump(), "seed": 12345, "num_samples": 8}
     )

@@ -131,15 +131,6 @@ def shipped_recipe(argv: list[str]) -> str | None:
     return None
 
 
-def recipe_path(name: str) -> Path:
-    """The path of the shipped recipe ``name``; a one-line error listing them when there is none."""
-    path = RECIPES / name
-    if not path.is_file():
-        shipped = sorted(item.name for item in RECIPES.glob("*.toml"))
-        raise ConfigError(f"no shipped recipe named {name!r}; shipped: {', '.join(shipped) or 'none'} (in {RECIPES})")
-    return path
-
-
 #: The generator options a bundle may set for itself at export (``vqtouch pretrained export --sampling``).
 SAMPLING_DEFAULTS = ("steps", "guidance", "conditioner_guidance", "truncation")
 SAMPLING_KEY = "pretrained.sampling_defaults"
@@ -280,8 +271,7 @@ def _export_generator_bundle(
             key: recorded[key] for key in (COMMAND_KEY, RUN_CONFIG_KEY, RECIPE_KEY) if key in recorded
         } or generator_headers
     half = precision == "fp16"
-    is_generator_bundle = lambda previous: is_bundle_folder(previous) and (previous / GENERATOR).is_dir()  # noqa: E731
-    with staged_output(folder, overwrite=overwrite, into_package=True, recognise=is_generator_bundle) as partial:
+    with staged_output(folder, overwrite=overwrite, into_package=True, recognise=is_bundle_folder) as partial:
         _store_tokenizer(pipe.tokenizer, partial, tokenizer_headers, host, half)
         (partial / GENERATOR).mkdir()
         # The weights the run samples with by default (its EMA when it kept one), and which they are.

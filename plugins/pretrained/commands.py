@@ -22,7 +22,8 @@ from pathlib import Path
 from vqtouch.core import ConfigError, hookimpl
 from vqtouch.core.cli import command_group
 
-from .bundle import BUNDLES, bundle_names, describe_bundle, export_bundle, recipe_path
+from . import bundle
+from .bundle import BUNDLES, bundle_names, describe_bundle, export_bundle
 
 
 def _list_command(args: argparse.Namespace) -> int:
@@ -57,7 +58,7 @@ def _print_bundle(row: dict) -> None:
         recipe = row["recipes"][part]
         print(
             f"  {part} recipe: "
-            + (f"{recipe} (vqtouch train {part} --config {recipe_path(recipe)})" if recipe else "none shipped")
+            + (f"{recipe} (vqtouch train {part} --config {bundle.RECIPES / recipe})" if recipe else "none shipped")
         )
         print(f"  {part} trained by: {row[part + '_command']}")
     trained_in = {part: row["trained_in"][part] or "not recorded" for part in parts}

@@ -27,9 +27,9 @@ from vqtouch.core.cli import (
     add_step_argument,
     NumberType,
     command_group,
+    config_from_args,
     plugin_block,
     positive_int,
-    scene_or_default,
     seed_int,
     stage_failure,
     training_run,
@@ -217,7 +217,7 @@ def _reconstruction_experiment_command(args: argparse.Namespace) -> int:
             "--step, --split, --metrics and --dataset score one run (--run); the experiment (--out) "
             "trains its own runs and scores them with the scene's metrics"
         )
-    config = resolve_config(scene_or_default(args.scene, args), args.config, args.overrides, host=args.host)
+    config = config_from_args(args, args.host)
     held_out = args.held_out
     if held_out is None and config.data.dataset is not None and "num_samples" in type(config.data.dataset).model_fields:
         held_out = 200
