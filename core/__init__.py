@@ -18,31 +18,10 @@ Typical use::
 
 from __future__ import annotations
 
+import importlib
 import importlib.metadata as _metadata
 from typing import Any
 
-from .assembly import Assembly, build_components  # noqa: F401 - the 0.1.0 name; warns when called
-from .checkpoint import atomic_write, load, read_metadata, save
-from .components import (
-    Autoencoder,
-    BuildContext,
-    Clusterer,
-    Conditioner,
-    ConditionTokens,
-    Discriminator,
-    Generator,
-    Metric,
-    MetricSet,
-    PerImageMetric,
-    ProvidesContext,
-    Quantizer,
-    QuantizerOutput,
-    Sampler,
-    SensorFamily,
-    SkippedMetric,
-    TactileDataset,
-    load_missing_as_zeros,
-)
 from .deprecations import warn_renamed
 from .config import ExperimentConfig, Section, Slot, load_config_file, resolve_config, validate_experiment
 from .errors import (
@@ -56,26 +35,67 @@ from .errors import (
     VqtouchError,
     VqtouchWarning,
 )
-from .frozen import FrozenModule
 from .hookspecs import hookimpl
 from .plugin_config import PluginConfig
 from .plugin_manager import PluginHost, load_plugins
-from .runs import RunDir
-from .seeding import make_generator, resolve_device, seed_everything
+from .seeding import resolve_device, seed_everything, make_generator
 from .stages import StageJob, StageOutcome, StageUnavailable, required_slots, run_stage
-from .training import TrainConfig
+from .train_config import TrainConfig
 from .weights import WeightsSpec, resolve_weights
 
-#: Names of 0.1.0 that still work, with a deprecation warning: old name -> (new name, object).
-_RENAMED = {"Encoder": ("Autoencoder", Autoencoder)}
+#: Names importable from here whose modules need torch: imported on first use (PEP 562), so that
+#: ``import vqtouch.core`` (what every plugin module does) stays light.  Name -> its module.
+_LAZY = {
+    "Assembly": "assembly",
+    "build_components": "assembly",
+    "atomic_write": "checkpoint",
+    "load": "checkpoint",
+    "read_metadata": "checkpoint",
+    "save": "checkpoint",
+    **dict.fromkeys(
+        (
+            "Autoencoder",
+            "BuildContext",
+            "Clusterer",
+            "Conditioner",
+            "ConditionTokens",
+            "Discriminator",
+            "Generator",
+            "Metric",
+            "MetricSet",
+            "PerImageMetric",
+            "ProvidesContext",
+            "Quantizer",
+            "QuantizerOutput",
+            "Sampler",
+            "SensorFamily",
+            "SkippedMetric",
+            "TactileDataset",
+            "load_missing_as_zeros",
+        ),
+        "components",
+    ),
+    "FrozenModule": "frozen",
+    "RunDir": "runs",
+}
+
+#: Names of 0.1.0 that still work, with a deprecation warning: old name -> new name.
+_RENAMED = {"Encoder": "Autoencoder"}
 
 
 def __getattr__(name: str) -> Any:
     if name in _RENAMED:
-        new, value = _RENAMED[name]
-        warn_renamed(f"vqtouch.core.{name}", f"vqtouch.core.{new}")
+        warn_renamed(f"vqtouch.core.{name}", f"vqtouch.core.{_RENAMED[name]}")
+        return __getattr__(_RENAMED[name])
+    if name in _LAZY:
+        value = getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+        globals()[name] = value  # the next lookup finds it without this function
         return value
     raise AttributeError(f"module 'vqtouch.core' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_LAZY, *_RENAMED})
 
 
 try:

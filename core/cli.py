@@ -27,9 +27,10 @@ from typing import Any, NoReturn
 from .config import resolve_config
 from .errors import ConfigError, VqtouchError, VqtouchWarning, one_line
 from .plugin_manager import PluginHost, load_plugins
-from .images import bad_images_skipped, greyscale_allowed
+from .image_options import bad_images_skipped, greyscale_allowed
 from .outputs import check_output, command_inputs, reading
 from .progress import disable_progress, progress_forced_off
+from .references import resolve
 from .seeding import SEED_MAX, command_threads
 from .stages import StageOutcome, empty_slot_reason, missing_slots
 
@@ -579,6 +580,9 @@ def _run_command(argv: list[str], debug: bool) -> int:
             return 2
         args.argv = ["vqtouch", *argv]
         command, reads = command_inputs(parser, args)
+        # A handler given as a reference imports its implementation (and torch) here, not at start-up,
+        # and before command_threads, which sets torch's threads only for a command that imported it.
+        handler = resolve(args.handler, f"the handler of 'vqtouch {command}'")
         with (
             reading(reads, command),
             _sigterm_interrupts(),
@@ -591,7 +595,7 @@ def _run_command(argv: list[str], debug: bool) -> int:
             if getattr(args, "out", None):  # before the handler loads or trains anything
                 check_output(args.out, into_package=command == "pretrained export")
                 refuse_finished_output(args)
-            status = int(args.handler(args) or 0)
+            status = int(handler(args) or 0)
         if sys.stdout is not None:  # None when the shell closed it (`>&-`): print() then writes nothing
             sys.stdout.flush()  # a reader that went away shows here, not in the flush at exit
         return status

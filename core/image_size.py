@@ -5,14 +5,16 @@ the build context included, can use it without an import cycle."""
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
-import torch
 from pydantic import BeforeValidator
 from pydantic_core import PydanticCustomError
 
 #: An image size: ``S`` for S x S pixels, or ``(height, width)`` (e.g. (240, 320), a sensor's native aspect).
 ImageSize = int | tuple[int, int]
+
+if TYPE_CHECKING:
+    import torch
 
 
 def image_hw(size: ImageSize) -> tuple[int, int]:
@@ -36,6 +38,8 @@ def pixel_centres_mm(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(ys, xs), each (height, width): the centre of every pixel of a height x width image of a
     centred area ``extent_mm`` (a side, or (rows, columns)), in mm from the area's centre."""
+    import torch
+
     rows_mm, cols_mm = extent_hw(extent_mm)
     axis_rows = (torch.arange(height, dtype=torch.float32) + 0.5) / height * rows_mm - rows_mm / 2
     axis_cols = (torch.arange(width, dtype=torch.float32) + 0.5) / width * cols_mm - cols_mm / 2

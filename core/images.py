@@ -3,10 +3,7 @@ when an image is read or written)."""
 
 from __future__ import annotations
 
-import contextlib
 import math
-from collections.abc import Iterator
-from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -16,6 +13,7 @@ import torch
 
 from .checkpoint import atomic_write
 from .errors import DatasetError
+from .image_options import _GREYSCALE_ALLOWED, bad_images_skipped, greyscale_allowed, skipping_bad_images  # noqa: F401
 from .image_size import ImageSize, image_hw
 
 #: How an image is brought to the requested aspect ratio: see ``ImageLoader.crop``.
@@ -84,40 +82,6 @@ def crop_box(
     left = (width - box_w) / 2
     top = (height - box_h) / 2 if mode == "center" else 0.0
     return (left, top, left + box_w, top + box_h)
-
-
-_GREYSCALE_ALLOWED: ContextVar[bool] = ContextVar("greyscale_allowed", default=False)
-
-
-@contextlib.contextmanager
-def greyscale_allowed(allowed: bool = True) -> Iterator[None]:
-    """Within the block, image loaders without their own ``allow_greyscale`` (the commands' folders of
-    images, ``--visual`` files, ...) copy greyscale images into 3 channels instead of refusing them:
-    what a command's ``--allow-greyscale`` does."""
-    token = _GREYSCALE_ALLOWED.set(allowed)
-    try:
-        yield
-    finally:
-        _GREYSCALE_ALLOWED.reset(token)
-
-
-_BAD_IMAGES_SKIPPED: ContextVar[bool] = ContextVar("bad_images_skipped", default=False)
-
-
-@contextlib.contextmanager
-def bad_images_skipped(skip: bool = True) -> Iterator[None]:
-    """Within the block, a folder of a sensor's images drops the files that do not decode (with one
-    warning naming them) instead of refusing the folder: what a command's ``--lenient`` does."""
-    token = _BAD_IMAGES_SKIPPED.set(skip)
-    try:
-        yield
-    finally:
-        _BAD_IMAGES_SKIPPED.reset(token)
-
-
-def skipping_bad_images() -> bool:
-    """Whether the running command asked to skip images that do not decode (:func:`bad_images_skipped`)."""
-    return _BAD_IMAGES_SKIPPED.get()
 
 
 @dataclass(frozen=True)

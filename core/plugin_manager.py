@@ -29,31 +29,22 @@ import os
 import sys
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pluggy
 from pydantic import Field, ValidationError, create_model
 
 from . import hookspecs
-from .components import (
-    Autoencoder,
-    BuildContext,
-    Clusterer,
-    Conditioner,
-    Discriminator,
-    Generator,
-    Metric,
-    Quantizer,
-    Sampler,
-    SensorFamily,
-    TactileDataset,
-)
 from .config import ExperimentConfig, Section, SlotInfo, slots_of
 from .deprecations import HOOK_RENAMES, HOOKS_REMOVED, RENAMED_IN
 from .errors import ConfigError, PluginError, UnknownPluginError, format_validation_error, unknown_name_message
 from .plugin_config import PluginConfig
+from .references import check_callable_or_reference
 from .registry import PluginEntry, PluginSource, Registry
 from .stages import StageEntry
+
+if TYPE_CHECKING:
+    from .components import BuildContext
 
 ENTRY_POINT_GROUP = "vqtouch"
 BUILTIN_DISTRIBUTION = "vqtouch"
@@ -67,6 +58,8 @@ ENV_TRACE = "VQTOUCH_TRACE_PLUGINS"
 class RegistryKind:
     """A kind of component: its registry name, registration hook and interface.
 
+    ``interface`` names the kind's base class in :mod:`vqtouch.core.components`, imported (with
+    torch) only when a component is built or checked, so that loading plugins stays light.
     ``provides`` are the :class:`BuildContext` facts its components fix (see
     ``ProvidesContext``) and ``reads`` the facts its factories read, so the assembly builds
     providers first.
@@ -75,49 +68,60 @@ class RegistryKind:
     name: str
     hook: str
     description: str
-    base_type: type
+    interface: str
     provides: tuple[str, ...] = ()
     reads: tuple[str, ...] = ()
+
+    @property
+    def base_type(self) -> type:
+        """The kind's base class (imports :mod:`vqtouch.core.components`)."""
+        from . import components
+
+        return getattr(components, self.interface)
 
 
 REGISTRY_KINDS: tuple[RegistryKind, ...] = (
     RegistryKind(
-        "autoencoder", "vqtouch_register_autoencoders", "tokenizer autoencoders", Autoencoder, provides=("latent_dim",)
+        "autoencoder",
+        "vqtouch_register_autoencoders",
+        "tokenizer autoencoders",
+        "Autoencoder",
+        provides=("latent_dim",),
     ),
     RegistryKind(
         "quantizer",
         "vqtouch_register_quantizers",
         "latent quantizers",
-        Quantizer,
+        "Quantizer",
         provides=("codebook_size",),
         reads=("latent_dim",),
     ),
-    RegistryKind("discriminator", "vqtouch_register_discriminators", "GAN discriminators", Discriminator),
+    RegistryKind("discriminator", "vqtouch_register_discriminators", "GAN discriminators", "Discriminator"),
     RegistryKind(
         "conditioner",
         "vqtouch_register_conditioners",
         "condition encoders",
-        Conditioner,
+        "Conditioner",
         reads=("num_classes", "class_names"),
     ),
-    RegistryKind("sensor_family", "vqtouch_register_sensor_families", "tactile sensor renderers", SensorFamily),
+    RegistryKind("sensor_family", "vqtouch_register_sensor_families", "tactile sensor renderers", "SensorFamily"),
     RegistryKind(
         "generator",
         "vqtouch_register_generators",
         "code-grid generators",
-        Generator,
+        "Generator",
         reads=("codebook_size", "num_classes", "code_grid"),
     ),
-    RegistryKind("sampler", "vqtouch_register_samplers", "discrete-diffusion samplers", Sampler),
-    RegistryKind("clusterer", "vqtouch_register_clusterers", "sensor-family clusterers", Clusterer),
+    RegistryKind("sampler", "vqtouch_register_samplers", "discrete-diffusion samplers", "Sampler"),
+    RegistryKind("clusterer", "vqtouch_register_clusterers", "sensor-family clusterers", "Clusterer"),
     RegistryKind(
         "dataset",
         "vqtouch_register_datasets",
         "tactile dataset readers",
-        TactileDataset,
+        "TactileDataset",
         provides=("num_classes", "class_names"),
     ),
-    RegistryKind("metric", "vqtouch_register_metrics", "image metrics", Metric),
+    RegistryKind("metric", "vqtouch_register_metrics", "image metrics", "Metric"),
 )
 KINDS_BY_NAME = {kind.name: kind for kind in REGISTRY_KINDS}
 KIND_NAMES = tuple(kind.name for kind in REGISTRY_KINDS)
@@ -161,7 +165,8 @@ class PluginHost:
         self.pm = pm
         self.sources = sources
         self.registries: dict[str, Registry] = {
-            kind.name: Registry(kind.name, kind.description, kind.base_type) for kind in REGISTRY_KINDS
+            kind.name: Registry(kind.name, kind.description, lambda kind=kind: kind.base_type)
+            for kind in REGISTRY_KINDS
         }
         self.stages: dict[str, StageEntry] = {}
         self.scenes: dict[str, SceneEntry] = {}
@@ -214,7 +219,10 @@ class PluginHost:
         """
         registry = self.registry(kind)
         config = self.validate(kind, config)
-        context = context or BuildContext()
+        if context is None:
+            from .components import BuildContext
+
+            context = BuildContext()
         entry = registry.get(config.name)
         missing = [name for name in entry.inputs if inputs.get(name) is None]
         if missing:
@@ -228,7 +236,7 @@ class PluginHost:
                 f"{kind} {entry.name!r} takes no input {extra[0]!r} (it declares "
                 f"{list(entry.inputs + entry.optional_inputs)})"
             )
-        component = entry.factory(config, context, **inputs)
+        component = entry.load_factory()(config, context, **inputs)
         if registry.base_type is not None and not isinstance(component, registry.base_type):
             raise PluginError(
                 f"{entry.source.describe()}: factory of {kind} {entry.name!r} returned "
@@ -432,8 +440,7 @@ def _stage_register(host: PluginHost, source: PluginSource) -> Any:
                 f"duplicate stage {name!r}: registered by {host.stages[name].source.describe()} "
                 f"and again by {source.describe()}; block one with {ENV_BLOCK}"
             )
-        if not callable(run):
-            raise PluginError(f"{source.describe()}: stage {name!r} must be registered with a callable run(job)")
+        check_callable_or_reference(run, f"{source.describe()}: stage {name!r}'s run(job)")
         if section is not None and not (isinstance(section, type) and issubclass(section, Section)):
             raise PluginError(
                 f"{source.describe()}: stage {name!r} section must subclass vqtouch.core.Section, got {section!r}"

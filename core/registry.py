@@ -14,6 +14,7 @@ from typing import Any
 
 from .errors import PluginError, UnknownPluginError, unknown_name_message
 from .plugin_config import PluginConfig, literal_name_of
+from .references import check_callable_or_reference, resolve
 
 
 @dataclass(frozen=True)
@@ -37,7 +38,9 @@ class PluginEntry:
 
     kind: str
     name: str
-    factory: Callable[..., Any]
+    #: Builds the component: a callable, or a ``"package.module:attribute"`` reference to one that is
+    #: imported at the first build (:mod:`vqtouch.core.references`), so loading plugins stays light.
+    factory: Callable[..., Any] | str
     config_model: type[PluginConfig]
     description: str
     source: PluginSource
@@ -50,21 +53,34 @@ class PluginEntry:
     #: absent ones are not passed, so the factory gives them a default.
     optional_inputs: tuple[str, ...] = ()
 
+    def load_factory(self) -> Callable[..., Any]:
+        """The factory itself (its module imported when it was registered as a reference)."""
+        return resolve(self.factory, f"{self.source.describe()}: factory of {self.kind} {self.name!r}")
+
 
 @dataclass
 class Registry:
     """All entries of one kind (e.g. every autoencoder), keyed by name.
 
     ``base_type`` is the interface every built component must implement; it is checked
-    when a component is built so that a plugin returning the wrong thing fails at once.
+    when a component is built so that a plugin returning the wrong thing fails at once.  It may
+    be given as a zero-argument callable returning the type, so that the registry exists before
+    the interfaces' module (and torch) is imported.
     """
 
     kind: str
     description: str
-    base_type: type | None = None
+    interface: type | Callable[[], type] | None = None
     _entries: dict[str, PluginEntry] = field(default_factory=dict)
     _aliases: dict[str, str] = field(default_factory=dict)
     _frozen: bool = False
+
+    @property
+    def base_type(self) -> type | None:
+        """The interface every component of this kind implements (None: any object)."""
+        if self.interface is None or isinstance(self.interface, type):
+            return self.interface
+        return self.interface()
 
     # -- registration -------------------------------------------------------------------
     def add(self, entry: PluginEntry) -> None:
@@ -83,8 +99,7 @@ class Registry:
                 f"{entry.config_model.__name__} declares name {declared!r}; declare "
                 f"`name: Literal[{entry.name!r}] = {entry.name!r}`"
             )
-        if not callable(entry.factory):
-            raise PluginError(f"{entry.source.describe()}: factory of {self.kind} {entry.name!r} is not callable")
+        check_callable_or_reference(entry.factory, f"{entry.source.describe()}: factory of {self.kind} {entry.name!r}")
         for key in (entry.name, *entry.aliases):
             existing = self._entries.get(key) or self._entries.get(self._aliases.get(key, ""))
             if existing is not None:

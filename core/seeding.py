@@ -7,13 +7,14 @@ import contextlib
 import functools
 import os
 import random
+import sys
 from collections.abc import Callable, Iterator
-from typing import Any, TypeVar
-
-import numpy as np
-import torch
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from .errors import ConfigError
+
+if TYPE_CHECKING:
+    import torch
 
 #: The largest seed: NumPy takes seeds below 2**32, and the seeds vqtouch derives from one
 #: (``seed * 1_000_003 + index`` for each generated image, ...) then stay within 64 bits.
@@ -26,6 +27,9 @@ def seed_everything(seed: int, deterministic: bool = False) -> int:
     Returns the seed so callers can record it.  ``deterministic=True`` makes PyTorch raise
     on operations without a deterministic implementation rather than silently vary.
     """
+    import numpy as np
+    import torch
+
     if not 0 <= seed <= SEED_MAX:
         raise ValueError(f"seed must be in [0, {SEED_MAX}], got {seed}")
     random.seed(seed)
@@ -40,6 +44,8 @@ def seed_everything(seed: int, deterministic: bool = False) -> int:
 
 def make_generator(seed: int, device: str | torch.device = "cpu") -> torch.Generator:
     """A fresh ``torch.Generator`` on ``device`` seeded with ``seed`` (for explicit randomness)."""
+    import torch
+
     generator = torch.Generator(device=device)
     generator.manual_seed(seed)
     return generator
@@ -47,6 +53,7 @@ def make_generator(seed: int, device: str | torch.device = "cpu") -> torch.Gener
 
 def resolve_device(device: str) -> torch.device:
     """Map a config device (``auto``, ``cpu``, ``cuda``) to a ``torch.device``, failing clearly."""
+    import torch
     from .errors import ConfigError
 
     if device == "auto":
@@ -68,6 +75,7 @@ def one_thread() -> Iterator[None]:
     count chosen by silhouette, a k-means partition, a nearest family) can then flip with the
     machine's load or ``OMP_NUM_THREADS``.  One thread fixes the order on every machine.  The
     previous thread counts are restored on exit."""
+    import torch
     from threadpoolctl import threadpool_limits
 
     before = torch.get_num_threads()
@@ -152,29 +160,40 @@ def current_load(samples: int = 5, interval_s: float = 0.02) -> float:
 def command_threads(requested: str | int | None) -> Iterator[str | None]:
     """Torch's CPU threads while a command runs, restored afterwards; yields the note to print when
     the load chose fewer.  ``requested``: ``--threads`` (a number), else ``VQTOUCH_THREADS``, else
-    ``auto`` (:func:`busy_cpu_threads`); ``0``: leave torch's default."""
+    ``auto`` (:func:`busy_cpu_threads`); ``0``: leave torch's default.  A command that has not
+    imported torch (help, configs, listings: the CLI imports a command's implementation first)
+    only has the value checked: it runs no torch kernel, and loading torch for it would cost a
+    second of start-up."""
     value = requested if requested is not None else os.environ.get(ENV_THREADS, "auto").strip() or "auto"
     given = f"--threads {value}" if requested is not None else f"{ENV_THREADS}={value!r}"
+    threads = None if str(value) == "auto" else _checked_threads(value, given)
+    torch = sys.modules.get("torch")
+    if torch is None:
+        yield None
+        return
     before = torch.get_num_threads()
     note = None
-    if str(value) == "auto":
+    if threads is None:
         threads, note = busy_cpu_threads(available_cores(), current_load(), before)
-    else:
-        try:
-            threads = int(value)
-        except ValueError:
-            raise ConfigError(f"{given}: give a number of threads, 0 (torch's default) or auto") from None
-        if threads < 0:
-            raise ConfigError(f"{given}: give a number of threads >= 0")
-        most = max_threads()
-        if threads > most:  # torch's thread pool crashes (SIGSEGV) long before a huge count is reached
-            raise ConfigError(
-                f"{given}: at most {most} threads here ({THREADS_PER_CORE} per core of {available_cores()}); "
-                "give fewer, or 0 for torch's default"
-            )
-        threads = threads or before
-    torch.set_num_threads(threads)
+    torch.set_num_threads(threads or before)
     try:
         yield note
     finally:
         torch.set_num_threads(before)
+
+
+def _checked_threads(value: str | int, given: str) -> int:
+    """A thread count given as ``--threads``/``VQTOUCH_THREADS``, or a one-line ConfigError."""
+    try:
+        threads = int(value)
+    except ValueError:
+        raise ConfigError(f"{given}: give a number of threads, 0 (torch's default) or auto") from None
+    if threads < 0:
+        raise ConfigError(f"{given}: give a number of threads >= 0")
+    most = max_threads()
+    if threads > most:  # torch's thread pool crashes (SIGSEGV) long before a huge count is reached
+        raise ConfigError(
+            f"{given}: at most {most} threads here ({THREADS_PER_CORE} per core of {available_cores()}); "
+            "give fewer, or 0 for torch's default"
+        )
+    return threads

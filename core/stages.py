@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from .errors import PluginError, VqtouchError
+from .references import resolve
 from .seeding import seed_everything
 
 if TYPE_CHECKING:
@@ -53,7 +54,9 @@ class StageEntry:
     """A registered stage: its config section, the slots it needs and how it runs."""
 
     name: str
-    run: Callable[[StageJob], dict[str, Any] | None]
+    #: Does the stage's work: a callable, or a ``"package.module:attribute"`` reference to one,
+    #: imported when the stage first runs (:mod:`vqtouch.core.references`).
+    run: Callable[[StageJob], dict[str, Any] | None] | str
     section: type[Section] | None
     needs: tuple[str, ...]
     uses: tuple[str, ...]
@@ -65,6 +68,10 @@ class StageEntry:
     #: that trains a model: a run whose value is within the stage's demo cap is marked as briefly
     #: trained in the demo's report.
     trains: str | None = None
+
+    def load_run(self) -> Callable[[StageJob], dict[str, Any] | None]:
+        """The stage's ``run`` itself (its module imported when it was registered as a reference)."""
+        return resolve(self.run, f"{self.source.describe()}: stage {self.name!r}'s run(job)")
 
     @property
     def slots(self) -> tuple[str, ...]:
@@ -182,7 +189,7 @@ def run_stage(stage: str, assembly: Assembly, run: RunDir, *, resume: bool = Fal
     job = StageJob(stage, config, host, run, assembly, getattr(config, stage, None) if entry.section else None, resume)
     start = time.perf_counter()
     try:
-        result = entry.run(job)
+        result = entry.load_run()(job)
     except StageUnavailable as exc:
         return StageOutcome(stage, "unavailable", str(exc), seconds=time.perf_counter() - start)
     except VqtouchError as exc:

@@ -184,11 +184,11 @@ def check_stage(host: PluginHost, name: str) -> Any:
         stage = host.stage(name)
     except VqtouchError as exc:
         raise AssertionError(f"{label} is not registered: {exc}") from exc
-    _require(callable(stage.run), label, "run is not callable")
+    _require(callable(stage.load_run()), label, "run is not callable")
     try:
         parameters = [
             p
-            for p in inspect.signature(stage.run).parameters.values()
+            for p in inspect.signature(stage.load_run()).parameters.values()
             if p.default is inspect.Parameter.empty and p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
         ]
     except (TypeError, ValueError):
