@@ -10,13 +10,10 @@ projection is saved.
 
 from __future__ import annotations
 
-from typing import Any, Literal
-
 import torch
-from pydantic import Field
 from torch import nn
 
-from vqtouch.core import BuildContext, Conditioner, PluginConfig, WeightsSpec, hookimpl, resolve_weights
+from vqtouch.core import BuildContext, Conditioner, WeightsSpec, resolve_weights
 from vqtouch.core.frozen import FrozenModule
 from vqtouch.plugins.evaluation.open_clip_towers import (
     OPEN_CLIP_ENV_VAR,
@@ -29,6 +26,8 @@ from vqtouch.plugins.evaluation.open_clip_towers import (
     import_open_clip,
 )
 
+from .clip_plugin import ClipConditionerConfig
+
 CLIP_WEIGHTS = WeightsSpec(
     description="conditioner 'clip' (frozen open_clip image encoder)",
     filenames=OPEN_CLIP_FILENAMES,
@@ -36,26 +35,6 @@ CLIP_WEIGHTS = WeightsSpec(
     config_hint="the clip conditioner's checkpoint option (e.g. --set generator.conditioners.0.checkpoint=PATH)",
     source_url=OPEN_CLIP_SOURCE,
 )
-
-
-class ClipConditionerConfig(PluginConfig):
-    """Options of the ``clip`` conditioner."""
-
-    name: Literal["clip"] = "clip"
-    architecture: str = Field(
-        "ViT-B-32", min_length=1, description="open_clip model name whose weights the checkpoint file holds."
-    )
-    checkpoint: str | None = Field(
-        None,
-        description="Path to the open_clip weights (.safetensors/.pt/.bin); else VQTOUCH_CLIP_CKPT or "
-        "VQTOUCH_WEIGHTS_DIR. Never downloaded.",
-    )
-    num_tokens: int = Field(4, ge=1, le=77, description="Condition tokens projected from the image embedding.")
-    model_overrides: dict[str, Any] = Field(
-        default_factory=dict,
-        description="Keyword overrides passed to open_clip.create_model (e.g. a small "
-        "vision_cfg for a custom-trained model); must match the checkpoint.",
-    )
 
 
 class ClipConditioner(Conditioner):
@@ -97,13 +76,3 @@ def build_clip_conditioner(config: ClipConditionerConfig, context: BuildContext)
             size = size if isinstance(size, (tuple, list)) else (size, size)
             embed_dim = model.encode_image(torch.zeros(1, 3, *size)).shape[-1]
     return ClipConditioner(model, embed_dim, context.cond_dim, config.num_tokens)
-
-
-@hookimpl
-def vqtouch_register_conditioners(register):
-    register(
-        "clip",
-        build_clip_conditioner,
-        ClipConditionerConfig,
-        description="Frozen open_clip image encoder from a local file + trainable projection (vision-to-touch).",
-    )

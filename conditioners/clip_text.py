@@ -26,14 +26,13 @@ seen the whole text (they are kept as the tower computes them).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, Literal
+from typing import Any
 
 import torch
 import torch.nn.functional as F
-from pydantic import Field
 from torch import nn
 
-from vqtouch.core import BuildContext, Conditioner, ConfigError, PluginConfig, WeightsSpec, hookimpl, resolve_weights
+from vqtouch.core import BuildContext, Conditioner, ConfigError, WeightsSpec, resolve_weights
 from vqtouch.core.frozen import FrozenModule
 
 from vqtouch.plugins.evaluation.open_clip_towers import (
@@ -44,6 +43,7 @@ from vqtouch.plugins.evaluation.open_clip_towers import (
 )
 
 from .clip import CLIP_WEIGHTS
+from .clip_text_plugin import TextConditionerConfig
 
 #: The same open_clip checkpoint file the ``clip`` conditioner reads (it holds both towers), found the same way.
 TEXT_WEIGHTS = WeightsSpec(
@@ -53,38 +53,6 @@ TEXT_WEIGHTS = WeightsSpec(
     source_url=CLIP_WEIGHTS.source_url,
     config_hint="the text conditioner's checkpoint option (e.g. --set generator.conditioners.0.checkpoint=PATH)",
 )
-
-
-class TextConditionerConfig(PluginConfig):
-    """Options of the ``text`` conditioner (frozen open_clip text tower from a local file)."""
-
-    name: Literal["text"] = "text"
-    architecture: str = Field(
-        "ViT-B-32",
-        min_length=1,
-        description="open_clip model name whose weights the checkpoint file holds; its "
-        "tokenizer must be open_clip's built-in BPE tokenizer (no Hugging Face "
-        "tokenizer, which would be downloaded).",
-    )
-    checkpoint: str | None = Field(
-        None,
-        description="Path to the open_clip weights (.safetensors/.pt/.bin; the whole model, as for the clip "
-        "conditioner); else VQTOUCH_CLIP_CKPT or VQTOUCH_WEIGHTS_DIR. Never downloaded.",
-    )
-    context_length: int = Field(
-        32,
-        ge=2,
-        le=77,
-        description="Text token positions kept, start- and end-of-text included, which is also the number of "
-        "condition tokens: each is the frozen text transformer's final hidden state at that position, "
-        "projected to cond_dim by a trainable linear layer. Longer texts are truncated (the last kept "
-        "position becomes end-of-text); at most the model's own context length (77 for CLIP).",
-    )
-    model_overrides: dict[str, Any] = Field(
-        default_factory=dict,
-        description="Keyword overrides passed to open_clip.create_model (e.g. a small "
-        "text_cfg for a custom-trained model); must match the checkpoint.",
-    )
 
 
 def text_hidden_states(model: nn.Module, ids_BL: torch.Tensor) -> torch.Tensor:
@@ -190,15 +158,3 @@ def build_text_conditioner(config: TextConditionerConfig, context: BuildContext)
                 f"conditioner 'text': {config.architecture}'s text tower cannot read open_clip's tokens ({first})"
             ) from None
     return TextConditioner(model, tokenizer, width, model_context_length, context.cond_dim, config.context_length)
-
-
-@hookimpl
-def vqtouch_register_conditioners(register):
-    """Register the ``text`` conditioner (the conditioner hook; the entry point is in pyproject.toml)."""
-    register(
-        "text",
-        build_text_conditioner,
-        TextConditionerConfig,
-        description="Frozen open_clip text tower from a local file, per-token final hidden states + trainable "
-        "projection (text-to-touch).",
-    )

@@ -14,45 +14,16 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
-from pydantic import Field, model_validator
 from torch import nn
 
-from vqtouch.core import Conditioner, PluginConfig, load_missing_as_zeros
+from vqtouch.core import Conditioner, load_missing_as_zeros
 from vqtouch.core.image_size import image_hw
 
-from .grid_context import (
-    GRID_CONTEXT_FIELD,
-    GRID_CONTEXT_WIDTH_FIELD,
-    GridDilations,
-    check_context_width,
-    grid_context_for,
-)
+from .grid_context import grid_context_for
+from .image_cnn_options import ImageCnnOptions  # noqa: F401 - re-exported: its home before
 
 #: The sample entries that hold an image this network can read (see ``TactileDataset``).
 IMAGE_SAMPLE_KEYS = ("tactile_source", "tactile", "visual")
-
-
-class ImageCnnOptions(PluginConfig):
-    """Options shared by the CNN image conditioners; subclasses narrow ``name`` to their plugin name."""
-
-    width: int = Field(64, ge=8, le=1024, description="Channels of the convolutional trunk.")
-    depth: int = Field(3, ge=1, le=6, description="Stride-2 convolution stages before pooling.")
-    token_grid: int = Field(4, ge=1, le=32, description="Tokens form a token_grid x token_grid grid.")
-    spatial: bool = Field(
-        True,
-        description="Also hand the generator a feature map aligned with the target image "
-        "(from the trunk stage nearest the code grid), added at each code's "
-        "position; false: cross-attention tokens only (the ablation).",
-    )
-    grid_context: GridDilations = GRID_CONTEXT_FIELD
-    grid_context_width: int | None = GRID_CONTEXT_WIDTH_FIELD
-
-    @model_validator(mode="after")
-    def _context_needs_the_grid(self) -> ImageCnnOptions:
-        if self.grid_context and not self.spatial:
-            raise ValueError("grid_context works on the condition grid: set spatial=true or grid_context=[]")
-        check_context_width(self.grid_context, self.grid_context_width)
-        return self
 
 
 class ImageCnnConditioner(Conditioner):

@@ -2,23 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Literal
-
 import torch
-from pydantic import Field
 from torch import nn
 
-from vqtouch.core import BuildContext, Conditioner, PluginConfig, hookimpl
+from vqtouch.core import BuildContext, Conditioner
 
-
-class LabelConditionerConfig(PluginConfig):
-    """Options of the ``label`` conditioner."""
-
-    name: Literal["label"] = "label"
-    num_classes: int = Field(
-        0, ge=0, le=1_000_000, description="Number of labels; 0 takes the dataset's count from the build context."
-    )
-    num_tokens: int = Field(1, ge=1, le=64, description="Condition tokens emitted per label.")
+from .label_plugin import LabelConditionerConfig
 
 
 class LabelConditioner(Conditioner):
@@ -65,13 +54,3 @@ def build_label_conditioner(config: LabelConditionerConfig, context: BuildContex
             "conditioner 'label' needs the number of classes: set conditioner.num_classes=N or use a labelled dataset"
         )
     return LabelConditioner(num_classes, context.cond_dim, config.num_tokens)
-
-
-@hookimpl
-def vqtouch_register_conditioners(register):
-    register(
-        "label",
-        build_label_conditioner,
-        LabelConditionerConfig,
-        description="Learned embedding tokens per class label (label-to-touch).",
-    )

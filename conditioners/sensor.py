@@ -10,23 +10,14 @@ a generator that has just gained a tag computes exactly what it did before; the 
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
 import torch
-from pydantic import Field
 from torch import nn
 
-from vqtouch.core import BuildContext, Conditioner, ConfigError, PluginConfig, hookimpl
+from vqtouch.core import BuildContext, Conditioner, ConfigError
 
-
-class SensorTagConfig(PluginConfig):
-    """Options of the ``sensor`` conditioner (``generator.sensor_tag``)."""
-
-    name: Literal["sensor"] = "sensor"
-    num_sensors: int = Field(2, ge=1, le=1024, description="How many sensors the generator tells apart.")
-    sensor_names: list[str] = Field(
-        default_factory=list, description="What each sensor index is (for reading runs); may be empty."
-    )
+from .sensor_plugin import SensorTagConfig
 
 
 class SensorTag(Conditioner):
@@ -64,13 +55,3 @@ def build_sensor_tag(config: SensorTagConfig, context: BuildContext) -> SensorTa
             "give one name per sensor or none"
         )
     return SensorTag(config.num_sensors, context.cond_dim, config.sensor_names)
-
-
-@hookimpl
-def vqtouch_register_conditioners(register):
-    register(
-        "sensor",
-        build_sensor_tag,
-        SensorTagConfig,
-        description="A learned offset per sensor added to every condition (generator.sensor_tag; vqtouch fewshot).",
-    )

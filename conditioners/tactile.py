@@ -9,28 +9,13 @@ learns to produce (an autoencoding sanity check, which the generator stage warns
 
 from __future__ import annotations
 
-from typing import Literal
+from vqtouch.core import BuildContext
 
-from pydantic import Field
-
-from vqtouch.core import BuildContext, hookimpl
-
-from .image_cnn import ImageCnnConditioner, ImageCnnOptions, grid_stage_for
+from .image_cnn import ImageCnnConditioner, grid_stage_for
+from .tactile_plugin import TactileConditionerConfig
 
 #: The tactile conditioner's class (kept under its historical name for imports).
 TactileConditioner = ImageCnnConditioner
-
-
-class TactileConditionerConfig(ImageCnnOptions):
-    """Options of the ``tactile`` conditioner."""
-
-    name: Literal["tactile"] = "tactile"
-    reads: Literal["tactile_source", "tactile"] = Field(
-        "tactile_source",
-        description="Sample entry encoded: 'tactile_source' (the paired sensor's image of the same "
-        "contact; set the experiment's paired_sensor) or 'tactile' (the target image "
-        "itself: a sanity check, not a task).",
-    )
 
 
 def build_tactile_conditioner(config: TactileConditionerConfig, context: BuildContext) -> ImageCnnConditioner:
@@ -46,14 +31,4 @@ def build_tactile_conditioner(config: TactileConditionerConfig, context: BuildCo
         grid_stage=grid_stage,
         grid_context=config.grid_context if grid_stage is not None else (),
         grid_context_width=config.grid_context_width if grid_stage is not None else None,
-    )
-
-
-@hookimpl
-def vqtouch_register_conditioners(register):
-    register(
-        "tactile",
-        build_tactile_conditioner,
-        TactileConditionerConfig,
-        description="Trainable CNN tokens from another sensor's tactile image of the contact (touch-to-touch).",
     )

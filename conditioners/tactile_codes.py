@@ -14,33 +14,16 @@ second tokenizer.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
 
 import torch
-from pydantic import Field
 from torch import nn
 
-from vqtouch.core import BuildContext, Conditioner, ConfigError, PluginConfig, VqtouchError, hookimpl, load_plugins
+from vqtouch.core import BuildContext, Conditioner, ConfigError, VqtouchError, load_plugins
 from vqtouch.core.image_size import ImageSize, image_hw
 from vqtouch.core.frozen import FrozenModule
 from vqtouch.plugins.tokenizer import load_tokenizer
 
-
-class TactileCodesConditionerConfig(PluginConfig):
-    """Options of the ``tactile_codes`` conditioner."""
-
-    name: Literal["tactile_codes"] = "tactile_codes"
-    tokenizer: str | None = Field(
-        None,
-        min_length=1,
-        description="The source sensor's tokenizer: a run directory whose tokenizer stage trained (its newest good "
-        "checkpoint) or a checkpoint folder holding autoencoder.safetensors and quantizer.safetensors.",
-    )
-    reads: Literal["tactile_source", "tactile"] = Field(
-        "tactile_source",
-        description="Sample entry encoded: 'tactile_source' (the paired sensor's image of the same "
-        "contact) or 'tactile' (the target image itself: a sanity check, not a task).",
-    )
+from .tactile_codes_plugin import TactileCodesConditionerConfig
 
 
 class TactileCodesConditioner(Conditioner):
@@ -114,14 +97,3 @@ def build_tactile_codes_conditioner(
     except VqtouchError as exc:
         raise ConfigError(f"conditioner 'tactile_codes': cannot load the tokenizer in {path}: {exc}") from None
     return TactileCodesConditioner(tokenizer, config.reads, context.cond_dim, context.image_size)
-
-
-@hookimpl
-def vqtouch_register_conditioners(register):
-    register(
-        "tactile_codes",
-        build_tactile_codes_conditioner,
-        TactileCodesConditionerConfig,
-        description="A source tactile image as its codes under its own sensor's frozen tokenizer, embedded "
-        "(VQ-Touch's touch-to-touch condition).",
-    )

@@ -18,45 +18,18 @@ from __future__ import annotations
 import re
 import zlib
 from collections.abc import Sequence
-from typing import Literal
 
 import torch
-from pydantic import Field, model_validator
 from torch import nn
 
-from vqtouch.core import BuildContext, Conditioner, PluginConfig, hookimpl
+from vqtouch.core import BuildContext, Conditioner
+
+from .text_scratch_plugin import TextScratchConditionerConfig
 
 #: Embedding row of padding positions (zero and never trained); word buckets are rows 1..vocab_buckets.
 PAD_INDEX = 0
 #: A word: a maximal run of letters or digits (Unicode-aware; underscores separate words).
 _WORD = re.compile(r"[^\W_]+")
-
-
-class TextScratchConditionerConfig(PluginConfig):
-    """Options of the ``text_scratch`` conditioner."""
-
-    name: Literal["text_scratch"] = "text_scratch"
-    vocab_buckets: int = Field(
-        4096,
-        ge=2,
-        le=1_048_576,
-        description="Hash buckets (embedding rows) words are hashed into; more buckets, fewer collisions.",
-    )
-    max_words: int = Field(
-        16,
-        ge=1,
-        le=512,
-        description="Words kept per text (later words are dropped); also the number of condition tokens.",
-    )
-    width: int = Field(128, ge=8, le=2048, description="Width of the word embeddings and of the transformer.")
-    depth: int = Field(2, ge=1, le=24, description="Transformer encoder layers.")
-    heads: int = Field(4, ge=1, le=64, description="Attention heads per layer; must divide width.")
-
-    @model_validator(mode="after")
-    def _heads_divide_width(self) -> TextScratchConditionerConfig:
-        if self.width % self.heads:
-            raise ValueError(f"heads={self.heads} must divide width={self.width}")
-        return self
 
 
 def split_words(text: str) -> list[str]:
@@ -161,15 +134,4 @@ def build_text_scratch_conditioner(
     """Factory for the ``text_scratch`` conditioner."""
     return TextScratchConditioner(
         context.cond_dim, config.vocab_buckets, config.max_words, config.width, config.depth, config.heads
-    )
-
-
-@hookimpl
-def vqtouch_register_conditioners(register):
-    register(
-        "text_scratch",
-        build_text_scratch_conditioner,
-        TextScratchConditionerConfig,
-        description="Hashed-word embeddings + small transformer trained from scratch, offline, no vocabulary "
-        "file (text-to-touch).",
     )

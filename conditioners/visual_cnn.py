@@ -8,17 +8,10 @@ conditioner (frozen ImageNet EfficientNet-Lite0).
 
 from __future__ import annotations
 
-from typing import Literal
+from vqtouch.core import BuildContext
 
-from vqtouch.core import BuildContext, hookimpl
-
-from .image_cnn import ImageCnnConditioner, ImageCnnOptions, grid_stage_for
-
-
-class VisualCnnConditionerConfig(ImageCnnOptions):
-    """Options of the ``visual_cnn`` conditioner."""
-
-    name: Literal["visual_cnn"] = "visual_cnn"
+from .image_cnn import ImageCnnConditioner, grid_stage_for
+from .visual_cnn_plugin import VisualCnnConditionerConfig
 
 
 def build_visual_cnn_conditioner(config: VisualCnnConditionerConfig, context: BuildContext) -> ImageCnnConditioner:
@@ -34,15 +27,4 @@ def build_visual_cnn_conditioner(config: VisualCnnConditionerConfig, context: Bu
         grid_stage=grid_stage,
         grid_context=config.grid_context if grid_stage is not None else (),
         grid_context_width=config.grid_context_width if grid_stage is not None else None,
-    )
-
-
-@hookimpl
-def vqtouch_register_conditioners(register):
-    register(
-        "visual_cnn",
-        build_visual_cnn_conditioner,
-        VisualCnnConditionerConfig,
-        description="CNN trained from scratch: tokens from a visual RGB image (vision-to-touch, "
-        "no pretrained weights).",
     )

@@ -13,16 +13,35 @@ families themselves are plugins loaded through entry points; they are not import
 so this import stays light (no calibration data, no numpy file reads).
 """
 
-from .base import RenderedSensor, check_height_map, surface_slopes
-from .variants import SensorVariant, apply_variant, drifted_background, environment_variant, gaussian_blur
+from __future__ import annotations
 
-__all__ = [
-    "RenderedSensor",
-    "SensorVariant",
-    "apply_variant",
-    "check_height_map",
-    "drifted_background",
-    "environment_variant",
-    "gaussian_blur",
-    "surface_slopes",
-]
+import importlib
+from typing import Any
+
+#: Public name -> (module of this package, name there); imported on first use, so that importing this
+#: package (as every built-in family's plugin module does) imports no torch.
+_PUBLIC = {
+    "RenderedSensor": ("base", "RenderedSensor"),
+    "SensorVariant": ("variant_options", "SensorVariant"),
+    "apply_variant": ("variants", "apply_variant"),
+    "check_height_map": ("base", "check_height_map"),
+    "drifted_background": ("variants", "drifted_background"),
+    "environment_variant": ("variants", "environment_variant"),
+    "gaussian_blur": ("variants", "gaussian_blur"),
+    "surface_slopes": ("base", "surface_slopes"),
+}
+
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _PUBLIC:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module, attribute = _PUBLIC[name]
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), attribute)
+    globals()[name] = value  # later lookups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_PUBLIC])

@@ -28,11 +28,11 @@ from typing import Literal
 import numpy as np
 import torch
 import torch.nn.functional as F
-from pydantic import Field
 
-from vqtouch.core import BuildContext, PluginConfig, PluginError, hookimpl
+from vqtouch.core import BuildContext, PluginError
 
 from .base import RenderedSensor, surface_slopes
+from .gelsight_plugin import GelSightConfig, GelSightMiniConfig  # noqa: F401 - re-exported
 from .variants import SensorVariant
 
 TAXIM_FOLDERS = {"gelsight": "CALIB_GELSIGHT", "gelsight_mini": "CALIB_GELSIGHT_MINI"}
@@ -96,51 +96,6 @@ def load_taxim_calibration(sensor: str) -> TaximCalibration:
         table = np.stack([poly["grad_b"], poly["grad_g"], poly["grad_r"]], axis=2).astype(np.float32) / 255.0
         bins = int(poly["bins"])
     return TaximCalibration(sensor, background_3HW, table, float(params["pixmm"]), bins, folder)
-
-
-class GelSightConfig(PluginConfig):
-    """Options of the ``gelsight`` sensor family (real taxim calibration)."""
-
-    name: Literal["gelsight"] = "gelsight"
-    view: Literal["center_square", "full"] = Field(
-        "center_square",
-        description="Imaged area: the centred square of the 640x480 frame, or the full frame "
-        "(height maps must then be 3:4).",
-    )
-    gel_blur_mm: float = Field(
-        0.2,
-        ge=0.0,
-        le=2.0,
-        description="Gaussian smoothing of the indentation (elastic spread), in mm; the "
-        "default fits taxim's real ball presses best (see sensors/fidelity.py).",
-    )
-    zero_slope_offset: Literal["keep", "remove"] = Field(
-        "keep",
-        description="The table's response at zero slope: 'keep' it inside the contact (it carries signal "
-        "for GelSight), or 'remove' it so flat gel equals the real frame (a fitting bias for "
-        "the Mini). Defaults are the better choice on taxim's real presses.",
-    )
-    variant: SensorVariant = Field(
-        default_factory=SensorVariant, description="Environmental perturbations making this a derived sensor."
-    )
-
-
-class GelSightMiniConfig(GelSightConfig):
-    """Options of the ``gelsight_mini`` sensor family (real taxim calibration)."""
-
-    name: Literal["gelsight_mini"] = "gelsight_mini"
-    gel_blur_mm: float = Field(
-        0.5,
-        ge=0.0,
-        le=2.0,
-        description="Gaussian smoothing of the indentation in mm (the Mini's thicker gel "
-        "spreads more); fitted on taxim's real ball presses.",
-    )
-    zero_slope_offset: Literal["keep", "remove"] = Field(
-        "remove",
-        description="The table's response at zero slope (about +0.04/+0.05/+0.11 RGB for the Mini, a "
-        "fitting bias): 'remove' keeps flat gel equal to the real frame.",
-    )
 
 
 class GelSightSensor(RenderedSensor):
@@ -250,17 +205,6 @@ def _build(sensor: str):
     return build
 
 
-@hookimpl
-def vqtouch_register_sensor_families(register):
-    register(
-        "gelsight",
-        _build("gelsight"),
-        GelSightConfig,
-        description="GelSight, rendered from taxim's real measured calibration.",
-    )
-    register(
-        "gelsight_mini",
-        _build("gelsight_mini"),
-        GelSightMiniConfig,
-        description="GelSight Mini, rendered from taxim's real measured calibration.",
-    )
+#: The two families' factories (the plugin module names them by reference).
+build_gelsight = _build("gelsight")
+build_gelsight_mini = _build("gelsight_mini")

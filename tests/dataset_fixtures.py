@@ -444,7 +444,7 @@ def _empty_objectfolder_cross(root: Path) -> None:
 READER_CASES = [
     ReaderCase(
         "touch_and_go",
-        "vqtouch.plugins.data.readers.touch_and_go",
+        "vqtouch.plugins.data.readers.touch_and_go_plugin",
         build_touch_and_go,
         {"split": "train"},
         3,
@@ -453,7 +453,7 @@ READER_CASES = [
     ),
     ReaderCase(
         "visgel",
-        "vqtouch.plugins.data.readers.visgel",
+        "vqtouch.plugins.data.readers.visgel_plugin",
         build_visgel,
         {},
         3,
@@ -462,7 +462,7 @@ READER_CASES = [
     ),
     ReaderCase(
         "tvl_hct",
-        "vqtouch.plugins.data.readers.tvl",
+        "vqtouch.plugins.data.readers.tvl_plugin",
         build_tvl_hct,
         {"split": "test", "runs": ["data1", "data2"]},
         3,
@@ -471,7 +471,7 @@ READER_CASES = [
     ),
     ReaderCase(
         "tvl_ssvtp",
-        "vqtouch.plugins.data.readers.tvl",
+        "vqtouch.plugins.data.readers.tvl_plugin",
         build_tvl_ssvtp,
         {"split": "test"},
         2,
@@ -480,7 +480,7 @@ READER_CASES = [
     ),
     ReaderCase(
         "objectfolder_real",
-        "vqtouch.plugins.data.readers.objectfolder",
+        "vqtouch.plugins.data.readers.objectfolder_plugin",
         build_objectfolder_real,
         {},
         7,
@@ -489,17 +489,19 @@ READER_CASES = [
     ),
     ReaderCase(
         "objectfolder_cross",
-        "vqtouch.plugins.data.readers.objectfolder",
+        "vqtouch.plugins.data.readers.objectfolder_plugin",
         build_objectfolder_cross,
         {"split": "train"},
         4,
         lambda root: root / "split.json",
         _empty_objectfolder_cross,
     ),
-    ReaderCase("fabricvst", "vqtouch.plugins.data.readers.fabricvst", build_fabricvst, {}, 4, None, _empty_fabricvst),
+    ReaderCase(
+        "fabricvst", "vqtouch.plugins.data.readers.fabricvst_plugin", build_fabricvst, {}, 4, None, _empty_fabricvst
+    ),
     ReaderCase(
         "image_folder",
-        "vqtouch.plugins.data.readers.image_folder",
+        "vqtouch.plugins.data.readers.image_folder_plugin",
         lambda root: build_image_folder(root) / "classes",
         {},
         3,

@@ -31,7 +31,7 @@ def host():
     """Built-in plugins with this conditioner's module also loaded explicitly: a no-op once the installed
     metadata lists its entry point, so these tests do not depend on a reinstall (test_plugin_contracts.py
     checks the registration itself)."""
-    return load_plugins(autoload=False, extra=["vqtouch.conditioners.clip_text"])
+    return load_plugins(autoload=False, extra=["vqtouch.conditioners.clip_text_plugin"])
 
 
 def _save_tiny_random_model(open_clip, path, **overrides):
@@ -258,7 +258,7 @@ def test_without_open_clip_names_the_extra(host, monkeypatch, tmp_path):
 PROBE = """
 import sys
 from vqtouch.core import BuildContext, load_plugins
-host = load_plugins(extra=["vqtouch.conditioners.clip_text"])  # a no-op once the entry point is installed
+host = load_plugins(extra=["vqtouch.conditioners.clip_text_plugin"])  # a no-op once the entry point is installed
 host.build("conditioner", "label", BuildContext(num_classes=3, cond_dim=8))
 host.build("conditioner", "text_scratch", BuildContext(cond_dim=8))
 print("BEFORE:" + str("open_clip" in sys.modules))

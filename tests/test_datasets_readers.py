@@ -31,6 +31,15 @@ HOST = load_plugins(autoload=False, extra=sorted({case.module for case in CASES}
 SIZE = 16
 
 
+def test_the_readers_crop_modes_are_the_image_loaders():
+    from typing import get_args
+
+    from vqtouch.core.images import CropMode
+    from vqtouch.plugins.data.readers import _options
+
+    assert get_args(_options.CropMode) == get_args(CropMode)
+
+
 @pytest.fixture(autouse=True)
 def _own_cache_folder(tmp_path_factory, monkeypatch) -> Path:
     """Each test gets its own user cache folder, so no test reads or writes ~/.cache."""

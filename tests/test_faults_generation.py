@@ -204,7 +204,7 @@ def test_generate_never_writes_into_its_run(trained, capsys):
 
 def test_an_interrupted_generate_leaves_nothing_half_written(trained, tmp_path, monkeypatch):
     """Stopped after the first sample (as by Ctrl-C or SIGTERM): no --out folder, no staged leftovers."""
-    import vqtouch.plugins.generator.commands as commands
+    import vqtouch.plugins.generator.command_handlers as handlers
 
     _, gen = trained
     written = []
@@ -215,8 +215,8 @@ def test_an_interrupted_generate_leaves_nothing_half_written(trained, tmp_path, 
         written.append(path)
         return original(image, path)
 
-    original = commands.save_png
-    monkeypatch.setattr(commands, "save_png", stop_after_one)
+    original = handlers.save_png
+    monkeypatch.setattr(handlers, "save_png", stop_after_one)
     assert generate(gen, tmp_path / "out", "--n", "3") == 130
     assert written and not (tmp_path / "out").exists()
     assert list(tmp_path.iterdir()) == []
@@ -331,11 +331,11 @@ def test_report_of_a_read_only_run_writes_where_asked(tmp_path, read_only, capsy
 def test_a_concurrent_generate_keeps_both_outputs(trained, tmp_path, monkeypatch, capsys):
     """Another process fills --out while this one samples: once they interleaved their samples; now the
     first to finish owns the folder and the other keeps its samples where it staged them, and says where."""
-    import vqtouch.plugins.generator.commands as commands
+    import vqtouch.plugins.generator.command_handlers as handlers
 
     _, gen = trained
     out = tmp_path / "out"
-    original = commands.save_png
+    original = handlers.save_png
 
     def other_process_finishes_first(image, path):
         if not out.exists():
@@ -343,7 +343,7 @@ def test_a_concurrent_generate_keeps_both_outputs(trained, tmp_path, monkeypatch
             (out / "sample_0000.png").write_bytes(b"the other call's sample")
         return original(image, path)
 
-    monkeypatch.setattr(commands, "save_png", other_process_finishes_first)
+    monkeypatch.setattr(handlers, "save_png", other_process_finishes_first)
     assert generate(gen, out) == 2
     line = one_error_line(capsys)
     assert line.startswith(f"--out {out} was filled by another process meanwhile; this command's output is in ")
@@ -362,17 +362,17 @@ def test_sigterm_during_generate_exits_143_and_leaves_nothing(trained, tmp_path,
     import os
     import signal
 
-    import vqtouch.plugins.generator.commands as commands
+    import vqtouch.plugins.generator.command_handlers as handlers
 
     _, gen = trained
-    original = commands.save_png
+    original = handlers.save_png
 
     def terminated_after_one(image, path):
         result = original(image, path)
         os.kill(os.getpid(), signal.SIGTERM)
         return result
 
-    monkeypatch.setattr(commands, "save_png", terminated_after_one)
+    monkeypatch.setattr(handlers, "save_png", terminated_after_one)
     assert generate(gen, tmp_path / "out", "--n", "3") == 143
     assert "vqtouch: terminated (SIGTERM)" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []

@@ -65,7 +65,7 @@ def effnet_loss() -> EffNetFeatureLoss:
 
 @pytest.fixture(scope="module")
 def fd_metric() -> FdEffNetLite0:
-    host = load_plugins(autoload=False, extra=["vqtouch.plugins.evaluation.fd_metric"])
+    host = load_plugins(autoload=False, extra=["vqtouch.plugins.evaluation.fd_metric_plugin"])
     return host.build("metric", {"name": "fd_effnetlite0", "image_size": FAST_SIZE, "batch_size": 8})
 
 
@@ -169,7 +169,7 @@ def test_feature_moments_give_the_unbiased_covariance_in_float64():
 def test_fd_metric_is_registered_with_a_strict_config(fd_metric):
     assert isinstance(fd_metric, Metric) and fd_metric.higher_is_better is False
     assert fd_metric.image_size == FAST_SIZE and fd_metric.batch_size == 8
-    host = load_plugins(autoload=False, extra=["vqtouch.plugins.evaluation.fd_metric"])
+    host = load_plugins(autoload=False, extra=["vqtouch.plugins.evaluation.fd_metric_plugin"])
     with pytest.raises(Exception, match="unknown option"):
         host.validate("metric", {"name": "fd_effnetlite0", "imagesize": 64})
 

@@ -142,10 +142,10 @@ def test_extra_module_registers_and_source_is_recorded(make_plugin):
 
 
 def test_extra_module_by_dotted_name_from_environment(monkeypatch):
-    monkeypatch.setenv("VQTOUCH_PLUGINS", "vqtouch.plugins.evaluation.metrics")
+    monkeypatch.setenv("VQTOUCH_PLUGINS", "vqtouch.plugins.evaluation.metrics_plugin")
     host = load_plugins(autoload=False, block=["metrics"])
     assert {"psnr", "ssim"} <= set(host.registry("metric").names())
-    assert host.registry("metric").get("psnr").source.plugin == "vqtouch.plugins.evaluation.metrics"
+    assert host.registry("metric").get("psnr").source.plugin == "vqtouch.plugins.evaluation.metrics_plugin"
 
 
 def test_misspelled_hook_fails_loudly(make_plugin):

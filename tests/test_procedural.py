@@ -32,6 +32,12 @@ def test_at_least_twelve_labelled_classes_with_materials():
     assert len({c.material for c in OBJECT_CLASSES}) >= 10
 
 
+def test_the_light_plugin_module_names_the_scene_library_classes_in_order():
+    from vqtouch.plugins.data import procedural_plugin
+
+    assert procedural_plugin.CLASS_NAMES == CLASS_NAMES
+
+
 @pytest.mark.parametrize("index", range(len(OBJECT_CLASSES)))
 def test_every_class_makes_a_real_contact_no_deeper_than_asked(index):
     generator = torch.Generator().manual_seed(index)

@@ -134,7 +134,7 @@ def test_resume_of_a_run_killed_before_its_first_checkpoint_starts_at_step_0(run
 def test_an_interrupted_training_says_only_what_it_saved(tmp_path, capsys, monkeypatch, saved):
     """Ctrl-C before the trainer saved anything used to print "the checkpoint is saved"."""
     from vqtouch.core.training import TrainingInterrupted
-    from vqtouch.plugins.tokenizer import commands
+    from vqtouch.plugins.tokenizer import command_handlers
 
     out = tmp_path / "run"
     folder = out / "checkpoints" / "step-00000003"
@@ -144,7 +144,7 @@ def test_an_interrupted_training_says_only_what_it_saved(tmp_path, capsys, monke
             raise TrainingInterrupted("SIGINT", 3, folder)
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(commands, "run_stage", interrupted)
+    monkeypatch.setattr(command_handlers, "run_stage", interrupted)
     assert main(train_args(out)) == 130  # SIGINT's 128 + 2, and Ctrl-C's
     err = capsys.readouterr().err.strip()
     assert "checkpoint is saved" not in err
@@ -296,11 +296,11 @@ def test_step_best_of_a_run_that_held_out_nothing_is_one_line(tmp_path, capsys):
 def test_a_command_stopped_by_sigterm_exits_as_a_shell_reports_it(tmp_path, capsys, monkeypatch):
     """143 (128 + SIGTERM) tells a scheduler the job was terminated; Ctrl-C keeps 130."""
     from vqtouch.core.training import TrainingInterrupted
-    from vqtouch.plugins.tokenizer import commands
+    from vqtouch.plugins.tokenizer import command_handlers
 
     def terminated(*args, **kwargs):
         raise TrainingInterrupted("SIGTERM", 1, tmp_path / "run" / "checkpoints" / "step-00000001")
 
-    monkeypatch.setattr(commands, "run_stage", terminated)
+    monkeypatch.setattr(command_handlers, "run_stage", terminated)
     assert main(train_args(tmp_path / "run")) == 143
     assert "training stopped by SIGTERM after step 1" in capsys.readouterr().err

@@ -394,7 +394,7 @@ def test_cosine_target_matches_maskgit():
 @pytest.fixture(scope="module")
 def sampler_host():
     # Not yet an entry point in pyproject.toml: load the module explicitly.
-    return load_plugins(autoload=False, extra=["vqtouch.plugins.generator.samplers"])
+    return load_plugins(autoload=False, extra=["vqtouch.plugins.generator.samplers_plugin"])
 
 
 def test_every_sampler_is_registered_and_builds(sampler_host):

@@ -16,7 +16,7 @@ from typing import Any
 
 _PUBLIC = {
     "AdaptRecord": ("adapt", "AdaptRecord"),
-    "AdaptSettings": ("adapt", "AdaptSettings"),
+    "AdaptSettings": ("stages_plugin", "AdaptSettings"),
     "AdaptationRefused": ("adapt", "AdaptationRefused"),
     "adapt_tokenizer": ("adapt", "adapt_tokenizer"),
     "families_to_adapt_from": ("adapt", "families_to_adapt_from"),

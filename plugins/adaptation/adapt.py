@@ -19,7 +19,6 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +40,7 @@ from vqtouch.plugins.tokenizer import TOKENIZER_FILES, tokenizer_digest
 from vqtouch.plugins.data.sensor_folders import folder_of, sensor_folder_files
 
 from .families import SensorFamilies, save_families, sensor_images
+from .stages_plugin import AdaptSettings  # light, for the stage section and the commands' defaults
 
 #: What an adaptation writes into its output folder besides the tokenizer files (the families
 #: only when it fitted them itself).
@@ -57,32 +57,6 @@ MAX_CONTACT_CHECK_IMAGES = 64
 
 class AdaptationRefused(VqtouchError):
     """The unseen sensor cannot be adapted as asked (it matches no family, or its images hold no contact)."""
-
-
-@dataclass
-class AdaptSettings:
-    """How to adapt (the ``vqtouch adapt`` options and the ``adapt`` stage's section)."""
-
-    shots: int = 50
-    #: Family images per shot.  1:1 for 400 steps sees the sensor's images as often as the shots alone
-    #: do in 200, keeps the family (its held-out PSNR 33.9 dB against 25.3 for the shots alone) and is
-    #: level with the shots alone on the sensor; the paper's 1:5 at 200 steps was 0.032 SSIM behind
-    #: (``vqtouch evaluate mix-ratio``, docs/results.md "How many family images per shot").
-    ratio: float = 1.0
-    steps: int = 400
-    learning_rate: float | None = None
-    batch_size: int | None = None
-    eval_images: int = 64
-    threshold: float | None = None
-    family: int | None = None
-    seed: int = 0
-    #: What fine-tunes: ``"all"`` (encoder, codebook and decoder) or ``"decoder"`` (the encoder and the
-    #: codebook stay, so every image keeps its codes and a generator over them stays valid; the
-    #: decoder learns to draw the new sensor from them).
-    part: str = "all"
-    #: Metric plugins scoring the held-out images before and after (``fd_effnetlite0`` adds a
-    #: distribution score; it needs at least 2 held-out images).
-    metrics: tuple[str, ...] = ("ssim", "psnr")
 
 
 class ImageSet(torch.utils.data.Dataset):

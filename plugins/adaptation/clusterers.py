@@ -16,26 +16,14 @@ scikit-learn runs in float64 on the CPU; features arrive as any float tensor.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
 import torch
-from pydantic import Field
 
-from vqtouch.core import BuildContext, Clusterer, ConfigError, PluginConfig, hookimpl
+from vqtouch.core import BuildContext, Clusterer, ConfigError
 from vqtouch.core.seeding import on_one_thread
 
-
-class FamilyClustererOptions(PluginConfig):
-    """Options shared by the family clusterers; subclasses narrow ``name``."""
-
-    num_families: int = Field(
-        0,
-        ge=0,
-        le=1000,
-        description="Number of sensor families; 0 chooses it in [2, max_families] by the best silhouette score.",
-    )
-    max_families: int = Field(8, ge=2, le=1000, description="Largest family count tried when num_families is 0.")
-    seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed of the clustering's random starts (k-means).")
+from .clusterers_plugin import AgglomerativeConfig, FamilyClustererOptions, KMeansConfig
 
 
 class FamilyClusterer(Clusterer):
@@ -150,13 +138,6 @@ def _first_appearance_order(labels_N: torch.Tensor) -> torch.Tensor:
     return torch.tensor([mapping.setdefault(int(label), len(mapping)) for label in labels_N], dtype=torch.long)
 
 
-class KMeansConfig(FamilyClustererOptions):
-    """Options of the ``kmeans`` clusterer."""
-
-    name: Literal["kmeans"] = "kmeans"
-    restarts: int = Field(10, ge=1, le=1000, description="k-means runs from different starts; the best is kept.")
-
-
 class KMeansClusterer(FamilyClusterer):
     """Sensor families by k-means (scikit-learn ``KMeans``, k-means++ starts)."""
 
@@ -166,12 +147,6 @@ class KMeansClusterer(FamilyClusterer):
         return KMeans(n_clusters=count, n_init=self.options.restarts, random_state=self.options.seed).fit_predict(
             features
         )
-
-
-class AgglomerativeConfig(FamilyClustererOptions):
-    """Options of the ``agglomerative`` clusterer."""
-
-    name: Literal["agglomerative"] = "agglomerative"
 
 
 class AgglomerativeClusterer(FamilyClusterer):
@@ -191,21 +166,3 @@ def build_kmeans(config: KMeansConfig, context: BuildContext) -> KMeansClusterer
 def build_agglomerative(config: AgglomerativeConfig, context: BuildContext) -> AgglomerativeClusterer:
     """Factory for ``agglomerative``."""
     return AgglomerativeClusterer(config)
-
-
-@hookimpl
-def vqtouch_register_clusterers(register):
-    register(
-        "kmeans",
-        build_kmeans,
-        KMeansConfig,
-        description="Sensor families by k-means over sensor prototypes (count given or by silhouette); "
-        "an unseen sensor joins the nearest family mean.",
-    )
-    register(
-        "agglomerative",
-        build_agglomerative,
-        AgglomerativeConfig,
-        description="Sensor families by Ward agglomerative clustering (deterministic); an unseen sensor joins "
-        "the nearest family mean.",
-    )

@@ -21,11 +21,9 @@ cross-sensor`` the experiment of :mod:`.evaluation`, ``evaluate fewshot`` that o
 
 from __future__ import annotations
 
-import argparse
 import json
-from pathlib import Path
 
-from vqtouch.core import ConfigError, hookimpl
+from vqtouch.core import hookimpl
 from vqtouch.core.cli import (
     add_overwrite_argument,
     family_ratio,
@@ -41,205 +39,13 @@ from vqtouch.core.cli import (
 )
 from vqtouch.plugins.evaluation.records import add_experiment_arguments
 from vqtouch.core.image_size import image_size_argument
-from vqtouch.plugins.tokenizer import load_tokenizer
 from vqtouch.plugins.scenes import GELSIGHT_DERIVATIVE_II
 
-from .adapt import AdaptSettings
+from .stages_plugin import AdaptSettings
 
 
 #: The share of images kept per refinement step, in (0, 1].
 _kept_fraction = NumberType(float, 0, 1, low_open=True, what="fraction")
-
-
-def _cluster_command(args: argparse.Namespace) -> int:
-
-    from .families import fit_families, save_families, sensor_images
-
-    host = args.host
-    if len(args.sensors) < 2:
-        raise ConfigError("--sensors: give at least two sensors to group into families")
-    tokenizer, folder = load_tokenizer(args.run, host, step=args.step)
-    image_size = args.image_size or tokenizer.autoencoder.vqtouch_spec.context.image_size
-    clusterer = host.build("clusterer", {"name": args.clusterer, "num_families": args.families})
-    families = fit_families(
-        tokenizer,
-        args.sensors,
-        host,
-        clusterer=clusterer,
-        images=args.images,
-        image_size=image_size,
-        features=args.features,
-        refine_steps=args.refine_steps,
-        keep=args.keep,
-        seed=args.seed,
-        tokenizer_source=str(folder),
-        report=lambda line: print(line, flush=True),
-    )
-    assignments, plotted = {}, []
-    for spec in args.unseen:
-        sensor = sensor_images(spec, host, count=args.images, image_size=image_size, seed=args.seed + 1)
-        assigned, shown = families.unseen(tokenizer, sensor.name, sensor.images, args.threshold)
-        assignments[sensor.name] = {"source": sensor.source, **assigned}
-        plotted.append(shown)
-    out = Path(args.out)
-    save_families(families, out, host, {"assignments": assignments}, plotted)
-    for index, members in enumerate(families.summary["families"]):
-        print(f"family {index}: {', '.join(members)}")
-    uncertain = families.summary.get("family_count", {}).get("uncertain")
-    if uncertain:
-        print(f"note: {uncertain}")
-    for name, assigned in assignments.items():
-        print(f"unseen {name}: {describe_assignment(assigned)}")
-    print(f"-> {out} (cluster.json, clusterer.safetensors, families.png)")
-    return 0
-
-
-def describe_assignment(assigned: dict) -> str:
-    """One line: the family an unseen sensor joins and the margin, or why it is refused."""
-    if assigned["refused"]:
-        return (
-            f"refused: {min(assigned['distances']):.4g} from the nearest family, beyond the threshold "
-            f"{assigned['threshold']:.4g}"
-        )
-    return f"family {assigned['family']} (distance {min(assigned['distances']):.4g}, margin {assigned['margin']:.4g})"
-
-
-def _adapt_command(args: argparse.Namespace) -> int:
-
-    from .adapt import adapt_tokenizer, families_to_adapt_from, refuse_existing
-    from .families import registered_source
-
-    host = args.host
-    out = Path(args.out)
-    refuse_existing(out, args.overwrite)  # before the clustering, which takes a while
-    tokenizer, folder = load_tokenizer(args.run, host, step=args.step)
-    if not args.families:
-        print("no --families: clustering the registered sensor families and 3 variants of each", flush=True)
-    families = families_to_adapt_from(
-        tokenizer,
-        folder,
-        host,
-        families=Path(args.families) if args.families else None,
-        where=f"the families in {args.families}",
-        exclude=registered_source(args.images),
-        seed=args.seed,
-    )
-    settings = AdaptSettings(
-        shots=args.shots,
-        ratio=args.ratio,
-        steps=args.steps,
-        learning_rate=args.learning_rate,
-        batch_size=args.batch_size,
-        eval_images=args.eval_images,
-        threshold=args.threshold,
-        family=args.family,
-        seed=args.seed,
-        part=args.part,
-    )
-    summary = adapt_tokenizer(
-        args.run,
-        args.images,
-        families,
-        host,
-        out,
-        settings,
-        step=args.step,
-        overwrite=args.overwrite,
-        report=lambda line: print(line, flush=True),
-    )
-    before, after = summary["before"], summary["after"]
-    print(
-        f"held-out {summary['target']} ({summary['held_out']} images): "
-        f"SSIM {before['ssim']:.4f} -> {after['ssim']:.4f}, "
-        f"PSNR {before['psnr']:.2f} -> {after['psnr']:.2f} dB ({summary['steps']} steps, {summary['seconds']:.1f} s)"
-    )
-    if "real_frames" in summary:
-        real = summary["real_frames"]
-        print(
-            f"{real['count']} real frames: SSIM {real['before']['ssim']:.4f} -> {real['after']['ssim']:.4f}, "
-            f"PSNR {real['before']['psnr']:.2f} -> {real['after']['psnr']:.2f} dB"
-        )
-    print(f"-> {out} (autoencoder.safetensors, quantizer.safetensors, adapt.json, before_after.png)")
-    return 0
-
-
-def _evaluate_cross_sensor_command(args: argparse.Namespace) -> int:
-    from .evaluation import evaluate_cross_sensor
-
-    out = Path(args.out)
-    evaluate_cross_sensor(
-        args.run,
-        args.host,
-        out,
-        target=args.target,
-        seeds=args.seeds,
-        steps=args.steps,
-        shots=args.shots,
-        ratios=args.ratios,
-        main_shots=args.main_shots,
-        main_ratio=args.main_ratio,
-        everything=args.everything,
-        eval_images=args.eval_images,
-        variants=args.variants,
-        held_out_variants=args.held_out_variants,
-        images=args.images,
-        clusterers=args.clusterers,
-        real_family=None if args.real == "none" else args.real,
-        real_shots=args.real_shots,
-        report=lambda line: print(line, flush=True),
-    )
-    print((out / "cross_sensor.md").read_text())
-    print(f"-> {out} (cross_sensor.json, cross_sensor.md, cross_sensor.png)")
-    return 0
-
-
-def _evaluate_fewshot_command(args: argparse.Namespace) -> int:
-    from .fewshot import evaluate_fewshot
-
-    out = Path(args.out)
-    evaluate_fewshot(
-        args.run,
-        args.host,
-        out,
-        target=args.target,
-        seeds=args.seeds,
-        counts=args.n,
-        ratio=args.ratio,
-        steps=args.steps,
-        scratch_steps=args.scratch_steps,
-        eval_images=args.eval_images,
-        families=args.families,
-        overwrite=args.overwrite,
-        report=lambda line: print(line, flush=True),
-    )
-    print((out / "fewshot.md").read_text())
-    print(f"-> {out} (fewshot.json, fewshot.md, fewshot.png; the trained arms' tokenizers in seed<S>/<arm>-<N>/)")
-    return 0
-
-
-def _evaluate_mix_ratio_command(args: argparse.Namespace) -> int:
-    from .ratio import evaluate_mix_ratio
-
-    out = Path(args.out)
-    evaluate_mix_ratio(
-        args.run,
-        args.host,
-        out,
-        target=args.target,
-        seeds=args.seeds,
-        shots=args.shots,
-        ratios=args.ratios,
-        steps=args.steps,
-        all_images=args.all_images,
-        eval_images=args.eval_images,
-        families=args.families,
-        cost_controls=args.cost_controls,
-        overwrite=args.overwrite,
-        report=lambda line: print(line, flush=True),
-    )
-    print((out / "mix_ratio.md").read_text())
-    print(f"-> {out} (mix_ratio.json, mix_ratio.md, mix_ratio.png; each arm's tokenizer in seed<S>/<arm>/)")
-    return 0
 
 
 @hookimpl
@@ -291,7 +97,7 @@ def vqtouch_add_commands(subparsers):
         "largest within-family spread, at least half the nearest two families' distance)",
     )
     add_image_folder_arguments(cluster)
-    cluster.set_defaults(handler=_cluster_command)
+    cluster.set_defaults(handler="vqtouch.plugins.adaptation.command_handlers:cmd_cluster")
 
     adapt = subparsers.add_parser("adapt", help="adapt a family tokenizer to an unseen sensor from a few of its images")
     adapt.add_argument(
@@ -351,7 +157,7 @@ def vqtouch_add_commands(subparsers):
     adapt.add_argument("--seed", type=seed_int, default=0, help="seed of the shots' draw and the rendered scenes")
     adapt.add_argument("--overwrite", action="store_true", help="replace an adapted tokenizer already in --out")
     add_image_folder_arguments(adapt)
-    adapt.set_defaults(handler=_adapt_command)
+    adapt.set_defaults(handler="vqtouch.plugins.adaptation.command_handlers:cmd_adapt")
 
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
     cross = evaluate.add_parser(
@@ -411,7 +217,7 @@ def vqtouch_add_commands(subparsers):
         help="shots from the real frames (default 4 8 16; the rest are held out)",
     )
     add_image_folder_arguments(cross)
-    cross.set_defaults(handler=_evaluate_cross_sensor_command)
+    cross.set_defaults(handler="vqtouch.plugins.adaptation.command_handlers:cmd_evaluate_cross_sensor")
 
     fewshot = evaluate.add_parser(
         "fewshot",
@@ -464,7 +270,7 @@ def vqtouch_add_commands(subparsers):
         "registered sensor families and 3 variants of each into OUT/families)",
     )
     add_image_folder_arguments(fewshot)
-    fewshot.set_defaults(handler=_evaluate_fewshot_command)
+    fewshot.set_defaults(handler="vqtouch.plugins.adaptation.command_handlers:cmd_evaluate_fewshot")
 
     ratio = evaluate.add_parser(
         "mix-ratio",
@@ -521,4 +327,4 @@ def vqtouch_add_commands(subparsers):
         "training from the mix (default none)",
     )
     add_image_folder_arguments(ratio)
-    ratio.set_defaults(handler=_evaluate_mix_ratio_command)
+    ratio.set_defaults(handler="vqtouch.plugins.adaptation.command_handlers:cmd_evaluate_mix_ratio")

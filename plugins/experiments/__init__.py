@@ -4,4 +4,7 @@
 (the whole pipeline's speed/accuracy trade) train and load tokenizers and generators and score them
 with the evaluation library.  They sit at the top of the plugin layers (docs/architecture.md): they
 import the stage packages' public APIs and the evaluation library, and nothing imports them.
+
+Each experiment's entry point is a light ``*_plugin`` module (its options, its stage's section and their
+registration); the experiment itself is imported when its command or stage runs.
 """

@@ -23,12 +23,14 @@ for bit; candidate j > 0 with a generator seeded by a hash of the row's seed and
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
-from typing import Any, Literal
-
-import torch
+from typing import TYPE_CHECKING, Any, Literal
 
 from vqtouch.core import ConfigError
+
+if TYPE_CHECKING:
+    import torch
 
 #: The most candidates a condition may draw.
 MAX_BEST_OF = 64
@@ -53,8 +55,22 @@ CLASS_RANKS = ("judge", "posterior")
 #: A ranking: (codes (B, H, W), labels (B,)) -> (B,) scores, higher is better.  A ranking object with a
 #: ``choose(candidates (K, B, H, W)) -> (B,)`` method (:class:`.consensus.ContactConsensus`) instead
 #: sees all K candidates of a row at once.
-Rank = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+Rank = Callable[["torch.Tensor", "torch.Tensor"], "torch.Tensor"]
 _MASK64 = 2**64 - 1
+
+
+def _no_grad(function: Callable[..., Any]) -> Callable[..., Any]:
+    """``torch.no_grad()`` around ``function``, torch imported at the first call: the commands read this
+    module's choices and help text for their parsers, which must not import torch."""
+
+    @functools.wraps(function)
+    def without_gradients(*args: Any, **kwargs: Any) -> Any:
+        import torch
+
+        with torch.no_grad():
+            return function(*args, **kwargs)
+
+    return without_gradients
 
 
 def _mix64(value: int) -> int:
@@ -126,7 +142,7 @@ def check_best_of(best_of: Any, conditioner: Any, name: str, rank: Any = "judge"
     return best_of
 
 
-@torch.no_grad()
+@_no_grad
 def class_log_posteriors(generator: Any, conditioner: Any, codes_BHW: torch.Tensor) -> torch.Tensor:
     """(num_classes, B): log p(class | codes) of every class under the generator's own likelihoods
     (:meth:`masked_log_likelihood` under each class's condition, normalised over the classes)."""
@@ -135,6 +151,8 @@ def class_log_posteriors(generator: Any, conditioner: Any, codes_BHW: torch.Tens
             f"best of K needs a generator that scores its codes (masked_log_likelihood); "
             f"{type(generator).__name__} does not"
         )
+    import torch
+
     rows = len(codes_BHW)
     log_likelihoods_CB = torch.stack(
         [
@@ -147,7 +165,7 @@ def class_log_posteriors(generator: Any, conditioner: Any, codes_BHW: torch.Tens
     return log_likelihoods_CB.log_softmax(0)
 
 
-@torch.no_grad()
+@_no_grad
 def sample_best_of(
     generator: Any,
     conditioner: Any,
@@ -165,6 +183,8 @@ def sample_best_of(
     with the given generators (the caller's sampler, steps, guidance and condition);
     ``row_seeds[b]`` is row b's own seed (candidate 0).  Ties keep the earliest candidate.  With
     ``best_of=1`` this is ``draw`` with the rows' own generators, and ``labels_B`` may be None."""
+    import torch
+
     if best_of == 1:
         return draw([torch.Generator(device=device).manual_seed(seed) for seed in row_seeds])
     choose = getattr(rank, "choose", None)

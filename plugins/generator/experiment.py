@@ -188,7 +188,7 @@ def evaluate_generation_experiment(
     """Train a generator per seed over one tokenizer, score every conditioner against the baselines;
     write generation.json/.md/.png into ``out`` (see the module docstring).  ``distribution=False``
     leaves out ``fd_effnetlite0`` and the classifier (EfficientNet-Lite0 at 224 px: the slow part on a CPU)."""
-    from .commands import _with_tokenizer_run
+    from .command_handlers import _with_tokenizer_run
 
     if "generator" not in config.stages or config.generator.model is None:
         raise ConfigError(f"scene {config.scene!r} has no generator; use e.g. --scene tour or label-to-touch")

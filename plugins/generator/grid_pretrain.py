@@ -17,41 +17,10 @@ from collections.abc import Sequence
 from typing import Any
 
 import torch
-from pydantic import Field
 
-from vqtouch.core import Section
 from vqtouch.core.progress import progress
 
-
-class GridPretrainConfig(Section):
-    """``generator.train.grid_pretrain``: train the condition grid on the contact's place alone first."""
-
-    steps: int = Field(
-        0,
-        ge=0,
-        le=10_000_000,
-        strict=True,
-        description="Steps of the contact loss alone (generator.model.contact_weight's head on the condition "
-        "grid) before the generator trains; each is one batch (data.batch_size) of one grid conditioner.  "
-        "No diffusion runs, so a step costs a few per cent of a generator step.  0: off.",
-    )
-    new_scenes: int = Field(
-        0,
-        ge=0,
-        le=1_000_000,
-        strict=True,
-        description="Newly rendered scenes added to the training split for these steps only (a dataset that "
-        "renders scenes: the procedural one draws them from its seed + 1000, so none is a training or "
-        "held-out sample).  Rendering and encoding them is part of the run's time.  0: the training split alone.",
-    )
-    learning_rate: float = Field(1e-3, gt=0, le=10, strict=True, description="AdamW learning rate of these steps.")
-    weight_decay: float = Field(1e-4, ge=0, le=1, strict=True, description="AdamW decoupled weight decay.")
-    conditioners: list[int] | None = Field(
-        None,
-        min_length=1,
-        description="Which entries of generator.conditioners train (0-based; each must give a condition grid); "
-        "steps take them in turn.  null: every conditioner whose condition has a grid.",
-    )
+from .stage_plugin import GridPretrainConfig
 
 
 def grid_conditioners(conditioners: Sequence[Any], example: dict[str, Any], chosen: Sequence[int] | None) -> list[int]:

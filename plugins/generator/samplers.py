@@ -1,6 +1,6 @@
 """Samplers of the discrete-diffusion generator: how x0 predictions become a grid of codes.
 
-Three strategies, one plugin each (``vqtouch_register_samplers``):
+Three strategies, one plugin each (registered in :mod:`.samplers_plugin`, with their options):
 
 - ``posterior``: VQ-Diffusion's reverse chain x_T -> ... -> x_0 (docs/diffusion.md section 4), with ``steps`` timesteps
   evenly spaced from T-1 down to 0 and each jump t -> s computed exactly across the skip
@@ -22,13 +22,14 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable, Sequence
-from typing import Any, Literal
+from typing import Any
 
 import torch
-from pydantic import Field
 
-from vqtouch.core import BuildContext, PluginConfig, Sampler, VqtouchWarning, hookimpl
+from vqtouch.core import BuildContext, Sampler, VqtouchWarning
 from vqtouch.plugins.generator.diffusion import gumbel_sample
+
+from .samplers_plugin import ConfidenceSamplerConfig, PosteriorSamplerConfig, PuritySamplerConfig
 
 #: ``denoise(codes_t_BL, t_B) -> log p(x0 | x_t)`` (B, K+1, L) float32.
 Denoise = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -156,19 +157,6 @@ def strided_timesteps(num_steps: int, steps: int) -> list[int]:
     return [(2 * span * (intervals - i) + intervals) // (2 * intervals) for i in range(steps)]
 
 
-class PosteriorSamplerConfig(PluginConfig):
-    """Options of the ``posterior`` sampler."""
-
-    name: Literal["posterior"] = "posterior"
-    keep_unmasked: bool = Field(
-        True,
-        description="Keep tokens fixed once revealed. Exact for a pure-mask schedule (an unmasked x_t was "
-        "that code at every earlier step) and right for the released one (replace mass 1e-6): "
-        "the posterior otherwise trusts p(x0 | x_t) for other codes and can change revealed "
-        "tokens. Set false with real replace noise to follow the posterior exactly.",
-    )
-
-
 #: Replacement mass K * beta_bar_{T-1} above which keeping revealed tokens is no longer exact (the
 #: released schedule has 1e-6: in effect pure masking).
 REPLACE_NOISE_WARNING = 1e-3
@@ -237,21 +225,6 @@ def linear_masked_counts(length: int, steps: int) -> list[int]:
     return [length - (length * (i + 1)) // steps for i in range(steps)]
 
 
-class PuritySamplerConfig(PluginConfig):
-    """Options of the ``purity`` sampler."""
-
-    name: Literal["purity"] = "purity"
-    randomness: float = Field(
-        1.0,
-        ge=0.0,
-        le=100.0,
-        description="Scale of the Gumbel noise added to log-purity when choosing which masked tokens to reveal. "
-        "1 draws the positions without replacement with probability proportional to purity "
-        "(Gumbel-top-k; Improved VQ-Diffusion's purity prior); 0 is greedy (highest purity first); "
-        "large values approach a uniformly random order.",
-    )
-
-
 class PuritySampler(Sampler):
     """Improved VQ-Diffusion's purity sampling: ``steps`` rounds, each revealing the masked tokens of highest
     (noised) purity, max_k p(x0 = k | x_t), with the count of :func:`linear_masked_counts`.
@@ -299,20 +272,6 @@ def cosine_masked_target(length: int, steps: int, iteration: int) -> int:
     return math.floor(length * math.cos(math.pi / 2 * (iteration + 1) / steps))
 
 
-class ConfidenceSamplerConfig(PluginConfig):
-    """Options of the ``confidence`` sampler."""
-
-    name: Literal["confidence"] = "confidence"
-    temperature: float = Field(
-        4.5,
-        ge=0.0,
-        le=100.0,
-        description="MaskGIT's choice temperature tau: confidence = log p(sampled code) + tau (1 - (i+1)/S) "
-        "Gumbel noise, so early iterations choose which tokens to keep more randomly; 4.5 as MaskGIT, "
-        "0 keeps the most probable draws.",
-    )
-
-
 class ConfidenceSampler(Sampler):
     """MaskGIT decoding (docs/diffusion.md section 4) of a VQ-Diffusion x0-predictor.
 
@@ -354,7 +313,7 @@ class ConfidenceSampler(Sampler):
         return codes_BL
 
 
-# -- registration -----------------------------------------------------------------------------------
+# -- factories (registered in samplers_plugin.py) --------------------------------------------------
 
 
 def build_posterior_sampler(config: PosteriorSamplerConfig, context: BuildContext) -> PosteriorSampler:
@@ -370,28 +329,3 @@ def build_purity_sampler(config: PuritySamplerConfig, context: BuildContext) -> 
 def build_confidence_sampler(config: ConfidenceSamplerConfig, context: BuildContext) -> ConfidenceSampler:
     """Factory of the ``confidence`` sampler."""
     return ConfidenceSampler(temperature=config.temperature)
-
-
-@hookimpl
-def vqtouch_register_samplers(register):
-    """Register the three samplers."""
-    register(
-        "posterior",
-        build_posterior_sampler,
-        PosteriorSamplerConfig,
-        description="VQ-Diffusion reverse chain over `steps` strided timesteps, each jump an exact posterior.",
-    )
-    register(
-        "purity",
-        build_purity_sampler,
-        PuritySamplerConfig,
-        description="Improved VQ-Diffusion purity sampling: reveal the highest-purity masked tokens, "
-        "a linear number per step.",
-    )
-    register(
-        "confidence",
-        build_confidence_sampler,
-        ConfidenceSamplerConfig,
-        description="MaskGIT decoding: sample all masked tokens, re-mask the least confident on a cosine "
-        "schedule (temperature 4.5).",
-    )

@@ -13,74 +13,17 @@ conditioners read (:class:`CodesDataset`): the tokenizer's encoder never runs du
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
-from typing import Any, ClassVar
+from typing import Any
 
 import torch
-from pydantic import Field, field_validator
 from torch import nn
 
-from vqtouch.core import ConditionTokens, Conditioner, Generator, TactileDataset, TrainConfig
+from vqtouch.core import ConditionTokens, Conditioner, Generator, TactileDataset
 from vqtouch.core.data import dataset_groups
 from vqtouch.core.progress import progress
 
-from .grid_pretrain import GridPretrainConfig
-
-
-class GeneratorTrainConfig(TrainConfig):
-    """How the generator trains (``generator.train``); VQ-Diffusion's optimiser settings by default."""
-
-    component: ClassVar[str | None] = "generator"
-
-    steps: int = Field(2000, ge=0, le=99_999_999, strict=True, description="Optimisation steps.")
-    learning_rate: float = Field(4.5e-4, gt=0, le=10, strict=True, description="Peak learning rate.")
-    weight_decay: float = Field(4.5e-2, ge=0, le=1, strict=True, description="Decoupled weight decay (AdamW).")
-    grad_clip: float | None = Field(
-        0.5, gt=0, strict=True, description="Clip the gradient norm to this value; null disables."
-    )
-    betas: tuple[float, float] = Field((0.9, 0.96), description="Adam betas, each in [0, 1).")
-    condition_dropout: float = Field(
-        0.1,
-        ge=0,
-        lt=1,
-        strict=True,
-        description="Share of training rows whose condition is replaced by the learned "
-        "null condition (needed for classifier-free guidance).",
-    )
-    canonical_background: bool = Field(
-        True,
-        description="Train on codes whose cells away from the contact are the no-contact image's own codes "
-        "(vqtouch.plugins.generator.codes.canonical_background): the tokenizer gives identical "
-        "no-contact patches different near-synonymous codes, which a generator would otherwise "
-        "have to guess.  Needs the dataset's no-contact background; false: the raw codes.",
-    )
-    conditioner_weights: list[float] | None = Field(
-        None,
-        min_length=1,
-        description="Share of the training steps each conditioner gets, in the order of "
-        "generator.conditioners (any positive numbers; they are normalised), e.g. "
-        "[2, 1, 1, 1] gives the first twice the steps of each other; null: equal "
-        "shares.  Conditions that fix less of the image (a label) learn slower.",
-    )
-    grid_pretrain: GridPretrainConfig = Field(
-        default_factory=GridPretrainConfig,
-        description="Train the condition grid on the contact's place alone before the generator trains "
-        "(steps: 0, off); see vqtouch.plugins.generator.grid_pretrain.",
-    )
-    code_cache: bool = Field(
-        True,
-        description="Reuse the tokenizer's codes of the dataset from the user cache "
-        "folder when they were computed before (see "
-        "vqtouch.plugins.generator.codes).",
-    )
-
-    @field_validator("conditioner_weights")
-    @classmethod
-    def _positive_finite(cls, weights: list[float] | None) -> list[float] | None:
-        if weights is not None and not all(math.isfinite(w) and w > 0 for w in weights):
-            raise ValueError(f"every conditioner weight must be a positive finite number, got {weights}")
-        return weights
+from .stage_plugin import GeneratorTrainConfig  # noqa: F401 - re-exported
 
 
 class CodesDataset(TactileDataset):

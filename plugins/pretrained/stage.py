@@ -16,15 +16,11 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import Field
-
 from vqtouch.core import (
     ConfigError,
     MetricSet,
-    Section,
     StageJob,
     StageUnavailable,
-    hookimpl,
     resolve_device,
     validate_experiment,
 )
@@ -34,6 +30,7 @@ from vqtouch.plugins.evaluation.contact import dataset_background
 from vqtouch.plugins.evaluation.directions import shown_scores
 
 from .bundle import Bundle, bundle_folder, load_bundle
+from .stage_plugin import PretrainedSection  # noqa: F401 - re-exported
 from vqtouch.plugins.generator import (
     GENERATION_SHOWN_SCORES,
     SAMPLES_CAPTION,
@@ -45,22 +42,6 @@ from vqtouch.plugins.tokenizer import TOKENIZER_SHOWN_SCORES, evaluate_reconstru
 
 #: The folder of the stage's pictures inside the run.
 PICTURES = "pretrained"
-
-
-class PretrainedSection(Section):
-    """The ``pretrained`` stage's options."""
-
-    bundle: str = Field("tour", description="Name of the bundled checkpoints to show (`vqtouch pretrained list`).")
-    num_samples: int = Field(
-        16,
-        ge=1,
-        le=10_000,
-        strict=True,
-        description="Held-out images reconstructed and held-out conditions generated per "
-        "conditioner (at most the held-out split).",
-    )
-    sampler: str = Field("posterior", description="Sampler plugin the bundled generator draws codes with.")
-    steps: int = Field(25, ge=1, le=1000, strict=True, description="Sampling steps per generated image.")
 
 
 def _compared(config: dict[str, Any]) -> dict[str, Any]:
@@ -185,25 +166,3 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
         "background": background_source,
         "parts": parts,
     }
-
-
-@hookimpl
-def vqtouch_open_pretrained(name, host, device, tokenizer_only):
-    """Open a bundle of this package for ``pretrained:NAME`` (the generation pipeline and the family
-    stages ask)."""
-    return load_bundle(name, host, device=device, tokenizer_only=tokenizer_only)
-
-
-@hookimpl
-def vqtouch_register_stages(register):
-    register(
-        "pretrained",
-        run_pretrained_stage,
-        section=PretrainedSection,
-        needs=("data.dataset",),
-        uses=("metrics", "sensor"),
-        demo={"num_samples": 8, "steps": 10},
-        description="Show the bundled pretrained tokenizer and generator (trained longer than a demo can, "
-        "shipped in the package) on this run's held-out data: reconstructions and generations "
-        "from every condition, scored beside the background; nothing is trained.",
-    )

@@ -6,21 +6,12 @@ GroupNorm replaces BatchNorm: tokenizer batches on a CPU are small, and batch st
 
 from __future__ import annotations
 
-from typing import Literal
-
 import torch
-from pydantic import Field
 from torch import nn
 
-from vqtouch.core import BuildContext, Discriminator, PluginConfig, hookimpl
+from vqtouch.core import BuildContext, Discriminator
 
-
-class PatchGanConfig(PluginConfig):
-    """Options of the ``patchgan`` discriminator."""
-
-    name: Literal["patchgan"] = "patchgan"
-    channels: int = Field(64, ge=8, le=512, description="Channels of the first layer (doubling, up to 8x).")
-    layers: int = Field(3, ge=1, le=6, description="Stride-2 layers; 3 gives a 70x70 receptive field.")
+from .discriminator_plugin import PatchGanConfig
 
 
 class PatchDiscriminator(Discriminator):
@@ -72,13 +63,3 @@ def adaptive_weight(
 def build_patchgan(config: PatchGanConfig, context: BuildContext) -> PatchDiscriminator:
     """Factory for ``patchgan``."""
     return PatchDiscriminator(context.channels, config.channels, config.layers)
-
-
-@hookimpl
-def vqtouch_register_discriminators(register):
-    register(
-        "patchgan",
-        build_patchgan,
-        PatchGanConfig,
-        description="PatchGAN discriminator (4x4 convs, GroupNorm, LeakyReLU) with the hinge loss.",
-    )

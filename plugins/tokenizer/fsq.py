@@ -16,48 +16,15 @@ latents are float32.
 from __future__ import annotations
 
 import math
-from typing import Literal
 
 import torch
 import torch.nn.functional as F
-from pydantic import Field, field_validator
 from torch import nn
 
-from vqtouch.core import BuildContext, ConfigError, PluginConfig, Quantizer, QuantizerOutput, hookimpl
+from vqtouch.core import BuildContext, ConfigError, Quantizer, QuantizerOutput
 
+from .fsq_plugin import MAX_CODES, FsqConfig  # noqa: F401 - MAX_CODES re-exported: its old home
 from .quantizers import _autocast_disabled, check_latents, checked_codes, perplexity_of_counts
-
-#: Codes a generator over the grid can address (the ``vq`` quantizers' bound too).
-MAX_CODES = 65536
-
-
-class FsqConfig(PluginConfig):
-    """Options of the ``fsq`` quantizer."""
-
-    name: Literal["fsq"] = "fsq"
-    levels: tuple[int, ...] = Field(
-        (8, 5, 5, 5),
-        min_length=1,
-        max_length=16,
-        description="Values per dimension of the code vector (each 2-256; the codebook has their product, at "
-        "most 65536, codes).  The paper's choices: (8, 6, 5), (8, 5, 5, 5), (7, 5, 5, 5, 5), (8, 8, 8, 6, 5), "
-        "(8, 8, 8, 5, 5, 5).",
-    )
-    embedding_dim: int = Field(
-        0,
-        ge=0,
-        le=65536,
-        description="Channels D of the latents; 0 takes the encoder's latent width from the build context.",
-    )
-
-    @field_validator("levels")
-    @classmethod
-    def _levels_in_range(cls, levels: tuple[int, ...]) -> tuple[int, ...]:
-        if any(not 2 <= level <= 256 for level in levels):
-            raise ValueError(f"every level must be in [2, 256], got {list(levels)}")
-        if math.prod(levels) > MAX_CODES:
-            raise ValueError(f"levels {list(levels)} make {math.prod(levels)} codes; at most {MAX_CODES}")
-        return levels
 
 
 class FiniteScalarQuantizer(Quantizer):
@@ -160,15 +127,3 @@ def build_fsq(config: FsqConfig, context: BuildContext) -> FiniteScalarQuantizer
             f"{context.codebook_size} (BuildContext.codebook_size); choose levels whose product is that"
         )
     return FiniteScalarQuantizer(embedding_dim, config.levels)
-
-
-@hookimpl
-def vqtouch_register_quantizers(register):
-    """Register ``fsq``."""
-    register(
-        "fsq",
-        build_fsq,
-        FsqConfig,
-        description="Finite scalar quantization: a bounded, rounded low-dimensional projection; "
-        "prod(levels) codes, no codebook loss.",
-    )

@@ -21,38 +21,13 @@ eval mode, so evaluations are repeatable (``reset_randomness`` restarts the sequ
 
 from __future__ import annotations
 
-from typing import Literal
-
 import torch
-from pydantic import Field
 from torch import nn
 
-from vqtouch.core import Autoencoder, BuildContext, ConfigError, PluginConfig, Quantizer, QuantizerOutput, hookimpl
+from vqtouch.core import Autoencoder, BuildContext, ConfigError, Quantizer, QuantizerOutput
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 
-
-class MaeConfig(PluginConfig):
-    """Options of the ``mae`` baseline encoder."""
-
-    name: Literal["mae"] = "mae"
-    patch_size: int = Field(8, ge=2, le=64, description="Side of the square patches (image_size must divide).")
-    mask_ratio: float = Field(0.5, ge=0.0, lt=1.0, description="Fraction of patches hidden from the encoder.")
-    width: int = Field(128, ge=16, le=2048, description="Width of the ViT encoder tokens.")
-    depth: int = Field(4, ge=1, le=24, description="Transformer blocks in the encoder.")
-    heads: int = Field(4, ge=1, le=32, description="Attention heads (must divide width).")
-    decoder_width: int = Field(
-        96,
-        ge=16,
-        le=2048,
-        description="Width of the decoder tokens (the first latent channels; the latents add "
-        "a visible flag and, with paste_visible, the visible patches' pixels).",
-    )
-    decoder_depth: int = Field(2, ge=1, le=12, description="Transformer blocks in the decoder.")
-    paste_visible: bool = Field(
-        True,
-        description="In eval mode, copy visible patches into the reconstruction "
-        "(the latents then carry the visible patches' pixels).",
-    )
+from .mae_plugin import IdentityConfig, MaeConfig
 
 
 def _blocks(width: int, heads: int, depth: int) -> nn.TransformerEncoder:
@@ -181,12 +156,6 @@ class MaskedAutoencoder(Autoencoder):
         self._eval_calls = 0
 
 
-class IdentityConfig(PluginConfig):
-    """Options of the ``identity`` quantizer (continuous latents, for baselines such as MAE)."""
-
-    name: Literal["identity"] = "identity"
-
-
 class IdentityQuantizer(Quantizer):
     """Passes latents through unchanged: zero loss, a single 'code', perplexity 1."""
 
@@ -214,24 +183,3 @@ def build_mae(config: MaeConfig, context: BuildContext) -> MaskedAutoencoder:
 def build_identity(config: IdentityConfig, context: BuildContext) -> IdentityQuantizer:
     """Factory for ``identity`` (its width comes from the encoder via the context)."""
     return IdentityQuantizer(context.latent_dim)
-
-
-@hookimpl
-def vqtouch_register_autoencoders(register):
-    register(
-        "mae",
-        build_mae,
-        MaeConfig,
-        description="Masked-autoencoder ViT baseline (use with the identity "
-        "quantizer; Table 1 at mask ratios 0.25/0.5/0.75).",
-    )
-
-
-@hookimpl
-def vqtouch_register_quantizers(register):
-    register(
-        "identity",
-        build_identity,
-        IdentityConfig,
-        description="No quantization (continuous latents), for baselines such as MAE.",
-    )

@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import MetricSet, StageJob, StageUnavailable, hookimpl, resolve_device
+from vqtouch.core import MetricSet, StageJob, StageUnavailable, resolve_device
 from vqtouch.core.data import experiment_split
 from vqtouch.core.errors import NothingToEvaluateError
 from vqtouch.core.image_size import image_hw
@@ -31,7 +31,7 @@ from vqtouch.plugins.evaluation.contact import (
 from vqtouch.plugins.evaluation.directions import shown_scores
 
 from .loading import TOKENIZER_FILES, load_tokenizer, reconstruct_all
-from .training import Tokenizer, TokenizerSection, adversarial_never_trains, evaluate_reconstruction, tokenizer_task
+from .training import Tokenizer, adversarial_never_trains, evaluate_reconstruction, tokenizer_task
 
 
 def printable(scores: dict[str, Any]) -> dict[str, Any]:
@@ -192,25 +192,3 @@ def experiment_metrics(
         zip((item.name for item in job.config.metrics), job.assembly.build_slots(["metrics"]).get("metrics", []))
     )
     return metrics.score(predicted_B3HW, truth_B3HW, prefix)
-
-
-@hookimpl
-def vqtouch_register_stages(register):
-    register(
-        "tokenizer",
-        run_tokenizer_stage,
-        section=TokenizerSection,
-        needs=("data.dataset", "tokenizer.autoencoder", "tokenizer.quantizer"),
-        uses=("tokenizer.discriminator", "metrics", "sensor"),
-        makes=("tokenizer",),
-        demo={"train.steps": 40, "train.checkpoint_every": 40, "train.log_every": 10},
-        trains="train.steps",
-        description="Train the tactile tokenizer (autoencoder + quantizer [+ GAN]) and score the held-out split.",
-    )
-    register(
-        "reconstruct",
-        run_reconstruct_stage,
-        needs=("sensor", "tokenizer.autoencoder", "tokenizer.quantizer"),
-        uses=("metrics",),
-        description="Reconstruct the real reference frames of the experiment's sensor with the run's latest tokenizer.",
-    )

@@ -10,7 +10,32 @@ images only in ``__getitem__``; shared image decoding, file checks and the lenie
 skip-and-warn policy live in :mod:`vqtouch.plugins.data.readers._io`.
 """
 
-from ._io import IMAGE_SUFFIXES, is_image_file, list_images, read_image_size
+from __future__ import annotations
 
-#: The readers' public helpers for image files, which other packages (the evaluation commands) use.
-__all__ = ["IMAGE_SUFFIXES", "is_image_file", "list_images", "read_image_size"]
+import importlib
+from typing import Any
+
+#: The readers' public helpers for image files, which other packages (the evaluation commands) use:
+#: public name -> (module of this package, name there), imported on first use so that importing a
+#: reader's plugin module stays light.
+_PUBLIC = {
+    "IMAGE_SUFFIXES": ("_io", "IMAGE_SUFFIXES"),
+    "is_image_file": ("_io", "is_image_file"),
+    "list_images": ("_io", "list_images"),
+    "read_image_size": ("_io", "read_image_size"),
+}
+
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _PUBLIC:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module, attribute = _PUBLIC[name]
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), attribute)
+    globals()[name] = value  # later lookups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_PUBLIC])

@@ -1,4 +1,5 @@
-"""Shared machinery of the dataset readers: options, image decoding, file checks, skipping.
+"""Shared machinery of the dataset readers: image decoding, file checks, skipping (their shared options,
+:class:`ReaderConfig`, are in :mod:`._options`, which imports no torch).
 
 Every reader follows the same plan, implemented once here:
 
@@ -41,14 +42,14 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from pydantic import Field
 
-from vqtouch.core import DatasetError, PluginConfig, TactileDataset
+from vqtouch.core import DatasetError, TactileDataset
 from vqtouch.core.data import user_cache_folder
-from vqtouch.core.image_size import ImageSizeOption
 from vqtouch.core.errors import VqtouchWarning
 from vqtouch.core.images import CropMode, ImageLoader, crop_box, mode_problem  # noqa: F401 - re-exported
 from vqtouch.core.progress import progress
+
+from ._options import ReaderConfig
 
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".webp", ".tif", ".tiff"})
 
@@ -71,36 +72,6 @@ HEADER_CACHE_VERSION = 1
 # Formats whose extra frames are not an animation: a camera's multi-picture JPEG holds the photo
 # first and previews after it, and Pillow reads the photo.
 STILL_MULTI_FRAME_FORMATS = frozenset({"MPO"})
-
-
-class ReaderConfig(PluginConfig):
-    """Options shared by every dataset reader; each reader narrows ``name`` and adds its own."""
-
-    root: str = Field("", description="Dataset folder (see the reader's layout). Required: building fails "
-                                      "naming it when it is empty or missing.")
-    image_size: ImageSizeOption | None = Field(
-        None, description="Size of the images returned, in pixels: S for (3, S, S), or [height, width] such as "
-                          "[240, 320] for a sensor's native 3:4 frames; null uses the experiment's data.image_size.")
-    crop: CropMode = Field("center", description="How an image is brought to image_size's aspect: 'center' keeps the "
-                                                 "largest centred region of that aspect and resizes it, 'top' keeps "
-                                                 "the top instead, 'stretch' resizes the whole image, ignoring the "
-                                                 "aspect ratio.")
-    lenient: bool = Field(False, description="Skip bad samples (missing or corrupt files, bad labels, broken pairs) "
-                                             "with one warning that counts them, instead of failing. Decodes every "
-                                             "image once at construction to find corrupt ones (slow on large sets); "
-                                             "strict builds only open each image's header, which misses truncated "
-                                             "pixel data until the image is loaded.")
-    header_cache: bool = Field(True, description="Remember the image headers checked at construction by file path, "
-                                                 "size, modification and change time, in "
-                                                 "$XDG_CACHE_HOME/vqtouch/image_headers/ (default "
-                                                 "~/.cache/vqtouch/image_headers/), so building the same dataset "
-                                                 "again opens only new or changed files; false opens every header "
-                                                 "each time and writes nothing.")
-    allow_greyscale: bool = Field(False, description="Accept greyscale images by copying them into 3 channels; "
-                                                     "otherwise they are errors (skips when lenient).")
-    max_samples: int | None = Field(None, ge=1, le=1_000_000_000,
-                                    description="Keep only the first N usable samples in list order (quick runs); "
-                                                "null keeps all.")
 
 
 class SkippedSamplesWarning(VqtouchWarning):
@@ -145,12 +116,14 @@ class SkipLog:
 def require_root(config: ReaderConfig, layout: str) -> Path:
     """The configured root folder; a clear DatasetError when it is unset or missing."""
     if not config.root.strip():
-        raise DatasetError(f"dataset {config.name!r} needs its folder: set dataset.root=/path/to/data "
-                           f"(expected layout: {layout})")
+        raise DatasetError(
+            f"dataset {config.name!r} needs its folder: set dataset.root=/path/to/data (expected layout: {layout})"
+        )
     root = Path(config.root).expanduser()
     if not root.is_dir():
-        raise DatasetError(f"{config.name}: root folder {root} does not exist or is not a folder "
-                           f"(expected layout: {layout})")
+        raise DatasetError(
+            f"{config.name}: root folder {root} does not exist or is not a folder (expected layout: {layout})"
+        )
     return root
 
 
@@ -222,8 +195,11 @@ def is_image_file(path: Path) -> bool:
 
     A broken link counts, so that the image check reports it instead of the sample vanishing.
     """
-    return (path.suffix.lower() in IMAGE_SUFFIXES and not path.name.startswith(".")
-            and (path.is_file() or path.is_symlink()))
+    return (
+        path.suffix.lower() in IMAGE_SUFFIXES
+        and not path.name.startswith(".")
+        and (path.is_file() or path.is_symlink())
+    )
 
 
 def list_images(folder: Path, *, recursive: bool = False) -> list[Path]:
@@ -235,8 +211,10 @@ def list_images(folder: Path, *, recursive: bool = False) -> list[Path]:
 
 def visible_subfolders(folder: Path) -> list[Path]:
     """Sub-folders of ``folder`` whose names do not start with a dot, sorted by name."""
-    return sorted((path for path in folder.iterdir() if path.is_dir() and not path.name.startswith(".")),
-                  key=lambda path: path.name)
+    return sorted(
+        (path for path in folder.iterdir() if path.is_dir() and not path.name.startswith(".")),
+        key=lambda path: path.name,
+    )
 
 
 class FileIndex:
@@ -319,11 +297,13 @@ def read_header(path: Path) -> ImageHeader:
     try:
         with Image.open(path) as image:
             # n_frames walks the frame headers of GIF, PNG and TIFF files; no pixels are decoded.
-            return ImageHeader(image.format or "unknown", image.mode, image.width, image.height,
-                               int(getattr(image, "n_frames", 1)))
+            return ImageHeader(
+                image.format or "unknown", image.mode, image.width, image.height, int(getattr(image, "n_frames", 1))
+            )
     except UnidentifiedImageError:
-        raise DatasetError(f"cannot read image {path}: not an image file Pillow can read; "
-                           f"replace or remove it") from None
+        raise DatasetError(
+            f"cannot read image {path}: not an image file Pillow can read; replace or remove it"
+        ) from None
     except Exception as exc:  # noqa: BLE001 - damaged headers raise many types; each becomes a named bad file
         raise DatasetError(_unopenable(path, exc)) from None
 
@@ -331,8 +311,10 @@ def read_header(path: Path) -> ImageHeader:
 def header_problem(header: ImageHeader, path: Path, allow_greyscale: bool) -> str | None:
     """Why an image with this header cannot be loaded, or None (transparency needs the pixels)."""
     if header.frames > 1 and header.format not in STILL_MULTI_FRAME_FORMATS:
-        return (f"image {path} has {header.frames} frames ({header.format}); expected a single still image: "
-                f"save one frame of it")
+        return (
+            f"image {path} has {header.frames} frames ({header.format}); expected a single still image: "
+            f"save one frame of it"
+        )
     return mode_problem(path, header.mode, allow_greyscale)
 
 
@@ -369,9 +351,13 @@ class HeaderCache:
         """The recorded header of file ``key`` if its stat is unchanged, else None."""
         entry = self._entries.get(key)
         # Entries come from a file anyone can edit: use only well-formed ones.
-        if (not isinstance(entry, list) or len(entry) != 8 or entry[:3] != _stat_signature(status)
-                or not all(isinstance(value, str) for value in entry[3:5])
-                or not all(type(value) is int for value in entry[5:])):
+        if (
+            not isinstance(entry, list)
+            or len(entry) != 8
+            or entry[:3] != _stat_signature(status)
+            or not all(isinstance(value, str) for value in entry[3:5])
+            or not all(type(value) is int for value in entry[5:])
+        ):
             return None
         return ImageHeader(*entry[3:])
 
@@ -395,8 +381,9 @@ class HeaderCache:
         if not self._changed or self.path is None:
             return
         with self._lock:
-            text = json.dumps({"version": HEADER_CACHE_VERSION, "base": self.base, "files": self._entries},
-                              separators=(",", ":"))
+            text = json.dumps(
+                {"version": HEADER_CACHE_VERSION, "base": self.base, "files": self._entries}, separators=(",", ":")
+            )
         temporary = None
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -424,8 +411,12 @@ class HeaderCache:
             data = json.loads(self.path.read_text(encoding="utf-8"))
         except (OSError, ValueError):
             return  # absent, unreadable or damaged: start afresh and overwrite it
-        if (isinstance(data, dict) and data.get("version") == HEADER_CACHE_VERSION and data.get("base") == self.base
-                and isinstance(data.get("files"), dict)):
+        if (
+            isinstance(data, dict)
+            and data.get("version") == HEADER_CACHE_VERSION
+            and data.get("base") == self.base
+            and isinstance(data.get("files"), dict)
+        ):
             self._entries = data["files"]
 
 
@@ -522,9 +513,17 @@ class SampleRecord:
     group: str | None = None
 
 
-def collect_records(candidates: Iterable[SampleRecord], *, config: ReaderConfig, skips: SkipLog, base: Path,
-                    loader: ImageLoader, use_reference: bool, listed_in: str,
-                    total: int | None = None) -> list[SampleRecord]:
+def collect_records(
+    candidates: Iterable[SampleRecord],
+    *,
+    config: ReaderConfig,
+    skips: SkipLog,
+    base: Path,
+    loader: ImageLoader,
+    use_reference: bool,
+    listed_in: str,
+    total: int | None = None,
+) -> list[SampleRecord]:
     """Keep the usable candidate records, in order, up to ``max_samples``.
 
     Every image of a record (its reference too with ``use_reference``) is checked with
@@ -534,8 +533,9 @@ def collect_records(candidates: Iterable[SampleRecord], *, config: ReaderConfig,
     DatasetError when nothing is left (naming ``listed_in``) and otherwise warns once about what
     was skipped.
     """
-    check = ImageCheck(base, loader, decode=config.lenient,
-                       cache=HeaderCache.open(base) if config.header_cache else None)
+    check = ImageCheck(
+        base, loader, decode=config.lenient, cache=HeaderCache.open(base) if config.header_cache else None
+    )
     stage = "verifying images" if config.lenient else "checking image headers"
     pulled = iter(progress(candidates, total=total, desc=f"{config.name}: {stage}", unit="sample"))
     pending: deque[tuple[list[SampleRecord], Future[list[str | None]]]] = deque()
@@ -584,9 +584,17 @@ class RecordDataset(TactileDataset):
     is its own group.
     """
 
-    def __init__(self, records: Sequence[SampleRecord], *, base: Path, loader: ImageLoader, sensor: str,
-                 class_names: Sequence[str] = (), subtract_reference: bool = False,
-                 split_unit: str | None = None) -> None:
+    def __init__(
+        self,
+        records: Sequence[SampleRecord],
+        *,
+        base: Path,
+        loader: ImageLoader,
+        sensor: str,
+        class_names: Sequence[str] = (),
+        subtract_reference: bool = False,
+        split_unit: str | None = None,
+    ) -> None:
         has_visual = {record.visual is not None for record in records}
         if len(has_visual) > 1:
             raise ValueError("records must either all pair a visual image or none")
@@ -617,8 +625,13 @@ class RecordDataset(TactileDataset):
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         record = self.records[index]
-        sample: dict[str, Any] = {"tactile": self._tactile(record), "label": record.label, "text": record.text,
-                                  "sensor": self.sensor, "id": record.id}
+        sample: dict[str, Any] = {
+            "tactile": self._tactile(record),
+            "label": record.label,
+            "text": record.text,
+            "sensor": self.sensor,
+            "id": record.id,
+        }
         if record.visual is not None:
             sample["visual"] = self.loader.load(self.base / record.visual)
         return sample
@@ -643,8 +656,10 @@ class RecordDataset(TactileDataset):
         return {**self.__dict__, "_reference_cache": {}}
 
     def __repr__(self) -> str:
-        return (f"{type(self).__name__}({len(self)} samples, base={str(self.base)!r}, sensor={self.sensor!r}, "
-                f"classes={self.num_classes}, visual={self.has_visual})")
+        return (
+            f"{type(self).__name__}({len(self)} samples, base={str(self.base)!r}, sensor={self.sensor!r}, "
+            f"classes={self.num_classes}, visual={self.has_visual})"
+        )
 
 
 def with_context_size(config: ReaderConfig, context: Any) -> ReaderConfig:
@@ -660,4 +675,3 @@ def loader_for(config: ReaderConfig) -> ImageLoader:
 def relative_posix(path: Path, base: Path) -> str:
     """``path`` relative to ``base`` with forward slashes (stable sample ids across systems)."""
     return path.relative_to(base).as_posix()
-

@@ -30,37 +30,29 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Literal
 
-from pydantic import Field
+from vqtouch.core import BuildContext, DatasetError
+from vqtouch.plugins.data.readers._io import (
+    with_context_size,
+    RecordDataset,
+    SampleRecord,
+    SkipLog,
+    collect_records,
+    list_images,
+    loader_for,
+    read_csv_rows,
+    relative_posix,
+    require_folder,
+    require_root,
+    resolve_under,
+    visible_subfolders,
+)
 
-from vqtouch.core import BuildContext, DatasetError, hookimpl
-from vqtouch.plugins.data.readers._io import (with_context_size, ReaderConfig, RecordDataset, SampleRecord, SkipLog, collect_records,
-                                          list_images, loader_for, read_csv_rows, relative_posix,
-                                          require_folder, require_root, resolve_under, visible_subfolders)
+from .fabricvst_plugin import READER, FabricVstConfig
 
-READER = "fabricvst"
 LAYOUT = "<root>/tactile/<fabric>/<image> or <root>/tactile/<fabric>_<n>.<ext> with <root>/visual_cropped/<fabric>/"
 NAME_SEPARATORS = ("_", "-")
 BINARY_VALUES = {"0": False, "1": True}
-
-
-class FabricVstConfig(ReaderConfig):
-    """Options of the ``fabricvst`` reader (tactile images of 50 fabrics; layout partly assumed)."""
-
-    name: Literal["fabricvst"] = "fabricvst"
-    root: str = Field("", description="Unzipped FabricVST folder holding tactile/ (as tactile/<fabric>/<image>, or "
-                                      "flat tactile/<fabric>_<n>.<ext> next to visual_cropped/<fabric>/). Required.")
-    fabrics: tuple[str, ...] = Field((), max_length=10_000,
-                                     description="Fabric names to read (e.g. the paper's 40/5/5 fabric split); empty "
-                                                 "reads all. Labels always index all fabrics.")
-    attribute_csvs: tuple[str, ...] = Field(
-        (), max_length=64, description="Annotator CSVs (relative to root unless absolute) with header "
-                                       "'fabric,<attribute>,...' and 0/1 values; majority-voted positive attributes "
-                                       "become the text. Empty: no attributes (the release's CSV layout is "
-                                       "undocumented).")
-    sensor: str = Field("fabricvst", min_length=1, max_length=64,
-                        description="Sensor id reported with every sample (FabricVST's sensor model is undocumented).")
 
 
 class FabricVstDataset(RecordDataset):
@@ -86,22 +78,26 @@ def _tactile_files(root: Path, skips: SkipLog) -> dict[str, list[Path]]:
     folders = visible_subfolders(tactile)
     files = list_images(tactile)
     if folders and files:
-        raise DatasetError(f"{READER}: {tactile} holds both images and folders; expected either one sub-folder per "
-                           f"fabric or a flat folder of <fabric>_<n> images (see the reader's documentation)")
+        raise DatasetError(
+            f"{READER}: {tactile} holds both images and folders; expected either one sub-folder per "
+            f"fabric or a flat folder of <fabric>_<n> images (see the reader's documentation)"
+        )
     if folders:
         return {folder.name: list_images(folder) for folder in folders}
     visual_cropped = root / "visual_cropped"
     if not visual_cropped.is_dir():
-        raise DatasetError(f"{READER}: {tactile} is flat, so fabric names come from the folders of {visual_cropped}, "
-                           f"which is missing")
+        raise DatasetError(
+            f"{READER}: {tactile} is flat, so fabric names come from the folders of {visual_cropped}, which is missing"
+        )
     names = [folder.name for folder in visible_subfolders(visual_cropped)]
     grouped: dict[str, list[Path]] = {name: [] for name in names}
     longest_first = sorted(names, key=len, reverse=True)
     for image in files:
         fabric = _fabric_of(image.name, longest_first)
         if fabric is None:
-            skips.reject(f"tactile image {image} does not start with a fabric name of {visual_cropped} "
-                         f"followed by '_' or '-'")
+            skips.reject(
+                f"tactile image {image} does not start with a fabric name of {visual_cropped} followed by '_' or '-'"
+            )
             continue
         grouped[fabric].append(image)
     return grouped
@@ -116,8 +112,9 @@ def _read_votes(path: Path) -> tuple[list[str], dict[str, list[bool]]]:
     for number, cells in rows[1:]:
         fabric, values = cells[0], cells[1:]
         if len(values) != len(attributes) or any(value not in BINARY_VALUES for value in values):
-            raise DatasetError(f"{READER}: {path} line {number}: expected a fabric name and {len(attributes)} "
-                               f"values 0/1, got {cells}")
+            raise DatasetError(
+                f"{READER}: {path} line {number}: expected a fabric name and {len(attributes)} values 0/1, got {cells}"
+            )
         if fabric in votes:
             raise DatasetError(f"{READER}: {path} line {number}: fabric {fabric!r} is listed twice")
         votes[fabric] = [BINARY_VALUES[value] for value in values]
@@ -134,13 +131,23 @@ def read_attributes(paths: Sequence[Path], fabrics: Sequence[str]) -> dict[str, 
         missing = [fabric for fabric in fabrics if fabric not in votes]
         if missing:
             raise DatasetError(f"{READER}: {path} has no row for fabric(s) {missing[:5]}")
-    return {fabric: [attribute for column, attribute in enumerate(attributes)
-                     if 2 * sum(votes[fabric][column] for _, _, votes in tables) > len(tables)]
-            for fabric in fabrics}
+    return {
+        fabric: [
+            attribute
+            for column, attribute in enumerate(attributes)
+            if 2 * sum(votes[fabric][column] for _, _, votes in tables) > len(tables)
+        ]
+        for fabric in fabrics
+    }
 
 
-def _candidates(grouped: dict[str, list[Path]], chosen: Sequence[str], label_of: dict[str, int], root: Path,
-                attributes: dict[str, list[str]]) -> Iterator[SampleRecord]:
+def _candidates(
+    grouped: dict[str, list[Path]],
+    chosen: Sequence[str],
+    label_of: dict[str, int],
+    root: Path,
+    attributes: dict[str, list[str]],
+) -> Iterator[SampleRecord]:
     for fabric in chosen:
         text = ", ".join(attributes.get(fabric, []))
         for image in grouped[fabric]:
@@ -159,20 +166,29 @@ def build_fabricvst(config: FabricVstConfig, context: BuildContext) -> FabricVst
     if unknown:
         raise DatasetError(f"{READER}: unknown fabric(s) {unknown}; the dataset has: {', '.join(fabrics)}")
     chosen = list(config.fabrics) or fabrics
-    attributes = read_attributes([resolve_under(path, root) for path in config.attribute_csvs], fabrics) \
-        if config.attribute_csvs else {}
+    attributes = (
+        read_attributes([resolve_under(path, root) for path in config.attribute_csvs], fabrics)
+        if config.attribute_csvs
+        else {}
+    )
     loader = loader_for(config)
-    candidates = _candidates(grouped, chosen, {fabric: label for label, fabric in enumerate(fabrics)}, root,
-                             attributes)
-    records = collect_records(candidates, config=config, skips=skips, base=root, loader=loader, use_reference=False,
-                              listed_in=f"{root / 'tactile'} (fabrics {', '.join(chosen)})",
-                              total=sum(len(grouped[fabric]) for fabric in chosen))
-    return FabricVstDataset(records, base=root, loader=loader, sensor=config.sensor, class_names=fabrics,
-                            attributes=attributes, split_unit="fabric")
-
-
-@hookimpl
-def vqtouch_register_datasets(register):
-    register(READER, build_fabricvst, FabricVstConfig,
-             description="FabricVST: tactile images of 50 fabrics labelled by fabric, optional majority-voted "
-                         "attributes as text (layout partly assumed, see the module docs).")
+    candidates = _candidates(grouped, chosen, {fabric: label for label, fabric in enumerate(fabrics)}, root, attributes)
+    records = collect_records(
+        candidates,
+        config=config,
+        skips=skips,
+        base=root,
+        loader=loader,
+        use_reference=False,
+        listed_in=f"{root / 'tactile'} (fabrics {', '.join(chosen)})",
+        total=sum(len(grouped[fabric]) for fabric in chosen),
+    )
+    return FabricVstDataset(
+        records,
+        base=root,
+        loader=loader,
+        sensor=config.sensor,
+        class_names=fabrics,
+        attributes=attributes,
+        split_unit="fabric",
+    )

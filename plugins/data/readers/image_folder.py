@@ -26,42 +26,33 @@ import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
 
-from pydantic import Field
+from vqtouch.core import BuildContext, DatasetError
+from vqtouch.plugins.data.readers._io import (
+    with_context_size,
+    FileIndex,
+    RecordDataset,
+    SampleRecord,
+    SkipLog,
+    collect_records,
+    is_image_file,
+    list_images,
+    loader_for,
+    read_csv_rows,
+    relative_posix,
+    require_file,
+    require_root,
+    resolve_under,
+    visible_subfolders,
+)
 
-from vqtouch.core import BuildContext, DatasetError, hookimpl
-from vqtouch.plugins.data.readers._io import (with_context_size, FileIndex, ReaderConfig, RecordDataset, SampleRecord, SkipLog,
-                                          collect_records, is_image_file, list_images, loader_for, read_csv_rows,
-                                          relative_posix, require_file, require_root, resolve_under,
-                                          visible_subfolders)
+from .image_folder_plugin import READER, ImageFolderConfig
 
-READER = "image_folder"
 LAYOUT = "<root>/<class>/<image> (one sub-folder per class), or a CSV with header path,label[,visual]"
 REQUIRED_COLUMNS = ("path", "label")
 OPTIONAL_COLUMNS = ("visual", "text", "group")
 UNLABELLED = -1
 _INTEGER = re.compile(r"-?\d+")
-
-
-class ImageFolderConfig(ReaderConfig):
-    """Options of the ``image_folder`` reader (class folders or a path,label[,visual] CSV)."""
-
-    name: Literal["image_folder"] = "image_folder"
-    root: str = Field("", description="Folder with one sub-folder of images per class, or the folder that the csv "
-                                      "path is relative to. Required.")
-    csv: str = Field("", description="CSV with columns path,label and optionally visual,text,group (relative to "
-                                     "root unless absolute; paths inside are relative to the CSV's folder; rows with "
-                                     "the same group, e.g. frames of one recording, stay on one side of a "
-                                     "train/held-out split; other columns are ignored). Empty: read class "
-                                     "sub-folders of root, grouped by the sub-folder below each class folder.")
-    class_names: tuple[str, ...] = Field(
-        (), max_length=1_000_000, description="Fixed class order: folder and label names must be in it and integer "
-                                              "labels below its length. Empty: derived from the folders or labels.")
-    sensor: str = Field("unknown", min_length=1, max_length=64, description="Sensor id reported with every sample.")
-    paths_outside: bool = Field(False, description="Let the CSV's rows name images outside its folder (``../``, "
-                                                   "absolute paths), e.g. a shared image store. Off: such a row is "
-                                                   "refused, naming its line.")
 
 
 class ImageFolderDataset(RecordDataset):
@@ -72,34 +63,48 @@ class ImageFolderDataset(RecordDataset):
 # --------------------------------------------------------------------------------------------
 # Class folders
 # --------------------------------------------------------------------------------------------
-def _folder_candidates(root: Path, folders: Sequence[Path], label_of: dict[str, int],
-                       skips: SkipLog) -> Iterator[SampleRecord]:
+def _folder_candidates(
+    root: Path, folders: Sequence[Path], label_of: dict[str, int], skips: SkipLog
+) -> Iterator[SampleRecord]:
     for stray in (path for path in sorted(root.iterdir()) if is_image_file(path)):
         skips.reject(f"image {stray} is not inside a class sub-folder of {root}")
     for folder in folders:
         for image in list_images(folder, recursive=True):
             path = relative_posix(image, root)
             nested = image.relative_to(folder).parts[:-1]
-            yield SampleRecord(id=path, tactile=path, label=label_of[folder.name],
-                               group=f"{folder.name}/{nested[0]}" if nested else None)
+            yield SampleRecord(
+                id=path,
+                tactile=path,
+                label=label_of[folder.name],
+                group=f"{folder.name}/{nested[0]}" if nested else None,
+            )
 
 
 def _build_from_folders(config: ImageFolderConfig, root: Path, skips: SkipLog) -> ImageFolderDataset:
     folders = visible_subfolders(root)
     if not folders:
-        raise DatasetError(f"{READER}: no class sub-folders in {root}; put each class's images in <root>/<class>/ "
-                           f"or set csv=<file> to list them")
+        raise DatasetError(
+            f"{READER}: no class sub-folders in {root}; put each class's images in <root>/<class>/ "
+            f"or set csv=<file> to list them"
+        )
     class_names = list(config.class_names) or [folder.name for folder in folders]
     unknown = [folder.name for folder in folders if folder.name not in class_names]
     if unknown:
         raise DatasetError(f"{READER}: sub-folder(s) {unknown} of {root} are not in class_names {class_names}")
     label_of = {name: label for label, name in enumerate(class_names)}
     loader = loader_for(config)
-    records = collect_records(_folder_candidates(root, folders, label_of, skips), config=config, skips=skips,
-                              base=root, loader=loader, use_reference=False,
-                              listed_in=f"the class folders of {root}")
-    return ImageFolderDataset(records, base=root, loader=loader, sensor=config.sensor, class_names=class_names,
-                              split_unit="folder")
+    records = collect_records(
+        _folder_candidates(root, folders, label_of, skips),
+        config=config,
+        skips=skips,
+        base=root,
+        loader=loader,
+        use_reference=False,
+        listed_in=f"the class folders of {root}",
+    )
+    return ImageFolderDataset(
+        records, base=root, loader=loader, sensor=config.sensor, class_names=class_names, split_unit="folder"
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -108,8 +113,10 @@ def _build_from_folders(config: ImageFolderConfig, root: Path, skips: SkipLog) -
 def _column_positions(header: list[str], csv_path: Path) -> dict[str, int]:
     names = [cell.lower() for cell in header]
     if len(set(names)) != len(names) or not set(REQUIRED_COLUMNS) <= set(names):
-        raise DatasetError(f"{READER}: {csv_path}: header must name each column once and include path and label "
-                           f"(optionally visual, text, group); got {header}")
+        raise DatasetError(
+            f"{READER}: {csv_path}: header must name each column once and include path and label "
+            f"(optionally visual, text, group); got {header}"
+        )
     return {name: position for position, name in enumerate(names)}
 
 
@@ -141,15 +148,23 @@ def label_map_for(cells: list[str], fixed: Sequence[str], csv_path: Path) -> Lab
     given = [cell for cell in cells if cell not in ("", str(UNLABELLED))]
     integers = [int(cell) for cell in given if _INTEGER.fullmatch(cell)]
     if integers and len(integers) != len(given):
-        raise DatasetError(f"{READER}: {csv_path}: the label column mixes integers and class names; set class_names "
-                           f"to say which class each integer means")
+        raise DatasetError(
+            f"{READER}: {csv_path}: the label column mixes integers and class names; set class_names "
+            f"to say which class each integer means"
+        )
     if integers:
         return LabelMap(tuple(str(label) for label in range(max(integers) + 1)), accepts_integers=True)
     return LabelMap(tuple(sorted(set(given))), accepts_integers=False)
 
 
-def _csv_candidates(rows: list[tuple[int, list[str]]], columns: dict[str, int], csv_path: Path,
-                    label_of: LabelMap, skips: SkipLog, paths_outside: bool) -> Iterator[SampleRecord]:
+def _csv_candidates(
+    rows: list[tuple[int, list[str]]],
+    columns: dict[str, int],
+    csv_path: Path,
+    label_of: LabelMap,
+    skips: SkipLog,
+    paths_outside: bool,
+) -> Iterator[SampleRecord]:
     base, files = csv_path.parent, FileIndex()
     for number, cells in rows:
         where = f"{csv_path} line {number}"
@@ -160,8 +175,10 @@ def _csv_candidates(rows: list[tuple[int, list[str]]], columns: dict[str, int], 
         visual = cells[columns["visual"]] if "visual" in columns else None
         for path in (tactile, visual):
             if path and not paths_outside and not (base / path).resolve().is_relative_to(base.resolve()):
-                raise DatasetError(f"{READER}: {where}: {path!r} is outside {base}; list images inside the CSV's "
-                                   "folder, or set the reader's paths_outside=true to allow it")
+                raise DatasetError(
+                    f"{READER}: {where}: {path!r} is outside {base}; list images inside the CSV's "
+                    "folder, or set the reader's paths_outside=true to allow it"
+                )
         text = cells[columns["text"]] if "text" in columns else ""
         group = cells[columns["group"]] if "group" in columns else ""
         label = label_of(label_cell)
@@ -169,13 +186,17 @@ def _csv_candidates(rows: list[tuple[int, list[str]]], columns: dict[str, int], 
             skips.reject(f"{where}: label {label_cell!r} is not a valid class")
             continue
         wanted = [("image", tactile)] + ([("visual image", visual)] if visual is not None else [])
-        problems = [f"{kind} is empty" if not path else f"missing {kind} {base / path}" for kind, path in wanted
-                    if not path or not files.exists(base / path)]
+        problems = [
+            f"{kind} is empty" if not path else f"missing {kind} {base / path}"
+            for kind, path in wanted
+            if not path or not files.exists(base / path)
+        ]
         if problems:
             skips.reject(f"{where}: {' and '.join(problems)}")
             continue
-        yield SampleRecord(id=Path(tactile).as_posix(), tactile=tactile, visual=visual, label=label, text=text,
-                           group=group or None)
+        yield SampleRecord(
+            id=Path(tactile).as_posix(), tactile=tactile, visual=visual, label=label, text=text, group=group or None
+        )
 
 
 def _build_from_csv(config: ImageFolderConfig, root: Path, skips: SkipLog) -> ImageFolderDataset:
@@ -189,11 +210,24 @@ def _build_from_csv(config: ImageFolderConfig, root: Path, skips: SkipLog) -> Im
     label_of = label_map_for(label_cells, config.class_names, csv_path)
     loader = loader_for(config)
     candidates = _csv_candidates(body, columns, csv_path, label_of, skips, config.paths_outside)
-    records = collect_records(candidates, config=config, skips=skips,
-                              base=csv_path.parent, loader=loader, use_reference=False, listed_in=str(csv_path),
-                              total=len(body))
-    return ImageFolderDataset(records, base=csv_path.parent, loader=loader, sensor=config.sensor,
-                              class_names=label_of.names, split_unit="group")
+    records = collect_records(
+        candidates,
+        config=config,
+        skips=skips,
+        base=csv_path.parent,
+        loader=loader,
+        use_reference=False,
+        listed_in=str(csv_path),
+        total=len(body),
+    )
+    return ImageFolderDataset(
+        records,
+        base=csv_path.parent,
+        loader=loader,
+        sensor=config.sensor,
+        class_names=label_of.names,
+        split_unit="group",
+    )
 
 
 def build_image_folder(config: ImageFolderConfig, context: BuildContext) -> ImageFolderDataset:
@@ -202,9 +236,3 @@ def build_image_folder(config: ImageFolderConfig, context: BuildContext) -> Imag
     root = require_root(config, LAYOUT)
     skips = SkipLog(READER, config.lenient)
     return _build_from_csv(config, root, skips) if config.csv else _build_from_folders(config, root, skips)
-
-
-@hookimpl
-def vqtouch_register_datasets(register):
-    register(READER, build_image_folder, ImageFolderConfig,
-             description="Generic tactile images: one sub-folder per class, or a path,label[,visual] CSV.")

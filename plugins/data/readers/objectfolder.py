@@ -31,18 +31,30 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
-from pydantic import Field
+from vqtouch.core import BuildContext, DatasetError
+from vqtouch.plugins.data.readers._io import (
+    with_context_size,
+    FileIndex,
+    RecordDataset,
+    SampleRecord,
+    SkipLog,
+    collect_records,
+    list_images,
+    loader_for,
+    natural_key,
+    read_csv_rows,
+    read_json,
+    relative_posix,
+    require_file,
+    require_root,
+    resolve_under,
+    visible_subfolders,
+)
 
-from vqtouch.core import BuildContext, DatasetError, hookimpl
-from vqtouch.plugins.data.readers._io import (with_context_size, FileIndex, ReaderConfig, RecordDataset, SampleRecord, SkipLog,
-                                          collect_records, list_images, loader_for, natural_key, read_csv_rows,
-                                          read_json, relative_posix, require_file, require_root, resolve_under,
-                                          visible_subfolders)
+from .objectfolder_plugin import CROSS, REAL, ObjectFolderCrossConfig, ObjectFolderRealConfig
 
-REAL = "objectfolder_real"
-CROSS = "objectfolder_cross"
 REAL_LAYOUT = "<root>/<obj_idx>/tactile_data/<trial_idx>/0/gelsight/*.png"
 CROSS_LAYOUT = "<root>/{vision,touch}/<obj>/<contact>.png, <root>/touch_ref/touch_ref.png and a split JSON"
 METADATA_NAME = "objectfolder_real_metadata.csv"
@@ -54,20 +66,6 @@ SENSOR = "gelsight"
 # --------------------------------------------------------------------------------------------
 # ObjectFolder-Real
 # --------------------------------------------------------------------------------------------
-class ObjectFolderRealConfig(ReaderConfig):
-    """Options of the ``objectfolder_real`` reader (GelSight recordings of 100 real objects)."""
-
-    name: Literal["objectfolder_real"] = "objectfolder_real"
-    root: str = Field("", description="ObjectFolder-Real folder with one folder per object index: "
-                                      "<root>/<obj_idx>/tactile_data/<trial_idx>/0/gelsight/*.png. Required.")
-    metadata_csv: str = Field("", description="T3's objectfolder_real_metadata.csv (columns Index, Name, Material) "
-                                              "giving each object's material label; empty uses "
-                                              "<root>/objectfolder_real_metadata.csv when present, else labels are -1.")
-    objects: tuple[int, ...] = Field((), max_length=100_000,
-                                     description="Object indices to read (e.g. an object-level split); empty reads "
-                                                 "every object folder.")
-
-
 class ObjectFolderRealDataset(RecordDataset):
     """ObjectFolder-Real samples: one GelSight frame each, labelled by the object's material; split
     groups are trials (``<obj_idx>/<trial_idx>``)."""
@@ -87,8 +85,9 @@ def read_material_table(path: Path) -> dict[int, str]:
         try:
             object_index, material = int(cells[index_at]), cells[material_at]
         except (IndexError, ValueError):
-            raise DatasetError(f"{REAL}: {path} line {number}: expected an integer Index and a Material, "
-                               f"got {cells}") from None
+            raise DatasetError(
+                f"{REAL}: {path} line {number}: expected an integer Index and a Material, got {cells}"
+            ) from None
         if object_index in materials or not material:
             problem = "repeats an Index" if object_index in materials else "has no Material"
             raise DatasetError(f"{REAL}: {path} line {number} {problem}")
@@ -119,8 +118,10 @@ def _trial_frames(object_index: int, folder: Path, skips: SkipLog) -> Iterator[P
     if not trials_folder.is_dir():
         skips.reject(f"object {object_index}: missing folder {trials_folder}")
         return
-    trials = sorted((trial for trial in visible_subfolders(trials_folder) if trial.name.isdigit()),
-                    key=lambda trial: int(trial.name))
+    trials = sorted(
+        (trial for trial in visible_subfolders(trials_folder) if trial.name.isdigit()),
+        key=lambda trial: int(trial.name),
+    )
     for trial in trials:
         frames_folder = trial / "0" / "gelsight"
         if not frames_folder.is_dir():
@@ -129,8 +130,14 @@ def _trial_frames(object_index: int, folder: Path, skips: SkipLog) -> Iterator[P
         yield from (frame for frame in list_images(frames_folder) if frame.suffix.lower() == ".png")
 
 
-def _real_candidates(objects: list[tuple[int, Path]], root: Path, materials: dict[int, str] | None,
-                     class_names: list[str], metadata: Path | None, skips: SkipLog) -> Iterator[SampleRecord]:
+def _real_candidates(
+    objects: list[tuple[int, Path]],
+    root: Path,
+    materials: dict[int, str] | None,
+    class_names: list[str],
+    metadata: Path | None,
+    skips: SkipLog,
+) -> Iterator[SampleRecord]:
     for object_index, folder in objects:
         label = -1
         if materials is not None:
@@ -156,29 +163,23 @@ def build_objectfolder_real(config: ObjectFolderRealConfig, context: BuildContex
     skips = SkipLog(REAL, config.lenient)
     loader = loader_for(config)
     candidates = _real_candidates(_object_folders(config, root), root, materials, class_names, metadata, skips)
-    records = collect_records(candidates, config=config, skips=skips, base=root, loader=loader, use_reference=False,
-                              listed_in=f"{root} (expected {REAL_LAYOUT})")
-    return ObjectFolderRealDataset(records, base=root, loader=loader, sensor=SENSOR, class_names=class_names,
-                                   split_unit="trial")
+    records = collect_records(
+        candidates,
+        config=config,
+        skips=skips,
+        base=root,
+        loader=loader,
+        use_reference=False,
+        listed_in=f"{root} (expected {REAL_LAYOUT})",
+    )
+    return ObjectFolderRealDataset(
+        records, base=root, loader=loader, sensor=SENSOR, class_names=class_names, split_unit="trial"
+    )
 
 
 # --------------------------------------------------------------------------------------------
 # Cross-generation benchmark
 # --------------------------------------------------------------------------------------------
-class ObjectFolderCrossConfig(ReaderConfig):
-    """Options of the ``objectfolder_cross`` reader (ObjectFolder visuo-tactile cross-generation benchmark)."""
-
-    name: Literal["objectfolder_cross"] = "objectfolder_cross"
-    root: str = Field("", description="Benchmark data folder holding vision/<obj>/<contact>.png, "
-                                      "touch/<obj>/<contact>.png and touch_ref/touch_ref.png. Required.")
-    split_file: str = Field("split.json", min_length=1,
-                            description="Split JSON {'train': [[obj, contact], ...], 'val': ..., 'test': ...} "
-                                        "(cross-contact or cross-object); relative to root unless absolute.")
-    split: Literal["train", "val", "test"] = Field("train", description="Which list of the split JSON to read.")
-    subtract_reference: bool = Field(False, description="Return tactile - touch_ref/touch_ref.png + 0.5, clamped to "
-                                                        "[0, 1] (shows only what contact changed).")
-
-
 class ObjectFolderCrossDataset(RecordDataset):
     """Cross-generation samples: the touch and vision image of one (object, contact), labelled by object.
     No split groups: every sample is a contact of its own."""
@@ -195,14 +196,15 @@ def _is_pair(entry: Any) -> bool:
 def _read_splits(path: Path, split: str) -> dict[str, list[Any]]:
     splits = read_json(path, CROSS)
     if not isinstance(splits, dict) or not all(isinstance(entries, list) for entries in splits.values()):
-        raise DatasetError(f"{CROSS}: {path} must be an object of lists like {{\"train\": [[obj, contact], ...]}}")
+        raise DatasetError(f'{CROSS}: {path} must be an object of lists like {{"train": [[obj, contact], ...]}}')
     if split not in splits:
         raise DatasetError(f"{CROSS}: {path} has no {split!r} list (it has: {', '.join(sorted(splits)) or 'none'})")
     return splits
 
 
-def _cross_candidates(entries: list[Any], where: str, root: Path, label_of: dict[str, int], check_reference: bool,
-                      skips: SkipLog) -> Iterator[SampleRecord]:
+def _cross_candidates(
+    entries: list[Any], where: str, root: Path, label_of: dict[str, int], check_reference: bool, skips: SkipLog
+) -> Iterator[SampleRecord]:
     files = FileIndex()
     if check_reference and not files.exists(root / TOUCH_REFERENCE):
         raise DatasetError(f"{CROSS}: subtract_reference needs the no-contact frame {root / TOUCH_REFERENCE}")
@@ -212,8 +214,11 @@ def _cross_candidates(entries: list[Any], where: str, root: Path, label_of: dict
             continue
         obj, contact = (str(value) for value in entry)
         tactile, visual = f"touch/{obj}/{contact}.png", f"vision/{obj}/{contact}.png"
-        missing = [f"{kind} image {root / path}" for kind, path in (("touch", tactile), ("vision", visual))
-                   if not files.exists(root / path)]
+        missing = [
+            f"{kind} image {root / path}"
+            for kind, path in (("touch", tactile), ("vision", visual))
+            if not files.exists(root / path)
+        ]
         if missing:
             skips.reject(f"{where}[{position}]: missing {' and '.join(missing)}")
             continue
@@ -226,25 +231,31 @@ def build_objectfolder_cross(config: ObjectFolderCrossConfig, context: BuildCont
     root = require_root(config, CROSS_LAYOUT)
     split_path = require_file(resolve_under(config.split_file, root), CROSS, "split JSON")
     splits = _read_splits(split_path, config.split)
-    objects = sorted({str(entry[0]) for entries in splits.values() for entry in entries if _is_pair(entry)},
-                     key=natural_key)
+    objects = sorted(
+        {str(entry[0]) for entries in splits.values() for entry in entries if _is_pair(entry)}, key=natural_key
+    )
     label_of = {obj: label for label, obj in enumerate(objects)}
     entries = splits[config.split]
     skips = SkipLog(CROSS, config.lenient)
     loader = loader_for(config)
-    candidates = _cross_candidates(entries, f"{split_path} {config.split}", root, label_of, config.subtract_reference,
-                                   skips)
-    records = collect_records(candidates, config=config, skips=skips, base=root, loader=loader,
-                              use_reference=config.subtract_reference,
-                              listed_in=f"the {config.split!r} list of {split_path}", total=len(entries))
-    return ObjectFolderCrossDataset(records, base=root, loader=loader, sensor=SENSOR, class_names=objects,
-                                    subtract_reference=config.subtract_reference)
-
-
-@hookimpl
-def vqtouch_register_datasets(register):
-    register(REAL, build_objectfolder_real, ObjectFolderRealConfig,
-             description="ObjectFolder-Real: GelSight frames of 100 real objects, labelled by material (T3 metadata).")
-    register(CROSS, build_objectfolder_cross, ObjectFolderCrossConfig,
-             description="ObjectFolder cross-generation benchmark: paired touch and vision patches, "
-                         "labelled by object.")
+    candidates = _cross_candidates(
+        entries, f"{split_path} {config.split}", root, label_of, config.subtract_reference, skips
+    )
+    records = collect_records(
+        candidates,
+        config=config,
+        skips=skips,
+        base=root,
+        loader=loader,
+        use_reference=config.subtract_reference,
+        listed_in=f"the {config.split!r} list of {split_path}",
+        total=len(entries),
+    )
+    return ObjectFolderCrossDataset(
+        records,
+        base=root,
+        loader=loader,
+        sensor=SENSOR,
+        class_names=objects,
+        subtract_reference=config.subtract_reference,
+    )

@@ -29,21 +29,36 @@ from __future__ import annotations
 import re
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Literal
 
-from pydantic import Field, model_validator
+from vqtouch.core import BuildContext, DatasetError
+from vqtouch.plugins.data.readers._io import (
+    with_context_size,
+    FileIndex,
+    RecordDataset,
+    SampleRecord,
+    SkipLog,
+    collect_records,
+    loader_for,
+    read_list_lines,
+    require_file,
+    require_folder,
+    require_root,
+)
 
-from vqtouch.core import BuildContext, DatasetError, hookimpl
-from vqtouch.plugins.data.readers._io import (with_context_size, FileIndex, ReaderConfig, RecordDataset, SampleRecord, SkipLog,
-                                          collect_records, loader_for, read_list_lines, require_file,
-                                          require_folder, require_root)
+from .touch_and_go_plugin import READER, ROUGH_SPLITS, TouchAndGoConfig
 
-READER = "touch_and_go"
-LAYOUT = ("<root>/dataset/<recording>/{video_frame,gelsight_frame}/<frame>.jpg, <root>/dataset/<split>.txt, "
-          "<root>/label.txt, <root>/category_reference.txt")
-SPLIT_LISTS = {"train": "dataset/train.txt", "test": "dataset/test.txt", "pretrain": "dataset/pretrain.txt",
-               "train_rough": "dataset/train_rough.txt", "test_rough": "dataset/test_rough.txt", "all": "label.txt"}
-ROUGH_SPLITS = frozenset({"train_rough", "test_rough"})
+LAYOUT = (
+    "<root>/dataset/<recording>/{video_frame,gelsight_frame}/<frame>.jpg, <root>/dataset/<split>.txt, "
+    "<root>/label.txt, <root>/category_reference.txt"
+)
+SPLIT_LISTS = {
+    "train": "dataset/train.txt",
+    "test": "dataset/test.txt",
+    "pretrain": "dataset/pretrain.txt",
+    "train_rough": "dataset/train_rough.txt",
+    "test_rough": "dataset/test_rough.txt",
+    "all": "label.txt",
+}
 ROUGH_CLASS_NAMES = ("rough_smooth_0", "rough_smooth_1")
 HARD_SOFT_CLASS_NAMES = ("hard", "soft")
 SOFT_MATERIAL_IDS = frozenset({7, 8, 9, 11, 13})
@@ -52,27 +67,6 @@ UNLABELLED = -1
 _LIST_LINE = re.compile(r"(?P<recording>[^/,\s]+)/(?P<frame>[^/,\s]+)\s*,\s*(?P<label>-?\d+)")
 # Greedy name: everything up to the last colon, so names may contain ':' or '(...)'.
 _CATEGORY_LINE = re.compile(r"(?P<name>.*\S)\s*:\s*(?P<id>-?\d+)")
-
-
-class TouchAndGoConfig(ReaderConfig):
-    """Options of the ``touch_and_go`` reader (GelSight + video frames, material labels)."""
-
-    name: Literal["touch_and_go"] = "touch_and_go"
-    root: str = Field("", description="Touch and Go folder holding dataset/<recording>/{video_frame,gelsight_frame}/, "
-                                      "dataset/<split>.txt, label.txt and category_reference.txt. Required.")
-    split: Literal["train", "test", "pretrain", "train_rough", "test_rough", "all"] = Field(
-        "train", description="List to read: dataset/<split>.txt, or 'all' for label.txt. The *_rough lists carry "
-                             "binary rough/smooth labels (which of 0/1 is rough is undocumented).")
-    labels: Literal["material", "hard_soft"] = Field(
-        "material", description="Labels of the material lists: the categories of category_reference.txt, or "
-                                "hard/soft (ids 7, 8, 9, 11, 13 are soft, as in the repository's dataset.py).")
-
-    @model_validator(mode="after")
-    def _hard_soft_needs_material_labels(self) -> TouchAndGoConfig:
-        if self.labels == "hard_soft" and self.split in ROUGH_SPLITS:
-            raise ValueError(f"labels='hard_soft' is derived from material ids; split {self.split!r} has "
-                             f"rough/smooth labels: use labels='material' or a material split")
-        return self
 
 
 class TouchAndGoDataset(RecordDataset):
@@ -113,13 +107,22 @@ def _label_scheme(config: TouchAndGoConfig, root: Path) -> tuple[list[str], Call
     materials = parse_category_reference(reference)
     source = f"{reference} (ids 0..{len(materials) - 1})"
     if config.labels == "hard_soft":
-        return (list(HARD_SOFT_CLASS_NAMES),
-                lambda raw: int(raw in SOFT_MATERIAL_IDS) if 0 <= raw < len(materials) else None, source)
+        return (
+            list(HARD_SOFT_CLASS_NAMES),
+            lambda raw: int(raw in SOFT_MATERIAL_IDS) if 0 <= raw < len(materials) else None,
+            source,
+        )
     return materials, lambda raw: raw if 0 <= raw < len(materials) else None, source
 
 
-def _candidates(lines: list[tuple[int, str]], list_name: str, root: Path, label_of: Callable[[int], int | None],
-                label_source: str, skips: SkipLog) -> Iterator[SampleRecord]:
+def _candidates(
+    lines: list[tuple[int, str]],
+    list_name: str,
+    root: Path,
+    label_of: Callable[[int], int | None],
+    label_source: str,
+    skips: SkipLog,
+) -> Iterator[SampleRecord]:
     files = FileIndex()
     for number, line in lines:
         where = f"{list_name} line {number}"
@@ -137,8 +140,11 @@ def _candidates(lines: list[tuple[int, str]], list_name: str, root: Path, label_
         recording, frame = match["recording"], match["frame"]
         tactile = f"dataset/{recording}/gelsight_frame/{frame}"
         visual = f"dataset/{recording}/video_frame/{frame}"
-        missing = [f"{kind} frame {root / path}" for kind, path in (("tactile", tactile), ("visual", visual))
-                   if not files.exists(root / path)]
+        missing = [
+            f"{kind} frame {root / path}"
+            for kind, path in (("tactile", tactile), ("visual", visual))
+            if not files.exists(root / path)
+        ]
         if missing:
             skips.reject(f"{where}: missing {' and '.join(missing)}")
             continue
@@ -157,14 +163,22 @@ def build_touch_and_go(config: TouchAndGoConfig, context: BuildContext) -> Touch
     skips = SkipLog(READER, config.lenient)
     loader = loader_for(config)
     candidates = _candidates(lines, str(list_path), root, label_of, label_source, skips)
-    records = collect_records(candidates, config=config, skips=skips, base=root, loader=loader, use_reference=False,
-                              listed_in=str(list_path), total=len(lines))
-    return TouchAndGoDataset(records, base=root, loader=loader, sensor="gelsight", class_names=class_names,
-                             dropped_unlabelled=dropped, split_unit="recording")
-
-
-@hookimpl
-def vqtouch_register_datasets(register):
-    register(READER, build_touch_and_go, TouchAndGoConfig,
-             description="Touch and Go: GelSight frames paired with video frames, 20 material classes "
-                         "(or hard/soft, rough/smooth).")
+    records = collect_records(
+        candidates,
+        config=config,
+        skips=skips,
+        base=root,
+        loader=loader,
+        use_reference=False,
+        listed_in=str(list_path),
+        total=len(lines),
+    )
+    return TouchAndGoDataset(
+        records,
+        base=root,
+        loader=loader,
+        sensor="gelsight",
+        class_names=class_names,
+        dropped_unlabelled=dropped,
+        split_unit="recording",
+    )

@@ -34,9 +34,9 @@ Known HCT problem: the tactile/ and vision/ folders are swapped in parts of the 
 (Max-Fu/tvl issue #9; a fixed release is ``yoorhim/TVL-revise``).  Nothing is "fixed" silently:
 ``check_swap=true`` flags every pair whose tactile image has more pixels than its vision image,
 assuming [unverified] that the webcam frames are larger than DIGIT frames (DIGIT streams at most
-640x480).  This heuristic cannot see a swap when both cameras recorded the same resolution.  The original contact.json also lists
-frames that do not load (Max-Fu/tvl #8): strict builds name the first one, ``lenient=true``
-skips them with a count.
+640x480).  This heuristic cannot see a swap when both cameras recorded the same resolution.  The
+original contact.json also lists frames that do not load (Max-Fu/tvl #8): strict builds name the
+first one, ``lenient=true`` skips them with a count.
 
 Split groups (what ``split_dataset`` holds out whole): for HCT the trajectory folder
 ``<run>/<idx>-<unix_ts>/``, one recorded contact sequence whose frames are near-duplicates.
@@ -49,30 +49,41 @@ import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, TypeVar
+from typing import TypeVar
 
 import numpy as np
-from pydantic import Field
 
-from vqtouch.core import BuildContext, DatasetError, hookimpl
-from vqtouch.plugins.data.readers._io import (with_context_size, FileIndex, ReaderConfig, RecordDataset, SampleRecord, SkipLog,
-                                          collect_records, loader_for, read_csv_rows, read_image_size, read_json,
-                                          read_list_lines, require_file, require_folder, require_root)
+from vqtouch.core import BuildContext, DatasetError
+from vqtouch.plugins.data.readers._io import (
+    with_context_size,
+    FileIndex,
+    RecordDataset,
+    SampleRecord,
+    SkipLog,
+    collect_records,
+    loader_for,
+    read_csv_rows,
+    read_image_size,
+    read_json,
+    read_list_lines,
+    require_file,
+    require_folder,
+    require_root,
+)
 
-HCT = "tvl_hct"
-SSVTP = "tvl_ssvtp"
+from .tvl_plugin import HCT, SSVTP, TvlHctConfig, TvlSsvtpConfig
+
 HCT_LAYOUT = "<root>/<run>/{train,test}.csv or contact.json, paths relative to each run folder (root = tvl_dataset/hct)"
-SSVTP_LAYOUT = ("<root>/{train,test}.csv, <root>/images_rgb/image_<i>_rgb.jpg, <root>/images_tac/image_<i>_tac.jpg, "
-                "<root>/text/labels_<i>.txt (root = tvl_dataset/ssvtp)")
+SSVTP_LAYOUT = (
+    "<root>/{train,test}.csv, <root>/images_rgb/image_<i>_rgb.jpg, <root>/images_tac/image_<i>_tac.jpg, "
+    "<root>/text/labels_<i>.txt (root = tvl_dataset/ssvtp)"
+)
 # TVL's split: 90 % of train.csv for training, the rest for validation, seed 42.
 TRAIN_FRACTION = 0.9
 SPLIT_SEED = 42
 HCT_COLUMNS = ("vision", "tactile", "background", "caption")
 CONTACT_KEYS = ("vision", "tactile", "background")
 SENSOR = "digit"
-Split = Literal["train", "val", "test", "trainval"]
-SPLIT_DESCRIPTION = ("'test' = test.csv; 'train'/'val' = TVL's 90/10 split of train.csv "
-                     "(sklearn train_test_split, random_state=42); 'trainval' = all of train.csv.")
 _SSVTP_IMAGE = re.compile(r"image_(?P<index>\d+)_rgb(?P<suffix>\.\w+)")
 
 Row = TypeVar("Row")
@@ -85,8 +96,9 @@ def tvl_split(rows: Sequence[Row], split: str, source: str) -> list[Row]:
     from sklearn.model_selection import train_test_split
 
     try:
-        train_indices, val_indices = train_test_split(np.arange(len(rows)), train_size=TRAIN_FRACTION,
-                                                      random_state=SPLIT_SEED)
+        train_indices, val_indices = train_test_split(
+            np.arange(len(rows)), train_size=TRAIN_FRACTION, random_state=SPLIT_SEED
+        )
     except ValueError as exc:
         raise DatasetError(f"cannot make TVL's 90/10 train/val split of {source} ({len(rows)} rows): {exc}") from None
     return [rows[index] for index in (train_indices if split == "train" else val_indices)]
@@ -95,26 +107,6 @@ def tvl_split(rows: Sequence[Row], split: str, source: str) -> list[Row]:
 # --------------------------------------------------------------------------------------------
 # HCT
 # --------------------------------------------------------------------------------------------
-class TvlHctConfig(ReaderConfig):
-    """Options of the ``tvl_hct`` reader (DIGIT + webcam frames with GPT-4V captions)."""
-
-    name: Literal["tvl_hct"] = "tvl_hct"
-    root: str = Field("", description="The HCT folder of the TVL release (tvl_dataset/hct), holding the run "
-                                      "folders. Required.")
-    runs: tuple[str, ...] = Field(("data1", "data2", "data3"), min_length=1, max_length=64,
-                                  description="Collection-run folders under root to read, in this order (the "
-                                              "train/val split is taken over their rows concatenated).")
-    split: Split = Field("train", description=f"Which samples: {SPLIT_DESCRIPTION}")
-    source: Literal["csv", "contact_json"] = Field(
-        "csv", description="Where pairs are listed: 'csv' reads train.csv/test.csv (with captions as text); "
-                           "'contact_json' reads contact.json (all contact frames, no captions, no test split).")
-    subtract_background: bool = Field(False, description="Return tactile - the trajectory's background frame + 0.5, "
-                                                         "clamped to [0, 1] (TVL's background subtraction).")
-    check_swap: bool = Field(False, description="Flag pairs whose tactile image is larger than the vision image, the "
-                                                "sign of HCT's swapped tactile/vision folders (error, or skip when "
-                                                "lenient; a heuristic based on image size, never a silent fix).")
-
-
 @dataclass(frozen=True)
 class HctRow:
     """One listed HCT pair before its files are checked."""
@@ -142,10 +134,14 @@ def _hct_rows_from_contact_json(root: Path, run: str) -> list[HctRow]:
     lengths = {key: len(lists[key]) for key in CONTACT_KEYS}
     if len(set(lengths.values())) != 1:
         # Parallel lists of different length: any pairing of them would be a guess.
-        raise DatasetError(f"{HCT}: {json_path}: the parallel lists have different lengths "
-                           f"({', '.join(f'{key} {n}' for key, n in lengths.items())}); cannot pair them")
-    return [HctRow(run, f"{json_path} entry {index}", (*(str(lists[key][index]) for key in CONTACT_KEYS), ""))
-            for index in range(lengths["vision"])]
+        raise DatasetError(
+            f"{HCT}: {json_path}: the parallel lists have different lengths "
+            f"({', '.join(f'{key} {n}' for key, n in lengths.items())}); cannot pair them"
+        )
+    return [
+        HctRow(run, f"{json_path} entry {index}", (*(str(lists[key][index]) for key in CONTACT_KEYS), ""))
+        for index in range(lengths["vision"])
+    ]
 
 
 def same_frame(vision: str, tactile: str) -> bool:
@@ -161,17 +157,20 @@ def _swap_problem(tactile: Path, vision: Path) -> str | None:
         return str(exc)
     if tactile_size[0] * tactile_size[1] <= vision_size[0] * vision_size[1]:
         return None
-    return (f"tactile image {tactile} ({tactile_size[0]}x{tactile_size[1]}) is larger than its vision image "
-            f"{vision} ({vision_size[0]}x{vision_size[1]}): the tactile/ and vision/ folders look swapped "
-            f"(Max-Fu/tvl #9); use the fixed release (yoorhim/TVL-revise), or lenient=true to skip such pairs")
+    return (
+        f"tactile image {tactile} ({tactile_size[0]}x{tactile_size[1]}) is larger than its vision image "
+        f"{vision} ({vision_size[0]}x{vision_size[1]}): the tactile/ and vision/ folders look swapped "
+        f"(Max-Fu/tvl #9); use the fixed release (yoorhim/TVL-revise), or lenient=true to skip such pairs"
+    )
 
 
 def _hct_candidates(rows: list[HctRow], root: Path, config: TvlHctConfig, skips: SkipLog) -> Iterator[SampleRecord]:
     files = FileIndex()
     for row in rows:
         if len(row.cells) != len(HCT_COLUMNS):
-            skips.reject(f"{row.where}: expected {len(HCT_COLUMNS)} columns ({', '.join(HCT_COLUMNS)}), "
-                         f"got {len(row.cells)}")
+            skips.reject(
+                f"{row.where}: expected {len(HCT_COLUMNS)} columns ({', '.join(HCT_COLUMNS)}), got {len(row.cells)}"
+            )
             continue
         vision, tactile, background = (f"{row.run}/{cell}" for cell in row.cells[:3])
         caption = row.cells[3]
@@ -183,14 +182,22 @@ def _hct_candidates(rows: list[HctRow], root: Path, config: TvlHctConfig, skips:
             skips.reject(f"{row.where}: missing {' and '.join(missing)}")
             continue
         if not same_frame(vision, tactile):
-            skips.reject(f"{row.where}: vision {vision} and tactile {tactile} are not the same frame (HCT pairs "
-                         f"share the file name and trajectory folder)")
+            skips.reject(
+                f"{row.where}: vision {vision} and tactile {tactile} are not the same frame (HCT pairs "
+                f"share the file name and trajectory folder)"
+            )
             continue
         if config.check_swap and (problem := _swap_problem(root / tactile, root / vision)):
             skips.reject(f"{row.where}: {problem}")
             continue
-        yield SampleRecord(id=tactile, tactile=tactile, visual=vision, reference=background, text=caption,
-                           group=Path(tactile).parent.parent.as_posix())
+        yield SampleRecord(
+            id=tactile,
+            tactile=tactile,
+            visual=vision,
+            reference=background,
+            text=caption,
+            group=Path(tactile).parent.parent.as_posix(),
+        )
 
 
 def build_tvl_hct(config: TvlHctConfig, context: BuildContext) -> TvlHctDataset:
@@ -198,36 +205,45 @@ def build_tvl_hct(config: TvlHctConfig, context: BuildContext) -> TvlHctDataset:
     config = with_context_size(config, context)
     root = require_root(config, HCT_LAYOUT)
     if config.source == "contact_json" and config.split == "test":
-        raise DatasetError(f"{HCT}: contact.json has no test split (test pairs are listed only in test.csv); "
-                           f"use source='csv' or another split")
+        raise DatasetError(
+            f"{HCT}: contact.json has no test split (test pairs are listed only in test.csv); "
+            f"use source='csv' or another split"
+        )
     rows: list[HctRow] = []
     for run in config.runs:
         require_folder(root / run, HCT, f"collection run {run!r}")
-        rows += _hct_rows_from_csv(root, run, config.split) if config.source == "csv" \
+        rows += (
+            _hct_rows_from_csv(root, run, config.split)
+            if config.source == "csv"
             else _hct_rows_from_contact_json(root, run)
+        )
     listed_in = f"{config.split} rows of {', '.join(config.runs)} ({config.source}) under {root}"
     chosen = tvl_split(rows, config.split, listed_in)
     skips = SkipLog(HCT, config.lenient)
     loader = loader_for(config)
-    records = collect_records(_hct_candidates(chosen, root, config, skips), config=config, skips=skips, base=root,
-                              loader=loader, use_reference=config.subtract_background, listed_in=listed_in,
-                              total=len(chosen))
-    return TvlHctDataset(records, base=root, loader=loader, sensor=SENSOR,
-                         subtract_reference=config.subtract_background, split_unit="trajectory")
+    records = collect_records(
+        _hct_candidates(chosen, root, config, skips),
+        config=config,
+        skips=skips,
+        base=root,
+        loader=loader,
+        use_reference=config.subtract_background,
+        listed_in=listed_in,
+        total=len(chosen),
+    )
+    return TvlHctDataset(
+        records,
+        base=root,
+        loader=loader,
+        sensor=SENSOR,
+        subtract_reference=config.subtract_background,
+        split_unit="trajectory",
+    )
 
 
 # --------------------------------------------------------------------------------------------
 # SSVTP
 # --------------------------------------------------------------------------------------------
-class TvlSsvtpConfig(ReaderConfig):
-    """Options of the ``tvl_ssvtp`` reader (robot-collected DIGIT + camera pairs with adjectives)."""
-
-    name: Literal["tvl_ssvtp"] = "tvl_ssvtp"
-    root: str = Field("", description="The SSVTP folder of the TVL release (tvl_dataset/ssvtp) holding train.csv, "
-                                      "test.csv, images_rgb/, images_tac/ and text/. Required.")
-    split: Split = Field("train", description=f"Which samples: {SPLIT_DESCRIPTION}")
-
-
 class TvlSsvtpDataset(RecordDataset):
     """TVL SSVTP samples: tactile and visual image of index i, adjectives as text.  No split groups:
     the release records nothing that ties two indices to one recording or object."""
@@ -246,8 +262,9 @@ def adjectives_text(first_line: str) -> str:
     return ", ".join(word for word in words if word)
 
 
-def _ssvtp_candidates(rows: list[tuple[int, list[str]]], csv_path: Path, root: Path,
-                      skips: SkipLog) -> Iterator[SampleRecord]:
+def _ssvtp_candidates(
+    rows: list[tuple[int, list[str]]], csv_path: Path, root: Path, skips: SkipLog
+) -> Iterator[SampleRecord]:
     files = FileIndex()
     for number, cells in rows:
         where = f"{csv_path} line {number}"
@@ -258,8 +275,11 @@ def _ssvtp_candidates(rows: list[tuple[int, list[str]]], csv_path: Path, root: P
         index = match["index"]
         visual, tactile = cells[0], f"images_tac/image_{index}_tac{match['suffix']}"
         text_path = root / "text" / f"labels_{index}.txt"
-        missing = [f"{kind} {root / path}" for kind, path in (("visual image", visual), ("tactile image", tactile))
-                   if not files.exists(root / path)]
+        missing = [
+            f"{kind} {root / path}"
+            for kind, path in (("visual image", visual), ("tactile image", tactile))
+            if not files.exists(root / path)
+        ]
         if not files.exists(text_path):
             missing.append(f"adjective file {text_path}")
         if missing:
@@ -270,8 +290,9 @@ def _ssvtp_candidates(rows: list[tuple[int, list[str]]], csv_path: Path, root: P
         except DatasetError as exc:
             skips.reject(f"{where}: {exc}")
             continue
-        yield SampleRecord(id=tactile, tactile=tactile, visual=visual,
-                           text=adjectives_text(lines[0][1]) if lines else "")
+        yield SampleRecord(
+            id=tactile, tactile=tactile, visual=visual, text=adjectives_text(lines[0][1]) if lines else ""
+        )
 
 
 def build_tvl_ssvtp(config: TvlSsvtpConfig, context: BuildContext) -> TvlSsvtpDataset:
@@ -282,15 +303,14 @@ def build_tvl_ssvtp(config: TvlSsvtpConfig, context: BuildContext) -> TvlSsvtpDa
     chosen = tvl_split(_ssvtp_rows(csv_path), config.split, str(csv_path))
     skips = SkipLog(SSVTP, config.lenient)
     loader = loader_for(config)
-    records = collect_records(_ssvtp_candidates(chosen, csv_path, root, skips), config=config, skips=skips,
-                              base=root, loader=loader, use_reference=False,
-                              listed_in=f"{config.split} rows of {csv_path}", total=len(chosen))
+    records = collect_records(
+        _ssvtp_candidates(chosen, csv_path, root, skips),
+        config=config,
+        skips=skips,
+        base=root,
+        loader=loader,
+        use_reference=False,
+        listed_in=f"{config.split} rows of {csv_path}",
+        total=len(chosen),
+    )
     return TvlSsvtpDataset(records, base=root, loader=loader, sensor=SENSOR)
-
-
-@hookimpl
-def vqtouch_register_datasets(register):
-    register(HCT, build_tvl_hct, TvlHctConfig,
-             description="TVL HCT: DIGIT frames paired with webcam frames and GPT-4V captions (TVL's splits).")
-    register(SSVTP, build_tvl_ssvtp, TvlSsvtpConfig,
-             description="TVL SSVTP: DIGIT images paired with camera images and human adjectives (TVL's splits).")

@@ -23,34 +23,27 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Literal
 
-from pydantic import Field
+from vqtouch.core import BuildContext
+from vqtouch.plugins.data.readers._io import (
+    with_context_size,
+    FileIndex,
+    RecordDataset,
+    SampleRecord,
+    SkipLog,
+    collect_records,
+    loader_for,
+    read_list_lines,
+    require_file,
+    require_root,
+)
 
-from vqtouch.core import BuildContext, hookimpl
-from vqtouch.plugins.data.readers._io import (with_context_size, FileIndex, ReaderConfig, RecordDataset, SampleRecord, SkipLog,
-                                          collect_records, loader_for, read_list_lines, require_file, require_root)
+from .visgel_plugin import READER, VisGelConfig
 
-READER = "visgel"
 LAYOUT = "<root>/data_lst/<split>_<direction>.txt with 8 space-separated paths per line, relative to <root>"
 PATHS_PER_LINE = 8
 # Positions within a list line.
 REF_SRC, REF_DES, SRC, DES = 0, 1, 2, 3
-
-
-class VisGelConfig(ReaderConfig):
-    """Options of the ``visgel`` reader (GelSight + camera frames from the VisGel lists)."""
-
-    name: Literal["visgel"] = "visgel"
-    root: str = Field("", description="VisGel folder holding data_lst/ and the data folders its lists name "
-                                      "(paths in the lists are relative to it). Required.")
-    split: Literal["train", "eval", "demo"] = Field("train",
-                                                    description="List to read: data_lst/<split>_<direction>.txt.")
-    direction: Literal["vision2touch", "touch2vision"] = Field(
-        "vision2touch", description="Which list family to read; both give visual and tactile images, the "
-                                    "direction only decides which list (and which reference column) is used.")
-    subtract_reference: bool = Field(False, description="Return tactile - no-contact reference frame + 0.5, clamped "
-                                                        "to [0, 1] (shows only what contact changed).")
 
 
 class VisGelDataset(RecordDataset):
@@ -64,8 +57,9 @@ def _columns(direction: str) -> tuple[int, int, int]:
     return DES, SRC, REF_SRC
 
 
-def _candidates(lines: list[tuple[int, str]], list_name: str, root: Path, direction: str, check_reference: bool,
-                skips: SkipLog) -> Iterator[SampleRecord]:
+def _candidates(
+    lines: list[tuple[int, str]], list_name: str, root: Path, direction: str, check_reference: bool, skips: SkipLog
+) -> Iterator[SampleRecord]:
     files = FileIndex()
     visual_at, tactile_at, reference_at = _columns(direction)
     for number, line in lines:
@@ -81,27 +75,41 @@ def _candidates(lines: list[tuple[int, str]], list_name: str, root: Path, direct
         if missing:
             skips.reject(f"{where}: missing {' and '.join(missing)}")
             continue
-        yield SampleRecord(id=paths[tactile_at], tactile=paths[tactile_at], visual=paths[visual_at],
-                           reference=paths[reference_at], group=paths[reference_at])
+        yield SampleRecord(
+            id=paths[tactile_at],
+            tactile=paths[tactile_at],
+            visual=paths[visual_at],
+            reference=paths[reference_at],
+            group=paths[reference_at],
+        )
 
 
 def build_visgel(config: VisGelConfig, context: BuildContext) -> VisGelDataset:
     """Factory: index one VisGel list, checking that every frame it names exists."""
     config = with_context_size(config, context)
     root = require_root(config, LAYOUT)
-    list_path = require_file(root / "data_lst" / f"{config.split}_{config.direction}.txt", READER,
-                             f"{config.split} {config.direction} list")
+    list_path = require_file(
+        root / "data_lst" / f"{config.split}_{config.direction}.txt", READER, f"{config.split} {config.direction} list"
+    )
     lines = read_list_lines(list_path, READER)
     skips = SkipLog(READER, config.lenient)
     loader = loader_for(config)
     candidates = _candidates(lines, str(list_path), root, config.direction, config.subtract_reference, skips)
-    records = collect_records(candidates, config=config, skips=skips, base=root, loader=loader,
-                              use_reference=config.subtract_reference, listed_in=str(list_path), total=len(lines))
-    return VisGelDataset(records, base=root, loader=loader, sensor="gelsight",
-                         subtract_reference=config.subtract_reference, split_unit="recording")
-
-
-@hookimpl
-def vqtouch_register_datasets(register):
-    register(READER, build_visgel, VisGelConfig,
-             description="VisGel: GelSight frames paired with camera frames from the data_lst lists (no labels).")
+    records = collect_records(
+        candidates,
+        config=config,
+        skips=skips,
+        base=root,
+        loader=loader,
+        use_reference=config.subtract_reference,
+        listed_in=str(list_path),
+        total=len(lines),
+    )
+    return VisGelDataset(
+        records,
+        base=root,
+        loader=loader,
+        sensor="gelsight",
+        subtract_reference=config.subtract_reference,
+        split_unit="recording",
+    )
