@@ -47,8 +47,8 @@ class TrainConfig(Section):
         "auto",
         description="Autocast precision of the networks (quantizer and diffusion maths stay fp32): fp32, "
         "bf16, or auto, the measured choice for the component on the device the run trains on "
-        "(AUTO_PRECISION: bf16 for the generator on a CPU with bf16 matrix units, fp32 for the rest "
-        "on CPU; bf16 on a CUDA GPU that supports it).",
+        "(AUTO_PRECISION: bf16 on a CPU with bf16 matrix units, fp32 on one without; bf16 on a CUDA GPU "
+        "that supports it).",
     )
     optimizer: Literal["adamw", "adam"] = Field("adamw", description="Optimizer of every trained module.")
     warmup_steps: int = Field(

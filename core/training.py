@@ -79,14 +79,17 @@ TRAINER_STATE = "trainer_state.safetensors"
 _STEP_FOLDER = re.compile(r"step-(\d+)")
 
 
-#: What ``precision: auto`` trains in: device type -> component (``TrainConfig.component``) -> precision,
-#: ``None`` for every other component; other devices: fp32.  Measured (docs/results.md, "Training in bf16
-#: on the CPU"): on a CPU with bf16 matrix units the generator trains 1.5x (``tour``) to 2.1x
-#: (``tour_wide``) faster per step in bf16 at the same held-out loss after 1,000 steps (3 seeds); the
-#: tokenizer stays fp32 there (bf16: equal PSNR, SSIM and held-out L1 lower on both seeds at 600 steps).
+#: What ``precision: auto`` runs in: device type -> component -> precision, ``None`` for every other
+#: component; other devices: fp32.  The components are the trained ones (``TrainConfig.component``) and
+#: ``"sampling"``, the generator's network while it samples (``generator.sample_precision``).  Measured
+#: (docs/results.md, "Training in bf16 on the CPU"): on a CPU with bf16 matrix units the generator trains
+#: 1.5x (``tour``) to 2.1x (``tour_wide``) faster per step in bf16 at the same held-out loss after 1,000
+#: steps (3 seeds), the tokenizer 1.3x (DM-VQGAN, 64 px) to 2x (128 px) at PSNR, contact PSNR and held-out
+#: L1 within the seeds' spread (3 seeds, 600 steps), and a sampling step runs 1.55x (``tour``) to 2.2x
+#: (``tour_wide``) faster at scores within the sampling seeds' spread.
 #: CUDA: bf16, the tensor-core precision, where ``torch.cuda.is_bf16_supported()``.
 AUTO_PRECISION: dict[str, dict[str | None, str]] = {
-    "cpu": {"generator": "bf16", None: "fp32"},
+    "cpu": {"generator": "bf16", "tokenizer": "bf16", "sampling": "bf16", None: "fp32"},
     "cuda": {None: "bf16"},
 }
 
@@ -112,6 +115,16 @@ def resolve_precision(precision: str, device: torch.device, component: str | Non
     if choice == "bf16" and device.type == "cpu" and not cpu_has_bf16_matrix_units():
         return "fp32"
     return choice
+
+
+def autocast(precision: str, device: torch.device) -> contextlib.AbstractContextManager:
+    """bf16 autocast on ``device`` for ``precision`` ``"bf16"``; a no-op for ``"fp32"`` (resolve ``"auto"``
+    first with :func:`resolve_precision`)."""
+    if precision == "bf16":
+        return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
+    if precision != "fp32":
+        raise ValueError(f"precision {precision!r}: expected fp32 or bf16 (resolve 'auto' with resolve_precision)")
+    return contextlib.nullcontext()
 
 
 def _fused_supported(param_groups: list[dict[str, Any]]) -> bool:
@@ -435,9 +448,7 @@ class Trainer:
 
     def autocast(self) -> contextlib.AbstractContextManager:
         """The autocast context of the configured precision (a no-op in fp32; ``auto`` as :func:`resolve_precision`)."""
-        if self.precision == "bf16":
-            return torch.autocast(device_type=self.device.type, dtype=torch.bfloat16)
-        return contextlib.nullcontext()
+        return autocast(self.precision, self.device)
 
     def optimize(self, name: str, loss: torch.Tensor) -> bool:
         """Backward ``loss`` and step optimizer ``name``; returns False when the step was skipped.

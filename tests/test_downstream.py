@@ -25,6 +25,7 @@ from vqtouch.plugins.experiments.downstream import (
     GENERATED,
     RECONSTRUCTED,
     LabelledFeatures,
+    classification_accuracy_score,
     draw_others,
     draw_shots,
     label_conditioner_index,
@@ -102,6 +103,32 @@ def test_the_summary_is_the_mean_and_spread_of_the_seeds(evaluated):
         for score in ("top1", "precision", "recall", "f1"):
             assert summary[score] == pytest.approx(statistics.fmean(row[score] for row in rows), abs=1e-5)
             assert summary[f"{score}_std"] == pytest.approx(statistics.pstdev(row[score] for row in rows), abs=1e-5)
+
+
+def test_the_cas_ratio_and_the_mixed_gain_are_paired_per_seed(evaluated):
+    _, result = evaluated
+    top1 = {(row["arm"], row["seed"]): row["top1"] for row in result["rows"]}
+    ratios = [top1[(GENERATED, seed)] / top1[(FEW, seed)] for seed in (0, 1)]
+    gains = [top1[(FEW_AND_GENERATED, seed)] - top1[(FEW, seed)] for seed in (0, 1)]
+    assert result["cas_ratio"] == pytest.approx(
+        {"mean": statistics.fmean(ratios), "std": statistics.pstdev(ratios)}, abs=1e-4
+    )
+    assert result["generated_adds"] == pytest.approx(
+        {"mean": statistics.fmean(gains), "std": statistics.pstdev(gains)}, abs=1e-4
+    )
+    markdown = (evaluated[0] / "downstream.md").read_text()
+    assert "CAS ratio (`generated only` top-1 over `real few` top-1 at the same 2 images per class" in markdown
+
+
+def test_the_cas_ratio_needs_equal_counts_and_a_real_score():
+    rows = [
+        {"arm": GENERATED, "seed": 0, "top1": 0.3},
+        {"arm": FEW, "seed": 0, "top1": 0.6},
+        {"arm": GENERATED, "seed": 1, "top1": 0.2},
+        {"arm": FEW, "seed": 1, "top1": 0.0},  # no real score: that seed has no ratio
+    ]
+    assert classification_accuracy_score(rows, shots=5, generated_per_class=10) is None
+    assert classification_accuracy_score(rows, shots=10, generated_per_class=10) == {"mean": 0.5, "std": 0.0}
 
 
 def test_no_arm_trains_on_a_held_out_image(evaluated, label_run, host):

@@ -11,6 +11,7 @@ import torch
 
 from vqtouch.core.cli import main
 from vqtouch.core.config import resolve_config
+from vqtouch.core.training import cpu_has_bf16_matrix_units
 from vqtouch.plugins.experiments import pipeline_tradeoff as tradeoff
 
 #: A tiny VQGAN tokenizer and generator at 32 px (tests/generator_runs.py's sizes); the encoder's
@@ -37,14 +38,16 @@ TINY = [
 ]
 KNOBS = ["codebook=16,64", "downsampling", "steps=2", "sampler=confidence"]
 SEEDS = (0, 1)
+#: What ``precision: auto`` and ``generator.sample_precision: auto`` resolve to on this machine.
+AUTO = "bf16" if cpu_has_bf16_matrix_units() else "fp32"
 #: Every (part, knob, setting) the run must measure once per seed.
 EXPECTED = {
-    ("tokenizer", "baseline", "off (vqgan), K = 32, 32 px, train fp32, f = 2"),
+    ("tokenizer", "baseline", f"off (vqgan), K = 32, 32 px, train {AUTO}, f = 2"),
     ("tokenizer", "codebook", "K = 16"),
     ("tokenizer", "codebook", "K = 64"),
     ("tokenizer", "downsampling", "f = 4"),
     ("tokenizer", "baseline", tradeoff.DRIFT),
-    ("generator", "baseline", "posterior 4"),
+    ("generator", "baseline", "posterior 4" + (" bf16" if AUTO == "bf16" else "")),
     ("generator", "steps", "2 steps"),
     ("generator", "sampler", "confidence"),
     ("generator", "baseline", tradeoff.DRIFT),
@@ -186,7 +189,7 @@ def test_tokenizer_rows_hold_the_scores_of_runs_trained_by_the_stage(experiment)
 
 def test_each_sampling_setting_changes_one_knob_of_the_configured_one(experiment):
     _, result = experiment
-    configured = {"sampler": "posterior", "steps": 4, "guidance": 1.0, "precision": "fp32"}
+    configured = {"sampler": "posterior", "steps": 4, "guidance": 1.0, "precision": AUTO}
     key_of = {"steps": "steps", "sampler": "sampler"}
     for row in (row for row in result["rows"] if row["part"] == "generator"):
         changed = {key: value for key, value in row["sampling"].items() if configured[key] != value}
@@ -252,16 +255,17 @@ def test_default_knob_values_derive_from_the_baseline(host):
     config = resolve_config("label-to-touch", host=host)
     tiny_dm_vqgan = resolve_config("label-to-touch", overrides=TINY[1:], host=host)
     knobs = tradeoff.parse_knobs(None, config, host)
+    other = "fp32" if AUTO == "bf16" else "bf16"  # the knob's default is the precision auto does not pick
     assert knobs == {
         "deformable": ["off"],
         "codebook": [128, 2048],
         "resolution": [128],
-        "precision": ["bf16"],
+        "precision": [other],
         "downsampling": [8],
         "steps": [50, 12],
         "sampler": ["confidence", "purity"],
         "guidance": [3.0],
-        "sampling-precision": ["bf16"],
+        "sampling-precision": [other],
     }
     # Scaled like the demo, the configured sampling steps (and so their defaults) are the demo's.
     assert tradeoff.parse_knobs(["steps"], tradeoff.scaled_config(config, host, full=False), host) == {"steps": [20, 5]}

@@ -437,15 +437,19 @@ def test_auto_precision_per_device_and_component(monkeypatch):
         "bf16",
         "fp32",
     ]
-    assert [resolve_precision("auto", torch.device(kind), tokenizer) for kind in ("cpu", "cuda", "meta")] == [
-        "fp32",
-        "bf16",
-        "fp32",
-    ]
+    for component in (tokenizer, "sampling"):
+        assert [resolve_precision("auto", torch.device(kind), component) for kind in ("cpu", "cuda", "meta")] == [
+            "bf16",
+            "bf16",
+            "fp32",
+        ]
+    # A component without a measured choice keeps fp32 on the CPU.
+    assert resolve_precision("auto", torch.device("cpu"), "unmeasured") == "fp32"
     assert resolve_precision("fp32", torch.device("cpu"), generator) == "fp32"  # --set ...precision=fp32 wins
     assert resolve_precision("bf16", torch.device("cpu"), tokenizer) == "bf16"
     monkeypatch.setattr(training, "cpu_has_bf16_matrix_units", lambda: False)
-    assert resolve_precision("auto", torch.device("cpu"), generator) == "fp32"
+    for component in (generator, tokenizer, "sampling"):
+        assert resolve_precision("auto", torch.device("cpu"), component) == "fp32"
     monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *args, **kwargs: False)
     assert resolve_precision("auto", torch.device("cuda"), generator) == "fp32"
 

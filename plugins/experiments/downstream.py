@@ -68,6 +68,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import statistics
 import textwrap
 import time
 from collections import Counter
@@ -310,6 +311,7 @@ def generate_per_class(
                 best_of=best_of,
                 labels_B=conditioner.condition_of(batch) if best_of > 1 else None,
                 rank=rank,
+                precision=pipe.sample_precision,
             )
             .float()
             .cpu()
@@ -560,6 +562,8 @@ def evaluate_downstream(
         "background": None if background is None else background_source,
         "rows": rows,
         "summary": summary,
+        "cas_ratio": classification_accuracy_score(rows, shots, generated_per_class),
+        "generated_adds": paired_over_seeds(rows, FEW_AND_GENERATED, FEW, lambda mixed, few: mixed - few),
         "confusion": {"seed": record.seeds[0], "labels": every_class, "matrices": confusion},
     }
     plot_scores(
@@ -578,6 +582,33 @@ def evaluate_downstream(
     save_generated(shown, generated_per_class, record.path("downstream_generated.png"))
     record.write(result, render_markdown(result))
     return result
+
+
+def paired_over_seeds(
+    rows: Sequence[dict[str, Any]], arm: str, rival: str, combine: Callable[[float, float], float]
+) -> dict[str, float] | None:
+    """``combine(arm's top-1, rival's top-1)`` per seed, as ``{"mean", "std"}`` over the seeds where both
+    arms trained (None where none did)."""
+    by_seed = {(row["arm"], row["seed"]): row["top1"] for row in rows}
+    values = [
+        combine(by_seed[(arm, seed)], by_seed[(rival, seed)])
+        for seed in sorted({row["seed"] for row in rows})
+        if (arm, seed) in by_seed and (rival, seed) in by_seed
+    ]
+    values = [value for value in values if math.isfinite(value)]
+    if not values:
+        return None
+    # The population spread, as the summary's (mean_spread).
+    return {"mean": round(statistics.fmean(values), 4), "std": round(statistics.pstdev(values), 4)}
+
+
+def classification_accuracy_score(rows: Sequence[dict[str, Any]], shots: int, generated_per_class: int) -> Any:
+    """The field's CAS ratio (Ravuri and Vinyals, 2019): top-1 of the classifier trained on generated
+    images only over that of the same classifier trained on as many real images, per seed; None
+    unless ``shots`` equals ``generated_per_class`` (the counts must match)."""
+    if shots != generated_per_class:
+        return None
+    return paired_over_seeds(rows, GENERATED, FEW, lambda generated, real: generated / real if real else math.nan)
 
 
 def mixed_arm(generated_weight: float) -> str:
@@ -647,6 +678,18 @@ def render_markdown(result: dict[str, Any]) -> list[str]:
         f"reconstructions of {result['generated_per_class']} other real training images per class, what a "
         "generator that reproduced its training images would give (the generated arms' ceiling).",
     ]
+    cas, adds = result.get("cas_ratio"), result.get("generated_adds")
+    if cas:
+        lines += [
+            "",
+            f"CAS ratio (`{GENERATED}` top-1 over `{FEW}` top-1 at the same {result['shots']} images per class, "
+            f"per seed): {cas['mean']:.3f} ± {cas['std']:.3f}.",
+        ]
+    if adds:
+        lines += [
+            "",
+            f"`{FEW_AND_GENERATED}` minus `{FEW}` (top-1, per seed): {adds['mean']:+.3f} ± {adds['std']:.3f}.",
+        ]
     if result["reconstruction_shortfall"]:
         lines += [
             "",

@@ -161,6 +161,7 @@ def _samples(pipe: Any, index: int, conditions: Any, seed: int, device: torch.de
                     truncation=pipe.settings["truncation"],
                     seed=seed,
                     device=device,
+                    precision=pipe.sample_precision,
                 )
                 .float()
                 .clamp(0, 1)

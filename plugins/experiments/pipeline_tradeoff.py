@@ -80,7 +80,7 @@ from vqtouch.core.config import scale_for_demo
 from vqtouch.core.data import experiment_split
 from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all, tokenizer_task
 
-from .pipeline_tradeoff_knobs import KNOBS, Knob, known_knobs  # noqa: F401 (their old home)
+from .pipeline_tradeoff_knobs import KNOBS, Knob, known_knobs, sampling_precision_baseline  # noqa: F401 (their old home)
 from .pipeline_tradeoff_plugin import QUICK, QUICK_KNOBS, STANDARD
 
 #: The scene whose baseline the command measures when none is named: a tokenizer and a generator.
@@ -228,7 +228,12 @@ def check_sampling_values(config: Any, host: PluginHost, knobs: dict[str, list[A
 def generator_base(config: Any) -> dict[str, Any]:
     """The configured sampling setting (the generator part's baseline)."""
     section = config.generator
-    return {"sampler": section.sampler.name, "steps": section.steps, "guidance": section.guidance, "precision": "fp32"}
+    return {
+        "sampler": section.sampler.name,
+        "steps": section.steps,
+        "guidance": section.guidance,
+        "precision": sampling_precision_baseline(config),
+    }
 
 
 # -- training and timing --------------------------------------------------------------------------

@@ -113,6 +113,14 @@ def _precision_baseline(config: Any, host: PluginHost) -> str:
     return resolve_precision(config.tokenizer.train.precision, resolve_device(config.device), "tokenizer")
 
 
+def sampling_precision_baseline(config: Any, host: PluginHost | None = None) -> str:
+    """The generator's sampling precision in a run of ``config`` (``generator.sample_precision``, ``auto``
+    resolved)."""
+    from vqtouch.core.training import resolve_precision  # imports torch: not when the parser lists the knobs
+
+    return resolve_precision(config.generator.sample_precision, resolve_device(config.device), "sampling")
+
+
 def _downsampling_baseline(config: Any, host: PluginHost) -> int:
     multipliers = getattr(config.tokenizer.autoencoder, "channel_multipliers", None)
     if not multipliers:
@@ -225,10 +233,10 @@ KNOBS: dict[str, Knob] = {
         Knob(
             "sampling-precision",
             "generator",
-            "precision of sampling and decoding, fp32 or bf16 autocast",
+            "precision of the generator's network while sampling, fp32 or bf16 autocast",
             _choice("fp32", "bf16"),
-            lambda config, host: "fp32",
-            lambda c, h, base: ["bf16"],
+            sampling_precision_baseline,
+            lambda c, h, base: ["bf16" if base == "fp32" else "fp32"],
             setting_key="precision",
         ),
     )

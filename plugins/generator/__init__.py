@@ -26,6 +26,7 @@ _PUBLIC = {
     "generator_tokenizer": ("pipeline", "generator_tokenizer"),
     "GENERATOR_CHECKPOINTS": ("stage", "CHECKPOINT_FOLDER"),
     "sample_images": ("stage", "sample_images"),
+    "sampling_precision": ("stage", "sampling_precision"),
     "check_condition_keys": ("stage", "check_condition_keys"),
     "check_best_of": ("best_of", "check_best_of"),
     "check_best_of_rank": ("best_of", "check_best_of_rank"),

@@ -331,6 +331,7 @@ def cmd_evaluate_generation(args: argparse.Namespace) -> int:
             distribution=scorer,
             best_of=best_of[index],
             rank=pipe.best_of_ranking(args.best_of_rank) if best_of[index] > 1 else None,
+            precision=pipe.sample_precision,
         )
     head = {
         "checkpoint": str(args.run if is_pretrained(args.run) else pipe.checkpoint),

@@ -32,12 +32,12 @@ from vqtouch.core import (
 )
 from vqtouch.core.checkpoint import is_pretrained, open_pretrained
 from vqtouch.core.image_size import ImageSize
-from vqtouch.core.training import TRAINER_STATE, apply_ema_weights, collate_samples, saved_ema_weights
+from vqtouch.core.training import TRAINER_STATE, apply_ema_weights, autocast, collate_samples, saved_ema_weights
 
 from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_digest, tokenizer_location
 
 from .best_of import BestOfRank, check_best_of, check_best_of_rank, sample_best_of
-from .stage import CHECKPOINT_FOLDER
+from .stage import CHECKPOINT_FOLDER, sampling_precision
 from .training import SENSOR_TAG_MODULE, SensorTaggedConditioner
 
 
@@ -183,6 +183,12 @@ class GenerationPipeline:
         )
         return [f"{index}:{name}" for index, name in enumerate(names)]
 
+    @property
+    def sample_precision(self) -> str:
+        """The precision (fp32 or bf16) the generator's network samples in on this pipeline's device:
+        the run's ``generator.sample_precision``, ``auto`` resolved (:func:`.stage.sampling_precision`)."""
+        return sampling_precision(self.settings.get("precision", "auto"), self.device)
+
     def guidance_for(self, index: int) -> float:
         """The default guidance scale of conditioner ``index``: the run's ``conditioner_guidance`` for
         its name, else its ``guidance`` (:meth:`GeneratorSection.guidance_for`)."""
@@ -286,6 +292,7 @@ class GenerationPipeline:
         if count < 1:
             raise ConfigError("nothing to generate: n must be at least 1")
         steps = steps if steps is not None else self.settings["steps"]
+        precision = self.sample_precision
         index = self.conditioner_index(key, conditioner)
         guidance = guidance if guidance is not None else self.guidance_for(index)
         truncation = truncation if truncation is not None else self.settings["truncation"]
@@ -313,15 +320,16 @@ class GenerationPipeline:
             null = conditioner.null(len(rows))
 
             def draw(generators: list[torch.Generator], condition: Any = condition, null: Any = null) -> torch.Tensor:
-                return self.generator.sample(
-                    condition,
-                    chosen,
-                    steps=steps,
-                    null=null,
-                    guidance=guidance,
-                    truncation=truncation,
-                    generators=generators,
-                )
+                with autocast(precision, self.device):
+                    return self.generator.sample(
+                        condition,
+                        chosen,
+                        steps=steps,
+                        null=null,
+                        guidance=guidance,
+                        truncation=truncation,
+                        generators=generators,
+                    )
 
             row_seeds = [seed * 1_000_003 + start + row for row in range(len(rows))]
             labels_B = conditioner.condition_of(batch) if best_of > 1 else None
@@ -433,7 +441,12 @@ def _use_ema_weights(
 
 def _sampling_settings(section: Any) -> dict[str, Any]:
     """A generator section's sampling defaults, as :attr:`GenerationPipeline.settings` holds them."""
-    return {"steps": section.steps, "guidance": section.guidance, "truncation": section.truncation}
+    return {
+        "steps": section.steps,
+        "guidance": section.guidance,
+        "truncation": section.truncation,
+        "precision": section.sample_precision,
+    }
 
 
 def generator_tokenizer(run_dir: RunDir, section: Any) -> RunDir | Path:

@@ -12,7 +12,6 @@ are, generated, ground truth).
 
 from __future__ import annotations
 
-import contextlib
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -27,7 +26,14 @@ from vqtouch.core.errors import VqtouchWarning
 from vqtouch.core.image_size import image_hw
 from vqtouch.core.images import image_grid, save_png
 from vqtouch.core.runs import MissingCheckpointError
-from vqtouch.core.training import Trainer, apply_ema_weights, collate_samples, step_folders
+from vqtouch.core.training import (
+    Trainer,
+    apply_ema_weights,
+    autocast,
+    collate_samples,
+    resolve_precision,
+    step_folders,
+)
 from vqtouch.plugins.evaluation.contact import (
     VERDICT_EVIDENCE,
     contact_centroid_errors,
@@ -390,6 +396,7 @@ def score_generation(
     distribution: bool | DistributionScorer = False,
     best_of: int = 1,
     rank: Any = None,
+    precision: str = "fp32",
 ) -> dict[str, Any]:
     """Generate the held-out ``conditions`` (:func:`held_out_conditions`, read once and shared by every
     conditioner scored) with ``conditioner`` and score them against their ground-truth tactile images.
@@ -420,7 +427,7 @@ def score_generation(
     ``best_of`` > 1: each sample is the best of that many candidates by ``rank`` (e.g. the code
     judge's, :mod:`.judge`, for a label; :class:`.consensus.ContactConsensus` for any condition), or
     the generator's own posterior of its label when None (:mod:`.best_of`); the scores then say
-    ``best_of`` and ``best_of_rank``."""
+    ``best_of`` and ``best_of_rank``.  The generator's network samples in ``precision`` (``sampled_in``)."""
     count, indices, truth = len(conditions.indices), conditions.indices, conditions.truth
     batch = conditions.batch(device=device)
     generator.eval()
@@ -441,8 +448,15 @@ def score_generation(
         best_of=best_of,
         labels_B=conditioner.condition_of(batch) if best_of > 1 else None,
         rank=rank,
+        precision=precision,
     )
-    scores: dict[str, Any] = {"samples": count, "steps": steps, "guidance": guidance, "truncation": truncation}
+    scores: dict[str, Any] = {
+        "samples": count,
+        "steps": steps,
+        "guidance": guidance,
+        "truncation": truncation,
+        "sampled_in": precision,
+    }
     if best_of > 1:
         scores["best_of"] = best_of
         scores["best_of_rank"] = rank_name(rank)
@@ -534,23 +548,26 @@ def sample_images(
     best_of: int = 1,
     labels_B: torch.Tensor | None = None,
     rank: Any = None,
+    precision: str = "fp32",
 ) -> torch.Tensor:
     """Decoded images (B, 3, H, W) of encoded ``condition`` (one row per entry of ``indices``): row i
     drawn with a generator seeded from (seed, ``indices[i]``), its dataset index.  ``best_of`` > 1
     keeps, per row, the best of that many candidates by ``rank`` (None: the generator's posterior) of
-    the row's label ``labels_B`` (:func:`.best_of.sample_best_of`; a label conditioner only)."""
+    the row's label ``labels_B`` (:func:`.best_of.sample_best_of`; a label conditioner only).  The
+    generator's network runs in ``precision`` (fp32 or bf16, see :func:`sampling_precision`)."""
     null = conditioner.null(len(indices))
 
     def draw(generators: list[torch.Generator]) -> torch.Tensor:
-        return generator.sample(
-            condition,
-            sampler,
-            steps=steps,
-            null=null,
-            guidance=guidance,
-            truncation=truncation,
-            generators=generators,
-        )
+        with autocast(precision, device):
+            return generator.sample(
+                condition,
+                sampler,
+                steps=steps,
+                null=null,
+                guidance=guidance,
+                truncation=truncation,
+                generators=generators,
+            )
 
     row_seeds = [seed * 100_003 + index for index in indices]
     return tokenizer.decode_codes(
@@ -558,8 +575,13 @@ def sample_images(
     )
 
 
-#: Sampling precisions: float32, or bfloat16 autocast (the generator and the decoder).
+#: Sampling precisions: float32, or bfloat16 autocast of the generator's network.
 PRECISIONS = ("fp32", "bf16")
+
+
+def sampling_precision(precision: str, device: torch.device) -> str:
+    """The precision (fp32 or bf16) ``generator.sample_precision`` = ``precision`` samples in on ``device``."""
+    return resolve_precision(precision, device, "sampling")
 
 
 @torch.no_grad()
@@ -581,8 +603,8 @@ def generate_held_out(
     rank: Any = None,
 ) -> torch.Tensor:
     """Float32 images (N, 3, H, W) of ``conditions``, encoded and sampled ``batch_size`` at a time
-    (None: all at once, as :func:`score_generation` does) in ``precision`` (``fp32``, or ``bf16``
-    autocast), each the best of ``best_of`` candidates by ``rank`` (label conditions; :mod:`.best_of`); the
+    (None: all at once, as :func:`score_generation` does), the network in ``precision`` (``fp32``, or
+    ``bf16`` autocast), each the best of ``best_of`` candidates by ``rank`` (label conditions; :mod:`.best_of`); the
     seeds of :func:`sample_images`, so image i does not depend on the batching beyond float
     rounding.  What ``vqtouch tradeoff generator`` times."""
     if precision not in PRECISIONS:
@@ -592,29 +614,28 @@ def generate_held_out(
     count = len(conditions.indices)
     size = batch_size or count
     images = []
-    autocast = torch.autocast(device.type, dtype=torch.bfloat16) if precision == "bf16" else contextlib.nullcontext()
-    with autocast:
-        for start in range(0, count, size):
-            batch = conditions.batch(start, start + size, device=device)
-            condition = conditioner(conditioner.condition_of(batch))
-            images.append(
-                sample_images(
-                    generator,
-                    conditioner,
-                    tokenizer,
-                    sampler,
-                    condition,
-                    conditions.indices[start : start + size],
-                    steps=steps,
-                    guidance=guidance,
-                    truncation=truncation,
-                    seed=seed,
-                    device=device,
-                    best_of=best_of,
-                    labels_B=conditioner.condition_of(batch) if best_of > 1 else None,
-                    rank=rank,
-                ).float()
-            )
+    for start in range(0, count, size):
+        batch = conditions.batch(start, start + size, device=device)
+        condition = conditioner(conditioner.condition_of(batch))
+        images.append(
+            sample_images(
+                generator,
+                conditioner,
+                tokenizer,
+                sampler,
+                condition,
+                conditions.indices[start : start + size],
+                steps=steps,
+                guidance=guidance,
+                truncation=truncation,
+                seed=seed,
+                device=device,
+                best_of=best_of,
+                labels_B=conditioner.condition_of(batch) if best_of > 1 else None,
+                rank=rank,
+                precision=precision,
+            ).float()
+        )
     return torch.cat(images)
 
 
@@ -746,6 +767,7 @@ def score_samples(
         truncation=section.truncation,
         seed=config.seed,
         device=device,
+        precision=sampling_precision(section.sample_precision, device),
         pool=pool,
         distribution=scorer or False,
     )

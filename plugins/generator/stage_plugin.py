@@ -139,6 +139,12 @@ class GeneratorSection(Section):
         "that leaves the pose or texture open gains from guidance, one that pins both (touch) loses; "
         "conditioners not named use `guidance`.",
     )
+    sample_precision: Literal["auto", "fp32", "bf16"] = Field(
+        "auto",
+        description="Autocast precision of the generator's network while it samples (the diffusion maths "
+        "and the decoder stay fp32): auto, the measured choice for the device (bf16 on a CPU with bf16 "
+        "matrix units or a CUDA GPU that supports it, else fp32), fp32 or bf16.",
+    )
     sample_weights: Literal["ema", "raw"] = Field(
         "ema",
         description="Which weights sample: 'ema', the moving average training kept (train.ema_decay), when "

@@ -36,6 +36,7 @@ from vqtouch.plugins.generator import (
     SAMPLES_CAPTION,
     baseline_pool,
     held_out_conditions,
+    sampling_precision,
     score_generation,
 )
 from vqtouch.plugins.tokenizer import TOKENIZER_SHOWN_SCORES, evaluate_reconstruction, printable, save_pairs
@@ -149,6 +150,7 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
             device=device,
             picture=job.run.path / picture,
             pool=pool,
+            precision=sampling_precision(sampling.sample_precision, device),
         )
         parts[f"bundled generator from {name}"] = shown_scores(
             generated, GENERATION_SHOWN_SCORES, [name for name, _ in metrics]
