@@ -14,7 +14,7 @@ p(class | x) proportional to p(x | class) for equal priors, read here by
 :meth:`~.vq_diffusion.VQDiffusion.masked_log_likelihood` under every class; of K candidates the one
 with the highest posterior at its own class is kept.  No other model is involved.  Cost per
 candidate: its sampling plus four forward passes per class (with 12 classes, about as much again as
-a guided 25-step draw); measured in docs/generation.md, section 17.
+a guided 25-step draw); measured in docs/generation.md.
 
 Candidate 0 of a row is drawn with the row's own generator, so ``best_of=1`` is plain sampling, bit
 for bit; candidate j > 0 with a generator seeded by a hash of the row's seed and j

@@ -10,7 +10,7 @@ to the other candidates' contact centres (minimum Bayes risk under that distance
 class).  The contact centre is :func:`~vqtouch.plugins.evaluation.contact.contact_centroids` of the
 decoded candidate against the run's no-contact image.
 
-Measured on the bundle's 64 held-out visual conditions (docs/generation.md, section 21): best of 8
+Measured on the bundle's 64 held-out visual conditions (docs/generation.md): best of 8
 brings the contact centre from 5.28 to 4.81 px from the truth's (three sampling seeds).  The mean of
 the candidates' centres is itself about 4.5 px off: the medoid removes the sampling spread, not the
 generator's own error in the place, so more candidates gain little more.  For a label the same rule

@@ -2,7 +2,7 @@
 
 Why: a visual image places its contact only through the generator's diffusion loss, and each
 training scene costs diffusion steps, so the generator's hour sees few scenes.  A network whose only
-job is the contact's place learns it from many scenes in minutes (docs/generation.md, section 11).
+job is the contact's place learns it from many scenes in minutes (docs/generation.md).
 :func:`pretrain_condition_grid` trains the grid conditioners, the generator's grid embedding and its
 contact head on :meth:`VQDiffusion.contact_loss` alone (which code cells hold the contact), on the
 training scenes plus, for a dataset that can render more (:meth:`new_scenes`, the procedural scenes),

@@ -2,7 +2,7 @@
 
 Best of K (:mod:`.best_of`) keeps, of K candidates for a label, the one a score prefers.  The
 generator's own class posterior is a weak judge (it names the class of real held-out codes about
-half the time; docs/generation.md, section 17).  A discriminative classifier of code grids is a far
+half the time; docs/generation.md).  A discriminative classifier of code grids is a far
 better one at little cost: fitted in about a minute on the training split the generator learned
 from, it names the class of held-out real codes about 3 times in 4 (section 20).
 

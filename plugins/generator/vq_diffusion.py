@@ -165,7 +165,7 @@ class VQDiffusion(Generator):
         against ``contact_BHW`` (bool, on the code grid), over the rows whose condition is not null;
         None when every row is null.  Why: a frozen or small conditioner's grid learns where the
         contact is only through the diffusion loss; asking its embedding for the place directly makes
-        the place something the generator can read at each code (docs/generation.md, section 13)."""
+        the place something the generator can read at each code (docs/generation.md)."""
         if self.contact_head is None or condition.grid_BDhw is None:
             raise ValueError("contact_loss needs generator.model.contact_weight > 0 and a condition with a grid")
         if tuple(contact_BHW.shape) != (len(condition.is_null_B), *self.grid_hw):
@@ -194,7 +194,7 @@ class VQDiffusion(Generator):
         over the steps t at :data:`LIKELIHOOD_FRACTIONS` of T, of log p(x0 = code | x_t, condition) over
         the cells masked in x_t (each masked with probability gamma_bar_t).  Why these four reads rather
         than the variational bound's T: they are enough to rank candidates or conditions against each
-        other (docs/generation.md, section 17), at four forward passes.  The masked cells of each t
+        other (docs/generation.md), at four forward passes.  The masked cells of each t
         are drawn from a generator seeded by t alone and shared by every row, so two conditions or two
         candidates are compared on the same cells and a row's value does not depend on its batch."""
         codes_BL = self._flatten(codes_BHW)

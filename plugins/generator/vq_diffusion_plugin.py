@@ -40,7 +40,7 @@ class VQDiffusionConfig(PluginConfig):
         strict=True,
         description="Kernel size of a depthwise convolution over the code grid inside every block's MLP "
         "(odd; 0: none).  Gives each code its neighbours' features through weights shared across "
-        "positions: a locality prior for small data.  Measured in docs/generation.md (section 20).",
+        "positions: a locality prior for small data.  Measured in docs/generation.md.",
     )
     loss: Literal["vb", "masked_ce", "masked_ce_mean"] = Field(
         "masked_ce",
@@ -62,7 +62,7 @@ class VQDiffusionConfig(PluginConfig):
         "generator.train.canonical_background).  Only steps whose conditioner has a grid (tactile, visual, "
         "visual_cnn), and only their non-null rows, add it; the generator stage supplies the cells "
         "(`vqtouch fewshot`'s fine-tuning does not).  0: off, no head is built.  Measured in "
-        "docs/generation.md (section 13): 1 with visual_cnn and a grid context brought the visual contact "
+        "docs/generation.md: 1 with visual_cnn and a grid context brought the visual contact "
         "1.6-2.0 px closer at equal CPU time (two training seeds); on the frozen visual grid it did nothing.",
     )
     importance_sampling: bool = Field(
