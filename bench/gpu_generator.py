@@ -60,14 +60,17 @@ OWN_KEYS = ("data.batch_size", "generator.train.steps", "generator.train.checkpo
 
 
 def bundle_recipe(name: str = "tour") -> list[str]:
-    """The ``--set`` arguments of the command that trained bundle ``name``'s generator, less those in
-    ``OWN_KEYS``, plus the sampling defaults set at export (as ``generator.conditioner_guidance``)."""
-    from vqtouch.plugins.pretrained.bundle import bundle_folder, describe_bundle
+    """The arguments of the command that trained bundle ``name``'s generator: its shipped recipe file
+    (``--config``) when it names one, and its ``--set`` values less those in ``OWN_KEYS``, plus the
+    sampling defaults set at export (as ``generator.conditioner_guidance``)."""
+    from vqtouch.plugins.pretrained.bundle import RECIPES, bundle_folder, describe_bundle
 
     facts = describe_bundle(bundle_folder(name))
     words = shlex.split(facts["generator_command"].split("#")[0])
     values = [words[i + 1] for i, word in enumerate(words[:-1]) if word == "--set"]
-    recipe = [part for value in values if value.split("=")[0] not in OWN_KEYS for part in ("--set", value)]
+    recipe_file = facts["recipes"]["generator"]
+    recipe = ["--config", str(RECIPES / recipe_file)] if recipe_file else []
+    recipe += [part for value in values if value.split("=")[0] not in OWN_KEYS for part in ("--set", value)]
     guidance = facts["sampling_defaults"].get("conditioner_guidance")
     if guidance:
         recipe += ["--set", f"generator.conditioner_guidance={json.dumps(guidance, separators=(',', ':'))}"]

@@ -20,7 +20,7 @@ from vqtouch.core.cli import main
 from vqtouch.core.plugin_manager import load_plugins
 from vqtouch.core.training import latest_good_checkpoint
 from vqtouch.plugins.generator.pipeline import load_pipeline
-from vqtouch.plugins.pretrained.bundle import bundle_folder, describe_bundle
+from vqtouch.plugins.pretrained.bundle import RECIPES, bundle_folder, describe_bundle
 
 REPO = Path(__file__).resolve().parents[1]
 HOST = load_plugins(autoload=False)
@@ -40,19 +40,35 @@ def _digests(folder: Path) -> dict[str, str]:
     }
 
 
-def test_the_recipe_is_the_bundles_command_less_steps_and_batch_plus_its_sampling_defaults():
-    facts = describe_bundle(bundle_folder("tour"))
-    recipe = _bench().bundle_recipe("tour")
+@pytest.mark.parametrize("bundle", ["tour", "tour_wide"])
+def test_the_recipe_is_the_bundles_command_less_steps_and_batch_plus_its_sampling_defaults(bundle):
+    """A bundle trained from a recipe file gives that file; one trained with --set values gives them,
+    less what the script sets itself."""
+    facts = describe_bundle(bundle_folder(bundle))
+    recipe = _bench().bundle_recipe(bundle)
+    if facts["recipes"]["generator"]:  # the shipped recipe file first, as the bundle was trained
+        assert recipe[:2] == ["--config", str(RECIPES / facts["recipes"]["generator"])]
+        assert (RECIPES / facts["recipes"]["generator"]).is_file()
+        recipe = recipe[2:]
     assert recipe[::2] == ["--set"] * (len(recipe) // 2)
     values = recipe[1::2]
     words = shlex.split(facts["generator_command"].split("#")[0])
     command_values = [words[i + 1] for i, word in enumerate(words) if word == "--set"]
     dropped = [value for value in command_values if value not in values]
     # What the check sets itself is dropped, and nothing else.
-    assert sorted(value.split("=")[0] for value in dropped) == ["data.batch_size", "generator.train.steps"]
-    guidance = [value for value in values if value.startswith("generator.conditioner_guidance=")]
-    assert len(guidance) == 1
-    assert json.loads(guidance[0].split("=", 1)[1]) == facts["sampling_defaults"]["conditioner_guidance"]
+    own = {"data.batch_size", "generator.train.steps", "generator.train.checkpoint_every", "generator.train.log_every"}
+    assert {value.split("=")[0] for value in dropped} <= own
+    assert [value for value in command_values if value in values] == [
+        value for value in command_values if value.split("=")[0] not in own
+    ]
+    # The sampling defaults set at export are added (the command's own guidance, if any, is kept above).
+    added = [value for value in values if value not in command_values]
+    guidance = [value for value in added if value.startswith("generator.conditioner_guidance=")]
+    assert added == guidance
+    exported = facts["sampling_defaults"].get("conditioner_guidance")
+    assert len(guidance) == (1 if exported else 0)
+    if exported:
+        assert json.loads(guidance[0].split("=", 1)[1]) == exported
 
 
 @pytest.fixture(scope="module")
