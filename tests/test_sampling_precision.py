@@ -72,7 +72,7 @@ def test_the_run_records_what_it_sampled_in(tiny_label_run):
     assert scores["sampled_in"] == expected
 
 
-def test_a_bad_sample_precision_is_refused_in_one_line(tiny_label_run, capsys):
+def test_a_bad_sample_precision_is_refused_in_one_line(capsys):
     from vqtouch.core.cli import main
 
     code = main(["config", "show", "label-to-touch", "--set", "generator.sample_precision=fp16"])

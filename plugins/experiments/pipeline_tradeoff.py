@@ -80,7 +80,8 @@ from vqtouch.core.config import scale_for_demo
 from vqtouch.core.data import experiment_split
 from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all, tokenizer_task
 
-from .pipeline_tradeoff_knobs import KNOBS, Knob, known_knobs, sampling_precision_baseline  # noqa: F401 (their old home)
+from .pipeline_tradeoff_knobs import KNOBS, Knob, known_knobs  # noqa: F401 (their old home)
+from .pipeline_tradeoff_knobs import sampling_precision_baseline
 from .pipeline_tradeoff_plugin import QUICK, QUICK_KNOBS, STANDARD
 
 #: The scene whose baseline the command measures when none is named: a tokenizer and a generator.

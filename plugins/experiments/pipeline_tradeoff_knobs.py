@@ -116,9 +116,9 @@ def _precision_baseline(config: Any, host: PluginHost) -> str:
 def sampling_precision_baseline(config: Any, host: PluginHost | None = None) -> str:
     """The generator's sampling precision in a run of ``config`` (``generator.sample_precision``, ``auto``
     resolved)."""
-    from vqtouch.core.training import resolve_precision  # imports torch: not when the parser lists the knobs
+    from vqtouch.plugins.generator import sampling_precision  # imports torch: not when the parser lists the knobs
 
-    return resolve_precision(config.generator.sample_precision, resolve_device(config.device), "sampling")
+    return sampling_precision(config.generator.sample_precision, resolve_device(config.device))
 
 
 def _downsampling_baseline(config: Any, host: PluginHost) -> int:

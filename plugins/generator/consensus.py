@@ -14,8 +14,8 @@ Measured on the bundle's 64 held-out visual conditions (docs/generation.md): bes
 brings the contact centre from 5.28 to 4.81 px from the truth's (three sampling seeds).  The mean of
 the candidates' centres is itself about 4.5 px off: the medoid removes the sampling spread, not the
 generator's own error in the place, so more candidates gain little more.  For a label the same rule
-keeps the most typical-looking candidate, which is not the one a classifier names right more often
-(section 21); use the judge there.
+keeps the most typical-looking candidate, which is not the one a classifier names right more often;
+use the judge there.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ Best of K (:mod:`.best_of`) keeps, of K candidates for a label, the one a score 
 generator's own class posterior is a weak judge (it names the class of real held-out codes about
 half the time; docs/generation.md).  A discriminative classifier of code grids is a far
 better one at little cost: fitted in about a minute on the training split the generator learned
-from, it names the class of held-out real codes about 3 times in 4 (section 20).
+from, it names the class of held-out real codes about 3 times in 4.
 
 Why codes, and why the tokenizer's codebook: the candidates are code grids, so the judge reads them
 before decoding and never sees an image (the evaluation's classifier reads decoded images).  Its
