@@ -95,7 +95,7 @@ def test_overwrite_will_not_wipe_a_folder_that_is_not_a_run(tmp_path, capsys):
 
 
 def test_every_reader_refuses_a_folder_that_mixes_two_runs(tmp_path, capsys):
-    """The issue's folder: this run's config says 64 codes, and an older run's checkpoint (128 codes)
+    """A folder that mixes two runs: this run's config says 64 codes, and an older run's checkpoint (128 codes)
     is the newest step folder."""
     run, other = tmp_path / "run", tmp_path / "other"
     assert main(train_args(run, 64)) == 0

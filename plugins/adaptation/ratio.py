@@ -65,7 +65,7 @@ SCORES = ("ssim", "psnr", "contact_psnr", "contact_ssim", "fd_effnetlite0")
 #: What the table shows per arm, in order.
 TABLE_COLUMNS = ("steps", "target_views", *SCORES, "family_psnr", "family_ssim", "seconds")
 GROUP = ("arm", "budget", "ratio")
-#: The issue's tolerance: the best mix within this much SSIM of training on all the sensor's images.
+#: The ratio trade's tolerance: the best mix within this much SSIM of training on all the sensor's images.
 SSIM_TOLERANCE = 0.02
 
 
@@ -371,7 +371,7 @@ def best_settings(summary: Sequence[dict[str, Any]], key: str = "ssim") -> dict[
 
 
 def verdict_lines(summary: Sequence[dict[str, Any]], key: str = "ssim") -> list[str]:
-    """The issue's two targets at the best mix (ratio > 0, either budget): within
+    """The ratio trade's two targets at the best mix (ratio > 0, either budget): within
     :data:`SSIM_TOLERANCE` of training on all the sensor's images, and better than the shots alone
     (a gap counts beyond both spreads)."""
     mixes = [row for row in summary if row["ratio"] > 0 and row.get(key) is not None]

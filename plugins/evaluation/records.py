@@ -32,7 +32,7 @@ from vqtouch.core.cli import seed_int
 from vqtouch.core.errors import ConfigError
 from vqtouch.core import __version__
 
-#: The seeds an experiment repeats over unless told otherwise (the issue asks for three).
+#: The seeds an experiment repeats over unless told otherwise (three: the least that gives a spread).
 DEFAULT_SEEDS = (0, 1, 2)
 
 
