@@ -279,6 +279,23 @@ def test_only_a_tokenizer_adapted_from_the_familys_own_stands_in_for_adapting(fa
     assert not (tmp_path / "second").exists()
 
 
+def test_fewshot_rebases_by_default_and_not_with_no_rebase(family, tmp_path):
+    from vqtouch.plugins.experiments.fewshot_generation import _family_tokenizer, adapted_summary
+    from vqtouch.plugins.tokenizer import REBASE_FILE, load_tokenizer
+
+    assert _fewshot(family, tmp_path / "rebased", TARGET, "--no-score") == 0
+    assert _fewshot(family, tmp_path / "plain", TARGET, "--no-score", "--no-rebase") == 0
+    rebased, _ = load_tokenizer(tmp_path / "rebased" / "tokenizer", HOST)
+    plain, _ = load_tokenizer(tmp_path / "plain" / "tokenizer", HOST)
+    assert plain.rebase_3HW is None and not (tmp_path / "plain" / "tokenizer" / REBASE_FILE).exists()
+    assert rebased.rebase_3HW is not None and rebased.rebase_3HW.abs().max() > 0
+    assert json.loads((tmp_path / "rebased" / "tokenizer" / "adapt.json").read_text())["rebase"] is True
+    # The generator run records the rebased folder's digest, so it is refused with the plain tokenizer's.
+    _, folder = _family_tokenizer(str(family / "run"), HOST)
+    assert adapted_summary(tmp_path / "rebased" / "tokenizer", folder, rebase=False) is None
+    assert adapted_summary(tmp_path / "plain" / "tokenizer", folder, rebase=False) is not None
+
+
 def test_a_folder_of_images_in_class_subfolders_is_a_target(family, tmp_path):
     from vqtouch.plugins.adaptation.families import sensor_images
 

@@ -42,6 +42,9 @@ from vqtouch.plugins.data.sensor_folders import folder_of, sensor_folder_files
 from .families import SensorFamilies, save_families, sensor_images
 from .stages_plugin import AdaptSettings  # light, for the stage section and the commands' defaults
 
+#: Fewer family images than this give a rebase no reliable median background: 64 more are drawn.
+MIN_BACKGROUND_IMAGES = 32
+
 #: What an adaptation writes into its output folder besides the tokenizer files (the families
 #: only when it fitted them itself).
 ADAPT_JSON, BEFORE_AFTER_PNG, FAMILIES_FOLDER = "adapt.json", "before_after.png", "families"
@@ -170,6 +173,32 @@ def family_images(
     return torch.cat(chunks), [member["name"] for member in members]
 
 
+def rebase_image(
+    families: SensorFamilies,
+    family: int,
+    host: PluginHost,
+    sensor_background_3HW: torch.Tensor,
+    family_N3HW: torch.Tensor,
+    family_background_3HW: torch.Tensor | None,
+    settings: AdaptSettings,
+) -> torch.Tensor:
+    """The family's no-contact image minus the sensor's (:attr:`AdaptSettings.rebase`).  The family's is
+    ``family_background_3HW`` when given, else the per-pixel median of its images drawn for the mix
+    (64 drawn when the mix holds fewer, as at ratio 0)."""
+    if family_background_3HW is None:
+        if len(family_N3HW) < MIN_BACKGROUND_IMAGES:
+            family_N3HW, _ = family_images(
+                families,
+                family,
+                host,
+                count=64,
+                image_size=families.summary["image_size"],
+                seed=settings.seed + 31_337,
+            )
+        family_background_3HW = median_background(family_N3HW)
+    return family_background_3HW.float() - sensor_background_3HW.float()
+
+
 def sensor_background(target: str, host: PluginHost, image_size: ImageSize) -> tuple[torch.Tensor, str]:
     """The unseen sensor's no-contact image (3, H, W) and how it was made: a registered sensor (name
     or JSON variant) rendering no contact; for a folder, which holds no such frame, the per-pixel
@@ -240,17 +269,20 @@ def adapt_tokenizer(
     overwrite: bool = False,
     report: Any = print,
     background_3HW: torch.Tensor | None = None,
+    family_background_3HW: torch.Tensor | None = None,
 ) -> dict[str, Any]:
     """Adapt the tokenizer of ``run_or_folder`` to the unseen sensor ``target`` (see the module
     docstring); writes the adapted tokenizer, ``adapt.json`` and ``before_after.png`` into ``out``
     and returns the summary.  Raises :class:`AdaptationRefused` when the sensor matches no family
     (unless ``settings.family`` names one) or its images hold no contact.  Given the sensor's
     no-contact image ``background_3HW`` (by default :func:`sensor_background`), the held-out scores
-    before and after carry the background's and the contact region's (:func:`reconstruction_scores`)."""
+    before and after carry the background's and the contact region's (:func:`reconstruction_scores`).
+    With ``settings.rebase``, ``family_background_3HW`` is the family's no-contact image the sensor's
+    images are moved onto (default: the per-pixel median of the family images drawn for it)."""
     from vqtouch.core import atomic_write, resolve_device, save
     from vqtouch.core.images import image_grid, save_png
     from vqtouch.core.training import Trainer
-    from vqtouch.plugins.tokenizer import TOKENIZER_FILES, load_tokenizer, reconstruct_all, tokenizer_task
+    from vqtouch.plugins.tokenizer import TOKENIZER_FILES, load_tokenizer, reconstruct_all, save_rebase, tokenizer_task
     from vqtouch.plugins.tokenizer import TokenizerLossConfig, TokenizerTrainConfig, disc_start_step
 
     refuse_existing(out, overwrite)
@@ -317,20 +349,23 @@ def adapt_tokenizer(
             f"note: family {family} is not the one {name} is nearest to (family {assignment['family']}); "
             f"mixed 1:{settings.ratio:g}, its images can wash out a faint sensor's contact; --ratio 1 or 0 keeps it"
         )
-    mixed = [shots_N]
     members: list[str] = []
+    family_N = torch.zeros(0, *shots_N.shape[1:])
     if family_count > 0:
         family_N, members = family_images(
             families, family, host, count=family_count, image_size=image_size, seed=settings.seed, exclude=source
         )
-        mixed.append(family_N)
-    mixed_set = ImageSet(torch.cat(mixed), name)
-    if len(mixed_set) < batch_size:
-        batch_size = len(mixed_set)  # a handful of shots still trains (one batch = every image)
-
     background_source = "given by the caller"
     if background_3HW is None:
         background_3HW, background_source = sensor_background(target, host, image_size)
+    rebase_3HW = None
+    if settings.rebase:
+        rebase_3HW = rebase_image(families, family, host, background_3HW, family_N, family_background_3HW, settings)
+    # Rebased, the sensor's images train as the family's no-contact image plus their own contact.
+    shots_in = shots_N if rebase_3HW is None else shots_N + rebase_3HW
+    mixed_set = ImageSet(torch.cat([shots_in, family_N]), name)
+    if len(mixed_set) < batch_size:
+        batch_size = len(mixed_set)  # a handful of shots still trains (one batch = every image)
     before = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics, background_3HW)
     # Held-out family images (new scenes): what the adaptation keeps of the family, or forgets.
     family_held_out, _ = family_images(
@@ -372,6 +407,7 @@ def adapt_tokenizer(
     trainer.fit()
     seconds = time.perf_counter() - tic
     tokenizer.eval()
+    tokenizer.rebase_3HW = None if rebase_3HW is None else rebase_3HW.to(device)
     after = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics, background_3HW)
     family_after = reconstruction_scores(tokenizer, family_held_out, host, batch_size)
     after_images = reconstruct_all(tokenizer, held_out_M[:8].to(device)).cpu()
@@ -392,6 +428,7 @@ def adapt_tokenizer(
         "held_out": len(held_out_M),
         "steps": settings.steps,
         "part": settings.part,
+        "rebase": settings.rebase,
         "learning_rate": train.learning_rate,
         "batch_size": batch_size,
         "adversarial": adversarial,
@@ -420,6 +457,8 @@ def adapt_tokenizer(
     step_reached = getattr(tokenizer.autoencoder, "vqtouch_step", 0) + settings.steps
     for file, module in zip(TOKENIZER_FILES, (tokenizer.autoencoder, tokenizer.quantizer)):
         save(module, out / file, step=step_reached, host=host, metadata=header)
+    if rebase_3HW is not None:
+        save_rebase(out, rebase_3HW, header)
     count = len(before_images)
     save_png(
         image_grid(torch.cat([held_out_M[:count], before_images, after_images]), columns=count), out / BEFORE_AFTER_PNG
@@ -440,6 +479,7 @@ class AdaptRecord(FileModel):
     held_out: int
     steps: int
     part: str = "all"
+    rebase: bool = False
 
 
 #: What adaptation can fine-tune (:attr:`AdaptSettings.part`).

@@ -32,6 +32,11 @@ class AdaptSettings:
     #: codebook stay, so every image keeps its codes and a generator over them stays valid; the
     #: decoder learns to draw the new sensor from them).
     part: str = "all"
+    #: Re-base the sensor's images onto the family's no-contact image before encoding (and back after
+    #: decoding; :attr:`vqtouch.plugins.tokenizer.Tokenizer.rebase_3HW`): a contact keeps the codes it
+    #: has on the family's sensor, which is what a family generator draws, however far the sensor's
+    #: look is from the family's.  ``vqtouch fewshot`` turns it on.
+    rebase: bool = False
     #: Metric plugins scoring the held-out images before and after (``fd_effnetlite0`` adds a
     #: distribution score; it needs at least 2 held-out images).
     metrics: tuple[str, ...] = ("ssim", "psnr")

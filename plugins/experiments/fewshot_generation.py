@@ -109,15 +109,32 @@ def _family_tokenizer(family_run: str, host: PluginHost) -> tuple[Any, Path]:
     return load_tokenizer(generator_tokenizer(run, config.generator), host)
 
 
-def adapted_summary(adapted: Path, folder: Path, part: str | None = None) -> dict[str, Any] | None:
+def adapted_summary(
+    adapted: Path, folder: Path, part: str | None = None, rebase: bool | None = None
+) -> dict[str, Any] | None:
     """``adapted``'s ``adapt.json`` when it was adapted from the tokenizer in ``folder`` (and, given
-    ``part``, adapting that part), else None: only such a tokenizer can stand in for adapting again."""
+    ``part`` and ``rebase``, adapting that part, re-based or not), else None: only such a tokenizer can
+    stand in for adapting again."""
     from vqtouch.plugins.adaptation import AdaptRecord
 
     made = read_model(adapted / "adapt.json", AdaptRecord).model_dump()
     if Path(made["adapted_from"]).resolve() != folder.resolve():
         return None
+    if rebase is not None and made["rebase"] != rebase:
+        return None
     return made if part is None or made.get("part", "all") == part else None
+
+
+def family_background(config: Any, host: PluginHost) -> torch.Tensor | None:
+    """The no-contact image of the family generator's training data (what its canonical background codes
+    decode to): the one a re-based sensor's images are moved onto."""
+    from vqtouch.core.image_size import image_hw
+    from vqtouch.plugins.evaluation.contact import dataset_background
+
+    dataset = Assembly(config, host).component("data.dataset")
+    train, _ = experiment_split(dataset, config.data, config.seed)
+    background, _ = dataset_background(train, image_hw(config.data.image_size))
+    return background
 
 
 def new_sensor_images(
@@ -180,6 +197,7 @@ def fewshot_generation(
     ratio: float | None = None,
     tokenizer_steps: int = 200,
     tokenizer_part: str = "decoder",
+    rebase: bool = True,
     generator_steps: int = 300,
     families: str | None = None,
     family: int | None = None,
@@ -197,7 +215,8 @@ def fewshot_generation(
     """Run the five steps of the module docstring; returns what ``fewshot.json`` holds.  ``adapted``: a
     tokenizer ``vqtouch adapt`` already adapted from the family's to ``images`` with these ``shots``,
     ``ratio`` and ``seed`` (the ``adapt`` stage's), copied instead of adapting again.  ``ratio``: family
-    images per shot (default ``vqtouch adapt``'s)."""
+    images per shot (default ``vqtouch adapt``'s).  ``rebase``: adapt a re-based tokenizer
+    (:attr:`vqtouch.plugins.adaptation.AdaptSettings.rebase`) onto :func:`family_background`."""
     from vqtouch.plugins.adaptation import AdaptSettings, adapt_tokenizer, families_to_adapt_from, registered_source
     from vqtouch.plugins.generator import check_condition_keys, fine_tune_for_sensor, load_pipeline
 
@@ -209,11 +228,11 @@ def fewshot_generation(
     reused = None
     if adapted is not None:
         adapted = Path(adapted)
-        reused = adapted_summary(adapted, folder)
+        reused = adapted_summary(adapted, folder, rebase=rebase)
         if reused is None:
             raise ConfigError(
-                f"{adapted} was not adapted from {folder}, the tokenizer of {family_run}'s generator; "
-                "adapt that one (leave the adapted tokenizer out)"
+                f"{adapted} was not adapted from {folder}, the tokenizer of {family_run}'s generator,"
+                f"{'' if rebase else ', not'} re-based; adapt that one (leave the adapted tokenizer out)"
             )
     family_pipe = load_pipeline(family_run, host=host)
     config = family_pipe.config
@@ -259,6 +278,7 @@ def fewshot_generation(
                 family=family,
                 seed=seed,
                 part=tokenizer_part,
+                rebase=rebase,
             )
             summary = adapt_tokenizer(
                 str(folder),
@@ -268,6 +288,7 @@ def fewshot_generation(
                 partial / "tokenizer",
                 settings,
                 report=lambda line: report(f"    {line}"),
+                family_background_3HW=family_background(config, host) if rebase else None,
             )
         result["adapt"] = {
             key: summary[key]
@@ -747,7 +768,7 @@ def run_fewshot_stage(job: StageJob) -> dict[str, Any]:
     reuse = None
     if adapted is not None:
         _, folder = _family_tokenizer(family_run, job.host)
-        if adapted_summary(adapted.path, folder, section.tokenizer_part) is not None:
+        if adapted_summary(adapted.path, folder, section.tokenizer_part, section.rebase) is not None:
             reuse = adapted.path
     result = fewshot_generation(
         family_run,
@@ -758,6 +779,7 @@ def run_fewshot_stage(job: StageJob) -> dict[str, Any]:
         ratio=adapt.ratio,
         tokenizer_steps=adapt.steps,
         tokenizer_part=section.tokenizer_part,
+        rebase=section.rebase,
         generator_steps=section.generator_steps,
         threshold=adapt.threshold,
         family=adapt.family,

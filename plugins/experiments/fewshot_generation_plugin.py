@@ -42,6 +42,11 @@ class FewshotSection(Section):
         "so the family generator's still fit; measured better) or all of it.  The adapt stage's tokenizer is "
         "reused when it was adapted the same way from the same tokenizer.",
     )
+    rebase: bool = Field(
+        True,
+        description="Re-base the sensor's images onto the family's no-contact image for its tokenizer, so a "
+        "contact keeps its family codes and the family generator's codes decode in the sensor's look.",
+    )
     generator_steps: int = Field(300, ge=1, le=1_000_000, strict=True, description="Generator fine-tuning steps.")
     samples: int = Field(16, ge=1, le=100_000, strict=True, description="Images generated per condition and arm.")
     feature_size: int = Field(224, ge=32, le=1024, strict=True, description="Side EfficientNet-Lite0 sees images at.")
@@ -68,6 +73,7 @@ FEWSHOT_OPTIONS = (
     "shots",
     "tokenizer_steps",
     "tokenizer_part",
+    "rebase",
     "generator_steps",
     "families",
     "family",
@@ -101,6 +107,13 @@ def _add_fewshot_arguments(parser: argparse.ArgumentParser) -> None:
         default="decoder",
         help="what adaptation fine-tunes: the decoder alone (default: every image keeps its codes, so the "
         "family generator's still fit; measured better) or all of it",
+    )
+    parser.add_argument(
+        "--no-rebase",
+        dest="rebase",
+        action="store_false",
+        help="encode the sensor's images as they are (default: moved onto the family's no-contact image, so a "
+        "contact keeps its family codes and the family generator's samples decode in the sensor's look)",
     )
     parser.add_argument(
         "--generator-steps", type=positive_int, default=300, help="generator fine-tuning steps (default 300)"

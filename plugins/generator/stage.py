@@ -46,7 +46,7 @@ from .best_of import rank_name, sample_best_of
 from .stage_plugin import GeneratorSection  # noqa: F401 - re-exported
 from .training import CodesDataset, GeneratorTask
 from vqtouch.plugins.tokenizer import (
-    TOKENIZER_FILES,
+    tokenizer_paths,
     load_tokenizer,
     reconstruct_all,
     tokenizer_digest,
@@ -149,7 +149,7 @@ def train_generator(job: StageJob) -> dict[str, Any]:
     dataset = assembly.component("data.dataset")
     codes_NHW, cache = dataset_codes(
         tokenizer,
-        [tokenizer_folder / name for name in TOKENIZER_FILES],
+        tokenizer_paths(tokenizer_folder),
         dataset,
         images_config(config),
         batch_size=config.data.batch_size,
@@ -339,7 +339,7 @@ def grid_pretraining(
         fresh = draw(pretrain.new_scenes)
         codes_NHW, cache = dataset_codes(
             tokenizer,
-            [tokenizer_folder / name for name in TOKENIZER_FILES],
+            tokenizer_paths(tokenizer_folder),
             fresh,
             {**images_config(config), "new_scenes": pretrain.new_scenes},
             batch_size=config.data.batch_size,

@@ -16,6 +16,9 @@ from typing import Any
 #: from the light stages_plugin module, so a config that embeds them does not import torch.
 _PUBLIC = {
     "TOKENIZER_FILES": ("loading", "TOKENIZER_FILES"),
+    "REBASE_FILE": ("loading", "REBASE_FILE"),
+    "save_rebase": ("loading", "save_rebase"),
+    "tokenizer_paths": ("loading", "tokenizer_paths"),
     "load_tokenizer": ("loading", "load_tokenizer"),
     "reconstruct_all": ("loading", "reconstruct_all"),
     "tokenizer_configs": ("loading", "tokenizer_configs"),

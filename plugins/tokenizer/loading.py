@@ -20,6 +20,34 @@ from .training import Tokenizer
 
 #: The files of a tokenizer checkpoint, in every step folder of a run and in an adapted folder.
 TOKENIZER_FILES = ("autoencoder.safetensors", "quantizer.safetensors")
+#: Beside them in a folder adapted with ``rebase``: :attr:`Tokenizer.rebase_3HW` (tensor ``rebase_3HW``).
+REBASE_FILE = "rebase.safetensors"
+
+
+def tokenizer_paths(folder: str | Path) -> list[Path]:
+    """The files that make a tokenizer checkpoint folder what it is: :data:`TOKENIZER_FILES` and, when
+    the folder has one, :data:`REBASE_FILE` (what a digest or a code cache must cover)."""
+    folder = Path(folder)
+    rebase = [folder / REBASE_FILE] if (folder / REBASE_FILE).is_file() else []
+    return [folder / name for name in TOKENIZER_FILES] + rebase
+
+
+def save_rebase(folder: str | Path, rebase_3HW: torch.Tensor, metadata: dict[str, str]) -> None:
+    """Write :attr:`Tokenizer.rebase_3HW` into a tokenizer checkpoint folder (see :data:`REBASE_FILE`)."""
+    from safetensors.torch import save_file
+
+    save_file({"rebase_3HW": rebase_3HW.detach().float().cpu().contiguous()}, str(Path(folder) / REBASE_FILE), metadata)
+
+
+def _read_rebase(folder: Path, device: str) -> torch.Tensor | None:
+    if not (folder / REBASE_FILE).is_file():
+        return None
+    from safetensors.torch import load_file
+
+    tensors = load_file(str(folder / REBASE_FILE), device=device)
+    if set(tensors) != {"rebase_3HW"} or tensors["rebase_3HW"].ndim != 3 or tensors["rebase_3HW"].shape[0] != 3:
+        raise ConfigError(f"{folder / REBASE_FILE}: not a tokenizer's rebase image (one (3, H, W) tensor rebase_3HW)")
+    return tensors["rebase_3HW"]
 
 
 def load_tokenizer(
@@ -60,7 +88,7 @@ def load_tokenizer(
         folder = run.checkpoint(host, step, required_files=TOKENIZER_FILES)
     autoencoder = load(folder / TOKENIZER_FILES[0], host=host, map_location=device)
     quantizer = load(folder / TOKENIZER_FILES[1], host=host, map_location=device)
-    return Tokenizer(autoencoder, quantizer).eval(), folder
+    return Tokenizer(autoencoder, quantizer, _read_rebase(folder, device)).eval(), folder
 
 
 def tokenizer_location(path: str | Path, host: PluginHost | None = None) -> RunDir | Path:
@@ -80,7 +108,7 @@ def tokenizer_location(path: str | Path, host: PluginHost | None = None) -> RunD
 def tokenizer_digest(folder: str | Path) -> str:
     """The SHA-256 of a tokenizer checkpoint folder's weight files: what a generator or a clustering
     records of the tokenizer it was made with, to refuse a tokenizer retrained or replaced since."""
-    return files_digest(Path(folder) / name for name in TOKENIZER_FILES)
+    return files_digest(tokenizer_paths(folder))
 
 
 def tokenizer_configs(folder: str | Path) -> tuple[dict[str, Any], dict[str, Any], int]:

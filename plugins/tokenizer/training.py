@@ -49,10 +49,17 @@ def adversarial_never_trains(section: TokenizerSection) -> str | None:
 
 @dataclass
 class Tokenizer:
-    """An autoencoder plugin and a quantizer plugin used together."""
+    """An autoencoder plugin and a quantizer plugin used together.
+
+    ``rebase_3HW`` (in [0, 1] units, or None): the family's no-contact image minus this sensor's, for a
+    tokenizer adapted to a sensor that looks unlike its family.  Its images are moved onto the family's
+    background before encoding and back after decoding, so a contact keeps the codes it has on the
+    family's sensor, and the family generator's codes decode in the new sensor's look
+    (:func:`vqtouch.plugins.adaptation.adapt_tokenizer` with ``rebase``)."""
 
     autoencoder: Autoencoder
     quantizer: Quantizer
+    rebase_3HW: torch.Tensor | None = None
 
     @property
     def device(self) -> torch.device:
@@ -60,19 +67,28 @@ class Tokenizer:
         return next(self.autoencoder.parameters()).device
 
     def to(self, device: torch.device | str) -> Tokenizer:
-        """Both parts moved to ``device``."""
+        """Both parts (and the rebase image) moved to ``device``."""
         self.autoencoder.to(device)
         self.quantizer.to(device)
+        if self.rebase_3HW is not None:
+            self.rebase_3HW = self.rebase_3HW.to(device)
         return self
+
+    def _into_family(self, images_B3HW: torch.Tensor) -> torch.Tensor:
+        return images_B3HW if self.rebase_3HW is None else images_B3HW + self.rebase_3HW.to(images_B3HW)
+
+    def _out_of_family(self, images_B3HW: torch.Tensor) -> torch.Tensor:
+        return images_B3HW if self.rebase_3HW is None else images_B3HW - self.rebase_3HW.to(images_B3HW)
 
     def reconstruct(self, images_B3HW: torch.Tensor) -> tuple[torch.Tensor, Any]:
         """Images in [0, 1] -> reconstructions in [0, 1] (clamped) and the quantizer output."""
-        output = self.quantizer(self.autoencoder.encode(images_B3HW * 2 - 1))
-        return ((self.autoencoder.decode(output.quantized_BDhw).float() + 1) / 2).clamp(0, 1), output
+        output = self.quantizer(self.autoencoder.encode(self._into_family(images_B3HW) * 2 - 1))
+        decoded = (self.autoencoder.decode(output.quantized_BDhw).float() + 1) / 2
+        return self._out_of_family(decoded).clamp(0, 1), output
 
     def encode_codes(self, images_B3HW: torch.Tensor) -> torch.Tensor:
         """Images in [0, 1] -> integer codes (B, h, w) (the quantizer's code grid)."""
-        return self.quantizer(self.autoencoder.encode(images_B3HW * 2 - 1)).codes_Bhw
+        return self.quantizer(self.autoencoder.encode(self._into_family(images_B3HW) * 2 - 1)).codes_Bhw
 
     def decoder_parameters(self) -> list[nn.Parameter]:
         """The autoencoder's parameters that decoding a latent grid uses (what decoder-only adaptation
@@ -92,7 +108,8 @@ class Tokenizer:
 
     def decode_codes(self, codes_Bhw: torch.Tensor) -> torch.Tensor:
         """Integer codes (B, h, w) -> images in [0, 1] (clamped), e.g. for generated codes."""
-        return ((self.autoencoder.decode(self.quantizer.lookup(codes_Bhw)).float() + 1) / 2).clamp(0, 1)
+        decoded = (self.autoencoder.decode(self.quantizer.lookup(codes_Bhw)).float() + 1) / 2
+        return self._out_of_family(decoded).clamp(0, 1)
 
     def eval(self) -> Tokenizer:
         """Both parts in eval mode."""
