@@ -407,9 +407,10 @@ def adapt_tokenizer(
     trainer.fit()
     seconds = time.perf_counter() - tic
     tokenizer.eval()
+    # The family's images are scored as they are: the rebase moves the new sensor's images only.
+    family_after = reconstruction_scores(tokenizer, family_held_out, host, batch_size)
     tokenizer.rebase_3HW = None if rebase_3HW is None else rebase_3HW.to(device)
     after = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics, background_3HW)
-    family_after = reconstruction_scores(tokenizer, family_held_out, host, batch_size)
     after_images = reconstruct_all(tokenizer, held_out_M[:8].to(device)).cpu()
 
     summary: dict[str, Any] = {
