@@ -257,6 +257,72 @@ def reconstruction_scores(
     }
 
 
+def choose_family(
+    families: SensorFamilies,
+    tokenizer: Any,
+    name: str,
+    source: str,
+    shots_N3HW: torch.Tensor,
+    settings: AdaptSettings,
+    host: PluginHost,
+    out: Path,
+    report: Any,
+) -> tuple[dict[str, Any], int]:
+    """The sensor's assignment and the family it adapts from (``settings.family`` when given); families
+    fitted for this adaptation are written into ``out`` with the sensor.  Raises
+    :class:`AdaptationRefused` when the sensor matches no family and none is named."""
+    assignment, shown = families.unseen(tokenizer, name, shots_N3HW, settings.threshold)
+    if families.features is not None:  # fitted for this adaptation (not read back): write them, with the sensor
+        save_families(
+            families, out / FAMILIES_FOLDER, host, {"assignments": {name: {"source": source, **assignment}}}, [shown]
+        )
+    family = assignment["family"]
+    if settings.family is not None:
+        if not 0 <= settings.family < len(families.summary["families"]):
+            raise ConfigError(
+                f"--family {settings.family}: the families are numbered 0 to {len(families.summary['families']) - 1}"
+            )
+        family = settings.family
+    elif assignment["refused"]:
+        nearest = assignment["nearest_family"]
+        raise AdaptationRefused(
+            f"{name} matches no sensor family: {assignment['distances'][nearest]:.4g} from the nearest (family "
+            f"{nearest}: {', '.join(families.summary['families'][nearest])}), beyond the threshold "
+            f"{assignment['threshold']:.4g}; cluster it with more sensors, raise --threshold, or name a family with "
+            "--family"
+        )
+    report(
+        f"{name}: family {family} ({', '.join(families.summary['families'][family])}); distances "
+        f"{assignment['distances']}, margin {assignment['margin']:.4g}"
+    )
+    return assignment, family
+
+
+def write_adapted(
+    out: Path,
+    tokenizer: Any,
+    summary: dict[str, Any],
+    header: dict[str, str],
+    host: PluginHost,
+    step_reached: int,
+    rebase_3HW: torch.Tensor | None,
+    pictures_N3HW: torch.Tensor,
+) -> None:
+    """The adapted tokenizer's files (and its rebase image), ``before_after.png`` (held-out images over
+    their reconstructions before and after: ``pictures_N3HW``, three rows) and ``adapt.json``."""
+    from vqtouch.core import atomic_write, save
+    from vqtouch.core.images import image_grid, save_png
+    from vqtouch.plugins.tokenizer import TOKENIZER_FILES, save_rebase
+
+    output_folder(out)
+    for file, module in zip(TOKENIZER_FILES, (tokenizer.autoencoder, tokenizer.quantizer)):
+        save(module, out / file, step=step_reached, host=host, metadata=header)
+    if rebase_3HW is not None:
+        save_rebase(out, rebase_3HW, header)
+    save_png(image_grid(pictures_N3HW, columns=len(pictures_N3HW) // 3), out / BEFORE_AFTER_PNG)
+    atomic_write(out / ADAPT_JSON, lambda tmp: tmp.write_text(json.dumps(summary, indent=2) + "\n"))
+
+
 def adapt_tokenizer(
     run_or_folder: Any,
     target: str,
@@ -279,10 +345,9 @@ def adapt_tokenizer(
     before and after carry the background's and the contact region's (:func:`reconstruction_scores`).
     With ``settings.rebase``, ``family_background_3HW`` is the family's no-contact image the sensor's
     images are moved onto (default: the per-pixel median of the family images drawn for it)."""
-    from vqtouch.core import atomic_write, resolve_device, save
-    from vqtouch.core.images import image_grid, save_png
+    from vqtouch.core import resolve_device
     from vqtouch.core.training import Trainer
-    from vqtouch.plugins.tokenizer import TOKENIZER_FILES, load_tokenizer, reconstruct_all, save_rebase, tokenizer_task
+    from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all, tokenizer_task
     from vqtouch.plugins.tokenizer import TokenizerLossConfig, TokenizerTrainConfig, disc_start_step
 
     refuse_existing(out, overwrite)
@@ -317,30 +382,7 @@ def adapt_tokenizer(
         target, host, shots=settings.shots, eval_images=settings.eval_images, image_size=image_size, seed=settings.seed
     )
     check_contacts(torch.cat([shots_N, held_out_M]), name)
-    assignment, shown = families.unseen(tokenizer, name, shots_N, settings.threshold)
-    if families.features is not None:  # fitted for this adaptation (not read back): write them, with the sensor
-        save_families(
-            families, out / FAMILIES_FOLDER, host, {"assignments": {name: {"source": source, **assignment}}}, [shown]
-        )
-    family = assignment["family"]
-    if settings.family is not None:
-        if not 0 <= settings.family < len(families.summary["families"]):
-            raise ConfigError(
-                f"--family {settings.family}: the families are numbered 0 to {len(families.summary['families']) - 1}"
-            )
-        family = settings.family
-    elif assignment["refused"]:
-        nearest = assignment["nearest_family"]
-        raise AdaptationRefused(
-            f"{name} matches no sensor family: {assignment['distances'][nearest]:.4g} from the nearest (family "
-            f"{nearest}: {', '.join(families.summary['families'][nearest])}), beyond the threshold "
-            f"{assignment['threshold']:.4g}; cluster it with more sensors, raise --threshold, or name a family with "
-            "--family"
-        )
-    report(
-        f"{name}: family {family} ({', '.join(families.summary['families'][family])}); distances "
-        f"{assignment['distances']}, margin {assignment['margin']:.4g}"
-    )
+    assignment, family = choose_family(families, tokenizer, name, source, shots_N, settings, host, out, report)
     family_count = round(settings.shots * settings.ratio)
     if settings.family is not None and family != assignment["family"] and settings.ratio > 1:
         # Measured on a low-contrast sensor (docs/results.md): another family's images at 1:5 washed
@@ -445,7 +487,6 @@ def adapt_tokenizer(
             "before": real_before,
             "after": reconstruction_scores(tokenizer, real, host, batch_size, settings.metrics),
         }
-    output_folder(out)
     header = {
         "adaptation.target": source,
         "adaptation.family": str(family),
@@ -456,15 +497,9 @@ def adapt_tokenizer(
         "adaptation.part": settings.part,
     }
     step_reached = getattr(tokenizer.autoencoder, "vqtouch_step", 0) + settings.steps
-    for file, module in zip(TOKENIZER_FILES, (tokenizer.autoencoder, tokenizer.quantizer)):
-        save(module, out / file, step=step_reached, host=host, metadata=header)
-    if rebase_3HW is not None:
-        save_rebase(out, rebase_3HW, header)
     count = len(before_images)
-    save_png(
-        image_grid(torch.cat([held_out_M[:count], before_images, after_images]), columns=count), out / BEFORE_AFTER_PNG
-    )
-    atomic_write(out / ADAPT_JSON, lambda tmp: tmp.write_text(json.dumps(summary, indent=2) + "\n"))
+    pictures = torch.cat([held_out_M[:count], before_images, after_images])
+    write_adapted(out, tokenizer, summary, header, host, step_reached, rebase_3HW, pictures)
     return summary
 
 
