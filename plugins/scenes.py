@@ -69,7 +69,8 @@ SCENES: dict[str, tuple[str, dict]] = {
             # little in its features to tell sensors apart (the report's captions say which tokenizer it was).
             "metrics": _METRICS,
             "cluster": _CLUSTER | {"family_tokenizer": "pretrained:tour"},
-            "adapt": {"family_tokenizer": "pretrained:tour"},
+            # Re-based, as the fewshot stage adapts by default, so that stage reuses this one's tokenizer.
+            "adapt": {"family_tokenizer": "pretrained:tour", "rebase": True},
             # The bundled generator is the family's (one trained for demo minutes draws too little to adapt).
             # ... on the adapt stage's tokenizer (adapted whole): adapting its decoder again costs the demo a minute.
             "fewshot": {"family_generator": "pretrained:tour", "tokenizer_part": "all"},

@@ -155,6 +155,7 @@ def run_adapt_stage(job: StageJob) -> dict[str, Any]:
         threshold=section.threshold,
         family=section.family,
         seed=config.seed,
+        rebase=section.rebase,
     )
     summary = adapt_tokenizer(
         folder if job.section.family_tokenizer else job.run,

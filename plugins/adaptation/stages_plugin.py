@@ -107,6 +107,12 @@ class AdaptSection(Section):
         "families).  The cluster and adapt stages of one run must name the same.",
     )
     family: int | None = Field(None, ge=0, description="Adapt from this family whatever the assignment says.")
+    rebase: bool = Field(
+        AdaptSettings.rebase,
+        description="Re-base the target's images onto the family's no-contact image (the per-pixel median of the "
+        "family images drawn) before encoding and back after decoding; the fewshot stage reuses this stage's "
+        "tokenizer only when it was adapted as its own `rebase` asks.",
+    )
 
 
 @hookimpl
