@@ -4,7 +4,7 @@
 Run:  .venv/bin/python bench/experiment_tokenizers.py --out runs/exp_tokenizers [--steps 600]
       [any other `vqtouch evaluate reconstruction --out` flag, e.g. --samples 100 1000 --seeds 0 1 2]
 
-This wrapper keeps the settings of docs/results.md's Table 1 runs (the reconstruction scene's
+This wrapper keeps the settings of the short Table 1 runs (the reconstruction scene's
 tokenizer with base channels 32, 64x64 procedural GelSight scenes, batch 8, learning rate 2e-4,
 the PatchGAN from step 300, 200 held-out samples) and passes every other flag to the command,
 which trains each (model, N, seed) through the tokenizer stage and writes

@@ -3,7 +3,7 @@
 Run:  .venv/bin/python bench/tradeoff_tokenizer.py --out runs/tradeoff [--steps 150]
       [any other `vqtouch evaluate tradeoff` flag, e.g. --seeds 0, --threads 1 or --knobs codebook=128]
 
-This wrapper keeps the baseline of docs/results.md's tokenizer trade table (VQGAN, base channels
+This wrapper keeps the baseline of the tokenizer trade (VQGAN, base channels
 32, f = 4, 512 codes with the scene's cosine 8-d lookup, fp32, 64x64 GelSight scenes, 1000
 procedural samples, batch 8, learning rate 2e-4, no discriminator within the steps) and runs the
 command's default tokenizer knobs on it: deformable layers (DM-VQGAN), codebook size 128 / 2048,
