@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import types
 import typing
 from pathlib import Path
 from typing import Any, Iterator
@@ -85,7 +86,7 @@ def _type_text(annotation: Any) -> str:
         return " | ".join(json.dumps(value) for value in typing.get_args(annotation))
     if origin is typing.Annotated:
         return _type_text(typing.get_args(annotation)[0])
-    if origin is typing.Union or str(origin) == "<class 'types.UnionType'>":
+    if origin in (typing.Union, types.UnionType):
         return " | ".join(_type_text(arg) for arg in typing.get_args(annotation))
     if origin is not None:
         arguments = ", ".join(_type_text(arg) for arg in typing.get_args(annotation))
