@@ -3,7 +3,7 @@ commands that only print (help, configs, the plugin list), each in a fresh inter
 
 Run:  .venv/bin/python bench/bench_cli_startup.py [--repeats 5]
 
-Each command runs ``--repeats`` times in a new process (``python -c`` calling ``vqtouch.core.cli.main``,
+Each command runs ``--repeats`` times in a new process (``python -c`` calling ``vqtouch.plugins.cli.app.main``,
 what the ``vqtouch`` script does); reported: the median wall time, the largest peak resident memory
 (the child's own ``ru_maxrss``) and whether ``torch`` was in ``sys.modules`` when the command returned.
 Run it on an idle machine: start-up time is mostly imports, which a busy CPU stretches.
@@ -30,7 +30,7 @@ COMMANDS = (
 #: The child: run the command, then say whether torch came in (stdout is the command's own).
 CHILD = """
 import contextlib, io, json, resource, sys
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 with contextlib.redirect_stdout(io.StringIO()):
     try:
         code = main(json.loads(sys.argv[1]))

@@ -53,8 +53,9 @@ TRAIN_WORKER = r"""
 import json, sys, time, torch
 args = json.loads(sys.argv[1])
 torch.set_num_threads(args["threads"])
-from vqtouch.core import Assembly, RunDir, load_plugins
-from vqtouch.core.training import collate_samples
+from vqtouch.core import Assembly, load_plugins
+from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.training.trainer import collate_samples
 from vqtouch.plugins.generator import load_pipeline
 host = load_plugins()
 pipe = load_pipeline(args["run"], host=host)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from vqtouch.core.cli import main as vqtouch
+from vqtouch.plugins.cli.app import main as vqtouch
 
 #: The old script's settings as ``--set`` overrides of the reconstruction scene.
 SETTINGS = [

@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-VQTOUCH = [sys.executable, "-m", "vqtouch.core.cli"]
+VQTOUCH = [sys.executable, "-m", "vqtouch.plugins.cli"]
 ENV = {**os.environ, "VQTOUCH_NO_PROGRESS": "1", "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
 TOKENIZER = [
     "--scene", "reconstruction",

@@ -520,7 +520,7 @@ def sensitivity(args: argparse.Namespace) -> dict[str, Any]:
 def bundle_split(name: str, host: Any) -> tuple[Any, Any, Any, Any, torch.Tensor]:
     """The bundle's pipeline, its dataset, the (train, held-out) split ``vqtouch evaluate generation
     --run pretrained:NAME`` uses, and the no-contact background (3, H, W) it scores against."""
-    from vqtouch.core.data import experiment_split
+    from vqtouch.plugins.utils.splits import experiment_split
     from vqtouch.core.image_size import image_hw
     from vqtouch.plugins.evaluation.contact import dataset_background
     from vqtouch.plugins.generator.pipeline import load_pipeline

@@ -99,7 +99,7 @@ def log(message: str) -> None:
 
 
 def vqtouch(threads: int) -> list[str]:
-    return [sys.executable, "-m", "vqtouch.core.cli", "--no-progress", "--threads", str(threads)]
+    return [sys.executable, "-m", "vqtouch.plugins.cli", "--no-progress", "--threads", str(threads)]
 
 
 def run(name: str, command: list[str], logs: Path, deadline: float, env: dict[str, str]) -> int:

@@ -19,7 +19,7 @@ from typing import Any
 import torch
 
 from vqtouch.core import TactileDataset, load_plugins
-from vqtouch.core.data import split_dataset
+from vqtouch.plugins.utils.splits import split_dataset
 from vqtouch.plugins.data.leakage import check_leakage, read_thumbnails
 from vqtouch.plugins.data.procedural import sample_generator
 from vqtouch.sensors.objects import OBJECT_CLASSES, sample_contact

@@ -52,7 +52,7 @@ def folder_name(target: str, arm: str, seed: int = 0) -> str:
 
 
 def run_arm(args: argparse.Namespace, target: str, extra: list[str], folder: Path) -> dict:
-    from vqtouch.core.cli import main
+    from vqtouch.plugins.cli.app import main
 
     if not (folder / "adapt.json").is_file():
         spec = json.dumps({"name": "gelsight_mini", "variant": TARGETS[target]})

@@ -38,7 +38,16 @@ TOKENIZER_RECIPE = [
 
 def command(component: str, precision: str, seed: int, steps: int, out: Path, threads: int) -> list[str]:
     """The ``vqtouch`` command line of one run."""
-    base = [sys.executable, "-m", "vqtouch.core.cli", "--no-progress", "--threads", str(threads), "train", component]
+    base = [
+        sys.executable,
+        "-m",
+        "vqtouch.plugins.cli",
+        "--no-progress",
+        "--threads",
+        str(threads),
+        "train",
+        component,
+    ]
     settings = ["--set", f"seed={seed}", "--set", f"{component}.train.precision={precision}"]
     settings += ["--set", f"{component}.train.steps={steps}"]
     if component == "generator":

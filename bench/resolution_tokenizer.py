@@ -55,7 +55,8 @@ def configurations(sizes: list[ImageSize], encoder: str) -> list[tuple[str, Imag
 def scores_at_64(run: Path, image_size: ImageSize) -> dict[str, float]:
     """SSIM and PSNR of the run's held-out reconstructions after resizing them and their ground truth to
     64 px wide."""
-    from vqtouch.core import Assembly, RunDir, load_plugins
+    from vqtouch.core import Assembly, load_plugins
+    from vqtouch.plugins.runtime.run_dir import RunDir
     from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all
 
     host = load_plugins()

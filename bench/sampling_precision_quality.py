@@ -30,7 +30,7 @@ def run_one(args: argparse.Namespace, index: int, name: str, seed: int) -> dict[
     out = args.out / f"{index}_{name}_s{seed}"
     if not (out / "tradeoff.json").exists():
         guidance = GUIDANCE.get(name, 2.0)
-        command = [sys.executable, "-m", "vqtouch.core.cli", "--no-progress", "--threads", str(args.threads)]
+        command = [sys.executable, "-m", "vqtouch.plugins.cli", "--no-progress", "--threads", str(args.threads)]
         command += ["tradeoff", "generator", "--run", args.run, "--conditioner", str(index), "--out", str(out)]
         command += ["--n", str(args.n), "--rounds", "1", "--steps", "25", "--samplers", "posterior"]
         command += ["--guidance", f"{guidance:g}", "--precisions", "fp32", "bf16", "--seed", str(seed)]

@@ -102,7 +102,7 @@ def train(recipe: str, out: Path, args: argparse.Namespace, steps: int) -> float
     """Train one recipe for ``steps`` unless finished; its wall time in seconds (None when it was already there)."""
     if (out / "eval.json").is_file():
         return None
-    argv = [sys.executable, "-m", "vqtouch.core.cli", "--no-progress", "--threads", str(args.threads)]
+    argv = [sys.executable, "-m", "vqtouch.plugins.cli", "--no-progress", "--threads", str(args.threads)]
     argv += ["train", "tokenizer", *BASE, *RECIPES[recipe.split("@")[0]], "--out", str(out)]
     argv += ["--set", f"tokenizer.train.steps={steps}", "--set", f"tokenizer.train.precision={args.precision}"]
     if out.exists():
@@ -119,8 +119,9 @@ class Scorer:
     """The held-out images, the training draws and the feature network, made once for every run."""
 
     def __init__(self, run: Path, host) -> None:
-        from vqtouch.core import Assembly, RunDir
-        from vqtouch.core.data import experiment_split
+        from vqtouch.core import Assembly
+        from vqtouch.plugins.runtime.run_dir import RunDir
+        from vqtouch.plugins.utils.splits import experiment_split
         from vqtouch.plugins.experiments.downstream import draw_others, real_features
 
         self.config = RunDir.open(run).load_config(host)
@@ -187,7 +188,7 @@ def eval_scores(run: Path) -> dict[str, float]:
 def reference_eval(name: str, scorer: Scorer, host) -> dict[str, float]:
     """PSNR, SSIM, contact PSNR and code usage of a tokenizer that is not a run (a bundle)."""
     from vqtouch.core import Assembly
-    from vqtouch.core.data import experiment_split
+    from vqtouch.plugins.utils.splits import experiment_split
     from vqtouch.plugins.evaluation.contact import dataset_background
     from vqtouch.plugins.tokenizer import load_tokenizer
     from vqtouch.plugins.tokenizer.training import evaluate_reconstruction
@@ -242,7 +243,7 @@ def main() -> int:
 
 def summarise(args: argparse.Namespace, finished: list[str]) -> int:
     from vqtouch.core import load_plugins
-    from vqtouch.core.images import image_grid, save_png
+    from vqtouch.plugins.utils.images import image_grid, save_png
     from vqtouch.plugins.tokenizer import load_tokenizer
 
     host = load_plugins()

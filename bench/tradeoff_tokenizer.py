@@ -21,7 +21,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from vqtouch.core.cli import main as vqtouch
+from vqtouch.plugins.cli.app import main as vqtouch
 
 #: The old script's baseline as ``--set`` overrides of the reconstruction scene (the encoder's
 #: name first: selecting a plugin resets its options).

@@ -3,7 +3,7 @@
 open_clip (and with it torchvision's model code) is imported only when this conditioner
 is built, so scenes that do not condition on visual images never import it; it is the
 optional extra ``clip`` (``pip install 'vqtouch[clip]'``).  The CLIP weights are held in a
-:class:`vqtouch.core.frozen.FrozenModule`, so they are not copied into vqtouch checkpoints:
+:class:`vqtouch.plugins.utils.frozen.FrozenModule`, so they are not copied into vqtouch checkpoints:
 the checkpoint records the architecture and the file path, and only the trainable
 projection is saved.
 """
@@ -13,8 +13,9 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from vqtouch.core import BuildContext, Conditioner, WeightsSpec, resolve_weights
-from vqtouch.core.frozen import FrozenModule
+from vqtouch.core import BuildContext, Conditioner
+from vqtouch.plugins.utils.weights import WeightsSpec, resolve_weights
+from vqtouch.plugins.utils.frozen import FrozenModule
 from vqtouch.plugins.evaluation.open_clip_towers import (
     OPEN_CLIP_ENV_VAR,
     OPEN_CLIP_FILENAMES,

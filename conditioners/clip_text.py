@@ -5,7 +5,7 @@ the same helpers: open_clip (and with it torchvision's model code) is imported o
 conditioner is built; the weights come from a local open_clip checkpoint (the same file the
 ``clip`` conditioner reads, found the same way: the ``checkpoint`` option, ``VQTOUCH_CLIP_CKPT``
 or ``VQTOUCH_WEIGHTS_DIR``) and are never downloaded; the network is held in a
-:class:`vqtouch.core.frozen.FrozenModule`, so it is frozen, always in eval mode and not copied
+:class:`vqtouch.plugins.utils.frozen.FrozenModule`, so it is frozen, always in eval mode and not copied
 into vqtouch checkpoints (they record the architecture and the file path; only the trainable
 projection and the null tokens are saved).  The image tower is dropped once the file is loaded.
 
@@ -32,8 +32,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from vqtouch.core import BuildContext, Conditioner, ConfigError, WeightsSpec, resolve_weights
-from vqtouch.core.frozen import FrozenModule
+from vqtouch.core import BuildContext, Conditioner, ConfigError
+from vqtouch.plugins.utils.weights import WeightsSpec, resolve_weights
+from vqtouch.plugins.utils.frozen import FrozenModule
 
 from vqtouch.plugins.evaluation.open_clip_towers import (
     builtin_tokenizer,

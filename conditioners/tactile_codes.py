@@ -20,7 +20,7 @@ from torch import nn
 
 from vqtouch.core import BuildContext, Conditioner, ConfigError, VqtouchError, load_plugins
 from vqtouch.core.image_size import ImageSize, image_hw
-from vqtouch.core.frozen import FrozenModule
+from vqtouch.plugins.utils.frozen import FrozenModule
 from vqtouch.plugins.tokenizer import load_tokenizer
 
 from .tactile_codes_plugin import TactileCodesConditionerConfig

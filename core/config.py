@@ -37,7 +37,10 @@ from .errors import (
 )
 from .image_size import ImageSizeOption
 from .plugin_config import PluginConfig, StrictModel
-from .seeding import SEED_MAX
+
+#: The largest seed: NumPy takes seeds below 2**32, and the seeds vqtouch derives from one
+#: (``seed * 1_000_003 + index`` for each generated image, ...) then stay within 64 bits.
+SEED_MAX = 2**32 - 1
 
 if TYPE_CHECKING:
     from .plugin_manager import PluginHost

@@ -11,6 +11,9 @@ error naming what replaced it.  Nothing that changed is left to fail later with 
   the new one (:func:`current_kind`);
 - **hooks** (:data:`HOOK_RENAMES`, :data:`HOOKS_REMOVED`): an old registration hook still registers,
   a removed one is refused when plugins load, naming the plugin;
+- **modules** (:data:`MOVED_MODULES`): the trainer, runs, the CLI, the contract-test kit and the
+  utilities left the core for packages under ``vqtouch.plugins``; their old import paths still
+  import, with a warning (:func:`install_moved_modules`);
 - **Python names**: ``Conditioner.modality`` (now ``sample_key``), ``vqtouch.core.Encoder`` (now
   ``Autoencoder``), ``build_components`` (now :class:`~vqtouch.core.Assembly`): their shims sit
   beside the new names and call :func:`warn_renamed`.  ``load`` without ``host`` is refused (there
@@ -22,8 +25,14 @@ there.
 
 from __future__ import annotations
 
+import importlib
+import importlib.abc
+import importlib.machinery
+import sys
+import types
 import warnings
 from dataclasses import dataclass
+from typing import Any
 
 from .errors import VqtouchDeprecationWarning
 
@@ -100,5 +109,79 @@ def current_kind(kind: str) -> str:
     new = KIND_RENAMES.get(kind)
     if new is None:
         return kind
-    warn_renamed(kind, new, what="component kind", stacklevel=4)
+    warn_renamed(kind, new, what="component kind", stacklevel=3)
     return new
+
+
+#: Core modules of 0.1.0 that moved out of the core, and where their names live now (the first
+#: module holding a name serves it).
+MOVED_MODULES: dict[str, tuple[str, ...]] = {
+    "vqtouch.core.training": (
+        "vqtouch.plugins.training.trainer",
+        "vqtouch.plugins.training.checkpoints",
+        "vqtouch.plugins.training.precision",
+        "vqtouch.plugins.training.settings",
+    ),
+    "vqtouch.core.train_config": ("vqtouch.plugins.training.settings",),
+    "vqtouch.core.testing": ("vqtouch.plugins.testing",),
+    "vqtouch.core.runs": ("vqtouch.plugins.runtime.run_dir",),
+    "vqtouch.core.outputs": ("vqtouch.plugins.runtime.outputs",),
+    "vqtouch.core.progress": ("vqtouch.plugins.utils.progress",),
+    "vqtouch.core.images": ("vqtouch.plugins.utils.images",),
+    "vqtouch.core.image_options": ("vqtouch.plugins.utils.image_options",),
+    "vqtouch.core.data": ("vqtouch.plugins.utils.splits",),
+    "vqtouch.core.weights": ("vqtouch.plugins.utils.weights",),
+    "vqtouch.core.frozen": ("vqtouch.plugins.utils.frozen",),
+    "vqtouch.core.files": ("vqtouch.plugins.utils.files",),
+    "vqtouch.core.cli": ("vqtouch.plugins.cli.app",),
+    "vqtouch.core.seeding": ("vqtouch.plugins.utils.seeding", "vqtouch.plugins.utils.threads"),
+}
+
+
+def moved_attribute(old_module: str, name: str, homes: tuple[str, ...]) -> Any:
+    """``name`` of the moved module ``old_module``, from the first of ``homes`` that has it
+    (AttributeError naming the old module otherwise)."""
+    if name.startswith("__"):  # the import system's probes (__path__, ...): a moved module is no package
+        raise AttributeError(f"module {old_module!r} has no attribute {name!r}")
+    for home in homes:
+        module = importlib.import_module(home)
+        if hasattr(module, name):
+            return getattr(module, name)
+    raise AttributeError(f"module {old_module!r} has no attribute {name!r}")
+
+
+def warn_moved(old: str, homes: tuple[str, ...], *, what: str = "module", stacklevel: int = 3) -> None:
+    """One-line :class:`VqtouchDeprecationWarning`: ``old`` (a module, or a ``what``) moved to ``homes``."""
+    warnings.warn(
+        f"{what} {old!r} moved to {' / '.join(homes)} in vqtouch {RENAMED_IN}; import from there "
+        f"('{old}' stops working in {REMOVAL_VERSION})",
+        VqtouchDeprecationWarning,
+        stacklevel=stacklevel,
+    )
+
+
+class _MovedModuleLoader(importlib.abc.Loader):
+    """Makes an old module path a stand-in whose attributes come from the new homes."""
+
+    def create_module(self, spec: importlib.machinery.ModuleSpec) -> types.ModuleType:
+        homes = MOVED_MODULES[spec.name]
+        warn_moved(spec.name, homes, stacklevel=3)
+        module = types.ModuleType(spec.name, f"Moved to {', '.join(homes)}.")
+        module.__getattr__ = lambda name: moved_attribute(spec.name, name, homes)  # type: ignore[method-assign]
+        return module
+
+    def exec_module(self, module: types.ModuleType) -> None:
+        """Nothing to run: every attribute is looked up in the new homes."""
+
+
+class _MovedModuleFinder(importlib.abc.MetaPathFinder):
+    def find_spec(self, fullname: str, path: Any = None, target: Any = None) -> importlib.machinery.ModuleSpec | None:
+        if fullname not in MOVED_MODULES:
+            return None
+        return importlib.machinery.ModuleSpec(fullname, _MovedModuleLoader())
+
+
+def install_moved_modules() -> None:
+    """Let the old paths of :data:`MOVED_MODULES` import (once per process)."""
+    if not any(isinstance(finder, _MovedModuleFinder) for finder in sys.meta_path):
+        sys.meta_path.append(_MovedModuleFinder())

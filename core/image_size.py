@@ -1,6 +1,6 @@
 """Image sizes: ``S`` (S x S pixels) or ``(height, width)``, and their config option.
 
-Kept apart from :mod:`vqtouch.core.images` (file reading and writing) so that every core module,
+Kept apart from the image utilities (file reading and writing) so that every core module,
 the build context included, can use it without an import cycle."""
 
 from __future__ import annotations

@@ -27,22 +27,35 @@ Scenes list stages by name; an unknown stage fails listing what exists.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from .errors import PluginError, VqtouchError
 from .references import resolve
-from .seeding import seed_everything
 
 if TYPE_CHECKING:
     from .assembly import Assembly
     from .config import ExperimentConfig, Section
     from .plugin_manager import PluginHost
     from .registry import PluginSource
-    from .runs import Product, RunDir
+
+
+class StageRun(Protocol):
+    """What a stage uses of the run folder it works in (the runtime package's ``RunDir``
+    implements it): its path and checkpoints folder, resuming a trainer, writing a record, and its products."""
+
+    path: Path
+    checkpoints: Path
+
+    def resume(self, trainer: Any, host: PluginHost, **where: Any) -> Any: ...
+
+    def write_json(self, name: str, data: Any) -> Path: ...
+
+    def publish(self, name: str, path: str | Path, *, stage: str, **facts: Any) -> Any: ...
+
+    def product(self, name: str, host: PluginHost | None = None) -> Any: ...
 
 
 class StageUnavailable(VqtouchError):
@@ -91,12 +104,12 @@ class StageJob:
     stage: str
     config: ExperimentConfig
     host: PluginHost
-    run: RunDir
+    run: StageRun
     assembly: Assembly
     section: Any = None
     resume: bool = False
 
-    def publish(self, name: str, path: str | Path, **facts: Any) -> Product:
+    def publish(self, name: str, path: str | Path, **facts: Any) -> Any:
         """Publish what this stage made at ``path`` (inside the run) as product ``name``, one of
         the names its registration declares in ``makes``."""
         makes = self.host.stage(self.stage).makes
@@ -108,29 +121,10 @@ class StageJob:
             )
         return self.run.publish(name, path, stage=self.stage, **facts)
 
-    def product(self, name: str) -> Product:
+    def product(self, name: str) -> Any:
         """The product ``name`` an earlier stage published in this run (MissingProductError
         naming the stage that makes it when the run holds none)."""
         return self.run.product(name, self.host)
-
-
-@dataclass
-class StageOutcome:
-    """What happened when a stage was asked to run: ``status`` is ``ran``, ``unavailable`` or ``failed``."""
-
-    stage: str
-    status: str
-    reason: str = ""
-    result: dict[str, Any] | None = None
-    seconds: float = 0.0
-
-    def describe(self) -> str:
-        """One line for reports, e.g. ``ran (23 s)`` or ``cannot run: ...``."""
-        if self.status == "ran":
-            return f"ran ({self.seconds:.0f} s)"
-        if self.status == "unavailable":
-            return f"cannot run: {self.reason}"
-        return f"failed: {self.reason}"
 
 
 def required_slots(config: ExperimentConfig, host: PluginHost) -> list[str]:
@@ -169,29 +163,3 @@ def unavailable_reason(stage: str, config: ExperimentConfig, host: PluginHost) -
         if missing_stage == stage:
             return empty_slot_reason(path, host)
     return None
-
-
-def run_stage(stage: str, assembly: Assembly, run: RunDir, *, resume: bool = False) -> StageOutcome:
-    """Run one stage of ``assembly``'s experiment in ``run``: the one path the CLI, the demo and
-    tests share.
-
-    Every random number generator is seeded with the experiment's seed first, so a stage's
-    result does not depend on what ran before it in the same process.  A stage that cannot
-    run says why (``unavailable``); a user error while running is ``failed`` with its
-    one-line message.  Other exceptions propagate.
-    """
-    config, host = assembly.config, assembly.host
-    entry = host.stage(stage)
-    reason = unavailable_reason(stage, config, host)
-    if reason is not None:
-        return StageOutcome(stage, "unavailable", reason)
-    seed_everything(config.seed, config.deterministic)
-    job = StageJob(stage, config, host, run, assembly, getattr(config, stage, None) if entry.section else None, resume)
-    start = time.perf_counter()
-    try:
-        result = entry.load_run()(job)
-    except StageUnavailable as exc:
-        return StageOutcome(stage, "unavailable", str(exc), seconds=time.perf_counter() - start)
-    except VqtouchError as exc:
-        return StageOutcome(stage, "failed", str(exc), seconds=time.perf_counter() - start)
-    return StageOutcome(stage, "ran", result=result or {}, seconds=time.perf_counter() - start)

@@ -34,7 +34,7 @@ for variable in (
 import torch  # noqa: E402
 
 from vqtouch.core import load_plugins  # noqa: E402
-from vqtouch.core.cli import main  # noqa: E402
+from vqtouch.plugins.cli.app import main  # noqa: E402
 
 TESTS = Path(__file__).resolve().parent
 REPO = TESTS.parent
@@ -154,7 +154,7 @@ def third_party_conditioner(make_plugin):
 
 @pytest.fixture
 def run_cli():
-    """Run ``python -m vqtouch.core.cli ARGS`` in a subprocess (real entry-point discovery)."""
+    """Run ``python -m vqtouch.plugins.cli ARGS`` in a subprocess (real entry-point discovery)."""
     return _run_cli
 
 
@@ -166,7 +166,7 @@ def _run_cli(
     if python_path is not None:
         env["PYTHONPATH"] = str(python_path) + os.pathsep + env.get("PYTHONPATH", "")
     return subprocess.run(
-        [sys.executable, "-m", "vqtouch.core.cli", *args],
+        [sys.executable, "-m", "vqtouch.plugins.cli", *args],
         capture_output=True,
         text=True,
         env=env,
@@ -226,7 +226,7 @@ def family_clusters(family_tokenizer_run, tmp_path_factory):
 @pytest.fixture
 def tokenizer_trainer_calls(monkeypatch):
     """What every tokenizer trainer of the experiment received: its stage and its images."""
-    from vqtouch.core import training
+    from vqtouch.plugins.training import trainer as training
 
     calls = []
 

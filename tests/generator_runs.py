@@ -91,7 +91,7 @@ def tiny_tokenizer_folder(folder: Path) -> Path:
     16-code quantizer, built in the contract tests' default context: 32 px, 8 latent channels),
     made once per folder."""
     from vqtouch.core import load_plugins, save
-    from vqtouch.core.testing import DEFAULT_CONTEXT
+    from vqtouch.plugins.testing import DEFAULT_CONTEXT
 
     path = folder / "tiny_tokenizer"
     if not (path / "quantizer.safetensors").is_file():

@@ -61,7 +61,7 @@ def fabricated_inception(folder: Path) -> Path:
 
 def accept_fabricated(monkeypatch, module, attribute: str, key: str | None, path: Path) -> None:
     """Make ``module.attribute`` (a WeightsSpec, or a dict of them at ``key``) accept ``path``'s own sha256."""
-    from vqtouch.core.weights import sha256_of
+    from vqtouch.plugins.utils.weights import sha256_of
 
     prefix = sha256_of(path)[:8]
     specs = getattr(module, attribute)

@@ -1,5 +1,5 @@
 """A demo run folder for the report tests, made without running the demo: a report.json in the
-layout ``run_demo`` writes, real PNGs made by vqtouch.core.images, a metrics.jsonl, and every
+layout ``run_demo`` writes, real PNGs made by vqtouch.plugins.utils.images, a metrics.jsonl, and every
 form a skip is reported in.  The report test modules load it by file (test modules cannot import
 each other under --import-mode=importlib)."""
 
@@ -30,7 +30,7 @@ PICTURES = {
 
 
 def _grid_png(path: Path, count: int, size: int, columns: int, seed: int) -> Path:
-    from vqtouch.core.images import image_grid, save_png
+    from vqtouch.plugins.utils.images import image_grid, save_png
 
     images = torch.rand(count, 3, size, size, generator=torch.Generator().manual_seed(seed))
     return save_png(image_grid(images, columns=columns), path)

@@ -8,8 +8,8 @@ import torch
 
 import generator_runs
 from vqtouch.core import load_plugins, read_metadata
-from vqtouch.core.cli import main
-from vqtouch.core.images import save_png
+from vqtouch.plugins.cli.app import main
+from vqtouch.plugins.utils.images import save_png
 from vqtouch.plugins.adaptation.adapt import contact_fraction, family_images, target_images
 from vqtouch.plugins.adaptation.families import SensorFamilies, sensor_images
 

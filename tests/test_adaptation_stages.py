@@ -8,7 +8,7 @@ import pytest
 
 from generator_runs import TINY
 from vqtouch.core import load_plugins, read_metadata
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 
 HOST = load_plugins(autoload=False)
 #: Tiny stages; an untrained tokenizer's families are tight, so the thresholds are generous here

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from vqtouch.core import ConfigError, load_plugins
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 from vqtouch.plugins.generator import load_pipeline
 from vqtouch.plugins.generator.best_of import (
     MAX_BEST_OF,

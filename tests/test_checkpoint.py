@@ -13,7 +13,7 @@ import vqtouch.core.checkpoint as checkpoint_module
 from vqtouch.core import BuildContext, CheckpointError, hookimpl, load, load_plugins, read_metadata, save
 from vqtouch.core.checkpoint import FORMAT_VERSION, atomic_write
 from vqtouch.core.plugin_manager import REGISTRY_KINDS
-from vqtouch.core.testing import build_for_check, check_round_trip
+from vqtouch.plugins.testing import build_for_check, check_round_trip
 
 CONTEXT = BuildContext(image_size=32, num_classes=5, cond_dim=16, latent_dim=8, codebook_size=16, code_grid=4)
 
@@ -56,7 +56,7 @@ def test_every_module_kind_is_round_tripped():
 @pytest.mark.parametrize("kind, name", MODULE_ENTRIES)
 def test_every_module_component_round_trips(host, tmp_path, tmp_path_factory, kind, name):
     """Built with tiny options, its weights moved off their initial values, saved and loaded: the reloaded
-    component has the same state and computes the same outputs (vqtouch.core.testing.check_round_trip)."""
+    component has the same state and computes the same outputs (vqtouch.plugins.testing.check_round_trip)."""
     case = CASES.builtin_case(kind, name, tmp_path_factory)
     component = build_for_check(host, kind, name, case["options"], CONTEXT, inputs=case.get("inputs"))
     restored = check_round_trip(host, component, tmp_path, step=42)

@@ -7,7 +7,7 @@ import pytest
 from pydantic import Field
 
 from vqtouch.core import ConfigError, PluginConfig, Section, hookimpl, load_plugins, resolve_config
-from vqtouch.core.cli import build_parser, main
+from vqtouch.plugins.cli.app import build_parser, main
 from vqtouch.core.config import scale_for_demo
 
 #: The installed stages, as an unknown stage's message lists them.
@@ -381,7 +381,7 @@ def test_demo_full_keeps_the_configured_size_and_scaled_uses_the_caps(tmp_path, 
 def test_closed_stdout_pipe_exits_quietly():
     """`vqtouch plugins | head`: the reader goes away; no traceback, the usual SIGPIPE status."""
     process = subprocess.Popen(
-        [sys.executable, "-m", "vqtouch.core.cli", "plugins"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+        [sys.executable, "-m", "vqtouch.plugins.cli", "plugins"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
     )
     process.stdout.close()  # before the command has imported anything, let alone printed
     err = process.stderr.read().decode()
@@ -390,7 +390,7 @@ def test_closed_stdout_pipe_exits_quietly():
 
 
 def test_broken_pipe_in_a_handler_is_quiet_in_process(capsys, monkeypatch):
-    from vqtouch.core import cli
+    from vqtouch.plugins.cli import app as cli
 
     def closed_pipe(args):
         raise BrokenPipeError(32, "Broken pipe")
@@ -401,7 +401,7 @@ def test_broken_pipe_in_a_handler_is_quiet_in_process(capsys, monkeypatch):
 
 
 def test_ctrl_c_prints_interrupted(capsys, monkeypatch):
-    from vqtouch.core import cli
+    from vqtouch.plugins.cli import app as cli
 
     def interrupted(args):
         raise KeyboardInterrupt
@@ -473,7 +473,7 @@ def test_the_default_demo_is_the_tour_of_every_stage_with_a_sample_grid_per_cond
 
 
 def test_a_plugin_on_the_command_line_is_a_name_or_a_json_block():
-    from vqtouch.core.cli import plugin_block
+    from vqtouch.plugins.cli.app import plugin_block
 
     assert plugin_block(" gelsight ", "--sensor") == {"name": "gelsight"}
     assert plugin_block('{"name": "digit", "view": "full"}', "--sensor") == {"name": "digit", "view": "full"}

@@ -10,7 +10,7 @@ import math
 import pytest
 from generator_runs import TINY
 
-from vqtouch.core.cli import NumberType, build_parser, main
+from vqtouch.plugins.cli.app import NumberType, build_parser, main
 from vqtouch.core.plugin_manager import load_plugins
 
 #: What a careless user types.

@@ -16,7 +16,7 @@ HEAVY = ("torch", "torchvision", "numpy", "safetensors", "sklearn", "open_clip",
 CHILD = """
 import argparse, contextlib, io, json, sys
 from vqtouch.core import load_plugins
-from vqtouch.core.cli import build_parser, main
+from vqtouch.plugins.cli.app import build_parser, main
 
 HEAVY = json.loads(sys.argv[1])
 

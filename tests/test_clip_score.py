@@ -18,8 +18,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from vqtouch.core import ConfigError, MetricSet, SkippedMetric, load_plugins
-from vqtouch.core.cli import main
+from vqtouch.core import ConfigError, SkippedMetric, load_plugins
+from vqtouch.plugins.evaluation.metric_set import MetricSet
+from vqtouch.plugins.cli.app import main
 
 from generator_runs import train_args  # noqa: E402  (registered by conftest)
 
@@ -284,8 +285,9 @@ def test_the_generator_stage_scores_clip_score_beside_its_comparisons(trained):
 def test_evaluate_generation_scores_the_real_images_as_open_clip_does(trained, tiny_clip, capsys):
     """The run's own clip_score options (its checkpoint) are used; real_clip_score, which no generator
     changes, is the held-out ground truth against its label prompts computed directly."""
-    from vqtouch.core import Assembly, RunDir
-    from vqtouch.core.data import split_dataset
+    from vqtouch.core import Assembly
+    from vqtouch.plugins.runtime.run_dir import RunDir
+    from vqtouch.plugins.utils.splits import split_dataset
 
     status, result = _evaluate(trained, capsys)
     assert status == 0, result
@@ -325,8 +327,9 @@ def test_score_generation_lists_conditions_clip_cannot_read_as_skipped(trained, 
     clip_score is skipped with the reason, beside the pair metrics' own skipped ones and scores."""
     from dataclasses import replace
 
-    from vqtouch.core import Assembly, RunDir
-    from vqtouch.core.data import split_dataset
+    from vqtouch.core import Assembly
+    from vqtouch.plugins.runtime.run_dir import RunDir
+    from vqtouch.plugins.utils.splits import split_dataset
     from vqtouch.plugins.generator import load_pipeline
     from vqtouch.plugins.generator.stage import held_out_conditions, score_generation
 

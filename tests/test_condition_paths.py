@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from vqtouch.conditioners.image_cnn import ImageCnnConditioner, grid_stage_for
 from vqtouch.core import BuildContext, load_missing_as_zeros, load_plugins
 from vqtouch.core.checkpoint import load_state_strict
-from vqtouch.core.training import TrainConfig, learning_rate_factor
+from vqtouch.plugins.training.trainer import TrainConfig, learning_rate_factor
 from vqtouch.plugins.generator.codes import canonical_background
 from vqtouch.plugins.generator.denoiser import DiffusionTransformer
 from vqtouch.plugins.generator.diffusion import MaskReplaceSchedule, masked_ce_loss
@@ -251,7 +251,7 @@ def touch_run(tmp_path_factory):
     """A tiny trained touch-to-touch run (32 px, tactile conditioner)."""
     from generator_runs import train_args  # registered by conftest
 
-    from vqtouch.core.cli import main
+    from vqtouch.plugins.cli.app import main
 
     out = tmp_path_factory.mktemp("t2t") / "run"
     assert main(train_args(out, "generator.conditioners.0.width=8", scene="touch-to-touch")) == 0
@@ -315,7 +315,7 @@ def test_contact_centroid_error_is_the_distance_between_contact_centres():
 def test_evaluate_generation_scores_a_bundle_into_out(touch_run, tmp_path, monkeypatch, capsys):
     import json
 
-    from vqtouch.core.cli import main
+    from vqtouch.plugins.cli.app import main
     from vqtouch.plugins.pretrained import bundle as bundle_module
 
     bundles = tmp_path / "bundles"

@@ -27,7 +27,7 @@ def build(host, tmp_path_factory):
 
 def example_condition(conditioner, batch):
     """The contract checks' example batch for the conditioner's sample key (labels, images or texts)."""
-    from vqtouch.core.testing import example_condition as contract_example
+    from vqtouch.plugins.testing import example_condition as contract_example
 
     if conditioner.sample_key == "label":
         return torch.arange(batch) % conditioner.num_classes
@@ -40,7 +40,7 @@ OFFLINE_CONDITIONERS = [
 
 
 # The shape / null-token / drop-mask contract of every conditioner is checked by
-# vqtouch.core.testing.check_plugin in test_plugin_contracts.py.
+# vqtouch.plugins.testing.check_plugin in test_plugin_contracts.py.
 
 
 @pytest.mark.parametrize("name", OFFLINE_CONDITIONERS)
@@ -150,7 +150,8 @@ def test_clip_loads_local_weights_and_stays_frozen(host, tiny_clip_file, tmp_pat
     assert set(conditioner.state_dict()) == {"null_tokens_ND", "project.weight", "project.bias"}
     out.tokens_BND.sum().backward()
     assert all(p.grad is None for p in conditioner.encoder.network.parameters())
-    # The encoder is held by vqtouch.core.frozen.FrozenModule: training the conditioner leaves it frozen, in eval.
+    # The encoder is held by vqtouch.plugins.utils.frozen.FrozenModule: training the conditioner
+    # leaves it frozen, in eval.
     conditioner.train().requires_grad_(True)
     assert not conditioner.encoder.network.training
     assert not any(p.requires_grad for p in conditioner.encoder.network.parameters())
@@ -217,7 +218,7 @@ DATASET_CONDITIONERS = [name for name in OFFLINE_CONDITIONERS if name != "sensor
 def test_each_conditioner_reads_its_own_entry_of_a_dataset_batch(host, build, name):
     """`sample_key` routes a collated batch of procedural samples (paired: a DIGIT image per GelSight
     one) to the right conditioner input."""
-    from vqtouch.core.training import collate_samples
+    from vqtouch.plugins.training.trainer import collate_samples
 
     dataset = host.build(
         "dataset",

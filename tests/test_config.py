@@ -201,7 +201,7 @@ def test_stage_section_options_are_validated_with_exact_path(host):
 
 
 def test_tokenizer_train_keeps_vqgan_betas_while_core_defaults_to_adamw(host):
-    from vqtouch.core import TrainConfig
+    from vqtouch.plugins.training.settings import TrainConfig
 
     config = resolve_config("reconstruction", host=host)
     assert config.tokenizer.train.betas == (0.5, 0.9)
@@ -506,7 +506,7 @@ def test_a_recipe_file_brings_its_scene(host, tmp_path):
 def test_a_recipe_replaces_the_commands_default_scene_on_the_command_line(tmp_path, capsys):
     """`vqtouch config show --config RECIPE` (no scene named) and a training command's default scene:
     the recipe's scene wins over the default, never over a scene the user named."""
-    from vqtouch.core.cli import main
+    from vqtouch.plugins.cli.app import main
 
     recipe = _write_recipe(tmp_path / "recipe.toml", "touch-to-touch", steps=3)
     assert main(["config", "show", "--config", str(recipe)]) == 0

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from vqtouch.core import ConfigError, load_plugins
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 from vqtouch.plugins.evaluation.contact import contact_centroids, dataset_background
 from vqtouch.plugins.generator import load_pipeline
 from vqtouch.plugins.generator.best_of import candidate_seed, check_best_of, rank_name, sample_best_of
@@ -117,7 +117,7 @@ def test_the_pipeline_keeps_the_medoid_of_its_candidates_as_measured_one_by_one(
     consensus = pipe.contact_consensus()
     assert pipe.contact_consensus() is consensus and pipe.best_of_ranking("consensus") is consensus
     from vqtouch.core import Assembly
-    from vqtouch.core.data import experiment_split
+    from vqtouch.plugins.utils.splits import experiment_split
 
     dataset = Assembly(pipe.config, HOST).component("data.dataset")
     train, _ = experiment_split(dataset, pipe.config.data, pipe.config.seed)

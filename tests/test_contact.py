@@ -48,7 +48,7 @@ def test_camera_noise_alone_is_not_contact_and_a_press_shows_through_it():
 # -- the background of a dataset (dataset_background) --------------------------------------------
 
 from vqtouch.core import BuildContext, TactileDataset, load_plugins  # noqa: E402
-from vqtouch.core.data import split_dataset  # noqa: E402
+from vqtouch.plugins.utils.splits import split_dataset  # noqa: E402
 from vqtouch.plugins.evaluation.contact import RENDERED_BACKGROUND, dataset_background, evenly_spaced  # noqa: E402
 
 HOST = load_plugins(autoload=False)
@@ -147,7 +147,9 @@ def test_the_tokenizer_stage_scores_captured_frames_without_a_sensor_beside_thei
     from PIL import Image
 
     from generator_runs import TINY_TOKENIZER
-    from vqtouch.core import Assembly, RunDir, resolve_config, run_stage
+    from vqtouch.core import Assembly, resolve_config
+    from vqtouch.plugins.runtime.execution import run_stage
+    from vqtouch.plugins.runtime.run_dir import RunDir
 
     frames, _, _ = _frames(16)
     for index, frame in enumerate(frames):
@@ -184,7 +186,7 @@ def test_the_tokenizer_stage_scores_captured_frames_without_a_sensor_beside_thei
     # A separate dataset scored whole (`evaluate reconstruction --dataset`) is scored against its own
     # background: here the frames of a sensor 20/255 darker everywhere, whose whole image would be
     # "contact" against the run's training background.
-    from vqtouch.core.cli import main
+    from vqtouch.plugins.cli.app import main
 
     darker = tmp_path / "darker"
     for index, frame in enumerate(frames):

@@ -8,7 +8,7 @@ import statistics
 import pytest
 
 from generator_runs import tiny_tokenizer_args
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 
 
 @pytest.fixture(scope="module")

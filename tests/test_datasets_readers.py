@@ -34,7 +34,7 @@ SIZE = 16
 def test_the_readers_crop_modes_are_the_image_loaders():
     from typing import get_args
 
-    from vqtouch.core.images import CropMode
+    from vqtouch.plugins.utils.images import CropMode
     from vqtouch.plugins.data.readers import _options
 
     assert get_args(_options.CropMode) == get_args(CropMode)
@@ -902,7 +902,7 @@ def test_image_folder_groups_come_from_the_group_column(tmp_path):
 
 
 def test_a_split_of_a_reader_keeps_its_groups_on_one_side(tmp_path):
-    from vqtouch.core.data import split_dataset
+    from vqtouch.plugins.utils.splits import split_dataset
 
     root = layouts.build_objectfolder_real(tmp_path)
     dataset = build({"name": "objectfolder_real", "root": str(root), "image_size": SIZE})

@@ -225,3 +225,53 @@ def test_every_rename_is_in_the_changelog_and_the_version_says_so():
     assert not missing, f"CHANGELOG {deprecations.RENAMED_IN} does not describe {missing}"
     version = re.search(r'^version = "([^"]+)"', (REPO / "pyproject.toml").read_text(), re.M).group(1)
     assert version == deprecations.RENAMED_IN
+
+
+@pytest.mark.parametrize("old", sorted(deprecations.MOVED_MODULES))
+def test_a_module_that_left_the_core_still_imports_with_one_warning_naming_its_new_home(old):
+    import importlib
+    import sys
+
+    sys.modules.pop(old, None)
+    with pytest.warns(VqtouchDeprecationWarning, match=re.escape(deprecations.MOVED_MODULES[old][0])):
+        module = importlib.import_module(old)
+    homes = [importlib.import_module(home) for home in deprecations.MOVED_MODULES[old]]
+    public = [
+        name for name in dir(homes[0]) if not name.startswith("_") and getattr(homes[0], name).__class__ is not type(re)
+    ]
+    assert public, f"{old}'s new home exports nothing"
+    for name in public[:5]:
+        assert getattr(module, name) is getattr(homes[0], name)
+    with pytest.raises(AttributeError, match="has no attribute 'not_a_name'"):
+        module.not_a_name  # noqa: B018
+
+
+@pytest.mark.parametrize(
+    ("name", "home"),
+    [("TrainConfig", "vqtouch.plugins.training.settings"), ("RunDir", "vqtouch.plugins.runtime.run_dir"),
+     ("run_stage", "vqtouch.plugins.runtime.execution"), ("seed_everything", "vqtouch.plugins.utils.seeding"),
+     ("MetricSet", "vqtouch.plugins.evaluation.metric_set")],
+)  # fmt: skip
+def test_a_name_that_left_the_core_still_imports_from_vqtouch_core_with_a_warning(name, home):
+    import importlib
+
+    import vqtouch.core
+
+    with pytest.warns(VqtouchDeprecationWarning, match=re.escape(f"{home}.{name}")):
+        value = getattr(vqtouch.core, name)
+    assert value is getattr(importlib.import_module(home), name)
+
+
+def test_the_package_imports_nothing_from_the_old_core_paths():
+    """Every built-in, test and bench script imports a moved module from its new home (a patch of
+    the old path would patch a stand-in)."""
+    old = "|".join(re.escape(path) for path in deprecations.MOVED_MODULES)
+    moved = "|".join(path.rsplit(".", 1)[1] for path in deprecations.MOVED_MODULES)
+    pattern = re.compile(rf"^\s*(from ({old})\b|import ({old})\b|from vqtouch\.core import ({moved})\b)", re.M)
+    offenders = [
+        str(path.relative_to(REPO))
+        for folder in ("core", "plugins", "conditioners", "sensors", "tests", "bench")
+        for path in (REPO / folder).rglob("*.py")
+        if pattern.search(path.read_text(encoding="utf-8"))
+    ]
+    assert not offenders, f"import from the old core paths: {offenders}"

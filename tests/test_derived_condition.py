@@ -11,8 +11,8 @@ import torch
 from derived_condition_plugin import MATERIALS, material_of
 from generator_runs import train_args
 from vqtouch.core import BuildContext, load_plugins, read_metadata
-from vqtouch.core.cli import main
-from vqtouch.core.testing import check_plugin
+from vqtouch.plugins.cli.app import main
+from vqtouch.plugins.testing import check_plugin
 
 
 @pytest.fixture

@@ -12,10 +12,11 @@ import pytest
 import torch
 
 import generator_runs
-from vqtouch.core import Assembly, ConfigError, RunDir
-from vqtouch.core.cli import main
-from vqtouch.core.data import split_dataset
-from vqtouch.core.images import save_png
+from vqtouch.core import Assembly, ConfigError
+from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.cli.app import main
+from vqtouch.plugins.utils.splits import split_dataset
+from vqtouch.plugins.utils.images import save_png
 from vqtouch.plugins.experiments.downstream import (
     ARMS,
     CEILING,
@@ -387,7 +388,7 @@ def test_each_generated_weight_is_its_own_arm_on_the_same_images(label_run, tmp_
 def test_through_the_tokenizer_the_classifiers_see_reconstructions(label_run, tmp_path, monkeypatch, host):
     """Independent reference: each classifier's real training rows, the held-out rows and the no-contact
     rows must be the features of ``decode_codes(encode_codes(image))``, not of the image as read."""
-    from vqtouch.core.data import experiment_split
+    from vqtouch.plugins.utils.splits import experiment_split
     from vqtouch.plugins.evaluation.contact import dataset_background
     from vqtouch.plugins.experiments import downstream
     from vqtouch.plugins.generator import load_pipeline

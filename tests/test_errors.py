@@ -17,7 +17,7 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 
 from vqtouch.core import DatasetError, VqtouchError
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 
 TINY_TRAIN = [
     "tokenizer.autoencoder.channels=16",

@@ -9,7 +9,7 @@ import torch
 
 import generator_runs
 from vqtouch.core import load_plugins
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 from vqtouch.plugins.adaptation.families import (
     assign_to_family,
     image_features,
@@ -89,7 +89,7 @@ def _variant(name, seed, **variant):
 
 
 def test_cluster_groups_variants_with_their_family_and_a_folder_joins_its_sensor(tokenizer_folder, tmp_path, capsys):
-    from vqtouch.core.images import save_png
+    from vqtouch.plugins.utils.images import save_png
 
     folder = tmp_path / "my_digit"
     folder.mkdir()
@@ -260,7 +260,7 @@ def test_a_sensor_folder_may_be_a_data_render_export_or_class_sub_folders(tmp_pa
     an export of `vqtouch data render` (index.csv; not its visual images or preview), or one
     sub-folder per class; a folder with none of them is one line naming the layouts."""
     from vqtouch.core import DatasetError
-    from vqtouch.core.images import ImageLoader, save_png
+    from vqtouch.plugins.utils.images import ImageLoader, save_png
     from vqtouch.plugins.adaptation.families import sensor_images
     from vqtouch.plugins.data.sensor_folders import sensor_folder_files
 

@@ -12,7 +12,7 @@ import torch
 
 from cli_checks import one_error_line
 
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 
 
 def _variant(name: str, seed: int, **variant) -> str:

@@ -16,8 +16,8 @@ from safetensors.torch import save_file
 
 from cli_checks import one_error_line, snapshot
 
-from vqtouch.core.cli import main
-from vqtouch.core.outputs import MARKER_NAME
+from vqtouch.plugins.cli.app import main
+from vqtouch.plugins.runtime.outputs import MARKER_NAME
 
 
 def poison(path: Path) -> None:

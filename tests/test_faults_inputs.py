@@ -17,9 +17,10 @@ import torch
 import generator_runs
 from cli_checks import one_error_line, snapshot
 
-from vqtouch.core import ConfigError, DatasetError, RunDir, VqtouchDeprecationWarning, load_plugins
-from vqtouch.core.cli import main
-from vqtouch.core.images import save_png
+from vqtouch.core import ConfigError, DatasetError, VqtouchDeprecationWarning, load_plugins
+from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.cli.app import main
+from vqtouch.plugins.utils.images import save_png
 
 HOST = load_plugins()
 
@@ -158,7 +159,7 @@ def test_threads_beyond_the_machine_are_refused_in_one_line(monkeypatch, capsys)
 
 def test_a_closed_stdout_is_not_a_traceback():
     done = subprocess.run(
-        f"{sys.executable} -m vqtouch.core.cli config scenes >&-",
+        f"{sys.executable} -m vqtouch.plugins.cli config scenes >&-",
         shell=True,
         capture_output=True,
         text=True,
@@ -228,7 +229,7 @@ def test_an_empty_text_and_a_rank_without_candidates_are_refused(tmp_path, capsy
 
 
 def test_a_librarys_warning_is_one_vqtouch_line_without_its_source(capsys):
-    from vqtouch.core.cli import _show_warning
+    from vqtouch.plugins.cli.app import _show_warning
 
     _show_warning(UserWarning("constrained_layout not applied because axes sizes collapsed"), UserWarning,
                   "/site-packages/matplotlib/figure.py", 3500, line="    warnings.warn(...)")  # fmt: skip

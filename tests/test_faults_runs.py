@@ -11,7 +11,7 @@ from generator_runs import tiny_tokenizer_args, train_args
 
 from cli_checks import one_error_line, snapshot
 
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +60,7 @@ def _sigterm_when_called(monkeypatch, target, name):
 def test_sigterm_during_setup_says_so_exits_143_and_the_run_resumes(tmp_path, monkeypatch, capsys):
     """SIGTERM while the run is being created (its config written, its env.json not yet): once a silent
     exit 143 and a run that, resumed, never got its env.json."""
-    import vqtouch.core.runs as runs_module
+    import vqtouch.plugins.runtime.run_dir as runs_module
 
     out = tmp_path / "run"
     _sigterm_when_called(monkeypatch, runs_module, "environment_record")

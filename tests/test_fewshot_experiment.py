@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from vqtouch.core import ConfigError, load_plugins, read_metadata
-from vqtouch.core.cli import main
-from vqtouch.core.images import save_png
+from vqtouch.plugins.cli.app import main
+from vqtouch.plugins.utils.images import save_png
 from vqtouch.plugins.adaptation.adapt import family_images, target_images
 from vqtouch.plugins.adaptation.families import load_families, sensor_images
 from vqtouch.plugins.adaptation.fewshot import BACKGROUND, SCRATCH, SHOTS_ALONE, ZERO_SHOT, evaluate_fewshot

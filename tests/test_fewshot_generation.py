@@ -11,9 +11,9 @@ import torch
 import generator_runs
 from cli_checks import one_error_line, snapshot
 from vqtouch.core import ConfigError, load_plugins
-from vqtouch.core.cli import main
-from vqtouch.core.images import save_png
-from vqtouch.core.outputs import MARKER_NAME
+from vqtouch.plugins.cli.app import main
+from vqtouch.plugins.utils.images import save_png
+from vqtouch.plugins.runtime.outputs import MARKER_NAME
 from vqtouch.plugins.experiments.fewshot_generation import RECONSTRUCTED
 from vqtouch.plugins.generator.sensor_finetune import FAMILY_SENSOR, NEW_SENSOR, mixed_codes
 from vqtouch.plugins.generator.training import (
@@ -235,7 +235,7 @@ def test_an_interrupted_fewshot_says_that_nothing_is_kept_and_keeps_what_out_hel
     family, tmp_path, capsys, monkeypatch, stop
 ):
     import vqtouch.plugins.experiments.fewshot_generation as fewshot
-    from vqtouch.core.training import TrainingInterrupted
+    from vqtouch.plugins.training.trainer import TrainingInterrupted
 
     def interrupted(*args, **kwargs):
         if stop == "fine-tuning":  # what the trainer raises after Ctrl-C, once its checkpoint is written

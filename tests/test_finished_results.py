@@ -12,8 +12,8 @@ import generator_runs
 from cli_checks import leaf_commands, one_error_line, snapshot
 
 from vqtouch.core import load_plugins
-from vqtouch.core.cli import build_parser, main
-from vqtouch.core.images import save_png
+from vqtouch.plugins.cli.app import build_parser, main
+from vqtouch.plugins.utils.images import save_png
 
 
 @pytest.fixture(scope="module")

@@ -1,10 +1,10 @@
-"""vqtouch.core.frozen.FrozenModule: a pretrained network held frozen, in eval mode, out of checkpoints."""
+"""vqtouch.plugins.utils.frozen.FrozenModule: a pretrained network held frozen, in eval mode, out of checkpoints."""
 
 import pytest
 import torch
 from torch import nn
 
-from vqtouch.core.frozen import FrozenModule
+from vqtouch.plugins.utils.frozen import FrozenModule
 
 
 def pretrained_network() -> nn.Module:

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from vqtouch.core import BuildContext, ConfigError, load, load_plugins, save
-from vqtouch.core.testing import check_plugin
+from vqtouch.plugins.testing import check_plugin
 
 HOST = load_plugins(autoload=False, extra=["vqtouch.plugins.tokenizer.fsq"])
 LATENT_DIM = 8
@@ -164,7 +164,7 @@ def test_a_generator_trains_and_samples_over_fsq_codes(tmp_path):
     import generator_runs
     from PIL import Image
 
-    from vqtouch.core.cli import main
+    from vqtouch.plugins.cli.app import main
 
     run = tmp_path / "run"
     quantizer = 'tokenizer.quantizer={"name": "fsq", "levels": [4, 4, 2]}'  # 32 codes, the tiny run's count

@@ -8,7 +8,7 @@ import statistics
 import pytest
 
 from generator_runs import TINY
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 from vqtouch.plugins.generator.experiment import rows_of, score_keys, verdicts
 
 CONDITIONERS = '[{"name": "label"}, {"name": "text_scratch", "width": 16, "depth": 1, "heads": 2, "vocab_buckets": 64}]'

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from vqtouch.core import BuildContext, ConditionTokens, load_plugins
-from vqtouch.core.cli import main
-from vqtouch.core.testing import check_plugin
+from vqtouch.plugins.cli.app import main
+from vqtouch.plugins.testing import check_plugin
 
 from generator_runs import TINY, train_args  # noqa: E402  (registered by conftest)
 
@@ -122,7 +122,8 @@ def test_a_second_run_reuses_the_cached_codes(trained, tmp_path):
 
     from vqtouch.plugins.generator.codes import encode_dataset
     from vqtouch.plugins.tokenizer import load_tokenizer
-    from vqtouch.core import Assembly, RunDir
+    from vqtouch.core import Assembly
+    from vqtouch.plugins.runtime.run_dir import RunDir
 
     run = RunDir.open(out)
     tokenizer, _ = load_tokenizer(run, HOST)
@@ -307,7 +308,7 @@ def test_a_condition_that_is_the_target_image_is_flagged(trained, tmp_path, caps
 def test_touch_to_touch_conditions_on_the_paired_sensors_image(trained, tmp_path, capsys):
     """The scene generates DIGIT images from GelSight images of the same contacts: no warning, the
     conditioner reads 'tactile_source', and `generate --tactile IMG` feeds that conditioner."""
-    from vqtouch.core.images import save_png
+    from vqtouch.plugins.utils.images import save_png
     from vqtouch.plugins.generator import load_pipeline
 
     run = tmp_path / "t2t"
@@ -320,8 +321,9 @@ def test_touch_to_touch_conditions_on_the_paired_sensors_image(trained, tmp_path
     import numpy as np
     from PIL import Image
 
-    from vqtouch.core import Assembly, RunDir
-    from vqtouch.core.data import split_dataset
+    from vqtouch.core import Assembly
+    from vqtouch.plugins.runtime.run_dir import RunDir
+    from vqtouch.plugins.utils.splits import split_dataset
 
     grid_HW3 = np.asarray(Image.open(run / "samples.png").convert("RGB"))
     assert grid_HW3.shape == (3 * (32 + 2) + 2, 2 * (32 + 2) + 2, 3)

@@ -16,9 +16,9 @@ from generator_runs import train_args
 from safetensors import safe_open
 from safetensors.torch import load_file
 
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 from vqtouch.core.plugin_manager import load_plugins
-from vqtouch.core.training import latest_good_checkpoint
+from vqtouch.plugins.training.trainer import latest_good_checkpoint
 from vqtouch.plugins.generator.pipeline import load_pipeline
 from vqtouch.plugins.pretrained.bundle import RECIPES, bundle_folder, describe_bundle
 

@@ -12,7 +12,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 from vqtouch.core import BuildContext, load_plugins, resolve_config
 from vqtouch.core.assembly import Assembly
 from vqtouch.plugins.generator.grid_pretrain import GridPretrainConfig, grid_conditioners, pretrain_condition_grid

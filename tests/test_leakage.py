@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from vqtouch.core import ConfigError, PluginError, TactileDataset
-from vqtouch.core.cli import main
-from vqtouch.core.data import DatasetSubset, split_dataset
+from vqtouch.plugins.cli.app import main
+from vqtouch.plugins.utils.splits import DatasetSubset, split_dataset
 from vqtouch.plugins.data import leakage
 from vqtouch.plugins.data.leakage import Thumbnails, check_leakage
 

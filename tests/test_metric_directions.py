@@ -8,7 +8,8 @@ from typing import Literal
 
 import pytest
 
-from vqtouch.core import Metric, PluginConfig, RunDir, hookimpl, load_plugins
+from vqtouch.core import Metric, PluginConfig, hookimpl, load_plugins
+from vqtouch.plugins.runtime.run_dir import RunDir
 from vqtouch.core.config import resolve_config
 from vqtouch.plugins.evaluation.directions import declared_directions, direction_arrow, lower_is_better
 from vqtouch.plugins.report.demo import run_demo

@@ -11,7 +11,8 @@ import torch
 import torch.nn.functional as F
 
 import metric_weights
-from vqtouch.core import BuildContext, MetricSet, SkippedMetric
+from vqtouch.core import BuildContext, SkippedMetric
+from vqtouch.plugins.evaluation.metric_set import MetricSet
 from vqtouch.plugins.evaluation import inception_metrics, metrics
 
 CONTEXT = BuildContext()

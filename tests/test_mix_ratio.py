@@ -10,7 +10,7 @@ import torch
 from cli_checks import snapshot
 
 from vqtouch.core import ConfigError, load_plugins
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 from vqtouch.plugins.adaptation.adapt import family_images, target_images
 from vqtouch.plugins.adaptation.families import load_families
 from vqtouch.plugins.adaptation.fewshot import BACKGROUND, SHOTS_ALONE, ZERO_SHOT

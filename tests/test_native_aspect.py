@@ -12,9 +12,9 @@ from PIL import Image
 
 import generator_runs
 from vqtouch.core import ConfigError, load_plugins, read_metadata, resolve_config
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 from vqtouch.core.image_size import image_size_argument
-from vqtouch.core.images import ImageLoader, crop_box, save_png
+from vqtouch.plugins.utils.images import ImageLoader, crop_box, save_png
 
 HOST = load_plugins(autoload=False)
 #: Rows x columns of every image in the end-to-end run: the 2:3 aspect, small enough to train in seconds.

@@ -16,8 +16,8 @@ import torch
 import torch.nn.functional as F
 
 from vqtouch.core import BuildContext, ConfigError
-from vqtouch.core.images import save_png
-from vqtouch.core.training import collate_samples
+from vqtouch.plugins.utils.images import save_png
+from vqtouch.plugins.training.trainer import collate_samples
 
 CONTEXT = BuildContext(image_size=32, num_classes=4, cond_dim=16)
 #: Small enough to run in a fraction of a second on CPU: a 64 px input gives a 2 x 2 feature map.
@@ -263,15 +263,21 @@ def test_text_heads_must_divide_width(host):
 
 @pytest.mark.parametrize("name", ["visual", "visual_cnn"])
 def test_image_conditioners_parse_an_image_path(host, name, tmp_path):
+    from vqtouch.plugins.utils.images import read_condition_image
+
     options = VISUAL if name == "visual" else {"name": "visual_cnn", "width": 8, "depth": 2, "token_grid": 2}
     conditioner = host.build("conditioner", options, CONTEXT)
     path = save_png(_images(1, 7)[0], tmp_path / "object.png")
-    image = conditioner.parse_condition(str(path), image_size=32)
+    read = read_condition_image(str(path), conditioner.sample_key, 32)
+    image = conditioner.parse_condition(read, image_size=32)
     assert image.shape == (3, 32, 32) and 0 <= image.min() and image.max() <= 1
     batch = collate_samples([{conditioner.sample_key: image}])
     assert conditioner(conditioner.condition_of(batch)).tokens_BND.shape == (1, conditioner.num_tokens, 16)
-    with pytest.raises(ConfigError, match="no such image file"):
-        conditioner.parse_condition(str(tmp_path / "missing.png"), image_size=32)
+    with pytest.raises(ConfigError, match="--visual .*missing.png: no such image file"):
+        read_condition_image(str(tmp_path / "missing.png"), conditioner.sample_key, 32)
+    # The contract itself reads no files: a path given straight to it is refused in one line.
+    with pytest.raises(ConfigError, match=r"takes a \(3, H, W\) image tensor in \[0, 1\], got str"):
+        conditioner.parse_condition(str(path), image_size=32)
 
 
 def test_text_conditioner_parses_a_string(host):

@@ -1,4 +1,4 @@
-"""The output rule (vqtouch.core.outputs): no command writes into, replaces or empties what it reads,
+"""The output rule (vqtouch.plugins.runtime.outputs): no command writes into, replaces or empties what it reads,
 nor anything inside the installed package; ``--overwrite`` replaces only the same command's output.
 
 The property tests walk every command's parser, so a command added later is covered without a word here.
@@ -19,8 +19,8 @@ import pytest
 from cli_checks import leaf_commands, one_error_line, snapshot
 
 from vqtouch.core import ConfigError, VqtouchWarning, load_plugins
-from vqtouch.core.cli import NumberType, build_parser, main
-from vqtouch.core.outputs import (
+from vqtouch.plugins.cli.app import NumberType, build_parser, main
+from vqtouch.plugins.runtime.outputs import (
     MARKER_NAME,
     check_output,
     clean_leftovers,
@@ -230,7 +230,7 @@ def test_a_killed_calls_staging_folder_is_removed_by_the_next_call(tmp_path):
     out = tmp_path / "out"
     code = (
         "import os, sys\n"
-        "from vqtouch.core.outputs import staged_output\n"
+        "from vqtouch.plugins.runtime.outputs import staged_output\n"
         f"with staged_output({str(out)!r}, command='generate') as folder:\n"
         "    (folder / 'half.png').write_bytes(b'1')\n"
         "    print(folder, flush=True)\n"

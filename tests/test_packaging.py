@@ -2,6 +2,7 @@
 
 import ast
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -26,11 +27,19 @@ def test_code_imports_only_through_the_vqtouch_namespace(package_sources):
     assert not bad, bad
 
 
+#: The core files that may name a plugin module, as data only: the shims of what left the core.
+SHIM_TABLES = ("deprecations.py", "__init__.py")
+
+
 def test_core_never_imports_plugins():
     for path in (REPO / "core").rglob("*.py"):
         text = path.read_text()
         for other in ("vqtouch.plugins", "vqtouch.conditioners", "vqtouch.sensors"):
-            assert other not in text, f"{path} mentions {other}: core must not depend on plugins"
+            if path.name in SHIM_TABLES:
+                statement = re.search(rf"^\s*(from|import) {re.escape(other)}", text, re.M)
+                assert statement is None, f"{path} imports {other}: core must not depend on plugins"
+            else:
+                assert other not in text, f"{path} mentions {other}: core must not depend on plugins"
 
 
 def test_every_package_folder_has_an_init():

@@ -325,7 +325,7 @@ def lpips_files(tmp_path, monkeypatch):
 
 def _accept_fabricated_backbone(monkeypatch, backbone_path):
     # A random file cannot have the real sha256 prefix: accept this file's own prefix for the plumbing tests.
-    from vqtouch.core.weights import sha256_of
+    from vqtouch.plugins.utils.weights import sha256_of
 
     spec = dataclasses.replace(feature_networks.ALEXNET_WEIGHTS, sha256_prefix=sha256_of(backbone_path)[:8])
     monkeypatch.setattr(feature_networks, "ALEXNET_WEIGHTS", spec)

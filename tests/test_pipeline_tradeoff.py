@@ -9,9 +9,9 @@ from collections import Counter
 import pytest
 import torch
 
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 from vqtouch.core.config import resolve_config
-from vqtouch.core.training import cpu_has_bf16_matrix_units
+from vqtouch.plugins.training.trainer import cpu_has_bf16_matrix_units
 from vqtouch.plugins.experiments import pipeline_tradeoff as tradeoff
 
 #: A tiny VQGAN tokenizer and generator at 32 px (tests/generator_runs.py's sizes); the encoder's

@@ -1,6 +1,6 @@
 """Contracts every registered plugin must meet, parametrized over the live registries.
 
-The checks themselves are :mod:`vqtouch.core.testing`, the helpers third-party authors call
+The checks themselves are :mod:`vqtouch.plugins.testing`, the helpers third-party authors call
 from their own suites; this file holds only the built-ins' tiny options (and the data their
 readers need) and checks that the helpers catch broken plugins.
 """
@@ -26,7 +26,7 @@ from vqtouch.core import (
     load_plugins,
 )
 from vqtouch.core.plugin_manager import KINDS_BY_NAME
-from vqtouch.core.testing import DEFAULT_CONTEXT, check_plugin, check_registration
+from vqtouch.plugins.testing import DEFAULT_CONTEXT, check_plugin, check_registration
 
 HOST = load_plugins(autoload=False)
 ENTRIES = [(entry.kind, entry.name) for entry in HOST.entries()]
@@ -191,7 +191,7 @@ def test_builtin_meets_its_contract_at_a_native_aspect(kind, name, tmp_path, tmp
 
 def test_every_registry_kind_is_checked():
     """A kind without a behaviour check would pass check_plugin on registration alone."""
-    from vqtouch.core import testing
+    from vqtouch.plugins.testing import registration as testing
 
     checked = [base for base, _ in testing._BEHAVIOUR_CHECKS]
     unchecked = [

@@ -409,7 +409,9 @@ def _stage_plugin(make_plugin, name="gallery", **options):
 
 
 def test_stage_registers_its_section_and_slots_and_runs(make_plugin, tmp_path):
-    from vqtouch.core import Assembly, RunDir, run_stage
+    from vqtouch.core import Assembly
+    from vqtouch.plugins.runtime.execution import run_stage
+    from vqtouch.plugins.runtime.run_dir import RunDir
 
     host = load_plugins(autoload=False, extra=[_stage_plugin(make_plugin, demo={"columns": 2})])
     stage = host.stage("gallery")
@@ -475,7 +477,7 @@ def test_a_stage_plugins_section_does_not_leak_into_runs_that_do_not_use_it(make
     still opens after it is removed; a run that used the stage names the plugin that is missing."""
     import json
 
-    from vqtouch.core import RunDir
+    from vqtouch.plugins.runtime.run_dir import RunDir
 
     with_gallery = load_plugins(autoload=False, extra=[_stage_plugin(make_plugin)])
     plain = load_plugins(autoload=False)
@@ -501,7 +503,7 @@ def test_a_stage_plugins_section_does_not_leak_into_runs_that_do_not_use_it(make
 
 
 def test_check_plugin_covers_stages(make_plugin, host):
-    from vqtouch.core.testing import check_plugin
+    from vqtouch.plugins.testing import check_plugin
 
     for name in host.stages:
         assert check_plugin(host, "stage", name).name == name

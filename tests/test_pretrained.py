@@ -9,17 +9,10 @@ import torch
 from safetensors import safe_open
 
 from generator_runs import TINY, cluster_args, tiny_tokenizer_args, train_args
-from vqtouch.core import (
-    Assembly,
-    ConfigError,
-    RunDir,
-    load_config_file,
-    load_plugins,
-    read_metadata,
-    resolve_config,
-    run_stage,
-)
-from vqtouch.core.cli import main
+from vqtouch.core import Assembly, ConfigError, load_config_file, load_plugins, read_metadata, resolve_config
+from vqtouch.plugins.runtime.execution import run_stage
+from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.cli.app import main
 from vqtouch.plugins.generator.pipeline import load_pipeline
 from vqtouch.plugins.tokenizer import tokenizer_digest
 from vqtouch.plugins.pretrained import bundle as bundle_module

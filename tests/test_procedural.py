@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from vqtouch.core import Assembly, BuildContext, ConfigError, load_plugins, resolve_config
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 from vqtouch.sensors.objects import CLASS_NAMES, OBJECT_CLASSES, sample_contact
 
 HOST = load_plugins(autoload=False)
@@ -242,7 +242,8 @@ def test_an_experiment_without_a_sensor_fails_in_one_line():
 
 
 def test_render_stage_writes_the_experiments_data_rendered_by_its_sensor(tmp_path):
-    from vqtouch.core import RunDir, run_stage
+    from vqtouch.plugins.runtime.execution import run_stage
+    from vqtouch.plugins.runtime.run_dir import RunDir
 
     config = resolve_config(
         None,

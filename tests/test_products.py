@@ -1,5 +1,5 @@
 """Stages hand what they made to later stages through the run: ``makes`` in the registration,
-``job.publish`` in the stage, ``run.product`` in the reader (core/runs.py, core/stages.py)."""
+``job.publish`` in the stage, ``run.product`` in the reader (plugins/runtime/run_dir.py, core/stages.py)."""
 
 from __future__ import annotations
 
@@ -10,20 +10,11 @@ import pytest
 import torch
 from generator_runs import train_args
 
-from vqtouch.core import (
-    Assembly,
-    ConfigError,
-    PluginError,
-    RunDir,
-    hookimpl,
-    load,
-    load_plugins,
-    resolve_config,
-    run_stage,
-    save,
-)
-from vqtouch.core.cli import main
-from vqtouch.core.runs import PRODUCTS_FILE, MissingProductError
+from vqtouch.core import Assembly, ConfigError, PluginError, hookimpl, load, load_plugins, resolve_config, save
+from vqtouch.plugins.runtime.execution import run_stage
+from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.cli.app import main
+from vqtouch.plugins.runtime.run_dir import PRODUCTS_FILE, MissingProductError
 
 
 def _atlas_stage(job):

@@ -6,8 +6,8 @@ import io
 
 import pytest
 
-from vqtouch.core import progress as progress_module
-from vqtouch.core.progress import disable_progress, progress
+from vqtouch.plugins.utils import progress as progress_module
+from vqtouch.plugins.utils.progress import disable_progress, progress
 
 
 class FakeClock:
@@ -70,9 +70,9 @@ def test_a_terminal_gets_the_redrawn_bar():
 
 
 def test_no_progress_on_one_command_does_not_outlive_it(monkeypatch):
-    from vqtouch.core.cli import main
-    from vqtouch.core.progress import progress_forced_off
+    from vqtouch.plugins.cli.app import main
+    from vqtouch.plugins.utils.progress import progress_forced_off
 
-    monkeypatch.setattr("vqtouch.core.cli._cmd_plugins", lambda args: 0 if progress_forced_off() else 1)
+    monkeypatch.setattr("vqtouch.plugins.cli.app._cmd_plugins", lambda args: 0 if progress_forced_off() else 1)
     assert main(["--no-progress", "plugins"]) == 0  # off while it ran
     assert progress_forced_off() is False

@@ -9,8 +9,8 @@ import torch
 import torch.nn.functional as F
 
 from vqtouch.core import ConfigError, load_plugins
-from vqtouch.core.cli import main
-from vqtouch.core.images import save_png
+from vqtouch.plugins.cli.app import main
+from vqtouch.plugins.utils.images import save_png
 from vqtouch.plugins.evaluation.protocols import PROTOCOLS, get_protocol, pair_by_id
 
 

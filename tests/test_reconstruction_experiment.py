@@ -11,9 +11,9 @@ import torch
 
 from generator_runs import TINY
 from vqtouch.core import ConfigError, resolve_config
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 from vqtouch.core.config import DataConfig
-from vqtouch.core.data import experiment_split, split_dataset
+from vqtouch.plugins.utils.splits import experiment_split, split_dataset
 from vqtouch.plugins.tokenizer import experiment as table1
 from vqtouch.plugins.tokenizer.experiment import BACKGROUND, plan_configs, verdict_lines
 

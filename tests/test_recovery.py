@@ -19,9 +19,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from vqtouch.core import CheckpointError, TrainConfig, load_plugins
-from vqtouch.core.runs import RunDir
-from vqtouch.core.training import (
+from vqtouch.core import CheckpointError, load_plugins
+from vqtouch.plugins.training.settings import TrainConfig
+from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.training.trainer import (
     TRAINER_STATE,
     SkippedCheckpointWarning,
     Trainer,
@@ -81,8 +82,9 @@ TRAIN_SCRIPT = """
 import importlib.util, sys, time, types
 from pathlib import Path
 import torch
-from vqtouch.core import TrainConfig, load_plugins
-import vqtouch.core.training as training
+from vqtouch.core import load_plugins
+from vqtouch.plugins.training.settings import TrainConfig
+import vqtouch.plugins.training.trainer as training
 
 spec = importlib.util.spec_from_file_location("toy_training", {test_training!r})
 toy = importlib.util.module_from_spec(spec)
@@ -350,7 +352,7 @@ def test_resume_from_a_named_step_folder(host, tmp_path):
 
 
 def test_disk_full_while_saving_keeps_the_previous_checkpoint(host, tmp_path, monkeypatch):
-    import vqtouch.core.training as training
+    import vqtouch.plugins.training.trainer as training
 
     trainer, _ = make_trainer(host, tmp_path, steps=8)
 

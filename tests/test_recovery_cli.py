@@ -10,7 +10,7 @@ import shutil
 import pytest
 from PIL import Image
 
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 
 TINY = [
     "tokenizer.autoencoder.channels=16",
@@ -133,7 +133,7 @@ def test_resume_of_a_run_killed_before_its_first_checkpoint_starts_at_step_0(run
 @pytest.mark.parametrize("saved", [False, True])
 def test_an_interrupted_training_says_only_what_it_saved(tmp_path, capsys, monkeypatch, saved):
     """Ctrl-C before the trainer saved anything used to print "the checkpoint is saved"."""
-    from vqtouch.core.training import TrainingInterrupted
+    from vqtouch.plugins.training.trainer import TrainingInterrupted
     from vqtouch.plugins.tokenizer import command_handlers
 
     out = tmp_path / "run"
@@ -295,7 +295,7 @@ def test_step_best_of_a_run_that_held_out_nothing_is_one_line(tmp_path, capsys):
 
 def test_a_command_stopped_by_sigterm_exits_as_a_shell_reports_it(tmp_path, capsys, monkeypatch):
     """143 (128 + SIGTERM) tells a scheduler the job was terminated; Ctrl-C keeps 130."""
-    from vqtouch.core.training import TrainingInterrupted
+    from vqtouch.plugins.training.trainer import TrainingInterrupted
     from vqtouch.plugins.tokenizer import command_handlers
 
     def terminated(*args, **kwargs):

@@ -23,7 +23,7 @@ def test_the_reference_pages_match_the_code():
 
 def test_every_command_and_every_plugin_is_in_the_reference():
     from vqtouch.core import load_plugins
-    from vqtouch.core.cli import build_parser
+    from vqtouch.plugins.cli.app import build_parser
 
     module = reference_module()
     host = load_plugins(autoload=False)

@@ -17,7 +17,7 @@ import pytest
 from PIL import Image, ImageStat
 
 from generator_runs import TINY
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 
 _SPEC = importlib.util.spec_from_file_location("report_runs", Path(__file__).with_name("report_runs.py"))
 report_runs = importlib.util.module_from_spec(_SPEC)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from PIL import Image
 
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 from vqtouch.plugins.report.demo import render_report
 from vqtouch.plugins.evaluation.directions import lower_is_better
 from vqtouch.plugins.report.html import (

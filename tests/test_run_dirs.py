@@ -13,8 +13,10 @@ import textwrap
 
 import pytest
 
-from vqtouch.core import Assembly, RunDir, load_plugins, read_metadata, run_stage
-from vqtouch.core.cli import main
+from vqtouch.core import Assembly, load_plugins, read_metadata
+from vqtouch.plugins.runtime.execution import run_stage
+from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.cli.app import main
 
 HOST = load_plugins(autoload=False)
 TINY = [
@@ -133,7 +135,7 @@ def test_two_trainings_started_into_one_directory_at_once(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     processes = [
         subprocess.Popen(
-            [sys.executable, "-m", "vqtouch.core.cli", *train_args(run, size)],
+            [sys.executable, "-m", "vqtouch.plugins.cli", *train_args(run, size)],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
@@ -154,7 +156,8 @@ def test_two_trainings_started_into_one_directory_at_once(tmp_path):
 
 HOLD_LOCK = textwrap.dedent("""
     import sys
-    from vqtouch.core import RunDir, load_plugins, resolve_config
+    from vqtouch.core import load_plugins, resolve_config
+    from vqtouch.plugins.runtime.run_dir import RunDir
 
     host = load_plugins(autoload=False)
     config = resolve_config("reconstruction", overrides=sys.argv[2:], host=host)
@@ -247,7 +250,7 @@ def test_data_parallel_ranks_share_rank_zeros_run_directory(tmp_path):
             "--master_port",
             str(_free_port()),
             "-m",
-            "vqtouch.core.cli",
+            "vqtouch.plugins.cli",
             *train_args(run, 64),
         ],
         capture_output=True,

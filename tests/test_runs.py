@@ -2,8 +2,10 @@ import json
 
 import pytest
 
-from vqtouch.core import RunDir, resolve_config, seed_everything
-from vqtouch.core.runs import config_hash, recorded_config
+from vqtouch.core import resolve_config
+from vqtouch.plugins.utils.seeding import seed_everything
+from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.runtime.run_dir import config_hash, recorded_config
 
 
 def test_run_dir_name_and_files(host, tmp_path):
@@ -184,7 +186,7 @@ def test_a_run_being_created_is_not_taken_for_a_foreign_folder(host, tmp_path):
     """Between taking the lock and renaming config.json into place, a run holds only its lock file
     and config.json's temporary file; a second writer must see a run there, not someone's folder."""
     from vqtouch.core import ConfigError
-    from vqtouch.core.runs import LOCK_NAME
+    from vqtouch.plugins.runtime.run_dir import LOCK_NAME
 
     path = tmp_path / "run"
     path.mkdir()
@@ -217,7 +219,7 @@ def _save_step(run, host, config, step, complete=True):
     from safetensors.torch import save_file
 
     from vqtouch.core import Assembly, save
-    from vqtouch.core.training import TRAINER_STATE
+    from vqtouch.plugins.training.trainer import TRAINER_STATE
 
     folder = run.checkpoints / f"step-{step:08d}"
     assembly = Assembly(config, host)
@@ -236,7 +238,7 @@ def _save_step(run, host, config, step, complete=True):
 
 def test_checkpoint_is_the_newest_complete_step_of_this_run(host, tmp_path):
     from vqtouch.core import CheckpointError
-    from vqtouch.core.runs import MissingCheckpointError
+    from vqtouch.plugins.runtime.run_dir import MissingCheckpointError
 
     config = _tiny_config(host, tmp_path)
     run = RunDir.create(config, host=host, path=tmp_path / "run")
@@ -245,7 +247,7 @@ def test_checkpoint_is_the_newest_complete_step_of_this_run(host, tmp_path):
     assert str(info.value) == f"{run.path}: no checkpoint in checkpoints/; train this run first"
     two = _save_step(run, host, config, 2)
     _save_step(run, host, config, 4, complete=False)  # an interrupted save is not a checkpoint
-    from vqtouch.core.training import SkippedCheckpointWarning
+    from vqtouch.plugins.training.trainer import SkippedCheckpointWarning
 
     with pytest.warns(SkippedCheckpointWarning, match="step-00000004 skipped: no trainer_state.safetensors"):
         assert run.checkpoint(host) == two

@@ -11,8 +11,8 @@ import torch
 from safetensors.torch import load_file
 
 from vqtouch.core import CheckpointError, ConfigError, load_plugins, validate_experiment
-from vqtouch.core.cli import main
-from vqtouch.core.training import TRAINER_STATE, apply_ema_weights, saved_ema_weights
+from vqtouch.plugins.cli.app import main
+from vqtouch.plugins.training.trainer import TRAINER_STATE, apply_ema_weights, saved_ema_weights
 from vqtouch.plugins.generator import load_pipeline
 from vqtouch.plugins.pretrained.bundle import describe_bundle, export_bundle, load_bundle
 
@@ -220,7 +220,9 @@ def test_a_bundle_may_set_its_own_sampling_defaults_and_its_headers_say_so(runs,
 
 
 def test_the_pretrained_stage_samples_each_conditioner_at_the_bundles_default(runs, tmp_path, monkeypatch):
-    from vqtouch.core import Assembly, RunDir, resolve_config, run_stage
+    from vqtouch.core import Assembly, resolve_config
+    from vqtouch.plugins.runtime.execution import run_stage
+    from vqtouch.plugins.runtime.run_dir import RunDir
     from vqtouch.plugins.pretrained import bundle as bundle_module
     from vqtouch.plugins.pretrained import stage as stage_module
 

@@ -8,7 +8,7 @@ import json
 import pytest
 import torch
 
-from vqtouch.core import training
+from vqtouch.plugins.training import precision as training
 from vqtouch.plugins.generator import load_pipeline
 
 
@@ -73,7 +73,7 @@ def test_the_run_records_what_it_sampled_in(tiny_label_run):
 
 
 def test_a_bad_sample_precision_is_refused_in_one_line(capsys):
-    from vqtouch.core.cli import main
+    from vqtouch.plugins.cli.app import main
 
     code = main(["config", "show", "label-to-touch", "--set", "generator.sample_precision=fp16"])
     err = capsys.readouterr().err

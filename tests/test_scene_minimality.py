@@ -9,7 +9,9 @@ import sys
 
 import pytest
 
-from vqtouch.core import ConfigError, RunDir, load_plugins, resolve_config, run_stage
+from vqtouch.core import ConfigError, load_plugins, resolve_config
+from vqtouch.plugins.runtime.execution import run_stage
+from vqtouch.plugins.runtime.run_dir import RunDir
 from vqtouch.core.assembly import Assembly
 from vqtouch.plugins.report.demo import run_demo
 from vqtouch.core.stages import required_slots
@@ -53,7 +55,7 @@ def test_importing_vqtouch_and_loading_plugins_imports_no_heavy_model_code():
     code = (
         "import vqtouch, vqtouch.core, vqtouch.plugins, vqtouch.conditioners, vqtouch.sensors\n"
         "host = vqtouch.core.load_plugins()\n"
-        "import vqtouch.core.cli; vqtouch.core.cli.build_parser(host)"
+        "import vqtouch.plugins.cli.app; vqtouch.plugins.cli.app.build_parser(host)"
     )
     assert _modules_after(code) == set()
 

@@ -11,9 +11,10 @@ import generator_runs
 import pytest
 import torch
 
-from vqtouch.core import TrainConfig, load_plugins, resolve_config
-from vqtouch.core.cli import main
-from vqtouch.core.training import NeverTrainsWarning, Trainer
+from vqtouch.core import load_plugins, resolve_config
+from vqtouch.plugins.training.settings import TrainConfig
+from vqtouch.plugins.cli.app import main
+from vqtouch.plugins.training.trainer import NeverTrainsWarning, Trainer
 from vqtouch.plugins.tokenizer.training import adversarial_never_trains, disc_start_step
 
 HOST = load_plugins()

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from vqtouch.core import ConfigError
-from vqtouch.core.cli import main
-from vqtouch.core.seeding import busy_cpu_threads, command_threads
+from vqtouch.plugins.cli.app import main
+from vqtouch.plugins.utils.threads import busy_cpu_threads, command_threads
 
 
 def test_the_default_follows_the_free_cores_and_says_when_it_drops():
@@ -26,10 +26,10 @@ def test_a_command_runs_on_the_chosen_threads_and_restores_the_callers(monkeypat
     torch.set_num_threads(2)  # the caller's count, whatever OMP_NUM_THREADS the suite runs under
     before = torch.get_num_threads()
     seen = []
-    monkeypatch.setattr("vqtouch.core.cli._cmd_plugins", lambda args: seen.append(torch.get_num_threads()) or 0)
+    monkeypatch.setattr("vqtouch.plugins.cli.app._cmd_plugins", lambda args: seen.append(torch.get_num_threads()) or 0)
     assert main(["--threads", "1", "plugins"]) == 0
     monkeypatch.setenv("VQTOUCH_THREADS", "auto")
-    monkeypatch.setattr("vqtouch.core.seeding.current_load", lambda: 99.0)
+    monkeypatch.setattr("vqtouch.plugins.utils.threads.current_load", lambda: 99.0)
     assert main(["plugins"]) == 0
     assert seen == [1, 1] and torch.get_num_threads() == before
     err = capsys.readouterr().err
@@ -51,7 +51,7 @@ def test_an_explicit_count_is_taken_as_given():
 
 
 def test_the_load_is_the_runnable_tasks_now_less_this_one(monkeypatch, tmp_path):
-    from vqtouch.core import seeding
+    from vqtouch.plugins.utils import threads as seeding
 
     samples = iter(["0.10 0.20 0.30 4/300 99\n", "0.10 0.20 0.30 2/300 99\n", "0.10 0.20 0.30 3/300 99\n"])
     real_open = open
@@ -65,7 +65,7 @@ def test_the_load_is_the_runnable_tasks_now_less_this_one(monkeypatch, tmp_path)
 
 def test_threads_may_be_given_before_or_after_a_command_that_has_its_own_option():
     from vqtouch.core import load_plugins
-    from vqtouch.core.cli import build_parser
+    from vqtouch.plugins.cli.app import build_parser
 
     parser = build_parser(load_plugins(autoload=False))
     command = ["tradeoff", "generator", "--run", "r", "--out", "o"]

@@ -158,7 +158,9 @@ def test_bad_configs_are_clear():
 
 
 def test_reconstruct_stage_never_builds_a_discriminator_dataset_or_generator(tmp_path, request):
-    from vqtouch.core import Assembly, RunDir, run_stage
+    from vqtouch.core import Assembly
+    from vqtouch.plugins.runtime.execution import run_stage
+    from vqtouch.plugins.runtime.run_dir import RunDir
 
     config = resolve_config("reconstruction", overrides=[*TRAIN_OVERRIDES, 'stages=["tokenizer"]'], host=HOST)
     assert config.tokenizer.discriminator is not None  # the training stage uses it ...
@@ -172,7 +174,9 @@ def test_reconstruct_stage_never_builds_a_discriminator_dataset_or_generator(tmp
 
 
 def test_reconstruct_stage_says_why_when_the_sensor_has_no_real_frames(tmp_path):
-    from vqtouch.core import Assembly, RunDir, run_stage
+    from vqtouch.core import Assembly
+    from vqtouch.plugins.runtime.execution import run_stage
+    from vqtouch.plugins.runtime.run_dir import RunDir
 
     config = resolve_config(
         "reconstruction", overrides=[*TRAIN_OVERRIDES, 'stages=["tokenizer"]', "sensor=digit"], host=HOST
@@ -281,7 +285,7 @@ def test_identity_quantizer_passes_latents_through():
 
 @pytest.mark.parametrize("encoder", ["vqgan", "dm_vqgan"])
 def test_train_tokenizer_end_to_end_then_reconstruct_and_evaluate(tmp_path, capsys, encoder):
-    from vqtouch.core.cli import main
+    from vqtouch.plugins.cli.app import main
 
     run = tmp_path / "run"
     args = ["--no-progress", "train", "tokenizer", "--out", str(run), "--set", f"tokenizer.autoencoder.name={encoder}"]
@@ -310,7 +314,7 @@ def test_train_tokenizer_end_to_end_then_reconstruct_and_evaluate(tmp_path, caps
 
 
 def test_mae_trains_through_the_tokenizer_pipeline(tmp_path):
-    from vqtouch.core.cli import main
+    from vqtouch.plugins.cli.app import main
 
     run = tmp_path / "run"
     args = ["--no-progress", "train", "tokenizer", "--out", str(run)]
@@ -333,7 +337,7 @@ def test_mae_trains_through_the_tokenizer_pipeline(tmp_path):
 
 
 def test_train_tokenizer_resume_continues_the_run(tmp_path, capsys):
-    from vqtouch.core.cli import main
+    from vqtouch.plugins.cli.app import main
 
     run = tmp_path / "run"
     base = ["--no-progress", "train", "tokenizer", "--set", "tokenizer.autoencoder.name=vqgan"]
@@ -351,7 +355,7 @@ def test_train_tokenizer_resume_continues_the_run(tmp_path, capsys):
 
 @pytest.mark.parametrize("codebook_size", [2, 16384])
 def test_tiny_and_huge_codebooks_train_without_nan(tmp_path, codebook_size):
-    from vqtouch.core.cli import main
+    from vqtouch.plugins.cli.app import main
 
     run = tmp_path / "run"
     args = [

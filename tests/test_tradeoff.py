@@ -8,7 +8,7 @@ import shutil
 import pytest
 from generator_runs import train_args
 
-from vqtouch.core.cli import main
+from vqtouch.plugins.cli.app import main
 from vqtouch.plugins.generator.tradeoff import pareto_front, setting_label, sweep_settings
 
 #: The run's own fd_effnetlite0 metric at 32 px: the distribution scores take their features from it.

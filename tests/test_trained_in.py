@@ -9,8 +9,8 @@ import generator_runs
 
 from vqtouch.core import load, load_plugins, read_metadata
 from vqtouch.core.checkpoint import TRAINED_IN_KEY
-from vqtouch.core.cli import main
-from vqtouch.core.training import cpu_has_bf16_matrix_units, latest_checkpoint
+from vqtouch.plugins.cli.app import main
+from vqtouch.plugins.training.trainer import cpu_has_bf16_matrix_units, latest_checkpoint
 from vqtouch.plugins.pretrained.bundle import describe_bundle
 
 HOST = load_plugins()

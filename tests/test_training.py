@@ -11,8 +11,9 @@ import torch
 from safetensors.torch import load_file
 from torch import nn
 
-from vqtouch.core import BuildContext, Conditioner, PluginConfig, TrainConfig, hookimpl, load_plugins
-from vqtouch.core.training import (
+from vqtouch.core import BuildContext, Conditioner, PluginConfig, hookimpl, load_plugins
+from vqtouch.plugins.training.settings import TrainConfig
+from vqtouch.plugins.training.trainer import (
     TRAINER_STATE,
     NonFiniteLossError,
     SkippedCheckpointWarning,
@@ -401,7 +402,7 @@ def test_auto_trains_the_generator_in_bf16_only_on_a_cpu_with_bf16_matrix_units(
 ):
     """With bf16 matrix units (AMX) ``auto`` trains the generator in bf16; without them it keeps fp32
     and says nothing."""
-    from vqtouch.core import training
+    from vqtouch.plugins.training import precision as training
 
     monkeypatch.setattr(training, "cpu_has_bf16_matrix_units", lambda: matrix_units)
     torch.manual_seed(0)
@@ -424,8 +425,8 @@ def test_auto_trains_the_generator_in_bf16_only_on_a_cpu_with_bf16_matrix_units(
 
 
 def test_auto_precision_per_device_and_component(monkeypatch):
-    from vqtouch.core import training
-    from vqtouch.core.training import resolve_precision
+    from vqtouch.plugins.training import precision as training
+    from vqtouch.plugins.training.trainer import resolve_precision
     from vqtouch.plugins.generator.training import GeneratorTrainConfig
     from vqtouch.plugins.tokenizer.training import TokenizerTrainConfig
 

@@ -212,7 +212,9 @@ def test_a_briefly_trained_tokenizer_gets_no_green_box(tmp_path):
     import json
 
     from generator_runs import TINY_TOKENIZER
-    from vqtouch.core import Assembly, RunDir, load_plugins, resolve_config, run_stage
+    from vqtouch.core import Assembly, load_plugins, resolve_config
+    from vqtouch.plugins.runtime.execution import run_stage
+    from vqtouch.plugins.runtime.run_dir import RunDir
 
     host = load_plugins(autoload=False)
     overrides = [*TINY_TOKENIZER, 'stages=["tokenizer"]', 'metrics=[{"name": "psnr"}]', "data.val_fraction=0.25"]

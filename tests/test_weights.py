@@ -3,7 +3,8 @@ from pathlib import Path
 
 import pytest
 
-from vqtouch.core import MissingWeightsError, WeightsSpec, resolve_weights
+from vqtouch.core import MissingWeightsError
+from vqtouch.plugins.utils.weights import WeightsSpec, resolve_weights
 
 REPO = Path(__file__).resolve().parents[1]
 SPEC = WeightsSpec(
@@ -119,7 +120,7 @@ def test_every_weights_spec_hint_names_a_real_option(host, package_sources):
     import importlib
     import re
 
-    from vqtouch.core.cli import build_parser
+    from vqtouch.plugins.cli.app import build_parser
 
     specs = {}  # id -> (where, spec): a spec imported by another module is the same object, counted once
     for path in package_sources:

@@ -24,9 +24,9 @@ from typing import Any
 
 import torch
 
-from vqtouch.core.outputs import output_folder
+from vqtouch.plugins.runtime.outputs import output_folder
 from vqtouch.core import ConfigError, DatasetError, PluginHost, VqtouchError
-from vqtouch.core.files import FileModel
+from vqtouch.plugins.utils.files import FileModel
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 from vqtouch.plugins.evaluation.contact import (
     MAX_BACKGROUND_IMAGES,
@@ -311,7 +311,7 @@ def write_adapted(
     """The adapted tokenizer's files (and its rebase image), ``before_after.png`` (held-out images over
     their reconstructions before and after: ``pictures_N3HW``, three rows) and ``adapt.json``."""
     from vqtouch.core import atomic_write, save
-    from vqtouch.core.images import image_grid, save_png
+    from vqtouch.plugins.utils.images import image_grid, save_png
     from vqtouch.plugins.tokenizer import TOKENIZER_FILES, save_rebase
 
     output_folder(out)
@@ -345,8 +345,8 @@ def adapt_tokenizer(
     before and after carry the background's and the contact region's (:func:`reconstruction_scores`).
     With ``settings.rebase``, ``family_background_3HW`` is the family's no-contact image the sensor's
     images are moved onto (default: the per-pixel median of the family images drawn for it)."""
-    from vqtouch.core import resolve_device
-    from vqtouch.core.training import Trainer
+    from vqtouch.plugins.utils.seeding import resolve_device
+    from vqtouch.plugins.training.trainer import Trainer
     from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all, tokenizer_task
     from vqtouch.plugins.tokenizer import TokenizerLossConfig, TokenizerTrainConfig, disc_start_step
 
@@ -544,7 +544,7 @@ def refuse_existing(out: Path, overwrite: bool) -> None:
 
 def _run_config(folder: Path, host: PluginHost) -> Any:
     """The config of the run a checkpoint folder belongs to, or None for a loose folder."""
-    from vqtouch.core import RunDir
+    from vqtouch.plugins.runtime.run_dir import RunDir
 
     run_path = folder.parent.parent
     if folder.parent.name == "checkpoints" and (run_path / "config.json").is_file():

@@ -21,7 +21,7 @@ from typing import Any
 import torch
 
 from vqtouch.core import BuildContext, Clusterer, ConfigError
-from vqtouch.core.seeding import on_one_thread
+from vqtouch.plugins.utils.threads import on_one_thread
 
 from .clusterers_plugin import AgglomerativeConfig, FamilyClustererOptions, KMeansConfig
 

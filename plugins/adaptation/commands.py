@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 
 from vqtouch.core import hookimpl
-from vqtouch.core.cli import (
+from vqtouch.plugins.cli.app import (
     add_overwrite_argument,
     family_ratio,
     add_image_folder_arguments,

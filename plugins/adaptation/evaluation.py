@@ -29,7 +29,7 @@ from typing import Any
 
 import torch
 
-from vqtouch.core.outputs import output_folder
+from vqtouch.plugins.runtime.outputs import output_folder
 from vqtouch.core import ConfigError, PluginHost
 from vqtouch.plugins.evaluation.records import markdown_table, mean_spread
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
@@ -198,8 +198,10 @@ def train_fresh_tokenizer(
     baseline an adaptation is measured against.  Saved into ``out`` (autoencoder and quantizer,
     ``metadata`` in their headers) when given.  Returns the tokenizer, in eval mode, and
     ``{"steps", "seconds", "train_images", "batch_size"}``."""
-    from vqtouch.core import Assembly, RunDir, resolve_device, save
-    from vqtouch.core.training import Trainer
+    from vqtouch.core import Assembly, save
+    from vqtouch.plugins.utils.seeding import resolve_device
+    from vqtouch.plugins.runtime.run_dir import RunDir
+    from vqtouch.plugins.training.trainer import Trainer
     from vqtouch.plugins.tokenizer import TOKENIZER_FILES, tokenizer_task
     from vqtouch.plugins.tokenizer import Tokenizer
 
@@ -333,7 +335,7 @@ def plot_transfer(transfer: list[dict[str, Any]], path: Path, title: str) -> Non
 
 def real_frames_folder(host: PluginHost, family: str, image_size: ImageSize, folder: Path) -> Path | None:
     """Write the captured frames ``family`` ships (e.g. taxim's GelSight Mini) as PNGs; None without any."""
-    from vqtouch.core.images import save_png
+    from vqtouch.plugins.utils.images import save_png
 
     frames = host.build("sensor_family", family).reference_frames(*image_hw(image_size))
     if frames is None:

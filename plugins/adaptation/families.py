@@ -24,14 +24,14 @@ from typing import Any, Literal
 
 import torch
 
-from vqtouch.core.outputs import output_folder
+from vqtouch.plugins.runtime.outputs import output_folder
 from pydantic import Field, model_validator
 
 from vqtouch.core import ConfigError, PluginHost
-from vqtouch.core.files import FileModel, read_model
+from vqtouch.plugins.utils.files import FileModel, read_model
 from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.core.image_size import ImageSize
-from vqtouch.core.seeding import on_one_thread
+from vqtouch.plugins.utils.threads import on_one_thread
 from vqtouch.plugins.data.sensor_folders import folder_of, load_sensor_folder
 from vqtouch.plugins.tokenizer import TOKENIZER_FILES, tokenizer_digest
 

@@ -359,7 +359,7 @@ def evaluate_fewshot(
     folder cannot spare them); ``families``: a ``vqtouch cluster`` folder (default: clustered here).
     Every bad input is refused with a one-line ConfigError before anything trains.  Returns what
     ``fewshot.json`` holds."""
-    from vqtouch.core import RunDir
+    from vqtouch.plugins.runtime.run_dir import RunDir
     from vqtouch.plugins.tokenizer import load_tokenizer
 
     out = Path(out)

@@ -41,7 +41,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 import torch
 
 from vqtouch.core import ConfigError, PluginHost
-from vqtouch.core.files import read_model
+from vqtouch.plugins.utils.files import read_model
 from vqtouch.core.image_size import ImageSize, size_text
 from vqtouch.plugins.evaluation.records import (
     ExperimentRecord,
@@ -231,7 +231,7 @@ def evaluate_mix_ratio(
     shots alone also train for (``shots alone, N steps``): an equal-exposure mix trains longer, and
     this arm tells the longer training from the mix.  Every bad input is refused with a one-line
     ConfigError before anything trains."""
-    from vqtouch.core import RunDir
+    from vqtouch.plugins.runtime.run_dir import RunDir
     from vqtouch.plugins.tokenizer import load_tokenizer
 
     out = Path(out)

@@ -18,7 +18,7 @@ from typing import Any
 
 from vqtouch.core import StageJob, StageUnavailable
 from vqtouch.core.checkpoint import is_pretrained
-from vqtouch.core.runs import MissingCheckpointError
+from vqtouch.plugins.runtime.run_dir import MissingCheckpointError
 from vqtouch.plugins.evaluation.contact import VERDICT_EVIDENCE
 from vqtouch.plugins.tokenizer import experiment_metrics, load_tokenizer, reconstruct_all
 

@@ -12,10 +12,10 @@ import torch
 
 from vqtouch.core import ConfigError, PluginHost, VqtouchError
 from vqtouch.core.checkpoint import atomic_write
-from vqtouch.core.cli import plugin_block
-from vqtouch.core.data import split_dataset
-from vqtouch.core.images import image_grid, save_png
-from vqtouch.core.outputs import output_folder
+from vqtouch.plugins.cli.app import plugin_block
+from vqtouch.plugins.utils.splits import split_dataset
+from vqtouch.plugins.utils.images import image_grid, save_png
+from vqtouch.plugins.runtime.outputs import output_folder
 
 from .export import export_samples
 

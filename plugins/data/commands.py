@@ -18,7 +18,7 @@ import argparse
 from typing import Any
 
 from vqtouch.core import ConfigError, hookimpl
-from vqtouch.core.cli import (
+from vqtouch.plugins.cli.app import (
     add_overwrite_argument,
     fraction,
     non_negative_float,

@@ -16,9 +16,9 @@ from typing import Any
 import torch
 
 from vqtouch.core.checkpoint import atomic_write
-from vqtouch.core.images import image_grid, save_png
-from vqtouch.core.progress import progress
-from vqtouch.core.training import collate_samples
+from vqtouch.plugins.utils.images import image_grid, save_png
+from vqtouch.plugins.utils.progress import progress
+from vqtouch.plugins.training.trainer import collate_samples
 
 
 def sample_batches(dataset: Any, indices: list[int], batch_size: int) -> Iterable[dict[str, Any]]:

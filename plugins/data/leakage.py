@@ -45,11 +45,11 @@ import torch.nn.functional as F
 
 from vqtouch.core import ConfigError, TactileDataset
 from vqtouch.core.image_size import size_text
-from vqtouch.core.progress import progress
+from vqtouch.plugins.utils.progress import progress
 
 from .export import sample_batches
 from .leakage_defaults import COMPARE_SIZE, DEFAULT_THRESHOLD
-from vqtouch.core.images import image_grid
+from vqtouch.plugins.utils.images import image_grid
 
 #: Images read per step.
 READ_BATCH = 64

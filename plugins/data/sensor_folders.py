@@ -11,7 +11,7 @@ from pathlib import Path
 import torch
 
 from vqtouch.core import DatasetError, PluginHost, VqtouchWarning
-from vqtouch.core.images import skipping_bad_images
+from vqtouch.plugins.utils.image_options import skipping_bad_images
 from vqtouch.core.image_size import ImageSize
 
 #: What a command that reads a sensor's folder offers for a file it cannot use.
@@ -47,7 +47,7 @@ def sensor_folder_files(path: Path, host: PluginHost) -> list[Path]:
 def usable_images(folder: Path, files: list[Path]) -> list[Path]:
     """``files`` less those that do not decode or cannot be used (``--lenient``), with one warning
     naming how many and the first; a DatasetError when none is left."""
-    from vqtouch.core.images import ImageLoader
+    from vqtouch.plugins.utils.images import ImageLoader
 
     loader, kept, problems = ImageLoader(size=8), [], []
     for file in files:
@@ -114,7 +114,7 @@ def load_sensor_folder(
     """(N, 3, H, W) images in [0, 1] at ``image_size`` of the sensor folder ``path`` (its first ``count``
     files as :func:`sensor_folder_files` orders them, or the given ``files``); a one-line DatasetError
     for an empty folder, mixed resolutions or a file that does not decode (named)."""
-    from vqtouch.core.images import ImageLoader
+    from vqtouch.plugins.utils.images import ImageLoader
 
     files = files if files is not None else sensor_folder_files(path, host)[:count]
     if not files:

@@ -30,8 +30,9 @@ Without the file, or without open_clip (the ``clip`` extra), the metric is built
 :class:`~vqtouch.core.SkippedMetric` whose reason names the file and the ways to provide it.
 
 As a plain image-pair metric (``update(predicted, target)``, what reconstruction scoring and every
-other :class:`~vqtouch.core.MetricSet` user calls), the second image is taken as the condition: the
-score is then the cosine between the two images' CLIP image embeddings, a tactile condition's score.
+other :class:`~vqtouch.plugins.evaluation.metric_set.MetricSet` user calls), the second image is taken
+as the condition: the score is then the cosine between the two images' CLIP image embeddings, a
+tactile condition's score.
 """
 
 from __future__ import annotations
@@ -51,9 +52,8 @@ from vqtouch.core import (
     PerImageMetric,
     PluginError,
     SkippedMetric,
-    WeightsSpec,
-    resolve_weights,
 )
+from vqtouch.plugins.utils.weights import WeightsSpec, resolve_weights
 
 from .clip_score_plugin import ClipScoreConfig  # re-exported: its old home
 from .metrics import check_pair

@@ -13,7 +13,7 @@ import torch
 from vqtouch.core import ConfigError, PluginHost
 from vqtouch.core.checkpoint import atomic_write
 from vqtouch.core.image_size import image_hw
-from vqtouch.core.images import ImageLoader
+from vqtouch.plugins.utils.images import ImageLoader
 from vqtouch.plugins.data.readers import is_image_file, read_image_size
 
 from .protocols import get_protocol, pair_by_id

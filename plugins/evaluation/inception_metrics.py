@@ -20,14 +20,8 @@ from typing import Any
 import torch
 from torch import nn
 
-from vqtouch.core import (
-    BuildContext,
-    Metric,
-    MissingWeightsError,
-    SkippedMetric,
-    WeightsSpec,
-    resolve_weights,
-)
+from vqtouch.core import BuildContext, Metric, MissingWeightsError, SkippedMetric
+from vqtouch.plugins.utils.weights import WeightsSpec, resolve_weights
 
 from .inception_metrics_plugin import FidConfig, KidConfig, KidEffNetLite0Config  # re-exported: their old home
 

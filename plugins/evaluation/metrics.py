@@ -20,14 +20,8 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import (
-    BuildContext,
-    MissingWeightsError,
-    PerImageMetric,
-    SkippedMetric,
-    WeightsSpec,
-    resolve_weights,
-)
+from vqtouch.core import BuildContext, MissingWeightsError, PerImageMetric, SkippedMetric
+from vqtouch.plugins.utils.weights import WeightsSpec, resolve_weights
 from vqtouch.core.components import Metric
 
 from .feature_networks import ALEXNET_WEIGHTS

@@ -33,7 +33,7 @@ from vqtouch.core.errors import unknown_name_message
 if TYPE_CHECKING:  # torch is imported where images are resized, so that the commands' parsers stay light
     import torch
 
-    from vqtouch.core import MetricSet
+    from vqtouch.plugins.evaluation.metric_set import MetricSet
 
 
 class EvaluationProtocol(BaseModel):
@@ -71,7 +71,7 @@ class EvaluationProtocol(BaseModel):
     def build_metrics(self, host: PluginHost, overrides: Mapping[str, Mapping[str, Any]] | None = None) -> MetricSet:
         """The protocol's metrics, built by ``host``; ``overrides``: extra options by metric name (e.g.
         ``{"lpips": {"weights": PATH}}``).  A metric whose weights are missing is built skipped."""
-        from vqtouch.core import MetricSet
+        from vqtouch.plugins.evaluation.metric_set import MetricSet
 
         overrides = overrides or {}
         unknown = sorted(set(overrides) - {metric["name"] for metric in self.metrics})

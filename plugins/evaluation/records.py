@@ -27,8 +27,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
-from vqtouch.core.outputs import output_folder
-from vqtouch.core.cli import seed_int
+from vqtouch.plugins.runtime.outputs import output_folder
+from vqtouch.plugins.cli.app import seed_int
 from vqtouch.core.errors import ConfigError
 from vqtouch.core import __version__
 

@@ -5,7 +5,7 @@
     vqtouch evaluate downstream --run RUN --out DIR [--shots 5] [--generated-per-class 10] [--seeds 0 1 2]
 
 Do generated tactile images carry their class?  A classifier is trained on each arm's images and
-tested on the run's **real held-out images** (the split of :func:`vqtouch.core.data.experiment_split`
+tested on the run's **real held-out images** (the split of :func:`vqtouch.plugins.utils.splits.experiment_split`
 that the generator never trained on; group-aware for readers with recordings):
 
 1. ``generated only``: ``--generated-per-class M`` images per class, generated from the label;
@@ -79,7 +79,7 @@ import torch
 
 from vqtouch.core import Assembly, ConfigError, PluginHost
 from vqtouch.plugins.evaluation.records import ExperimentRecord, markdown_table, mean_spread
-from vqtouch.core.training import collate_samples
+from vqtouch.plugins.training.trainer import collate_samples
 from vqtouch.plugins.generator import (
     RANK_DESCRIPTIONS,
     check_best_of,
@@ -87,9 +87,9 @@ from vqtouch.plugins.generator import (
     refuse_idle_rank,
     sample_images,
 )
-from vqtouch.core.data import experiment_split
+from vqtouch.plugins.utils.splits import experiment_split
 from vqtouch.plugins.evaluation.contact import dataset_background
-from vqtouch.core.images import image_grid, save_png
+from vqtouch.plugins.utils.images import image_grid, save_png
 
 GENERATED, FEW, FEW_AND_GENERATED, CEILING, RECONSTRUCTED, FEW_AND_RECONSTRUCTED, BACKGROUND = (
     "generated only",

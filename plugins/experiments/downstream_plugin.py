@@ -6,7 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 from vqtouch.core import hookimpl
-from vqtouch.core.cli import (
+from vqtouch.plugins.cli.app import (
     NumberType,
     add_step_argument,
     command_group,

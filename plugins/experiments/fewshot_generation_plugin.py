@@ -9,7 +9,7 @@ from typing import Any, Literal
 from pydantic import Field
 
 from vqtouch.core import Section, hookimpl
-from vqtouch.core.cli import (
+from vqtouch.plugins.cli.app import (
     add_image_folder_arguments,
     command_group,
     family_ratio,

@@ -64,20 +64,15 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import (
-    Assembly,
-    ConfigError,
-    PluginHost,
-    RunDir,
-    resolve_device,
-    run_stage,
-    validate_experiment,
-)
-from vqtouch.core.cli import config_from_args, stage_failure
+from vqtouch.core import Assembly, ConfigError, PluginHost, validate_experiment
+from vqtouch.plugins.utils.seeding import resolve_device
+from vqtouch.plugins.runtime.execution import run_stage
+from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.cli.app import config_from_args, stage_failure
 from vqtouch.plugins.evaluation.records import ExperimentRecord, markdown_table, mean_spread
-from vqtouch.core.training import Trainer
+from vqtouch.plugins.training.trainer import Trainer
 from vqtouch.core.config import scale_for_demo
-from vqtouch.core.data import experiment_split
+from vqtouch.plugins.utils.splits import experiment_split
 from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all, tokenizer_task
 
 from .pipeline_tradeoff_knobs import KNOBS, Knob, known_knobs  # noqa: F401 (their old home)

@@ -8,7 +8,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from vqtouch.core import ConfigError, PluginHost, resolve_device
+from vqtouch.core import ConfigError, PluginHost
+from vqtouch.plugins.utils.seeding import resolve_device
 from vqtouch.core.image_size import image_hw, size_text
 
 
@@ -108,7 +109,7 @@ def _resolution_alternatives(config: Any, host: PluginHost, baseline: Any) -> li
 
 def _precision_baseline(config: Any, host: PluginHost) -> str:
     """The tokenizer's training precision in a run of ``config`` (``auto`` resolved)."""
-    from vqtouch.core.training import resolve_precision  # imports torch: not when the parser lists the knobs
+    from vqtouch.plugins.training.trainer import resolve_precision  # imports torch: not when the parser lists the knobs
 
     return resolve_precision(config.tokenizer.train.precision, resolve_device(config.device), "tokenizer")
 

@@ -7,7 +7,7 @@ import argparse
 from typing import Any
 
 from vqtouch.core import hookimpl
-from vqtouch.core.cli import add_config_arguments, command_group, positive_int
+from vqtouch.plugins.cli.app import add_config_arguments, command_group, positive_int
 from vqtouch.plugins.evaluation.records import add_experiment_arguments
 
 from .pipeline_tradeoff_knobs import known_knobs

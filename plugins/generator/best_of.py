@@ -116,7 +116,7 @@ def rank_name(rank: Any) -> BestOfRank:
 def refuse_idle_rank(args: Any) -> None:
     """A one-line ConfigError for ``--best-of-rank`` given without ``--best-of K`` (K > 1): it ranks
     candidates, and one draw has none."""
-    from vqtouch.core.cli import option_given
+    from vqtouch.plugins.cli.app import option_given
 
     best_of = args.best_of if isinstance(args.best_of, (list, tuple)) else [args.best_of]
     if option_given(args, "--best-of-rank") and max(best_of or [1]) <= 1:

@@ -4,7 +4,7 @@ A generator learns over code grids, so its training would otherwise run the toke
 encoder on every batch of every step.  The codes depend only on the tokenizer's weights and on
 the images, so they are computed once per (tokenizer checkpoint, dataset config) and kept in
 the user cache folder (``$XDG_CACHE_HOME/vqtouch/codes/``, see
-:func:`vqtouch.core.data.user_cache_folder`).  The key hashes the tokenizer's weight files
+:func:`vqtouch.plugins.utils.splits.user_cache_folder`).  The key hashes the tokenizer's weight files
 (their tensors and header, not their path: a copied run hits the same entry) and the config that decides
 the images (dataset block, image size, sensors).  A cache entry that cannot be read or does
 not fit is recomputed with a warning; the cache is only ever a speed-up.
@@ -29,10 +29,10 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 
 from vqtouch.core import atomic_write
-from vqtouch.core.data import user_cache_folder
+from vqtouch.plugins.utils.splits import user_cache_folder
 from vqtouch.core.errors import VqtouchWarning
-from vqtouch.core.progress import progress
-from vqtouch.core.training import collate_samples
+from vqtouch.plugins.utils.progress import progress
+from vqtouch.plugins.training.trainer import collate_samples
 
 #: Bumped when the cache file's layout changes (older entries are then simply not found).
 CACHE_VERSION = "1"

@@ -13,21 +13,23 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, atomic_write, run_stage
+from vqtouch.core import Assembly, ConfigError, PluginHost, atomic_write
+from vqtouch.plugins.runtime.execution import run_stage
+from vqtouch.plugins.runtime.run_dir import RunDir
 from vqtouch.core.checkpoint import is_pretrained
-from vqtouch.core.cli import (
+from vqtouch.plugins.cli.app import (
     config_from_args,
     plugin_block,
     stage_failure,
     training_run,
 )
 from vqtouch.core.config import validate_experiment
-from vqtouch.core.images import image_grid, save_png
-from vqtouch.core.progress import progress
-from vqtouch.core.outputs import output_folder, staged_output
-from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
+from vqtouch.plugins.utils.images import image_grid, save_png
+from vqtouch.plugins.utils.progress import progress
+from vqtouch.plugins.runtime.outputs import output_folder, staged_output
+from vqtouch.plugins.runtime.run_dir import interrupted_message, interrupted_status, is_main_process
 from vqtouch.plugins.tokenizer import tokenizer_configs, tokenizer_location
-from vqtouch.core.data import experiment_split
+from vqtouch.plugins.utils.splits import experiment_split
 from vqtouch.core.image_size import image_hw
 from vqtouch.plugins.evaluation.contact import dataset_background
 

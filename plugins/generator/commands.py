@@ -13,7 +13,7 @@ import argparse
 from typing import Any
 
 from vqtouch.core import hookimpl
-from vqtouch.core.cli import (
+from vqtouch.plugins.cli.app import (
     add_overwrite_argument,
     add_greyscale_argument,
     add_config_arguments,

@@ -31,8 +31,10 @@ import json
 from pathlib import Path
 from typing import Any
 
-from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, run_stage
-from vqtouch.core.cli import stage_failure
+from vqtouch.core import Assembly, ConfigError, PluginHost
+from vqtouch.plugins.runtime.execution import run_stage
+from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.cli.app import stage_failure
 from vqtouch.core.config import validate_experiment
 from vqtouch.plugins.evaluation.records import (
     ExperimentRecord,

@@ -18,7 +18,7 @@ from typing import Any
 
 import torch
 
-from vqtouch.core.progress import progress
+from vqtouch.plugins.utils.progress import progress
 
 from .stage_plugin import GridPretrainConfig
 

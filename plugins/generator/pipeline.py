@@ -20,19 +20,20 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import (
-    CheckpointError,
-    ConfigError,
-    PluginHost,
-    RunDir,
-    VqtouchError,
-    load,
-    load_plugins,
-    resolve_device,
-)
+from vqtouch.core import CheckpointError, ConfigError, PluginHost, VqtouchError, load, load_plugins
+from vqtouch.plugins.utils.seeding import resolve_device
+from vqtouch.plugins.runtime.run_dir import RunDir
 from vqtouch.core.checkpoint import is_pretrained, open_pretrained
+from vqtouch.core.components import IMAGE_SAMPLE_KEYS
 from vqtouch.core.image_size import ImageSize
-from vqtouch.core.training import TRAINER_STATE, apply_ema_weights, autocast, collate_samples, saved_ema_weights
+from vqtouch.plugins.utils.images import read_condition_image
+from vqtouch.plugins.training.trainer import (
+    TRAINER_STATE,
+    apply_ema_weights,
+    autocast,
+    collate_samples,
+    saved_ema_weights,
+)
 
 from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_digest, tokenizer_location
 
@@ -80,7 +81,7 @@ class GenerationPipeline:
             raise ConfigError(f"{needs} needs the run's config (its training split)")
         if self._training is None:
             from vqtouch.core import Assembly
-            from vqtouch.core.data import experiment_split
+            from vqtouch.plugins.utils.splits import experiment_split
             from vqtouch.core.image_size import image_hw
             from vqtouch.plugins.evaluation.contact import dataset_background
 
@@ -304,6 +305,8 @@ class GenerationPipeline:
         rank = self.best_of_ranking(best_of_rank) if best_of > 1 else None
 
         def parse(item: Any) -> Any:
+            if conditioner.sample_key in IMAGE_SAMPLE_KEYS and not isinstance(item, torch.Tensor):
+                item = read_condition_image(item, conditioner.sample_key, self.image_size)
             return conditioner.parse_condition(item, image_size=self.image_size, class_names=self.class_names)
 
         # A repeated value is parsed once (n may be far larger than what fits in memory); a list is parsed

@@ -22,10 +22,12 @@ from typing import Any, Sequence
 
 import torch
 
-from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, resolve_device, validate_experiment
-from vqtouch.core.data import DatasetSubset, experiment_split
+from vqtouch.core import Assembly, ConfigError, PluginHost, validate_experiment
+from vqtouch.plugins.utils.seeding import resolve_device
+from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.utils.splits import DatasetSubset, experiment_split
 from vqtouch.core.image_size import image_hw
-from vqtouch.core.training import Trainer
+from vqtouch.plugins.training.trainer import Trainer
 from vqtouch.plugins.evaluation.contact import dataset_background
 from vqtouch.plugins.tokenizer import TOKENIZER_FILES, load_tokenizer, tokenizer_digest
 

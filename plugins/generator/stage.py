@@ -20,13 +20,16 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from vqtouch.core import MetricSet, RunDir, StageJob, StageUnavailable, resolve_device
-from vqtouch.core.data import DatasetSubset, experiment_split
+from vqtouch.core import StageJob, StageUnavailable
+from vqtouch.plugins.evaluation.metric_set import MetricSet
+from vqtouch.plugins.utils.seeding import resolve_device
+from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.utils.splits import DatasetSubset, experiment_split
 from vqtouch.core.errors import VqtouchWarning
 from vqtouch.core.image_size import image_hw
-from vqtouch.core.images import image_grid, save_png
-from vqtouch.core.runs import MissingCheckpointError
-from vqtouch.core.training import (
+from vqtouch.plugins.utils.images import image_grid, save_png
+from vqtouch.plugins.runtime.run_dir import MissingCheckpointError
+from vqtouch.plugins.training.trainer import (
     Trainer,
     apply_ema_weights,
     autocast,

@@ -8,7 +8,8 @@ from typing import ClassVar, Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from vqtouch.core import Section, Slot, TrainConfig, hookimpl
+from vqtouch.core import Section, Slot, hookimpl
+from vqtouch.plugins.training.settings import TrainConfig
 
 
 class GridPretrainConfig(Section):

@@ -37,9 +37,9 @@ from typing import Any
 
 import torch
 
-from vqtouch.core.outputs import output_folder
+from vqtouch.plugins.runtime.outputs import output_folder
 from vqtouch.core import Assembly, ConfigError, PluginHost
-from vqtouch.core.runs import MissingCheckpointError
+from vqtouch.plugins.runtime.run_dir import MissingCheckpointError
 from vqtouch.plugins.evaluation.contact import dataset_background
 
 from .best_of import check_best_of, check_best_of_rank
@@ -260,7 +260,7 @@ def load_tradeoff_bench(
     ``distribution``, the distribution scorer (classifier fitted on the training split's real images,
     EfficientNet-Lite0 features at ``feature_size`` px; None: the run's ``fd_effnetlite0`` metric's,
     else 224)."""
-    from vqtouch.core.data import experiment_split
+    from vqtouch.plugins.utils.splits import experiment_split
 
     from .pipeline import load_pipeline
 

@@ -1,6 +1,6 @@
 """Training a generator over a tokenizer's codes, with one condition per step.
 
-:class:`GeneratorTask` is a :class:`vqtouch.core.training.TrainingTask`: the trainer owns the
+:class:`GeneratorTask` is a :class:`vqtouch.plugins.training.trainer.TrainingTask`: the trainer owns the
 optimisation, checkpoints, exact resume, EMA, bf16 and data parallelism, as for the tokenizer.
 Each step picks one of the experiment's conditioners (the paper's unified training: one
 condition per step), encodes the batch's conditions with it, replaces a random
@@ -20,8 +20,8 @@ import torch
 from torch import nn
 
 from vqtouch.core import ConditionTokens, Conditioner, Generator, TactileDataset
-from vqtouch.core.data import dataset_groups
-from vqtouch.core.progress import progress
+from vqtouch.plugins.utils.splits import dataset_groups
+from vqtouch.plugins.utils.progress import progress
 
 from .stage_plugin import GeneratorTrainConfig  # noqa: F401 - re-exported
 
@@ -152,7 +152,8 @@ class SensorTaggedConditioner(nn.Module):
 
 
 class GeneratorTask:
-    """The generator objective as a :class:`vqtouch.core.training.TrainingTask` (see the module docstring)."""
+    """The generator objective as a :class:`~vqtouch.plugins.training.trainer.TrainingTask` (see the module
+    docstring)."""
 
     def __init__(
         self,

@@ -37,9 +37,10 @@ from typing import Any
 import torch
 from torch import nn
 
-from vqtouch.core import ConfigError, PluginHost, RunDir, load, read_metadata, save
+from vqtouch.core import ConfigError, PluginHost, load, read_metadata, save
+from vqtouch.plugins.runtime.run_dir import RunDir
 from vqtouch.core.checkpoint import TRAINED_IN_KEY
-from vqtouch.core.outputs import staged_output
+from vqtouch.plugins.runtime.outputs import staged_output
 from vqtouch.plugins.tokenizer import Tokenizer
 
 #: Where the bundles live inside the installed package.

@@ -18,7 +18,7 @@ from __future__ import annotations
 import argparse
 
 from vqtouch.core import hookimpl
-from vqtouch.core.cli import command_group
+from vqtouch.plugins.cli.app import command_group
 
 
 @hookimpl

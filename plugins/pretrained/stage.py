@@ -16,15 +16,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from vqtouch.core import (
-    ConfigError,
-    MetricSet,
-    StageJob,
-    StageUnavailable,
-    resolve_device,
-    validate_experiment,
-)
-from vqtouch.core.data import DatasetSubset, experiment_split
+from vqtouch.core import ConfigError, StageJob, StageUnavailable, validate_experiment
+from vqtouch.plugins.evaluation.metric_set import MetricSet
+from vqtouch.plugins.utils.seeding import resolve_device
+from vqtouch.plugins.utils.splits import DatasetSubset, experiment_split
 from vqtouch.core.image_size import image_hw
 from vqtouch.plugins.evaluation.contact import dataset_background
 from vqtouch.plugins.evaluation.directions import shown_scores

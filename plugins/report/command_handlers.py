@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from vqtouch.core import RunDir
-from vqtouch.core.cli import config_from_args
+from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.cli.app import config_from_args
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

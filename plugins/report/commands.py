@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from vqtouch.core import hookimpl
-from vqtouch.core.cli import add_config_arguments
+from vqtouch.plugins.cli.app import add_config_arguments
 
 
 @hookimpl

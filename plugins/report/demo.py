@@ -26,13 +26,14 @@ from vqtouch.core.checkpoint import atomic_write, load, save
 from vqtouch.core.components import Metric, SensorFamily, TactileDataset
 from vqtouch.core.config import ExperimentConfig, scale_for_demo, validate_experiment  # noqa: F401 - re-exported
 from vqtouch.core.errors import ConfigError, VqtouchError
-from vqtouch.core.files import FileModel, check_model
+from vqtouch.plugins.utils.files import FileModel, check_model
 from vqtouch.core.image_size import ImageSize, image_hw, pixel_centres_mm
-from vqtouch.core.images import image_grid, save_png
-from vqtouch.core.progress import progress
-from vqtouch.core.runs import RunDir, read_run_json
-from vqtouch.core.seeding import make_generator
-from vqtouch.core.stages import empty_slot_reason, missing_slots, required_slots, run_stage
+from vqtouch.plugins.utils.images import image_grid, save_png
+from vqtouch.plugins.utils.progress import progress
+from vqtouch.plugins.runtime.run_dir import RunDir, read_run_json
+from vqtouch.plugins.utils.seeding import make_generator
+from vqtouch.core.stages import empty_slot_reason, missing_slots, required_slots
+from vqtouch.plugins.runtime.execution import run_stage
 
 from vqtouch.plugins.evaluation.directions import declared_directions, metric_directions
 

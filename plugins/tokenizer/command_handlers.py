@@ -12,22 +12,25 @@ from typing import Any
 
 import torch
 
-from vqtouch.core.outputs import output_folder
-from vqtouch.core import Assembly, ConfigError, MetricSet, RunDir, run_stage
+from vqtouch.plugins.runtime.outputs import output_folder
+from vqtouch.core import Assembly, ConfigError
+from vqtouch.plugins.evaluation.metric_set import MetricSet
+from vqtouch.plugins.runtime.execution import run_stage
+from vqtouch.plugins.runtime.run_dir import RunDir
 from vqtouch.core.checkpoint import is_pretrained
-from vqtouch.core.images import skipping_bad_images
-from vqtouch.core.cli import (
+from vqtouch.plugins.utils.image_options import skipping_bad_images
+from vqtouch.plugins.cli.app import (
     config_from_args,
     plugin_block,
     stage_failure,
     training_run,
 )
 from vqtouch.core.config import parse_override, resolve_config
-from vqtouch.core.data import experiment_split
+from vqtouch.plugins.utils.splits import experiment_split
 
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 from vqtouch.plugins.data.sensor_folders import folder_of, holds_images_directly, load_sensor_folder
-from vqtouch.core.runs import interrupted_message, interrupted_status, is_main_process
+from vqtouch.plugins.runtime.run_dir import interrupted_message, interrupted_status, is_main_process
 from vqtouch.plugins.evaluation.contact import dataset_background
 
 from .loading import tokenizer_location

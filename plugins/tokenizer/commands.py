@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 
 from vqtouch.core import hookimpl
-from vqtouch.core.cli import (
+from vqtouch.plugins.cli.app import (
     add_overwrite_argument,
     add_config_arguments,
     add_image_folder_arguments,

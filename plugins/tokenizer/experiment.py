@@ -42,10 +42,12 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-from vqtouch.core import Assembly, ConfigError, PluginHost, RunDir, VqtouchError, run_stage
-from vqtouch.core.cli import stage_failure
+from vqtouch.core import Assembly, ConfigError, PluginHost, VqtouchError
+from vqtouch.plugins.runtime.execution import run_stage
+from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.cli.app import stage_failure
 from vqtouch.core.config import validate_experiment
-from vqtouch.core.data import experiment_split
+from vqtouch.plugins.utils.splits import experiment_split
 from vqtouch.plugins.evaluation.records import (
     ExperimentRecord,
     check_seeds,
@@ -210,7 +212,7 @@ def sample_grid(folders: list[tuple[str, Path]], config: Any, host: PluginHost, 
     """The first ``count`` held-out images (top row) above each run's reconstructions of them."""
     import torch
 
-    from vqtouch.core.images import image_grid, save_png
+    from vqtouch.plugins.utils.images import image_grid, save_png
 
     from .stages import load_tokenizer, reconstruct_all
 

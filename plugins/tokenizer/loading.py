@@ -13,7 +13,8 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import ConfigError, PluginHost, RunDir, load, read_metadata
+from vqtouch.core import ConfigError, PluginHost, load, read_metadata
+from vqtouch.plugins.runtime.run_dir import RunDir
 from vqtouch.core.checkpoint import files_digest, is_pretrained, open_pretrained
 
 from .training import Tokenizer

@@ -21,7 +21,8 @@ from typing import Literal
 import torch
 from torch import nn
 
-from vqtouch.core import MissingWeightsError, WeightsSpec
+from vqtouch.core import MissingWeightsError
+from vqtouch.plugins.utils.weights import WeightsSpec
 
 from vqtouch.plugins.evaluation.feature_networks import (
     ALEXNET_RELU_CHANNELS,

@@ -15,13 +15,15 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import MetricSet, StageJob, StageUnavailable, resolve_device
-from vqtouch.core.data import experiment_split
+from vqtouch.core import StageJob, StageUnavailable
+from vqtouch.plugins.evaluation.metric_set import MetricSet
+from vqtouch.plugins.utils.seeding import resolve_device
+from vqtouch.plugins.utils.splits import experiment_split
 from vqtouch.core.errors import NothingToEvaluateError
 from vqtouch.core.image_size import image_hw
-from vqtouch.core.images import image_grid, save_png
-from vqtouch.core.runs import MissingCheckpointError
-from vqtouch.core.training import NeverTrainsWarning, Trainer
+from vqtouch.plugins.utils.images import image_grid, save_png
+from vqtouch.plugins.runtime.run_dir import MissingCheckpointError
+from vqtouch.plugins.training.trainer import NeverTrainsWarning, Trainer
 from vqtouch.plugins.evaluation.contact import (
     VERDICT_EVIDENCE,
     contact_region_scores,

@@ -7,7 +7,8 @@ from typing import ClassVar, Literal
 
 from pydantic import Field, StrictFloat, StrictInt, field_validator
 
-from vqtouch.core import Section, Slot, TrainConfig, hookimpl
+from vqtouch.core import Section, Slot, hookimpl
+from vqtouch.plugins.training.settings import TrainConfig
 
 
 class TokenizerLossConfig(Section):

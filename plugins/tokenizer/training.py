@@ -21,9 +21,10 @@ from typing import Any
 import torch
 from torch import nn
 
-from vqtouch.core import Autoencoder, Metric, MetricSet, Quantizer, VqtouchError
+from vqtouch.core import Autoencoder, Metric, Quantizer, VqtouchError
+from vqtouch.plugins.evaluation.metric_set import MetricSet
 from vqtouch.core.errors import NothingToEvaluateError
-from vqtouch.core.training import collate_samples
+from vqtouch.plugins.training.trainer import collate_samples
 
 from .discriminator import adaptive_weight, hinge_discriminator_loss
 from .quantizers import perplexity_of_counts
@@ -119,7 +120,7 @@ class Tokenizer:
 
 
 class TokenizerTask:
-    """The tokenizer objective as a :class:`vqtouch.core.training.TrainingTask`."""
+    """The tokenizer objective as a :class:`vqtouch.plugins.training.trainer.TrainingTask`."""
 
     def __init__(
         self,

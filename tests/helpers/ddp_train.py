@@ -10,7 +10,7 @@ from pathlib import Path
 import torch
 
 from vqtouch.core import load_plugins
-from vqtouch.core.training import TrainConfig, Trainer, TrainingInterrupted
+from vqtouch.plugins.training.trainer import TrainConfig, Trainer, TrainingInterrupted
 
 
 def main() -> None:

@@ -44,10 +44,10 @@ from typing import Any
 import torch
 
 from vqtouch.core import DatasetError, TactileDataset
-from vqtouch.core.data import user_cache_folder
+from vqtouch.plugins.utils.splits import user_cache_folder
 from vqtouch.core.errors import VqtouchWarning
-from vqtouch.core.images import CropMode, ImageLoader, crop_box, mode_problem  # noqa: F401 - re-exported
-from vqtouch.core.progress import progress
+from vqtouch.plugins.utils.images import CropMode, ImageLoader, crop_box, mode_problem  # noqa: F401 - re-exported
+from vqtouch.plugins.utils.progress import progress
 
 from ._options import ReaderConfig
 

@@ -10,7 +10,7 @@ from pydantic import Field
 from vqtouch.core import PluginConfig
 from vqtouch.core.image_size import ImageSizeOption
 
-#: vqtouch.core.images.CropMode, spelled out here because that module imports torch (a test checks
+#: vqtouch.plugins.utils.images.CropMode, spelled out here because that module imports torch (a test checks
 #: that the two agree).
 CropMode = Literal["center", "top", "stretch"]
 

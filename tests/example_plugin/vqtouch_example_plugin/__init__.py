@@ -16,7 +16,7 @@ from pydantic import Field
 from torch import nn
 
 from vqtouch.core import Conditioner, ConfigError, PluginConfig, Section, SensorFamily, StageJob, hookimpl
-from vqtouch.core.images import image_grid, save_png
+from vqtouch.plugins.utils.images import image_grid, save_png
 
 
 class ToySensorConfig(PluginConfig):

@@ -1,67 +1,16 @@
-"""Reproducibility: one call seeds every random number generator a run uses; one context makes
-CPU float sums independent of the thread count."""
+"""Thread policy: how many CPU threads a command's torch kernels use, and one-thread sections whose
+float sums do not depend on the thread count."""
 
 from __future__ import annotations
 
 import contextlib
 import functools
 import os
-import random
 import sys
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, TypeVar
 
-from .errors import ConfigError
-
-if TYPE_CHECKING:
-    import torch
-
-#: The largest seed: NumPy takes seeds below 2**32, and the seeds vqtouch derives from one
-#: (``seed * 1_000_003 + index`` for each generated image, ...) then stay within 64 bits.
-SEED_MAX = 2**32 - 1
-
-
-def seed_everything(seed: int, deterministic: bool = False) -> int:
-    """Seed Python, NumPy and PyTorch (all devices); optionally force deterministic kernels.
-
-    Returns the seed so callers can record it.  ``deterministic=True`` makes PyTorch raise
-    on operations without a deterministic implementation rather than silently vary.
-    """
-    import numpy as np
-    import torch
-
-    if not 0 <= seed <= SEED_MAX:
-        raise ValueError(f"seed must be in [0, {SEED_MAX}], got {seed}")
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
-    if deterministic:
-        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
-        torch.use_deterministic_algorithms(True)
-        torch.backends.cudnn.benchmark = False
-    return seed
-
-
-def make_generator(seed: int, device: str | torch.device = "cpu") -> torch.Generator:
-    """A fresh ``torch.Generator`` on ``device`` seeded with ``seed`` (for explicit randomness)."""
-    import torch
-
-    generator = torch.Generator(device=device)
-    generator.manual_seed(seed)
-    return generator
-
-
-def resolve_device(device: str) -> torch.device:
-    """Map a config device (``auto``, ``cpu``, ``cuda``) to a ``torch.device``, failing clearly."""
-    import torch
-    from .errors import ConfigError
-
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError(f"device {device!r} requested but CUDA is not available; use device=cpu or auto")
-    return torch.device(device)
-
+from vqtouch.core.errors import ConfigError
 
 _F = TypeVar("_F", bound=Callable[..., Any])
 

@@ -18,7 +18,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from .errors import MissingWeightsError
+from vqtouch.core.errors import MissingWeightsError
 
 ENV_WEIGHTS_DIR = "VQTOUCH_WEIGHTS_DIR"
 

@@ -1,6 +1,6 @@
 """What the running command asked of image reading (``--allow-greyscale``, ``--lenient``).
 
-Context variables the CLI sets around a command and the image loaders of :mod:`vqtouch.core.images`
+Context variables the CLI sets around a command and the image loaders of :mod:`vqtouch.plugins.utils.images`
 read; kept apart from them so the CLI sets them without importing torch."""
 
 from __future__ import annotations

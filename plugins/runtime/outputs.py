@@ -5,9 +5,9 @@ or any folder inside it, a families or adapt output, a bundle), nor anything ins
 vqtouch package (``pretrained export``, which writes bundles there, says so explicitly).
 ``--overwrite`` only ever replaces an earlier output of the same command.
 
-The command line (:mod:`vqtouch.core.cli`) records every path a parsed command names
+The command line (:mod:`vqtouch.plugins.cli.app`) records every path a parsed command names
 (:func:`command_inputs`) for as long as the command runs (:func:`reading`); every place that
-creates an output (:func:`staged_output`, :meth:`vqtouch.core.runs.RunDir.create`, and the
+creates an output (:func:`staged_output`, :meth:`vqtouch.plugins.runtime.run_dir.RunDir.create`, and the
 commands' folders through :func:`check_output`) refuses a folder that is, holds or lies inside
 one of them, in one line naming the option, before anything is written or emptied.  A library
 caller passes what it reads as ``reads`` (``(flag, what, path)`` triples).
@@ -29,9 +29,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .errors import ConfigError, VqtouchWarning
+from vqtouch.core.errors import ConfigError, VqtouchWarning
 
-#: The lock file inside a run (see :mod:`vqtouch.core.runs`); it stays after the run (removing it would
+#: The lock file inside a run (see :mod:`vqtouch.plugins.runtime.run_dir`); it stays after the run (removing it would
 #: let two processes lock two different files of the same name).  Only RunDir makes it, so it also
 #: marks a run directory whose config.json is not written yet.
 LOCK_NAME = ".vqtouch.lock"
@@ -246,7 +246,7 @@ def staged_output(
     Refused in one line before anything is written: ``out`` breaks the output rule
     (:func:`check_output`), is a file or a run directory, or holds files and ``overwrite`` is not set
     or they are not an earlier output of ``command`` (default: the command line's; its marker file,
-    or ``recognise(out)``).  An error or Ctrl-C in the block (or SIGTERM, which ``vqtouch.core.cli``
+    or ``recognise(out)``).  An error or Ctrl-C in the block (or SIGTERM, which ``vqtouch.plugins.cli.app``
     turns into one) removes the staged folder; a killed call's folder is removed by the next call.
     When another process filled ``out`` meanwhile, the staged files are kept and the error says where.
     """

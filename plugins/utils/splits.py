@@ -8,8 +8,8 @@ from typing import Any
 
 import torch
 
-from .components import TactileDataset
-from .errors import ConfigError, PluginError
+from vqtouch.core.components import TactileDataset
+from vqtouch.core.errors import ConfigError, PluginError
 
 # The split's generator is seeded apart from the experiment's seed, so that its draws are not the ones every
 # other generator seeded with that seed starts with.

@@ -16,7 +16,7 @@ from typing import Any, TypeVar
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from .errors import ConfigError
+from vqtouch.core.errors import ConfigError
 
 
 class FileModel(BaseModel):

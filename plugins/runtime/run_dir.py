@@ -43,14 +43,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .checkpoint import atomic_write, read_metadata
-from .config import ExperimentConfig, validate_experiment
-from .files import FileModel, check_model, inside_root
-from .outputs import LOCK_NAME, check_output
-from .errors import CheckpointError, ConfigError, VqtouchError, VqtouchWarning, unknown_name_message
+from vqtouch.core.checkpoint import atomic_write, read_metadata
+from vqtouch.core.config import ExperimentConfig, validate_experiment
+from vqtouch.plugins.utils.files import FileModel, check_model, inside_root
+from vqtouch.plugins.runtime.outputs import LOCK_NAME, check_output
+from vqtouch.core.errors import CheckpointError, ConfigError, VqtouchError, VqtouchWarning, unknown_name_message
 
 if TYPE_CHECKING:
-    from .plugin_manager import PluginHost
+    from vqtouch.core.plugin_manager import PluginHost
 
 
 try:
@@ -268,7 +268,7 @@ class RunDir:
 
         ``reads``: what the command reads, as ``(flag, what, path)``; a run folder that is one of
         them, or holds one, is refused before anything is written or emptied
-        (:func:`vqtouch.core.outputs.check_output`).
+        (:func:`vqtouch.plugins.runtime.outputs.check_output`).
 
         A folder that already holds files is refused (ConfigError naming ``--resume`` and
         ``--overwrite``); with ``overwrite`` a run directory (one with a config.json or a
@@ -409,7 +409,7 @@ class RunDir:
         run's weights goes through (resume, reconstruct, evaluate, generate, adapt).
 
         Newer folders that are incomplete or unreadable (an interrupted save, a truncated or
-        missing module file) are skipped with a :class:`~vqtouch.core.training.SkippedCheckpointWarning`
+        missing module file) are skipped with a :class:`~vqtouch.plugins.training.trainer.SkippedCheckpointWarning`
         naming them.  ``required_files`` are the files the caller needs in the folder (e.g. a
         tokenizer's ``autoencoder.safetensors``).  Every component file in the folder must have
         been made with the config of one of the slots of the run's config.json, else
@@ -418,7 +418,12 @@ class RunDir:
         ``stage``: read the checkpoints that a trained stage other than the tokenizer keeps in
         ``checkpoints/<stage>/``.
         """
-        from .training import checkpoint_problem, latest_good_checkpoint, no_good_checkpoint, step_folders
+        from vqtouch.plugins.training.checkpoints import (
+            checkpoint_problem,
+            latest_good_checkpoint,
+            no_good_checkpoint,
+            step_folders,
+        )
 
         checkpoints = self.checkpoints / stage if stage else self.checkpoints
         if step == "best":
@@ -456,7 +461,7 @@ class RunDir:
         :class:`MissingCheckpointError` rather than silently starting over.  Returns whether a
         checkpoint was loaded.
         """
-        from .training import step_folders
+        from vqtouch.plugins.training.checkpoints import step_folders
 
         checkpoints = self.checkpoints / stage if stage else self.checkpoints
         folder = (
@@ -472,7 +477,7 @@ class RunDir:
     def best_step(self, host: PluginHost, required_files: Sequence[str] = (), stage: str | None = None) -> int:
         """The step whose checkpoint scored best on the held-out split, as the newest good checkpoint's
         trainer state records it; MissingCheckpointError when the run kept none."""
-        from .training import read_trainer_meta
+        from vqtouch.plugins.training.checkpoints import read_trainer_meta
 
         newest = self.checkpoint(host, required_files=required_files, stage=stage)
         best = read_trainer_meta(newest).get("best_step")
@@ -484,7 +489,7 @@ class RunDir:
         return int(best)
 
     def _check_files(self, folder: Path, host: PluginHost) -> None:
-        from .training import TRAINER_STATE
+        from vqtouch.plugins.training.checkpoints import TRAINER_STATE
 
         config = self.load_config(host)
         slots: dict[str, list[tuple[str, dict[str, Any]]]] = {}  # kind -> [(slot, plugin config)]
@@ -694,9 +699,9 @@ def read_run_json(path: Path) -> Any:
 
 def interrupted_message(exc: BaseException, run: RunDir, command: str) -> str:
     """What a ``vqtouch train COMMAND`` that was stopped by Ctrl-C or SIGTERM tells the user: the
-    checkpoint the trainer wrote (:class:`~vqtouch.core.training.TrainingInterrupted`), else the
+    checkpoint the trainer wrote (:class:`~vqtouch.plugins.training.trainer.TrainingInterrupted`), else the
     run's newest complete one, else that nothing was saved; never a claim it cannot back."""
-    from .training import TrainingInterrupted, latest_checkpoint
+    from vqtouch.plugins.training.trainer import TrainingInterrupted, latest_checkpoint
 
     resume = f"vqtouch train {command} --resume {run.path}"
     if isinstance(exc, TrainingInterrupted) and exc.checkpoint is not None:
@@ -717,10 +722,10 @@ def interrupted_status(exc: BaseException) -> int:
     130 (Ctrl-C) for any other interruption."""
     import signal as signals
 
-    from .training import TrainingInterrupted
+    from vqtouch.plugins.training.trainer import TrainingInterrupted
 
     if isinstance(exc, TrainingInterrupted) and exc.cause in signals.Signals.__members__:
         return 128 + signals.Signals[exc.cause].value
-    if isinstance(getattr(exc, "signum", None), int):  # SIGTERM outside training (vqtouch.core.cli.Terminated)
+    if isinstance(getattr(exc, "signum", None), int):  # SIGTERM outside training (vqtouch.plugins.cli.app.Terminated)
         return 128 + exc.signum
     return 130

@@ -1,6 +1,6 @@
 """The training options every training stage's section holds (``tokenizer.train``, ``generator.train``).
 
-Kept apart from :mod:`vqtouch.core.training` (the trainer, which needs torch) so that configs
+Kept apart from :mod:`vqtouch.plugins.training.trainer` (the trainer, which needs torch) so that configs
 validate, and ``vqtouch config`` runs, without importing torch."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import Any, ClassVar, Literal
 from pydantic import Field, field_validator
 from pydantic_core import PydanticCustomError
 
-from .config import Section
+from vqtouch.core.config import Section
 
 #: Checkpoint folders are named ``step-NNNNNNNN`` (8 digits): the most steps a run can have.
 MAX_STEPS = 99_999_999

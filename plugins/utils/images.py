@@ -11,10 +11,12 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from .checkpoint import atomic_write
-from .errors import DatasetError
-from .image_options import _GREYSCALE_ALLOWED, bad_images_skipped, greyscale_allowed, skipping_bad_images  # noqa: F401
-from .image_size import ImageSize, image_hw
+from vqtouch.core.checkpoint import atomic_write
+from vqtouch.core.errors import ConfigError, DatasetError
+from vqtouch.plugins.utils.image_options import (
+    _GREYSCALE_ALLOWED,
+)  # noqa: F401
+from vqtouch.core.image_size import ImageSize, image_hw
 
 #: How an image is brought to the requested aspect ratio: see ``ImageLoader.crop``.
 CropMode = Literal["center", "top", "stretch"]
@@ -161,3 +163,17 @@ class ImageLoader:
                 f"expected an opaque RGB image"
             )
         return image.convert("RGB")
+
+
+def read_condition_image(value: str | Path, sample_key: str, size: ImageSize) -> torch.Tensor:
+    """An image condition a user named by path (``vqtouch generate --visual PATH``): decoded,
+    centre-cropped to ``size``'s aspect and resized to it, in [0, 1]; a one-line ConfigError naming
+    the option (``--visual`` for a visual condition, ``--tactile`` for the others) when it cannot."""
+    flag = "visual" if sample_key == "visual" else "tactile"
+    path = Path(str(value))
+    if not path.is_file():
+        raise ConfigError(f"--{flag} {value}: no such image file")
+    try:
+        return ImageLoader(size=size).load(path)
+    except DatasetError as exc:
+        raise ConfigError(f"--{flag}: {exc}") from None

@@ -35,20 +35,14 @@ each batch and gradients are all-reduced (gloo on CPU, nccl on GPU); rank 0 writ
 
 from __future__ import annotations
 
-import atexit
 import contextlib
-import datetime
-import functools
 import json
 import math
-import os
-import re
 import shutil
 import signal
-import threading
 import time
 import warnings
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
@@ -58,73 +52,39 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 from torch import nn
 
-from .checkpoint import (
+from vqtouch.core.checkpoint import (
     TRAINED_IN_KEY,
     CheckpointWriteError,
-    atomic_write,
     load_state_strict,
     remove_stale_temporaries,
     save,
     write_checkpoint_file,
 )
-from .train_config import MAX_STEPS, TrainConfig, learning_rate_factor  # noqa: F401 - their home before
-from .errors import CheckpointError, VqtouchError, VqtouchWarning
-from .progress import progress
+from .settings import MAX_STEPS, TrainConfig, learning_rate_factor  # noqa: F401
+from vqtouch.core.errors import CheckpointError, VqtouchError, VqtouchWarning
+from vqtouch.plugins.utils.progress import progress
+
+from .checkpoints import (  # noqa: F401 - importable from here as from the old vqtouch.core.training
+    TRAINER_STATE,
+    STEP_FOLDER,
+    SkippedCheckpointWarning,
+    apply_ema_weights,
+    checkpoint_problem,
+    first_line,
+    latest_checkpoint,
+    latest_good_checkpoint,
+    no_good_checkpoint,
+    read_trainer_meta,
+    rewind_metrics,
+    saved_ema_weights,
+    step_folders,
+)
+from .batches import StepBatches, batch_indices, collate_samples, epoch_order  # noqa: F401
+from .processes import DistributedContext, StopSignals
+from .precision import AUTO_PRECISION, autocast, cpu_has_bf16_matrix_units, resolve_precision  # noqa: F401
 
 if TYPE_CHECKING:
-    from .plugin_manager import PluginHost
-
-
-TRAINER_STATE = "trainer_state.safetensors"
-_STEP_FOLDER = re.compile(r"step-(\d+)")
-
-
-#: What ``precision: auto`` runs in: device type -> component -> precision, ``None`` for every other
-#: component; other devices: fp32.  The components are the trained ones (``TrainConfig.component``) and
-#: ``"sampling"``, the generator's network while it samples (``generator.sample_precision``).  Measured
-#: (docs/results.md, "Training in bf16 on the CPU"): on a CPU with bf16 matrix units the generator trains
-#: 1.5x (``tour``) to 2.1x (``tour_wide``) faster per step in bf16 at the same held-out loss after 1,000
-#: steps (3 seeds), the tokenizer 1.3x (DM-VQGAN, 64 px) to 2x (128 px) at PSNR, contact PSNR and held-out
-#: L1 within the seeds' spread (3 seeds, 600 steps), and a sampling step runs 1.55x (``tour``) to 2.2x
-#: (``tour_wide``) faster at scores within the sampling seeds' spread.
-#: CUDA: bf16, the tensor-core precision, where ``torch.cuda.is_bf16_supported()``.
-AUTO_PRECISION: dict[str, dict[str | None, str]] = {
-    "cpu": {"generator": "bf16", "tokenizer": "bf16", "sampling": "bf16", None: "fp32"},
-    "cuda": {None: "bf16"},
-}
-
-
-def cpu_has_bf16_matrix_units() -> bool:
-    """Whether this CPU multiplies bf16 matrices in hardware (Intel AMX tiles), where bf16 was measured
-    faster; without them (AVX2, AVX-512 alone, Arm) bf16 is emulated or unmeasured, so ``auto`` keeps fp32."""
-    probe = getattr(torch.cpu, "_is_amx_tile_supported", None)  # private to torch; absent: assume none
-    try:
-        return bool(probe()) if probe is not None else False
-    except RuntimeError:
-        return False
-
-
-def resolve_precision(precision: str, device: torch.device, component: str | None = None) -> str:
-    """The precision (``fp32`` or ``bf16``) a run set to ``precision`` trains ``component`` in on ``device``."""
-    if precision != "auto":
-        return precision
-    by_component = AUTO_PRECISION.get(device.type, {})
-    choice = by_component.get(component, by_component.get(None, "fp32"))
-    if choice == "bf16" and device.type == "cuda" and not torch.cuda.is_bf16_supported():
-        return "fp32"
-    if choice == "bf16" and device.type == "cpu" and not cpu_has_bf16_matrix_units():
-        return "fp32"
-    return choice
-
-
-def autocast(precision: str, device: torch.device) -> contextlib.AbstractContextManager:
-    """bf16 autocast on ``device`` for ``precision`` ``"bf16"``; a no-op for ``"fp32"`` (resolve ``"auto"``
-    first with :func:`resolve_precision`)."""
-    if precision == "bf16":
-        return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
-    if precision != "fp32":
-        raise ValueError(f"precision {precision!r}: expected fp32 or bf16 (resolve 'auto' with resolve_precision)")
-    return contextlib.nullcontext()
+    from vqtouch.core.plugin_manager import PluginHost
 
 
 def _fused_supported(param_groups: list[dict[str, Any]]) -> bool:
@@ -178,164 +138,6 @@ class TrainingInterrupted(KeyboardInterrupt):
 
 class NeverTrainsWarning(VqtouchWarning):
     """A configured term or schedule never takes effect in this run (it starts after the last step)."""
-
-
-class SkippedCheckpointWarning(VqtouchWarning):
-    """A checkpoint folder was skipped because it is incomplete or unreadable (the message says why)."""
-
-
-def collate_samples(samples: list[dict[str, Any]]) -> dict[str, Any]:
-    """Stack tensors and numbers of dataset samples; keep strings as lists."""
-    batch: dict[str, Any] = {}
-    for key in samples[0]:
-        values = [sample[key] for sample in samples]
-        if isinstance(values[0], torch.Tensor):
-            batch[key] = torch.stack(values)
-        elif isinstance(values[0], (int, float)):
-            batch[key] = torch.tensor(values)
-        else:
-            batch[key] = values
-    return batch
-
-
-@functools.lru_cache(maxsize=4)
-def epoch_order(seed: int, epoch: int, size: int) -> tuple[int, ...]:
-    """The sample order of one epoch: a pure function of (seed, epoch) (cached: every step of an
-    epoch asks for it)."""
-    return tuple(torch.randperm(size, generator=torch.Generator().manual_seed(seed * 100_003 + epoch)).tolist())
-
-
-def batch_indices(seed: int, step: int, batch_size: int, size: int, rank: int = 0, world: int = 1) -> list[int]:
-    """This process's share of the global batch of ``step`` (global batch = batch_size * world)."""
-    global_batch = batch_size * world
-    per_epoch = max(1, size // global_batch)
-    epoch, position = divmod(step, per_epoch)
-    order = epoch_order(seed, epoch, size)
-    start = position * global_batch
-    return list(order[start : start + global_batch][rank::world])
-
-
-class _StepBatches:
-    """The batch indices of steps ``start`` to ``stop``, made one at a time (a list of every batch of
-    a long run would not fit in memory)."""
-
-    def __init__(self, seed: int, start: int, stop: int, batch_size: int, size: int, rank: int, world: int) -> None:
-        self.seed, self.start, self.stop = seed, start, stop
-        self.batch_size, self.size, self.rank, self.world = batch_size, size, rank, world
-
-    def __len__(self) -> int:
-        return max(0, self.stop - self.start)
-
-    def __iter__(self) -> Iterator[list[int]]:
-        for step in range(self.start, self.stop):
-            yield batch_indices(self.seed, step, self.batch_size, self.size, self.rank, self.world)
-
-
-def _notice(message: str) -> None:
-    # From a signal handler: a raw write, since the handler may run in the middle of another
-    # write to sys.stderr (the progress bar) and buffered streams are not reentrant.
-    try:
-        os.write(2, f"\n{message}\n".encode())
-    except OSError:
-        pass
-
-
-class _StopSignals:
-    """SIGINT and SIGTERM as requests to stop at the end of the current step.
-
-    Installed by :meth:`Trainer.fit` (which checks :attr:`received` after every step and
-    restores the previous handlers when it returns) and, outside fit, around each checkpoint
-    save (which then re-raises the signal to the previous handler once the save is complete).
-    Nothing is installed outside the main thread (Python allows handlers only there) nor for a
-    signal that is ignored on purpose (nohup).
-    """
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-    def __init__(self) -> None:
-        self.received: int | None = None
-        self.saving = False
-        self._previous: dict[int, Any] = {}
-        self._pid = os.getpid()
-
-    def install(self) -> _StopSignals:
-        if threading.current_thread() is threading.main_thread():
-            for signum in self.SIGNALS:
-                previous = signal.getsignal(signum)
-                if previous is signal.SIG_IGN or previous is None:
-                    continue
-                self._previous[signum] = previous
-                signal.signal(signum, self._handle)
-        return self
-
-    def restore(self) -> None:
-        for signum, previous in self._previous.items():
-            signal.signal(signum, previous)
-        self._previous.clear()
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        if os.getpid() != self._pid:
-            return  # a forked DataLoader worker: the training process decides when to stop
-        name = signal.Signals(signum).name
-        first = self.received is None
-        if first:
-            self.received = signum
-        if self.saving:
-            _notice(
-                f"vqtouch: {name} received while writing a checkpoint; stopping once it is complete "
-                "(kill -9 stops at once, keeping the last complete checkpoint)"
-            )
-        elif first:
-            _notice(f"vqtouch: {name} received; stopping after the current step, once its checkpoint is written")
-        else:
-            _notice(
-                f"vqtouch: {name} received again; still finishing the current step and its checkpoint "
-                "(kill -9 stops at once, keeping the last complete checkpoint)"
-            )
-
-
-@dataclass
-class DistributedContext:
-    """Rank and world size; world 1 when not launched by torchrun."""
-
-    rank: int = 0
-    world: int = 1
-
-    @property
-    def is_main(self) -> bool:
-        """Whether this process writes files and shows progress."""
-        return self.rank == 0
-
-    @classmethod
-    def from_environment(cls, device: torch.device) -> DistributedContext:
-        """Join the process group torchrun set up (WORLD_SIZE > 1), else a single process."""
-        world = int(os.environ.get("WORLD_SIZE", "1"))
-        if world <= 1:
-            return cls()
-        import torch.distributed as dist
-
-        if not dist.is_initialized():
-            dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
-            atexit.register(_close_process_group)
-        return cls(dist.get_rank(), dist.get_world_size())
-
-
-def _close_process_group() -> None:
-    """Tear the process group down before the interpreter does: left to exit, gloo's threads can abort
-    a rank ("terminate called without an active exception"), and a rank that tears down while another
-    still talks to it aborts that one, hence the barrier first (bounded, so a rank whose partner died
-    still exits)."""
-    import torch.distributed as dist
-
-    if not dist.is_initialized():
-        return
-    with contextlib.suppress(Exception):
-        if dist.get_backend() == "gloo":
-            dist.monitored_barrier(timeout=datetime.timedelta(seconds=60))
-        else:
-            dist.barrier()
-    with contextlib.suppress(Exception):
-        dist.destroy_process_group()
 
 
 @dataclass
@@ -399,7 +201,7 @@ class Trainer:
         #: The step whose checkpoint folder is known complete (saved or resumed from), so an
         #: interrupt right after a save does not write it twice.
         self._saved: tuple[int, Path] | None = None
-        self._signals: _StopSignals | None = None
+        self._signals: StopSignals | None = None
         #: Set when another rank's stop request ended :meth:`fit` (see :meth:`_stop_agreed`).
         self._stopped_by_peer = False
         if checkpoint_dir is not None and self.dist.is_main:
@@ -520,7 +322,7 @@ class Trainer:
                 f"the dataset has {size} samples, fewer than one global batch "
                 f"({self.batch_size} x {self.dist.world} processes); lower data.batch_size"
             )
-        index_batches = _StepBatches(
+        index_batches = StepBatches(
             self.seed, start_step, self.config.steps, self.batch_size, size, self.dist.rank, self.dist.world
         )
         # A private generator: creating the iterator would otherwise draw its worker seed from
@@ -543,7 +345,7 @@ class Trainer:
         KeyboardInterrupt raised by the task itself also saves first.  The previous signal
         handlers are back in place when fit returns or raises.
         """
-        signals = _StopSignals().install()
+        signals = StopSignals().install()
         self._signals = signals
         self._stopped_by_peer = False
         interrupted: KeyboardInterrupt | None = None
@@ -569,7 +371,7 @@ class Trainer:
             raise TrainingInterrupted(cause, self.state.step, folder) from interrupted
         return self.state
 
-    def _run_steps(self, signals: _StopSignals) -> None:
+    def _run_steps(self, signals: StopSignals) -> None:
         start = self.state.step
         bar = (
             progress(total=self.config.steps, initial=start, desc=f"training ({self.precision})", unit="step")
@@ -618,7 +420,7 @@ class Trainer:
             if bar is not None:
                 bar.close()
 
-    def _stop_agreed(self, signals: _StopSignals) -> bool:
+    def _stop_agreed(self, signals: StopSignals) -> bool:
         """Whether to stop after this step: a stop request to any process stops them all at the same
         step (under torchrun a signal may reach one rank only, or reach the ranks a step apart,
         and a rank that stopped alone would leave the others waiting in their next all-reduce)."""
@@ -650,7 +452,7 @@ class Trainer:
                 return self._write_checkpoint()
             finally:
                 self._signals.saving = False
-        deferred = _StopSignals().install()
+        deferred = StopSignals().install()
         deferred.saving = True
         try:
             return self._write_checkpoint()
@@ -832,7 +634,7 @@ class Trainer:
         """
         checkpoint_dir = Path(checkpoint_dir)
         required = [f"{name}.safetensors" for name in self.task.modules]
-        if _STEP_FOLDER.fullmatch(checkpoint_dir.name) and checkpoint_dir.is_dir():
+        if STEP_FOLDER.fullmatch(checkpoint_dir.name) and checkpoint_dir.is_dir():
             folder = checkpoint_dir
             problem = checkpoint_problem(folder, required)
             if problem is not None:
@@ -853,7 +655,7 @@ class Trainer:
                 meta = json.loads(handle.metadata()["vqtouch.trainer"])
                 tensors = {key: handle.get_tensor(key) for key in handle.keys()}
         except Exception as exc:  # noqa: BLE001
-            raise CheckpointError(f"{path}: unreadable trainer state ({_first_line(exc)})") from None
+            raise CheckpointError(f"{path}: unreadable trainer state ({first_line(exc)})") from None
         if meta["batch_size"] != self.batch_size or meta["seed"] != self.seed or meta["world"] != self.dist.world:
             raise CheckpointError(
                 f"{path}: saved with batch_size={meta['batch_size']}, seed={meta['seed']}, "
@@ -866,7 +668,7 @@ class Trainer:
             try:
                 module_tensors = load_file(str(module_path), device=str(self.device))
             except Exception as exc:  # noqa: BLE001 - safetensors raises several error types
-                raise CheckpointError(f"{module_path}: tensor data is unreadable ({_first_line(exc)})") from None
+                raise CheckpointError(f"{module_path}: tensor data is unreadable ({first_line(exc)})") from None
             load_state_strict(module, module_tensors, module_path)
         for name, optimizer in self.optimizers.items():
             saved = meta["optimizers"][name]
@@ -903,205 +705,3 @@ class Trainer:
         path = getattr(self.run, "path", None)
         if path is not None and self.dist.is_main:
             rewind_metrics(Path(path) / "metrics.jsonl", self.stage, step)
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return text[0] if text else type(exc).__name__
-
-
-def _as_clause(problem: str | None) -> str:
-    # checkpoint_problem's phrases ("no X: ...", "X is missing") after "the newest, step-N,".
-    if problem is None:
-        return "is complete"
-    return f"has {problem}" if problem.startswith("no ") else f"is unusable: {problem}"
-
-
-def no_good_checkpoint(checkpoint_dir: Path, required_files: Iterable[str] = ()) -> str:
-    """``DIR: holds N checkpoint folder(s) but no complete one (the newest, step-N, has ...)``: why a
-    run's step folders give nothing to read (for when :func:`latest_good_checkpoint` found none);
-    callers add what to do."""
-    folders = step_folders(checkpoint_dir)
-    newest = folders[-1][1]
-    return (
-        f"{checkpoint_dir}: holds {len(folders)} checkpoint folder(s) but no complete one (the newest, "
-        f"{newest.name}, {_as_clause(checkpoint_problem(newest, required_files))})"
-    )
-
-
-def step_folders(checkpoint_dir: Path) -> list[tuple[int, Path]]:
-    """The ``step-N`` folders under ``checkpoint_dir`` as (step, folder), oldest first, complete or not.
-
-    Ordered by the number, not the name (``step-100000000`` is newer than ``step-99999999``).
-    """
-    try:
-        entries = list(Path(checkpoint_dir).iterdir())
-    except OSError:  # missing, or not a folder
-        return []
-    folders = []
-    for entry in entries:
-        found = _STEP_FOLDER.fullmatch(entry.name)
-        if found and entry.is_dir():
-            folders.append((int(found.group(1)), entry))
-    return sorted(folders, key=lambda item: item[0])
-
-
-def _unreadable(path: Path) -> str | None:
-    """Why ``path`` is not a readable checkpoint file, or None: safe_open checks the safetensors
-    header and that the file is as long as the header says; a vqtouch component header must also
-    carry a parsable config and a step number (what :func:`vqtouch.core.load` needs)."""
-    try:
-        with safe_open(str(path), framework="pt") as handle:
-            metadata = handle.metadata() or {}
-    except Exception as exc:  # noqa: BLE001 - safetensors raises several error types
-        return f"is not a readable safetensors file ({_first_line(exc)})"
-    if "vqtouch.component" in metadata:
-        step = metadata.get("vqtouch.step", "0")
-        if not step.isdecimal():
-            return f"has a damaged vqtouch header (vqtouch.step is {step!r}, not a step number)"
-        try:
-            json.loads(metadata["vqtouch.config"])
-        except (KeyError, json.JSONDecodeError):
-            return "has a damaged vqtouch header (no readable vqtouch.config)"
-    return None
-
-
-def read_trainer_meta(folder: Path) -> dict[str, Any]:
-    """The JSON the trainer stored in a step folder's trainer state (step, best step, optimizer
-    settings, ...); CheckpointError naming the file when it cannot be read."""
-    path = Path(folder) / TRAINER_STATE
-    try:
-        with safe_open(str(path), framework="pt") as handle:
-            return json.loads((handle.metadata() or {})["vqtouch.trainer"])
-    except Exception as exc:  # noqa: BLE001 - safetensors, JSON and key errors alike
-        raise CheckpointError(f"{path}: unreadable trainer state ({_first_line(exc)})") from None
-
-
-def saved_ema_weights(folder: Path) -> dict[str, dict[str, torch.Tensor]]:
-    """The exponential moving average of each module's floating-point weights that the trainer kept
-    in step ``folder`` (``train.ema_decay``), by module name; empty when the run kept none.  One read
-    of the trainer state; CheckpointError naming the file when it cannot be read."""
-    path = Path(folder) / TRAINER_STATE
-    averages: dict[str, dict[str, torch.Tensor]] = {}
-    try:
-        with safe_open(str(path), framework="pt") as handle:
-            for key in handle.keys():
-                if key.startswith("ema."):
-                    module_name, tensor_name = key[len("ema.") :].split(".", 1)
-                    averages.setdefault(module_name, {})[tensor_name] = handle.get_tensor(key)
-    except Exception as exc:  # noqa: BLE001 - safetensors raises several error types
-        raise CheckpointError(f"{path}: unreadable trainer state ({_first_line(exc)})") from None
-    return averages
-
-
-def apply_ema_weights(module: nn.Module, ema_KT: Mapping[str, torch.Tensor], where: str | Path) -> None:
-    """Replace ``module``'s floating-point weights by their moving average ``ema_KT`` (from
-    :func:`saved_ema_weights` or :attr:`Trainer.ema`); integer buffers keep their values.  A key the
-    module lacks, a floating tensor the average lacks, a wrong shape or a non-finite value is a
-    one-line CheckpointError naming ``where``: sampling with half-replaced weights would be garbage."""
-    state = module.state_dict()
-    floating = {key for key, value in state.items() if value.dtype.is_floating_point}
-    unexpected = sorted(set(ema_KT) - set(state))
-    missing = sorted(floating - set(ema_KT))
-    if unexpected or missing:
-        problem = f"unexpected {unexpected[0]!r}" if unexpected else f"missing {missing[0]!r}"
-        raise CheckpointError(f"{where}: its EMA weights do not fit the model ({problem}); sample with the raw weights")
-    for key, value in ema_KT.items():  # all checked before any is copied
-        if tuple(value.shape) != tuple(state[key].shape):
-            raise CheckpointError(
-                f"{where}: EMA tensor {key!r} has shape {tuple(value.shape)}, the model {tuple(state[key].shape)}"
-            )
-        if not torch.isfinite(value).all():
-            raise CheckpointError(f"{where}: EMA tensor {key!r} holds NaN or Inf; sample with the raw weights")
-    with torch.no_grad():
-        for key, value in ema_KT.items():
-            state[key].copy_(value.to(state[key].dtype))
-
-
-def checkpoint_problem(folder: Path, required_files: Iterable[str] = ()) -> str | None:
-    """Why the step folder ``folder`` cannot be used, in a few words, or None when it is complete and
-    readable: a readable trainer state, and every module file it lists plus ``required_files``
-    present and a readable safetensors file (headers are read, tensors are not)."""
-    state = folder / TRAINER_STATE
-    if not state.is_file():
-        return f"no {TRAINER_STATE}: its save was interrupted"
-    try:
-        with safe_open(str(state), framework="pt") as handle:
-            meta = json.loads((handle.metadata() or {})["vqtouch.trainer"])
-        modules = [f"{name}.safetensors" for name in meta.get("modules", [])]
-    except Exception as exc:  # noqa: BLE001 - safetensors, JSON and key errors alike
-        # Phrased like read_trainer_meta's error, which resume raises for the same file.
-        return f"{TRAINER_STATE} is unreadable ({_first_line(exc)})"
-    for name in dict.fromkeys([*modules, *required_files]):
-        if not (folder / name).is_file():
-            return f"{name} is missing"
-        why = _unreadable(folder / name)
-        if why is not None:
-            return f"{name} {why}"
-    return None
-
-
-def latest_good_checkpoint(checkpoint_dir: Path, required_files: Iterable[str] = ()) -> Path | None:
-    """The newest ``step-*`` folder under ``checkpoint_dir`` that is complete and readable (see
-    :func:`checkpoint_problem`), or None; the one function every reader of a run's latest
-    checkpoint should use.
-
-    When a good folder is found, each newer folder skipped on the way gets one
-    :class:`SkippedCheckpointWarning` naming it and why (when none is good, the caller's error
-    says so once).  ``required_files`` are the files the caller needs (e.g. the tokenizer's
-    ``autoencoder.safetensors`` and ``quantizer.safetensors``).
-    """
-    required_files = tuple(required_files)
-    skipped = []
-    for _, folder in reversed(step_folders(checkpoint_dir)):
-        problem = checkpoint_problem(folder, required_files)
-        if problem is None:
-            for message in skipped:
-                warnings.warn(message, SkippedCheckpointWarning, stacklevel=2)
-            return folder
-        skipped.append(f"checkpoint {folder} skipped: {problem}")
-    return None
-
-
-def latest_checkpoint(checkpoint_dir: Path) -> Path | None:
-    """The newest ``step-*`` folder that holds a trainer state, or None (a quick look that reads no
-    file; :func:`latest_good_checkpoint` also checks the files and says what it skips)."""
-    complete = [folder for _, folder in step_folders(checkpoint_dir) if (folder / TRAINER_STATE).is_file()]
-    return complete[-1] if complete else None
-
-
-def rewind_metrics(path: Path, stage: str, step: int) -> int:
-    """Drop the lines of ``stage`` logged after ``step`` from a run's metrics.jsonl; returns how many.
-
-    A resumed run logs those steps again, so keeping them would give duplicate lines and
-    steps that go backwards.  Other stages' lines are kept, and so are lines that are not
-    JSON, except a last line without its newline (an append cut short by a kill).  The file
-    is rewritten atomically, and only when something changes.
-    """
-    path = Path(path)
-    if not path.is_file():
-        return 0
-    kept, dropped, changed = [], 0, False
-    for line in path.read_text(encoding="utf-8").splitlines(keepends=True):
-        try:
-            record = json.loads(line)
-        except json.JSONDecodeError:
-            record = None
-            if not line.endswith("\n"):
-                dropped, changed = dropped + 1, True
-                continue
-        if (
-            isinstance(record, dict)
-            and record.get("stage") == stage
-            and isinstance(record.get("step"), int)
-            and record["step"] > step
-        ):
-            dropped, changed = dropped + 1, True
-            continue
-        if not line.endswith("\n"):
-            line, changed = line + "\n", True
-        kept.append(line)
-    if changed:
-        text = "".join(kept)
-        atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
-    return dropped

@@ -24,15 +24,17 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from .config import resolve_config
-from .errors import ConfigError, VqtouchError, VqtouchWarning, one_line
-from .plugin_manager import PluginHost, load_plugins
-from .image_options import bad_images_skipped, greyscale_allowed
-from .outputs import check_output, command_inputs, reading
-from .progress import disable_progress, progress_forced_off
-from .references import resolve
-from .seeding import SEED_MAX, command_threads
-from .stages import StageOutcome, empty_slot_reason, missing_slots
+from vqtouch.core.config import resolve_config
+from vqtouch.core.errors import ConfigError, VqtouchError, VqtouchWarning, one_line
+from vqtouch.core.plugin_manager import PluginHost, load_plugins
+from vqtouch.plugins.utils.image_options import bad_images_skipped, greyscale_allowed
+from vqtouch.plugins.runtime.outputs import check_output, command_inputs, reading
+from vqtouch.plugins.utils.progress import disable_progress, progress_forced_off
+from vqtouch.core.references import resolve
+from vqtouch.plugins.utils.seeding import SEED_MAX
+from vqtouch.plugins.utils.threads import command_threads
+from vqtouch.core.stages import empty_slot_reason, missing_slots
+from vqtouch.plugins.runtime.execution import StageOutcome
 
 
 def add_config_arguments(
@@ -157,7 +159,7 @@ class OneLineParser(argparse.ArgumentParser):
 
 def add_greyscale_argument(parser: argparse.ArgumentParser) -> None:
     """Add ``--allow-greyscale`` to a command that reads image files the user gives: greyscale images
-    are then copied into 3 channels instead of refused (:func:`vqtouch.core.images.greyscale_allowed`)."""
+    are then copied into 3 channels instead of refused (:func:`vqtouch.plugins.utils.images.greyscale_allowed`)."""
     parser.add_argument(
         "--allow-greyscale", action="store_true", help="accept greyscale images (copied into 3 channels)"
     )
@@ -165,7 +167,7 @@ def add_greyscale_argument(parser: argparse.ArgumentParser) -> None:
 
 def add_image_folder_arguments(parser: argparse.ArgumentParser) -> None:
     """Add ``--allow-greyscale`` and ``--lenient`` to a command that reads folders of images the user
-    gives (:func:`add_greyscale_argument`; :func:`vqtouch.core.images.bad_images_skipped`)."""
+    gives (:func:`add_greyscale_argument`; :func:`vqtouch.plugins.utils.images.bad_images_skipped`)."""
     add_greyscale_argument(parser)
     parser.add_argument(
         "--lenient",
@@ -236,7 +238,7 @@ def training_run(
     ``reads``: the command's inputs as ``(flag, what, path)``, which ``--out`` may not be or hold.
     ``stage``: the stage the command trains; ``--resume`` refuses a run whose stages lack it (a run
     knows its kind), before anything is written."""
-    from .runs import RunDir
+    from vqtouch.plugins.runtime.run_dir import RunDir
 
     if args.resume:
         if args.overwrite:
@@ -252,7 +254,7 @@ def training_run(
             )
         run = RunDir.open(args.resume, for_writing=True)
         if not (run.path / "env.json").is_file():  # stopped while it was being created: record it now
-            from .runs import environment_record
+            from vqtouch.plugins.runtime.run_dir import environment_record
 
             run.write_json("env.json", environment_record(config, args.argv, host))
         return run, config
@@ -379,7 +381,7 @@ def stage_failure(outcome: StageOutcome) -> VqtouchError:
 
 def build_parser(host: PluginHost) -> argparse.ArgumentParser:
     """The full parser, including subcommands contributed by ``host``'s plugins."""
-    from . import __version__
+    from vqtouch.core import __version__
 
     parser = OneLineParser(
         prog="vqtouch", description="Data-efficient tactile image generation across sensors (VQ-Touch)."
