@@ -55,7 +55,7 @@ args = json.loads(sys.argv[1])
 torch.set_num_threads(args["threads"])
 from vqtouch.core import Assembly, load_plugins
 from vqtouch.plugins.runtime.run_dir import RunDir
-from vqtouch.plugins.training.trainer import collate_samples
+from vqtouch.plugins.training.batches import collate_samples
 from vqtouch.plugins.generator import load_pipeline
 host = load_plugins()
 pipe = load_pipeline(args["run"], host=host)

@@ -121,6 +121,8 @@ MOVED_MODULES: dict[str, tuple[str, ...]] = {
         "vqtouch.plugins.training.checkpoints",
         "vqtouch.plugins.training.precision",
         "vqtouch.plugins.training.settings",
+        "vqtouch.plugins.training.batches",
+        "vqtouch.plugins.training.processes",
     ),
     "vqtouch.core.train_config": ("vqtouch.plugins.training.settings",),
     "vqtouch.core.testing": ("vqtouch.plugins.testing",),

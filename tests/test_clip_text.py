@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from vqtouch.core import BuildContext, ConfigError, MissingWeightsError, PluginError, load, load_plugins, save
-from vqtouch.plugins.training.trainer import collate_samples
+from vqtouch.plugins.training.batches import collate_samples
 
 CONTEXT = BuildContext(image_size=32, cond_dim=16)
 from metric_weights import TINY_RANDOM_CLIP  # noqa: E402  (registered by conftest)

@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from vqtouch.conditioners.image_cnn import ImageCnnConditioner, grid_stage_for
 from vqtouch.core import BuildContext, load_missing_as_zeros, load_plugins
 from vqtouch.core.checkpoint import load_state_strict
-from vqtouch.plugins.training.trainer import TrainConfig, learning_rate_factor
+from vqtouch.plugins.training.settings import TrainConfig, learning_rate_factor
 from vqtouch.plugins.generator.codes import canonical_background
 from vqtouch.plugins.generator.denoiser import DiffusionTransformer
 from vqtouch.plugins.generator.diffusion import MaskReplaceSchedule, masked_ce_loss

@@ -218,7 +218,7 @@ DATASET_CONDITIONERS = [name for name in OFFLINE_CONDITIONERS if name != "sensor
 def test_each_conditioner_reads_its_own_entry_of_a_dataset_batch(host, build, name):
     """`sample_key` routes a collated batch of procedural samples (paired: a DIGIT image per GelSight
     one) to the right conditioner input."""
-    from vqtouch.plugins.training.trainer import collate_samples
+    from vqtouch.plugins.training.batches import collate_samples
 
     dataset = host.build(
         "dataset",

@@ -18,7 +18,7 @@ from safetensors.torch import load_file
 
 from vqtouch.plugins.cli.app import main
 from vqtouch.core.plugin_manager import load_plugins
-from vqtouch.plugins.training.trainer import latest_good_checkpoint
+from vqtouch.plugins.training.checkpoints import latest_good_checkpoint
 from vqtouch.plugins.generator.pipeline import load_pipeline
 from vqtouch.plugins.pretrained.bundle import RECIPES, bundle_folder, describe_bundle
 

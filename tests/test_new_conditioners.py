@@ -17,7 +17,7 @@ import torch.nn.functional as F
 
 from vqtouch.core import BuildContext, ConfigError
 from vqtouch.plugins.utils.images import save_png
-from vqtouch.plugins.training.trainer import collate_samples
+from vqtouch.plugins.training.batches import collate_samples
 
 CONTEXT = BuildContext(image_size=32, num_classes=4, cond_dim=16)
 #: Small enough to run in a fraction of a second on CPU: a 64 px input gives a 2 x 2 feature map.

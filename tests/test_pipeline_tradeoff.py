@@ -11,7 +11,7 @@ import torch
 
 from vqtouch.plugins.cli.app import main
 from vqtouch.core.config import resolve_config
-from vqtouch.plugins.training.trainer import cpu_has_bf16_matrix_units
+from vqtouch.plugins.training.precision import cpu_has_bf16_matrix_units
 from vqtouch.plugins.experiments import pipeline_tradeoff as tradeoff
 
 #: A tiny VQGAN tokenizer and generator at 32 px (tests/generator_runs.py's sizes); the encoder's

@@ -12,9 +12,8 @@ from generator_runs import train_args
 
 from vqtouch.core import Assembly, ConfigError, PluginError, hookimpl, load, load_plugins, resolve_config, save
 from vqtouch.plugins.runtime.execution import run_stage
-from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.runtime.run_dir import MissingProductError, PRODUCTS_FILE, RunDir
 from vqtouch.plugins.cli.app import main
-from vqtouch.plugins.runtime.run_dir import PRODUCTS_FILE, MissingProductError
 
 
 def _atlas_stage(job):

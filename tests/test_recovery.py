@@ -22,15 +22,15 @@ import torch
 from vqtouch.core import CheckpointError, load_plugins
 from vqtouch.plugins.training.settings import TrainConfig
 from vqtouch.plugins.runtime.run_dir import RunDir
-from vqtouch.plugins.training.trainer import (
+from vqtouch.plugins.training.checkpoints import (
     TRAINER_STATE,
     SkippedCheckpointWarning,
-    Trainer,
     latest_checkpoint,
     latest_good_checkpoint,
     no_good_checkpoint,
     rewind_metrics,
 )
+from vqtouch.plugins.training.trainer import Trainer
 
 TESTS = Path(__file__).resolve().parent
 

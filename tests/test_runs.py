@@ -4,8 +4,7 @@ import pytest
 
 from vqtouch.core import resolve_config
 from vqtouch.plugins.utils.seeding import seed_everything
-from vqtouch.plugins.runtime.run_dir import RunDir
-from vqtouch.plugins.runtime.run_dir import config_hash, recorded_config
+from vqtouch.plugins.runtime.run_dir import RunDir, config_hash, recorded_config
 
 
 def test_run_dir_name_and_files(host, tmp_path):
@@ -219,7 +218,7 @@ def _save_step(run, host, config, step, complete=True):
     from safetensors.torch import save_file
 
     from vqtouch.core import Assembly, save
-    from vqtouch.plugins.training.trainer import TRAINER_STATE
+    from vqtouch.plugins.training.checkpoints import TRAINER_STATE
 
     folder = run.checkpoints / f"step-{step:08d}"
     assembly = Assembly(config, host)
@@ -247,7 +246,7 @@ def test_checkpoint_is_the_newest_complete_step_of_this_run(host, tmp_path):
     assert str(info.value) == f"{run.path}: no checkpoint in checkpoints/; train this run first"
     two = _save_step(run, host, config, 2)
     _save_step(run, host, config, 4, complete=False)  # an interrupted save is not a checkpoint
-    from vqtouch.plugins.training.trainer import SkippedCheckpointWarning
+    from vqtouch.plugins.training.checkpoints import SkippedCheckpointWarning
 
     with pytest.warns(SkippedCheckpointWarning, match="step-00000004 skipped: no trainer_state.safetensors"):
         assert run.checkpoint(host) == two

@@ -12,7 +12,7 @@ from safetensors.torch import load_file
 
 from vqtouch.core import CheckpointError, ConfigError, load_plugins, validate_experiment
 from vqtouch.plugins.cli.app import main
-from vqtouch.plugins.training.trainer import TRAINER_STATE, apply_ema_weights, saved_ema_weights
+from vqtouch.plugins.training.checkpoints import TRAINER_STATE, apply_ema_weights, saved_ema_weights
 from vqtouch.plugins.generator import load_pipeline
 from vqtouch.plugins.pretrained.bundle import describe_bundle, export_bundle, load_bundle
 

@@ -10,7 +10,8 @@ import generator_runs
 from vqtouch.core import load, load_plugins, read_metadata
 from vqtouch.core.checkpoint import TRAINED_IN_KEY
 from vqtouch.plugins.cli.app import main
-from vqtouch.plugins.training.trainer import cpu_has_bf16_matrix_units, latest_checkpoint
+from vqtouch.plugins.training.precision import cpu_has_bf16_matrix_units
+from vqtouch.plugins.training.checkpoints import latest_checkpoint
 from vqtouch.plugins.pretrained.bundle import describe_bundle
 
 HOST = load_plugins()

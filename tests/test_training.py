@@ -13,14 +13,9 @@ from torch import nn
 
 from vqtouch.core import BuildContext, Conditioner, PluginConfig, hookimpl, load_plugins
 from vqtouch.plugins.training.settings import TrainConfig
-from vqtouch.plugins.training.trainer import (
-    TRAINER_STATE,
-    NonFiniteLossError,
-    SkippedCheckpointWarning,
-    Trainer,
-    batch_indices,
-    latest_checkpoint,
-)
+from vqtouch.plugins.training.checkpoints import TRAINER_STATE, SkippedCheckpointWarning, latest_checkpoint
+from vqtouch.plugins.training.trainer import NonFiniteLossError, Trainer
+from vqtouch.plugins.training.batches import batch_indices
 
 
 class ToyDataset:
@@ -426,7 +421,7 @@ def test_auto_trains_the_generator_in_bf16_only_on_a_cpu_with_bf16_matrix_units(
 
 def test_auto_precision_per_device_and_component(monkeypatch):
     from vqtouch.plugins.training import precision as training
-    from vqtouch.plugins.training.trainer import resolve_precision
+    from vqtouch.plugins.training.precision import resolve_precision
     from vqtouch.plugins.generator.training import GeneratorTrainConfig
     from vqtouch.plugins.tokenizer.training import TokenizerTrainConfig
 

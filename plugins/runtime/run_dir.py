@@ -409,7 +409,7 @@ class RunDir:
         run's weights goes through (resume, reconstruct, evaluate, generate, adapt).
 
         Newer folders that are incomplete or unreadable (an interrupted save, a truncated or
-        missing module file) are skipped with a :class:`~vqtouch.plugins.training.trainer.SkippedCheckpointWarning`
+        missing module file) are skipped with a :class:`~vqtouch.plugins.training.checkpoints.SkippedCheckpointWarning`
         naming them.  ``required_files`` are the files the caller needs in the folder (e.g. a
         tokenizer's ``autoencoder.safetensors``).  Every component file in the folder must have
         been made with the config of one of the slots of the run's config.json, else
@@ -701,7 +701,8 @@ def interrupted_message(exc: BaseException, run: RunDir, command: str) -> str:
     """What a ``vqtouch train COMMAND`` that was stopped by Ctrl-C or SIGTERM tells the user: the
     checkpoint the trainer wrote (:class:`~vqtouch.plugins.training.trainer.TrainingInterrupted`), else the
     run's newest complete one, else that nothing was saved; never a claim it cannot back."""
-    from vqtouch.plugins.training.trainer import TrainingInterrupted, latest_checkpoint
+    from vqtouch.plugins.training.trainer import TrainingInterrupted
+    from vqtouch.plugins.training.checkpoints import latest_checkpoint
 
     resume = f"vqtouch train {command} --resume {run.path}"
     if isinstance(exc, TrainingInterrupted) and exc.checkpoint is not None:

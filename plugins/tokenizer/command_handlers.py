@@ -16,7 +16,7 @@ from vqtouch.plugins.runtime.outputs import output_folder
 from vqtouch.core import Assembly, ConfigError
 from vqtouch.plugins.evaluation.metric_set import MetricSet
 from vqtouch.plugins.runtime.execution import run_stage
-from vqtouch.plugins.runtime.run_dir import RunDir
+from vqtouch.plugins.runtime.run_dir import RunDir, interrupted_message, interrupted_status, is_main_process
 from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.plugins.utils.image_options import skipping_bad_images
 from vqtouch.plugins.cli.app import (
@@ -30,7 +30,6 @@ from vqtouch.plugins.utils.splits import experiment_split
 
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 from vqtouch.plugins.data.sensor_folders import folder_of, holds_images_directly, load_sensor_folder
-from vqtouch.plugins.runtime.run_dir import interrupted_message, interrupted_status, is_main_process
 from vqtouch.plugins.evaluation.contact import dataset_background
 
 from .loading import tokenizer_location

@@ -24,7 +24,7 @@ from torch import nn
 from vqtouch.core import Autoencoder, Metric, Quantizer, VqtouchError
 from vqtouch.plugins.evaluation.metric_set import MetricSet
 from vqtouch.core.errors import NothingToEvaluateError
-from vqtouch.plugins.training.trainer import collate_samples
+from vqtouch.plugins.training.batches import collate_samples
 
 from .discriminator import adaptive_weight, hinge_discriminator_loss
 from .quantizers import perplexity_of_counts

@@ -60,28 +60,24 @@ from vqtouch.core.checkpoint import (
     save,
     write_checkpoint_file,
 )
-from .settings import MAX_STEPS, TrainConfig, learning_rate_factor  # noqa: F401
+from .settings import TrainConfig, learning_rate_factor
 from vqtouch.core.errors import CheckpointError, VqtouchError, VqtouchWarning
 from vqtouch.plugins.utils.progress import progress
 
-from .checkpoints import (  # noqa: F401 - importable from here as from the old vqtouch.core.training
+from .checkpoints import (
     TRAINER_STATE,
     STEP_FOLDER,
-    SkippedCheckpointWarning,
-    apply_ema_weights,
     checkpoint_problem,
     first_line,
     latest_checkpoint,
     latest_good_checkpoint,
     no_good_checkpoint,
-    read_trainer_meta,
     rewind_metrics,
-    saved_ema_weights,
     step_folders,
 )
-from .batches import StepBatches, batch_indices, collate_samples, epoch_order  # noqa: F401
+from .batches import StepBatches, collate_samples
 from .processes import DistributedContext, StopSignals
-from .precision import AUTO_PRECISION, autocast, cpu_has_bf16_matrix_units, resolve_precision  # noqa: F401
+from .precision import autocast, resolve_precision
 
 if TYPE_CHECKING:
     from vqtouch.core.plugin_manager import PluginHost

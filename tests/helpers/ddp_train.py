@@ -10,7 +10,8 @@ from pathlib import Path
 import torch
 
 from vqtouch.core import load_plugins
-from vqtouch.plugins.training.trainer import TrainConfig, Trainer, TrainingInterrupted
+from vqtouch.plugins.training.settings import TrainConfig
+from vqtouch.plugins.training.trainer import Trainer, TrainingInterrupted
 
 
 def main() -> None:
