@@ -860,7 +860,7 @@ def implicit(args: argparse.Namespace) -> dict[str, Any]:
     """The bundle's generator as a classifier of real images: the share of the ``--n`` held-out
     scenes of ``vqtouch evaluate generation`` whose canonical codes get their own class from the
     arg max of ``--best-of``'s class posterior (what best of K ranks candidates by)."""
-    from vqtouch.plugins.generator.best_of import class_log_posteriors
+    from vqtouch.plugins.generator.posterior import class_log_posteriors
 
     pipe, dataset, _, held_out, background_3HW = bundle_split(args.bundle, load_plugins())
     names = [name.split(":")[-1] for name in pipe.conditioner_names()]  # the pipeline says "INDEX:NAME"
@@ -935,7 +935,7 @@ def rerank(args: argparse.Namespace) -> dict[str, Any]:
     from vqtouch.plugins.evaluation.contact import contact_centroids
     from vqtouch.plugins.evaluation.distribution import RealImageClassifier
     from vqtouch.plugins.evaluation.fd_metric import FdEffNetLite0
-    from vqtouch.plugins.generator.best_of import class_log_posteriors
+    from vqtouch.plugins.generator.posterior import class_log_posteriors
     from vqtouch.plugins.tokenizer.loading import reconstruct_all
 
     host = load_plugins()

@@ -122,7 +122,8 @@ class Scorer:
         from vqtouch.core import Assembly
         from vqtouch.plugins.runtime.run_dir import RunDir
         from vqtouch.plugins.utils.splits import experiment_split
-        from vqtouch.plugins.experiments.downstream import draw_others, real_features
+        from vqtouch.plugins.experiments.downstream_arms import draw_others
+        from vqtouch.plugins.experiments.downstream_inputs import real_features
 
         self.config = RunDir.open(run).load_config(host)
         assembly = Assembly(self.config, host)
@@ -147,7 +148,8 @@ class Scorer:
 
     def probe(self, prepare) -> float:
         """Mean top-1 on the real held-out images of the probe trained on ``prepare`` of each draw."""
-        from vqtouch.plugins.experiments.downstream import real_features, train_and_test
+        from vqtouch.plugins.experiments.downstream import train_and_test
+        from vqtouch.plugins.experiments.downstream_inputs import real_features
 
         top1 = []
         for seed, indices in self.draws.items():
@@ -157,7 +159,7 @@ class Scorer:
 
     def score(self, tokenizer) -> tuple[dict[str, float], torch.Tensor]:
         from vqtouch.plugins.evaluation.fd_metric import feature_frechet_distance
-        from vqtouch.plugins.experiments.downstream import real_features
+        from vqtouch.plugins.experiments.downstream_inputs import real_features
         from vqtouch.plugins.tokenizer import reconstruct_all
 
         def reconstruct(images_N3HW):

@@ -53,6 +53,8 @@ _LAZY = {
     **dict.fromkeys(
         (
             "Autoencoder",
+            "BestOfBatch",
+            "BestOfRanker",
             "BuildContext",
             "Clusterer",
             "Conditioner",
@@ -138,6 +140,7 @@ __all__ = [
     "ConditionTokens",
     "Generator",
     "Sampler",
+    "BestOfRanker",
     "Clusterer",
     "Metric",
     # stages

@@ -528,6 +528,57 @@ class Sampler(abc.ABC):
         calling ``denoise`` about ``steps`` times; row b's random draws come from ``generators[b]``."""
 
 
+@dataclass(frozen=True)
+class BestOfBatch:
+    """What a batch of best of K's candidates was drawn from, for the ranker that chooses among them.
+
+    ``generator`` drew them and ``conditioner`` encoded their condition; ``conditions`` are the rows'
+    raw conditions (``conditioner.condition_of`` of the batch): for a ranker with ``needs_classes``,
+    the rows' class indices as a long tensor (B,) on the candidates' device."""
+
+    generator: Any
+    conditioner: Any
+    conditions: Any = None
+
+
+class BestOfRanker:
+    """Chooses, for each row of a batch, which of best of K's candidate code grids to keep.
+
+    A ranker implements :meth:`score` (higher is better; the earliest best candidate is kept) or, when
+    it compares the candidates with each other, :meth:`choose`.  The generation pipeline that ranks with
+    it calls :meth:`prepare` once first, with itself, so a ranker can read what it needs from the run
+    (its tokenizer, its training split, ...).  Candidate 0 of a row is the row's own plain draw.
+    """
+
+    #: Whether it ranks by the rows' classes: only a conditioner over a finite set of classes (one with an
+    #: integer ``num_classes``, the label's) then draws more than one candidate, and ``conditions`` are labels.
+    needs_classes: ClassVar[bool] = False
+
+    def prepare(self, pipeline: Any) -> None:
+        """Read what ranking needs from the generation pipeline it ranks for (default: nothing)."""
+
+    def score(self, codes_BHW: torch.Tensor, batch: BestOfBatch) -> torch.Tensor:
+        """(B,) scores of one candidate per row, codes (B, H, W); higher is better."""
+        raise NotImplementedError(
+            f"{type(self).__name__}: a best-of ranker implements score(codes_BHW, batch) or "
+            "choose(candidates_KBHW, batch)"
+        )
+
+    def choose(self, candidates_KBHW: torch.Tensor, batch: BestOfBatch) -> torch.Tensor:
+        """(B,) long in [0, K): per row, the candidate to keep of ``candidates_KBHW`` (K, B, H, W).  The
+        default scores each candidate with :meth:`score` and keeps the earliest of the highest."""
+        chosen_B = best_B = None
+        for index, codes_BHW in enumerate(candidates_KBHW):
+            score_B = self.score(codes_BHW, batch).to(candidates_KBHW.device)
+            if best_B is None:
+                chosen_B, best_B = torch.zeros(len(score_B), dtype=torch.long, device=score_B.device), score_B
+                continue
+            better_B = score_B > best_B
+            chosen_B = torch.where(better_B, index, chosen_B)
+            best_B = torch.where(better_B, score_B, best_B)
+        return chosen_B
+
+
 class TactileDataset(ProvidesContext, abc.ABC):
     """A dataset of tactile samples, all readers and generators alike.
 

@@ -298,15 +298,16 @@ def merge_configs(base: Mapping[str, Any], update: Mapping[str, Any]) -> dict[st
     merged = copy.deepcopy(dict(base))
     for key, value in update.items():
         current = merged.get(key)
-        if isinstance(current, dict) and isinstance(value, Mapping) and not _selects_other_plugin(current, value):
+        if _merges_into(current, value):
             merged[key] = merge_configs(current, value)
         else:
             merged[key] = copy.deepcopy(value)
     return merged
 
 
-def _selects_other_plugin(current: Mapping[str, Any], update: Mapping[str, Any]) -> bool:
-    return "name" in current and "name" in update and current["name"] != update["name"]
+def _merges_into(current: Any, update: Any) -> bool:
+    both = isinstance(current, dict) and isinstance(update, Mapping)
+    return both and not ("name" in current and "name" in update and current["name"] != update["name"])
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -346,9 +347,7 @@ def apply_override(config: dict[str, Any], path: Sequence[str], value: Any) -> d
     elif last == "name" and len(path) > 1 and "name" in node and node["name"] != value:
         node.clear()
         node["name"] = value
-    elif (
-        isinstance(value, Mapping) and isinstance(node.get(last), dict) and not _selects_other_plugin(node[last], value)
-    ):
+    elif _merges_into(node.get(last), value):
         node[last] = merge_configs(node[last], value)
     else:
         node[last] = value
@@ -571,10 +570,8 @@ CORE_DEMO_CAPS = {"data.batch_size": 8}
 
 def _capped(data: dict[str, Any], path: str, cap: Any) -> None:
     """Lower the number at ``path`` of the nested dict ``data`` to ``cap`` (other values are left alone)."""
-    node: Any = data
     *parents, last = path.split(".")
-    for part in parents:
-        node = node.get(part) if isinstance(node, dict) else None
+    node = _node(data, parents)
     if isinstance(node, dict) and isinstance(node.get(last), (int, float)) and not isinstance(node.get(last), bool):
         node[last] = min(node[last], cap)
 

@@ -118,6 +118,8 @@ def current_kind(kind: str) -> str:
 MOVED_MODULES: dict[str, tuple[str, ...]] = {
     "vqtouch.core.training": (
         "vqtouch.plugins.training.trainer",
+        "vqtouch.plugins.training.trainer_state",
+        "vqtouch.plugins.training.optimizers",
         "vqtouch.plugins.training.checkpoints",
         "vqtouch.plugins.training.precision",
         "vqtouch.plugins.training.settings",
@@ -126,7 +128,11 @@ MOVED_MODULES: dict[str, tuple[str, ...]] = {
     ),
     "vqtouch.core.train_config": ("vqtouch.plugins.training.settings",),
     "vqtouch.core.testing": ("vqtouch.plugins.testing",),
-    "vqtouch.core.runs": ("vqtouch.plugins.runtime.run_dir",),
+    "vqtouch.core.runs": (
+        "vqtouch.plugins.runtime.run_dir",
+        "vqtouch.plugins.runtime.records",
+        "vqtouch.plugins.runtime.interruptions",
+    ),
     "vqtouch.core.outputs": ("vqtouch.plugins.runtime.outputs",),
     "vqtouch.core.progress": ("vqtouch.plugins.utils.progress",),
     "vqtouch.core.images": ("vqtouch.plugins.utils.images",),
@@ -135,7 +141,7 @@ MOVED_MODULES: dict[str, tuple[str, ...]] = {
     "vqtouch.core.weights": ("vqtouch.plugins.utils.weights",),
     "vqtouch.core.frozen": ("vqtouch.plugins.utils.frozen",),
     "vqtouch.core.files": ("vqtouch.plugins.utils.files",),
-    "vqtouch.core.cli": ("vqtouch.plugins.cli.app",),
+    "vqtouch.core.cli": ("vqtouch.plugins.cli.app", "vqtouch.plugins.cli.errors"),
     "vqtouch.core.seeding": ("vqtouch.plugins.utils.seeding", "vqtouch.plugins.utils.threads"),
 }
 

@@ -91,6 +91,12 @@ def vqtouch_register_samplers(register: Register) -> None:
 
 
 @hookspec
+def vqtouch_register_best_of_rankers(register: Register) -> None:
+    """Register best-of-K rankers (``vqtouch.core.BestOfRanker`` subclasses): what keeps one of several
+    candidates drawn per condition (``--best-of-rank NAME``)."""
+
+
+@hookspec
 def vqtouch_register_clusterers(register: Register) -> None:
     """Register clusterers that group sensors into families (``vqtouch.core.Clusterer``)."""
 

@@ -113,6 +113,7 @@ REGISTRY_KINDS: tuple[RegistryKind, ...] = (
         reads=("codebook_size", "num_classes", "code_grid"),
     ),
     RegistryKind("sampler", "vqtouch_register_samplers", "discrete-diffusion samplers", "Sampler"),
+    RegistryKind("best_of_ranker", "vqtouch_register_best_of_rankers", "best-of-K candidate rankers", "BestOfRanker"),
     RegistryKind("clusterer", "vqtouch_register_clusterers", "sensor-family clusterers", "Clusterer"),
     RegistryKind(
         "dataset",

@@ -10,7 +10,7 @@ import generator_runs
 from vqtouch.core import load_plugins, read_metadata
 from vqtouch.plugins.cli.app import main
 from vqtouch.plugins.utils.images import save_png
-from vqtouch.plugins.adaptation.adapt import contact_fraction, family_images, target_images
+from vqtouch.plugins.adaptation.adapt_images import contact_fraction, family_images, target_images
 from vqtouch.plugins.adaptation.families import SensorFamilies, sensor_images
 
 HOST = load_plugins(autoload=False)

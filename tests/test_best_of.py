@@ -13,14 +13,9 @@ import torch
 from vqtouch.core import ConfigError, load_plugins
 from vqtouch.plugins.cli.app import main
 from vqtouch.plugins.generator import load_pipeline
-from vqtouch.plugins.generator.best_of import (
-    MAX_BEST_OF,
-    candidate_seed,
-    check_best_of,
-    class_log_posteriors,
-    sample_best_of,
-)
+from vqtouch.plugins.generator.best_of import MAX_BEST_OF, candidate_seed, check_best_of, sample_best_of
 from vqtouch.plugins.generator.judge import codebook_of
+from vqtouch.plugins.generator.posterior import class_log_posteriors
 from vqtouch.plugins.generator.vq_diffusion import likelihood_steps
 
 from cli_checks import one_error_line
@@ -110,9 +105,10 @@ def test_a_given_rank_replaces_the_posterior_and_its_best_candidate_is_kept(pipe
     def draw(generators):
         return generator.sample(condition, sampler, steps=3, generators=generators)
 
-    judge = pipe.code_judge()
-    assert pipe.code_judge() is judge  # fitted once per loaded run
-    chosen = sample_best_of(generator, conditioner, labels_B, row_seeds, 3, draw, torch.device("cpu"), rank=judge.rank)
+    ranker = pipe.best_of_ranking("judge")
+    judge = ranker.judge
+    assert pipe.best_of_ranking("judge") is ranker and ranker.judge is judge  # fitted once per loaded run
+    chosen = sample_best_of(generator, conditioner, labels_B, row_seeds, 3, draw, torch.device("cpu"), rank=ranker)
     candidates_KBHW = torch.stack(
         [draw([torch.Generator().manual_seed(candidate_seed(s, k)) for s in row_seeds]) for k in range(3)]
     )
@@ -124,7 +120,7 @@ def test_a_given_rank_replaces_the_posterior_and_its_best_candidate_is_kept(pipe
         torch.nn.functional.normalize(codebook_of(pipe.tokenizer), dim=1) * judge.embed.weight.shape[1] ** 0.5,
     )
     assert not judge.embed.weight.requires_grad
-    with pytest.raises(ConfigError, match="--best-of-rank 'best': choose one of judge, posterior, consensus"):
+    with pytest.raises(ConfigError, match="--best-of-rank 'best': choose one of consensus, judge, posterior$"):
         pipe(label=[0], steps=3, best_of=2, best_of_rank="best")
 
 

@@ -331,7 +331,7 @@ def test_score_generation_lists_conditions_clip_cannot_read_as_skipped(trained, 
     from vqtouch.plugins.runtime.run_dir import RunDir
     from vqtouch.plugins.utils.splits import split_dataset
     from vqtouch.plugins.generator import load_pipeline
-    from vqtouch.plugins.generator.stage import held_out_conditions, score_generation
+    from vqtouch.plugins.generator.scoring import held_out_conditions, score_generation
 
     pipe = load_pipeline(trained, host=HOST)
     config = RunDir.open(trained).load_config(HOST)

@@ -388,7 +388,7 @@ def test_evaluate_generation_scores_a_bundle_into_out(touch_run, tmp_path, monke
 
 def test_the_classifier_can_learn_from_the_tokenizers_reconstructions(monkeypatch):
     from vqtouch.plugins.evaluation import distribution
-    from vqtouch.plugins.generator.stage import HeldOutConditions, distribution_scorer
+    from vqtouch.plugins.generator.scoring import HeldOutConditions, distribution_scorer
 
     seen = {}
 

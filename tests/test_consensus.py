@@ -100,12 +100,14 @@ def test_bad_inputs_get_one_line_errors():
 
 def test_consensus_ranks_a_conditioner_without_classes_and_a_class_ranking_does_not():
     without_classes = object()  # stands for an image's or a text's conditioner: no num_classes
-    assert check_best_of(4, without_classes, "1:visual", "consensus") == 4
+    consensus, judge = HOST.build("best_of_ranker", "consensus"), HOST.build("best_of_ranker", "judge")
+    assert check_best_of(4, without_classes, "1:visual", consensus) == 4
+    with pytest.raises(ConfigError, match="--best-of-rank judge: conditioner 1:visual has no finite set of classes"):
+        check_best_of(4, without_classes, "1:visual", judge)
     with pytest.raises(ConfigError, match="1:visual has no finite set of classes.*--best-of-rank consensus"):
-        check_best_of(4, without_classes, "1:visual", "judge")
+        check_best_of(4, without_classes, "1:visual")  # the default ranker, the judge
     assert rank_name(None) == "posterior"
-    assert rank_name(ContactConsensus(_BlobTokenizer(), torch.zeros(3, 32, 32))) == "consensus"
-    assert rank_name(lambda codes, labels: codes.sum()) == "judge"
+    assert [rank_name(consensus), rank_name(judge)] == ["consensus", "judge"]
 
 
 @pytest.fixture(scope="module")
@@ -114,8 +116,9 @@ def pipe(tiny_label_run):
 
 
 def test_the_pipeline_keeps_the_medoid_of_its_candidates_as_measured_one_by_one(pipe):
-    consensus = pipe.contact_consensus()
-    assert pipe.contact_consensus() is consensus and pipe.best_of_ranking("consensus") is consensus
+    ranker = pipe.best_of_ranking("consensus")
+    consensus = ranker.consensus
+    assert pipe.best_of_ranking("consensus") is ranker and ranker.consensus is consensus
     from vqtouch.core import Assembly
     from vqtouch.plugins.utils.splits import experiment_split
 
@@ -132,7 +135,7 @@ def test_the_pipeline_keeps_the_medoid_of_its_candidates_as_measured_one_by_one(
         return generator.sample(condition, pipe.sampler, steps=3, null=null, guidance=1.0, generators=generators)
 
     row_seeds, best_of = [11, 12, 13], 5
-    kept = sample_best_of(generator, conditioner, None, row_seeds, best_of, draw, pipe.device, rank=consensus)
+    kept = sample_best_of(generator, conditioner, None, row_seeds, best_of, draw, pipe.device, rank=ranker)
     for row, seed in enumerate(row_seeds):
         candidates = []
         for k in range(best_of):

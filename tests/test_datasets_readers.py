@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from vqtouch.core import ConfigError, DatasetError, TactileDataset, load_plugins
-from vqtouch.plugins.data.readers import _io
+from vqtouch.plugins.data.readers import _headers
 from vqtouch.plugins.data.readers._io import ImageLoader, SkippedSamplesWarning
 
 
@@ -334,7 +334,7 @@ def header_opens(monkeypatch) -> list[Path]:
 
     monkeypatch.setattr(Image, "open", counting_open)
     # Fixture files are seconds old; the real settle time would keep them all out of the cache.
-    monkeypatch.setattr(_io, "HEADER_CACHE_SETTLE_NS", 0)
+    monkeypatch.setattr(_headers, "HEADER_CACHE_SETTLE_NS", 0)
     return opened
 
 

@@ -17,7 +17,8 @@ from vqtouch.plugins.runtime.run_dir import RunDir
 from vqtouch.plugins.cli.app import main
 from vqtouch.plugins.utils.splits import split_dataset
 from vqtouch.plugins.utils.images import save_png
-from vqtouch.plugins.experiments.downstream import (
+from vqtouch.plugins.experiments.downstream import label_conditioner_index, train_and_test
+from vqtouch.plugins.experiments.downstream_arms import (
     ARMS,
     CEILING,
     FEW,
@@ -29,10 +30,8 @@ from vqtouch.plugins.experiments.downstream import (
     classification_accuracy_score,
     draw_others,
     draw_shots,
-    label_conditioner_index,
     mixed_arm,
     recognition_scores,
-    train_and_test,
 )
 from vqtouch.plugins.evaluation.distribution import RealImageClassifier
 

@@ -136,7 +136,8 @@ def test_a_products_index_naming_a_file_outside_the_run_is_refused(tmp_path):
 
 
 def test_an_adapt_json_and_a_fewshot_json_are_validated(tmp_path):
-    from vqtouch.plugins.experiments.fewshot_generation import adapted_summary, finished_arm
+    from vqtouch.plugins.experiments.fewshot_generation import adapted_summary
+    from vqtouch.plugins.experiments.fewshot_table import finished_arm
 
     (tmp_path / "adapt.json").write_text(json.dumps({"adapted_from": 3}))
     with pytest.raises(ConfigError, match=r"adapt.json: target: field required"):
@@ -229,7 +230,7 @@ def test_an_empty_text_and_a_rank_without_candidates_are_refused(tmp_path, capsy
 
 
 def test_a_librarys_warning_is_one_vqtouch_line_without_its_source(capsys):
-    from vqtouch.plugins.cli.app import _show_warning
+    from vqtouch.plugins.cli.errors import _show_warning
 
     _show_warning(UserWarning("constrained_layout not applied because axes sizes collapsed"), UserWarning,
                   "/site-packages/matplotlib/figure.py", 3500, line="    warnings.warn(...)")  # fmt: skip

@@ -11,7 +11,7 @@ import torch
 from vqtouch.core import ConfigError, load_plugins, read_metadata
 from vqtouch.plugins.cli.app import main
 from vqtouch.plugins.utils.images import save_png
-from vqtouch.plugins.adaptation.adapt import family_images, target_images
+from vqtouch.plugins.adaptation.adapt_images import family_images, target_images
 from vqtouch.plugins.adaptation.families import load_families, sensor_images
 from vqtouch.plugins.adaptation.fewshot import BACKGROUND, SCRATCH, SHOTS_ALONE, ZERO_SHOT, evaluate_fewshot
 from vqtouch.plugins.scenes import GELSIGHT_DERIVATIVE_II

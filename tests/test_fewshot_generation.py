@@ -14,7 +14,7 @@ from vqtouch.core import ConfigError, load_plugins
 from vqtouch.plugins.cli.app import main
 from vqtouch.plugins.utils.images import save_png
 from vqtouch.plugins.runtime.outputs import MARKER_NAME
-from vqtouch.plugins.experiments.fewshot_generation import RECONSTRUCTED
+from vqtouch.plugins.experiments.fewshot_scoring import RECONSTRUCTED
 from vqtouch.plugins.generator.sensor_finetune import FAMILY_SENSOR, NEW_SENSOR, mixed_codes
 from vqtouch.plugins.generator.training import (
     CodesDataset,
@@ -467,7 +467,7 @@ def test_paired_truth_is_the_new_sensor_drawing_the_family_datas_own_contacts(fa
     from vqtouch.core import Assembly
     from vqtouch.plugins.adaptation import sensor_background
     from vqtouch.plugins.evaluation.contact import contact_centroids, dataset_background
-    from vqtouch.plugins.experiments.fewshot_generation import paired_truth
+    from vqtouch.plugins.experiments.fewshot_scoring import paired_truth
     from vqtouch.plugins.generator import load_pipeline
 
     config = load_pipeline(family / "run", host=HOST).config
@@ -487,7 +487,7 @@ def test_paired_truth_is_the_new_sensor_drawing_the_family_datas_own_contacts(fa
 def test_the_samples_classifier_names_a_class_by_what_the_sensor_draws_for_it():
     """Closed form: two classes the sensor draws as a dark and a bright image, an identity tokenizer.
     Samples drawn right score 1 (as the ceiling does), swapped 0, half swapped 0.5."""
-    from vqtouch.plugins.experiments.fewshot_generation import _classifier_scores
+    from vqtouch.plugins.experiments.fewshot_scoring import _classifier_scores
 
     class Identity:
         device = torch.device("cpu")

@@ -357,7 +357,7 @@ def test_the_baselines_stand_beside_every_score(trained):
 
 def test_retrieval_and_class_mean_against_hand_built_training_data():
     from vqtouch.core import Conditioner
-    from vqtouch.plugins.generator.stage import training_baselines
+    from vqtouch.plugins.generator.scoring import training_baselines
 
     class Onehot(Conditioner):
         sample_key = "label"

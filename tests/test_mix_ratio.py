@@ -11,7 +11,7 @@ from cli_checks import snapshot
 
 from vqtouch.core import ConfigError, load_plugins
 from vqtouch.plugins.cli.app import main
-from vqtouch.plugins.adaptation.adapt import family_images, target_images
+from vqtouch.plugins.adaptation.adapt_images import family_images, target_images
 from vqtouch.plugins.adaptation.families import load_families
 from vqtouch.plugins.adaptation.fewshot import BACKGROUND, SHOTS_ALONE, ZERO_SHOT
 from vqtouch.plugins.adaptation.ratio import (

@@ -13,6 +13,8 @@ from vqtouch.plugins.cli.app import main
 from vqtouch.core.config import resolve_config
 from vqtouch.plugins.training.precision import cpu_has_bf16_matrix_units
 from vqtouch.plugins.experiments import pipeline_tradeoff as tradeoff
+from vqtouch.plugins.experiments import pipeline_tradeoff_configs as configs
+from vqtouch.plugins.experiments.pipeline_tradeoff_report import DRIFT
 
 #: A tiny VQGAN tokenizer and generator at 32 px (tests/generator_runs.py's sizes); the encoder's
 #: name first: selecting a plugin resets its options.
@@ -46,11 +48,11 @@ EXPECTED = {
     ("tokenizer", "codebook", "K = 16"),
     ("tokenizer", "codebook", "K = 64"),
     ("tokenizer", "downsampling", "f = 4"),
-    ("tokenizer", "baseline", tradeoff.DRIFT),
+    ("tokenizer", "baseline", DRIFT),
     ("generator", "baseline", "posterior 4" + (" bf16" if AUTO == "bf16" else "")),
     ("generator", "steps", "2 steps"),
     ("generator", "sampler", "confidence"),
-    ("generator", "baseline", tradeoff.DRIFT),
+    ("generator", "baseline", DRIFT),
 }
 
 
@@ -126,7 +128,7 @@ def test_costs_are_relative_to_the_same_seeds_baseline(experiment):
         ):
             members = [row for row in rows if row["part"] == part]
             base = members[0]
-            assert base["knob"] == "baseline" and base["setting"] != tradeoff.DRIFT
+            assert base["knob"] == "baseline" and base["setting"] != DRIFT
             for row in members:
                 for ratio, cost in keys:
                     assert row[cost] > 0
@@ -158,20 +160,20 @@ def test_pareto_flags_agree_with_a_brute_force_check_of_the_written_rows(experim
         ("tokenizer", "inference_cost", "inference"),
         ("generator", "inference_cost", "generation"),
     ):
-        contenders = [row for row in summary if row["part"] == part and row["setting"] != tradeoff.DRIFT]
+        contenders = [row for row in summary if row["part"] == part and row["setting"] != DRIFT]
         front = dominated_brute_force([(row[cost], row["contact_ssim"]) for row in contenders])
         assert {i for i, row in enumerate(contenders) if name in row["pareto"]} == front, name
         checked += len(contenders)
     assert checked == 4 + 4 + 3
     for row in summary:
         assert row["pareto_front"] == (", ".join(row["pareto"]) or "-")
-        if row["setting"] == tradeoff.DRIFT:  # a timing of the baseline, not a contender
+        if row["setting"] == DRIFT:  # a timing of the baseline, not a contender
             assert row["pareto"] == [] and "contact_ssim" not in row
 
 
 def test_tokenizer_rows_hold_the_scores_of_runs_trained_by_the_stage(experiment):
     _, result = experiment
-    for row in (row for row in result["rows"] if row["part"] == "tokenizer" and row["setting"] != tradeoff.DRIFT):
+    for row in (row for row in result["rows"] if row["part"] == "tokenizer" and row["setting"] != DRIFT):
         run = json.loads((tradeoff.Path(row["run"]) / "config.json").read_text())
         written = json.loads((tradeoff.Path(row["run"]) / "eval.json").read_text())
         assert written["step"] == 2 and run["seed"] == row["seed"]
@@ -183,7 +185,7 @@ def test_tokenizer_rows_hold_the_scores_of_runs_trained_by_the_stage(experiment)
         multipliers = [1, 2, 2] if row["knob"] == "downsampling" else [1, 2]
         assert tokenizer["autoencoder"]["channel_multipliers"] == multipliers
         assert tokenizer["autoencoder"]["channels"] == 16 and run["data"]["image_size"] == 32
-    generator = [row for row in result["rows"] if row["part"] == "generator" and row["setting"] != tradeoff.DRIFT]
+    generator = [row for row in result["rows"] if row["part"] == "generator" and row["setting"] != DRIFT]
     assert all(row["reproducible"] and "background_contact_ssim" in row for row in generator)
 
 
@@ -254,7 +256,7 @@ def test_a_generator_knob_needs_a_scene_with_a_generator(tmp_path, capsys):
 def test_default_knob_values_derive_from_the_baseline(host):
     config = resolve_config("label-to-touch", host=host)
     tiny_dm_vqgan = resolve_config("label-to-touch", overrides=TINY[1:], host=host)
-    knobs = tradeoff.parse_knobs(None, config, host)
+    knobs = configs.parse_knobs(None, config, host)
     other = "fp32" if AUTO == "bf16" else "bf16"  # the knob's default is the precision auto does not pick
     assert knobs == {
         "deformable": ["off"],
@@ -268,8 +270,8 @@ def test_default_knob_values_derive_from_the_baseline(host):
         "sampling-precision": [other],
     }
     # Scaled like the demo, the configured sampling steps (and so their defaults) are the demo's.
-    assert tradeoff.parse_knobs(["steps"], tradeoff.scaled_config(config, host, full=False), host) == {"steps": [20, 5]}
-    assert set(tradeoff.parse_knobs(None, resolve_config("reconstruction", host=host), host)) == {
+    assert configs.parse_knobs(["steps"], configs.scaled_config(config, host, full=False), host) == {"steps": [20, 5]}
+    assert set(configs.parse_knobs(None, resolve_config("reconstruction", host=host), host)) == {
         "deformable",
         "codebook",
         "resolution",
@@ -277,8 +279,8 @@ def test_default_knob_values_derive_from_the_baseline(host):
         "downsampling",
     }
     # Deformable layers off: vqgan with every option the two encoders share.
-    baseline = tradeoff.baseline_config(tiny_dm_vqgan, host, tokenizer_steps=3, generator_steps=3, generator=True)
-    variant = tradeoff.variant_config(baseline, host, 5, "deformable", "off")
+    baseline = configs.baseline_config(tiny_dm_vqgan, host, tokenizer_steps=3, generator_steps=3, generator=True)
+    variant = configs.variant_config(baseline, host, 5, "deformable", "off")
     shared = set(type(variant.tokenizer.autoencoder).model_fields) - {"name"}
     assert variant.tokenizer.autoencoder.name == "vqgan" and variant.seed == 5 and variant.stages == ["tokenizer"]
     assert {key: getattr(variant.tokenizer.autoencoder, key) for key in shared} == {
@@ -287,7 +289,7 @@ def test_default_knob_values_derive_from_the_baseline(host):
     assert baseline.tokenizer.train.steps == 3 == baseline.generator.train.steps and baseline.generator.num_samples == 0
     assert baseline.tokenizer.autoencoder.name == "dm_vqgan" and variant.tokenizer.autoencoder.channels == 16
     assert variant.tokenizer.autoencoder.z_channels == 16 and variant.tokenizer.autoencoder.embed_dim == 8
-    assert tradeoff.variant_config(baseline, host, 0, "downsampling", 8).tokenizer.autoencoder.channel_multipliers == (
+    assert configs.variant_config(baseline, host, 0, "downsampling", 8).tokenizer.autoencoder.channel_multipliers == (
         1,
         2,
         2,

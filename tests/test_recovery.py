@@ -352,7 +352,7 @@ def test_resume_from_a_named_step_folder(host, tmp_path):
 
 
 def test_disk_full_while_saving_keeps_the_previous_checkpoint(host, tmp_path, monkeypatch):
-    import vqtouch.plugins.training.trainer as training
+    import vqtouch.plugins.training.trainer_state as training
 
     trainer, _ = make_trainer(host, tmp_path, steps=8)
 

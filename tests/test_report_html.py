@@ -16,14 +16,9 @@ from PIL import Image
 from vqtouch.plugins.cli.app import main
 from vqtouch.plugins.report.demo import render_report
 from vqtouch.plugins.evaluation.directions import lower_is_better
-from vqtouch.plugins.report.html import (
-    COMPARISON_PREFIXES,
-    contact_verdict,
-    format_value,
-    render_html,
-    score_table,
-    skipped_items,
-)
+from vqtouch.plugins.report.html import render_html
+from vqtouch.plugins.report.results import format_value, skipped_items
+from vqtouch.plugins.report.verdicts import COMPARISON_PREFIXES, contact_verdict, score_table
 
 _SPEC = importlib.util.spec_from_file_location("report_runs", Path(__file__).with_name("report_runs.py"))
 report_runs = importlib.util.module_from_spec(_SPEC)

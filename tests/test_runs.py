@@ -4,7 +4,8 @@ import pytest
 
 from vqtouch.core import resolve_config
 from vqtouch.plugins.utils.seeding import seed_everything
-from vqtouch.plugins.runtime.run_dir import RunDir, config_hash, recorded_config
+from vqtouch.plugins.runtime.records import config_hash, recorded_config
+from vqtouch.plugins.runtime.run_dir import RunDir
 
 
 def test_run_dir_name_and_files(host, tmp_path):

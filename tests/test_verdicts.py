@@ -17,7 +17,8 @@ from vqtouch.plugins.evaluation.contact import (
     psnr_gap_interval,
 )
 from vqtouch.plugins.report.demo import UNCLEAR_MARK, _markdown_result
-from vqtouch.plugins.report.html import contact_verdict, render_html
+from vqtouch.plugins.report.html import render_html
+from vqtouch.plugins.report.verdicts import contact_verdict
 
 
 def stage_page(result: dict) -> str:

@@ -17,12 +17,12 @@ from typing import Any
 _PUBLIC = {
     "AdaptRecord": ("adapt", "AdaptRecord"),
     "AdaptSettings": ("stages_plugin", "AdaptSettings"),
-    "AdaptationRefused": ("adapt", "AdaptationRefused"),
+    "AdaptationRefused": ("adapt_images", "AdaptationRefused"),
     "adapt_tokenizer": ("adapt", "adapt_tokenizer"),
-    "families_to_adapt_from": ("adapt", "families_to_adapt_from"),
+    "families_to_adapt_from": ("adapt_families", "families_to_adapt_from"),
     "refuse_existing": ("adapt", "refuse_existing"),
-    "sensor_background": ("adapt", "sensor_background"),
-    "target_images": ("adapt", "target_images"),
+    "sensor_background": ("adapt_images", "sensor_background"),
+    "target_images": ("adapt_images", "target_images"),
     "registered_source": ("families", "registered_source"),
 }
 

@@ -17,207 +17,34 @@
 from __future__ import annotations
 
 import json
-import math
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from vqtouch.plugins.runtime.outputs import output_folder
-from vqtouch.core import ConfigError, DatasetError, PluginHost, VqtouchError
+from vqtouch.core import ConfigError, PluginHost
 from vqtouch.plugins.utils.files import FileModel
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
-from vqtouch.plugins.evaluation.contact import (
-    MAX_BACKGROUND_IMAGES,
-    RENDERED_BACKGROUND,
-    evenly_spaced,
-    median_background,
-    no_contact_image,
+
+from .adapt_images import (
+    ImageSet,
+    check_contacts,
+    family_images,
+    real_frames,
+    rebase_image,
+    sensor_background,
+    target_images,
 )
-from vqtouch.plugins.tokenizer import TOKENIZER_FILES, tokenizer_digest
-
-from vqtouch.plugins.data.sensor_folders import folder_of, sensor_folder_files
-
-from .families import SensorFamilies, save_families, sensor_images
+from .adapt_families import choose_family
+from .families import SensorFamilies
 from .stages_plugin import AdaptSettings  # light, for the stage section and the commands' defaults
 
-#: Fewer family images than this give a rebase no reliable median background: 64 more are drawn.
-MIN_BACKGROUND_IMAGES = 32
-
-#: What an adaptation writes into its output folder besides the tokenizer files (the families
-#: only when it fitted them itself).
-ADAPT_JSON, BEFORE_AFTER_PNG, FAMILIES_FOLDER = "adapt.json", "before_after.png", "families"
-#: A pixel belongs to a contact when it differs from the set's background by more than this (mean
-#: absolute difference over RGB, images in [0, 1]) and than the camera noise allows: above a
-#: drifting background, below a light press.
-CONTACT_PIXEL_THRESHOLD = 0.04
-#: A set of frames holds contacts when at least one frame has this fraction of contact pixels.
-MIN_CONTACT_FRACTION = 0.002
-#: The contact check looks at this many images at most (it asks whether the set holds contacts at all).
-MAX_CONTACT_CHECK_IMAGES = 64
-
-
-class AdaptationRefused(VqtouchError):
-    """The unseen sensor cannot be adapted as asked (it matches no family, or its images hold no contact)."""
-
-
-class ImageSet(torch.utils.data.Dataset):
-    """Images (N, 3, S, S) in [0, 1] as tactile samples (what the tokenizer trainer reads)."""
-
-    class_names: list[str] = []
-
-    def __init__(self, images_N3HW: torch.Tensor, sensor: str = "") -> None:
-        self.images = images_N3HW
-        self.sensor = sensor
-
-    def __len__(self) -> int:
-        return len(self.images)
-
-    def __getitem__(self, index: int) -> dict[str, Any]:
-        return {"tactile": self.images[index], "label": -1, "text": "", "sensor": self.sensor, "id": str(index)}
-
-
-def contact_fraction(images_N3HW: torch.Tensor) -> torch.Tensor:
-    """(N,) fraction of each image's pixels in contact (:func:`~vqtouch.plugins.evaluation.contact.contact_mask`
-    with the floor :data:`CONTACT_PIXEL_THRESHOLD`) against the no-contact background: the
-    per-pixel median of the other images (contacts move around, the background stays; leaving the
-    image out keeps its noise out of its background, so the noise estimate is not too low)."""
-    from vqtouch.plugins.evaluation.contact import contact_mask, median_background
-
-    if len(images_N3HW) < 2:
-        raise ValueError("the contact fraction needs at least 2 images (the others make the background)")
-    fractions = []
-    for index in range(len(images_N3HW)):
-        others = torch.cat([images_N3HW[:index], images_N3HW[index + 1 :]])
-        background = median_background(others)[None]
-        fractions.append(
-            contact_mask(images_N3HW[index : index + 1], background, CONTACT_PIXEL_THRESHOLD).double().mean()
-        )
-    return torch.stack(fractions)
-
-
-def check_contacts(images_N3HW: torch.Tensor, name: str) -> None:
-    """Refuse a set of frames in which nothing touches the gel (only no-contact frames)."""
-    if len(images_N3HW) < 2:
-        return
-    fraction = contact_fraction(images_N3HW[:MAX_CONTACT_CHECK_IMAGES])
-    if float(fraction.max()) < MIN_CONTACT_FRACTION:
-        raise AdaptationRefused(
-            f"{name}: the {len(images_N3HW)} images look like no-contact frames (no image differs from the "
-            f"others' background on more than {float(fraction.max()):.2%} of its pixels); adaptation needs frames "
-            "of objects pressed into the gel"
-        )
-
-
-def target_images(
-    spec: str, host: PluginHost, *, shots: int, eval_images: int, image_size: ImageSize, seed: int
-) -> tuple[str, str, torch.Tensor, torch.Tensor]:
-    """(name, source, shots, held-out images) of the unseen sensor ``spec``.
-
-    A folder's images are shuffled with ``seed``; the first ``shots`` are the shots and the last
-    ``eval_images`` (at most all the others) are held out, so runs with fewer shots score the
-    same held-out images (a folder must keep at least one).  A registered sensor renders the shots
-    and, from other scenes, ``eval_images`` held-out images.
-    """
-    path = folder_of(spec)
-    if path is not None:
-        files = sensor_folder_files(path, host)
-        if len(files) < 2:
-            raise DatasetError(
-                f"{path}: {len(files)} image(s); adaptation needs the shots plus at least one "
-                "held-out image to score it"
-            )
-        if shots >= len(files):
-            raise ConfigError(
-                f"--shots {shots}: the folder {path} holds {len(files)} images; use at most "
-                f"{len(files) - 1} shots (the rest are held out to score the adaptation)"
-            )
-        order = torch.randperm(len(files), generator=torch.Generator().manual_seed(seed)).tolist()
-        held_out = min(eval_images, len(files) - shots)
-        chosen = [files[i] for i in order[:shots] + order[len(files) - held_out :]]
-        sensor = sensor_images(str(path), host, count=len(chosen), image_size=image_size, files=chosen)
-        return sensor.name, sensor.source, sensor.images[:shots], sensor.images[shots:]
-    trained = sensor_images(spec, host, count=shots, image_size=image_size, seed=seed + 101)
-    held_out = sensor_images(spec, host, count=eval_images, image_size=image_size, seed=seed + 202)
-    return trained.name, trained.source, trained.images, held_out.images
-
-
-def family_images(
-    families: SensorFamilies,
-    family: int,
-    host: PluginHost,
-    *,
-    count: int,
-    image_size: ImageSize,
-    seed: int,
-    exclude: str = "",
-) -> tuple[torch.Tensor, list[str]]:
-    """``count`` images of ``family``'s members (but the sensor whose source is ``exclude``), drawn
-    evenly from every member: rendered scenes (new seeds) or a folder's images (repeated when it
-    holds fewer).  Returns the images and the members used."""
-    members = [member for member in families.members(family) if member["source"] != exclude]
-    if not members:
-        raise AdaptationRefused(
-            f"family {family} has no member other than the unseen sensor itself: no family data to mix with the shots"
-        )
-    per_member = [count // len(members) + (index < count % len(members)) for index in range(len(members))]
-    chunks = []
-    for index, (member, wanted) in enumerate(zip(members, per_member)):
-        if wanted == 0:
-            continue
-        images = sensor_images(
-            member["source"], host, count=wanted, image_size=image_size, seed=seed + 1009 * (index + 1)
-        ).images
-        chunks.append(images.repeat(math.ceil(wanted / len(images)), 1, 1, 1)[:wanted])
-    return torch.cat(chunks), [member["name"] for member in members]
-
-
-def rebase_image(
-    families: SensorFamilies,
-    family: int,
-    host: PluginHost,
-    sensor_background_3HW: torch.Tensor,
-    family_N3HW: torch.Tensor,
-    family_background_3HW: torch.Tensor | None,
-    settings: AdaptSettings,
-) -> torch.Tensor:
-    """The family's no-contact image minus the sensor's (:attr:`AdaptSettings.rebase`).  The family's is
-    ``family_background_3HW`` when given, else the per-pixel median of its images drawn for the mix
-    (64 drawn when the mix holds fewer, as at ratio 0)."""
-    if family_background_3HW is None:
-        if len(family_N3HW) < MIN_BACKGROUND_IMAGES:
-            family_N3HW, _ = family_images(
-                families,
-                family,
-                host,
-                count=64,
-                image_size=families.summary["image_size"],
-                seed=settings.seed + 31_337,
-            )
-        family_background_3HW = median_background(family_N3HW)
-    return family_background_3HW.float() - sensor_background_3HW.float()
-
-
-def sensor_background(target: str, host: PluginHost, image_size: ImageSize) -> tuple[torch.Tensor, str]:
-    """The unseen sensor's no-contact image (3, H, W) and how it was made: a registered sensor (name
-    or JSON variant) rendering no contact; for a folder, which holds no such frame, the per-pixel
-    median of its images (at most :data:`MAX_BACKGROUND_IMAGES`, evenly spaced: contacts move
-    around, the background stays; :func:`~vqtouch.plugins.evaluation.contact.median_background`, the
-    estimate every stage makes of captured frames)."""
-    path = folder_of(target)
-    if path is None:
-        source = sensor_images(target, host, count=1, image_size=image_size).source  # checks the spec too
-        sensor = host.build("sensor_family", json.loads(source))
-        background = no_contact_image(sensor, torch.zeros(1, 3, *image_hw(image_size)))[0]
-        return background, RENDERED_BACKGROUND
-    files = sensor_folder_files(path, host)
-    chosen = [files[index] for index in evenly_spaced(len(files), MAX_BACKGROUND_IMAGES)]
-    images = sensor_images(str(path), host, count=len(chosen), image_size=image_size, files=chosen).images
-    return median_background(images), (
-        f"the per-pixel median of {len(chosen)} of the folder's {len(files)} "
-        "images (the folder holds no no-contact frame)"
-    )
+#: What an adaptation writes into its output folder besides the tokenizer files (and the families,
+#: :data:`~.adapt_families.FAMILIES_FOLDER`, only when it fitted them itself).
+ADAPT_JSON, BEFORE_AFTER_PNG = "adapt.json", "before_after.png"
 
 
 def reconstruction_scores(
@@ -257,47 +84,6 @@ def reconstruction_scores(
     }
 
 
-def choose_family(
-    families: SensorFamilies,
-    tokenizer: Any,
-    name: str,
-    source: str,
-    shots_N3HW: torch.Tensor,
-    settings: AdaptSettings,
-    host: PluginHost,
-    out: Path,
-    report: Any,
-) -> tuple[dict[str, Any], int]:
-    """The sensor's assignment and the family it adapts from (``settings.family`` when given); families
-    fitted for this adaptation are written into ``out`` with the sensor.  Raises
-    :class:`AdaptationRefused` when the sensor matches no family and none is named."""
-    assignment, shown = families.unseen(tokenizer, name, shots_N3HW, settings.threshold)
-    if families.features is not None:  # fitted for this adaptation (not read back): write them, with the sensor
-        save_families(
-            families, out / FAMILIES_FOLDER, host, {"assignments": {name: {"source": source, **assignment}}}, [shown]
-        )
-    family = assignment["family"]
-    if settings.family is not None:
-        if not 0 <= settings.family < len(families.summary["families"]):
-            raise ConfigError(
-                f"--family {settings.family}: the families are numbered 0 to {len(families.summary['families']) - 1}"
-            )
-        family = settings.family
-    elif assignment["refused"]:
-        nearest = assignment["nearest_family"]
-        raise AdaptationRefused(
-            f"{name} matches no sensor family: {assignment['distances'][nearest]:.4g} from the nearest (family "
-            f"{nearest}: {', '.join(families.summary['families'][nearest])}), beyond the threshold "
-            f"{assignment['threshold']:.4g}; cluster it with more sensors, raise --threshold, or name a family with "
-            "--family"
-        )
-    report(
-        f"{name}: family {family} ({', '.join(families.summary['families'][family])}); distances "
-        f"{assignment['distances']}, margin {assignment['margin']:.4g}"
-    )
-    return assignment, family
-
-
 def write_adapted(
     out: Path,
     tokenizer: Any,
@@ -323,6 +109,40 @@ def write_adapted(
     atomic_write(out / ADAPT_JSON, lambda tmp: tmp.write_text(json.dumps(summary, indent=2) + "\n"))
 
 
+@dataclass
+class _Mix:
+    """The unseen sensor's images, the family it adapts from and the mixed set it fine-tunes on."""
+
+    name: str
+    source: str
+    shots_N3HW: torch.Tensor
+    held_out_M3HW: torch.Tensor
+    assignment: dict[str, Any]
+    family: int
+    family_count: int
+    members: list[str]
+    background_3HW: torch.Tensor
+    background_source: str
+    rebase_3HW: torch.Tensor | None
+    mixed_set: ImageSet
+
+
+@dataclass
+class _Scores:
+    """The held-out images scored before and after the fine-tuning, and their scores."""
+
+    before: dict[str, Any]
+    family_N3HW: torch.Tensor
+    family_before: dict[str, Any]
+    before_images: torch.Tensor
+    real_N3HW: torch.Tensor | None
+    real_before: dict[str, Any] | None
+    after: dict[str, Any] = field(default_factory=dict)
+    family_after: dict[str, Any] = field(default_factory=dict)
+    after_images: torch.Tensor | None = None
+    real_after: dict[str, Any] | None = None
+
+
 def adapt_tokenizer(
     run_or_folder: Any,
     target: str,
@@ -345,16 +165,54 @@ def adapt_tokenizer(
     before and after carry the background's and the contact region's (:func:`reconstruction_scores`).
     With ``settings.rebase``, ``family_background_3HW`` is the family's no-contact image the sensor's
     images are moved onto (default: the per-pixel median of the family images drawn for it)."""
-    from vqtouch.plugins.utils.seeding import resolve_device
-    from vqtouch.plugins.training.trainer import Trainer
-    from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all, tokenizer_task
-    from vqtouch.plugins.tokenizer import TokenizerLossConfig, TokenizerTrainConfig, disc_start_step
-
     refuse_existing(out, overwrite)
+    _check_settings(settings)
+    tokenizer, folder, run_config, device = _load_tokenizer_to_adapt(run_or_folder, host, step, families)
+    image_size = families.summary["image_size"]
+    loss, train, batch_size = _training_config(run_config, settings)
+    mix = _draw_mix(
+        target,
+        families,
+        tokenizer,
+        host,
+        settings,
+        out=out,
+        report=report,
+        image_size=image_size,
+        background_3HW=background_3HW,
+        family_background_3HW=family_background_3HW,
+    )
+    batch_size = min(batch_size, len(mix.mixed_set))  # a handful of shots still trains (one batch = every image)
+    scores = _score_before(tokenizer, mix, families, target, host, settings, image_size, batch_size, device)
+    adversarial, seconds = _fine_tune(
+        tokenizer, mix.mixed_set, folder, run_config, loss, train, host, settings, batch_size, device
+    )
+    _score_after(tokenizer, mix, scores, host, settings, batch_size, device)
+    summary = _summary(mix, scores, families, folder, settings, train.learning_rate, batch_size, adversarial, seconds)
+    step_reached = getattr(tokenizer.autoencoder, "vqtouch_step", 0) + settings.steps
+    count = len(scores.before_images)
+    pictures = torch.cat([mix.held_out_M3HW[:count], scores.before_images, scores.after_images])
+    header = _header(mix, summary, folder, settings)
+    write_adapted(out, tokenizer, summary, header, host, step_reached, mix.rebase_3HW, pictures)
+    return summary
+
+
+def _check_settings(settings: AdaptSettings) -> None:
+    """Refuse a part adaptation cannot fine-tune, fewer than one shot or a negative ratio."""
     if settings.part not in ADAPTED_PARTS:
         raise ConfigError(f"--part {settings.part!r}: choose {' or '.join(ADAPTED_PARTS)}")
     if settings.shots < 1 or settings.ratio < 0:
         raise ConfigError(f"shots must be >= 1 and ratio >= 0 (got {settings.shots}, {settings.ratio})")
+
+
+def _load_tokenizer_to_adapt(
+    run_or_folder: Any, host: PluginHost, step: int | str | None, families: SensorFamilies
+) -> tuple[Any, Path, Any, Any]:
+    """The tokenizer (moved to its run's device), its folder, its run's config and the device; refuses a
+    tokenizer that works at another image size than the families were fitted at."""
+    from vqtouch.plugins.utils.seeding import resolve_device
+    from vqtouch.plugins.tokenizer import load_tokenizer
+
     tokenizer, folder = load_tokenizer(run_or_folder, host, step=step)
     run_config = _run_config(folder, host)
     device = resolve_device(run_config.device if run_config is not None else "auto")
@@ -366,6 +224,13 @@ def adapt_tokenizer(
             f"{size_text(tokenizer.autoencoder.vqtouch_spec.context.image_size)} px: cluster with "
             "this tokenizer"
         )
+    return tokenizer, folder, run_config, device
+
+
+def _training_config(run_config: Any, settings: AdaptSettings) -> tuple[Any, Any, int]:
+    """The fine-tuning's objective, training settings and batch size: the run's, with the adaptation's steps."""
+    from vqtouch.plugins.tokenizer import TokenizerLossConfig, TokenizerTrainConfig
+
     section = run_config.tokenizer if run_config is not None else None
     loss = section.loss if section is not None else TokenizerLossConfig()
     train = (section.train if section is not None else TokenizerTrainConfig()).model_copy(
@@ -377,20 +242,30 @@ def adapt_tokenizer(
         }
     )
     batch_size = settings.batch_size or (run_config.data.batch_size if run_config is not None else 16)
+    return loss, train, batch_size
 
+
+def _draw_mix(
+    target: str,
+    families: SensorFamilies,
+    tokenizer: Any,
+    host: PluginHost,
+    settings: AdaptSettings,
+    *,
+    out: Path,
+    report: Any,
+    image_size: ImageSize,
+    background_3HW: torch.Tensor | None,
+    family_background_3HW: torch.Tensor | None,
+) -> _Mix:
+    """The sensor's shots and held-out images, the family it adapts from, its background and the mixed set."""
     name, source, shots_N, held_out_M = target_images(
         target, host, shots=settings.shots, eval_images=settings.eval_images, image_size=image_size, seed=settings.seed
     )
     check_contacts(torch.cat([shots_N, held_out_M]), name)
     assignment, family = choose_family(families, tokenizer, name, source, shots_N, settings, host, out, report)
     family_count = round(settings.shots * settings.ratio)
-    if settings.family is not None and family != assignment["family"] and settings.ratio > 1:
-        # Measured on a low-contrast sensor (docs/results.md): another family's images at 1:5 washed
-        # its contact out (+0.4 dB over the no-contact image), at 1:1 it was kept (+2.7 dB).
-        report(
-            f"note: family {family} is not the one {name} is nearest to (family {assignment['family']}); "
-            f"mixed 1:{settings.ratio:g}, its images can wash out a faint sensor's contact; --ratio 1 or 0 keeps it"
-        )
+    _note_forced_family(name, assignment, family, settings, report)
     members: list[str] = []
     family_N = torch.zeros(0, *shots_N.shape[1:])
     if family_count > 0:
@@ -405,30 +280,99 @@ def adapt_tokenizer(
         rebase_3HW = rebase_image(families, family, host, background_3HW, family_N, family_background_3HW, settings)
     # Rebased, the sensor's images train as the family's no-contact image plus their own contact.
     shots_in = shots_N if rebase_3HW is None else shots_N + rebase_3HW
-    mixed_set = ImageSet(torch.cat([shots_in, family_N]), name)
-    if len(mixed_set) < batch_size:
-        batch_size = len(mixed_set)  # a handful of shots still trains (one batch = every image)
-    before = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics, background_3HW)
+    return _Mix(
+        name=name,
+        source=source,
+        shots_N3HW=shots_N,
+        held_out_M3HW=held_out_M,
+        assignment=assignment,
+        family=family,
+        family_count=family_count,
+        members=members,
+        background_3HW=background_3HW,
+        background_source=background_source,
+        rebase_3HW=rebase_3HW,
+        mixed_set=ImageSet(torch.cat([shots_in, family_N]), name),
+    )
+
+
+def _note_forced_family(
+    name: str, assignment: dict[str, Any], family: int, settings: AdaptSettings, report: Any
+) -> None:
+    """Warn when a named family other than the nearest is mixed in at more than 1:1."""
+    if settings.family is not None and family != assignment["family"] and settings.ratio > 1:
+        # Measured on a low-contrast sensor (docs/results.md): another family's images at 1:5 washed
+        # its contact out (+0.4 dB over the no-contact image), at 1:1 it was kept (+2.7 dB).
+        report(
+            f"note: family {family} is not the one {name} is nearest to (family {assignment['family']}); "
+            f"mixed 1:{settings.ratio:g}, its images can wash out a faint sensor's contact; --ratio 1 or 0 keeps it"
+        )
+
+
+def _score_before(
+    tokenizer: Any,
+    mix: _Mix,
+    families: SensorFamilies,
+    target: str,
+    host: PluginHost,
+    settings: AdaptSettings,
+    image_size: ImageSize,
+    batch_size: int,
+    device: Any,
+) -> _Scores:
+    """The family tokenizer's scores of the sensor's held-out images, new family scenes and the real frames."""
+    from vqtouch.plugins.tokenizer import reconstruct_all
+
+    held_out_M = mix.held_out_M3HW
+    before = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics, mix.background_3HW)
     # Held-out family images (new scenes): what the adaptation keeps of the family, or forgets.
     family_held_out, _ = family_images(
         families,
-        family,
+        mix.family,
         host,
         count=settings.eval_images,
         image_size=image_size,
         seed=settings.seed + 77_777,
-        exclude=source,
+        exclude=mix.source,
     )
     family_before = reconstruction_scores(tokenizer, family_held_out, host, batch_size)
     before_images = reconstruct_all(tokenizer, held_out_M[:8].to(device)).cpu()
-    real = _real_frames(target, host, image_size)  # the sensor's own captured frames, when it ships some (taxim)
+    real = real_frames(target, host, image_size)  # the sensor's own captured frames, when it ships some (taxim)
     real_before = (
         reconstruction_scores(tokenizer, real, host, batch_size, settings.metrics) if real is not None else None
     )
+    return _Scores(
+        before=before,
+        family_N3HW=family_held_out,
+        family_before=family_before,
+        before_images=before_images,
+        real_N3HW=real,
+        real_before=real_before,
+    )
+
+
+def _fine_tune(
+    tokenizer: Any,
+    mixed_set: ImageSet,
+    folder: Path,
+    run_config: Any,
+    loss: Any,
+    train: Any,
+    host: PluginHost,
+    settings: AdaptSettings,
+    batch_size: int,
+    device: Any,
+) -> tuple[str, float]:
+    """Fine-tune ``tokenizer`` on the mixed set; returns whether the adversarial term was on, and why,
+    and the seconds the training took."""
+    from vqtouch.plugins.training.trainer import Trainer
+    from vqtouch.plugins.tokenizer import TokenizerTrainConfig, disc_start_step, tokenizer_task
+
     discriminator, adversarial = _discriminator(folder, loss, host)
     if discriminator is not None:
         # disc_start counts in the family run's steps: the adaptation continues that run's schedule.
         trained = getattr(tokenizer.autoencoder, "vqtouch_step", 0)
+        section = run_config.tokenizer if run_config is not None else None
         run_steps = (section.train if section is not None else TokenizerTrainConfig()).steps
         loss = loss.model_copy(update={"disc_start": max(0, disc_start_step(loss.disc_start, run_steps) - trained)})
     if settings.part == "decoder":
@@ -449,58 +393,87 @@ def adapt_tokenizer(
     trainer.fit()
     seconds = time.perf_counter() - tic
     tokenizer.eval()
-    # The family's images are scored as they are: the rebase moves the new sensor's images only.
-    family_after = reconstruction_scores(tokenizer, family_held_out, host, batch_size)
-    tokenizer.rebase_3HW = None if rebase_3HW is None else rebase_3HW.to(device)
-    after = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics, background_3HW)
-    after_images = reconstruct_all(tokenizer, held_out_M[:8].to(device)).cpu()
+    return adversarial, seconds
 
+
+def _score_after(
+    tokenizer: Any, mix: _Mix, scores: _Scores, host: PluginHost, settings: AdaptSettings, batch_size: int, device: Any
+) -> None:
+    """Add the adapted tokenizer's scores of the same held-out images to ``scores``."""
+    from vqtouch.plugins.tokenizer import reconstruct_all
+
+    # The family's images are scored as they are: the rebase moves the new sensor's images only.
+    scores.family_after = reconstruction_scores(tokenizer, scores.family_N3HW, host, batch_size)
+    tokenizer.rebase_3HW = None if mix.rebase_3HW is None else mix.rebase_3HW.to(device)
+    held_out_M = mix.held_out_M3HW
+    scores.after = reconstruction_scores(tokenizer, held_out_M, host, batch_size, settings.metrics, mix.background_3HW)
+    scores.after_images = reconstruct_all(tokenizer, held_out_M[:8].to(device)).cpu()
+    if scores.real_N3HW is not None:
+        scores.real_after = reconstruction_scores(tokenizer, scores.real_N3HW, host, batch_size, settings.metrics)
+
+
+def _summary(
+    mix: _Mix,
+    scores: _Scores,
+    families: SensorFamilies,
+    folder: Path,
+    settings: AdaptSettings,
+    learning_rate: float,
+    batch_size: int,
+    adversarial: str,
+    seconds: float,
+) -> dict[str, Any]:
+    """What ``adapt.json`` records of the adaptation."""
     summary: dict[str, Any] = {
-        "target": name,
-        "target_source": source,
+        "target": mix.name,
+        "target_source": mix.source,
         "adapted_from": str(folder),
-        "family": family,
-        "family_members": families.summary["families"][family],
-        "members_used": members,
-        "assignment": assignment,
+        "family": mix.family,
+        "family_members": families.summary["families"][mix.family],
+        "members_used": mix.members,
+        "assignment": mix.assignment,
         "forced_family": settings.family is not None,
         "seed": settings.seed,
-        "shots": len(shots_N),
+        "shots": len(mix.shots_N3HW),
         "ratio": settings.ratio,
-        "family_images": family_count,
-        "held_out": len(held_out_M),
+        "family_images": mix.family_count,
+        "held_out": len(mix.held_out_M3HW),
         "steps": settings.steps,
         "part": settings.part,
         "rebase": settings.rebase,
-        "learning_rate": train.learning_rate,
+        "learning_rate": learning_rate,
         "batch_size": batch_size,
         "adversarial": adversarial,
         "seconds": round(seconds, 2),
-        "background": background_source,
-        "before": before,
-        "after": after,
-        "family_held_out": {"images": len(family_held_out), "before": family_before, "after": family_after},
+        "background": mix.background_source,
+        "before": scores.before,
+        "after": scores.after,
+        "family_held_out": {
+            "images": len(scores.family_N3HW),
+            "before": scores.family_before,
+            "after": scores.family_after,
+        },
     }
-    if real is not None:
+    if scores.real_N3HW is not None:
         summary["real_frames"] = {
-            "count": len(real),
-            "before": real_before,
-            "after": reconstruction_scores(tokenizer, real, host, batch_size, settings.metrics),
+            "count": len(scores.real_N3HW),
+            "before": scores.real_before,
+            "after": scores.real_after,
         }
-    header = {
-        "adaptation.target": source,
-        "adaptation.family": str(family),
+    return summary
+
+
+def _header(mix: _Mix, summary: dict[str, Any], folder: Path, settings: AdaptSettings) -> dict[str, str]:
+    """The metadata the adapted tokenizer's files carry: the sensor, the family and the shots."""
+    return {
+        "adaptation.target": mix.source,
+        "adaptation.family": str(mix.family),
         "adaptation.family_members": json.dumps(summary["family_members"]),
-        "adaptation.shots": str(len(shots_N)),
+        "adaptation.shots": str(len(mix.shots_N3HW)),
         "adaptation.ratio": f"{settings.ratio:g}",
         "adaptation.adapted_from": str(folder),
         "adaptation.part": settings.part,
     }
-    step_reached = getattr(tokenizer.autoencoder, "vqtouch_step", 0) + settings.steps
-    count = len(before_images)
-    pictures = torch.cat([held_out_M[:count], before_images, after_images])
-    write_adapted(out, tokenizer, summary, header, host, step_reached, rebase_3HW, pictures)
-    return summary
 
 
 class AdaptRecord(FileModel):
@@ -562,87 +535,3 @@ def _discriminator(folder: Path, loss: Any, host: PluginHost) -> tuple[Any, str]
     if not path.is_file():
         return None, f"off (no {path.name} beside the tokenizer: it trained without one)"
     return load(path, host=host), "on (the run's discriminator, fine-tuned too)"
-
-
-def _real_frames(target: str, host: PluginHost, image_size: ImageSize) -> torch.Tensor | None:
-    """The captured frames of ``target`` when it is a registered sensor family (no variant: a
-    variant's perturbations are not in the family's frames) that ships some."""
-    if folder_of(target) is not None:
-        return None
-    text = target.strip()
-    config = host.validate("sensor_family", json.loads(text) if text.startswith("{") else {"name": text})
-    variant = getattr(config, "variant", None)
-    if variant is not None and not variant.is_identity():
-        return None
-    return host.build("sensor_family", config).reference_frames(*image_hw(image_size))
-
-
-def default_families(
-    tokenizer: Any,
-    host: PluginHost,
-    *,
-    image_size: ImageSize,
-    tokenizer_source: str,
-    exclude: str = "",
-    clusterer: dict[str, Any] | None = None,
-    variants_per_family: int = 3,
-    images: int = 32,
-    seed: int = 0,
-    report: Any = print,
-) -> SensorFamilies:
-    """Families of every registered sensor family and ``variants_per_family`` environmental
-    variants of each (:func:`.families.family_sensor_specs`), clustered with ``clusterer``
-    (default: k-means, the family count by silhouette); the sensor whose source is ``exclude``
-    (the unseen one) is left out."""
-    from .families import family_sensor_specs, fit_families
-
-    specs = [spec for spec in family_sensor_specs(host, variants_per_family) if spec != exclude]
-    return fit_families(
-        tokenizer,
-        specs,
-        host,
-        clusterer=host.build("clusterer", clusterer or {"name": "kmeans"}),
-        images=images,
-        image_size=image_size,
-        seed=seed,
-        tokenizer_source=tokenizer_source,
-        report=report,
-    )
-
-
-def families_to_adapt_from(
-    tokenizer: Any, folder: Path, host: PluginHost, *, families: Path | None, where: str, exclude: str, seed: int
-) -> SensorFamilies:
-    """The families an adaptation assigns its target to: those saved in ``families`` (``where`` names
-    them in the refusal when they were fitted on another tokenizer than the one in ``folder``), else the
-    registered defaults, clustered now with ``tokenizer`` (:func:`default_families`)."""
-    from .families import load_families
-
-    if families is not None:
-        loaded = load_families(families, host)
-        check_same_tokenizer(loaded, folder, where)
-        return loaded
-    return default_families(
-        tokenizer,
-        host,
-        image_size=tokenizer.autoencoder.vqtouch_spec.context.image_size,
-        tokenizer_source=str(folder),
-        exclude=exclude,
-        seed=seed,
-        report=lambda line: None,
-    )
-
-
-def check_same_tokenizer(families: SensorFamilies, tokenizer_folder: Path, where: str) -> None:
-    """Refuse families fitted on another tokenizer's features: distances to them mean nothing."""
-    fitted = families.summary.get("tokenizer", "")
-    digest = families.summary.get("tokenizer_sha256")
-    if digest and all((tokenizer_folder / name).is_file() for name in TOKENIZER_FILES):
-        same = tokenizer_digest(tokenizer_folder) == digest
-    else:  # families written before digests were recorded
-        same = not fitted or Path(fitted).resolve() == tokenizer_folder.resolve()
-    if not same:
-        raise ConfigError(
-            f"{where} were fitted on the features of {fitted}, not of {tokenizer_folder} (the tokenizer "
-            "being adapted); run `vqtouch cluster` with this tokenizer, or adapt that one"
-        )

@@ -67,7 +67,8 @@ def describe_assignment(assigned: dict) -> str:
 
 def cmd_adapt(args: argparse.Namespace) -> int:
 
-    from .adapt import adapt_tokenizer, families_to_adapt_from, refuse_existing
+    from .adapt import adapt_tokenizer, refuse_existing
+    from .adapt_families import families_to_adapt_from
     from .families import registered_source
 
     host = args.host

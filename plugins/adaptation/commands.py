@@ -50,6 +50,17 @@ _kept_fraction = NumberType(float, 0, 1, low_open=True, what="fraction")
 
 @hookimpl
 def vqtouch_add_commands(subparsers):
+    """Register ``cluster``, ``adapt`` and the ``evaluate`` experiments of the cross-sensor stages."""
+    _add_cluster_command(subparsers)
+    _add_adapt_command(subparsers)
+    evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
+    _add_cross_sensor_command(evaluate)
+    _add_fewshot_command(evaluate)
+    _add_mix_ratio_command(evaluate)
+
+
+def _add_cluster_command(subparsers) -> None:
+    """``vqtouch cluster``: fit sensor families from a tokenizer's features."""
     cluster = subparsers.add_parser("cluster", help="group sensors into families from a trained tokenizer's features")
     cluster.add_argument(
         "--run", required=True, help="a run whose tokenizer trained, a checkpoint folder or a bundle (pretrained:NAME)"
@@ -99,6 +110,9 @@ def vqtouch_add_commands(subparsers):
     add_image_folder_arguments(cluster)
     cluster.set_defaults(handler="vqtouch.plugins.adaptation.command_handlers:cmd_cluster")
 
+
+def _add_adapt_command(subparsers) -> None:
+    """``vqtouch adapt``: fine-tune a family tokenizer on an unseen sensor's shots."""
     adapt = subparsers.add_parser("adapt", help="adapt a family tokenizer to an unseen sensor from a few of its images")
     adapt.add_argument(
         "--run",
@@ -159,7 +173,9 @@ def vqtouch_add_commands(subparsers):
     add_image_folder_arguments(adapt)
     adapt.set_defaults(handler="vqtouch.plugins.adaptation.command_handlers:cmd_adapt")
 
-    evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
+
+def _add_cross_sensor_command(evaluate) -> None:
+    """``vqtouch evaluate cross-sensor``: the cross-sensor experiment."""
     cross = evaluate.add_parser(
         "cross-sensor",
         help="family recovery, few-shot transfer arms, real frames and cost "
@@ -219,6 +235,9 @@ def vqtouch_add_commands(subparsers):
     add_image_folder_arguments(cross)
     cross.set_defaults(handler="vqtouch.plugins.adaptation.command_handlers:cmd_evaluate_cross_sensor")
 
+
+def _add_fewshot_command(evaluate) -> None:
+    """``vqtouch evaluate fewshot``: the few-shot reconstruction experiment."""
     fewshot = evaluate.add_parser(
         "fewshot",
         help="few-shot reconstruction of an unseen sensor from N of its images "
@@ -272,6 +291,9 @@ def vqtouch_add_commands(subparsers):
     add_image_folder_arguments(fewshot)
     fewshot.set_defaults(handler="vqtouch.plugins.adaptation.command_handlers:cmd_evaluate_fewshot")
 
+
+def _add_mix_ratio_command(evaluate) -> None:
+    """``vqtouch evaluate mix-ratio``: the family-to-shot mix ratio sweep."""
     ratio = evaluate.add_parser(
         "mix-ratio",
         help="how many family images to mix with each shot of an unseen sensor: ratios at equal "

@@ -23,7 +23,6 @@ config and steps) on everything, measured in the same process.
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 from typing import Any
 
@@ -34,8 +33,10 @@ from vqtouch.core import ConfigError, PluginHost
 from vqtouch.plugins.evaluation.records import markdown_table, mean_spread
 from vqtouch.core.image_size import ImageSize, image_hw, size_text
 
-from .adapt import AdaptSettings, ImageSet, adapt_tokenizer, family_images, reconstruction_scores, target_images
+from .adapt import AdaptSettings, adapt_tokenizer, reconstruction_scores
+from .adapt_images import family_images, target_images
 from .families import SensorFamilies, family_sensor_specs, fit_families, sensor_images
+from .scratch import train_fresh_tokenizer
 
 METRICS = ("ssim", "psnr", "fd_effnetlite0")
 TABLE_COLUMNS = ("ssim", "psnr", "fd_effnetlite0", "codebook_usage", "family_ssim", "family_psnr", "seconds")
@@ -183,72 +184,6 @@ def transfer_arms(
     return rows
 
 
-def train_fresh_tokenizer(
-    run: Any,
-    images_N3HW: torch.Tensor,
-    host: PluginHost,
-    *,
-    seed: int,
-    steps: int | None = None,
-    out: Path | None = None,
-    metadata: dict[str, str] | None = None,
-) -> tuple[Any, dict[str, Any]]:
-    """A fresh tokenizer built from the run's config and trained with its objective and batch size
-    on ``images_N3HW`` alone, for ``steps`` (default: the run's ``tokenizer.train.steps``): the
-    baseline an adaptation is measured against.  Saved into ``out`` (autoencoder and quantizer,
-    ``metadata`` in their headers) when given.  Returns the tokenizer, in eval mode, and
-    ``{"steps", "seconds", "train_images", "batch_size"}``."""
-    from vqtouch.core import Assembly, save
-    from vqtouch.plugins.utils.seeding import resolve_device
-    from vqtouch.plugins.runtime.run_dir import RunDir
-    from vqtouch.plugins.training.trainer import Trainer
-    from vqtouch.plugins.tokenizer import TOKENIZER_FILES, tokenizer_task
-    from vqtouch.plugins.tokenizer import Tokenizer
-
-    config = RunDir.open(run).load_config(host)
-    assembly = Assembly(config, host)
-    section = config.tokenizer
-    # ``seed`` draws the initial weights too (repeatable; the seeds' spread covers them), leaving the
-    # caller's random state as it was.
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        tokenizer = Tokenizer(assembly.component("tokenizer.autoencoder"), assembly.component("tokenizer.quantizer"))
-        discriminator = (
-            assembly.component("tokenizer.discriminator")
-            if section.discriminator is not None and section.loss.adversarial_weight > 0
-            else None
-        )
-    device = resolve_device(config.device)
-    steps = section.train.steps if steps is None else steps
-    # A set smaller than the run's batch still trains (few-shot arms): one batch then holds every image.
-    batch_size = min(config.data.batch_size, len(images_N3HW))
-    trainer = Trainer(
-        tokenizer_task(tokenizer, section.loss, device, discriminator),
-        ImageSet(images_N3HW),
-        section.train.model_copy(update={"steps": steps, "keep_best": False}),
-        batch_size=batch_size,
-        seed=seed,
-        device=device,
-        checkpoint_dir=None,
-        host=host,
-        stage="scratch",
-    )
-    tic = time.perf_counter()
-    trainer.fit()
-    seconds = time.perf_counter() - tic
-    tokenizer.eval()
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        for file, module in zip(TOKENIZER_FILES, (tokenizer.autoencoder, tokenizer.quantizer)):
-            save(module, out / file, step=steps, host=host, metadata=metadata)
-    return tokenizer, {
-        "steps": steps,
-        "seconds": round(seconds, 2),
-        "train_images": len(images_N3HW),
-        "batch_size": batch_size,
-    }
-
-
 def scratch_cost(
     run: Any,
     target: str,
@@ -376,27 +311,13 @@ def evaluate_cross_sensor(
     if main_shots not in shots:
         raise ConfigError(f"--main-shots {main_shots} must be one of --shots {shots}")
     output_folder(out)
-    real, usable = None, []
-    if real_family is not None:  # written and read once: every seed adapts to the same frames
-        frames = real_frames_folder(host, real_family, image_size, out / f"real_{real_family}")
-        if frames is not None:
-            real = sensor_images(str(frames), host, count=len(list(frames.iterdir())), image_size=image_size)
-            usable = [count for count in real_shots if count < len(real.images)]
+    real, usable = _real_target(host, real_family, real_shots, image_size, out)
     recovery, transfer, real_rows, costs = [], [], [], []
     for seed in seeds:
-        rows, families = family_recovery(
-            tokenizer,
-            host,
-            seed=seed,
-            variants=variants,
-            held_out_variants=held_out_variants,
-            images=images,
-            image_size=image_size,
-            clusterers=clusterers,
-            tokenizer_source=str(folder),
+        rows, families = _recover_families(
+            tokenizer, folder, host, seed, variants, held_out_variants, images, image_size, clusterers, report
         )
         recovery += rows
-        report(f"seed {seed}: family recovery " + ", ".join(f"{r['clusterer']} ARI {r['ari']}" for r in rows))
         seed_rows = transfer_arms(
             run,
             target,
@@ -417,67 +338,164 @@ def evaluate_cross_sensor(
             f"seed {seed}: transfer "
             + ", ".join(f"{r['arm'][0]}{r['shots']}/{r['ratio']} {r['ssim']}" for r in seed_rows)
         )
-        adapted = next(
-            row
-            for row in seed_rows
-            if row["arm"] == "c: mixed" and row["shots"] == main_shots and row["ratio"] == main_ratio
-        )
+        adapted = _main_arm(seed_rows, main_shots, main_ratio)
         if everything and (Path(run) / "config.json").is_file():
-            scratch = scratch_cost(
-                run,
-                target,
-                families,
-                host,
-                seed=seed,
-                everything=everything,
-                eval_images=eval_images,
-                family=adapted["family"],
-            )
-            costs.append(
-                {
-                    "seed": seed,
-                    "adaptation_seconds": adapted["seconds"],
-                    "scratch_seconds": scratch["seconds"],
-                    "scratch_steps": scratch["steps"],
-                    "ratio": float(f"{adapted['seconds'] / scratch['seconds']:.4g}"),
-                    "scratch_ssim": scratch["ssim"],
-                    "scratch_psnr": scratch["psnr"],
-                    "adapted_ssim": adapted["ssim"],
-                }
-            )
-            report(f"seed {seed}: adaptation {adapted['seconds']} s vs fresh training {scratch['seconds']} s")
+            costs.append(_cost_row(run, target, families, host, seed, everything, eval_images, adapted, report))
         if real is not None:
-            assigned, _ = families.unseen(tokenizer, real.name, real.images)
-            nearest = assigned["nearest_family"]
-            rows = transfer_arms(
-                run,
-                real.source,
-                families,
-                host,
-                out / "real_arms",
-                seed=seed,
-                steps=steps,
-                shots=usable,
-                ratios=[main_ratio],
-                main_shots=usable[-1],
-                main_ratio=main_ratio,
-                everything=0,
-                eval_images=len(real.images) - max(usable),
-                family=nearest,
-            )
-            real_rows += [
-                {
-                    **row,
-                    "seed": seed,
-                    "assigned_family": assigned["family"],
-                    "nearest_family": nearest,
-                    "refused": assigned["refused"],
-                    "margin": assigned["margin"],
-                }
-                for row in rows
-            ]
+            real_rows += _real_frame_rows(tokenizer, run, real, usable, families, host, out, seed, steps, main_ratio)
+    result = _cross_sensor_result(
+        folder, target, seeds, steps, image_size, recovery, transfer, real_family, real_rows, costs
+    )
+    _write_cross_sensor(out, result, target, steps, len(seeds))
+    return result
+
+
+def _real_target(
+    host: PluginHost, real_family: str | None, real_shots: list[int], image_size: ImageSize, out: Path
+) -> tuple[Any, list[int]]:
+    """The captured frames of ``real_family`` as an unseen sensor (None without any) and the shot counts
+    they leave held-out frames for."""
+    real, usable = None, []
+    if real_family is not None:  # written and read once: every seed adapts to the same frames
+        frames = real_frames_folder(host, real_family, image_size, out / f"real_{real_family}")
+        if frames is not None:
+            real = sensor_images(str(frames), host, count=len(list(frames.iterdir())), image_size=image_size)
+            usable = [count for count in real_shots if count < len(real.images)]
+    return real, usable
+
+
+def _recover_families(
+    tokenizer: Any,
+    folder: Path,
+    host: PluginHost,
+    seed: int,
+    variants: int,
+    held_out_variants: int,
+    images: int,
+    image_size: ImageSize,
+    clusterers: list[str],
+    report: Any,
+) -> tuple[list[dict[str, Any]], SensorFamilies]:
+    """One seed of part 1, reported: its rows and the families the transfer arms adapt from."""
+    rows, families = family_recovery(
+        tokenizer,
+        host,
+        seed=seed,
+        variants=variants,
+        held_out_variants=held_out_variants,
+        images=images,
+        image_size=image_size,
+        clusterers=clusterers,
+        tokenizer_source=str(folder),
+    )
+    report(f"seed {seed}: family recovery " + ", ".join(f"{r['clusterer']} ARI {r['ari']}" for r in rows))
+    return rows, families
+
+
+def _main_arm(seed_rows: list[dict[str, Any]], main_shots: int, main_ratio: float) -> dict[str, Any]:
+    """The mixed arm at the main shot count and ratio: the adaptation the cost compares."""
+    return next(
+        row
+        for row in seed_rows
+        if row["arm"] == "c: mixed" and row["shots"] == main_shots and row["ratio"] == main_ratio
+    )
+
+
+def _cost_row(
+    run: Any,
+    target: str,
+    families: SensorFamilies,
+    host: PluginHost,
+    seed: int,
+    everything: int,
+    eval_images: int,
+    adapted: dict[str, Any],
+    report: Any,
+) -> dict[str, Any]:
+    """One seed of the cost, reported: the adaptation's wall time against a fresh tokenizer's."""
+    scratch = scratch_cost(
+        run,
+        target,
+        families,
+        host,
+        seed=seed,
+        everything=everything,
+        eval_images=eval_images,
+        family=adapted["family"],
+    )
+    row = {
+        "seed": seed,
+        "adaptation_seconds": adapted["seconds"],
+        "scratch_seconds": scratch["seconds"],
+        "scratch_steps": scratch["steps"],
+        "ratio": float(f"{adapted['seconds'] / scratch['seconds']:.4g}"),
+        "scratch_ssim": scratch["ssim"],
+        "scratch_psnr": scratch["psnr"],
+        "adapted_ssim": adapted["ssim"],
+    }
+    report(f"seed {seed}: adaptation {adapted['seconds']} s vs fresh training {scratch['seconds']} s")
+    return row
+
+
+def _real_frame_rows(
+    tokenizer: Any,
+    run: Any,
+    real: Any,
+    usable: list[int],
+    families: SensorFamilies,
+    host: PluginHost,
+    out: Path,
+    seed: int,
+    steps: int,
+    main_ratio: float,
+) -> list[dict[str, Any]]:
+    """One seed of part 3: the arms adapted to the captured frames, from the family they are nearest to."""
+    assigned, _ = families.unseen(tokenizer, real.name, real.images)
+    nearest = assigned["nearest_family"]
+    rows = transfer_arms(
+        run,
+        real.source,
+        families,
+        host,
+        out / "real_arms",
+        seed=seed,
+        steps=steps,
+        shots=usable,
+        ratios=[main_ratio],
+        main_shots=usable[-1],
+        main_ratio=main_ratio,
+        everything=0,
+        eval_images=len(real.images) - max(usable),
+        family=nearest,
+    )
+    return [
+        {
+            **row,
+            "seed": seed,
+            "assigned_family": assigned["family"],
+            "nearest_family": nearest,
+            "refused": assigned["refused"],
+            "margin": assigned["margin"],
+        }
+        for row in rows
+    ]
+
+
+def _cross_sensor_result(
+    folder: Path,
+    target: str,
+    seeds: list[int],
+    steps: int,
+    image_size: ImageSize,
+    recovery: list[dict[str, Any]],
+    transfer: list[dict[str, Any]],
+    real_family: str | None,
+    real_rows: list[dict[str, Any]],
+    costs: list[dict[str, Any]],
+) -> dict[str, Any]:
+    """What ``cross_sensor.json`` holds: every part's rows and their mean and spread over the seeds."""
     group = ("arm", "shots", "ratio")
-    result = {
+    return {
         "tokenizer": str(folder),
         "target": target,
         "seeds": seeds,
@@ -500,15 +518,18 @@ def evaluate_cross_sensor(
             ),
         },
     }
+
+
+def _write_cross_sensor(out: Path, result: dict[str, Any], target: str, steps: int, seed_count: int) -> None:
+    """Write ``cross_sensor.json``, its markdown tables and the transfer figure into ``out``."""
     (out / "cross_sensor.json").write_text(json.dumps(result, indent=2) + "\n")
     (out / "cross_sensor.md").write_text(render_markdown(result) + "\n")
     plot_transfer(
         result["transfer"]["summary"],
         out / "cross_sensor.png",
         f"transfer to {json.loads(target)['name'] if target.startswith('{') else target} "
-        f"({steps} steps per arm, {len(seeds)} seeds)",
+        f"({steps} steps per arm, {seed_count} seeds)",
     )
-    return result
 
 
 def render_markdown(result: dict[str, Any]) -> str:

@@ -296,7 +296,6 @@ def families_figure(
     labels overlap (:func:`separate_labels`)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-    from matplotlib.lines import Line2D
     from sklearn.decomposition import PCA
 
     everything = torch.cat(features_by_sensor).numpy()
@@ -320,6 +319,19 @@ def families_figure(
                 str(number), (x, y), textcoords="offset points", xytext=(8, 5), fontsize=8, zorder=6, bbox=LABEL_BOX
             )
         )
+    texts += _plot_unseen(axes, pca, unseen)
+    _family_legend(axes, names, labels)
+    axes.set_xlabel("PCA 1 of the tokenizer features")
+    axes.set_ylabel("PCA 2")
+    axes.set_title(title, fontsize=9)
+    axes.grid(alpha=0.3)
+    separate_labels(figure, texts)
+    return figure
+
+
+def _plot_unseen(axes: Any, pca: Any, unseen: list[UnseenSensor]) -> list[Any]:
+    """The unseen sensors' images and black-star prototypes, labelled with their verdicts; returns the labels."""
+    texts = []
     for sensor in unseen:
         points = pca.transform(sensor.features.numpy())
         axes.scatter(
@@ -340,6 +352,13 @@ def families_figure(
                 bbox=LABEL_BOX,
             )
         )
+    return texts
+
+
+def _family_legend(axes: Any, names: list[str], labels: list[int]) -> None:
+    """The legend beside the plot keying the prototypes' numbers to the sensors' names, by family."""
+    from matplotlib.lines import Line2D
+
     members: dict[int, list[str]] = {}
     for number, (name, label) in enumerate(zip(names, labels), start=1):
         members.setdefault(label, []).append(f"{number} {name}")
@@ -357,12 +376,6 @@ def families_figure(
         for family in sorted(members)
     ]
     axes.legend(handles=keys, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, title="sensors", frameon=False)
-    axes.set_xlabel("PCA 1 of the tokenizer features")
-    axes.set_ylabel("PCA 2")
-    axes.set_title(title, fontsize=9)
-    axes.grid(alpha=0.3)
-    separate_labels(figure, texts)
-    return figure
 
 
 def separate_labels(figure: Any, texts: list[Any], gap_px: float = 1.0) -> None:

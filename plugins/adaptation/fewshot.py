@@ -48,7 +48,6 @@ from typing import Any, Callable, Sequence
 import torch
 
 from vqtouch.core import ConfigError, PluginHost
-from vqtouch.plugins.data.sensor_folders import folder_of, sensor_folder_files
 from vqtouch.plugins.evaluation.records import (
     ExperimentRecord,
     check_seeds,
@@ -61,17 +60,12 @@ from vqtouch.plugins.evaluation.records import (
 from vqtouch.core.image_size import ImageSize, size_text
 from vqtouch.plugins.evaluation.directions import direction_arrow
 
-from .adapt import (
-    sensor_background,
-    AdaptSettings,
-    adapt_tokenizer,
-    check_same_tokenizer,
-    default_families,
-    reconstruction_scores,
-    target_images,
-)
-from .evaluation import METRICS, train_fresh_tokenizer
-from .families import SensorFamilies, load_families, registered_source, save_families
+from .adapt import AdaptSettings, adapt_tokenizer, reconstruction_scores
+from .adapt_images import sensor_background, target_images
+from .evaluation import METRICS
+from .experiment_inputs import families_for, held_out_count, report_seed_family
+from .families import SensorFamilies
+from .scratch import train_fresh_tokenizer
 
 SCRATCH, ZERO_SHOT, SHOTS_ALONE, BACKGROUND = "scratch", "zero-shot", "shots alone", "no-contact background"
 #: The held-out scores every arm carries, and its background's under the ``background_`` prefix.
@@ -115,80 +109,6 @@ def check_counts(counts: Sequence[int]) -> list[int]:
     if len(set(counts)) != len(counts):
         raise ConfigError(f"--n {' '.join(map(str, counts))} repeats a count; give distinct counts")
     return sorted(counts)
-
-
-def held_out_count(target: str, counts: Sequence[int], eval_images: int, host: PluginHost, flag: str = "--n") -> int:
-    """How many held-out images score every arm: ``eval_images``, or for a folder as many as the
-    largest N leaves (its shuffle's last ones are held out; every N must leave the same ones).
-    A one-line ConfigError naming ``flag`` (the option that gave the counts) when the folder cannot
-    spare the largest N plus one held-out image."""
-    path = folder_of(target)
-    if path is None:
-        return eval_images
-    images = len(sensor_folder_files(path, host))
-    if max(counts) + 1 > images:
-        usable = f"the largest usable {flag} is {images - 1}" if images > 1 else "few-shot needs at least 2 images"
-        raise ConfigError(
-            f"{flag} {max(counts)}: the folder {path} holds {images} images; {usable} (the rest are held "
-            "out to score every arm)"
-        )
-    return min(eval_images, images - max(counts))
-
-
-def families_for(
-    families: str | Path | None,
-    tokenizer: Any,
-    folder: Path,
-    target: str,
-    host: PluginHost,
-    out: Path,
-    image_size: ImageSize,
-) -> tuple[SensorFamilies, str]:
-    """The families the fine-tuned arms mix from and where they came from: ``families`` (a cluster
-    output of this tokenizer), or the registered sensor families and 3 variants of each clustered
-    once (written to ``out/families`` and read back, so no arm writes them again)."""
-    if families:
-        loaded = load_families(families, host)
-        check_same_tokenizer(loaded, folder, f"the families in {families}")
-        return loaded, str(families)
-    exclude = registered_source(target)
-    fitted = default_families(
-        tokenizer, host, image_size=image_size, tokenizer_source=str(folder), exclude=exclude, report=lambda line: None
-    )
-    save_families(fitted, out / "families", host)
-    return load_families(out / "families", host), f"{out / 'families'} (registered sensor families, 3 variants each)"
-
-
-def assign_seed_family(
-    fitted: SensorFamilies,
-    tokenizer: Any,
-    target: str,
-    host: PluginHost,
-    *,
-    shots: int,
-    eval_images: int,
-    image_size: ImageSize,
-    seed: int,
-) -> tuple[str, str, dict[str, Any]]:
-    """The family one seed's arms adapt from, assigned from that seed's ``shots`` images of the
-    sensor: its nearest family when the assignment is refused (the entry says so).  Returns the
-    sensor's name, its source and the entry ``{"seed", "family", "members", "refused",
-    "nearest_family", "margin", "threshold"}``."""
-    name, source, shots_N, _ = target_images(
-        target, host, shots=shots, eval_images=eval_images, image_size=image_size, seed=seed
-    )
-    assigned, _ = fitted.unseen(tokenizer, name, shots_N)
-    family = assigned["nearest_family"] if assigned["refused"] else assigned["family"]
-    return (
-        name,
-        source,
-        {
-            "seed": seed,
-            "family": family,
-            "members": fitted.summary["families"][family],
-            **{key: assigned[key] for key in ("refused", "nearest_family", "margin", "threshold")},
-        },
-    )
 
 
 def _scores(scores: dict[str, Any]) -> dict[str, Any]:
@@ -254,75 +174,18 @@ def seed_arms(
     skipped: dict[str, str] = {}
     zero_shot = None
     for n in counts:
-        summaries = {}
-        for arm, arm_ratio, name in ((SHOTS_ALONE, 0.0, "shots"), (mixed_arm(ratio), ratio, "mixed")):
-            settings = AdaptSettings(
-                shots=n,
-                ratio=arm_ratio,
-                steps=steps,
-                eval_images=held_out,
-                seed=seed,
-                family=family,
-                batch_size=batch_size,
-                metrics=METRICS,
-            )
-            summaries[arm] = adapt_tokenizer(
-                run,
-                target,
-                families,
-                host,
-                out / f"seed{seed}" / f"{name}-{n}",
-                settings,
-                overwrite=True,
-                report=lambda line: None,
-                background_3HW=background_3HW,
-            )
+        summaries = _fine_tuned_arms(
+            run, target, families, family, host, out, seed, n, ratio, steps, held_out, batch_size, background_3HW
+        )
         # The family tokenizer before any fine-tuning, on the same held-out images: the zero-shot arm (and
         # its score on the family's held-out images, what the fine-tuned arms keep or forget of the family).
         zero_shot = zero_shot or summaries[SHOTS_ALONE]["before"]
         family_before = summaries[SHOTS_ALONE]["family_held_out"]["before"]
-        _, source, shots_N, held_out_M = target_images(
-            target, host, shots=n, eval_images=held_out, image_size=image_size, seed=seed
+        scratch_row, scratch = _scratch_arm(
+            run, target, host, out, seed, n, scratch_steps, held_out, batch_size, background_3HW, image_size
         )
-        metadata = {"fewshot.arm": SCRATCH, "fewshot.target": source, "fewshot.train_images": str(n)}
-        tokenizer, trained = train_fresh_tokenizer(
-            run,
-            shots_N,
-            host,
-            seed=seed,
-            steps=scratch_steps,
-            out=out / f"seed{seed}" / f"{SCRATCH}-{n}",
-            metadata=metadata,
-        )
-        scratch = reconstruction_scores(tokenizer, held_out_M, host, batch_size, METRICS, background_3HW)
-        rows.append(
-            {
-                "n": n,
-                "arm": SCRATCH,
-                "seed": seed,
-                "train_images": trained["train_images"],
-                "family_images": 0,
-                "steps": trained["steps"],
-                "held_out": len(held_out_M),
-                **_scores(scratch),
-                "seconds": trained["seconds"],
-            }
-        )
-        rows.append(
-            {
-                "n": n,
-                "arm": ZERO_SHOT,
-                "seed": seed,
-                "train_images": 0,
-                "family_images": 0,
-                "steps": 0,
-                "held_out": zero_shot["samples"],
-                **_scores(zero_shot),
-                "family_ssim": family_before["ssim"],
-                "family_psnr": family_before["psnr"],
-                "seconds": 0.0,
-            }
-        )
+        rows.append(scratch_row)
+        rows.append(_zero_shot_row(n, seed, zero_shot, family_before))
         rows += [_adapted_row(n, arm, seed, summary) for arm, summary in summaries.items()]
         rows.append(_background_row(n, seed, zero_shot))
         for scores in (scratch, zero_shot, *(summary["after"] for summary in summaries.values())):
@@ -332,6 +195,107 @@ def seed_arms(
             + ", ".join(f"{row['arm']} {row.get(VERDICT_KEY, '-')}" for row in rows if row["n"] == n)
         )
     return rows, skipped
+
+
+def _fine_tuned_arms(
+    run: Any,
+    target: str,
+    families: SensorFamilies,
+    family: int,
+    host: PluginHost,
+    out: Path,
+    seed: int,
+    n: int,
+    ratio: float,
+    steps: int,
+    held_out: int,
+    batch_size: int,
+    background_3HW: torch.Tensor,
+) -> dict[str, dict[str, Any]]:
+    """The shots-alone and mixed arms at one N: each arm's ``adapt.json`` summary, by arm."""
+    summaries = {}
+    for arm, arm_ratio, name in ((SHOTS_ALONE, 0.0, "shots"), (mixed_arm(ratio), ratio, "mixed")):
+        settings = AdaptSettings(
+            shots=n,
+            ratio=arm_ratio,
+            steps=steps,
+            eval_images=held_out,
+            seed=seed,
+            family=family,
+            batch_size=batch_size,
+            metrics=METRICS,
+        )
+        summaries[arm] = adapt_tokenizer(
+            run,
+            target,
+            families,
+            host,
+            out / f"seed{seed}" / f"{name}-{n}",
+            settings,
+            overwrite=True,
+            report=lambda line: None,
+            background_3HW=background_3HW,
+        )
+    return summaries
+
+
+def _scratch_arm(
+    run: Any,
+    target: str,
+    host: PluginHost,
+    out: Path,
+    seed: int,
+    n: int,
+    scratch_steps: int,
+    held_out: int,
+    batch_size: int,
+    background_3HW: torch.Tensor,
+    image_size: ImageSize,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The scratch arm at one N: a fresh tokenizer trained on the N shots alone; its row and scores."""
+    _, source, shots_N, held_out_M = target_images(
+        target, host, shots=n, eval_images=held_out, image_size=image_size, seed=seed
+    )
+    metadata = {"fewshot.arm": SCRATCH, "fewshot.target": source, "fewshot.train_images": str(n)}
+    tokenizer, trained = train_fresh_tokenizer(
+        run,
+        shots_N,
+        host,
+        seed=seed,
+        steps=scratch_steps,
+        out=out / f"seed{seed}" / f"{SCRATCH}-{n}",
+        metadata=metadata,
+    )
+    scratch = reconstruction_scores(tokenizer, held_out_M, host, batch_size, METRICS, background_3HW)
+    row = {
+        "n": n,
+        "arm": SCRATCH,
+        "seed": seed,
+        "train_images": trained["train_images"],
+        "family_images": 0,
+        "steps": trained["steps"],
+        "held_out": len(held_out_M),
+        **_scores(scratch),
+        "seconds": trained["seconds"],
+    }
+    return row, scratch
+
+
+def _zero_shot_row(n: int, seed: int, zero_shot: dict[str, Any], family_before: dict[str, Any]) -> dict[str, Any]:
+    """The family tokenizer's row, unchanged: the same scores under every N."""
+    return {
+        "n": n,
+        "arm": ZERO_SHOT,
+        "seed": seed,
+        "train_images": 0,
+        "family_images": 0,
+        "steps": 0,
+        "held_out": zero_shot["samples"],
+        **_scores(zero_shot),
+        "family_ssim": family_before["ssim"],
+        "family_psnr": family_before["psnr"],
+        "seconds": 0.0,
+    }
 
 
 def evaluate_fewshot(
@@ -366,15 +330,7 @@ def evaluate_fewshot(
     refuse_finished(out, "fewshot", "a fewshot experiment", overwrite)
     seeds = check_seeds(seeds)
     counts = check_counts(counts)
-    if not (ratio > 0 and math.isfinite(ratio)):
-        raise ConfigError(
-            f"--ratio {ratio:g}: the mixed arm needs family images (a finite ratio > 0; the shots-alone arm is ratio 0)"
-        )
-    if not (run and (Path(run) / "config.json").is_file()):
-        raise ConfigError(
-            f"--run {run}: not a run directory (no config.json); the scratch arm trains a fresh "
-            "tokenizer with the run's config, so give the family tokenizer's run"
-        )
+    _check_ratio_and_run(ratio, run)
     config = RunDir.open(run).load_config(host)
     scratch_steps = scratch_steps or config.tokenizer.train.steps
     tokenizer, folder = load_tokenizer(run, host)
@@ -387,42 +343,18 @@ def evaluate_fewshot(
     background, background_source = sensor_background(target, host, image_size)
     record = ExperimentRecord("fewshot", out, seeds, overwrite=overwrite)
     fitted, families_source = families_for(families, tokenizer, folder, target, host, out, image_size)
-    rows: list[dict[str, Any]] = []
-    skipped: dict[str, str] = {}
-    assignments = []
-    name = source = ""
-    for seed in record.seeds:
-        # One family per seed, from the smallest N's shots (what every arm has): only N changes between the
-        # fine-tuned arms of a seed.
-        name, source, assignment = assign_seed_family(
-            fitted, tokenizer, target, host, shots=counts[0], eval_images=held_out, image_size=image_size, seed=seed
-        )
-        family = assignment["family"]
-        assignments.append(assignment)
-        report(
-            f"seed {seed}: {name} -> family {family} ({', '.join(assignment['members'])})"
-            + (", nearest: the assignment was refused" if assignment["refused"] else "")
-        )
-        seed_rows, seed_skipped = seed_arms(
-            run,
-            target,
-            fitted,
-            family,
-            host,
-            out,
-            seed=seed,
-            counts=counts,
-            ratio=ratio,
-            steps=steps,
-            scratch_steps=scratch_steps,
-            held_out=held_out,
-            batch_size=batch_size,
-            background_3HW=background,
-            image_size=image_size,
-            report=report,
-        )
-        rows += seed_rows
-        skipped |= seed_skipped
+    # What fewshot.json records of the settings, and what every seed's arms run with (:func:`seed_arms`).
+    settings = {
+        "counts": counts,
+        "ratio": ratio,
+        "steps": steps,
+        "scratch_steps": scratch_steps,
+        "batch_size": batch_size,
+        "held_out": held_out,
+    }
+    rows, skipped, assignments, name, source = _run_seeds(
+        run, target, fitted, tokenizer, host, out, record.seeds, background, image_size, settings, report
+    )
     summary = mean_spread(rows, SUMMARY_KEYS, ("n", "arm"))
     result = {
         "run": str(run),
@@ -431,30 +363,95 @@ def evaluate_fewshot(
         "target_source": source,
         "background": background_source,
         "image_size": image_size,
-        "counts": counts,
-        "ratio": ratio,
-        "steps": steps,
-        "scratch_steps": scratch_steps,
-        "batch_size": batch_size,
-        "held_out": held_out,
+        **settings,
         "families": families_source,
         "assignments": assignments,
         "rows": rows,
         "summary": summary,
         "skipped": skipped,
     }
+    _plot_fewshot(summary, record.path("fewshot.png"), name, len(record.seeds), steps)
+    record.write(result, render_markdown(result))
+    return result
+
+
+def _run_seeds(
+    run: str | Path,
+    target: str,
+    fitted: SensorFamilies,
+    tokenizer: Any,
+    host: PluginHost,
+    out: Path,
+    seeds: Sequence[int],
+    background_3HW: torch.Tensor,
+    image_size: ImageSize,
+    settings: dict[str, Any],
+    report: Callable[[str], None],
+) -> tuple[list[dict[str, Any]], dict[str, str], list[dict[str, Any]], str, str]:
+    """Every seed's family and arms (:func:`seed_arms` with ``settings``): the rows, the metrics skipped,
+    the assignments, and the sensor's name and source."""
+    rows: list[dict[str, Any]] = []
+    skipped: dict[str, str] = {}
+    assignments = []
+    name = source = ""
+    for seed in seeds:
+        # One family per seed, from the smallest N's shots (what every arm has): only N changes between the
+        # fine-tuned arms of a seed.
+        name, source, assignment = report_seed_family(
+            fitted,
+            tokenizer,
+            target,
+            host,
+            shots=settings["counts"][0],
+            eval_images=settings["held_out"],
+            image_size=image_size,
+            seed=seed,
+            report=report,
+        )
+        assignments.append(assignment)
+        seed_rows, seed_skipped = seed_arms(
+            run,
+            target,
+            fitted,
+            assignment["family"],
+            host,
+            out,
+            seed=seed,
+            background_3HW=background_3HW,
+            image_size=image_size,
+            report=report,
+            **settings,
+        )
+        rows += seed_rows
+        skipped |= seed_skipped
+    return rows, skipped, assignments, name, source
+
+
+def _check_ratio_and_run(ratio: float, run: str | Path) -> None:
+    """Refuse a mixed arm without family images, and a ``run`` that is no run directory."""
+    if not (ratio > 0 and math.isfinite(ratio)):
+        raise ConfigError(
+            f"--ratio {ratio:g}: the mixed arm needs family images (a finite ratio > 0; the shots-alone arm is ratio 0)"
+        )
+    if not (run and (Path(run) / "config.json").is_file()):
+        raise ConfigError(
+            f"--run {run}: not a run directory (no config.json); the scratch arm trains a fresh "
+            "tokenizer with the run's config, so give the family tokenizer's run"
+        )
+
+
+def _plot_fewshot(summary: list[dict[str, Any]], path: Path, name: str, seed_count: int, steps: int) -> None:
+    """``fewshot.png``: contact PSNR and SSIM against N per arm, the background as a line."""
     plot_against_count(
         summary,
         count="n",
         line="arm",
         keys=("contact_psnr", "contact_ssim"),
-        path=record.path("fewshot.png"),
+        path=path,
         xlabel="N: unseen-sensor images",
         dashed=(BACKGROUND,),
-        title=f"few-shot reconstruction of {name} ({len(record.seeds)} seeds, {steps} fine-tuning steps)",
+        title=f"few-shot reconstruction of {name} ({seed_count} seeds, {steps} fine-tuning steps)",
     )
-    record.write(result, render_markdown(result))
-    return result
 
 
 def verdict_lines(

@@ -53,10 +53,12 @@ from vqtouch.plugins.evaluation.records import (
 )
 from vqtouch.plugins.data.sensor_folders import folder_of, sensor_folder_files
 
-from .adapt import ADAPT_JSON, AdaptRecord, AdaptSettings, adapt_tokenizer, sensor_background
+from .adapt import ADAPT_JSON, AdaptRecord, AdaptSettings, adapt_tokenizer
+from .adapt_images import sensor_background
 from .evaluation import METRICS
 from .families import SensorFamilies
-from .fewshot import BACKGROUND, SHOTS_ALONE, ZERO_SHOT, assign_seed_family, families_for, held_out_count
+from .experiment_inputs import families_for, held_out_count, report_seed_family
+from .fewshot import BACKGROUND, SHOTS_ALONE, ZERO_SHOT
 
 ALL_IMAGES = "all images"
 STEPS, EXPOSURES, COST = "equal steps", "equal exposures", "equal cost"
@@ -239,19 +241,8 @@ def evaluate_mix_ratio(
     seeds = check_seeds(seeds)
     ratios = check_ratios(ratios)
     cost_controls = sorted({float(ratio) for ratio in cost_controls})
-    stray = [ratio for ratio in cost_controls if ratio == 0 or ratio not in ratios]
-    if stray:
-        raise ConfigError(
-            f"--cost-controls {' '.join(f'{r:g}' for r in stray)}: name mix ratios of --ratios "
-            f"({' '.join(f'{r:g}' for r in ratios if r > 0)})"
-        )
-    if shots < 1 or steps < 1 or all_images < 1 or eval_images < 2:
-        raise ConfigError(
-            f"--shots {shots}, --steps {steps}, --all-images {all_images}, --eval-images {eval_images}: "
-            "shots, steps and all-images must be >= 1, eval-images >= 2"
-        )
-    if not (run and (Path(run) / "config.json").is_file()):
-        raise ConfigError(f"--run {run}: not a run directory (no config.json); give the family tokenizer's run")
+    _check_cost_controls(cost_controls, ratios)
+    _check_sizes_and_run(run, shots, steps, all_images, eval_images)
     config = RunDir.open(run).load_config(host)
     tokenizer, folder = load_tokenizer(run, host)
     image_size: ImageSize = tokenizer.autoencoder.vqtouch_spec.context.image_size
@@ -263,42 +254,10 @@ def evaluate_mix_ratio(
     record = ExperimentRecord("mix_ratio", out, seeds, overwrite=overwrite)
     fitted, families_source = families_for(families, tokenizer, folder, target, host, out, image_size)
     plan = arm_plan(shots, ratios, steps, cost_controls, all_images)
-    rows: list[dict[str, Any]] = []
-    assignments, skipped = [], {}
-    name = source = ""
-    for seed in record.seeds:
-        name, source, assignment = assign_seed_family(
-            fitted, tokenizer, target, host, shots=shots, eval_images=held_out, image_size=image_size, seed=seed
-        )
-        assignments.append(assignment)
-        report(
-            f"seed {seed}: {name} -> family {assignment['family']} ({', '.join(assignment['members'])})"
-            + (", nearest: the assignment was refused" if assignment["refused"] else "")
-        )
-        for arm in plan:
-            settings = AdaptSettings(
-                shots=arm.images,
-                ratio=arm.ratio,
-                steps=arm.steps,
-                eval_images=held_out,
-                seed=seed,
-                family=assignment["family"],
-                batch_size=batch_size,
-                metrics=METRICS,
-            )
-            summary, reused = adapt_arm(
-                run, target, fitted, host, out / f"seed{seed}" / arm.folder, settings, background, resume=not overwrite
-            )
-            if arm.name == SHOTS_ALONE:  # the family tokenizer before fine-tuning, and the background, once per seed
-                rows.append(_row(ZERO_SHOT, "-", 0.0, seed, summary, after=False))
-                rows.append(_background_row(seed, summary))
-            rows.append(_row(arm.name, arm.budget, arm.ratio, seed, summary))
-            skipped |= summary["after"].get("skipped") or {}
-            last = rows[-1]
-            report(
-                f"seed {seed}, {arm.name}: {arm.steps} steps{' (read back)' if reused else ''}, SSIM "
-                f"{last.get('ssim')}, contact PSNR {last.get('contact_psnr')}, family PSNR {last.get('family_psnr')}"
-            )
+    inputs = _ArmInputs(run, target, fitted, host, out, held_out, batch_size, background, resume=not overwrite)
+    rows, skipped, assignments, name, source = _run_seeds(
+        inputs, tokenizer, record.seeds, plan, shots, image_size, report
+    )
     summary_rows = mean_spread(rows, (*TABLE_COLUMNS, "train_images"), GROUP)
     result = {
         "run": str(run),
@@ -324,6 +283,102 @@ def evaluate_mix_ratio(
     plot_mix_ratio(summary_rows, record.path("mix_ratio.png"), f"{name}: {shots} shots, {len(record.seeds)} seed(s)")
     record.write(result, render_markdown(result))
     return result
+
+
+def _check_cost_controls(cost_controls: list[float], ratios: list[float]) -> None:
+    """Refuse a cost control that is no mix ratio of ``ratios``."""
+    stray = [ratio for ratio in cost_controls if ratio == 0 or ratio not in ratios]
+    if stray:
+        raise ConfigError(
+            f"--cost-controls {' '.join(f'{r:g}' for r in stray)}: name mix ratios of --ratios "
+            f"({' '.join(f'{r:g}' for r in ratios if r > 0)})"
+        )
+
+
+def _check_sizes_and_run(run: str | Path, shots: int, steps: int, all_images: int, eval_images: int) -> None:
+    """Refuse counts below their minimum, and a ``run`` that is no run directory."""
+    if shots < 1 or steps < 1 or all_images < 1 or eval_images < 2:
+        raise ConfigError(
+            f"--shots {shots}, --steps {steps}, --all-images {all_images}, --eval-images {eval_images}: "
+            "shots, steps and all-images must be >= 1, eval-images >= 2"
+        )
+    if not (run and (Path(run) / "config.json").is_file()):
+        raise ConfigError(f"--run {run}: not a run directory (no config.json); give the family tokenizer's run")
+
+
+class _ArmInputs(NamedTuple):
+    """What every arm of every seed adapts with (:func:`adapt_arm`)."""
+
+    run: str | Path
+    target: str
+    families: SensorFamilies
+    host: PluginHost
+    out: Path
+    held_out: int
+    batch_size: int
+    background_3HW: torch.Tensor
+    resume: bool
+
+
+def _run_seeds(
+    inputs: _ArmInputs,
+    tokenizer: Any,
+    seeds: Sequence[int],
+    plan: list[Arm],
+    shots: int,
+    image_size: ImageSize,
+    report: Callable[[str], None],
+) -> tuple[list[dict[str, Any]], dict[str, str], list[dict[str, Any]], str, str]:
+    """Every seed's family and every arm of ``plan`` adapted from it: the rows, the metrics skipped, the
+    assignments, and the sensor's name and source."""
+    rows: list[dict[str, Any]] = []
+    assignments, skipped = [], {}
+    name = source = ""
+    for seed in seeds:
+        name, source, assignment = report_seed_family(
+            inputs.families,
+            tokenizer,
+            inputs.target,
+            inputs.host,
+            shots=shots,
+            eval_images=inputs.held_out,
+            image_size=image_size,
+            seed=seed,
+            report=report,
+        )
+        assignments.append(assignment)
+        for arm in plan:
+            settings = AdaptSettings(
+                shots=arm.images,
+                ratio=arm.ratio,
+                steps=arm.steps,
+                eval_images=inputs.held_out,
+                seed=seed,
+                family=assignment["family"],
+                batch_size=inputs.batch_size,
+                metrics=METRICS,
+            )
+            summary, reused = adapt_arm(
+                inputs.run,
+                inputs.target,
+                inputs.families,
+                inputs.host,
+                inputs.out / f"seed{seed}" / arm.folder,
+                settings,
+                inputs.background_3HW,
+                resume=inputs.resume,
+            )
+            if arm.name == SHOTS_ALONE:  # the family tokenizer before fine-tuning, and the background, once per seed
+                rows.append(_row(ZERO_SHOT, "-", 0.0, seed, summary, after=False))
+                rows.append(_background_row(seed, summary))
+            rows.append(_row(arm.name, arm.budget, arm.ratio, seed, summary))
+            skipped |= summary["after"].get("skipped") or {}
+            last = rows[-1]
+            report(
+                f"seed {seed}, {arm.name}: {arm.steps} steps{' (read back)' if reused else ''}, SSIM "
+                f"{last.get('ssim')}, contact PSNR {last.get('contact_psnr')}, family PSNR {last.get('family_psnr')}"
+            )
+    return rows, skipped, assignments, name, source
 
 
 def _background_row(seed: int, summary: dict[str, Any]) -> dict[str, Any]:

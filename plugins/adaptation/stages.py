@@ -131,7 +131,8 @@ def run_cluster_stage(job: StageJob) -> dict[str, Any]:
 
 def run_adapt_stage(job: StageJob) -> dict[str, Any]:
     """Adapt the run's tokenizer to the target sensor (see the module docstring)."""
-    from .adapt import adapt_tokenizer, families_to_adapt_from
+    from .adapt import adapt_tokenizer
+    from .adapt_families import families_to_adapt_from
 
     section, config = job.section, job.config
     tokenizer, folder = _family_tokenizer(job)

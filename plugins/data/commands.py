@@ -47,7 +47,12 @@ def vqtouch_add_commands(subparsers):
         "data", help="export procedural datasets; check sensors against real frames and splits for leakage"
     )
     data_sub = data.add_subparsers(dest="data_command", metavar="ACTION", required=True)
+    _add_render_command(data_sub)
+    _add_fidelity_command(data_sub)
+    _add_leakage_command(data_sub)
 
+
+def _add_render_command(data_sub) -> None:
     render = data_sub.add_parser("render", help="render procedural (tactile, visual, label, text) samples to a folder")
     render.add_argument(
         "--sensor",
@@ -69,6 +74,8 @@ def vqtouch_add_commands(subparsers):
     render.add_argument("--overwrite", action="store_true", help="allow writing into a non-empty folder")
     render.set_defaults(handler="vqtouch.plugins.data.command_handlers:cmd_render")
 
+
+def _add_fidelity_command(data_sub) -> None:
     fidelity = data_sub.add_parser("fidelity", help="SSIM/PSNR of rendered vs real taxim ball presses, with pictures")
     fidelity.add_argument("--out", required=True, help="folder for the pictures and fidelity.json")
     add_overwrite_argument(fidelity, "fidelity.json")
@@ -83,6 +90,8 @@ def vqtouch_add_commands(subparsers):
     fidelity.add_argument("--crop", type=positive_int, default=64, help="side of the square crop around each contact")
     fidelity.set_defaults(handler="vqtouch.plugins.data.command_handlers:cmd_fidelity")
 
+
+def _add_leakage_command(data_sub) -> None:
     leakage = data_sub.add_parser(
         "leakage",
         help="held-out images with a near-duplicate in training (e.g. frames of one recording)",

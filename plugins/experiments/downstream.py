@@ -67,9 +67,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import math
-import statistics
-import textwrap
 import time
 from collections import Counter
 from pathlib import Path
@@ -77,84 +74,42 @@ from typing import Any, Callable, Sequence
 
 import torch
 
-from vqtouch.core import Assembly, ConfigError, PluginHost
-from vqtouch.plugins.evaluation.records import ExperimentRecord, markdown_table, mean_spread
+from vqtouch.core import ConfigError, PluginHost
+from vqtouch.plugins.evaluation.records import ExperimentRecord, mean_spread
 from vqtouch.plugins.training.batches import collate_samples
-from vqtouch.plugins.generator import (
-    RANK_DESCRIPTIONS,
-    check_best_of,
-    check_best_of_rank,
-    refuse_idle_rank,
-    sample_images,
+from vqtouch.plugins.generator import check_best_of, check_best_of_rank, refuse_idle_rank, sample_images
+
+from .downstream_arms import (
+    BACKGROUND,
+    CEILING,
+    FEW,
+    FEW_AND_GENERATED,
+    FEW_AND_RECONSTRUCTED,
+    GENERATED,
+    GROUP,
+    RECONSTRUCTED,
+    SCORES,
+    LabelledFeatures,
+    check_generated_weights,
+    classification_accuracy_score,
+    draw_others,
+    draw_shots,
+    mixed_arm,
+    paired_over_seeds,
+    recognition_scores,
 )
-from vqtouch.plugins.utils.splits import experiment_split
-from vqtouch.plugins.evaluation.contact import dataset_background
-from vqtouch.plugins.utils.images import image_grid, save_png
-
-GENERATED, FEW, FEW_AND_GENERATED, CEILING, RECONSTRUCTED, FEW_AND_RECONSTRUCTED, BACKGROUND = (
-    "generated only",
-    "real few",
-    "real few + generated",
-    "all real (ceiling)",
-    "reconstructions only",
-    "real few + reconstructions",
-    "no-contact background",
+from .downstream_inputs import (
+    ArmSettings,
+    LabelledData,
+    RealImages,
+    SamplingSettings,
+    feature_metric,
+    featurize_real,
+    labelled_data,
+    real_features,
+    reconstruction,
 )
-#: The arms in table order: the tokenizer's reconstructions stand in for a generator that reproduced
-#: its training images (the ceiling of the two generated arms); the background row last, the floor of
-#: ``generated only``.
-ARMS = (GENERATED, FEW, FEW_AND_GENERATED, CEILING, RECONSTRUCTED, FEW_AND_RECONSTRUCTED, BACKGROUND)
-#: The recognition scores of each arm, all in [0, 1].
-SCORES = ("top1", "precision", "recall", "f1")
-#: How the table groups the rows (the seeds of one group are averaged).
-GROUP = ("arm", "real_per_class", "generated_per_class")
-#: Real images read and featurized at a time.
-FEATURE_CHUNK = 64
-
-
-@dataclasses.dataclass
-class LabelledFeatures:
-    """Frozen-network features of labelled images: ``features_NF`` (N, F), their ``labels`` and the
-    dataset ``indices`` they came from (empty for images that are not in the dataset)."""
-
-    features_NF: torch.Tensor
-    labels: list[int]
-    indices: list[int]
-
-    def take(self, positions: Sequence[int]) -> LabelledFeatures:
-        """The rows at ``positions``."""
-        positions = list(positions)
-        return LabelledFeatures(
-            self.features_NF[positions],
-            [self.labels[p] for p in positions],
-            [self.indices[p] for p in positions] if self.indices else [],
-        )
-
-    @staticmethod
-    def join(*parts: LabelledFeatures) -> LabelledFeatures:
-        """The rows of every part, in order."""
-        return LabelledFeatures(
-            torch.cat([part.features_NF for part in parts]),
-            [label for part in parts for label in part.labels],
-            [index for part in parts for index in part.indices],
-        )
-
-
-def recognition_scores(true_labels: Sequence[int], predicted: Sequence[int]) -> dict[str, float]:
-    """``top1`` accuracy and the ``precision``, ``recall`` and ``f1`` macro-averaged over the classes
-    of ``true_labels`` (scikit-learn; a class never predicted has precision 0, and the macro F1 is the
-    mean of the per-class F1s, not the F1 of the macro precision and recall)."""
-    from sklearn.metrics import accuracy_score, precision_recall_fscore_support
-
-    precision, recall, f1, _ = precision_recall_fscore_support(
-        true_labels, predicted, labels=sorted(set(true_labels)), average="macro", zero_division=0
-    )
-    return {
-        "top1": round(float(accuracy_score(true_labels, predicted)), 4),
-        "precision": round(float(precision), 4),
-        "recall": round(float(recall), 4),
-        "f1": round(float(f1), 4),
-    }
+from .downstream_report import render_markdown, save_figures
 
 
 def label_conditioner_index(sample_keys: Sequence[str], names: Sequence[str], chosen: int | None) -> int:
@@ -181,79 +136,6 @@ def label_conditioner_index(sample_keys: Sequence[str], names: Sequence[str], ch
         f"this run's generator has no label conditioner ({described}); downstream recognition "
         "generates from class labels: train one with `vqtouch train generator --scene label-to-touch`"
     )
-
-
-@torch.no_grad()
-def real_features(
-    dataset: Any,
-    indices: Sequence[int],
-    metric: Any,
-    prepare: Callable[[torch.Tensor], torch.Tensor] | None = None,
-) -> tuple[LabelledFeatures, int]:
-    """Features of the labelled samples among ``dataset[indices]`` (read ``FEATURE_CHUNK`` at a time)
-    and how many were left out for having no label (-1 or None); ``prepare`` maps each chunk of
-    images (N, 3, H, W) before the features are taken (e.g. the tokenizer's reconstruction)."""
-    features, labels, kept, unlabelled = [], [], [], 0
-    for start in range(0, len(indices), FEATURE_CHUNK):
-        chunk = list(indices[start : start + FEATURE_CHUNK])
-        samples = [dataset[index] for index in chunk]
-        labelled = [
-            (index, sample)
-            for index, sample in zip(chunk, samples)
-            if sample.get("label") is not None and int(sample["label"]) >= 0
-        ]
-        unlabelled += len(chunk) - len(labelled)
-        if labelled:
-            images_N3HW = torch.stack([sample["tactile"] for _, sample in labelled]).float()
-            if prepare is not None:
-                images_N3HW = prepare(images_N3HW)
-            features.append(metric.pooled_features(images_N3HW).float())
-            labels += [int(sample["label"]) for _, sample in labelled]
-            kept += [index for index, _ in labelled]
-    width = features[0].shape[1] if features else 0
-    return LabelledFeatures(torch.cat(features) if features else torch.zeros(0, width), labels, kept), unlabelled
-
-
-def _positions_by_class(labels: Sequence[int], exclude: Sequence[int] = ()) -> dict[int, list[int]]:
-    """Class -> its positions in ``labels``, in order, leaving out those in ``exclude``."""
-    excluded = set(exclude)
-    by_class: dict[int, list[int]] = {}
-    for position, label in enumerate(labels):
-        if position not in excluded:
-            by_class.setdefault(label, []).append(position)
-    return by_class
-
-
-def _draw_per_class(by_class: dict[int, list[int]], count: int, seed: int) -> list[int]:
-    """Up to ``count`` positions of every class (in class order), drawn without replacement by ``seed``."""
-    draw = torch.Generator().manual_seed(seed)
-    chosen = []
-    for label in sorted(by_class):
-        members = by_class[label]
-        chosen += [members[i] for i in torch.randperm(len(members), generator=draw)[:count].tolist()]
-    return chosen
-
-
-def draw_shots(labels: Sequence[int], shots: int, seed: int, class_names: Sequence[str] = ()) -> list[int]:
-    """Positions of ``shots`` images of every class in ``labels``, drawn without replacement by
-    ``seed``; a one-line ConfigError naming the class when one has fewer."""
-    by_class = _positions_by_class(labels)
-    scarcest = min(by_class, key=lambda label: (len(by_class[label]), label))
-    if len(by_class[scarcest]) < shots:
-        name = f"{class_names[scarcest]!r} ({scarcest})" if scarcest < len(class_names) else str(scarcest)
-        raise ConfigError(
-            f"--shots {shots}: class {name} has only {len(by_class[scarcest])} real training images in "
-            f"the run's split; give --shots {len(by_class[scarcest])} or fewer"
-        )
-    return _draw_per_class(by_class, shots, seed)
-
-
-def draw_others(labels: Sequence[int], per_class: int, seed: int, exclude: Sequence[int]) -> list[int]:
-    """Positions of up to ``per_class`` images of every class in ``labels`` outside ``exclude``, drawn
-    without replacement by ``seed`` (all the others of a class that has fewer): the training images
-    whose reconstructions stand in for a perfect generator's ``per_class`` images of the class."""
-    # Its own stream, so that the reconstructions never shift the shots or the generated images.
-    return _draw_per_class(_positions_by_class(labels, exclude), per_class, seed * 1_000_003 + 7)
 
 
 @torch.no_grad()
@@ -336,12 +218,29 @@ def train_and_test(
     return recognition_scores(test.labels, predicted), predicted
 
 
-def _feature_metric(config: Any, assembly: Any, feature_size: int | None) -> Any:
-    """The ``fd_effnetlite0`` metric whose network gives the features: ``feature_size`` when given,
-    else the run's own ``fd_effnetlite0`` metric's size, else 224."""
-    if feature_size is None:
-        feature_size = next((item.image_size for item in config.metrics if item.name == "fd_effnetlite0"), 224)
-    return assembly.build("metric", {"name": "fd_effnetlite0", "image_size": feature_size})
+@dataclasses.dataclass(frozen=True)
+class _Experiment:
+    """What every seed shares: the settings, the run's pipeline and data, the feature network, the
+    tokenizer's reconstruction and the real images' features."""
+
+    arms: ArmSettings
+    sampling: SamplingSettings
+    pipe: Any
+    data: LabelledData
+    metric: Any
+    reconstruct: Callable[[torch.Tensor], torch.Tensor]
+    real: RealImages
+
+
+@dataclasses.dataclass
+class _SeedOutcome:
+    """What the seeds produced: a row per arm and seed, the first seed's confusion matrices and
+    generated images, and the classes short of reconstructions (class -> how many short)."""
+
+    rows: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    confusion: dict[str, list[list[int]]] = dataclasses.field(default_factory=dict)
+    shown: torch.Tensor | None = None
+    shortfall: dict[int, int] = dataclasses.field(default_factory=dict)
 
 
 def evaluate_downstream(
@@ -378,417 +277,266 @@ def evaluate_downstream(
     real training images, drawn once at random (0: all; the ceiling arm then trains on them);
     ``batch_size``: labels generated per forward pass; ``generated_weights``: the ``real few +
     generated`` arm once per weight, a generated image weighing that much against 1 for a real one in
-    the classifier's fit (:func:`mixed_arm`); ``through_tokenizer``: every real image and the
-    no-contact image pass through the run's tokenizer before the classifiers see them (module
-    docstring); ``best_of``: label candidates per generated image, the choice of ``best_of_rank`` kept
-    (1: plain sampling; ``"judge"``, the run's code judge, or ``"posterior"``).  Returns what
+    the classifier's fit (:func:`~vqtouch.plugins.experiments.downstream_arms.mixed_arm`);
+    ``through_tokenizer``: every real image and the no-contact image pass through the run's tokenizer
+    before the classifiers see them (module docstring); ``best_of``: label candidates per generated
+    image, the choice of ``best_of_rank`` kept (1: plain sampling; ``"judge"``, the run's code judge,
+    or ``"posterior"``).  The helpers receive them grouped, as
+    :class:`~vqtouch.plugins.experiments.downstream_inputs.ArmSettings` and
+    :class:`~vqtouch.plugins.experiments.downstream_inputs.SamplingSettings`.  Returns what
     ``downstream.json`` holds."""
     from vqtouch.plugins.generator import load_pipeline
-    from vqtouch.plugins.tokenizer import reconstruct_all
 
-    generated_weights = check_generated_weights(generated_weights)
+    arms = ArmSettings(
+        shots=shots,
+        generated_per_class=generated_per_class,
+        generated_weights=tuple(check_generated_weights(generated_weights)),
+        feature_size=feature_size,
+        train_images=train_images,
+        through_tokenizer=through_tokenizer,
+    )
     pipe = load_pipeline(run, host=host, step=step)
-    config = pipe.config
-    names = [item.name for item in config.generator.conditioners]
-    chosen = label_conditioner_index([c.sample_key for c in pipe.conditioners], names, conditioner)
-    label_conditioner = pipe.conditioners[chosen]
-    best_of = check_best_of(best_of, label_conditioner, f"{chosen}:{names[chosen]}")
-    best_of_rank = check_best_of_rank(best_of_rank)
-    steps = pipe.check_steps(steps or pipe.settings["steps"])
-    guidance = pipe.guidance_for(chosen) if guidance is None else guidance
-    sampler_name = sampler or pipe.sampler_name
-    sampler_plugin = pipe.sampler if sampler_name == pipe.sampler_name else host.build("sampler", sampler_name)
-    assembly = Assembly(config, host)
-    dataset = assembly.component("data.dataset")
-    dataset_name = config.data.dataset.name
-    class_names = list(getattr(dataset, "class_names", []))
-    if not class_names:
-        raise ConfigError(
-            f"the run's dataset ({dataset_name}) has no class labels; downstream recognition needs "
-            "them (e.g. image_folder with one sub-folder per class, or a CSV with a label column)"
-        )
-    train_split, test_split = experiment_split(dataset, config.data, config.seed)
-    if not len(test_split):
-        raise ConfigError(
-            f"the run holds out no images (data.val_fraction={config.data.val_fraction}); downstream "
-            "recognition tests on the run's held-out split: use a run trained with data.val_fraction > 0"
-        )
-    metric = _feature_metric(config, assembly, feature_size)
-    tokenizer = pipe.tokenizer
-
-    def reconstruct(images_N3HW: torch.Tensor) -> torch.Tensor:
-        return reconstruct_all(tokenizer, images_N3HW.to(tokenizer.device), FEATURE_CHUNK).float().cpu()
-
-    prepare = reconstruct if through_tokenizer else None
-
+    sampling = resolve_sampling(
+        pipe,
+        host,
+        conditioner=conditioner,
+        steps=steps,
+        sampler=sampler,
+        guidance=guidance,
+        batch_size=batch_size,
+        best_of=best_of,
+        best_of_rank=best_of_rank,
+    )
+    data = labelled_data(pipe.config, host)
+    metric = feature_metric(pipe.config, data.assembly, arms.feature_size)
+    reconstruct = reconstruction(pipe.tokenizer)
     record = ExperimentRecord("downstream", out, seeds=seeds, overwrite=overwrite)  # from here on the wall time counts
-    pool = list(train_split.indices)
-    if train_images and train_images < len(pool):
-        order = torch.randperm(len(pool), generator=torch.Generator().manual_seed(0)).tolist()
-        pool = sorted(pool[i] for i in order[:train_images])
-    tic = time.perf_counter()
-    real_train, train_unlabelled = real_features(dataset, pool, metric, prepare)
-    test, test_unlabelled = real_features(dataset, test_split.indices, metric, prepare)
-    report(
-        f"features of {len(real_train.labels)} real training and {len(test.labels)} held-out images"
-        f"{' (through the tokenizer)' if through_tokenizer else ''} at {metric.image_size} px in "
-        f"{time.perf_counter() - tic:.0f} s"
-    )
-    classes = sorted(set(real_train.labels))
-    if len(classes) < 2:
-        raise ConfigError(
-            f"the run's training split holds {len(classes)} labelled class(es) of {dataset_name}; "
-            "a classifier needs at least 2"
-        )
-    if not test.labels:
-        raise ConfigError(
-            f"none of the run's {len(test_split)} held-out images of {dataset_name} has a label; "
-            "downstream recognition tests on labelled held-out images"
-        )
-    draw_shots(real_train.labels, shots, 0, class_names)  # refuses too many shots before anything is generated
-    background, background_source = dataset_background(train_split, tuple(test_split[0]["tactile"].shape[-2:]))
-    if background is not None and prepare is not None:
-        background = prepare(background[None])[0]
-    background_features = None if background is None else metric.pooled_features(background[None]).float()
-    every_class = sorted(set(classes) | set(test.labels))
-    test_counts = Counter(test.labels)
-    rows: list[dict[str, Any]] = []
-    confusion: dict[str, list[list[int]]] = {}
-    shown = None
-    shortfall: dict[int, int] = {}  # class -> reconstructions short of generated_per_class
-    for seed in record.seeds:
-        tic = time.perf_counter()
-        images, labels = generate_per_class(
-            pipe,
-            label_conditioner,
-            sampler_plugin,
-            classes,
-            generated_per_class,
-            steps=steps,
-            guidance=guidance,
-            truncation=pipe.settings["truncation"],
-            seed=seed,
-            batch_size=batch_size,
-            best_of=best_of,
-            best_of_rank=best_of_rank,
-        )
-        shown = images if shown is None else shown
-        generated = LabelledFeatures(metric.pooled_features(images).float(), labels, [])
-        shot_positions = draw_shots(real_train.labels, shots, seed, class_names)
-        few = real_train.take(shot_positions)
-        others = real_train.take(draw_others(real_train.labels, generated_per_class, seed, shot_positions))
-        if not through_tokenizer:  # else real_train's features already are the reconstructions'
-            others = real_features(dataset, others.indices, metric, reconstruct)[0]
-        reconstructed_counts = Counter(others.labels)
-        shortfall.update(
-            {
-                label: generated_per_class - reconstructed_counts[label]
-                for label in classes
-                if reconstructed_counts[label] < generated_per_class
-            }
-        )
-        arms = {
-            GENERATED: (generated, 0, generated_per_class, None),
-            FEW: (few, shots, 0, None),
-            **{
-                mixed_arm(weight): (LabelledFeatures.join(few, generated), shots, generated_per_class, weight)
-                for weight in generated_weights
-            },
-            CEILING: (real_train, "all", 0, None),
-            RECONSTRUCTED: (others, 0, generated_per_class, None),
-            FEW_AND_RECONSTRUCTED: (LabelledFeatures.join(few, others), shots, generated_per_class, None),
-        }
-        if background_features is not None:
-            arms[BACKGROUND] = (
-                LabelledFeatures(background_features.expand(len(labels), -1), labels, []),
-                0,
-                generated_per_class,
-                None,
-            )
-        for arm, (train, real_per_class, generated_count, weight) in arms.items():
-            scores, predicted = train_and_test(train, test, seed, 1.0 if weight is None else weight)
-            rows.append(
-                {
-                    "arm": arm,
-                    "seed": seed,
-                    "real_per_class": real_per_class,
-                    "generated_per_class": generated_count,
-                    **({} if weight is None else {"generated_weight": weight}),
-                    "train_images": len(train.labels),
-                    **scores,
-                    "real_indices": train.indices,
-                }
-            )
-            if seed == record.seeds[0]:
-                from sklearn.metrics import confusion_matrix
-
-                confusion[arm] = confusion_matrix(test.labels, predicted, labels=every_class).tolist()
-        report(
-            f"seed {seed}: "
-            + ", ".join(f"{row['arm']} top-1 {row['top1']:.3f}" for row in rows if row["seed"] == seed)
-            + f" ({time.perf_counter() - tic:.0f} s)"
-        )
-    summary = mean_spread(rows, ("train_images", *SCORES), GROUP)
-    result = {
-        "run": str(pipe.run.path if pipe.run is not None else run),
-        "checkpoint": str(pipe.checkpoint),
-        "conditioner": f"{chosen}:{names[chosen]}",
-        "sampler": sampler_name,
-        "steps": steps,
-        "guidance": guidance,
-        "dataset": dataset_name,
-        "classes": {label: class_names[label] if label < len(class_names) else str(label) for label in every_class},
-        "classifier": f"logistic regression on standardized frozen EfficientNet-Lite0 pooled features at "
-        f"{metric.image_size} px (vqtouch.plugins.evaluation.distribution.RealImageClassifier)",
-        "feature_size": metric.image_size,
-        "real_images": "the tokenizer's reconstructions" if through_tokenizer else "as read",
-        "shots": shots,
-        "generated_per_class": generated_per_class,
-        "generated_weights": list(generated_weights),
-        "best_of": best_of,
-        **({"best_of_rank": best_of_rank} if best_of > 1 else {}),
-        "reconstruction_shortfall": {str(label): count for label, count in sorted(shortfall.items())},
-        "split_unit": test_split.split_unit,
-        "generator_train_images": len(train_split),
-        "real_train_images": len(real_train.labels),
-        "train_unlabelled": train_unlabelled,
-        "test_images": len(test.labels),
-        "test_unlabelled": test_unlabelled,
-        "test_indices": test.indices,
-        "test_class_counts": {str(label): count for label, count in sorted(test_counts.items())},
-        "classes_without_training_images": sorted(set(test.labels) - set(classes)),
-        "chance": round(1 / len(every_class), 4),
-        "majority": round(max(test_counts.values()) / len(test.labels), 4),
-        "background": None if background is None else background_source,
-        "rows": rows,
-        "summary": summary,
-        "cas_ratio": classification_accuracy_score(rows, shots, generated_per_class),
-        "generated_adds": paired_over_seeds(rows, FEW_AND_GENERATED, FEW, lambda mixed, few: mixed - few),
-        "confusion": {"seed": record.seeds[0], "labels": every_class, "matrices": confusion},
-    }
-    plot_scores(
-        summary,
-        result["chance"],
-        result["majority"],
-        record.path("downstream.png"),
-        f"downstream recognition on {len(test.labels)} real held-out images ({len(record.seeds)} seeds)",
-    )
-    plot_confusions(
-        confusion,
-        [result["classes"][label] for label in every_class],
-        record.path("downstream_confusion.png"),
-        f"seed {record.seeds[0]}",
-    )
-    save_generated(shown, generated_per_class, record.path("downstream_generated.png"))
+    real = featurize_real(data, metric, arms, reconstruct, report)
+    experiment = _Experiment(arms, sampling, pipe, data, metric, reconstruct, real)
+    outcome = _run_seeds(experiment, record.seeds, report)
+    result = _result(run, experiment, outcome, record.seeds[0])
+    save_figures(result, outcome.shown, record)
     record.write(result, render_markdown(result))
     return result
 
 
-def paired_over_seeds(
-    rows: Sequence[dict[str, Any]], arm: str, rival: str, combine: Callable[[float, float], float]
-) -> dict[str, float] | None:
-    """``combine(arm's top-1, rival's top-1)`` per seed, as ``{"mean", "std"}`` over the seeds where both
-    arms trained (None where none did)."""
-    by_seed = {(row["arm"], row["seed"]): row["top1"] for row in rows}
-    values = [
-        combine(by_seed[(arm, seed)], by_seed[(rival, seed)])
-        for seed in sorted({row["seed"] for row in rows})
-        if (arm, seed) in by_seed and (rival, seed) in by_seed
-    ]
-    values = [value for value in values if math.isfinite(value)]
-    if not values:
-        return None
-    # The population spread, as the summary's (mean_spread).
-    return {"mean": round(statistics.fmean(values), 4), "std": round(statistics.pstdev(values), 4)}
-
-
-def classification_accuracy_score(rows: Sequence[dict[str, Any]], shots: int, generated_per_class: int) -> Any:
-    """The field's CAS ratio (Ravuri and Vinyals, 2019): top-1 of the classifier trained on generated
-    images only over that of the same classifier trained on as many real images, per seed; None
-    unless ``shots`` equals ``generated_per_class`` (the counts must match)."""
-    if shots != generated_per_class:
-        return None
-    return paired_over_seeds(rows, GENERATED, FEW, lambda generated, real: generated / real if real else math.nan)
-
-
-def mixed_arm(generated_weight: float) -> str:
-    """The name of the ``real few + generated`` arm whose generated images weigh ``generated_weight``
-    against 1 for a real image (the plain name at weight 1)."""
-    return FEW_AND_GENERATED if generated_weight == 1.0 else f"{FEW_AND_GENERATED} (weight {generated_weight:g})"
-
-
-def check_generated_weights(weights: Sequence[float]) -> list[float]:
-    """``weights`` as floats; a one-line ConfigError for none, a repeat, or one that is not a finite
-    number > 0 (a weight of 0 is the ``real few`` arm)."""
-    weights = [float(weight) for weight in weights]
-    if not weights:
-        raise ConfigError("--generated-weight: give at least one weight (1: a generated image counts as a real one)")
-    for weight in weights:
-        if not (math.isfinite(weight) and weight > 0):
-            raise ConfigError(
-                f"--generated-weight {weight:g}: must be a finite number > 0 (weight 0 is the `{FEW}` arm)"
-            )
-    if len({mixed_arm(weight) for weight in weights}) != len(weights):
-        raise ConfigError(f"--generated-weight {' '.join(f'{w:g}' for w in weights)}: each weight once")
-    return weights
-
-
-def render_markdown(result: dict[str, Any]) -> list[str]:
-    """The table of ``downstream.json`` for people."""
-    ceiling = (
-        "every real training image of the run's split"
-        if result["real_train_images"] + result["train_unlabelled"] == result["generator_train_images"]
-        else f"{result['real_train_images']} of the run's {result['generator_train_images']} real training "
-        "images (--train-images)"
+def resolve_sampling(
+    pipe: Any,
+    host: PluginHost,
+    *,
+    conditioner: int | None,
+    steps: int | None,
+    sampler: str | None,
+    guidance: float | None,
+    batch_size: int,
+    best_of: int,
+    best_of_rank: str,
+) -> SamplingSettings:
+    """The generated arms' sampling, checked: the label conditioner (:func:`label_conditioner_index`),
+    the best-of choice, and the steps, sampler and guidance (None: the run's)."""
+    names = [item.name for item in pipe.config.generator.conditioners]
+    chosen = label_conditioner_index([c.sample_key for c in pipe.conditioners], names, conditioner)
+    label_conditioner = pipe.conditioners[chosen]
+    best_of = check_best_of(best_of, label_conditioner, f"{chosen}:{names[chosen]}")
+    best_of_rank = check_best_of_rank(best_of_rank, host)
+    steps = pipe.check_steps(steps or pipe.settings["steps"])
+    guidance = pipe.guidance_for(chosen) if guidance is None else guidance
+    sampler_name = sampler or pipe.sampler_name
+    sampler_plugin = pipe.sampler if sampler_name == pipe.sampler_name else host.build("sampler", sampler_name)
+    return SamplingSettings(
+        conditioner=label_conditioner,
+        conditioner_label=f"{chosen}:{names[chosen]}",
+        sampler=sampler_plugin,
+        sampler_name=sampler_name,
+        steps=steps,
+        guidance=guidance,
+        batch_size=batch_size,
+        best_of=best_of,
+        best_of_rank=best_of_rank,
     )
-    lines = [
-        "# Downstream recognition (Table 3)",
-        "",
-        f"A classifier trained on each arm's images, tested on the run's {result['test_images']} real held-out "
-        f"images ({len(result['classes'])} classes, held out by {result['split_unit']}; never trained on).  "
-        f"Classifier: {result['classifier']}.  Top-1 accuracy; precision, recall and F1 macro-averaged over the "
-        f"test set's classes.  Generated with `{result['conditioner']}`, sampler {result['sampler']}, "
-        f"{result['steps']} steps, guidance {result['guidance']:g}.",
-        "",
-    ]
-    if result["real_images"] != "as read":
-        lines += [
-            "Every real image (training and held-out) and the no-contact image passed through the run's "
-            "tokenizer first (--through-tokenizer): real and generated images share the decoder's look.",
-            "",
-        ]
-    headers = {
-        "real_per_class": "real / class",
-        "generated_per_class": "generated / class",
-        "train_images": "train images",
-        "top1": "top-1",
-        "f1": "F1",
-    }
-    lines += markdown_table(result["summary"], GROUP, ("train_images", *SCORES), headers)
-    lines += [
-        "",
-        f"Chance (1 / {len(result['classes'])} classes): {result['chance']:.4g}.  Majority-class rate "
-        f"(always naming the test set's most common class): {result['majority']:.4g}.",
-        "",
-        f"`{CEILING}` is the ceiling: {ceiling}.  The generator itself was trained on the run's "
-        f"{result['generator_train_images']} training images, so `{GENERATED}` measures whether its images carry "
-        "the class, not what K real images would teach it.",
-        "",
-        f"`{RECONSTRUCTED}` and `{FEW_AND_RECONSTRUCTED}`: the generated images replaced by the tokenizer's "
-        f"reconstructions of {result['generated_per_class']} other real training images per class, what a "
-        "generator that reproduced its training images would give (the generated arms' ceiling).",
-    ]
-    cas, adds = result.get("cas_ratio"), result.get("generated_adds")
-    if cas:
-        lines += [
-            "",
-            f"CAS ratio (`{GENERATED}` top-1 over `{FEW}` top-1 at the same {result['shots']} images per class, "
-            f"per seed): {cas['mean']:.3f} ± {cas['std']:.3f}.",
-        ]
-    if adds:
-        lines += [
-            "",
-            f"`{FEW_AND_GENERATED}` minus `{FEW}` (top-1, per seed): {adds['mean']:+.3f} ± {adds['std']:.3f}.",
-        ]
-    if result["reconstruction_shortfall"]:
-        lines += [
-            "",
-            "Classes with fewer other training images than that (class: reconstructions short): "
-            + ", ".join(f"{label}: {count}" for label, count in result["reconstruction_shortfall"].items())
-            + ".",
-        ]
-    if result.get("best_of", 1) > 1:
-        lines += [
-            "",
-            f"Each generated image is the best of {result['best_of']} candidates by "
-            + RANK_DESCRIPTIONS[result.get("best_of_rank", "judge")]
-            + " (--best-of, --best-of-rank).",
-        ]
-    if result["background"]:
-        lines += [
-            "",
-            f"`{BACKGROUND}`: the no-contact image ({result['background']}) as every class's training "
-            f"images, what a generator that draws only the background would give `{GENERATED}` (a classifier "
-            "that names one class: at most the majority-class rate).  Claim `better` on the real held-out "
-            "scores above it.",
-        ]
-    if result.get("generated_weights", [1.0]) != [1.0]:
-        lines += [
-            "",
-            f"`{FEW_AND_GENERATED} (weight W)`: the same images as `{FEW_AND_GENERATED}`, each generated one "
-            "weighing W against 1 for a real image in the classifier's standardization and loss.",
-        ]
-    if result["classes_without_training_images"]:
-        lines += [
-            "",
-            f"Held-out classes with no training image (no arm can learn them): "
-            f"{result['classes_without_training_images']}.",
-        ]
-    return lines
 
 
-def plot_scores(summary: list[dict[str, Any]], chance: float, majority: float, path: Path, title: str) -> None:
-    """Grouped bars: the four scores of every arm (mean, standard deviation as error bars), with the
-    chance level and the majority-class rate as lines."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    figure = Figure(figsize=(11, 4), dpi=110)
-    FigureCanvasAgg(figure)
-    axes = figure.add_subplot(1, 1, 1)
-    width = 0.8 / len(SCORES)
-    for offset, score in enumerate(SCORES):
-        positions = [index + (offset - (len(SCORES) - 1) / 2) * width for index in range(len(summary))]
-        axes.bar(
-            positions,
-            [row[score] for row in summary],
-            width,
-            yerr=[row[f"{score}_std"] for row in summary],
-            capsize=3,
-            label=score,
+def _run_seeds(experiment: _Experiment, seeds: Sequence[int], report: Callable[[str], None]) -> _SeedOutcome:
+    """Every arm trained and tested once per seed."""
+    outcome = _SeedOutcome()
+    per_class = experiment.arms.generated_per_class
+    for seed in seeds:
+        tic = time.perf_counter()
+        images, generated = _generated(experiment, seed)
+        outcome.shown = images if outcome.shown is None else outcome.shown
+        few, others = _real_draws(experiment, seed)
+        reconstructed_counts = Counter(others.labels)
+        outcome.shortfall.update(
+            {
+                label: per_class - reconstructed_counts[label]
+                for label in experiment.real.classes
+                if reconstructed_counts[label] < per_class
+            }
         )
-    axes.axhline(chance, linestyle="--", color="grey", label="chance")
-    axes.axhline(majority, linestyle=":", color="black", label="majority class")
-    # Wrapped: with seven or more arms, whole names run into each other.
-    axes.set_xticks(range(len(summary)), [textwrap.fill(row["arm"], 16) for row in summary], fontsize=8)
-    axes.set_ylim(0, 1.05)
-    axes.set_ylabel("score on real held-out images")
-    axes.legend(fontsize=7, ncols=3)
-    axes.grid(axis="y", alpha=0.3)
-    axes.set_title(title, fontsize=9)
-    figure.tight_layout()
-    figure.savefig(path)
+        arms = _seed_arms(experiment, generated, few, others)
+        confusion = outcome.confusion if seed == seeds[0] else None
+        outcome.rows += _fit_arms(arms, experiment.real.test, seed, experiment.real.every_class, confusion)
+        report(
+            f"seed {seed}: "
+            + ", ".join(f"{row['arm']} top-1 {row['top1']:.3f}" for row in outcome.rows if row["seed"] == seed)
+            + f" ({time.perf_counter() - tic:.0f} s)"
+        )
+    return outcome
 
 
-def plot_confusions(confusion: dict[str, list[list[int]]], class_names: Sequence[str], path: Path, title: str) -> None:
-    """One row-normalised confusion matrix (true class down, predicted across) per arm."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    figure = Figure(figsize=(3.2 * len(confusion), 3.8), dpi=110)
-    FigureCanvasAgg(figure)
-    for index, (arm, matrix) in enumerate(confusion.items()):
-        counts = torch.tensor(matrix, dtype=torch.float64)
-        axes = figure.add_subplot(1, len(confusion), index + 1)
-        axes.imshow((counts / counts.sum(dim=1, keepdim=True).clamp_min(1)).numpy(), vmin=0, vmax=1, cmap="Blues")
-        axes.set_title(arm, fontsize=8)
-        ticks = range(len(class_names))
-        size = 7 if len(class_names) <= 12 else 4
-        axes.set_xticks(ticks, class_names, rotation=90, fontsize=size)
-        axes.set_yticks(ticks, class_names if index == 0 else [""] * len(class_names), fontsize=size)
-    figure.suptitle(
-        f"confusion on the real held-out images ({title}; rows: true class, columns: predicted)", fontsize=9
+def _generated(experiment: _Experiment, seed: int) -> tuple[torch.Tensor, LabelledFeatures]:
+    """The seed's generated images (class-major) and their features."""
+    sampling = experiment.sampling
+    images, labels = generate_per_class(
+        experiment.pipe,
+        sampling.conditioner,
+        sampling.sampler,
+        experiment.real.classes,
+        experiment.arms.generated_per_class,
+        steps=sampling.steps,
+        guidance=sampling.guidance,
+        truncation=experiment.pipe.settings["truncation"],
+        seed=seed,
+        batch_size=sampling.batch_size,
+        best_of=sampling.best_of,
+        best_of_rank=sampling.best_of_rank,
     )
-    figure.tight_layout()
-    figure.savefig(path, bbox_inches="tight")  # rotated class names reach below the axes
+    return images, LabelledFeatures(experiment.metric.pooled_features(images).float(), labels, [])
 
 
-def save_generated(images_N3HW: torch.Tensor, per_class: int, path: Path) -> None:
-    """The generated images, one row per class (at most 8 a row)."""
+def _real_draws(experiment: _Experiment, seed: int) -> tuple[LabelledFeatures, LabelledFeatures]:
+    """The seed's real few shots and the reconstructions of other training images that stand in for
+    a perfect generator's."""
+    real_train, arms = experiment.real.train, experiment.arms
+    shot_positions = draw_shots(real_train.labels, arms.shots, seed, experiment.data.class_names)
+    few = real_train.take(shot_positions)
+    others = real_train.take(draw_others(real_train.labels, arms.generated_per_class, seed, shot_positions))
+    if not arms.through_tokenizer:  # else real_train's features already are the reconstructions'
+        others = real_features(experiment.data.dataset, others.indices, experiment.metric, experiment.reconstruct)[0]
+    return few, others
 
-    shown = min(per_class, 8)
-    rows = images_N3HW.view(-1, per_class, *images_N3HW.shape[1:])[:, :shown]
-    save_png(image_grid(rows.reshape(-1, *images_N3HW.shape[1:]), columns=shown), path)
+
+def _seed_arms(
+    experiment: _Experiment, generated: LabelledFeatures, few: LabelledFeatures, others: LabelledFeatures
+) -> dict[str, tuple[LabelledFeatures, Any, int, float | None]]:
+    """Arm -> (its training rows, real images per class, generated images per class, the generated
+    images' weight; None: unweighted), in table order."""
+    shots, per_class = experiment.arms.shots, experiment.arms.generated_per_class
+    arms: dict[str, tuple[LabelledFeatures, Any, int, float | None]] = {
+        GENERATED: (generated, 0, per_class, None),
+        FEW: (few, shots, 0, None),
+        **{
+            mixed_arm(weight): (LabelledFeatures.join(few, generated), shots, per_class, weight)
+            for weight in experiment.arms.generated_weights
+        },
+        CEILING: (experiment.real.train, "all", 0, None),
+        RECONSTRUCTED: (others, 0, per_class, None),
+        FEW_AND_RECONSTRUCTED: (LabelledFeatures.join(few, others), shots, per_class, None),
+    }
+    if experiment.real.background_features is not None:
+        labels = generated.labels
+        arms[BACKGROUND] = (
+            LabelledFeatures(experiment.real.background_features.expand(len(labels), -1), labels, []),
+            0,
+            per_class,
+            None,
+        )
+    return arms
+
+
+def _fit_arms(
+    arms: dict[str, tuple[LabelledFeatures, Any, int, float | None]],
+    test: LabelledFeatures,
+    seed: int,
+    every_class: list[int],
+    confusion: dict[str, list[list[int]]] | None,
+) -> list[dict[str, Any]]:
+    """Each arm's classifier trained and tested: its row; with ``confusion``, each arm's confusion
+    matrix on the held-out images goes into it."""
+    rows = []
+    for arm, (train, real_per_class, generated_count, weight) in arms.items():
+        scores, predicted = train_and_test(train, test, seed, 1.0 if weight is None else weight)
+        rows.append(
+            {
+                "arm": arm,
+                "seed": seed,
+                "real_per_class": real_per_class,
+                "generated_per_class": generated_count,
+                **({} if weight is None else {"generated_weight": weight}),
+                "train_images": len(train.labels),
+                **scores,
+                "real_indices": train.indices,
+            }
+        )
+        if confusion is not None:
+            from sklearn.metrics import confusion_matrix
+
+            confusion[arm] = confusion_matrix(test.labels, predicted, labels=every_class).tolist()
+    return rows
+
+
+def _result(run: str | Path, experiment: _Experiment, outcome: _SeedOutcome, first_seed: int) -> dict[str, Any]:
+    """What ``downstream.json`` holds (beside the record's seeds and provenance)."""
+    rows = outcome.rows
+    arms = experiment.arms
+    summary = mean_spread(rows, ("train_images", *SCORES), GROUP)
+    return {
+        **_setup_entries(run, experiment),
+        "reconstruction_shortfall": {str(label): count for label, count in sorted(outcome.shortfall.items())},
+        **_data_entries(experiment),
+        "rows": rows,
+        "summary": summary,
+        "cas_ratio": classification_accuracy_score(rows, arms.shots, arms.generated_per_class),
+        "generated_adds": paired_over_seeds(rows, FEW_AND_GENERATED, FEW, lambda mixed, few: mixed - few),
+        "confusion": {"seed": first_seed, "labels": experiment.real.every_class, "matrices": outcome.confusion},
+    }
+
+
+def _setup_entries(run: str | Path, experiment: _Experiment) -> dict[str, Any]:
+    """The result's run, checkpoint, sampling, dataset, classifier and arm settings."""
+    pipe, sampling, arms = experiment.pipe, experiment.sampling, experiment.arms
+    class_names, image_size = experiment.data.class_names, experiment.metric.image_size
+    return {
+        "run": str(pipe.run.path if pipe.run is not None else run),
+        "checkpoint": str(pipe.checkpoint),
+        "conditioner": sampling.conditioner_label,
+        "sampler": sampling.sampler_name,
+        "steps": sampling.steps,
+        "guidance": sampling.guidance,
+        "dataset": experiment.data.name,
+        "classes": {
+            label: class_names[label] if label < len(class_names) else str(label)
+            for label in experiment.real.every_class
+        },
+        "classifier": f"logistic regression on standardized frozen EfficientNet-Lite0 pooled features at "
+        f"{image_size} px (vqtouch.plugins.evaluation.distribution.RealImageClassifier)",
+        "feature_size": image_size,
+        "real_images": "the tokenizer's reconstructions" if arms.through_tokenizer else "as read",
+        "shots": arms.shots,
+        "generated_per_class": arms.generated_per_class,
+        "generated_weights": list(arms.generated_weights),
+        "best_of": sampling.best_of,
+        **({"best_of_rank": sampling.best_of_rank} if sampling.best_of > 1 else {}),
+    }
+
+
+def _data_entries(experiment: _Experiment) -> dict[str, Any]:
+    """The result's split, image counts, held-out classes, chance and majority rates and background."""
+    test, test_counts = experiment.real.test, Counter(experiment.real.test.labels)
+    return {
+        "split_unit": experiment.data.test_split.split_unit,
+        "generator_train_images": len(experiment.data.train_split),
+        "real_train_images": len(experiment.real.train.labels),
+        "train_unlabelled": experiment.real.train_unlabelled,
+        "test_images": len(test.labels),
+        "test_unlabelled": experiment.real.test_unlabelled,
+        "test_indices": test.indices,
+        "test_class_counts": {str(label): count for label, count in sorted(test_counts.items())},
+        "classes_without_training_images": sorted(set(test.labels) - set(experiment.real.classes)),
+        "chance": round(1 / len(experiment.real.every_class), 4),
+        "majority": round(max(test_counts.values()) / len(test.labels), 4),
+        "background": None if experiment.real.background_features is None else experiment.real.background_source,
+    }
 
 
 def _evaluate_downstream_command(args: argparse.Namespace) -> int:

@@ -15,7 +15,7 @@ from vqtouch.plugins.cli.app import (
     positive_int,
 )
 from vqtouch.plugins.evaluation.records import add_experiment_arguments
-from vqtouch.plugins.generator import BEST_OF_RANK_HELP, BEST_OF_RANKS
+from vqtouch.plugins.generator import BEST_OF_RANK_HELP
 
 from .arguments import feature_size_argument
 
@@ -94,7 +94,7 @@ def vqtouch_add_commands(subparsers: Any) -> None:
     )
     downstream.add_argument(
         "--best-of-rank",
-        choices=list(BEST_OF_RANKS),
+        metavar="RANKER",
         default="judge",
         help=BEST_OF_RANK_HELP,
     )

@@ -32,6 +32,7 @@ registered sensor (name or JSON variant), which renders them.  Five steps, one l
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shutil
 import sys
@@ -40,48 +41,42 @@ from typing import Any, Sequence
 
 import torch
 
-from vqtouch.core import Assembly, ConfigError, atomic_write, PluginHost, StageJob, StageUnavailable
+from vqtouch.core import Assembly, ConfigError, PluginHost, StageJob, StageUnavailable
 from vqtouch.plugins.data.sensor_folders import folder_of
-from vqtouch.plugins.runtime.run_dir import RunDir, interrupted_status
+from vqtouch.plugins.runtime.interruptions import interrupted_status
+from vqtouch.plugins.runtime.run_dir import RunDir
 from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.plugins.utils.splits import experiment_split
-from vqtouch.plugins.utils.files import FileModel, read_model
-from vqtouch.plugins.utils.images import image_grid, save_png
+from vqtouch.plugins.utils.files import read_model
 from vqtouch.plugins.runtime.outputs import staged_output
 from vqtouch.plugins.evaluation.records import markdown_table, provenance
 
 from .fewshot_generation_plugin import FEWSHOT_FOLDER, FEWSHOT_OPTIONS, FewshotSection  # noqa: F401 (their old home)
+from .fewshot_scoring import CLASSIFIER_TEXT, SCORE_HEADERS, SCORE_KEYS, sample_and_score
+
+#: What ``fewshot.json`` keeps of the tokenizer's adaptation.
+ADAPT_KEYS = ("target", "family", "assignment", "steps", "held_out", "before", "after")
 
 
-class FewshotRecord(FileModel):
-    """What is read back of a ``fewshot.json``: the settings it ran with and its score rows."""
+@dataclasses.dataclass(frozen=True)
+class _FewshotSettings:
+    """The settings of one :func:`fewshot_generation` run beside its family run, images and output
+    (the ratio resolved)."""
 
-    images: str
     shots: int
     ratio: float
+    tokenizer_steps: int
+    tokenizer_part: str
+    rebase: bool
+    generator_steps: int
+    families: str | None
+    family: int | None
+    threshold: float | None
+    samples: int
+    eval_images: int
     seed: int
-    scores: list[dict[str, Any]]
-
-
-#: The scores of a row, and their headers.
-SCORE_KEYS = ("fd_effnetlite0", "contact_psnr", "classifier_accuracy")
-SCORE_HEADERS = {
-    "fd_effnetlite0": "fd_effnetlite0 ↓",
-    "contact_psnr": "contact PSNR ↑ (paired)",
-    "classifier_accuracy": "classifier acc. ↑ (paired)",
-}
-#: The new sensor's images of the family's training scenes the classifier learns (at most).
-CLASSIFIER_IMAGES = 512
-#: What the classifier accuracy is, for the tables.
-CLASSIFIER_TEXT = (
-    "classifier accuracy: how often a classifier trained on the adapted tokenizer's reconstructions of the new "
-    "sensor's images of the family's training scenes names each sample's condition class (its ceiling: the same "
-    "on the reconstructions of the sensor's images of the held-out conditions; chance: one over the classes):"
-)
-#: The row of the classifier's ceiling: the adapted tokenizer's reconstructions of the paired truth.
-RECONSTRUCTED = "new sensor, reconstructed (ceiling)"
-#: The arms every conditioner's samples are scored beside.
-ARMS = ("few-shot", "zero-shot", "shots (copied)", "no-contact background")
+    feature_size: int
+    score: bool
 
 
 def _family_tokenizer(family_run: str, host: PluginHost) -> tuple[Any, Path]:
@@ -144,42 +139,6 @@ def new_sensor_images(
     return name, shots_N3HW, held_out_M3HW, background_3HW, source
 
 
-def _cycled(images_N3HW: torch.Tensor, count: int) -> torch.Tensor:
-    return images_N3HW.repeat(-(-count // len(images_N3HW)), 1, 1, 1)[:count]
-
-
-def _samples(pipe: Any, index: int, conditions: Any, seed: int, device: torch.device, batch_size: int) -> torch.Tensor:
-    """Pipeline ``pipe``'s images of ``conditions`` from conditioner ``index`` at its default settings."""
-    from vqtouch.plugins.generator import sample_images
-
-    conditioner = pipe.conditioners[index]
-    images = []
-    for start in range(0, len(conditions.indices), batch_size):
-        batch = conditions.batch(start, start + batch_size, device=device)
-        with torch.no_grad():
-            tokens = conditioner(conditioner.condition_of(batch))
-            images.append(
-                sample_images(
-                    pipe.generator,
-                    conditioner,
-                    pipe.tokenizer,
-                    pipe.sampler,
-                    tokens,
-                    conditions.indices[start : start + batch_size],
-                    steps=pipe.settings["steps"],
-                    guidance=pipe.guidance_for(index),
-                    truncation=pipe.settings["truncation"],
-                    seed=seed,
-                    device=device,
-                    precision=pipe.sample_precision,
-                )
-                .float()
-                .clamp(0, 1)
-                .cpu()
-            )
-    return torch.cat(images)
-
-
 def fewshot_generation(
     family_run: str,
     images: str,
@@ -210,124 +169,47 @@ def fewshot_generation(
     ``ratio`` and ``seed`` (the ``adapt`` stage's), copied instead of adapting again.  ``ratio``: family
     images per shot (default ``vqtouch adapt``'s).  ``rebase``: adapt a re-based tokenizer
     (:attr:`vqtouch.plugins.adaptation.AdaptSettings.rebase`) onto :func:`family_background`."""
-    from vqtouch.plugins.adaptation import AdaptSettings, adapt_tokenizer, families_to_adapt_from, registered_source
-    from vqtouch.plugins.generator import check_condition_keys, fine_tune_for_sensor, load_pipeline
+    from vqtouch.plugins.generator import check_condition_keys, load_pipeline
 
-    ratio = AdaptSettings.ratio if ratio is None else ratio
-    if ratio < 0:
-        raise ConfigError(f"--ratio {ratio}: family images per shot must be >= 0 (0: the shots alone)")
+    settings = _FewshotSettings(
+        shots=shots,
+        ratio=_checked_ratio(ratio),
+        tokenizer_steps=tokenizer_steps,
+        tokenizer_part=tokenizer_part,
+        rebase=rebase,
+        generator_steps=generator_steps,
+        families=families,
+        family=family,
+        threshold=threshold,
+        samples=samples,
+        eval_images=eval_images,
+        seed=seed,
+        feature_size=feature_size,
+        score=score,
+    )
     out = Path(out)
     tokenizer, folder = _family_tokenizer(family_run, host)
-    reused = None
-    if adapted is not None:
-        adapted = Path(adapted)
-        reused = adapted_summary(adapted, folder, rebase=rebase)
-        if reused is None:
-            raise ConfigError(
-                f"{adapted} was not adapted from {folder}, the tokenizer of {family_run}'s generator,"
-                f"{'' if rebase else ', not'} re-based; adapt that one (leave the adapted tokenizer out)"
-            )
+    adapted = None if adapted is None else Path(adapted)
+    reused = None if adapted is None else _reusable_adapted(adapted, folder, family_run, rebase)
     family_pipe = load_pipeline(family_run, host=host)
-    config = family_pipe.config
     # The family data the fine-tuning reads, before anything is written.
-    check_condition_keys(config, host, family_pipe.conditioners)
-    image_size = config.data.image_size
+    check_condition_keys(family_pipe.config, host, family_pipe.conditioners)
     result: dict[str, Any] = {
         "family_run": str(family_run),
         "images": images,
         "shots": shots,
-        "ratio": ratio,
+        "ratio": settings.ratio,
         "seed": seed,
     }
-    reads = [("--images", "images", images)] if folder_of(images) is not None else []
-    if not is_pretrained(family_run):  # what it reads of the run: the fewshot stage writes beside them
-        reads += [("--run", "family run", Path(family_run) / name) for name in ("checkpoints", "config.json")]
-    if families is not None:
-        reads.append(("--families", "sensor families", families))
-    with staged_output(out, overwrite=overwrite, reads=reads) as partial:
+    with staged_output(out, overwrite=overwrite, reads=_reads(family_run, images, families)) as partial:
         if adapted is not None:
             report(f"1/5 reuse the tokenizer adapted in {adapted}")
             shutil.copytree(adapted, partial / "tokenizer")
             summary = reused
         else:
-            report(f"1/5 assign and adapt the tokenizer of {folder} ({tokenizer_steps} steps)")
-            if families is None:
-                report("    no --families: clustering the registered sensor families and 3 variants of each")
-            fitted = families_to_adapt_from(
-                tokenizer,
-                folder,
-                host,
-                families=Path(families) if families else None,
-                where=f"the families in {families}",
-                exclude=registered_source(images),
-                seed=seed,
-            )
-            settings = AdaptSettings(
-                shots=shots,
-                ratio=ratio,
-                steps=tokenizer_steps,
-                eval_images=eval_images,
-                threshold=threshold,
-                family=family,
-                seed=seed,
-                part=tokenizer_part,
-                rebase=rebase,
-            )
-            summary = adapt_tokenizer(
-                str(folder),
-                images,
-                fitted,
-                host,
-                partial / "tokenizer",
-                settings,
-                report=lambda line: report(f"    {line}"),
-                family_background_3HW=family_background(config, host) if rebase else None,
-            )
-        result["adapt"] = {
-            key: summary[key]
-            for key in ("target", "family", "assignment", "steps", "held_out", "before", "after")
-            if key in summary
-        }
-        name, shots_N3HW, held_out_M3HW, background_3HW, background_source = new_sensor_images(
-            images, host, shots=shots, eval_images=eval_images, image_size=image_size, seed=seed
-        )
-
-        report(f"2/5 fine-tune the family generator on {shots} shots and {ratio:g} family samples per shot")
-        family_sensor = config.sensor.name if getattr(config, "sensor", None) is not None else "family"
-        result["fine_tune"] = fine_tune_for_sensor(
-            family_run,
-            partial / "tokenizer",
-            shots_N3HW,
-            background_3HW,
-            partial / "generator",
-            host,
-            ratio=ratio,
-            steps=generator_steps,
-            seed=seed,
-            sensor_names=(family_sensor, name),
-            argv=argv,
-            report=lambda line: report(f"    {line}"),
-        )
-        result["fine_tune"]["tokenizer"] = str((out / "tokenizer").resolve())  # where it is once moved into place
-
-        pipe = load_pipeline(partial / "generator", host=host)
-        result |= sample_and_score(
-            pipe,
-            family_pipe,
-            images,
-            name,
-            partial,
-            host,
-            held_out_M3HW=held_out_M3HW,
-            shots_N3HW=shots_N3HW,
-            background_3HW=background_3HW,
-            samples=samples,
-            seed=seed,
-            feature_size=feature_size,
-            score=score,
-            report=report,
-        )
-        result["background"] = background_source
+            summary = _adapt(tokenizer, folder, images, host, partial, family_pipe.config, settings, report)
+        result["adapt"] = {key: summary[key] for key in ADAPT_KEYS if key in summary}
+        result |= _fine_tune_and_sample(family_run, images, out, partial, host, family_pipe, settings, argv, report)
         report("5/5 write fewshot.json and fewshot.md")
         record = {**result, "provenance": provenance()}
         (partial / "fewshot.json").write_text(json.dumps(record, indent=2, default=str) + "\n")
@@ -335,201 +217,148 @@ def fewshot_generation(
     return result
 
 
-def paired_truth(config: Any, images: str, indices: Sequence[int], host: PluginHost) -> torch.Tensor | None:
-    """The new sensor's images of the held-out conditions' own contacts, when they exist: the family's
-    data rendered by that sensor (``images`` a registered sensor or variant whose family renders; None
-    for a folder of captured images, which pairs with nothing)."""
-    from vqtouch.core import VqtouchError, validate_experiment
+def _checked_ratio(ratio: float | None) -> float:
+    """``ratio``, ``vqtouch adapt``'s default when None; a one-line ConfigError when negative."""
+    from vqtouch.plugins.adaptation import AdaptSettings
 
-    if folder_of(images) is not None:
-        return None
-    spec = json.loads(images) if images.strip().startswith("{") else {"name": images}
-    data = config.to_dict() | {"sensor": spec}
-    try:
-        rendered = Assembly(validate_experiment(data, host), host).component("data.dataset")
-    except VqtouchError:
-        return None
-    if rendered.rendering_sensor() is None:
-        return None
-    return torch.stack([rendered[index]["tactile"] for index in indices]).float()
+    ratio = AdaptSettings.ratio if ratio is None else ratio
+    if ratio < 0:
+        raise ConfigError(f"--ratio {ratio}: family images per shot must be >= 0 (0: the shots alone)")
+    return ratio
 
 
-def sample_and_score(
-    pipe: Any,
-    family_pipe: Any,
-    images: str,
-    name: str,
-    out: Path,
-    host: PluginHost,
-    *,
-    held_out_M3HW: torch.Tensor,
-    shots_N3HW: torch.Tensor,
-    background_3HW: torch.Tensor,
-    samples: int,
-    seed: int,
-    feature_size: int,
-    score: bool = True,
-    report: Any = print,
-) -> dict[str, Any]:
-    """Steps 3 and 4: sample every condition with the fine-tuned ``pipe`` and the zero-shot ``family_pipe``
-    (pictures into ``out``) and score them; the ``conditioners``, ``samples`` and ``scores`` entries of
-    ``fewshot.json``.  Draws depend on ``seed`` and each condition's index only, so scoring a finished
-    run again draws the same images."""
-    from vqtouch.plugins.generator import held_out_conditions
-
-    config, device = family_pipe.config, family_pipe.device
-    dataset = Assembly(config, host).component("data.dataset")
-    train, held_out = experiment_split(dataset, config.data, config.seed)
-    conditions = held_out_conditions(held_out, dataset, min(samples, len(held_out_M3HW)), device)
-    count = len(conditions.indices)
-    if count == 0:
-        raise ConfigError("the family's data hold no held-out conditions to generate from")
-    real_M3HW = held_out_M3HW[:count]
-    names = pipe.conditioner_names()
-    report(f"3/5 sample {count} images of the new sensor from each condition ({', '.join(names)})")
-    generated: dict[str, dict[str, torch.Tensor]] = {}
-    shown = min(count, 8)
-    overview: list[torch.Tensor] = []  # samples.png: each condition's row(s), then the real images
-    for index, label in enumerate(names):
-        fewshot_images = _samples(pipe, index, conditions, seed, device, 16)
-        zero_shot_images = _samples(family_pipe, index, conditions, seed, device, 16)
-        generated[label] = {"few-shot": fewshot_images, "zero-shot": zero_shot_images}
-        rows = []
-        batch = conditions.batch(0, shown, device=torch.device("cpu"))
-        condition = batch.get(pipe.conditioners[index].sample_key)
-        if isinstance(condition, torch.Tensor) and condition.ndim == 4 and condition.shape[1] == 3:
-            rows.append(condition.float())
-        overview += [*rows, fewshot_images[:shown]]
-        rows += [fewshot_images[:shown], zero_shot_images[:shown], real_M3HW[:shown].float()]
-        save_png(image_grid(torch.cat(rows), columns=shown), out / f"samples_{label.replace(':', '_')}.png")
-    save_png(image_grid(torch.cat([*overview, real_M3HW[:shown].float()]), columns=shown), out / "samples.png")
-    result: dict[str, Any] = {
-        "conditioners": names,
-        "samples": {
-            "count": count,
-            "pictures": [f"samples_{label.replace(':', '_')}.png" for label in names],
-            "overview": "samples.png",
-            "rows": "condition (image conditions only) | few-shot | zero-shot | real new-sensor image",
-        },
-    }
-    if not score:
-        report("4/5 scoring skipped (--no-score)")
-        return result | {"scores": []}
-    paired = paired_truth(config, images, conditions.indices, host)
-    classifier = None
-    if paired is not None and conditions.labels is not None:
-        classifier = classifier_images(config, images, train, pipe.tokenizer, host)
-    report(
-        f"4/5 score against {count} held-out images of {name} (fd_effnetlite0 at {feature_size} px"
-        + ("; contact PSNR against its rendering of each condition's own contact" if paired is not None else "")
-        + (
-            f"; a classifier trained on the adapted tokenizer's reconstructions of {len(classifier[1])} of its "
-            "images of the family's training scenes)"
-            if classifier is not None
-            else ")"
+def _reusable_adapted(adapted: Path, folder: Path, family_run: str, rebase: bool) -> dict[str, Any]:
+    """``adapted``'s ``adapt.json`` summary; a one-line ConfigError unless it was adapted from the
+    family tokenizer in ``folder``, re-based as ``rebase`` says."""
+    reused = adapted_summary(adapted, folder, rebase=rebase)
+    if reused is None:
+        raise ConfigError(
+            f"{adapted} was not adapted from {folder}, the tokenizer of {family_run}'s generator,"
+            f"{'' if rebase else ', not'} re-based; adapt that one (leave the adapted tokenizer out)"
         )
-    )
-    result["paired_truth"] = paired is not None
-    result["classifier"] = (
-        {"train_images": len(classifier[1]), "trained_on": "the adapted tokenizer's reconstructions"}
-        if classifier is not None
-        else {"skipped": "no paired truth with labels (a folder of captured images, or a dataset without labels)"}
-    )
-    # One feature network (its weights loaded once) for the fd and the classifier.
-    metric = host.build("metric", {"name": "fd_effnetlite0", "image_size": feature_size})
-    scores = _scores(generated, real_M3HW, shots_N3HW, background_3HW, metric, paired)
-    if classifier is not None:
-        accuracy = _classifier_scores(generated, paired, conditions.labels, classifier, pipe.tokenizer, metric, seed)
-        for row in scores:
-            if (row["conditioner"], row["arm"]) in accuracy:
-                row["classifier_accuracy"] = accuracy.pop((row["conditioner"], row["arm"]))
-        scores += [
-            {"conditioner": label, "arm": arm, "classifier_accuracy": value} for (label, arm), value in accuracy.items()
-        ]
-    return result | {"scores": scores}
+    return reused
 
 
-@torch.no_grad()
-def classifier_images(
-    config: Any, images: str, train: Any, tokenizer: Any, host: PluginHost
-) -> tuple[torch.Tensor, list[int]] | None:
-    """What the samples' classifier learns: the new sensor's images of the family's first
-    :data:`CLASSIFIER_IMAGES` training scenes (``images`` a registered sensor that renders them),
-    decoded through the adapted ``tokenizer`` (a classifier fitted on sharp images fails on every
-    decoded one, the tokenizer's own reconstructions included), with the scenes' labels; None when
-    the sensor renders nothing or the scenes carry no labels."""
-    from vqtouch.plugins.evaluation.distribution import labels_of
-    from vqtouch.plugins.tokenizer import reconstruct_all
-
-    indices = list(train.indices[:CLASSIFIER_IMAGES])
-    labels = labels_of([train.dataset[index] for index in indices])
-    rendered = paired_truth(config, images, indices, host) if labels is not None else None
-    if rendered is None or len(set(labels)) < 2:
-        return None
-    return reconstruct_all(tokenizer, rendered.to(tokenizer.device)).float().cpu(), labels
+def _reads(family_run: str, images: str, families: str | None) -> list[tuple[str, str, Any]]:
+    """What the run reads (option, what it is, path), which ``--out`` must not hold."""
+    reads: list[tuple[str, str, Any]] = [("--images", "images", images)] if folder_of(images) is not None else []
+    if not is_pretrained(family_run):  # what it reads of the run: the fewshot stage writes beside them
+        reads += [("--run", "family run", Path(family_run) / name) for name in ("checkpoints", "config.json")]
+    if families is not None:
+        reads.append(("--families", "sensor families", families))
+    return reads
 
 
-@torch.no_grad()
-def _classifier_scores(
-    generated: dict[str, dict[str, torch.Tensor]],
-    paired_M3HW: torch.Tensor,
-    labels: Sequence[int],
-    classifier: tuple[torch.Tensor, list[int]],
+def _adapt(
     tokenizer: Any,
-    metric: Any,
-    seed: int,
-) -> dict[tuple[str, str], float]:
-    """``classifier_accuracy`` per (conditioner, arm): how often the classifier of
-    :func:`classifier_images` names the class of the arm's samples (sample i's class is held-out
-    condition i's), and per conditioner under :data:`RECONSTRUCTED` its ceiling, the same on the
-    adapted tokenizer's reconstructions of the new sensor's images of those very conditions."""
-    from vqtouch.plugins.evaluation.distribution import DistributionScorer
-    from vqtouch.plugins.tokenizer import reconstruct_all
+    folder: Path,
+    images: str,
+    host: PluginHost,
+    partial: Path,
+    config: Any,
+    settings: _FewshotSettings,
+    report: Any,
+) -> dict[str, Any]:
+    """Step 1: the shots assigned to a sensor family and the family ``tokenizer`` adapted to them
+    into ``partial/tokenizer``; its summary."""
+    from vqtouch.plugins.adaptation import AdaptSettings, adapt_tokenizer, families_to_adapt_from, registered_source
 
-    scorer = DistributionScorer(paired_M3HW, list(labels), classifier[0], classifier[1], metric=metric, seed=seed)
-    ceiling = scorer.score(reconstruct_all(tokenizer, paired_M3HW.to(tokenizer.device)).float().cpu())
-    accuracy = {}
-    for label, arms in generated.items():
-        for arm, images in arms.items():
-            accuracy[(label, arm)] = scorer.score(images)["classifier_accuracy"]
-        accuracy[(label, RECONSTRUCTED)] = ceiling["classifier_accuracy"]
-    return accuracy
+    report(f"1/5 assign and adapt the tokenizer of {folder} ({settings.tokenizer_steps} steps)")
+    if settings.families is None:
+        report("    no --families: clustering the registered sensor families and 3 variants of each")
+    fitted = families_to_adapt_from(
+        tokenizer,
+        folder,
+        host,
+        families=Path(settings.families) if settings.families else None,
+        where=f"the families in {settings.families}",
+        exclude=registered_source(images),
+        seed=settings.seed,
+    )
+    adapt_settings = AdaptSettings(
+        shots=settings.shots,
+        ratio=settings.ratio,
+        steps=settings.tokenizer_steps,
+        eval_images=settings.eval_images,
+        threshold=settings.threshold,
+        family=settings.family,
+        seed=settings.seed,
+        part=settings.tokenizer_part,
+        rebase=settings.rebase,
+    )
+    return adapt_tokenizer(
+        str(folder),
+        images,
+        fitted,
+        host,
+        partial / "tokenizer",
+        adapt_settings,
+        report=lambda line: report(f"    {line}"),
+        family_background_3HW=family_background(config, host) if settings.rebase else None,
+    )
 
 
-def _scores(
-    generated: dict[str, dict[str, torch.Tensor]],
-    real_M3HW: torch.Tensor,
-    shots_N3HW: torch.Tensor,
-    background_3HW: torch.Tensor,
-    metric: Any,
-    paired_M3HW: torch.Tensor | None = None,
-) -> list[dict[str, Any]]:
-    """One row per conditioner and arm: ``fd_effnetlite0`` against the held-out real images and, given
-    the new sensor's images of the same contacts (``paired_M3HW``), the contact-region PSNR against them
-    (the background's beside it; copied shots have no pairing)."""
-    from vqtouch.plugins.evaluation.contact import contact_region_scores
-    from vqtouch.plugins.evaluation.distribution import DistributionScorer
+def _fine_tune_and_sample(
+    family_run: str,
+    images: str,
+    out: Path,
+    partial: Path,
+    host: PluginHost,
+    family_pipe: Any,
+    settings: _FewshotSettings,
+    argv: Sequence[str] | None,
+    report: Any,
+) -> dict[str, Any]:
+    """Steps 2 to 4 on the adapted tokenizer in ``partial``: the family generator fine-tuned into
+    ``partial/generator``, every condition sampled and scored; the ``fine_tune``, sampling, ``scores``
+    and ``background`` entries of ``fewshot.json``."""
+    from vqtouch.plugins.generator import fine_tune_for_sensor, load_pipeline
 
-    count = len(real_M3HW)
-    scorer = DistributionScorer(real_M3HW.float(), metric=metric)
-    common = {
-        "shots (copied)": scorer.score(_cycled(shots_N3HW.float(), count))["fd_effnetlite0"],
-        "no-contact background": scorer.score(background_3HW.float().expand(count, -1, -1, -1))["fd_effnetlite0"],
-    }
-    rows = []
-    for label, arms in generated.items():
-        contact: dict[str, float] = {}
-        if paired_M3HW is not None:
-            background = background_3HW.float().expand(count, -1, -1, -1)
-            found = contact_region_scores({**arms, "no-contact background": background}, paired_M3HW, background)
-            contact = {arm: round(found[f"{arm}contact_psnr"], 4) for arm in (*arms, "no-contact background")}
-        for arm, images in arms.items():
-            row = {"conditioner": label, "arm": arm, "fd_effnetlite0": scorer.score(images)["fd_effnetlite0"]}
-            rows.append(row | ({"contact_psnr": contact[arm]} if contact else {}))
-        for arm, value in common.items():
-            row = {"conditioner": label, "arm": arm, "fd_effnetlite0": value}
-            rows.append(row | ({"contact_psnr": contact[arm]} if arm in contact else {}))
-    return rows
+    config = family_pipe.config
+    name, shots_N3HW, held_out_M3HW, background_3HW, background_source = new_sensor_images(
+        images,
+        host,
+        shots=settings.shots,
+        eval_images=settings.eval_images,
+        image_size=config.data.image_size,
+        seed=settings.seed,
+    )
+    report(
+        f"2/5 fine-tune the family generator on {settings.shots} shots and {settings.ratio:g} family samples per shot"
+    )
+    family_sensor = config.sensor.name if getattr(config, "sensor", None) is not None else "family"
+    tuned = fine_tune_for_sensor(
+        family_run,
+        partial / "tokenizer",
+        shots_N3HW,
+        background_3HW,
+        partial / "generator",
+        host,
+        ratio=settings.ratio,
+        steps=settings.generator_steps,
+        seed=settings.seed,
+        sensor_names=(family_sensor, name),
+        argv=argv,
+        report=lambda line: report(f"    {line}"),
+    )
+    tuned["tokenizer"] = str((out / "tokenizer").resolve())  # where it is once moved into place
+    sampled = sample_and_score(
+        load_pipeline(partial / "generator", host=host),
+        family_pipe,
+        images,
+        name,
+        partial,
+        host,
+        held_out_M3HW=held_out_M3HW,
+        shots_N3HW=shots_N3HW,
+        background_3HW=background_3HW,
+        samples=settings.samples,
+        seed=settings.seed,
+        feature_size=settings.feature_size,
+        score=settings.score,
+        report=report,
+    )
+    return {"fine_tune": tuned, **sampled, "background": background_source}
 
 
 def render_markdown(result: dict[str, Any]) -> list[str]:
@@ -573,7 +402,7 @@ def _run_fewshot(args: argparse.Namespace, out: Path) -> dict[str, Any]:
         ratio=args.ratio,
         seed=args.seed,
         score=not args.no_score,
-        **_fewshot_options(args),
+        **fewshot_options(args),
         overwrite=args.overwrite,
         argv=args.argv,
         report=lambda line: print(line, flush=True),
@@ -598,151 +427,8 @@ def _fewshot_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def arm_name(arm: str, ratio: float) -> str:
-    """An arm's name in the seeds table: the fine-tuned arm by its ratio (``few-shot 1:5``; ``shots
-    alone`` at ratio 0), the comparisons as they are."""
-    if arm == RECONSTRUCTED:  # the ceiling depends on the adapted tokenizer, so on the ratio
-        return f"new sensor, reconstructed by the {'shots-alone' if ratio == 0 else f'1:{ratio:g}'} tokenizer (ceiling)"
-    if arm != "few-shot":
-        return arm
-    return "shots alone" if ratio == 0 else f"few-shot 1:{ratio:g}"
-
-
-def evaluate_fewshot_generation(
-    family_run: str,
-    images: str,
-    out: Path,
-    host: PluginHost,
-    *,
-    seeds: Sequence[int],
-    ratios: Sequence[float],
-    report: Any = print,
-    overwrite: bool = False,
-    **options: Any,
-) -> dict[str, Any]:
-    """:func:`fewshot_generation` once per seed and ratio into ``out/seed<S>/ratio<R>/`` (a folder that
-    already holds a finished run with the same images, shots, ratio and seed is read, not run again: an
-    interrupted table resumes; one with other settings is refused unless ``overwrite``, which runs every
-    arm again), then ``fd_effnetlite0`` per conditioner and arm as mean ± std over the
-    seeds: ``fewshot_generation.json`` and ``fewshot_generation.md``.  The zero-shot, copied-shots and
-    background rows of a seed are the same at every ratio (same held-out images and conditions); the
-    first ratio's are kept."""
-    from vqtouch.plugins.evaluation.records import ExperimentRecord, mean_spread
-
-    record = ExperimentRecord("fewshot_generation", out, seeds, overwrite=overwrite)
-    rows: list[dict[str, Any]] = []
-    for seed in record.seeds:
-        for position, ratio in enumerate(ratios):
-            folder = Path(out) / f"seed{seed}" / f"ratio{ratio:g}"
-            settings = {"images": images, "shots": options.get("shots", 50), "ratio": ratio, "seed": seed}
-            previous = None if overwrite else finished_arm(folder, settings)
-            if previous is not None:
-                report(f"seed {seed}, ratio {ratio:g}: read {folder / 'fewshot.json'}")
-                result = previous
-                if ("paired_truth" not in result or "classifier" not in result) and result["scores"]:
-                    report("    scored before the paired scores existed: drawing its samples again to score them")
-                    result = score_again(folder, family_run, host, report=report, **options)
-            else:
-                report(f"seed {seed}, ratio {ratio:g} -> {folder}")
-                result = fewshot_generation(
-                    family_run, images, folder, host, ratio=ratio, seed=seed, overwrite=True, report=report, **options
-                )
-            for row in result["scores"]:
-                if row["arm"] in ("few-shot", RECONSTRUCTED) or position == 0:
-                    rows.append({**row, "arm": arm_name(row["arm"], ratio), "seed": seed})
-    table = mean_spread(rows, list(SCORE_KEYS), ["conditioner", "arm"])
-    result = {"family_run": family_run, "images": images, "ratios": list(ratios), "rows": rows, "summary": table}
-    lines = [
-        f"# Few-shot generation: {images}",
-        "",
-        f"Mean ± std over seeds {', '.join(map(str, record.seeds))}.  fd_effnetlite0 (lower is better): each "
-        "conditioner's samples against as many held-out images of the new sensor (never the shots).  Where the "
-        "sensor renders the family's scenes (paired): contact PSNR against its image of each condition's own "
-        f"contact, and {CLASSIFIER_TEXT}",
-        "",
-        *markdown_table(table, ["conditioner", "arm"], list(SCORE_KEYS), SCORE_HEADERS),
-    ]
-    record.write(result, lines)
-    return result
-
-
-def finished_arm(folder: Path, settings: dict[str, Any]) -> dict[str, Any] | None:
-    """The ``fewshot.json`` of an arm finished with ``settings`` (None when there is none); a finished arm
-    with other settings is refused in one line: it is replaced only with ``--overwrite``."""
-    done = folder / "fewshot.json"
-    if not done.is_file():
-        return None
-    previous = read_model(done, FewshotRecord).model_dump()
-    differing = {key: previous.get(key) for key, value in settings.items() if previous.get(key) != value}
-    if differing:
-        said = ", ".join(f"{key} {previous.get(key)!r} (now {settings[key]!r})" for key in differing)
-        raise ConfigError(
-            f"{folder} holds a finished arm with other settings: {said}; pass --overwrite to run every arm "
-            "again, or choose another --out"
-        )
-    return previous
-
-
-def score_again(
-    folder: Path,
-    family_run: str,
-    host: PluginHost,
-    *,
-    eval_images: int = 64,
-    samples: int = 32,
-    feature_size: int = 224,
-    report: Any = print,
-    **_: Any,
-) -> dict[str, Any]:
-    """Steps 3 to 5 again on a finished ``vqtouch fewshot`` output (its generator run is kept): the same
-    draws, scored with what this version scores; rewrites its ``fewshot.json`` and ``fewshot.md``."""
-    from vqtouch.plugins.generator import load_pipeline
-
-    result = read_model(folder / "fewshot.json", FewshotRecord).model_dump()
-    images, shots, seed = result["images"], result["shots"], result["seed"]
-    family_pipe = load_pipeline(family_run, host=host)
-    name, shots_N3HW, held_out_M3HW, background_3HW, _ = new_sensor_images(
-        images, host, shots=shots, eval_images=eval_images, image_size=family_pipe.config.data.image_size, seed=seed
-    )
-    result |= sample_and_score(
-        load_pipeline(folder / "generator", host=host),
-        family_pipe,
-        images,
-        name,
-        folder,
-        host,
-        held_out_M3HW=held_out_M3HW,
-        shots_N3HW=shots_N3HW,
-        background_3HW=background_3HW,
-        samples=samples,
-        seed=seed,
-        feature_size=feature_size,
-        report=report,
-    )
-    atomic_write(folder / "fewshot.json", lambda tmp: tmp.write_text(json.dumps(result, indent=2, default=str) + "\n"))
-    atomic_write(folder / "fewshot.md", lambda tmp: tmp.write_text("\n".join(render_markdown(result)) + "\n"))
-    return result
-
-
-def _evaluate_fewshot_generation_command(args: argparse.Namespace) -> int:
-    out = Path(args.out)
-    evaluate_fewshot_generation(
-        args.run,
-        args.images,
-        out,
-        args.host,
-        seeds=args.seeds,
-        ratios=args.ratios,
-        report=lambda line: print(line, flush=True),
-        overwrite=args.overwrite,
-        **_fewshot_options(args),
-    )
-    print((out / "fewshot_generation.md").read_text())
-    print(f"-> {out} (fewshot_generation.json, fewshot_generation.md, seed*/ratio*/)")
-    return 0
-
-
-def _fewshot_options(args: argparse.Namespace) -> dict[str, Any]:
+def fewshot_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The :func:`fewshot_generation` options the commands share, from their parsed ``args``."""
     return {name: getattr(args, name) for name in FEWSHOT_OPTIONS}
 
 
@@ -786,20 +472,7 @@ def run_fewshot_stage(job: StageJob) -> dict[str, Any]:
         report=lambda line: None,
     )
     job.publish("fewshot_generator", f"{FEWSHOT_FOLDER}/generator", target=result["adapt"].get("target", ""))
-    summary: dict[str, Any] = {
-        "target": result["adapt"].get("target"),
-        "family": result["adapt"].get("family"),
-        "family_generator": family_run if is_pretrained(family_run) else "this run",
-        "adapted_tokenizer": "the adapt stage's" if reuse is not None else "adapted here",
-        "shots": result["fine_tune"]["shots"],
-        "family_samples": result["fine_tune"]["family_samples"],
-        "generator_steps": result["fine_tune"]["steps"],
-    }
-    for row in result["scores"]:
-        arm = row["arm"].split(" ")[0].replace("-", "_").replace("(", "")
-        for score in SCORE_KEYS:
-            if score in row:
-                summary[f"{row['conditioner'].split(':', 1)[1]}_{arm}_{score}"] = row[score]
+    summary = _stage_summary(result, family_run, reuse is not None)
     names = ", ".join(label.split(":", 1)[1] for label in result["conditioners"])
     return {
         **summary,
@@ -811,3 +484,23 @@ def run_fewshot_stage(job: StageJob) -> dict[str, Any]:
             "sensor (held out). Per-condition pictures beside the zero-shot generator's are in fewshot/."
         ),
     }
+
+
+def _stage_summary(result: dict[str, Any], family_run: str, reused: bool) -> dict[str, Any]:
+    """The stage's report row of a :func:`fewshot_generation` ``result``: what was adapted and
+    fine-tuned, and each conditioner's and arm's scores."""
+    summary: dict[str, Any] = {
+        "target": result["adapt"].get("target"),
+        "family": result["adapt"].get("family"),
+        "family_generator": family_run if is_pretrained(family_run) else "this run",
+        "adapted_tokenizer": "the adapt stage's" if reused else "adapted here",
+        "shots": result["fine_tune"]["shots"],
+        "family_samples": result["fine_tune"]["family_samples"],
+        "generator_steps": result["fine_tune"]["steps"],
+    }
+    for row in result["scores"]:
+        arm = row["arm"].split(" ")[0].replace("-", "_").replace("(", "")
+        for score in SCORE_KEYS:
+            if score in row:
+                summary[f"{row['conditioner'].split(':', 1)[1]}_{arm}_{score}"] = row[score]
+    return summary

@@ -1,5 +1,5 @@
 """``vqtouch fewshot``'s plugin: the ``fewshot`` stage's section, the commands' options and their registration
-(the experiment, in fewshot_generation.py, is imported when it runs)."""
+(the experiments, in fewshot_generation.py and fewshot_table.py, are imported when they run)."""
 
 from __future__ import annotations
 
@@ -179,4 +179,4 @@ def vqtouch_add_commands(subparsers: Any) -> None:
     table.add_argument(
         "--ratios", type=family_ratio, nargs="+", default=[5.0, 0.0], help="family images per shot (default 5 0)"
     )
-    table.set_defaults(handler="vqtouch.plugins.experiments.fewshot_generation:_evaluate_fewshot_generation_command")
+    table.set_defaults(handler="vqtouch.plugins.experiments.fewshot_table:_evaluate_fewshot_generation_command")

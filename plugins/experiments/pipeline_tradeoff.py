@@ -51,9 +51,8 @@ claims of "better" are made on the contact region, never on the whole-image scor
 from __future__ import annotations
 
 import argparse
-import copy
+import dataclasses
 import json
-import math
 import re
 import statistics
 import sys
@@ -64,172 +63,32 @@ from typing import Any
 
 import torch
 
-from vqtouch.core import Assembly, ConfigError, PluginHost, validate_experiment
+from vqtouch.core import Assembly, PluginHost
 from vqtouch.plugins.utils.seeding import resolve_device
 from vqtouch.plugins.runtime.execution import run_stage
 from vqtouch.plugins.runtime.run_dir import RunDir
 from vqtouch.plugins.cli.app import config_from_args, stage_failure
-from vqtouch.plugins.evaluation.records import ExperimentRecord, markdown_table, mean_spread
+from vqtouch.plugins.evaluation.records import ExperimentRecord
 from vqtouch.plugins.training.trainer import Trainer
-from vqtouch.core.config import scale_for_demo
 from vqtouch.plugins.utils.splits import experiment_split
 from vqtouch.plugins.tokenizer import load_tokenizer, reconstruct_all, tokenizer_task
 
+from .pipeline_tradeoff_configs import (
+    DEFAULT_SCENE,
+    baseline_config,
+    baseline_text,
+    check_sampling_values,
+    generator_base,
+    parse_knobs,
+    scaled_config,
+    variant_config,
+)
 from .pipeline_tradeoff_knobs import KNOBS, Knob, known_knobs  # noqa: F401 (their old home)
-from .pipeline_tradeoff_knobs import sampling_precision_baseline
 from .pipeline_tradeoff_plugin import QUICK, QUICK_KNOBS, STANDARD
+from .pipeline_tradeoff_report import DRIFT, QUALITY_KEYS, plot_tradeoff, render_markdown, summarize
 
-#: The scene whose baseline the command measures when none is named: a tokenizer and a generator.
-DEFAULT_SCENE = "label-to-touch"
-#: The ``setting`` of the baseline's second timing in every round (its ``x base`` is the drift).
-DRIFT = "timed again last"
 #: At most this many held-out images are encoded and decoded per inference timing.
 TIMED_IMAGES = 64
-#: Whole-image and contact-region quality columns; each stands next to its ``background_`` score.
-QUALITY_KEYS = ("ssim", "psnr", "contact_ssim", "contact_psnr")
-COST_KEYS = ("train_s_per_step", "train_cost", "img_per_s", "seconds_per_image", "inference_cost", "stage_seconds")
-SUMMARY_KEYS = (
-    *COST_KEYS,
-    *QUALITY_KEYS,
-    *(f"background_{key}" for key in QUALITY_KEYS),
-    "codes_used",
-    "contact_fraction",
-    "fd_effnetlite0",
-    "classifier_accuracy",
-)
-#: The Pareto fronts: (part, cost column, name in the table).
-FRONTS = (
-    ("tokenizer", "train_cost", "training"),
-    ("tokenizer", "inference_cost", "inference"),
-    ("generator", "inference_cost", "generation"),
-)
-
-
-def parse_knobs(specs: list[str] | None, config: Any, host: PluginHost) -> dict[str, list[Any]]:
-    """The knobs to measure and their values, from ``--knobs NAME[=V1,V2,...] ...`` (None: every
-    knob of the parts the baseline trains, at its default values).  One-line errors for an unknown
-    knob (listing the known ones), a value that does not parse, a knob given twice and a value that
-    is the baseline's own (the baseline is always measured)."""
-    has_generator = "generator" in config.stages
-    if specs is None:
-        specs = [name for name, knob in KNOBS.items() if knob.part == "tokenizer" or has_generator]
-    chosen: dict[str, list[Any]] = {}
-    for spec in specs:
-        name, separator, text = spec.partition("=")
-        name = name.strip()
-        if name not in KNOBS:
-            raise ConfigError(f"--knobs {spec}: unknown knob {name!r}; known knobs: {known_knobs()}")
-        if name in chosen:
-            raise ConfigError(
-                f"--knobs {spec}: the knob {name!r} is given twice; give its values once, e.g. {name}=A,B"
-            )
-        knob = KNOBS[name]
-        if knob.part == "generator" and not has_generator:
-            raise ConfigError(
-                f"--knobs {spec}: the {name} knob is a generator knob, but the scene "
-                f"{config.scene!r} trains no generator; use e.g. --scene {DEFAULT_SCENE}"
-            )
-        baseline = knob.baseline(config, host)
-        if separator:
-            values = []
-            for item in text.split(","):
-                try:
-                    values.append(knob.parse(item.strip()))
-                except ValueError as exc:
-                    raise ConfigError(f"--knobs {spec}: {item.strip()!r}: {exc} ({knob.meaning})") from None
-            if baseline in values:
-                raise ConfigError(
-                    f"--knobs {spec}: {knob.show(baseline)} is the baseline's own value, measured "
-                    "anyway; give other values"
-                )
-        else:
-            values = knob.alternatives(config, host, baseline)
-        chosen[name] = list(dict.fromkeys(values))
-    return chosen
-
-
-# -- configs --------------------------------------------------------------------------------------
-
-
-def scaled_config(config: Any, host: PluginHost, full: bool) -> Any:
-    """``config`` scaled down like ``vqtouch demo`` (unless ``full``): the sizes the knobs' default
-    values and the baseline derive from."""
-
-    if "tokenizer" not in config.stages:
-        raise ConfigError(f"the scene {config.scene!r} trains no tokenizer; use e.g. --scene {DEFAULT_SCENE}")
-    if config.data.val_fraction == 0:
-        raise ConfigError(
-            "data.val_fraction=0 holds no images out: nothing to score the settings on; set data.val_fraction=0.1"
-        )
-    return config if full else scale_for_demo(config, host)
-
-
-def baseline_config(
-    config: Any, host: PluginHost, *, tokenizer_steps: int, generator_steps: int, generator: bool
-) -> Any:
-    """The baseline: ``config`` (see :func:`scaled_config`) with the tokenizer (and with
-    ``generator`` the generator) trained for the given steps, one checkpoint at the end, and only
-    the stages the experiment runs.  The generator stage scores no samples itself: the experiment
-    scores every setting."""
-    data = config.to_dict()
-    stages = {"tokenizer": tokenizer_steps, **({"generator": generator_steps} if generator else {})}
-    for stage, steps in stages.items():
-        train = data[stage]["train"]
-        train |= {"steps": steps, "checkpoint_every": steps, "log_every": min(train["log_every"], steps)}
-    if generator:
-        data["generator"]["num_samples"] = 0
-    data["stages"] = list(stages)
-    return validate_experiment(data, host)
-
-
-def variant_config(baseline: Any, host: PluginHost, seed: int, knob: str | None = None, value: Any = None) -> Any:
-    """The baseline at ``seed`` (initialisation, data order and held-out split), with ``knob`` set
-    to ``value`` (a tokenizer knob: the variant trains the tokenizer only)."""
-    data = copy.deepcopy(baseline.to_dict()) | {"seed": seed}
-    if knob is not None:
-        KNOBS[knob].apply(data, value, host)
-        data["stages"] = ["tokenizer"]
-    try:
-        return validate_experiment(data, host)
-    except ConfigError as exc:
-        raise ConfigError(f"--knobs {knob}={value}: {exc}") from None
-
-
-def baseline_text(config: Any, host: PluginHost) -> str:
-    """The baseline tokenizer's value of every tokenizer knob, e.g. ``on (dm_vqgan), K = 512, 64 px``."""
-    shown = []
-    for knob in KNOBS.values():
-        if knob.part == "tokenizer":
-            try:
-                shown.append(knob.show(knob.baseline(config, host)))
-            except ConfigError:
-                continue
-    return ", ".join(shown)
-
-
-def check_sampling_values(config: Any, host: PluginHost, knobs: dict[str, list[Any]]) -> None:
-    """One-line errors for a sampler that is not registered and for more sampling steps than the
-    generator's diffusion steps, before anything trains."""
-    for name in knobs.get("sampler", []):
-        host.registry("sampler").get(name)  # its error lists the registered samplers
-    limit = getattr(config.generator.model, "num_steps", None) if "steps" in knobs else None
-    too_many = [value for value in knobs.get("steps", []) if limit and value > limit]
-    if too_many:
-        raise ConfigError(
-            f"--knobs steps={too_many[0]}: more sampling steps than the generator's {limit} diffusion "
-            f"steps (generator.model.num_steps); give at most {limit}"
-        )
-
-
-def generator_base(config: Any) -> dict[str, Any]:
-    """The configured sampling setting (the generator part's baseline)."""
-    section = config.generator
-    return {
-        "sampler": section.sampler.name,
-        "steps": section.steps,
-        "guidance": section.guidance,
-        "precision": sampling_precision_baseline(config),
-    }
 
 
 # -- training and timing --------------------------------------------------------------------------
@@ -487,206 +346,6 @@ class _ReportLog:
         pass
 
 
-# -- summary, table and figure --------------------------------------------------------------------
-
-#: The scores the fronts are drawn on, the first one the rows have: contact SSIM; contact PSNR for
-#: images narrower than SSIM's window; whole-image SSIM only without a background (no contact region).
-FRONT_QUALITIES = ("contact_ssim", "contact_psnr", "ssim")
-FRONT_TEXT = {
-    "contact_ssim": "the contact region's SSIM: claims of 'better' rest on it, not on the whole-image scores",
-    "contact_psnr": "the contact region's PSNR (the images are narrower than SSIM's window): claims of "
-    "'better' rest on it, not on the whole-image scores",
-    "ssim": "whole-image SSIM, because the training split is too small for a no-contact image: without one "
-    "there is no contact region, and whole-image scores flatter a model that draws only the "
-    "background",
-}
-AXIS_LABELS = {"contact_ssim": "contact SSIM", "contact_psnr": "contact PSNR (dB)", "ssim": "whole-image SSIM"}
-
-
-def front_quality_key(rows: list[dict[str, Any]]) -> str:
-    """The score the Pareto fronts use (:data:`FRONT_QUALITIES`)."""
-    return next((key for key in FRONT_QUALITIES if any(key in row for row in rows)), FRONT_QUALITIES[0])
-
-
-def summarize(rows: list[dict[str, Any]]) -> tuple[list[dict[str, Any]], str]:
-    """Mean ± std over the seeds of every (part, knob, setting), each with ``pareto``: the fronts
-    (training, inference, generation) it is on, on the mean relative cost against the mean contact
-    score (the drift rows are no contenders).  Also returns that score's key."""
-    summary = mean_spread(rows, SUMMARY_KEYS, group=("part", "knob", "setting"))
-    key = front_quality_key(rows)
-    for row in summary:
-        row["pareto"] = []
-    for part, cost, name in FRONTS:
-        members = [row for row in summary if row["part"] == part and row["setting"] != DRIFT]
-        costs = [row.get(cost, math.nan) for row in members]
-        for index in pareto_front(costs, [row.get(key) for row in members]):
-            members[index]["pareto"].append(name)
-    for row in summary:
-        row["pareto_front"] = ", ".join(row["pareto"]) or "-"
-    return summary, key
-
-
-def pareto_front(costs: list[float], qualities: list[float | None]) -> list[int]:
-    """:func:`vqtouch.plugins.generator.tradeoff.pareto_front`, higher quality better."""
-    from vqtouch.plugins.generator import pareto_front as front
-
-    return front(costs, qualities, higher_is_better=True)
-
-
-TABLE_KEYS = (
-    "train_s_per_step",
-    "train_cost",
-    "img_per_s",
-    "inference_cost",
-    "ssim",
-    "background_ssim",
-    "psnr",
-    "background_psnr",
-    "contact_ssim",
-    "background_contact_ssim",
-    "contact_psnr",
-    "background_contact_psnr",
-    "codes_used",
-    "pareto_front",
-)
-TABLE_HEADERS = {
-    "train_s_per_step": "train s/step",
-    "train_cost": "train x base",
-    "img_per_s": "img/s",
-    "inference_cost": "img cost x base",
-    "ssim": "SSIM",
-    "background_ssim": "bg SSIM",
-    "psnr": "PSNR dB",
-    "background_psnr": "bg PSNR",
-    "contact_ssim": "contact SSIM",
-    "background_contact_ssim": "bg contact SSIM",
-    "contact_psnr": "contact PSNR dB",
-    "background_contact_psnr": "bg contact PSNR",
-    "codes_used": "codes used",
-    "pareto_front": "Pareto front",
-}
-
-
-def render_markdown(result: dict[str, Any]) -> list[str]:
-    """``tradeoff.md``: what was measured, the one table and how to read it."""
-    seeds, settings = len(result["seeds"]), result["settings"]
-    drift = [row for row in result["summary"] if row["setting"] == DRIFT]
-    lines = [
-        f"# Speed/accuracy trade of the whole pipeline ({seeds} seeds: mean ± std)",
-        "",
-        f"Baseline: scene `{result['scene']}`{'' if settings['full'] else ' scaled like `vqtouch demo`'}; "
-        f"tokenizer {result['baseline']}, {settings['tokenizer_steps']} training steps per tokenizer"
-        + (
-            f"; generator {settings['generator_steps']} steps on the baseline tokenizer's codes, sampling "
-            f"{result['generator_baseline']}"
-            if result["generator_baseline"]
-            else ""
-        )
-        + ".",
-        "",
-        f"Costs: `train s/step` is the median of {settings['rounds']} interleaved rounds of "
-        f"{settings['timing_steps']} training steps; `img/s` encodes and decodes held-out images (tokenizer) or "
-        "encodes the condition, samples and decodes (generator: the whole pipeline's cost of a generated image); "
-        "`x base` is the ratio to the baseline timed in the same process, per seed, then averaged.  The "
-        f"`{DRIFT}` rows time the baseline again at the end of every round: their `x base` is the machine's "
-        "drift, the error bar of every ratio.",
-        "",
-        "Quality on the held-out split: `bg` is the data's no-contact image scored the same way (a model that "
-        "draws only the background gets it); `contact` scores only the pixels in contact.  The Pareto fronts "
-        "(training and inference cost of the tokenizers, generation cost of the samplings) use "
-        f"{FRONT_TEXT[result['front_quality']]}.",
-        "",
-    ]
-    lines += markdown_table(result["summary"], ("part", "knob", "setting"), TABLE_KEYS, TABLE_HEADERS)
-    notes = []
-    if any(row["knob"] == "resolution" for row in result["summary"]):
-        notes.append(
-            "The resolution rows are scored at their own resolution (the same scenes rendered larger): "
-            "their quality is not the same measurement as the other rows'."
-        )
-    for row in drift:
-        for key in ("train_cost", "inference_cost"):
-            if isinstance(row.get(key), float) and abs(row[key] - 1) > 0.1:
-                notes.append(
-                    f"The {row['part']} baseline's {key.replace('_', ' ')} drifted by "
-                    f"{100 * (row[key] - 1):+.0f}% within a round: ratios closer to 1 than that are noise."
-                )
-    if notes:
-        lines += ["", *notes]
-    return lines
-
-
-def plot_tradeoff(summary: list[dict[str, Any]], key: str, path: Path, title: str) -> None:
-    """``tradeoff.png``: one panel per front (tokenizer training cost, tokenizer inference cost,
-    generation cost; relative to the baseline, log scale) against the contact score, error bars the
-    std over seeds, each setting labelled, the front a line, the no-contact image's score dashed."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
-
-    panels = [
-        (part, cost, name)
-        for part, cost, name in FRONTS
-        if any(row["part"] == part and isinstance(row.get(key), (int, float)) for row in summary)
-    ]
-    figure = Figure(figsize=(5.5 * max(len(panels), 1), 4.6), layout="constrained")
-    FigureCanvasAgg(figure)
-    label = AXIS_LABELS[key]
-    axis_names = {
-        "training": "tokenizer training s/step",
-        "inference": "tokenizer encode + decode s/image",
-        "generation": "generation (sample + decode) s/image",
-    }
-    for number, (part, cost, name) in enumerate(panels):
-        axes = figure.add_subplot(1, len(panels), number + 1)
-        rows = [
-            row
-            for row in summary
-            if row["part"] == part
-            and row["setting"] != DRIFT
-            and isinstance(row.get(key), (int, float))
-            and isinstance(row.get(cost), (int, float))
-        ]
-        axes.errorbar(
-            [row[cost] for row in rows],
-            [row[key] for row in rows],
-            xerr=[row.get(f"{cost}_std", 0) for row in rows],
-            yerr=[row.get(f"{key}_std", 0) for row in rows],
-            fmt="o",
-            markersize=4,
-            capsize=2,
-            color="tab:blue",
-            zorder=3,
-        )
-        for row in rows:
-            text = "baseline" if row["knob"] == "baseline" else f"{row['knob']}: {row['setting']}"
-            axes.annotate(text, (row[cost], row[key]), textcoords="offset points", xytext=(4, 3), fontsize=7)
-        front = sorted((row for row in rows if name in row["pareto"]), key=lambda row: row[cost])
-        axes.plot(
-            [row[cost] for row in front],
-            [row[key] for row in front],
-            color="tab:red",
-            linewidth=1.5,
-            label="Pareto front",
-            zorder=2,
-        )
-        base = next((row for row in rows if row["knob"] == "baseline"), None)
-        if base is not None and isinstance(base.get(f"background_{key}"), (int, float)):
-            axes.axhline(base[f"background_{key}"], linestyle="--", color="grey", linewidth=1, label="no-contact image")
-        axes.set_xscale("log")
-        # Ratios span less than a decade: label 0.5x, 1x, 2x ... rather than powers of ten.
-        axes.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
-        axes.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}x"))
-        axes.xaxis.set_minor_formatter(NullFormatter())
-        axes.set_xlabel(f"{axis_names[name]}, x baseline (log scale)")
-        axes.set_ylabel(f"{label} (higher is better)")
-        axes.set_title(f"{part} knobs: {name} cost", fontsize=9)
-        axes.grid(True, which="both", alpha=0.3)
-        axes.legend(fontsize=7)
-    figure.suptitle(title, fontsize=9)
-    figure.savefig(path, dpi=120)
-
-
 # -- the experiment -------------------------------------------------------------------------------
 
 
@@ -710,50 +369,108 @@ def evaluate_tradeoff(
     overwrite: bool = False,
 ) -> dict[str, Any]:
     """Both parts for every seed (see the module docstring) around ``config`` (already
-    :func:`scaled_config`; ``full`` says whether it was scaled down); writes ``tradeoff.json``,
-    ``tradeoff.md`` and ``tradeoff.png`` into ``out`` (one that holds them only with ``overwrite``)
-    and returns the result."""
+    :func:`~vqtouch.plugins.experiments.pipeline_tradeoff_configs.scaled_config`; ``full`` says whether
+    it was scaled down); writes ``tradeoff.json``, ``tradeoff.md`` and ``tradeoff.png`` into ``out``
+    (one that holds them only with ``overwrite``) and returns the result."""
+    settings = _Settings(full, tokenizer_steps, generator_steps, rounds, timing_steps, n, batch_size, distribution)
     record = ExperimentRecord("tradeoff", out, seeds, overwrite=overwrite)
     generator = any(KNOBS[name].part == "generator" for name in knobs)
     baseline = baseline_config(
         config, host, tokenizer_steps=tokenizer_steps, generator_steps=generator_steps, generator=generator
     )
+    _check_values(baseline, host, knobs, seeds[0])
+    rows: list[dict[str, Any]] = []
+    for seed in seeds:
+        rows += _seed_rows(baseline, host, knobs, seed, out, settings, generator, argv, report)
+    summary, key = summarize(rows)
+    result = _result(baseline, host, knobs, seeds, settings, generator, rows, summary, key)
+    record.write(result, render_markdown(result))
+    plot_tradeoff(
+        summary,
+        key,
+        record.path("tradeoff.png"),
+        f"{baseline.scene}: {len(seeds)} seeds, {tokenizer_steps} tokenizer steps, {torch.get_num_threads()} threads",
+    )
+    return result
+
+
+@dataclasses.dataclass(frozen=True)
+class _Settings:
+    """How much :func:`evaluate_tradeoff` trains, times and samples (``tradeoff.json``'s ``settings``)."""
+
+    full: bool
+    tokenizer_steps: int
+    generator_steps: int
+    rounds: int
+    timing_steps: int
+    n: int
+    batch_size: int
+    distribution: bool
+
+
+def _check_values(baseline: Any, host: PluginHost, knobs: dict[str, list[Any]], seed: int) -> None:
+    """One-line errors for any knob value that makes no valid variant or sampling setting."""
     # Every value is checked before anything trains: a bad one would otherwise fail an hour in.
     for name, values in knobs.items():
         if KNOBS[name].part == "tokenizer":
             for value in values:
-                variant_config(baseline, host, seeds[0], name, value)
+                variant_config(baseline, host, seed, name, value)
     check_sampling_values(baseline, host, knobs)
-    rows: list[dict[str, Any]] = []
-    for seed in seeds:
-        seed_rows, baseline_run = tokenizer_rows(
-            baseline,
+
+
+def _seed_rows(
+    baseline: Any,
+    host: PluginHost,
+    knobs: dict[str, list[Any]],
+    seed: int,
+    out: Path,
+    settings: _Settings,
+    generator: bool,
+    argv: list[str],
+    report: Callable[[str], None],
+) -> list[dict[str, Any]]:
+    """One seed of both parts: the tokenizer rows, then (with ``generator``) the generator rows."""
+    rows, baseline_run = tokenizer_rows(
+        baseline,
+        host,
+        knobs,
+        seed=seed,
+        out=out,
+        rounds=settings.rounds,
+        timing_steps=settings.timing_steps,
+        argv=argv,
+        report=report,
+    )
+    if generator:
+        rows += generator_rows(
+            baseline_run,
+            variant_config(baseline, host, seed),
             host,
             knobs,
             seed=seed,
-            out=out,
-            rounds=rounds,
-            timing_steps=timing_steps,
-            argv=argv,
+            n=settings.n,
+            rounds=settings.rounds,
+            batch_size=settings.batch_size,
+            distribution=settings.distribution,
             report=report,
         )
-        rows += seed_rows
-        if generator:
-            rows += generator_rows(
-                baseline_run,
-                variant_config(baseline, host, seed),
-                host,
-                knobs,
-                seed=seed,
-                n=n,
-                rounds=rounds,
-                batch_size=batch_size,
-                distribution=distribution,
-                report=report,
-            )
-    summary, key = summarize(rows)
+    return rows
+
+
+def _result(
+    baseline: Any,
+    host: PluginHost,
+    knobs: dict[str, list[Any]],
+    seeds: list[int],
+    settings: _Settings,
+    generator: bool,
+    rows: list[dict[str, Any]],
+    summary: list[dict[str, Any]],
+    key: str,
+) -> dict[str, Any]:
+    """What ``tradeoff.json`` holds (beside the record's seeds and provenance)."""
     base = generator_base(baseline) if generator else None
-    result = {
+    return {
         "seeds": seeds,
         "scene": baseline.scene,
         "baseline": baseline_text(baseline, host),
@@ -763,29 +480,12 @@ def evaluate_tradeoff(
         if base
         else None,
         "knobs": {name: [KNOBS[name].show(value) for value in values] for name, values in knobs.items()},
-        "settings": {
-            "full": full,
-            "tokenizer_steps": tokenizer_steps,
-            "generator_steps": generator_steps,
-            "rounds": rounds,
-            "timing_steps": timing_steps,
-            "n": n,
-            "batch_size": batch_size,
-            "distribution": distribution,
-        },
+        "settings": dataclasses.asdict(settings),
         "front_quality": key,
         "config": baseline.to_dict(),
         "rows": rows,
         "summary": summary,
     }
-    record.write(result, render_markdown(result))
-    plot_tradeoff(
-        summary,
-        key,
-        record.path("tradeoff.png"),
-        f"{baseline.scene}: {len(seeds)} seeds, {tokenizer_steps} tokenizer steps, {torch.get_num_threads()} threads",
-    )
-    return result
 
 
 def _command(args: argparse.Namespace) -> int:

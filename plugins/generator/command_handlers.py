@@ -15,7 +15,8 @@ import torch
 
 from vqtouch.core import Assembly, ConfigError, PluginHost, atomic_write
 from vqtouch.plugins.runtime.execution import run_stage
-from vqtouch.plugins.runtime.run_dir import RunDir, interrupted_message, interrupted_status, is_main_process
+from vqtouch.plugins.runtime.interruptions import interrupted_message, interrupted_status
+from vqtouch.plugins.runtime.run_dir import RunDir, is_main_process
 from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.plugins.cli.app import (
     config_from_args,
@@ -251,21 +252,12 @@ def cmd_evaluate_generation(args: argparse.Namespace) -> int:
         )
 
     from .pipeline import load_pipeline
-    from .stage import baseline_pool, distribution_scorer, held_out_conditions, score_generation
+    from .scoring import baseline_pool, held_out_conditions
 
-    host = args.host
-    if is_pretrained(args.run) and not args.out:
-        raise ConfigError(f"--run {args.run}: a bundle is read-only; give --out DIR for its scores")
-    if args.clip_checkpoint and not Path(args.clip_checkpoint).expanduser().is_file():
-        raise ConfigError(
-            f"--clip-checkpoint {args.clip_checkpoint}: no such file; give the open_clip weights file "
-            "(.safetensors, .pt or .bin)"
-        )
-    if not args.out and not os.access(args.run, os.W_OK):  # refused before any sample is drawn
-        raise ConfigError(f"--run {args.run} is read-only; give --out DIR for the scores and sample pictures")
-    pipe = load_pipeline(args.run, host=host, step=args.step, weights=args.weights)
+    _refuse_before_loading(args)
+    pipe = load_pipeline(args.run, host=args.host, step=args.step, weights=args.weights)
     config = pipe.config
-    assembly = Assembly(config, host)
+    assembly = Assembly(config, args.host)
     dataset = assembly.component("data.dataset")
     train, held_out = experiment_split(dataset, config.data, config.seed)
     names = [item.name for item in config.generator.conditioners]
@@ -279,61 +271,134 @@ def cmd_evaluate_generation(args: argparse.Namespace) -> int:
         if out.exists() and not out.is_dir():
             raise ConfigError(f"--out {out}: exists and is not a folder")
         output_folder(out)
+    best_of = _best_of_by_conditioner(args, pipe, names, out)
+    sampler_name = args.sampler or pipe.sampler_name
+    steps = pipe.check_steps(args.steps or pipe.settings["steps"])
+    metrics = _scoring_metrics(args, assembly, config)
+    tag = f"{pipe.checkpoint.name}_{sampler_name}_{steps}"
+    background, background_source = dataset_background(train, image_hw(config.data.image_size))
+    conditions = held_out_conditions(held_out, dataset, args.n, pipe.device)
+    pool = baseline_pool(train)
+    by_conditioner = _score_conditioners(
+        args,
+        pipe,
+        names,
+        best_of,
+        sampler_name,
+        out,
+        tag,
+        conditions=conditions,
+        pool=pool,
+        metrics=metrics,
+        background_3HW=background,
+        steps=steps,
+        device=pipe.device,
+        distribution=_run_distribution_scorer(args, pipe, conditions, pool, metrics),
+    )
+    _report_scores(args, pipe, out, tag, sampler_name, background_source, by_conditioner)
+    return 0
+
+
+def _refuse_before_loading(args: argparse.Namespace) -> None:
+    """Refuse, before any model is loaded, scores with nowhere to go and a CLIP checkpoint that is not there."""
+    if is_pretrained(args.run) and not args.out:
+        raise ConfigError(f"--run {args.run}: a bundle is read-only; give --out DIR for its scores")
+    if args.clip_checkpoint and not Path(args.clip_checkpoint).expanduser().is_file():
+        raise ConfigError(
+            f"--clip-checkpoint {args.clip_checkpoint}: no such file; give the open_clip weights file "
+            "(.safetensors, .pt or .bin)"
+        )
+    if not args.out and not os.access(args.run, os.W_OK):  # refused before any sample is drawn
+        raise ConfigError(f"--run {args.run} is read-only; give --out DIR for the scores and sample pictures")
+
+
+def _best_of_by_conditioner(args: argparse.Namespace, pipe: Any, names: list[str], out: Path | None) -> dict[int, int]:
+    """The conditioners scored, in order, each with the candidates it draws per condition."""
     # Into --out: every conditioner unless one is named (Table 2's by_conditioner); into the run: one, 0 by default.
     indices = [args.conditioner] if args.conditioner is not None else (list(range(len(names))) if out else [0])
-    # A class ranking needs classes: a named conditioner must have them; of all, those that do use it.
-    # The consensus ranks every conditioner.
-    best_of = {
-        index: check_best_of(args.best_of, pipe.conditioners[index], f"{index}:{names[index]}", args.best_of_rank)
-        if len(indices) == 1 or args.best_of_rank == "consensus" or ranks_by_class(pipe.conditioners[index])
+    # A ranker by class needs classes: a named conditioner must have them; of all, those that do use it.
+    # A ranker that reads no classes (the consensus) ranks every conditioner.
+    ranker = pipe.best_of_ranker(args.best_of_rank)
+    return {
+        index: check_best_of(args.best_of, pipe.conditioners[index], f"{index}:{names[index]}", ranker)
+        if len(indices) == 1 or not ranker.needs_classes or ranks_by_class(pipe.conditioners[index])
         else 1
         for index in indices
     }
-    sampler_name = args.sampler or pipe.sampler_name
-    steps = pipe.check_steps(args.steps or pipe.settings["steps"])
+
+
+def _scoring_metrics(args: argparse.Namespace, assembly: Any, config: Any) -> list[tuple[str, Any]]:
+    """The metrics built from :func:`_metric_blocks`, ``fd_effnetlite0`` at ``--feature-size`` when given."""
     metrics = [(block["name"], assembly.build("metric", block)) for block in _metric_blocks(args, config)]
     if args.feature_size is not None:
         metrics = [(name, metric) for name, metric in metrics if name != "fd_effnetlite0"]
         metrics.append(
             ("fd_effnetlite0", assembly.build("metric", {"name": "fd_effnetlite0", "image_size": args.feature_size}))
         )
-    tag = f"{pipe.checkpoint.name}_{sampler_name}_{steps}"
-    background, background_source = dataset_background(train, image_hw(config.data.image_size))
-    conditions = held_out_conditions(held_out, dataset, args.n, pipe.device)
-    pool = baseline_pool(train)
-    scorer = False
-    if args.distribution:
-        scorer = distribution_scorer(
-            conditions,
-            pool,
-            metrics,
-            config.seed,
-            tokenizer=pipe.tokenizer if args.classifier_on == "reconstructions" else None,
-        )
+    return metrics
+
+
+def _run_distribution_scorer(
+    args: argparse.Namespace, pipe: Any, conditions: Any, pool: list[dict[str, Any]], metrics: list[tuple[str, Any]]
+) -> Any:
+    """With ``--distribution``, the scorer every conditioner shares (classifier per ``--classifier-on``), else False."""
+    from .scoring import distribution_scorer
+
+    if not args.distribution:
+        return False
+    return distribution_scorer(
+        conditions,
+        pool,
+        metrics,
+        pipe.config.seed,
+        tokenizer=pipe.tokenizer if args.classifier_on == "reconstructions" else None,
+    )
+
+
+def _score_conditioners(
+    args: argparse.Namespace,
+    pipe: Any,
+    names: list[str],
+    best_of: dict[int, int],
+    sampler_name: str,
+    out: Path | None,
+    tag: str,
+    **common: Any,
+) -> dict[str, dict[str, Any]]:
+    """:func:`.scoring.score_generation` of each conditioner of ``best_of``, by ``index:name``."""
+    from .scoring import score_generation
+
     folder = out if out is not None else pipe.run.path
     by_conditioner = {}
-    for index in indices:
+    for index, draws in best_of.items():
         picture = f"samples_{index}_{names[index]}.png" if out is not None else f"samples_{tag}.png"
         by_conditioner[f"{index}:{names[index]}"] = score_generation(
             generator=pipe.generator,
             conditioner=pipe.conditioners[index],
             tokenizer=pipe.tokenizer,
-            sampler=host.build("sampler", sampler_name),
-            conditions=conditions,
-            pool=pool,
-            metrics=metrics,
-            background_3HW=background,
-            steps=steps,
+            sampler=args.host.build("sampler", sampler_name),
+            **common,
             guidance=pipe.guidance_for(index) if args.guidance is None else args.guidance,
             truncation=pipe.settings["truncation"] if args.truncation is None else args.truncation,
-            seed=config.seed if args.seed is None else args.seed,
-            device=pipe.device,
+            seed=pipe.config.seed if args.seed is None else args.seed,
             picture=folder / picture,
-            distribution=scorer,
-            best_of=best_of[index],
-            rank=pipe.best_of_ranking(args.best_of_rank) if best_of[index] > 1 else None,
+            best_of=draws,
+            rank=pipe.best_of_ranking(args.best_of_rank) if draws > 1 else None,
             precision=pipe.sample_precision,
         )
+    return by_conditioner
+
+
+def _report_scores(
+    args: argparse.Namespace,
+    pipe: Any,
+    out: Path | None,
+    tag: str,
+    sampler_name: str,
+    background_source: Any,
+    by_conditioner: dict[str, dict[str, Any]],
+) -> None:
+    """Write the scores (``out``/generation.json, else the run's evaluation_generation_<tag>.json) and print them."""
     head = {
         "checkpoint": str(args.run if is_pretrained(args.run) else pipe.checkpoint),
         "sampler": sampler_name,
@@ -351,7 +416,6 @@ def cmd_evaluate_generation(args: argparse.Namespace) -> int:
         result = head | {"conditioner": name, **scores}
         pipe.run.write_json(f"evaluation_generation_{tag}.json", result)
     print(json.dumps(result, indent=2))
-    return 0
 
 
 def _metric_blocks(args: argparse.Namespace, config: Any) -> list[dict[str, Any]]:

@@ -27,7 +27,7 @@ from vqtouch.plugins.cli.app import (
     truncation_mass,
 )
 
-from .best_of import BEST_OF_RANK_HELP, BEST_OF_RANKS
+from .rankers_plugin import BEST_OF_RANK_HELP, DEFAULT_RANKER
 
 
 def feature_size_argument(text: str) -> int:
@@ -48,6 +48,30 @@ def _add_weights_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_best_of_rank_argument(parser: argparse.ArgumentParser) -> None:
+    """``--best-of-rank``, the ranking that keeps the best of ``--best-of`` candidates."""
+    parser.add_argument(
+        "--best-of-rank",
+        metavar="RANKER",
+        default=DEFAULT_RANKER,
+        help=BEST_OF_RANK_HELP,
+    )
+
+
+def _add_sampling_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--steps``, ``--sampler``, ``--guidance`` and ``--truncation``, each the run's when not given."""
+    parser.add_argument("--steps", type=positive_int, help="sampling steps (default: the run's generator.steps)")
+    parser.add_argument("--sampler", help="sampler plugin (default: the run's generator.sampler)")
+    parser.add_argument(
+        "--guidance",
+        type=guidance_scale,
+        help="classifier-free guidance scale (1: none; default: the run's for the conditioner)",
+    )
+    parser.add_argument(
+        "--truncation", type=truncation_mass, help="keep the most likely codes holding this mass (1: all)"
+    )
+
+
 def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of ``vqtouch tradeoff generator``."""
     parser.add_argument(
@@ -63,6 +87,31 @@ def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--n", type=positive_int, default=64, help="held-out conditions per setting (at most all)")
     parser.add_argument("--rounds", type=positive_int, default=2, help="interleaved timing rounds (median reported)")
+    _add_tradeoff_knob_arguments(parser)
+    parser.add_argument(
+        "--classifier-on",
+        choices=["real", "reconstructions"],
+        default="real",
+        help="train the classifier-accuracy column's classifier on the real training images (default) or "
+        "on the tokenizer's reconstructions of them, which judges decoded images fairly",
+    )
+    parser.add_argument("--batch-size", type=positive_int, default=16, help="conditions per forward pass")
+    parser.add_argument(
+        "--grid",
+        action="store_true",
+        help="every combination (default: one knob at a time around the first sampler, guidance and "
+        "precision and the middle --steps value)",
+    )
+    parser.add_argument("--seed", type=seed_int, help="seed of the sampling draws (default: the run's)")
+    # The same option as `vqtouch --threads` (either place; SUPPRESS keeps the global one's value).
+    parser.add_argument(
+        "--threads", type=positive_int, default=argparse.SUPPRESS, help="torch CPU threads (as vqtouch --threads)"
+    )
+    _add_distribution_arguments(parser)
+
+
+def _add_tradeoff_knob_arguments(parser: argparse.ArgumentParser) -> None:
+    """The values ``vqtouch tradeoff generator`` sweeps, knob by knob (the first of each is the base)."""
     parser.add_argument("--steps", type=positive_int, nargs="+", default=[100, 50, 25, 10, 5], help="sampling steps")
     parser.add_argument(
         "--samplers",
@@ -92,32 +141,7 @@ def _add_tradeoff_arguments(parser: argparse.ArgumentParser) -> None:
         help="candidates per condition, the --best-of-rank's choice kept (label conditions, or any with "
         "--best-of-rank consensus; the first is the base; default: not a knob, one draw)",
     )
-    parser.add_argument(
-        "--best-of-rank",
-        choices=list(BEST_OF_RANKS),
-        default="judge",
-        help=BEST_OF_RANK_HELP,
-    )
-    parser.add_argument(
-        "--classifier-on",
-        choices=["real", "reconstructions"],
-        default="real",
-        help="train the classifier-accuracy column's classifier on the real training images (default) or "
-        "on the tokenizer's reconstructions of them, which judges decoded images fairly",
-    )
-    parser.add_argument("--batch-size", type=positive_int, default=16, help="conditions per forward pass")
-    parser.add_argument(
-        "--grid",
-        action="store_true",
-        help="every combination (default: one knob at a time around the first sampler, guidance and "
-        "precision and the middle --steps value)",
-    )
-    parser.add_argument("--seed", type=seed_int, help="seed of the sampling draws (default: the run's)")
-    # The same option as `vqtouch --threads` (either place; SUPPRESS keeps the global one's value).
-    parser.add_argument(
-        "--threads", type=positive_int, default=argparse.SUPPRESS, help="torch CPU threads (as vqtouch --threads)"
-    )
-    _add_distribution_arguments(parser)
+    _add_best_of_rank_argument(parser)
 
 
 def _add_distribution_arguments(parser: argparse.ArgumentParser) -> None:
@@ -147,6 +171,14 @@ class _CountAction(argparse.Action):
 
 @hookimpl
 def vqtouch_add_commands(subparsers):
+    _add_train_generator(subparsers)
+    _add_evaluate_generation(subparsers)
+    _add_tradeoff_generator(subparsers)
+    _add_generate(subparsers)
+
+
+def _add_train_generator(subparsers: Any) -> None:
+    """``vqtouch train generator``."""
     train = command_group(subparsers, "train", "train a component (tokenizer, ...)")
     generator = train.add_parser(
         "generator",
@@ -163,6 +195,9 @@ def vqtouch_add_commands(subparsers):
     )
     generator.set_defaults(handler="vqtouch.plugins.generator.command_handlers:cmd_train_generator")
 
+
+def _add_evaluate_generation(subparsers: Any) -> None:
+    """``vqtouch evaluate generation``: score one run (``--run``) or run the experiment (``--out``)."""
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
     scored = evaluate.add_parser(
         "generation",
@@ -171,30 +206,7 @@ def vqtouch_add_commands(subparsers):
         "region; with --out, the per-conditioner experiment over seeds "
         "(Table 2: JSON, markdown, PNG)",
     )
-    scored.add_argument(
-        "--run",
-        help="a run whose generator stage trained, or a bundle (pretrained:NAME): score it "
-        "(with --out DIR, into DIR/generation.json; a bundle is read-only and needs "
-        "--out)",
-    )
-    scored.add_argument(
-        "--out",
-        help="without --run: run the experiment into this folder: train the scene's "
-        "generator once per seed over one tokenizer and score every conditioner against "
-        "the baselines; with --run: where the run's scores go",
-    )
-    scored.add_argument(
-        "--seeds", type=seed_int, nargs="+", default=[0, 1, 2], help="with --out: generator seeds (default 0 1 2)"
-    )
-    scored.add_argument(
-        "--tokenizer",
-        metavar="RUN",
-        help="with --out: the trained tokenizer every seed's generator "
-        "learns (default: the scene's, trained once into OUT/tokenizer)",
-    )
-    scored.add_argument(
-        "--overwrite", action="store_true", help="with --out: run again into a folder that holds an earlier result"
-    )
+    _add_scored_target_arguments(scored)
     add_config_arguments(scored, default_scene="tour")
     add_step_argument(scored)
     _add_weights_argument(scored)
@@ -202,34 +214,9 @@ def vqtouch_add_commands(subparsers):
         "--conditioner", type=non_negative_int, help="which of the generator's conditioners (index; default 0)"
     )
     scored.add_argument("--n", type=positive_int, default=64, help="held-out conditions to generate (at most all)")
-    scored.add_argument("--steps", type=positive_int, help="sampling steps (default: the run's generator.steps)")
-    scored.add_argument("--sampler", help="sampler plugin (default: the run's generator.sampler)")
-    scored.add_argument(
-        "--guidance",
-        type=guidance_scale,
-        help="classifier-free guidance scale (1: none; default: the run's for the conditioner)",
-    )
-    scored.add_argument(
-        "--truncation", type=truncation_mass, help="keep the most likely codes holding this mass (1: all)"
-    )
+    _add_sampling_arguments(scored)
     scored.add_argument("--seed", type=seed_int, help="seed of the sampling draws (default: the run's)")
-    scored.add_argument(
-        "--metrics",
-        help="comma-separated metric plugins, or a JSON list of names and "
-        '{"name": ..., options} blocks (default: the run\'s metrics)',
-    )
-    scored.add_argument(
-        "--clip-checkpoint",
-        metavar="PATH",
-        help="open_clip weights file of the clip_score metric (CLIP-space agreement of each "
-        "generated image with its condition), added to the metrics; a clip_score listed "
-        "without it reads VQTOUCH_CLIP_CKPT or VQTOUCH_WEIGHTS_DIR, else is reported as skipped",
-    )
-    scored.add_argument(
-        "--clip-architecture",
-        metavar="NAME",
-        help="open_clip model name the --clip-checkpoint file holds (default: ViT-B-32)",
-    )
+    _add_metric_arguments(scored)
     _add_distribution_arguments(scored)
     scored.add_argument(
         "--best-of",
@@ -240,12 +227,7 @@ def vqtouch_add_commands(subparsers):
         "draw; 1: plain sampling); with every conditioner scored and a class ranking, conditioners without "
         "classes draw once",
     )
-    scored.add_argument(
-        "--best-of-rank",
-        choices=list(BEST_OF_RANKS),
-        default="judge",
-        help=BEST_OF_RANK_HELP,
-    )
+    _add_best_of_rank_argument(scored)
     scored.add_argument(
         "--classifier-on",
         choices=["real", "reconstructions"],
@@ -256,6 +238,58 @@ def vqtouch_add_commands(subparsers):
     )
     scored.set_defaults(handler="vqtouch.plugins.generator.command_handlers:cmd_evaluate_generation")
 
+
+def _add_scored_target_arguments(parser: argparse.ArgumentParser) -> None:
+    """What ``evaluate generation`` scores: a run (``--run``), or the experiment's folder and its options."""
+    parser.add_argument(
+        "--run",
+        help="a run whose generator stage trained, or a bundle (pretrained:NAME): score it "
+        "(with --out DIR, into DIR/generation.json; a bundle is read-only and needs "
+        "--out)",
+    )
+    parser.add_argument(
+        "--out",
+        help="without --run: run the experiment into this folder: train the scene's "
+        "generator once per seed over one tokenizer and score every conditioner against "
+        "the baselines; with --run: where the run's scores go",
+    )
+    parser.add_argument(
+        "--seeds", type=seed_int, nargs="+", default=[0, 1, 2], help="with --out: generator seeds (default 0 1 2)"
+    )
+    parser.add_argument(
+        "--tokenizer",
+        metavar="RUN",
+        help="with --out: the trained tokenizer every seed's generator "
+        "learns (default: the scene's, trained once into OUT/tokenizer)",
+    )
+    parser.add_argument(
+        "--overwrite", action="store_true", help="with --out: run again into a folder that holds an earlier result"
+    )
+
+
+def _add_metric_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--metrics`` and the CLIP score's ``--clip-checkpoint`` and ``--clip-architecture``."""
+    parser.add_argument(
+        "--metrics",
+        help="comma-separated metric plugins, or a JSON list of names and "
+        '{"name": ..., options} blocks (default: the run\'s metrics)',
+    )
+    parser.add_argument(
+        "--clip-checkpoint",
+        metavar="PATH",
+        help="open_clip weights file of the clip_score metric (CLIP-space agreement of each "
+        "generated image with its condition), added to the metrics; a clip_score listed "
+        "without it reads VQTOUCH_CLIP_CKPT or VQTOUCH_WEIGHTS_DIR, else is reported as skipped",
+    )
+    parser.add_argument(
+        "--clip-architecture",
+        metavar="NAME",
+        help="open_clip model name the --clip-checkpoint file holds (default: ViT-B-32)",
+    )
+
+
+def _add_tradeoff_generator(subparsers: Any) -> None:
+    """``vqtouch tradeoff generator``."""
     tradeoff = command_group(subparsers, "tradeoff", "measure the speed/quality trade-off of a trained component")
     traded = tradeoff.add_parser(
         "generator",
@@ -267,46 +301,17 @@ def vqtouch_add_commands(subparsers):
     add_step_argument(traded)
     traded.set_defaults(handler="vqtouch.plugins.generator.command_handlers:cmd_tradeoff_generator")
 
+
+def _add_generate(subparsers: Any) -> None:
+    """``vqtouch generate``."""
     generate = subparsers.add_parser("generate", help="generate tactile images with a trained generator run")
     generate.add_argument(
         "--run", required=True, help="a run whose generator stage trained, or a bundle (pretrained:NAME)"
     )
     add_step_argument(generate)
     _add_weights_argument(generate)
-    generate.add_argument("--label", action="append", help="class index or name (repeatable: one per image)")
-    generate.add_argument("--visual", action="append", metavar="IMG", help="visual image file (repeatable)")
-    generate.add_argument("--tactile", action="append", metavar="IMG", help="conditioning tactile image (repeatable)")
-    generate.add_argument("--text", action="append", help="text description (repeatable)")
-    generate.add_argument(
-        "--condition",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="a condition a third-party conditioner reads (sample key = value)",
-    )
-    generate.add_argument(
-        "--conditioner",
-        metavar="INDEX|NAME",
-        help="which of the generator's conditioners encodes the condition (index or name, e.g. "
-        "1 or visual); needed only when several read the same kind of condition",
-    )
-    generate.add_argument(
-        "--n",
-        type=positive_int,
-        default=1,
-        action=_CountAction,
-        help="number of images (a single condition value is repeated)",
-    )
-    generate.add_argument("--steps", type=positive_int, help="sampling steps (default: the run's generator.steps)")
-    generate.add_argument("--sampler", help="sampler plugin (default: the run's generator.sampler)")
-    generate.add_argument(
-        "--guidance",
-        type=guidance_scale,
-        help="classifier-free guidance scale (1: none; default: the run's for the conditioner)",
-    )
-    generate.add_argument(
-        "--truncation", type=truncation_mass, help="keep the most likely codes holding this mass (1: all)"
-    )
+    _add_condition_arguments(generate)
+    _add_sampling_arguments(generate)
     generate.add_argument("--seed", type=seed_int, default=0, help="seed: same seed and settings, same images")
     generate.add_argument("--batch-size", type=positive_int, default=16, help="images per forward pass")
     generate.add_argument(
@@ -317,15 +322,38 @@ def vqtouch_add_commands(subparsers):
         help="draw K candidates per image and keep --best-of-rank's choice (a label condition, or any with "
         "--best-of-rank consensus; about K times the time of one draw; default 1: plain sampling)",
     )
-    generate.add_argument(
-        "--best-of-rank",
-        choices=list(BEST_OF_RANKS),
-        default="judge",
-        help=BEST_OF_RANK_HELP,
-    )
+    _add_best_of_rank_argument(generate)
     generate.add_argument(
         "--out", required=True, help="folder for sample_*.png, grid.png and generate.json (written whole, at the end)"
     )
     generate.add_argument("--overwrite", action="store_true", help="replace what --out holds")
     add_greyscale_argument(generate)
     generate.set_defaults(handler="vqtouch.plugins.generator.command_handlers:cmd_generate", n_given=False)
+
+
+def _add_condition_arguments(parser: argparse.ArgumentParser) -> None:
+    """``generate``'s conditions, the conditioner that encodes them and how many images they draw."""
+    parser.add_argument("--label", action="append", help="class index or name (repeatable: one per image)")
+    parser.add_argument("--visual", action="append", metavar="IMG", help="visual image file (repeatable)")
+    parser.add_argument("--tactile", action="append", metavar="IMG", help="conditioning tactile image (repeatable)")
+    parser.add_argument("--text", action="append", help="text description (repeatable)")
+    parser.add_argument(
+        "--condition",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a condition a third-party conditioner reads (sample key = value)",
+    )
+    parser.add_argument(
+        "--conditioner",
+        metavar="INDEX|NAME",
+        help="which of the generator's conditioners encodes the condition (index or name, e.g. "
+        "1 or visual); needed only when several read the same kind of condition",
+    )
+    parser.add_argument(
+        "--n",
+        type=positive_int,
+        default=1,
+        action=_CountAction,
+        help="number of images (a single condition value is repeated)",
+    )

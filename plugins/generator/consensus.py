@@ -24,6 +24,9 @@ from typing import Any
 
 import torch
 
+from vqtouch.core import ConfigError
+from vqtouch.core.components import BestOfBatch, BestOfRanker
+
 
 class ContactConsensus:
     """Chooses, per row, the candidate whose contact centre is the medoid of the K candidates' centres.
@@ -77,3 +80,28 @@ def medoid_indices(distances_BKK: torch.Tensor) -> torch.Tensor:
     tied_BK = total_BK <= best_B * (1 + 1e-12)
     positions = torch.arange(total_BK.shape[-1], device=total_BK.device)
     return torch.where(tied_BK, positions, total_BK.shape[-1]).min(-1).values
+
+
+class ConsensusRanker(BestOfRanker):
+    """Chooses by :class:`ContactConsensus` over the run's tokenizer and the no-contact image of its
+    training split (the one ``vqtouch evaluate generation`` scores contacts against), read when a
+    pipeline first ranks with it; reads no classes."""
+
+    def __init__(self) -> None:
+        self.consensus: ContactConsensus | None = None
+
+    def prepare(self, pipeline: Any) -> None:
+        _, background_3HW, source = pipeline.training_split("best of K by consensus")
+        if background_3HW is None:
+            raise ConfigError(f"best of K by consensus needs a no-contact image; this run's data give {source}")
+        self.consensus = ContactConsensus(pipeline.tokenizer, background_3HW)
+
+    def choose(self, candidates_KBHW: torch.Tensor, batch: BestOfBatch) -> torch.Tensor:
+        if self.consensus is None:
+            raise RuntimeError("the consensus ranker chooses after prepare(pipeline) has read the no-contact image")
+        return self.consensus.choose(candidates_KBHW)
+
+
+def build_consensus_ranker(config: Any, context: Any) -> ConsensusRanker:
+    """The ``consensus`` ranker (it has no options)."""
+    return ConsensusRanker()

@@ -201,15 +201,7 @@ def evaluate_generation_experiment(
     rows: list[dict[str, Any]] = []
     skipped: dict[str, str] = {}
     for seed in record.seeds:
-        data = base.to_dict()
-        data["seed"] = seed
-        data["generator"] |= {"num_samples": n, "distribution": distribution}
-        seed_config = validate_experiment(data, host)
-        with RunDir.create(seed_config, host=host, path=out / f"seed{seed}", overwrite=True) as run:
-            outcome = run_stage("generator", Assembly(seed_config, host), run)
-            if outcome.status != "ran":
-                raise stage_failure(outcome)
-            generation = json.loads((run.path / "generation.json").read_text())
+        generation = _seed_generation(base, seed, n, distribution, out, host)
         seed_rows = rows_of(generation, seed)
         rows += seed_rows
         for scores in (generation.get("by_conditioner") or {"": generation}).values():
@@ -235,12 +227,38 @@ def evaluate_generation_experiment(
         "summary": summary,
         "skipped": skipped,
     }
+    lines = _markdown(result, keys, len(record.seeds))
+    plot(
+        summary,
+        record.path("generation.png"),
+        f"generation per conditioner ({len(record.seeds)} seeds, {result['generator_steps']} training steps)",
+    )
+    record.write(result, lines)
+    return result
+
+
+def _seed_generation(base: Any, seed: int, n: int, distribution: bool, out: Path, host: PluginHost) -> dict[str, Any]:
+    """Train the generator of ``seed`` into ``out``/seed<S>, scoring ``n`` held-out conditions; its generation.json."""
+    data = base.to_dict()
+    data["seed"] = seed
+    data["generator"] |= {"num_samples": n, "distribution": distribution}
+    seed_config = validate_experiment(data, host)
+    with RunDir.create(seed_config, host=host, path=out / f"seed{seed}", overwrite=True) as run:
+        outcome = run_stage("generator", Assembly(seed_config, host), run)
+        if outcome.status != "ran":
+            raise stage_failure(outcome)
+        return json.loads((run.path / "generation.json").read_text())
+
+
+def _markdown(result: dict[str, Any], keys: list[str], seeds: int) -> list[str]:
+    """generation.md: the table of ``result``'s summary (mean ± std over ``seeds``), the verdicts, what was skipped."""
+    summary, skipped = result["summary"], result["skipped"]
     lines = [
-        f"# Generation per conditioner ({len(record.seeds)} seeds: mean ± std)",
+        f"# Generation per conditioner ({seeds} seeds: mean ± std)",
         "",
-        f"Scene `{config.scene}`; tokenizer `{result['tokenizer']}`; one generator per seed trained "
-        f"{result['generator_steps']} steps with every conditioner; {n} held-out conditions generated with "
-        f"`{result['sampler']}`, {result['sampling_steps']} steps, unguided.  Arrows: "
+        f"Scene `{result['scene']}`; tokenizer `{result['tokenizer']}`; one generator per seed trained "
+        f"{result['generator_steps']} steps with every conditioner; {result['n']} held-out conditions generated "
+        f"with `{result['sampler']}`, {result['sampling_steps']} steps, unguided.  Arrows: "
         + ", ".join(f"{key} {direction_arrow(key)}" for key in keys)
         + ".",
         "",
@@ -252,10 +270,4 @@ def evaluate_generation_experiment(
     ]
     if skipped:
         lines += ["", "Skipped: " + "; ".join(f"`{name}`: {reason}" for name, reason in sorted(skipped.items()))]
-    plot(
-        summary,
-        record.path("generation.png"),
-        f"generation per conditioner ({len(record.seeds)} seeds, {result['generator_steps']} training steps)",
-    )
-    record.write(result, lines)
-    return result
+    return lines

@@ -12,8 +12,8 @@ code embeddings are the tokenizer's own codebook vectors, frozen (L2-normalised,
 root of their dimension), so codes that decode alike look alike from the start; with learned
 embeddings on 900 grids the same network names held-out codes about 4 times in 10.
 
-The fit is seeded and deterministic on a given machine; :meth:`GenerationPipeline.code_judge
-<vqtouch.plugins.generator.pipeline.GenerationPipeline.code_judge>` fits one per loaded run.
+The fit is seeded and deterministic on a given machine; the ``judge`` ranker (:class:`JudgeRanker`)
+fits one per loaded run (:func:`fit_run_judge`) when a pipeline first ranks with it.
 """
 
 from __future__ import annotations
@@ -23,6 +23,9 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from vqtouch.core import ConfigError
+from vqtouch.core.components import BestOfBatch, BestOfRanker
 
 #: Epochs of the judge's fit (chosen on a validation split of the training scenes, not on held-out ones).
 JUDGE_EPOCHS = 60
@@ -133,3 +136,68 @@ def codebook_of(tokenizer: Any) -> torch.Tensor:
     codes_11K = torch.arange(quantizer.codebook_size, device=tokenizer.device).view(1, 1, -1)
     with torch.no_grad():
         return quantizer.lookup(codes_11K)[0, :, 0, :].T.detach().float()
+
+
+def fit_run_judge(pipeline: Any) -> CodeJudge:
+    """The :class:`CodeJudge` of a generation pipeline's run: fitted on the canonical codes of the
+    training split the generator learned from (the split ``vqtouch evaluate generation`` holds its
+    conditions out of), seeded by the run's seed; about a minute on a CPU.  A ConfigError when the
+    run's training samples carry no labels."""
+    import sys
+
+    from vqtouch.plugins.evaluation.distribution import labels_of
+
+    from .codes import canonical_background
+
+    train, background_3HW, _ = pipeline.training_split("best of K by the code judge")
+    print(f"fitting the code judge on {len(train)} training images (about a minute on a CPU)", file=sys.stderr)
+    samples = [train[i] for i in range(len(train))]
+    labels = labels_of(samples)
+    if labels is None:
+        raise ConfigError(
+            "best of K by the code judge needs labelled training samples; this run's have none "
+            "(use --best-of-rank posterior)"
+        )
+    tokenizer, device = pipeline.tokenizer, pipeline.device
+    with torch.no_grad():
+        codes = torch.cat(
+            [
+                tokenizer.encode_codes(torch.stack([s["tactile"] for s in samples[start : start + 64]]).to(device))
+                for start in range(0, len(samples), 64)
+            ]
+        )
+        if background_3HW is not None:
+            codes, _ = canonical_background(codes, tokenizer, background_3HW.to(device))
+    # Every class a label conditioner can ask for, even one absent from the training split.
+    classes = [len(pipeline.class_names or []), max(labels) + 1]
+    classes += [c.num_classes for c in pipeline.conditioners if isinstance(getattr(c, "num_classes", None), int)]
+    return fit_code_judge(
+        codes,
+        torch.tensor(labels, device=codes.device),
+        codebook_of(tokenizer),
+        max(classes),
+        seed=pipeline.config.seed,
+    )
+
+
+class JudgeRanker(BestOfRanker):
+    """Scores a candidate by the run's code judge's log p(row's class | codes) (:meth:`CodeJudge.rank`);
+    the judge is fitted when a pipeline first ranks with it (:func:`fit_run_judge`)."""
+
+    needs_classes = True
+
+    def __init__(self) -> None:
+        self.judge: CodeJudge | None = None
+
+    def prepare(self, pipeline: Any) -> None:
+        self.judge = fit_run_judge(pipeline)
+
+    def score(self, codes_BHW: torch.Tensor, batch: BestOfBatch) -> torch.Tensor:
+        if self.judge is None:
+            raise RuntimeError("the judge ranker scores after prepare(pipeline) has fitted its judge")
+        return self.judge.rank(codes_BHW, batch.conditions)
+
+
+def build_judge_ranker(config: Any, context: Any) -> JudgeRanker:
+    """The ``judge`` ranker (it has no options)."""
+    return JudgeRanker()

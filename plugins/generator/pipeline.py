@@ -33,8 +33,10 @@ from vqtouch.plugins.training.batches import collate_samples
 
 from vqtouch.plugins.tokenizer import load_tokenizer, tokenizer_digest, tokenizer_location
 
-from .best_of import BestOfRank, check_best_of, check_best_of_rank, sample_best_of
-from .stage import CHECKPOINT_FOLDER, sampling_precision
+from .best_of import RANKER_KIND, check_best_of, check_best_of_rank, sample_best_of
+from .rankers_plugin import DEFAULT_RANKER
+from .scoring import sampling_precision
+from .stage import CHECKPOINT_FOLDER
 from .training import SENSOR_TAG_MODULE, SensorTaggedConditioner
 
 
@@ -60,10 +62,10 @@ class GenerationPipeline:
     #: A sensor-tagged generator's tag (``generator.sensor_tag``, made by ``vqtouch fewshot``); the
     #: conditioners then draw the sensor ``generator.sample_sensor`` names.  None for most generators.
     sensor_tag: Any = None
-    #: The code judge of best of K, fitted on first use (:meth:`code_judge`).
-    _judge: Any = field(default=None, repr=False)
-    #: Best of K's consensus ranking, built on first use (:meth:`contact_consensus`).
-    _consensus: Any = field(default=None, repr=False)
+    #: Best of K's rankers, by name, built on first use (:meth:`best_of_ranker`).
+    _rankers: dict[str, Any] = field(default_factory=dict, repr=False)
+    #: The names of those prepared for this pipeline (:meth:`best_of_ranking`).
+    _prepared_rankers: set[str] = field(default_factory=set, repr=False)
     #: The run's training split and its no-contact image, read on first use (:meth:`training_split`).
     _training: Any = field(default=None, repr=False)
 
@@ -86,77 +88,24 @@ class GenerationPipeline:
             self._training = (train, *dataset_background(train, image_hw(self.config.data.image_size)))
         return self._training
 
-    def code_judge(self) -> Any:
-        """The :class:`~.judge.CodeJudge` that ranks best of K's candidates: fitted, on first use, on the
-        canonical codes of the training split the generator learned from (the split ``vqtouch evaluate
-        generation`` holds its conditions out of), seeded by the run's seed; about a minute on a CPU.
-        A ConfigError when the run's training samples carry no labels."""
-        if self._judge is None:
-            import sys
+    def best_of_ranker(self, name: str) -> Any:
+        """The best-of ranker registered as ``name`` (a :class:`~vqtouch.core.BestOfRanker`), built once
+        per pipeline and not yet prepared: what :func:`.best_of.check_best_of` reads.  A one-line
+        ConfigError naming the registered rankers for any other name."""
+        name = check_best_of_rank(name, self.host)
+        if name not in self._rankers:
+            self._rankers[name] = self.host.build(RANKER_KIND, name)
+        return self._rankers[name]
 
-            from vqtouch.plugins.evaluation.distribution import labels_of
-
-            from .codes import canonical_background
-            from .judge import codebook_of, fit_code_judge
-
-            train, background_3HW, _ = self.training_split("best of K by the code judge")
-            print(f"fitting the code judge on {len(train)} training images (about a minute on a CPU)", file=sys.stderr)
-            samples = [train[i] for i in range(len(train))]
-            labels = labels_of(samples)
-            if labels is None:
-                raise ConfigError(
-                    "best of K by the code judge needs labelled training samples; this run's have none "
-                    "(use --best-of-rank posterior)"
-                )
-            with torch.no_grad():
-                codes = torch.cat(
-                    [
-                        self.tokenizer.encode_codes(
-                            torch.stack([s["tactile"] for s in samples[start : start + 64]]).to(self.device)
-                        )
-                        for start in range(0, len(samples), 64)
-                    ]
-                )
-                if background_3HW is not None:
-                    codes, _ = canonical_background(codes, self.tokenizer, background_3HW.to(self.device))
-            self._judge = fit_code_judge(
-                codes,
-                torch.tensor(labels, device=codes.device),
-                codebook_of(self.tokenizer),
-                # Every class a label conditioner can ask for, even one absent from the training split.
-                max(
-                    [
-                        len(self.class_names or []),
-                        max(labels) + 1,
-                        *(c.num_classes for c in self.conditioners if isinstance(getattr(c, "num_classes", None), int)),
-                    ]
-                ),
-                seed=self.config.seed,
-            )
-        return self._judge
-
-    def contact_consensus(self) -> Any:
-        """The :class:`~.consensus.ContactConsensus` that ranks best of K's candidates by ``consensus``:
-        this run's tokenizer and the no-contact image of its training split (the one ``vqtouch
-        evaluate generation`` scores contacts against).  A ConfigError when the run has no config or
-        its data give no no-contact image."""
-        if self._consensus is None:
-            from .consensus import ContactConsensus
-
-            _, background_3HW, source = self.training_split("best of K by consensus")
-            if background_3HW is None:
-                raise ConfigError(f"best of K by consensus needs a no-contact image; this run's data give {source}")
-            self._consensus = ContactConsensus(self.tokenizer, background_3HW)
-        return self._consensus
-
-    def best_of_ranking(self, rank: BestOfRank) -> Any:
-        """What ranks best of K's candidates: the code judge's :meth:`~.judge.CodeJudge.rank` for
-        ``"judge"``, None (the generator's own posterior) for ``"posterior"``, the
-        :meth:`contact_consensus` for ``"consensus"``."""
-        rank = check_best_of_rank(rank)
-        if rank == "consensus":
-            return self.contact_consensus()
-        return self.code_judge().rank if rank == "judge" else None
+    def best_of_ranking(self, name: str) -> Any:
+        """What ranks best of K's candidates by the ranker ``name``: :meth:`best_of_ranker`, prepared for
+        this pipeline once (the ``judge`` fits its code judge on the run's training codes, about a minute
+        on a CPU; the ``consensus`` reads the run's no-contact image)."""
+        ranker = self.best_of_ranker(name)
+        if name not in self._prepared_rankers:
+            ranker.prepare(self)
+            self._prepared_rankers.add(name)
+        return ranker
 
     def check_steps(self, steps: Any) -> int:
         """``steps`` as given, or a one-line ConfigError: sampling steps are an integer in [1, T] (the
@@ -183,7 +132,7 @@ class GenerationPipeline:
     @property
     def sample_precision(self) -> str:
         """The precision (fp32 or bf16) the generator's network samples in on this pipeline's device:
-        the run's ``generator.sample_precision``, ``auto`` resolved (:func:`.stage.sampling_precision`)."""
+        the run's ``generator.sample_precision``, ``auto`` resolved (:func:`.scoring.sampling_precision`)."""
         return sampling_precision(self.settings.get("precision", "auto"), self.device)
 
     def guidance_for(self, index: int) -> float:
@@ -260,7 +209,7 @@ class GenerationPipeline:
         batch_size: int = 16,
         conditioner: int | str | None = None,
         best_of: int = 1,
-        best_of_rank: BestOfRank = "judge",
+        best_of_rank: str = DEFAULT_RANKER,
         **conditions: Any,
     ) -> Iterator[tuple[int, torch.Tensor]]:
         """``(index of the first image, images (B, 3, S, S))`` a batch at a time, in order, holding one batch
@@ -270,74 +219,122 @@ class GenerationPipeline:
         Unset settings take the run's own (``generator.steps``, ``sampler``, the conditioner's
         guidance (:meth:`guidance_for`), ``truncation``).  ``conditioner``: which conditioner (index
         or name) when several read the condition's key.  ``best_of`` > 1: each image is the best of that
-        many candidates by ``best_of_rank``: for a label, the code judge (:meth:`code_judge`) or the
-        generator's own posterior of its label; for any condition, the candidates' consensus on the
-        contact (:meth:`contact_consensus`) (:mod:`.best_of`; image i with ``best_of=1`` is the same as
-        without).  Values are what
-        :meth:`vqtouch.core.Conditioner.parse_condition` takes (a class index or name, an image path or
-        tensor, a text)."""
-        if len(conditions) != 1:
-            raise ConfigError(
-                "give exactly one condition, e.g. label=3, visual='photo.png' or text='...' "
-                f"(got {', '.join(conditions) or 'none'})"
-            )
-        ((key, value),) = conditions.items()
-        values = list(value) if isinstance(value, (list, tuple)) else None
-        count = len(values) if values is not None else (n or 1)
-        if n is not None and count != n:
-            raise ConfigError(f"{count} values of {key} for n={n} images; give one value or n values")
-        if count < 1:
-            raise ConfigError("nothing to generate: n must be at least 1")
-        steps = steps if steps is not None else self.settings["steps"]
+        many candidates by the registered ranker ``best_of_rank`` (:meth:`best_of_ranking`): for a label,
+        the code judge or the generator's own posterior of its label; for any condition, the candidates'
+        consensus on the contact (:mod:`.best_of`; image i with ``best_of=1`` is the same as without).
+        Values are what :meth:`vqtouch.core.Conditioner.parse_condition` takes (a class index or name, an
+        image path or tensor, a text)."""
+        key, value, values, count = _one_condition(n, conditions)
+        plan = self._sampling_plan(
+            key,
+            conditioner,
+            steps=steps,
+            sampler=sampler,
+            guidance=guidance,
+            truncation=truncation,
+            best_of=best_of,
+            best_of_rank=best_of_rank,
+        )
+        for start, rows in self._condition_rows(plan.conditioner, value, values, count, batch_size):
+            yield start, self._sample_rows(plan, rows, [seed * 1_000_003 + start + row for row in range(len(rows))])
+
+    def _sampling_plan(
+        self, key: str, which: int | str | None, *, best_of: int, best_of_rank: str, **settings: Any
+    ) -> _SamplingPlan:
+        """The checked settings of one :meth:`batches` call: the conditioner reading ``key`` (``which``
+        chooses among several), the sampling ``settings`` (None: the run's) and the prepared ranker."""
         precision = self.sample_precision
-        index = self.conditioner_index(key, conditioner)
-        guidance = guidance if guidance is not None else self.guidance_for(index)
-        truncation = truncation if truncation is not None else self.settings["truncation"]
+        index = self.conditioner_index(key, which)
+        steps = settings["steps"] if settings["steps"] is not None else self.settings["steps"]
+        guidance = settings["guidance"] if settings["guidance"] is not None else self.guidance_for(index)
+        truncation = settings["truncation"] if settings["truncation"] is not None else self.settings["truncation"]
         self.check_steps(steps)
-        chosen = self.sampler if sampler in (None, self.sampler_name) else self.host.build("sampler", sampler)
+        name = settings["sampler"]
+        chosen = self.sampler if name in (None, self.sampler_name) else self.host.build("sampler", name)
         conditioner = self.conditioners[index]
-        check_best_of_rank(best_of_rank)
-        check_best_of(best_of, conditioner, self.conditioner_names()[index], best_of_rank)
+        check_best_of(best_of, conditioner, self.conditioner_names()[index], self.best_of_ranker(best_of_rank))
         rank = self.best_of_ranking(best_of_rank) if best_of > 1 else None
+        return _SamplingPlan(conditioner, chosen, steps, guidance, truncation, precision, best_of, rank)
+
+    def _condition_rows(
+        self, conditioner: Any, value: Any, values: list[Any] | None, count: int, batch_size: int
+    ) -> Iterator[tuple[int, list[Any]]]:
+        """``(index of the first row, parsed conditions)`` a batch at a time.  A repeated value is parsed
+        once (``count`` may be far larger than what fits in memory); a list is parsed whole first, so
+        that a bad value is refused before anything is generated."""
 
         def parse(item: Any) -> Any:
             if conditioner.sample_key in IMAGE_SAMPLE_KEYS and not isinstance(item, torch.Tensor):
                 item = read_condition_image(item, conditioner.sample_key, self.image_size)
             return conditioner.parse_condition(item, image_size=self.image_size, class_names=self.class_names)
 
-        # A repeated value is parsed once (n may be far larger than what fits in memory); a list is parsed
-        # whole first, so that a bad value is refused before anything is generated.
         parsed = [parse(item) for item in values] if values is not None else None
         single = parse(value) if values is None else None
         for start in range(0, count, batch_size):
-            rows = (
-                parsed[start : start + batch_size] if parsed is not None else [single] * min(batch_size, count - start)
-            )
-            batch = collate_samples([{conditioner.sample_key: row} for row in rows])
-            batch = {k: v.to(self.device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
-            condition = conditioner(conditioner.condition_of(batch))
-            null = conditioner.null(len(rows))
+            if parsed is not None:
+                yield start, parsed[start : start + batch_size]
+            else:
+                yield start, [single] * min(batch_size, count - start)
 
-            def draw(generators: list[torch.Generator], condition: Any = condition, null: Any = null) -> torch.Tensor:
-                with autocast(precision, self.device):
-                    return self.generator.sample(
-                        condition,
-                        chosen,
-                        steps=steps,
-                        null=null,
-                        guidance=guidance,
-                        truncation=truncation,
-                        generators=generators,
-                    )
+    def _sample_rows(self, plan: _SamplingPlan, rows: list[Any], row_seeds: list[int]) -> torch.Tensor:
+        """Images (B, 3, S, S) of one batch of parsed conditions, row b drawn from ``row_seeds[b]``."""
+        conditioner = plan.conditioner
+        batch = collate_samples([{conditioner.sample_key: row} for row in rows])
+        batch = {k: v.to(self.device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+        condition = conditioner(conditioner.condition_of(batch))
+        null = conditioner.null(len(rows))
 
-            row_seeds = [seed * 1_000_003 + start + row for row in range(len(rows))]
-            labels_B = conditioner.condition_of(batch) if best_of > 1 else None
-            codes = sample_best_of(
-                self.generator, conditioner, labels_B, row_seeds, best_of, draw, self.device, rank=rank
-            )
-            # Decoded one by one: the decoder's float rounding depends on the batch size (1e-6), which
-            # could flip a pixel's 8-bit value, and a sample must not depend on its batch.
-            yield start, torch.cat([self.tokenizer.decode_codes(grid.unsqueeze(0)).cpu() for grid in codes])
+        def draw(generators: list[torch.Generator]) -> torch.Tensor:
+            with autocast(plan.precision, self.device):
+                return self.generator.sample(
+                    condition,
+                    plan.sampler,
+                    steps=plan.steps,
+                    null=null,
+                    guidance=plan.guidance,
+                    truncation=plan.truncation,
+                    generators=generators,
+                )
+
+        labels_B = conditioner.condition_of(batch) if plan.best_of > 1 else None
+        codes = sample_best_of(
+            self.generator, conditioner, labels_B, row_seeds, plan.best_of, draw, self.device, rank=plan.rank
+        )
+        # Decoded one by one: the decoder's float rounding depends on the batch size (1e-6), which
+        # could flip a pixel's 8-bit value, and a sample must not depend on its batch.
+        return torch.cat([self.tokenizer.decode_codes(grid.unsqueeze(0)).cpu() for grid in codes])
+
+
+@dataclass(frozen=True)
+class _SamplingPlan:
+    """The checked settings one :meth:`GenerationPipeline.batches` call samples with."""
+
+    conditioner: Any
+    sampler: Any
+    steps: int
+    guidance: float
+    truncation: float
+    precision: str
+    best_of: int
+    rank: Any
+
+
+def _one_condition(n: int | None, conditions: dict[str, Any]) -> tuple[str, Any, list[Any] | None, int]:
+    """``(key, value, values, count)`` of :meth:`GenerationPipeline.batches`' one condition: ``values``
+    the list given (None for one value, repeated), ``count`` the images to make; a ConfigError otherwise."""
+    if len(conditions) != 1:
+        raise ConfigError(
+            "give exactly one condition, e.g. label=3, visual='photo.png' or text='...' "
+            f"(got {', '.join(conditions) or 'none'})"
+        )
+    ((key, value),) = conditions.items()
+    values = list(value) if isinstance(value, (list, tuple)) else None
+    count = len(values) if values is not None else (n or 1)
+    if n is not None and count != n:
+        raise ConfigError(f"{count} values of {key} for n={n} images; give one value or n values")
+    if count < 1:
+        raise ConfigError("nothing to generate: n must be at least 1")
+    return key, value, values, count
 
 
 def load_pipeline(

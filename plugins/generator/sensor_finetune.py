@@ -17,6 +17,7 @@ The result is an ordinary generator run (``config.json``, ``checkpoints/generato
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -104,8 +105,6 @@ def fine_tune_for_sensor(
     says what its data were) for the unseen sensor whose ``shots_N3HW`` were adapted into
     ``tokenizer_folder`` (see the module docstring); writes a generator run into ``out`` and returns
     what was done (sample counts, canonical backgrounds, steps, seconds)."""
-    import time
-
     if ratio < 0 or not len(shots_N3HW):
         raise ConfigError(f"ratio must be >= 0 and there must be shots (got ratio {ratio}, {len(shots_N3HW)} shots)")
     family = load_pipeline(family_run, host=host, device="cpu")
@@ -114,115 +113,25 @@ def fine_tune_for_sensor(
     config = family.config
     section = config.generator
     device = resolve_device(config.device)
-    tokenizer, _ = load_tokenizer(tokenizer_folder, host, device=str(device))
-    if tokenizer.quantizer.codebook_size != getattr(family.generator, "num_codes", tokenizer.quantizer.codebook_size):
-        raise ConfigError(
-            f"{tokenizer_folder}: its codebook is not the family generator's; adapt the family's tokenizer"
-        )
-    report(f"fine-tune: reading the family's data ({config.data.dataset.name})")
-    dataset = Assembly(config, host).component("data.dataset")
-    train, _ = experiment_split(dataset, config.data, config.seed)
-    chosen = family_sample_indices(train.indices, round(ratio * len(shots_N3HW)), seed)
-    family_subset = DatasetSubset(dataset, chosen)
-    keys = list(dict.fromkeys(key for c in family.conditioners for key in c.sample_entries()))
-    # With no family sample (ratio 0) one is still read: the shots' stand-in conditions take its types.
-    read = family_subset if chosen else DatasetSubset(dataset, train.indices[:1])
-    family_codes = encode_dataset(tokenizer, read, batch_size=config.data.batch_size, device=device)
-    family_data = CodesDataset.collect(family_codes, read, keys)
-    if not chosen:
-        family_data = CodesDataset(
-            family_codes[:0], {key: values[:0] for key, values in family_data.entries.items()}, family_data.class_names
-        )
-    shots_codes = torch.cat(
-        [
-            tokenizer.encode_codes(shots_N3HW[start : start + 32].to(device)).cpu().long()
-            for start in range(0, len(shots_N3HW), 32)
-        ]
+    tokenizer = _adapted_tokenizer(tokenizer_folder, family, host, device)
+    family_data, shots_codes, keys, backgrounds = _encoded_rows(
+        family, tokenizer, shots_N3HW, new_background_3HW, host, ratio=ratio, seed=seed, device=device, report=report
     )
-    backgrounds: dict[str, Any] = {"applied": False}
-    if section.train.canonical_background:
-        family_background, _ = dataset_background(train, image_hw(config.data.image_size))
-        # The contact is found on the images, not on the adapted tokenizer's decoding of their codes.
-        family_changed = 0.0
-        if len(chosen) and family_background is not None:
-            family_images = torch.stack([family_subset[i]["tactile"] for i in range(len(family_subset))])
-            family_data.codes_NHW, family_changed = canonical_background(
-                family_data.codes_NHW, tokenizer, family_background, images_N3HW=family_images
-            )
-        shots_codes, changed = canonical_background(shots_codes, tokenizer, new_background_3HW, images_N3HW=shots_N3HW)
-        backgrounds = {
-            "applied": True,
-            "family_cells_changed": round(family_changed, 4),
-            "shots_cells_changed": round(changed, 4),
-        }
-
-    sensor_tag = host.build(
-        "conditioner",
-        {"name": "sensor", "num_sensors": 2, "sensor_names": list(sensor_names)},
-        family.conditioners[0].vqtouch_spec.context,
-    )
+    sensor_tag = _sensor_tag(family, host, sensor_names)
     data = mixed_codes(family_data, shots_codes, keys, sensor_tag.sample_key)
-    train_config = section.train.model_copy(
-        update={
-            "steps": steps,
-            "warmup_steps": min(section.train.warmup_steps, max(1, steps // 10)),
-            "checkpoint_every": max(1, steps),
-            "keep_best": False,
-            **({"learning_rate": learning_rate} if learning_rate is not None else {}),
-        }
-    )
+    train_config = _fine_tune_section(section.train, steps, learning_rate)
     tokenizer_at = recorded_tokenizer(Path(tokenizer_folder), Path(out))
-    recorded = config.to_dict()
-    recorded["generator"] |= {
-        "sensor_tag": sensor_tag.vqtouch_spec.config.model_dump(mode="json"),
-        "sample_sensor": NEW_SENSOR,
-        "tokenizer_run": tokenizer_at,
-        "train": train_config.model_dump(mode="json"),
-    }
-    tuned = validate_experiment(recorded, host)
-    # What it reads of the family run (the fewshot stage writes its outputs beside them, inside the run).
-    reads = (
-        []
-        if family.run is None
-        else [("--run", "family run", Path(family_run) / n) for n in ("checkpoints", "config.json")]
-    )
+    tuned = _tuned_config(config, sensor_tag, tokenizer_at, train_config, host)
+    reads = _family_reads(family, family_run)
     run = RunDir.create(tuned, argv=argv, host=host, path=out, overwrite=overwrite, reads=reads)
     try:
-        task = GeneratorTask(
-            family.generator,
-            family.conditioners,
-            section.train.condition_dropout,
-            seed,
-            section.train.conditioner_weights,
-            sensor_tag=sensor_tag,
-        )
+        task = _tagged_task(family, seed, sensor_tag)
         report(
             f"fine-tune: {len(family_data)} family samples + {len(shots_codes)} shots (ratio {ratio:g}), "
             f"{steps} steps from the family generator ({family.settings['weights']} weights)"
         )
-        trainer = Trainer(
-            task,
-            data,
-            train_config,
-            # A handful of shots mixed 1:1 can hold fewer samples than the family's batch: one batch is then all.
-            batch_size=min(config.data.batch_size, len(data)),
-            seed=seed,
-            device=device,
-            checkpoint_dir=run.checkpoints / CHECKPOINT_FOLDER,
-            run=run,
-            host=host,
-            stage="generator",
-        )
-        tic = time.perf_counter()
-        state = trainer.fit()
-        seconds = time.perf_counter() - tic
-        run.publish(
-            "generator",
-            trainer.last_checkpoint,
-            stage="generator",
-            step=state.step,
-            tokenizer=tokenizer_at,
-            tokenizer_sha256=tokenizer_digest(Path(tokenizer_folder)),
+        state, seconds = _fit_and_publish(
+            run, task, data, train_config, config.data.batch_size, seed, device, host, tokenizer_at, tokenizer_folder
         )
         summary = {
             "family_run": str(family_run),
@@ -242,3 +151,199 @@ def fine_tune_for_sensor(
     finally:
         run.close()
     return summary
+
+
+def _sensor_tag(family: Any, host: PluginHost, sensor_names: tuple[str, str]) -> Any:
+    """The two-sensor tag conditioner (the family's data, the unseen sensor's shots), built in the family's context."""
+    return host.build(
+        "conditioner",
+        {"name": "sensor", "num_sensors": 2, "sensor_names": list(sensor_names)},
+        family.conditioners[0].vqtouch_spec.context,
+    )
+
+
+def _family_reads(family: Any, family_run: str | Path) -> list[tuple[str, str, Path]]:
+    """What the fine-tuned run reads of the family run (nothing of a bundle)."""
+    # The fewshot stage writes its outputs beside them, inside the run.
+    return (
+        []
+        if family.run is None
+        else [("--run", "family run", Path(family_run) / n) for n in ("checkpoints", "config.json")]
+    )
+
+
+def _tagged_task(family: Any, seed: int, sensor_tag: Any) -> GeneratorTask:
+    """The family generator's training task, every condition offset by its row's sensor tag."""
+    train = family.config.generator.train
+    return GeneratorTask(
+        family.generator,
+        family.conditioners,
+        train.condition_dropout,
+        seed,
+        train.conditioner_weights,
+        sensor_tag=sensor_tag,
+    )
+
+
+def _adapted_tokenizer(tokenizer_folder: Path, family: Any, host: PluginHost, device: torch.device) -> Any:
+    """The adapted tokenizer in ``tokenizer_folder``, refused unless its codebook is the family generator's."""
+    tokenizer, _ = load_tokenizer(tokenizer_folder, host, device=str(device))
+    if tokenizer.quantizer.codebook_size != getattr(family.generator, "num_codes", tokenizer.quantizer.codebook_size):
+        raise ConfigError(
+            f"{tokenizer_folder}: its codebook is not the family generator's; adapt the family's tokenizer"
+        )
+    return tokenizer
+
+
+def _encoded_rows(
+    family: Any,
+    tokenizer: Any,
+    shots_N3HW: torch.Tensor,
+    new_background_3HW: torch.Tensor,
+    host: PluginHost,
+    *,
+    ratio: float,
+    seed: int,
+    device: torch.device,
+    report: Any,
+) -> tuple[CodesDataset, torch.Tensor, list[str], dict[str, Any]]:
+    """The family rows' and the shots' codes under the adapted tokenizer, the condition keys, the backgrounds note."""
+    config = family.config
+    report(f"fine-tune: reading the family's data ({config.data.dataset.name})")
+    dataset = Assembly(config, host).component("data.dataset")
+    train, _ = experiment_split(dataset, config.data, config.seed)
+    chosen = family_sample_indices(train.indices, round(ratio * len(shots_N3HW)), seed)
+    family_subset = DatasetSubset(dataset, chosen)
+    keys = list(dict.fromkeys(key for c in family.conditioners for key in c.sample_entries()))
+    family_data = _family_rows(tokenizer, dataset, family_subset, train, keys, config.data.batch_size, device)
+    shots_codes = _shot_codes(tokenizer, shots_N3HW, device)
+    backgrounds: dict[str, Any] = {"applied": False}
+    if config.generator.train.canonical_background:
+        shots_codes, backgrounds = _canonicalise_rows(
+            family_data, family_subset, train, shots_codes, shots_N3HW, new_background_3HW, tokenizer, config
+        )
+    return family_data, shots_codes, keys, backgrounds
+
+
+def _family_rows(
+    tokenizer: Any,
+    dataset: Any,
+    family_subset: DatasetSubset,
+    train: Any,
+    keys: list[str],
+    batch_size: int,
+    device: torch.device,
+) -> CodesDataset:
+    """The codes and condition entries of the chosen family samples (no rows when none is chosen)."""
+    # With no family sample (ratio 0) one is still read: the shots' stand-in conditions take its types.
+    read = family_subset if len(family_subset) else DatasetSubset(dataset, train.indices[:1])
+    family_codes = encode_dataset(tokenizer, read, batch_size=batch_size, device=device)
+    family_data = CodesDataset.collect(family_codes, read, keys)
+    if not len(family_subset):
+        family_data = CodesDataset(
+            family_codes[:0], {key: values[:0] for key, values in family_data.entries.items()}, family_data.class_names
+        )
+    return family_data
+
+
+def _shot_codes(tokenizer: Any, shots_N3HW: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """The shots' codes under the adapted tokenizer, encoded 32 at a time."""
+    return torch.cat(
+        [
+            tokenizer.encode_codes(shots_N3HW[start : start + 32].to(device)).cpu().long()
+            for start in range(0, len(shots_N3HW), 32)
+        ]
+    )
+
+
+def _canonicalise_rows(
+    family_data: CodesDataset,
+    family_subset: DatasetSubset,
+    train: Any,
+    shots_codes: torch.Tensor,
+    shots_N3HW: torch.Tensor,
+    new_background_3HW: torch.Tensor,
+    tokenizer: Any,
+    config: Any,
+) -> tuple[torch.Tensor, dict[str, Any]]:
+    """The family rows' codes (in place) and the shots' in canonical-background form; the shots' and what changed."""
+    family_background, _ = dataset_background(train, image_hw(config.data.image_size))
+    # The contact is found on the images, not on the adapted tokenizer's decoding of their codes.
+    family_changed = 0.0
+    if len(family_subset) and family_background is not None:
+        family_images = torch.stack([family_subset[i]["tactile"] for i in range(len(family_subset))])
+        family_data.codes_NHW, family_changed = canonical_background(
+            family_data.codes_NHW, tokenizer, family_background, images_N3HW=family_images
+        )
+    shots_codes, changed = canonical_background(shots_codes, tokenizer, new_background_3HW, images_N3HW=shots_N3HW)
+    backgrounds = {
+        "applied": True,
+        "family_cells_changed": round(family_changed, 4),
+        "shots_cells_changed": round(changed, 4),
+    }
+    return shots_codes, backgrounds
+
+
+def _fine_tune_section(train: Any, steps: int, learning_rate: float | None) -> Any:
+    """The family's training section for ``steps`` of fine-tuning: a short warm-up, one checkpoint at the end."""
+    return train.model_copy(
+        update={
+            "steps": steps,
+            "warmup_steps": min(train.warmup_steps, max(1, steps // 10)),
+            "checkpoint_every": max(1, steps),
+            "keep_best": False,
+            **({"learning_rate": learning_rate} if learning_rate is not None else {}),
+        }
+    )
+
+
+def _tuned_config(config: Any, sensor_tag: Any, tokenizer_at: str, train_config: Any, host: PluginHost) -> Any:
+    """The fine-tuned run's config: the family's, with the sensor tag, the adapted tokenizer and ``train_config``."""
+    recorded = config.to_dict()
+    recorded["generator"] |= {
+        "sensor_tag": sensor_tag.vqtouch_spec.config.model_dump(mode="json"),
+        "sample_sensor": NEW_SENSOR,
+        "tokenizer_run": tokenizer_at,
+        "train": train_config.model_dump(mode="json"),
+    }
+    return validate_experiment(recorded, host)
+
+
+def _fit_and_publish(
+    run: RunDir,
+    task: GeneratorTask,
+    data: CodesDataset,
+    train_config: Any,
+    batch_size: int,
+    seed: int,
+    device: torch.device,
+    host: PluginHost,
+    tokenizer_at: str,
+    tokenizer_folder: Path,
+) -> tuple[Any, float]:
+    """Train ``task`` on ``data`` into ``run`` and publish its generator; the final state and the seconds it took."""
+    trainer = Trainer(
+        task,
+        data,
+        train_config,
+        # A handful of shots mixed 1:1 can hold fewer samples than the family's batch: one batch is then all.
+        batch_size=min(batch_size, len(data)),
+        seed=seed,
+        device=device,
+        checkpoint_dir=run.checkpoints / CHECKPOINT_FOLDER,
+        run=run,
+        host=host,
+        stage="generator",
+    )
+    tic = time.perf_counter()
+    state = trainer.fit()
+    seconds = time.perf_counter() - tic
+    run.publish(
+        "generator",
+        trainer.last_checkpoint,
+        stage="generator",
+        step=state.step,
+        tokenizer=tokenizer_at,
+        tokenizer_sha256=tokenizer_digest(Path(tokenizer_folder)),
+    )
+    return state, seconds

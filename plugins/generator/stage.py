@@ -6,53 +6,39 @@ sets).  Its codes of the whole dataset are computed once and cached (:mod:`.code
 runs through the one trainer (:mod:`.training`), with its checkpoints in
 ``checkpoints/generator/step-*`` (the tokenizer's stay in ``checkpoints/step-*``).  Afterwards
 the held-out conditions are generated with the configured sampler and scored against their
-ground-truth tactile images (``generation.json``; ``samples.png``: condition images when there
-are, generated, ground truth).
+ground-truth tactile images (:mod:`.scoring`; ``generation.json``; ``samples.png``: condition
+images when there are, generated, ground truth).
 """
 
 from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 
 from vqtouch.core import StageJob, StageUnavailable
-from vqtouch.plugins.evaluation.metric_set import MetricSet
 from vqtouch.plugins.utils.seeding import resolve_device
 from vqtouch.plugins.runtime.run_dir import MissingCheckpointError, RunDir
 from vqtouch.plugins.utils.splits import DatasetSubset, experiment_split
 from vqtouch.core.errors import VqtouchWarning
 from vqtouch.core.image_size import image_hw
-from vqtouch.plugins.utils.images import image_grid, save_png
 from vqtouch.plugins.training.trainer import Trainer
 from vqtouch.plugins.training.checkpoints import apply_ema_weights, step_folders
-from vqtouch.plugins.training.precision import autocast, resolve_precision
-from vqtouch.plugins.training.batches import collate_samples
-from vqtouch.plugins.evaluation.contact import (
-    VERDICT_EVIDENCE,
-    contact_centroid_errors,
-    contact_region_scores,
-    dataset_background,
-)
+from vqtouch.plugins.evaluation.contact import VERDICT_EVIDENCE, dataset_background
 from vqtouch.plugins.evaluation.directions import shown_scores
 
-from .best_of import rank_name, sample_best_of
+from .scoring import baseline_pool, distribution_scorer, held_out_conditions, sampling_precision, score_generation
 from .stage_plugin import GeneratorSection  # noqa: F401 - re-exported
 from .training import CodesDataset, GeneratorTask
 from vqtouch.plugins.tokenizer import (
     tokenizer_paths,
     load_tokenizer,
-    reconstruct_all,
     tokenizer_digest,
     tokenizer_location,
 )
-
-if TYPE_CHECKING:
-    from vqtouch.plugins.evaluation.distribution import DistributionScorer
 
 
 class ConditionIsTargetWarning(VqtouchWarning):
@@ -125,8 +111,6 @@ def check_condition_keys(config: Any, host: Any, conditioners: Any = None) -> No
 def train_generator(job: StageJob) -> dict[str, Any]:
     """Train the configured generator in ``job.run`` and score samples of the held-out conditions."""
 
-    from .codes import dataset_codes
-
     config, section, assembly = job.config, job.section, job.assembly
     if section.sensor_tag is not None:
         raise StageUnavailable(
@@ -137,39 +121,8 @@ def train_generator(job: StageJob) -> dict[str, Any]:
     tokenizer, tokenizer_folder = load_run_tokenizer(job, device)
     generator = assembly.component("generator.model")
     conditioners = assembly.component("generator.conditioners")
-    codebook = tokenizer.quantizer.codebook_size
-    if getattr(generator, "num_codes", codebook) != codebook:
-        raise StageUnavailable(
-            f"the generator was built for {generator.num_codes} codes but the tokenizer in "
-            f"{tokenizer_folder} has {codebook}; the run's tokenizer section must match that "
-            "tokenizer's config"
-        )
-    dataset = assembly.component("data.dataset")
-    codes_NHW, cache = dataset_codes(
-        tokenizer,
-        tokenizer_paths(tokenizer_folder),
-        dataset,
-        images_config(config),
-        batch_size=config.data.batch_size,
-        device=device,
-        use_cache=section.train.code_cache,
-    )
-    grid = getattr(generator, "grid_hw", tuple(codes_NHW.shape[1:]))
-    if tuple(codes_NHW.shape[1:]) != tuple(grid):
-        raise StageUnavailable(
-            f"the tokenizer makes {tuple(codes_NHW.shape[1:])} code grids but the generator was "
-            f"built for {tuple(grid)}; data.image_size must be the tokenizer's"
-        )
-    keys = list(dict.fromkeys(key for conditioner in conditioners for key in conditioner.sample_entries()))
-    if "tactile" in keys:
-        warnings.warn(
-            "a conditioner reads samples' 'tactile' image, which is also the image the generator learns to "
-            "produce: it can learn to copy its condition; for touch-to-touch, condition on a second sensor's "
-            "image of the same contact (tactile conditioner reads=tactile_source, with paired_sensor set)",
-            ConditionIsTargetWarning,
-            stacklevel=2,
-        )
-    data = CodesDataset.collect(codes_NHW, dataset, keys)
+    _check_codebook(generator, tokenizer, tokenizer_folder)
+    dataset, data, cache = _training_codes(job, tokenizer, tokenizer_folder, generator, conditioners, device)
     train_set, val_set = experiment_split(data, config.data, config.seed)
     background_note, background_3HW = None, None
     wants_contact = getattr(section.model, "contact_weight", 0) > 0
@@ -187,20 +140,7 @@ def train_generator(job: StageJob) -> dict[str, Any]:
     task = GeneratorTask(
         generator, conditioners, section.train.condition_dropout, config.seed, section.train.conditioner_weights
     )
-    trainer = Trainer(
-        task,
-        train_set,
-        section.train,
-        batch_size=config.data.batch_size,
-        seed=config.seed,
-        device=device,
-        checkpoint_dir=job.run.checkpoints / CHECKPOINT_FOLDER,
-        run=job.run,
-        num_workers=0,
-        host=job.host,
-        stage=job.stage,
-        val_dataset=val_set,
-    )
+    trainer = _generator_trainer(job, task, train_set, val_set, device)
     if job.resume:
         job.run.resume(trainer, job.host, stage=CHECKPOINT_FOLDER)
     state = trainer.fit()
@@ -219,30 +159,117 @@ def train_generator(job: StageJob) -> dict[str, Any]:
     if trainer.validates():
         result |= {"best_step": state.best_step, "best_val_loss": state.best_score}
     if trainer.dist.is_main:
-        # The tokenizer is recorded by its step folder, relative to the run when it is the run's own, so
-        # that readers use the codes the generator learned even after the tokenizer trains on.
-        inside = tokenizer_folder.resolve().is_relative_to(job.run.path.resolve())
-        recorded = (
-            tokenizer_folder.resolve().relative_to(job.run.path.resolve()) if inside else tokenizer_folder.resolve()
-        )
-        digest = tokenizer_digest(tokenizer_folder)
-        job.publish(
-            "generator",
-            trainer.last_checkpoint,
-            step=state.step,
-            tokenizer=recorded.as_posix(),
-            tokenizer_sha256=digest,
-        )
+        _publish_generator(job, trainer, state, tokenizer_folder)
         if section.num_samples and len(val_set) and section.sampler is not None:
-            if trainer.ema and section.sample_weights == "ema":
-                # Training is over and its checkpoint written: the stage's samples come from the
-                # weights readers will load (load_pipeline prefers the average too).
-                for name, module in task.modules.items():
-                    apply_ema_weights(module, trainer.ema[name], f"the {name} EMA")
-                result["sample_weights"] = "ema"
-            result |= score_samples(job, tokenizer, task, val_set, train_set, dataset, device)
+            result |= _score_trained(job, trainer, task, tokenizer, val_set, train_set, dataset, device)
         job.run.write_json("generation.json", result)
     return result
+
+
+def _check_codebook(generator: Any, tokenizer: Any, tokenizer_folder: Path) -> None:
+    """Refuse a generator built for another number of codes than the tokenizer's codebook."""
+    codebook = tokenizer.quantizer.codebook_size
+    if getattr(generator, "num_codes", codebook) != codebook:
+        raise StageUnavailable(
+            f"the generator was built for {generator.num_codes} codes but the tokenizer in "
+            f"{tokenizer_folder} has {codebook}; the run's tokenizer section must match that "
+            "tokenizer's config"
+        )
+
+
+def _training_codes(
+    job: StageJob, tokenizer: Any, tokenizer_folder: Path, generator: Any, conditioners: Any, device: torch.device
+) -> tuple[Any, CodesDataset, dict[str, Any]]:
+    """The dataset, its codes with the conditioners' sample entries, and how the code cache served them."""
+    from .codes import dataset_codes
+
+    config, section = job.config, job.section
+    dataset = job.assembly.component("data.dataset")
+    codes_NHW, cache = dataset_codes(
+        tokenizer,
+        tokenizer_paths(tokenizer_folder),
+        dataset,
+        images_config(config),
+        batch_size=config.data.batch_size,
+        device=device,
+        use_cache=section.train.code_cache,
+    )
+    grid = getattr(generator, "grid_hw", tuple(codes_NHW.shape[1:]))
+    if tuple(codes_NHW.shape[1:]) != tuple(grid):
+        raise StageUnavailable(
+            f"the tokenizer makes {tuple(codes_NHW.shape[1:])} code grids but the generator was "
+            f"built for {tuple(grid)}; data.image_size must be the tokenizer's"
+        )
+    keys = list(dict.fromkeys(key for conditioner in conditioners for key in conditioner.sample_entries()))
+    if "tactile" in keys:
+        # stacklevel 3: the warning names the caller of train_generator.
+        warnings.warn(
+            "a conditioner reads samples' 'tactile' image, which is also the image the generator learns to "
+            "produce: it can learn to copy its condition; for touch-to-touch, condition on a second sensor's "
+            "image of the same contact (tactile conditioner reads=tactile_source, with paired_sensor set)",
+            ConditionIsTargetWarning,
+            stacklevel=3,
+        )
+    return dataset, CodesDataset.collect(codes_NHW, dataset, keys), cache
+
+
+def _generator_trainer(
+    job: StageJob, task: GeneratorTask, train_set: Any, val_set: Any, device: torch.device
+) -> Trainer:
+    """The trainer of ``task``, its checkpoints in the run's generator folder."""
+    config = job.config
+    return Trainer(
+        task,
+        train_set,
+        job.section.train,
+        batch_size=config.data.batch_size,
+        seed=config.seed,
+        device=device,
+        checkpoint_dir=job.run.checkpoints / CHECKPOINT_FOLDER,
+        run=job.run,
+        num_workers=0,
+        host=job.host,
+        stage=job.stage,
+        val_dataset=val_set,
+    )
+
+
+def _publish_generator(job: StageJob, trainer: Trainer, state: Any, tokenizer_folder: Path) -> None:
+    """Publish the trained generator's last checkpoint, pinned to the tokenizer it learned the codes of."""
+    # The tokenizer is recorded by its step folder, relative to the run when it is the run's own, so
+    # that readers use the codes the generator learned even after the tokenizer trains on.
+    inside = tokenizer_folder.resolve().is_relative_to(job.run.path.resolve())
+    recorded = tokenizer_folder.resolve().relative_to(job.run.path.resolve()) if inside else tokenizer_folder.resolve()
+    digest = tokenizer_digest(tokenizer_folder)
+    job.publish(
+        "generator",
+        trainer.last_checkpoint,
+        step=state.step,
+        tokenizer=recorded.as_posix(),
+        tokenizer_sha256=digest,
+    )
+
+
+def _score_trained(
+    job: StageJob,
+    trainer: Trainer,
+    task: GeneratorTask,
+    tokenizer: Any,
+    val_set: Any,
+    train_set: Any,
+    dataset: Any,
+    device: torch.device,
+) -> dict[str, Any]:
+    """The scores of the trained generator's samples (:func:`score_samples`), drawn with the weights
+    ``generator.sample_weights`` names."""
+    result: dict[str, Any] = {}
+    if trainer.ema and job.section.sample_weights == "ema":
+        # Training is over and its checkpoint written: the stage's samples come from the
+        # weights readers will load (load_pipeline prefers the average too).
+        for name, module in task.modules.items():
+            apply_ema_weights(module, trainer.ema[name], f"the {name} EMA")
+        result["sample_weights"] = "ema"
+    return result | score_samples(job, tokenizer, task, val_set, train_set, dataset, device)
 
 
 def canonicalise_codes(
@@ -308,7 +335,6 @@ def grid_pretraining(
     """``generator.train.grid_pretrain``: the training split's grid conditions and contact cells, plus
     ``new_scenes`` newly rendered by the dataset (:meth:`new_scenes`), through
     :func:`.grid_pretrain.pretrain_condition_grid`; what was done, for generation.json."""
-    from .codes import dataset_codes
     from .grid_pretrain import grid_conditioners, pretrain_condition_grid, take
     from .training import CONTACT_KEY
 
@@ -327,35 +353,9 @@ def grid_pretraining(
     contact_NHW = data.entries[CONTACT_KEY][train_index]
     rendered: dict[str, Any] = {}
     if pretrain.new_scenes:
-        draw = getattr(dataset, "new_scenes", None)
-        if draw is None:
-            raise StageUnavailable(
-                f"generator.train.grid_pretrain.new_scenes={pretrain.new_scenes}, but the dataset "
-                f"({type(dataset).__name__}) cannot render new scenes (the procedural one can); set new_scenes=0"
-            )
-        started = time.perf_counter()
-        fresh = draw(pretrain.new_scenes)
-        codes_NHW, cache = dataset_codes(
-            tokenizer,
-            tokenizer_paths(tokenizer_folder),
-            fresh,
-            {**images_config(config), "new_scenes": pretrain.new_scenes},
-            batch_size=config.data.batch_size,
-            device=device,
-            use_cache=job.section.train.code_cache,
+        entries, contact_NHW, rendered = _with_new_scenes(
+            job, tokenizer, tokenizer_folder, dataset, keys, background_3HW, device, entries, contact_NHW
         )
-        fresh_data = CodesDataset.collect(codes_NHW, fresh, keys, desc="reading new scenes")
-        canonicalise_with_background(fresh_data, tokenizer, background_3HW, contact=True)
-        contact_NHW = torch.cat([contact_NHW, fresh_data.entries.pop(CONTACT_KEY)])
-        entries = {
-            key: torch.cat([entries[key], values]) if isinstance(values, torch.Tensor) else [*entries[key], *values]
-            for key, values in fresh_data.entries.items()
-        }
-        rendered = {
-            "new_scenes": pretrain.new_scenes,
-            "new_scenes_codes": cache["cache"],
-            "new_scenes_seconds": round(time.perf_counter() - started, 1),
-        }
     note = pretrain_condition_grid(
         generator,
         conditioners,
@@ -374,372 +374,58 @@ def grid_pretraining(
     return note | rendered
 
 
-@torch.no_grad()
-def score_generation(
-    *,
-    generator: Any,
-    conditioner: Any,
+def _with_new_scenes(
+    job: StageJob,
     tokenizer: Any,
-    sampler: Any,
-    conditions: HeldOutConditions,
-    metrics: list[tuple[str, Any]],
-    background_3HW: torch.Tensor | None,
-    steps: int,
-    guidance: float,
-    truncation: float,
-    seed: int,
+    tokenizer_folder: Path,
+    dataset: Any,
+    keys: list[str],
+    background_3HW: torch.Tensor,
     device: torch.device,
-    picture: Path | None = None,
-    pool: list[dict[str, Any]] | None = None,
-    distribution: bool | DistributionScorer = False,
-    best_of: int = 1,
-    rank: Any = None,
-    precision: str = "fp32",
-) -> dict[str, Any]:
-    """Generate the held-out ``conditions`` (:func:`held_out_conditions`, read once and shared by every
-    conditioner scored) with ``conditioner`` and score them against their ground-truth tactile images.
+    entries: dict[str, Any],
+    contact_NHW: torch.Tensor,
+) -> tuple[dict[str, Any], torch.Tensor, dict[str, Any]]:
+    """``entries`` and ``contact_NHW`` followed by those of the dataset's newly rendered scenes; what was rendered."""
+    from .codes import dataset_codes
+    from .training import CONTACT_KEY
 
-    Next to each score stand the honest comparisons under the same protocol: the no-contact image
-    ``background_3HW`` (``background_*``; none without one: see
-    :func:`~vqtouch.plugins.evaluation.contact.dataset_background`), the tokenizer's own reconstruction
-    of the ground truth (``ceiling_*``: no generator over these codes can do better) and, given training
-    samples (``pool``, see :func:`baseline_pool`), the nearest training image by condition tokens
-    (``retrieval_*``) and, for a
-    label condition, the mean training image of the label (``class_mean_*``).  Every one is also
-    scored on the contact region (``contact_*``).  Sample i is drawn with a generator seeded from
-    (seed, its dataset index), so a score does not depend on how many are scored.  ``picture``: where to save
-    the sample grid: the conditions (top row, when they are images), generated, ground truth.
-
-    ``distribution``: also score every one of them with :func:`distribution_scorer`'s
-    ``fd_effnetlite0`` against the real held-out images and the accuracy of a classifier trained
-    on the real training images of ``pool`` (``classifier_accuracy``, beside
-    ``real_classifier_accuracy``, the real held-out images' own); a
-    :class:`~vqtouch.plugins.evaluation.distribution.DistributionScorer` already fitted on these
-    conditions is used as it is.
-
-    A metric that scores images against their conditions rather than their ground truth (one with
-    ``condition_scores``, e.g. ``clip_score``) gets the raw conditions instead, for the model's images,
-    each comparison and the ground truth itself (``real_*``); conditions it cannot read are listed
-    under ``"skipped"`` with the reason.
-
-    ``best_of`` > 1: each sample is the best of that many candidates by ``rank`` (e.g. the code
-    judge's, :mod:`.judge`, for a label; :class:`.consensus.ContactConsensus` for any condition), or
-    the generator's own posterior of its label when None (:mod:`.best_of`); the scores then say
-    ``best_of`` and ``best_of_rank``.  The generator's network samples in ``precision`` (``sampled_in``)."""
-    count, indices, truth = len(conditions.indices), conditions.indices, conditions.truth
-    batch = conditions.batch(device=device)
-    generator.eval()
-    conditioner.eval()
-    condition = conditioner(conditioner.condition_of(batch))
-    images = sample_images(
-        generator,
-        conditioner,
+    config, pretrain = job.config, job.section.train.grid_pretrain
+    draw = getattr(dataset, "new_scenes", None)
+    if draw is None:
+        raise StageUnavailable(
+            f"generator.train.grid_pretrain.new_scenes={pretrain.new_scenes}, but the dataset "
+            f"({type(dataset).__name__}) cannot render new scenes (the procedural one can); set new_scenes=0"
+        )
+    started = time.perf_counter()
+    fresh = draw(pretrain.new_scenes)
+    codes_NHW, cache = dataset_codes(
         tokenizer,
-        sampler,
-        condition,
-        indices,
-        steps=steps,
-        guidance=guidance,
-        truncation=truncation,
-        seed=seed,
+        tokenizer_paths(tokenizer_folder),
+        fresh,
+        {**images_config(config), "new_scenes": pretrain.new_scenes},
+        batch_size=config.data.batch_size,
         device=device,
-        best_of=best_of,
-        labels_B=conditioner.condition_of(batch) if best_of > 1 else None,
-        rank=rank,
-        precision=precision,
+        use_cache=job.section.train.code_cache,
     )
-    scores: dict[str, Any] = {
-        "samples": count,
-        "steps": steps,
-        "guidance": guidance,
-        "truncation": truncation,
-        "sampled_in": precision,
+    fresh_data = CodesDataset.collect(codes_NHW, fresh, keys, desc="reading new scenes")
+    canonicalise_with_background(fresh_data, tokenizer, background_3HW, contact=True)
+    contact_NHW = torch.cat([contact_NHW, fresh_data.entries.pop(CONTACT_KEY)])
+    entries = {
+        key: torch.cat([entries[key], values]) if isinstance(values, torch.Tensor) else [*entries[key], *values]
+        for key, values in fresh_data.entries.items()
     }
-    if best_of > 1:
-        scores["best_of"] = best_of
-        scores["best_of_rank"] = rank_name(rank)
-    background = None if background_3HW is None else background_3HW.to(truth).expand_as(truth)
-    compared = {"": images, "ceiling_": tokenizer.decode_codes(tokenizer.encode_codes(truth))}
-    if background is not None:
-        compared["background_"] = background
-    if pool:
-        compared |= training_baselines(conditioner, condition, batch, pool, device)
-    scorer = distribution_scorer(conditions, pool, metrics, seed) if distribution is True else distribution or None
-    if scorer is not None:
-        scores |= scorer.real_scores()
-    by_truth = [(name, metric) for name, metric in metrics if not hasattr(metric, "condition_scores")]
-    scores |= score_images(compared, truth, by_truth, background, scorer)
-    for metric in (metric for _, metric in metrics if hasattr(metric, "condition_scores")):
-        found = metric.condition_scores(
-            compared | {"real_": truth}, conditioner.condition_of(batch), conditioner.sample_key, conditions.class_names
-        )
-        if "skipped" in found:
-            scores["skipped"] = scores.get("skipped", {}) | found.pop("skipped")
-        scores |= found
-    if picture is not None:
-        columns = min(count, 8)
-        shown = condition_images(conditioner, batch)
-        rows = ([shown[:columns].float().cpu()] if shown is not None else []) + [
-            images[:columns].cpu(),
-            truth[:columns].cpu(),
-        ]
-        save_png(image_grid(torch.cat(rows), columns=columns), picture)
-    return scores
-
-
-def condition_images(conditioner: Any, batch: dict[str, Any]) -> torch.Tensor | None:
-    """The conditions of ``batch`` as images (B, 3, H, W) when the conditioner reads an image (a visual
-    or a paired sensor's tactile image), for the sample grid; None for labels, texts and others."""
-    value = batch.get(conditioner.sample_key)
-    if isinstance(value, torch.Tensor) and value.ndim == 4 and value.shape[1] == 3:
-        return value
-    return None
-
-
-@dataclass
-class HeldOutConditions:
-    """The first held-out conditions, read once: their samples as the generator's data gives them
-    (condition entries), their dataset indices (each one's sampling seed) and their ground-truth
-    tactile images (on the scoring device) with their labels (None without labels) and the dataset's
-    class names (what a label means, e.g. for a label's CLIP prompt; empty when unlabelled)."""
-
-    samples: list[dict[str, Any]]
-    indices: list[int]
-    truth: torch.Tensor
-    labels: list[int] | None
-    class_names: list[str] = field(default_factory=list)
-
-    def batch(self, start: int = 0, stop: int | None = None, *, device: torch.device) -> dict[str, Any]:
-        """Samples ``start:stop`` collated, their tensors on ``device``."""
-        batch = collate_samples(self.samples[start:stop])
-        return {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
-
-
-def held_out_conditions(held_out: Any, dataset: Any, count: int, device: torch.device) -> HeldOutConditions:
-    """The first ``count`` (at most all) conditions of ``held_out`` (a subset of ``dataset`` with
-    ``indices``), with their ground truth and labels read from ``dataset``."""
-    from vqtouch.plugins.evaluation.distribution import labels_of
-
-    count = min(count, len(held_out))
-    indices = [held_out.indices[i] for i in range(count)]
-    real = [dataset[index] for index in indices]
-    truth = torch.stack([sample["tactile"] for sample in real]).to(device)
-    return HeldOutConditions(
-        [held_out[i] for i in range(count)], indices, truth, labels_of(real), list(getattr(dataset, "class_names", []))
-    )
-
-
-@torch.no_grad()
-def sample_images(
-    generator: Any,
-    conditioner: Any,
-    tokenizer: Any,
-    sampler: Any,
-    condition: Any,
-    indices: list[int],
-    *,
-    steps: int,
-    guidance: float,
-    truncation: float,
-    seed: int,
-    device: torch.device,
-    best_of: int = 1,
-    labels_B: torch.Tensor | None = None,
-    rank: Any = None,
-    precision: str = "fp32",
-) -> torch.Tensor:
-    """Decoded images (B, 3, H, W) of encoded ``condition`` (one row per entry of ``indices``): row i
-    drawn with a generator seeded from (seed, ``indices[i]``), its dataset index.  ``best_of`` > 1
-    keeps, per row, the best of that many candidates by ``rank`` (None: the generator's posterior) of
-    the row's label ``labels_B`` (:func:`.best_of.sample_best_of`; a label conditioner only).  The
-    generator's network runs in ``precision`` (fp32 or bf16, see :func:`sampling_precision`)."""
-    null = conditioner.null(len(indices))
-
-    def draw(generators: list[torch.Generator]) -> torch.Tensor:
-        with autocast(precision, device):
-            return generator.sample(
-                condition,
-                sampler,
-                steps=steps,
-                null=null,
-                guidance=guidance,
-                truncation=truncation,
-                generators=generators,
-            )
-
-    row_seeds = [seed * 100_003 + index for index in indices]
-    return tokenizer.decode_codes(
-        sample_best_of(generator, conditioner, labels_B, row_seeds, best_of, draw, device, rank=rank)
-    )
-
-
-#: Sampling precisions: float32, or bfloat16 autocast of the generator's network.
-PRECISIONS = ("fp32", "bf16")
-
-
-def sampling_precision(precision: str, device: torch.device) -> str:
-    """The precision (fp32 or bf16) ``generator.sample_precision`` = ``precision`` samples in on ``device``."""
-    return resolve_precision(precision, device, "sampling")
-
-
-@torch.no_grad()
-def generate_held_out(
-    generator: Any,
-    conditioner: Any,
-    tokenizer: Any,
-    sampler: Any,
-    conditions: HeldOutConditions,
-    *,
-    steps: int,
-    guidance: float,
-    truncation: float,
-    seed: int,
-    device: torch.device,
-    batch_size: int | None = None,
-    precision: str = "fp32",
-    best_of: int = 1,
-    rank: Any = None,
-) -> torch.Tensor:
-    """Float32 images (N, 3, H, W) of ``conditions``, encoded and sampled ``batch_size`` at a time
-    (None: all at once, as :func:`score_generation` does), the network in ``precision`` (``fp32``, or
-    ``bf16`` autocast), each the best of ``best_of`` candidates by ``rank`` (label conditions; :mod:`.best_of`); the
-    seeds of :func:`sample_images`, so image i does not depend on the batching beyond float
-    rounding.  What ``vqtouch tradeoff generator`` times."""
-    if precision not in PRECISIONS:
-        raise ValueError(f"precision {precision!r}: expected one of {', '.join(PRECISIONS)}")
-    generator.eval()
-    conditioner.eval()
-    count = len(conditions.indices)
-    size = batch_size or count
-    images = []
-    for start in range(0, count, size):
-        batch = conditions.batch(start, start + size, device=device)
-        condition = conditioner(conditioner.condition_of(batch))
-        images.append(
-            sample_images(
-                generator,
-                conditioner,
-                tokenizer,
-                sampler,
-                condition,
-                conditions.indices[start : start + size],
-                steps=steps,
-                guidance=guidance,
-                truncation=truncation,
-                seed=seed,
-                device=device,
-                best_of=best_of,
-                labels_B=conditioner.condition_of(batch) if best_of > 1 else None,
-                rank=rank,
-                precision=precision,
-            ).float()
-        )
-    return torch.cat(images)
-
-
-def distribution_scorer(
-    conditions: HeldOutConditions,
-    pool: list[dict[str, Any]] | None,
-    metrics: list[tuple[str, Any]],
-    seed: int,
-    tokenizer: Any = None,
-) -> DistributionScorer:
-    """The distribution scores of ``conditions``: ``fd_effnetlite0`` against their ground truth and
-    a classifier trained on the real training images of ``pool`` (their dataset labels).  The
-    features are those of the ``fd_effnetlite0`` metric among ``metrics`` (its options), else of
-    one with its defaults (224 px).
-
-    Given a ``tokenizer``, the classifier trains on its reconstructions of those training images
-    instead: a classifier fitted on sharp real images can fail on every decoded image (the
-    tokenizer's own reconstructions included, the ceiling), which says more about the decoder's
-    blur than about whether a sample shows its class."""
-    from vqtouch.plugins.evaluation.distribution import DistributionScorer, labels_of
-
-    metric = next((metric for name, metric in metrics if name == "fd_effnetlite0"), None)
-    pool = pool or []
-    images = [sample["tactile"] for sample in pool]
-    if tokenizer is not None and images:
-        images = list(reconstruct_all(tokenizer, torch.stack(images).to(tokenizer.device), 64).float().cpu())
-    return DistributionScorer(
-        conditions.truth, conditions.labels, images, labels_of(pool) if pool else None, metric=metric, seed=seed
-    )
-
-
-def score_images(
-    candidates: dict[str, torch.Tensor],
-    truth_B3HW: torch.Tensor,
-    metrics: list[tuple[str, Any]],
-    background_B3HW: torch.Tensor | None = None,
-    distribution: DistributionScorer | None = None,
-) -> dict[str, Any]:
-    """Scores of each candidate image set (``{prefix: images}``, image i for held-out condition i)
-    against the ground truth: ``{prefix}{metric}`` for each metric, the contact-region scores (given
-    the no-contact image) and, given a scorer, ``{prefix}fd_effnetlite0`` and
-    ``{prefix}classifier_accuracy`` (the scorer's ``fd_effnetlite0`` stands for the metric of that
-    name: the same quantity, its real features computed once).  A metric that cannot run here is
-    listed under ``"skipped"`` with its reason."""
-    scores: dict[str, Any] = {}
-    metric_set = MetricSet(
-        (name, metric) for name, metric in metrics if distribution is None or name != "fd_effnetlite0"
-    )
-    for prefix, predicted in candidates.items():
-        scores |= metric_set.score(predicted.cpu(), truth_B3HW.cpu(), prefix)
-    if background_B3HW is not None:
-        scores |= contact_region_scores(candidates, truth_B3HW, background_B3HW)
-        scores |= contact_centroid_errors(candidates, truth_B3HW, background_B3HW)
-    if distribution is not None:
-        for prefix, predicted in candidates.items():
-            scores |= distribution.score(predicted, prefix)
-    return scores
-
-
-#: The most training samples the retrieval and class-mean baselines look at (the first ones of
-#: the split): their tactile images are held in memory.
-BASELINE_POOL = 2000
-
-
-def baseline_pool(train: Any) -> list[dict[str, Any]]:
-    """The training samples the baselines compare with: the first ``BASELINE_POOL`` of ``train``,
-    read once per scoring (a mixed generator's conditioners share them)."""
-    return [train[i] for i in range(min(len(train), BASELINE_POOL))]
-
-
-@torch.no_grad()
-def training_baselines(
-    conditioner: Any, condition: Any, batch: dict[str, Any], pool: list[dict[str, Any]], device: torch.device
-) -> dict[str, torch.Tensor]:
-    """Baselines from training samples (``pool``): for each held-out condition, the training tactile
-    image whose condition tokens are nearest (cosine similarity of the mean token; ties go to the
-    earlier sample), and for labels the mean training image of the label (the mean of all pool
-    images for a label the pool lacks)."""
-    images_N3HW = torch.stack([sample["tactile"] for sample in pool]).to(device)
-    entries = conditioner.sample_entries()
-    keys_ND = []
-    for start in range(0, len(pool), 64):
-        chunk = collate_samples([{key: sample[key] for key in entries} for sample in pool[start : start + 64]])
-        chunk = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in chunk.items()}
-        keys_ND.append(conditioner(conditioner.condition_of(chunk)).tokens_BND.float().mean(dim=1))
-    similarity_BN = (
-        torch.nn.functional.normalize(condition.tokens_BND.float().mean(dim=1), dim=-1)
-        @ torch.nn.functional.normalize(torch.cat(keys_ND), dim=-1).T
-    )
-    # argmax returns the first of equal maxima: a label's nearest is its first training image.
-    baselines = {"retrieval_": images_N3HW[similarity_BN.argmax(dim=1)]}
-    if conditioner.sample_key == "label":
-        labels_N = torch.as_tensor([int(sample["label"]) for sample in pool], device=device)
-        overall = images_N3HW.mean(dim=0)
-        means = [
-            images_N3HW[labels_N == int(label)].mean(dim=0) if bool((labels_N == int(label)).any()) else overall
-            for label in batch["label"]
-        ]
-        baselines["class_mean_"] = torch.stack(means)
-    return baselines
+    rendered = {
+        "new_scenes": pretrain.new_scenes,
+        "new_scenes_codes": cache["cache"],
+        "new_scenes_seconds": round(time.perf_counter() - started, 1),
+    }
+    return entries, contact_NHW, rendered
 
 
 def score_samples(
     job: StageJob, tokenizer: Any, task: GeneratorTask, val_set: Any, train_set: Any, dataset: Any, device: torch.device
 ) -> dict[str, Any]:
-    """The stage's scores: :func:`score_generation` of the held-out conditions with the first
+    """The stage's scores: :func:`.scoring.score_generation` of the held-out conditions with the first
     conditioner (``samples.png``) and, for a generator trained with several, with each of them
     (``by_conditioner``); with ``generator.distribution``, the distribution scores too."""
     section, config = job.section, job.config

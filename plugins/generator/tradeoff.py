@@ -7,11 +7,11 @@ knob, measured in one process.
 
 The pipeline is loaded once and every setting (sampler x steps x guidance x precision; one knob
 at a time around a base setting, or ``--grid``) generates the same held-out conditions with the
-same seeds (those of :func:`.stage.score_generation`).  Only generation is timed (condition
+same seeds (those of :func:`.scoring.score_generation`).  Only generation is timed (condition
 encoding, sampling and decoding, after a warm-up), ``--rounds`` times, interleaved (round 1 of
 every setting, then round 2, ...), so machine drift hits every setting alike; the median is
 reported and cost ratios are against the first row.  Quality is scored once per setting, outside
-the timed part, by the functions the stage uses (:func:`.stage.score_images`): SSIM, PSNR and
+the timed part, by the functions the stage uses (:func:`.scoring.score_images`): SSIM, PSNR and
 contact PSNR against the ground truth of each condition, ``fd_effnetlite0`` against the real
 held-out images and the accuracy of a classifier trained on real images
 (:class:`vqtouch.plugins.evaluation.distribution.DistributionScorer`, fitted once).
@@ -43,7 +43,8 @@ from vqtouch.plugins.runtime.run_dir import MissingCheckpointError
 from vqtouch.plugins.evaluation.contact import dataset_background
 
 from .best_of import check_best_of, check_best_of_rank
-from .stage import (
+from .rankers_plugin import DEFAULT_RANKER
+from .scoring import (
     PRECISIONS,
     HeldOutConditions,
     baseline_pool,
@@ -152,8 +153,8 @@ class TradeoffBench:
     scorer: Any = None
     #: How :attr:`background` was made (:func:`~vqtouch.plugins.evaluation.contact.dataset_background`).
     background_source: str = ""
-    #: What ranks best of K's candidates (:data:`.best_of.BEST_OF_RANKS`).
-    best_of_rank: str = "judge"
+    #: The registered best-of ranker that ranks best of K's candidates (:mod:`.best_of`).
+    best_of_rank: str = DEFAULT_RANKER
     #: Which of the generator's conditioners generates (its index; :meth:`choose_conditioner`).
     conditioner: int = 0
 
@@ -163,7 +164,7 @@ class TradeoffBench:
         self.conditioner = self.pipe._conditioner_index(which, self.pipe.conditioner_names())
 
     def fit_distribution(self, feature_size: int | None = None, classifier_on: str = "real") -> None:
-        """Fit the distribution scorer (:func:`.stage.distribution_scorer`): the real held-out
+        """Fit the distribution scorer (:func:`.scoring.distribution_scorer`): the real held-out
         images' features and the classifier on the training split's real images (``classifier_on``
         ``"reconstructions"``: on the tokenizer's reconstructions of them, which judges decoded images
         fairly), EfficientNet-Lite0 features at ``feature_size`` px (None: :attr:`feature_size`, the
@@ -224,7 +225,7 @@ class TradeoffBench:
             self.conditions.samples[:rows], self.conditions.indices[:rows], self.conditions.truth[:rows], None
         )
         if any(setting.get("best_of", 1) > 1 for setting in settings):
-            self.pipe.best_of_ranking(self.best_of_rank)  # the code judge is fitted once, untimed
+            self.pipe.best_of_ranking(self.best_of_rank)  # prepared once, untimed (the judge is fitted)
         seen = set()
         for setting in settings:
             key = (setting["sampler"], setting["precision"], setting["guidance"] != 1, setting.get("batch"))
@@ -322,7 +323,7 @@ def check_settings(
             value,
             bench.pipe.conditioners[bench.conditioner],
             bench.pipe.conditioner_names()[bench.conditioner],
-            bench.best_of_rank,
+            bench.pipe.best_of_ranker(bench.best_of_rank),
         )
 
 
@@ -476,24 +477,9 @@ def plot_pareto(rows: list[dict[str, Any]], path: Path, title: str, reference: d
 
 def tradeoff_command(args: argparse.Namespace) -> int:
     """``vqtouch tradeoff generator``."""
-    host = args.host
     if args.threads:
         torch.set_num_threads(args.threads)
-    bench = load_tradeoff_bench(
-        args.run,
-        host,
-        n=args.n,
-        step=args.step,
-        seed=args.seed,
-        batch_size=args.batch_size,
-        distribution=False,
-        feature_size=args.feature_size,
-    )
-    bench.choose_conditioner(args.conditioner)
-    bench.best_of_rank = check_best_of_rank(args.best_of_rank)
-    check_settings(bench, args.steps, args.samplers, args.guidance, args.precisions, args.best_of)
-    if args.distribution:
-        bench.fit_distribution(classifier_on=args.classifier_on)
+    bench = _checked_bench(args)
     settings = sweep_settings(
         steps=args.steps,
         samplers=args.samplers,
@@ -510,64 +496,100 @@ def tradeoff_command(args: argparse.Namespace) -> int:
         flush=True,
     )
     rows = measure(bench, settings, args.rounds)
+    reference = _reference_scores(bench, args.classifier_on)
+    result = _tradeoff_record(bench, args, rows, reference)
+    (out / "tradeoff.json").write_text(json.dumps(result, indent=2) + "\n")
+    table = markdown_table(rows, _table_header(bench, args, rows), reference)
+    (out / "tradeoff.md").write_text(table)
+    plot_pareto(
+        rows,
+        out / "pareto.png",
+        f"{bench.run.name}: n = {count}, {result['device']}, {torch.get_num_threads()} threads",
+        reference,
+    )
+    print(table)
+    print(f"-> {out} (tradeoff.json, tradeoff.md, pareto.png)")
+    return 0
+
+
+def _checked_bench(args: argparse.Namespace) -> TradeoffBench:
+    """The command's bench: the run loaded, its conditioner and ranker chosen, every knob's values
+    checked before anything is timed, the distribution scorer fitted when asked."""
+    bench = load_tradeoff_bench(
+        args.run,
+        args.host,
+        n=args.n,
+        step=args.step,
+        seed=args.seed,
+        batch_size=args.batch_size,
+        distribution=False,
+        feature_size=args.feature_size,
+    )
+    bench.choose_conditioner(args.conditioner)
+    bench.best_of_rank = check_best_of_rank(args.best_of_rank, args.host)
+    check_settings(bench, args.steps, args.samplers, args.guidance, args.precisions, args.best_of)
+    if args.distribution:
+        bench.fit_distribution(classifier_on=args.classifier_on)
+    return bench
+
+
+#: The reference scores ``tradeoff.json`` keeps of the tokenizer's reconstructions and of the no-contact image.
+_CEILING_KEYS = ("contact_psnr", "contact_centroid_error_px", "fd_effnetlite0", "classifier_accuracy")
+_BACKGROUND_KEYS = ("ssim", "psnr", *_CEILING_KEYS)
+
+
+def _reference_scores(bench: TradeoffBench, classifier_on: str) -> dict[str, Any]:
+    """The scores every setting is compared with, on the same conditions: the real images' classifier
+    accuracy, the tokenizer's own reconstructions of the truth (``ceiling_*``: what no generator over
+    its codes can beat) and the no-contact image (``background_*``); those that could be scored."""
     reference: dict[str, Any] = {}
     if bench.scorer is not None:
         real = bench.scorer.real_scores()
         reference |= {
             # Fitted on reconstructions, the classifier's accuracy on sharp real images is no reference.
-            "real_classifier_accuracy": real.get("real_classifier_accuracy") if args.classifier_on == "real" else None,
+            "real_classifier_accuracy": real.get("real_classifier_accuracy") if classifier_on == "real" else None,
             "classifier_train_images": real.get("classifier_train_images"),
             "classifier_skipped": real.get("classifier_skipped"),
         }
-    # The tokenizer's own reconstructions of the truth: what no generator over its codes can beat.
     tokenizer = bench.pipe.tokenizer
     with torch.no_grad():
         reconstructions = tokenizer.decode_codes(tokenizer.encode_codes(bench.conditions.truth)).float()
     ceiling = bench.score(reconstructions, "ceiling_")
-    reference |= {
-        key: ceiling.get(key)
-        for key in (
-            "ceiling_contact_psnr",
-            "ceiling_contact_centroid_error_px",
-            "ceiling_fd_effnetlite0",
-            "ceiling_classifier_accuracy",
-        )
-    }
+    reference |= {f"ceiling_{key}": ceiling.get(f"ceiling_{key}") for key in _CEILING_KEYS}
     if bench.background is not None:
         background = bench.score(bench.background, "background_")
-        reference |= {
-            key: background.get(key)
-            for key in (
-                "background_ssim",
-                "background_psnr",
-                "background_contact_psnr",
-                "background_contact_centroid_error_px",
-                "background_fd_effnetlite0",
-                "background_classifier_accuracy",
-            )
-        }
-    reference = {key: value for key, value in reference.items() if value is not None}
-    device = str(bench.pipe.device)
-    header = (
+        reference |= {f"background_{key}": background.get(f"background_{key}") for key in _BACKGROUND_KEYS}
+    return {key: value for key, value in reference.items() if value is not None}
+
+
+def _table_header(bench: TradeoffBench, args: argparse.Namespace, rows: list[dict[str, Any]]) -> str:
+    """``tradeoff.md``'s first line: what was measured, where and how."""
+    return (
         f"Generator trade-off: run `{bench.run}` ({bench.pipe.checkpoint.name}); conditioner "
-        f"{bench.pipe.conditioner_names()[bench.conditioner]}; n = {count} held-out conditions; "
-        f"threads {torch.get_num_threads()}; rounds {args.rounds} (interleaved, median); device "
-        f"{device}; batch {args.batch_size}; seed {bench.seed}; "
+        f"{bench.pipe.conditioner_names()[bench.conditioner]}; n = {len(bench.conditions.indices)} held-out "
+        f"conditions; threads {torch.get_num_threads()}; rounds {args.rounds} (interleaved, median); device "
+        f"{bench.pipe.device}; batch {args.batch_size}; seed {bench.seed}; "
         f"truncation {bench.pipe.settings['truncation']:g}; "
         f"features {bench.feature_size} px"
         + (f"; classifier on the {args.classifier_on} of the training images" if args.distribution else "")
         + (f"; best of K ranked by the {bench.best_of_rank}" if any(r.get("best_of", 1) > 1 for r in rows) else "")
         + "; cost = time per image / the first row's."
     )
-    result = {
+
+
+def _tradeoff_record(
+    bench: TradeoffBench, args: argparse.Namespace, rows: list[dict[str, Any]], reference: dict[str, Any]
+) -> dict[str, Any]:
+    """``tradeoff.json``: the run, how it was measured, the reference scores and every setting's row."""
+    return {
         "run": str(bench.run),
         "checkpoint": str(bench.pipe.checkpoint),
         "conditioner": bench.pipe.conditioner_names()[bench.conditioner],
-        "n": count,
+        "n": len(bench.conditions.indices),
         "rounds": args.rounds,
         "best_of_rank": bench.best_of_rank,
         "threads": torch.get_num_threads(),
-        "device": device,
+        "device": str(bench.pipe.device),
         "batch_size": args.batch_size,
         "seed": bench.seed,
         "truncation": bench.pipe.settings["truncation"],
@@ -579,15 +601,3 @@ def tradeoff_command(args: argparse.Namespace) -> int:
         "reference": reference,
         "settings": rows,
     }
-    (out / "tradeoff.json").write_text(json.dumps(result, indent=2) + "\n")
-    table = markdown_table(rows, header, reference)
-    (out / "tradeoff.md").write_text(table)
-    plot_pareto(
-        rows,
-        out / "pareto.png",
-        f"{bench.run.name}: n = {count}, {device}, {torch.get_num_threads()} threads",
-        reference,
-    )
-    print(table)
-    print(f"-> {out} (tradeoff.json, tradeoff.md, pareto.png)")
-    return 0

@@ -73,28 +73,25 @@ def check_compatible(bundle: Bundle, config: Any) -> None:
         )
 
 
-def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
-    """Load the bundle, check it fits the scene, score its tokenizer and each of its conditioners."""
-
-    config, section = job.config, job.section
+def _open_bundle(job: StageJob) -> tuple[Bundle, Any]:
+    """The section's bundle, checked against the scene (StageUnavailable when it cannot speak for it),
+    and the device it was loaded on."""
+    section = job.section
     try:
         folder = bundle_folder(section.bundle)
     except ConfigError as exc:
         raise StageUnavailable(str(exc)) from None
-    device = resolve_device(config.device)
+    device = resolve_device(job.config.device)
     bundle = load_bundle(section.bundle, job.host, device=device, root=folder.parent)
-    check_compatible(bundle, config)
-    dataset = job.assembly.component("data.dataset")
-    train_set, val_set = experiment_split(dataset, config.data, config.seed)
-    if len(val_set) == 0:
-        raise StageUnavailable(f"no held-out samples to score (data.val_fraction={config.data.val_fraction:g})")
-    metrics = list(
-        zip((item.name for item in config.metrics), job.assembly.build_slots(["metrics"]).get("metrics", []))
-    )
-    held_out = DatasetSubset(dataset, val_set.indices[: section.num_samples])
-    (job.run.path / PICTURES).mkdir(exist_ok=True)
+    check_compatible(bundle, job.config)
+    return bundle, device
 
-    background, background_source = dataset_background(train_set, image_hw(config.data.image_size))
+
+def _score_tokenizer(
+    job: StageJob, bundle: Bundle, held_out: Any, metrics: list[tuple[str, Any]], device: Any, background: Any
+) -> dict[str, Any]:
+    """The bundled tokenizer's scores on ``held_out``, with its reconstructions picture."""
+    config = job.config
     scores = evaluate_reconstruction(
         bundle.tokenizer,
         held_out,
@@ -104,15 +101,25 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
         background_3HW=background,
     )
     save_pairs(*scores.pop("examples"), job.run.path / PICTURES / "reconstructions.png")
-    parts: dict[str, Any] = {
-        "bundled tokenizer": {
-            **shown_scores(printable(scores), TOKENIZER_SHOWN_SCORES, [name for name, _ in metrics]),
-            "picture": f"{PICTURES}/reconstructions.png",
-            "caption": "Held-out images of this run (top row) above the bundled tokenizer's reconstructions "
-            "(bottom row).",
-        }
+    return {
+        **shown_scores(printable(scores), TOKENIZER_SHOWN_SCORES, [name for name, _ in metrics]),
+        "picture": f"{PICTURES}/reconstructions.png",
+        "caption": "Held-out images of this run (top row) above the bundled tokenizer's reconstructions (bottom row).",
     }
 
+
+def _score_generators(
+    job: StageJob,
+    bundle: Bundle,
+    dataset: Any,
+    train_set: Any,
+    val_set: Any,
+    metrics: list[tuple[str, Any]],
+    device: Any,
+    background: Any,
+) -> dict[str, Any]:
+    """The bundled generator's scores from each bundled conditioner, keyed by the report's part name."""
+    config, section = job.config, job.section
     conditions = held_out_conditions(val_set, dataset, section.num_samples, device)
     missing = [
         name
@@ -128,6 +135,7 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
     sampler = job.host.build("sampler", section.sampler)
     # Each conditioner at the bundle's own default guidance (its recorded run config, validated).
     sampling = validate_experiment(bundle.run_config, job.host).generator
+    parts: dict[str, Any] = {}
     for index, (name, conditioner) in enumerate(zip(bundle.conditioner_names, bundle.conditioners)):
         picture = f"{PICTURES}/samples_{index}_{name}.png"
         generated = score_generation(
@@ -150,6 +158,29 @@ def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
         parts[f"bundled generator from {name}"] = shown_scores(
             generated, GENERATION_SHOWN_SCORES, [name for name, _ in metrics]
         ) | {"picture": picture, "caption": SAMPLES_CAPTION}
+    return parts
+
+
+def run_pretrained_stage(job: StageJob) -> dict[str, Any]:
+    """Load the bundle, check it fits the scene, score its tokenizer and each of its conditioners."""
+
+    config, section = job.config, job.section
+    bundle, device = _open_bundle(job)
+    dataset = job.assembly.component("data.dataset")
+    train_set, val_set = experiment_split(dataset, config.data, config.seed)
+    if len(val_set) == 0:
+        raise StageUnavailable(f"no held-out samples to score (data.val_fraction={config.data.val_fraction:g})")
+    metrics = list(
+        zip((item.name for item in config.metrics), job.assembly.build_slots(["metrics"]).get("metrics", []))
+    )
+    held_out = DatasetSubset(dataset, val_set.indices[: section.num_samples])
+    (job.run.path / PICTURES).mkdir(exist_ok=True)
+
+    background, background_source = dataset_background(train_set, image_hw(config.data.image_size))
+    parts: dict[str, Any] = {
+        "bundled tokenizer": _score_tokenizer(job, bundle, held_out, metrics, device, background),
+        **_score_generators(job, bundle, dataset, train_set, val_set, metrics, device, background),
+    }
     return {
         "bundle": bundle.name,
         "bundled": True,

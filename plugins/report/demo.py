@@ -35,22 +35,11 @@ from vqtouch.plugins.utils.seeding import make_generator
 from vqtouch.core.stages import empty_slot_reason, missing_slots, required_slots
 from vqtouch.plugins.runtime.execution import run_stage
 
-from vqtouch.plugins.evaluation.directions import declared_directions, metric_directions
+from vqtouch.plugins.evaluation.directions import declared_directions, direction_arrow, metric_directions
 
-from .html import (
-    BACKGROUND_PREFIX,
-    is_skip_key,
-    beats,
-    component_status,
-    contact_verdict,
-    direction_arrow,
-    format_value,
-    render_html,
-    score_table,
-    skipped_groups,
-    skipped_items,
-    stage_parts,
-)
+from .html import render_html
+from .results import component_status, format_value, is_skip_key, skipped_groups, skipped_items, stage_parts
+from .verdicts import BACKGROUND_PREFIX, beats, contact_verdict, score_table
 
 if TYPE_CHECKING:
     from vqtouch.core.plugin_manager import PluginHost
@@ -282,7 +271,7 @@ WORSE_MARK, BETTER_MARK, UNCLEAR_MARK = "✗", "✓", "≈"
 
 
 def _markdown_scores(table: Any, clear: bool = True) -> list[str]:
-    """A stage's scores with comparisons (a :class:`~vqtouch.plugins.report.html.ScoreTable`) as markdown
+    """A stage's scores with comparisons (a :class:`~vqtouch.plugins.report.verdicts.ScoreTable`) as markdown
     table lines: one row per score, the model's column then one per comparison, each model score
     marked by whether it beats the no-contact background (as report.html colours it)."""
     if not table.rows:

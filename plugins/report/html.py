@@ -10,7 +10,8 @@ generic keys of its result only (``picture`` with an optional ``caption``, ``pic
 scores, ``skipped``); anything a stage wants said about its picture it says in its ``caption``.
 
 Scores are shown against their comparisons by the key convention alone: ``background_psnr`` beside
-``psnr`` is the no-contact background image's PSNR (see :data:`COMPARISON_PREFIXES`).
+``psnr`` is the no-contact background image's PSNR (see
+:data:`~vqtouch.plugins.report.verdicts.COMPARISON_PREFIXES`).
 Tactile images are mostly static background, so a whole-image score flatters a model that draws
 only the background: each model score is coloured by whether it beats the background's, and a
 verdict on the contact region (``contact_psnr`` against ``background_contact_psnr``) says whether
@@ -26,22 +27,22 @@ import io
 import json
 import math
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from vqtouch.plugins.evaluation.contact import (
-    OUTPUT_SPREAD_KEY,
-    VERDICT_BASELINE_PREFIXES,
-    gap_interval_key,
-)
 from vqtouch.plugins.evaluation.directions import LOWER_IS_BETTER, direction_arrow, lower_is_better  # noqa: F401
 
-#: Result keys that describe pictures rather than score anything.
-PICTURE_KEYS = frozenset({"picture", "pictures", "caption"})
-#: A stage result's key for named sub-results (``{title: result}``, e.g. one per condition a generator
-#: was trained with), each shown like a stage of its own: scores, verdict, pictures.
-PARTS_KEY = "parts"
+from .results import (
+    component_status,
+    format_duration,
+    format_value,
+    is_skip_key,
+    is_skip_reason,
+    skipped_groups,
+    skipped_items,
+    stage_parts,
+)
+from .verdicts import BACKGROUND_PREFIX, COMPARISON_PREFIXES, ScoreTable, beats, contact_verdict, score_table
 
 #: Pictures are scaled up by a whole factor (crisp pixels) up to this width, at most 3 times.
 MAX_PICTURE_WIDTH = 1100
@@ -105,98 +106,6 @@ p.missing { color: #9b1c1c; }
 footer { border-top: 1px solid var(--line); margin-top: 18px; padding-top: 10px; font-size: 0.85em;
          color: var(--muted); }
 """
-
-
-def format_value(value: Any) -> str:
-    """A score for people: floats to 4 significant digits, integers with thousands separators."""
-    if isinstance(value, bool) or value is None:
-        return "-" if value is None else str(value).lower()
-    if isinstance(value, int):
-        return f"{value:,}"
-    if isinstance(value, float):
-        return f"{value:.4g}" if math.isfinite(value) else str(value)
-    if isinstance(value, (list, tuple)):
-        return ", ".join(format_value(item) for item in value)
-    return str(value)
-
-
-def format_duration(seconds: float) -> str:
-    """``0.4 s``, ``46 s``, ``3 min 05 s`` or ``2 h 03 min``."""
-    if seconds < 10:
-        return f"{seconds:.1f} s"
-    whole = round(seconds)
-    if whole < 60:
-        return f"{whole} s"
-    minutes, rest = divmod(whole, 60)
-    if minutes < 60:
-        return f"{minutes} min {rest:02d} s"
-    hours, minutes = divmod(minutes, 60)
-    return f"{hours} h {minutes:02d} min"
-
-
-def is_skip_reason(value: Any) -> bool:
-    """Whether ``value`` is a reason string of the form ``"skipped: ..."``."""
-    return isinstance(value, str) and value.lower().startswith("skipped:")
-
-
-def is_skip_key(key: str) -> bool:
-    """Whether a result key holds what was skipped (``skipped`` or ``<what>_skipped``)."""
-    return key == "skipped" or key.endswith("_skipped")
-
-
-def skipped_items(report: Mapping[str, Any]) -> list[tuple[str, str, str]]:
-    """Everything ``report`` says was skipped, as (where, what, reason).
-
-    Found wherever it is reported: a ``"skipped"`` entry (``{name: reason}``, a list of reasons or
-    one reason), a ``<what>_skipped`` entry holding a reason, or a string ``"skipped: <reason>"``;
-    ``where`` is the stage or component it belongs to.
-    """
-    items: list[tuple[str, str, str]] = []
-    for entry in report.get("stages", []):
-        _collect_skipped(entry.get("result") or {}, f"stage {entry.get('stage', '?')}", (), items)
-    for component in report.get("components", []):
-        what = {key: value for key, value in component.items() if key != "slot"}
-        _collect_skipped(what, f"component {component.get('slot', '?')}", (), items)
-    rest = {key: value for key, value in report.items() if key not in ("stages", "components")}
-    _collect_skipped(rest, "demo", (), items)
-    return items
-
-
-def _collect_skipped(value: Any, where: str, path: tuple[str, ...], items: list[tuple[str, str, str]]) -> None:
-    if isinstance(value, Mapping):
-        for key, item in value.items():
-            if key == "skipped":
-                _collect_reasons(item, where, path, items)
-            elif key.endswith("_skipped"):
-                _collect_reasons(item, where, (*path, key[: -len("_skipped")]), items)
-            else:
-                _collect_skipped(item, where, (*path, str(key)), items)
-    elif isinstance(value, (list, tuple)):
-        for index, item in enumerate(value):
-            _collect_skipped(item, where, (*path, str(index)), items)
-    elif is_skip_reason(value):
-        items.append((where, _path_text(path), value.split(":", 1)[1].strip()))
-
-
-def _collect_reasons(value: Any, where: str, path: tuple[str, ...], items: list[tuple[str, str, str]]) -> None:
-    if isinstance(value, Mapping):
-        for name, reason in value.items():
-            items.append((where, _path_text((*path, str(name))), _reason_text(reason)))
-    elif isinstance(value, (list, tuple)):
-        for reason in value:
-            items.append((where, _path_text(path), _reason_text(reason)))
-    elif isinstance(value, str) and value:  # a count or a flag is not a reason; None means nothing was skipped
-        items.append((where, _path_text(path), _reason_text(value)))
-
-
-def _reason_text(reason: Any) -> str:
-    text = reason if isinstance(reason, str) else json.dumps(reason, default=str)
-    return text.split(":", 1)[1].strip() if is_skip_reason(text) else text
-
-
-def _path_text(path: tuple[str, ...]) -> str:
-    # A component's own status names the component itself, which `where` already says.
-    return " / ".join(part for part in path if part != "status") or "-"
 
 
 def run_file(run_dir: Path, report: Mapping[str, Any], name: str) -> Path | None:
@@ -273,162 +182,6 @@ def _value_cell(value: Any) -> str:
         return f'<td><table class="nested">{rows}</table></td>'
     numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
     return f'<td class="num">{_e(format_value(value))}</td>' if numeric else f"<td>{_e(format_value(value))}</td>"
-
-
-#: Result-key prefixes that name a comparison, in column order: a key ``P + X`` where ``X`` is also a
-#: key of the result (``background_psnr`` next to ``psnr``) is the score ``X`` of the comparison ``P``,
-#: shown in P's column beside the model's own ``X``.  Values: what each comparison is (a header tooltip).
-COMPARISON_PREFIXES = {
-    "background_": "the no-contact background image: the rendering sensor's, or the per-pixel median of captured "
-    "training frames (what a model that draws only the background scores)",
-    "ceiling_": "the tokenizer's own reconstruction of the ground truth (no generator over its codes does better)",
-    "retrieval_": "the nearest training image by condition",
-    "class_mean_": "the mean training image of the condition's class",
-    "real_": "the real held-out images themselves",
-    "before_": "the same model before it was adapted (the family tokenizer, for an adapted one)",
-}
-
-#: The comparison every model score must beat: tactile images are mostly static background, so a
-#: whole-image score flatters a model that draws only that.
-BACKGROUND_PREFIX = "background_"
-
-#: The contact-region scores a verdict is given on, first found first: (score, how it is named, unit).
-CONTACT_VERDICT_SCORES = (("contact_psnr", "contact PSNR", " dB"), ("contact_mae", "contact MAE", ""))
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _is_score_value(value: Any) -> bool:
-    # A score is a number (None where it could not be computed); counts, names and nested tables are facts.
-    return value is None or (isinstance(value, (int, float)) and not isinstance(value, bool))
-
-
-def beats(score: str, model: Any, baseline: Any) -> bool | None:
-    """Whether ``model``'s value of ``score`` is strictly better than ``baseline``'s (a tie is not), in
-    the score's direction (:func:`lower_is_better`); None when either is not a finite number."""
-    if not (_is_number(model) and _is_number(baseline)):
-        return None
-    return model < baseline if lower_is_better(score) else model > baseline
-
-
-@dataclass(frozen=True)
-class ScoreTable:
-    """A stage result split for display: ``rows`` maps each score that has a comparison to its values by
-    prefix (``""`` for the model's own, then the :data:`COMPARISON_PREFIXES` present), ``columns`` are
-    the comparison prefixes present (in that order) and ``facts`` everything else but the pictures."""
-
-    rows: dict[str, dict[str, Any]]
-    columns: tuple[str, ...]
-    facts: dict[str, Any]
-
-
-def score_table(result: Mapping[str, Any]) -> ScoreTable:
-    """Split ``result`` into the scores with comparisons (a key ``P + X`` beside a key ``X``, ``P`` one of
-    :data:`COMPARISON_PREFIXES`, both numbers) and the other facts, keeping the result's order."""
-    scores = {
-        key: value
-        for key, value in result.items()
-        if key not in PICTURE_KEYS and key != PARTS_KEY and not is_skip_key(key) and _is_score_value(value)
-    }
-    rows: dict[str, dict[str, Any]] = {}
-    for key in scores:
-        compared = {prefix: scores[prefix + key] for prefix in COMPARISON_PREFIXES if prefix + key in scores}
-        if compared:
-            rows[key] = {"": scores[key], **compared}
-    paired = {prefix + key for key, values in rows.items() for prefix in values}
-    columns = tuple(prefix for prefix in COMPARISON_PREFIXES if any(prefix in values for values in rows.values()))
-    facts = {
-        key: value
-        for key, value in result.items()
-        if key not in PICTURE_KEYS and key != PARTS_KEY and key not in paired
-    }
-    return ScoreTable(rows, columns, facts)
-
-
-#: The baselines a verdict weighs, strongest first found: what drawing without the model gets.
-VERDICT_BASELINES = dict(
-    zip(
-        VERDICT_BASELINE_PREFIXES,
-        ("the no-contact background", "retrieval of the nearest training image", "the class-mean training image"),
-        strict=True,
-    )
-)
-#: The least gap that counts as better, per verdict score: under it a model is "no better than" its
-#: strongest baseline however steady the gap (0.5 dB of contact PSNR is about a 12% lower squared
-#: error on the contact; for a mean absolute error, 5% of the baseline's).
-MIN_VERDICT_GAP = {"contact_psnr": 0.5, "contact_mae": 0.05}
-MIN_VERDICT_GAP_TEXT = {"contact_psnr": "0.5 dB", "contact_mae": "5%"}
-#: A model whose outputs vary across inputs less than this share of the real images' variation
-#: (``output_spread_ratio``) draws about the same image whatever its input: it gets no verdict of
-#: better, whatever its scores.
-IGNORES_INPUT_BELOW = 0.2
-
-
-def contact_verdict(result: Mapping[str, Any]) -> tuple[bool, str] | None:
-    """Whether the model clearly beats every baseline on the contact region, and a sentence saying
-    so with the numbers, from the first of :data:`CONTACT_VERDICT_SCORES` the result has with its
-    no-contact background; None when it has none.
-
-    Better (True) needs all of: outputs that are not near-constant (``output_spread_ratio`` at least
-    :data:`IGNORES_INPUT_BELOW`, when measured), a gap to the strongest baseline present
-    (:data:`VERDICT_BASELINES`) of at least :data:`MIN_VERDICT_GAP`, and, when measured, a 95%
-    bootstrap interval of the contact PSNR gap over images whose low end clears that minimum too.
-    Otherwise the sentence says which failed: "ignores its input", "no better than ... within noise"
-    or "worse".  (``input_correlation`` is reported, not ruled on: a label-conditioned generator,
-    which must invent the pose, correlates with its truths as little as an unrelated output does.)"""
-    spread = result.get(OUTPUT_SPREAD_KEY)
-    for score, name, unit in CONTACT_VERDICT_SCORES:
-        model = result.get(score)
-        present = {
-            prefix: result[prefix + score]
-            for prefix in VERDICT_BASELINES
-            if beats(score, model, result.get(prefix + score)) is not None
-        }
-        if BACKGROUND_PREFIX not in present:
-            continue
-        lower = lower_is_better(score)
-        strongest = (min if lower else max)(present, key=lambda prefix: present[prefix])
-        baseline = present[strongest]
-        gap = baseline - model if lower else model - baseline
-        fraction = result.get("contact_fraction")
-        share = ""
-        if _is_number(fraction):
-            share = f" ({fraction:.1%} of pixels)" if 0 < fraction < 0.01 else f" ({fraction:.0%} of pixels)"
-        shown = [f"{value:.2f}" if unit == " dB" else format_value(value) for value in (model, baseline)]
-        numbers = f"{name} {shown[0]} vs {shown[1]}{unit}"
-        against = VERDICT_BASELINES[strongest]
-        if strongest != BACKGROUND_PREFIX:
-            against += " (the strongest baseline here)"
-        if _is_number(spread) and spread < IGNORES_INPUT_BELOW:
-            return False, (
-                f"The model ignores its input: its outputs vary across inputs {spread:.0%} as much as the "
-                f"real images do (under {IGNORES_INPUT_BELOW:.0%}), so no score of it means much; on the "
-                f"contact region{share} {numbers} for {against}."
-            )
-        low = result.get(gap_interval_key(strongest, "low")) if score == "contact_psnr" else None
-        high = result.get(gap_interval_key(strongest, "high")) if score == "contact_psnr" else None
-        interval = ""
-        if _is_number(low) and _is_number(high):
-            interval = f"; 95% interval of the gap over images {low:+.2f} to {high:+.2f} dB"
-        minimum = MIN_VERDICT_GAP[score] * (abs(baseline) if lower else 1.0)
-        if gap <= 0:
-            comparison = "worse than" if gap < 0 else "no better than"
-            return False, f"On the contact region{share} the model is {comparison} {against}: {numbers}{interval}."
-        if gap < minimum or (_is_number(low) and low < minimum):
-            reason = (
-                f"a gap under the {MIN_VERDICT_GAP_TEXT[score]} minimum"
-                if gap < minimum
-                else f"another draw of held-out images could bring the gap under the {MIN_VERDICT_GAP_TEXT[score]} "
-                "minimum"
-            )
-            return False, (
-                f"On the contact region{share} the model is no better than {against} within noise: {numbers}, "
-                f"{reason}{interval}."
-            )
-        return True, f"On the contact region{share} the model is better than {against}: {numbers}{interval}."
-    return None
 
 
 def _direction_text(score: str) -> str:
@@ -689,32 +442,9 @@ def _stage_section(
     return "".join(parts)
 
 
-def stage_parts(result: Mapping[str, Any]) -> dict[str, Mapping[str, Any]]:
-    """A stage result's named sub-results (:data:`PARTS_KEY`), those that are results (mappings)."""
-    parts = result.get(PARTS_KEY)
-    if not isinstance(parts, Mapping):
-        return {}
-    return {str(title): part for title, part in parts.items() if isinstance(part, Mapping)}
-
-
 def _png_size(data: bytes) -> tuple[int, int]:
     # Width and height are the first fields of the IHDR chunk, which always comes first.
     return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
-
-
-def skipped_groups(skipped: list[tuple[str, str, str]]) -> dict[tuple[str, str], list[str]]:
-    """``(what, reason) -> [where, ...]``: one entry per thing skipped for one reason (a metric missing
-    its weights is skipped by every stage that scores), in the order first met."""
-    grouped: dict[tuple[str, str], list[str]] = {}
-    for where, what, reason in skipped:
-        reason = reason.strip()
-        name = what.split(" / ")[-1]
-        if name == "-":  # a component's own skip: the same reason as the stages' skips of it
-            name = next((known for known, said in grouped if said == reason), "-")
-        places = grouped.setdefault((name, reason), [])
-        if where not in places:
-            places.append(where)
-    return grouped
 
 
 def _skipped_section(skipped: list[tuple[str, str, str]]) -> str:
@@ -729,12 +459,6 @@ def _skipped_section(skipped: list[tuple[str, str, str]]) -> str:
         f'<section id="skipped"><h2>Skipped ({len(grouped)})</h2><table class="skipped">'
         f"<tr><th>where</th><th>what</th><th>reason</th></tr>{rows}</table></section>"
     )
-
-
-def component_status(component: Mapping[str, Any]) -> str:
-    """A component's status for the reports' tables: a skip's reason stays in the Skipped section."""
-    status = str(component.get("status", "-"))
-    return "skipped (reason under Skipped)" if is_skip_reason(status) else status
 
 
 def _components_section(report: Mapping[str, Any], run_dir: Path) -> str:

@@ -25,7 +25,7 @@ wrong, so pytest reports it like any failed ``assert``.  What is checked:
 - the behaviour of that base class: :func:`check_sensor_family`, :func:`check_conditioner`,
   :func:`check_autoencoder`, :func:`check_quantizer`, :func:`check_discriminator`,
   :func:`check_clusterer`, :func:`check_metric`, :func:`check_dataset`, :func:`check_generator`,
-  :func:`check_sampler`;
+  :func:`check_sampler`, :func:`check_best_of_ranker`;
 - for every ``nn.Module`` kind, the checkpoint round trip (:func:`check_round_trip`): saved
   with :func:`vqtouch.core.save` and rebuilt with :func:`vqtouch.core.load`, the component
   has the same state and computes the same outputs on fixed inputs.
@@ -52,6 +52,7 @@ from .models import (
     press_height_maps,
     schedule_from_host,
 )
+from .rankers import check_best_of_ranker
 from .registration import build_for_check, check_plugin, check_registration
 from .round_trip import check_round_trip, probe_outputs
 
@@ -70,6 +71,7 @@ __all__ = [
     "check_quantizer",
     "check_registration",
     "check_sampler",
+    "check_best_of_ranker",
     "schedule_from_host",
     "check_round_trip",
     "check_sensor_family",

@@ -149,13 +149,8 @@ def example_condition(conditioner: Conditioner, batch: int, context: BuildContex
     return None
 
 
-def check_conditioner(
-    conditioner: Conditioner, context: BuildContext | None = None, *, condition: Any = None, label: str = "conditioner"
-) -> None:
-    """A conditioner reads a documented sample key and turns a batch of conditions into finite tokens
-    (B, num_tokens, cond_dim) with cond_dim the context's; rows of the drop mask get exactly the
-    learned null tokens and the other rows are unchanged; ``null(B)`` is the null tokens, flagged."""
-    context = context or DEFAULT_CONTEXT
+def _check_conditioner_attributes(conditioner: Conditioner, context: BuildContext, label: str) -> None:
+    """The conditioner names the sample key it reads and emits ``num_tokens`` tokens of the context's width."""
     key = conditioner.sample_key
     _require(
         isinstance(key, str) and key not in ("", "sensor", "id"),
@@ -173,6 +168,64 @@ def check_conditioner(
         label,
         f"num_tokens must be a positive int, got {conditioner.num_tokens!r}",
     )
+
+
+def _check_condition_tokens(label: str, what: str, tokens: Any, shape: tuple[int, ...], batch: int) -> None:
+    """``tokens`` is :class:`ConditionTokens` of ``shape``, finite, with a bool null flag per row."""
+    _require(
+        isinstance(tokens, ConditionTokens), label, f"{what} returned {type(tokens).__name__}, not ConditionTokens"
+    )
+    _require(
+        tuple(tokens.tokens_BND.shape) == shape,
+        label,
+        f"{what} returned tokens of shape {tuple(tokens.tokens_BND.shape)}; expected {shape}",
+    )
+    _require(bool(torch.isfinite(tokens.tokens_BND).all()), label, f"{what} returned NaN or Inf tokens")
+    _require(
+        tokens.is_null_B.dtype == torch.bool and tuple(tokens.is_null_B.shape) == (batch,),
+        label,
+        f"{what} returned is_null_B of dtype {tokens.is_null_B.dtype} and shape "
+        f"{tuple(tokens.is_null_B.shape)}; expected bool ({batch},)",
+    )
+
+
+def _check_null_tokens(
+    conditioner: Conditioner, label: str, out: Any, dropped: Any, null: Any, drop_B: torch.Tensor
+) -> None:
+    """Dropped rows (and ``null(B)``) carry exactly the learned null tokens, flagged; other rows are unchanged."""
+    null_ND = conditioner.null_tokens_ND.detach()
+    _require(not bool(out.is_null_B.any()), label, "forward without a drop mask flagged rows as null")
+    _require(
+        torch.equal(dropped.is_null_B, drop_B),
+        label,
+        "forward(condition, drop_mask) must flag exactly the dropped rows in is_null_B",
+    )
+    _require(
+        torch.equal(dropped.tokens_BND[0], null_ND.to(dropped.tokens_BND.dtype)),
+        label,
+        "a dropped row does not carry the learned null tokens (null_tokens_ND)",
+    )
+    _require(
+        torch.equal(dropped.tokens_BND[1:], out.tokens_BND[1:]),
+        label,
+        "dropping row 0 changed the tokens of the rows that were not dropped",
+    )
+    _require(
+        bool(null.is_null_B.all()) and all(torch.equal(row, null_ND) for row in null.tokens_BND),
+        label,
+        "null(B) must return the learned null tokens for every row, all flagged in is_null_B",
+    )
+
+
+def check_conditioner(
+    conditioner: Conditioner, context: BuildContext | None = None, *, condition: Any = None, label: str = "conditioner"
+) -> None:
+    """A conditioner reads a documented sample key and turns a batch of conditions into finite tokens
+    (B, num_tokens, cond_dim) with cond_dim the context's; rows of the drop mask get exactly the
+    learned null tokens and the other rows are unchanged; ``null(B)`` is the null tokens, flagged."""
+    context = context or DEFAULT_CONTEXT
+    key = conditioner.sample_key
+    _check_conditioner_attributes(conditioner, context, label)
     batch = 3
     if condition is None:
         condition = example_condition(conditioner, batch, context)
@@ -197,43 +250,8 @@ def check_conditioner(
         dropped = _call(label, "forward(condition, drop_mask)", lambda: conditioner(condition, drop_B))
         null = _call(label, f"null({batch})", lambda: conditioner.null(batch))
     for what, tokens in (("forward", out), ("forward with a drop mask", dropped), ("null", null)):
-        _require(
-            isinstance(tokens, ConditionTokens), label, f"{what} returned {type(tokens).__name__}, not ConditionTokens"
-        )
-        _require(
-            tuple(tokens.tokens_BND.shape) == shape,
-            label,
-            f"{what} returned tokens of shape {tuple(tokens.tokens_BND.shape)}; expected {shape}",
-        )
-        _require(bool(torch.isfinite(tokens.tokens_BND).all()), label, f"{what} returned NaN or Inf tokens")
-        _require(
-            tokens.is_null_B.dtype == torch.bool and tuple(tokens.is_null_B.shape) == (batch,),
-            label,
-            f"{what} returned is_null_B of dtype {tokens.is_null_B.dtype} and shape "
-            f"{tuple(tokens.is_null_B.shape)}; expected bool ({batch},)",
-        )
-    null_ND = conditioner.null_tokens_ND.detach()
-    _require(not bool(out.is_null_B.any()), label, "forward without a drop mask flagged rows as null")
-    _require(
-        torch.equal(dropped.is_null_B, drop_B),
-        label,
-        "forward(condition, drop_mask) must flag exactly the dropped rows in is_null_B",
-    )
-    _require(
-        torch.equal(dropped.tokens_BND[0], null_ND.to(dropped.tokens_BND.dtype)),
-        label,
-        "a dropped row does not carry the learned null tokens (null_tokens_ND)",
-    )
-    _require(
-        torch.equal(dropped.tokens_BND[1:], out.tokens_BND[1:]),
-        label,
-        "dropping row 0 changed the tokens of the rows that were not dropped",
-    )
-    _require(
-        bool(null.is_null_B.all()) and all(torch.equal(row, null_ND) for row in null.tokens_BND),
-        label,
-        "null(B) must return the learned null tokens for every row, all flagged in is_null_B",
-    )
+        _check_condition_tokens(label, what, tokens, shape, batch)
+    _check_null_tokens(conditioner, label, out, dropped, null, drop_B)
     single = example_condition(conditioner, 1, context)
     if single is not None:  # batch 1 (a single condition at generation time) must work too
         with torch.no_grad():

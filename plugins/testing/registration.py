@@ -11,6 +11,7 @@ from torch import nn
 
 from vqtouch.core.components import (
     Autoencoder,
+    BestOfRanker,
     BuildContext,
     Clusterer,
     Conditioner,
@@ -28,6 +29,7 @@ from vqtouch.core.plugin_config import PluginConfig, literal_name_of
 from ._support import DEFAULT_CONTEXT, _label, _require, _skip
 from .round_trip import check_round_trip
 from .data import check_clusterer, check_dataset, check_metric
+from .rankers import check_best_of_ranker
 from .models import (
     _check_sampler_with_host,
     check_autoencoder,
@@ -298,4 +300,5 @@ _BEHAVIOUR_CHECKS: tuple[tuple[type, Callable[..., None]], ...] = (
     (TactileDataset, lambda c, ctx, label, image_size, **_: check_dataset(c, image_size, label=label)),
     (Generator, lambda c, ctx, label, **_: check_generator(c, ctx, label=label)),
     (Sampler, lambda c, ctx, label, host, **_: _check_sampler_with_host(c, ctx, label=label, host=host)),
+    (BestOfRanker, lambda c, ctx, label, **_: check_best_of_ranker(c, ctx, label=label)),
 )

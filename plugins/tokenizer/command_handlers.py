@@ -16,7 +16,8 @@ from vqtouch.plugins.runtime.outputs import output_folder
 from vqtouch.core import Assembly, ConfigError
 from vqtouch.plugins.evaluation.metric_set import MetricSet
 from vqtouch.plugins.runtime.execution import run_stage
-from vqtouch.plugins.runtime.run_dir import RunDir, interrupted_message, interrupted_status, is_main_process
+from vqtouch.plugins.runtime.interruptions import interrupted_message, interrupted_status
+from vqtouch.plugins.runtime.run_dir import RunDir, is_main_process
 from vqtouch.core.checkpoint import is_pretrained
 from vqtouch.plugins.utils.image_options import skipping_bad_images
 from vqtouch.plugins.cli.app import (

@@ -29,12 +29,20 @@ mask_ratio = NumberType(float, 0, 1, high_open=True, what="mask_ratio")
 
 @hookimpl
 def vqtouch_add_commands(subparsers):
+    _add_train_tokenizer_command(subparsers)
+    _add_reconstruct_command(subparsers)
+    _add_evaluate_reconstruction_command(subparsers)
+
+
+def _add_train_tokenizer_command(subparsers) -> None:
     train = command_group(subparsers, "train", "train a component (tokenizer, ...)")
     tokenizer = train.add_parser("tokenizer", help="train a tactile tokenizer (autoencoder + quantizer [+ GAN])")
     add_config_arguments(tokenizer, default_scene="reconstruction")
     add_run_arguments(tokenizer)
     tokenizer.set_defaults(handler="vqtouch.plugins.tokenizer.command_handlers:cmd_train_tokenizer")
 
+
+def _add_reconstruct_command(subparsers) -> None:
     reconstruct = subparsers.add_parser("reconstruct", help="encode and decode images with a trained tokenizer")
     reconstruct.add_argument(
         "--run",
@@ -68,6 +76,8 @@ def vqtouch_add_commands(subparsers):
     add_image_folder_arguments(reconstruct)
     reconstruct.set_defaults(handler="vqtouch.plugins.tokenizer.command_handlers:cmd_reconstruct")
 
+
+def _add_evaluate_reconstruction_command(subparsers) -> None:
     evaluate = command_group(subparsers, "evaluate", "evaluate a trained component")
     recon = evaluate.add_parser(
         "reconstruction",
@@ -86,6 +96,21 @@ def vqtouch_add_commands(subparsers):
         help="run the experiment into this folder: train every model of --models and "
         "--mae-ratios on each --samples count of the scene's data, per seed",
     )
+    _add_experiment_options(recon)
+    add_config_arguments(recon, default_scene="reconstruction")
+    add_step_argument(recon)
+    recon.add_argument("--split", choices=["val", "all"], default="val", help="held-out split or all samples")
+    recon.add_argument("--metrics", help="comma-separated metric plugins (default: the run's metrics)")
+    recon.add_argument(
+        "--dataset",
+        help="evaluate on this dataset (JSON config, used whole) instead of the run's "
+        'held-out split, e.g. \'{"name": "procedural", "seed": 999}\'',
+    )
+    recon.set_defaults(handler="vqtouch.plugins.tokenizer.command_handlers:cmd_evaluate_reconstruction")
+
+
+def _add_experiment_options(recon) -> None:
+    """The options of ``evaluate reconstruction --out``: the experiment's seeds, sizes and models."""
     recon.add_argument(
         "--seeds",
         type=seed_int,
@@ -130,13 +155,3 @@ def vqtouch_add_commands(subparsers):
         action="store_true",
         help="with --out: write the result again (finished runs with an unchanged config are reused)",
     )
-    add_config_arguments(recon, default_scene="reconstruction")
-    add_step_argument(recon)
-    recon.add_argument("--split", choices=["val", "all"], default="val", help="held-out split or all samples")
-    recon.add_argument("--metrics", help="comma-separated metric plugins (default: the run's metrics)")
-    recon.add_argument(
-        "--dataset",
-        help="evaluate on this dataset (JSON config, used whole) instead of the run's "
-        'held-out split, e.g. \'{"name": "procedural", "seed": 999}\'',
-    )
-    recon.set_defaults(handler="vqtouch.plugins.tokenizer.command_handlers:cmd_evaluate_reconstruction")

@@ -40,6 +40,15 @@ from torch import nn
 
 from vqtouch.core import ConfigError
 
+from .deformable_geometry import (
+    IntPair,
+    _checked_geometry,
+    _pair,
+    _result_dtype,
+    _sample_dtype,
+    _tap_positions,
+)
+
 __all__ = [
     "DeformableConv2d",
     "bilinear_taps",
@@ -48,143 +57,8 @@ __all__ = [
     "deform_conv2d_torchvision",
 ]
 
-IntPair = int | tuple[int, int]
 Backend = Literal["grid_sample", "gather", "torchvision"]
 BACKENDS: tuple[str, ...] = ("grid_sample", "gather", "torchvision")
-
-
-def _pair(value: IntPair, name: str) -> tuple[int, int]:
-    """``value`` as a (height, width) pair of ints."""
-    if isinstance(value, int):
-        return value, value
-    if isinstance(value, (tuple, list)) and len(value) == 2 and all(isinstance(v, int) for v in value):
-        return int(value[0]), int(value[1])
-    raise ValueError(f"{name} must be an int or a pair of ints, got {value!r}")
-
-
-def _check_shapes(
-    input: torch.Tensor,
-    offset: torch.Tensor,
-    weight: torch.Tensor,
-    bias: torch.Tensor | None,
-    stride: tuple[int, int],
-    padding: tuple[int, int],
-    dilation: tuple[int, int],
-    mask: torch.Tensor | None,
-) -> tuple[int, int, int, int]:
-    """Validate a deform_conv2d call; return (offset_groups, weight_groups, out_height, out_width)."""
-    if input.dim() != 4:
-        raise ValueError(f"deform_conv2d: input must be [B, C, H, W], got shape {tuple(input.shape)}")
-    if weight.dim() != 4:
-        raise ValueError(f"deform_conv2d: weight must be [C_out, C_in/groups, kh, kw], got shape {tuple(weight.shape)}")
-    if offset.dim() != 4:
-        raise ValueError(f"deform_conv2d: offset must be [B, 2*G*kh*kw, Ho, Wo], got shape {tuple(offset.shape)}")
-    if min(stride) < 1 or min(dilation) < 1 or min(padding) < 0:
-        raise ValueError(
-            f"deform_conv2d: need stride >= 1, dilation >= 1, padding >= 0; got stride {stride}, "
-            f"dilation {dilation}, padding {padding}"
-        )
-    batch, in_channels, height, width = input.shape
-    out_channels, in_per_weight_group, kernel_h, kernel_w = weight.shape
-    taps = kernel_h * kernel_w
-    if in_per_weight_group == 0 or in_channels % in_per_weight_group:
-        raise ValueError(
-            f"deform_conv2d: input has {in_channels} channels, not a multiple of the weight's "
-            f"{in_per_weight_group} input channels per group (weight shape {tuple(weight.shape)})"
-        )
-    weight_groups = in_channels // in_per_weight_group
-    if out_channels % weight_groups:
-        raise ValueError(
-            f"deform_conv2d: {out_channels} output channels are not divisible into {weight_groups} weight groups"
-        )
-    out_h = (height + 2 * padding[0] - dilation[0] * (kernel_h - 1) - 1) // stride[0] + 1
-    out_w = (width + 2 * padding[1] - dilation[1] * (kernel_w - 1) - 1) // stride[1] + 1
-    if out_h < 1 or out_w < 1:
-        raise ValueError(
-            f"deform_conv2d: input {height}x{width} is too small for a {kernel_h}x{kernel_w} kernel with "
-            f"padding {padding}, dilation {dilation} (output would be {out_h}x{out_w})"
-        )
-    if offset.shape[0] != batch or offset.shape[1] % (2 * taps) or offset.shape[1] == 0:
-        raise ValueError(
-            f"deform_conv2d: offset must be [B={batch}, 2*G*{taps}, {out_h}, {out_w}] for this input and "
-            f"kernel, got shape {tuple(offset.shape)}"
-        )
-    offset_groups = offset.shape[1] // (2 * taps)
-    if tuple(offset.shape[2:]) != (out_h, out_w):
-        raise ValueError(
-            f"deform_conv2d: offset spatial size {tuple(offset.shape[2:])} differs from the output size "
-            f"{(out_h, out_w)} given by the input, kernel, stride, padding and dilation"
-        )
-    if in_channels % offset_groups:
-        raise ValueError(
-            f"deform_conv2d: input channels {in_channels} are not divisible into {offset_groups} offset "
-            f"groups (offset has {offset.shape[1]} channels)"
-        )
-    if mask is not None and tuple(mask.shape) != (batch, offset_groups * taps, out_h, out_w):
-        raise ValueError(
-            f"deform_conv2d: mask must be [B, G*kh*kw, Ho, Wo] = "
-            f"{[batch, offset_groups * taps, out_h, out_w]}, got shape {tuple(mask.shape)}"
-        )
-    if bias is not None and tuple(bias.shape) != (out_channels,):
-        raise ValueError(f"deform_conv2d: bias must be [{out_channels}], got shape {tuple(bias.shape)}")
-    return offset_groups, weight_groups, out_h, out_w
-
-
-def _result_dtype(input: torch.Tensor) -> torch.dtype:
-    """Dtype a convolution would return here: the autocast dtype if autocast is on, else the input's."""
-    device_type = input.device.type
-    if torch.is_autocast_enabled(device_type):
-        return torch.get_autocast_dtype(device_type)
-    return input.dtype
-
-
-def _checked_geometry(
-    input: torch.Tensor,
-    offset: torch.Tensor,
-    weight: torch.Tensor,
-    bias: torch.Tensor | None,
-    stride: IntPair,
-    padding: IntPair,
-    dilation: IntPair,
-    mask: torch.Tensor | None,
-) -> tuple:
-    """The (h, w) pairs of stride, padding and dilation, then the offset groups, weight groups and
-    output size of a checked deformable-convolution call (see :func:`_check_shapes`)."""
-    stride_hw, padding_hw = _pair(stride, "stride"), _pair(padding, "padding")
-    dilation_hw = _pair(dilation, "dilation")
-    return (
-        stride_hw,
-        padding_hw,
-        dilation_hw,
-        *_check_shapes(input, offset, weight, bias, stride_hw, padding_hw, dilation_hw, mask),
-    )
-
-
-def _sample_dtype(input: torch.Tensor) -> torch.dtype:
-    """Where sample positions and bilinear weights are computed: float64 for float64 inputs (exact
-    gradcheck), float32 otherwise (bfloat16 cannot hold sub-pixel positions)."""
-    return torch.float64 if input.dtype == torch.float64 else torch.float32
-
-
-def _tap_positions(
-    out_h: int,
-    out_w: int,
-    kernel_h: int,
-    kernel_w: int,
-    stride_hw: tuple[int, int],
-    padding_hw: tuple[int, int],
-    dilation_hw: tuple[int, int],
-    dtype: torch.dtype,
-    device: torch.device,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Undeformed tap positions in input pixels, as output origin + kernel point: the output
-    rows' and columns' origins (Ho,), (Wo,) and each kernel point's row and column displacement
-    (K,) (kernel point k = i*kw + j sits at row i*dilation, column j*dilation)."""
-    rows_o = torch.arange(out_h, device=device, dtype=dtype) * stride_hw[0] - padding_hw[0]
-    cols_o = torch.arange(out_w, device=device, dtype=dtype) * stride_hw[1] - padding_hw[1]
-    tap_rows_K = torch.arange(kernel_h, device=device, dtype=dtype).repeat_interleave(kernel_w) * dilation_hw[0]
-    tap_cols_K = torch.arange(kernel_w, device=device, dtype=dtype).repeat(kernel_h) * dilation_hw[1]
-    return rows_o, cols_o, tap_rows_K, tap_cols_K
 
 
 def deform_conv2d_grid_sample(
@@ -226,43 +100,92 @@ def deform_conv2d_grid_sample(
     stride_hw, padding_hw, dilation_hw, offset_groups, weight_groups, out_h, out_w = _checked_geometry(
         input, offset, weight, bias, stride, padding, dilation, mask
     )
+    result_dtype, sample_dtype, device = _result_dtype(input), _sample_dtype(input), input.device
+    kernel_hw = (weight.shape[2], weight.shape[3])
+    with torch.autocast(device_type=device.type, enabled=False):
+        grid_N_KHo_Wo_2 = _sampling_grid(
+            offset, input.shape[2:], (out_h, out_w), kernel_hw, stride_hw, padding_hw, dilation_hw, sample_dtype, device
+        )
+        sampled = _grid_sample_taps(input, grid_N_KHo_Wo_2, mask, offset_groups, kernel_hw, sample_dtype)
+    return _im2col_matmul(input, sampled, weight, bias, weight_groups, out_h, out_w, result_dtype)
+
+
+def _sampling_grid(
+    offset: torch.Tensor,
+    size_hw: tuple[int, int],
+    out_hw: tuple[int, int],
+    kernel_hw: tuple[int, int],
+    stride_hw: tuple[int, int],
+    padding_hw: tuple[int, int],
+    dilation_hw: tuple[int, int],
+    sample_dtype: torch.dtype,
+    device: torch.device,
+) -> torch.Tensor:
+    """The deformed tap positions of every output pixel as a ``grid_sample`` grid
+    ``[B*G, K*Ho, Wo, 2]`` (kernel-point-major) over an input of ``size_hw``."""
+    (height, width), (out_h, out_w), (kernel_h, kernel_w) = size_hw, out_hw, kernel_hw
+    taps = kernel_h * kernel_w
+    batch, offset_groups = offset.shape[0], offset.shape[1] // (2 * taps)
+    rows_o, cols_o, tap_rows_K, tap_cols_K = _tap_positions(
+        out_h, out_w, kernel_h, kernel_w, stride_hw, padding_hw, dilation_hw, sample_dtype, device
+    )
+    base_y_KHW = (tap_rows_K[:, None, None] + rows_o[None, :, None]).expand(taps, out_h, out_w)
+    base_x_KHW = (tap_cols_K[:, None, None] + cols_o[None, None, :]).expand(taps, out_h, out_w)
+
+    offset_BGK2HW = offset.to(sample_dtype).reshape(batch, offset_groups, taps, 2, out_h, out_w)
+    y_BGKHW = base_y_KHW + offset_BGK2HW[:, :, :, 0]
+    x_BGKHW = base_x_KHW + offset_BGK2HW[:, :, :, 1]
+    # Pixel index -> grid_sample's [-1, 1] with align_corners=False (pixel i is centred at
+    # (2i + 1)/size - 1).  Unlike align_corners=True's 2i/(size - 1) - 1 this stays finite for
+    # 1-pixel-wide inputs; padding_mode="zeros" gives torchvision's zero-outside bilinear.
+    grid_BGKHW2 = torch.stack(((2 * x_BGKHW + 1) / width - 1, (2 * y_BGKHW + 1) / height - 1), dim=-1)
+    return grid_BGKHW2.reshape(batch * offset_groups, taps * out_h, out_w, 2)
+
+
+def _grid_sample_taps(
+    input: torch.Tensor,
+    grid_N_KHo_Wo_2: torch.Tensor,
+    mask: torch.Tensor | None,
+    offset_groups: int,
+    kernel_hw: tuple[int, int],
+    sample_dtype: torch.dtype,
+) -> torch.Tensor:
+    """The input sampled bilinearly (zeros outside) at the grid's positions, scaled by the mask when
+    there is one: ``[B*G, C_in/G, K*Ho, Wo]``, or its ``[B, G, C_in/G, K, Ho, Wo]`` view with a mask."""
     batch, in_channels, height, width = input.shape
+    taps = kernel_hw[0] * kernel_hw[1]
+    out_h, out_w = grid_N_KHo_Wo_2.shape[1] // taps, grid_N_KHo_Wo_2.shape[2]
+    input_N_Cg_H_W = input.to(sample_dtype).reshape(batch * offset_groups, in_channels // offset_groups, height, width)
+    sampled = F.grid_sample(
+        input_N_Cg_H_W, grid_N_KHo_Wo_2, mode="bilinear", padding_mode="zeros", align_corners=False
+    )  # [B*G, C_in/G, K*Ho, Wo]
+    if mask is not None:
+        sampled_BGCKHW = sampled.view(batch, offset_groups, in_channels // offset_groups, taps, out_h, out_w)
+        mask_BG1KHW = mask.to(sample_dtype).reshape(batch, offset_groups, 1, taps, out_h, out_w)
+        sampled = sampled_BGCKHW * mask_BG1KHW
+    return sampled
+
+
+def _im2col_matmul(
+    input: torch.Tensor,
+    sampled: torch.Tensor,
+    weight: torch.Tensor,
+    bias: torch.Tensor | None,
+    weight_groups: int,
+    out_h: int,
+    out_w: int,
+    result_dtype: torch.dtype,
+) -> torch.Tensor:
+    """The sampled taps (the im2col matrix, channel-major) times the weight, plus the bias:
+    ``[B, C_out, Ho, Wo]`` in ``result_dtype``."""
+    batch, in_channels = input.shape[:2]
     out_channels, _, kernel_h, kernel_w = weight.shape
     taps = kernel_h * kernel_w
-    result_dtype, sample_dtype, device = _result_dtype(input), _sample_dtype(input), input.device
-
-    with torch.autocast(device_type=device.type, enabled=False):
-        rows_o, cols_o, tap_rows_K, tap_cols_K = _tap_positions(
-            out_h, out_w, kernel_h, kernel_w, stride_hw, padding_hw, dilation_hw, sample_dtype, device
-        )
-        base_y_KHW = (tap_rows_K[:, None, None] + rows_o[None, :, None]).expand(taps, out_h, out_w)
-        base_x_KHW = (tap_cols_K[:, None, None] + cols_o[None, None, :]).expand(taps, out_h, out_w)
-
-        offset_BGK2HW = offset.to(sample_dtype).reshape(batch, offset_groups, taps, 2, out_h, out_w)
-        y_BGKHW = base_y_KHW + offset_BGK2HW[:, :, :, 0]
-        x_BGKHW = base_x_KHW + offset_BGK2HW[:, :, :, 1]
-        # Pixel index -> grid_sample's [-1, 1] with align_corners=False (pixel i is centred at
-        # (2i + 1)/size - 1).  Unlike align_corners=True's 2i/(size - 1) - 1 this stays finite for
-        # 1-pixel-wide inputs; padding_mode="zeros" gives torchvision's zero-outside bilinear.
-        grid_BGKHW2 = torch.stack(((2 * x_BGKHW + 1) / width - 1, (2 * y_BGKHW + 1) / height - 1), dim=-1)
-        grid_N_KHo_Wo_2 = grid_BGKHW2.reshape(batch * offset_groups, taps * out_h, out_w, 2)
-
-        input_N_Cg_H_W = input.to(sample_dtype).reshape(
-            batch * offset_groups, in_channels // offset_groups, height, width
-        )
-        sampled = F.grid_sample(
-            input_N_Cg_H_W, grid_N_KHo_Wo_2, mode="bilinear", padding_mode="zeros", align_corners=False
-        )  # [B*G, C_in/G, K*Ho, Wo]
-        if mask is not None:
-            sampled_BGCKHW = sampled.view(batch, offset_groups, in_channels // offset_groups, taps, out_h, out_w)
-            mask_BG1KHW = mask.to(sample_dtype).reshape(batch, offset_groups, 1, taps, out_h, out_w)
-            sampled = sampled_BGCKHW * mask_BG1KHW
-
     # Column index c*K + k matches weight.reshape(C_out, C_in*K): this is im2col.
     in_per_group = in_channels // weight_groups
     columns_B_Gw_CK_L = sampled.reshape(batch, weight_groups, in_per_group * taps, out_h * out_w)
     weight_Gw_O_CK = weight.reshape(weight_groups, out_channels // weight_groups, in_per_group * taps)
-    if not torch.is_autocast_enabled(device.type):
+    if not torch.is_autocast_enabled(input.device.type):
         # Outside autocast the matmul runs in the input's dtype, as F.conv2d would (a weight of
         # another dtype is an error there too); under autocast, matmul casts both operands itself.
         columns_B_Gw_CK_L = columns_B_Gw_CK_L.to(input.dtype)
@@ -347,7 +270,7 @@ def deform_conv2d_gather(
         input, offset, weight, bias, stride, padding, dilation, mask
     )
     batch, in_channels, height, width = input.shape
-    out_channels, _, kernel_h, kernel_w = weight.shape
+    kernel_h, kernel_w = weight.shape[2:]
     taps, pixels = kernel_h * kernel_w, out_h * out_w
     group_channels = in_channels // offset_groups
     images = batch * offset_groups
@@ -365,35 +288,69 @@ def deform_conv2d_gather(
         offset_NHWK2 = offset_NHWK2.contiguous()
         y_NHWK1 = (base_y_HWK + offset_NHWK2[..., 0])[..., None]
         x_NHWK1 = (base_x_HWK + offset_NHWK2[..., 1])[..., None]
-        # The corners' indices carry no gradient; the fractions do (through the offsets).  Corners
-        # last, so that each tap's four are one contiguous bag: [N, Ho, Wo, K, 4].
-        y0, x0 = y_NHWK1.detach().floor(), x_NHWK1.detach().floor()
-        fy, fx = y_NHWK1 - y0, x_NHWK1 - x0
-        corner = torch.tensor([0.0, 1.0], dtype=sample_dtype, device=device)
-        corner_y = y0 + corner.repeat_interleave(2)  # corners (y0, x0), (y0, x0+1), (y0+1, x0), (y0+1, x0+1)
-        corner_x = x0 + corner.repeat(2)
-        factor = torch.cat(((1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx), dim=-1)
-        inside = (corner_y >= 0) & (corner_y <= height - 1) & (corner_x >= 0) & (corner_x <= width - 1)
-        factor = factor * inside
-        if mask is not None:
-            mask_NHWK1 = mask.to(sample_dtype).reshape(images, taps, out_h, out_w).permute(0, 2, 3, 1)[..., None]
-            factor = factor * mask_NHWK1
-        image_start = (torch.arange(images, device=device) * (height * width)).view(images, 1, 1, 1, 1)
-        # A NaN position (NaN weights) must give NaN, as grid_sample does, not an out-of-range index:
-        # its factor is already NaN, so any in-range row will do.
-        index = (
-            corner_y.nan_to_num(0).clamp(0, height - 1) * width + corner_x.nan_to_num(0).clamp(0, width - 1)
-        ).long() + image_start
+        index, factor = _corner_rows_and_factors(y_NHWK1, x_NHWK1, mask, (height, width), sample_dtype)
         rows = input.to(sample_dtype).reshape(images, group_channels, height * width).transpose(1, 2)
         rows = rows.reshape(images * height * width, group_channels)
         sampled = bilinear_taps(rows, index.reshape(-1, 4), factor.reshape(-1, 4))  # [N*Ho*Wo*K, C/G]
         if offset_groups > 1:  # channel c = g*C/G + c' must sit next to its tap: [B, L, K, C]
             sampled = sampled.view(batch, offset_groups, pixels, taps, group_channels).permute(0, 2, 3, 1, 4)
         columns = sampled.reshape(batch * pixels, taps, in_channels)
+    return _channels_last_matmul(input, columns, weight, bias, weight_groups, out_h, out_w, result_dtype)
 
+
+def _corner_rows_and_factors(
+    y_NHWK1: torch.Tensor,
+    x_NHWK1: torch.Tensor,
+    mask: torch.Tensor | None,
+    size_hw: tuple[int, int],
+    sample_dtype: torch.dtype,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The rows (in the ``[N*H*W, C/G]`` table of an input of ``size_hw``) of the four bilinear
+    corners of every tap at positions ``[N, Ho, Wo, K, 1]``, and each corner's factor: its bilinear
+    weight, zero outside the image, times the mask when there is one.  Both ``[N, Ho, Wo, K, 4]``."""
+    height, width = size_hw
+    images, out_h, out_w, taps = y_NHWK1.shape[:4]
+    device = y_NHWK1.device
+    # The corners' indices carry no gradient; the fractions do (through the offsets).  Corners
+    # last, so that each tap's four are one contiguous bag: [N, Ho, Wo, K, 4].
+    y0, x0 = y_NHWK1.detach().floor(), x_NHWK1.detach().floor()
+    fy, fx = y_NHWK1 - y0, x_NHWK1 - x0
+    corner = torch.tensor([0.0, 1.0], dtype=sample_dtype, device=device)
+    corner_y = y0 + corner.repeat_interleave(2)  # corners (y0, x0), (y0, x0+1), (y0+1, x0), (y0+1, x0+1)
+    corner_x = x0 + corner.repeat(2)
+    factor = torch.cat(((1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx), dim=-1)
+    inside = (corner_y >= 0) & (corner_y <= height - 1) & (corner_x >= 0) & (corner_x <= width - 1)
+    factor = factor * inside
+    if mask is not None:
+        mask_NHWK1 = mask.to(sample_dtype).reshape(images, taps, out_h, out_w).permute(0, 2, 3, 1)[..., None]
+        factor = factor * mask_NHWK1
+    image_start = (torch.arange(images, device=device) * (height * width)).view(images, 1, 1, 1, 1)
+    # A NaN position (NaN weights) must give NaN, as grid_sample does, not an out-of-range index:
+    # its factor is already NaN, so any in-range row will do.
+    index = (
+        corner_y.nan_to_num(0).clamp(0, height - 1) * width + corner_x.nan_to_num(0).clamp(0, width - 1)
+    ).long() + image_start
+    return index, factor
+
+
+def _channels_last_matmul(
+    input: torch.Tensor,
+    columns: torch.Tensor,
+    weight: torch.Tensor,
+    bias: torch.Tensor | None,
+    weight_groups: int,
+    out_h: int,
+    out_w: int,
+    result_dtype: torch.dtype,
+) -> torch.Tensor:
+    """The im2col matrix ``[B*Ho*Wo, K, C_in]`` (tap-major) times the weight, plus the bias:
+    ``[B, C_out, Ho, Wo]`` in ``result_dtype``."""
+    batch, in_channels = input.shape[:2]
+    out_channels, _, kernel_h, kernel_w = weight.shape
+    taps, pixels = kernel_h * kernel_w, out_h * out_w
     in_per_group, out_per_group = in_channels // weight_groups, out_channels // weight_groups
     weight_GwKCO = weight.reshape(weight_groups, out_per_group, in_per_group, taps).permute(0, 3, 2, 1)
-    if not torch.is_autocast_enabled(device.type):
+    if not torch.is_autocast_enabled(input.device.type):
         columns = columns.to(input.dtype)  # as F.conv2d: the matmul in the input's dtype
     else:
         columns, weight_GwKCO = columns.to(result_dtype), weight_GwKCO.to(result_dtype)

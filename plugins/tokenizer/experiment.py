@@ -226,6 +226,136 @@ def sample_grid(folders: list[tuple[str, Path]], config: Any, host: PluginHost, 
     save_png(image_grid(torch.cat(rows), columns=len(originals)), path)
 
 
+def _checked_config(
+    config: Any,
+    host: PluginHost,
+    out: Path,
+    *,
+    samples: Sequence[int],
+    models: Sequence[str],
+    mae_ratios: Sequence[float],
+    distribution: bool,
+    overwrite: bool,
+) -> Any:
+    """Refuse options that compare nothing or would overwrite ``out``; the config with
+    ``fd_effnetlite0`` among its metrics when ``distribution`` asks for it."""
+    if not samples:
+        raise ConfigError("--samples needs at least one training-set size, e.g. --samples 100 1000")
+    if not models and not mae_ratios:
+        raise ConfigError("nothing to compare: give --models and/or --mae-ratios")
+    if (out / "reconstruction.json").is_file() and not overwrite:
+        raise ConfigError(
+            f"{out} already holds a reconstruction experiment; pass --overwrite to write it again "
+            "(finished runs with an unchanged config are reused), or choose another --out"
+        )
+    if distribution and not any(item.name == "fd_effnetlite0" for item in config.metrics):
+        config = validate_experiment(
+            config.to_dict() | {"metrics": [*config.to_dict()["metrics"], {"name": "fd_effnetlite0"}]}, host
+        )
+    return config
+
+
+def _run_folder(out: Path, label: str, count: int, seed: int) -> Path:
+    """The folder of one run: ``runs/<model>-<N>/seed<S>`` (the label without spaces or brackets)."""
+    return out / "runs" / f"{label.replace(' ', '').replace('(', '-').replace(')', '')}-{count}" / f"seed{seed}"
+
+
+def _run_all(
+    plans: dict[int, list[tuple[str, int, Any]]],
+    host: PluginHost,
+    out: Path,
+    seeds: Sequence[int],
+    largest: int,
+    report: Any,
+) -> tuple[list[dict[str, Any]], dict[str, str], list[tuple[str, Path]], Any]:
+    """Train and score every planned run: the rows, what was skipped, and the (label, folder) runs of
+    the first seed at the ``largest`` N with the config of the last of them (for the sample grid)."""
+    rows: list[dict[str, Any]] = []
+    skipped: dict[str, str] = {}
+    background_rows: set[tuple[int, int]] = set()
+    first_runs: list[tuple[str, Path]] = []
+    first_config = None
+    for seed in seeds:
+        for label, count, run_config in plans[seed]:
+            folder = _run_folder(out, label, count, seed)
+            scores = train_and_score(run_config, host, folder)
+            skipped |= scores.get("skipped") or {}
+            # The no-contact image's scores depend on the held-out images only: one row per seed and N.
+            rows += [
+                row
+                for row in rows_of(scores, label, count, seed)
+                if row["model"] != BACKGROUND or (seed, count) not in background_rows
+            ]
+            background_rows.add((seed, count))
+            report(
+                f"seed {seed}: {label}, {count} samples: SSIM {scores.get('ssim')}, contact PSNR "
+                f"{scores.get('contact_psnr')} (background {scores.get('background_contact_psnr')})"
+                + (" [reused]" if scores.get("reused") else f" in {scores['seconds']:.0f} s")
+            )
+            if seed == seeds[0] and count == largest:
+                first_runs.append((label, folder))
+                first_config = run_config
+    return rows, skipped, first_runs, first_config
+
+
+def _markdown_lines(
+    config: Any, result: dict[str, Any], keys: list[str], seed_count: int, held_out: int | None
+) -> list[str]:
+    """reconstruction.md: the heading, the mean ± std table, the verdicts and what was skipped."""
+    summary, skipped = result["summary"], result["skipped"]
+    lines = [
+        f"# Reconstruction against training-set size ({seed_count} seeds: mean ± std)",
+        "",
+        f"Scene `{config.scene}`, dataset `{result['dataset']}`, {config.data.image_size} px; every tokenizer "
+        f"trained {result['steps']} steps on N samples and scored on the same held-out images "
+        f"({held_out if held_out is not None else f'data.val_fraction={config.data.val_fraction:g}'}).  "
+        "`seconds`: training and scoring wall time.  Arrows: "
+        + ", ".join(f"{key} {direction_arrow(key)}" for key in keys if key != "seconds")
+        + ".",
+        "",
+        *markdown_table(summary, ("model", "samples"), keys),
+        "",
+        "Verdicts (contact region only; a gap counts when it exceeds both spreads):",
+        "",
+        *(verdict_lines(summary) or ["- no contact-region score to compare"]),
+    ]
+    if skipped:
+        lines += ["", "Skipped: " + "; ".join(f"`{name}`: {reason}" for name, reason in sorted(skipped.items()))]
+    return lines
+
+
+def _write_figures(
+    record: ExperimentRecord,
+    summary: list[dict[str, Any]],
+    first_runs: list[tuple[str, Path]],
+    first_config: Any,
+    host: PluginHost,
+    steps: int,
+    largest: int,
+) -> list[str]:
+    """Write reconstruction.png and, when there are runs to show, reconstruction_samples.png; the
+    markdown lines that describe the sample grid."""
+    plot_against_count(
+        summary,
+        count="samples",
+        line="model",
+        keys=("contact_psnr", "ssim"),
+        path=record.path("reconstruction.png"),
+        xlabel="training samples",
+        dashed=(BACKGROUND,),
+        title=f"reconstruction vs training-set size ({len(record.seeds)} seeds, {steps} steps)",
+    )
+    if not first_runs:
+        return []
+    sample_grid(first_runs, first_config, host, record.path("reconstruction_samples.png"))
+    return [
+        "",
+        f"`reconstruction_samples.png`: held-out images (top row), then the reconstructions of "
+        f"{', '.join(label for label, _ in first_runs)} (one row each, in that order) at N = "
+        f"{largest}, seed {record.seeds[0]}.",
+    ]
+
+
 def evaluate_reconstruction_experiment(
     config: Any,
     host: PluginHost,
@@ -242,19 +372,16 @@ def evaluate_reconstruction_experiment(
 ) -> dict[str, Any]:
     """Train and score every (seed, N, model); write reconstruction.json/.md/.png and the sample grid
     into ``out`` (see the module docstring).  Returns what reconstruction.json holds."""
-    if not samples:
-        raise ConfigError("--samples needs at least one training-set size, e.g. --samples 100 1000")
-    if not models and not mae_ratios:
-        raise ConfigError("nothing to compare: give --models and/or --mae-ratios")
-    if (out / "reconstruction.json").is_file() and not overwrite:
-        raise ConfigError(
-            f"{out} already holds a reconstruction experiment; pass --overwrite to write it again "
-            "(finished runs with an unchanged config are reused), or choose another --out"
-        )
-    if distribution and not any(item.name == "fd_effnetlite0" for item in config.metrics):
-        config = validate_experiment(
-            config.to_dict() | {"metrics": [*config.to_dict()["metrics"], {"name": "fd_effnetlite0"}]}, host
-        )
+    config = _checked_config(
+        config,
+        host,
+        out,
+        samples=samples,
+        models=models,
+        mae_ratios=mae_ratios,
+        distribution=distribution,
+        overwrite=overwrite,
+    )
     samples = sorted(set(samples))
     # Every run's config is planned (and every bad option refused) before the folder is made.
     plans = {
@@ -264,33 +391,7 @@ def evaluate_reconstruction_experiment(
         for seed in check_seeds(seeds)
     }
     record = ExperimentRecord("reconstruction", out, seeds, overwrite=overwrite)
-    rows: list[dict[str, Any]] = []
-    skipped: dict[str, str] = {}
-    background_rows: set[tuple[int, int]] = set()
-    first_runs: list[tuple[str, Path]] = []
-    first_config = None
-    for seed in record.seeds:
-        for label, count, run_config in plans[seed]:
-            folder = (
-                out / "runs" / f"{label.replace(' ', '').replace('(', '-').replace(')', '')}-{count}" / f"seed{seed}"
-            )
-            scores = train_and_score(run_config, host, folder)
-            skipped |= scores.get("skipped") or {}
-            # The no-contact image's scores depend on the held-out images only: one row per seed and N.
-            rows += [
-                row
-                for row in rows_of(scores, label, count, seed)
-                if row["model"] != BACKGROUND or (seed, count) not in background_rows
-            ]
-            background_rows.add((seed, count))
-            report(
-                f"seed {seed}: {label}, {count} samples: SSIM {scores.get('ssim')}, contact PSNR "
-                f"{scores.get('contact_psnr')} (background {scores.get('background_contact_psnr')})"
-                + (" [reused]" if scores.get("reused") else f" in {scores['seconds']:.0f} s")
-            )
-            if seed == record.seeds[0] and count == samples[-1]:
-                first_runs.append((label, folder))
-                first_config = run_config
+    rows, skipped, first_runs, first_config = _run_all(plans, host, out, record.seeds, samples[-1], report)
     keys = [key for key in COLUMNS if any(key in row for row in rows)]
     summary = mean_spread(rows, keys, ("model", "samples"))
     summary.sort(key=lambda row: (row["samples"], row["model"] == BACKGROUND))
@@ -308,41 +409,7 @@ def evaluate_reconstruction_experiment(
         "summary": summary,
         "skipped": skipped,
     }
-    lines = [
-        f"# Reconstruction against training-set size ({len(record.seeds)} seeds: mean ± std)",
-        "",
-        f"Scene `{config.scene}`, dataset `{result['dataset']}`, {config.data.image_size} px; every tokenizer "
-        f"trained {steps} steps on N samples and scored on the same held-out images "
-        f"({held_out if held_out is not None else f'data.val_fraction={config.data.val_fraction:g}'}).  "
-        "`seconds`: training and scoring wall time.  Arrows: "
-        + ", ".join(f"{key} {direction_arrow(key)}" for key in keys if key != "seconds")
-        + ".",
-        "",
-        *markdown_table(summary, ("model", "samples"), keys),
-        "",
-        "Verdicts (contact region only; a gap counts when it exceeds both spreads):",
-        "",
-        *(verdict_lines(summary) or ["- no contact-region score to compare"]),
-    ]
-    if skipped:
-        lines += ["", "Skipped: " + "; ".join(f"`{name}`: {reason}" for name, reason in sorted(skipped.items()))]
-    plot_against_count(
-        summary,
-        count="samples",
-        line="model",
-        keys=("contact_psnr", "ssim"),
-        path=record.path("reconstruction.png"),
-        xlabel="training samples",
-        dashed=(BACKGROUND,),
-        title=f"reconstruction vs training-set size ({len(record.seeds)} seeds, {steps} steps)",
-    )
-    if first_runs:
-        sample_grid(first_runs, first_config, host, record.path("reconstruction_samples.png"))
-        lines += [
-            "",
-            f"`reconstruction_samples.png`: held-out images (top row), then the reconstructions of "
-            f"{', '.join(label for label, _ in first_runs)} (one row each, in that order) at N = "
-            f"{samples[-1]}, seed {record.seeds[0]}.",
-        ]
+    lines = _markdown_lines(config, result, keys, len(record.seeds), held_out)
+    lines += _write_figures(record, summary, first_runs, first_config, host, steps, samples[-1])
     record.write(result, lines)
     return result

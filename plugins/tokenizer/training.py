@@ -14,7 +14,7 @@ finite).  The discriminator is not trained before ``disc_start``.  Images enter 
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -258,13 +258,50 @@ def evaluate_reconstruction(
     background = background_3HW.detach().float().cpu().unsqueeze(0) if background_3HW is not None else None
     contact = ContactRegionScores(background) if background is not None else None
 
-    def batches():
-        for start in range(0, len(dataset), batch_size):
-            yield collate_samples([dataset[i] for i in range(start, min(start + batch_size, len(dataset)))])["tactile"]
+    originals, reconstructions, seconds, count = _reconstruct_batches(
+        tokenizer, dataset, metrics, contact, background, batch_size=batch_size, device=device, keep=keep
+    )
+    scores: dict[str, Any] = metrics.scores(digits=None)
+    if background is not None:
+        # The metrics again, on the background against every input (a second pass: the metrics
+        # accumulate one stream at a time).
+        metrics.reset()
+        for images in _tactile_batches(dataset, batch_size):
+            metrics.update(background.expand_as(images), images)
+        scores |= metrics.scores("background_", digits=None)
+        scores |= contact.scores()
+    scores |= _codebook_scores(tokenizer)
+    scores |= {
+        "samples": count,
+        "reconstructions_per_second": count / max(seconds, 1e-9),
+        "examples": (torch.stack(originals), torch.stack(reconstructions)),
+    }
+    return scores
 
+
+def _tactile_batches(dataset: Any, batch_size: int) -> Iterator[torch.Tensor]:
+    """The tactile images of ``dataset`` in order, ``batch_size`` at a time."""
+    for start in range(0, len(dataset), batch_size):
+        yield collate_samples([dataset[i] for i in range(start, min(start + batch_size, len(dataset)))])["tactile"]
+
+
+def _reconstruct_batches(
+    tokenizer: Tokenizer,
+    dataset: Any,
+    metrics: MetricSet,
+    contact: ContactRegionScores | None,
+    background: torch.Tensor | None,
+    *,
+    batch_size: int,
+    device: torch.device | str,
+    keep: int,
+) -> tuple[list[torch.Tensor], list[torch.Tensor], float, int]:
+    """Reconstruct every batch, updating ``metrics`` (and ``contact``, with the background beside
+    the reconstructions); the first ``keep`` originals and reconstructions, the seconds spent
+    reconstructing and the number of images."""
     originals, reconstructions = [], []
     seconds, count = 0.0, 0
-    for images in batches():
+    for images in _tactile_batches(dataset, batch_size):
         images = images.to(device)
         tic = time.perf_counter()
         reconstruction, output = tokenizer.reconstruct(images)
@@ -279,29 +316,20 @@ def evaluate_reconstruction(
         if len(originals) < keep:
             originals.extend(images[: keep - len(originals)].cpu())
             reconstructions.extend(reconstruction[: keep - len(reconstructions)].cpu())
-    scores: dict[str, Any] = metrics.scores(digits=None)
-    if background is not None:
-        # The metrics again, on the background against every input (a second pass: the metrics
-        # accumulate one stream at a time).
-        metrics.reset()
-        for images in batches():
-            metrics.update(background.expand_as(images), images)
-        scores |= metrics.scores("background_", digits=None)
-        scores |= contact.scores()
+    return originals, reconstructions, seconds, count
+
+
+def _codebook_scores(tokenizer: Tokenizer) -> dict[str, Any]:
+    """How much of its codebook the tokenizer used since its usage was reset (empty without one)."""
     counts_K = tokenizer.quantizer.usage_counts()
-    if counts_K is not None:  # a codebook: how much of it the held-out images use
-        counts_K = counts_K.cpu()
-        scores |= {
-            "codebook_usage": float((counts_K > 0).double().mean()),
-            "codes_used": int((counts_K > 0).sum()),
-            "perplexity": float(perplexity_of_counts(counts_K, dtype=torch.float64)),
-        }
-    scores |= {
-        "samples": count,
-        "reconstructions_per_second": count / max(seconds, 1e-9),
-        "examples": (torch.stack(originals), torch.stack(reconstructions)),
+    if counts_K is None:
+        return {}
+    counts_K = counts_K.cpu()
+    return {
+        "codebook_usage": float((counts_K > 0).double().mean()),
+        "codes_used": int((counts_K > 0).sum()),
+        "perplexity": float(perplexity_of_counts(counts_K, dtype=torch.float64)),
     }
-    return scores
 
 
 def _non_finite_message(tokenizer: Tokenizer) -> str:

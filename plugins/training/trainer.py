@@ -36,29 +36,23 @@ each batch and gradients are all-reduced (gloo on CPU, nccl on GPU); rank 0 writ
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import shutil
 import signal
 import time
 import warnings
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 import torch
-from safetensors import safe_open
-from safetensors.torch import save_file
 from torch import nn
 
 from vqtouch.core.checkpoint import (
     TRAINED_IN_KEY,
     CheckpointWriteError,
-    load_state_strict,
     remove_stale_temporaries,
     save,
-    write_checkpoint_file,
 )
 from .settings import TrainConfig, learning_rate_factor
 from vqtouch.core.errors import CheckpointError, VqtouchError, VqtouchWarning
@@ -68,7 +62,6 @@ from .checkpoints import (
     TRAINER_STATE,
     STEP_FOLDER,
     checkpoint_problem,
-    first_line,
     latest_checkpoint,
     latest_good_checkpoint,
     no_good_checkpoint,
@@ -76,24 +69,22 @@ from .checkpoints import (
     step_folders,
 )
 from .batches import StepBatches, collate_samples
+from .optimizers import make_optimizer
+from .trainer_state import (
+    TrainerState,
+    load_module_files,
+    load_optimizer_states,
+    read_trainer_state,
+    restore_ema_and_rng,
+    state_from_meta,
+    trainer_tensors,
+    write_trainer_state,
+)
 from .processes import DistributedContext, StopSignals
 from .precision import autocast, resolve_precision
 
 if TYPE_CHECKING:
     from vqtouch.core.plugin_manager import PluginHost
-
-
-def _fused_supported(param_groups: list[dict[str, Any]]) -> bool:
-    """Whether Adam's fused kernel takes these parameters: float tensors, every one on the CPU or
-    every one on one CUDA device.  The same update as the per-tensor loops in one pass over memory
-    (bench/bench_precision.py: the optimizer step 4x faster on this CPU)."""
-    tensors = [tensor for group in param_groups for tensor in group["params"]]
-    devices = {tensor.device for tensor in tensors}
-    return (
-        len(devices) == 1
-        and next(iter(devices)).type in ("cpu", "cuda")
-        and all(tensor.dtype in (torch.float32, torch.float64, torch.bfloat16, torch.float16) for tensor in tensors)
-    )
 
 
 class TrainingTask(Protocol):
@@ -134,19 +125,6 @@ class TrainingInterrupted(KeyboardInterrupt):
 
 class NeverTrainsWarning(VqtouchWarning):
     """A configured term or schedule never takes effect in this run (it starts after the last step)."""
-
-
-@dataclass
-class TrainerState:
-    """Counters that make a resumed run continue exactly."""
-
-    step: int = 0
-    skipped_steps: int = 0
-    consecutive_skips: int = 0
-    history: list[dict[str, float]] = field(default_factory=list)
-    #: The checkpoint step with the lowest validation loss so far and that loss (None before any).
-    best_step: int | None = None
-    best_score: float | None = None
 
 
 class Trainer:
@@ -209,7 +187,9 @@ class Trainer:
         for module in task.modules.values():
             module.to(device)
         self._broadcast_parameters()
-        self.optimizers = {name: self._make_optimizer(name, params) for name, params in task.parameter_groups().items()}
+        self.optimizers = {
+            name: make_optimizer(name, params, config) for name, params in task.parameter_groups().items()
+        }
         self.ema: dict[str, dict[str, torch.Tensor]] = {}
         if config.ema_decay is not None:
             self.ema = {
@@ -218,32 +198,6 @@ class Trainer:
             }
 
     # -- optimisation ---------------------------------------------------------------------
-    def _make_optimizer(self, name: str, params: list[nn.Parameter] | list[dict[str, Any]]) -> torch.optim.Optimizer:
-        kind = torch.optim.AdamW if self.config.optimizer == "adamw" else torch.optim.Adam
-        groups = params if params and isinstance(params[0], dict) else [{"params": list(params)}]
-        param_groups = []
-        for group in groups:
-            unknown = set(group) - {"params", "lr_scale"}
-            if unknown:
-                raise ValueError(
-                    f"parameter group of optimizer {name!r} has unknown keys {sorted(unknown)}; "
-                    "allowed: 'params' and 'lr_scale'"
-                )
-            scale = float(group.get("lr_scale", 1.0))
-            if not (math.isfinite(scale) and scale > 0):
-                raise ValueError(f"optimizer {name!r}: lr_scale must be a positive finite number, got {scale}")
-            # lr_scale stays in the group (and so in checkpoints) to show why its lr differs.
-            param_groups.append(
-                {"params": list(group["params"]), "lr": self.config.learning_rate * scale, "lr_scale": scale}
-            )
-        return kind(
-            param_groups,
-            lr=self.config.learning_rate,
-            betas=self.config.betas,
-            weight_decay=self.config.weight_decay,
-            fused=_fused_supported(param_groups) or None,
-        )
-
     def autocast(self) -> contextlib.AbstractContextManager:
         """The autocast context of the configured precision (a no-op in fp32; ``auto`` as :func:`resolve_precision`)."""
         return autocast(self.precision, self.device)
@@ -486,19 +440,7 @@ class Trainer:
                 save(module, folder / f"{name}.safetensors", step=step, host=self.host, metadata=trained_in)
             tensors, meta = self._trainer_tensors()
             # Written last: its presence is what makes the folder a complete checkpoint.
-            write_checkpoint_file(
-                folder / TRAINER_STATE,
-                lambda tmp: save_file(
-                    tensors,
-                    str(tmp),
-                    metadata={
-                        "format": "pt",
-                        "vqtouch.format_version": "1",
-                        "vqtouch.component": "trainer_state",
-                        "vqtouch.trainer": json.dumps(meta, sort_keys=True),
-                    },
-                ),
-            )
+            write_trainer_state(folder / TRAINER_STATE, tensors, meta)
         except BaseException as exc:
             if created:
                 shutil.rmtree(folder, ignore_errors=True)  # only this save's files: an incomplete step
@@ -585,39 +527,15 @@ class Trainer:
                 )
 
     def _trainer_tensors(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
-        tensors: dict[str, torch.Tensor] = {"rng.torch_cpu": torch.get_rng_state()}
-        if torch.cuda.is_available():
-            for index, state in enumerate(torch.cuda.get_rng_state_all()):
-                tensors[f"rng.cuda{index}"] = state
-        optim_meta = {}
-        for name, optimizer in self.optimizers.items():
-            state_dict = optimizer.state_dict()
-            scalars: dict[str, dict[str, Any]] = {}
-            for index, values in state_dict["state"].items():
-                for key, value in values.items():
-                    if isinstance(value, torch.Tensor):
-                        tensors[f"optim.{name}.{index}.{key}"] = value.detach().cpu().contiguous()
-                    else:
-                        scalars.setdefault(str(index), {})[key] = value
-            optim_meta[name] = {"param_groups": state_dict["param_groups"], "scalars": scalars}
-        for module_name, shadow in self.ema.items():
-            for key, value in shadow.items():
-                tensors[f"ema.{module_name}.{key}"] = value.detach().cpu().contiguous()
-        meta = {
-            "step": self.state.step,
-            "skipped_steps": self.state.skipped_steps,
-            "consecutive_skips": self.state.consecutive_skips,
-            "history": self.state.history,
-            "best_step": self.state.best_step,
-            "best_score": self.state.best_score,
-            "optimizers": optim_meta,
-            "seed": self.seed,
-            "batch_size": self.batch_size,
-            "world": self.dist.world,
-            # Lets readers check that every module file of the step is there.
-            "modules": sorted(self.task.modules),
-        }
-        return tensors, meta
+        return trainer_tensors(
+            self.optimizers,
+            self.ema,
+            self.state,
+            seed=self.seed,
+            batch_size=self.batch_size,
+            world=self.dist.world,
+            modules=list(self.task.modules),
+        )
 
     def resume(self, checkpoint_dir: Path) -> bool:
         """Load the newest good checkpoint under ``checkpoint_dir`` (or the step folder given);
@@ -646,53 +564,16 @@ class Trainer:
                 self._rewind_run_metrics(0)
                 return False
         path = folder / TRAINER_STATE
-        try:
-            with safe_open(str(path), framework="pt") as handle:
-                meta = json.loads(handle.metadata()["vqtouch.trainer"])
-                tensors = {key: handle.get_tensor(key) for key in handle.keys()}
-        except Exception as exc:  # noqa: BLE001
-            raise CheckpointError(f"{path}: unreadable trainer state ({first_line(exc)})") from None
+        meta, tensors = read_trainer_state(path)
         if meta["batch_size"] != self.batch_size or meta["seed"] != self.seed or meta["world"] != self.dist.world:
             raise CheckpointError(
                 f"{path}: saved with batch_size={meta['batch_size']}, seed={meta['seed']}, "
                 f"world={meta['world']}; resuming needs the same values to continue exactly"
             )
-        from safetensors.torch import load_file
-
-        for name, module in self.task.modules.items():
-            module_path = folder / f"{name}.safetensors"
-            try:
-                module_tensors = load_file(str(module_path), device=str(self.device))
-            except Exception as exc:  # noqa: BLE001 - safetensors raises several error types
-                raise CheckpointError(f"{module_path}: tensor data is unreadable ({first_line(exc)})") from None
-            load_state_strict(module, module_tensors, module_path)
-        for name, optimizer in self.optimizers.items():
-            saved = meta["optimizers"][name]
-            state: dict[int, dict[str, Any]] = {}
-            for key, value in tensors.items():
-                prefix = f"optim.{name}."
-                if key.startswith(prefix):
-                    index, state_key = key[len(prefix) :].split(".", 1)
-                    state.setdefault(int(index), {})[state_key] = value.to(self.device)
-            for index, values in saved["scalars"].items():
-                state.setdefault(int(index), {}).update(values)
-            optimizer.load_state_dict({"state": state, "param_groups": saved["param_groups"]})
-        for module_name, shadow in self.ema.items():
-            for key in shadow:
-                shadow[key] = tensors[f"ema.{module_name}.{key}"].to(self.device)
-        torch.set_rng_state(tensors["rng.torch_cpu"])
-        if torch.cuda.is_available():
-            cuda_states = [tensors[k] for k in sorted(tensors) if k.startswith("rng.cuda")]
-            if cuda_states:
-                torch.cuda.set_rng_state_all(cuda_states)
-        self.state = TrainerState(
-            meta["step"],
-            meta["skipped_steps"],
-            meta["consecutive_skips"],
-            meta["history"],
-            meta.get("best_step"),
-            meta.get("best_score"),
-        )
+        load_module_files(self.task.modules, folder, self.device)
+        load_optimizer_states(self.optimizers, meta, tensors, self.device)
+        restore_ema_and_rng(self.ema, tensors, self.device)
+        self.state = state_from_meta(meta)
         self._saved = (self.state.step, folder)
         self._rewind_run_metrics(self.state.step)
         return True

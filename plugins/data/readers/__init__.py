@@ -7,7 +7,8 @@ cross-generation benchmark (``objectfolder_real``, ``objectfolder_cross``), Fabr
 the lists and CSVs that ship with its dataset, indexes and checks all samples when it is built
 (files exist, pairs are consistent, labels are in range, the split is not empty) and decodes
 images only in ``__getitem__``; shared image decoding, file checks and the lenient
-skip-and-warn policy live in :mod:`vqtouch.plugins.data.readers._io`.
+skip-and-warn policy live in :mod:`vqtouch.plugins.data.readers._io` (the check of every image's
+header when a reader is built in :mod:`vqtouch.plugins.data.readers._headers`).
 """
 
 from __future__ import annotations
