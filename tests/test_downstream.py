@@ -549,3 +549,13 @@ def test_a_class_with_too_few_other_images_is_reported_short(label_run, tmp_path
     row = next(row for row in result["rows"] if row["arm"] == RECONSTRUCTED)
     assert row["train_images"] == sum(count - 2 for count in per_class.values())
     assert "Classes with fewer other training images than that" in (out / "downstream.md").read_text()
+
+
+def test_a_plugin_ranker_is_named_in_the_notes_and_a_built_in_one_described():
+    from vqtouch.plugins.experiments.downstream_report import _settings_notes
+
+    result = {"best_of": 4, "background": "", "classes_without_training_images": [], "best_of_rank": "last"}
+    notes = " ".join(_settings_notes(result))
+    assert "best of 4 candidates by the `last` ranker" in notes
+    notes = " ".join(_settings_notes({**result, "best_of_rank": "consensus"}))
+    assert "by the candidate whose contact centre the others agree on most" in notes

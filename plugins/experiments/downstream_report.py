@@ -120,11 +120,13 @@ def _settings_notes(result: dict[str, Any]) -> list[str]:
     """Notes on best-of sampling, the background arm, the weighted arms and unlearnable classes."""
     lines: list[str] = []
     if result.get("best_of", 1) > 1:
+        rank = result.get("best_of_rank", "judge")
+        # A plugin's ranker has no built-in description: it is named.
+        ranked_by = RANK_DESCRIPTIONS.get(rank, f"the `{rank}` ranker")
         lines += [
             "",
-            f"Each generated image is the best of {result['best_of']} candidates by "
-            + RANK_DESCRIPTIONS[result.get("best_of_rank", "judge")]
-            + " (--best-of, --best-of-rank).",
+            f"Each generated image is the best of {result['best_of']} candidates by {ranked_by} "
+            "(--best-of, --best-of-rank).",
         ]
     if result["background"]:
         lines += [
